@@ -1,0 +1,235 @@
+"""The always-on electrons-to-ADU chain (thesis eqs. 30-34), tiled in row bands.
+
+Order, and why:
+
+1. expected photo-electrons ``S`` (the scene already applied QE as a *mean*, eq. 30), times the pixel
+   response (RESPONSE effects: PRNU, dead pixels);
+2. plus the mean dark signal ``I_d t`` (eq. 32) and DARK effects (DSNU, hot pixels, glow): the mean of
+   everything the pixel collects, which is what ``--noiseless`` writes;
+3. **one** Poisson draw of that total (shot noise of photo-electrons and dark electrons together: the sum
+   of independent Poisson variables is Poisson), then CHARGE effects (cosmic-ray charge);
+4. clip at the full well *before* any read-out noise (a pixel cannot hold more; eq. 34);
+5. charge-domain binning for a CCD (charge is summed in the serial register before the amplifier);
+6. READ effects (nonlinearity, kTC reset noise, row noise), then Gaussian read noise (eq. 33);
+7. conversion to ADU by the gain (e-/ADU), ADU effects, plus the bias (eq. 34);
+8. ADC: truncation to an integer and saturation at ``2**bit_depth - 1`` (and at 0);
+9. DIGITAL effects (stuck pixels), then digital binning for a CMOS (sum or average after the ADC).
+
+Every random draw takes a generator from :meth:`Tile.rng` (frame seed) or :meth:`Tile.hardware_map`
+(hardware seed); tiles are processed on a thread pool (numpy's generators and ufuncs release the GIL), so
+the result is the same bytes on one thread or two.
+"""
+
+from __future__ import annotations
+
+import os
+from collections import deque
+from concurrent.futures import ThreadPoolExecutor
+from typing import Callable, Iterator, Union
+
+import numpy as np
+
+from .effects.base import Effect, Stage, Tile
+from .errors import DetectorError
+from .rng import BAND_ROWS
+from .sensor import SensorConfig
+
+Signal = Union[float, np.ndarray, Callable[[int, int, int, int], np.ndarray]]
+
+
+# --- pure physics functions ---------------------------------------------------------------------------
+
+def shot_noise(rng: np.random.Generator, mean_e: np.ndarray) -> np.ndarray:
+    """Poisson draw of the collected charge [e-] from its mean [e-] (eq. 31), returned as float32."""
+    return rng.poisson(mean_e).astype(np.float32)
+
+
+def read_noise(rng: np.random.Generator, signal_e: np.ndarray, sigma_e: float) -> None:
+    """Add zero-mean Gaussian read noise of ``sigma_e`` [e-] in place (eq. 33)."""
+    if sigma_e > 0:
+        noise = rng.standard_normal(signal_e.shape, dtype=np.float32)
+        noise *= np.float32(sigma_e)
+        signal_e += noise
+
+
+def adc(signal_adu: np.ndarray, bit_depth: int, dtype) -> np.ndarray:
+    """Analogue-to-digital conversion: truncate to an integer and saturate to [0, 2**bit_depth - 1]."""
+    np.floor(signal_adu, out=signal_adu)
+    np.clip(signal_adu, 0, 2 ** bit_depth - 1, out=signal_adu)
+    return signal_adu.astype(dtype, copy=False)
+
+
+def bin_sum(a: np.ndarray, b: int) -> np.ndarray:
+    """Sum ``b x b`` blocks (rows and columns must be multiples of ``b``)."""
+    if b == 1:
+        return a
+    r, c = a.shape
+    return a.reshape(r // b, b, c // b, b).sum(axis=(1, 3), dtype=np.float64 if a.dtype.kind in "iu" else a.dtype)
+
+
+def output_dtype(bit_depth: int):
+    return np.uint16 if bit_depth <= 16 else np.uint32
+
+
+# --- the tiled engine -----------------------------------------------------------------------------------
+
+class Detector:
+    """A sensor plus its optional effects, turning expected electrons into a digital frame.
+
+    Parameters
+    ----------
+    sensor : SensorConfig
+    effects : list of Effect
+        Instantiated effects (see :func:`detector.effects.build_effects`); applied in stage order and,
+        within a stage, in list order.
+    workers : int, optional
+        Threads for the row bands (default: the number of CPUs, at most 4).
+    """
+
+    def __init__(self, sensor: SensorConfig, effects: list[Effect] | None = None, workers: int | None = None):
+        self.sensor = sensor
+        self.effects = list(effects or [])
+        self.workers = workers or min(4, os.cpu_count() or 1)
+        self._by_stage = {st: [e for e in self.effects if st in e.stages] for st in Stage}
+
+    # -- geometry and timing
+    def row_start_times_s(self) -> np.ndarray:
+        """Exposure start of every output row relative to the first (thesis eq. 10; zeros for global)."""
+        s = self.sensor
+        b = s.binning
+        return (np.arange(s.output_shape[0]) * b + (b - 1) / 2.0) * s.row_time_s
+
+    def frame_state(self, exptime_s: float, frame_seed: int) -> dict:
+        """What every effect prepares once per frame (``Effect.prepare_frame``), keyed by effect name."""
+        return {e.name: e.prepare_frame(exptime_s, frame_seed) for e in self.effects}
+
+    def tiles(self, exptime_s: float, frame_seed: int, state: dict | None = None) -> list[Tile]:
+        s = self.sensor
+        state = self.frame_state(exptime_s, frame_seed) if state is None else state
+        (h, w), y0, x0 = s.shape, s.roi_y0, s.roi_x0
+        step = BAND_ROWS  # a multiple of every binning factor up to 6 and of 8
+        if step % s.binning:
+            step = s.binning * max(1, BAND_ROWS // s.binning)
+        return [Tile(s, i, y0 + r, min(y0 + r + step, y0 + h), x0, x0 + w, exptime_s, frame_seed, state=state)
+                for i, r in enumerate(range(0, h, step))]
+
+    # -- one tile
+    def _photo(self, signal: Signal, tile: Tile) -> np.ndarray:
+        s = self.sensor
+        r0, r1 = tile.y0 - s.roi_y0, tile.y1 - s.roi_y0
+        if callable(signal):
+            a = np.asarray(signal(tile.y0, tile.y1, tile.x0, tile.x1), dtype=np.float32)
+        elif np.ndim(signal) == 0:
+            a = np.full(tile.shape, float(signal), dtype=np.float32)
+        else:
+            a = np.array(signal[r0:r1], dtype=np.float32)  # copy: the tile owns its array
+        if a.shape != tile.shape:
+            raise DetectorError(f"expected-signal tile has shape {a.shape}", key="signal",
+                                expected=f"{tile.shape} (rows, cols)")
+        if not np.isfinite(a).all() or (a.size and a.min() < 0):
+            bad = np.argwhere(~np.isfinite(a) | (a < 0))[0]
+            raise DetectorError(f"expected signal is {a[tuple(bad)]} at pixel (x={bad[1]}, y={r0 + bad[0]})",
+                                key="signal", expected="finite values >= 0 e-")
+        return a
+
+    def _run(self, stage: Stage, tile: Tile, data: np.ndarray) -> None:
+        for eff in self._by_stage[stage]:
+            eff.apply(stage, tile, data)
+
+    def mean_electrons(self, signal: Signal, tile: Tile) -> np.ndarray:
+        """Expected collected charge [e-] of a tile: response x photo-electrons + dark mean + DARK effects."""
+        mean = self._photo(signal, tile)
+        self._run(Stage.RESPONSE, tile, mean)
+        mean += np.float32(self.sensor.dark_current_e_per_s * tile.exptime_s)
+        self._run(Stage.DARK, tile, mean)
+        np.maximum(mean, 0, out=mean)
+        return mean
+
+    def process_tile(self, signal: Signal, tile: Tile, noiseless: bool = False) -> np.ndarray:
+        s = self.sensor
+        b = s.binning
+        mean = self.mean_electrons(signal, tile)
+        if noiseless:
+            out = bin_sum(mean, b)
+            return out / np.float32(b * b) if s.binning_mode == "average" else out
+        charge = shot_noise(tile.rng("shot_noise"), mean)
+        del mean
+        self._run(Stage.CHARGE, tile, charge)
+        np.minimum(charge, np.float32(s.full_well_e), out=charge)
+        if s.kind == "ccd" and b > 1:
+            charge = bin_sum(charge, b)
+            tile.bin = b
+        self._run(Stage.READ, tile, charge)
+        read_noise(tile.rng("read_noise"), charge, s.read_noise_e)
+        charge *= np.float32(1.0 / s.gain_e_per_adu)  # now ADU, bias not yet added
+        self._run(Stage.ADU, tile, charge)
+        charge += np.float32(s.bias_adu)
+        dtype = output_dtype(s.bit_depth)
+        adu = adc(charge, s.bit_depth, np.float32)
+        self._run(Stage.DIGITAL, tile, adu)
+        if b > 1 and tile.bin == 1:  # CMOS: digital binning after the ADC
+            adu = bin_sum(adu.astype(np.float64), b)
+            tile.bin = b
+            if s.binning_mode == "sum":
+                np.minimum(adu, s.adc_max_adu, out=adu)
+        if b > 1 and s.binning_mode == "average":
+            adu = np.floor(adu / (b * b))
+        return adu.astype(dtype)
+
+    # -- whole frames
+    def iter_frame(self, signal: Signal, exptime_s: float, frame_seed: int, noiseless: bool = False
+                   ) -> Iterator[tuple[int, int, np.ndarray]]:
+        """Yield ``(row0, row1, array)`` in output (binned) rows, in order, computed on a thread pool.
+
+        At most ``2 x workers`` tiles are in flight, so memory stays bounded for any frame size.
+        """
+        if exptime_s < 0 or not np.isfinite(exptime_s):
+            raise DetectorError(f"exposure time {exptime_s} s", key="exposure.time_s", expected=">= 0 s")
+        if not callable(signal) and np.ndim(signal) == 2 and tuple(np.shape(signal)) != self.sensor.shape:
+            raise DetectorError(f"expected-signal array has shape {np.shape(signal)}", key="signal",
+                                expected=f"{self.sensor.shape} (rows, cols) of the read-out window")
+        if self._by_stage[Stage.FIELD]:  # whole-frame effects need the whole image once
+            signal = self.field_signal(signal, exptime_s, frame_seed)
+        tiles = self.tiles(exptime_s, frame_seed)
+        b = self.sensor.binning
+        y0 = self.sensor.roi_y0
+        with ThreadPoolExecutor(max_workers=self.workers) as pool:
+            pending: deque = deque()
+            it = iter(tiles)
+            for t in it:
+                pending.append((t, pool.submit(self.process_tile, signal, t, noiseless)))
+                if len(pending) >= 2 * self.workers:
+                    break
+            while pending:
+                t, fut = pending.popleft()
+                arr = fut.result()
+                nxt = next(it, None)
+                if nxt is not None:
+                    pending.append((nxt, pool.submit(self.process_tile, signal, nxt, noiseless)))
+                yield (t.y0 - y0) // b, (t.y1 - y0) // b, arr
+
+    def field_signal(self, signal: Signal, exptime_s: float, frame_seed: int) -> np.ndarray:
+        """The whole expected photo-electron image after the FIELD effects (a new array)."""
+        s = self.sensor
+        (h, w), y0, x0 = s.shape, s.roi_y0, s.roi_x0
+        whole = Tile(s, -1, y0, y0 + h, x0, x0 + w, exptime_s, frame_seed,
+                     state=self.frame_state(exptime_s, frame_seed))
+        img = self._photo(signal, whole)
+        self._run(Stage.FIELD, whole, img)
+        return img
+
+    def expose(self, signal: Signal, exptime_s: float, frame_seed: int, noiseless: bool = False) -> np.ndarray:
+        """The whole frame in memory: ADU (uint16/uint32) or, with ``noiseless``, expected e- (float32)."""
+        dtype = np.float32 if noiseless else output_dtype(self.sensor.bit_depth)
+        out = np.empty(self.sensor.output_shape, dtype=dtype)
+        for r0, r1, arr in self.iter_frame(signal, exptime_s, frame_seed, noiseless):
+            out[r0:r1] = arr
+        return out
+
+    def truth(self, exptime_s: float, frame_seed: int) -> dict[str, np.ndarray]:
+        """Every effect's truth tables for this frame (defect lists, cosmic-ray hits ...)."""
+        state = self.frame_state(exptime_s, frame_seed)
+        tables: dict[str, np.ndarray] = {}
+        for eff in self.effects:
+            tables.update(eff.truth(state.get(eff.name)))
+        return tables

@@ -1,0 +1,16 @@
+"""The detector effect catalogue (DESIGN.md). Importing this package registers every built-in effect.
+
+Each module holds pure physics functions and their registered adapters:
+
+* ``pixel_response``: ``prnu``, ``dsnu``, ``dead_pixels``, ``gain_regions``, ``nonlinearity``
+* ``defects``: ``hot_pixels``, ``column_defects``
+* ``readout``: ``row_noise``, ``reset_noise``, ``bias_gradient``, ``crosstalk``
+* ``glow``: ``amp_glow``
+* ``blooming``: ``blooming``
+* ``cosmic_rays``: ``cosmic_rays``
+"""
+
+from .base import Effect, EffectParams, Stage, Tile, build_effects, register_effect, registry
+from . import pixel_response, defects, readout, glow, blooming, cosmic_rays  # noqa: F401  (registration)
+
+__all__ = ["Effect", "EffectParams", "Stage", "Tile", "build_effects", "register_effect", "registry"]

@@ -1,0 +1,194 @@
+"""The effect plug-in interface: stages, tiles, the ``Effect`` base class and the registry.
+
+An effect is a pure physics function (in its own module, testable on plain arrays) plus a thin adapter
+class registered here. The adapter declares
+
+* ``name``: the catalogue name used in scene files (``[effects.NAME]``);
+* ``stages``: where in the chain it acts (see :class:`Stage`);
+* ``Params``: a pydantic model whose fields carry defaults, bounds and units (``json_schema_extra``);
+* ``apply(stage, tile, data)``: works in place on the tile's array for that stage;
+* optionally ``setup()`` (draw the hardware pattern once, from the hardware seed) and ``truth()``
+  (tables written to the FITS file so every frame can be explained).
+
+Users add their own effects without editing the package, either with ``@register_effect`` in their
+code or through the ``newtsim.effects`` entry-point group of their own package.
+"""
+
+from __future__ import annotations
+
+import enum
+from dataclasses import dataclass, field
+from typing import Callable, ClassVar
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict
+
+from ..errors import DetectorError
+from ..rng import BAND_ROWS, generator
+from ..sensor import SensorConfig
+
+
+class Stage(enum.IntEnum):
+    """Where an effect acts, in chain order, with the unit of the array it receives."""
+
+    FIELD = 0  #: once per frame, on the whole expected photo-electron image [e-] (blooming)
+    RESPONSE = 1  #: multiplies the expected photo-electrons [e-] (PRNU, dead pixels, vignetting-like)
+    DARK = 2  #: adds to the expected (mean) signal before the shot-noise draw [e-] (DSNU, hot pixels, glow)
+    CHARGE = 3  #: acts on the drawn charge, before the full-well clip [e-] (cosmic rays)
+    READ = 4  #: acts on the clipped charge at read-out, before read noise [e-] (nonlinearity, kTC, rows)
+    ADU = 5  #: acts on the converted signal, bias not yet added [ADU] (gain regions, crosstalk, bias shape)
+    DIGITAL = 6  #: acts on the quantised frame before binning [ADU] (stuck pixels)
+
+
+class EffectParams(BaseModel):
+    """Base of every effect's parameter model: unknown keys are errors."""
+
+    model_config = ConfigDict(extra="forbid")
+
+
+@dataclass
+class Tile:
+    """A band of rows of the read-out window, processed independently of the others.
+
+    Coordinates are absolute sensor pixels: rows ``y0:y1`` and columns ``x0:x1``. After charge-domain
+    binning (CCD) the arrays shrink by ``bin`` in both axes; :meth:`pixel_centres` follows.
+    """
+
+    sensor: SensorConfig
+    index: int
+    y0: int
+    y1: int
+    x0: int
+    x1: int
+    exptime_s: float
+    frame_seed: int
+    bin: int = 1
+    #: per-frame state of each effect (``Effect.prepare_frame``), keyed by effect name, shared by all tiles
+    state: dict = field(default_factory=dict, repr=False)
+    _cache: dict = field(default_factory=dict, repr=False)
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        return ((self.y1 - self.y0) // self.bin, (self.x1 - self.x0) // self.bin)
+
+    def rng(self, name: str) -> np.random.Generator:
+        """The frame-seed stream of ``name`` for this tile (new noise every frame)."""
+        return generator(self.frame_seed, name, self.index)
+
+    def pixel_centres(self) -> tuple[np.ndarray, np.ndarray]:
+        """Sensor coordinates (y, x) of the centres of the current (possibly binned) pixels, 1-D each."""
+        b = self.bin
+        ys = self.y0 + b * np.arange(self.shape[0]) + (b - 1) / 2.0
+        xs = self.x0 + b * np.arange(self.shape[1]) + (b - 1) / 2.0
+        return ys, xs
+
+    def row_start_s(self) -> np.ndarray:
+        """Exposure start time of each current row relative to the first read-out row (thesis eq. 10)."""
+        ys, _ = self.pixel_centres()
+        return (ys - (self.sensor.roi_y0 + (self.bin - 1) / 2.0)) * self.sensor.row_time_s
+
+    def hardware_map(self, name: str, draw: Callable[[np.random.Generator, tuple[int, int]], np.ndarray]
+                     ) -> np.ndarray:
+        """A dense fixed-pattern map for this tile, drawn from the hardware seed.
+
+        ``draw(rng, shape)`` is called once per random-number band of the *full* sensor width, so the map
+        of a pixel does not depend on the region of interest, the tile size or the thread count.
+        """
+        key = ("hw", name)
+        if key in self._cache:
+            return self._cache[key]
+        s = self.sensor
+        bands = []
+        b0, b1 = self.y0 // BAND_ROWS, (self.y1 - 1) // BAND_ROWS
+        for b in range(b0, b1 + 1):
+            rows = min(BAND_ROWS, s.sensor_height_px - b * BAND_ROWS)
+            bands.append(np.asarray(draw(generator(s.hardware_seed, name, b), (rows, s.sensor_width_px))))
+        full = bands[0] if len(bands) == 1 else np.concatenate(bands, axis=0)
+        r0 = self.y0 - b0 * BAND_ROWS
+        out = full[r0:r0 + (self.y1 - self.y0), self.x0:self.x1]
+        self._cache[key] = out
+        return out
+
+
+class Effect:
+    """Base class of a registered detector effect (see the module docstring)."""
+
+    name: ClassVar[str] = ""
+    stages: ClassVar[tuple[Stage, ...]] = ()
+    Params: ClassVar[type[EffectParams]] = EffectParams
+
+    def __init__(self, params: EffectParams, sensor: SensorConfig):
+        self.params = params
+        self.sensor = sensor
+        self.setup()
+
+    def setup(self) -> None:
+        """Draw whatever is fixed for the whole frame (the hardware pattern), once."""
+
+    def prepare_frame(self, exptime_s: float, frame_seed: int):
+        """Per-frame state shared by all tiles (e.g. the cosmic-ray tracks of this frame), or None.
+
+        Must be a pure function of its arguments and the effect: it is called once per frame and may be
+        called again to rebuild the truth of a frame. Tiles read it as ``tile.state[self.name]``.
+        """
+        return None
+
+    def apply(self, stage: Stage, tile: Tile, data: np.ndarray) -> None:  # pragma: no cover - abstract
+        raise NotImplementedError
+
+    def truth(self, state=None) -> dict[str, np.ndarray]:
+        """Tables (numpy structured arrays) written as FITS extensions, keyed by extension name.
+
+        ``state`` is what :meth:`prepare_frame` returned for the frame.
+        """
+        return {}
+
+    @classmethod
+    def describe(cls) -> dict:
+        """Name, stages, docstring and parameter schema (units, defaults, bounds) for docs and the CLI."""
+        return {"name": cls.name, "stages": [s.name for s in cls.stages],
+                "doc": (cls.__doc__ or "").strip(), "params": cls.Params.model_json_schema()}
+
+
+_REGISTRY: dict[str, type[Effect]] = {}
+
+
+def register_effect(cls: type[Effect]) -> type[Effect]:
+    """Class decorator: add an effect to the catalogue under ``cls.name``."""
+    if not cls.name or not cls.stages:
+        raise TypeError(f"effect class {cls.__name__} must define 'name' and 'stages'")
+    _REGISTRY[cls.name] = cls
+    return cls
+
+
+def _load_entry_points() -> None:
+    from importlib.metadata import entry_points
+
+    for ep in entry_points(group="newtsim.effects"):
+        if ep.name not in _REGISTRY:
+            cls = ep.load()
+            if getattr(cls, "name", None) != ep.name:
+                cls.name = ep.name
+            register_effect(cls)
+
+
+def registry() -> dict[str, type[Effect]]:
+    """All registered effects (built-in, decorated and from the ``newtsim.effects`` entry points)."""
+    _load_entry_points()
+    return dict(_REGISTRY)
+
+
+def build_effects(tables: dict[str, dict], sensor: SensorConfig, *, file: str | None = None) -> list[Effect]:
+    """Instantiate the effects of a scene's ``[effects]`` table, validating every parameter."""
+    from ..config import validate
+
+    known = registry()
+    out = []
+    for name, params in (tables or {}).items():
+        if name not in known:
+            raise DetectorError(f"unknown effect {name!r}", key=f"effects.{name}",
+                                expected="one of " + ", ".join(sorted(known)), file=file)
+        cls = known[name]
+        p = validate(cls.Params, params or {}, prefix=f"effects.{name}", file=file)
+        out.append(cls(p, sensor))
+    return out

@@ -1,0 +1,102 @@
+"""Amplifier glow: light emitted by the read-out amplifier (or hot electronics) near an edge of the sensor.
+
+The reference thesis (Annex V) models the glow of its CMOS as a sum of bivariate-normal maps fitted to
+long darks; an exponential fall-off with the distance from an edge or a corner is the other common law
+(e.g. the "amp glow" of Sony IMX CMOS sensors in long exposures). The glow adds to the dark signal and
+grows linearly with exposure time [e-/s/pixel].
+"""
+
+from __future__ import annotations
+
+from typing import Literal
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field
+
+from .base import Effect, EffectParams, Stage, Tile, register_effect
+
+
+# --- pure functions ---------------------------------------------------------------------------------------
+
+def bivariate_normal_rate(ys: np.ndarray, xs: np.ndarray, x0: float, y0: float, peak: float, sx: float, sy: float,
+                          rho: float, out: np.ndarray) -> None:
+    """Add ``peak exp(-q/2)`` [e-/s] with q the bivariate-normal quadratic form (thesis Annex V) to ``out``.
+
+    Only the window within 6 sigma of the centre is evaluated (the rest is below 1e-8 of the peak).
+    """
+    rsel = np.nonzero(np.abs(ys - y0) <= 6 * sy)[0]
+    csel = np.nonzero(np.abs(xs - x0) <= 6 * sx)[0]
+    if rsel.size == 0 or csel.size == 0:
+        return
+    r0, r1, c0, c1 = rsel[0], rsel[-1] + 1, csel[0], csel[-1] + 1
+    u = ((xs[c0:c1] - x0) / sx)[None, :]
+    v = ((ys[r0:r1] - y0) / sy)[:, None]
+    q = (u * u - 2 * rho * u * v + v * v) / (1 - rho * rho)
+    out[r0:r1, c0:c1] += (peak * np.exp(-0.5 * q)).astype(np.float32)
+
+
+def edge_rate(ys: np.ndarray, xs: np.ndarray, height: int, width: int, where: str, peak: float, scale_px: float,
+              out: np.ndarray) -> None:
+    """Add ``peak exp(-d / L)`` [e-/s] with ``d`` the distance [px] to an edge or corner of the sensor."""
+    dx = {"left": xs, "right": (width - 1) - xs}
+    dy = {"bottom": ys, "top": (height - 1) - ys}
+    parts = where.split("-")
+    if len(parts) == 2:  # a corner: "bottom-left" ...
+        d = np.hypot(dy[parts[0]][:, None], dx[parts[1]][None, :])
+    elif where in dx:
+        d = np.broadcast_to(dx[where][None, :], (ys.size, xs.size))
+    else:
+        d = np.broadcast_to(dy[where][:, None], (ys.size, xs.size))
+    out += (peak * np.exp(-d / scale_px)).astype(np.float32)
+
+
+# --- adapter -----------------------------------------------------------------------------------------------
+
+class GlowSource(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+    x_frac: float = Field(1.0, ge=-1, le=2, description="centre, fraction of the sensor width (0 = column 0)")
+    y_frac: float = Field(0.0, ge=-1, le=2, description="centre, fraction of the sensor height (0 = row 0)")
+    amplitude_e_per_s: float = Field(0.5, ge=0, le=1e6, description="glow rate at the centre [e-/s/pixel]")
+    sigma_x_px: float = Field(500.0, gt=0, description="std along x [pixels]")
+    sigma_y_px: float = Field(500.0, gt=0, description="std along y [pixels]")
+    rho: float = Field(0.0, gt=-1, lt=1, description="correlation of the bivariate normal [1]")
+
+
+class AmpGlowParams(EffectParams):
+    model: Literal["gaussian", "edge"] = "gaussian"
+    sources: list[GlowSource] = Field(default_factory=lambda: [GlowSource()])
+    edge: Literal["left", "right", "top", "bottom", "bottom-left", "bottom-right", "top-left", "top-right"] = "bottom-right"
+    amplitude_e_per_s: float = Field(0.5, ge=0, le=1e6, description="edge model: rate at the edge [e-/s/pixel]")
+    scale_px: float = Field(300.0, gt=0, description="edge model: e-folding distance [pixels]")
+
+
+@register_effect
+class AmpGlow(Effect):
+    """Amplifier glow: additive dark signal rising towards an edge or corner, proportional to exposure time.
+
+    ``gaussian``: a sum of bivariate-normal glow maps (thesis Annex V); ``edge``: ``A exp(-d/L)`` with ``d``
+    the distance to an edge or corner. Adds ``rate x t`` to the mean before the shot-noise draw.
+    """
+
+    name = "amp_glow"
+    stages = (Stage.DARK,)
+    Params = AmpGlowParams
+
+    def rate_map(self, tile: Tile) -> np.ndarray:
+        """Glow rate [e-/s] on the tile's pixels."""
+        p, s = self.params, self.sensor
+        ys, xs = tile.pixel_centres()
+        out = np.zeros((ys.size, xs.size), dtype=np.float32)
+        if p.model == "edge":
+            edge_rate(ys, xs, s.sensor_height_px, s.sensor_width_px, p.edge, p.amplitude_e_per_s, p.scale_px, out)
+        else:
+            for g in p.sources:
+                bivariate_normal_rate(ys, xs, g.x_frac * (s.sensor_width_px - 1), g.y_frac * (s.sensor_height_px - 1),
+                                      g.amplitude_e_per_s, g.sigma_x_px, g.sigma_y_px, g.rho, out)
+        return out
+
+    def apply(self, stage: Stage, tile: Tile, data: np.ndarray) -> None:
+        if tile.exptime_s:
+            m = self.rate_map(tile)
+            m *= np.float32(tile.exptime_s)
+            data += m

@@ -1,0 +1,212 @@
+"""Pixel response: PRNU, DSNU, dead pixels, amplifier gain regions, nonlinearity.
+
+References
+----------
+* EMVA Standard 1288, Release 4.0 (2021), sections 4.1-4.3 and 8: linear camera model, PRNU and DSNU
+  as spatial standard deviations, linearity error.
+* J. R. Janesick, *Photon Transfer*, SPIE Press (2007), chapters 5-8: fixed pattern noise, PRNU,
+  dark FPN, nonlinearity.
+* Reference thesis, section 3.6 (fixed-pattern components of the detector model).
+"""
+
+from __future__ import annotations
+
+from typing import Literal
+
+import numpy as np
+from pydantic import Field, model_validator
+
+from .base import Effect, EffectParams, Stage, Tile, register_effect
+from .common import hardware_positions, in_tile, output_xy, roi_mask
+
+
+# --- pure functions ---------------------------------------------------------------------------------------
+
+def prnu_map(rng: np.random.Generator, shape: tuple[int, int], sigma: float) -> np.ndarray:
+    """Photo-response map with mean 1 and spatial std ``sigma`` (EMVA 1288 PRNU), clipped at 0 [1]."""
+    m = rng.standard_normal(shape, dtype=np.float32)
+    m *= np.float32(sigma)
+    m += np.float32(1.0)
+    np.maximum(m, 0, out=m)
+    return m
+
+
+def dsnu_map(rng: np.random.Generator, shape: tuple[int, int], sigma: float, law: str) -> np.ndarray:
+    """Dark-current multiplier per pixel, mean 1 and std ``sigma`` [1].
+
+    ``lognormal`` (default) keeps every pixel's dark current positive and gives the skewed tail measured
+    on real sensors (Janesick 2007, ch. 7); ``normal`` is the EMVA 1288 Gaussian approximation.
+    """
+    z = rng.standard_normal(shape, dtype=np.float32)
+    if law == "normal":
+        z *= np.float32(sigma)
+        z += np.float32(1.0)
+        return np.maximum(z, 0, out=z)
+    s2 = np.log1p(sigma * sigma)  # lognormal with E = 1, Var = sigma^2
+    z *= np.float32(np.sqrt(s2))
+    z += np.float32(-s2 / 2)
+    return np.exp(z, out=z)
+
+
+def quadratic_nonlinearity(signal_e: np.ndarray, beta: float, full_well_e: float) -> None:
+    """In place: ``S' = S (1 - beta S / FW)``, a response ``beta`` low at full well (EMVA 1288 sec. 8.2)."""
+    if beta:
+        f = signal_e * np.float32(-beta / full_well_e)
+        f += np.float32(1.0)
+        signal_e *= f
+
+
+def region_index(ys: np.ndarray, xs: np.ndarray, nx: int, ny: int, height: int, width: int
+                 ) -> tuple[np.ndarray, np.ndarray]:
+    """Amplifier region (row index, column index) of sensor coordinates on an ``ny x nx`` grid."""
+    iy = np.minimum((ys * ny // height).astype(int), ny - 1)
+    ix = np.minimum((xs * nx // width).astype(int), nx - 1)
+    return iy, ix
+
+
+# --- adapters -----------------------------------------------------------------------------------------------
+
+class PRNUParams(EffectParams):
+    sigma: float = Field(0.01, ge=0, le=0.5, description="spatial std of the response, fraction of the mean [1]",
+                         json_schema_extra={"unit": "1"})
+
+
+@register_effect
+class PRNU(Effect):
+    """Photo-response non-uniformity: each pixel's sensitivity is 1 + sigma N(0,1), mean 1.
+
+    Multiplies the expected photo-electrons before the shot-noise draw (EMVA 1288 eq. 4.3; Janesick 2007
+    ch. 8). Fixed pattern: drawn from the hardware seed, the same every frame.
+    """
+
+    name = "prnu"
+    stages = (Stage.RESPONSE,)
+    Params = PRNUParams
+
+    def apply(self, stage: Stage, tile: Tile, data: np.ndarray) -> None:
+        if self.params.sigma:
+            data *= tile.hardware_map(self.name, lambda rng, shape: prnu_map(rng, shape, self.params.sigma))
+
+
+class DSNUParams(EffectParams):
+    sigma: float = Field(0.3, ge=0, le=5, description="spatial std of the dark current, fraction of its mean [1]",
+                         json_schema_extra={"unit": "1"})
+    law: Literal["lognormal", "normal"] = "lognormal"
+
+
+@register_effect
+class DSNU(Effect):
+    """Dark-signal non-uniformity: each pixel's dark current is I_d m, m of mean 1 and std sigma.
+
+    Adds ``I_d t (m - 1)`` electrons to the mean before the shot-noise draw, so the mean dark current of
+    the frame stays the sensor's (EMVA 1288 sec. 4.3, DSNU; Janesick 2007 ch. 7). Hardware seed.
+    """
+
+    name = "dsnu"
+    stages = (Stage.DARK,)
+    Params = DSNUParams
+
+    def apply(self, stage: Stage, tile: Tile, data: np.ndarray) -> None:
+        dark_e = self.sensor.dark_current_e_per_s * tile.exptime_s
+        if self.params.sigma and dark_e:
+            m = tile.hardware_map(self.name, lambda rng, shape: dsnu_map(rng, shape, self.params.sigma, self.params.law))
+            data += (m - np.float32(1.0)) * np.float32(dark_e)
+
+
+class DeadParams(EffectParams):
+    count: int = Field(100, ge=0, le=10_000_000, description="dead pixels on the full sensor [pixels]")
+    response: float = Field(0.0, ge=0, lt=1, description="residual response of a dead pixel [1]")
+
+
+@register_effect
+class DeadPixels(Effect):
+    """Dead (or weak) pixels: the photo-response of ``count`` pixels drops to ``response`` (0 = no signal).
+
+    They still carry dark current, bias and read noise, like a real dead photodiode read by a live amplifier
+    (Janesick 2007 ch. 8, "dead pixels"). Positions from the hardware seed; table ``DEADPIX`` in the FITS file.
+    """
+
+    name = "dead_pixels"
+    stages = (Stage.RESPONSE,)
+    Params = DeadParams
+
+    def setup(self) -> None:
+        self.ys, self.xs, _ = hardware_positions(self.sensor, self.name, self.params.count)
+
+    def apply(self, stage: Stage, tile: Tile, data: np.ndarray) -> None:
+        _, r, c = in_tile(tile, self.ys, self.xs)
+        data[r, c] *= np.float32(self.params.response)
+
+    def truth(self, state=None) -> dict[str, np.ndarray]:
+        m = roi_mask(self.sensor, self.ys, self.xs)
+        x, y = output_xy(self.sensor, self.ys[m], self.xs[m])
+        t = np.zeros(int(m.sum()), dtype=[("x", "i4"), ("y", "i4"), ("x_sensor", "i4"), ("y_sensor", "i4"),
+                                            ("response", "f4")])
+        t["x"], t["y"], t["x_sensor"], t["y_sensor"] = x, y, self.xs[m], self.ys[m]
+        t["response"] = self.params.response
+        return {"DEADPIX": t}
+
+
+class GainRegionParams(EffectParams):
+    nx: int = Field(2, ge=1, le=64, description="amplifier regions across the columns")
+    ny: int = Field(1, ge=1, le=64, description="amplifier regions across the rows")
+    sigma: float = Field(0.01, ge=0, le=0.5, description="std of the relative gains when drawn [1]")
+    gains: list[float] | None = Field(None, description="explicit relative gains, row-major, ny*nx values [1]")
+
+    @model_validator(mode="after")
+    def _n(self):
+        if self.gains is not None:
+            if len(self.gains) != self.nx * self.ny:
+                raise ValueError(f"gains needs nx*ny = {self.nx * self.ny} values, got {len(self.gains)}")
+            if any(g <= 0 for g in self.gains):
+                raise ValueError("gains must be > 0")
+        return self
+
+
+@register_effect
+class GainRegions(Effect):
+    """Amplifier gain regions: the sensor is read by ``ny x nx`` amplifiers whose conversion gains differ.
+
+    The signal in ADU (bias excluded) of region k is multiplied by g_k, drawn as 1 + sigma N(0,1) from the
+    hardware seed or given explicitly. Shows as steps between quadrants/columns in flats (Janesick 2007
+    ch. 9; multi-amplifier CCD/CMOS read-out, e.g. LSST's 16 channels per CCD).
+    """
+
+    name = "gain_regions"
+    stages = (Stage.ADU,)
+    Params = GainRegionParams
+
+    def setup(self) -> None:
+        p = self.params
+        if p.gains is not None:
+            g = np.asarray(p.gains, dtype=np.float64)
+        else:
+            from ..rng import generator
+            g = 1.0 + p.sigma * generator(self.sensor.hardware_seed, self.name).standard_normal(p.nx * p.ny)
+        self.gains = np.maximum(g, 1e-3).reshape(p.ny, p.nx)
+
+    def apply(self, stage: Stage, tile: Tile, data: np.ndarray) -> None:
+        ys, xs = tile.pixel_centres()
+        s, p = self.sensor, self.params
+        iy, ix = region_index(ys, xs, p.nx, p.ny, s.sensor_height_px, s.sensor_width_px)
+        data *= self.gains[iy[:, None], ix[None, :]].astype(np.float32)
+
+
+class NonlinearityParams(EffectParams):
+    beta: float = Field(0.02, ge=-0.5, le=0.5, description="fractional response deficit at full well [1]")
+
+
+@register_effect
+class Nonlinearity(Effect):
+    """Quadratic response nonlinearity of the read-out chain: S' = S (1 - beta S / FW).
+
+    A pixel at full well reads ``beta`` low (beta < 0: super-linear). Applied to the collected charge after
+    the full-well clip and before read noise (EMVA 1288 sec. 8.2 linearity error; Janesick 2007 ch. 11).
+    """
+
+    name = "nonlinearity"
+    stages = (Stage.READ,)
+    Params = NonlinearityParams
+
+    def apply(self, stage: Stage, tile: Tile, data: np.ndarray) -> None:
+        quadratic_nonlinearity(data, self.params.beta, self.sensor.full_well_e * tile.bin ** 2)

@@ -1,0 +1,147 @@
+"""FITS writing and reading: streamed, atomic, astropy/DS9/AstroImageJ-readable.
+
+The primary HDU is written band by band as the chain produces it (the 151-Mpixel IMX411 frame never has to
+sit in memory twice), into a temporary file in the target folder that is renamed only once complete:
+nothing is ever half-written. Unsigned 16-bit frames use the FITS convention BITPIX = 16, BZERO = 32768.
+Truth tables and images follow as extensions.
+"""
+
+from __future__ import annotations
+
+import io
+import os
+import tempfile
+from pathlib import Path
+from typing import Iterable, Iterator
+
+import numpy as np
+from astropy.io import fits
+
+from .errors import DetectorError
+
+BLOCK = 2880
+
+_BITPIX = {np.dtype(np.uint16): (16, 32768), np.dtype(np.int16): (16, None), np.dtype(np.uint32): (32, 2 ** 31),
+           np.dtype(np.int32): (32, None), np.dtype(np.float32): (-32, None), np.dtype(np.float64): (-64, None)}
+
+
+def _to_disk(arr: np.ndarray) -> bytes:
+    """Big-endian bytes of a band in its FITS representation (unsigned shifted by BZERO)."""
+    dt = arr.dtype
+    if dt == np.uint16:
+        return (arr ^ np.uint16(0x8000)).view(np.int16).astype(">i2").tobytes()
+    if dt == np.uint32:
+        return (arr ^ np.uint32(0x80000000)).view(np.int32).astype(">i4").tobytes()
+    return arr.astype(dt.newbyteorder(">")).tobytes()
+
+
+def primary_header(shape: tuple[int, int], dtype, cards: fits.Header | dict | None = None) -> fits.Header:
+    """A primary header for an image of ``shape`` (rows, cols) and ``dtype``, plus ``cards``."""
+    bitpix, bzero = _BITPIX[np.dtype(dtype)]
+    h = fits.Header()
+    h["SIMPLE"] = True
+    h["BITPIX"] = bitpix
+    h["NAXIS"] = 2
+    h["NAXIS1"] = shape[1]
+    h["NAXIS2"] = shape[0]
+    h["EXTEND"] = True
+    if bzero is not None:
+        h["BSCALE"] = 1
+        h["BZERO"] = bzero
+    if cards is not None:
+        items = cards.cards if isinstance(cards, fits.Header) else cards.items()
+        for card in items:
+            key, val, *com = card if isinstance(card, tuple) else (card.keyword, card.value, card.comment)
+            if key in ("COMMENT", "HISTORY"):
+                h.add_comment(val) if key == "COMMENT" else h.add_history(val)
+            else:
+                h[key] = (val, com[0]) if com and com[0] else val
+    return h
+
+
+def _extension_bytes(hdus: list) -> bytes:
+    """Serialized extension HDUs (an empty primary is written to a buffer and its block dropped)."""
+    if not hdus:
+        return b""
+    buf = io.BytesIO()
+    fits.HDUList([fits.PrimaryHDU(), *hdus]).writeto(buf)
+    raw = buf.getvalue()
+    assert len(fits.PrimaryHDU().header.tostring()) == BLOCK
+    return raw[BLOCK:]
+
+
+def table_hdu(name: str, table: np.ndarray) -> fits.BinTableHDU:
+    hdu = fits.BinTableHDU(data=table, name=name)
+    return hdu
+
+
+def write_streamed(path: str | os.PathLike, header: fits.Header, bands: Iterable[tuple[int, int, np.ndarray]],
+                   shape: tuple[int, int], dtype, extensions: list | None = None) -> Path:
+    """Write a FITS file whose primary image arrives as ``(row0, row1, band)`` in order; atomic.
+
+    Parameters
+    ----------
+    path : output file
+    header : the primary header (from :func:`primary_header`)
+    bands : iterator of (first row, end row, array of those rows)
+    shape, dtype : of the whole image
+    extensions : HDUs appended after the image (truth tables, expected electrons ...)
+    """
+    path = Path(path)
+    folder = path.parent if str(path.parent) else Path(".")
+    if not folder.is_dir():
+        raise DetectorError(f"output folder {folder} does not exist", key="output", expected="an existing folder")
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".part", dir=folder)
+    try:
+        with os.fdopen(fd, "wb") as f:
+            f.write(header.tostring().encode("ascii"))
+            expected_row = 0
+            nbytes = 0
+            for r0, r1, band in bands:
+                if r0 != expected_row or band.shape != (r1 - r0, shape[1]) or band.dtype != np.dtype(dtype):
+                    raise RuntimeError(f"band rows {r0}:{r1} {band.shape} {band.dtype} out of order or shape")
+                raw = _to_disk(band)
+                f.write(raw)
+                nbytes += len(raw)
+                expected_row = r1
+            if expected_row != shape[0]:
+                raise RuntimeError(f"image ended at row {expected_row} of {shape[0]}")
+            f.write(b"\0" * (-nbytes % BLOCK))
+            f.write(_extension_bytes(list(extensions or [])))
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+    return path
+
+
+def write_image(path, image: np.ndarray, cards=None, extensions: list | None = None) -> Path:
+    """Write a whole in-memory image (atomic)."""
+    header = primary_header(image.shape, image.dtype, cards)
+    return write_streamed(path, header, [(0, image.shape[0], image)], image.shape, image.dtype, extensions)
+
+
+def read_image(path: str | os.PathLike, *, key: str | None = None) -> tuple[np.ndarray, fits.Header]:
+    """Read the first 2-D image of a FITS file (primary or, for tile-compressed files, an extension).
+
+    Raises :class:`DetectorError` naming the file for a missing, corrupt, truncated or non-image file.
+    Returns the data as float64 (BZERO/BSCALE applied) and its header.
+    """
+    p = Path(path)
+    if not p.is_file():
+        raise DetectorError("file not found", key=key, file=str(p), expected="an existing FITS file")
+    try:
+        with fits.open(p, memmap=False) as hdul:
+            for hdu in hdul:
+                if hdu.is_image and hdu.header.get("NAXIS", 0) == 2 or isinstance(hdu, fits.CompImageHDU):
+                    data = hdu.data
+                    if data is None or data.ndim != 2:
+                        continue
+                    return np.asarray(data, dtype=np.float64), hdu.header.copy()
+    except DetectorError:
+        raise
+    except Exception as exc:  # astropy raises OSError/ValueError/TypeError for damaged files
+        raise DetectorError(f"cannot read as FITS ({type(exc).__name__}: {exc})", key=key, file=str(p),
+                            expected="a complete FITS file") from None
+    raise DetectorError("no 2-D image in the file", key=key, file=str(p), expected="a 2-D image HDU")

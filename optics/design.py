@@ -1,0 +1,146 @@
+"""Telescope design files (TOML): geometry is data, not code (DESIGN.md convention 7).
+
+``load_design("art")`` reads a built-in design from ``optics/designs/``; any other string is a path.
+Inconsistent designs get an :class:`OpticsError` naming the file and the field.
+"""
+
+from __future__ import annotations
+
+import math
+import tomllib
+from pathlib import Path
+from typing import Literal
+
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+
+BUILTIN = Path(__file__).with_name("designs")
+
+
+class OpticsError(ValueError):
+    """A user error in a design file: names the file and the field."""
+
+
+class _Table(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+
+class Primary(_Table):
+    diameter_mm: float = Field(gt=0, le=20_000)
+    focal_length_mm: float = Field(gt=0, le=200_000)
+    conic: float = Field(-1.0, ge=-10, le=10)
+
+
+class Secondary(_Table):
+    minor_axis_mm: float = Field(ge=0)
+    distance_to_focus_mm: float = Field(gt=0)
+
+
+class Spider(_Table):
+    vanes: int = Field(4, ge=0, le=16)
+    width_mm: float = Field(2.0, ge=0)
+
+
+class Tube(_Table):
+    inner_diameter_mm: float = Field(gt=0)
+    length_mm: float = Field(gt=0)
+
+
+class Baffle(_Table):
+    vanes: int = Field(0, ge=0, le=200)
+    vane_inner_diameter_mm: float = Field(gt=0)
+
+
+class Coatings(_Table):
+    mirror_reflectance: float = Field(0.92, ge=0, le=1)
+    mirror_roughness_nm: float = Field(2.0, ge=0, le=1000)
+    black_model: Literal["lambertian", "abg"] = "lambertian"
+    black_reflectance: float = Field(0.04, ge=0, le=1)
+    abg_a: float = Field(0.001, ge=0)
+    abg_b: float = Field(0.001, gt=0)
+    abg_g: float = Field(2.0, gt=0, le=10)
+
+
+class FocalPlane(_Table):
+    width_mm: float = Field(gt=0)
+    height_mm: float = Field(gt=0)
+
+
+class Corrector(_Table):
+    enabled: bool = False
+
+
+class Design(_Table):
+    """A Newtonian telescope: see DESIGN.md, "Design file"."""
+
+    name: str = "custom"
+    primary: Primary
+    secondary: Secondary
+    spider: Spider = Spider()
+    tube: Tube
+    baffle: Baffle
+    coatings: Coatings = Coatings()
+    focal_plane: FocalPlane
+    corrector: Corrector = Corrector()
+
+    @model_validator(mode="after")
+    def _consistent(self):
+        p, s, t = self.primary, self.secondary, self.tube
+        if s.minor_axis_mm >= p.diameter_mm:
+            raise ValueError("secondary.minor_axis_mm must be smaller than primary.diameter_mm")
+        if t.inner_diameter_mm < p.diameter_mm:
+            raise ValueError("tube.inner_diameter_mm must be at least primary.diameter_mm")
+        if s.distance_to_focus_mm >= p.focal_length_mm:
+            raise ValueError("secondary.distance_to_focus_mm must be shorter than primary.focal_length_mm")
+        if s.distance_to_focus_mm < t.inner_diameter_mm / 2:
+            raise ValueError("secondary.distance_to_focus_mm puts the focus inside the tube wall "
+                             f"(needs >= tube radius {t.inner_diameter_mm / 2} mm)")
+        if self.baffle.vanes and self.baffle.vane_inner_diameter_mm < p.diameter_mm:
+            raise ValueError("baffle.vane_inner_diameter_mm closes the aperture (must be >= primary.diameter_mm)")
+        return self
+
+    # --- first-order quantities ---------------------------------------------------------------------
+    @property
+    def f_number(self) -> float:
+        return self.primary.focal_length_mm / self.primary.diameter_mm
+
+    @property
+    def plate_scale_arcsec_per_mm(self) -> float:
+        return 180 / math.pi * 3600 / self.primary.focal_length_mm
+
+    def pixel_scale_arcsec(self, pitch_um: float) -> float:
+        """Angular size of a pixel of ``pitch_um`` [arcsec/pixel] on the optical axis."""
+        return self.plate_scale_arcsec_per_mm * pitch_um * 1e-3
+
+    @property
+    def collecting_area_m2(self) -> float:
+        """Clear aperture: primary minus the secondary's shadow and the spider vanes [m^2]."""
+        p, s, sp = self.primary, self.secondary, self.spider
+        ring = math.pi / 4 * (p.diameter_mm ** 2 - s.minor_axis_mm ** 2)
+        vanes = sp.vanes * sp.width_mm * (p.diameter_mm - s.minor_axis_mm) / 2
+        return (ring - vanes) * 1e-6
+
+    @property
+    def mirror_throughput(self) -> float:
+        """Primary and diagonal reflectances together [1]."""
+        return self.coatings.mirror_reflectance ** 2
+
+
+def load_design(name_or_path: str) -> Design:
+    """A built-in design (``"art"``, ``"bare"``) or a design TOML file."""
+    path = BUILTIN / f"{name_or_path}.toml"
+    if not path.is_file():
+        path = Path(name_or_path)
+        if not path.is_file():
+            builtin = ", ".join(sorted(p.stem for p in BUILTIN.glob("*.toml")))
+            raise OpticsError(f"{name_or_path}: no such design (built-in: {builtin}, or a path to a design TOML)")
+    try:
+        data = tomllib.loads(path.read_text())
+    except (OSError, tomllib.TOMLDecodeError) as exc:
+        raise OpticsError(f"{path}: cannot read design: {exc}") from None
+    data.setdefault("name", path.stem)
+    try:
+        return Design.model_validate(data)
+    except ValidationError as exc:
+        e = exc.errors()[0]
+        loc = ".".join(str(x) for x in e["loc"]) or "design"
+        raise OpticsError(f"{path}: key '{loc}': {e['msg']}") from None

@@ -1,0 +1,158 @@
+"""The main job: a scene in, a FITS frame (and its truth) out.
+
+This version renders everything without point sources: bias, dark, flat and empty-sky frames (sky
+background, flat-screen illumination, every detector effect). Stars, objects, optics-derived vignetting
+and straylight plug into :func:`expected_signal` as they arrive.
+"""
+
+from __future__ import annotations
+
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from astropy.io import fits
+
+from detector import Detector, build_effects
+from detector.fits_io import primary_header, table_hdu, write_streamed
+from detector.rng import fresh_seed
+from optics.design import OpticsError, load_design
+
+from .photometry import sky_electron_rate_per_pixel
+from .projection import tan_wcs
+from .scene import Scene, SceneError
+
+TRUTH_DTYPE = [("ra_deg", "f8"), ("dec_deg", "f8"), ("x", "f8"), ("y", "f8"), ("flux_e", "f8"), ("kind", "S8")]
+
+
+@dataclass
+class Setup:
+    """Everything resolved from a scene that a render needs."""
+
+    scene: Scene
+    detector: Detector
+    exptime_s: float
+    signal_e: float  # expected photo-electrons per unbinned pixel over the exposure
+    pixel_scale_arcsec: float
+    sky_e_per_s: float
+    warnings: list[str]
+
+
+def prepare(scene: Scene, workers: int | None = None) -> Setup:
+    sensor = scene.sensor()
+    effects = build_effects(scene.effects, sensor, file=scene.source)
+    try:
+        design = load_design(scene.telescope.design)
+    except OpticsError as exc:
+        raise SceneError(str(exc), key="telescope.design", file=scene.source) from None
+    scale = scene.telescope.pixel_scale_arcsec or design.pixel_scale_arcsec(sensor.pixel_pitch_um)
+    exp = scene.exposure
+    exptime = 0.0 if exp.frame == "bias" else exp.time_s
+    warnings = []
+    sky_rate = 0.0
+    flat_rate = 0.0
+    if exp.frame == "light":
+        if scene.sky.background_mag_arcsec2 is not None:
+            sky_rate = sky_electron_rate_per_pixel(scene.sky.background_mag_arcsec2, scale, design.collecting_area_m2,
+                                                   design.mirror_throughput, sensor.qe_wavelength_nm, sensor.qe)
+        flat_rate = scene.sky.flat_e_per_s or 0.0
+        if scene.sky.stars or scene.objects:
+            warnings.append("stars and objects are not rendered by this version (empty-sky frame); "
+                            "set sky.stars = false to silence this")
+    return Setup(scene, Detector(sensor, effects, workers=workers), exptime, (sky_rate + flat_rate) * exptime,
+                 scale, sky_rate, warnings)
+
+
+def header_cards(setup: Setup, seed: int, noiseless: bool) -> fits.Header:
+    """The contract's cards (GAIN, BIAS, RDNOISE, EXPTIME, FULLWELL, BITDEPTH, ROWTIME) and the WCS."""
+    s = setup.detector.sensor
+    sc = setup.scene
+    b = s.binning
+    h = fits.Header()
+    h["BUNIT"] = ("electron", "expected electrons, before any random draw") if noiseless else ("adu", "")
+    h["EXPTIME"] = (setup.exptime_s, "[s] exposure time")
+    h["GAIN"] = (s.gain_e_per_adu, "[e-/ADU] conversion gain")
+    h["BIAS"] = (s.bias_adu, "[ADU] bias level")
+    h["RDNOISE"] = (s.read_noise_e, "[e-] read noise")
+    h["FULLWELL"] = (s.full_well_e, "[e-] full-well capacity")
+    h["BITDEPTH"] = (s.bit_depth, "ADC bits")
+    h["ROWTIME"] = (s.row_time_s * b, "[s] exposure-start delay per output row (0: global)")
+    h["DARKCUR"] = (s.dark_current_e_per_s, "[e-/s/pixel] mean dark current")
+    h["SHUTTER"] = (s.shutter, "rolling (CMOS) or global")
+    h["DETECTOR"] = (s.name, "sensor preset")
+    h["SENSKIND"] = (s.kind, "ccd or cmos")
+    h["XPIXSZ"] = (s.pixel_pitch_um * b, "[um] pixel size incl. binning")
+    h["YPIXSZ"] = (s.pixel_pitch_um * b, "[um] pixel size incl. binning")
+    h["XBINNING"] = (b, "binning factor")
+    h["YBINNING"] = (b, "binning factor")
+    h["BINMODE"] = (s.binning_mode, "sum or average")
+    h["ROIX0"] = (s.roi_x0, "first sensor column of the window (0-based)")
+    h["ROIY0"] = (s.roi_y0, "first sensor row of the window (0-based)")
+    h["CCD-TEMP"] = (s.temperature_c, "[C] sensor temperature")
+    h["IMAGETYP"] = ({"light": "Light Frame", "dark": "Dark Frame", "bias": "Bias Frame"}[sc.exposure.frame], "")
+    h["FRAMETYP"] = (sc.exposure.frame, "light, dark or bias")
+    h["DATE-OBS"] = (sc.pointing.epoch, "start of exposure (UTC)")
+    h["TELESCOP"] = (sc.telescope.design, "telescope design")
+    h["PIXSCALE"] = (setup.pixel_scale_arcsec * b, "[arcsec/pixel] incl. binning")
+    h["SKYRATE"] = (setup.sky_e_per_s, "[e-/s/unbinned pixel] sky background")
+    h["SEED"] = (seed, "frame seed (noise)")
+    h["HWSEED"] = (s.hardware_seed, "hardware seed (fixed pattern)")
+    h["NOISELES"] = (bool(noiseless), "expected electrons, no random draw")
+    h["EFFECTS"] = (",".join(e.name for e in setup.detector.effects) or "none", "optional effects on")
+    h["CREATOR"] = ("newtsim", "")
+    wcs = tan_wcs(sc.pointing.ra_deg, sc.pointing.dec_deg, sc.pointing.roll_deg, setup.pixel_scale_arcsec * b,
+                  s.output_shape)
+    h.update(wcs.to_header())
+    for w in setup.warnings:
+        h.add_history(w[:70])
+    return h
+
+
+def scene_hdu(scene: Scene) -> fits.BinTableHDU:
+    """The resolved scene as TOML text in a one-row table (extension ``SCENE``)."""
+    import tomli_w
+
+    text = tomli_w.dumps(scene.resolved())
+    col = fits.Column(name="toml", format=f"{max(len(text), 1)}A", array=np.array([text]))
+    return fits.BinTableHDU.from_columns([col], name="SCENE")
+
+
+def render(scene: Scene, out: str | Path, *, seed: int | None = None, noiseless: bool = False,
+           expected: bool = False, progress: bool = True, workers: int | None = None) -> dict:
+    """Render ``scene`` to the FITS file ``out``; return a summary (path, seed, shape, warnings).
+
+    Parameters
+    ----------
+    seed : frame seed; default the scene's ``exposure.seed`` or a fresh one (written to ``SEED``)
+    noiseless : write the expected electrons (float32) instead of ADU
+    expected : also write the expected electrons as extension ``EXPECTED``
+    """
+    setup = prepare(scene, workers)
+    det = setup.detector
+    s = det.sensor
+    seed = seed if seed is not None else (scene.exposure.seed if scene.exposure.seed is not None else fresh_seed())
+    dtype = np.float32 if noiseless else (np.uint16 if s.bit_depth <= 16 else np.uint32)
+    header = primary_header(s.output_shape, dtype, header_cards(setup, seed, noiseless))
+    ext = [scene_hdu(scene), table_hdu("TRUTH", np.zeros(0, dtype=TRUTH_DTYPE))]
+    ext += [table_hdu(name, t) for name, t in det.truth(setup.exptime_s, seed).items()]
+    if expected and not noiseless:
+        img = det.expose(setup.signal_e, setup.exptime_s, seed, noiseless=True)
+        ext.append(fits.ImageHDU(img, name="EXPECTED"))
+    bands = det.iter_frame(setup.signal_e, setup.exptime_s, seed, noiseless=noiseless)
+    if progress and sys.stderr.isatty():
+        bands = _with_progress(bands, len(det.tiles(setup.exptime_s, seed, state={})), str(out))
+    path = write_streamed(out, header, bands, s.output_shape, dtype, ext)
+    return {"path": str(path), "seed": seed, "shape": list(s.output_shape), "exptime_s": setup.exptime_s,
+            "sky_e_per_s": setup.sky_e_per_s, "warnings": setup.warnings}
+
+
+def _with_progress(bands, total: int, label: str):
+    from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
+
+    with Progress(TextColumn("[bold]render[/bold] {task.description}"), BarColumn(), TextColumn("{task.completed}/{task.total} bands"),
+                  TimeElapsedColumn(), transient=True) as prog:
+        task = prog.add_task(label, total=total)
+        for item in bands:
+            prog.advance(task)
+            yield item

@@ -1,0 +1,150 @@
+"""Scene files (TOML, DESIGN.md "Scene file"): loading, ``--set`` overrides, validation, resolution.
+
+Every user mistake becomes a :class:`SceneError` naming the file, the dotted key and what was expected.
+"""
+
+from __future__ import annotations
+
+import copy
+import tomllib
+from pathlib import Path
+from typing import Any, Literal
+
+import tomli_w
+from pydantic import BaseModel, ConfigDict, Field, model_validator
+
+from detector import DetectorError, make_sensor
+from detector.config import validate
+
+BUILTIN_SCENES = Path(__file__).with_name("data")
+
+
+class SceneError(DetectorError):
+    """A user error in a scene file or a ``--set`` override."""
+
+
+class _Table(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+
+class TelescopeCfg(_Table):
+    design: str = "art"
+    pixel_scale_arcsec: float | None = Field(None, gt=0, le=3600, description="plate-scale override [arcsec/pixel]")
+
+
+class PointingCfg(_Table):
+    ra_deg: float = Field(120.95115, ge=0, lt=360)
+    dec_deg: float = Field(-29.25022, ge=-90, le=90)
+    roll_deg: float = Field(0.0, ge=-360, le=360)
+    epoch: str = "2023-02-01T22:00:00"
+
+    @model_validator(mode="after")
+    def _epoch(self):
+        from astropy.time import Time
+
+        try:
+            Time(self.epoch, format="isot", scale="utc")
+        except ValueError:
+            raise ValueError(f"epoch {self.epoch!r} is not an ISO time like 2023-02-01T22:00:00") from None
+        return self
+
+
+class ExposureCfg(_Table):
+    time_s: float = Field(2.0, ge=0, le=1e6, description="exposure time [s]")
+    frame: Literal["light", "dark", "bias"] = "light"
+    tracking: Literal["sidereal", "rate"] = "sidereal"
+    rate_ra_deg_s: float = 0.0
+    rate_dec_deg_s: float = 0.0
+    seed: int | None = Field(None, ge=0, description="frame seed (noise); --seed overrides; random if absent")
+
+
+class SkyCfg(_Table):
+    background_mag_arcsec2: float | None = Field(21.0, ge=5, le=35, description="sky brightness [AB mag/arcsec^2]")
+    stars: bool = False
+    star_mag_limit: float = Field(16.0, le=30)
+    catalog: str = "builtin"
+    flat_e_per_s: float | None = Field(None, ge=0, description="uniform illumination (flat screen) [e-/pixel/s]")
+
+
+class Scene(_Table):
+    """A validated scene. ``detector`` and ``effects`` stay as tables; they are validated by the detector."""
+
+    telescope: TelescopeCfg = TelescopeCfg()
+    detector: dict[str, Any] = Field(default_factory=lambda: {"preset": "imx411"})
+    pointing: PointingCfg = PointingCfg()
+    exposure: ExposureCfg = ExposureCfg()
+    sky: SkyCfg = SkyCfg()
+    objects: list[dict[str, Any]] = Field(default_factory=list)
+    effects: dict[str, dict[str, Any]] = Field(default_factory=dict)
+    source: str = Field("<built-in>", exclude=True)
+
+    def sensor(self):
+        det = dict(self.detector)
+        preset = det.pop("preset", "imx411")
+        return make_sensor(preset, det, file=self.source)
+
+    def resolved(self) -> dict:
+        """The scene with every default filled in, including the resolved sensor (for the FITS file)."""
+        d = self.model_dump(mode="json", exclude_none=True)
+        d["detector"] = {"preset": self.detector.get("preset", "imx411"),
+                         **self.sensor().model_dump(mode="json", exclude_none=True)}
+        return d
+
+    def to_toml(self) -> str:
+        return tomli_w.dumps(self.model_dump(mode="json", exclude_none=True))
+
+
+def parse_value(text: str) -> Any:
+    """A ``--set`` value as TOML (numbers, booleans, strings, arrays, inline tables), else a plain string."""
+    try:
+        return tomllib.loads(f"v = {text}")["v"]
+    except tomllib.TOMLDecodeError:
+        return text
+
+
+def apply_overrides(data: dict, assignments: list[str], *, file: str) -> dict:
+    """Apply ``KEY=VALUE`` overrides (dotted keys, e.g. ``exposure.time_s=150``) to a scene dict."""
+    out = copy.deepcopy(data)
+    for item in assignments or []:
+        if "=" not in item:
+            raise SceneError(f"--set {item!r} has no '='", key=item, expected="KEY=VALUE, e.g. exposure.time_s=150",
+                             file=file)
+        key, value = item.split("=", 1)
+        parts = key.strip().split(".")
+        if not all(parts):
+            raise SceneError("empty key part", key=key, expected="a dotted key like exposure.time_s", file=file)
+        node = out
+        for part in parts[:-1]:
+            nxt = node.setdefault(part, {})
+            if not isinstance(nxt, dict):
+                raise SceneError(f"'{part}' is a value, not a table", key=key, expected="a dotted path to a key",
+                                 file=file)
+            node = nxt
+        node[parts[-1]] = parse_value(value.strip())
+    return out
+
+
+def builtin_scene_names() -> list[str]:
+    return sorted(p.stem for p in BUILTIN_SCENES.glob("*.toml"))
+
+
+def load_scene(path_or_name: str, overrides: list[str] | None = None) -> Scene:
+    """Load, override and validate a scene (a path, or the name of a built-in scene such as ``default``)."""
+    p = Path(path_or_name)
+    if not p.is_file() and (BUILTIN_SCENES / f"{path_or_name}.toml").is_file():
+        p = BUILTIN_SCENES / f"{path_or_name}.toml"
+    file = str(p)
+    if not p.is_file():
+        raise SceneError("scene file not found", file=file,
+                         expected="a scene TOML path or a built-in scene: " + ", ".join(builtin_scene_names()))
+    try:
+        data = tomllib.loads(p.read_text())
+    except tomllib.TOMLDecodeError as exc:
+        raise SceneError(f"not valid TOML ({exc})", file=file, expected="a TOML scene file") from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise SceneError(f"cannot read ({exc})", file=file) from None
+    data = apply_overrides(data, overrides or [], file=file)
+    data["source"] = file
+    scene = validate(Scene, data, file=file)
+    scene.sensor()  # validates [detector] now, naming its keys
+    return scene
