@@ -11,6 +11,7 @@ from __future__ import annotations
 import io
 import os
 import tempfile
+import warnings
 from pathlib import Path
 from typing import Iterable, Iterator
 
@@ -132,16 +133,24 @@ def read_image(path: str | os.PathLike, *, key: str | None = None) -> tuple[np.n
     if not p.is_file():
         raise DetectorError("file not found", key=key, file=str(p), expected="an existing FITS file")
     try:
-        with fits.open(p, memmap=False) as hdul:
-            for hdu in hdul:
-                if hdu.is_image and hdu.header.get("NAXIS", 0) == 2 or isinstance(hdu, fits.CompImageHDU):
-                    data = hdu.data
-                    if data is None or data.ndim != 2:
-                        continue
-                    return np.asarray(data, dtype=np.float64), hdu.header.copy()
+        with warnings.catch_warnings():
+            warnings.filterwarnings("error", message=".*truncated.*")
+            return _first_image(p)
     except DetectorError:
         raise
+    except Warning as exc:
+        raise DetectorError(f"file is truncated ({exc})", key=key, file=str(p), expected="a complete FITS file") from None
     except Exception as exc:  # astropy raises OSError/ValueError/TypeError for damaged files
         raise DetectorError(f"cannot read as FITS ({type(exc).__name__}: {exc})", key=key, file=str(p),
                             expected="a complete FITS file") from None
-    raise DetectorError("no 2-D image in the file", key=key, file=str(p), expected="a 2-D image HDU")
+
+
+def _first_image(p: Path) -> tuple[np.ndarray, fits.Header]:
+    """The first HDU holding a 2-D image (tile-compressed images are extensions)."""
+    with fits.open(p, memmap=False) as hdul:
+        for hdu in hdul:
+            if hdu.is_image or isinstance(hdu, fits.CompImageHDU):
+                data = hdu.data
+                if data is not None and data.ndim == 2:
+                    return np.asarray(data, dtype=np.float64), hdu.header.copy()
+    raise DetectorError("no 2-D image in the file", file=str(p), expected="a 2-D image HDU")

@@ -53,10 +53,10 @@ def prepare(scene: Scene, workers: int | None = None) -> Setup:
     sky_rate = 0.0
     flat_rate = 0.0
     if exp.frame == "light":
-        if scene.sky.background_mag_arcsec2 is not None:
+        if scene.sky.flat_e_per_s is None and scene.sky.background_mag_arcsec2 is not None:
             sky_rate = sky_electron_rate_per_pixel(scene.sky.background_mag_arcsec2, scale, design.collecting_area_m2,
                                                    design.mirror_throughput, sensor.qe_wavelength_nm, sensor.qe)
-        flat_rate = scene.sky.flat_e_per_s or 0.0
+        flat_rate = scene.sky.flat_e_per_s or 0.0  # a flat screen blocks the sky
         if scene.sky.stars or scene.objects:
             warnings.append("stars and objects are not rendered by this version (empty-sky frame); "
                             "set sky.stars = false to silence this")
@@ -77,7 +77,7 @@ def header_cards(setup: Setup, seed: int, noiseless: bool) -> fits.Header:
     h["RDNOISE"] = (s.read_noise_e, "[e-] read noise")
     h["FULLWELL"] = (s.full_well_e, "[e-] full-well capacity")
     h["BITDEPTH"] = (s.bit_depth, "ADC bits")
-    h["ROWTIME"] = (s.row_time_s * b, "[s] exposure-start delay per output row (0: global)")
+    h["ROWTIME"] = (s.row_time_s * b, "[s] row start delay (0: global shutter)")
     h["DARKCUR"] = (s.dark_current_e_per_s, "[e-/s/pixel] mean dark current")
     h["SHUTTER"] = (s.shutter, "rolling (CMOS) or global")
     h["DETECTOR"] = (s.name, "sensor preset")

@@ -1,0 +1,31 @@
+# newtsim: two commands on a fresh Debian machine (as root, or with sudo):
+#   make demo   installs everything and renders the built-in default scene -> out/demo.fits + out/demo.png
+#   make test   installs everything and runs the test suite
+VENV    ?= .venv
+PYTHON  ?= python3
+PY      := $(VENV)/bin/python
+STAMP   := $(VENV)/.installed
+
+.PHONY: install demo test bench clean
+
+$(STAMP): pyproject.toml scripts/system-deps.sh
+	sh scripts/system-deps.sh
+	$(PYTHON) -m venv $(VENV)
+	$(PY) -m pip install -q --upgrade pip
+	$(PY) -m pip install -q -e '.[optics,test]'
+	touch $(STAMP)
+
+install: $(STAMP)
+
+demo: install
+	mkdir -p out
+	$(VENV)/bin/newtsim render default -o out/demo.fits
+
+test: install
+	$(PY) -m pytest -q
+
+bench: install
+	$(PY) benchmarks/bench_detector_fullframe.py
+
+clean:
+	rm -rf $(VENV) out .pytest_cache

@@ -1,0 +1,209 @@
+"""Each optional effect against an independent result: identity at zero strength, analytic laws."""
+
+import numpy as np
+import pytest
+from scipy import stats
+
+from detector import Detector, build_effects, make_sensor, registry
+from detector.effects.blooming import bleed_columns
+from detector.effects.readout import channel_crosstalk, ktc_noise_e
+
+
+def small(**kw):
+    base = {"width": 720, "height": 720, "read_noise_e": 4.0, "gain_e_per_adu": 1.5, "dark_current_e_per_s": 0.2}
+    base.update(kw)
+    return make_sensor("ml11002", base)
+
+
+ZERO = {
+    "prnu": {"sigma": 0.0},
+    "dsnu": {"sigma": 0.0},
+    "dead_pixels": {"count": 0},
+    "gain_regions": {"sigma": 0.0},
+    "nonlinearity": {"beta": 0.0},
+    "hot_pixels": {"count": 0},
+    "column_defects": {"hot_columns": 0, "dead_columns": 0},
+    "row_noise": {"sigma_e": 0.0},
+    "reset_noise": {"correlated_double_sampling": True},
+    "bias_gradient": {"gradient_x_adu": 0.0, "gradient_y_adu": 0.0, "quadratic_adu": 0.0},
+    "crosstalk": {"alpha": 0.0},
+    "amp_glow": {"sources": [{"amplitude_e_per_s": 0.0}]},
+    "blooming": {"threshold_e": 1e7},
+    "cosmic_rays": {"flux_per_cm2_s": 0.0},
+}
+
+
+def test_every_catalogue_effect_is_registered_and_documented():
+    reg = registry()
+    for name in ZERO:
+        assert name in reg, name
+        d = reg[name].describe()
+        assert len(d["doc"]) > 40 and d["params"]["properties"], name
+
+
+@pytest.mark.parametrize("name", sorted(ZERO))
+def test_zero_strength_is_the_identity(name):
+    s = small()
+    ref = Detector(s).expose(200.0, 10.0, frame_seed=5)
+    out = Detector(s, build_effects({name: ZERO[name]}, s)).expose(200.0, 10.0, frame_seed=5)
+    assert out.tobytes() == ref.tobytes()
+
+
+def test_prnu_map_has_mean_one_and_the_given_std():
+    s = small(dark_current_e_per_s=0.0)
+    m = Detector(s, build_effects({"prnu": {"sigma": 0.02}}, s)).expose(1000.0, 1.0, 1, noiseless=True) / 1000.0
+    n = m.size
+    assert abs(m.mean() - 1) < 5 * 0.02 / np.sqrt(n)
+    assert abs(m.std() - 0.02) < 5 * 0.02 / np.sqrt(2 * n)
+
+
+def test_prnu_adds_quadratic_variance():
+    """Var = S + (sigma S)^2 + ... : fixed-pattern noise grows linearly with signal (Janesick 2007 ch. 8)."""
+    s = small(dark_current_e_per_s=0.0, read_noise_e=0.0, gain_e_per_adu=1.0)
+    S, p = 10000.0, 0.01
+    f = Detector(s, build_effects({"prnu": {"sigma": p}}, s)).expose(S, 1.0, 2).astype(float)
+    exp = S + (p * S) ** 2 + 1 / 12
+    assert abs(f.var() - exp) < 5 * exp * np.sqrt(2 / f.size)
+
+
+def test_dsnu_lognormal_keeps_the_mean_dark_current():
+    s = small(dark_current_e_per_s=2.0)
+    m = Detector(s, build_effects({"dsnu": {"sigma": 0.5}}, s)).expose(0.0, 100.0, 1, noiseless=True)
+    assert abs(m.mean() / 200.0 - 1) < 5 * 0.5 / np.sqrt(m.size)
+    assert abs(m.std() / 200.0 - 0.5) < 0.01
+    assert m.min() > 0
+    # lognormal skewness (e^{s2}+2) sqrt(e^{s2}-1) for std 0.5 at mean 1
+    s2 = np.log1p(0.25)
+    assert abs(stats.skew(m.ravel()) - (np.exp(s2) + 2) * np.sqrt(np.exp(s2) - 1)) < 0.1
+
+
+def test_hot_pixels_rates_and_weibull_law():
+    """Excess e- = r t with r = B g / t2; t2 follows the Weibull law (KS test)."""
+    s = make_sensor("ml11002", {"dark_current_e_per_s": 0.0})
+    eff = build_effects({"hot_pixels": {"count": 4000, "weibull_shape": 0.7, "scale_s": 500.0}}, s)
+    det = Detector(s, eff)
+    tab = det.truth(60.0, 1)["HOTPIX"]
+    assert len(tab) == 4000
+    assert stats.kstest(tab["t_double_s"], stats.weibull_min(0.7, scale=500.0).cdf).pvalue > 1e-3
+    np.testing.assert_allclose(tab["rate_e_per_s"], s.bias_adu * s.gain_e_per_adu / tab["t_double_s"], rtol=1e-5)
+    roi = make_sensor("ml11002", {"dark_current_e_per_s": 0.0, "width": 960, "height": 960, "x0": 0, "y0": 0})
+    det_roi = Detector(roi, build_effects({"hot_pixels": {"count": 4000, "weibull_shape": 0.7, "scale_s": 500.0}}, roi))
+    img = det_roi.expose(0.0, 60.0, 1, noiseless=True)
+    t_roi = det_roi.truth(60.0, 1)["HOTPIX"]
+    np.testing.assert_allclose(img[t_roi["y"], t_roi["x"]], t_roi["rate_e_per_s"] * 60.0, rtol=1e-5)
+    assert np.count_nonzero(img) == len(t_roi)
+
+
+def test_stuck_pixels_are_fixed_whatever_the_exposure():
+    s = small(width=480, height=480, x0=0, y0=0)
+    eff = {"hot_pixels": {"count": 20000, "stuck_fraction": 1.0, "stuck_value_adu": 4000}}
+    det = Detector(s, build_effects(eff, s))
+    t = det.truth(1.0, 1)["HOTPIX"]
+    for texp in (1.0, 100.0):
+        f = det.expose(0.0, texp, frame_seed=int(texp))
+        assert (f[t["y"], t["x"]] == 4000).all()
+
+
+def test_dead_pixels_and_columns_lose_photo_response_but_keep_dark():
+    s = small(x0=0, y0=0)
+    det = Detector(s, build_effects({"dead_pixels": {"count": 30000}, "column_defects": {"dead_columns": 400,
+                                                                                        "hot_columns": 0}}, s))
+    m = det.expose(1000.0, 10.0, 1, noiseless=True)
+    tr = det.truth(10.0, 1)
+    dead = tr["DEADPIX"]
+    assert len(dead) > 0 and np.allclose(m[dead["y"], dead["x"]], 2.0)  # only 0.2 e-/s x 10 s of dark
+    cols = tr["COLDEF"]["x"]
+    assert len(cols) > 0 and np.allclose(m[:, cols], 2.0)
+
+
+def test_hot_columns_add_rate_times_time():
+    s = small(x0=0, y0=0, dark_current_e_per_s=0.0)
+    det = Detector(s, build_effects({"column_defects": {"hot_columns": 600, "dead_columns": 0,
+                                                        "hot_rate_e_per_s": 3.0}}, s))
+    m = det.expose(0.0, 10.0, 1, noiseless=True)
+    cols = det.truth(10.0, 1)["COLDEF"]["x"]
+    assert len(cols) > 0 and np.allclose(m[:, cols], 30.0) and np.count_nonzero(m.sum(0)) == len(cols)
+
+
+def test_gain_regions_scale_signal_per_region():
+    s = small(x0=0, y0=0, width=4008, height=240, read_noise_e=0.0, dark_current_e_per_s=0.0, gain_e_per_adu=1.0)
+    det = Detector(s, build_effects({"gain_regions": {"nx": 2, "ny": 1, "gains": [1.0, 1.1]}}, s))
+    f = det.expose(5000.0, 1.0, 1).astype(float) - 1000
+    left, right = f[:, :2004].mean(), f[:, 2004:].mean()
+    assert abs(right / left - 1.1) < 0.002
+
+
+def test_nonlinearity_follows_the_quadratic_law():
+    s = small(read_noise_e=0.0, dark_current_e_per_s=0.0, gain_e_per_adu=1.0, full_well_e=50000.0)
+    det = Detector(s, build_effects({"nonlinearity": {"beta": 0.05}}, s))
+    for S in (10000.0, 40000.0):
+        f = det.expose(S, 1.0, 1).astype(float)
+        expect = 1000 + S * (1 - 0.05 * S / 50000.0) - 0.5
+        assert abs(f.mean() - expect) < 5 * np.sqrt(S / f.size) + 0.5
+
+
+def test_row_noise_variance_of_row_means():
+    s = small(read_noise_e=0.0, dark_current_e_per_s=0.0, gain_e_per_adu=1.0, width=2000, height=2000)
+    det = Detector(s, build_effects({"row_noise": {"sigma_e": 6.0}}, s))
+    f = det.expose(100.0, 1.0, 1).astype(float)
+    rm = f.mean(axis=1)
+    exp = 36.0 + (100 + 1 / 12) / f.shape[1]
+    assert abs(rm.var(ddof=1) - exp) < 5 * exp * np.sqrt(2 / rm.size)
+
+
+def test_ktc_noise_formula_and_effect():
+    # sqrt(k T C)/q at 300 K and 1 fF is 12.7 e- (Janesick 2007, eq. 4.?; the classic kTC number)
+    assert abs(ktc_noise_e(300.0, 1e-15) - 12.7) < 0.1
+    s = small(read_noise_e=0.0, dark_current_e_per_s=0.0, gain_e_per_adu=1.0)
+    det = Detector(s, build_effects({"reset_noise": {"capacitance_ff": 1.0, "temperature_k": 300.0}}, s))
+    f = det.expose(100.0, 1.0, 1).astype(float)
+    exp = 100 + ktc_noise_e(300.0, 1e-15) ** 2 + 1 / 12
+    assert abs(f.var() - exp) < 5 * exp * np.sqrt(2 / f.size)
+
+
+def test_bias_gradient_ramp():
+    s = make_sensor("ml11002", {"read_noise_e": 0.0, "dark_current_e_per_s": 0.0, "height": 240})
+    det = Detector(s, build_effects({"bias_gradient": {"gradient_x_adu": 20.0}}, s))
+    f = det.expose(0.0, 0.0, 1).astype(float)
+    col = f.mean(axis=0)
+    slope = np.polyfit(np.arange(col.size), col, 1)[0]
+    assert abs(slope * (s.sensor_width_px - 1) - 20.0) < 0.2
+
+
+def test_crosstalk_ghost_is_alpha_times_source_and_mirrored():
+    a = np.zeros((4, 40), dtype=np.float32)
+    a[:, 2] = 1000.0  # source in channel 0 at local column 2
+    channel_crosstalk(a, 4, 0.01, mirrored=True)
+    assert np.allclose(a[:, 10 + 7], 10.0)  # channel 1 is mirrored: column 9 - 2
+    assert np.allclose(a[:, 20 + 2], 10.0) and np.allclose(a[:, 30 + 7], 10.0)
+    assert np.isclose(a.sum(), 4 * 1000 * 1.03)
+
+
+def test_amp_glow_peak_and_time_scaling():
+    s = small(x0=0, y0=0, dark_current_e_per_s=0.0)
+    src = {"x_frac": 0.0, "y_frac": 0.0, "amplitude_e_per_s": 2.0, "sigma_x_px": 100.0, "sigma_y_px": 50.0}
+    det = Detector(s, build_effects({"amp_glow": {"sources": [src]}}, s))
+    m10 = det.expose(0.0, 10.0, 1, noiseless=True)
+    m20 = det.expose(0.0, 20.0, 1, noiseless=True)
+    assert abs(m10[0, 0] - 20.0) < 1e-4
+    assert abs(m10[50, 0] / m10[0, 0] - np.exp(-0.5)) < 1e-5  # one sigma along y
+    np.testing.assert_allclose(m20, 2 * m10, rtol=1e-6)
+    edge = Detector(s, build_effects({"amp_glow": {"model": "edge", "edge": "left", "amplitude_e_per_s": 1.0,
+                                                   "scale_px": 30.0}}, s)).expose(0.0, 1.0, 1, noiseless=True)
+    assert abs(edge[100, 30] / edge[100, 0] - np.exp(-1)) < 1e-5
+
+
+def test_blooming_conserves_charge_and_bleeds_excess_over_full_well():
+    img = np.zeros((200, 5))
+    img[100, 2] = 10_000.0
+    bleed_columns(img, 1000.0)
+    assert img.sum() == 10_000.0 and img.max() <= 1000.0
+    col = img[:, 2]  # 9000 e- of excess, half up and half down: 4 full pixels and a half-filled one each way
+    assert (col[96:105] == 1000.0).all() and col[95] == col[105] == 500.0
+    assert np.count_nonzero(col) == 11 and not img[:, [0, 1, 3, 4]].any()
+    # through the chain: a saturated spot becomes a vertical trail of full-well pixels
+    s = small(x0=0, y0=0, full_well_e=20000.0, read_noise_e=0.0, dark_current_e_per_s=0.0)
+    sig = np.zeros(s.shape, dtype=np.float32)
+    sig[300, 300] = 20000.0 * 41
+    m = Detector(s, build_effects({"blooming": {}}, s)).expose(sig, 1.0, 1, noiseless=True)
+    assert np.isclose(m.sum(), sig.sum()) and (m[280:321, 300] == 20000.0).all()
