@@ -177,20 +177,22 @@ class Detector:
         return adu.astype(dtype)
 
     # -- whole frames
-    def iter_frame(self, signal: Signal, exptime_s: float, frame_seed: int, noiseless: bool = False
-                   ) -> Iterator[tuple[int, int, np.ndarray]]:
+    def iter_frame(self, signal: Signal, exptime_s: float, frame_seed: int, noiseless: bool = False,
+                   state: dict | None = None) -> Iterator[tuple[int, int, np.ndarray]]:
         """Yield ``(row0, row1, array)`` in output (binned) rows, in order, computed on a thread pool.
 
         At most ``2 x workers`` tiles are in flight, so memory stays bounded for any frame size.
+        ``state`` is this frame's :meth:`frame_state` when the caller already has it (e.g. for the truth).
         """
         if exptime_s < 0 or not np.isfinite(exptime_s):
             raise DetectorError(f"exposure time {exptime_s} s", key="exposure.time_s", expected=">= 0 s")
         if not callable(signal) and np.ndim(signal) == 2 and tuple(np.shape(signal)) != self.sensor.shape:
             raise DetectorError(f"expected-signal array has shape {np.shape(signal)}", key="signal",
                                 expected=f"{self.sensor.shape} (rows, cols) of the read-out window")
+        state = self.frame_state(exptime_s, frame_seed) if state is None else state
         if self._by_stage[Stage.FIELD]:  # whole-frame effects need the whole image once
-            signal = self.field_signal(signal, exptime_s, frame_seed)
-        tiles = self.tiles(exptime_s, frame_seed)
+            signal = self.field_signal(signal, exptime_s, frame_seed, state)
+        tiles = self.tiles(exptime_s, frame_seed, state)
         b = self.sensor.binning
         y0 = self.sensor.roi_y0
         with ThreadPoolExecutor(max_workers=self.workers) as pool:
@@ -208,27 +210,27 @@ class Detector:
                     pending.append((nxt, pool.submit(self.process_tile, signal, nxt, noiseless)))
                 yield (t.y0 - y0) // b, (t.y1 - y0) // b, arr
 
-    def field_signal(self, signal: Signal, exptime_s: float, frame_seed: int) -> np.ndarray:
+    def field_signal(self, signal: Signal, exptime_s: float, frame_seed: int, state: dict) -> np.ndarray:
         """The whole expected photo-electron image after the FIELD effects (a new array)."""
         s = self.sensor
         (h, w), y0, x0 = s.shape, s.roi_y0, s.roi_x0
-        whole = Tile(s, -1, y0, y0 + h, x0, x0 + w, exptime_s, frame_seed,
-                     state=self.frame_state(exptime_s, frame_seed))
+        whole = Tile(s, -1, y0, y0 + h, x0, x0 + w, exptime_s, frame_seed, state=state)
         img = self._photo(signal, whole)
         self._run(Stage.FIELD, whole, img)
         return img
 
-    def expose(self, signal: Signal, exptime_s: float, frame_seed: int, noiseless: bool = False) -> np.ndarray:
+    def expose(self, signal: Signal, exptime_s: float, frame_seed: int, noiseless: bool = False,
+               state: dict | None = None) -> np.ndarray:
         """The whole frame in memory: ADU (uint16/uint32) or, with ``noiseless``, expected e- (float32)."""
         dtype = np.float32 if noiseless else output_dtype(self.sensor.bit_depth)
         out = np.empty(self.sensor.output_shape, dtype=dtype)
-        for r0, r1, arr in self.iter_frame(signal, exptime_s, frame_seed, noiseless):
+        for r0, r1, arr in self.iter_frame(signal, exptime_s, frame_seed, noiseless, state):
             out[r0:r1] = arr
         return out
 
-    def truth(self, exptime_s: float, frame_seed: int) -> dict[str, np.ndarray]:
+    def truth(self, exptime_s: float, frame_seed: int, state: dict | None = None) -> dict[str, np.ndarray]:
         """Every effect's truth tables for this frame (defect lists, cosmic-ray hits ...)."""
-        state = self.frame_state(exptime_s, frame_seed)
+        state = self.frame_state(exptime_s, frame_seed) if state is None else state
         tables: dict[str, np.ndarray] = {}
         for eff in self.effects:
             tables.update(eff.truth(state.get(eff.name)))

@@ -135,13 +135,14 @@ def render(scene: Scene, out: str | Path, *, seed: int | None = None, noiseless:
     dtype = np.float32 if noiseless else (np.uint16 if s.bit_depth <= 16 else np.uint32)
     header = primary_header(s.output_shape, dtype, header_cards(setup, seed, noiseless))
     ext = [scene_hdu(scene), table_hdu("TRUTH", np.zeros(0, dtype=TRUTH_DTYPE))]
-    ext += [table_hdu(name, t) for name, t in det.truth(setup.exptime_s, seed).items()]
+    state = det.frame_state(setup.exptime_s, seed)  # per-frame draws (cosmic rays), shared by truth and image
+    ext += [table_hdu(name, t) for name, t in det.truth(setup.exptime_s, seed, state).items()]
     if expected and not noiseless:
-        img = det.expose(setup.signal_e, setup.exptime_s, seed, noiseless=True)
+        img = det.expose(setup.signal_e, setup.exptime_s, seed, noiseless=True, state=state)
         ext.append(fits.ImageHDU(img, name="EXPECTED"))
-    bands = det.iter_frame(setup.signal_e, setup.exptime_s, seed, noiseless=noiseless)
+    bands = det.iter_frame(setup.signal_e, setup.exptime_s, seed, noiseless=noiseless, state=state)
     if progress and sys.stderr.isatty():
-        bands = _with_progress(bands, len(det.tiles(setup.exptime_s, seed, state={})), str(out))
+        bands = _with_progress(bands, len(det.tiles(setup.exptime_s, seed, state)), str(out))
     path = write_streamed(out, header, bands, s.output_shape, dtype, ext)
     return {"path": str(path), "seed": seed, "shape": list(s.output_shape), "exptime_s": setup.exptime_s,
             "sky_e_per_s": setup.sky_e_per_s, "warnings": setup.warnings}
