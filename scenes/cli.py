@@ -106,7 +106,7 @@ def characterize(bias, dark, flat, json_out, emit_scene, plots, sigma):
     """
     from detector.characterize import characterize as run, emit_scene_dict
 
-    result = run(list(bias), list(dark), list(flat) or None, sigma=sigma)
+    result = run(list(bias), list(dark), list(flat) or None, hot_sigma=sigma)
     if plots:
         from detector.calplots import write_plots
 
@@ -117,6 +117,9 @@ def characterize(bias, dark, flat, json_out, emit_scene, plots, sigma):
 
         Path(emit_scene).write_text(tomli_w.dumps(emit_scene_dict(result)))
     _write_json(result if json_out else _summary(result), json_out)
+    if json_out not in (None, "-"):
+        click.echo(f"wrote {json_out}" + (f", {emit_scene}" if emit_scene else "")
+                   + (f", plots in {plots}" if plots else ""), err=True)
 
 
 def _summary(result: dict) -> dict:
