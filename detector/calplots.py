@@ -42,33 +42,30 @@ def _hist_step(ax, hist: dict, **kw):
     return e, c
 
 
+def _hist_with_normal(ax, hist, mu: float, sd: float, xlabel: str, label: str | None = None) -> None:
+    """A stored histogram as a step line with the normal of the same area, mean ``mu`` and std ``sd``."""
+    e, c = _hist_step(ax, hist, color="k", label=label)
+    x = np.linspace(e[0], e[-1], 400)
+    ax.plot(x, c.sum() * np.diff(e).mean() * stats.norm.pdf(x, mu, sd), "r-", lw=1, label=f"normal, std {sd:.2f} ADU")
+    ax.set_yscale("log")
+    ax.set_ylim(0.5, None)
+    ax.set_xlabel(xlabel)
+
+
 def plot_bias(result: dict, path: Path) -> Path | None:
     b = result["bias"]
     pdat = b.get("plot_data") or {}
     fig = _figure(13, 4)
     axs = fig.subplots(1, 3)
     if "single_frame_hist" in pdat:
-        e, c = _hist_step(axs[0], pdat["single_frame_hist"], color="k")
         mu, sd = pdat.get("single_frame_mean_std", [b["level_mean_adu"], b["single_frame_std_adu"]])
-        x = np.linspace(e[0], e[-1], 400)
-        axs[0].plot(x, c.sum() * np.diff(e).mean() * stats.norm.pdf(x, mu, sd), "r-", lw=1,
-                    label=f"normal, std {sd:.2f} ADU")
-        axs[0].set_yscale("log")
-        axs[0].set_ylim(0.5, None)
-        axs[0].set_xlabel("bias frame value [ADU]")
+        _hist_with_normal(axs[0], pdat["single_frame_hist"], mu, sd, "bias frame value [ADU]")
         axs[0].set_ylabel("pixels")
         axs[0].set_title(f"bias level {b['level_median_adu']:.1f} ADU (median)")
         axs[0].legend(fontsize=8)
     if "pair_diff_hist" in pdat:
-        e, c = _hist_step(axs[1], pdat["pair_diff_hist"], color="k", label="b1 - b2")
-        sd = b["read_noise_adu"] * math.sqrt(2)
-        mu = b.get("pair_difference_mean_adu") or 0.0
-        x = np.linspace(e[0], e[-1], 400)
-        axs[1].plot(x, c.sum() * np.diff(e).mean() * stats.norm.pdf(x, mu, sd), "r-", lw=1,
-                    label=f"normal, std {sd:.2f} ADU")
-        axs[1].set_yscale("log")
-        axs[1].set_ylim(0.5, None)
-        axs[1].set_xlabel("pair difference [ADU]")
+        _hist_with_normal(axs[1], pdat["pair_diff_hist"], b.get("pair_difference_mean_adu") or 0.0,
+                          b["read_noise_adu"] * math.sqrt(2), "pair difference [ADU]", label="b1 - b2")
         axs[1].set_title(f"read noise {b['read_noise_adu']:.2f} ADU = {b['read_noise_e']:.2f} e-")
         axs[1].legend(fontsize=8)
     else:
