@@ -36,6 +36,12 @@ def _to_disk(arr: np.ndarray) -> bytes:
     return arr.astype(dt.newbyteorder(">")).tobytes()
 
 
+def _umask() -> int:
+    mask = os.umask(0)
+    os.umask(mask)
+    return mask
+
+
 def primary_header(shape: tuple[int, int], dtype, cards: fits.Header | dict | None = None) -> fits.Header:
     """A primary header for an image of ``shape`` (rows, cols) and ``dtype``, plus ``cards``."""
     bitpix, bzero = _BITPIX[np.dtype(dtype)]
@@ -109,6 +115,7 @@ def write_streamed(path: str | os.PathLike, header: fits.Header, bands: Iterable
                 raise RuntimeError(f"image ended at row {expected_row} of {shape[0]}")
             f.write(b"\0" * (-nbytes % BLOCK))
             f.write(_extension_bytes(list(extensions or [])))
+        os.chmod(tmp, 0o666 & ~_umask())  # mkstemp makes 0600; give the file the user's usual mode
         os.replace(tmp, path)
     except BaseException:
         if os.path.exists(tmp):
