@@ -610,8 +610,7 @@ def analyze_hot_pixels(ts: np.ndarray, xs: Sequence[np.ndarray], sat_mask: Seque
             spread = np.max(np.abs(np.stack([x.ravel()[cand] for x in xs], axis=1)), axis=1)
             tol = np.maximum(5 * math.sqrt(1.5) * read_noise_adu, 0.1 * (lvl - bias_level_adu))
             keep = spread <= tol
-            stuck_bias, stuck_bias_level = cand[keep], lvl[keep]
-            stuck |= np.isin(idx, stuck_bias)
+            stuck |= np.isin(idx, cand[keep])
     excess = rate - mean_rate_adu_s
     hot = ~stuck & ~transient & np.isfinite(excess) & (excess > 0)
     t2 = np.full(idx.size, np.nan)

@@ -47,7 +47,7 @@ def validate(model: type[M], data: Any, *, prefix: str = "", file: str | None = 
         return model.model_validate(data)
     except ValidationError as exc:
         err = exc.errors()[0]
-        loc = ".".join(str(p) for p in err["loc"] if not isinstance(p, int) or True)
+        loc = ".".join(str(p) for p in err["loc"])
         key = f"{prefix}.{loc}" if prefix and loc else (prefix or loc)
         got = err.get("input")
         msg = "unknown key" if err.get("type") == "extra_forbidden" else (
