@@ -601,7 +601,6 @@ def analyze_hot_pixels(ts: np.ndarray, xs: Sequence[np.ndarray], sat_mask: Seque
         npts = np.ones(idx.size, int)
     # stuck in the bias frames too: high raw value that the darks do not change
     stuck_bias = np.zeros(0, np.int64)
-    stuck_bias_level = np.zeros(0)
     if master is not None:
         mcs = clipped_stats(master, sigma=3.0)
         cand = np.flatnonzero(master.ravel() > mcs["median"] + nsigma * mcs["std"])
@@ -610,7 +609,8 @@ def analyze_hot_pixels(ts: np.ndarray, xs: Sequence[np.ndarray], sat_mask: Seque
             spread = np.max(np.abs(np.stack([x.ravel()[cand] for x in xs], axis=1)), axis=1)
             tol = np.maximum(5 * math.sqrt(1.5) * read_noise_adu, 0.1 * (lvl - bias_level_adu))
             keep = spread <= tol
-            stuck |= np.isin(idx, cand[keep])
+            stuck_bias = cand[keep]
+            stuck |= np.isin(idx, stuck_bias)
     excess = rate - mean_rate_adu_s
     hot = ~stuck & ~transient & np.isfinite(excess) & (excess > 0)
     t2 = np.full(idx.size, np.nan)
