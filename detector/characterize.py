@@ -58,13 +58,13 @@ from __future__ import annotations
 import math
 import warnings
 from dataclasses import dataclass, field
-from pathlib import Path
 from typing import Iterable, Sequence
 
 import numpy as np
 from scipy import ndimage, stats
 
 from .errors import DetectorError
+from .fits_io import read_image
 
 #: Above this many pixels, robust statistics use a regular sub-grid of the frame (speed, not accuracy).
 MAX_STAT_PIXELS = 4_000_000
@@ -112,45 +112,9 @@ def read_frame(path, *, role: str = "frame", need_exptime: bool = False) -> Fram
     need_exptime : bool
         Whether a missing exposure time is an error.
     """
-    from astropy.io import fits
-
-    p = Path(path)
     name = str(path)
-    if not p.exists():
-        raise DetectorError(f"{role} file not found", file=name, expected="an existing FITS file")
-    if not p.is_file():
-        raise DetectorError(f"{role} path is not a file", file=name, expected="a FITS file")
-    try:
-        with warnings.catch_warnings(record=True) as caught:
-            warnings.simplefilter("always")
-            with fits.open(p, memmap=False) as hdul:
-                hdu = None
-                for h in hdul:
-                    if h.is_image and h.header.get("NAXIS", 0) >= 2:
-                        d = h.data
-                        if d is not None and np.ndim(d) >= 2:
-                            hdu = h
-                            break
-                if hdu is None:
-                    raise DetectorError(f"no image in this {role} file", file=name, expected="a 2-D image HDU")
-                data = np.asarray(hdu.data)
-                header = dict(hdul[0].header)
-                header.update(dict(hdu.header))
-        for w in caught:
-            if "truncat" in str(w.message).lower():
-                raise DetectorError(f"{role} file is truncated ({w.message})", file=name,
-                                    expected="a complete FITS file")
-    except DetectorError:
-        raise
-    except (OSError, ValueError, TypeError, IndexError, KeyError, EOFError) as exc:
-        raise DetectorError(f"{role} file is not a readable FITS image ({type(exc).__name__}: {exc})",
-                            file=name, expected="a valid, complete FITS file") from None
-    if data.ndim > 2:
-        squeezed = np.squeeze(data)
-        if squeezed.ndim != 2:
-            raise DetectorError(f"{role} image has shape {data.shape}", file=name,
-                                expected="a 2-D image (rows, cols)")
-        data = squeezed
+    data, hdr = read_image(path, role=role, dtype=None)
+    header = dict(hdr)
     if data.dtype.kind not in "iuf":
         raise DetectorError(f"{role} image has data type {data.dtype}", file=name, expected="numbers")
     arr = data.astype(np.float32)

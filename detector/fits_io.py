@@ -130,34 +130,50 @@ def write_image(path, image: np.ndarray, cards=None, extensions: list | None = N
     return write_streamed(path, header, [(0, image.shape[0], image)], image.shape, image.dtype, extensions)
 
 
-def read_image(path: str | os.PathLike, *, key: str | None = None) -> tuple[np.ndarray, fits.Header]:
+def read_image(path: str | os.PathLike, *, key: str | None = None, role: str = "",
+               dtype=np.float64) -> tuple[np.ndarray, fits.Header]:
     """Read the first 2-D image of a FITS file (primary or, for tile-compressed files, an extension).
 
-    Raises :class:`DetectorError` naming the file for a missing, corrupt, truncated or non-image file.
-    Returns the data as float64 (BZERO/BSCALE applied) and its header.
+    Parameters
+    ----------
+    key : the scene/CLI key the file came from, for messages
+    role : what the file is ("bias", "dark" ...), for messages
+    dtype : type of the returned data (BZERO/BSCALE applied); ``None`` keeps the stored type
+
+    Returns the data and its header: the image HDU's cards over the primary's (a compressed image keeps
+    EXPTIME and friends in the primary). Raises :class:`DetectorError` naming the file for a missing,
+    corrupt, truncated or non-image file.
     """
     p = Path(path)
+    what = f"{role} file" if role else "file"
     if not p.is_file():
-        raise DetectorError("file not found", key=key, file=str(p), expected="an existing FITS file")
+        raise DetectorError(f"{what} not found", key=key, file=str(p), expected="an existing FITS file")
     try:
         with warnings.catch_warnings():
+            # non-standard cards are common in camera files: not our user's problem; truncation is
+            warnings.simplefilter("ignore", fits.verify.VerifyWarning)
             warnings.filterwarnings("error", message=".*truncated.*")
-            return _first_image(p)
+            data, header = _first_image(p, what)
     except DetectorError:
         raise
     except Warning as exc:
-        raise DetectorError(f"file is truncated ({exc})", key=key, file=str(p), expected="a complete FITS file") from None
-    except Exception as exc:  # astropy raises OSError/ValueError/TypeError for damaged files
-        raise DetectorError(f"cannot read as FITS ({type(exc).__name__}: {exc})", key=key, file=str(p),
+        raise DetectorError(f"{what} is truncated ({exc})", key=key, file=str(p),
                             expected="a complete FITS file") from None
+    except Exception as exc:  # astropy raises OSError/ValueError/TypeError for damaged files
+        raise DetectorError(f"{what} cannot be read as FITS ({type(exc).__name__}: {exc})", key=key,
+                            file=str(p), expected="a complete FITS file") from None
+    return (data if dtype is None else data.astype(dtype, copy=False)), header
 
 
-def _first_image(p: Path) -> tuple[np.ndarray, fits.Header]:
-    """The first HDU holding a 2-D image (tile-compressed images are extensions)."""
+def _first_image(p: Path, what: str) -> tuple[np.ndarray, fits.Header]:
+    """The first HDU holding a 2-D image (singleton axes dropped), with the primary's cards beneath its own."""
     with fits.open(p, memmap=False) as hdul:
         for hdu in hdul:
             if hdu.is_image or isinstance(hdu, fits.CompImageHDU):
                 data = hdu.data
-                if data is not None and data.ndim == 2:
-                    return np.asarray(data, dtype=np.float64), hdu.header.copy()
-    raise DetectorError("no 2-D image in the file", file=str(p), expected="a 2-D image HDU")
+                if data is not None and np.squeeze(data).ndim == 2:
+                    header = hdul[0].header.copy()
+                    if hdu is not hdul[0]:
+                        header.extend(hdu.header, update=True)
+                    return np.asarray(np.squeeze(data)), header
+    raise DetectorError(f"no 2-D image in the {what}", file=str(p), expected="a 2-D image HDU")
