@@ -65,6 +65,7 @@ from scipy import ndimage, stats
 
 from .errors import DetectorError
 from .fits_io import read_image
+from .jsonable import jsonable
 
 #: Above this many pixels, robust statistics use a regular sub-grid of the frame (speed, not accuracy).
 MAX_STAT_PIXELS = 4_000_000
@@ -1021,7 +1022,7 @@ def characterize(bias_paths: Sequence, dark_paths: Sequence, flat_paths: Sequenc
              "bit_depth": _bit_depth(header0, min(sats))}
     result = {"frame": frame, "gain": gain_res, "bias": bias_res, "dark": dark_res, "hot_pixels": hot_res,
               "flat": flat_res, "warnings": warns}
-    return _jsonable(result)
+    return jsonable(result)
 
 
 def _pixel_size(header) -> float | None:
@@ -1040,24 +1041,6 @@ def _bit_depth(header, saturation) -> int:
     if math.isfinite(saturation) and saturation > 0:
         return int(max(8, min(32, math.ceil(math.log2(saturation + 1)))))
     return 16
-
-
-def _jsonable(o):
-    """Plain Python types for json.dumps: numpy scalars/arrays converted, NaN and infinities -> None."""
-    if isinstance(o, dict):
-        return {str(k): _jsonable(v) for k, v in o.items()}
-    if isinstance(o, (list, tuple)):
-        return [_jsonable(v) for v in o]
-    if isinstance(o, np.ndarray):
-        return _jsonable(o.tolist())
-    if isinstance(o, (np.bool_, bool)):
-        return bool(o)
-    if isinstance(o, (np.integer,)):
-        return int(o)
-    if isinstance(o, (float, np.floating)):
-        v = float(o)
-        return v if math.isfinite(v) else None
-    return o
 
 
 # ============================================================================================

@@ -13,6 +13,7 @@ from pathlib import Path
 import click
 
 from detector import DetectorError
+from detector.jsonable import jsonable
 from optics.design import OpticsError
 
 EXIT_USER_ERROR = 2
@@ -30,21 +31,11 @@ class _Group(click.Group):
 
 
 def _write_json(obj, path: str | None) -> None:
-    text = json.dumps(obj, indent=2, default=_json_default)
+    text = json.dumps(jsonable(obj), indent=2, allow_nan=False)
     if path in (None, "-"):
         click.echo(text)
     else:
         Path(path).write_text(text + "\n")
-
-
-def _json_default(o):
-    import numpy as np
-
-    if isinstance(o, np.generic):
-        return o.item()
-    if isinstance(o, np.ndarray):
-        return o.tolist()
-    return str(o)
 
 
 @click.group(cls=_Group, context_settings={"help_option_names": ["-h", "--help"]})
