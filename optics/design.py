@@ -7,10 +7,10 @@ Inconsistent designs get an :class:`OpticsError` naming the file and the field.
 from __future__ import annotations
 
 import math
-import tomllib
 from pathlib import Path
 from typing import Literal
 
+import tomllib
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 BUILTIN = Path(__file__).with_name("designs")
@@ -31,23 +31,33 @@ class Primary(_Table):
 
 
 class Secondary(_Table):
+    """Flat elliptical diagonal at 45 degrees; the folded beam leaves toward +x (the focuser side)."""
     minor_axis_mm: float = Field(ge=0)
-    distance_to_focus_mm: float = Field(gt=0)
+    distance_to_focus_mm: float = Field(gt=0, description="diagonal centre (on the axis) to the detector")
+    offset_mm: float = Field(0.0, description="shift of the ellipse centre along its major axis, away "
+                             "from the focuser and toward the primary")
+    holder_length_mm: float = Field(40.0, ge=0, description="cylindrical holder behind the diagonal")
 
 
 class Spider(_Table):
     vanes: int = Field(4, ge=0, le=16)
-    width_mm: float = Field(2.0, ge=0)
+    width_mm: float = Field(2.0, ge=0, description="vane thickness across the beam")
+    depth_mm: float = Field(25.0, gt=0, description="vane extent along the optical axis")
+    angle_deg: float = Field(0.0, description="azimuth of the first vane from +x (focuser side)")
 
 
 class Tube(_Table):
     inner_diameter_mm: float = Field(gt=0)
-    length_mm: float = Field(gt=0)
+    length_mm: float = Field(gt=0, description="primary vertex to the tube front")
+    focuser_diameter_mm: float = Field(90.0, gt=0, description="side opening and focuser tube bore")
+    cell_depth_mm: float = Field(60.0, ge=0, description="primary cell: back plate this far below the vertex")
 
 
 class Baffle(_Table):
     vanes: int = Field(0, ge=0, le=200)
     vane_inner_diameter_mm: float = Field(gt=0)
+    zone_start_mm: float | None = Field(None, gt=0, description="lowest vane height above the primary "
+                                        "vertex (default: just above the spider)")
 
 
 class Coatings(_Table):
@@ -63,10 +73,24 @@ class Coatings(_Table):
 class FocalPlane(_Table):
     width_mm: float = Field(gt=0)
     height_mm: float = Field(gt=0)
+    housing_mm: float = Field(120.0, gt=0, description="side of the square camera housing around the sensor")
+    defocus_mm: float = Field(0.0, description="detector (with the corrector) moved away from the diagonal")
+
+
+class Surface(_Table):
+    """One refracting surface of the corrector, listed from the diagonal toward the detector."""
+    radius_mm: float = Field(0.0, description="vertex radius of curvature, + when the centre lies toward "
+                             "the detector; 0 = plane")
+    thickness_mm: float = Field(ge=0, description="axial distance to the next surface")
+    material: str = Field("air", description="medium after this surface: 'air' or a glass of optics.glass")
+    semi_diameter_mm: float = Field(40.0, gt=0)
 
 
 class Corrector(_Table):
+    """Refractive field corrector in the focuser; the last surface is ``back_focus_mm`` before the detector."""
     enabled: bool = False
+    surfaces: list[Surface] = []
+    back_focus_mm: float = Field(30.0, gt=0)
 
 
 class Design(_Table):
@@ -96,6 +120,25 @@ class Design(_Table):
                              f"(needs >= tube radius {t.inner_diameter_mm / 2} mm)")
         if self.baffle.vanes and self.baffle.vane_inner_diameter_mm < p.diameter_mm:
             raise ValueError("baffle.vane_inner_diameter_mm closes the aperture (must be >= primary.diameter_mm)")
+        if self.baffle.vane_inner_diameter_mm > t.inner_diameter_mm:
+            raise ValueError("baffle.vane_inner_diameter_mm must not exceed tube.inner_diameter_mm")
+        if self.baffle.zone_start_mm is not None and self.baffle.zone_start_mm >= t.length_mm:
+            raise ValueError("baffle.zone_start_mm must lie inside the tube (< tube.length_mm)")
+        if p.focal_length_mm - s.distance_to_focus_mm + s.minor_axis_mm > t.length_mm:
+            raise ValueError("tube.length_mm too short: the diagonal sticks out of the tube front")
+        c = self.corrector
+        if c.enabled:
+            if not c.surfaces:
+                raise ValueError("corrector.surfaces: an enabled corrector needs at least one surface")
+            from .glass import GLASSES
+            for i, srf in enumerate(c.surfaces):
+                if srf.material.lower() != "air" and srf.material.upper() not in GLASSES:
+                    raise ValueError(f"corrector.surfaces.{i}.material: unknown glass '{srf.material}' "
+                                     f"(known: air, {', '.join(sorted(GLASSES))})")
+            stack = sum(srf.thickness_mm for srf in c.surfaces) + c.back_focus_mm
+            if stack >= s.distance_to_focus_mm:
+                raise ValueError("corrector: surfaces plus back_focus_mm reach past the diagonal "
+                                 f"({stack:.1f} mm >= secondary.distance_to_focus_mm)")
         return self
 
     # --- first-order quantities ---------------------------------------------------------------------

@@ -1,0 +1,418 @@
+"""Sequential ray tracing of the Newtonian (primary -> diagonal -> corrector -> detector) in drjit.
+
+The mirrors and lenses are intersected analytically (conic primary, plane diagonal with its elliptical
+outline, spherical lens surfaces) in double precision: exact surfaces, exact normals, and optical path
+lengths good to far below a wavelength over the 2 m path (float32 would round them to 0.1 um). The
+mechanical obstructions (tube front, annular vanes, spider slabs, the diagonal's body, focuser tube,
+camera housing) are exact solids intersected as intervals along each ray (``obstruct="analytic"``, the
+fast default), or Mitsuba's BVH of the same parts as meshes (``obstruct="mesh"``: any geometry, used to
+cross-check the analytic solids). Everything for one batch fuses into one LLVM kernel.
+
+Refraction: vector Snell's law with the unpolarised Fresnel transmittance, the same relations as
+Mitsuba's ``dielectric`` plugin (``mi.fresnel``/``mi.refract``; Born & Wolf, Principles of Optics, 1.5).
+
+Frame and focal-plane coordinates: see :mod:`optics.layout`.
+"""
+
+from __future__ import annotations
+
+import itertools
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from .design import Design
+from .layout import Layout, make_layout
+
+# where a ray was lost (0 = reached the detector)
+OK, ENTRANCE, PRIMARY_MISS, TO_DIAGONAL, DIAGONAL_MISS, FOCUSER, LENS, DETECTOR_MISS = range(8)
+LOSS_NAMES = {OK: "detector", ENTRANCE: "blocked before the primary (tube front, vanes, spider, diagonal)",
+              PRIMARY_MISS: "outside the primary", TO_DIAGONAL: "blocked between primary and diagonal",
+              DIAGONAL_MISS: "missed the diagonal", FOCUSER: "blocked in the focuser or housing",
+              LENS: "outside a corrector lens or totally reflected", DETECTOR_MISS: "outside the detector"}
+BATCH = 1 << 21
+
+
+@dataclass
+class TraceResult:
+    """Per-ray results (numpy). Positions in mm in the focal-plane frame of :mod:`optics.layout`."""
+
+    px: np.ndarray          # pupil coordinates in the primary's rim plane [mm]
+    py: np.ndarray
+    u: np.ndarray           # detector-plane position [mm]
+    v: np.ndarray
+    du: np.ndarray          # direction cosines at the detector (w along the beam)
+    dv: np.ndarray
+    dw: np.ndarray
+    opl: np.ndarray         # optical path length from the plane wave through the origin [mm]
+    transmission: np.ndarray  # Fresnel transmittance of the corrector surfaces [1]
+    lost: np.ndarray        # uint8 loss code (0 = reached the detector)
+
+    @property
+    def ok(self) -> np.ndarray:
+        return self.lost == OK
+
+
+def direction(field_deg) -> np.ndarray:
+    """Propagation direction of light from a star at field angles (theta_x, theta_y) [deg]."""
+    tx, ty = (math.tan(math.radians(a)) for a in field_deg)
+    d = -np.array([tx, ty, 1.0])
+    return d / np.linalg.norm(d)
+
+
+def pupil_grid(n: int, radius: float) -> tuple[np.ndarray, np.ndarray]:
+    """Square grid of n x n points over [-radius, radius]^2 (cell centres), all kept."""
+    c = (np.arange(n) + 0.5) / n * 2 - 1
+    X, Y = np.meshgrid(c * radius, c * radius, indexing="xy")
+    return X.ravel(), Y.ravel()
+
+
+def pupil_uniform(n: int, radius: float, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """``n`` stratified points uniform over the disk of ``radius``: the R2 low-discrepancy sequence
+    (Roberts 2018) with a seeded Cranley-Patterson shift, mapped to the disk by r = R sqrt(u)."""
+    g = 1.32471795724474602596
+    k = np.arange(n, dtype=np.float64)
+    shift = np.random.default_rng(seed).random(2)
+    u = (shift[0] + k / g) % 1.0
+    w = (shift[1] + k / g ** 2) % 1.0
+    r = radius * np.sqrt(u)
+    return r * np.cos(2 * np.pi * w), r * np.sin(2 * np.pi * w)
+
+
+class SequentialTracer:
+    """Trace ray bundles through a :class:`Design`.
+
+    Parameters
+    ----------
+    design : Design
+    mi : module
+        Mitsuba with an llvm variant set (``optics.llvm.init_mitsuba``); drjit carries the rays.
+    obstruct : {"analytic", "mesh", "none"}
+        How mechanical obstructions are tested (module docstring).
+    """
+
+    def __init__(self, design: Design, mi, obstruct: str = "analytic"):
+        if obstruct not in ("analytic", "mesh", "none"):
+            raise ValueError(f"obstruct must be 'analytic', 'mesh' or 'none', not {obstruct!r}")
+        self.design = design
+        self.layout: Layout = make_layout(design)
+        self.mi = mi
+        self.obstruct = obstruct
+        self._scene = None
+        if obstruct == "mesh":
+            from .meshes import telescope_parts
+            from .mitsuba_scene import build_scene
+
+            self._scene = build_scene(mi, telescope_parts(self.layout, optics_surfaces=False))
+
+    # ------------------------------------------------------------------------------------------------
+    def trace(self, field_deg, px, py, wavelength_nm: float = 550.0) -> TraceResult:
+        """Trace rays through pupil points (``px``, ``py``) [mm] of the primary's rim plane from a star at
+        ``field_deg`` = (theta_x, theta_y) [deg], in batches of 2**21 rays."""
+        px = np.asarray(px, dtype=np.float64).ravel()
+        py = np.asarray(py, dtype=np.float64).ravel()
+        parts = [self._trace_batch(field_deg, px[i:i + BATCH], py[i:i + BATCH], wavelength_nm)
+                 for i in range(0, len(px), BATCH)] or [self._trace_batch(field_deg, px, py, wavelength_nm)]
+        out = {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
+        return TraceResult(px=px, py=py, **out)
+
+    def count(self, field_deg, px, py, wavelength_nm: float = 550.0) -> int:
+        """Number of rays that reach the detector (no per-ray transfer back to numpy)."""
+        import drjit as dr
+
+        total = 0
+        px = np.asarray(px, dtype=np.float64).ravel()
+        py = np.asarray(py, dtype=np.float64).ravel()
+        for i in range(0, len(px), BATCH):
+            res = self._trace_dr(field_deg, px[i:i + BATCH], py[i:i + BATCH], wavelength_nm)
+            total += int(dr.count(res["lost"] == 0)[0])
+        return total
+
+    def _trace_batch(self, field_deg, px, py, wavelength_nm):
+        import drjit as dr
+
+        res = self._trace_dr(field_deg, px, py, wavelength_nm)
+        dr.eval(res)
+        out = {k: np.asarray(v.numpy()) for k, v in res.items()}
+        out["lost"] = out["lost"].astype(np.uint8)
+        return out
+
+    # ------------------------------------------------------------------------------------------------
+    def _trace_dr(self, field_deg, px, py, wavelength_nm):
+        import drjit as dr
+        from drjit.llvm.ad import Array3f64, Float64, UInt32
+
+        L = self.layout
+        F = Float64
+        d_np = direction(field_deg)
+        d = Array3f64(*[F(float(c)) for c in d_np])
+        z_rim = float(L.primary_sag(L.r_primary))
+        p_rim = Array3f64(F(px), F(py), F(z_rim))
+        z_start = L.tube_top + 1.0
+        s0 = (z_start - z_rim) / (-d_np[2])
+        o = p_rim - d * s0
+        opl = dr.dot(o, d)                       # plane wave: zero on the plane through the origin
+        lost = dr.zeros(UInt32, len(px))
+        trans = dr.full(F, 1.0, len(px))
+
+        def kill(mask, code):
+            nonlocal lost
+            lost = dr.select((lost == 0) & mask, UInt32(code), lost)
+
+        # -- primary (conic: c(x^2+y^2) + (1+k)c z^2 - 2z = 0, c = 1/(2f)) ------------------------------
+        c = 1.0 / (2.0 * L.focal_length)
+        k1 = 1.0 + L.conic
+        A = c * (d.x * d.x + d.y * d.y + k1 * d.z * d.z)
+        B = 2.0 * (c * (o.x * d.x + o.y * d.y + k1 * o.z * d.z) - d.z)
+        C = c * (o.x * o.x + o.y * o.y + k1 * o.z * o.z) - 2.0 * o.z
+        disc = B * B - 4.0 * A * C
+        q = -0.5 * (B + dr.copysign(dr.sqrt(dr.maximum(disc, 0.0)), B))
+        t1 = dr.select(dr.abs(A) > 1e-18, q / A, dr.inf)
+        t2 = C / q
+        big = 1e30
+        t1 = dr.select(t1 > 1e-9, t1, big)
+        t2 = dr.select(t2 > 1e-9, t2, big)
+        t = dr.minimum(t1, t2)
+        kill((disc < 0) | (t >= big), PRIMARY_MISS)
+        p1 = o + d * t
+        kill(p1.x * p1.x + p1.y * p1.y > L.r_primary ** 2, PRIMARY_MISS)
+        if self.obstruct == "analytic":
+            kill(self._blocked_tube_side(o, d, t), ENTRANCE)
+        elif self.obstruct == "mesh":
+            kill(self._blocked_mesh(o, d, t), ENTRANCE)
+        opl += t
+        n = dr.normalize(Array3f64(-c * p1.x, -c * p1.y, 1.0 - c * k1 * p1.z))
+        d1 = d - 2.0 * dr.dot(d, n) * n
+
+        # -- diagonal (plane through its centre, elliptical outline) --------------------------------------
+        cen = Array3f64(*[F(v) for v in L.diag_centre])
+        nd = Array3f64(*[F(v) for v in L.diag_normal])
+        denom = dr.dot(d1, nd)
+        t = dr.dot(cen - p1, nd) / denom
+        kill((t <= 0) | (denom >= 0), DIAGONAL_MISS)
+        p2 = p1 + d1 * t
+        rel = p2 - cen
+        qa = (rel.x + rel.z) * (1.0 / math.sqrt(2.0))
+        kill((qa / L.diag_a) ** 2 + (rel.y / L.diag_b) ** 2 > 1.0, DIAGONAL_MISS)
+        if self.obstruct == "analytic":
+            kill(self._blocked_spider(p1, d1, t), TO_DIAGONAL)
+        elif self.obstruct == "mesh":
+            kill(self._blocked_mesh(p1, d1, t), TO_DIAGONAL)
+        opl += t
+        d2 = d1 - 2.0 * dr.dot(d1, nd) * nd
+
+        # -- corrector lenses on the focuser axis (y = 0, z = z_axis, direction +x) ---------------------
+        p, dcur, n_medium = p2, d2, 1.0
+        chain = [p2]
+        for s in L.lenses:
+            n_after = float(_index(s.after, wavelength_nm))
+            if s.radius_mm == 0.0:
+                t = (s.x_mm - p.x) / dcur.x
+                hit = p + dcur * t
+                normal = Array3f64(F(-1.0), F(0.0), F(0.0))
+            else:
+                centre = Array3f64(F(s.x_mm + s.radius_mm), F(0.0), F(L.z_axis))
+                oc = p - centre
+                b = dr.dot(oc, dcur)
+                cc = dr.dot(oc, oc) - s.radius_mm ** 2
+                disc = b * b - cc
+                kill(disc < 0, LENS)
+                t = -b - math.copysign(1.0, s.radius_mm) * dr.sqrt(dr.maximum(disc, 0.0))
+                hit = p + dcur * t
+                normal = (hit - centre) * (1.0 / s.radius_mm)
+            kill(t <= 0, LENS)
+            kill(hit.y * hit.y + (hit.z - L.z_axis) ** 2 > s.semi_diameter_mm ** 2, LENS)
+            opl += n_medium * t
+            dcur, tr, tir = _refract(dcur, normal, n_medium, n_after)
+            kill(tir, LENS)
+            trans *= tr
+            p, n_medium = hit, n_after
+            chain.append(hit)
+        # -- detector plane x = x_detector ---------------------------------------------------------------
+        t = (L.x_detector - p.x) / dcur.x
+        kill(t <= 0, DETECTOR_MISS)
+        p3 = p + dcur * t
+        opl += n_medium * t
+        chain.append(p3)
+        if self.obstruct == "analytic":
+            kill(self._blocked_focuser(chain), FOCUSER)
+        elif self.obstruct == "mesh":
+            kill(self._blocked_mesh_chain(chain), FOCUSER)
+        u = p3.z - L.z_axis
+        v = p3.y
+        hu, hv = L.detector_half
+        kill((dr.abs(u) > hu) | (dr.abs(v) > hv), DETECTOR_MISS)
+        return {"u": u, "v": v, "du": dcur.z, "dv": dcur.y, "dw": dcur.x, "opl": opl,
+                "transmission": trans, "lost": lost}
+
+    # -- analytic obstructions ---------------------------------------------------------------------------
+    def _blocked_tube_side(self, o, d, t_end):
+        """Tube front and annular vanes (radius at each vane's height), the diagonal's body, the spider."""
+        import drjit as dr
+
+        L = self.layout
+        blocked = dr.zeros(_Bool(), dr.width(o.x))
+        for z, r in [(L.tube_top, L.r_tube), *[(zv, L.r_vane) for zv in L.vane_z]]:
+            tz = (z - o.z) / d.z
+            x = o.x + d.x * tz
+            y = o.y + d.y * tz
+            blocked |= (tz > 0) & (tz < t_end) & (x * x + y * y > r * r)
+        blocked |= self._hits_diagonal_body(o, d, t_end)
+        blocked |= self._blocked_spider(o, d, t_end)
+        # the focuser bore (and the corrector in it) where it reaches into the tube
+        x_in = L.focuser_start_x
+        lo, hi = _cylinder_interval(o.y, o.z - L.z_axis, d.y, d.z, L.r_focuser)
+        lo, hi = _clip_linear(lo, hi, -(o.x - x_in), -d.x, upper=0.0)
+        lo, hi = _clip_linear(lo, hi, o.x - L.r_tube, d.x, upper=0.0)
+        blocked |= dr.maximum(lo, 0.0) < dr.minimum(hi, t_end)
+        return blocked
+
+    def _hits_diagonal_body(self, o, d, t_end):
+        """The diagonal with its holder: inside the vertical cylinder r < b about the ellipse centre, above
+        the mirror plane and below the holder's top cap (a closed solid, so any overlap blocks)."""
+        import drjit as dr
+
+        L = self.layout
+        cx, _, cz = L.diag_centre
+        lo, hi = _cylinder_interval(o.x - cx, o.y, d.x, d.y, L.diag_b)
+        # z <= holder_top
+        lo, hi = _clip_linear(lo, hi, o.z - L.holder_top, d.z, upper=0.0)
+        # above the plane: (z - cz) - (x - cx) >= 0
+        lo, hi = _clip_linear(lo, hi, -((o.z - cz) - (o.x - cx)), -(d.z - d.x), upper=0.0)
+        lo = dr.maximum(lo, 0.0)
+        hi = dr.minimum(hi, t_end)
+        return lo < hi
+
+    def _blocked_spider(self, o, d, t_end):
+        import drjit as dr
+
+        L = self.layout
+        blocked = dr.zeros(_Bool(), dr.width(o.x))
+        z0, z1 = L.spider_z
+        for ang in L.spider_angles_deg:
+            ca, sa = math.cos(math.radians(ang)), math.sin(math.radians(ang))
+            # along-vane coordinate a = x ca + y sa in [0.9 b, R_tube]; across h = -x sa + y ca in +-w/2
+            lo = dr.zeros(type(o.x), dr.width(o.x)) - 1e30
+            hi = lo + 2e30
+            lo, hi = _clip_linear(lo, hi, o.x * ca + o.y * sa - L.r_tube, d.x * ca + d.y * sa, upper=0.0)
+            lo, hi = _clip_linear(lo, hi, -(o.x * ca + o.y * sa - 0.9 * L.diag_b), -(d.x * ca + d.y * sa),
+                                  upper=0.0)
+            hcoord = -o.x * sa + o.y * ca
+            hdir = -d.x * sa + d.y * ca
+            lo, hi = _clip_linear(lo, hi, hcoord - L.spider_half_width, hdir, upper=0.0)
+            lo, hi = _clip_linear(lo, hi, -(hcoord + L.spider_half_width), -hdir, upper=0.0)
+            lo, hi = _clip_linear(lo, hi, o.z - z1, d.z, upper=0.0)
+            lo, hi = _clip_linear(lo, hi, -(o.z - z0), -d.z, upper=0.0)
+            blocked |= (dr.maximum(lo, 0.0) < dr.minimum(hi, t_end))
+        return blocked
+
+    def _blocked_focuser(self, chain):
+        """The folded beam must pass the focuser bore (radius r_f about the focuser axis) where it starts
+        at the tube wall and where it enters the camera housing. ``chain`` lists the ray's vertices from
+        the diagonal to the detector; each straight piece is checked where it crosses those two planes.
+        Between them the distance to the axis along a straight piece is convex, so the two ends decide."""
+        import drjit as dr
+
+        L = self.layout
+        blocked = dr.zeros(_Bool(), dr.width(chain[0].x))
+        x0 = L.focuser_start_x
+        for a, b in itertools.pairwise(chain):
+            dd = b - a
+            for xq in (x0, L.x_housing):
+                s = (xq - a.x) / dd.x
+                y = a.y + dd.y * s
+                z = a.z + dd.z * s - L.z_axis
+                blocked |= (s > 0) & (s <= 1) & (y * y + z * z > L.r_focuser ** 2)
+        return blocked
+
+    # -- mesh obstructions (Mitsuba BVH) -----------------------------------------------------------------
+    def _blocked_mesh(self, o, d, t_end):
+        import drjit as dr
+
+        mi = self.mi
+        eps = 1e-3
+        ray = mi.Ray3f(mi.Point3f(mi.Float(o.x + d.x * eps), mi.Float(o.y + d.y * eps), mi.Float(o.z + d.z * eps)),
+                       mi.Vector3f(mi.Float(d.x), mi.Float(d.y), mi.Float(d.z)))
+        ray.maxt = mi.Float(dr.maximum(t_end - 2 * eps, 0.0))
+        return _Bool()(self._scene.ray_test(ray))
+
+    def _blocked_mesh_chain(self, points):
+        import drjit as dr
+
+        blocked = dr.zeros(_Bool(), dr.width(points[0].x))
+        for a, b in itertools.pairwise(points):
+            seg = b - a
+            length = dr.norm(seg)
+            blocked |= self._blocked_mesh(a, seg / length, length)
+        return blocked
+
+
+# ---- small drjit helpers ---------------------------------------------------------------------------------
+def _Bool():
+    from drjit.llvm.ad import Bool
+
+    return Bool
+
+
+def _index(material, wavelength_nm):
+    from .glass import index
+
+    return index(material, wavelength_nm)
+
+
+def _refract(d, n, n1: float, n2: float):
+    """Refract unit direction ``d`` at a surface with unit normal ``n`` (either orientation) from index
+    ``n1`` into ``n2``. Returns (new direction, Fresnel transmittance (unpolarised), total internal
+    reflection mask). Snell in vector form: t = eta d + (eta cos_i - cos_t) m with m facing the ray."""
+    import drjit as dr
+
+    cos_i = -dr.dot(d, n)
+    m = dr.select(cos_i < 0, -n, n)
+    cos_i = dr.abs(cos_i)
+    eta = n1 / n2
+    sin2_t = eta * eta * (1.0 - cos_i * cos_i)
+    tir = sin2_t > 1.0
+    cos_t = dr.sqrt(dr.maximum(1.0 - sin2_t, 0.0))
+    t = d * eta + m * (eta * cos_i - cos_t)
+    rs = (n1 * cos_i - n2 * cos_t) / (n1 * cos_i + n2 * cos_t)
+    rp = (n2 * cos_i - n1 * cos_t) / (n2 * cos_i + n1 * cos_t)
+    trans = dr.select(tir, 0.0, 1.0 - 0.5 * (rs * rs + rp * rp))
+    return t, trans, tir
+
+
+def _clip_linear(lo, hi, a, b, upper: float = 0.0):
+    """Intersect the t-interval [lo, hi] with {t : a + b t <= upper}."""
+    import drjit as dr
+
+    t = (upper - a) / b
+    parallel = dr.abs(b) < 1e-15
+    new_lo = dr.select(parallel, dr.select(a <= upper, lo, 1e30), dr.select(b < 0, dr.maximum(lo, t), lo))
+    new_hi = dr.select(parallel, dr.select(a <= upper, hi, -1e30), dr.select(b > 0, dr.minimum(hi, t), hi))
+    return new_lo, new_hi
+
+
+def _cylinder_interval(qx, qy, dx, dy, r):
+    """t-interval where (qx + t dx)^2 + (qy + t dy)^2 <= r^2 (empty: lo > hi)."""
+    import drjit as dr
+
+    A = dx * dx + dy * dy
+    B = qx * dx + qy * dy
+    C = qx * qx + qy * qy - r * r
+    disc = B * B - A * C
+    root = dr.sqrt(dr.maximum(disc, 0.0))
+    small = A < 1e-18
+    lo = dr.select(small, dr.select(C <= 0, -1e30, 1e30), (-B - root) / A)
+    hi = dr.select(small, dr.select(C <= 0, 1e30, -1e30), (-B + root) / A)
+    lo = dr.select(~small & (disc < 0), 1e30, lo)
+    hi = dr.select(~small & (disc < 0), -1e30, hi)
+    return lo, hi
+
+
+def make_tracer(design: Design | str, mi, obstruct: str = "analytic") -> SequentialTracer:
+    """Convenience: a tracer from a design object or a built-in name/path."""
+    if isinstance(design, str):
+        from .design import load_design
+
+        design = load_design(design)
+    return SequentialTracer(design, mi, obstruct)
