@@ -25,7 +25,9 @@ test: install
 	$(PY) -m pytest -q
 
 bench: install
+	$(PY) -m pip install -q -e '.[bench]'
 	$(PY) benchmarks/bench_detector_fullframe.py
+	$(PY) benchmarks/bench_optics_trace.py
 
 clean:
 	rm -rf $(VENV) out .pytest_cache

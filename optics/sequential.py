@@ -119,14 +119,21 @@ class SequentialTracer:
 
     def count(self, field_deg, px, py, wavelength_nm: float = 550.0) -> int:
         """Number of rays that reach the detector (no per-ray transfer back to numpy)."""
-        import drjit as dr
+        return int(self.loss_counts(field_deg, px, py, wavelength_nm)[OK])
 
-        total = 0
+    def loss_counts(self, field_deg, px, py, wavelength_nm: float = 550.0) -> np.ndarray:
+        """How many rays end with each loss code (index = code, 0 = reached the detector)."""
+        import drjit as dr
+        from drjit.llvm.ad import UInt32
+
+        total = np.zeros(len(LOSS_NAMES), dtype=np.int64)
         px = np.asarray(px, dtype=np.float64).ravel()
         py = np.asarray(py, dtype=np.float64).ravel()
         for i in range(0, len(px), BATCH):
             res = self._trace_dr(field_deg, px[i:i + BATCH], py[i:i + BATCH], wavelength_nm)
-            total += int(dr.count(res["lost"] == 0)[0])
+            counts = dr.zeros(UInt32, len(LOSS_NAMES))
+            dr.scatter_add(counts, UInt32(1), res["lost"])
+            total += np.asarray(counts.numpy(), dtype=np.int64)
         return total
 
     def _trace_batch(self, field_deg, px, py, wavelength_nm):
@@ -146,11 +153,12 @@ class SequentialTracer:
         L = self.layout
         F = Float64
         d_np = direction(field_deg)
-        d = Array3f64(*[F(float(c)) for c in d_np])
+        # opaque: the field changes from call to call, the compiled kernel must not
+        d = Array3f64(*[dr.opaque(F, float(c)) for c in d_np])
         z_rim = float(L.primary_sag(L.r_primary))
         p_rim = Array3f64(F(px), F(py), F(z_rim))
         z_start = L.tube_top + 1.0
-        s0 = (z_start - z_rim) / (-d_np[2])
+        s0 = dr.opaque(F, (z_start - z_rim) / (-d_np[2]))
         o = p_rim - d * s0
         opl = dr.dot(o, d)                       # plane wave: zero on the plane through the origin
         lost = dr.zeros(UInt32, len(px))

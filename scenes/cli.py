@@ -16,6 +16,8 @@ from detector import DetectorError
 from detector.jsonable import jsonable
 from optics.design import OpticsError
 
+from .cli_optics import optics as optics_group
+
 EXIT_USER_ERROR = 2
 
 
@@ -49,7 +51,7 @@ def cli():
     effects       the catalogue of optional effects, their parameters and units
     compare       model vs measured frame (coming with the compare issue)
     diagnose      which physical effect the model lacks (coming with the diagnose issue)
-    optics        vignetting | psf | pst ray tracing (coming with the optics issue)
+    optics        vignetting | psf | pst: ray tracing of the telescope (Mitsuba 3, llvm)
     """
 
 
@@ -95,7 +97,8 @@ def characterize(bias, dark, flat, json_out, emit_scene, plots, sigma):
 
     Accepts shell-style multiple files after one option: --bias b1.fits b2.fits --dark d1.fits ...
     """
-    from detector.characterize import characterize as run, emit_scene_dict
+    from detector.characterize import characterize as run
+    from detector.characterize import emit_scene_dict
 
     result = run(list(bias), list(dark), list(flat) or None, hot_sigma=sigma)
     if plots:
@@ -154,13 +157,7 @@ def diagnose():
     _not_yet("diagnose", "compare/diagnose work")
 
 
-@cli.group()
-def optics():
-    """Ray tracing of the telescope: vignetting, psf, pst (not yet available)."""
-
-
-for _verb in ("vignetting", "psf", "pst"):
-    optics.command(name=_verb, context_settings=_PASS)(lambda _v=_verb: _not_yet(f"optics {_v}", "optics work"))
+cli.add_command(optics_group, name="optics")
 
 
 _MULTI_FILE_OPTIONS = ("--bias", "--dark", "--flat")

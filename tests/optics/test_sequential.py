@@ -15,6 +15,7 @@ from optics.sequential import (
     pupil_grid,
     pupil_uniform,
 )
+from optics.vignetting import two_circle_fraction
 
 
 @pytest.fixture(scope="module")
@@ -55,18 +56,6 @@ def test_analytic_obstructions_agree_with_mitsuba_meshes(mi, bare):
         assert np.mean(ra.lost != rm.lost) < 0.01, field
 
 
-def _two_circle_fraction(r1, r2, s):
-    """Area of overlap of circles (radii r1, r2, centre distance s) over the area of circle 1."""
-    if s >= r1 + r2:
-        return 0.0
-    if s <= abs(r2 - r1):
-        return 1.0 if r2 >= r1 else (r2 / r1) ** 2
-    a1 = r1 * r1 * math.acos((s * s + r1 * r1 - r2 * r2) / (2 * s * r1))
-    a2 = r2 * r2 * math.acos((s * s + r2 * r2 - r1 * r1) / (2 * s * r2))
-    a3 = 0.5 * math.sqrt((-s + r1 + r2) * (s + r1 - r2) * (s - r1 + r2) * (s + r1 + r2))
-    return (a1 + a2 - a3) / (math.pi * r1 * r1)
-
-
 @pytest.mark.parametrize("field_deg", [0.5, 1.0, 1.5, 2.5, 3.5])
 def test_diagonal_vignetting_follows_the_two_circle_formula(mi, bare, field_deg):
     """The converging cone (radius D d / 2f) at the diagonal, centred h (1 - d/f) off axis, against the
@@ -80,7 +69,7 @@ def test_diagonal_vignetting_follows_the_two_circle_formula(mi, bare, field_deg)
     r = tr.trace((0.0, field_deg), px, py)
     captured = 1 - np.mean(r.lost == DIAGONAL_MISS)
     h = f * math.tan(math.radians(field_deg))
-    expected = _two_circle_fraction(D * d / (2 * f), m / 2, h * (1 - d / f))
+    expected = two_circle_fraction(D * d / (2 * f), m / 2, h * (1 - d / f))
     assert captured == pytest.approx(expected, abs=0.03)
 
 

@@ -1,0 +1,48 @@
+"""On-disk cache of optics results, keyed by a hash of the design, the product and its settings.
+
+Ray-traced products (vignetting maps, PSFs, PST curves) depend only on the design file's content, the
+settings and the code's cache version, so a repeated request is answered from
+``$NEWTSIM_CACHE_DIR`` (default ``~/.cache/newtsim/optics``). Bump :data:`CACHE_VERSION` when a change to
+the tracing code changes results.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+from pathlib import Path
+
+CACHE_VERSION = 1
+
+
+def cache_dir() -> Path:
+    root = os.environ.get("NEWTSIM_CACHE_DIR")
+    return Path(root) if root else Path.home() / ".cache" / "newtsim" / "optics"
+
+
+def cache_key(product: str, design, settings: dict) -> str:
+    """Hex digest of the design's content (not its name or path), the product and the settings."""
+    payload = {"v": CACHE_VERSION, "product": product, "settings": settings,
+               "design": design.model_dump(mode="json", exclude={"name"})}
+    return hashlib.sha256(json.dumps(payload, sort_keys=True).encode()).hexdigest()[:20]
+
+
+def cached_json(product: str, design, settings: dict, compute, use_cache: bool = True) -> tuple[dict, bool]:
+    """``(result, from_cache)``: the stored JSON for this key, or ``compute()`` (a JSON-able dict) stored."""
+    path = cache_dir() / f"{product}-{cache_key(product, design, settings)}.json"
+    if use_cache and path.is_file():
+        try:
+            return json.loads(path.read_text()), True
+        except (OSError, json.JSONDecodeError):
+            pass  # a damaged entry is recomputed
+    result = compute()
+    if use_cache:
+        try:
+            path.parent.mkdir(parents=True, exist_ok=True)
+            tmp = path.with_suffix(".tmp")
+            tmp.write_text(json.dumps(result))
+            tmp.replace(path)
+        except OSError:
+            pass  # a read-only home must not break a computation
+    return result, False

@@ -1,0 +1,210 @@
+"""``newtsim optics vignetting|psf|pst``: the ray-traced optics products (contract in DESIGN.md).
+
+Lives in ``scenes`` because the polychromatic PSF is weighted by a detector's QE and ``optics`` must not
+import ``detector``. Results are cached by a hash of the design's content and the settings
+(:mod:`optics.cache`); ``--no-cache`` recomputes.
+"""
+
+from __future__ import annotations
+
+import time
+from contextlib import contextmanager
+
+import click
+
+from optics.design import OpticsError, load_design
+
+
+@contextmanager
+def _progress(label: str, enabled: bool = True):
+    """A rich progress bar on stderr; yields a callable(done, total)."""
+    if not enabled:
+        yield None
+        return
+    from rich.console import Console
+    from rich.progress import (
+        BarColumn,
+        Progress,
+        TextColumn,
+        TimeElapsedColumn,
+        TimeRemainingColumn,
+    )
+
+    with Progress(TextColumn(label), BarColumn(), TextColumn("{task.completed}/{task.total}"),
+                  TimeElapsedColumn(), TimeRemainingColumn(), console=Console(stderr=True),
+                  transient=True) as bar:
+        task = bar.add_task(label, total=None)
+
+        def update(done, total):
+            bar.update(task, completed=done, total=total)
+
+        yield update
+
+
+def _mitsuba():
+    from optics.llvm import init_mitsuba
+
+    return init_mitsuba()
+
+
+def _design(name):
+    return load_design(name)
+
+
+def _echo_json(obj, path):
+    from .cli import _write_json
+
+    _write_json(obj, path)
+
+
+@click.group()
+def optics():
+    """Ray tracing of the telescope (Mitsuba 3, llvm): vignetting, psf, pst.
+
+    DESIGN is a built-in design name (art, bare, ...) or a path to a design TOML.
+    """
+
+
+@optics.command()
+@click.argument("design")
+@click.option("--grid", default=9, show_default=True, type=click.IntRange(1, 101), help="field points per axis")
+@click.option("--rays", default=1_000_000, show_default=True, type=click.IntRange(100, 10 ** 9),
+              help="rays per field point over the full aperture")
+@click.option("--wavelength-nm", default=550.0, show_default=True, type=click.FloatRange(200, 2000))
+@click.option("--obstruct", type=click.Choice(["analytic", "mesh"]), default="analytic", show_default=True,
+              help="mechanical obstructions as exact solids or as Mitsuba meshes (BVH)")
+@click.option("--json", "json_out", default=None, help="write the JSON here ('-' for stdout)")
+@click.option("--plot", "plot_out", default=None, type=click.Path(dir_okay=False), help="PNG map and profiles")
+@click.option("--fits", "fits_out", default=None, type=click.Path(dir_okay=False),
+              help="FITS map of the relative illumination (for scenes)")
+@click.option("--seed", default=0, show_default=True)
+@click.option("--no-cache", is_flag=True, help="recompute even if a cached result exists")
+def vignetting(design, grid, rays, wavelength_nm, obstruct, json_out, plot_out, fits_out, seed, no_cache):
+    """Relative illumination over the focal plane and the on-axis geometric throughput."""
+    from optics import cache
+    from optics import vignetting as vig
+    from optics.sequential import SequentialTracer
+
+    d = _design(design)
+    settings = {"grid": grid, "rays": rays, "wavelength_nm": wavelength_nm, "obstruct": obstruct, "seed": seed}
+
+    def compute():
+        tracer = SequentialTracer(d, _mitsuba(), obstruct=obstruct)
+        with _progress(f"vignetting {d.name}") as prog:
+            return vig.vignetting_map(tracer, grid, rays, wavelength_nm, seed, progress=prog).to_json()
+
+    out, hit = cache.cached_json("vignetting", d, settings, compute, use_cache=not no_cache)
+    out = {"design": d.name, **out, "cached": hit}
+    res = vig.VignettingResult.from_json(out)
+    if plot_out:
+        vig.plot(res, plot_out, d, title=f"{d.name}: relative illumination")
+    if fits_out:
+        vig.write_fits(res, fits_out, d.name)
+    if json_out or not (plot_out or fits_out):
+        _echo_json(out, json_out)
+    else:
+        click.echo(f"on-axis throughput {out['on_axis_throughput']:.4f}, corner relative illumination "
+                   f"{out['corner_relative_illumination']:.4f}", err=True)
+
+
+def _band(preset: str | None, wavelength_nm: float | None, n: int):
+    """Wavelengths and weights: one wavelength, or the band of a detector preset weighted by its QE."""
+    import numpy as np
+
+    if preset is None:
+        return [float(wavelength_nm or 550.0)], [1.0]
+    from detector.sensor import make_sensor
+
+    sensor = make_sensor({"preset": preset})
+    lo, hi = min(sensor.qe_wavelength_nm), max(sensor.qe_wavelength_nm)
+    wl = np.linspace(lo + (hi - lo) / (2 * n), hi - (hi - lo) / (2 * n), n)
+    w = np.asarray(sensor.qe_at(wl), dtype=float)
+    keep = w > 0.02 * w.max()
+    return wl[keep].round(1).tolist(), (w[keep] / w[keep].sum()).round(6).tolist()
+
+
+@optics.command()
+@click.argument("design")
+@click.option("--field-deg", nargs=2, type=float, required=True, metavar="X Y", help="field angles [deg]")
+@click.option("--wavelength-nm", default=None, type=click.FloatRange(200, 2000), help="one wavelength (default 550)")
+@click.option("--band", "band", default=None, type=click.Choice(["imx411", "ml11002"]),
+              help="polychromatic: the detector preset's band weighted by its QE")
+@click.option("--band-samples", default=7, show_default=True, type=click.IntRange(2, 40))
+@click.option("--geometric", is_flag=True, help="ray spot only (rms, extents), no diffraction")
+@click.option("--seeing-arcsec", default=0.0, show_default=True, type=click.FloatRange(0, 30),
+              help="convolve with seeing of this FWHM")
+@click.option("--jitter-arcsec", default=0.0, show_default=True, type=click.FloatRange(0, 30),
+              help="convolve with Gaussian pointing jitter of this rms")
+@click.option("--json", "json_out", default=None, help="write the JSON here ('-' for stdout)")
+@click.option("--fits", "fits_out", default=None, type=click.Path(dir_okay=False), help="PSF image (FITS)")
+@click.option("--no-cache", is_flag=True)
+def psf(design, field_deg, wavelength_nm, band, band_samples, geometric, seeing_arcsec, jitter_arcsec,
+        json_out, fits_out, no_cache):
+    """The PSF at one field point: encircled energy, FWHM, centroid (and the geometric spot)."""
+    from optics import cache
+    from optics import psf as psfmod
+    from optics.sequential import SequentialTracer
+
+    d = _design(design)
+    if band and wavelength_nm:
+        raise OpticsError("--band and --wavelength-nm exclude each other (one wavelength, or a QE-weighted band)")
+    wl, w = _band(band, wavelength_nm, band_samples)
+    settings = {"field_deg": list(field_deg), "wavelengths_nm": wl, "weights": w, "geometric": geometric,
+                "seeing": seeing_arcsec, "jitter": jitter_arcsec}
+    state = {}
+
+    def compute():
+        tracer = SequentialTracer(d, _mitsuba())
+        t0 = time.perf_counter()
+        res = psfmod.compute_psf(tracer, field_deg=tuple(field_deg), wavelengths_nm=wl, weights=w,
+                                 geometric=geometric, seeing_fwhm_arcsec=seeing_arcsec,
+                                 jitter_rms_arcsec=jitter_arcsec)
+        state["result"] = res
+        return {**res.to_json(), "seconds": round(time.perf_counter() - t0, 3)}
+
+    # a FITS image needs the PSF itself, which the JSON cache does not hold
+    out, hit = cache.cached_json("psf", d, settings, compute, use_cache=not (no_cache or fits_out))
+    out = {"design": d.name, "field_deg": list(field_deg), "wavelengths_nm": wl, "weights": w, **out,
+           "cached": hit}
+    if fits_out:
+        psfmod.write_psf_fits(state["result"], fits_out)
+    _echo_json(out, json_out)
+
+
+@optics.command()
+@click.argument("design")
+@click.option("--angles", required=True, help="off-axis source angles [deg], comma separated, e.g. 5,10,30,60,90")
+@click.option("--azimuth-deg", default=0.0, show_default=True, help="source azimuth about the axis [deg]")
+@click.option("--rays", default=400_000, show_default=True, type=click.IntRange(1000, 10 ** 10),
+              help="detector paths per angle")
+@click.option("--wavelength-nm", default=550.0, show_default=True, type=click.FloatRange(200, 2000))
+@click.option("--seed", default=0, show_default=True)
+@click.option("--json", "json_out", default=None, help="write the JSON here ('-' for stdout)")
+@click.option("--plot", "plot_out", default=None, type=click.Path(dir_okay=False), help="PST curve (PNG)")
+@click.option("--no-cache", is_flag=True)
+def pst(design, angles, azimuth_deg, rays, wavelength_nm, seed, json_out, plot_out, no_cache):
+    """Point-source transmittance PST(angle) with a 1-sigma Monte-Carlo error per angle."""
+    from optics import cache, straylight
+
+    d = _design(design)
+    try:
+        angle_list = [float(a) for a in angles.split(",") if a.strip()]
+    except ValueError:
+        raise OpticsError(f"--angles {angles!r}: expected comma-separated degrees, e.g. 5,10,30") from None
+    if not angle_list or any(not 0 < a <= 180 for a in angle_list):
+        raise OpticsError(f"--angles {angles!r}: each angle must be in (0, 180] degrees")
+    settings = {"angles": angle_list, "azimuth": azimuth_deg, "rays": rays, "wavelength_nm": wavelength_nm,
+                "seed": seed}
+
+    def compute():
+        mi = _mitsuba()
+        with _progress(f"PST {d.name}") as prog:
+            res = straylight.pst_curve(d, mi, angle_list, azimuth_deg=azimuth_deg, rays=rays, seed=seed,
+                                       wavelength_nm=wavelength_nm, progress=prog)
+        return res.to_json()
+
+    out, hit = cache.cached_json("pst", d, settings, compute, use_cache=not no_cache)
+    out = {"design": d.name, **out, "cached": hit}
+    if plot_out:
+        straylight.plot_pst({d.name: straylight.PSTResult.from_json(out)}, plot_out)
+    _echo_json(out, json_out)
