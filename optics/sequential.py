@@ -117,6 +117,20 @@ class SequentialTracer:
         out = {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
         return TraceResult(px=px, py=py, **out)
 
+    def paths(self, field_deg, px, py, wavelength_nm: float = 550.0) -> tuple[np.ndarray, np.ndarray]:
+        """Every ray's vertices for drawing: ``(points[n_rays, n_vertices, 3], lost[n_rays])`` from the
+        entrance through the primary, the diagonal and each lens to the detector plane [mm]."""
+        import drjit as dr
+
+        res = self._trace_dr(field_deg, np.asarray(px, float).ravel(), np.asarray(py, float).ravel(),
+                             wavelength_nm, keep_path=True)
+        dr.eval(res)
+        nv = sum(1 for k in res if k.startswith("path") and k.endswith("_x"))
+        n = len(np.asarray(px).ravel())
+        pts = np.stack([np.stack([np.broadcast_to(np.asarray(res[f"path{k}_{c}"].numpy()), (n,)) for c in "xyz"], -1)
+                        for k in range(nv)], 1)
+        return pts, np.asarray(res["lost"].numpy()).astype(np.uint8)
+
     def count(self, field_deg, px, py, wavelength_nm: float = 550.0) -> int:
         """Number of rays that reach the detector (no per-ray transfer back to numpy)."""
         return int(self.loss_counts(field_deg, px, py, wavelength_nm)[OK])
@@ -146,7 +160,7 @@ class SequentialTracer:
         return out
 
     # ------------------------------------------------------------------------------------------------
-    def _trace_dr(self, field_deg, px, py, wavelength_nm):
+    def _trace_dr(self, field_deg, px, py, wavelength_nm, keep_path=False):
         import drjit as dr
         from drjit.llvm.ad import Array3f64, Float64, UInt32
 
@@ -251,8 +265,12 @@ class SequentialTracer:
         v = p3.y
         hu, hv = L.detector_half
         kill((dr.abs(u) > hu) | (dr.abs(v) > hv), DETECTOR_MISS)
-        return {"u": u, "v": v, "du": dcur.z, "dv": dcur.y, "dw": dcur.x, "opl": opl,
-                "transmission": trans, "lost": lost}
+        out = {"u": u, "v": v, "du": dcur.z, "dv": dcur.y, "dw": dcur.x, "opl": opl,
+               "transmission": trans, "lost": lost}
+        if keep_path:
+            for k, pt in enumerate([o, p1, *chain]):
+                out[f"path{k}_x"], out[f"path{k}_y"], out[f"path{k}_z"] = pt.x, pt.y, pt.z
+        return out
 
     # -- analytic obstructions ---------------------------------------------------------------------------
     def _blocked_tube_side(self, o, d, t_end):

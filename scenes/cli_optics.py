@@ -141,13 +141,13 @@ def _band(preset: str | None, wavelength_nm: float | None, n: int):
 def psf(design, field_deg, wavelength_nm, band, band_samples, geometric, seeing_arcsec, jitter_arcsec,
         json_out, fits_out, no_cache):
     """The PSF at one field point: encircled energy, FWHM, centroid (and the geometric spot)."""
+    d = _design(design)
+    if band and wavelength_nm:
+        raise OpticsError("--band and --wavelength-nm exclude each other (one wavelength, or a QE-weighted band)")
     from optics import cache
     from optics import psf as psfmod
     from optics.sequential import SequentialTracer
 
-    d = _design(design)
-    if band and wavelength_nm:
-        raise OpticsError("--band and --wavelength-nm exclude each other (one wavelength, or a QE-weighted band)")
     wl, w = _band(band, wavelength_nm, band_samples)
     settings = {"field_deg": list(field_deg), "wavelengths_nm": wl, "weights": w, "geometric": geometric,
                 "seeing": seeing_arcsec, "jitter": jitter_arcsec}
@@ -184,8 +184,6 @@ def psf(design, field_deg, wavelength_nm, band, band_samples, geometric, seeing_
 @click.option("--no-cache", is_flag=True)
 def pst(design, angles, azimuth_deg, rays, wavelength_nm, seed, json_out, plot_out, no_cache):
     """Point-source transmittance PST(angle) with a 1-sigma Monte-Carlo error per angle."""
-    from optics import cache, straylight
-
     d = _design(design)
     try:
         angle_list = [float(a) for a in angles.split(",") if a.strip()]
@@ -195,6 +193,7 @@ def pst(design, angles, azimuth_deg, rays, wavelength_nm, seed, json_out, plot_o
         raise OpticsError(f"--angles {angles!r}: each angle must be in (0, 180] degrees")
     settings = {"angles": angle_list, "azimuth": azimuth_deg, "rays": rays, "wavelength_nm": wavelength_nm,
                 "seed": seed}
+    from optics import cache, straylight
 
     def compute():
         mi = _mitsuba()
@@ -208,3 +207,28 @@ def pst(design, angles, azimuth_deg, rays, wavelength_nm, seed, json_out, plot_o
     if plot_out:
         straylight.plot_pst({d.name: straylight.PSTResult.from_json(out)}, plot_out)
     _echo_json(out, json_out)
+
+
+@optics.command()
+@click.argument("design")
+@click.option("--plot", "plot_out", default=None, type=click.Path(dir_okay=False),
+              help="2-D layout (x-z section) with ray fans (PNG)")
+@click.option("--export", "export_out", default=None, type=click.Path(dir_okay=False),
+              help="the telescope's meshes as GLB (named parts), PLY, STL or OBJ for any 3-D viewer")
+def layout(design, plot_out, export_out):
+    """The telescope's geometry: a layout drawing with traced rays, and/or its meshes for a 3-D viewer."""
+    from optics.layout import make_layout
+    from optics.meshes import export, telescope_parts
+
+    d = _design(design)
+    if not (plot_out or export_out):
+        raise OpticsError("optics layout: give --plot OUT.png and/or --export OUT.glb")
+    if export_out:
+        export(telescope_parts(make_layout(d)), export_out)
+        click.echo(f"wrote {export_out}", err=True)
+    if plot_out:
+        from optics.layout_plot import plot_layout
+        from optics.sequential import SequentialTracer
+
+        plot_layout(SequentialTracer(d, _mitsuba()), plot_out)
+        click.echo(f"wrote {plot_out}", err=True)
