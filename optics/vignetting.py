@@ -219,3 +219,27 @@ def plot(result: VignettingResult, path, design=None, title: str = ""):
     fig.savefig(path, dpi=110)
     plt.close(fig)
     return path
+
+
+def cached_map_fits(design, grid: int = 9, rays: int = 200_000, seed: int = 0, use_cache: bool = True):
+    """Path of a FITS vignetting map of ``design`` in the optics cache, ray-traced on first use.
+
+    Starts Mitsuba itself (``optics.llvm.init_mitsuba``): this is an entry point for the scenes package.
+    """
+    from . import cache
+    from .llvm import init_mitsuba
+
+    settings = {"grid": grid, "rays": rays, "wavelength_nm": 550.0, "obstruct": "analytic", "seed": seed}
+
+    def compute():
+        tracer = SequentialTracer(design, init_mitsuba(), obstruct="analytic")
+        return vignetting_map(tracer, grid, rays, 550.0, seed).to_json()
+
+    data, _ = cache.cached_json("vignetting", design, settings, compute, use_cache=use_cache)
+    path = cache.cache_dir() / f"vignetting-{cache.cache_key('vignetting', design, settings)}.fits"
+    if not path.is_file() or not use_cache:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = path.with_suffix(".tmp.fits")
+        write_fits(VignettingResult.from_json(data), tmp, design.name)
+        tmp.replace(path)
+    return path

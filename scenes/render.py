@@ -39,13 +39,28 @@ class Setup:
     warnings: list[str]
 
 
+def _resolve_optics_maps(effects: dict, design, scene: Scene) -> dict:
+    """``[effects.vignetting] map_file = "optics"``: ray-trace the scene's design (cached) for the map."""
+    vig = effects.get("vignetting")
+    if not vig or vig.get("map_file") != "optics":
+        return effects
+    from optics.vignetting import cached_map_fits
+
+    try:
+        path = cached_map_fits(design)
+    except (OpticsError, ImportError) as exc:
+        raise SceneError(f"cannot ray-trace the vignetting of design '{design.name}': {exc}",
+                         key="effects.vignetting.map_file", file=scene.source) from None
+    return {**effects, "vignetting": {**vig, "map_file": str(path)}}
+
+
 def prepare(scene: Scene, workers: int | None = None) -> Setup:
     sensor = scene.sensor()
-    effects = build_effects(scene.effects, sensor, file=scene.source)
     try:
         design = load_design(scene.telescope.design)
     except OpticsError as exc:
         raise SceneError(str(exc), key="telescope.design", file=scene.source) from None
+    effects = build_effects(_resolve_optics_maps(scene.effects, design, scene), sensor, file=scene.source)
     scale = scene.telescope.pixel_scale_arcsec or design.pixel_scale_arcsec(sensor.pixel_pitch_um)
     exp = scene.exposure
     exptime = 0.0 if exp.frame == "bias" else exp.time_s

@@ -8,9 +8,10 @@ Each module holds pure physics functions and their registered adapters:
 * ``glow``: ``amp_glow``
 * ``blooming``: ``blooming``
 * ``cosmic_rays``: ``cosmic_rays``
+* ``optical``: ``vignetting``
 """
 
 from .base import Effect, EffectParams, Stage, Tile, build_effects, register_effect, registry
-from . import pixel_response, defects, readout, glow, blooming, cosmic_rays  # noqa: F401  (registration)
+from . import pixel_response, defects, readout, glow, blooming, cosmic_rays, optical  # noqa: F401  (registration)
 
 __all__ = ["Effect", "EffectParams", "Stage", "Tile", "build_effects", "register_effect", "registry"]

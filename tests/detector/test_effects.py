@@ -30,6 +30,7 @@ ZERO = {
     "amp_glow": {"sources": [{"amplitude_e_per_s": 0.0}]},
     "blooming": {"threshold_e": 1e7},
     "cosmic_rays": {"flux_per_cm2_s": 0.0},
+    "vignetting": {"a2": 0.0, "a4": 0.0},
 }
 
 
@@ -207,3 +208,46 @@ def test_blooming_conserves_charge_and_bleeds_excess_over_full_well():
     sig[300, 300] = 20000.0 * 41
     m = Detector(s, build_effects({"blooming": {}}, s)).expose(sig, 1.0, 1, noiseless=True)
     assert np.isclose(m.sum(), sig.sum()) and (m[280:321, 300] == 20000.0).all()
+
+
+def test_radial_vignetting_follows_its_polynomial_and_spares_the_dark_signal():
+    from detector.effects.optical import radial_vignetting
+
+    s = small()
+    det = Detector(s, build_effects({"vignetting": {"a2": 0.2, "a4": 0.05}}, s))
+    img = det.expose(1000.0, 1.0, frame_seed=1, noiseless=True)   # e-: photo (vignetted) + dark (not)
+    pitch = s.pixel_pitch_um * 1e-3
+    ys = np.arange(s.roi_y0, s.roi_y0 + s.height) - (s.sensor_height_px - 1) / 2
+    xs = np.arange(s.roi_x0, s.roi_x0 + s.width) - (s.sensor_width_px - 1) / 2
+    r_c = 0.5 * pitch * np.hypot(s.sensor_width_px, s.sensor_height_px)
+    ri = radial_vignetting(xs[None, :] * pitch, ys[:, None] * pitch, r_c, 0.2, 0.05)
+    dark = s.dark_current_e_per_s * 1.0
+    assert np.allclose(img, 1000.0 * ri + dark, rtol=1e-5)
+    assert radial_vignetting(np.array(r_c), np.array(0.0), r_c, 0.2, 0.05) == pytest.approx(0.75)
+
+
+def test_vignetting_map_file_is_interpolated_and_errors_name_the_file(tmp_path):
+    from astropy.io import fits
+
+    from detector import DetectorError
+
+    s = small()
+    u = np.linspace(-20, 20, 5)
+    v = np.linspace(-15, 15, 4)
+    ri = 1 - 0.001 * (u[None, :] ** 2 + v[:, None] ** 2)     # quadratic: a cubic spline reproduces it
+    h = fits.Header({"CRVAL1": u[0], "CDELT1": u[1] - u[0], "CRPIX1": 1.0,
+                     "CRVAL2": v[0], "CDELT2": v[1] - v[0], "CRPIX2": 1.0})
+    fits.PrimaryHDU(ri.astype(np.float32), h).writeto(tmp_path / "m.fits")
+    eff = build_effects({"vignetting": {"map_file": str(tmp_path / "m.fits")}}, s)[0]
+    ys, xs = np.array([0.0, s.sensor_height_px / 2 - 0.5]), np.array([0.0, s.sensor_width_px / 2 - 0.5])
+    got = eff.ri(ys, xs)
+    pitch = s.pixel_pitch_um * 1e-3
+    uu = (xs - (s.sensor_width_px - 1) / 2) * pitch
+    vv = (ys - (s.sensor_height_px - 1) / 2) * pitch
+    want = 1 - 0.001 * (uu[None, :] ** 2 + vv[:, None] ** 2)
+    assert np.allclose(got, want, atol=1e-5)
+    with pytest.raises(DetectorError, match="nope.fits"):
+        build_effects({"vignetting": {"map_file": str(tmp_path / "nope.fits")}}, s)
+    (tmp_path / "bad.fits").write_text("not a fits file")
+    with pytest.raises(DetectorError, match="bad.fits"):
+        build_effects({"vignetting": {"map_file": str(tmp_path / "bad.fits")}}, s)

@@ -115,3 +115,24 @@ def test_same_seed_same_bytes_and_fixed_pattern(tmp_path):
     hot = t[t["t_double_s"] < 20]  # > 61 e- (50 ADU) of excess in 2 s
     # the same hot pixels stand out in both frames (hardware seed), the noise differs (frame seed)
     assert hot.size and np.all(a[hot["y"], hot["x"]] > np.median(a) + 25) and np.all(c[hot["y"], hot["x"]] > np.median(c) + 25)
+
+
+def test_ray_traced_vignetting_darkens_the_corner_by_the_optics_map(tmp_path, monkeypatch):
+    """[effects.vignetting] map_file = "optics": the scene's design is ray-traced (cached) and the corner
+    window of a flat illumination is dimmed by exactly the map's relative illumination there."""
+    pytest.importorskip("mitsuba")
+    monkeypatch.setenv("NEWTSIM_CACHE_DIR", str(tmp_path / "cache"))
+    base = ["effects={}", "detector.width=64", "detector.height=64", "detector.x0=0", "detector.y0=0",
+            "sky.flat_e_per_s=1000", "telescope.design=bare", "detector.dark_current_e_per_s=0"]
+    plain = load_scene("default", base)
+    vig = load_scene("default", base + ['effects.vignetting.map_file="optics"'])
+    render(plain, tmp_path / "a.fits", seed=1, noiseless=True, progress=False)
+    render(vig, tmp_path / "b.fits", seed=1, noiseless=True, progress=False)
+    ratio = fits.getdata(tmp_path / "b.fits") / fits.getdata(tmp_path / "a.fits")
+    cached = list((tmp_path / "cache").glob("vignetting-*.fits"))
+    assert len(cached) == 1
+    from optics.vignetting import read_fits
+
+    u, v, ri = read_fits(cached[0])
+    assert ratio[0, 0] == pytest.approx(ri[0, 0], abs=0.003)      # the map's corner sample is at the sensor corner
+    assert ratio[0, 0] < 0.95 and ratio[-1, -1] > ratio[0, 0]      # darker toward the corner

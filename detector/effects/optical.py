@@ -1,0 +1,129 @@
+"""Optical effects that act on the focal-plane illumination: vignetting.
+
+The relative illumination RI(u, v) multiplies the expected photo-electrons of every source and of the
+background (RESPONSE stage; dark signal is not vignetted). Focal-plane coordinates (u, v) [mm] are
+measured from the sensor's centre (the optical axis) along the columns (u) and rows (v):
+``u = (x - (W - 1)/2) * pitch``, ``v = (y - (H - 1)/2) * pitch`` for full-sensor pixel centres (x, y).
+
+Two forms:
+
+* ``map_file``: a FITS map with linear (u, v) axes in mm, as written by ``newtsim optics vignetting --fits``
+  (the ray-traced vignetting of a design; ``optics`` writes it, ``detector`` only reads the file).
+  Interpolated with a bicubic spline (bilinear for fewer than 4 samples per axis); outside the map
+  the edge value is held.
+* a radial polynomial ``RI = 1 - a2 rho^2 - a4 rho^4`` with rho = r / r_corner (r_corner: half the sensor's
+  diagonal), the classic form of natural vignetting (cos^4 law expanded: Slater, Photographic Systems
+  for Engineers, 1966; the a2 term dominates for small fields).
+
+References: W. J. Smith, Modern Optical Engineering, 4th ed. (2008), sect. 9.5 (vignetting, cos^4 law).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+from pydantic import Field, model_validator
+
+from ..errors import DetectorError
+from .base import Effect, EffectParams, Stage, Tile, register_effect
+
+
+def radial_vignetting(u_mm: np.ndarray, v_mm: np.ndarray, r_corner_mm: float, a2: float, a4: float,
+                      centre_mm: tuple[float, float] = (0.0, 0.0)) -> np.ndarray:
+    """RI = 1 - a2 rho^2 - a4 rho^4, rho = |(u, v) - centre| / r_corner, clipped to [0, 1] [1]."""
+    rho2 = ((u_mm - centre_mm[0]) ** 2 + (v_mm - centre_mm[1]) ** 2) / r_corner_mm ** 2
+    return np.clip(1.0 - a2 * rho2 - a4 * rho2 * rho2, 0.0, 1.0)
+
+
+def read_vignetting_map(path: str | Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(u_mm, v_mm, RI[v, u]) from a FITS map with linear axes CRVAL/CDELT/CRPIX in mm."""
+    from astropy.io import fits
+
+    try:
+        with fits.open(path) as hdul:
+            h = hdul[0].header
+            ri = np.asarray(hdul[0].data, dtype=np.float64)
+    except (OSError, ValueError) as exc:
+        raise DetectorError(f"cannot read vignetting map: {exc}", key="effects.vignetting.map_file",
+                            expected="a FITS map from 'newtsim optics vignetting --fits'", file=str(path)) from None
+    if ri.ndim != 2 or not all(k in h for k in ("CRVAL1", "CDELT1", "CRVAL2", "CDELT2")):
+        raise DetectorError("not a vignetting map (needs a 2-D image with CRVAL/CDELT axes in mm)",
+                            key="effects.vignetting.map_file", expected="a FITS map from 'newtsim optics vignetting"
+                            " --fits'", file=str(path))
+    u = h["CRVAL1"] + (np.arange(ri.shape[1]) + 1 - h.get("CRPIX1", 1.0)) * h["CDELT1"]
+    v = h["CRVAL2"] + (np.arange(ri.shape[0]) + 1 - h.get("CRPIX2", 1.0)) * h["CDELT2"]
+    return u, v, ri
+
+
+def map_interpolator(u: np.ndarray, v: np.ndarray, ri: np.ndarray):
+    """A callable (v_mm 1-D, u_mm 1-D) -> RI on that grid, edge values held outside the map."""
+    from scipy.interpolate import RectBivariateSpline
+
+    if len(u) == 1 and len(v) == 1:
+        return lambda vv, uu: np.full((len(vv), len(uu)), ri[0, 0])
+    ku = min(3, len(u) - 1) if len(u) >= 4 else min(1, len(u) - 1)
+    kv = min(3, len(v) - 1) if len(v) >= 4 else min(1, len(v) - 1)
+    if len(u) == 1:
+        return lambda vv, uu: np.repeat(np.interp(vv, v, ri[:, 0])[:, None], len(uu), axis=1)
+    if len(v) == 1:
+        return lambda vv, uu: np.repeat(np.interp(uu, u, ri[0, :])[None, :], len(vv), axis=0)
+    spl = RectBivariateSpline(v, u, ri, kx=kv, ky=ku)
+
+    def f(vv, uu):
+        return spl(np.clip(vv, v[0], v[-1]), np.clip(uu, u[0], u[-1]), grid=True)
+
+    return f
+
+
+class VignettingParams(EffectParams):
+    map_file: str | None = Field(None, description="FITS map from 'newtsim optics vignetting --fits' (or, in a "
+                                 "scene, 'optics': ray-trace the scene's telescope design)")
+    a2: float = Field(0.0, ge=-1, le=1, description="radial model: loss at the corner from the rho^2 term",
+                      json_schema_extra={"unit": "1"})
+    a4: float = Field(0.0, ge=-1, le=1, description="radial model: rho^4 term", json_schema_extra={"unit": "1"})
+    centre_x_mm: float = Field(0.0, ge=-100, le=100, description="radial model: centre offset along columns",
+                               json_schema_extra={"unit": "mm"})
+    centre_y_mm: float = Field(0.0, ge=-100, le=100, description="radial model: centre offset along rows",
+                               json_schema_extra={"unit": "mm"})
+
+    @model_validator(mode="after")
+    def _one_form(self):
+        if self.map_file and (self.a2 or self.a4):
+            raise ValueError("give either map_file or the radial coefficients a2/a4, not both")
+        return self
+
+
+@register_effect
+class Vignetting(Effect):
+    """Relative illumination of the focal plane: a ray-traced map or a radial polynomial (multiplies light)."""
+
+    name = "vignetting"
+    stages = (Stage.RESPONSE,)
+    Params = VignettingParams
+
+    def setup(self) -> None:
+        p = self.params
+        self._interp = None
+        if p.map_file:
+            path = Path(p.map_file)
+            if not path.is_file():
+                raise DetectorError("vignetting map not found", key="effects.vignetting.map_file",
+                                    expected="an existing FITS map", file=str(path))
+            self._interp = map_interpolator(*read_vignetting_map(path))
+
+    def ri(self, ys: np.ndarray, xs: np.ndarray) -> np.ndarray:
+        """Relative illumination at full-sensor pixel centres (rows ``ys``, columns ``xs``) [1]."""
+        s = self.sensor
+        pitch_mm = s.pixel_pitch_um * 1e-3
+        u = (xs - (s.sensor_width_px - 1) / 2.0) * pitch_mm
+        v = (ys - (s.sensor_height_px - 1) / 2.0) * pitch_mm
+        if self._interp is not None:
+            return self._interp(v, u)
+        p = self.params
+        r_corner = 0.5 * pitch_mm * float(np.hypot(s.sensor_width_px, s.sensor_height_px))
+        return radial_vignetting(u[None, :], v[:, None], r_corner, p.a2, p.a4, (p.centre_x_mm, p.centre_y_mm))
+
+    def apply(self, stage: Stage, tile: Tile, data: np.ndarray) -> None:
+        ys, xs = tile.pixel_centres()
+        data *= self.ri(ys, xs).astype(np.float32)
