@@ -133,6 +133,6 @@ def test_ray_traced_vignetting_darkens_the_corner_by_the_optics_map(tmp_path, mo
     assert len(cached) == 1
     from optics.vignetting import read_fits
 
-    u, v, ri = read_fits(cached[0])
+    _, _, ri = read_fits(cached[0])
     assert ratio[0, 0] == pytest.approx(ri[0, 0], abs=0.003)      # the map's corner sample is at the sensor corner
     assert ratio[0, 0] < 0.95 and ratio[-1, -1] > ratio[0, 0]      # darker toward the corner
