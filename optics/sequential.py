@@ -218,7 +218,7 @@ class SequentialTracer:
         qa = (rel.x + rel.z) * (1.0 / math.sqrt(2.0))
         kill((qa / L.diag_a) ** 2 + (rel.y / L.diag_b) ** 2 > 1.0, DIAGONAL_MISS)
         if self.obstruct == "analytic":
-            kill(self._blocked_spider(p1, d1, t), TO_DIAGONAL)
+            kill(self._blocked_tube_side(p1, d1, t, incoming=False), TO_DIAGONAL)
         elif self.obstruct == "mesh":
             kill(self._blocked_mesh(p1, d1, t), TO_DIAGONAL)
         opl += t
@@ -273,8 +273,10 @@ class SequentialTracer:
         return out
 
     # -- analytic obstructions ---------------------------------------------------------------------------
-    def _blocked_tube_side(self, o, d, t_end):
-        """Tube front and annular vanes (radius at each vane's height), the diagonal's body, the spider."""
+    def _blocked_tube_side(self, o, d, t_end, incoming: bool = True):
+        """Mechanical parts inside the tube along a straight piece of ray: the tube front and the annular
+        vanes (the ray's radius where it crosses each plane), the spider, the focuser bore where it
+        reaches into the tube, and (``incoming``) the diagonal's body seen from the sky side."""
         import drjit as dr
 
         L = self.layout
@@ -283,15 +285,16 @@ class SequentialTracer:
             tz = (z - o.z) / d.z
             x = o.x + d.x * tz
             y = o.y + d.y * tz
-            blocked |= (tz > 0) & (tz < t_end) & (x * x + y * y > r * r)
-        blocked |= self._hits_diagonal_body(o, d, t_end)
+            blocked |= (tz > 1e-9) & (tz < t_end) & (x * x + y * y > r * r)
+        if incoming:
+            blocked |= self._hits_diagonal_body(o, d, t_end)
         blocked |= self._blocked_spider(o, d, t_end)
-        # the focuser bore (and the corrector in it) where it reaches into the tube
         x_in = L.focuser_start_x
-        lo, hi = _cylinder_interval(o.y, o.z - L.z_axis, d.y, d.z, L.r_focuser)
-        lo, hi = _clip_linear(lo, hi, -(o.x - x_in), -d.x, upper=0.0)
-        lo, hi = _clip_linear(lo, hi, o.x - L.r_tube, d.x, upper=0.0)
-        blocked |= dr.maximum(lo, 0.0) < dr.minimum(hi, t_end)
+        if x_in < L.r_tube:
+            lo, hi = _cylinder_interval(o.y, o.z - L.z_axis, d.y, d.z, L.r_focuser)
+            lo, hi = _clip_linear(lo, hi, -(o.x - x_in), -d.x, upper=0.0)
+            lo, hi = _clip_linear(lo, hi, o.x - L.r_tube, d.x, upper=0.0)
+            blocked |= dr.maximum(lo, 0.0) < dr.minimum(hi, t_end)
         return blocked
 
     def _hits_diagonal_body(self, o, d, t_end):
