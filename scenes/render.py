@@ -1,8 +1,10 @@
 """The main job: a scene in, a FITS frame (and its truth) out.
 
-This version renders everything without point sources: bias, dark, flat and empty-sky frames (sky
-background, flat-screen illumination, every detector effect). Stars, objects, optics-derived vignetting
-and straylight plug into :func:`expected_signal` as they arrive.
+The expected photo-electrons per pixel are the uniform background (sky, or a flat screen) plus the stars
+and debris streaks of :mod:`scenes.image` (PSF-integrated samples, rolling-shutter row windows), handed to
+the detector chain as a tile callable; vignetting, the pixel response, dark signal and every detector
+effect are the chain's. The TRUTH extension lists every source (``scenes.image.build.TRUTH_DTYPE``).
+Straylight and optics-derived PSFs/SIP plug in as they arrive (``psf=`` takes any pixel-integrated PSF).
 """
 
 from __future__ import annotations
@@ -19,11 +21,11 @@ from detector.fits_io import primary_header, table_hdu, write_streamed
 from detector.rng import fresh_seed
 from optics.design import OpticsError, load_design
 
+from .image import TRUTH_DTYPE, build_sources, frame_wcs
 from .photometry import sky_electron_rate_per_pixel
-from .projection import tan_wcs
 from .scene import Scene, SceneError
 
-TRUTH_DTYPE = [("ra_deg", "f8"), ("dec_deg", "f8"), ("x", "f8"), ("y", "f8"), ("flux_e", "f8"), ("kind", "S8")]
+__all__ = ["TRUTH_DTYPE", "Setup", "header_cards", "prepare", "render", "scene_hdu"]
 
 
 @dataclass
@@ -33,10 +35,12 @@ class Setup:
     scene: Scene
     detector: Detector
     exptime_s: float
-    signal_e: float  # expected photo-electrons per unbinned pixel over the exposure
+    signal_e: object  # expected photo-electrons per unbinned pixel: a float, or a tile callable with sources
     pixel_scale_arcsec: float
     sky_e_per_s: float
     warnings: list[str]
+    truth: np.ndarray | None = None
+    source_cards: dict | None = None
 
 
 def _resolve_optics_maps(effects: dict, design, scene: Scene) -> dict:
@@ -54,7 +58,12 @@ def _resolve_optics_maps(effects: dict, design, scene: Scene) -> dict:
     return {**effects, "vignetting": {**vig, "map_file": str(path)}}
 
 
-def prepare(scene: Scene, workers: int | None = None) -> Setup:
+def prepare(scene: Scene, workers: int | None = None, psf=None) -> Setup:
+    """Resolve a scene: sensor, effects, plate scale, background, and the sources (stars, objects).
+
+    ``psf`` replaces the scene's ``[psf]`` by any pixel-integrated PSF (the hook of
+    :mod:`scenes.image.psf`, e.g. a field-dependent optics PSF).
+    """
     sensor = scene.sensor()
     try:
         design = load_design(scene.telescope.design)
@@ -72,11 +81,19 @@ def prepare(scene: Scene, workers: int | None = None) -> Setup:
             sky_rate = sky_electron_rate_per_pixel(scene.sky.background_mag_arcsec2, scale, design.collecting_area_m2,
                                                    design.mirror_throughput, sensor.qe_wavelength_nm, sensor.qe)
         flat_rate = scene.sky.flat_e_per_s or 0.0  # a flat screen blocks the sky
-        if scene.sky.stars or scene.objects:
-            warnings.append("stars and objects are not rendered by this version (empty-sky frame); "
-                            "set sky.stars = false to silence this")
-    return Setup(scene, Detector(sensor, effects, workers=workers), exptime, (sky_rate + flat_rate) * exptime,
-                 scale, sky_rate, warnings)
+        if scene.sky.flat_e_per_s is not None and (scene.sky.stars or scene.objects):
+            warnings.append("sky.flat_e_per_s (a flat screen) blocks the sky: stars and objects are not rendered")
+    background = (sky_rate + flat_rate) * exptime
+    signal: object = background
+    truth, cards = np.zeros(0, dtype=TRUTH_DTYPE), {}
+    if exp.frame == "light" and (scene.sky.stars or scene.objects):
+        model = build_sources(scene, sensor, design, scale, exptime, background_e=background, psf=psf)
+        truth, cards = model.truth, model.cards
+        warnings += model.warnings
+        if model.signal.n_samples:
+            signal = model.signal
+    return Setup(scene, Detector(sensor, effects, workers=workers), exptime, signal, scale, sky_rate, warnings,
+                 truth, cards)
 
 
 def header_cards(setup: Setup, seed: int, noiseless: bool) -> fits.Header:
@@ -116,9 +133,11 @@ def header_cards(setup: Setup, seed: int, noiseless: bool) -> fits.Header:
     h["NOISELES"] = (bool(noiseless), "expected electrons, no random draw")
     h["EFFECTS"] = (",".join(e.name for e in setup.detector.effects) or "none", "optional effects on")
     h["CREATOR"] = ("newtsim", "")
-    wcs = tan_wcs(sc.pointing.ra_deg, sc.pointing.dec_deg, sc.pointing.roll_deg, setup.pixel_scale_arcsec * b,
-                  s.output_shape)
-    h.update(wcs.to_header())
+    h["NOBJECTS"] = (len(sc.objects) if sc.exposure.frame == "light" else 0, "debris/satellite objects")
+    h["NSTARS"] = (0, "stars with their centre on the frame (TRUTH)")
+    for k, v in (setup.source_cards or {}).items():
+        h[k] = v
+    h.update(frame_wcs(sc, s, setup.pixel_scale_arcsec).to_header())
     for w in setup.warnings:
         h.add_history(w[:70])
     return h
@@ -133,8 +152,25 @@ def scene_hdu(scene: Scene) -> fits.BinTableHDU:
     return fits.BinTableHDU.from_columns([col], name="SCENE")
 
 
+def truth_hdu(truth: np.ndarray, setup: Setup) -> fits.BinTableHDU:
+    """The ``TRUTH`` extension: one row per source, with the column units and the source counts."""
+    hdu = table_hdu("TRUTH", truth)
+    units = {"ra_deg": "deg", "dec_deg": "deg", "x": "pixel", "y": "pixel", "x0": "pixel", "y0": "pixel",
+             "x1": "pixel", "y1": "pixel", "flux_e": "electron", "mag": "mag"}
+    for i, name in enumerate(truth.dtype.names, start=1):
+        if name in units:
+            hdu.header[f"TUNIT{i}"] = units[name]
+    hdu.header["COMMENT"] = "x, y: 0-based pixel centres of the written frame at mid-exposure (of the recorded"
+    hdu.header["COMMENT"] = "part); x0,y0 / x1,y1: start / end of the recorded path; flux_e: electrons over the"
+    hdu.header["COMMENT"] = "exposure before vignetting; kind: star, synthetic or object"
+    for k in ("NOBJECTS", "NSTARS", "NSTARCAT", "NSTARSYN"):
+        if setup.source_cards and k in setup.source_cards:
+            hdu.header[k] = setup.source_cards[k]
+    return hdu
+
+
 def render(scene: Scene, out: str | Path, *, seed: int | None = None, noiseless: bool = False,
-           expected: bool = False, progress: bool = True, workers: int | None = None) -> dict:
+           expected: bool = False, progress: bool = True, workers: int | None = None, psf=None) -> dict:
     """Render ``scene`` to the FITS file ``out``; return a summary (path, seed, shape, warnings).
 
     Parameters
@@ -142,14 +178,16 @@ def render(scene: Scene, out: str | Path, *, seed: int | None = None, noiseless:
     seed : frame seed; default the scene's ``exposure.seed`` or a fresh one (written to ``SEED``)
     noiseless : write the expected electrons (float32) instead of ADU
     expected : also write the expected electrons as extension ``EXPECTED``
+    psf : a pixel-integrated PSF replacing the scene's ``[psf]`` (hook of :mod:`scenes.image.psf`)
     """
-    setup = prepare(scene, workers)
+    setup = prepare(scene, workers, psf=psf)
     det = setup.detector
     s = det.sensor
     seed = seed if seed is not None else (scene.exposure.seed if scene.exposure.seed is not None else fresh_seed())
     dtype = np.float32 if noiseless else (np.uint16 if s.bit_depth <= 16 else np.uint32)
     header = primary_header(s.output_shape, dtype, header_cards(setup, seed, noiseless))
-    ext = [scene_hdu(scene), table_hdu("TRUTH", np.zeros(0, dtype=TRUTH_DTYPE))]
+    truth = setup.truth if setup.truth is not None else np.zeros(0, dtype=TRUTH_DTYPE)
+    ext = [scene_hdu(scene), truth_hdu(truth, setup)]
     state = det.frame_state(setup.exptime_s, seed)  # per-frame draws (cosmic rays), shared by truth and image
     ext += [table_hdu(name, t) for name, t in det.truth(setup.exptime_s, seed, state).items()]
     if expected and not noiseless:
@@ -159,8 +197,10 @@ def render(scene: Scene, out: str | Path, *, seed: int | None = None, noiseless:
     if progress and sys.stderr.isatty():
         bands = _with_progress(bands, len(det.tiles(setup.exptime_s, seed, state)), str(out))
     path = write_streamed(out, header, bands, s.output_shape, dtype, ext)
+    cards = setup.source_cards or {}
     return {"path": str(path), "seed": seed, "shape": list(s.output_shape), "exptime_s": setup.exptime_s,
-            "sky_e_per_s": setup.sky_e_per_s, "warnings": setup.warnings}
+            "sky_e_per_s": setup.sky_e_per_s, "warnings": setup.warnings,
+            "sources": {"stars": cards.get("NSTARS", (0,))[0], "objects": cards.get("NOBJECTS", (0,))[0]}}
 
 
 def _with_progress(bands, total: int, label: str):

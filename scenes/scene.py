@@ -6,11 +6,11 @@ Every user mistake becomes a :class:`SceneError` naming the file, the dotted key
 from __future__ import annotations
 
 import copy
-import tomllib
 from pathlib import Path
 from typing import Any, Literal
 
 import tomli_w
+import tomllib
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from detector import DetectorError, make_sensor
@@ -50,20 +50,42 @@ class PointingCfg(_Table):
 
 
 class ExposureCfg(_Table):
+    """``[exposure]``. ``tracking``: ``"sidereal"`` (the mount follows the stars), ``"rate"`` (the boresight
+    moves at ``rate_ra_deg_s`` = dRA/dt cos(Dec) and ``rate_dec_deg_s`` = dDec/dt along a great circle, the
+    convention of ``[[objects]]``: an object with the same rates stays put), ``"none"`` (drive off: the stars
+    trail at the sidereal rate)."""
+
     time_s: float = Field(2.0, ge=0, le=1e6, description="exposure time [s]")
     frame: Literal["light", "dark", "bias"] = "light"
-    tracking: Literal["sidereal", "rate"] = "sidereal"
-    rate_ra_deg_s: float = 0.0
-    rate_dec_deg_s: float = 0.0
+    tracking: Literal["sidereal", "rate", "none"] = "sidereal"
+    rate_ra_deg_s: float = Field(0.0, ge=-180, le=180, description="tracking rate dRA/dt cos(Dec) [deg/s]")
+    rate_dec_deg_s: float = Field(0.0, ge=-180, le=180, description="tracking rate dDec/dt [deg/s]")
     seed: int | None = Field(None, ge=0, description="frame seed (noise); --seed overrides; random if absent")
 
 
 class SkyCfg(_Table):
+    """``[sky]``. ``catalog``: ``"builtin"`` (offline Gaia DR3 + Hipparcos to G = 10, model stars beyond),
+    ``"gaia"`` (the Gaia archive, cached) or a CSV/ECSV/FITS star table, relative to the scene file's folder.
+    ``star_seed`` fixes the synthetic faint stars (the same in every frame of a scene)."""
+
     background_mag_arcsec2: float | None = Field(21.0, ge=5, le=35, description="sky brightness [AB mag/arcsec^2]")
     stars: bool = False
-    star_mag_limit: float = Field(16.0, le=30)
+    star_mag_limit: float = Field(16.0, le=25, description="faintest Gaia G rendered [mag]")
+    star_seed: int = Field(0, ge=0, description="seed of the synthetic faint-star population")
     catalog: str = "builtin"
     flat_e_per_s: float | None = Field(None, ge=0, description="uniform illumination (flat screen) [e-/pixel/s]")
+
+
+class PsfCfg(_Table):
+    """``[psf]``: the point-spread function of the sources (thesis eqs. 4 and 48), integrated over pixels.
+
+    ``model`` ``"gaussian"`` (sigma = FWHM / 2.3548) or ``"moffat"`` ((1 + r^2/alpha^2)^-beta);
+    ``jitter_rms_arcsec``: Gaussian pointing jitter, rms per axis, convolved with the PSF."""
+
+    model: Literal["gaussian", "moffat"] = "gaussian"
+    fwhm_arcsec: float = Field(2.5, gt=0, le=600, description="PSF full width at half maximum [arcsec]")
+    beta: float = Field(4.765, gt=1, le=100, description="Moffat exponent (4.765: Kolmogorov turbulence)")
+    jitter_rms_arcsec: float = Field(0.0, ge=0, le=600, description="pointing jitter, rms per axis [arcsec]")
 
 
 class Scene(_Table):
@@ -74,6 +96,8 @@ class Scene(_Table):
     pointing: PointingCfg = PointingCfg()
     exposure: ExposureCfg = ExposureCfg()
     sky: SkyCfg = SkyCfg()
+    psf: PsfCfg = PsfCfg()
+    observer: dict[str, Any] | None = None
     objects: list[dict[str, Any]] = Field(default_factory=list)
     effects: dict[str, dict[str, Any]] = Field(default_factory=dict)
     source: str = Field("<built-in>", exclude=True)
@@ -147,4 +171,36 @@ def load_scene(path_or_name: str, overrides: list[str] | None = None) -> Scene:
     data["source"] = file
     scene = validate(Scene, data, file=file)
     scene.sensor()  # validates [detector] now, naming its keys
+    check_scene(scene)
     return scene
+
+
+def check_scene(scene: Scene) -> None:
+    """Cross-key checks and the tables validated by their own modules, each error naming its key.
+
+    ``[[objects]]`` entries go through :func:`scenes.objects.object_from_table`, ``[observer]`` through
+    :func:`scenes.objects.observer_from_table`; a star-catalogue path is resolved relative to the scene
+    file's folder (and written back, absolute, so the resolved scene re-renders from anywhere).
+    """
+    file = scene.source
+    base = Path(file).parent if file and file != "<built-in>" else None
+    exp = scene.exposure
+    if exp.tracking != "rate":
+        for k in ("rate_ra_deg_s", "rate_dec_deg_s"):
+            if getattr(exp, k) != 0:
+                raise SceneError(f"a tracking rate with tracking = {exp.tracking!r}", key=f"exposure.{k}", file=file,
+                                 expected="tracking = 'rate' with rate_ra_deg_s / rate_dec_deg_s, or no rates")
+    cat = scene.sky.catalog
+    if cat not in ("builtin", "gaia"):
+        p = Path(cat).expanduser()
+        if not p.is_absolute() and base is not None:
+            p = base / p
+        if scene.sky.stars and not p.is_file():
+            raise SceneError(f"star catalogue {str(p)!r} not found", key="sky.catalog", file=file,
+                             expected="'builtin', 'gaia' or a CSV/ECSV/FITS file (relative to the scene file)")
+        scene.sky.catalog = str(p)
+    from .objects import object_from_table, observer_from_table
+
+    observer_from_table(scene.observer, file=file, base_dir=base)
+    for i, table in enumerate(scene.objects):
+        object_from_table(table, i, file=file, base_dir=base)

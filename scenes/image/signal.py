@@ -1,0 +1,296 @@
+"""The expected-signal callable of the detector chain: background plus PSF-integrated source samples.
+
+Every source becomes samples ``(x, y, e, t_lo, t_hi, w)``: a point of ``e`` electrons at ``(x, y)``
+[unbinned pixels of the read-out window, 0-based, pixel centres at integers] standing for the light that
+arrives between ``t_lo`` and ``t_hi`` [s from the exposure start], drawn with a stamp of half-width ``w``
+[pixels]. A static star is one sample with ``t_lo = -inf``, ``t_hi = +inf`` (its light during the whole
+window of every row). A moving source (a streak) is a chain of samples, one per time interval of the
+path (spacing <= 0.25 pixel of motion), each carrying ``flux x dt``.
+
+Pixel ``(c, r)`` receives (thesis eqs. 10, 51)
+
+    S(c, r) = sum_k e_k f_k(r) P(c - x_k, r - y_k),
+
+with ``P`` the pixel-integrated PSF and ``f_k(r)`` the fraction of the sample's interval that lies in row
+r's exposure window ``[r tau, r tau + T]`` (1 for static samples and for a global shutter). A rolling
+shutter therefore records each row of a streak during its own time window: a source moving along x at
+v px/s is displaced by v tau per row (shear), one moving along y is stretched by 1 / (1 - v_y tau).
+
+The callable is evaluated per row band on worker threads: it reads the precomputed, y-sorted sample arrays
+(never writes them), selects the samples whose stamps reach the band (binary search on y), groups them by
+stamp size and scatters the stamps with ``numpy.bincount`` over the bounding box of each chunk, in float64,
+and returns the band in float32. The work per band is proportional to the samples that reach it.
+
+Paths (:class:`Trails`) are cut into segments of consecutive samples of one source (at most 2 (2w + 1)
+pixels of motion each). With a separable PSF, P = ey (x) ex, a segment's contribution to its bounding box
+is one matrix product, S = EY^T diag(e f) EX, with EY (K, rows) and EX (K, cols) holding each sample's row
+and column fractions (and the rolling-shutter weights f folded into EY): BLAS instead of K scattered
+stamps. Without ``factors`` (a non-separable PSF) the segments are rendered as point samples.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .motion import window_overlap
+
+CHUNK_ELEMENTS = 1 << 21  # stamp pixels per vectorised chunk (memory ~ 16 bytes each, a few x)
+
+
+@dataclass
+class Samples:
+    """Point samples of the sources, sorted by ``y`` (see the module notes). All arrays (n,)."""
+
+    x: np.ndarray
+    y: np.ndarray
+    e: np.ndarray
+    t_lo: np.ndarray
+    t_hi: np.ndarray
+    w: np.ndarray
+
+    @classmethod
+    def empty(cls) -> Samples:
+        z = np.zeros(0)
+        return cls(z, z, z, z, z, np.zeros(0, dtype=np.int64))
+
+    @classmethod
+    def concat(cls, parts: list[Samples]) -> Samples:
+        parts = [p for p in parts if len(p)]
+        if not parts:
+            return cls.empty()
+        cat = {k: np.concatenate([getattr(p, k) for p in parts]) for k in ("x", "y", "e", "t_lo", "t_hi", "w")}
+        order = np.argsort(cat["y"], kind="stable")
+        return cls(**{k: v[order] for k, v in cat.items()})
+
+    def __len__(self) -> int:
+        return int(self.x.size)
+
+    def take(self, keep) -> Samples:
+        return Samples(self.x[keep], self.y[keep], self.e[keep], self.t_lo[keep], self.t_hi[keep], self.w[keep])
+
+
+def deposit(acc: np.ndarray, row0: int, col0: int, s: Samples, idx: np.ndarray, w: int, psf,
+            row_time_s: float, exptime_s: float) -> None:
+    """Add the stamps of samples ``idx`` (all of half-width ``w``) to ``acc`` (rows row0.., cols col0..).
+
+    Coordinates are those of the samples (read-out window, unbinned); pixels outside ``acc`` are dropped.
+    """
+    nrow, ncol = acc.shape
+    off = np.arange(-w, w + 1)
+    x, y = s.x[idx], s.y[idx]
+    cols = np.rint(x).astype(np.int64)[:, None] + off  # (n, 2w+1)
+    rows = np.rint(y).astype(np.int64)[:, None] + off
+    frac = psf(x, y, cols - x[:, None], rows - y[:, None])  # (n, wy, wx)
+    rw = s.e[idx][:, None] * ((rows >= row0) & (rows < row0 + nrow))
+    timed = np.isfinite(s.t_lo[idx])
+    if row_time_s > 0 and timed.any():
+        f = window_overlap(s.t_lo[idx][:, None], s.t_hi[idx][:, None], rows, row_time_s, exptime_s)
+        rw = np.where(timed[:, None], rw * f, rw)
+    cw = (cols >= col0) & (cols < col0 + ncol)
+    vals = frac * rw[:, :, None] * cw[:, None, :]
+    r_lo = max(row0, int(rows[:, 0].min()))
+    r_hi = min(row0 + nrow, int(rows[:, -1].max()) + 1)
+    c_lo = max(col0, int(cols[:, 0].min()))
+    c_hi = min(col0 + ncol, int(cols[:, -1].max()) + 1)
+    if r_hi <= r_lo or c_hi <= c_lo:
+        return
+    bw = c_hi - c_lo
+    ri = np.clip(rows, r_lo, r_hi - 1) - r_lo
+    ci = np.clip(cols, c_lo, c_hi - 1) - c_lo
+    flat = (ri[:, :, None] * bw + ci[:, None, :]).ravel()
+    box = np.bincount(flat, weights=vals.ravel(), minlength=(r_hi - r_lo) * bw)
+    acc[r_lo - row0:r_hi - row0, c_lo - col0:c_hi - col0] += box.reshape(r_hi - r_lo, bw)
+
+
+def render_samples(s: Samples, psf, row0: int, row1: int, col0: int, col1: int, row_time_s: float = 0.0,
+                   exptime_s: float = 0.0) -> np.ndarray:
+    """Expected electrons [e-] (float64) of the samples in rows [row0, row1) x cols [col0, col1)."""
+    acc = np.zeros((row1 - row0, col1 - col0))
+    if not len(s):
+        return acc
+    wmax = int(s.w.max())
+    lo = int(np.searchsorted(s.y, row0 - 0.5 - wmax - 1, side="left"))
+    hi = int(np.searchsorted(s.y, row1 - 0.5 + wmax + 1, side="right"))
+    if hi <= lo:
+        return acc
+    cand = np.arange(lo, hi)
+    iy = np.rint(s.y[cand]).astype(np.int64)
+    ix = np.rint(s.x[cand]).astype(np.int64)
+    ww = s.w[cand]
+    reach = (iy + ww >= row0) & (iy - ww < row1) & (ix + ww >= col0) & (ix - ww < col1) & (s.e[cand] > 0)
+    cand, ww = cand[reach], ww[reach]
+    for w in np.unique(ww):
+        sel = cand[ww == w]
+        step = max(1, CHUNK_ELEMENTS // (2 * int(w) + 1) ** 2)
+        for k in range(0, sel.size, step):
+            deposit(acc, row0, col0, s, sel[k:k + step], int(w), psf, row_time_s, exptime_s)
+    return acc
+
+
+@dataclass
+class Trails:
+    """Samples of moving sources grouped in segments (consecutive samples of one source).
+
+    ``x, y, e, t_lo, t_hi`` (n,) are the samples in segment order; segment ``k`` holds samples
+    ``start[k]:start[k + 1]`` with stamp half-width ``w[k]`` and the pixel bounding box
+    ``ylo..yhi`` x ``xlo..xhi`` (inclusive, stamps included). Segments are sorted by ``ylo``.
+    """
+
+    x: np.ndarray
+    y: np.ndarray
+    e: np.ndarray
+    t_lo: np.ndarray
+    t_hi: np.ndarray
+    start: np.ndarray
+    w: np.ndarray
+    ylo: np.ndarray
+    yhi: np.ndarray
+    xlo: np.ndarray
+    xhi: np.ndarray
+
+    @classmethod
+    def empty(cls) -> Trails:
+        z, zi = np.zeros(0), np.zeros(0, dtype=np.int64)
+        return cls(z, z, z, z, z, np.zeros(1, dtype=np.int64), zi, zi, zi, zi, zi)
+
+    @classmethod
+    def from_samples(cls, x, y, e, t_lo, t_hi, w, key) -> Trails:
+        """Group samples by ``key`` (source x segment number; stable: the input order is kept inside)."""
+        x, y, e, t_lo, t_hi, w, key = (np.ravel(a) for a in (x, y, e, t_lo, t_hi, w, key))
+        if x.size == 0:
+            return cls.empty()
+        order = np.argsort(key, kind="stable")
+        x, y, e, t_lo, t_hi, w, key = (a[order] for a in (x, y, e, t_lo, t_hi, w, key))
+        start = np.flatnonzero(np.r_[True, key[1:] != key[:-1]])
+        ix, iy = np.rint(x).astype(np.int64), np.rint(y).astype(np.int64)
+        ws = w[start].astype(np.int64)
+        seg = cls(x, y, e, t_lo, t_hi, np.r_[start, x.size].astype(np.int64), ws,
+                  np.minimum.reduceat(iy, start) - ws, np.maximum.reduceat(iy, start) + ws,
+                  np.minimum.reduceat(ix, start) - ws, np.maximum.reduceat(ix, start) + ws)
+        return seg.sorted()
+
+    @classmethod
+    def concat(cls, parts: list[Trails]) -> Trails:
+        parts = [p for p in parts if len(p)]
+        if not parts:
+            return cls.empty()
+        if len(parts) == 1:
+            return parts[0]
+        offs = np.cumsum([0] + [p.x.size for p in parts])
+        cat = {k: np.concatenate([getattr(p, k) for p in parts]) for k in ("x", "y", "e", "t_lo", "t_hi", "w", "ylo",
+                                                                             "yhi", "xlo", "xhi")}
+        start = np.concatenate([p.start[:-1] + o for p, o in zip(parts, offs)] + [offs[-1:]])
+        return cls(start=start, **cat).sorted()
+
+    def sorted(self) -> Trails:
+        """Segments in increasing ``ylo`` (samples reordered accordingly)."""
+        order = np.argsort(self.ylo, kind="stable")
+        if np.all(order == np.arange(order.size)):
+            return self
+        lens = np.diff(self.start)[order]
+        start = np.r_[0, np.cumsum(lens)].astype(np.int64)
+        idx = np.arange(int(start[-1])) + np.repeat(self.start[:-1][order] - start[:-1], lens)
+        return Trails(self.x[idx], self.y[idx], self.e[idx], self.t_lo[idx], self.t_hi[idx], start, self.w[order],
+                      self.ylo[order], self.yhi[order], self.xlo[order], self.xhi[order])
+
+    def __len__(self) -> int:
+        return int(self.w.size)
+
+    @property
+    def n_samples(self) -> int:
+        return int(self.x.size)
+
+    def as_samples(self) -> Samples:
+        """The samples as independent points (for a PSF without a separable form)."""
+        w = np.repeat(self.w, np.diff(self.start))
+        return Samples.concat([Samples(self.x, self.y, self.e, self.t_lo, self.t_hi, w)])
+
+
+def render_trails(tr: Trails, psf, acc: np.ndarray, row0: int, col0: int, row_time_s: float = 0.0,
+                  exptime_s: float = 0.0) -> None:
+    """Add the segments reaching ``acc`` (rows row0.., cols col0..) as matrix products (separable PSF)."""
+    if not len(tr):
+        return
+    nrow, ncol = acc.shape
+    row1, col1 = row0 + nrow, col0 + ncol
+    hmax = int(np.max(tr.yhi - tr.ylo))
+    lo = int(np.searchsorted(tr.ylo, row0 - hmax, side="left"))
+    hi = int(np.searchsorted(tr.ylo, row1, side="left"))
+    for k in range(lo, hi):
+        if tr.yhi[k] < row0 or tr.xhi[k] < col0 or tr.xlo[k] >= col1:
+            continue
+        r_lo, r_hi = max(row0, int(tr.ylo[k])), min(row1, int(tr.yhi[k]) + 1)
+        c_lo, c_hi = max(col0, int(tr.xlo[k])), min(col1, int(tr.xhi[k]) + 1)
+        a, b = int(tr.start[k]), int(tr.start[k + 1])
+        w = int(tr.w[k])
+        off = np.arange(-w, w + 1)
+        x, y = tr.x[a:b], tr.y[a:b]
+        cols = np.rint(x).astype(np.int64)[:, None] + off
+        rows = np.rint(y).astype(np.int64)[:, None] + off
+        ex, ey = psf.factors(x, y, cols - x[:, None], rows - y[:, None])
+        ey = ey * tr.e[a:b, None]
+        if row_time_s > 0:
+            ey *= window_overlap(tr.t_lo[a:b, None], tr.t_hi[a:b, None], rows, row_time_s, exptime_s)
+        n = b - a
+        by, bx = r_hi - r_lo, c_hi - c_lo
+        EY = np.zeros((n, by + 1))  # the last column collects the rows outside the box (discarded)
+        EX = np.zeros((n, bx + 1))
+        ri = rows - r_lo
+        ci = cols - c_lo
+        ri = np.where((ri >= 0) & (ri < by), ri, by)
+        ci = np.where((ci >= 0) & (ci < bx), ci, bx)
+        EY[np.arange(n)[:, None], ri] = ey  # distinct inside the box; duplicates only in the discard column
+        EX[np.arange(n)[:, None], ci] = ex
+        acc[r_lo - row0:r_hi - row0, c_lo - col0:c_hi - col0] += EY[:, :by].T @ EX[:, :bx]
+
+
+@dataclass
+class SourceSignal:
+    """Expected photo-electrons per unbinned pixel over the exposure: ``signal(y0, y1, x0, x1)``.
+
+    The callable the detector chain consumes (``detector.chain.Signal``): sensor coordinates in, a
+    float32 tile out; thread-safe (read-only state). ``background_e`` is the uniform part (sky, flat
+    screen) [e-/pixel]; vignetting, flat-field response and dark signal are applied by the chain.
+
+    Attributes
+    ----------
+    samples : the y-sorted :class:`Samples` of every source
+    psf : pixel-integrated PSF (``scenes.image.psf``)
+    background_e : uniform signal [e-/pixel]
+    roi_y0, roi_x0 : sensor coordinates of the read-out window's first row and column
+    row_time_s, exptime_s : rolling-shutter row delay tau and exposure time T [s]
+    """
+
+    samples: Samples
+    psf: object
+    background_e: float = 0.0
+    roi_y0: int = 0
+    roi_x0: int = 0
+    row_time_s: float = 0.0
+    exptime_s: float = 0.0
+    meta: dict = field(default_factory=dict)
+    trails: Trails = field(default_factory=Trails.empty)
+
+    def __post_init__(self):
+        if len(self.trails) and not hasattr(self.psf, "factors"):  # non-separable PSF: point samples
+            self.samples = Samples.concat([self.samples, self.trails.as_samples()])
+            self.trails = Trails.empty()
+
+    @property
+    def n_samples(self) -> int:
+        return len(self.samples) + self.trails.n_samples
+
+    def __call__(self, y0: int, y1: int, x0: int, x1: int) -> np.ndarray:
+        r0, c0 = y0 - self.roi_y0, x0 - self.roi_x0
+        acc = render_samples(self.samples, self.psf, r0, y1 - self.roi_y0, c0, x1 - self.roi_x0,
+                             self.row_time_s, self.exptime_s)
+        render_trails(self.trails, self.psf, acc, r0, c0, self.row_time_s, self.exptime_s)
+        out = acc.astype(np.float32)
+        out += np.float32(self.background_e)
+        return out
+
+    def image(self, shape: tuple[int, int]) -> np.ndarray:
+        """The whole read-out window (rows, cols) at once, float32 (for tests and small frames)."""
+        return self(self.roi_y0, self.roi_y0 + shape[0], self.roi_x0, self.roi_x0 + shape[1])
