@@ -145,8 +145,11 @@ def psf(design, field_deg, wavelength_nm, band, band_samples, geometric, seeing_
     if band and wavelength_nm:
         raise OpticsError("--band and --wavelength-nm exclude each other (one wavelength, or a QE-weighted band)")
     from optics import cache
-    from optics import psf as psfmod
     from optics.sequential import SequentialTracer
+    try:
+        from optics import psf as psfmod
+    except ImportError:
+        raise OpticsError("optics psf: the PSF module is not in this version yet (work in progress)") from None
 
     wl, w = _band(band, wavelength_nm, band_samples)
     settings = {"field_deg": list(field_deg), "wavelengths_nm": wl, "weights": w, "geometric": geometric,
