@@ -276,7 +276,19 @@ def _plugin_classes(mi):
     def _flip(v, flip):
         return mi.Vector3f(v.x, v.y, dr.select(flip, -v.z, v.z))
 
-    class BlackPaint(mi.BSDF):
+    class _Plugin(mi.BSDF):
+        """What both plugins share: eval_pdf from eval and pdf; no differentiable parameters."""
+
+        def eval_pdf(self, ctx, si, wo, active=True):
+            return self.eval(ctx, si, wo, active), self.pdf(ctx, si, wo, active)
+
+        def traverse(self, callback):
+            pass
+
+        def parameters_changed(self, keys):
+            pass
+
+    class BlackPaint(_Plugin):
         """Two-sided black paint: Lambertian (``model='lambertian'``, ``reflectance``) or ABg
         (``model='abg'``, ``abg_a``, ``abg_b``, ``abg_g`` with A clipped to keep the albedo <= reflectance)."""
 
@@ -355,21 +367,12 @@ def _plugin_classes(mi):
                 p = self.lobe.pdf(s, ok) * wo.z
             return dr.select(ok, p, 0.0)
 
-        def eval_pdf(self, ctx, si, wo, active=True):
-            return self.eval(ctx, si, wo, active), self.pdf(ctx, si, wo, active)
-
-        def traverse(self, callback):
-            pass
-
-        def parameters_changed(self, keys):
-            pass
-
         def to_string(self):
             if self.model == "lambertian":
                 return f"BlackPaint[lambertian, reflectance={self.rho}]"
             return f"BlackPaint[abg, A_eff={self.a_eff:.4g}, B={self.abg_b}, g={self.abg_g}, albedo<={self.rho}]"
 
-    class Mirror(mi.BSDF):
+    class Mirror(_Plugin):
         """One-sided mirror: delta reflection (component 0) + microroughness lobe (component 1), eq. (2).
 
         Properties: ``reflectance`` R, ``roughness_nm`` sigma, ``wavelength_nm`` lambda, ``lobe_b``,
@@ -465,15 +468,6 @@ def _plugin_classes(mi):
             ok = active & (wi.z > 0) & (wo.z > 0)
             s = dr.square(wo.x + wi.x) + dr.square(wo.y + wi.y)
             return dr.select(ok, p_lobe * self.lobe.pdf(s, ok) * wo.z, 0.0)
-
-        def eval_pdf(self, ctx, si, wo, active=True):
-            return self.eval(ctx, si, wo, active), self.pdf(ctx, si, wo, active)
-
-        def traverse(self, callback):
-            pass
-
-        def parameters_changed(self, keys):
-            pass
 
         def to_string(self):
             return (f"Mirror[R={self.R}, sigma={self.sigma} nm, lambda={self.lam} nm, TIS0={self.c:.3g}, "

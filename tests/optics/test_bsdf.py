@@ -42,6 +42,24 @@ def _si(mi, wi, n):
     return si
 
 
+def _polar_nodes(mi, b0, r_edges, psi, xg, wg, edge_margin):
+    """Gauss-Legendre nodes in the projected plane, in polar coordinates about beta0: radial bins
+    ``r_edges`` clipped at the unit disk's edge r_max(psi) (less ``edge_margin``), azimuths ``psi``.
+    Returns radii R and weights W (nr, npsi, k), the directions wo and their cos theta_o."""
+    bdot = b0[0] * np.cos(psi) + b0[1] * np.sin(psi)
+    r_max = -bdot + np.sqrt(np.maximum(bdot ** 2 - b0 @ b0 + 1.0, 0.0))
+    lo = np.minimum(r_edges[:-1, None], r_max[None])
+    hi = np.maximum(np.minimum(r_edges[1:, None], r_max[None] * (1 - edge_margin)), lo)
+    R = 0.5 * (hi - lo)[..., None] * xg + 0.5 * (hi + lo)[..., None]
+    W = 0.5 * (hi - lo)[..., None] * wg
+    P = np.broadcast_to(psi[None, :, None], R.shape)
+    bx, by = b0[0] + R * np.cos(P), b0[1] + R * np.sin(P)
+    cz = np.sqrt(np.clip(1 - bx * bx - by * by, 1e-12, 1.0))
+    wo = mi.Vector3f(mi.Float(bx.ravel().astype(np.float32)), mi.Float(by.ravel().astype(np.float32)),
+                     mi.Float(cz.ravel().astype(np.float32)))
+    return R, W, wo, cz
+
+
 def _glossy(mi):
     return mi.BSDFContext(mi.TransportMode.Radiance, mi.BSDFFlags.GlossyReflection)
 
@@ -98,19 +116,8 @@ def _chi2_projected(mi, bsdf, theta_deg, ctx, shoulder, n=1 << 20, seed=3):
     xg, wg = np.polynomial.legendre.leggauss(k)
     psi_mid = (p_edges[:-1, None] + np.diff(p_edges)[:, None] * ((np.arange(kp) + 0.5) / kp)[None]).ravel()
     b0 = -np.array(wi[:2])
-    bdot = b0[0] * np.cos(psi_mid) + b0[1] * np.sin(psi_mid)
-    r_max = -bdot + np.sqrt(np.maximum(bdot ** 2 - b0 @ b0 + 1.0, 0.0))
-    lo = np.minimum(r_edges[:-1, None], r_max[None])
-    hi = np.minimum(r_edges[1:, None], r_max[None] * (1 - 1e-6))
-    hi = np.maximum(hi, lo)
-    R = 0.5 * (hi - lo)[..., None] * xg + 0.5 * (hi + lo)[..., None]          # (nr, npsi, k)
-    W = 0.5 * (hi - lo)[..., None] * wg
-    P = np.broadcast_to(psi_mid[None, :, None], R.shape)
-    bx, by = b0[0] + R * np.cos(P), b0[1] + R * np.sin(P)
-    cz = np.sqrt(np.clip(1 - bx * bx - by * by, 1e-12, 1.0))
+    R, W, wo2, cz = _polar_nodes(mi, b0, r_edges, psi_mid, xg, wg, 1e-6)          # (nr, npsi, k)
     si2 = _si(mi, wi, R.size)
-    wo2 = mi.Vector3f(mi.Float(bx.ravel().astype(np.float32)), mi.Float(by.ravel().astype(np.float32)),
-                      mi.Float(cz.ravel().astype(np.float32)))
     pdf = bsdf.pdf(ctx, si2, wo2).numpy().reshape(R.shape) / cz
     dr.eval()
     dpsi = np.diff(p_edges)[0] / kp
@@ -165,18 +172,8 @@ def _albedo_by_quadrature(mi, bsdf, theta_deg, ctx, shoulder, n_r=160, n_psi=720
     edges = np.concatenate([[0.0], np.geomspace(1e-3 * shoulder, 2.0, n_r)])
     xg, wg = np.polynomial.legendre.leggauss(8)
     psi = (np.arange(n_psi) + 0.5) / n_psi * 2 * np.pi
-    bdot = b0[0] * np.cos(psi) + b0[1] * np.sin(psi)
-    r_max = -bdot + np.sqrt(np.maximum(bdot ** 2 - b0 @ b0 + 1.0, 0.0))
-    lo = np.minimum(edges[:-1, None], r_max[None])
-    hi = np.maximum(np.minimum(edges[1:, None], r_max[None] * (1 - 1e-7)), lo)
-    R = 0.5 * (hi - lo)[..., None] * xg + 0.5 * (hi + lo)[..., None]
-    W = 0.5 * (hi - lo)[..., None] * wg
-    P = np.broadcast_to(psi[None, :, None], R.shape)
-    bx, by = b0[0] + R * np.cos(P), b0[1] + R * np.sin(P)
-    cz = np.sqrt(np.clip(1 - bx * bx - by * by, 1e-12, 1.0))
+    R, W, wo, cz = _polar_nodes(mi, b0, edges, psi, xg, wg, 1e-7)
     si = _si(mi, wi, R.size)
-    wo = mi.Vector3f(mi.Float(bx.ravel().astype(np.float32)), mi.Float(by.ravel().astype(np.float32)),
-                     mi.Float(cz.ravel().astype(np.float32)))
     f = bsdf.eval(ctx, si, wo)[0].numpy().reshape(R.shape) / cz        # f = eval / cos theta_o
     return float((f * R * W).sum() * (2 * np.pi / n_psi))
 
