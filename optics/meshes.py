@@ -144,12 +144,59 @@ def spider(L: Layout) -> list[Part]:
     return parts
 
 
-def tube(L: Layout) -> Part:
+def merge_full_bands(part):
+    """The same surface with fewer triangles: on a (rows x columns) grid mesh such as the tube of
+    :func:`optics.meshes.cylinder_z`, runs of complete bands between rows (no face removed, e.g. away from
+    the focuser's opening) are planar strips at each column, so they are replaced by one band from the
+    run's first to its last row. The polyhedral surface is unchanged (same vertices, same jagged edge of
+    the opening); ray casting inside the 4-mm-faceted tube gets about 3x faster. Parts that are not such
+    a grid come back unchanged."""
+    v, f = part.vertices, part.faces
+    zs = np.unique(np.round(v[:, 2], 9))
+    n_rows = len(zs)
+    if n_rows < 3 or len(v) % n_rows:
+        return part
+    n_cols = len(v) // n_rows
+    grid = v.reshape(n_rows, n_cols, 3)
+    if not np.allclose(grid[:, :, 2], zs[:, None]) or not np.allclose(grid[:, :, :2], grid[:1, :, :2]):
+        return part
+    row = f // n_cols
+    band = row.min(axis=1)
+    if np.any(row.max(axis=1) - band != 1):
+        return part
+    counts = np.bincount(band, minlength=n_rows - 1)
+    full = counts == 2 * n_cols
+    keep = ~full[band]
+    new_faces = [f[keep]]
+    k = 0
+    cols = np.arange(n_cols)
+    while k < n_rows - 1:
+        if not full[k]:
+            k += 1
+            continue
+        start = k
+        while k < n_rows - 1 and full[k]:
+            k += 1
+        a = start * n_cols + cols
+        b = start * n_cols + (cols + 1) % n_cols
+        d = k * n_cols + cols
+        e = k * n_cols + (cols + 1) % n_cols
+        new_faces.append(np.concatenate([np.stack([a, b, e], -1), np.stack([a, e, d], -1)]))
+    return Part(part.name, v, np.concatenate(new_faces), part.material, part.normals, dict(part.meta))
+
+
+def tube_grid(L: Layout) -> Part:
+    """The tube wall as the full (rows x columns) grid of ~4 mm facets, with the focuser's opening."""
     # fine facets (about 4 x 4 mm) so the side opening's jagged edge stays within ~2 mm of the circle
     n_phi = int(2 * math.pi * L.r_tube / 4.0)
     v, f = cylinder_z(L.r_tube, L.tube_bottom, L.tube_top, n_phi=n_phi,
                       n_z=int(max(2, (L.tube_top - L.tube_bottom) / 4.0)), hole=(L.z_axis, L.r_focuser))
     return Part("tube", v, f, "black")
+
+
+def tube(L: Layout) -> Part:
+    """The tube wall: :func:`tube_grid` with its complete bands merged (same surface, far fewer triangles)."""
+    return merge_full_bands(tube_grid(L))
 
 
 def vanes(L: Layout) -> list[Part]:

@@ -158,49 +158,6 @@ def source_direction(theta_deg: float, azimuth_deg: float = 0.0) -> np.ndarray:
     return np.array([math.sin(t) * math.cos(p), math.sin(t) * math.sin(p), math.cos(t)])
 
 
-def merge_full_bands(part):
-    """The same surface with fewer triangles: on a (rows x columns) grid mesh such as the tube of
-    :func:`optics.meshes.cylinder_z`, runs of complete bands between rows (no face removed, e.g. away from
-    the focuser's opening) are planar strips at each column, so they are replaced by one band from the
-    run's first to its last row. The polyhedral surface is unchanged (same vertices, same jagged edge of
-    the opening); ray casting inside the 4-mm-faceted tube gets about 3x faster. Parts that are not such
-    a grid come back unchanged."""
-    from .meshes import Part
-
-    v, f = part.vertices, part.faces
-    zs = np.unique(np.round(v[:, 2], 9))
-    n_rows = len(zs)
-    if n_rows < 3 or len(v) % n_rows:
-        return part
-    n_cols = len(v) // n_rows
-    grid = v.reshape(n_rows, n_cols, 3)
-    if not np.allclose(grid[:, :, 2], zs[:, None]) or not np.allclose(grid[:, :, :2], grid[:1, :, :2]):
-        return part
-    row = f // n_cols
-    band = row.min(axis=1)
-    if np.any(row.max(axis=1) - band != 1):
-        return part
-    counts = np.bincount(band, minlength=n_rows - 1)
-    full = counts == 2 * n_cols
-    keep = ~full[band]
-    new_faces = [f[keep]]
-    k = 0
-    cols = np.arange(n_cols)
-    while k < n_rows - 1:
-        if not full[k]:
-            k += 1
-            continue
-        start = k
-        while k < n_rows - 1 and full[k]:
-            k += 1
-        a = start * n_cols + cols
-        b = start * n_cols + (cols + 1) % n_cols
-        d = k * n_cols + cols
-        e = k * n_cols + (cols + 1) % n_cols
-        new_faces.append(np.concatenate([np.stack([a, b, e], -1), np.stack([a, e, d], -1)]))
-    return Part(part.name, v, np.concatenate(new_faces), part.material, part.normals, dict(part.meta))
-
-
 def _as_design(design) -> Design:
     return design if isinstance(design, Design) else load_design(str(design))
 
@@ -255,7 +212,7 @@ class StraylightTracer:
         self.batch = int(batch)
         self.disk_fraction = float(disk_fraction)
         L = self.layout = make_layout(self.design)
-        self.parts = [merge_full_bands(p) if p.name == "tube" else p for p in telescope_parts(L)]
+        self.parts = telescope_parts(L)
         self.names = [p.name for p in self.parts]
         self.bsdfs = make_bsdfs(mi, self.design, self.parts, self.wavelength_nm, lobe_min_prob)
         self.scene = build_scene(mi, self.parts, self.bsdfs)
@@ -456,20 +413,8 @@ class StraylightTracer:
             casts += int(dr.count(nee)[0])
             if collect:
                 self._census(tally.seen, pid, geom, seen_mask, valid)
-            if collect or hist is not None:
-                cn = c.numpy()
-                nz = np.nonzero(cn)[0]
-                if len(nz):
-                    if collect:
-                        records.append((code_before.numpy()[nz], pid.numpy()[nz], cn[nz]))
-                    if hist is not None:
-                        self._hist_add(hist, u.numpy()[nz], v.numpy()[nz], cn[nz])
-        xs = X.numpy()
-        tally.add(xs)
-        tally.casts += casts
-        self._record(tally, records, fwd=False)
-        tally.time_s += time.perf_counter() - t0
-        return xs
+            self._keep(c, code_before, pid, u, v, records if collect else None, hist)
+        return self._finish(tally, X, casts, records, False, t0)
 
     def _census(self, seen, pid, geom, mask, valid):
         """Projected solid angle of the detector's view (directly or through specular events) per part."""
@@ -583,26 +528,33 @@ class StraylightTracer:
                 cnt = np.bincount(pid.numpy()[vm], minlength=self.n_parts + 1)
                 for k in np.nonzero(cnt)[0]:
                     _bump(tally.first_hit, self.names[k] if k < self.n_parts else "?", float(cnt[k]))
-            if collect or hist is not None:
-                ch = c_hit.numpy()
-                nz = np.nonzero(ch)[0]
-                if len(nz):
-                    if collect:
-                        records.append((code_before.numpy()[nz], np.full(len(nz), self.n_parts), ch[nz]))
-                    if hist is not None:
-                        self._hist_add(hist, hit_u.numpy()[nz], hit_v.numpy()[nz], ch[nz])
-                if conn:
-                    cn = cc.numpy()
-                    nz = np.nonzero(cn)[0]
-                    if len(nz):
-                        if collect:
-                            records.append((code_before.numpy()[nz], pid.numpy()[nz], cn[nz]))
-                        if hist is not None:
-                            self._hist_add(hist, ud.numpy()[nz], vd.numpy()[nz], cn[nz])
+            kept = records if collect else None
+            self._keep(c_hit, code_before, None, hit_u, hit_v, kept, hist)
+            if conn:
+                self._keep(cc, code_before, pid, ud, vd, kept, hist)
+        return self._finish(tally, X, casts, records, True, t0)
+
+    def _keep(self, contrib, code, pid, u, v, records, hist):
+        """Store the paths with a non-zero contribution: (scatter code, part id, value) in ``records`` for
+        the path analysis (``pid`` None: the detector itself), and (u, v, value) in the map ``hist``."""
+        if records is None and hist is None:
+            return
+        cn = contrib.numpy()
+        nz = np.nonzero(cn)[0]
+        if not len(nz):
+            return
+        if records is not None:
+            parts = np.full(len(nz), self.n_parts) if pid is None else pid.numpy()[nz]
+            records.append((code.numpy()[nz], parts, cn[nz]))
+        if hist is not None:
+            self._hist_add(hist, u.numpy()[nz], v.numpy()[nz], cn[nz])
+
+    def _finish(self, tally, X, casts, records, fwd, t0):
+        """Close one batch: per-path estimates into the tally, ray casts, path records, time."""
         xs = X.numpy()
         tally.add(xs)
         tally.casts += casts
-        self._record(tally, records, fwd=True)
+        self._record(tally, records, fwd=fwd)
         tally.time_s += time.perf_counter() - t0
         return xs
 

@@ -15,7 +15,6 @@ from optics.straylight import (
     forward_plain,
     get_tracer,
     irradiance_map,
-    merge_full_bands,
     path_analysis,
     plot_pst,
     pst_curve,
@@ -193,10 +192,10 @@ def test_merged_tube_is_the_same_surface(mi):
     import drjit as dr
 
     from optics.layout import make_layout
-    from optics.meshes import tube
+    from optics.meshes import merge_full_bands, tube_grid
     from optics.mitsuba_scene import build_scene
 
-    part = tube(make_layout(load_design("art")))
+    part = tube_grid(make_layout(load_design("art")))
     merged = merge_full_bands(part)
     assert len(merged.faces) < len(part.faces) / 5
     rng = np.random.default_rng(0)
