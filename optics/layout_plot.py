@@ -22,7 +22,7 @@ def plot_layout(tracer: SequentialTracer, path, fields_deg=(0.0, 0.8, 1.55), ray
 
     L = tracer.layout
     fig, ax = plt.subplots(figsize=(7.5, 10))
-    black = dict(color="0.15", lw=1.6)
+    black = {"color": "0.15", "lw": 1.6}
     # tube wall (with the focuser opening on +x), cell, vanes
     zb, zt, R = L.tube_bottom, L.tube_top, L.r_tube
     ax.plot([-R, -R], [zb, zt], **black)
