@@ -24,8 +24,9 @@ from __future__ import annotations
 
 import os
 from collections import deque
+from collections.abc import Callable, Iterator
 from concurrent.futures import ThreadPoolExecutor
-from typing import Callable, Iterator, Union
+from typing import Union
 
 import numpy as np
 
@@ -132,9 +133,14 @@ class Detector:
                                 key="signal", expected="finite values >= 0 e-")
         return a
 
-    def _run(self, stage: Stage, tile: Tile, data: np.ndarray) -> None:
+    def _run(self, stage: Stage, tile: Tile, data: np.ndarray, mean_only: bool = False) -> None:
         for eff in self._by_stage[stage]:
-            eff.apply(stage, tile, data)
+            if not (mean_only and (eff.stochastic or eff.pattern)):
+                eff.apply(stage, tile, data)
+
+    def _variance(self, stage: Stage, tile: Tile, mean: np.ndarray) -> float | np.ndarray:
+        return sum((e.variance_e2(stage, tile, mean) for e in self._by_stage[stage] if e.stochastic or e.pattern),
+                   0.0)
 
     def mean_electrons(self, signal: Signal, tile: Tile) -> np.ndarray:
         """Expected collected charge [e-] of a tile: response x photo-electrons + dark mean + DARK effects."""
@@ -175,6 +181,77 @@ class Detector:
         if b > 1 and s.binning_mode == "average":
             adu = np.floor(adu / (b * b))
         return adu.astype(dtype)
+
+    def moments_tile(self, signal: Signal, tile: Tile) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Mean [ADU], variance [ADU^2] and a "statistical only" flag of every output pixel of a tile.
+
+        The same chain as :meth:`process_tile` with every random draw replaced by its moments: Poisson
+        variance = mean (eq. 31); the full-well clip on the mean; read noise and the variance of
+        stochastic READ effects (row noise, kTC) added in e-^2 (eq. 33); division by the gain (variance by
+        its square); the ADC's truncation lowers the mean by 1/2 ADU and adds 1/12 ADU^2 of quantisation
+        variance (Widrow & Kollar 2008, ch. 4); binning sums means and variances. Effects that draw from the
+        frame seed (``stochastic``) or whose hardware realisation a real camera does not share (``pattern``)
+        are left out of the mean and add their ``variance_e2`` (cosmic rays and defects are compared by
+        their statistics). Pixels whose
+        mean lies within 3 sigma of the full well or of the ADC maximum are flagged: there the clipped
+        distribution is not Gaussian and the pixel can only be compared statistically. Deterministic
+        READ/ADU effects act on the mean only (their effect on the variance is second order).
+        """
+        s = self.sensor
+        b = s.binning
+        fw = np.float32(s.full_well_e)
+        mean = self._photo(signal, tile)
+        pattern_var = self._variance(Stage.RESPONSE, tile, mean)
+        self._run(Stage.RESPONSE, tile, mean, mean_only=True)
+        dark = np.full_like(mean, s.dark_current_e_per_s * tile.exptime_s)
+        pattern_var = pattern_var + self._variance(Stage.DARK, tile, dark)
+        mean += dark
+        self._run(Stage.DARK, tile, mean, mean_only=True)
+        np.maximum(mean, 0, out=mean)
+        var = mean + np.float32(pattern_var)
+        flag = mean + 3 * np.sqrt(var) >= fw
+        np.minimum(mean, fw, out=mean)
+        if s.kind == "ccd" and b > 1:
+            mean, var, flag = bin_sum(mean, b), bin_sum(var, b), bin_sum(flag.astype(np.float32), b) > 0
+            tile.bin = b
+        self._run(Stage.READ, tile, mean, mean_only=True)
+        var += np.float32(s.read_noise_e ** 2) + np.float32(self._variance(Stage.READ, tile, mean))
+        g = np.float32(1.0 / s.gain_e_per_adu)
+        mean *= g
+        var *= g * g
+        self._run(Stage.ADU, tile, mean, mean_only=True)
+        mean += np.float32(s.bias_adu - 0.5)
+        var += np.float32(1.0 / 12.0)
+        top = np.float32(s.adc_max_adu)
+        flag |= mean + 3 * np.sqrt(var) >= top
+        np.clip(mean, 0, top, out=mean)
+        self._run(Stage.DIGITAL, tile, mean, mean_only=True)
+        if b > 1 and tile.bin == 1:
+            mean, var, flag = bin_sum(mean, b), bin_sum(var, b), bin_sum(flag.astype(np.float32), b) > 0
+            tile.bin = b
+        if b > 1 and s.binning_mode == "average":
+            mean, var = mean / np.float32(b * b) - np.float32(0.5), var / np.float32(b ** 4) + np.float32(1 / 12)
+        return mean, var, flag
+
+    def moments(self, signal: Signal, exptime_s: float, frame_seed: int = 0
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The model of a frame for comparison with a measurement: mean [ADU], variance [ADU^2], flag.
+
+        See :meth:`moments_tile`. Whole output frame in memory (float32, float32, bool).
+        """
+        state = self.frame_state(exptime_s, frame_seed)
+        if self._by_stage[Stage.FIELD]:
+            signal = self.field_signal(signal, exptime_s, frame_seed, state)
+        shape = self.sensor.output_shape
+        mean, var = np.empty(shape, np.float32), np.empty(shape, np.float32)
+        flag = np.empty(shape, bool)
+        b, y0 = self.sensor.binning, self.sensor.roi_y0
+        tiles = self.tiles(exptime_s, frame_seed, state)
+        with ThreadPoolExecutor(max_workers=self.workers) as pool:
+            for t, (m, v, f) in zip(tiles, pool.map(lambda t: self.moments_tile(signal, t), tiles)):
+                r0, r1 = (t.y0 - y0) // b, (t.y1 - y0) // b
+                mean[r0:r1], var[r0:r1], flag[r0:r1] = m, v, f
+        return mean, var, flag
 
     # -- whole frames
     def iter_frame(self, signal: Signal, exptime_s: float, frame_seed: int, noiseless: bool = False,

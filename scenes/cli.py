@@ -16,6 +16,8 @@ from detector import DetectorError
 from detector.jsonable import jsonable
 from optics.design import OpticsError
 
+from .cli_compare import compare as compare_cmd
+from .cli_compare import diagnose as diagnose_cmd
 from .cli_optics import optics as optics_group
 
 EXIT_USER_ERROR = 2
@@ -49,8 +51,8 @@ def cli():
     render        a scene to a FITS frame (+ PNG quick-look)
     characterize  bias/dark/flat calibration frames -> camera parameters (+ a scene that reproduces it)
     effects       the catalogue of optional effects, their parameters and units
-    compare       model vs measured frame (coming with the compare issue)
-    diagnose      which physical effect the model lacks (coming with the diagnose issue)
+    compare       model vs measured frame: chi2, residuals per region/row/column/source, HTML report
+    diagnose      which physical effect the model lacks, ranked by delta BIC; --apply adds it
     optics        vignetting | psf | pst: ray tracing of the telescope (Mitsuba 3, llvm)
     """
 
@@ -138,25 +140,8 @@ def effects(name):
     _write_json(reg[name].describe(), None)
 
 
-def _not_yet(what: str, issue: str):
-    raise DetectorError(f"'{what}' is not available in this version", expected=f"the {issue} (see the README)")
-
-
-_PASS = {"ignore_unknown_options": True, "allow_extra_args": True}
-
-
-@cli.command(context_settings=_PASS)
-def compare():
-    """Model vs measured frame: chi2, residual maps, per-region statistics (not yet available)."""
-    _not_yet("compare", "compare/diagnose work")
-
-
-@cli.command(context_settings=_PASS)
-def diagnose():
-    """Rank the effects the scene lacks by how much they explain (not yet available)."""
-    _not_yet("diagnose", "compare/diagnose work")
-
-
+cli.add_command(compare_cmd, name="compare")
+cli.add_command(diagnose_cmd, name="diagnose")
 cli.add_command(optics_group, name="optics")
 
 

@@ -17,8 +17,9 @@ code or through the ``newtsim.effects`` entry-point group of their own package.
 from __future__ import annotations
 
 import enum
+from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Callable, ClassVar
+from typing import ClassVar
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict
@@ -116,6 +117,17 @@ class Effect:
     name: ClassVar[str] = ""
     stages: ClassVar[tuple[Stage, ...]] = ()
     Params: ClassVar[type[EffectParams]] = EffectParams
+    #: True when ``apply`` draws from the frame seed (new every frame: row noise, kTC, cosmic rays). The
+    #: model of the mean frame (:meth:`detector.Detector.moments`) then skips ``apply`` and adds
+    #: :meth:`variance_e2` to the per-pixel variance instead.
+    stochastic: ClassVar[bool] = False
+    #: True when the effect is a random *hardware* realisation (hardware seed: PRNU, DSNU, defect
+    #: positions). A real camera has its own realisation, so the model of the mean frame leaves the
+    #: pattern out and adds its :meth:`variance_e2` (maps) or compares its outliers by their counts.
+    pattern: ClassVar[bool] = False
+    #: How the effect shows in residuals, for ``newtsim diagnose`` (a :class:`detector.diagnosis.Signature`),
+    #: or None when it cannot be diagnosed from one frame.
+    signature: ClassVar[object] = None
 
     def __init__(self, params: EffectParams, sensor: SensorConfig):
         self.params = params
@@ -135,6 +147,11 @@ class Effect:
 
     def apply(self, stage: Stage, tile: Tile, data: np.ndarray) -> None:  # pragma: no cover - abstract
         raise NotImplementedError
+
+    def variance_e2(self, stage: Stage, tile: Tile, mean_e: np.ndarray) -> float | np.ndarray:
+        """Variance [e-^2] a stochastic or pattern effect adds at ``stage`` to a pixel of mean ``mean_e``
+        [e-] (before the effect), for the model of the mean frame (:meth:`detector.Detector.moments`)."""
+        return 0.0
 
     def truth(self, state=None) -> dict[str, np.ndarray]:
         """Tables (numpy structured arrays) written as FITS extensions, keyed by extension name.

@@ -13,6 +13,7 @@ from __future__ import annotations
 import numpy as np
 from pydantic import Field
 
+from ..diagnosis import LinearSignature, Variant
 from .base import Effect, EffectParams, Stage, Tile, register_effect
 
 
@@ -50,6 +51,27 @@ def bleed_columns(image_e: np.ndarray, full_well_e: float, up_fraction: float = 
     return lost
 
 
+def _blooming_variants(res):
+    fw = res.sensor.full_well_e * res.pixel_sum
+    charge = res.charge_e.astype(np.float32)
+    if not (charge > fw).any():
+        return
+    bled = charge.copy()
+    bleed_columns(bled, fw, 0.5)
+    t = (bled - charge) / np.float32(res.gain)
+
+    def to_params(c):
+        return {"up_fraction": 0.5} if 0.3 < c[0] < 3 else None
+
+    yield Variant([t], to_params)
+
+
+_BLOOMING_SIGNATURE = LinearSignature(
+    _blooming_variants,
+    lambda p, res: "charge spilling along the columns of saturated sources: blooming",
+    pattern="column trails of excess charge at saturated sources", extra_k=0)
+
+
 class BloomingParams(EffectParams):
     threshold_e: float | None = Field(None, gt=0, description="charge a pixel holds before spilling (default: full well) [e-]")
     up_fraction: float = Field(0.5, ge=0, le=1, description="share of the excess flowing towards higher rows [1]")
@@ -61,6 +83,7 @@ class Blooming(Effect):
 
     name = "blooming"
     stages = (Stage.FIELD,)
+    signature = _BLOOMING_SIGNATURE
     Params = BloomingParams
 
     def apply(self, stage: Stage, tile: Tile, data: np.ndarray) -> None:

@@ -20,6 +20,7 @@ import numpy as np
 from pydantic import Field, model_validator
 
 from .. import cosmics
+from ..diagnosis import CountSignature
 from ..errors import DetectorError
 from ..rng import generator
 from .base import Effect, EffectParams, Stage, Tile, register_effect
@@ -43,6 +44,23 @@ class CosmicFrame:
     rows: np.ndarray
     cols: np.ndarray
     charge_e: np.ndarray
+
+
+def _cosmic_counts(res):
+    d, m = res.data_spikes, res.model_spikes
+    if d.cluster_pos <= m.cluster_pos or res.exptime_s <= 0:
+        return None
+    w, h = res.sensor.roi_shape
+    area_cm2 = w * h * (res.sensor.pixel_pitch_um * 1e-4) ** 2
+    flux = (d.cluster_pos - m.cluster_pos) / (area_cm2 * res.exptime_s)
+    return {"flux_per_cm2_s": round(float(min(flux, 1e5)), 6)}, d.cluster_pos, m.cluster_pos, 1
+
+
+_COSMIC_SIGNATURE = CountSignature(
+    _cosmic_counts,
+    lambda p, res: (f"short multi-pixel tracks of charge at random places, {p['flux_per_cm2_s']:.3g} per cm2 "
+                    "per s: cosmic rays (or radioactivity)"),
+    pattern="positive multi-pixel spikes (tracks)")
 
 
 class CosmicRayParams(EffectParams):
@@ -105,6 +123,8 @@ class CosmicRays(Effect):
 
     name = "cosmic_rays"
     stages = (Stage.CHARGE,)
+    stochastic = True  # compared by its statistics (tail counts), not pixel by pixel
+    signature = _COSMIC_SIGNATURE
     Params = CosmicRayParams
 
     def setup(self) -> None:

@@ -16,9 +16,9 @@ from typing import Literal
 import numpy as np
 from pydantic import Field
 
+from ..diagnosis import CountSignature, frame_fraction
 from .base import Effect, EffectParams, Stage, Tile, register_effect
 from .common import hardware_positions, in_tile, output_xy, roi_mask
-
 
 # --- pure functions ---------------------------------------------------------------------------------------
 
@@ -31,6 +31,75 @@ def draw_time_to_double(rng: np.random.Generator, n: int, law: str, shape: float
 def hot_rate_e_per_s(t_double_s: np.ndarray, bias_adu: float, gain_e_per_adu: float) -> np.ndarray:
     """Excess dark current [e-/s] of a defect that doubles the bias level ``B`` after ``t2`` (eq. 38)."""
     return bias_adu * gain_e_per_adu / np.maximum(t_double_s, 1e-9)
+
+
+# --- diagnosis signatures (detector.diagnosis) -------------------------------------------------------------
+
+def weibull_from_detections(t2_detected_s: np.ndarray, t2_limit_s: float, shape: float) -> tuple[float, float]:
+    """Weibull scale [s] whose part below the detection limit ``t2_limit_s`` has the detections' median,
+    and the fraction of all defects that part holds: (scale_s, detected_fraction).
+
+    Only defects with ``t2 < t2_limit`` (excess above the spike threshold) are seen; their conditional
+    median is ``F^-1(F(t2_limit) / 2)`` with ``F(t) = 1 - exp(-(t / lambda)^k)`` (eq. 39).
+    """
+    from scipy.optimize import brentq
+
+    med = float(np.median(t2_detected_s))
+
+    def cond_median(lam):
+        f = -np.expm1(-(t2_limit_s / lam) ** shape)
+        return lam * (-np.log1p(-f / 2)) ** (1 / shape)
+
+    lo, hi = 1e-6 * t2_limit_s, 1e6 * t2_limit_s
+    try:
+        lam = brentq(lambda ll: np.log(cond_median(np.exp(ll)) / med), np.log(lo), np.log(hi))
+        lam = float(np.exp(lam))
+    except ValueError:
+        lam = t2_limit_s
+    return lam, float(-np.expm1(-(t2_limit_s / lam) ** shape))
+
+
+def _hot_counts(res):
+    d, m = res.data_spikes, res.model_spikes
+    if d.single_pos <= m.single_pos or d.single_pos_excess_e.size == 0:
+        return None
+    s, t = res.sensor, res.exptime_s
+    if t <= 0:
+        return None
+    rate = np.maximum(d.single_pos_excess_e, 1e-3) / t
+    t2 = hot_rate_e_per_s(rate, s.bias_adu, s.gain_e_per_adu)  # t2 = B g / rate (the same relation)
+    limit_e = float(np.min(d.single_pos_excess_e))
+    t2_limit = float(hot_rate_e_per_s(np.array([limit_e / t]), s.bias_adu, s.gain_e_per_adu)[0])
+    shape = 0.8
+    scale, frac = weibull_from_detections(t2, t2_limit, shape)
+    count = int(round((d.single_pos - m.single_pos) / max(frac, 1e-6) / frame_fraction(res)))
+    count = min(count, 10_000_000)
+    return ({"count": count, "law": "weibull", "weibull_shape": shape, "scale_s": round(scale, 3)},
+            d.single_pos, m.single_pos, 2)
+
+
+def _column_counts(res):
+    d, m = res.data_spikes, res.model_spikes
+    hot, cold = max(d.hot_cols - m.hot_cols, 0), max(d.cold_cols - m.cold_cols, 0)
+    if hot + cold == 0:
+        return None
+    frac = res.sensor.roi_shape[0] / res.sensor.sensor_width_px
+    rate = float(np.median(d.col_excess_e)) / res.pixel_sum / max(res.exptime_s, 1e-9) if d.col_excess_e.size else 0.0
+    params = {"hot_columns": int(round(hot / frac)), "hot_rate_e_per_s": round(max(rate, 0.0), 4),
+              "dead_columns": int(round(cold / frac))}
+    return params, d.hot_cols + d.cold_cols, m.hot_cols + m.cold_cols, 3
+
+
+_HOT_SIGNATURE = CountSignature(
+    _hot_counts,
+    lambda p, res: (f"isolated bright pixels that do not move with the sky ({p['count']} on the sensor, "
+                    f"time-to-double scale {p['scale_s']:.3g} s): hot and warm pixels"),
+    pattern="isolated positive spikes")
+_COLUMN_SIGNATURE = CountSignature(
+    _column_counts,
+    lambda p, res: (f"whole columns above ({p['hot_columns']}, {p['hot_rate_e_per_s']:.3g} e-/s) or below "
+                    f"({p['dead_columns']}) their neighbours: column defects"),
+    pattern="outlier columns")
 
 
 # --- adapters ----------------------------------------------------------------------------------------------
@@ -58,6 +127,8 @@ class HotPixels(Effect):
     name = "hot_pixels"
     stages = (Stage.DARK, Stage.DIGITAL)
     Params = HotPixelParams
+    pattern = True
+    signature = _HOT_SIGNATURE
 
     def setup(self) -> None:
         p, s = self.params, self.sensor
@@ -104,6 +175,8 @@ class ColumnDefects(Effect):
     name = "column_defects"
     stages = (Stage.RESPONSE, Stage.DARK)
     Params = ColumnDefectParams
+    pattern = True
+    signature = _COLUMN_SIGNATURE
 
     def setup(self) -> None:
         from ..rng import generator

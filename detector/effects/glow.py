@@ -13,8 +13,8 @@ from typing import Literal
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
+from ..diagnosis import LinearSignature, Variant
 from .base import Effect, EffectParams, Stage, Tile, register_effect
-
 
 # --- pure functions ---------------------------------------------------------------------------------------
 
@@ -50,6 +50,45 @@ def edge_rate(ys: np.ndarray, xs: np.ndarray, height: int, width: int, where: st
     out += (peak * np.exp(-d / scale_px)).astype(np.float32)
 
 
+# --- diagnosis signature (detector.diagnosis) --------------------------------------------------------------
+
+_EDGES = ("left", "right", "top", "bottom", "bottom-left", "bottom-right", "top-left", "top-right")
+_SCALES = tuple(np.geomspace(0.005, 0.5, 9))  # e-folding lengths tried, fractions of the longer sensor side
+
+
+def _glow_variant(res, where: str, scale: float) -> Variant:
+    s = res.sensor
+    t = np.zeros(res.data_adu.shape, np.float32)
+    edge_rate(res.ys, res.xs, s.sensor_height_px, s.sensor_width_px, where, 1.0, scale, t)
+    t *= np.float32(res.exptime_s * res.pixel_sum / res.gain)
+
+    def to_params(c):
+        return ({"model": "edge", "edge": where, "amplitude_e_per_s": round(float(c[0]), 6),
+                 "scale_px": round(scale, 1)} if 0 < c[0] <= 1e6 else None)
+
+    return Variant([t], to_params, f"{where}|{scale}")
+
+
+def _glow_variants(res):
+    side = max(res.sensor.sensor_width_px, res.sensor.sensor_height_px)
+    for where in _EDGES:
+        for frac in _SCALES:
+            yield _glow_variant(res, where, frac * side)
+
+
+def _glow_refine(best: Variant, res):
+    where, scale = best.label.split("|")
+    for f in np.geomspace(0.6, 1.6, 9):
+        yield _glow_variant(res, where, float(scale) * f)
+
+
+_GLOW_SIGNATURE = LinearSignature(
+    _glow_variants,
+    lambda p, res: (f"additive glow rising towards the {p['edge']} edge, {p['amplitude_e_per_s'] * res.exptime_s:.3g} "
+                    f"e- at the edge (e-folding {p['scale_px']:.0f} px), growing with exposure: amplifier glow"),
+    pattern="additive glow decaying away from an edge or corner", extra_k=2, refine=_glow_refine)
+
+
 # --- adapter -----------------------------------------------------------------------------------------------
 
 class GlowSource(BaseModel):
@@ -80,6 +119,7 @@ class AmpGlow(Effect):
 
     name = "amp_glow"
     stages = (Stage.DARK,)
+    signature = _GLOW_SIGNATURE
     Params = AmpGlowParams
 
     def rate_map(self, tile: Tile) -> np.ndarray:

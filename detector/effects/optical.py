@@ -25,6 +25,7 @@ from pathlib import Path
 import numpy as np
 from pydantic import Field, model_validator
 
+from ..diagnosis import LinearSignature, Variant
 from ..errors import DetectorError
 from .base import Effect, EffectParams, Stage, Tile, register_effect
 
@@ -76,6 +77,30 @@ def map_interpolator(u: np.ndarray, v: np.ndarray, ri: np.ndarray):
     return f
 
 
+def _vignetting_variants(res):
+    s = res.sensor
+    pitch_mm = s.pixel_pitch_um * 1e-3
+    u = (res.xs - (s.sensor_width_px - 1) / 2.0) * pitch_mm
+    v = (res.ys - (s.sensor_height_px - 1) / 2.0) * pitch_mm
+    r_corner = 0.5 * pitch_mm * float(np.hypot(s.sensor_width_px, s.sensor_height_px))
+    rho2 = ((u[None, :] ** 2 + v[:, None] ** 2) / r_corner ** 2).astype(np.float32)
+    photo = res.photo_adu.astype(np.float32)
+
+    def to_params(c):
+        a2, a4 = (float(x) for x in c)
+        ok = -1 <= a2 <= 1 and -1 <= a4 <= 1 and a2 + a4 < 1
+        return {"a2": round(a2, 6), "a4": round(a4, 6)} if ok else None
+
+    yield Variant([-photo * rho2, -photo * rho2 * rho2], to_params)
+
+
+_VIGNETTING_SIGNATURE = LinearSignature(
+    _vignetting_variants,
+    lambda p, res: (f"light falling off towards the corners, {100 * (p['a2'] + p['a4']):.3g} % at the corner, "
+                    "proportional to the signal: vignetting"),
+    pattern="multiplicative radial fall-off of the light", extra_k=0)
+
+
 class VignettingParams(EffectParams):
     map_file: str | None = Field(None, description="FITS map from 'newtsim optics vignetting --fits' (or, in a "
                                  "scene, 'optics': ray-trace the scene's telescope design)")
@@ -101,6 +126,7 @@ class Vignetting(Effect):
     name = "vignetting"
     stages = (Stage.RESPONSE,)
     Params = VignettingParams
+    signature = _VIGNETTING_SIGNATURE
 
     def setup(self) -> None:
         p = self.params

@@ -16,9 +16,15 @@ from typing import Literal
 import numpy as np
 from pydantic import Field, model_validator
 
+from ..diagnosis import (
+    CountSignature,
+    LinearSignature,
+    VarianceSignature,
+    Variant,
+    frame_fraction,
+)
 from .base import Effect, EffectParams, Stage, Tile, register_effect
 from .common import hardware_positions, in_tile, output_xy, roi_mask
-
 
 # --- pure functions ---------------------------------------------------------------------------------------
 
@@ -64,6 +70,92 @@ def region_index(ys: np.ndarray, xs: np.ndarray, nx: int, ny: int, height: int, 
     return iy, ix
 
 
+# --- diagnosis signatures (detector.diagnosis) -------------------------------------------------------------
+
+def _prnu_params(theta: float, res) -> dict | None:
+    sigma = float(np.sqrt(theta))
+    return {"sigma": round(sigma, 6)} if 0 < sigma <= 0.5 else None
+
+
+def _dsnu_params(theta: float, res) -> dict | None:
+    sigma = float(np.sqrt(theta))
+    return {"sigma": round(sigma, 6), "law": "lognormal"} if 0 < sigma <= 5 else None
+
+
+def _dead_counts(res):
+    obs, exp = res.data_spikes.single_neg, res.model_spikes.single_neg
+    if obs <= exp:
+        return None
+    ratio = res.data_spikes.single_neg_ratio
+    response = float(np.clip(np.median(ratio), 0.0, 0.99)) if ratio.size else 0.0
+    count = int(round((obs - exp) / frame_fraction(res)))
+    return {"count": count, "response": round(response, 4)}, obs, exp, 2
+
+
+_REGION_GRIDS = ((2, 1), (1, 2), (2, 2), (4, 1), (1, 4), (4, 2), (2, 4), (4, 4), (8, 1), (1, 8))
+
+
+def _gain_variants(res):
+    s = res.sensor
+    sig = (res.model_adu - (s.bias_adu - 0.5) * res.adu_sum).astype(np.float32)
+    for nx, ny in _REGION_GRIDS:
+        iy, ix = region_index(res.ys, res.xs, nx, ny, s.sensor_height_px, s.sensor_width_px)
+        k = iy[:, None] * nx + ix[None, :]
+        present = np.unique(k)
+        if present.size < 2:
+            continue
+        temps = [np.where(k == j, sig, np.float32(0)) for j in present]
+
+        def to_params(c, nx=nx, ny=ny, present=present):
+            g = np.ones(nx * ny)
+            g[present] += c
+            return {"nx": nx, "ny": ny, "gains": [round(float(x), 6) for x in g]} if (g > 0).all() else None
+
+        yield Variant(temps, to_params, f"{nx}x{ny}")
+
+
+def _gain_words(p, res) -> str:
+    g = np.asarray(p["gains"])
+    return (f"steps of the signal between {p['ny']}x{p['nx']} read-out regions, gains {g.min():.4g} to "
+            f"{g.max():.4g}: amplifier gain regions")
+
+
+def _nonlin_variants(res):
+    fw = res.sensor.full_well_e * res.pixel_sum
+    t = -(res.charge_e.astype(np.float64) ** 2) / fw / res.gain
+
+    def to_params(c):
+        return {"beta": round(float(c[0]), 6)} if -0.5 <= c[0] <= 0.5 and c[0] != 0 else None
+
+    yield Variant([t.astype(np.float32)], to_params)
+
+_PRNU_SIGNATURE = VarianceSignature(
+    lambda res: res.photo_adu.astype(np.float64) ** 2, _prnu_params,
+    lambda p, res: (f"pixel-to-pixel scatter proportional to the signal, {100 * p['sigma']:.2g} % of it: "
+                    "photo-response non-uniformity (PRNU)"),
+    pattern="extra variance growing as the square of the photo-signal")
+
+_DSNU_SIGNATURE = VarianceSignature(
+    lambda res: (res.dark_e.astype(np.float64) / res.gain) ** 2, _dsnu_params,
+    lambda p, res: (f"pixel-to-pixel scatter proportional to the dark signal, {100 * p['sigma']:.2g} % of it: "
+                    "dark-signal non-uniformity (DSNU)"),
+    pattern="extra variance growing as the square of the dark signal")
+
+_DEADPIXELS_SIGNATURE = CountSignature(
+    _dead_counts,
+    lambda p, res: (f"isolated pixels far below their neighbours ({p['count']} on the sensor, response "
+                    f"{p['response']:.2g}): dead pixels"),
+    pattern="isolated negative spikes where light falls")
+
+_GAINREGIONS_SIGNATURE = LinearSignature(_gain_variants, _gain_words, pattern="signal steps between sensor regions")
+
+_NONLINEARITY_SIGNATURE = LinearSignature(
+    _nonlin_variants,
+    lambda p, res: (f"response {'deficit' if p['beta'] > 0 else 'excess'} growing as the square of the signal, "
+                    f"{100 * abs(p['beta']):.2g} % at full well: nonlinearity"),
+    pattern="residual proportional to the square of the collected charge", extra_k=0)
+
+
 # --- adapters -----------------------------------------------------------------------------------------------
 
 class PRNUParams(EffectParams):
@@ -82,6 +174,11 @@ class PRNU(Effect):
     name = "prnu"
     stages = (Stage.RESPONSE,)
     Params = PRNUParams
+    pattern = True
+    signature = _PRNU_SIGNATURE
+
+    def variance_e2(self, stage: Stage, tile: Tile, mean_e: np.ndarray) -> np.ndarray:
+        return (np.float32(self.params.sigma) * mean_e) ** 2
 
     def apply(self, stage: Stage, tile: Tile, data: np.ndarray) -> None:
         if self.params.sigma:
@@ -105,6 +202,11 @@ class DSNU(Effect):
     name = "dsnu"
     stages = (Stage.DARK,)
     Params = DSNUParams
+    pattern = True
+    signature = _DSNU_SIGNATURE
+
+    def variance_e2(self, stage: Stage, tile: Tile, mean_e: np.ndarray) -> np.ndarray:
+        return (np.float32(self.params.sigma) * mean_e) ** 2
 
     def apply(self, stage: Stage, tile: Tile, data: np.ndarray) -> None:
         dark_e = self.sensor.dark_current_e_per_s * tile.exptime_s
@@ -129,6 +231,8 @@ class DeadPixels(Effect):
     name = "dead_pixels"
     stages = (Stage.RESPONSE,)
     Params = DeadParams
+    pattern = True
+    signature = _DEADPIXELS_SIGNATURE
 
     def setup(self) -> None:
         self.ys, self.xs, _ = hardware_positions(self.sensor, self.name, self.params.count)
@@ -175,6 +279,7 @@ class GainRegions(Effect):
     name = "gain_regions"
     stages = (Stage.ADU,)
     Params = GainRegionParams
+    signature = _GAINREGIONS_SIGNATURE
 
     def setup(self) -> None:
         p = self.params
@@ -207,6 +312,7 @@ class Nonlinearity(Effect):
     name = "nonlinearity"
     stages = (Stage.READ,)
     Params = NonlinearityParams
+    signature = _NONLINEARITY_SIGNATURE
 
     def apply(self, stage: Stage, tile: Tile, data: np.ndarray) -> None:
         quadratic_nonlinearity(data, self.params.beta, self.sensor.full_well_e * tile.bin ** 2)

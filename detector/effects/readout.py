@@ -14,6 +14,14 @@ from __future__ import annotations
 import numpy as np
 from pydantic import Field
 
+from ..diagnosis import (
+    Fit,
+    LinearSignature,
+    Signature,
+    VarianceSignature,
+    Variant,
+    ml_variance_scale,
+)
 from .base import Effect, EffectParams, Stage, Tile, register_effect
 
 K_BOLTZMANN = 1.380649e-23  # J/K
@@ -63,6 +71,93 @@ def channel_crosstalk(data: np.ndarray, n_channels: int, alpha: float, mirrored:
         view[:, j] += np.float32(alpha) * others
 
 
+# --- diagnosis signatures (detector.diagnosis) -------------------------------------------------------------
+
+class RowOffsetSignature(Signature):
+    """Row noise: the means of the residual rows scatter more than the pixel noise allows (ML of the extra
+    variance of the row means; each output row of a CMOS with ``b x b`` sum binning adds ``b^3`` row
+    offsets worth of variance, one of a binned CCD row one)."""
+
+    kind = "rows"
+    pattern = "row means scatter beyond the pixel noise"
+
+    def fit(self, res, name):
+        keep = res.fit
+        cnt = keep.sum(axis=1)
+        ok = cnt > 1
+        if ok.sum() < 8:
+            return None
+        r = np.where(keep, res.data_adu - res.model_adu, 0.0).sum(axis=1)[ok] / cnt[ok]
+        v = np.where(keep, res.var_adu2, 0.0).sum(axis=1)[ok] / cnt[ok] ** 2
+        theta, d = ml_variance_scale(r.astype(np.float64), v.astype(np.float64), np.ones_like(v, np.float64),
+                                     z_cap=1e6)
+        if theta <= 0:
+            return None
+        b = res.sensor.binning
+        per_row = b ** 3 if res.sensor.kind != "ccd" and res.sensor.binning_mode == "sum" else 1
+        sigma_e = float(np.sqrt(theta / per_row)) * res.gain
+        return Fit(name, {"sigma_e": round(sigma_e, 4)}, d, 1, int(ok.sum()),
+                   f"every row offset by its own amount, {sigma_e:.3g} e- rms: row (banding) noise",
+                   extra_var_adu2=theta)
+
+
+def _ktc_params(theta: float, res) -> dict | None:
+    sigma_e2 = theta * res.gain ** 2 / res.adu_sum
+    t_k = res.sensor.temperature_c + 273.15
+    c_ff = sigma_e2 * Q_ELECTRON ** 2 / (K_BOLTZMANN * t_k) * 1e15
+    return {"capacitance_ff": round(float(c_ff), 5)} if 0 < c_ff <= 1e4 else None
+
+
+def _bias_variants(res):
+    s = res.sensor
+    f = np.float32(res.adu_sum)
+    unit = [bias_shape_adu(res.ys, res.xs, s.sensor_height_px, s.sensor_width_px, *g) * f
+            for g in ((1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0))]
+
+    def to_params(c):
+        return ({"gradient_x_adu": round(float(c[0]), 4), "gradient_y_adu": round(float(c[1]), 4),
+                 "quadratic_adu": round(float(c[2]), 4)} if np.all(np.abs(c) <= 1e4) else None)
+
+    yield Variant(unit, to_params)
+
+
+def _bias_words(p, res) -> str:
+    parts = [f"{p['gradient_x_adu']:+.3g} ADU across the columns", f"{p['gradient_y_adu']:+.3g} ADU across the rows",
+             f"{p['quadratic_adu']:+.3g} ADU bowl at the corners"]
+    return "an additive offset independent of the signal, " + ", ".join(parts) + ": bias structure"
+
+
+def _crosstalk_variants(res):
+    s = res.sensor
+    sig = (res.model_adu - (s.bias_adu - 0.5) * res.adu_sum).astype(np.float32)
+    for n in (2, 4, 8, 16):
+        for mirrored in (True, False):
+            t = sig.copy()
+            channel_crosstalk(t, n, 1.0, mirrored)
+            t -= sig
+
+            def to_params(c, n=n, mirrored=mirrored):
+                return ({"n_channels": n, "alpha": round(float(c[0]), 7), "mirrored": mirrored}
+                        if abs(c[0]) <= 0.1 and c[0] != 0 else None)
+
+            yield Variant([t], to_params, f"{n} channels{' mirrored' if mirrored else ''}")
+
+
+_ROW_SIGNATURE = RowOffsetSignature()
+_KTC_SIGNATURE = VarianceSignature(
+    lambda res: np.ones(1), _ktc_params,
+    lambda p, res: (f"white scatter independent of signal and exposure, as from a {p['capacitance_ff']:.3g} fF "
+                    "sense node: kTC reset noise (or a read noise above the data sheet)"),
+    pattern="extra variance constant over the frame")
+_BIAS_SIGNATURE = LinearSignature(_bias_variants, _bias_words, pattern="additive ramps/bowl, independent of signal",
+                                  extra_k=0)
+_CROSSTALK_SIGNATURE = LinearSignature(
+    _crosstalk_variants,
+    lambda p, res: (f"faint copies of bright sources in the other {p['n_channels'] - 1} read-out channels, "
+                    f"{p['alpha']:.2g} of the source: crosstalk"),
+    pattern="ghost copies of bright sources in other channels")
+
+
 # --- adapters ----------------------------------------------------------------------------------------------
 
 class RowNoiseParams(EffectParams):
@@ -80,6 +175,11 @@ class RowNoise(Effect):
     name = "row_noise"
     stages = (Stage.READ,)
     Params = RowNoiseParams
+    stochastic = True
+    signature = _ROW_SIGNATURE
+
+    def variance_e2(self, stage: Stage, tile: Tile, mean_e) -> float:
+        return self.params.sigma_e ** 2
 
     def apply(self, stage: Stage, tile: Tile, data: np.ndarray) -> None:
         if self.params.sigma_e:
@@ -104,6 +204,11 @@ class ResetNoise(Effect):
     name = "reset_noise"
     stages = (Stage.READ,)
     Params = ResetNoiseParams
+    stochastic = True
+    signature = _KTC_SIGNATURE
+
+    def variance_e2(self, stage: Stage, tile: Tile, mean_e) -> float:
+        return self.sigma_e() ** 2
 
     def sigma_e(self) -> float:
         p = self.params
@@ -137,6 +242,7 @@ class BiasGradient(Effect):
     name = "bias_gradient"
     stages = (Stage.ADU,)
     Params = BiasGradientParams
+    signature = _BIAS_SIGNATURE
 
     def apply(self, stage: Stage, tile: Tile, data: np.ndarray) -> None:
         p, s = self.params, self.sensor
@@ -164,6 +270,7 @@ class Crosstalk(Effect):
     name = "crosstalk"
     stages = (Stage.ADU,)
     Params = CrosstalkParams
+    signature = _CROSSTALK_SIGNATURE
 
     def apply(self, stage: Stage, tile: Tile, data: np.ndarray) -> None:
         channel_crosstalk(data, self.params.n_channels, self.params.alpha, self.params.mirrored)

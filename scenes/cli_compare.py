@@ -1,0 +1,90 @@
+"""``newtsim compare`` and ``newtsim diagnose`` (contract in DESIGN.md)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import click
+
+
+def _load(scene, sets):
+    from .scene import load_scene
+
+    return load_scene(scene, list(sets))
+
+
+def _report(result, path, diagnosis=None):
+    from .compare.report import write_report
+
+    return write_report(result, path, diagnosis=diagnosis)
+
+
+@click.command()
+@click.argument("scene")
+@click.argument("measured", type=click.Path())
+@click.option("--json", "json_out", default=None, help="write the comparison JSON here ('-' for stdout)")
+@click.option("--report", "report", default=None, type=click.Path(dir_okay=False), help="write an HTML report")
+@click.option("--set", "sets", multiple=True, metavar="KEY=VALUE", help="override a scene key")
+@click.option("--workers", type=int, default=None, help="threads (default: CPUs, at most 4)")
+def compare(scene, measured, json_out, report, sets, workers):
+    """Model of SCENE vs the MEASURED frame: chi2/dof, residuals per region, row/column, source; report."""
+    from .cli import _write_json
+    from .compare import run_compare
+
+    sc = _load(scene, sets)
+    result = run_compare(sc, measured, workers=workers)
+    s = result["summary"]
+    for w in s["warnings"]:
+        click.echo(f"newtsim: warning: {w}", err=True)
+    if report:
+        s["report"] = str(_report(result, report))
+    if json_out:
+        _write_json(s, json_out)
+    click.echo(f"chi2/dof {s['chi2_per_dof']:.4g} over {s['n_compared']} pixels ({s['n_statistical']} compared "
+               f"statistically), misfit {s['misfit']:.3g}; worst regions: {', '.join(s['worst_regions'])}"
+               + (f"; report {report}" if report else ""), err=True)
+
+
+@click.command()
+@click.argument("scene")
+@click.argument("measured", type=click.Path())
+@click.option("--json", "json_out", default=None, help="write the diagnosis JSON here ('-' for stdout)")
+@click.option("--apply", "apply_to", default=None, type=click.Path(dir_okay=False),
+              help="write the scene with the best significant candidate added here")
+@click.option("--report", "report", default=None, type=click.Path(dir_okay=False), help="write an HTML report")
+@click.option("--set", "sets", multiple=True, metavar="KEY=VALUE", help="override a scene key")
+@click.option("--workers", type=int, default=None, help="threads (default: CPUs, at most 4)")
+def diagnose(scene, measured, json_out, apply_to, report, sets, workers):
+    """Rank the effects SCENE lacks by how much of the MEASURED frame they explain (delta BIC)."""
+    from rich.progress import Progress
+
+    from .cli import _write_json
+    from .compare import diagnose as dg
+    from .compare import run_diagnose
+
+    sc = _load(scene, sets)
+    with Progress(transient=True) as bar:
+        task = bar.add_task("fitting candidate effects", total=None)
+        out = run_diagnose(sc, measured, workers=workers, progress=lambda name: bar.update(task, description=name))
+    cmp = out.pop("_compare")
+    best = next((c for c in out["candidates"] if c["significant"]), None)
+    applied = None
+    if apply_to:
+        if best is None:
+            click.echo("newtsim: nothing applied: no significant candidate", err=True)
+        else:
+            applied = dg.apply_candidate(sc, best, apply_to)
+            out["applied"] = {"effect": best["effect"], "scene": str(applied)}
+    ledger, rounds = dg.update_ledger(scene, applied, measured, out["baseline"], best if applied else None)
+    out["ledger"] = {"path": str(ledger), "rounds": rounds,
+                     "plot": str(dg.plot_ledger(rounds, Path(ledger).with_suffix(".png")))}
+    if report:
+        out["report"] = str(_report(cmp, report, diagnosis=out))
+    if json_out:
+        _write_json(out, json_out)
+    click.echo(f"baseline chi2/dof {out['baseline']['chi2_per_dof']:.4g}; {out['verdict']}", err=True)
+    for c in out["candidates"][:5]:
+        click.echo(f"  {c['effect']:15s} dBIC {c['delta_bic']:12.4g}  chi2/dof after {c['chi2_per_dof']:.4g}  "
+                   f"{c['explanation']}", err=True)
+    if applied:
+        click.echo(f"wrote {applied} (+[effects.{best['effect']}]); ledger {ledger}", err=True)

@@ -1,0 +1,139 @@
+"""The model of a measured frame: the scene's mean frame and per-pixel variance, and the measurement read
+and checked against it.
+
+The model is the detector chain's moments (:meth:`detector.Detector.moments`): the expected ADU of every
+pixel and its variance from the chain's own noise model (Poisson, read, kTC and row noise, quantisation),
+with the hardware patterns a real camera does not share (PRNU, DSNU, defect positions) as variance or as
+outlier statistics. One noisy realisation of the model gives the expected outlier counts (spikes, outlier
+columns) that the measurement's are compared with.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from detector.diagnosis import Residuals, SpikeStats, spike_stats
+from detector.errors import DetectorError
+from detector.fits_io import read_image
+
+from ..render import Setup, prepare
+from ..scene import Scene
+
+#: seed of the model realisation used for outlier statistics (fixed: the comparison is reproducible)
+REALISATION_SEED = 20231101
+
+
+@dataclass
+class ModelFrame:
+    """The scene's prediction of a frame, in output pixels."""
+
+    setup: Setup
+    mean_adu: np.ndarray
+    var_adu2: np.ndarray
+    flag: np.ndarray  #: near saturation: compared statistically
+    photo_adu: np.ndarray
+    dark_e: np.ndarray
+    realisation: np.ndarray | None = None  #: one noisy frame of the model [ADU], for the outlier statistics
+    spikes: SpikeStats | None = None
+    extra: dict = field(default_factory=dict)
+
+    @property
+    def sensor(self):
+        return self.setup.detector.sensor
+
+    def pixel_centres(self) -> tuple[np.ndarray, np.ndarray]:
+        """Sensor coordinates (ys, xs) of the output pixel centres."""
+        s = self.sensor
+        b = s.binning
+        h, w = s.output_shape
+        return s.roi_y0 + b * np.arange(h) + (b - 1) / 2.0, s.roi_x0 + b * np.arange(w) + (b - 1) / 2.0
+
+
+def build_model(scene: Scene, workers: int | None = None, realisation: bool = True) -> ModelFrame:
+    """Render the scene's mean frame, variance and photo/dark parts (and a realisation for the outliers)."""
+    setup = prepare(scene, workers=workers)
+    det, t = setup.detector, setup.exptime_s
+    s = det.sensor
+    mean, var, flag = det.moments(setup.signal_e, t)
+    mean0, _, _ = det.moments(0.0, t)
+    adu_sum = (s.binning ** 2 if s.binning_mode == "sum" else 1) if s.kind != "ccd" else 1
+    photo = mean - mean0
+    dark_e = np.maximum(mean0 - np.float32((s.bias_adu - 0.5) * adu_sum), 0) * np.float32(s.gain_e_per_adu)
+    model = ModelFrame(setup, mean, var, flag, photo, dark_e)
+    if realisation:
+        real = det.expose(setup.signal_e, t, REALISATION_SEED).astype(np.float32)
+        usable = ~flag & (real < s.adc_max_adu * (adu_sum if s.binning > 1 else 1))
+        model.realisation = real
+        model.spikes, _ = spike_stats(real, mean, var, usable, s.gain_e_per_adu)
+    return model
+
+
+def read_measurement(path: str | Path, model: ModelFrame) -> tuple[np.ndarray, dict]:
+    """The measured frame as float32 ADU, checked against the model's size, binning and WCS.
+
+    Returns the data and a dict of warnings/notes. Size or binning mismatches are errors naming the file.
+    """
+    data, header = read_image(path, key="MEASURED", role="measured", dtype=np.float32)
+    s = model.sensor
+    notes: dict = {"warnings": []}
+    if data.shape != s.output_shape:
+        raise DetectorError(f"measured frame is {data.shape[1]}x{data.shape[0]} pixels", key="detector",
+                            file=str(path), expected=f"{s.output_shape[1]}x{s.output_shape[0]} as the scene's "
+                            f"[detector] (preset, width/height, binning {s.binning}) produces")
+    for card in ("XBINNING", "YBINNING"):
+        if card in header and int(header[card]) != s.binning:
+            raise DetectorError(f"measured frame has {card} = {header[card]}", key="detector.binning",
+                                file=str(path), expected=f"{s.binning} as the scene")
+    if not np.isfinite(data).any():
+        raise DetectorError("measured frame has no finite pixel", file=str(path), expected="an image with data")
+    if np.nanmax(data) == np.nanmin(data):
+        raise DetectorError(f"measured frame is constant ({float(np.nanmax(data))} ADU)", file=str(path),
+                            expected="an image with signal and noise")
+    top = s.adc_max_adu * (s.binning ** 2 if s.binning > 1 and s.binning_mode == "sum" else 1)
+    sat = np.mean(data >= top)
+    if sat > 0.5:
+        raise DetectorError(f"{100 * sat:.0f} % of the measured pixels are saturated", file=str(path),
+                            expected="a frame that is not mostly saturated")
+    notes["saturated_fraction"] = float(sat)
+    notes["wcs_offset_px"] = _wcs_offset(header, model)
+    if notes["wcs_offset_px"] is not None and notes["wcs_offset_px"] > 2:
+        notes["warnings"].append(f"the measured WCS centre is {notes['wcs_offset_px']:.1f} px from the scene's "
+                                 "pointing: sources will not line up")
+    exptime = header.get("EXPTIME")
+    if exptime is not None and abs(float(exptime) - model.setup.exptime_s) > 1e-3 * max(1.0, float(exptime)):
+        notes["warnings"].append(f"EXPTIME {exptime} s in the measured file, {model.setup.exptime_s} s in the scene")
+    return np.nan_to_num(data, nan=0.0).astype(np.float32), notes
+
+
+def _wcs_offset(header, model: ModelFrame) -> float | None:
+    """Distance [output px] between the measured WCS's image of the scene pointing and the frame centre."""
+    if "CTYPE1" not in header or "CRVAL1" not in header:
+        return None
+    import warnings
+
+    from astropy.wcs import WCS
+
+    p = model.setup.scene.pointing
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            x, y = WCS(header).all_world2pix([[p.ra_deg, p.dec_deg]], 0)[0]
+    except Exception:  # noqa: BLE001  (a broken WCS is reported as absent, not fatal)
+        return None
+    h, w = model.sensor.output_shape
+    return float(np.hypot(x - (w - 1) / 2.0, y - (h - 1) / 2.0))
+
+
+def residuals(data: np.ndarray, model: ModelFrame) -> Residuals:
+    """Everything the comparison and the signatures need: masks, spike statistics, model pieces."""
+    s = model.sensor
+    top = s.adc_max_adu * (s.binning ** 2 if s.binning > 1 and s.binning_mode == "sum" else 1)
+    usable = ~model.flag & (data < top) & np.isfinite(data)
+    spikes, statistical = spike_stats(data, model.mean_adu, model.var_adu2, usable, s.gain_e_per_adu)
+    ys, xs = model.pixel_centres()
+    return Residuals(data, model.mean_adu, model.var_adu2, usable & ~statistical, model.photo_adu, model.dark_e,
+                     ys, xs, s, model.setup.exptime_s, spikes,
+                     model.spikes or SpikeStats(0, 0, 0, 0, 0))
