@@ -36,6 +36,8 @@ class ModelFrame:
     flag: np.ndarray  #: near saturation: compared statistically
     photo_adu: np.ndarray
     dark_e: np.ndarray
+    #: the photo-signal before the full-well clip [ADU]: what image-plane effects (blur, shift) transform
+    photo_field_adu: np.ndarray | None = None
     realisation: np.ndarray | None = None  #: one noisy frame of the model [ADU], for the outlier statistics
     spikes: SpikeStats | None = None
     extra: dict = field(default_factory=dict)
@@ -62,7 +64,8 @@ def build_model(scene: Scene, workers: int | None = None, realisation: bool = Tr
     adu_sum = (s.binning ** 2 if s.binning_mode == "sum" else 1) if s.kind != "ccd" else 1
     photo = mean - mean0
     dark_e = np.maximum(mean0 - np.float32((s.bias_adu - 0.5) * adu_sum), 0) * np.float32(s.gain_e_per_adu)
-    model = ModelFrame(setup, mean, var, flag, photo, dark_e)
+    unclipped = det.expose(setup.signal_e, t, 0, noiseless=True) - det.expose(0.0, t, 0, noiseless=True)
+    model = ModelFrame(setup, mean, var, flag, photo, dark_e, unclipped / np.float32(s.gain_e_per_adu))
     if realisation:
         real = det.expose(setup.signal_e, t, REALISATION_SEED).astype(np.float32)
         usable = ~flag & (real < s.adc_max_adu * (adu_sum if s.binning > 1 else 1))
@@ -127,13 +130,28 @@ def _wcs_offset(header, model: ModelFrame) -> float | None:
     return float(np.hypot(x - (w - 1) / 2.0, y - (h - 1) / 2.0))
 
 
+def source_peaks(model: ModelFrame, nsigma: float = 3.0) -> np.ndarray:
+    """Pixels within one pixel of a place where the model's photo-signal rises ``nsigma`` above its 3x3
+    median (sources: stars, streaks)."""
+    from scipy import ndimage
+
+    p = model.photo_adu
+    peak = (p - ndimage.median_filter(p, size=3, mode="nearest")) > nsigma * np.sqrt(model.var_adu2)
+    return ndimage.binary_dilation(peak, structure=np.ones((3, 3), bool), iterations=2)
+
+
 def residuals(data: np.ndarray, model: ModelFrame) -> Residuals:
     """Everything the comparison and the signatures need: masks, spike statistics, model pieces."""
     s = model.sensor
     top = s.adc_max_adu * (s.binning ** 2 if s.binning > 1 and s.binning_mode == "sum" else 1)
     usable = ~model.flag & (data < top) & np.isfinite(data)
     spikes, statistical = spike_stats(data, model.mean_adu, model.var_adu2, usable, s.gain_e_per_adu)
+    # where the model itself peaks (star cores) a local outlier is a source the model misplaces or mis-sizes,
+    # not a defect: keep those pixels in the pixel-by-pixel comparison
+    statistical &= ~source_peaks(model)
     ys, xs = model.pixel_centres()
-    return Residuals(data, model.mean_adu, model.var_adu2, usable & ~statistical, model.photo_adu, model.dark_e,
-                     ys, xs, s, model.setup.exptime_s, spikes,
-                     model.spikes or SpikeStats(0, 0, 0, 0, 0))
+    res = Residuals(data, model.mean_adu, model.var_adu2, usable & ~statistical, model.photo_adu, model.dark_e,
+                    ys, xs, s, model.setup.exptime_s, spikes, model.spikes or SpikeStats(0, 0, 0, 0, 0))
+    if model.photo_field_adu is not None:
+        res.__dict__["photo_field_adu"] = model.photo_field_adu
+    return res

@@ -1,0 +1,415 @@
+"""Image-plane effects of the optics: extra blur, pointing jitter, a pointing offset, field distortion, ghosts.
+
+They act once per frame on the whole expected photo-electron image (stage FIELD), before the sensor, so a
+scene can add them to any rendering (catalogue stars, streaks, a flat screen) and ``newtsim diagnose`` can
+fit them to a measured frame without re-rendering the sources. The scene's ``[psf]`` and the optics
+package remain the primary description of the PSF and distortion; these effects are the *corrections* a
+comparison with real data asks for.
+
+Every effect is a small transformation ``T`` of the image ``I``. For diagnosis each is linearised about
+the identity (first-order Taylor expansion), which makes its signature a set of linear templates built
+from the model image's derivatives:
+
+* Gaussian blur of covariance ``C``: ``I * G_C ~ I + 1/2 (C_xx d2I/dx2 + 2 C_xy d2I/dxdy + C_yy d2I/dy2)``
+  (heat equation: convolution with a Gaussian of variance s^2 is diffusion for a time s^2 / 2);
+* shift by ``(dx, dy)``: ``I(x - dx, y - dy) ~ I - dx dI/dx - dy dI/dy``;
+* radial distortion ``r' = r (1 + k r^2)``: a shift field ``k r^2 (x - x_c, y - y_c)``;
+* ghost: ``alpha`` times the image reflected through the optical axis and defocused into a disc (a
+  double reflection between two surfaces of a refractive corrector; Gross, *Handbook of Optical Systems*
+  vol. 5, 2012, ch. 40 "ghost images"), which is linear in ``alpha``.
+
+Coordinates are sensor pixels; the optical axis is at the sensor centre.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from pydantic import Field
+from scipy import ndimage, signal
+
+from ..diagnosis import Fit, LinearSignature, Signature, Variant, weighted_lstsq
+from .base import Effect, EffectParams, Stage, Tile, register_effect
+
+# --- pure functions -------------------------------------------------------------------------------------------
+
+
+def blur(image: np.ndarray, sigma_major_px: float, sigma_minor_px: float | None = None, angle_deg: float = 0.0
+         ) -> np.ndarray:
+    """The image convolved with a (possibly elongated) Gaussian of principal widths [px] and major-axis angle
+    (counter-clockwise from +x), flux conserving; edges are extended with their own values.
+
+    Done in Fourier space, ``H(f) = exp(-2 pi^2 f^T C f)`` with ``C`` the covariance: exact for any width,
+    including the sub-pixel ones a pixel-sampled kernel gets wrong (the output's second moments are the
+    input's plus ``C``).
+    """
+    minor = sigma_major_px if sigma_minor_px is None else sigma_minor_px
+    if sigma_major_px <= 0 and minor <= 0:
+        return image.copy()
+    c, s = np.cos(np.radians(angle_deg)), np.sin(np.radians(angle_deg))
+    rot = np.array([[c, -s], [s, c]])
+    cov = rot @ np.diag([sigma_major_px ** 2, minor ** 2]) @ rot.T  # (x, y)
+    pad = int(np.ceil(4 * max(sigma_major_px, minor))) + 1
+    work = np.float64 if image.dtype == np.float64 else np.float32  # the diagnosis fits in double precision
+    big = np.pad(image.astype(work), pad, mode="edge")
+    fy = np.fft.fftfreq(big.shape[0])[:, None]
+    fx = np.fft.rfftfreq(big.shape[1])[None, :]
+    h = np.exp(-2 * np.pi ** 2 * (cov[0, 0] * fx * fx + 2 * cov[0, 1] * fx * fy + cov[1, 1] * fy * fy))
+    out = np.fft.irfft2(np.fft.rfft2(big) * h.astype(work), s=big.shape)
+    return out[pad:-pad, pad:-pad].astype(image.dtype)
+
+
+def shift(image: np.ndarray, dx_px: float, dy_px: float) -> np.ndarray:
+    """The image moved by (dx, dy) pixels; what enters at an edge is the edge value.
+
+    Pixels are boxes: moving the box grid by a fraction of a pixel shares each pixel's charge among the four
+    it now overlaps by area, which is bilinear interpolation (flux-conserving and never negative, unlike a
+    spline, which rings by tens of percent around an undersampled bright star)."""
+    return ndimage.shift(image, (dy_px, dx_px), order=1, mode="nearest").astype(image.dtype)
+
+
+def radial_distortion(image: np.ndarray, ys: np.ndarray, xs: np.ndarray, yc: float, xc: float, k_per_px2: float,
+                      step: float = 1.0) -> np.ndarray:
+    """Image whose content at radius r from (xc, yc) moves to r (1 + k r^2) [px] (k > 0: pincushion).
+
+    ``ys``, ``xs`` are the sensor coordinates of the image's pixel centres, ``step`` their spacing (the
+    binning of an output image)."""
+    yy, xx = np.meshgrid(ys - yc, xs - xc, indexing="ij")
+    f = 1.0 + k_per_px2 * (xx * xx + yy * yy)
+    # inverse mapping to first order: the output pixel at r' samples the input at r' / (1 + k r'^2)
+    src_y = ((yy / f + yc) - ys[0]) / step
+    src_x = ((xx / f + xc) - xs[0]) / step
+    return ndimage.map_coordinates(image, [src_y, src_x], order=1, mode="nearest").astype(image.dtype)
+
+
+def disc_kernel(radius_px: float) -> np.ndarray:
+    """Normalised uniform disc [1] (a defocused ghost) of ``radius_px``, antialiased by 4x supersampling."""
+    r = max(float(radius_px), 0.5)
+    half = int(np.ceil(r)) + 1
+    n, m = 4, 2 * half + 1
+    c = (np.arange(m * n) + 0.5) / n - (half + 0.5)  # sub-sample centres, symmetric about 0
+    inside = (c[:, None] ** 2 + c[None, :] ** 2) <= r * r
+    k = inside.reshape(m, n, m, n).mean(axis=(1, 3))
+    return (k / k.sum()).astype(np.float32)
+
+
+def ghost_image(image: np.ndarray, ys: np.ndarray, xs: np.ndarray, yc: float, xc: float, radius_px: float
+                ) -> np.ndarray:
+    """Unit-strength ghost: the image reflected through the axis (xc, yc), spread over a disc [same unit].
+
+    Light reflected through the axis from outside the window is not known here and is left out.
+    """
+    gy = np.rint(2 * yc - ys).astype(int) - int(ys[0])
+    gx = np.rint(2 * xc - xs).astype(int) - int(xs[0])
+    oky, okx = (gy >= 0) & (gy < image.shape[0]), (gx >= 0) & (gx < image.shape[1])
+    mirrored = np.zeros_like(image)
+    mirrored[np.ix_(oky, okx)] = image[np.ix_(gy[oky], gx[okx])]
+    return signal.oaconvolve(mirrored, disc_kernel(radius_px), mode="same").astype(image.dtype)
+
+
+def _store(data: np.ndarray, new: np.ndarray) -> None:
+    """Write a transformed image back in place, without the tiny negative ringing of splines and FFTs."""
+    np.maximum(new, 0, out=data)
+
+
+def _photo_sensor_coords(tile: Tile) -> tuple[np.ndarray, np.ndarray, float, float]:
+    ys, xs = tile.pixel_centres()
+    s = tile.sensor
+    return ys, xs, (s.sensor_height_px - 1) / 2.0, (s.sensor_width_px - 1) / 2.0
+
+
+# --- diagnosis: fitted through the transformation itself (Gauss-Newton) ------------------------------------------
+
+class TransformSignature(Signature):
+    """The effect transforms the photo-signal image: ``model' = model + T_theta(P) - P``.
+
+    Started from the first-order (linearised) estimate ``theta_0`` and refined by Gauss-Newton with
+    finite-difference Jacobians of the transformation itself, so large blurs and shifts (comparable to the
+    PSF) are fitted as well as small ones. Works in output pixels; ``to_params`` converts to the effect's
+    parameters (sensor pixels).
+    """
+
+    kind = "transform"
+
+    def __init__(self, start, transform, to_params, steps, explain, pattern="", n_iter: int = 6):
+        self.start, self.transform, self.to_params, self.steps = start, transform, to_params, np.asarray(steps, float)
+        self.explain, self.pattern, self.n_iter = explain, pattern, n_iter
+
+    def fit(self, res, name):
+        if not _has_structure(res):
+            return None
+        idx, r, w = res.flat()
+        # transform the photo-signal before the full-well clip, then clip as the chain does
+        photo = np.asarray(res.__dict__.get("photo_field_adu", res.photo_adu), np.float64)
+        cap = res.sensor.full_well_e * res.pixel_sum / res.gain
+        clipped = np.minimum(photo, cap)
+        theta = self.start(res)
+        if theta is None:
+            return None
+
+        def image(th):
+            return np.minimum(self.transform(res, photo, th), cap)
+
+        def chi2_of(th):
+            d = (image(th) - clipped).ravel()[idx]
+            return float(np.dot((r - d) ** 2, w))
+
+        best = chi2_of(theta)
+        for _ in range(self.n_iter):
+            base = image(theta)
+            jac = [(image(theta + h * e) - base) / h for h, e in zip(self.steps, np.eye(theta.size))]
+            step, _ = weighted_lstsq(jac, idx, r - (base - clipped).ravel()[idx], w)
+            lam, improved = 1.0, False
+            while lam > 1e-3:
+                trial = theta + lam * step
+                c = chi2_of(trial)
+                if c < best:
+                    theta, best, improved = trial, c, True
+                    break
+                lam /= 2
+            if not improved or np.all(np.abs(lam * step) < 1e-3 * self.steps):
+                break
+        params = self.to_params(theta, res)
+        if params is None:
+            return None
+        delta = (image(theta) - clipped).astype(np.float32)
+        return Fit(name, params, best - res.chi2(), theta.size, res.n_fit, self.explain(params, res), delta_adu=delta)
+
+
+def _derivatives(res) -> dict:
+    """First and second derivatives of the model's photo-signal image [ADU / output px^n], cached."""
+    cached = res.__dict__.get("_image_plane_derivatives")
+    if cached is None:
+        p = res.photo_adu.astype(np.float64)
+        gy, gx = np.gradient(p)
+        gyy, gyx = np.gradient(gy)
+        gxy, gxx = np.gradient(gx)
+        cached = {"x": gx, "y": gy, "xx": gxx, "yy": gyy, "xy": 0.5 * (gxy + gyx)}
+        res.__dict__["_image_plane_derivatives"] = cached
+    return cached
+
+
+def _has_structure(res) -> bool:
+    """Image-plane effects need sources: a flat screen or a dark has no gradient to move or blur."""
+    p = res.photo_adu
+    return bool(p.size) and float(np.ptp(p)) > 10 * float(np.sqrt(np.median(res.var_adu2)))
+
+
+def _linear_start(res, names: list[str], scale: list[float]) -> np.ndarray:
+    """First-order estimate from the derivative templates (heat-equation / Taylor linearisation)."""
+    d = _derivatives(res)
+    idx, r, w = res.flat()
+    c, _ = weighted_lstsq([s_ * d[n] for n, s_ in zip(names, scale)], idx, r, w)
+    return c
+
+
+def _sensor_centre(res) -> tuple[float, float]:
+    s = res.sensor
+    return (s.sensor_height_px - 1) / 2.0, (s.sensor_width_px - 1) / 2.0
+
+
+# blur: theta = sigma^2 [output px^2]
+def _blur_start(res):
+    c = _linear_start(res, ["xx", "yy"], [0.5, 0.5])
+    return np.array([max(float(np.mean(c)), 0.05)])
+
+
+def _blur_transform(res, photo, th):
+    return blur(photo, float(np.sqrt(max(th[0], 0.0))))
+
+
+def _blur_params(th, res):
+    s2 = float(th[0])
+    return {"sigma_px": round(float(np.sqrt(s2)) * res.sensor.binning, 4)} if 0 < s2 < 100 else None
+
+
+# jitter: theta = (c_xx, c_yy, c_xy) [output px^2]
+#: sigma_major / sigma_minor below which a fitted smear counts as isotropic (then it is psf_blur)
+JITTER_MIN_ELONGATION = 1.1
+
+def _jitter_start(res):
+    c = _linear_start(res, ["xx", "yy", "xy"], [0.5, 0.5, 1.0])
+    return np.array([max(c[0], 0.05), max(c[1], 0.05), c[2]])
+
+
+def _jitter_axes(th):
+    w, v = np.linalg.eigh(np.array([[th[0], th[2]], [th[2], th[1]]]))
+    return w, float(np.degrees(np.arctan2(v[1, 1], v[0, 1]))) % 180.0
+
+
+def _jitter_transform(res, photo, th):
+    w, ang = _jitter_axes(th)
+    return blur(photo, float(np.sqrt(max(w[1], 0.0))), float(np.sqrt(max(w[0], 0.0))), ang)
+
+
+def _jitter_params(th, res):
+    w, ang = _jitter_axes(th)
+    # an isotropic smear is psf_blur (nested in this model): jitter must be elongated to be a candidate
+    if w[0] <= 0 or w[1] >= 100 or w[1] < JITTER_MIN_ELONGATION ** 2 * w[0]:
+        return None
+    b = res.sensor.binning
+    return {"sigma_major_px": round(float(np.sqrt(w[1])) * b, 4), "sigma_minor_px": round(float(np.sqrt(w[0])) * b, 4),
+            "angle_deg": round(ang, 2)}
+
+
+# offset: theta = (dx, dy) [output px]
+def _offset_start(res):
+    return _linear_start(res, ["x", "y"], [-1.0, -1.0])
+
+
+def _offset_params(th, res):
+    b = res.sensor.binning
+    dx, dy = float(th[0]) * b, float(th[1]) * b
+    return {"dx_px": round(dx, 4), "dy_px": round(dy, 4)} if np.hypot(dx, dy) < 20 * b else None
+
+
+# distortion: theta = k [sensor px^-2]
+def _distortion_start(res):
+    d, b = _derivatives(res), res.sensor.binning
+    yc, xc = _sensor_centre(res)
+    yy, xx = np.meshgrid(res.ys - yc, res.xs - xc, indexing="ij")
+    t = -(d["x"] * xx + d["y"] * yy) * (xx * xx + yy * yy) / b
+    idx, r, w = res.flat()
+    c, _ = weighted_lstsq([t], idx, r, w)
+    return np.array([float(c[0])])
+
+
+def _distortion_transform(res, photo, th):
+    yc, xc = _sensor_centre(res)
+    return radial_distortion(photo, res.ys, res.xs, yc, xc, float(th[0]), step=res.sensor.binning)
+
+
+def _distortion_params(th, res):
+    yc, xc = _sensor_centre(res)
+    rmax2 = max((res.ys - yc) ** 2) + max((res.xs - xc) ** 2)
+    k = float(th[0])
+    return {"k_per_px2": k} if abs(k) * rmax2 < 0.05 and k != 0 else None
+
+
+def _ghost_variants(res):
+    if not _has_structure(res):
+        return
+    b = res.sensor.binning
+    yc, xc = _sensor_centre(res)
+    photo = res.photo_adu.astype(np.float32)
+    for radius in (2.0, 5.0, 12.0, 30.0, 80.0):  # sensor px
+        t = ghost_image(photo, res.ys, res.xs, yc, xc, radius / b)
+
+        def to_params(c, radius=radius):
+            return {"alpha": float(c[0]), "radius_px": radius} if 0 < c[0] < 0.1 else None
+
+        yield Variant([t], to_params, f"radius {radius:g} px")
+
+
+# --- adapters --------------------------------------------------------------------------------------------------
+
+
+class BlurParams(EffectParams):
+    sigma_px: float = Field(0.5, ge=0, le=50, description="std of the extra Gaussian blur [sensor pixels]",
+                            json_schema_extra={"unit": "pixel"})
+
+
+@register_effect
+class PSFBlur(Effect):
+    """Extra isotropic Gaussian blur of the image (defocus, seeing or optics the PSF model lacks)."""
+
+    name = "psf_blur"
+    stages = (Stage.FIELD,)
+    Params = BlurParams
+    signature = TransformSignature(
+        _blur_start, _blur_transform, _blur_params, [0.02],
+        pattern="sources wider than the model (a Laplacian-shaped residual)",
+        explain=lambda p, res: f"sources wider than the model, as by an extra Gaussian of {p['sigma_px']:.3g} px "
+                               "rms: PSF blur (focus, seeing)")
+
+    def apply(self, stage: Stage, tile: Tile, data: np.ndarray) -> None:
+        _store(data, blur(data, self.params.sigma_px))
+
+
+class JitterParams(EffectParams):
+    sigma_major_px: float = Field(0.5, ge=0, le=50, description="rms pointing jitter along its major axis [px]")
+    sigma_minor_px: float = Field(0.2, ge=0, le=50, description="rms pointing jitter across [px]")
+    angle_deg: float = Field(0.0, ge=-180, le=180, description="major axis, counter-clockwise from +x [deg]")
+
+
+@register_effect
+class Jitter(Effect):
+    """Pointing jitter during the exposure: an elongated Gaussian blur (mount vibration, wind, tracking)."""
+
+    name = "jitter"
+    stages = (Stage.FIELD,)
+    Params = JitterParams
+    signature = TransformSignature(
+        _jitter_start, _jitter_transform, _jitter_params, [0.02, 0.02, 0.02],
+        pattern="sources elongated along one direction",
+        explain=lambda p, res: (f"sources smeared along {p['angle_deg']:.0f} deg, {p['sigma_major_px']:.3g} x "
+                                f"{p['sigma_minor_px']:.3g} px rms: pointing jitter"))
+
+    def apply(self, stage: Stage, tile: Tile, data: np.ndarray) -> None:
+        p = self.params
+        _store(data, blur(data, p.sigma_major_px, p.sigma_minor_px, p.angle_deg))
+
+
+class OffsetParams(EffectParams):
+    dx_px: float = Field(0.0, ge=-1e4, le=1e4, description="image shift along columns [sensor px]")
+    dy_px: float = Field(0.0, ge=-1e4, le=1e4, description="image shift along rows [sensor px]")
+
+
+@register_effect
+class PointingOffset(Effect):
+    """The telescope points slightly elsewhere than the header says: the whole image moves (WCS unchanged)."""
+
+    name = "pointing_offset"
+    stages = (Stage.FIELD,)
+    Params = OffsetParams
+    signature = TransformSignature(
+        _offset_start, lambda res, photo, th: shift(photo, float(th[0]), float(th[1])), _offset_params,
+        [0.01, 0.01], pattern="dipoles on every source, all in one direction",
+        explain=lambda p, res: f"every source displaced by ({p['dx_px']:+.3g}, {p['dy_px']:+.3g}) px: pointing offset")
+
+    def apply(self, stage: Stage, tile: Tile, data: np.ndarray) -> None:
+        _store(data, shift(data, self.params.dx_px, self.params.dy_px))
+
+
+class DistortionParams(EffectParams):
+    k_per_px2: float = Field(0.0, ge=-1e-4, le=1e-4, description="radial distortion r' = r (1 + k r^2) [px^-2]")
+
+
+@register_effect
+class Distortion(Effect):
+    """Radial (barrel k < 0, pincushion k > 0) distortion about the optical axis the WCS does not describe."""
+
+    name = "distortion"
+    stages = (Stage.FIELD,)
+    Params = DistortionParams
+    signature = TransformSignature(
+        _distortion_start, _distortion_transform, _distortion_params, [1e-10],
+        pattern="source dipoles growing as r^3 towards the corners",
+        explain=lambda p, res: (f"sources displaced radially, {'outward' if p['k_per_px2'] > 0 else 'inward'}, "
+                                "growing as the cube of the field radius: distortion missing from the WCS"))
+
+    def apply(self, stage: Stage, tile: Tile, data: np.ndarray) -> None:
+        ys, xs, yc, xc = _photo_sensor_coords(tile)
+        _store(data, radial_distortion(data, ys, xs, yc, xc, self.params.k_per_px2))
+
+
+class GhostParams(EffectParams):
+    alpha: float = Field(1e-3, ge=0, le=0.1, description="ghost energy / source energy [1]")
+    radius_px: float = Field(10.0, gt=0, le=2000, description="radius of the defocused ghost disc [sensor px]")
+
+
+@register_effect
+class Ghost(Effect):
+    """A defocused ghost of every source, reflected through the optical axis (double reflection in the
+    corrector): ``alpha`` of the flux spread over a disc of ``radius_px``, added to the image."""
+
+    name = "ghost"
+    stages = (Stage.FIELD,)
+    Params = GhostParams
+    signature = LinearSignature(
+        _ghost_variants, extra_k=1, pattern="faint discs opposite bright sources across the optical axis",
+        explain=lambda p, res: (f"faint discs of {p['radius_px']:.3g} px opposite the sources across the axis, "
+                                f"{p['alpha']:.2g} of their flux: ghost reflections"))
+
+    def apply(self, stage: Stage, tile: Tile, data: np.ndarray) -> None:
+        ys, xs, yc, xc = _photo_sensor_coords(tile)
+        _store(data, data + np.float32(self.params.alpha) * ghost_image(data, ys, xs, yc, xc, self.params.radius_px))

@@ -1,0 +1,77 @@
+"""Image-plane effects (psf_blur, jitter, pointing_offset, distortion, ghost): exact physics checks."""
+
+import numpy as np
+import pytest
+
+from detector import Detector, build_effects, make_sensor
+from detector.effects import image_plane as ip
+
+
+def _star(shape=(129, 129), x=64.0, y=64.0, sigma=2.0, flux=1e5):
+    yy, xx = np.mgrid[0:shape[0], 0:shape[1]]
+    g = np.exp(-0.5 * ((xx - x) ** 2 + (yy - y) ** 2) / sigma ** 2)
+    return (flux * g / g.sum()).astype(np.float32)
+
+
+def _moments(img):
+    yy, xx = np.mgrid[0:img.shape[0], 0:img.shape[1]]
+    f = img.sum()
+    cx, cy = (img * xx).sum() / f, (img * yy).sum() / f
+    cxx = (img * (xx - cx) ** 2).sum() / f
+    cyy = (img * (yy - cy) ** 2).sum() / f
+    cxy = (img * (xx - cx) * (yy - cy)).sum() / f
+    return f, cx, cy, cxx, cyy, cxy
+
+
+def test_blur_adds_its_variance_and_keeps_the_flux():
+    img = _star(sigma=2.0)
+    out = ip.blur(img, 1.5)
+    f, cx, cy, cxx, cyy, _ = _moments(out)
+    assert np.isclose(f, img.sum(), rtol=1e-5)
+    assert np.isclose(cxx, 4.0 + 2.25, rtol=0.01) and np.isclose(cyy, 4.0 + 2.25, rtol=0.01)
+
+
+@pytest.mark.parametrize("angle", [30.0, 90.0])
+def test_elongated_blur_has_the_rotated_covariance(angle):
+    img = _star(sigma=1.5)
+    out = ip.blur(img, 3.0, 1.0, angle)
+    _, _, _, cxx, cyy, cxy = _moments(out)
+    c, s = np.cos(np.radians(angle)), np.sin(np.radians(angle))
+    r = np.array([[c, -s], [s, c]])
+    cov = r @ np.diag([9.0, 1.0]) @ r.T + 2.25 * np.eye(2)
+    assert np.allclose([cxx, cyy, cxy], [cov[0, 0], cov[1, 1], cov[0, 1]], atol=0.05)
+
+
+def test_shift_moves_the_centroid():
+    _, cx, cy, *_ = _moments(ip.shift(_star(), 1.3, -0.7))
+    assert abs(cx - 65.3) < 1e-3 and abs(cy - 63.3) < 1e-3
+
+
+def test_radial_distortion_moves_a_star_to_r_times_1_plus_k_r2():
+    ys, xs = np.arange(200.0), np.arange(200.0)
+    k = 2e-6
+    img = _star((200, 200), x=170.0, y=100.0, sigma=1.5)  # r = 70 px from (100, 100)
+    out = ip.radial_distortion(img, ys, xs, 100.0, 100.0, k)
+    _, cx, cy, *_ = _moments(out)
+    assert abs((cx - 100) - 70 * (1 + k * 70 ** 2)) < 0.02 and abs(cy - 100) < 1e-3
+
+
+def test_ghost_is_reflected_through_the_axis_with_alpha_of_the_flux():
+    ys, xs = np.arange(201.0), np.arange(201.0)
+    img = _star((201, 201), x=150.0, y=120.0, sigma=1.0)
+    g = ip.ghost_image(img, ys, xs, 100.0, 100.0, 6.0)
+    f, cx, cy, *_ = _moments(g)
+    assert np.isclose(f, img.sum(), rtol=1e-4)
+    assert abs(cx - 50.0) < 0.05 and abs(cy - 80.0) < 0.05
+
+
+def test_effects_run_in_the_chain_and_zero_strength_is_identity():
+    s = make_sensor("ml11002", {"width": 128, "height": 128, "x0": 0, "y0": 0, "dark_current_e_per_s": 0.0})
+    img = _star((128, 128), 40.0, 70.0, 1.5, 1e5)
+    base = Detector(s, []).expose(img, 1.0, 1, noiseless=True)
+    for name, params in {"psf_blur": {"sigma_px": 0.0}, "pointing_offset": {}, "distortion": {},
+                         "ghost": {"alpha": 0.0}}.items():
+        out = Detector(s, build_effects({name: params}, s)).expose(img, 1.0, 1, noiseless=True)
+        assert np.allclose(out, base, atol=1e-2), name
+    moved = Detector(s, build_effects({"pointing_offset": {"dx_px": 2.0}}, s)).expose(img, 1.0, 1, noiseless=True)
+    assert abs(_moments(moved)[1] - 42.0) < 0.01
