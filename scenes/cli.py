@@ -16,6 +16,7 @@ from detector import DetectorError
 from detector.jsonable import jsonable
 from optics.design import OpticsError
 
+from .cli_batch import batch as batch_command
 from .cli_optics import optics as optics_group
 
 EXIT_USER_ERROR = 2
@@ -47,6 +48,7 @@ def cli():
 
     \b
     render        a scene to a FITS frame (+ PNG quick-look)
+    batch         many frames (sweeps, time sequences, Monte-Carlo draws) on Dask, resumable
     characterize  bias/dark/flat calibration frames -> camera parameters (+ a scene that reproduces it)
     effects       the catalogue of optional effects, their parameters and units
     compare       model vs measured frame (coming with the compare issue)
@@ -158,6 +160,7 @@ def diagnose():
 
 
 cli.add_command(optics_group, name="optics")
+cli.add_command(batch_command, name="batch")
 
 
 _MULTI_FILE_OPTIONS = ("--bias", "--dark", "--flat")
