@@ -16,6 +16,7 @@ from detector import DetectorError
 from detector.jsonable import jsonable
 from optics.design import OpticsError
 
+from .cli_batch import batch as batch_command
 from .cli_compare import compare as compare_cmd
 from .cli_compare import diagnose as diagnose_cmd
 from .cli_optics import optics as optics_group
@@ -49,6 +50,7 @@ def cli():
 
     \b
     render        a scene to a FITS frame (+ PNG quick-look)
+    batch         many frames (sweeps, time sequences, Monte-Carlo draws) on Dask, resumable
     characterize  bias/dark/flat calibration frames -> camera parameters (+ a scene that reproduces it)
     effects       the catalogue of optional effects, their parameters and units
     compare       model vs measured frame: chi2, residuals per region/row/column/source, HTML report
@@ -143,6 +145,7 @@ def effects(name):
 cli.add_command(compare_cmd, name="compare")
 cli.add_command(diagnose_cmd, name="diagnose")
 cli.add_command(optics_group, name="optics")
+cli.add_command(batch_command, name="batch")
 
 
 _MULTI_FILE_OPTIONS = ("--bias", "--dark", "--flat")
