@@ -227,7 +227,8 @@ def _stars(scene: Scene, fr: _Frame, base_dir: Path | None) -> tuple[Samples | T
     tl, th = np.broadcast_to(t_lo, X.shape), np.broadcast_to(t_hi, X.shape)
     per_seg = np.maximum(1, np.floor(SEGMENT_STAMPS * (2 * w[idx] + 1) / max(vmax * dt, 1e-9))).astype(np.int64)
     key = np.arange(idx.size)[None, :] + idx.size * (np.arange(ts.size)[:, None] // per_seg[None, :])
-    trails = Trails.from_samples(X[keep], Y[keep], E[keep], tl[keep], th[keep], ww[keep], key[keep])
+    kt = keep.T  # star-major: each star's samples contiguous, so the grouping by segment gathers locally
+    trails = Trails.from_samples(X.T[kt], Y.T[kt], E.T[kt], tl.T[kt], th.T[kt], ww.T[kt], key.T[kt])
     j = idx[seen]
     xa, ya = paths.each_of(j, t_a[seen])
     xb, yb = paths.each_of(j, t_b[seen])
