@@ -55,7 +55,7 @@ print(time.perf_counter() - t0)
 
 
 def run(code: str, *args) -> dict:
-    """Run ``code`` in a fresh interpreter; return its wall time and peak RSS."""
+    """Run ``code`` in a fresh interpreter; return its wall time, CPU time (user + system) and peak RSS."""
     t0 = time.perf_counter()
     proc = subprocess.Popen([sys.executable, "-c", code, *map(str, args)], stdout=subprocess.PIPE, stderr=subprocess.PIPE)
     _, status, usage = os.wait4(proc.pid, 0)
@@ -64,7 +64,7 @@ def run(code: str, *args) -> dict:
     if status != 0:
         raise RuntimeError(f"job failed:\n{err}")
     return {"wall_s": round(wall, 2), "inner_s": round(float(out.strip().splitlines()[-1]), 2),
-            "peak_rss_gib": round(usage.ru_maxrss / 2 ** 20, 3)}
+            "cpu_s": round(usage.ru_utime + usage.ru_stime, 2), "peak_rss_gib": round(usage.ru_maxrss / 2 ** 20, 3)}
 
 
 def main() -> None:

@@ -47,6 +47,7 @@ TRUTH_DTYPE = [("ra_deg", "f8"), ("dec_deg", "f8"), ("x", "f8"), ("y", "f8"), ("
                ("x1", "f8"), ("y1", "f8"), ("flux_e", "f8"), ("kind", "S9"), ("mag", "f8"), ("source_id", "i8"),
                ("name", "S32")]
 STEP_PX = 0.25  # largest motion between two samples of a path [pixels]
+STAR_STEP_SIGMA = 0.5  # trailed stars: sample spacing up to this many PSF core rms (see trail_step_px)
 SEGMENT_STAMPS = 2.0  # motion per trail segment, in stamp widths (2w + 1)
 MAX_TRAIL_SAMPLES = 10_000_000  # trailed-star samples per frame (memory: ~100 bytes each while building)
 WAVELENGTH_STEP_NM = 5.0
@@ -135,6 +136,23 @@ def _path_truth(fr: _Frame, x, y, t_lo, t_hi, e):
     return t_a, t_b, flux, inside.any(axis=0)
 
 
+def trail_step_px(psf) -> float:
+    """Sample spacing of trailed stars [px]: max(STEP_PX, STAR_STEP_SIGMA x sigma), sigma = FWHM / 2.3548.
+
+    A chain of PSF samples at spacing h equals the continuous path integral of the pixel-integrated PSF up
+    to a ripple of the amplitude of the PSF's Fourier transform at 1/h (Poisson summation): for a Gaussian
+    exp(-2 pi^2 sigma^2 / h^2) = exp(-8 pi^2) ~ 1e-34 at h = sigma / 2; for a Moffat ~exp(-2 pi alpha / h),
+    ~1e-16 at beta = 4.765 (alpha = 2.98 sigma).
+    What remains is the midpoint rule at the ends of the path and of each row's exposure window: at most
+    a box of h on the light of one interval, variance h^2 / 12 = sigma^2 / 48 (2 % of the PSF's variance).
+    Objects keep STEP_PX (few samples, streak photometry). A PSF without ``describe()["fwhm_px"]``: STEP_PX.
+    """
+    fwhm = (psf.describe() if hasattr(psf, "describe") else {}).get("fwhm_px")
+    if not fwhm or not np.isfinite(fwhm):
+        return STEP_PX
+    return max(STEP_PX, STAR_STEP_SIGMA * float(fwhm) / (2.0 * math.sqrt(2.0 * math.log(2.0))))
+
+
 def trail_radius(psf, total_e, length_px) -> np.ndarray:
     """Stamp half-width [px] for a path of ``length_px`` pixels carrying ``total_e`` electrons.
 
@@ -191,10 +209,11 @@ def _stars(scene: Scene, fr: _Frame, base_dir: Path | None) -> tuple[Samples | T
     vmax = float(vk.max()) * 1.01 if idx.size else speed
     w = np.array(w)
     w[idx] = trail_radius(fr.psf, total[idx], vk.mean(axis=0) * fr.exptime_s)
-    ts, dt = sample_times(fr.t_end_s, vmax, STEP_PX)
+    step = trail_step_px(fr.psf)
+    ts, dt = sample_times(fr.t_end_s, vmax, step)
     if ts.size * idx.size > MAX_TRAIL_SAMPLES:
         raise SceneError(f"the trailed stars need {ts.size * idx.size:.3g} samples ({idx.size} stars x {ts.size} time "
-                         f"steps of {STEP_PX} pixel)", key="sky.star_mag_limit", file=scene.source,
+                         f"steps of {step:.3g} pixel)", key="sky.star_mag_limit", file=scene.source,
                          expected=f"fewer than {MAX_TRAIL_SAMPLES:.0e}: a brighter star_mag_limit, a smaller window, a "
                          "shorter exposure or tracking = 'sidereal'")
     X, Y = paths.subset_on_grid(idx, ts)  # (S, n)
@@ -208,7 +227,8 @@ def _stars(scene: Scene, fr: _Frame, base_dir: Path | None) -> tuple[Samples | T
     tl, th = np.broadcast_to(t_lo, X.shape), np.broadcast_to(t_hi, X.shape)
     per_seg = np.maximum(1, np.floor(SEGMENT_STAMPS * (2 * w[idx] + 1) / max(vmax * dt, 1e-9))).astype(np.int64)
     key = np.arange(idx.size)[None, :] + idx.size * (np.arange(ts.size)[:, None] // per_seg[None, :])
-    trails = Trails.from_samples(X[keep], Y[keep], E[keep], tl[keep], th[keep], ww[keep], key[keep])
+    kt = keep.T  # star-major: each star's samples contiguous, so the grouping by segment gathers locally
+    trails = Trails.from_samples(X.T[kt], Y.T[kt], E.T[kt], tl.T[kt], th.T[kt], ww.T[kt], key.T[kt])
     j = idx[seen]
     xa, ya = paths.each_of(j, t_a[seen])
     xb, yb = paths.each_of(j, t_b[seen])
