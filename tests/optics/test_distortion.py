@@ -1,0 +1,107 @@
+"""SIP distortion fits checked with astropy's WCS, not against stored numbers."""
+
+import numpy as np
+import pytest
+
+from optics import load_design
+from optics.distortion import fit_sip, image_positions, sip_cards, sip_wcs
+from optics.sequential import SequentialTracer
+
+PITCH_UM = 3.76
+
+
+@pytest.fixture(scope="module")
+def art(mi):
+    return SequentialTracer(load_design("art"), mi)
+
+
+@pytest.fixture(scope="module")
+def art_sip(art):
+    """Order 5: the corrector's 3.6 % distortion has a strong fifth-order part (order 3 leaves 2 px)."""
+    return fit_sip(art, PITCH_UM, order=5, grid=9)
+
+
+def _probe_fields(design, n=25, seed=7):
+    """Random field angles whose images fall on the detector (not the fit grid)."""
+    rng = np.random.default_rng(seed)
+    f = design.primary.focal_length_mm
+    u = rng.uniform(-0.97, 0.97, n) * design.focal_plane.width_mm / 2
+    v = rng.uniform(-0.97, 0.97, n) * design.focal_plane.height_mm / 2
+    return np.stack([np.degrees(np.arctan(-u / f)), np.degrees(np.arctan(-v / f))], -1)
+
+
+def test_sip_wcs_maps_traced_stars_to_their_sky_positions(art, art_sip):
+    """Stars at known field angles around a pointing: the RA---TAN-SIP WCS built from the fitted cards
+    must put each traced image (chief ray, pixel) on the star's sky position to < 0.05 px."""
+    assert art_sip["rms_px"] < 0.02
+    fields = _probe_fields(art.design)
+    pos = image_positions(art, fields)                          # mm, detector frame
+    pix = pos / (PITCH_UM * 1e-3) + np.array([art_sip["CRPIX1"], art_sip["CRPIX2"]]) - 1   # 0-based
+    crval = (120.95, -29.25)
+    w = sip_wcs(art_sip, crval_deg=crval)
+    ra, dec = w.all_pix2world(pix[:, 0], pix[:, 1], 0)
+    # the truth: the ideal gnomonic image of each field angle through the same WCS without distortion
+    f = art.design.primary.focal_length_mm
+    ideal = -f * np.tan(np.radians(fields)) / (PITCH_UM * 1e-3) + np.array([art_sip["CRPIX1"], art_sip["CRPIX2"]]) - 1
+    tan = sip_wcs({k: v for k, v in sip_cards(art_sip).items() if not k.startswith(("A", "B"))}, crval_deg=crval)
+    ra0, dec0 = tan.all_pix2world(ideal[:, 0], ideal[:, 1], 0)
+    # sky offsets in pixels (CD scale)
+    scale_deg = abs(art_sip["CD1_1"])
+    err_px = np.hypot((ra - ra0) * np.cos(np.radians(dec0)), dec - dec0) / scale_deg
+    assert err_px.max() < 0.05, err_px.max()
+    # and the way back: sky -> pixel with the WCS (forward SIP inverted iteratively) ...
+    xb, yb = w.all_world2pix(ra0, dec0, 0, tolerance=1e-6)
+    assert np.max(np.hypot(xb - pix[:, 0], yb - pix[:, 1])) < 0.05
+    # ... and with the reverse polynomials AP, BP of the cards alone: x = X + sum AP_p_q X^p Y^q
+    X, Y = (ideal - np.array([art_sip["CRPIX1"], art_sip["CRPIX2"]]) + 1).T
+    def rev(name):
+        return sum(v * X ** int(k.split("_")[1]) * Y ** int(k.split("_")[2]) for k, v in art_sip.items()
+                   if k.startswith(name + "_") and k != name + "_ORDER")
+    xr = X + rev("AP") + art_sip["CRPIX1"] - 1
+    yr = Y + rev("BP") + art_sip["CRPIX2"] - 1
+    assert np.max(np.hypot(xr - pix[:, 0], yr - pix[:, 1])) < 0.05
+
+
+def test_corrector_distortion_is_resolved(art_sip):
+    """The corrector bends the field by whole pixels (else this test would prove nothing)."""
+    assert art_sip["max_distortion_px"] > 1.0
+    assert art_sip["A_ORDER"] == 5 and "AP_7_0" in art_sip
+    assert set(sip_cards(art_sip)) <= {k for k in art_sip if k.isupper()}
+
+
+def test_bare_paraboloid_chief_ray_is_gnomonic(mi):
+    """A paraboloid with the stop on its vertex sends the chief ray along the field angle through the
+    vertex, so it lands at exactly -f tan(theta): no distortion at all."""
+    bare = SequentialTracer(load_design("bare"), mi)
+    sip = fit_sip(bare, PITCH_UM, order=3, grid=5, method="chief")
+    assert sip["max_distortion_px"] < 1e-3
+    coeffs = [v for k, v in sip.items() if k[:2] in ("A_", "B_") and k not in ("A_ORDER", "B_ORDER")]
+    assert max(abs(c) for c in coeffs) < 1e-6
+    assert sip["effective_focal_length_mm"] == pytest.approx(960.0, rel=1e-6)
+
+
+@pytest.mark.filterwarnings("ignore:SIP order 3")   # the corners' vignetting bends the centroid by 0.2 px
+def test_coma_centroid_shift_is_a_scale_change(mi):
+    """Third-order coma images each pupil zone rho (fraction of the rim) as a circle whose centre lies
+    2 theta f rho^2 / (16 N^2) beyond the chief ray; averaged over the annular pupil (obstruction eps)
+    the centroid moves out by theta f (1 + eps^2) / (16 N^2): a scale change, i.e. a longer effective
+    focal length f (1 + (1 + eps^2) / (16 N^2)) = 972 mm for the bare ART paraboloid."""
+    design = load_design("bare")
+    bare = SequentialTracer(design, mi)
+    sip = fit_sip(bare, PITCH_UM, order=3, grid=5, method="centroid")
+    eps = design.secondary.minor_axis_mm / design.primary.diameter_mm
+    expected = 960.0 * (1 + (1 + eps ** 2) / (16 * design.f_number ** 2))
+    assert sip["effective_focal_length_mm"] == pytest.approx(expected, rel=1e-3)
+
+
+def test_too_low_an_order_is_flagged(art):
+    with pytest.warns(RuntimeWarning, match="raise the order"):
+        sip = fit_sip(art, PITCH_UM, order=3, grid=7)
+    assert sip["rms_px"] > 0.5
+
+
+def test_bad_arguments(art):
+    with pytest.raises(ValueError):
+        fit_sip(art, PITCH_UM, order=0)
+    with pytest.raises(ValueError, match="method"):
+        image_positions(art, [(0.0, 0.0)], method="median")
