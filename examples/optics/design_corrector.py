@@ -14,26 +14,32 @@ Method
        millisecond per evaluation, where the drjit tracer would recompile its kernel for every new
        prescription. ``scipy.optimize.least_squares`` minimises the polychromatic RMS spot radii
        (450-900 nm weighted by the IMX411 QE) at the field points, with penalties for the mechanics: the
-       first surface at x >= 225 mm (the tube wall is at 250 mm; the focuser reaching into the tube
-       shadows the incoming beam), clear semi-diameters <= 44 mm (the 90 mm focuser bore; rays beyond
-       the rims are vignetted, softly in the merit and counted against it), centre and edge thicknesses
-       >= 3 mm of glass and >= 1 mm of air, a back focus >= 20 mm, an effective focal length within
-       940-1010 mm (the plate scale must stay close to the 960 mm of the design) and a distortion below
-       4 % (left free, the optimiser trades spot size for 8 % pincushion; 1 % costs another ~40 %
-       in spot size).
+       first surface (vertex and rim) at x >= 225 mm (the focuser tube, which starts 5 mm before it,
+       then stays clear of the incoming beam), clear semi-diameters <= the focuser bore's radius less
+       1.5 mm (68.5 mm for art's 140 mm bore; rays beyond the rims are vignetted, softly in the merit
+       and counted against it), centre thicknesses 3-30 mm of glass and edges >= 3 mm, air >= 1 mm at
+       centre and edge, a back focus >= 20 mm, an effective focal length within 940-1010 mm (the plate
+       scale must stay close to the 960 mm of the design) and a distortion below 4 %.
     3. ``--search N`` first explores N random starting prescriptions with *model glasses* (each lens a
-       convex mix of N-FK51A, fused silica, N-SF5 and N-SK16, so the glass choice is continuous), snaps
-       each lens to the nearest catalogue glass in (n_d, V_d) and polishes. Without it the script polishes
-       the stored starting point (the result of such a search).
+       convex mix of N-FK51A, fused silica, N-SF5 and N-SK16, so the glass choice is continuous);
+       ``--perturb N`` instead polishes N random perturbations of the stored starting point (relative
+       scale ``--scale``) with model glasses. Either snaps each lens of the best results to the nearest
+       catalogue glass in (n_d, V_d) and polishes. Without them the script polishes the stored starting
+       point (found by ``--perturb``).
     4. The result is verified with the full drjit tracer (same geometry, with and without the mechanical
        obstructions) through :func:`optics.psf.geometric_spot`, and printed as the TOML tables of
        ``optics/designs/art.toml``.
 
-    python examples/optics/design_corrector.py                 # polish + verify: about a minute
-    python examples/optics/design_corrector.py --search 60     # explore first: ~3 s per start
+    python examples/optics/design_corrector.py                    # polish + verify: 10 s to a minute
+    python examples/optics/design_corrector.py --perturb 16       # ~20 s per start
+    python examples/optics/design_corrector.py --design my.toml --search 60
+
+Room is what limits the colour: with the diagonal 330 mm from the focus the first surface sits 105 mm
+before it and the best polychromatic spots are 30-50 um (lens powers strong enough to cancel the coma
+disperse the foci over 450-900 nm); 380 mm gives 30-37 um, 420 mm (art) 8-16 um.
 
 Frame: the focuser axis is the x axis of :mod:`optics.layout` (the diagonal at x ~ 0, the bare focus at
-x = 330 mm); (u, v) are the transverse coordinates of the detector frame.
+x = secondary.distance_to_focus_mm); (u, v) are the transverse coordinates of the detector frame.
 References: C. G. Wynne, Proc. Phys. Soc. B 62, 772 (1949); A. Rakich & N. Rumsey, Adv. Opt. Techn. 2,
 85 (2013), doi:10.1515/aot-2012-0078; R. N. Wilson, Reflecting Telescope Optics I, 4.2.
 """
@@ -48,13 +54,18 @@ import numpy as np
 from scipy.optimize import least_squares
 
 from optics import load_design
-from optics.design import Design
+from optics.design import AR_REFLECTANCE, Design
 from optics.glass import GLASSES
 from optics.glass import index as glass_index
 from optics.sequential import SequentialTracer, pupil_uniform
 
-SD_MAX_MM = 44.0             # clear semi-diameter limit (focuser bore radius 45 mm)
-X_MIN_MM = 225.0             # first surface no closer to the optical axis
+#: the telescope the corrector is made for (``--design``: a design TOML with other mirrors or focuser)
+BASE_DESIGN = "art"
+#: clear semi-diameter limit: the focuser bore's radius less 1.5 mm for the lens cells
+SD_MAX_MM = load_design(BASE_DESIGN).tube.focuser_diameter_mm / 2 - 1.5
+#: the first surface (vertex and rim) no closer to the optical axis: the focuser tube, which starts 5 mm
+#: before it, then stays outside the incoming beam (radius <= 200 + 692 tan 2 deg = 224 mm at its height)
+X_MIN_MM = 225.0
 BF_MIN_MM = 20.0             # last surface to detector
 EFL_RANGE_MM = (940.0, 1010.0)
 MAX_DISTORTION = 0.04        # |r / (EFL tan theta) - 1| at every field point
@@ -67,12 +78,13 @@ CHECK_FIELDS_DEG = [(0.0, 0.0), (0.7, 0.0), (1.4, 0.0), (1.55, 0.0), (0.0, 0.7),
                     (1.55, 1.16), (1.59, 1.19)]
 MODEL_CORNERS = ["N-FK51A", "FUSED_SILICA", "N-SF5", "N-SK16"]
 
-#: starting point: the best of two --search runs (150 starts each, seeds 7 and 8, run with a 1 % distortion
-#: limit; both end here), re-optimised with the limit relaxed to 8 % and tightened back in steps to 4 %. Curvatures [1/(100 mm)] (2 per lens),
-#: centre thicknesses [mm], air gaps [mm], back focus [mm], detector shift (defocus) [mm].
+#: starting point for ``art``: a multi-start search with model glasses (random perturbations of the
+#: previous, 105-mm-room solution scaled to the 195 mm room of the 420 mm diagonal-to-focus distance),
+#: snapped to catalogue glasses and polished. Curvatures [1/(100 mm)] (2 per lens), centre thicknesses
+#: [mm], air gaps [mm], back focus [mm], detector shift (defocus) [mm].
 START_GLASSES = ["N-FK51A", "N-BAK4", "N-FK51A", "N-SF5"]
-START = [-0.4237, 0.6624, 0.0552, -0.7389, 1.3547, -0.5586, -0.5506, 0.5307,
-         3.0019, 10.865, 19.9999, 3.0, 22.3302, 58.9717, 1.001, 20.6805, 34.8697]
+START = [-0.4364, 0.4198, -0.0257, -0.6138, 1.1095, -0.4115, -0.2409, 0.5894,
+         29.7311, 16.4336, 22.6088, 3.0, 10.8221, 130.6512, 1.0, 40.8379, 69.7032]
 
 
 def qe_weights(wavelengths_nm):
@@ -87,8 +99,9 @@ def qe_weights(wavelengths_nm):
 # ---- rays behind the diagonal (drjit tracer, once) -------------------------------------------------------
 def incoming_bundles(mi, fields_deg, n_rays: int, seed: int = 1):
     """Rays of each field behind the diagonal: points on the plane x = 0 and directions (x, u, v)."""
-    data = load_design("bare").model_dump()
-    data["focal_plane"].update(width_mm=300.0, height_mm=300.0)
+    data = load_design(BASE_DESIGN).model_dump()
+    data["corrector"] = {"enabled": False}
+    data["focal_plane"].update(width_mm=300.0, height_mm=300.0, defocus_mm=0.0)
     tracer = SequentialTracer(Design.model_validate(data), mi, obstruct="none")
     R = tracer.layout.r_primary
     r_sec = data["secondary"]["minor_axis_mm"] / 2
@@ -152,7 +165,7 @@ class CorrectorModel:
     def bounds(self):
         N = self.N
         lo = np.r_[[-3.0] * 2 * N, [3.0] * N, [1.0] * (N - 1), [BF_MIN_MM - 5, -20.0]]
-        hi = np.r_[[3.0] * 2 * N, [20.0] * N, [80.0] * (N - 1), [100.0, 60.0]]
+        hi = np.r_[[3.0] * 2 * N, [30.0] * N, [150.0] * (N - 1), [100.0, 100.0]]
         if self.mix:
             lo, hi = np.r_[lo, [-6.0] * 3 * N], np.r_[hi, [6.0] * 3 * N]
         return lo, hi
@@ -253,9 +266,11 @@ class CorrectorModel:
         pen = list(np.sqrt(self.kv * self.fw) * e["vig"])
         surfs, th = e["surfs"], e["th"]
         pen.append(K * 100 * e["bad"].mean())
-        pen.append(K * max(0.0, X_MIN_MM + 0.02 - surfs[0][0]))
+        sds = self.semi_diameters(e)
+        x_first = min(surfs[0][0], surfs[0][0] + _sag(surfs[0][1], sds[0]))       # vertex or rim
+        pen.append(K * max(0.0, X_MIN_MM + 0.02 - x_first))
         pen.extend(3000.0 * np.maximum(np.abs(e["distortion"]) - MAX_DISTORTION, 0.0))
-        for i, sd in enumerate(self.semi_diameters(e)):
+        for i, sd in enumerate(sds):
             for j in (0, 1):
                 if surfs[2 * i + j][1]:
                     pen.append(K * max(0.0, sd + 1 - abs(surfs[2 * i + j][1])))
@@ -296,6 +311,25 @@ def build_model(bundles, x0, wavelengths, glasses, mix=False):
                           len(FIELDS_DEG), mix=mix)
 
 
+def _snap_and_polish(bund, x0, wl, m, found):
+    """Snap the best three model-glass results to catalogue glasses and polish each; the best of them."""
+    best = None
+    for _, x in sorted(found, key=lambda t: t[0])[:3]:
+        w = m.mix_weights(x)
+        glasses = []
+        for i in range(4):
+            n = sum(w[i, j] * glass_index(g, np.array([486.13, 587.56, 656.27])) for j, g in enumerate(MODEL_CORNERS))
+            glasses.append(nearest_glass(n[1], (n[1] - 1) / (n[0] - n[2])))
+        mc = build_model(bund, x0, wl, glasses)
+        lo2, hi2 = mc.bounds()
+        s = least_squares(mc.residuals, np.clip(x[:17], lo2 + 1e-6, hi2 - 1e-6), bounds=(lo2, hi2),
+                          x_scale="jac", max_nfev=400)
+        print(f"  snapped to {glasses}: merit {2 * s.cost:.0f} um^2", flush=True)
+        if best is None or s.cost < best[0]:
+            best = (s.cost, glasses, s.x)
+    return best[1], best[2]
+
+
 def search(mi, n_starts: int, seed: int):
     """Random multi-start with model glasses; the best few are snapped to catalogue glasses and polished."""
     bund, x0 = incoming_bundles(mi, FIELDS_DEG + [EFL_FIELD_DEG], 30)
@@ -313,22 +347,37 @@ def search(mi, n_starts: int, seed: int):
         if k % 10 == 9:
             best_merit = 2 * min(t[0] for t in found)
             print(f"  search {k + 1}/{n_starts}: best merit {best_merit:.0f} um^2", flush=True)
-    found.sort(key=lambda t: t[0])
-    best = None
-    for _, x in found[:3]:
-        w = m.mix_weights(x)
-        glasses = []
-        for i in range(4):
-            n = sum(w[i, j] * glass_index(g, np.array([486.13, 587.56, 656.27])) for j, g in enumerate(MODEL_CORNERS))
-            glasses.append(nearest_glass(n[1], (n[1] - 1) / (n[0] - n[2])))
-        mc = build_model(bund, x0, wl, glasses)
-        lo2, hi2 = mc.bounds()
-        s = least_squares(mc.residuals, np.clip(x[:17], lo2 + 1e-6, hi2 - 1e-6), bounds=(lo2, hi2),
-                          x_scale="jac", max_nfev=400)
-        print(f"  snapped to {glasses}: merit {2 * s.cost:.0f} um^2", flush=True)
-        if best is None or s.cost < best[0]:
-            best = (s.cost, glasses, s.x)
-    return best[1], best[2]
+    return _snap_and_polish(bund, x0, wl, m, found)
+
+
+#: model-glass logits (against N-FK51A) of the corners fused silica, N-SF5, N-SK16 near a catalogue glass
+_LOGITS = {"N-FK51A": [-3.0, -3.0, -3.0], "N-BAK4": [-3.0, -3.0, 0.5], "N-BK7": [-3.0, -3.0, 0.0],
+           "N-SK16": [-3.0, -3.0, 3.0], "FUSED_SILICA": [3.0, -3.0, -3.0], "N-SF5": [-3.0, 3.0, -3.0]}
+
+
+def perturb(mi, n_starts: int, seed: int, scale: float, glasses, p_start):
+    """Polish ``n_starts`` random perturbations of ``p_start`` (curvatures x (1 + scale N(0, 1)),
+    lengths x (1 + scale U(-1, 1)), defocus + 10 scale N(0, 1) mm) with model glasses starting near
+    ``glasses``; the first start is ``p_start`` itself. The best are snapped and polished."""
+    bund, x0 = incoming_bundles(mi, FIELDS_DEG + [EFL_FIELD_DEG], 60)
+    wl = [450.0, 550.0, 700.0, 900.0]
+    m = build_model(bund, x0, wl, ["mix"] * 4, mix=True)
+    lo, hi = m.bounds()
+    rng = np.random.default_rng(seed)
+    base = np.r_[np.asarray(p_start, float), np.ravel([_LOGITS.get(g, [0.0, 0.0, 0.0]) for g in glasses])]
+    found = []
+    for k in range(n_starts):
+        p0 = base.copy()
+        if k:
+            p0[:8] *= 1 + scale * rng.normal(size=8)
+            p0[8:16] *= 1 + scale * rng.uniform(-1, 1, 8)
+            p0[16] += 10 * scale * rng.normal()
+            p0[17:] += 2 * scale * rng.normal(size=12)
+        s = least_squares(m.residuals, np.clip(p0, lo + 1e-6, hi - 1e-6), bounds=(lo, hi), x_scale="jac",
+                          max_nfev=300)
+        found.append((s.cost, s.x))
+        print(f"  perturbation {k + 1}/{n_starts}: merit {2 * s.cost:.0f} um^2", flush=True)
+    return _snap_and_polish(bund, x0, wl, m, found)
 
 
 def to_design(p, glasses, model, digits: int | None = 2) -> tuple[Design, dict]:
@@ -344,7 +393,7 @@ def to_design(p, glasses, model, digits: int | None = 2) -> tuple[Design, dict]:
                       "material": glasses[i] if mat != "air" else "air", "semi_diameter_mm": round(sds[i], 1)})
     bf = rnd(xdet - surfs[-1][0])
     defocus = rnd(xdet - model.x0)
-    data = load_design("art").model_dump()
+    data = load_design(BASE_DESIGN).model_dump()
     data["corrector"] = {"enabled": True, "surfaces": table, "back_focus_mm": bf}
     data["focal_plane"]["defocus_mm"] = defocus
     return Design.model_validate(data), {"surfaces": table, "back_focus_mm": bf, "defocus_mm": defocus,
@@ -381,8 +430,6 @@ def crosscheck(mi, design: Design, p, glasses, field_deg=(1.2, 0.8), wavelength_
     the same rays through the same (unrounded) prescription."""
     big = design.model_dump()
     big["focal_plane"].update(width_mm=300.0, height_mm=300.0)
-    for srf in big["corrector"]["surfaces"]:
-        srf["semi_diameter_mm"] = 200.0
     bare = big | {"corrector": {"enabled": False}, "focal_plane": big["focal_plane"] | {"defocus_mm": 0.0}}
     t_full = SequentialTracer(Design.model_validate(big), mi, obstruct="none")
     t_bare = SequentialTracer(Design.model_validate(bare), mi, obstruct="none")
@@ -400,7 +447,8 @@ def crosscheck(mi, design: Design, p, glasses, field_deg=(1.2, 0.8), wavelength_
 
 
 def toml_tables(info) -> str:
-    lines = ["[corrector]", "enabled = true", f"back_focus_mm = {info['back_focus_mm']}", "surfaces = ["]
+    lines = ["[corrector]", "enabled = true", f"back_focus_mm = {info['back_focus_mm']}",
+             f"ar_reflectance = {AR_REFLECTANCE}", "surfaces = ["]
     for s in info["surfaces"]:
         lines.append(f"  {{ radius_mm = {s['radius_mm']}, thickness_mm = {s['thickness_mm']}, "
                      f"material = \"{s['material']}\", semi_diameter_mm = {s['semi_diameter_mm']} }},")
@@ -409,11 +457,20 @@ def toml_tables(info) -> str:
 
 
 def main(argv=None):
+    global BASE_DESIGN, SD_MAX_MM, X_MIN_MM
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--search", type=int, default=0, help="random model-glass starts to explore first")
+    ap.add_argument("--perturb", type=int, default=0, help="random perturbations of the stored start to polish")
+    ap.add_argument("--scale", type=float, default=0.15, help="relative size of the perturbations")
     ap.add_argument("--seed", type=int, default=42)
     ap.add_argument("--rays", type=int, default=200, help="rays per field and wavelength in the polish")
+    ap.add_argument("--design", default=BASE_DESIGN, help="telescope (built-in name or design TOML)")
+    ap.add_argument("--sd-max", type=float, default=None, help="clear semi-diameter limit [mm] (default: "
+                    "the focuser bore's radius - 1.5)")
+    ap.add_argument("--x-min", type=float, default=X_MIN_MM, help="first surface's distance from the axis [mm]")
     args = ap.parse_args(argv)
+    BASE_DESIGN, X_MIN_MM = args.design, args.x_min
+    SD_MAX_MM = args.sd_max or load_design(BASE_DESIGN).tube.focuser_diameter_mm / 2 - 1.5
     from optics.llvm import init_mitsuba
 
     mi = init_mitsuba()
@@ -421,6 +478,8 @@ def main(argv=None):
     glasses, p = START_GLASSES, np.array(START, dtype=float)
     if args.search:
         glasses, p = search(mi, args.search, args.seed)
+    elif args.perturb:
+        glasses, p = perturb(mi, args.perturb, args.seed, args.scale, glasses, p)
     bund, x0 = incoming_bundles(mi, FIELDS_DEG + [EFL_FIELD_DEG], args.rays)
     model = build_model(bund, x0, WAVELENGTHS_NM, glasses)
     lo, hi = model.bounds()
