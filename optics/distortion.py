@@ -213,3 +213,48 @@ def sip_wcs(sip: dict, crval_deg=(0.0, 0.0), roll_deg: float = 0.0):
     for k, v in cards.items():
         h[k] = v
     return WCS(h)
+
+
+def cached_sip(design, pitch_um: float, shape: tuple[int, int], order: int = 5) -> dict:
+    """SIP distortion of ``design`` for a sensor of ``shape`` = (ny, nx) pixels of ``pitch_um`` [um]:
+    :func:`fit_sip` (chief rays, 550 nm, a 9 x 9 field grid, reverse order ``order + 2``), cached.
+
+    The entry point for the scenes package: it starts Mitsuba itself (``optics.llvm.init_mitsuba``) when
+    the cache misses; the result is stored as JSON in :func:`optics.cache.cache_dir` under a key that
+    hashes the design's content, ``pitch_um``, ``shape`` and ``order``.
+
+    Parameters
+    ----------
+    design : Design or str
+        The telescope (or a built-in design name / design TOML path).
+    pitch_um : float
+        Pixel pitch [um].
+    shape : (int, int)
+        Sensor size (ny, nx) in pixels: CRPIX = ((nx + 1) / 2, (ny + 1) / 2), the optical axis on the
+        sensor's centre.
+    order : int
+        Order of the forward polynomials A, B (5 for ``art``: its corrector's distortion has a strong
+        fifth-order part; see :func:`fit_sip`).
+
+    Returns
+    -------
+    dict
+        What :func:`fit_sip` returns: FITS cards ``A_p_q``, ``B_p_q``, ``AP_p_q``, ``BP_p_q``, the
+        ``*_ORDER`` cards, ``CRPIX1/2``, ``CD1_1`` ... (upper case; :func:`sip_cards` keeps only these,
+        :func:`sip_wcs` builds the astropy WCS) and the fit statistics (lower case, e.g. ``rms_px``).
+    """
+    from . import cache
+    from .design import as_design
+
+    d = as_design(design)
+    shape = (int(shape[0]), int(shape[1]))
+    settings = {"pitch_um": float(pitch_um), "shape": list(shape), "order": int(order), "grid": 9,
+                "wavelength_nm": 550.0, "method": "chief"}
+
+    def compute():
+        from .llvm import init_mitsuba
+
+        return fit_sip(SequentialTracer(d, init_mitsuba()), pitch_um, order=order, grid=9, shape=shape)
+
+    out, _ = cache.cached_json("sip", d, settings, compute)
+    return out

@@ -789,6 +789,73 @@ def psf_grid(tracer: SequentialTracer, fields_deg=None, **kwargs) -> PSFGrid:
                    plate_scale_arcsec_per_mm=tracer.design.plate_scale_arcsec_per_mm)
 
 
+#: Default band of :func:`cached_psf_grid` [nm] (equal weights): the IMX411's 450-900 nm sensitivity. The
+#: scenes package passes its detector's QE x source spectrum instead (optics does not import detector).
+DEFAULT_BAND_NM = (450.0, 500.0, 550.0, 600.0, 650.0, 700.0, 800.0, 900.0)
+
+
+def cached_psf_grid(design, pitch_um: float, nx: int = 3, ny: int = 3, *, oversample: int = 3,
+                    stamp_px: int = 21, wavelengths_nm=DEFAULT_BAND_NM, weights=None, n_pupil: int = 256,
+                    use_cache: bool = True) -> Path:
+    """Path of a FITS cube of diffraction PSFs over the detector, ray-traced on first use and cached.
+
+    The entry point for the scenes package: it starts Mitsuba itself (``optics.llvm.init_mitsuba``) when
+    the cache misses. The file lives in :func:`optics.cache.cache_dir` under a key that hashes the
+    design's content and every setting below, and reads back with :func:`read_psf_fits` as a
+    :class:`PSFGrid`.
+
+    Parameters
+    ----------
+    design : Design or str
+        The telescope (a built-in name such as ``"art"`` or a design TOML path also works).
+    pitch_um : float
+        Detector pixel pitch [um]. The stamps are sampled at ``pitch_um / oversample`` (FITS card
+        ``PIXUM``), each sample holding the PSF's energy fraction inside it, so summing
+        ``oversample x oversample`` blocks gives the energy per detector pixel for a star whose image
+        lies at a block's centre.
+    nx, ny : int
+        Field points across the detector's width and height (:func:`detector_fields`: their ideal images
+        span 95 % of the detector, corners included; ``fields_deg`` of the grid, rows from -v to +v).
+    oversample : int
+        Samples per detector pixel and axis (odd: a sample is centred on the stamp centre pixel's centre).
+    stamp_px : int
+        Stamp side in detector pixels (the file's planes are ``stamp_px * oversample`` samples square).
+    wavelengths_nm, weights : sequence of float
+        The band [nm] and relative weights (the caller's QE x photon spectrum; equal weights if None).
+    n_pupil : int
+        Pupil samples across the beam (:func:`compute_psf`).
+    use_cache : bool
+        False recomputes and overwrites the cached file.
+
+    Returns
+    -------
+    pathlib.Path
+        FITS file of :func:`write_psf_fits`: a cube of ``nx * ny`` planes (each sums to 1), stamp
+        ``k`` centred at ``center_um[k]`` (detector frame, um; the PSF's own centroid is
+        ``metrics[k]["centroid_um"]``), field angles ``fields_deg[k]`` [deg].
+    """
+    from . import cache
+    from .design import as_design
+
+    d = as_design(design)
+    if pitch_um <= 0 or nx < 1 or ny < 1 or oversample < 1 or stamp_px < 3:
+        raise ValueError("cached_psf_grid: pitch_um > 0, nx, ny, oversample >= 1 and stamp_px >= 3 needed")
+    lam, w = _as_wavelengths(wavelengths_nm, weights)
+    settings = {"pitch_um": float(pitch_um), "nx": int(nx), "ny": int(ny), "oversample": int(oversample),
+                "stamp_px": int(stamp_px), "wavelengths_nm": lam.tolist(), "weights": w.tolist(),
+                "n_pupil": int(n_pupil), "kind": "diffraction"}
+
+    def write(path):
+        from .llvm import init_mitsuba
+
+        tracer = SequentialTracer(d, init_mitsuba(), obstruct="analytic")
+        grid = psf_grid(tracer, detector_fields(d, nx, ny), wavelengths_nm=lam, weights=w,
+                        sampling_um=pitch_um / oversample, size_px=stamp_px * oversample, n_pupil=n_pupil)
+        write_psf_fits(grid, path)
+
+    return cache.cached_file("psfgrid", d, settings, ".fits", write, use_cache=use_cache)
+
+
 def _as_grid(obj) -> PSFGrid:
     if isinstance(obj, PSFGrid):
         return obj

@@ -108,3 +108,23 @@ def test_bad_arguments(art):
         fit_sip(art, PITCH_UM, order=0)
     with pytest.raises(ValueError, match="method"):
         image_positions(art, [(0.0, 0.0)], method="median")
+
+
+def test_cached_sip_returns_the_fit_and_reuses_it(mi, art, tmp_path, monkeypatch):
+    """The scenes package's entry point: fit_sip's dict for (design, pitch, shape, order), from the cache
+    on the second call; the IMX411's 14192 x 10640 pixels put CRPIX on the sensor's centre."""
+    from optics import distortion
+    from optics.distortion import cached_sip
+
+    monkeypatch.setenv("NEWTSIM_CACHE_DIR", str(tmp_path))
+    shape = (10640, 14192)
+    sip = cached_sip("art", PITCH_UM, shape)
+    assert sip["A_ORDER"] == 5 and sip["CRPIX1"] == (14192 + 1) / 2 and sip["CRPIX2"] == (10640 + 1) / 2
+    assert sip["rms_px"] < 0.05 and sip["reverse_rms_px"] < 0.01
+    assert sip == fit_sip(art, PITCH_UM, order=5, grid=9, shape=shape)
+    assert len(list(tmp_path.glob("sip-*.json"))) == 1
+    # the second call is read from the file: no fit at all
+    monkeypatch.setattr(distortion, "fit_sip", lambda *a, **k: pytest.fail("fit_sip called again"))
+    again = cached_sip(art.design, PITCH_UM, shape)
+    assert again == sip
+    sip_wcs(again)                              # usable as it comes back

@@ -261,3 +261,28 @@ def test_bad_arguments_are_refused(clean):
         compute_psf(clean, (0, 0), [-5.0])
     with pytest.raises(ValueError, match="seeing"):
         compute_psf(clean, (0, 0), [LAM], seeing_fwhm_arcsec=1.0, seeing_profile="lorentz", n_pupil=64)
+
+
+@pytest.mark.filterwarnings("ignore:field")      # bare's 0.5 mm coma flares: only the API is checked here
+def test_cached_psf_grid_is_a_readable_cube_made_once(mi, tmp_path, monkeypatch):
+    """The scenes package's entry point: a FITS cube over the detector in the cache, keyed by the design
+    and the settings, sampled at pitch / oversample; a second call reuses the file."""
+    from optics.psf import cached_psf_grid, detector_fields
+
+    monkeypatch.setenv("NEWTSIM_CACHE_DIR", str(tmp_path))
+    kw = {"oversample": 3, "stamp_px": 7, "wavelengths_nm": [LAM], "n_pupil": 128}
+    path = cached_psf_grid("bare", 3.76, nx=2, ny=2, **kw)
+    assert path.is_file() and path.parent == tmp_path
+    grid = read_psf_fits(path)
+    assert grid.images.shape == (4, 21, 21)
+    assert grid.pixel_um == pytest.approx(3.76 / 3)
+    assert np.allclose(grid.fields_deg, detector_fields(load_design("bare"), 2, 2))
+    assert np.allclose(grid.images.sum(axis=(1, 2)), 1.0, atol=1e-5)
+    # the stamps sit on the traced images: the coma of the full (unobstructed) pupil moves the centroid
+    # out by theta f / (16 N^2) (2 theta f rho^2 / (16 N^2) averaged over the disk), a scale change
+    ideal = -960.0e3 * np.tan(np.radians(grid.fields_deg))
+    assert np.allclose(grid.center_um / ideal - 1, 1 / (16 * 2.4 ** 2), rtol=0.06)
+    mtime = path.stat().st_mtime_ns
+    assert cached_psf_grid(load_design("bare"), 3.76, nx=2, ny=2, **kw) == path
+    assert path.stat().st_mtime_ns == mtime
+    assert cached_psf_grid("bare", 3.76, nx=2, ny=1, **kw) != path
