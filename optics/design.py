@@ -206,6 +206,28 @@ class Design(_Table):
         """Primary and diagonal reflectances together [1]."""
         return self.coatings.mirror_reflectance ** 2
 
+    def corrector_transmission(self, wavelength_nm: float = 550.0) -> float:
+        """Transmission of the corrector's surfaces at normal incidence [1] (1 without a corrector):
+        prod (1 - R_AR) over the glass-air surfaces when coated, prod (1 - ((n1 - n2)/(n1 + n2))^2) over
+        all surfaces when uncoated (and at cemented glass-glass surfaces) - what
+        :class:`optics.sequential.SequentialTracer` multiplies along an axial ray; glass absorption is
+        not modelled. For art: 0.995^8 = 0.961."""
+        c = self.corrector
+        if not c.enabled:
+            return 1.0
+        from .glass import index
+
+        t, before = 1.0, "air"
+        for srf in c.surfaces:
+            after = srf.material
+            if c.coated and "air" in (before.lower(), after.lower()):
+                t *= 1.0 - c.ar_reflectance
+            else:
+                n1, n2 = float(index(before, wavelength_nm)), float(index(after, wavelength_nm))
+                t *= 1.0 - ((n1 - n2) / (n1 + n2)) ** 2
+            before = after
+        return t
+
 
 def surface_sag(radius_mm: float, h_mm: float) -> float:
     """Sag [mm] of a spherical surface of vertex radius ``radius_mm`` (0 = plane) at height ``h_mm``:

@@ -143,11 +143,17 @@ def test_coated_and_uncoated_lens_surfaces(mi, bare):
     r3 = SequentialTracer(_plate_design(bare, ar_reflectance=0.03), mi, obstruct="none").trace(
         (0.0, 0.0), px[keep], py[keep])
     assert np.allclose(r3.transmission[r3.ok], 0.97 ** 2, rtol=1e-12)
-    bare_glass = SequentialTracer(_plate_design(bare, ar_reflectance="uncoated"), mi, obstruct="none").trace(
-        (0.0, 0.0), px[keep], py[keep], wavelength_nm=587.56)
+    uncoated = _plate_design(bare, ar_reflectance="uncoated")
+    bare_glass = SequentialTracer(uncoated, mi, obstruct="none").trace((0.0, 0.0), px[keep], py[keep],
+                                                                      wavelength_nm=587.56)
     n = index("N-BK7", 587.56)
     fresnel = 1 - ((n - 1) / (n + 1)) ** 2
     assert np.allclose(bare_glass.transmission[bare_glass.ok], fresnel ** 2, rtol=2e-5)
+    # the design's own number for the photometry: the same products along the axis
+    assert _plate_design(bare).corrector_transmission() == pytest.approx(0.995 ** 2)
+    assert uncoated.corrector_transmission(587.56) == pytest.approx(fresnel ** 2, rel=1e-12)
+    assert bare.corrector_transmission() == 1.0
+    assert load_design("art").corrector_transmission() == pytest.approx(0.995 ** 8)
 
 
 def test_one_kernel_serves_every_wavelength_and_field(mi):
