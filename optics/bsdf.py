@@ -53,10 +53,13 @@ from dataclasses import dataclass
 
 import numpy as np
 
-#: Microroughness lobe of the mirrors (not in the design file): ABg/K-correlation shoulder B = l^g with
-#: l = 0.01 (0.6 degree) and Harvey slope -2, typical of polished and overcoated aluminium optics
-#: (Stover, Optical Scattering, 3rd ed., SPIE Press 2012, ch. 4).
+#: Shoulder B [1] of the mirrors' microroughness lobe, the profile 1 / (B + x**g) of eq. (2) in the offset
+#: x = |beta - beta0| of direction cosines: B = l**g with a shoulder at l = 0.01 (0.6 degree), typical of
+#: polished and overcoated aluminium optics (Stover, Optical Scattering, 3rd ed., SPIE Press 2012, ch. 4).
+#: The default of the design key ``[coatings] mirror_lobe_b``.
 MIRROR_LOBE_B = 1.0e-4
+#: Slope g [1] of the mirrors' microroughness lobe (Harvey log-log slope -g beyond the shoulder; -2 for
+#: the K-correlation PSD of polished glass). The default of the design key ``[coatings] mirror_lobe_g``.
 MIRROR_LOBE_G = 2.0
 N_BINS = 2048
 N_ALBEDO = 128
@@ -505,7 +508,27 @@ def mirror_dict(coatings, wavelength_nm: float, lobe_min_prob: float = 0.0) -> d
     """``mi.load_dict`` description of the design's mirror coating at ``wavelength_nm`` [nm]."""
     return {"type": "newtsim_mirror", "reflectance": float(coatings.mirror_reflectance),
             "roughness_nm": float(coatings.mirror_roughness_nm), "wavelength_nm": float(wavelength_nm),
+            "lobe_b": float(coatings.mirror_lobe_b), "lobe_g": float(coatings.mirror_lobe_g),
             "lobe_min_prob": float(lobe_min_prob)}
+
+
+def lens_surface_dict(n_before: float, n_after: float, ar_reflectance: float | None) -> dict:
+    """``mi.load_dict`` description of one corrector surface: Mitsuba's ``dielectric`` (exterior = the
+    medium before it), with an anti-reflection coating of reflectance ``ar_reflectance`` at normal
+    incidence on a glass-air surface (``None``: bare glass).
+
+    The coating scales the Fresnel reflectance F(theta) and transmittance 1 - F(theta) by R_AR / F(0)
+    and (1 - R_AR) / (1 - F(0)) (the dielectric's ``specular_reflectance`` and ``specular_transmittance``
+    factors), F(0) = ((n1 - n2) / (n1 + n2))^2: exact at normal incidence, energy-conserving to
+    (R_AR - F(0)) (F(theta) - F(0)) / (F(0) (1 - F(0))), -0.4 % at the 36 degrees of art's steepest
+    incidence, and the same R_AR that :class:`optics.sequential.SequentialTracer` takes off each
+    surface's throughput. Glass-glass (cemented) surfaces keep their small Fresnel reflectance."""
+    d = {"type": "dielectric", "int_ior": float(n_after), "ext_ior": float(n_before)}
+    f0 = ((n_before - n_after) / (n_before + n_after)) ** 2
+    if ar_reflectance is not None and 1.0 in (n_before, n_after) and f0 > 0:
+        d["specular_reflectance"] = float(ar_reflectance / f0)
+        d["specular_transmittance"] = float((1.0 - ar_reflectance) / (1.0 - f0))
+    return d
 
 
 def make_bsdfs(mi, design, parts, wavelength_nm: float = 550.0, lobe_min_prob: float = 0.0) -> dict:
@@ -519,9 +542,10 @@ def make_bsdfs(mi, design, parts, wavelength_nm: float = 550.0, lobe_min_prob: f
     out = {"black": mi.load_dict(black_dict(c)),
            "mirror": mi.load_dict(mirror_dict(c, wavelength_nm, lobe_min_prob)),
            "detector": mi.load_dict({"type": "diffuse", "reflectance": {"type": "uniform", "value": 0.0}})}
+    ar = design.corrector.ar_reflectance if design.corrector.coated else None
     for p in parts:
         if p.material == "glass":
             n_before = float(index(p.meta.get("before", "air"), wavelength_nm))
             n_after = float(index(p.meta.get("after", "air"), wavelength_nm))
-            out[p.name] = mi.load_dict({"type": "dielectric", "int_ior": n_after, "ext_ior": n_before})
+            out[p.name] = mi.load_dict(lens_surface_dict(n_before, n_after, ar))
     return out

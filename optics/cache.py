@@ -13,7 +13,8 @@ import json
 import os
 from pathlib import Path
 
-CACHE_VERSION = 1
+#: 2: AR-coated corrector surfaces, the camera housing behind the lens stack (art's new corrector)
+CACHE_VERSION = 2
 
 
 def cache_dir() -> Path:
@@ -28,10 +29,12 @@ def cache_key(product: str, design, settings: dict) -> str:
     return hashlib.sha256(json.dumps(payload, sort_keys=True).encode()).hexdigest()[:20]
 
 
-def cached_json(product: str, design, settings: dict, compute, use_cache: bool = True) -> tuple[dict, bool]:
-    """``(result, from_cache)``: the stored JSON for this key, or ``compute()`` (a JSON-able dict) stored."""
+def cached_json(product: str, design, settings: dict, compute, use_cache: bool = True,
+                read: bool = True) -> tuple[dict, bool]:
+    """``(result, from_cache)``: the stored JSON for this key, or ``compute()`` (a JSON-able dict) stored.
+    ``read=False`` always computes but still stores (a caller that needs more than the JSON)."""
     path = cache_dir() / f"{product}-{cache_key(product, design, settings)}.json"
-    if use_cache and path.is_file():
+    if use_cache and read and path.is_file():
         try:
             return json.loads(path.read_text()), True
         except (OSError, json.JSONDecodeError):
@@ -46,3 +49,17 @@ def cached_json(product: str, design, settings: dict, compute, use_cache: bool =
         except OSError:
             pass  # a read-only home must not break a computation
     return result, False
+
+
+def cached_file(product: str, design, settings: dict, suffix: str, write, use_cache: bool = True) -> Path:
+    """Path of the cached file ``<product>-<key><suffix>`` of this design and settings; ``write(path)``
+    makes it on first use (written to a temporary name, then renamed: a crash leaves no half file).
+    With ``use_cache=False`` it is always rewritten."""
+    path = cache_dir() / f"{product}-{cache_key(product, design, settings)}{suffix}"
+    if use_cache and path.is_file():
+        return path
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f"{path.stem}.tmp{os.getpid()}{suffix}")
+    write(tmp)
+    tmp.replace(path)
+    return path

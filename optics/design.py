@@ -6,12 +6,15 @@ Inconsistent designs get an :class:`OpticsError` naming the file and the field.
 
 from __future__ import annotations
 
+import itertools
 import math
 from pathlib import Path
 from typing import Literal
 
 import tomllib
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+
+from .bsdf import MIRROR_LOBE_B, MIRROR_LOBE_G
 
 BUILTIN = Path(__file__).with_name("designs")
 
@@ -68,6 +71,9 @@ class Coatings(_Table):
     abg_a: float = Field(0.001, ge=0)
     abg_b: float = Field(0.001, gt=0)
     abg_g: float = Field(2.0, gt=0, le=10)
+    mirror_lobe_b: float = Field(MIRROR_LOBE_B, gt=0, description="shoulder B of the mirrors' "
+                                 "microroughness lobe 1 / (B + x**g) (optics.bsdf eq. 2)")
+    mirror_lobe_g: float = Field(MIRROR_LOBE_G, gt=0, le=10, description="slope g of that lobe")
 
 
 class FocalPlane(_Table):
@@ -86,11 +92,28 @@ class Surface(_Table):
     semi_diameter_mm: float = Field(40.0, gt=0)
 
 
+#: Reflectance of one anti-reflection-coated lens surface (a broadband multilayer: 0.2-1 % over 450-900 nm)
+AR_REFLECTANCE = 0.005
+
+
 class Corrector(_Table):
-    """Refractive field corrector in the focuser; the last surface is ``back_focus_mm`` before the detector."""
+    """Refractive field corrector in the focuser; the last surface is ``back_focus_mm`` before the detector.
+
+    ``ar_reflectance`` is each glass-air surface's reflectance with its anti-reflection coating [1],
+    taken as independent of angle and wavelength (rays meet art's surfaces at up to 36 degrees, where a
+    broadband multilayer's reflectance may double: below a percent of throughput per surface);
+    ``"uncoated"`` uses the bare glass's Fresnel reflectance instead (4-6 % per surface: eight uncoated
+    surfaces transmit only ~0.68).
+    """
     enabled: bool = False
     surfaces: list[Surface] = []
     back_focus_mm: float = Field(30.0, gt=0)
+    ar_reflectance: float | Literal["uncoated"] = Field(AR_REFLECTANCE, description="reflectance per "
+                                                        "coated surface [1], or 'uncoated' (Fresnel)")
+
+    @property
+    def coated(self) -> bool:
+        return self.ar_reflectance != "uncoated"
 
 
 class Design(_Table):
@@ -126,6 +149,12 @@ class Design(_Table):
             raise ValueError("baffle.zone_start_mm must lie inside the tube (< tube.length_mm)")
         if p.focal_length_mm - s.distance_to_focus_mm + s.minor_axis_mm > t.length_mm:
             raise ValueError("tube.length_mm too short: the diagonal sticks out of the tube front")
+        if self.focal_plane.housing_mm <= t.focuser_diameter_mm:
+            raise ValueError(f"focal_plane.housing_mm ({self.focal_plane.housing_mm}) must exceed "
+                             f"tube.focuser_diameter_mm ({t.focuser_diameter_mm}): the housing's front plate "
+                             "holds the focuser tube")
+        if t.focuser_diameter_mm >= t.inner_diameter_mm:
+            raise ValueError("tube.focuser_diameter_mm must be smaller than tube.inner_diameter_mm")
         c = self.corrector
         if c.enabled:
             if not c.surfaces:
@@ -135,10 +164,20 @@ class Design(_Table):
                 if srf.material.lower() != "air" and srf.material.upper() not in GLASSES:
                     raise ValueError(f"corrector.surfaces.{i}.material: unknown glass '{srf.material}' "
                                      f"(known: air, {', '.join(sorted(GLASSES))})")
-            stack = sum(srf.thickness_mm for srf in c.surfaces) + c.back_focus_mm
-            if stack >= s.distance_to_focus_mm:
-                raise ValueError("corrector: surfaces plus back_focus_mm reach past the diagonal "
-                                 f"({stack:.1f} mm >= secondary.distance_to_focus_mm)")
+            if isinstance(c.ar_reflectance, float) and not 0.0 <= c.ar_reflectance < 1.0:
+                raise ValueError(f"corrector.ar_reflectance: {c.ar_reflectance} is not in [0, 1) "
+                                 "(or 'uncoated')")
+            # the stack ends back_focus_mm before the detector, which sits defocus_mm beyond the bare focus
+            stack = sum(srf.thickness_mm for srf in c.surfaces[:-1]) + c.back_focus_mm
+            x_det = s.distance_to_focus_mm + self.focal_plane.defocus_mm
+            if x_det - stack <= s.minor_axis_mm / 2:
+                raise ValueError(
+                    f"corrector: surfaces plus back_focus_mm ({stack:.1f} mm) reach past the diagonal: the "
+                    f"first surface would sit {x_det - stack:.1f} mm from the optical axis, inside the "
+                    f"diagonal's half-width {s.minor_axis_mm / 2:.1f} mm (detector at "
+                    "secondary.distance_to_focus_mm + focal_plane.defocus_mm = "
+                    f"{x_det:.1f} mm)")
+            _check_lens_edges(c.surfaces)
         return self
 
     # --- first-order quantities ---------------------------------------------------------------------
@@ -166,6 +205,57 @@ class Design(_Table):
     def mirror_throughput(self) -> float:
         """Primary and diagonal reflectances together [1]."""
         return self.coatings.mirror_reflectance ** 2
+
+    def corrector_transmission(self, wavelength_nm: float = 550.0) -> float:
+        """Transmission of the corrector's surfaces at normal incidence [1] (1 without a corrector):
+        prod (1 - R_AR) over the glass-air surfaces when coated, prod (1 - ((n1 - n2)/(n1 + n2))^2) over
+        all surfaces when uncoated (and at cemented glass-glass surfaces) - what
+        :class:`optics.sequential.SequentialTracer` multiplies along an axial ray; glass absorption is
+        not modelled. For art: 0.995^8 = 0.961."""
+        c = self.corrector
+        if not c.enabled:
+            return 1.0
+        from .glass import index
+
+        t, before = 1.0, "air"
+        for srf in c.surfaces:
+            after = srf.material
+            if c.coated and "air" in (before.lower(), after.lower()):
+                t *= 1.0 - c.ar_reflectance
+            else:
+                n1, n2 = float(index(before, wavelength_nm)), float(index(after, wavelength_nm))
+                t *= 1.0 - ((n1 - n2) / (n1 + n2)) ** 2
+            before = after
+        return t
+
+
+def surface_sag(radius_mm: float, h_mm: float) -> float:
+    """Sag [mm] of a spherical surface of vertex radius ``radius_mm`` (0 = plane) at height ``h_mm``:
+    z = R - sign(R) sqrt(R^2 - h^2) (positive toward the detector for R > 0)."""
+    if radius_mm == 0.0:
+        return 0.0
+    return radius_mm - math.copysign(math.sqrt(radius_mm ** 2 - h_mm ** 2), radius_mm)
+
+
+def _check_lens_edges(surfaces: list[Surface]) -> None:
+    """Each surface's semi-diameter fits its sphere, and no glass or air space has a negative thickness
+    at the rim of the larger of its two surfaces (the lenses would intersect)."""
+    for i, srf in enumerate(surfaces):
+        if srf.radius_mm and srf.semi_diameter_mm >= abs(srf.radius_mm):
+            raise ValueError(f"corrector.surfaces.{i}.semi_diameter_mm ({srf.semi_diameter_mm}) must be smaller "
+                             f"than |radius_mm| ({abs(srf.radius_mm)})")
+    for i, (a, b) in enumerate(itertools.pairwise(surfaces)):
+        h = min(a.semi_diameter_mm, b.semi_diameter_mm)
+        edge = a.thickness_mm - surface_sag(a.radius_mm, h) + surface_sag(b.radius_mm, h)
+        if edge < 0:
+            what = "air" if a.material.lower() == "air" else a.material
+            raise ValueError(f"corrector.surfaces.{i}.thickness_mm: the {what} space between surfaces {i} and "
+                             f"{i + 1} is {edge:.2f} mm thick at height {h:.1f} mm (surfaces intersect)")
+
+
+def as_design(design: Design | str) -> Design:
+    """``design`` itself, or the built-in design / design TOML it names (:func:`load_design`)."""
+    return design if isinstance(design, Design) else load_design(str(design))
 
 
 def load_design(name_or_path: str) -> Design:

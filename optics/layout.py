@@ -17,7 +17,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .design import Design
+from .design import Design, surface_sag
 from .glass import index as glass_index
 
 SQRT2 = math.sqrt(2.0)
@@ -36,6 +36,11 @@ class LensSurface:
     def eta(self, wavelength_nm: float) -> float:
         """Relative index n_after / n_before [1]."""
         return glass_index(self.after, wavelength_nm) / glass_index(self.before, wavelength_nm)
+
+    @property
+    def x_edge_mm(self) -> float:
+        """x of the surface's rim (vertex plus the sag at the clear semi-diameter) [mm]."""
+        return self.x_mm + surface_sag(self.radius_mm, self.semi_diameter_mm)
 
 
 @dataclass(frozen=True)
@@ -73,7 +78,7 @@ class Layout:
         """Inner end of the focuser bore: at the tube wall, or further in when the corrector reaches in."""
         x_wall = math.sqrt(max(self.r_tube ** 2 - self.r_focuser ** 2, 0.0))
         if self.lenses:
-            return min(x_wall, self.lenses[0].x_mm - 5.0)
+            return min(x_wall, min(self.lenses[0].x_mm, self.lenses[0].x_edge_mm) - 5.0)
         return x_wall
 
     # ---- helpers -------------------------------------------------------------------------------------
@@ -114,8 +119,12 @@ def make_layout(design: Design) -> Layout:
     vane_z = tuple(np.linspace(zone0, t.length_mm, b.vanes).tolist()) if b.vanes > 1 else \
         ((t.length_mm,) if b.vanes == 1 else ())
     housing_half = design.focal_plane.housing_mm / 2.0
-    x_housing = x_det - min(40.0, 0.5 * (x_det - r_tube)) if not lenses else min(
-        x_det - 20.0, lenses[0].x_mm - 10.0)
+    # the camera housing's front plate: behind the whole lens stack (vertices and rims), before the detector
+    if lenses:
+        stack_end = max(max(s.x_mm, s.x_edge_mm) for s in lenses)
+        x_housing = stack_end + min(5.0, 0.5 * (x_det - stack_end))
+    else:
+        x_housing = x_det - min(40.0, 0.5 * (x_det - r_tube))
     x_housing = max(x_housing, r_tube + 5.0)
     return Layout(
         design=design, focal_length=f, conic=p.conic, r_primary=p.diameter_mm / 2.0,

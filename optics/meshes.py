@@ -9,6 +9,7 @@ straylight tracing; the sequential tracer intersects the mirrors and lenses anal
 
 from __future__ import annotations
 
+import itertools
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -251,11 +252,19 @@ def detector_part(L: Layout) -> Part:
 
 
 def lens_parts(L: Layout, n_r: int = 24, n_phi: int = 96) -> list[Part]:
-    """Spherical caps (analytic normals, pointing toward -x) and cylindrical edges of the corrector."""
+    """The corrector's lenses as closed solids in their cells.
+
+    Each surface is a spherical cap (``lens_surface_j``, glass, analytic normals pointing toward -x).
+    Each lens (a surface entering glass and the next one) gets its ground and blackened edge
+    (``lens_edge_k``, black): the cylinder of the larger clear semi-diameter between the two caps' rims
+    plus a flat ring closing the step where the other cap is smaller, so caps and edge enclose the glass
+    (a ray inside that misses the exit cap is absorbed at the edge). The lens cell (``lens_cell_k``,
+    black) is a ring from the edge out to the focuser bore at the larger cap's rim: no light passes
+    beside a lens, as in the sequential tracer, which stops rays outside a clear aperture."""
     parts = []
+    phi = np.linspace(0, 2 * np.pi, n_phi, endpoint=False)
     for j, s in enumerate(L.lenses):
         r = s.semi_diameter_mm * np.sqrt(np.linspace(0.0, 1.0, n_r))
-        phi = np.linspace(0, 2 * np.pi, n_phi, endpoint=False)
         R, P = np.meshgrid(r, phi, indexing="ij")
         if s.radius_mm == 0:
             sag = np.zeros_like(R)
@@ -268,7 +277,29 @@ def lens_parts(L: Layout, n_r: int = 24, n_phi: int = 96) -> list[Part]:
         v = np.stack([s.x_mm + sag, R * np.cos(P), L.z_axis + R * np.sin(P)], -1).reshape(-1, 3)
         parts.append(Part(f"lens_surface_{j}", v, _grid_faces(n_r, n_phi, True), "glass", n,
                           meta={"before": s.before, "after": s.after}))
+    k = 0
+    for front, back in itertools.pairwise(L.lenses):
+        if front.after.lower() == "air":
+            continue
+        r_out = max(front.semi_diameter_mm, back.semi_diameter_mm)
+        rims = [front.x_edge_mm, back.x_edge_mm]
+        c, s_ = r_out * np.cos(phi), r_out * np.sin(phi)
+        pieces = [(np.concatenate([np.stack([np.full_like(phi, x), c, L.z_axis + s_], -1) for x in rims]),
+                   _grid_faces(2, n_phi, True))]
+        pieces += [_ring_x(L, surf.semi_diameter_mm, r_out, x, n_phi) for surf, x in zip((front, back), rims, strict=True)
+                   if surf.semi_diameter_mm < r_out - 1e-9]
+        parts.append(Part(f"lens_edge_{k}", *_merge(*pieces), "black"))
+        if r_out < L.r_focuser - 1e-9:
+            x_cell = rims[0] if front.semi_diameter_mm >= back.semi_diameter_mm else rims[1]
+            parts.append(Part(f"lens_cell_{k}", *_ring_x(L, r_out, L.r_focuser, x_cell, n_phi), "black"))
+        k += 1
     return parts
+
+
+def _ring_x(L: Layout, r_in: float, r_out: float, x: float, n_phi: int):
+    """Flat ring about the focuser axis in the plane x = const (vertices, triangles)."""
+    v, f = annulus(r_in, r_out, 0.0, n_phi)
+    return np.stack([np.full(len(v), x), v[:, 0], L.z_axis + v[:, 1]], -1), f
 
 
 def telescope_parts(L: Layout, optics_surfaces: bool = True) -> list[Part]:

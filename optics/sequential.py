@@ -8,8 +8,12 @@ camera housing) are exact solids intersected as intervals along each ray (``obst
 fast default), or Mitsuba's BVH of the same parts as meshes (``obstruct="mesh"``: any geometry, used to
 cross-check the analytic solids). Everything for one batch fuses into one LLVM kernel.
 
-Refraction: vector Snell's law with the unpolarised Fresnel transmittance, the same relations as
-Mitsuba's ``dielectric`` plugin (``mi.fresnel``/``mi.refract``; Born & Wolf, Principles of Optics, 1.5).
+Refraction: vector Snell's law, the same relations as Mitsuba's ``dielectric`` plugin
+(``mi.fresnel``/``mi.refract``; Born & Wolf, Principles of Optics, 1.5). Each glass-air surface
+transmits T = 1 - R_AR of its anti-reflection coating (``[corrector] ar_reflectance``, default 0.5 %),
+or, for ``ar_reflectance = "uncoated"`` and at cemented glass-glass surfaces, the unpolarised Fresnel
+transmittance T = 1 - (r_s^2 + r_p^2) / 2. The glass indices enter the kernel as opaque values, so one
+compiled kernel serves every wavelength (and every field angle).
 
 Frame and focal-plane coordinates: see :mod:`optics.layout`.
 """
@@ -46,7 +50,7 @@ class TraceResult:
     dv: np.ndarray
     dw: np.ndarray
     opl: np.ndarray         # optical path length from the plane wave through the origin [mm]
-    transmission: np.ndarray  # Fresnel transmittance of the corrector surfaces [1]
+    transmission: np.ndarray  # transmittance of the corrector surfaces (AR coating or Fresnel) [1]
     lost: np.ndarray        # uint8 loss code (0 = reached the detector)
 
     @property
@@ -227,8 +231,11 @@ class SequentialTracer:
         # -- corrector lenses on the focuser axis (y = 0, z = z_axis, direction +x) ---------------------
         p, dcur, n_medium = p2, d2, 1.0
         chain = [p2]
+        coat = self.design.corrector
+        t_coated = 1.0 - coat.ar_reflectance if coat.coated else None
         for s in L.lenses:
-            n_after = float(_index(s.after, wavelength_nm))
+            # opaque: a new wavelength changes the indices, not the compiled kernel
+            n_after = dr.opaque(F, float(_index(s.after, wavelength_nm)))
             if s.radius_mm == 0.0:
                 t = (s.x_mm - p.x) / dcur.x
                 hit = p + dcur * t
@@ -248,7 +255,8 @@ class SequentialTracer:
             opl += n_medium * t
             dcur, tr, tir = _refract(dcur, normal, n_medium, n_after)
             kill(tir, LENS)
-            trans *= tr
+            coated = t_coated is not None and "air" in (s.before.lower(), s.after.lower())
+            trans *= t_coated if coated else tr          # cemented glass-glass surfaces: Fresnel
             p, n_medium = hit, n_after
             chain.append(hit)
         # -- detector plane x = x_detector ---------------------------------------------------------------
@@ -440,8 +448,6 @@ def _cylinder_interval(qx, qy, dx, dy, r):
 
 def make_tracer(design: Design | str, mi, obstruct: str = "analytic") -> SequentialTracer:
     """Convenience: a tracer from a design object or a built-in name/path."""
-    if isinstance(design, str):
-        from .design import load_design
+    from .design import as_design
 
-        design = load_design(design)
-    return SequentialTracer(design, mi, obstruct)
+    return SequentialTracer(as_design(design), mi, obstruct)

@@ -115,7 +115,7 @@ def _band(preset: str | None, wavelength_nm: float | None, n: int):
         return [float(wavelength_nm or 550.0)], [1.0]
     from detector.sensor import make_sensor
 
-    sensor = make_sensor({"preset": preset})
+    sensor = make_sensor(preset)
     lo, hi = min(sensor.qe_wavelength_nm), max(sensor.qe_wavelength_nm)
     wl = np.linspace(lo + (hi - lo) / (2 * n), hi - (hi - lo) / (2 * n), n)
     w = np.asarray(sensor.qe_at(wl), dtype=float)
@@ -145,11 +145,8 @@ def psf(design, field_deg, wavelength_nm, band, band_samples, geometric, seeing_
     if band and wavelength_nm:
         raise OpticsError("--band and --wavelength-nm exclude each other (one wavelength, or a QE-weighted band)")
     from optics import cache
+    from optics import psf as psfmod
     from optics.sequential import SequentialTracer
-    try:
-        from optics import psf as psfmod
-    except ImportError:
-        raise OpticsError("optics psf: the PSF module is not in this version yet (work in progress)") from None
 
     wl, w = _band(band, wavelength_nm, band_samples)
     settings = {"field_deg": list(field_deg), "wavelengths_nm": wl, "weights": w, "geometric": geometric,
@@ -165,8 +162,8 @@ def psf(design, field_deg, wavelength_nm, band, band_samples, geometric, seeing_
         state["result"] = res
         return {**res.to_json(), "seconds": round(time.perf_counter() - t0, 3)}
 
-    # a FITS image needs the PSF itself, which the JSON cache does not hold
-    out, hit = cache.cached_json("psf", d, settings, compute, use_cache=not (no_cache or fits_out))
+    # a FITS image needs the PSF itself, which the JSON cache does not hold: compute (and store) it
+    out, hit = cache.cached_json("psf", d, settings, compute, use_cache=not no_cache, read=not fits_out)
     out = {"design": d.name, "field_deg": list(field_deg), "wavelengths_nm": wl, "weights": w, **out,
            "cached": hit}
     if fits_out:

@@ -334,3 +334,40 @@ def test_register_is_idempotent_and_make_bsdfs_maps_materials(mi_b):
     assert eta(b["lens_surface_0"]) == pytest.approx(n, rel=1e-5)           # air -> glass
     assert eta(b["lens_surface_1"]) == pytest.approx(1 / n, rel=1e-5)       # glass -> air
     assert "Mirror[" in str(b["mirror"]) and "lambertian" in str(b["black"])
+
+
+@pytest.mark.parametrize("theta_deg", [0.0, 20.0])
+def test_ar_coated_lens_surface_reflects_r_ar(mi_b, theta_deg):
+    """The corrector's dielectric with an AR coating (optics.bsdf.lens_surface_dict): the reflected and
+    transmitted energies are R_AR and 1 - R_AR at normal incidence (the same 0.5 % the sequential tracer
+    takes off each surface), and conserve energy to the stated (R_AR - F0)(F - F0)/(F0 (1 - F0)) at
+    20 degrees; bare glass reflects Fresnel's F. Stratified samples, importance transport (no eta^2)."""
+    from optics.bsdf import lens_surface_dict
+
+    mi = mi_b
+    n, r_ar = 1.5, 0.005
+    t = math.radians(theta_deg)
+    cos_t = math.sqrt(1 - (math.sin(t) / n) ** 2)
+    rs = (math.cos(t) - n * cos_t) / (math.cos(t) + n * cos_t)
+    rp = (n * math.cos(t) - cos_t) / (n * math.cos(t) + cos_t)
+    fresnel, f0 = 0.5 * (rs * rs + rp * rp), ((n - 1) / (n + 1)) ** 2
+    N = 1 << 16
+    ctx = mi.BSDFContext(mi.TransportMode.Importance)
+    si = _si(mi, _wi(theta_deg), N)
+    u = mi.Float(((np.arange(N) + 0.5) / N).astype(np.float32))
+    for coating, expect_r in ((r_ar, r_ar * fresnel / f0), (None, fresnel)):
+        bsdf = mi.load_dict(lens_surface_dict(1.0, n, coating))
+        bs, w = bsdf.sample(ctx, si, u, mi.Point2f(0.5, 0.5))
+        w = np.asarray(w[0].numpy(), dtype=float)
+        up = np.asarray(bs.wo.z.numpy()) > 0
+        reflected, transmitted = w[up].sum() / N, w[~up].sum() / N
+        assert reflected == pytest.approx(expect_r, rel=2e-3, abs=1e-5)
+        if coating is not None:
+            assert transmitted == pytest.approx((1 - fresnel) * (1 - r_ar) / (1 - f0), rel=2e-3)
+            excess = (r_ar - f0) * (fresnel - f0) / (f0 * (1 - f0))
+            assert reflected + transmitted == pytest.approx(1 + excess, abs=1e-4)
+            if theta_deg == 0.0:
+                assert reflected == pytest.approx(r_ar, rel=2e-3)
+                assert transmitted == pytest.approx(1 - r_ar, rel=1e-4)
+        else:
+            assert reflected + transmitted == pytest.approx(1.0, abs=1e-4)

@@ -43,6 +43,44 @@ def test_unknown_glass_and_overlong_corrector_are_refused():
         Design.model_validate(data)
 
 
+def test_corrector_length_counts_the_defocus_and_lens_edges_must_not_cross():
+    """The stack ends back_focus_mm before the detector, which sits defocus_mm beyond the bare focus: a
+    stack that fits with the detector moved out reaches into the diagonal when it is moved back. Lenses
+    must keep a positive thickness at their rims and fit their spheres."""
+    data = load_design("art").model_dump()
+    stack = sum(s["thickness_mm"] for s in data["corrector"]["surfaces"][:-1]) + data["corrector"]["back_focus_mm"]
+    d, b = data["secondary"]["distance_to_focus_mm"], data["secondary"]["minor_axis_mm"] / 2
+    data["focal_plane"]["defocus_mm"] = stack - d + b - 1.0         # first surface 1 mm inside the diagonal
+    with pytest.raises(ValueError, match="reach past the diagonal"):
+        Design.model_validate(data)
+    data["focal_plane"]["defocus_mm"] = stack - d + b + 1.0
+    Design.model_validate(data)
+    # a biconvex lens too thin for its diameter: sag(R = 100 mm, h = 40 mm) = 8.35 mm on either side
+    data = load_design("bare").model_dump()
+    lens = [{"radius_mm": 100.0, "thickness_mm": 12.0, "material": "N-BK7", "semi_diameter_mm": 40.0},
+            {"radius_mm": -100.0, "thickness_mm": 0.0, "material": "air", "semi_diameter_mm": 40.0}]
+    data["corrector"] = {"enabled": True, "back_focus_mm": 40.0, "surfaces": lens}
+    with pytest.raises(ValueError, match="corrector.surfaces.0.thickness_mm: the N-BK7 space"):
+        Design.model_validate(data)
+    lens[0]["thickness_mm"] = 17.0                               # edge 0.3 mm
+    Design.model_validate(data)
+    lens[0]["semi_diameter_mm"] = 101.0
+    with pytest.raises(ValueError, match="semi_diameter_mm"):
+        Design.model_validate(data)
+
+
+def test_housing_must_hold_the_focuser_and_coatings_are_checked():
+    with pytest.raises(ValueError, match="housing_mm"):
+        Design.model_validate(_with(focal_plane__housing_mm=80.0))
+    data = load_design("art").model_dump()
+    data["corrector"]["ar_reflectance"] = 1.5
+    with pytest.raises(ValueError, match="ar_reflectance"):
+        Design.model_validate(data)
+    data["corrector"]["ar_reflectance"] = "uncoated"
+    assert not Design.model_validate(data).corrector.coated
+    assert load_design("art").corrector.coated and load_design("art").corrector.ar_reflectance == 0.005
+
+
 def test_missing_design_lists_the_builtins():
     with pytest.raises(OpticsError, match="art"):
         load_design("no_such_design")

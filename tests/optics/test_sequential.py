@@ -73,19 +73,23 @@ def test_diagonal_vignetting_follows_the_two_circle_formula(mi, bare, field_deg)
     assert captured == pytest.approx(expected, abs=0.03)
 
 
+def _plate_design(bare, **corrector):
+    """bare with a 10 mm N-BK7 plate (two plane surfaces) in the focuser; ``corrector`` keys added."""
+    from optics.design import Design
+
+    data = bare.model_dump()
+    data["corrector"] = {"enabled": True, "back_focus_mm": 40.0, **corrector, "surfaces": [
+        {"radius_mm": 0.0, "thickness_mm": 10.0, "material": "N-BK7", "semi_diameter_mm": 45.0},
+        {"radius_mm": 0.0, "thickness_mm": 0.0, "material": "air", "semi_diameter_mm": 45.0}]}
+    return Design.model_validate(data)
+
+
 def test_plate_shifts_the_focus_by_t_times_one_minus_one_over_n(mi, bare):
     """A plane-parallel plate of thickness t and index n moves the focus away by t (1 - 1/n) (paraxial)."""
     from optics.glass import index
 
-    data = bare.model_dump()
     t = 10.0
-    data["corrector"] = {"enabled": True, "back_focus_mm": 40.0, "surfaces": [
-        {"radius_mm": 0.0, "thickness_mm": t, "material": "N-BK7", "semi_diameter_mm": 45.0},
-        {"radius_mm": 0.0, "thickness_mm": 0.0, "material": "air", "semi_diameter_mm": 45.0}]}
-    from optics.design import Design
-
-    plate = Design.model_validate(data)
-    tr = SequentialTracer(plate, mi, obstruct="none")
+    tr = SequentialTracer(_plate_design(bare), mi, obstruct="none")
     px, py = pupil_grid(41, 20.0)                           # a slow paraxial sub-bundle
     keep = np.hypot(px, py) < 20
     r = tr.trace((0.0, 0.0), px[keep], py[keep], wavelength_nm=587.56)
@@ -125,3 +129,92 @@ def test_loss_codes_are_counted(mi, bare):
     r = tr.trace((0.0, 0.0), px, py)
     assert set(np.unique(r.lost)) <= set(range(8))
     assert (r.lost == OK).sum() == tr.count((0.0, 0.0), px, py)
+
+
+def test_coated_and_uncoated_lens_surfaces(mi, bare):
+    """Each glass-air surface transmits 1 - R_AR with its coating (0.5 % by default), or the Fresnel
+    transmittance 1 - ((n - 1)/(n + 1))^2 of bare glass at (near-)normal incidence."""
+    from optics.glass import index
+
+    px, py = pupil_grid(21, 15.0)                           # a slow paraxial sub-bundle
+    keep = np.hypot(px, py) < 15
+    coated = SequentialTracer(_plate_design(bare), mi, obstruct="none").trace((0.0, 0.0), px[keep], py[keep])
+    assert np.allclose(coated.transmission[coated.ok], 0.995 ** 2, rtol=1e-12)
+    r3 = SequentialTracer(_plate_design(bare, ar_reflectance=0.03), mi, obstruct="none").trace(
+        (0.0, 0.0), px[keep], py[keep])
+    assert np.allclose(r3.transmission[r3.ok], 0.97 ** 2, rtol=1e-12)
+    uncoated = _plate_design(bare, ar_reflectance="uncoated")
+    bare_glass = SequentialTracer(uncoated, mi, obstruct="none").trace((0.0, 0.0), px[keep], py[keep],
+                                                                      wavelength_nm=587.56)
+    n = index("N-BK7", 587.56)
+    fresnel = 1 - ((n - 1) / (n + 1)) ** 2
+    assert np.allclose(bare_glass.transmission[bare_glass.ok], fresnel ** 2, rtol=2e-5)
+    # the design's own number for the photometry: the same products along the axis
+    assert _plate_design(bare).corrector_transmission() == pytest.approx(0.995 ** 2)
+    assert uncoated.corrector_transmission(587.56) == pytest.approx(fresnel ** 2, rel=1e-12)
+    assert bare.corrector_transmission() == 1.0
+    assert load_design("art").corrector_transmission() == pytest.approx(0.995 ** 8)
+
+
+def test_one_kernel_serves_every_wavelength_and_field(mi):
+    """The glass indices and the field direction are opaque drjit values: tracing the corrected design
+    at new wavelengths and fields replays the same compiled kernel (same hash), not a new one each."""
+    import drjit as dr
+
+    tr = SequentialTracer(load_design("art"), mi)
+    px, py = pupil_uniform(512, tr.layout.r_primary, seed=5)
+    tr.trace((0.1, 0.2), px, py, wavelength_nm=480.0)
+    dr.set_flag(dr.JitFlag.KernelHistory, True)
+    try:
+        dr.kernel_history()                                   # clear
+        results = [tr.trace((0.1 * k, 0.2), px, py, wavelength_nm=lam)
+                   for k, lam in enumerate((450.0, 633.0, 900.0))]
+        hashes = {k["hash"] for k in dr.kernel_history() if k["type"] == dr.KernelType.JIT}
+    finally:
+        dr.set_flag(dr.JitFlag.KernelHistory, False)
+    assert len(hashes) == 1
+    # ... and the indices did change: the 450 and 900 nm images of the same rays differ
+    assert not np.allclose(results[0].u[results[0].ok][:50], results[2].u[results[2].ok][:50])
+
+
+def test_housing_sits_behind_the_whole_lens_stack(bare):
+    """The camera housing's front plate (where the focuser bore ends) lies beyond every lens vertex and
+    rim and before the detector; the focuser bore starts in front of the first lens."""
+    L = make_layout(load_design("art"))
+    assert L.lenses
+    stack_end = max(max(s.x_mm, s.x_edge_mm) for s in L.lenses)
+    assert stack_end < L.x_housing < L.x_detector
+    assert L.focuser_start_x < min(L.lenses[0].x_mm, L.lenses[0].x_edge_mm)
+    Lb = make_layout(bare)
+    assert Lb.r_tube < Lb.x_housing < Lb.x_detector
+
+
+def test_lens_meshes_are_closed_solids_of_the_right_volume():
+    """Each corrector lens (two caps and its edge) is a closed, watertight solid for the straylight
+    tracer, with the volume of the lens: pi h^2 t_edge - V_cap(back) + V_cap(front), t_edge the edge
+    thickness and V_cap = pi s (3 h^2 + s^2) / 6 the (signed) volume between a spherical cap of sag s and
+    its base of radius h (the semi-diameter); the cells close the bore around each lens."""
+    import trimesh
+
+    from optics.design import surface_sag
+    from optics.meshes import lens_parts
+
+    L = make_layout(load_design("art"))
+    parts = {p.name: p for p in lens_parts(L, n_r=48, n_phi=180)}
+    for k in range(len(L.lenses) // 2):
+        front, back = L.lenses[2 * k], L.lenses[2 * k + 1]
+        pieces = [parts[f"lens_surface_{2 * k}"], parts[f"lens_surface_{2 * k + 1}"], parts[f"lens_edge_{k}"]]
+        m = trimesh.util.concatenate([trimesh.Trimesh(p.vertices, p.faces, process=False) for p in pieces])
+        m.merge_vertices(digits_vertex=5)
+        m.update_faces(m.nondegenerate_faces())
+        m.fix_normals()
+        assert m.is_watertight, k
+        h = front.semi_diameter_mm
+        assert back.semi_diameter_mm == h
+        s_f, s_b = surface_sag(front.radius_mm, h), surface_sag(back.radius_mm, h)
+        cap_f, cap_b = (math.pi * s * (3 * h * h + s * s) / 6 for s in (s_f, s_b))
+        volume = math.pi * h * h * (back.x_mm + s_b - front.x_mm - s_f) - cap_b + cap_f
+        assert m.volume == pytest.approx(volume, rel=1e-3), k          # 180-gon: -0.02 %
+        cell = parts[f"lens_cell_{k}"]
+        r = np.hypot(cell.vertices[:, 1], cell.vertices[:, 2] - L.z_axis)
+        assert r.min() == pytest.approx(h, rel=1e-6) and r.max() == pytest.approx(L.r_focuser, rel=1e-6)
