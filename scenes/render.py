@@ -2,9 +2,11 @@
 
 The expected photo-electrons per pixel are the uniform background (sky, or a flat screen) plus the stars
 and debris streaks of :mod:`scenes.image` (PSF-integrated samples, rolling-shutter row windows), handed to
-the detector chain as a tile callable; vignetting, the pixel response, dark signal and every detector
-effect are the chain's. The TRUTH extension lists every source (``scenes.image.build.TRUTH_DTYPE``).
-Straylight and optics-derived PSFs/SIP plug in as they arrive (``psf=`` takes any pixel-integrated PSF).
+the detector chain as a tile callable; vignetting, the pixel response, dark signal and every detector effect are the chain's. The frame's
+WCS carries the SIP distortion of ``[telescope] distortion`` (:mod:`scenes.projection`), and the sources
+are drawn where it puts them. The TRUTH extension lists every source (``scenes.image.build.TRUTH_DTYPE``).
+Optics products (the SIP fit) come from the optics' on-disk cache: a render traces
+nothing that was traced before.
 """
 
 from __future__ import annotations
@@ -23,6 +25,7 @@ from optics.design import OpticsError, load_design
 
 from .image import TRUTH_DTYPE, build_sources, frame_wcs
 from .photometry import sky_electron_rate_per_pixel
+from .projection import REVERSE_WARN_PX, Sip, sip_from_optics, sip_from_table
 from .scene import Scene, SceneError
 
 __all__ = ["TRUTH_DTYPE", "Setup", "header_cards", "prepare", "render", "scene_hdu"]
@@ -41,6 +44,34 @@ class Setup:
     warnings: list[str]
     truth: np.ndarray | None = None
     source_cards: dict | None = None
+    distortion: Sip | None = None
+
+
+def resolve_distortion(scene: Scene, sensor, design) -> Sip | None:
+    """The frame's SIP distortion from ``[telescope] distortion`` (unbinned sensor pixels about the axis).
+
+    ``"optics"`` asks the optics for the design's SIP fit over the full sensor
+    (``optics.distortion.cached_sip``, cached on disk by the design's hash).
+    """
+    tel = scene.telescope
+    if tel.distortion == "none":
+        return None
+    t = sip_from_table(tel.sip or {}, file=scene.source, allow_coefficients=tel.distortion == "sip")
+    if tel.distortion == "sip":
+        return Sip(t["order"], t["a"], t["b"], t["reverse_order"], "scene")
+    try:
+        from optics.distortion import cached_sip
+    except ImportError:
+        raise SceneError("this optics package has no cached_sip (the optics SIP fit is not available on this "
+                         "branch)", key="telescope.distortion", file=scene.source,
+                         expected="distortion = 'none', or 'sip' with a [telescope.sip] table") from None
+    shape = (sensor.sensor_height_px, sensor.sensor_width_px)
+    try:
+        fit = cached_sip(design, float(sensor.pixel_pitch_um), shape, order=t["order"] or 5)
+        return sip_from_optics(fit, sensor, reverse_order=t["reverse_order"])
+    except (OpticsError, ImportError, ValueError, KeyError) as exc:
+        raise SceneError(f"cannot get the SIP distortion of design '{design.name}': {exc}", key="telescope.distortion",
+                         file=scene.source) from None
 
 
 def _resolve_optics_maps(effects: dict, design, scene: Scene) -> dict:
@@ -86,14 +117,16 @@ def prepare(scene: Scene, workers: int | None = None, psf=None) -> Setup:
     background = (sky_rate + flat_rate) * exptime
     signal: object = background
     truth, cards = np.zeros(0, dtype=TRUTH_DTYPE), {}
+    distortion = resolve_distortion(scene, sensor, design)
     if exp.frame == "light" and (scene.sky.stars or scene.objects):
-        model = build_sources(scene, sensor, design, scale, exptime, background_e=background, psf=psf)
+        model = build_sources(scene, sensor, design, scale, exptime, background_e=background, psf=psf,
+                              distortion=distortion)
         truth, cards = model.truth, model.cards
         warnings += model.warnings
         if model.signal.n_samples:
             signal = model.signal
     return Setup(scene, Detector(sensor, effects, workers=workers), exptime, signal, scale, sky_rate, warnings,
-                 truth, cards)
+                 truth, cards, distortion)
 
 
 def header_cards(setup: Setup, seed: int, noiseless: bool) -> fits.Header:
@@ -137,7 +170,17 @@ def header_cards(setup: Setup, seed: int, noiseless: bool) -> fits.Header:
     h["NSTARS"] = (0, "stars with their centre on the frame (TRUTH)")
     for k, v in (setup.source_cards or {}).items():
         h[k] = v
-    h.update(frame_wcs(sc, s, setup.pixel_scale_arcsec).to_header())
+    wcs = frame_wcs(sc, s, setup.pixel_scale_arcsec, distortion=setup.distortion)
+    h.update(wcs.to_header(relax=True))
+    if setup.distortion is not None:
+        d = setup.distortion
+        h["SIPSRC"] = (d.source, "SIP distortion from the scene or the optics")
+        h["SIPRRMS"] = (float(wcs.sip_reverse_rms_px), "[pixel] rms residual of the fitted AP/BP")
+        h["SIPRMAX"] = (float(wcs.sip_reverse_max_px), "[pixel] largest residual of the fitted AP/BP")
+        if "rms_px" in d.info:
+            h["SIPFRMS"] = (float(d.info["rms_px"]), "[sensor pixel] optics forward-fit rms residual")
+        if wcs.sip_reverse_max_px > REVERSE_WARN_PX:
+            h.add_history(f"SIP reverse fit off by up to {wcs.sip_reverse_max_px:.3g} px: raise reverse_order")
     for w in setup.warnings:
         h.add_history(w[:70])
     return h

@@ -28,8 +28,14 @@ class _Table(BaseModel):
 
 
 class TelescopeCfg(_Table):
+    """``[telescope]``. ``distortion``: ``"none"`` (gnomonic TAN), ``"optics"`` (SIP fitted to the design's
+    ray-traced field, cached by the optics) or ``"sip"`` (the coefficients of ``[telescope.sip]``); the
+    ``[telescope.sip]`` table is checked by :func:`scenes.projection.sip_from_table`."""
+
     design: str = "art"
     pixel_scale_arcsec: float | None = Field(None, gt=0, le=3600, description="plate-scale override [arcsec/pixel]")
+    distortion: Literal["none", "optics", "sip"] = "none"
+    sip: dict[str, Any] | None = None
 
 
 class PointingCfg(_Table):
@@ -204,3 +210,20 @@ def check_scene(scene: Scene) -> None:
     observer_from_table(scene.observer, file=file, base_dir=base)
     for i, table in enumerate(scene.objects):
         object_from_table(table, i, file=file, base_dir=base)
+    _check_optics_keys(scene)
+
+
+def _check_optics_keys(scene: Scene) -> None:
+    """``[telescope] distortion`` and the ``[telescope.sip]`` table."""
+    from .projection import sip_from_table
+
+    file = scene.source
+    tel = scene.telescope
+    if tel.distortion == "none" and tel.sip is not None:
+        raise SceneError("a [telescope.sip] table with distortion = 'none'", key="telescope.distortion", file=file,
+                         expected="distortion = 'sip' (coefficients from the table) or 'optics'")
+    if tel.distortion == "sip" and tel.sip is None:
+        raise SceneError("distortion = 'sip' without a [telescope.sip] table", key="telescope.sip", file=file,
+                         expected="a table with order and coefficients a_p_q / b_p_q")
+    if tel.sip is not None:
+        sip_from_table(tel.sip, file=file, allow_coefficients=tel.distortion == "sip")
