@@ -4,8 +4,9 @@ The expected photo-electrons per pixel are the uniform background (sky, or a fla
 and debris streaks of :mod:`scenes.image` (PSF-integrated samples, rolling-shutter row windows), handed to
 the detector chain as a tile callable; vignetting, the pixel response, dark signal and every detector effect are the chain's. The frame's
 WCS carries the SIP distortion of ``[telescope] distortion`` (:mod:`scenes.projection`), and the sources
-are drawn where it puts them. The TRUTH extension lists every source (``scenes.image.build.TRUTH_DTYPE``).
-Optics products (the SIP fit) come from the optics' on-disk cache: a render traces
+are drawn where it puts them; ``[psf] model = "optics"`` draws them with the design's PSF grid
+(:mod:`scenes.image.gridpsf`). The TRUTH extension lists every source (``scenes.image.build.TRUTH_DTYPE``).
+Optics products (SIP, PSF grid) come from the optics' on-disk cache: a render traces
 nothing that was traced before.
 """
 

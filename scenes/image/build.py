@@ -371,6 +371,7 @@ def build_sources(scene: Scene, sensor, design, pixel_scale_arcsec: float, expti
     exptime_s : exposure time T [s] (0 or a dark/bias frame: no sources)
     background_e : uniform expected signal (sky, flat screen) [e-/pixel]
     psf : a pixel-integrated PSF (the hook of ``scenes.image.psf``); default from the scene's ``[psf]``
+        (``model = "optics"``: :func:`scenes.image.gridpsf.optics_psf`)
     distortion : the frame's SIP (:class:`scenes.projection.Sip`, unbinned sensor pixels), or None
 
     Returns
@@ -378,8 +379,12 @@ def build_sources(scene: Scene, sensor, design, pixel_scale_arcsec: float, expti
     SourceModel
     """
     cfg = scene.psf
-    psf = psf if psf is not None else psf_from_config(cfg.model, cfg.fwhm_arcsec, cfg.beta, cfg.jitter_rms_arcsec,
-                                                      pixel_scale_arcsec)
+    if psf is None and cfg.model == "optics":
+        from .gridpsf import optics_psf
+
+        psf = optics_psf(scene, sensor, design, pixel_scale_arcsec, distortion)
+    elif psf is None:
+        psf = psf_from_config(cfg.model, cfg.fwhm_arcsec, cfg.beta, cfg.jitter_rms_arcsec, pixel_scale_arcsec)
     exp = scene.exposure
     bore = Boresight(scene.pointing.ra_deg, scene.pointing.dec_deg, exp.tracking, exp.rate_ra_deg_s,
                      exp.rate_dec_deg_s)

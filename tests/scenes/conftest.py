@@ -27,3 +27,24 @@ def optics_sip(mi, monkeypatch):
         monkeypatch.setattr(od, "cached_sip", cached_sip, raising=False)
     return od.cached_sip
 
+
+@pytest.fixture
+def optics_psf_grid(mi, monkeypatch, tmp_path):
+    """``optics.psf.cached_psf_grid`` (design, pitch_um, nx, ny) -> Path of a PSF cube: the optics' own when it
+    exists, else a stand-in that traces a geometric grid (rays only, fast; cells of half a pixel) into
+    ``tmp_path``. Returns the function the scene will call."""
+    import optics.psf as op
+    from optics.sequential import SequentialTracer
+
+    if not hasattr(op, "cached_psf_grid"):
+        def cached_psf_grid(design, pitch_um: float, nx: int = 3, ny: int = 3):
+            path = tmp_path / f"psf-{design.name}-{pitch_um}-{nx}x{ny}.fits"
+            if not path.is_file():
+                tracer = SequentialTracer(design, mi)
+                grid = op.psf_grid(tracer, op.detector_fields(design, nx, ny), geometric=True,
+                                   sampling_um=pitch_um / 2, size_px=61, n_rays=20000)
+                op.write_psf_fits(grid, path)
+            return path
+
+        monkeypatch.setattr(op, "cached_psf_grid", cached_psf_grid, raising=False)
+    return op.cached_psf_grid
