@@ -1,12 +1,13 @@
 """The main job: a scene in, a FITS frame (and its truth) out.
 
 The expected photo-electrons per pixel are the uniform background (sky, or a flat screen) plus the stars
-and debris streaks of :mod:`scenes.image` (PSF-integrated samples, rolling-shutter row windows), handed to
-the detector chain as a tile callable; vignetting, the pixel response, dark signal and every detector effect are the chain's. The frame's
+and debris streaks of :mod:`scenes.image` (PSF-integrated samples, rolling-shutter row windows) plus the
+straylight of the Sun and the Moon (:mod:`scenes.straylight`), handed to the detector chain as a tile
+callable; vignetting, the pixel response, dark signal and every detector effect are the chain's. The frame's
 WCS carries the SIP distortion of ``[telescope] distortion`` (:mod:`scenes.projection`), and the sources
 are drawn where it puts them; ``[psf] model = "optics"`` draws them with the design's PSF grid
 (:mod:`scenes.image.gridpsf`). The TRUTH extension lists every source (``scenes.image.build.TRUTH_DTYPE``).
-Optics products (SIP, PSF grid) come from the optics' on-disk cache: a render traces
+Optics products (SIP, PSF grid, straylight maps) come from the optics' on-disk cache: a render traces
 nothing that was traced before.
 """
 
@@ -25,6 +26,7 @@ from detector.rng import fresh_seed
 from optics.design import OpticsError, load_design
 
 from .image import TRUTH_DTYPE, build_sources, frame_wcs
+from .image.signal import Samples, SourceSignal
 from .photometry import sky_electron_rate_per_pixel
 from .projection import REVERSE_WARN_PX, Sip, sip_from_optics, sip_from_table
 from .scene import Scene, SceneError
@@ -46,6 +48,7 @@ class Setup:
     truth: np.ndarray | None = None
     source_cards: dict | None = None
     distortion: Sip | None = None
+    straylight: object = None
 
 
 def resolve_distortion(scene: Scene, sensor, design) -> Sip | None:
@@ -75,6 +78,22 @@ def resolve_distortion(scene: Scene, sensor, design) -> Sip | None:
                          file=scene.source) from None
 
 
+def _straylight(scene: Scene, sensor, design, effects_list, exptime_s: float):
+    """``[effects.straylight]`` -> (StraylightSignal, header cards), the chain's vignetting divided out."""
+    from .objects import observer_from_table
+    from .straylight import straylight_signal
+
+    base_dir = Path(scene.source).parent if scene.source and scene.source != "<built-in>" else None
+    observer = observer_from_table(scene.observer, file=scene.source, base_dir=base_dir)
+    vig = next((e for e in effects_list if e.name == "vignetting"), None)
+    ri = (lambda ys, xs: vig.ri(ys, xs)) if vig is not None else None
+    try:
+        return straylight_signal(scene.effects["straylight"], scene, sensor, design, exptime_s, observer, ri=ri)
+    except (OpticsError, ImportError) as exc:
+        raise SceneError(f"cannot ray-trace the straylight of design '{design.name}': {exc}",
+                         key="effects.straylight.pst", file=scene.source) from None
+
+
 def _resolve_optics_maps(effects: dict, design, scene: Scene) -> dict:
     """``[effects.vignetting] map_file = "optics"``: ray-trace the scene's design (cached) for the map."""
     vig = effects.get("vignetting")
@@ -101,7 +120,8 @@ def prepare(scene: Scene, workers: int | None = None, psf=None) -> Setup:
         design = load_design(scene.telescope.design)
     except OpticsError as exc:
         raise SceneError(str(exc), key="telescope.design", file=scene.source) from None
-    effects = build_effects(_resolve_optics_maps(scene.effects, design, scene), sensor, file=scene.source)
+    tables = {k: v for k, v in scene.effects.items() if k != "straylight"}  # straylight is the scene's
+    effects = build_effects(_resolve_optics_maps(tables, design, scene), sensor, file=scene.source)
     scale = scene.telescope.pixel_scale_arcsec or design.pixel_scale_arcsec(sensor.pixel_pitch_um)
     exp = scene.exposure
     exptime = 0.0 if exp.frame == "bias" else exp.time_s
@@ -119,15 +139,22 @@ def prepare(scene: Scene, workers: int | None = None, psf=None) -> Setup:
     signal: object = background
     truth, cards = np.zeros(0, dtype=TRUTH_DTYPE), {}
     distortion = resolve_distortion(scene, sensor, design)
+    stray = None
+    if exp.frame == "light" and "straylight" in scene.effects and scene.sky.flat_e_per_s is None:
+        stray, stray_cards = _straylight(scene, sensor, design, effects, exptime)
+        cards.update(stray_cards)
     if exp.frame == "light" and (scene.sky.stars or scene.objects):
         model = build_sources(scene, sensor, design, scale, exptime, background_e=background, psf=psf,
-                              distortion=distortion)
-        truth, cards = model.truth, model.cards
+                              distortion=distortion, extra=stray)
+        truth = model.truth
+        cards = {**model.cards, **cards}
         warnings += model.warnings
-        if model.signal.n_samples:
+        if model.signal.n_samples or stray is not None:
             signal = model.signal
+    elif stray is not None:
+        signal = SourceSignal(Samples.empty(), None, background, sensor.roi_y0, sensor.roi_x0, extra=stray)
     return Setup(scene, Detector(sensor, effects, workers=workers), exptime, signal, scale, sky_rate, warnings,
-                 truth, cards, distortion)
+                 truth, cards, distortion, stray)
 
 
 def header_cards(setup: Setup, seed: int, noiseless: bool) -> fits.Header:
@@ -165,7 +192,8 @@ def header_cards(setup: Setup, seed: int, noiseless: bool) -> fits.Header:
     h["SEED"] = (seed, "frame seed (noise)")
     h["HWSEED"] = (s.hardware_seed, "hardware seed (fixed pattern)")
     h["NOISELES"] = (bool(noiseless), "expected electrons, no random draw")
-    h["EFFECTS"] = (",".join(e.name for e in setup.detector.effects) or "none", "optional effects on")
+    names = [e.name for e in setup.detector.effects] + (["straylight"] if setup.straylight is not None else [])
+    h["EFFECTS"] = (",".join(names) or "none", "optional effects on")
     h["CREATOR"] = ("newtsim", "")
     h["NOBJECTS"] = (len(sc.objects) if sc.exposure.frame == "light" else 0, "debris/satellite objects")
     h["NSTARS"] = (0, "stars with their centre on the frame (TRUTH)")

@@ -225,7 +225,7 @@ def check_scene(scene: Scene) -> None:
 
 
 def _check_optics_keys(scene: Scene, base: Path | None) -> None:
-    """``[telescope] distortion`` / ``[telescope.sip]`` and the optics ``[psf]`` keys."""
+    """``[telescope] distortion`` / ``[telescope.sip]``, the optics ``[psf]`` keys, ``[effects.straylight]``."""
     from .projection import sip_from_table
 
     file = scene.source
@@ -259,3 +259,7 @@ def _check_optics_keys(scene: Scene, base: Path | None) -> None:
             if k in given:
                 raise SceneError(f"{k} with model = {psf.model!r}", key=f"psf.{k}", file=file,
                                  expected="model = 'optics' (the optics PSF grid)")
+    if "straylight" in scene.effects:
+        from .straylight import straylight_config
+
+        straylight_config(scene.effects["straylight"], file=file)

@@ -359,7 +359,7 @@ def _truth_table(rows: list) -> np.ndarray:
 
 
 def build_sources(scene: Scene, sensor, design, pixel_scale_arcsec: float, exptime_s: float, *,
-                  background_e: float = 0.0, psf=None, distortion: Sip | None = None) -> SourceModel:
+                  background_e: float = 0.0, psf=None, distortion: Sip | None = None, extra=None) -> SourceModel:
     """Stars and objects of ``scene`` as the detector chain's signal callable, plus the TRUTH table.
 
     Parameters
@@ -373,6 +373,7 @@ def build_sources(scene: Scene, sensor, design, pixel_scale_arcsec: float, expti
     psf : a pixel-integrated PSF (the hook of ``scenes.image.psf``); default from the scene's ``[psf]``
         (``model = "optics"``: :func:`scenes.image.gridpsf.optics_psf`)
     distortion : the frame's SIP (:class:`scenes.projection.Sip`, unbinned sensor pixels), or None
+    extra : an additional smooth signal ``extra(y0, y1, x0, x1)`` [e-/pixel] (straylight)
 
     Returns
     -------
@@ -426,7 +427,8 @@ def build_sources(scene: Scene, sensor, design, pixel_scale_arcsec: float, expti
     counts["stars_in_frame"] = int(np.sum(kinds != b"object"))
     desc = psf.describe() if hasattr(psf, "describe") else {"model": type(psf).__name__}
     signal = SourceSignal(samples, psf, float(background_e), sensor.roi_y0, sensor.roi_x0, sensor.row_time_s,
-                          float(exptime_s), meta={"psf": desc, "counts": counts}, trails=Trails.concat(trails))
+                          float(exptime_s), meta={"psf": desc, "counts": counts}, trails=Trails.concat(trails),
+                          extra=extra)
     counts["samples"] = signal.n_samples
     cards = {
         "NOBJECTS": (counts["objects"], "debris/satellite objects in the scene"),
