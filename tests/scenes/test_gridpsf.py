@@ -255,3 +255,16 @@ def test_optics_psf_errors_name_the_key(tmp_path, override, key):
     with pytest.raises(DetectorError) as e:
         load_scene(str(p), override)
     assert f"key '{key}" in str(e.value) and "expected" in str(e.value) and "scene.toml" in str(e.value)
+
+
+def test_optics_example_scene_renders(tmp_path, optics_sip, optics_psf_grid):
+    """examples/scenes/optics_corner_imx411.toml: SIP from the optics in the header, the optics PSF, the Moon's
+    straylight (the Sun is below La Palma's horizon), stars on the window."""
+    from pathlib import Path
+
+    path = Path(__file__).parents[2] / "examples" / "scenes" / "optics_corner_imx411.toml"
+    render(load_scene(str(path)), tmp_path / "c.fits", seed=1, noiseless=True, progress=False)
+    with fits.open(tmp_path / "c.fits") as hd:
+        h, t = hd[0].header, hd["TRUTH"].data
+    assert h["CTYPE1"] == "RA---TAN-SIP" and h["PSFMODEL"] == "optics" and "straylight" in h["EFFECTS"]
+    assert h["MONSTRY"] > 0 and h["SUNSTRY"] == 0 and len(t) > 10
