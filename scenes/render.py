@@ -1,10 +1,14 @@
 """The main job: a scene in, a FITS frame (and its truth) out.
 
 The expected photo-electrons per pixel are the uniform background (sky, or a flat screen) plus the stars
-and debris streaks of :mod:`scenes.image` (PSF-integrated samples, rolling-shutter row windows), handed to
-the detector chain as a tile callable; vignetting, the pixel response, dark signal and every detector
-effect are the chain's. The TRUTH extension lists every source (``scenes.image.build.TRUTH_DTYPE``).
-Straylight and optics-derived PSFs/SIP plug in as they arrive (``psf=`` takes any pixel-integrated PSF).
+and debris streaks of :mod:`scenes.image` (PSF-integrated samples, rolling-shutter row windows) plus the
+straylight of the Sun and the Moon (:mod:`scenes.straylight`), handed to the detector chain as a tile
+callable; vignetting, the pixel response, dark signal and every detector effect are the chain's. The frame's
+WCS carries the SIP distortion of ``[telescope] distortion`` (:mod:`scenes.projection`), and the sources
+are drawn where it puts them; ``[psf] model = "optics"`` draws them with the design's PSF grid
+(:mod:`scenes.image.gridpsf`). The TRUTH extension lists every source (``scenes.image.build.TRUTH_DTYPE``).
+Optics products (SIP, PSF grid, straylight maps) come from the optics' on-disk cache: a render traces
+nothing that was traced before.
 """
 
 from __future__ import annotations
@@ -22,7 +26,9 @@ from detector.rng import fresh_seed
 from optics.design import OpticsError, load_design
 
 from .image import TRUTH_DTYPE, build_sources, frame_wcs
+from .image.signal import Samples, SourceSignal
 from .photometry import sky_electron_rate_per_pixel
+from .projection import REVERSE_WARN_PX, Sip, sip_from_optics, sip_from_table
 from .scene import Scene, SceneError
 
 __all__ = ["TRUTH_DTYPE", "Setup", "header_cards", "prepare", "render", "scene_hdu"]
@@ -41,6 +47,51 @@ class Setup:
     warnings: list[str]
     truth: np.ndarray | None = None
     source_cards: dict | None = None
+    distortion: Sip | None = None
+    straylight: object = None
+
+
+def resolve_distortion(scene: Scene, sensor, design) -> Sip | None:
+    """The frame's SIP distortion from ``[telescope] distortion`` (unbinned sensor pixels about the axis).
+
+    ``"optics"`` asks the optics for the design's SIP fit over the full sensor
+    (``optics.distortion.cached_sip``, cached on disk by the design's hash).
+    """
+    tel = scene.telescope
+    if tel.distortion == "none":
+        return None
+    t = sip_from_table(tel.sip or {}, file=scene.source, allow_coefficients=tel.distortion == "sip")
+    if tel.distortion == "sip":
+        return Sip(t["order"], t["a"], t["b"], t["reverse_order"], "scene")
+    try:
+        from optics.distortion import cached_sip
+    except ImportError:
+        raise SceneError("this optics package has no cached_sip (the optics SIP fit is not available on this "
+                         "branch)", key="telescope.distortion", file=scene.source,
+                         expected="distortion = 'none', or 'sip' with a [telescope.sip] table") from None
+    shape = (sensor.sensor_height_px, sensor.sensor_width_px)
+    try:
+        fit = cached_sip(design, float(sensor.pixel_pitch_um), shape, order=t["order"] or 5)
+        return sip_from_optics(fit, sensor, reverse_order=t["reverse_order"])
+    except (OpticsError, ImportError, ValueError, KeyError) as exc:
+        raise SceneError(f"cannot get the SIP distortion of design '{design.name}': {exc}", key="telescope.distortion",
+                         file=scene.source) from None
+
+
+def _straylight(scene: Scene, sensor, design, effects_list, exptime_s: float):
+    """``[effects.straylight]`` -> (StraylightSignal, header cards), the chain's vignetting divided out."""
+    from .objects import observer_from_table
+    from .straylight import straylight_signal
+
+    base_dir = Path(scene.source).parent if scene.source and scene.source != "<built-in>" else None
+    observer = observer_from_table(scene.observer, file=scene.source, base_dir=base_dir)
+    vig = next((e for e in effects_list if e.name == "vignetting"), None)
+    ri = (lambda ys, xs: vig.ri(ys, xs)) if vig is not None else None
+    try:
+        return straylight_signal(scene.effects["straylight"], scene, sensor, design, exptime_s, observer, ri=ri)
+    except (OpticsError, ImportError) as exc:
+        raise SceneError(f"cannot ray-trace the straylight of design '{design.name}': {exc}",
+                         key="effects.straylight.pst", file=scene.source) from None
 
 
 def _resolve_optics_maps(effects: dict, design, scene: Scene) -> dict:
@@ -69,7 +120,8 @@ def prepare(scene: Scene, workers: int | None = None, psf=None) -> Setup:
         design = load_design(scene.telescope.design)
     except OpticsError as exc:
         raise SceneError(str(exc), key="telescope.design", file=scene.source) from None
-    effects = build_effects(_resolve_optics_maps(scene.effects, design, scene), sensor, file=scene.source)
+    tables = {k: v for k, v in scene.effects.items() if k != "straylight"}  # straylight is the scene's
+    effects = build_effects(_resolve_optics_maps(tables, design, scene), sensor, file=scene.source)
     scale = scene.telescope.pixel_scale_arcsec or design.pixel_scale_arcsec(sensor.pixel_pitch_um)
     exp = scene.exposure
     exptime = 0.0 if exp.frame == "bias" else exp.time_s
@@ -86,14 +138,23 @@ def prepare(scene: Scene, workers: int | None = None, psf=None) -> Setup:
     background = (sky_rate + flat_rate) * exptime
     signal: object = background
     truth, cards = np.zeros(0, dtype=TRUTH_DTYPE), {}
+    distortion = resolve_distortion(scene, sensor, design)
+    stray = None
+    if exp.frame == "light" and "straylight" in scene.effects and scene.sky.flat_e_per_s is None:
+        stray, stray_cards = _straylight(scene, sensor, design, effects, exptime)
+        cards.update(stray_cards)
     if exp.frame == "light" and (scene.sky.stars or scene.objects):
-        model = build_sources(scene, sensor, design, scale, exptime, background_e=background, psf=psf)
-        truth, cards = model.truth, model.cards
+        model = build_sources(scene, sensor, design, scale, exptime, background_e=background, psf=psf,
+                              distortion=distortion, extra=stray)
+        truth = model.truth
+        cards = {**model.cards, **cards}
         warnings += model.warnings
-        if model.signal.n_samples:
+        if model.signal.n_samples or stray is not None:
             signal = model.signal
+    elif stray is not None:
+        signal = SourceSignal(Samples.empty(), None, background, sensor.roi_y0, sensor.roi_x0, extra=stray)
     return Setup(scene, Detector(sensor, effects, workers=workers), exptime, signal, scale, sky_rate, warnings,
-                 truth, cards)
+                 truth, cards, distortion, stray)
 
 
 def header_cards(setup: Setup, seed: int, noiseless: bool) -> fits.Header:
@@ -131,13 +192,24 @@ def header_cards(setup: Setup, seed: int, noiseless: bool) -> fits.Header:
     h["SEED"] = (seed, "frame seed (noise)")
     h["HWSEED"] = (s.hardware_seed, "hardware seed (fixed pattern)")
     h["NOISELES"] = (bool(noiseless), "expected electrons, no random draw")
-    h["EFFECTS"] = (",".join(e.name for e in setup.detector.effects) or "none", "optional effects on")
+    names = [e.name for e in setup.detector.effects] + (["straylight"] if setup.straylight is not None else [])
+    h["EFFECTS"] = (",".join(names) or "none", "optional effects on")
     h["CREATOR"] = ("newtsim", "")
     h["NOBJECTS"] = (len(sc.objects) if sc.exposure.frame == "light" else 0, "debris/satellite objects")
     h["NSTARS"] = (0, "stars with their centre on the frame (TRUTH)")
     for k, v in (setup.source_cards or {}).items():
         h[k] = v
-    h.update(frame_wcs(sc, s, setup.pixel_scale_arcsec).to_header())
+    wcs = frame_wcs(sc, s, setup.pixel_scale_arcsec, distortion=setup.distortion)
+    h.update(wcs.to_header(relax=True))
+    if setup.distortion is not None:
+        d = setup.distortion
+        h["SIPSRC"] = (d.source, "SIP distortion from the scene or the optics")
+        h["SIPRRMS"] = (float(wcs.sip_reverse_rms_px), "[pixel] rms residual of the fitted AP/BP")
+        h["SIPRMAX"] = (float(wcs.sip_reverse_max_px), "[pixel] largest residual of the fitted AP/BP")
+        if "rms_px" in d.info:
+            h["SIPFRMS"] = (float(d.info["rms_px"]), "[sensor pixel] optics forward-fit rms residual")
+        if wcs.sip_reverse_max_px > REVERSE_WARN_PX:
+            h.add_history(f"SIP reverse fit off by up to {wcs.sip_reverse_max_px:.3g} px: raise reverse_order")
     for w in setup.warnings:
         h.add_history(w[:70])
     return h

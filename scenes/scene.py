@@ -28,8 +28,14 @@ class _Table(BaseModel):
 
 
 class TelescopeCfg(_Table):
+    """``[telescope]``. ``distortion``: ``"none"`` (gnomonic TAN), ``"optics"`` (SIP fitted to the design's
+    ray-traced field, cached by the optics) or ``"sip"`` (the coefficients of ``[telescope.sip]``); the
+    ``[telescope.sip]`` table is checked by :func:`scenes.projection.sip_from_table`."""
+
     design: str = "art"
     pixel_scale_arcsec: float | None = Field(None, gt=0, le=3600, description="plate-scale override [arcsec/pixel]")
+    distortion: Literal["none", "optics", "sip"] = "none"
+    sip: dict[str, Any] | None = None
 
 
 class PointingCfg(_Table):
@@ -79,13 +85,24 @@ class SkyCfg(_Table):
 class PsfCfg(_Table):
     """``[psf]``: the point-spread function of the sources (thesis eqs. 4 and 48), integrated over pixels.
 
-    ``model`` ``"gaussian"`` (sigma = FWHM / 2.3548) or ``"moffat"`` ((1 + r^2/alpha^2)^-beta);
-    ``jitter_rms_arcsec``: Gaussian pointing jitter, rms per axis, convolved with the PSF."""
+    ``model`` ``"gaussian"`` (sigma = FWHM / 2.3548), ``"moffat"`` ((1 + r^2/alpha^2)^-beta) or ``"optics"``
+    (the design's PSF grid, :mod:`scenes.image.gridpsf`: ``grid = [nx, ny]`` field points, or a PSF cube
+    ``grid_file``; ``seeing_fwhm_arcsec``: Gaussian seeing convolved with it); ``jitter_rms_arcsec``:
+    Gaussian pointing jitter, rms per axis, convolved with the PSF."""
 
-    model: Literal["gaussian", "moffat"] = "gaussian"
+    model: Literal["gaussian", "moffat", "optics"] = "gaussian"
     fwhm_arcsec: float = Field(2.5, gt=0, le=600, description="PSF full width at half maximum [arcsec]")
     beta: float = Field(4.765, gt=1, le=100, description="Moffat exponent (4.765: Kolmogorov turbulence)")
     jitter_rms_arcsec: float = Field(0.0, ge=0, le=600, description="pointing jitter, rms per axis [arcsec]")
+    seeing_fwhm_arcsec: float = Field(0.0, ge=0, le=600, description="optics model: Gaussian seeing FWHM [arcsec]")
+    grid: tuple[int, int] = Field((3, 3), description="optics model: PSF field points along x and y")
+    grid_file: str | None = Field(None, description="optics model: a PSF cube (optics.psf.write_psf_fits) instead")
+
+    @model_validator(mode="after")
+    def _grid(self):
+        if not all(1 <= n <= 15 for n in self.grid):
+            raise ValueError(f"grid {list(self.grid)}: each count must be 1..15")
+        return self
 
 
 class Scene(_Table):
@@ -204,3 +221,45 @@ def check_scene(scene: Scene) -> None:
     observer_from_table(scene.observer, file=file, base_dir=base)
     for i, table in enumerate(scene.objects):
         object_from_table(table, i, file=file, base_dir=base)
+    _check_optics_keys(scene, base)
+
+
+def _check_optics_keys(scene: Scene, base: Path | None) -> None:
+    """``[telescope] distortion`` / ``[telescope.sip]``, the optics ``[psf]`` keys, ``[effects.straylight]``."""
+    from .projection import sip_from_table
+
+    file = scene.source
+    tel = scene.telescope
+    if tel.distortion == "none" and tel.sip is not None:
+        raise SceneError("a [telescope.sip] table with distortion = 'none'", key="telescope.distortion", file=file,
+                         expected="distortion = 'sip' (coefficients from the table) or 'optics'")
+    if tel.distortion == "sip" and tel.sip is None:
+        raise SceneError("distortion = 'sip' without a [telescope.sip] table", key="telescope.sip", file=file,
+                         expected="a table with order and coefficients a_p_q / b_p_q")
+    if tel.sip is not None:
+        sip_from_table(tel.sip, file=file, allow_coefficients=tel.distortion == "sip")
+    psf = scene.psf
+    given = psf.model_fields_set
+    if psf.model == "optics":
+        for k in ("fwhm_arcsec", "beta"):
+            if k in given:
+                raise SceneError(f"{k} with model = 'optics'", key=f"psf.{k}", file=file,
+                                 expected="seeing_fwhm_arcsec / jitter_rms_arcsec with the optics PSF grid")
+        if psf.grid_file is not None:
+            p = Path(psf.grid_file).expanduser()
+            if not p.is_absolute() and base is not None:
+                p = base / p
+            if not p.is_file():
+                raise SceneError(f"PSF cube {str(p)!r} not found", key="psf.grid_file", file=file,
+                                 expected="a FITS PSF cube written by optics.psf.write_psf_fits (relative to the "
+                                 "scene file)")
+            psf.grid_file = str(p)
+    else:
+        for k in ("seeing_fwhm_arcsec", "grid", "grid_file"):
+            if k in given:
+                raise SceneError(f"{k} with model = {psf.model!r}", key=f"psf.{k}", file=file,
+                                 expected="model = 'optics' (the optics PSF grid)")
+    if "straylight" in scene.effects:
+        from .straylight import straylight_config
+
+        straylight_config(scene.effects["straylight"], file=file)

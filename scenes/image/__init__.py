@@ -2,6 +2,8 @@
 
 * :mod:`scenes.image.psf`: Gaussian and Moffat PSFs integrated exactly (or to a bounded error) over the
   pixels (thesis eqs. 4, 48, 51-52), and the hook for other PSFs (``psf(x, y, dx, dy)``);
+* :mod:`scenes.image.gridpsf`: the optics' PSF grid (``[psf] model = "optics"``) through that hook: exact
+  pixel integration of the cube's cells, centroid-centred stamps, bilinear interpolation over the field;
 * :mod:`scenes.image.motion`: telescope tracking (sidereal, rate, none), sky-to-pixel at any time through
   the file's WCS, rolling-shutter exposure windows (thesis eq. 10);
 * :mod:`scenes.image.signal`: the y-sorted sample list and the thread-safe tile callable

@@ -29,7 +29,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..projection import tan_wcs
+from ..projection import Sip, axis_crpix, tan_wcs
 from ..scene import Scene, SceneError
 from .motion import (
     Boresight,
@@ -68,7 +68,7 @@ class SourceModel:
 class _Frame:
     """Geometry and photometry shared by the stars and the objects of one frame."""
 
-    wcs: object  # unbinned window WCS
+    wcs: object  # unbinned window WCS (SIP included)
     boresight: Boresight
     shape: tuple[int, int]  # unbinned (rows, cols)
     binning: int
@@ -80,15 +80,29 @@ class _Frame:
     qe: np.ndarray
     mirror: float
     area_m2: float
+    linear_wcs: object = None  # the same without SIP (for coarse field tests far from the frame)
+    max_shift_px: float = 0.0  # largest SIP displacement over the window (and its margin) [pixels]
 
     @property
     def t_end_s(self) -> float:
         return self.exptime_s + (self.shape[0] - 1) * self.row_time_s
 
     @property
-    def half_diagonal_deg(self) -> float:
+    def centre_radec(self) -> tuple[float, float]:
+        """Sky position of the window's centre at t = 0 [deg] (the pointing is the optical axis)."""
         h, w = self.shape
-        return 0.5 * math.hypot(h, w) * self.scale_arcsec / 3600.0
+        ra, dec = self.wcs.all_pix2world([(w - 1) / 2.0], [(h - 1) / 2.0], 0)
+        return float(ra[0]), float(dec[0])
+
+    @property
+    def half_diagonal_deg(self) -> float:
+        """Largest angle from the window's centre to its corners [deg] (distortion included)."""
+        from ..objects.frames import angle_between_deg, radec_to_unit
+
+        h, w = self.shape
+        ra, dec = self.wcs.all_pix2world([-0.5, w - 0.5, -0.5, w - 0.5], [-0.5, -0.5, h - 0.5, h - 0.5], 0)
+        c = radec_to_unit(*self.centre_radec)
+        return float(np.max(angle_between_deg(radec_to_unit(ra, dec), c)))
 
     def inside(self, x, y) -> np.ndarray:
         h, w = self.shape
@@ -117,12 +131,21 @@ def band(sensor, step_nm: float = WAVELENGTH_STEP_NM) -> tuple[np.ndarray, np.nd
     return lam, sensor.qe_at(lam)
 
 
-def frame_wcs(scene: Scene, sensor, pixel_scale_arcsec: float, binned: bool = True):
-    """The frame's TAN WCS: the written (binned) frame, or the unbinned read-out window."""
+def frame_wcs(scene: Scene, sensor, pixel_scale_arcsec: float, binned: bool = True, distortion: Sip | None = None,
+              margin_px: float = 16.0):
+    """The frame's WCS: the written (binned) frame, or the unbinned read-out window.
+
+    TAN about the pointing, which is the optical axis at the full sensor's centre (CRPIX moves with the
+    window and the binning, :func:`scenes.projection.axis_crpix`); with ``distortion`` (unbinned sensor
+    pixels) the SIP terms in this frame's pixels and the reverse polynomials fitted over it
+    (``margin_px`` beyond its edges, in its own pixels).
+    """
     b = sensor.binning if binned else 1
     shape = sensor.output_shape if binned else sensor.shape
     p = scene.pointing
-    return tan_wcs(p.ra_deg, p.dec_deg, p.roll_deg, pixel_scale_arcsec * b, shape)
+    sip = distortion.binned(b) if distortion is not None else None
+    return tan_wcs(p.ra_deg, p.dec_deg, p.roll_deg, pixel_scale_arcsec * b, shape, crpix=axis_crpix(sensor, binned),
+                   sip=sip, margin_px=margin_px)
 
 
 def _path_truth(fr: _Frame, x, y, t_lo, t_hi, e):
@@ -171,8 +194,9 @@ def _stars(scene: Scene, fr: _Frame, base_dir: Path | None) -> tuple[Samples | T
     sky = scene.sky
     w_guess = int(fr.psf.radius_px(1e12).max()) if hasattr(fr.psf, "radius_px") else 64
     radius = fr.half_diagonal_deg + fr.boresight.speed_deg_s * fr.t_end_s + (w_guess + 2) * fr.scale_arcsec / 3600
-    stars = stars_in_field(scene.pointing.ra_deg, scene.pointing.dec_deg, min(radius, 30.0), sky.star_mag_limit,
-                           scene.pointing.epoch, catalog=sky.catalog, seed=sky.star_seed)
+    ra_c, dec_c = fr.centre_radec
+    stars = stars_in_field(ra_c, dec_c, min(radius, 30.0), sky.star_mag_limit, scene.pointing.epoch,
+                           catalog=sky.catalog, seed=sky.star_seed)
     synthetic = stars.source == "synthetic"
     counts = {"catalog": int(np.sum(~synthetic)), "synthetic": int(np.sum(synthetic))}
     if len(stars.ra_deg) == 0:
@@ -273,7 +297,8 @@ def _objects(scene: Scene, fr: _Frame, base_dir: Path | None, observer) -> tuple
         length_px = float(np.sum(angle_between_deg(u0[:-1], u0[1:]))) * 3600.0 / fr.scale_arcsec * (
             fr.exptime_s / fr.t_end_s)
         w = int(np.max(trail_radius(fr.psf, np.array([max(mean_total, 1e-30)]), length_px)))
-        require_in_field(derot, fr.wcs, i, shape=(h, wd), margin_px=float(w), file=file)
+        require_in_field(derot, fr.linear_wcs or fr.wcs, i, shape=(h, wd), margin_px=float(w) + fr.max_shift_px,
+                         file=file)
 
         def xy(t, track=track):
             t = np.atleast_1d(np.asarray(t, dtype=float))
@@ -330,7 +355,7 @@ def _near_interval(derot, fr: _Frame, w: int) -> tuple[float, float]:
     n = int(min(200001, max(257, math.ceil(path / (reach_deg / 16.0)) + 1)))
     tc = np.linspace(0.0, fr.t_end_s, n)
     uc = derot.unit_vector(tc)
-    ang = angle_between_deg(uc, radec_to_unit(fr.boresight.ra_deg, fr.boresight.dec_deg))
+    ang = angle_between_deg(uc, radec_to_unit(*fr.centre_radec))
     near = np.flatnonzero(ang <= reach_deg * 1.05 + 1e-9)
     if near.size == 0:
         return 0.0, fr.t_end_s
@@ -354,7 +379,7 @@ def _truth_table(rows: list) -> np.ndarray:
 
 
 def build_sources(scene: Scene, sensor, design, pixel_scale_arcsec: float, exptime_s: float, *,
-                  background_e: float = 0.0, psf=None) -> SourceModel:
+                  background_e: float = 0.0, psf=None, distortion: Sip | None = None, extra=None) -> SourceModel:
     """Stars and objects of ``scene`` as the detector chain's signal callable, plus the TRUTH table.
 
     Parameters
@@ -366,21 +391,34 @@ def build_sources(scene: Scene, sensor, design, pixel_scale_arcsec: float, expti
     exptime_s : exposure time T [s] (0 or a dark/bias frame: no sources)
     background_e : uniform expected signal (sky, flat screen) [e-/pixel]
     psf : a pixel-integrated PSF (the hook of ``scenes.image.psf``); default from the scene's ``[psf]``
+        (``model = "optics"``: :func:`scenes.image.gridpsf.optics_psf`)
+    distortion : the frame's SIP (:class:`scenes.projection.Sip`, unbinned sensor pixels), or None
+    extra : an additional smooth signal ``extra(y0, y1, x0, x1)`` [e-/pixel] (straylight)
 
     Returns
     -------
     SourceModel
     """
     cfg = scene.psf
-    psf = psf if psf is not None else psf_from_config(cfg.model, cfg.fwhm_arcsec, cfg.beta, cfg.jitter_rms_arcsec,
-                                                      pixel_scale_arcsec)
+    if psf is None and cfg.model == "optics":
+        from .gridpsf import optics_psf
+
+        psf = optics_psf(scene, sensor, design, pixel_scale_arcsec, distortion)
+    elif psf is None:
+        psf = psf_from_config(cfg.model, cfg.fwhm_arcsec, cfg.beta, cfg.jitter_rms_arcsec, pixel_scale_arcsec)
     exp = scene.exposure
     bore = Boresight(scene.pointing.ra_deg, scene.pointing.dec_deg, exp.tracking, exp.rate_ra_deg_s,
                      exp.rate_dec_deg_s)
     lam, qe = band(sensor)
-    fr = _Frame(frame_wcs(scene, sensor, pixel_scale_arcsec, binned=False), bore, sensor.shape, sensor.binning,
-                sensor.row_time_s, float(exptime_s), pixel_scale_arcsec, psf, lam, qe, design.mirror_throughput,
-                design.collecting_area_m2)
+    w_max = int(np.max(psf.radius_px(np.array([1e12])))) if hasattr(psf, "radius_px") else 64
+    wcs = frame_wcs(scene, sensor, pixel_scale_arcsec, binned=False, distortion=distortion, margin_px=w_max + 16.0)
+    linear, shift = None, 0.0
+    if distortion is not None:
+        linear = frame_wcs(scene, sensor, pixel_scale_arcsec, binned=False)
+        (h, wd), (cx, cy) = sensor.shape, axis_crpix(sensor, binned=False)
+        shift = distortion.max_shift_px((-0.5 - cx + 1, wd - 0.5 - cx + 1), (-0.5 - cy + 1, h - 0.5 - cy + 1))
+    fr = _Frame(wcs, bore, sensor.shape, sensor.binning, sensor.row_time_s, float(exptime_s), pixel_scale_arcsec, psf,
+                lam, qe, design.mirror_throughput, design.collecting_area_m2, linear, shift)
     base_dir = Path(scene.source).parent if scene.source and scene.source != "<built-in>" else None
     parts, trails, rows = [], [], []
     counts = {"catalog": 0, "synthetic": 0, "objects": 0}
@@ -409,7 +447,8 @@ def build_sources(scene: Scene, sensor, design, pixel_scale_arcsec: float, expti
     counts["stars_in_frame"] = int(np.sum(kinds != b"object"))
     desc = psf.describe() if hasattr(psf, "describe") else {"model": type(psf).__name__}
     signal = SourceSignal(samples, psf, float(background_e), sensor.roi_y0, sensor.roi_x0, sensor.row_time_s,
-                          float(exptime_s), meta={"psf": desc, "counts": counts}, trails=Trails.concat(trails))
+                          float(exptime_s), meta={"psf": desc, "counts": counts}, trails=Trails.concat(trails),
+                          extra=extra)
     counts["samples"] = signal.n_samples
     cards = {
         "NOBJECTS": (counts["objects"], "debris/satellite objects in the scene"),

@@ -291,6 +291,7 @@ class SourceSignal:
     background_e : uniform signal [e-/pixel]
     roi_y0, roi_x0 : sensor coordinates of the read-out window's first row and column
     row_time_s, exptime_s : rolling-shutter row delay tau and exposure time T [s]
+    extra : optional smooth signal ``extra(y0, y1, x0, x1)`` [e-/pixel] in sensor coordinates (straylight)
     """
 
     samples: Samples
@@ -302,6 +303,7 @@ class SourceSignal:
     exptime_s: float = 0.0
     meta: dict = field(default_factory=dict)
     trails: Trails = field(default_factory=Trails.empty)
+    extra: object = None
 
     def __post_init__(self):
         if len(self.trails) and not hasattr(self.psf, "factors"):  # non-separable PSF: point samples
@@ -317,6 +319,8 @@ class SourceSignal:
         acc = render_samples(self.samples, self.psf, r0, y1 - self.roi_y0, c0, x1 - self.roi_x0,
                              self.row_time_s, self.exptime_s)
         render_trails(self.trails, self.psf, acc, r0, c0, self.row_time_s, self.exptime_s)
+        if self.extra is not None:
+            acc += self.extra(y0, y1, x0, x1)
         out = acc.astype(np.float32)
         out += np.float32(self.background_e)
         return out
