@@ -31,6 +31,10 @@ from .photometry import sky_electron_rate_per_pixel
 from .projection import REVERSE_WARN_PX, Sip, sip_from_optics, sip_from_table
 from .scene import Scene, SceneError
 
+#: SIP order of the optics' distortion fit: the art corrector's distortion has 7th-order terms (order 5
+#: leaves 0.03-0.07 px, order 7 below 0.01 px; docs/optics_psf.md)
+OPTICS_SIP_ORDER = 7
+
 __all__ = ["TRUTH_DTYPE", "Setup", "header_cards", "prepare", "render", "scene_hdu"]
 
 
@@ -71,7 +75,7 @@ def resolve_distortion(scene: Scene, sensor, design) -> Sip | None:
                          expected="distortion = 'none', or 'sip' with a [telescope.sip] table") from None
     shape = (sensor.sensor_height_px, sensor.sensor_width_px)
     try:
-        fit = cached_sip(design, float(sensor.pixel_pitch_um), shape, order=t["order"] or 5)
+        fit = cached_sip(design, float(sensor.pixel_pitch_um), shape, order=t["order"] or OPTICS_SIP_ORDER)
         return sip_from_optics(fit, sensor, reverse_order=t["reverse_order"])
     except (OpticsError, ImportError, ValueError, KeyError) as exc:
         raise SceneError(f"cannot get the SIP distortion of design '{design.name}': {exc}", key="telescope.distortion",

@@ -11,6 +11,8 @@ from __future__ import annotations
 import time
 from pathlib import Path
 
+from detector.errors import DetectorError
+
 from .analysis import compare, summary
 from .diagnose import SIGNIFICANT_DELTA_BIC, candidates, verdict
 from .model import ModelFrame, build_model, read_measurement, residuals
@@ -25,9 +27,12 @@ def run_compare(scene, measured: str | Path, workers: int | None = None) -> dict
     data, notes = read_measurement(measured, model)
     t1 = time.perf_counter()
     res = residuals(data, model)
+    if res.n_fit == 0:
+        raise DetectorError("no pixel of the measured frame can be compared pixel by pixel (all saturated, "
+                            "flagged or outliers)", file=str(measured), expected="a frame the model predicts")
     result = compare(res, model.setup.truth, model.realisation)
     result["summary"] = summary(result)
-    result["summary"].update(scene=scene.source, measured=str(measured), warnings=notes["warnings"] +
+    result["summary"].update(scene_file=scene.source, measured_file=str(measured), warnings=notes["warnings"] +
                              model.setup.warnings, wcs_offset_px=notes["wcs_offset_px"],
                              seconds={"model": t1 - t0, "compare": time.perf_counter() - t1})
     result["_residuals"], result["_model"] = res, model

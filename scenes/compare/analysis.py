@@ -240,7 +240,8 @@ def streak_profiles(res: Residuals, truth: np.ndarray | None, segments: int = 10
         cd = np.bincount(seg[sel], (d * across)[sel], segments)
         cm = np.bincount(seg[sel], (m * across)[sel], segments)
         with np.errstate(invalid="ignore", divide="ignore"):
-            out.append({"name": str(o["name"]).strip() if "name" in truth.dtype.names else "",
+            name = o["name"] if "name" in truth.dtype.names else b""
+            out.append({"name": (name.decode() if isinstance(name, bytes) else str(name)).strip(),
                         "length_px": length, "flux_ratio": fd / fm, "offset_px": cd / fd - cm / fm,
                         "total_flux_ratio": float(fd.sum() / fm.sum()) if fm.sum() > 0 else float("nan")})
     return out

@@ -85,7 +85,7 @@ def apply_candidate(scene, cand: dict, path: str | Path) -> Path:
     """Write ``scene`` with the candidate's effect and fitted parameters added (a new scene TOML)."""
     import tomli_w
 
-    data = scene.model_dump(mode="json", exclude_none=True)
+    data = scene.model_dump(mode="json", exclude_none=True, exclude_unset=True)
     data.setdefault("effects", {})[cand["effect"]] = cand["params"]
     p = Path(path)
     p.write_text(f"# written by newtsim diagnose --apply: added [effects.{cand['effect']}]\n"

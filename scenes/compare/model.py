@@ -92,14 +92,13 @@ def read_measurement(path: str | Path, model: ModelFrame) -> tuple[np.ndarray, d
                                 file=str(path), expected=f"{s.binning} as the scene")
     if not np.isfinite(data).any():
         raise DetectorError("measured frame has no finite pixel", file=str(path), expected="an image with data")
+    sat = np.mean(data >= saturation_adu(s))
+    if sat > 0.5:
+        raise DetectorError(f"{100 * sat:.0f} % of the measured pixels are saturated (at or above "
+                            f"{saturation_adu(s):.0f} ADU)", file=str(path), expected="a frame that is not mostly saturated")
     if np.nanmax(data) == np.nanmin(data):
         raise DetectorError(f"measured frame is constant ({float(np.nanmax(data))} ADU)", file=str(path),
                             expected="an image with signal and noise")
-    top = s.adc_max_adu * (s.binning ** 2 if s.binning > 1 and s.binning_mode == "sum" else 1)
-    sat = np.mean(data >= top)
-    if sat > 0.5:
-        raise DetectorError(f"{100 * sat:.0f} % of the measured pixels are saturated", file=str(path),
-                            expected="a frame that is not mostly saturated")
     notes["saturated_fraction"] = float(sat)
     notes["wcs_offset_px"] = _wcs_offset(header, model)
     if notes["wcs_offset_px"] is not None and notes["wcs_offset_px"] > 2:
@@ -109,6 +108,16 @@ def read_measurement(path: str | Path, model: ModelFrame) -> tuple[np.ndarray, d
     if exptime is not None and abs(float(exptime) - model.setup.exptime_s) > 1e-3 * max(1.0, float(exptime)):
         notes["warnings"].append(f"EXPTIME {exptime} s in the measured file, {model.setup.exptime_s} s in the scene")
     return np.nan_to_num(data, nan=0.0).astype(np.float32), notes
+
+
+def saturation_adu(s) -> float:
+    """Measured level [ADU per output pixel] at or above which a pixel is saturated: the ADC maximum or the
+    full well seen through the gain, whichever comes first, less 5 read-noise sigma."""
+    n = s.binning ** 2 if s.binning > 1 and s.binning_mode == "sum" else 1
+    adc = s.adc_max_adu * (n if s.kind != "ccd" else 1)
+    well = (s.bias_adu + s.full_well_e / s.gain_e_per_adu) * n if s.kind != "ccd" else \
+        s.bias_adu + s.full_well_e * n / s.gain_e_per_adu
+    return float(min(adc, well) - 5 * s.read_noise_e / s.gain_e_per_adu)
 
 
 def _wcs_offset(header, model: ModelFrame) -> float | None:
@@ -143,8 +152,7 @@ def source_peaks(model: ModelFrame, nsigma: float = 3.0) -> np.ndarray:
 def residuals(data: np.ndarray, model: ModelFrame) -> Residuals:
     """Everything the comparison and the signatures need: masks, spike statistics, model pieces."""
     s = model.sensor
-    top = s.adc_max_adu * (s.binning ** 2 if s.binning > 1 and s.binning_mode == "sum" else 1)
-    usable = ~model.flag & (data < top) & np.isfinite(data)
+    usable = ~model.flag & (data < saturation_adu(s)) & np.isfinite(data)
     spikes, statistical = spike_stats(data, model.mean_adu, model.var_adu2, usable, s.gain_e_per_adu)
     # where the model itself peaks (star cores) a local outlier is a source the model misplaces or mis-sizes,
     # not a defect: keep those pixels in the pixel-by-pixel comparison
