@@ -236,9 +236,14 @@ class StraylightTracer:
             self.disk_x, self.disk_r = last.x_mm, last.semi_diameter_mm
             first = L.lenses[0]
             self.lens_disk = (first.x_mm, first.semi_diameter_mm)
+            # the detector as the corrector images it back into the unfolded primary's focal plane (the
+            # bare focus, defocus_mm before the detector; EFL 956 vs 960 mm: same scale), a little larger
+            # for the aberrations: aiming a scatter at it sends the ray through the lenses to the detector
+            self.virtual_det = (L.x_detector - self.design.focal_plane.defocus_mm, 1.15 * self.hu, 1.15 * self.hv)
         else:
             self.disk_x, self.disk_r = L.focuser_start_x, L.r_focuser
             self.lens_disk = None
+            self.virtual_det = None
         f = self.design.primary.focal_length_mm
         self.cone_cos = math.cos(1.15 * math.atan(math.hypot(self.hu, self.hv) / f) + 2e-3)
 
@@ -375,8 +380,9 @@ class StraylightTracer:
         active = beta > 0
         code = dr.zeros(mi.UInt64, n)
         spec_chain = dr.full(mi.Bool, True, n)
+        bounces = dr.zeros(mi.UInt32, n)          # vertices off glass (the roulette's depth)
         for depth in range(self.max_depth):
-            dr.eval(ray, active, beta, throughput, X, code, spec_chain, rng)
+            dr.eval(ray, active, beta, throughput, X, code, spec_chain, rng, bounces)
             n_act = int(dr.count(active)[0])
             if n_act == 0:
                 break
@@ -402,14 +408,16 @@ class StraylightTracer:
             beta *= w
             throughput *= w
             active = live & (beta > 0)
+            bounces += dr.select(live & (kind != GLASS), 1, 0)
             if depth + 1 >= self.rr_back:
-                qs = dr.minimum(throughput, 0.95)
+                # roulette off the corrector's glass only (see _roulette_mask)
+                qs = dr.select(self._roulette_mask(kind, bounces, self.rr_back), dr.minimum(throughput, 0.95), 1.0)
                 survive = rng.next_float32() < qs
                 active &= survive
                 beta = dr.select(survive, beta / qs, 0.0)
                 throughput = dr.select(survive, throughput / qs, 0.0)
             ray = si.spawn_ray(si.to_world(bs.wo))
-            dr.eval(ray, active, beta, throughput, X, code, spec_chain, rng, c, nee, pid, valid, seen_mask)
+            dr.eval(ray, active, beta, throughput, X, code, spec_chain, rng, c, nee, pid, valid, seen_mask, bounces)
             casts += int(dr.count(nee)[0])
             if collect:
                 self._census(tally.seen, pid, geom, seen_mask, valid)
@@ -462,10 +470,11 @@ class StraylightTracer:
         active = dr.full(mi.Bool, True, n)
         last_delta = dr.full(mi.Bool, True, n)
         code = dr.zeros(mi.UInt64, n)
+        bounces = dr.zeros(mi.UInt32, n)          # vertices off glass (the roulette's depth)
         records = []
         casts = 0
         for depth in range(self.max_depth):
-            dr.eval(ray, active, beta, throughput, X, code, last_delta, rng)
+            dr.eval(ray, active, beta, throughput, X, code, last_delta, rng, bounces)
             n_act = int(dr.count(active)[0])
             if n_act == 0:
                 break
@@ -512,14 +521,16 @@ class StraylightTracer:
             beta *= w
             throughput *= w
             active = live & (beta > 0)
+            bounces += dr.select(live & (kind != GLASS), 1, 0)
             if depth + 1 >= self.rr_fwd:
-                qs = dr.minimum(throughput / self.rr_fwd_floor, 0.95)
+                qs = dr.select(self._roulette_mask(kind, bounces, self.rr_fwd),
+                               dr.minimum(throughput / self.rr_fwd_floor, 0.95), 1.0)
                 survive = rng.next_float32() < qs
                 active &= survive
                 beta = dr.select(survive, beta / qs, 0.0)
                 throughput = dr.select(survive, throughput / qs, 0.0)
             ray = si.spawn_ray(wo)
-            extra = [c_hit, pid, valid] + ([cc, m, ud, vd] if conn else [])
+            extra = [c_hit, pid, valid, bounces] + ([cc, m, ud, vd] if conn else [])
             dr.eval(ray, active, beta, throughput, X, code, last_delta, rng, *extra)
             if conn:
                 casts += int(dr.count(m)[0])
@@ -533,6 +544,15 @@ class StraylightTracer:
             if conn:
                 self._keep(cc, code_before, pid, ud, vd, kept, hist)
         return self._finish(tally, X, casts, records, True, t0)
+
+    def _roulette_mask(self, kind, bounces, rr_depth):
+        """Lanes where Russian roulette may act: at a vertex off glass, once the path has had ``rr_depth``
+        such vertices. The corrector's refractions and Fresnel reflections are deterministic, lossless to
+        1 % and come in chains of eight: counted as bounces they pushed forward paths past the roulette
+        depth *inside* the lens stack, where a path that had scattered once (throughput ~1e-5) survived with
+        q = throughput / floor and reached the detector with throughput 0.05, i.e. a hit of weight
+        A_ent cos / A_det x 0.05 ~ 5 (the fireflies of the corrector design at 12 degrees)."""
+        return (kind != GLASS) & (bounces >= rr_depth)
 
     def _keep(self, contrib, code, pid, u, v, records, hist):
         """Store the paths with a non-zero contribution: (scatter code, part id, value) in ``records`` for
@@ -559,19 +579,29 @@ class StraylightTracer:
         return xs
 
     def _guided(self, si, bsdf, ctx, kind, live, wo_bsdf, w_bsdf, ev_bsdf, rng):
-        """One-sample mixture for black paint (Veach 1997 ch. 9), weight f cos / (mixture pdf), of:
-        BSDF sampling; a cone about -z that holds the field (directions the primary then images onto
-        the detector); the same cone about -x (from the focuser side toward the diagonal: the detector
-        sees the focuser's surroundings in the diagonal's reflection in the primary, the collimation
-        view); with a corrector, uniform area sampling of its first lens."""
+        """One-sample mixture (Veach 1997 ch. 9), weight f cos / (mixture pdf).
+
+        Black paint: BSDF sampling; a cone about -z that holds the field (directions the primary then
+        images onto the detector); the same cone about -x (from the focuser side toward the diagonal:
+        the detector sees the focuser's surroundings in the diagonal's reflection in the primary, the
+        collimation view); with a corrector, uniform area sampling of its first lens and of the
+        *virtual detector* (the detector imaged back by the corrector into the bare focal plane).
+
+        Mirrors, with a corrector only: BSDF sampling (specular peak or microroughness lobe) mixed with
+        the virtual detector (share ``a_v``). Without lenses a lobe vertex is joined to the detector by the
+        straight connection; through the corrector no straight connection exists, and the diagonal's lobe
+        scatter of the focused beam (primary(spec) -> diagonal(scatter) -> lenses -> detector) was found
+        only when the narrow lobe happened to point into the lenses 10 degrees off its peak: rare hits
+        of weight ~90 x (lobe albedo / lobe probability), the fireflies of the corrector design. The
+        delta peak keeps weight w / (1 - a_v) (no other strategy draws it)."""
         import drjit as dr
 
         mi, L = self.mi, self.layout
         paint = live & (kind == BLACK)
         if self.lens_disk is None:
-            a_b, a_z, a_x, a_d = 0.4, 0.3, 0.3, 0.0
+            a_b, a_z, a_x, a_d, a_v = 0.4, 0.3, 0.3, 0.0, 0.0
         else:
-            a_b, a_z, a_x, a_d = 0.3, 0.25, 0.25, 0.2
+            a_b, a_z, a_x, a_d, a_v = 0.3, 0.2, 0.2, 0.1, 0.2
         u = rng.next_float32()
         s2 = mi.Point2f(rng.next_float32(), rng.next_float32())
         local = mi.warp.square_to_uniform_cone(s2, self.cone_cos)
@@ -579,12 +609,16 @@ class StraylightTracer:
         wo_x = mi.Vector3f(-local.z, local.x, local.y)              # about -x
         wo = dr.select(u < a_z, wo_z, dr.select(u < a_z + a_x, wo_x, wo_bsdf))
         if self.lens_disk is not None:
-            xl, rl = self.lens_disk
+            xl, rl = self._lens_target(si.p)
             rr = rl * dr.sqrt(s2.x)
             sp, cp = dr.sincos(2.0 * dr.pi * s2.y)
             ql = mi.Point3f(xl, rr * cp, L.z_axis + rr * sp)
             wo_disk = dr.normalize(ql - si.p)
             wo = dr.select((u >= a_z + a_x) & (u < a_z + a_x + a_d), wo_disk, wo)
+            xv, hu, hv = self.virtual_det
+            qv = mi.Point3f(xv, (2.0 * s2.y - 1.0) * hv, L.z_axis + (2.0 * s2.x - 1.0) * hu)
+            wo_v = dr.normalize(qv - si.p)
+            wo = dr.select((u >= a_z + a_x + a_d) & (u < a_z + a_x + a_d + a_v), wo_v, wo)
         wl = si.to_local(wo)
         f, p_b = bsdf.eval_pdf(ctx, si, wl, paint)
         f = f[0]
@@ -592,13 +626,54 @@ class StraylightTracer:
         pdf = (a_b * p_b + a_z * dr.select(-wo.z >= self.cone_cos, cone_pdf, 0.0)
                + a_x * dr.select(-wo.x >= self.cone_cos, cone_pdf, 0.0))
         if self.lens_disk is not None:
-            t = (xl - si.p.x) / dr.select(dr.abs(wo.x) > 1e-12, wo.x, 1e-12)
-            h = si.p + wo * t
-            ins = (t > 0) & (dr.square(h.y) + dr.square(h.z - L.z_axis) < rl * rl)
-            pdf += a_d * dr.select(ins, t * t / (dr.pi * rl * rl * dr.maximum(dr.abs(wo.x), 1e-12)), 0.0)
+            pdf += a_d * self._disk_pdf(si.p, wo, xl, rl) + a_v * self._rect_pdf(si.p, wo)
         w_mix = dr.select(pdf > 0, f / pdf, 0.0)
-        return (dr.select(paint, wo, wo_bsdf), dr.select(paint, w_mix, w_bsdf),
-                dr.select(paint, mi.UInt32(EV_SCATTER), ev_bsdf))
+        wo_out = dr.select(paint, wo, wo_bsdf)
+        w_out = dr.select(paint, w_mix, w_bsdf)
+        ev_out = dr.select(paint, mi.UInt32(EV_SCATTER), ev_bsdf)
+        if self.virtual_det is not None:
+            mirror = live & (kind == MIRROR)
+            um = rng.next_float32()
+            pick_v = um < a_v
+            wo_m = dr.select(pick_v, wo_v, wo_bsdf)
+            fm, pm = bsdf.eval_pdf(ctx, si, si.to_local(wo_m), mirror)
+            pdf_m = a_v * self._rect_pdf(si.p, wo_m) + (1.0 - a_v) * pm
+            delta = ~pick_v & (ev_bsdf != EV_SCATTER)
+            w_m = dr.select(delta, w_bsdf / (1.0 - a_v), dr.select(pdf_m > 0, fm[0] / pdf_m, 0.0))
+            ev_m = dr.select(pick_v, mi.UInt32(EV_SCATTER), ev_bsdf)
+            wo_out = dr.select(mirror, wo_m, wo_out)
+            w_out = dr.select(mirror, w_m, w_out)
+            ev_out = dr.select(mirror, ev_m, ev_out)
+        return wo_out, w_out, ev_out
+
+    def _lens_target(self, p):
+        """The lens disk a paint vertex aims at: the first lens from in front of the corrector; from inside
+        the stack (the bore and cells between the lens groups, the lenses' ground edges) the last surface,
+        through which the detector sees them."""
+        import drjit as dr
+
+        (x0, r0), (x1, r1) = self.lens_disk, (self.disk_x, self.disk_r)
+        inside = p.x > x0 + 1.0
+        return dr.select(inside, x1, x0), dr.select(inside, r1, r0)
+
+    def _disk_pdf(self, p, wo, xl, rl):
+        """Solid-angle pdf of uniform area sampling of the disk x = xl, radius rl (focuser axis) from p."""
+        import drjit as dr
+
+        t = (xl - p.x) / dr.select(dr.abs(wo.x) > 1e-12, wo.x, 1e-12)
+        h = p + wo * t
+        ins = (t > 0) & (dr.square(h.y) + dr.square(h.z - self.layout.z_axis) < rl * rl)
+        return dr.select(ins, t * t / (dr.pi * rl * rl * dr.maximum(dr.abs(wo.x), 1e-12)), 0.0)
+
+    def _rect_pdf(self, p, wo):
+        """Solid-angle pdf of uniform area sampling of the virtual detector (a rectangle x = const)."""
+        import drjit as dr
+
+        xv, hu, hv = self.virtual_det
+        t = (xv - p.x) / dr.select(dr.abs(wo.x) > 1e-12, wo.x, 1e-12)
+        h = p + wo * t
+        ins = (t > 0) & (dr.abs(h.y) < hv) & (dr.abs(h.z - self.layout.z_axis) < hu)
+        return dr.select(ins, t * t / (4.0 * hu * hv * dr.maximum(dr.abs(wo.x), 1e-12)), 0.0)
 
     # -- one angle ---------------------------------------------------------------------------------------------
     def estimate(self, theta_deg: float, azimuth_deg: float = 0.0, rays: int = 2_000_000, seed: int = 0,
