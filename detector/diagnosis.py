@@ -56,6 +56,12 @@ class SpikeStats:
     single_neg_ratio: np.ndarray = field(default_factory=lambda: np.zeros(0))
     cluster_pixels: int = 0
     col_excess_e: np.ndarray = field(default_factory=lambda: np.zeros(0))  #: per outlier hot column, per pixel
+    #: flat indices of the isolated positive and negative spikes (to test where they fall: light, dark)
+    single_pos_index: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+    single_neg_index: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+    #: every column's mean residual against its running median, in standard errors, and that error [ADU]
+    col_z: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    col_err_adu: np.ndarray = field(default_factory=lambda: np.zeros(0))
 
     def counts(self) -> dict[str, int]:
         return {"single_pos": self.single_pos, "cluster_pos": self.cluster_pos, "single_neg": self.single_neg,
@@ -68,16 +74,41 @@ def _median3(z: np.ndarray) -> np.ndarray:
     return median_filter(z, size=3, mode="nearest")
 
 
+#: a column in which more than this fraction of the pixels are spikes is a candidate defective column: its
+#: spikes count towards its mean, not towards the spike statistics
+DENSE_COLUMN_FRACTION = 0.05
+
+
 def spike_stats(data: np.ndarray, model: np.ndarray, var: np.ndarray, usable: np.ndarray, gain: float
                 ) -> tuple[SpikeStats, np.ndarray]:
     """Find the local outliers of ``z = (data - model) / sqrt(var)``; return the statistics and the mask
-    of every pixel that can only be compared statistically (spikes and outlier columns)."""
+    of every pixel that can only be compared statistically (spikes and outlier columns).
+
+    Outlier columns are found first (a hot column is a line of spikes, not many hot pixels or cosmic-ray
+    tracks); spikes are then counted outside them."""
     from scipy import ndimage
+    from scipy.ndimage import median_filter
 
     z = np.where(usable, (data - model) / np.sqrt(var), 0.0).astype(np.float32)
     local = z - _median3(z)
-    pos = usable & (local > SPIKE_SIGMA) & (z > SPIKE_SIGMA)
-    neg = usable & (local < -SPIKE_SIGMA) & (z < -SPIKE_SIGMA)
+    pos_all = usable & (local > SPIKE_SIGMA) & (z > SPIKE_SIGMA)
+    neg_all = usable & (local < -SPIKE_SIGMA) & (z < -SPIKE_SIGMA)
+    # columns: mean residual of the pixels that are not spikes (spikes of spike-dense columns included), in
+    # units of its standard error, against the neighbouring columns (a running median) so that smooth
+    # structure (glow, gradients) is not mistaken for defective columns
+    spikes = pos_all | neg_all
+    n_use = usable.sum(axis=0)
+    dense = spikes.sum(axis=0) > DENSE_COLUMN_FRACTION * np.maximum(n_use, 1)
+    keep = usable & ~(spikes & ~dense[None, :])
+    cnt = keep.sum(axis=0)
+    r = np.where(keep, data - model, 0.0)
+    col_mean = r.sum(axis=0) / np.maximum(cnt, 1)
+    col_err = np.sqrt(np.where(keep, var, 0.0).sum(axis=0)) / np.maximum(cnt, 1)
+    local_mean = col_mean - median_filter(col_mean, size=LINE_WINDOW, mode="nearest")
+    zc = np.where(cnt > 0, local_mean / np.maximum(col_err, 1e-12), 0.0)
+    hot_c, cold_c = zc > LINE_SIGMA, zc < -LINE_SIGMA
+    lines = hot_c | cold_c
+    pos, neg = pos_all & ~lines[None, :], neg_all & ~lines[None, :]
     lab, n = ndimage.label(pos, structure=np.ones((3, 3)))
     sizes = np.bincount(lab.ravel(), minlength=n + 1)[1:] if n else np.zeros(0, int)
     single_lab = np.nonzero(sizes == 1)[0] + 1
@@ -85,27 +116,18 @@ def spike_stats(data: np.ndarray, model: np.ndarray, var: np.ndarray, usable: np
     # isolated negative pixels (dead pixels): no negative neighbour
     nlab, nn = ndimage.label(neg, structure=np.ones((3, 3)))
     nsizes = np.bincount(nlab.ravel(), minlength=nn + 1)[1:] if nn else np.zeros(0, int)
-    # columns: mean residual of the pixels that are not spikes, in units of its standard error
-    keep = usable & ~pos & ~neg
-    cnt = keep.sum(axis=0)
-    r = np.where(keep, data - model, 0.0)
-    col_mean = r.sum(axis=0) / np.maximum(cnt, 1)
-    col_err = np.sqrt(np.where(keep, var, 0.0).sum(axis=0)) / np.maximum(cnt, 1)
-    # against the neighbouring columns (a running median), so smooth structure (glow, gradients) is not
-    # mistaken for defective columns
-    from scipy.ndimage import median_filter
-
-    local_mean = col_mean - median_filter(col_mean, size=LINE_WINDOW, mode="nearest")
-    zc = np.where(cnt > 0, local_mean / np.maximum(col_err, 1e-12), 0.0)
-    hot_c, cold_c = zc > LINE_SIGMA, zc < -LINE_SIGMA
+    neg_single_lab = np.nonzero(nsizes == 1)[0] + 1
+    neg_index = np.flatnonzero(np.isin(nlab, neg_single_lab)) if neg_single_lab.size else np.zeros(0, np.int64)
     stats = SpikeStats(
         single_pos=int(single_lab.size), cluster_pos=int(n - single_lab.size), single_neg=int((nsizes == 1).sum()),
         hot_cols=int(hot_c.sum()), cold_cols=int(cold_c.sum()),
         single_pos_excess_e=((data - model)[single] * gain).astype(np.float64),
         single_neg_ratio=np.where(model[neg] > 0, data[neg] / np.maximum(model[neg], 1e-6), 1.0),
-        cluster_pixels=int(pos.sum() - single_lab.size), col_excess_e=local_mean[hot_c] * gain)
-    statistical = pos | neg
-    statistical[:, hot_c | cold_c] = True
+        cluster_pixels=int(pos.sum() - single_lab.size), col_excess_e=local_mean[hot_c] * gain,
+        single_pos_index=np.flatnonzero(single), single_neg_index=neg_index,
+        col_z=np.where(cnt > 0, zc, np.nan), col_err_adu=col_err)
+    statistical = pos_all | neg_all
+    statistical[:, lines] = True
     return stats, statistical
 
 
@@ -169,7 +191,7 @@ class Residuals:
 
     def flat(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(index, residual, weight) of the fitted pixels, flattened once (float64 for the sums)."""
-        if not self._flat:
+        if "idx" not in self._flat:
             idx = np.flatnonzero(self.fit)
             r = (self.data_adu.ravel()[idx] - self.model_adu.ravel()[idx]).astype(np.float64)
             w = 1.0 / self.var_adu2.ravel()[idx].astype(np.float64)
@@ -184,11 +206,194 @@ class Residuals:
         _, r, w = self.flat()
         return float(np.dot(r * r, w))
 
+    # -- the global levels (nuisance parameters) ----------------------------------------------------------------
+    #: names of the global levels, in the order of :meth:`level_templates` (and of preference when two are
+    #: indistinguishable in the mean), and which of them are charge (their change changes the shot noise)
+    LEVELS = ("light_scale", "background_scale", "offset_adu", "dark_scale")
+    LEVEL_IS_CHARGE = (True, True, False, True)
+
+    def level_templates(self) -> list[np.ndarray]:
+        """Templates [ADU per unit] of the global levels a model only knows to a few per cent:
+
+        * the light level: the whole photo-signal (flat lamp, transparency, throughput, star zero point);
+        * the background level: the uniform part of the light (the sky; ``min(photo, median(photo))``);
+        * a bias offset (1 ADU);
+        * the dark level: the mean dark signal (dark current at the actual temperature).
+
+        Where two are indistinguishable in the mean the first is kept: on a uniform flat the light level
+        (so the change of its shot noise is carried along, :meth:`levels`), on a star field the sky (not a
+        bias offset), on a uniform dark a bias offset (not a dark current many times off)."""
+        if "level_templates" not in self._flat:
+            photo = self.photo_adu
+            sample = photo.ravel()[:: max(1, photo.size // 1_000_000)]
+            bg = np.minimum(photo, np.float32(np.median(sample))) if photo.size else photo
+            self._flat["level_templates"] = [photo, bg, np.ones(1, np.float32),
+                                             (self.dark_e / np.float32(self.gain)).astype(np.float32)]
+        return self._flat["level_templates"]
+
+    @property
+    def poisson_adu(self) -> float:
+        """Poisson variance [ADU^2] per ADU of mean charge signal: 1/g, or 1/(g b^2) for average binning."""
+        b = self.sensor.binning
+        return 1.0 / self.gain / (b * b if self.sensor.binning_mode == "average" else 1)
+
+    def levels(self) -> dict:
+        """The global levels fitted to the residuals (weighted least squares, degenerate templates dropped).
+
+        A change of the light or dark level changes the shot noise too (Poisson: variance = mean), so the
+        fit is iterated with the model variance updated by the fitted charge change. Returns the kept
+        templates (``keep``: indices into :meth:`level_templates`, ``names``), their coefficients and the
+        updated weights ``w`` of the fitted pixels. The normal equations are accumulated in chunks. Cached.
+        """
+        if "levels" not in self._flat:
+            idx, r, w0 = self.flat()
+            shape = self.data_adu.shape
+            temps = self.level_templates()
+            charge = [i for i in range(len(temps)) if self.LEVEL_IS_CHARGE[i]]
+            w, keep, coef = w0, [], np.zeros(0)
+            for _ in range(3):
+                # normal equations of all level templates, accumulated in chunks
+                m = len(temps)
+                g, b = np.zeros((m, m)), np.zeros(m)
+                for a in range(0, idx.size, CHUNK_PIXELS):
+                    sl = slice(a, a + CHUNK_PIXELS)
+                    x = np.stack([_at(t, shape, idx[sl]) for t in temps])
+                    xw = x * w[sl]
+                    g += xw @ x.T
+                    b += xw @ r[sl]
+                keep = _independent(g)
+                if not keep:
+                    break
+                coef = np.linalg.solve(g[np.ix_(keep, keep)], b[keep])
+                # the shot noise of the fitted change of charge (Poisson: variance = mean)
+                dv = np.zeros(idx.size)
+                for c, i in zip(coef, keep):
+                    if i in charge:
+                        dv += c * _at(temps[i], shape, idx)
+                dv *= self.poisson_adu
+                w_new = 1.0 / np.maximum(1.0 / w0 + dv, 0.25 / w0)
+                converged = np.allclose(w_new, w, rtol=1e-4)
+                w = w_new
+                if converged:
+                    break
+            self._flat["levels"] = {"keep": keep, "names": [self.LEVELS[i] for i in keep],
+                                    "coef": np.asarray(coef, float), "w": w}
+        return self._flat["levels"]
+
+    def level_values(self, idx: np.ndarray) -> np.ndarray:
+        """The kept global-level templates at flat pixel indices, shape (levels, pixels)."""
+        temps = self.level_templates()
+        keep = self.levels()["keep"]
+        if not keep:
+            return np.zeros((0, idx.size))
+        return np.stack([_at(temps[i], self.data_adu.shape, idx) for i in keep])
+
+    def project(self, v: np.ndarray) -> np.ndarray:
+        """``v`` (values on the fitted pixels) minus its weighted least-squares fit by the global levels: what
+        is left of a template or residual once the levels are refitted (Frisch-Waugh-Lovell)."""
+        idx = self.flat()[0]
+        w = self.levels()["w"]
+        n = self.level_values(idx)
+        if not n.size:
+            return v
+        nw = n * w
+        return v - np.linalg.solve(nw @ n.T, nw @ v) @ n
+
+    def flat_profiled(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(index, residual, weight) of the fitted pixels with the global levels refitted: the residual
+        without the fitted levels, the weight with their shot noise."""
+        if "r_profiled" not in self._flat:
+            idx, r, _ = self.flat()
+            lv = self.levels()
+            temps = self.level_templates()
+            rp = r.copy()
+            for c, i in zip(lv["coef"], lv["keep"]):
+                rp -= c * _at(temps[i], self.data_adu.shape, idx)
+            self._flat["r_profiled"] = rp
+        return self._flat["idx"], self._flat["r_profiled"], self.levels()["w"]
+
+    def chi2_profiled(self) -> float:
+        _, r, w = self.flat_profiled()
+        return float(np.dot(r * r, w))
+
+    def level_maps(self) -> tuple[np.ndarray, np.ndarray]:
+        """The fitted global levels on the whole frame: (mean change [ADU], variance change [ADU^2])."""
+        lv = self.levels()
+        mean = np.zeros(self.data_adu.shape, np.float64)
+        temps = self.level_templates()
+        for c, i in zip(lv["coef"], lv["keep"]):
+            mean += c * np.broadcast_to(temps[i], mean.shape)
+        var = np.zeros_like(mean)
+        for c, i in zip(lv["coef"], lv["keep"]):
+            if self.LEVEL_IS_CHARGE[i]:
+                var += c * np.broadcast_to(temps[i], mean.shape) * self.poisson_adu
+        return mean.astype(np.float32), var.astype(np.float32)
+
+    def level_map(self) -> np.ndarray:
+        """The fitted global levels on the whole frame [ADU] (the model plus this is the level-profiled model)."""
+        return self.level_maps()[0]
+
     def subsample(self) -> np.ndarray:
         """Positions (into the flat arrays) of at most MAX_FIT_PIXELS regularly spaced fitted pixels."""
         n = self.n_fit
         step = max(1, n // MAX_FIT_PIXELS)
         return np.arange(0, n, step)
+
+
+def _gram(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """``a @ b.T`` for (templates, pixels) arrays. Through einsum above 16 templates: some OpenBLAS builds
+    run this shape (few rows, millions of columns) 20-50x slower than a plain loop on a loaded machine."""
+    if a.ndim == 2 and b.ndim == 2 and max(a.shape[0], b.shape[0]) > 16:
+        return np.einsum("in,jn->ij", a, b, optimize=False)
+    return a @ b.T
+
+
+def _independent(g: np.ndarray, tol: float = 1e-6) -> list[int]:
+    """Indices of the columns kept, in order, from their Gram matrix ``g``: a column whose normalised
+    residual after the kept ones is below ``tol`` (indistinguishable from them) is dropped."""
+    d = np.sqrt(np.maximum(np.diag(g), 0.0))
+    keep: list[int] = []
+    for j in range(g.shape[0]):
+        if d[j] <= 0:
+            continue
+        gn = g / np.outer(np.where(d > 0, d, 1.0), np.where(d > 0, d, 1.0))
+        if keep:
+            gk = gn[np.ix_(keep, keep)]
+            gj = gn[keep, j]
+            resid = 1.0 - gj @ np.linalg.solve(gk, gj)
+        else:
+            resid = 1.0
+        if resid > tol:
+            keep.append(j)
+    return keep
+
+
+def _at(t: np.ndarray, shape: tuple[int, int], idx: np.ndarray) -> np.ndarray:
+    """A template (2-D map, or a scalar-like array broadcast to the frame) at flat pixel indices, float64."""
+    t = np.asarray(t)
+    if t.ndim == 2 and t.shape == shape:
+        return t.ravel()[idx].astype(np.float64)
+    if t.ndim == 2 and t.shape == (1, shape[1]):  # a row: depends on the column only
+        return t[0, idx % shape[1]].astype(np.float64)
+    if t.ndim == 2 and t.shape == (shape[0], 1):  # a column: depends on the row only
+        return t[idx // shape[1], 0].astype(np.float64)
+    if t.size == 1:
+        return np.full(idx.size, float(t.ravel()[0]))
+    return np.broadcast_to(t, shape).ravel()[idx].astype(np.float64)
+
+
+def level_profiled(res: Residuals) -> Residuals:
+    """A copy of ``res`` whose model includes the fitted global levels (:meth:`Residuals.levels`): the
+    comparison as it stands once the bias offset, light level and dark level are refitted."""
+    from dataclasses import replace
+
+    mean, var = res.level_maps()
+    out = replace(res, model_adu=(res.model_adu + mean).astype(np.float32),
+                  var_adu2=np.maximum(res.var_adu2 + var, 0.25 * res.var_adu2).astype(np.float32), _flat={})
+    for k, v in res.__dict__.items():  # extra model pieces (photo_field_adu ...)
+        if k not in out.__dict__:
+            out.__dict__[k] = v
+    return out
 
 
 @dataclass
@@ -226,30 +431,160 @@ class Signature:
 
 @dataclass
 class Variant:
-    """One linear model of an effect: templates [ADU per unit coefficient] and the map to parameters."""
+    """One linear model of an effect: templates [ADU per unit coefficient] and the map to parameters.
 
-    templates: list[np.ndarray]
+    ``templates`` is a list of maps (2-D, or a row ``(1, W)`` / column ``(H, 1)`` that broadcasts) or a
+    callable returning it (built only for the variant that wins); ``at(idx)``, when given, evaluates the
+    templates directly at flat pixel indices (shape (templates, pixels)), so a search over many variants
+    never builds their full maps.
+    """
+
+    templates: list[np.ndarray] | Callable[[], list[np.ndarray]]
     to_params: Callable[[np.ndarray], dict | None]  #: None when the coefficients are outside the bounds
     label: str = ""
+    at: Callable[[np.ndarray], np.ndarray] | None = None
+
+    def maps(self) -> list[np.ndarray]:
+        return self.templates() if callable(self.templates) else self.templates
+
+    def values(self, idx: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
+        if self.at is not None:
+            return np.atleast_2d(np.asarray(self.at(idx), np.float64))
+        return np.stack([_at(t, shape, idx) for t in self.maps()])
 
 
-def weighted_lstsq(templates: list[np.ndarray], idx: np.ndarray, r: np.ndarray, w: np.ndarray
-                   ) -> tuple[np.ndarray, float]:
-    """Weighted least squares of ``r`` on the templates at flat pixels ``idx``: (coefficients, delta chi2)."""
-    t = np.stack([np.broadcast_to(tm, templates[0].shape if tm.ndim == 2 else tm.shape).ravel()[idx]
-                  for tm in templates]).astype(np.float64)
+#: fitted pixels a linear signature searches its variants on (a regular subsample; the winner is refitted
+#: on every fitted pixel) [pixels]
+LINEAR_SEARCH_PIXELS = 300_000
+
+
+def solve_templates(t: np.ndarray, r: np.ndarray, w: np.ndarray,
+                    project: Callable[[np.ndarray], np.ndarray] | None = None) -> tuple[np.ndarray, float]:
+    """Weighted least squares of ``r`` on the template rows ``t`` (templates, pixels): (coefficients, delta
+    chi2). ``project`` removes the global levels from every template first (see :func:`weighted_lstsq`)."""
+    t = np.array(t, np.float64)
+    norm0 = np.einsum("ij,ij,j->i", t, t, w)
+    if project is not None:
+        t = np.stack([project(row) for row in t])
+    # a template with (almost) nothing left once the levels are refitted carries no information
+    dead = np.einsum("ij,ij,j->i", t, t, w) <= 1e-9 * np.maximum(norm0, 1e-300)
+    t[dead] = 0.0
     tw = t * w
-    a = tw @ t.T
+    a = _gram(tw, t)
     b = tw @ r
+    scale = np.sqrt(np.where(dead, 1.0, np.maximum(np.diag(a), 1e-300)))
+    an = a / np.outer(scale, scale)
     try:
-        c = np.linalg.solve(a + 1e-12 * np.trace(a) * np.eye(len(b)), b)
+        cn = np.linalg.solve(an + 1e-10 * np.eye(len(b)), b / scale)
     except np.linalg.LinAlgError:
         return np.zeros(len(b)), 0.0
+    c = np.where(dead, 0.0, cn / scale)
     return c, float(-(b @ c))
+
+
+def weighted_lstsq(templates: list[np.ndarray], idx: np.ndarray, r: np.ndarray, w: np.ndarray,
+                   project: Callable[[np.ndarray], np.ndarray] | None = None, shape: tuple[int, int] | None = None
+                   ) -> tuple[np.ndarray, float]:
+    """Weighted least squares of ``r`` on the templates at flat pixels ``idx``: (coefficients, delta chi2).
+
+    ``project`` (e.g. :meth:`Residuals.project`) removes the global levels from every template first, so
+    with the level-profiled residual ``r`` the coefficients are those of the joint fit of templates and
+    levels and delta chi2 is the templates' own (Frisch-Waugh-Lovell theorem). ``shape`` is the frame's,
+    for templates that broadcast (a row or a column); default: the first 2-D template's.
+    """
+    if shape is None:
+        shape = next((tuple(tm.shape) for tm in templates if np.ndim(tm) == 2), None)
+    t = np.stack([_at(tm, shape, idx) if shape is not None else np.asarray(tm, np.float64).ravel()[idx]
+                  for tm in templates])
+    return solve_templates(t, r, w, project)
+
+
+#: pixels per chunk when normal equations are accumulated [pixels]
+CHUNK_PIXELS = 500_000
+
+
+def fit_linear(res: Residuals, values: Callable[[np.ndarray], np.ndarray], idx: np.ndarray, r: np.ndarray,
+               w: np.ndarray) -> tuple[np.ndarray, float]:
+    """Weighted least squares of the residual ``r`` at flat pixels ``idx`` on the templates ``values(idx)``
+    (templates, pixels) jointly with the global levels: (coefficients of the templates, delta chi2 they
+    bring beyond the levels). The normal equations are accumulated in chunks and the levels profiled out
+    of them (Frisch-Waugh-Lovell: ``A = T'WT - T'WN (N'WN)^-1 N'WT``), so no template is ever held on
+    more than CHUNK_PIXELS pixels."""
+    tt = tn = tr = nn = nr = None
+    for a in range(0, idx.size, CHUNK_PIXELS):
+        sl = slice(a, a + CHUNK_PIXELS)
+        t = np.atleast_2d(np.asarray(values(idx[sl]), np.float64))
+        n = res.level_values(idx[sl])
+        tw, nw = t * w[sl], n * w[sl]
+        parts = (_gram(tw, t), _gram(tw, n), tw @ r[sl], _gram(nw, n), nw @ r[sl])
+        if tt is None:
+            tt, tn, tr, nn, nr = (np.array(p) for p in parts)
+        else:
+            for acc, p in zip((tt, tn, tr, nn, nr), parts):
+                acc += p
+    if tt is None:
+        return np.zeros(0), 0.0
+    raw = np.diag(tt).copy()
+    if nn.size:
+        k = np.linalg.solve(nn, tn.T)  # (levels, templates)
+        a_ = tt - tn @ k
+        b_ = tr - tn @ np.linalg.solve(nn, nr)
+    else:
+        a_, b_ = tt, tr
+    # a template with (almost) nothing left once the levels are refitted carries no information
+    dead = np.diag(a_) <= 1e-9 * np.maximum(raw, 1e-300)
+    scale = np.sqrt(np.where(dead, 1.0, np.maximum(np.diag(a_), 1e-300)))
+    an = a_ / np.outer(scale, scale)
+    an[dead, :] = 0.0
+    an[:, dead] = 0.0
+    an[dead, dead] = 1.0
+    bn = np.where(dead, 0.0, b_ / scale)
+    try:
+        cn = np.linalg.solve(an + 1e-10 * np.eye(len(bn)), bn)
+    except np.linalg.LinAlgError:
+        return np.zeros(len(bn)), 0.0
+    c = np.where(dead, 0.0, cn / scale)
+    return c, float(-(b_ @ c))
+
+
+def profiled_chi2(res: Residuals, idx: np.ndarray, y: np.ndarray, w: np.ndarray) -> float:
+    """chi2 of the residual ``y`` at flat pixels ``idx`` once the global levels are refitted to it
+    (``y'Wy - (N'Wy)' (N'WN)^-1 (N'Wy)``, accumulated in chunks)."""
+    yy, nn, ny = 0.0, None, None
+    for a in range(0, idx.size, CHUNK_PIXELS):
+        sl = slice(a, a + CHUNK_PIXELS)
+        n = res.level_values(idx[sl])
+        yw = y[sl] * w[sl]
+        yy += float(yw @ y[sl])
+        parts = ((n * w[sl]) @ n.T, n @ yw)
+        if nn is None:
+            nn, ny = parts
+        else:
+            nn, ny = nn + parts[0], ny + parts[1]
+    if nn is None or not nn.size:
+        return yy
+    return yy - float(ny @ np.linalg.solve(nn, ny))
+
+
+def search_sample(res: Residuals) -> dict:
+    """Where linear variants are compared (cached): at most LINEAR_SEARCH_PIXELS regularly spaced fitted
+    pixels with their residual and (level-profiled) weight; ``scale`` = all fitted pixels / subsample
+    (delta chi2 scales with it)."""
+    if "search" not in res._flat:
+        idx, _, w = res.flat_profiled()
+        r = res.flat()[1]
+        n = idx.size
+        sub = np.arange(0, n, max(1, int(np.ceil(n / LINEAR_SEARCH_PIXELS))))
+        res._flat["search"] = {"idx": idx[sub], "r": r[sub], "w": w[sub], "scale": n / max(sub.size, 1),
+                               "full": sub.size == n}
+    return res._flat["search"]
 
 
 class LinearSignature(Signature):
     """The effect adds a linear combination of templates to the mean frame (see module docstring).
+
+    Variants are compared on a subsample of the fitted pixels (:func:`search_sample`); the best is refined
+    (``refine``) and refitted on every fitted pixel.
 
     Parameters
     ----------
@@ -271,26 +606,35 @@ class LinearSignature(Signature):
         self.refine = refine
 
     def fit(self, res: Residuals, name: str) -> Fit | None:
-        best = self._best(res, list(self.variants(res)))
+        ctx = search_sample(res)
+        best = self._best(res, ctx, self.variants(res))
         if best is not None and self.refine is not None:
-            best = self._best(res, [best[0], *self.refine(best[0], res)]) or best
+            best = self._best(res, ctx, [best[0], *self.refine(best[0], res)]) or best
         if best is None:
             return None
         v, d, c, params = best
-        k = len(v.templates) + self.extra_k
-        delta = sum(ci * np.asarray(t, np.float32) for ci, t in zip(c, v.templates))
+        if not ctx["full"]:  # the winner on every fitted pixel (else keep the subsample's, scaled)
+            idx, _, w = res.flat_profiled()
+            c_all, d_all = fit_linear(res, lambda i: v.values(i, res.data_adu.shape), idx, res.flat()[1], w)
+            p_all = v.to_params(c_all)
+            if p_all is not None:
+                c, d, params = c_all, d_all, p_all
+        maps = v.maps()
+        k = len(maps) + self.extra_k
+        delta = sum(ci * np.asarray(t, np.float32) for ci, t in zip(c, maps))
         return Fit(name, params, d, k, res.n_fit, self.explain(params, res),
                    delta_adu=np.broadcast_to(delta, res.data_adu.shape), note=v.label)
 
     @staticmethod
-    def _best(res: Residuals, variants: list[Variant]):
-        idx, r, w = res.flat()
+    def _best(res: Residuals, ctx: dict, variants: Iterable[Variant]):
+        """The variant fitting best on the search sample (lazily: only the best one is kept)."""
         best = None
         for v in variants:
-            c, d = weighted_lstsq(v.templates, idx, r, w)
+            c, d = fit_linear(res, lambda i, v=v: v.values(i, res.data_adu.shape), ctx["idx"], ctx["r"], ctx["w"])
             params = v.to_params(c)
             if params is None:
                 continue
+            d *= ctx["scale"]
             if best is None or d < best[1]:
                 best = (v, d, c, params)
         return best
@@ -298,50 +642,218 @@ class LinearSignature(Signature):
 
 # --- added variance --------------------------------------------------------------------------------------------
 
-def ml_variance_scale(r: np.ndarray, v: np.ndarray, t: np.ndarray, z_cap: float = 8.0) -> tuple[float, float]:
+#: width [model sigma] of the outlier component of the variance likelihood (sparse defects below the spike
+#: threshold: warm pixels, weak cosmic-ray hits), and the largest fraction of pixels it may take
+OUTLIER_WIDTH = 4.0
+OUTLIER_MAX_FRACTION = 0.05
+#: pixels used at most by a variance fit (a regular subsample of the fitted pixels) [pixels]
+VARIANCE_FIT_PIXELS = 250_000
+#: highest order along each axis of the smooth cosine basis (low-frequency structure) [1]
+SMOOTH_ORDER = 5
+#: scale [output pixels] of the local mean removed before a variance fit: structure larger than this is
+#: mean structure (a gradient, a vignetting, a glow), not pixel-to-pixel scatter
+WHITE_SCALE = 6.0
+
+
+def _m2l_pixels(r: np.ndarray, s: np.ndarray, k3=None) -> np.ndarray:
+    """-2 ln of the core density of every pixel: N(0, s), or its first Edgeworth correction for a third
+    cumulant ``k3`` (``1 + k3 / (6 s^1.5) He3(z)``, kept positive)."""
+    z2 = r * r / s
+    m = z2 + np.log(2 * np.pi * s)
+    if k3 is not None:
+        z = r / np.sqrt(s)
+        corr = 1.0 + (k3 / (6.0 * s ** 1.5)) * (z * z2 - 3 * z)
+        m -= 2 * np.log(np.maximum(corr, 0.02))
+    return m
+
+
+def _mixture_m2l(core_m2l: np.ndarray, out_m2l: np.ndarray, eps0: float, outliers: bool) -> tuple[float, float]:
+    """-2 ln L of ``(1 - eps) core + eps outliers`` with eps profiled (EM); (value, eps)."""
+    if not outliers:
+        return float(np.sum(core_m2l)), 0.0
+    eps = min(max(eps0, 1e-4), OUTLIER_MAX_FRACTION)
+    d = -0.5 * (out_m2l - core_m2l)  # log ratio outlier / core density
+    for _ in range(12):
+        lr = np.log(eps) - np.log1p(-eps) + d
+        resp = 0.5 * (1 + np.tanh(0.5 * lr))  # eps p_out / p
+        new = float(np.clip(resp.mean(), 1e-6, OUTLIER_MAX_FRACTION))
+        if abs(new - eps) < 1e-5:
+            eps = new
+            break
+        eps = new
+    total = -2 * np.logaddexp(np.log1p(-eps) - 0.5 * core_m2l, np.log(eps) - 0.5 * out_m2l)
+    return float(np.sum(total)), eps
+
+
+def ml_variance_scale(r: np.ndarray, v: np.ndarray, t: np.ndarray, z_cap: float = 8.0, outliers: bool = False,
+                      k3: Callable[[float], np.ndarray | float] | None = None,
+                      k3_base: np.ndarray | float | None = None) -> tuple[float, float]:
     """Maximum-likelihood ``theta >= 0`` of ``r ~ N(0, v + theta t)``: (theta, delta(-2 ln L)).
 
-    ``-2 ln L = sum r^2 / (v + theta t) + ln(v + theta t)``; each pixel's ``r^2 / v`` is capped at
-    ``z_cap^2`` so a few outliers cannot dominate (they are compared by their counts instead).
+    ``-2 ln L = sum r^2 / (v + theta t) + ln(v + theta t)``; ``r`` is clipped at ``z_cap`` model sigmas so a
+    few outliers cannot dominate (they are compared by their counts instead). With ``outliers`` each pixel
+    may instead belong, with a profiled probability ``eps <= OUTLIER_MAX_FRACTION``, to a broad component
+    ``N(0, OUTLIER_WIDTH^2 v)``: the sparse defects every real frame holds below the spike threshold, which a
+    Gaussian likelihood would mistake for added variance (a mixture model of outliers: Hogg, Bovy & Lang
+    2010, arXiv:1008.4686). ``k3(theta)`` is the effect's third cumulant per pixel (a skewed law: lognormal
+    DSNU), entering through the first Edgeworth term; ``k3_base`` the model's own (Poisson: the mean charge),
+    so that only skewness beyond the shot noise's counts for a skewed effect.
     """
-    r2 = np.minimum(r * r, z_cap * z_cap * v)
+    r = np.clip(r, -z_cap * np.sqrt(v), z_cap * np.sqrt(v))
+    out_m2l = _m2l_pixels(r, OUTLIER_WIDTH ** 2 * v) if outliers else None
+    state = {"eps": 1e-3}
 
     def m2l(theta):
-        s = v + theta * t
-        return float(np.sum(r2 / s + np.log(s)))
+        k = k3_base
+        if k3 is not None and theta > 0:
+            k = k3(theta) if k is None else k + k3(theta)
+        core = _m2l_pixels(r, v + theta * t, k)
+        val, eps = _mixture_m2l(core, out_m2l, state["eps"], outliers)
+        state["eps"] = eps
+        return val
 
     base = m2l(0.0)
-    tmax = max(float(np.mean(r2) / max(np.mean(t), 1e-30)), 1e-30) * 10
+    tmax = max(float(np.mean(r * r) / max(np.mean(t), 1e-30)), 1e-30) * 10
     best = optimize.minimize_scalar(lambda lt: m2l(np.exp(lt)), bounds=(np.log(tmax) - 30, np.log(tmax)),
-                                    method="bounded", options={"xatol": 1e-4})
+                                    method="bounded", options={"xatol": 1e-3})
     theta = float(np.exp(best.x))
     d = m2l(theta) - base
     return (theta, d) if d < 0 else (0.0, 0.0)
 
 
+def cosine_basis(shape: tuple[int, int], idx: np.ndarray, order: int = SMOOTH_ORDER, constant: bool = True
+                 ) -> np.ndarray:
+    """Smooth (low-frequency) templates at flat pixels ``idx`` of a frame of ``shape``: the products
+    ``cos(pi k (x + 1/2) / W) cos(pi l (y + 1/2) / H)``, ``0 <= k, l <= order`` (the DCT-II basis of the
+    frame's large scales), shape (templates, pixels)."""
+    h, w = shape
+    y, x = np.divmod(idx, w)
+    cx = np.cos(np.pi * np.outer(np.arange(order + 1), (x + 0.5) / w))
+    cy = np.cos(np.pi * np.outer(np.arange(order + 1), (y + 0.5) / h))
+    rows = [cx[k] * cy[m] for k in range(order + 1) for m in range(order + 1) if k or m or constant]
+    return np.asarray(rows)
+
+
+def lstsq_delta(r: np.ndarray, w: np.ndarray, temps: np.ndarray, nuisance: np.ndarray | None = None
+                ) -> tuple[np.ndarray, float, np.ndarray]:
+    """Weighted least squares of ``r`` on ``temps`` (rows) jointly with ``nuisance`` templates (rows):
+    (coefficients of ``temps``, delta chi2 they bring beyond the nuisance, the fitted ``temps`` part)."""
+    def solve(x):
+        xw = x * w
+        a = _gram(xw, x)
+        b = xw @ r
+        sc = np.sqrt(np.maximum(np.diag(a), 1e-300))
+        c = np.linalg.lstsq(a / np.outer(sc, sc), b / sc, rcond=1e-10)[0] / sc
+        return c, float(b @ c)
+
+    x = temps if nuisance is None else np.vstack([temps, nuisance])
+    c, gain = solve(x)
+    gain0 = solve(nuisance)[1] if nuisance is not None and len(nuisance) else 0.0
+    k = len(temps)
+    return c[:k], -(gain - gain0), c[:k] @ temps
+
+
+def variance_sample(res: Residuals) -> dict:
+    """The pixels the variance fits use (cached): a regular subsample of at most VARIANCE_FIT_PIXELS fitted
+    pixels, their level-profiled residual ``r`` and variance ``v``, and ``r_white``: the residual without
+    its local mean (a Gaussian of :data:`WHITE_SCALE` pixels, normalised convolution over the fitted
+    pixels, rescaled for the variance the subtraction removes), so that mean structure a model lacks (a
+    gradient, a vignetting, a glow) is not mistaken for pixel-to-pixel scatter."""
+    if "variance_sample" not in res._flat:
+        from scipy.ndimage import gaussian_filter
+
+        idx, r, w = res.flat_profiled()
+        step = max(1, idx.size // VARIANCE_FIT_PIXELS)
+        sub = np.arange(0, idx.size, step)
+        rs, ws = r[sub], w[sub]
+        # the local weighted mean (normalised convolution with a Gaussian of WHITE_SCALE output pixels)
+        rw, ww = np.zeros(res.data_adu.size, np.float32), np.zeros(res.data_adu.size, np.float32)
+        rw[idx], ww[idx] = r * w, w
+        rw = gaussian_filter(rw.reshape(res.data_adu.shape), WHITE_SCALE, mode="nearest").ravel()
+        ww = gaussian_filter(ww.reshape(res.data_adu.shape), WHITE_SCALE, mode="nearest").ravel()
+        smooth = rw[idx[sub]] / np.maximum(ww[idx[sub]], 1e-30)
+        # white noise keeps 1 - 3 / (4 pi s^2) of its variance through r - G * r
+        keep_var = 1.0 - 3.0 / (4 * np.pi * WHITE_SCALE ** 2)
+        # the shot noise's own skewness: third cumulant = mean charge [e-], in ADU^3
+        b = res.sensor.binning
+        k3_poisson = res.charge_e.ravel()[idx[sub]].astype(np.float64) / res.gain ** 3
+        if res.sensor.binning_mode == "average":
+            k3_poisson /= float(b) ** 4
+        res._flat["variance_sample"] = {"sub": sub, "idx": idx[sub], "r": rs, "v": 1.0 / ws, "w": ws,
+                                        "r_white": (rs - smooth) / np.sqrt(keep_var),
+                                        "scale": idx.size / max(sub.size, 1),
+                                        "k3_poisson": k3_poisson}
+    return res._flat["variance_sample"]
+
+
+def smooth_component(res: Residuals, template: np.ndarray) -> tuple[float, float, int]:
+    """The low-frequency part of a multiplicative pattern: the level-profiled residual fitted by the smooth
+    cosine basis times ``template`` (e.g. the photo-signal for a PRNU map's large scales). Returns (delta
+    -2 ln L over all fitted pixels, rms of the fitted relative pattern, number of templates)."""
+    vs = variance_sample(res)
+    t = _at(template, res.data_adu.shape, vs["idx"])
+    if not np.any(t):
+        return 0.0, 0.0, 0
+    basis = cosine_basis(res.data_adu.shape, vs["idx"], constant=False)
+    levels = np.stack([_at(x, res.data_adu.shape, vs["idx"]) for x in res.level_templates()])
+    _, d, part = lstsq_delta(vs["r"], vs["w"], basis * t, levels)
+    rel = part / np.where(t != 0, t, np.inf)
+    return d * vs["scale"], float(np.sqrt(np.mean(rel * rel))), basis.shape[0]
+
+
 class VarianceSignature(Signature):
-    """The effect adds zero-mean scatter of variance ``theta * template(res)`` [ADU^2 per unit theta]."""
+    """The effect adds zero-mean scatter of variance ``theta * template(res)`` [ADU^2 per unit theta].
+
+    Fitted on the pixel-to-pixel part of the level-profiled residual (:func:`variance_sample`) with the
+    outlier mixture of :func:`ml_variance_scale`. Options:
+
+    laws : dict law -> k3(theta, res, idx) or None
+        Distribution laws of the pattern; a skewed law gives its third cumulant per pixel. More than one
+        law counts one parameter more (the choice), so a symmetric scatter is not claimed by the effect
+        with a law to choose over an effect without.
+    smooth : callable(res) -> template, optional
+        A pattern with low-frequency power too (a PRNU map): when the scatter is significant, the fit of
+        the smooth cosine basis times this template is added (its templates counted) when the BIC prefers it.
+    """
 
     kind = "variance"
 
-    def __init__(self, template: Callable[[Residuals], np.ndarray], to_params: Callable[[float, Residuals], dict | None],
-                 explain: Callable[[dict, Residuals], str], pattern: str = ""):
+    def __init__(self, template: Callable[[Residuals], np.ndarray], to_params: Callable[..., dict | None],
+                 explain: Callable[[dict, Residuals], str], pattern: str = "", laws: dict | None = None,
+                 smooth: Callable[[Residuals], np.ndarray] | None = None):
         self.template, self.to_params, self.explain, self.pattern = template, to_params, explain, pattern
+        self.laws, self.smooth = laws, smooth
 
     def fit(self, res: Residuals, name: str) -> Fit | None:
-        idx, r, w = res.flat()
-        sub = res.subsample()
-        t = np.broadcast_to(self.template(res), res.data_adu.shape).ravel()[idx[sub]].astype(np.float64)
+        vs = variance_sample(res)
+        full = self.template(res)
+        t = _at(full, res.data_adu.shape, vs["idx"])
         if not np.any(t > 0):
             return None
-        theta, d = ml_variance_scale(r[sub], 1.0 / w[sub], t)
-        params = self.to_params(theta, res)
+        best = None
+        for law, k3 in (self.laws or {None: None}).items():
+            k3f = None if k3 is None else (lambda th, k3=k3: k3(th, res, vs["idx"]))
+            theta, d = ml_variance_scale(vs["r_white"], vs["v"], t, outliers=True, k3=k3f, k3_base=vs["k3_poisson"])
+            if best is None or d < best[1]:
+                best = (theta, d, law)
+        theta, d, law = best
+        params = self.to_params(theta, res) if law is None else self.to_params(theta, res, law)
         if params is None:
             return None
-        # the likelihood was evaluated on a subsample: scale to all fitted pixels
-        d *= res.n_fit / sub.size
-        extra = theta * np.broadcast_to(self.template(res), res.data_adu.shape)
-        return Fit(name, params, d, 1, res.n_fit, self.explain(params, res), extra_var_adu2=extra)
+        d *= vs["scale"]  # the likelihood was evaluated on a subsample: scale to all fitted pixels
+        k = 1 + (1 if self.laws and len(self.laws) > 1 else 0)
+        n = res.n_fit
+        note = law or ""
+        extra = {}
+        if self.smooth is not None and d + k * np.log(max(n, 2)) < -10:
+            ds, rms, m = smooth_component(res, self.smooth(res))
+            if m and ds + m * np.log(max(n, 2)) < 0:
+                d, k = d + ds, k + m
+                extra = {"smooth_rms": rms}
+                note = (note + " " if note else "") + f"+ low-frequency pattern {100 * rms:.2g} % rms"
+        params_explain = {**params, **extra}
+        return Fit(name, params, d, k, n, self.explain(params_explain, res),
+                   extra_var_adu2=theta * np.broadcast_to(full, res.data_adu.shape), note=note)
 
 
 # --- counts ------------------------------------------------------------------------------------------------------
@@ -356,6 +868,17 @@ def poisson_deviance(observed: float, expected: float) -> float:
 def count_gain(observed: float, model_expected: float) -> float:
     """delta(-2 ln L) when an effect raises the expected count from ``model_expected`` to ``observed``."""
     return -poisson_deviance(observed, model_expected)
+
+
+def two_sample_count_gain(observed: float, model_count: float) -> float:
+    """delta(-2 ln L) of "the measured rate differs from the model's" when the model's count comes from one
+    realisation of the model (itself Poisson): the likelihood ratio of two Poisson counts with separate
+    means against a common mean, ``-2 [o ln(o / m0) + m ln(m / m0)]`` with ``m0 = (o + m) / 2``."""
+    o, m = max(float(observed), 0.0), max(float(model_count), 0.0)
+    m0 = (o + m) / 2
+    if m0 <= 0:
+        return 0.0
+    return float(-2 * ((o * np.log(o / m0) if o > 0 else 0.0) + (m * np.log(m / m0) if m > 0 else 0.0)))
 
 
 class CountSignature(Signature):
@@ -373,7 +896,8 @@ class CountSignature(Signature):
         if out is None:
             return None
         params, observed, expected, k = out
-        return Fit(name, params, count_gain(observed, expected), k, max(int(observed + expected), 2),
+        # the model's count is one realisation's (Poisson itself): the two-sample likelihood ratio
+        return Fit(name, params, two_sample_count_gain(observed, expected), k, max(int(observed + expected), 2),
                    self.explain(params, res))
 
 

@@ -51,25 +51,49 @@ def bleed_columns(image_e: np.ndarray, full_well_e: float, up_fraction: float = 
     return lost
 
 
+#: spill thresholds (fractions of the full well) and upward shares tried by the diagnosis
+_THRESHOLDS = (0.8, 0.85, 0.9, 0.95, 1.0)
+_UP_FRACTIONS = (0.0, 0.25, 0.5, 0.75, 1.0)
+
+
 def _blooming_variants(res):
-    fw = res.sensor.full_well_e * res.pixel_sum
-    charge = res.charge_e.astype(np.float32)
-    if not (charge > fw).any():
+    """Bleed trails of the model's own charge: the photo-signal *before* the full-well clip (the model's
+    ``photo_field_adu``) spilled along the columns, minus the clipped charge the model has. Variants over
+    the spill threshold and the upward share; the fitted amplitude (1 for charge conservation) absorbs a
+    drain that removes part of the excess."""
+    photo = res.__dict__.get("photo_field_adu")
+    if photo is None:
         return
-    bled = charge.copy()
-    bleed_columns(bled, fw, 0.5)
-    t = (bled - charge) / np.float32(res.gain)
+    g = np.float32(res.gain)
+    fw_sensor = res.sensor.full_well_e
+    fw = np.float32(fw_sensor * res.pixel_sum)
+    charge = photo.astype(np.float32) * g
+    if not (charge > fw * min(_THRESHOLDS)).any():
+        return
+    clipped = np.minimum(charge, fw)
+    for thr in _THRESHOLDS:
+        for up in _UP_FRACTIONS:
+            bled = charge.copy()
+            bleed_columns(bled, float(thr * fw), up)
+            t = (np.minimum(bled, fw) - clipped) / g
 
-    def to_params(c):
-        return {"up_fraction": 0.5} if 0.3 < c[0] < 3 else None
+            def to_params(c, thr=thr, up=up):
+                if not 0.3 < c[0] < 3:
+                    return None
+                p = {"up_fraction": up}
+                if thr < 1:
+                    p["threshold_e"] = round(thr * fw_sensor, 1)
+                return p
 
-    yield Variant([t], to_params)
+            yield Variant([t], to_params, f"threshold {thr:g} FW, {100 * up:.0f} % up")
 
 
 _BLOOMING_SIGNATURE = LinearSignature(
     _blooming_variants,
-    lambda p, res: "charge spilling along the columns of saturated sources: blooming",
-    pattern="column trails of excess charge at saturated sources", extra_k=0)
+    lambda p, res: (f"charge spilling along the columns of saturated sources ({100 * p['up_fraction']:.0f} % "
+                    f"upwards{', from ' + format(p['threshold_e'], '.3g') + ' e-' if 'threshold_e' in p else ''}): "
+                    "blooming"),
+    pattern="column trails of excess charge at saturated sources", extra_k=2)
 
 
 class BloomingParams(EffectParams):

@@ -16,7 +16,7 @@ from typing import Literal
 import numpy as np
 from pydantic import Field
 
-from ..diagnosis import CountSignature, frame_fraction
+from ..diagnosis import CountSignature, Fit, Signature, frame_fraction
 from .base import Effect, EffectParams, Stage, Tile, register_effect
 from .common import hardware_positions, in_tile, output_xy, roi_mask
 
@@ -72,22 +72,104 @@ def _hot_counts(res):
     t2_limit = float(hot_rate_e_per_s(np.array([limit_e / t]), s.bias_adu, s.gain_e_per_adu)[0])
     shape = 0.8
     scale, frac = weibull_from_detections(t2, t2_limit, shape)
-    count = int(round((d.single_pos - m.single_pos) / max(frac, 1e-6) / frame_fraction(res)))
+    count = round((d.single_pos - m.single_pos) / max(frac, 1e-6) / frame_fraction(res))
     count = min(count, 10_000_000)
     return ({"count": count, "law": "weibull", "weibull_shape": shape, "scale_s": round(scale, 3)},
             d.single_pos, m.single_pos, 2)
 
 
-def _column_counts(res):
-    d, m = res.data_spikes, res.model_spikes
-    hot, cold = max(d.hot_cols - m.hot_cols, 0), max(d.cold_cols - m.cold_cols, 0)
-    if hot + cold == 0:
-        return None
-    frac = res.sensor.roi_shape[0] / res.sensor.sensor_width_px
-    rate = float(np.median(d.col_excess_e)) / res.pixel_sum / max(res.exptime_s, 1e-9) if d.col_excess_e.size else 0.0
-    params = {"hot_columns": int(round(hot / frac)), "hot_rate_e_per_s": round(max(rate, 0.0), 4),
-              "dead_columns": int(round(cold / frac))}
-    return params, d.hot_cols + d.cold_cols, m.hot_cols + m.cold_cols, 3
+def column_mixture_gain(x: np.ndarray, threshold: float) -> tuple[float, int]:
+    """delta(-2 ln L) of column means ``x`` [standard errors] explained by a mixture of normal columns
+    N(0, 1) and outlier populations -- hot columns N(mu_h, 1 + tau_h^2) with mu_h >= threshold and dead
+    (cold) columns N(mu_c, 1 + tau_c^2) with mu_c <= -threshold -- against normal columns only (EM fit of
+    the fractions, means and spreads). Returns (delta, parameters fitted)."""
+    comps = []
+    for sign in (1, -1):
+        sel = sign * x > threshold
+        if sel.any():
+            comps.append([sign, sel.mean(), float(x[sel].mean()), max(float(x[sel].var()), 0.0)])
+    if not comps:
+        return 0.0, 0
+
+    def logn(v, mu, var):
+        return -0.5 * ((v - mu) ** 2 / var + np.log(2 * np.pi * var))
+
+    for _ in range(100):
+        f0 = 1 - sum(c[1] for c in comps)
+        logs = [np.log(max(f0, 1e-12)) + logn(x, 0.0, 1.0)] + [np.log(max(c[1], 1e-12)) + logn(x, c[2], 1 + c[3])
+                                                               for c in comps]
+        tot = np.logaddexp.reduce(logs, axis=0)
+        for c, lg in zip(comps, logs[1:]):
+            g = np.exp(lg - tot)
+            sg = max(g.sum(), 1e-12)
+            c[1] = sg / x.size
+            mu = float((g * x).sum() / sg)
+            c[2] = c[0] * max(c[0] * mu, threshold)
+            c[3] = max(float((g * (x - c[2]) ** 2).sum() / sg) - 1, 0.0)
+    f0 = 1 - sum(c[1] for c in comps)
+    logs = [np.log(max(f0, 1e-12)) + logn(x, 0.0, 1.0)] + [np.log(max(c[1], 1e-12)) + logn(x, c[2], 1 + c[3])
+                                                           for c in comps]
+    d = -2 * float(np.sum(np.logaddexp.reduce(logs, axis=0) - logn(x, 0.0, 1.0)))
+    return min(d, 0.0), 3 * len(comps)
+
+
+class ColumnSignature(Signature):
+    """Hot and dead columns from the likelihood of the column means, not only their number.
+
+    Every column's mean residual against its running median (``SpikeStats.col_z``, in standard errors,
+    rescaled by their robust scatter so that a white excess of variance is not taken for columns) is
+    modelled as normal columns plus hot and dead populations (:func:`column_mixture_gain`); what the
+    model's own realisation gives the same way is subtracted (what the model already produces). The
+    parameters are the plugin's: outlier columns scaled to the sensor width, their median excess rate.
+    """
+
+    kind = "columns"
+    pattern = "outlier columns"
+
+    @staticmethod
+    def _gain(z: np.ndarray) -> tuple[float, int, np.ndarray]:
+        from ..diagnosis import LINE_SIGMA
+
+        z = z[np.isfinite(z)] if z.size else z
+        if z.size < 16:
+            return 0.0, 0, z
+        scale = max(1.0, 1.4826 * float(np.median(np.abs(z - np.median(z)))))
+        x = z / scale
+        d, k = column_mixture_gain(x, LINE_SIGMA)
+        return d, k, x
+
+    @staticmethod
+    def _source_columns(res) -> np.ndarray:
+        """Columns holding a pixel the model fills to within 80 % of the full well: a saturated source's
+        column, where excess charge is blooming (it starts at the source), not a column defect."""
+        fw = res.sensor.full_well_e * res.pixel_sum
+        return (res.charge_e >= 0.8 * fw).any(axis=0)
+
+    def fit(self, res, name):
+        from ..diagnosis import LINE_SIGMA
+
+        src = self._source_columns(res)
+        zd = np.where(src, np.nan, res.data_spikes.col_z) if res.data_spikes.col_z.size == src.size else \
+            res.data_spikes.col_z
+        d_data, k, x = self._gain(zd)
+        if k == 0:
+            return None
+        zm = res.model_spikes.col_z
+        d_model = self._gain(np.where(src, np.nan, zm) if zm.size == src.size else zm)[0] if zm.size else 0.0
+        d = min(d_data - d_model, 0.0)
+        s = res.sensor
+        frac = s.roi_shape[0] / s.sensor_width_px
+        hot, cold = int((x > LINE_SIGMA).sum()), int((x < -LINE_SIGMA).sum())
+        exc = res.data_spikes.col_excess_e  # of the outlier columns (source columns are not told apart here)
+        rate = float(np.median(exc)) / res.pixel_sum / max(res.exptime_s, 1e-9) if exc.size else 0.0
+        params = {"hot_columns": round(hot / frac), "hot_rate_e_per_s": round(max(rate, 0.0), 4),
+                  "dead_columns": round(cold / frac)}
+        return Fit(name, params, d, k, int(x.size), _column_words(params, res))
+
+
+def _column_words(p, res):
+    return (f"whole columns above ({p['hot_columns']} on the sensor, {p['hot_rate_e_per_s']:.3g} e-/s) or below "
+            f"({p['dead_columns']}) their neighbours: column defects")
 
 
 _HOT_SIGNATURE = CountSignature(
@@ -95,11 +177,7 @@ _HOT_SIGNATURE = CountSignature(
     lambda p, res: (f"isolated bright pixels that do not move with the sky ({p['count']} on the sensor, "
                     f"time-to-double scale {p['scale_s']:.3g} s): hot and warm pixels"),
     pattern="isolated positive spikes")
-_COLUMN_SIGNATURE = CountSignature(
-    _column_counts,
-    lambda p, res: (f"whole columns above ({p['hot_columns']}, {p['hot_rate_e_per_s']:.3g} e-/s) or below "
-                    f"({p['dead_columns']}) their neighbours: column defects"),
-    pattern="outlier columns")
+_COLUMN_SIGNATURE = ColumnSignature()
 
 
 # --- adapters ----------------------------------------------------------------------------------------------

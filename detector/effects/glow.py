@@ -56,17 +56,37 @@ _EDGES = ("left", "right", "top", "bottom", "bottom-left", "bottom-right", "top-
 _SCALES = tuple(np.geomspace(0.005, 0.5, 9))  # e-folding lengths tried, fractions of the longer sensor side
 
 
+def _edge_distance(res, where: str, y: np.ndarray, x: np.ndarray) -> np.ndarray:
+    """Distance [sensor px] of output pixels (row index y, column index x) to an edge or corner."""
+    s = res.sensor
+    ys, xs = res.ys[y], res.xs[x]
+    dx = {"left": lambda: xs, "right": lambda: (s.sensor_width_px - 1) - xs}
+    dy = {"bottom": lambda: ys, "top": lambda: (s.sensor_height_px - 1) - ys}
+    parts = where.split("-")
+    if len(parts) == 2:
+        return np.hypot(dy[parts[0]](), dx[parts[1]]())
+    return dx[where]() if where in dx else dy[where]()
+
+
 def _glow_variant(res, where: str, scale: float) -> Variant:
     s = res.sensor
-    t = np.zeros(res.data_adu.shape, np.float32)
-    edge_rate(res.ys, res.xs, s.sensor_height_px, s.sensor_width_px, where, 1.0, scale, t)
-    t *= np.float32(res.exptime_s * res.pixel_sum / res.gain)
+    unit = float(res.exptime_s * res.pixel_sum / res.gain)
+    w = res.data_adu.shape[1]
+
+    def at(idx):
+        y, x = np.divmod(idx, w)
+        return (unit * np.exp(-_edge_distance(res, where, y, x) / scale))[None, :]
+
+    def maps():
+        t = np.zeros(res.data_adu.shape, np.float32)
+        edge_rate(res.ys, res.xs, s.sensor_height_px, s.sensor_width_px, where, 1.0, scale, t)
+        return [t * np.float32(unit)]
 
     def to_params(c):
         return ({"model": "edge", "edge": where, "amplitude_e_per_s": round(float(c[0]), 6),
-                 "scale_px": round(scale, 1)} if 0 < c[0] <= 1e6 else None)
+                 "scale_px": round(float(scale), 1)} if 0 < c[0] <= 1e6 else None)
 
-    return Variant([t], to_params, f"{where}|{scale}")
+    return Variant(maps, to_params, f"{where}|{scale}", at=at)
 
 
 def _glow_variants(res):

@@ -27,7 +27,15 @@ import numpy as np
 from pydantic import Field
 from scipy import ndimage, signal
 
-from ..diagnosis import Fit, LinearSignature, Signature, Variant, weighted_lstsq
+from ..diagnosis import (
+    Fit,
+    LinearSignature,
+    Signature,
+    Variant,
+    fit_linear,
+    profiled_chi2,
+    search_sample,
+)
 from .base import Effect, EffectParams, Stage, Tile, register_effect
 
 # --- pure functions -------------------------------------------------------------------------------------------
@@ -137,7 +145,10 @@ class TransformSignature(Signature):
     def fit(self, res, name):
         if not _has_structure(res):
             return None
-        idx, r, w = res.flat()
+        # Gauss-Newton on the search subsample of the fitted pixels, with the global levels refitted at every
+        # step (detector.diagnosis.fit_linear / profiled_chi2); the result is evaluated on every fitted pixel
+        ctx = search_sample(res)
+        sidx, sr, sw = ctx["idx"], ctx["r"], ctx["w"]
         # transform the photo-signal before the full-well clip, then clip as the chain does
         photo = np.asarray(res.__dict__.get("photo_field_adu", res.photo_adu), np.float64)
         cap = res.sensor.full_well_e * res.pixel_sum / res.gain
@@ -149,15 +160,15 @@ class TransformSignature(Signature):
         def image(th):
             return np.minimum(self.transform(res, photo, th), cap)
 
-        def chi2_of(th):
-            d = (image(th) - clipped).ravel()[idx]
-            return float(np.dot((r - d) ** 2, w))
+        def chi2_of(th, idx=sidx, r=sr, w=sw):
+            return profiled_chi2(res, idx, r - (image(th) - clipped).ravel()[idx], w)
 
         best = chi2_of(theta)
         for _ in range(self.n_iter):
             base = image(theta)
-            jac = [(image(theta + h * e) - base) / h for h, e in zip(self.steps, np.eye(theta.size))]
-            step, _ = weighted_lstsq(jac, idx, r - (base - clipped).ravel()[idx], w)
+            jac = [((image(theta + h * e) - base) / h).ravel() for h, e in zip(self.steps, np.eye(theta.size))]
+            step, _ = fit_linear(res, lambda i, jac=jac: np.stack([j[i] for j in jac]), sidx,
+                                 sr - (base - clipped).ravel()[sidx], sw)
             lam, improved = 1.0, False
             while lam > 1e-3:
                 trial = theta + lam * step
@@ -171,8 +182,11 @@ class TransformSignature(Signature):
         params = self.to_params(theta, res)
         if params is None:
             return None
+        idx, _, w = res.flat_profiled()
+        r = res.flat()[1]
         delta = (image(theta) - clipped).astype(np.float32)
-        return Fit(name, params, best - res.chi2(), theta.size, res.n_fit, self.explain(params, res), delta_adu=delta)
+        d = profiled_chi2(res, idx, r - delta.ravel()[idx], w) - res.chi2_profiled()
+        return Fit(name, params, d, theta.size, res.n_fit, self.explain(params, res), delta_adu=delta)
 
 
 def _derivatives(res) -> dict:
@@ -197,8 +211,9 @@ def _has_structure(res) -> bool:
 def _linear_start(res, names: list[str], scale: list[float]) -> np.ndarray:
     """First-order estimate from the derivative templates (heat-equation / Taylor linearisation)."""
     d = _derivatives(res)
-    idx, r, w = res.flat()
-    c, _ = weighted_lstsq([s_ * d[n] for n, s_ in zip(names, scale)], idx, r, w)
+    ctx = search_sample(res)
+    c, _ = fit_linear(res, lambda i: np.stack([s_ * d[n].ravel()[i] for n, s_ in zip(names, scale)]), ctx["idx"],
+                      ctx["r"], ctx["w"])
     return c
 
 
@@ -268,8 +283,8 @@ def _distortion_start(res):
     yc, xc = _sensor_centre(res)
     yy, xx = np.meshgrid(res.ys - yc, res.xs - xc, indexing="ij")
     t = -(d["x"] * xx + d["y"] * yy) * (xx * xx + yy * yy) / b
-    idx, r, w = res.flat()
-    c, _ = weighted_lstsq([t], idx, r, w)
+    ctx = search_sample(res)
+    c, _ = fit_linear(res, lambda i: t.ravel()[i][None, :], ctx["idx"], ctx["r"], ctx["w"])
     return np.array([float(c[0])])
 
 

@@ -77,28 +77,74 @@ def map_interpolator(u: np.ndarray, v: np.ndarray, ri: np.ndarray):
     return f
 
 
-def _vignetting_variants(res):
+#: centre offsets of the radial model tried by the diagnosis, fractions of the half-diagonal (a decentred or
+#: tilted secondary moves the vignetting centre off the optical axis)
+_CENTRE_GRID = (-0.2, -0.1, 0.0, 0.1, 0.2)
+
+
+def _vignetting_variant(res, cx_mm: float, cy_mm: float):
     s = res.sensor
     pitch_mm = s.pixel_pitch_um * 1e-3
-    u = (res.xs - (s.sensor_width_px - 1) / 2.0) * pitch_mm
-    v = (res.ys - (s.sensor_height_px - 1) / 2.0) * pitch_mm
+    u = (res.xs - (s.sensor_width_px - 1) / 2.0) * pitch_mm - cx_mm
+    v = (res.ys - (s.sensor_height_px - 1) / 2.0) * pitch_mm - cy_mm
     r_corner = 0.5 * pitch_mm * float(np.hypot(s.sensor_width_px, s.sensor_height_px))
-    rho2 = ((u[None, :] ** 2 + v[:, None] ** 2) / r_corner ** 2).astype(np.float32)
-    photo = res.photo_adu.astype(np.float32)
+    photo = res.photo_adu
+    w = photo.shape[1]
+
+    def at(idx):
+        y, x = np.divmod(idx, w)
+        rho2 = (u[x] ** 2 + v[y] ** 2) / r_corner ** 2
+        p = photo.ravel()[idx].astype(np.float64)
+        return np.stack([-p * rho2, -p * rho2 * rho2])
+
+    def maps():
+        rho2 = ((u[None, :] ** 2 + v[:, None] ** 2) / r_corner ** 2).astype(np.float32)
+        ph = photo.astype(np.float32)
+        return [-ph * rho2, -ph * rho2 * rho2]
 
     def to_params(c):
         a2, a4 = (float(x) for x in c)
         ok = -1 <= a2 <= 1 and -1 <= a4 <= 1 and a2 + a4 < 1
-        return {"a2": round(a2, 6), "a4": round(a4, 6)} if ok else None
+        p = {"a2": round(a2, 6), "a4": round(a4, 6)}
+        if cx_mm or cy_mm:
+            p.update(centre_x_mm=round(cx_mm, 3), centre_y_mm=round(cy_mm, 3))
+        return p if ok else None
 
-    yield Variant([-photo * rho2, -photo * rho2 * rho2], to_params)
+    return Variant(maps, to_params, f"{cx_mm}|{cy_mm}", at=at)
+
+
+def _half_diagonal_mm(res) -> float:
+    s = res.sensor
+    return 0.5 * s.pixel_pitch_um * 1e-3 * float(np.hypot(s.sensor_width_px, s.sensor_height_px))
+
+
+def _vignetting_variants(res):
+    if not np.any(res.photo_adu > 0):
+        return
+    rc = _half_diagonal_mm(res)
+    for fx in _CENTRE_GRID:
+        for fy in _CENTRE_GRID:
+            yield _vignetting_variant(res, fx * rc, fy * rc)
+
+
+def _vignetting_refine(best, res):
+    cx, cy = (float(x) for x in best.label.split("|"))
+    step = 0.1 * _half_diagonal_mm(res)
+    for _ in range(2):  # two rounds of a 3x3 pattern around the best centre, halving the step
+        step /= 2
+        for dx in (-step, 0.0, step):
+            for dy in (-step, 0.0, step):
+                if dx or dy:
+                    yield _vignetting_variant(res, cx + dx, cy + dy)
 
 
 _VIGNETTING_SIGNATURE = LinearSignature(
     _vignetting_variants,
     lambda p, res: (f"light falling off towards the corners, {100 * (p['a2'] + p['a4']):.3g} % at the corner, "
-                    "proportional to the signal: vignetting"),
-    pattern="multiplicative radial fall-off of the light", extra_k=0)
+                    "proportional to the signal"
+                    + (f", centred at ({p['centre_x_mm']:+.3g}, {p['centre_y_mm']:+.3g}) mm off the axis"
+                       if "centre_x_mm" in p else "") + ": vignetting"),
+    pattern="multiplicative radial fall-off of the light", extra_k=2, refine=_vignetting_refine)
 
 
 class VignettingParams(EffectParams):

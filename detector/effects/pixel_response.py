@@ -77,18 +77,62 @@ def _prnu_params(theta: float, res) -> dict | None:
     return {"sigma": round(sigma, 6)} if 0 < sigma <= 0.5 else None
 
 
-def _dsnu_params(theta: float, res) -> dict | None:
+def _dsnu_params(theta: float, res, law: str = "lognormal") -> dict | None:
     sigma = float(np.sqrt(theta))
-    return {"sigma": round(sigma, 6), "law": "lognormal"} if 0 < sigma <= 5 else None
+    return {"sigma": round(sigma, 6), "law": law} if 0 < sigma <= 5 else None
+
+
+def _pixels_per_output(res) -> float:
+    """Sensor pixels whose patterns average into one output pixel's relative scatter (b^2 when binned)."""
+    return float(res.sensor.binning ** 2)
+
+
+def _prnu_template(res):
+    """Variance [ADU^2] of a unit-sigma response map: (photo)^2, divided by the b^2 pixels a binned output
+    pixel sums or averages (their maps are independent)."""
+    return res.photo_adu.astype(np.float64) ** 2 / _pixels_per_output(res)
+
+
+def _dsnu_template(res):
+    return (res.dark_e.astype(np.float64) / res.gain) ** 2 / _pixels_per_output(res)
+
+
+def _dsnu_lognormal_k3(theta: float, res, idx) -> np.ndarray:
+    """Third cumulant [ADU^3] of a lognormal DSNU of relative variance theta: (3 + s^2) s^4 D^3 per sensor
+    pixel (skewness (3 + s^2) s), summed over the b^2 pixels of an output pixel: (3 + theta) theta^2 t^1.5 / b
+    with t the variance template."""
+    d = res.dark_e.ravel()[idx].astype(np.float64) / res.gain
+    b = res.sensor.binning
+    return (3 + theta) * theta ** 2 * (d * d / (b * b)) ** 1.5 / b
+
+
+def _lit(res, index: np.ndarray) -> np.ndarray:
+    """Which of these pixels receive enough light that losing it is a 5-sigma deficit (a dead pixel can only
+    be seen where light falls: it loses its photo-response, not its dark signal or bias)."""
+    from ..diagnosis import SPIKE_SIGMA
+
+    if index.size == 0:
+        return np.zeros(0, bool)
+    p = res.photo_adu.ravel()[index]
+    return p > SPIKE_SIGMA * np.sqrt(res.var_adu2.ravel()[index])
 
 
 def _dead_counts(res):
-    obs, exp = res.data_spikes.single_neg, res.model_spikes.single_neg
+    d, m = res.data_spikes, res.model_spikes
+    lit_d = _lit(res, d.single_neg_index)
+    obs = int(lit_d.sum()) if d.single_neg_index.size or not d.single_neg else d.single_neg
+    exp = int(_lit(res, m.single_neg_index).sum()) if m.single_neg_index.size or not m.single_neg else m.single_neg
     if obs <= exp:
         return None
-    ratio = res.data_spikes.single_neg_ratio
+    idx = d.single_neg_index[lit_d] if d.single_neg_index.size else None
+    if idx is not None and idx.size:
+        # residual response: (data - dark part) / (model photo part), from the model's pieces
+        photo = res.photo_adu.ravel()[idx]
+        ratio = 1.0 + (res.data_adu.ravel()[idx] - res.model_adu.ravel()[idx]) / photo
+    else:
+        ratio = d.single_neg_ratio
     response = float(np.clip(np.median(ratio), 0.0, 0.99)) if ratio.size else 0.0
-    count = int(round((obs - exp) / frame_fraction(res)))
+    count = round((obs - exp) / frame_fraction(res))
     return {"count": count, "response": round(response, 4)}, obs, exp, 2
 
 
@@ -98,20 +142,33 @@ _REGION_GRIDS = ((2, 1), (1, 2), (2, 2), (4, 1), (1, 4), (4, 2), (2, 4), (4, 4),
 def _gain_variants(res):
     s = res.sensor
     sig = (res.model_adu - (s.bias_adu - 0.5) * res.adu_sum).astype(np.float32)
+    w = res.data_adu.shape[1]
     for nx, ny in _REGION_GRIDS:
         iy, ix = region_index(res.ys, res.xs, nx, ny, s.sensor_height_px, s.sensor_width_px)
         k = iy[:, None] * nx + ix[None, :]
         present = np.unique(k)
         if present.size < 2:
             continue
-        temps = [np.where(k == j, sig, np.float32(0)) for j in present]
 
-        def to_params(c, nx=nx, ny=ny, present=present):
+        def at(idx, iy=iy, ix=ix, nx=nx, present=present):
+            y, x = np.divmod(idx, w)
+            kk = iy[y] * nx + ix[x]
+            sv = sig.ravel()[idx].astype(np.float64)
+            return np.stack([np.where(kk == j, sv, 0.0) for j in present])
+
+        def maps(k=k, present=present):
+            return [np.where(k == j, sig, np.float32(0)) for j in present]
+
+        def to_params(c, nx=nx, ny=ny, present=present, k=k):
+            # relative gains: a common factor is the light level (refitted with the levels), so the gains are
+            # normalised to a pixel-weighted mean of 1
             g = np.ones(nx * ny)
             g[present] += c
+            npx = np.array([(k == j).sum() for j in present], float)
+            g = g / (np.dot(g[present], npx) / npx.sum())
             return {"nx": nx, "ny": ny, "gains": [round(float(x), 6) for x in g]} if (g > 0).all() else None
 
-        yield Variant(temps, to_params, f"{nx}x{ny}")
+        yield Variant(maps, to_params, f"{nx}x{ny}", at=at)
 
 
 def _gain_words(p, res) -> str:
@@ -130,16 +187,23 @@ def _nonlin_variants(res):
     yield Variant([t.astype(np.float32)], to_params)
 
 _PRNU_SIGNATURE = VarianceSignature(
-    lambda res: res.photo_adu.astype(np.float64) ** 2, _prnu_params,
-    lambda p, res: (f"pixel-to-pixel scatter proportional to the signal, {100 * p['sigma']:.2g} % of it: "
-                    "photo-response non-uniformity (PRNU)"),
-    pattern="extra variance growing as the square of the photo-signal")
+    _prnu_template, _prnu_params,
+    lambda p, res: (f"pixel-to-pixel scatter proportional to the signal, {100 * p['sigma']:.2g} % of it"
+                    + (f", with a low-frequency pattern of {100 * p['smooth_rms']:.2g} % rms (a flat-field map "
+                       "the white prnu model does not carry)" if "smooth_rms" in p else "")
+                    + ": photo-response non-uniformity (PRNU)"),
+    pattern="extra variance growing as the square of the photo-signal (and its large-scale pattern)",
+    smooth=lambda res: res.photo_adu)
 
 _DSNU_SIGNATURE = VarianceSignature(
-    lambda res: (res.dark_e.astype(np.float64) / res.gain) ** 2, _dsnu_params,
-    lambda p, res: (f"pixel-to-pixel scatter proportional to the dark signal, {100 * p['sigma']:.2g} % of it: "
-                    "dark-signal non-uniformity (DSNU)"),
-    pattern="extra variance growing as the square of the dark signal")
+    _dsnu_template, _dsnu_params,
+    lambda p, res: (f"pixel-to-pixel scatter proportional to the dark signal, {100 * p['sigma']:.2g} % of it, "
+                    f"{'skewed (lognormal)' if p['law'] == 'lognormal' else 'symmetric'}"
+                    + (f", with a low-frequency pattern of {100 * p['smooth_rms']:.2g} % rms" if "smooth_rms" in p
+                       else "") + ": dark-signal non-uniformity (DSNU)"),
+    pattern="extra variance growing as the square of the dark signal, skewed",
+    laws={"lognormal": _dsnu_lognormal_k3, "normal": None},
+    smooth=lambda res: (res.dark_e / np.float32(res.gain)).astype(np.float32))
 
 _DEADPIXELS_SIGNATURE = CountSignature(
     _dead_counts,

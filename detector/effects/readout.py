@@ -87,8 +87,9 @@ class RowOffsetSignature(Signature):
         ok = cnt > 1
         if ok.sum() < 8:
             return None
-        r = np.where(keep, res.data_adu - res.model_adu, 0.0).sum(axis=1)[ok] / cnt[ok]
-        v = np.where(keep, res.var_adu2, 0.0).sum(axis=1)[ok] / cnt[ok] ** 2
+        level, level_var = res.level_maps()  # the global levels refitted (detector.diagnosis.Residuals.levels)
+        r = np.where(keep, res.data_adu - res.model_adu - level, 0.0).sum(axis=1)[ok] / cnt[ok]
+        v = np.where(keep, res.var_adu2 + level_var, 0.0).sum(axis=1)[ok] / cnt[ok] ** 2
         theta, d = ml_variance_scale(r.astype(np.float64), v.astype(np.float64), np.ones_like(v, np.float64),
                                      z_cap=1e6)
         if theta <= 0:
@@ -102,7 +103,10 @@ class RowOffsetSignature(Signature):
 
 
 def _ktc_params(theta: float, res) -> dict | None:
-    sigma_e2 = theta * res.gain ** 2 / res.adu_sum
+    # one reset per read: a CCD reads a binned pixel once, a CMOS sums (or averages) b^2 reads digitally
+    s = res.sensor
+    reads = 1.0 if s.kind == "ccd" else float(s.binning ** 2)
+    sigma_e2 = theta * res.gain ** 2 * (reads if s.binning_mode == "average" else 1.0 / reads)
     t_k = res.sensor.temperature_c + 273.15
     c_ff = sigma_e2 * Q_ELECTRON ** 2 / (K_BOLTZMANN * t_k) * 1e15
     return {"capacitance_ff": round(float(c_ff), 5)} if 0 < c_ff <= 1e4 else None
@@ -111,12 +115,17 @@ def _ktc_params(theta: float, res) -> dict | None:
 def _bias_variants(res):
     s = res.sensor
     f = np.float32(res.adu_sum)
-    unit = [bias_shape_adu(res.ys, res.xs, s.sensor_height_px, s.sensor_width_px, *g) * f
-            for g in ((1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0))]
+    u = (res.xs / max(s.sensor_width_px - 1, 1) - 0.5).astype(np.float32)
+    v = (res.ys / max(s.sensor_height_px - 1, 1) - 0.5).astype(np.float32)
+    # the ramps are a row and a column (they broadcast); the bowl is 2-D
+    unit = [(f * u)[None, :], (f * v)[:, None],
+            bias_shape_adu(res.ys, res.xs, s.sensor_height_px, s.sensor_width_px, 0.0, 0.0, 1.0) * f]
 
     def to_params(c):
+        # a bias structure cannot take the bias below zero: |shape| at the sensor's corners <= the bias level
+        worst = abs(c[0]) / 2 + abs(c[1]) / 2 + abs(c[2])
         return ({"gradient_x_adu": round(float(c[0]), 4), "gradient_y_adu": round(float(c[1]), 4),
-                 "quadratic_adu": round(float(c[2]), 4)} if np.all(np.abs(c) <= 1e4) else None)
+                 "quadratic_adu": round(float(c[2]), 4)} if worst <= s.bias_adu else None)
 
     yield Variant(unit, to_params)
 
