@@ -73,7 +73,7 @@ def diagnose(scene, measured, json_out, apply_to, report, sets, workers):
         if best is None:
             click.echo("newtsim: nothing applied: no significant candidate", err=True)
         else:
-            applied = dg.apply_candidate(sc, best, apply_to)
+            applied = dg.apply_candidate(sc, best, apply_to, measured)
             out["applied"] = {"effect": best["effect"], "scene": str(applied)}
     ledger, rounds = dg.update_ledger(scene, applied, measured, out["baseline"], best if applied else None)
     out["ledger"] = {"path": str(ledger), "rounds": rounds,

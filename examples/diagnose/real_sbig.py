@@ -78,7 +78,7 @@ def rounds(scene: dict, measured: str, out: Path, name: str, n_rounds: int) -> l
         best = next((c for c in res["candidates"] if c["significant"]), None)
         nxt = out / f"{name}_round{k + 1}.toml" if best and k < n_rounds else None
         if nxt is not None:
-            dg.apply_candidate(sc, best, nxt)
+            dg.apply_candidate(sc, best, nxt, measured)
         ledger, led_rounds = dg.update_ledger(path, nxt, measured, res["baseline"], best if nxt else None)
         dg.plot_ledger(led_rounds, ledger.with_suffix(".png"))
         (out / f"{name}_round{k}.json").write_text(json.dumps(

@@ -81,16 +81,46 @@ def verdict(cands: list[Candidate]) -> str:
     return f"most likely missing: {best.effect} (delta BIC {best.delta_bic:.4g}): {best.explanation}"
 
 
-def apply_candidate(scene, cand: dict, path: str | Path) -> Path:
-    """Write ``scene`` with the candidate's effect and fitted parameters added (a new scene TOML)."""
+def apply_candidate(scene, cand: dict, path: str | Path, measured: str | Path | None = None) -> Path:
+    """Write ``scene`` with the candidate's effect and fitted parameters added (a new scene TOML).
+
+    The diagnosis fits every candidate together with the global levels the model only knows roughly (the
+    light level among them). An effect that changes the mean light (vignetting, gain regions) therefore
+    needs the level that went with it: with ``measured`` given and a flat-field screen in the scene
+    (``[sky] flat_e_per_s``), the screen's level is refitted to the measurement with the new effect in the
+    model (one weighted least-squares scale of the photo-signal)."""
     import tomli_w
 
     data = scene.model_dump(mode="json", exclude_none=True, exclude_unset=True)
     data.setdefault("effects", {})[cand["effect"]] = cand["params"]
     p = Path(path)
+    note = ""
+    flat = data.get("sky", {}).get("flat_e_per_s")
+    if measured is not None and flat:
+        scale = _light_scale(p, data, measured)
+        if scale is not None and abs(scale - 1) > 1e-4:
+            data["sky"]["flat_e_per_s"] = round(float(flat) * scale, 6)
+            note = f"# and the flat-screen level refitted: flat_e_per_s x {scale:.5f}\n"
     p.write_text(f"# written by newtsim diagnose --apply: added [effects.{cand['effect']}]\n"
-                 f"# {cand['explanation']}\n" + tomli_w.dumps(data))
+                 f"# {cand['explanation']}\n" + note + tomli_w.dumps(data))
     return p
+
+
+def _light_scale(path: Path, data: dict, measured) -> float | None:
+    """Weighted least-squares scale of the model's photo-signal that best matches the measurement."""
+    import tomli_w
+
+    from ..scene import load_scene
+    from .model import build_model, read_measurement, residuals
+
+    path.write_text(tomli_w.dumps(data))
+    model = build_model(load_scene(str(path)), realisation=False)
+    d, _ = read_measurement(measured, model)
+    res = residuals(d, model)
+    idx, r, w = res.flat()
+    t = model.photo_adu.ravel()[idx].astype(np.float64)
+    den = float(np.dot(t * t, w))
+    return 1.0 + float(np.dot(t * r, w)) / den if den > 0 else None
 
 
 # --- the ledger of rounds ------------------------------------------------------------------------------------
