@@ -11,11 +11,22 @@ is fitted through its ``signature`` (DESIGN.md convention 1); the generic kinds 
 
 * :class:`LinearSignature`: the effect adds ``sum_j c_j T_j`` to the frame (a bias ramp, a glow, a
   vignetting loss ``S rho^2``): weighted linear least squares, ``delta(-2 ln L) = delta chi^2``. Several
-  *variants* (edges, scales, region grids) may be tried; the best counts one parameter more.
+  *variants* (edges, scales, region grids, centres) may be tried on a subsample of the pixels
+  (:func:`search_sample`), the best refined and refitted on every pixel; the choice counts ``extra_k``.
 * :class:`VarianceSignature`: the effect adds zero-mean scatter of variance ``theta T`` (PRNU: ``T = S^2``,
-  kTC: ``T = 1``): maximum likelihood of the Gaussian ``N(0, v + theta T)``.
-* tail and profile statistics (defects, cosmic rays, row/column structure) are fitted by their counts and
-  distributions, not by pixel positions (:class:`Residuals` carries the spike and profile statistics).
+  kTC: ``T = 1``): maximum likelihood of ``N(0, v + theta T)`` on the pixel-to-pixel part of the
+  residual, with an outlier component, the shot noise's skewness and, for skewed laws, the effect's own
+  (:func:`ml_variance_scale`).
+* :class:`CountSignature` and the column likelihood of ``column_defects``: outliers (spikes, outlier
+  columns) at unknown positions, compared by their numbers and amplitudes with one realisation of the model
+  (:func:`two_sample_count_gain`), not by pixel positions.
+
+**Global levels.** A model knows the light level (flat lamp, sky, transparency), the dark level and the
+bias only to a few per cent or a fraction of an ADU; a candidate must explain more than a change of these.
+They are fitted as nuisance parameters with every candidate (:meth:`Residuals.levels`, profiled out of the
+normal equations: Frisch-Waugh-Lovell), their change of the shot noise included, and they cost no
+parameter since the baseline has them too. ``chi2_per_dof`` of the comparison stays the raw one;
+:func:`level_profiled` gives the comparison with the levels refitted.
 
 Signatures work in output pixels and ADU; :class:`Residuals` gives them the model's pieces (photo-electron
 signal, dark signal, coordinates) so that templates come from the effect's own physics functions with
@@ -74,6 +85,10 @@ def _median3(z: np.ndarray) -> np.ndarray:
     return median_filter(z, size=3, mode="nearest")
 
 
+#: |z| down to which a spike's connected surroundings are compared statistically with it [sigma]
+GROW_SIGMA = 3.0
+#: how far [pixels] a spike is grown into its surroundings
+GROW_PIXELS = 3
 #: a column in which more than this fraction of the pixels are spikes is a candidate defective column: its
 #: spikes count towards its mean, not towards the spike statistics
 DENSE_COLUMN_FRACTION = 0.05
@@ -126,7 +141,14 @@ def spike_stats(data: np.ndarray, model: np.ndarray, var: np.ndarray, usable: np
         cluster_pixels=int(pos.sum() - single_lab.size), col_excess_e=local_mean[hot_c] * gain,
         single_pos_index=np.flatnonzero(single), single_neg_index=neg_index,
         col_z=np.where(cnt > 0, zc, np.nan), col_err_adu=col_err)
-    statistical = pos_all | neg_all
+    # the pixels can only be compared statistically: the spikes grown by up to GROW_PIXELS into their
+    # surroundings above GROW_SIGMA (hysteresis, as cosmic-ray cleaners do: the inside and the halo of a
+    # blob are not local outliers of their own 3x3 median, yet belong to it; the growth is bounded so that
+    # smooth structure around a spike, a glow, stays in the pixel-by-pixel comparison)
+    box = np.ones((3, 3), bool)
+    statistical = ndimage.binary_dilation(pos_all, box, iterations=GROW_PIXELS, mask=usable & (z > GROW_SIGMA))
+    statistical |= ndimage.binary_dilation(neg_all, box, iterations=GROW_PIXELS, mask=usable & (z < -GROW_SIGMA))
+    statistical |= pos_all | neg_all
     statistical[:, lines] = True
     return stats, statistical
 

@@ -74,12 +74,12 @@ def region_index(ys: np.ndarray, xs: np.ndarray, nx: int, ny: int, height: int, 
 
 def _prnu_params(theta: float, res) -> dict | None:
     sigma = float(np.sqrt(theta))
-    return {"sigma": round(sigma, 6)} if 0 < sigma <= 0.5 else None
+    return {"sigma": float(f"{sigma:.6g}")} if 0 < sigma <= 0.5 else None
 
 
 def _dsnu_params(theta: float, res, law: str = "lognormal") -> dict | None:
     sigma = float(np.sqrt(theta))
-    return {"sigma": round(sigma, 6), "law": law} if 0 < sigma <= 5 else None
+    return {"sigma": float(f"{sigma:.6g}"), "law": law} if 0 < sigma <= 5 else None
 
 
 def _pixels_per_output(res) -> float:

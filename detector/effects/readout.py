@@ -82,7 +82,11 @@ class RowOffsetSignature(Signature):
     pattern = "row means scatter beyond the pixel noise"
 
     def fit(self, res, name):
-        keep = res.fit
+        from scipy.ndimage import binary_dilation
+
+        # the pixels next to a spike (a cosmic-ray track's diffusion halo, a hot pixel's neighbours) are not
+        # part of the row level: leave them out of the row means
+        keep = res.fit & ~binary_dilation(~res.fit, structure=np.ones((3, 3), bool), iterations=2)
         cnt = keep.sum(axis=1)
         ok = cnt > 1
         if ok.sum() < 8:
@@ -109,7 +113,7 @@ def _ktc_params(theta: float, res) -> dict | None:
     sigma_e2 = theta * res.gain ** 2 * (reads if s.binning_mode == "average" else 1.0 / reads)
     t_k = res.sensor.temperature_c + 273.15
     c_ff = sigma_e2 * Q_ELECTRON ** 2 / (K_BOLTZMANN * t_k) * 1e15
-    return {"capacitance_ff": round(float(c_ff), 5)} if 0 < c_ff <= 1e4 else None
+    return {"capacitance_ff": float(f"{c_ff:.5g}")} if 0 < c_ff <= 1e4 else None  # significant digits: > 0
 
 
 def _bias_variants(res):

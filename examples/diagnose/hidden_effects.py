@@ -29,9 +29,11 @@ The error is measured with the global levels profiled (:func:`detector.diagnosis
 bias offset, the light level and the dark level the model can only know to a few per cent are refitted
 (as every reduction does with the overscan and a normalised flat) before ``chi2_per_dof`` and the
 ``misfit`` of :func:`scenes.compare.analysis.compare` are computed. The error of a case is
-``chi2_per_dof - 1`` for effects the model predicts pixel by pixel, and the ``misfit`` (standardised
-excess of the pixel, outlier-count and row/column deviances) for effects compared statistically
-(defects, cosmic rays, row noise). It must fall by at least half once the candidate is applied.
+``chi2/dof - 1`` over the hidden effect's support (the pixels whose expected value it changes by more
+than 0.2 sigma; all pixels for an effect that adds noise) for effects the model predicts pixel by pixel,
+and the ``misfit`` (standardised excess of the pixel, outlier-count and row/column deviances) for effects
+compared statistically (hot and dead pixels, column defects, cosmic rays). It must fall by at least half
+once the candidate is applied. See docs/diagnose_validation.md.
 
 Usage::
 
