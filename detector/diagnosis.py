@@ -51,6 +51,11 @@ LINE_SIGMA = 6.0
 LINE_WINDOW = 9
 #: pixels used at most by a variance fit (a regular subsample beyond that) [pixels]
 MAX_FIT_PIXELS = 1_000_000
+#: a global level whose template is this close to the ones kept before it (1 - R^2 of its weighted fit by
+#: them) is not fitted: the split would be arbitrary, and the shot noise that follows a light level would
+#: drift (a flat screen under 12 % vignetting: a bias offset has 1 - R^2 = 5e-4 against the light level; a
+#: star field's sky against all its light: 3e-2)
+LEVEL_DEGENERACY = 1e-3
 
 
 @dataclass
@@ -239,7 +244,7 @@ class Residuals:
 
         * the light level: the whole photo-signal (flat lamp, transparency, throughput, star zero point);
         * the background level: the uniform part of the light (the sky; ``min(photo, median(photo))``);
-        * a bias offset (1 ADU);
+        * a bias offset (1 ADU; not on a light frame, :meth:`levels_not_fitted`);
         * the dark level: the mean dark signal (dark current at the actual temperature).
 
         Where two are indistinguishable in the mean the first is kept: on a uniform flat the light level
@@ -252,6 +257,13 @@ class Residuals:
             self._flat["level_templates"] = [photo, bg, np.ones(1, np.float32),
                                              (self.dark_e / np.float32(self.gain)).astype(np.float32)]
         return self._flat["level_templates"]
+
+    def levels_not_fitted(self) -> tuple[int, ...]:
+        """Levels a frame cannot measure: a light frame does not fit a bias offset. Its light (a flat screen
+        under vignetting, a sky) is so nearly uniform that the least squares would trade hundreds of ADU of
+        bias against a per cent of light, and take a wrong flat-field shape along; a bias offset is measured
+        by bias and dark frames (and the overscan)."""
+        return (2,) if bool(np.any(self.photo_adu > 0)) else ()
 
     @property
     def poisson_adu(self) -> float:
@@ -283,7 +295,7 @@ class Residuals:
                     xw = x * w[sl]
                     g += xw @ x.T
                     b += xw @ r[sl]
-                keep = _independent(g)
+                keep = [i for i in _independent(g, tol=LEVEL_DEGENERACY) if i not in self.levels_not_fitted()]
                 if not keep:
                     break
                 coef = np.linalg.solve(g[np.ix_(keep, keep)], b[keep])
@@ -569,6 +581,23 @@ def fit_linear(res: Residuals, values: Callable[[np.ndarray], np.ndarray], idx: 
     return c, float(-(b_ @ c))
 
 
+def joint_levels(res: Residuals, values: Callable[[np.ndarray], np.ndarray], idx: np.ndarray, r: np.ndarray,
+                 w: np.ndarray, c: np.ndarray) -> dict[str, float]:
+    """The global levels fitted jointly with templates of coefficients ``c`` (the levels' part of the
+    :func:`fit_linear` solution): ``(N'WN)^-1 N'W (r - T'c)``, by name."""
+    nn = ny = None
+    for a in range(0, idx.size, CHUNK_PIXELS):
+        sl = slice(a, a + CHUNK_PIXELS)
+        n = res.level_values(idx[sl])
+        y = r[sl] - np.asarray(c, np.float64) @ np.atleast_2d(np.asarray(values(idx[sl]), np.float64))
+        nw = n * w[sl]
+        nn = nw @ n.T if nn is None else nn + nw @ n.T
+        ny = nw @ y if ny is None else ny + nw @ y
+    if nn is None or not nn.size:
+        return {}
+    return dict(zip(res.levels()["names"], (float(v) for v in np.linalg.solve(nn, ny))))
+
+
 def profiled_chi2(res: Residuals, idx: np.ndarray, y: np.ndarray, w: np.ndarray) -> float:
     """chi2 of the residual ``y`` at flat pixels ``idx`` once the global levels are refitted to it
     (``y'Wy - (N'Wy)' (N'WN)^-1 (N'Wy)``, accumulated in chunks)."""
@@ -617,15 +646,20 @@ class LinearSignature(Signature):
         Parameters chosen among the variants (an edge, a scale), counted in the BIC.
     refine : callable(best Variant, Residuals) -> iterable of Variant, optional
         More variants around the best one (a finer scale), tried once after the first pass.
+    of_light : bool
+        The templates are the model's light times a shape (vignetting, a response pattern): the effect
+        multiplies the light, which the joint fit also scales by ``1 + L`` (the light level), so the
+        coefficients are ``c (1 + L)`` of the effect's own and are divided by it before ``to_params``
+        (otherwise a model 3 % short of light gets a vignetting 3 % too deep).
     """
 
     kind = "linear"
 
     def __init__(self, variants: Callable[[Residuals], Iterable[Variant]], explain: Callable[[dict, Residuals], str],
                  pattern: str = "", extra_k: int = 1,
-                 refine: Callable[[Variant, Residuals], Iterable[Variant]] | None = None):
+                 refine: Callable[[Variant, Residuals], Iterable[Variant]] | None = None, of_light: bool = False):
         self.variants, self.explain, self.pattern, self.extra_k = variants, explain, pattern, extra_k
-        self.refine = refine
+        self.refine, self.of_light = refine, of_light
 
     def fit(self, res: Residuals, name: str) -> Fit | None:
         ctx = search_sample(res)
@@ -635,12 +669,18 @@ class LinearSignature(Signature):
         if best is None:
             return None
         v, d, c, params = best
+        idx, _, w = res.flat_profiled()
+        values = (lambda i: v.values(i, res.data_adu.shape))
         if not ctx["full"]:  # the winner on every fitted pixel (else keep the subsample's, scaled)
-            idx, _, w = res.flat_profiled()
-            c_all, d_all = fit_linear(res, lambda i: v.values(i, res.data_adu.shape), idx, res.flat()[1], w)
+            c_all, d_all = fit_linear(res, values, idx, res.flat()[1], w)
             p_all = v.to_params(c_all)
             if p_all is not None:
                 c, d, params = c_all, d_all, p_all
+        if self.of_light:
+            light = joint_levels(res, values, idx, res.flat()[1], w, c).get("light_scale", 0.0)
+            params = v.to_params(np.asarray(c) / (1.0 + light)) if light > -0.5 else None
+            if params is None:
+                return None
         maps = v.maps()
         k = len(maps) + self.extra_k
         delta = sum(ci * np.asarray(t, np.float32) for ci, t in zip(c, maps))
@@ -721,6 +761,16 @@ def ml_variance_scale(r: np.ndarray, v: np.ndarray, t: np.ndarray, z_cap: float 
     DSNU), entering through the first Edgeworth term; ``k3_base`` the model's own (Poisson: the mean charge),
     so that only skewness beyond the shot noise's counts for a skewed effect.
     """
+    ok = np.isfinite(r) & np.isfinite(v) & (v > 0) & np.isfinite(t)
+    if not ok.all():  # pixels or rows the model cannot weigh (no variance, NaN levels) carry no information
+        def sel(a):
+            return a[ok] if isinstance(a, np.ndarray) and a.shape == ok.shape else a
+
+        r, v, t, k3_base = r[ok], v[ok], np.broadcast_to(t, ok.shape)[ok], sel(k3_base)
+        if k3 is not None:
+            k3 = (lambda th, f=k3: sel(f(th)))
+    if r.size == 0:
+        return 0.0, 0.0
     r = np.clip(r, -z_cap * np.sqrt(v), z_cap * np.sqrt(v))
     out_m2l = _m2l_pixels(r, OUTLIER_WIDTH ** 2 * v) if outliers else None
     state = {"eps": 1e-3}
@@ -736,6 +786,8 @@ def ml_variance_scale(r: np.ndarray, v: np.ndarray, t: np.ndarray, z_cap: float 
 
     base = m2l(0.0)
     tmax = max(float(np.mean(r * r) / max(np.mean(t), 1e-30)), 1e-30) * 10
+    if not np.isfinite(tmax):
+        return 0.0, 0.0
     best = optimize.minimize_scalar(lambda lt: m2l(np.exp(lt)), bounds=(np.log(tmax) - 30, np.log(tmax)),
                                     method="bounded", options={"xatol": 1e-3})
     theta = float(np.exp(best.x))

@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import click
 
 
@@ -59,25 +57,16 @@ def diagnose(scene, measured, json_out, apply_to, report, sets, workers):
     from rich.progress import Progress
 
     from .cli import _write_json
-    from .compare import diagnose as dg
-    from .compare import run_diagnose
+    from .compare.rounds import diagnose_round
 
     sc = _load(scene, sets)
     with Progress(transient=True) as bar:
         task = bar.add_task("fitting candidate effects", total=None)
-        out = run_diagnose(sc, measured, workers=workers, progress=lambda name: bar.update(task, description=name))
+        out = diagnose_round(sc, scene, measured, apply_to=apply_to, workers=workers,
+                             progress=lambda name: bar.update(task, description=name))
     cmp = out.pop("_compare")
-    best = next((c for c in out["candidates"] if c["significant"]), None)
-    applied = None
-    if apply_to:
-        if best is None:
-            click.echo("newtsim: nothing applied: no significant candidate", err=True)
-        else:
-            applied = dg.apply_candidate(sc, best, apply_to, measured)
-            out["applied"] = {"effect": best["effect"], "scene": str(applied)}
-    ledger, rounds = dg.update_ledger(scene, applied, measured, out["baseline"], best if applied else None)
-    out["ledger"] = {"path": str(ledger), "rounds": rounds,
-                     "plot": str(dg.plot_ledger(rounds, Path(ledger).with_suffix(".png")))}
+    if apply_to and out["applied"] is None:
+        click.echo("newtsim: nothing applied: no significant candidate", err=True)
     if report:
         out["report"] = str(_report(cmp, report, diagnosis=out))
     if json_out:
@@ -86,5 +75,6 @@ def diagnose(scene, measured, json_out, apply_to, report, sets, workers):
     for c in out["candidates"][:5]:
         click.echo(f"  {c['effect']:15s} dBIC {c['delta_bic']:12.4g}  chi2/dof after {c['chi2_per_dof']:.4g}  "
                    f"{c['explanation']}", err=True)
-    if applied:
-        click.echo(f"wrote {applied} (+[effects.{best['effect']}]); ledger {ledger}", err=True)
+    if out["applied"]:
+        click.echo(f"wrote {out['applied']['scene']} (+[effects.{out['applied']['effect']}]); ledger "
+                   f"{out['ledger']['path']}", err=True)

@@ -33,6 +33,18 @@ def hot_rate_e_per_s(t_double_s: np.ndarray, bias_adu: float, gain_e_per_adu: fl
     return bias_adu * gain_e_per_adu / np.maximum(t_double_s, 1e-9)
 
 
+#: the level [ADU] whose doubling time defines t2 on a sensor whose bias is 0 (bias-subtracted data)
+NOMINAL_DOUBLING_LEVEL_ADU = 1000.0
+
+
+def doubling_level_adu(bias_adu: float, override: float | None) -> float:
+    """The level ``B`` of eq. 38 [ADU]: ``override`` if given, else the bias, else (bias 0: calibrated data,
+    where eq. 38's reference is gone) :data:`NOMINAL_DOUBLING_LEVEL_ADU`."""
+    if override is not None:
+        return float(override)
+    return float(bias_adu) if bias_adu > 0 else NOMINAL_DOUBLING_LEVEL_ADU
+
+
 # --- diagnosis signatures (detector.diagnosis) -------------------------------------------------------------
 
 def weibull_from_detections(t2_detected_s: np.ndarray, t2_limit_s: float, shape: float) -> tuple[float, float]:
@@ -66,15 +78,18 @@ def _hot_counts(res):
     s, t = res.sensor, res.exptime_s
     if t <= 0:
         return None
+    level, extra = doubling_level_adu(s.bias_adu, None), {}
+    if s.bias_adu <= 0:  # a bias-subtracted frame: t2 refers to a nominal level instead of the bias
+        extra = {"doubling_level_adu": level}
     rate = np.maximum(d.single_pos_excess_e, 1e-3) / t
-    t2 = hot_rate_e_per_s(rate, s.bias_adu, s.gain_e_per_adu)  # t2 = B g / rate (the same relation)
+    t2 = hot_rate_e_per_s(rate, level, s.gain_e_per_adu)  # t2 = B g / rate (the same relation)
     limit_e = float(np.min(d.single_pos_excess_e))
-    t2_limit = float(hot_rate_e_per_s(np.array([limit_e / t]), s.bias_adu, s.gain_e_per_adu)[0])
+    t2_limit = float(hot_rate_e_per_s(np.array([limit_e / t]), level, s.gain_e_per_adu)[0])
     shape = 0.8
     scale, frac = weibull_from_detections(t2, t2_limit, shape)
     count = round((d.single_pos - m.single_pos) / max(frac, 1e-6) / frame_fraction(res))
     count = min(count, 10_000_000)
-    return ({"count": count, "law": "weibull", "weibull_shape": shape, "scale_s": round(scale, 3)},
+    return ({"count": count, "law": "weibull", "weibull_shape": shape, "scale_s": round(scale, 3), **extra},
             d.single_pos, m.single_pos, 2)
 
 
@@ -190,6 +205,9 @@ class HotPixelParams(EffectParams):
     stuck_fraction: float = Field(0.0, ge=0, le=1, description="fraction of defects stuck at a fixed value [1]")
     stuck_value_adu: float | None = Field(None, ge=0, description="value of stuck pixels (default: ADC maximum) [ADU]")
     hot_threshold_s: float = Field(60.0, gt=0, description="t2 below which a defect is labelled hot, else warm [s]")
+    doubling_level_adu: float | None = Field(
+        None, gt=0, description="level B whose doubling time is t2 (default: the bias; 1000 ADU when the bias is 0) "
+                                "[ADU]", json_schema_extra={"unit": "adu"})
 
 
 @register_effect
@@ -213,7 +231,8 @@ class HotPixels(Effect):
         self.ys, self.xs, rng = hardware_positions(s, self.name, p.count)
         n = self.ys.size
         self.t2 = draw_time_to_double(rng, n, p.law, p.weibull_shape, p.scale_s)
-        self.rate = hot_rate_e_per_s(self.t2, s.bias_adu, s.gain_e_per_adu).astype(np.float32)
+        level = doubling_level_adu(s.bias_adu, p.doubling_level_adu)
+        self.rate = hot_rate_e_per_s(self.t2, level, s.gain_e_per_adu).astype(np.float32)
         self.stuck = rng.random(n) < p.stuck_fraction
         self.stuck_value = float(s.adc_max_adu if p.stuck_value_adu is None else min(p.stuck_value_adu, s.adc_max_adu))
 

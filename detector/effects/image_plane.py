@@ -203,9 +203,20 @@ def _derivatives(res) -> dict:
 
 
 def _has_structure(res) -> bool:
-    """Image-plane effects need sources: a flat screen or a dark has no gradient to move or blur."""
+    """Image-plane effects need sources: a flat screen or a dark (even a vignetted one: its gradients are far
+    wider than any blur or shift) has nothing to move or blur. Sources are what a 7 x 7 box average does
+    not keep (a high-pass) well above the noise."""
     p = res.photo_adu
-    return bool(p.size) and float(np.ptp(p)) > 10 * float(np.sqrt(np.median(res.var_adu2)))
+    if not p.size:
+        return False
+    hp = p - ndimage.uniform_filter(p.astype(np.float32), 7, mode="nearest")
+    return float(np.ptp(hp)) > 10 * float(np.sqrt(np.median(res.var_adu2)))
+
+
+def _max_var(res) -> float:
+    """The largest blur variance [output px^2] a fit may try: the parameters' bound of 50 sensor px rms (a
+    runaway Gauss-Newton step would otherwise ask for a Fourier transform of a padded frame of GBs)."""
+    return (50.0 / res.sensor.binning) ** 2
 
 
 def _linear_start(res, names: list[str], scale: list[float]) -> np.ndarray:
@@ -229,7 +240,7 @@ def _blur_start(res):
 
 
 def _blur_transform(res, photo, th):
-    return blur(photo, float(np.sqrt(max(th[0], 0.0))))
+    return blur(photo, float(np.sqrt(np.clip(th[0], 0.0, _max_var(res)))))
 
 
 def _blur_params(th, res):
@@ -253,7 +264,8 @@ def _jitter_axes(th):
 
 def _jitter_transform(res, photo, th):
     w, ang = _jitter_axes(th)
-    return blur(photo, float(np.sqrt(max(w[1], 0.0))), float(np.sqrt(max(w[0], 0.0))), ang)
+    w = np.clip(w, 0.0, _max_var(res))
+    return blur(photo, float(np.sqrt(w[1])), float(np.sqrt(w[0])), ang)
 
 
 def _jitter_params(th, res):

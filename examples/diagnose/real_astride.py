@@ -44,6 +44,8 @@ from pathlib import Path
 
 import numpy as np
 
+from detector.jsonable import jsonable
+
 ROOT = Path(__file__).resolve().parents[2]
 REALDATA = ROOT.parent / "shared" / "realdata"
 DATA = REALDATA / "streak" / "astride_long.fits"
@@ -799,67 +801,12 @@ def streak_model_profile(cmp: dict, meas_streak: dict, bin_px: int = 4) -> dict:
 
 # ============================================================================ rounds
 def rounds(scene: dict, measured: str, out: Path, name: str, n_rounds: int, extra=None) -> list[dict]:
-    """compare/diagnose/apply until no candidate is significant (at most ``n_rounds``)."""
-    import tomli_w
+    """compare/diagnose/apply until no candidate is significant (at most ``n_rounds``), with this script's
+    own checks (``extra``) in every round's JSON and table row."""
+    from scenes.compare.rounds import run_rounds
 
-    from scenes.compare import diagnose as dg
-    from scenes.compare import run_diagnose
-    from scenes.scene import load_scene
-
-    out.mkdir(parents=True, exist_ok=True)
-    path = out / f"{name}_round1.toml"
-    path.write_text(tomli_w.dumps(scene))
-    for stale in out.glob(f"{name}_round*.ledger.json"):
-        stale.unlink()
-    table = []
-    for k in range(1, n_rounds + 1):
-        sc = load_scene(str(path))
-        res = run_diagnose(sc, measured, workers=2)
-        cmp = res.pop("_compare")
-        best = next((c for c in res["candidates"] if c["significant"]), None)
-        nxt = out / f"{name}_round{k + 1}.toml" if best and k < n_rounds else None
-        if nxt is not None:
-            dg.apply_candidate(sc, best, nxt)
-        ledger, led_rounds = dg.update_ledger(path, nxt, measured, res["baseline"], best if nxt else None)
-        dg.plot_ledger(led_rounds, ledger.with_suffix(".png"))
-        extra_json = extra(cmp) if extra else {}
-        (out / f"{name}_round{k}.json").write_text(json.dumps(
-            {"baseline": res["baseline"], "candidates": res["candidates"][:10], "verdict": res["verdict"],
-             "problems": res["problems"], **extra_json}, indent=1, default=_jsonable))
-        try:
-            from scenes.compare.report import write_report
-
-            write_report(cmp, out / f"{name}_round{k}.html", diagnosis=res)
-        except ImportError:
-            pass
-        b = res["baseline"]
-        st = b.get("stars", {})
-        row = {"round": k, "chi2_per_dof": b["chi2_per_dof"], "misfit": b["misfit"],
-               "worst_regions": b["worst_regions"], "n_stars": st.get("n", 0),
-               "star_flux_ratio": st.get("median_flux_ratio"), "star_offset_px": st.get("median_offset_px"),
-               "star_size_ratio": st.get("median_size_ratio"),
-               "streak_flux_ratio": [s["total_flux_ratio"] for s in b.get("streaks", [])],
-               "candidates": [(c["effect"], c["delta_bic"], c["chi2_per_dof"]) for c in res["candidates"][:6]],
-               "applied": best["effect"] if nxt else None, "params": best["params"] if nxt else None,
-               "verdict": res["verdict"], **{k2: v for k2, v in extra_json.items() if k2.startswith("row_")}}
-        table.append(row)
-        print(f"{name} round {k}: chi2/dof {row['chi2_per_dof']:.4g}, misfit {row['misfit']:.4g}; top: "
-              + ", ".join(f"{e} ({d:.3g})" for e, d, _ in row["candidates"][:4])
-              + (f"; applies {best['effect']} {best['params']}" if nxt else f"; {res['verdict']}"), flush=True)
-        if nxt is None:
-            break
-        path = nxt
-    return table
-
-
-def _jsonable(o):
-    if isinstance(o, np.ndarray):
-        return o.tolist()
-    if isinstance(o, (np.floating, np.integer)):
-        return o.item()
-    if isinstance(o, Path):
-        return str(o)
-    return str(o)
+    return run_rounds(scene, measured, out, name, n_rounds, workers=2, extra=extra,
+                      log=lambda line: print(line, flush=True))
 
 
 def on_streak_test(meas: dict):
@@ -931,8 +878,8 @@ def main(argv=None) -> int:
     sb, info = frame_catalogue_scene(scene, meas, img, out, "astride", exclude=on_streak_test(meas))
     summary["frame_catalogue"] = {"catalogue": info, "rounds": rounds(sb, str(DATA), out, "astride_framecat",
                                                                       args.rounds, extra=extra)}
-    (out / "setup.json").write_text(json.dumps(meas, indent=1, default=_jsonable))
-    (out / "summary.json").write_text(json.dumps(summary, indent=1, default=_jsonable))
+    (out / "setup.json").write_text(json.dumps(jsonable(meas), indent=1, default=str))
+    (out / "summary.json").write_text(json.dumps(jsonable(summary), indent=1, default=str))
     print_table("builtin catalogue", summary["builtin"])
     print_table("frame's own stars", summary["frame_catalogue"]["rounds"])
     print(f"wrote {out}/summary.json, setup.json and the per-round scenes, JSON, ledgers and reports")

@@ -39,6 +39,8 @@ from pathlib import Path
 
 import numpy as np
 
+from detector.jsonable import jsonable
+
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import real_astride as ra
 
@@ -325,8 +327,8 @@ def main(argv=None) -> int:
     sb, info = frame_catalogue_scene(scene, meas, img, out)
     summary["frame_catalogue"] = {"catalogue": info, "rounds": ra.rounds(sb, str(DATA), out, "panoptes_framecat",
                                                                          args.rounds, extra=extra)}
-    (out / "setup.json").write_text(json.dumps(meas, indent=1, default=ra._jsonable))
-    (out / "summary.json").write_text(json.dumps(summary, indent=1, default=ra._jsonable))
+    (out / "setup.json").write_text(json.dumps(jsonable(meas), indent=1, default=str))
+    (out / "summary.json").write_text(json.dumps(jsonable(summary), indent=1, default=str))
     for name, table in (("builtin catalogue", summary["builtin"]), ("frame's own stars", summary["frame_catalogue"]["rounds"])):
         print(f"\n{name}: round  chi2/dof   misfit  stars(n, flux, offset px, size)  Nyquist power  cell mean z  "
               "best candidates (dBIC)")

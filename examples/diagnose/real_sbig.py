@@ -23,7 +23,6 @@ import sys
 from pathlib import Path
 
 import numpy as np
-import tomli_w
 
 ROOT = Path(__file__).resolve().parents[2]
 DATA = ROOT.parent / "shared" / "realdata" / "sbig_stl1001e_calib"
@@ -61,46 +60,9 @@ def flat_scene(camera: dict, flat_path: str) -> dict:
 
 def rounds(scene: dict, measured: str, out: Path, name: str, n_rounds: int) -> list[dict]:
     """compare/diagnose/apply until no candidate is significant (at most ``n_rounds``)."""
-    from scenes.compare import diagnose as dg
-    from scenes.compare import run_diagnose
-    from scenes.scene import load_scene
+    from scenes.compare.rounds import run_rounds
 
-    out.mkdir(parents=True, exist_ok=True)
-    path = out / f"{name}_round1.toml"
-    path.write_text(tomli_w.dumps(scene))
-    for stale in out.glob(f"{name}_round*.ledger.json"):
-        stale.unlink()
-    table = []
-    for k in range(1, n_rounds + 1):
-        sc = load_scene(str(path))
-        res = run_diagnose(sc, measured)
-        cmp = res.pop("_compare")
-        best = next((c for c in res["candidates"] if c["significant"]), None)
-        nxt = out / f"{name}_round{k + 1}.toml" if best and k < n_rounds else None
-        if nxt is not None:
-            dg.apply_candidate(sc, best, nxt, measured)
-        ledger, led_rounds = dg.update_ledger(path, nxt, measured, res["baseline"], best if nxt else None)
-        dg.plot_ledger(led_rounds, ledger.with_suffix(".png"))
-        (out / f"{name}_round{k}.json").write_text(json.dumps(
-            {"baseline": res["baseline"], "candidates": res["candidates"][:8], "verdict": res["verdict"]},
-            indent=1, default=float))
-        try:
-            from scenes.compare.report import write_report
-
-            write_report(cmp, out / f"{name}_round{k}.html", diagnosis=res)
-        except ImportError:
-            pass
-        row = {"round": k, "chi2_per_dof": res["baseline"]["chi2_per_dof"], "misfit": res["baseline"]["misfit"],
-               "best": best["effect"] if best else None, "delta_bic": best["delta_bic"] if best else None,
-               "explanation": best["explanation"] if best else res["verdict"], "params": best["params"] if best else None}
-        table.append(row)
-        print(f"{name} round {k}: chi2/dof {row['chi2_per_dof']:.4g}, misfit {row['misfit']:.4g}; "
-              f"{'adds ' + best['effect'] + ' (dBIC %.4g): ' % best['delta_bic'] + best['explanation'] if best else res['verdict']}",
-              flush=True)
-        if nxt is None:
-            break
-        path = nxt
-    return table
+    return run_rounds(scene, measured, out, name, n_rounds, log=lambda line: print(line, flush=True))
 
 
 def main(argv=None) -> int:

@@ -21,6 +21,10 @@ from detector.diagnosis import Fit, Residuals
 
 #: a candidate with delta BIC at or above this is not significant (DESIGN.md contract)
 SIGNIFICANT_DELTA_BIC = -10.0
+#: chi2/dof after (levels refitted) below which a candidate that only adds variance is rejected: it explains
+#: a structured residual by making the model's noise so large that everything fits (a correct noise model
+#: leaves chi2/dof ~ 1, within a few sqrt(2/n))
+OVERFIT_CHI2_PER_DOF = 0.5
 
 
 @dataclass
@@ -28,20 +32,37 @@ class Candidate:
     fit: Fit
     chi2_per_dof: float
     seconds: float
+    rejected: str = ""  #: why a candidate with a large delta BIC is not physical ("" if it is)
+
+    @property
+    def significant(self) -> bool:
+        return self.fit.delta_bic < SIGNIFICANT_DELTA_BIC and not self.rejected
 
     def to_json(self) -> dict:
         f = self.fit
         return {"effect": f.effect, "params": f.params, "chi2_per_dof": self.chi2_per_dof,
                 "delta_bic": f.delta_bic, "delta_m2lnl": f.delta_m2lnl, "k": f.k, "explanation": f.explanation,
                 "kind": type(registry()[f.effect].signature).__name__ if f.effect in registry() else "",
-                "significant": f.delta_bic < SIGNIFICANT_DELTA_BIC, "variant": f.note, "seconds": self.seconds}
+                "significant": self.significant, "rejected": self.rejected, "variant": f.note,
+                "seconds": self.seconds}
+
+
+def overfit(fit: Fit, chi2_per_dof: float) -> str:
+    """Why a candidate that only adds variance is not the missing effect ("" when it may be)."""
+    if fit.delta_adu is None and fit.extra_var_adu2 is not None and chi2_per_dof < OVERFIT_CHI2_PER_DOF:
+        return (f"adds so much noise that chi2/dof falls to {chi2_per_dof:.3g} (< {OVERFIT_CHI2_PER_DOF}): it "
+                "absorbs a structured residual, it does not explain it")
+    return ""
 
 
 def chi2_after(res: Residuals, fit: Fit) -> float:
-    """chi2/dof over the fitted pixels once the candidate's mean change and added variance are in the model."""
-    idx, r, w = res.flat()
+    """chi2/dof over the fitted pixels once the candidate's mean change and added variance are in the model,
+    with the global levels refitted to what is left (they were fitted jointly with every candidate: a
+    candidate's templates may carry part of a level, e.g. gain regions summing to the light level)."""
+    idx, r, _ = res.flat()
     if fit.delta_adu is not None:
         r = r - np.asarray(fit.delta_adu, np.float64).ravel()[idx]
+    r, w = res.project(r), res.levels()["w"]
     if fit.extra_var_adu2 is not None:
         extra = np.broadcast_to(np.asarray(fit.extra_var_adu2, np.float64), res.data_adu.shape).ravel()[idx]
         w = 1.0 / (1.0 / w + extra)
@@ -65,16 +86,18 @@ def candidates(res: Residuals, present: set[str], progress=None) -> tuple[list[C
         finally:
             if progress is not None:
                 progress(name)
+            seconds = time.perf_counter() - t0
         if fit is None or not np.isfinite(fit.delta_m2lnl):
             continue
-        out.append(Candidate(fit, chi2_after(res, fit), time.perf_counter() - t0))
-    out.sort(key=lambda c: c.fit.delta_bic)
+        chi2 = chi2_after(res, fit)
+        out.append(Candidate(fit, chi2, seconds, overfit(fit, chi2)))
+    out.sort(key=lambda c: (bool(c.rejected), c.fit.delta_bic))
     return out, problems
 
 
 def verdict(cands: list[Candidate]) -> str:
     """One sentence for the report."""
-    sig = [c for c in cands if c.fit.delta_bic < SIGNIFICANT_DELTA_BIC]
+    sig = [c for c in cands if c.significant]
     if not sig:
         return "no missing effect was found: no candidate improves the fit significantly (delta BIC < -10)"
     best = sig[0].fit
@@ -84,43 +107,98 @@ def verdict(cands: list[Candidate]) -> str:
 def apply_candidate(scene, cand: dict, path: str | Path, measured: str | Path | None = None) -> Path:
     """Write ``scene`` with the candidate's effect and fitted parameters added (a new scene TOML).
 
-    The diagnosis fits every candidate together with the global levels the model only knows roughly (the
-    light level among them). An effect that changes the mean light (vignetting, gain regions) therefore
-    needs the level that went with it: with ``measured`` given and a flat-field screen in the scene
-    (``[sky] flat_e_per_s``), the screen's level is refitted to the measurement with the new effect in the
-    model (one weighted least-squares scale of the photo-signal)."""
+    The diagnosis fits every candidate together with the global levels the model only knows roughly
+    (:meth:`detector.diagnosis.Residuals.levels`: light, sky background, bias offset, dark level). The new
+    scene therefore carries the levels that go with the effect: with ``measured`` given, the levels that
+    frame measures are refitted with the new effect in the model (weighted least squares,
+    :func:`refit_levels`) and written to the scene keys that hold them (``[sky] flat_e_per_s``, ``[sky] background_mag_arcsec2``,
+    ``[detector] bias_adu``, ``[detector] dark_current_e_per_s``); each change is noted in the file's
+    header comment. A multiplicative effect such as vignetting would otherwise lower the whole model."""
     import tomli_w
 
     data = scene.model_dump(mode="json", exclude_none=True, exclude_unset=True)
     data.setdefault("effects", {})[cand["effect"]] = cand["params"]
     p = Path(path)
-    note = ""
-    flat = data.get("sky", {}).get("flat_e_per_s")
-    if measured is not None and flat:
-        scale = _light_scale(p, data, measured)
-        if scale is not None and abs(scale - 1) > 1e-4:
-            data["sky"]["flat_e_per_s"] = round(float(flat) * scale, 6)
-            note = f"# and the flat-screen level refitted: flat_e_per_s x {scale:.5f}\n"
+    notes = []
+    if measured is not None:
+        data, notes = carry_levels(data, refit_levels(p, data, measured), scene)
     p.write_text(f"# written by newtsim diagnose --apply: added [effects.{cand['effect']}]\n"
-                 f"# {cand['explanation']}\n" + note + tomli_w.dumps(data))
+                 f"# {cand['explanation']}\n" + "".join(f"# and {n}\n" for n in notes) + tomli_w.dumps(data))
     return p
 
 
-def _light_scale(path: Path, data: dict, measured) -> float | None:
-    """Weighted least-squares scale of the model's photo-signal that best matches the measurement."""
+#: level changes below these are not written back (relative for scales, ADU for the bias offset)
+LEVEL_SCALE_TOL, LEVEL_OFFSET_TOL_ADU = 1e-4, 0.01
+
+
+def refit_levels(path: Path, data: dict, measured) -> dict[str, float]:
+    """The global levels the scene ``data`` (written to ``path``) needs to match ``measured``.
+
+    A level is refitted from the frame that measures it: the light level (flat screen) or the sky level
+    from a light frame, the bias offset and the dark level from a dark or bias frame (a light frame cannot
+    separate a bias offset from its light: on a vignetted flat screen the least squares trade hundreds of
+    ADU of bias against a per cent of light). Weighted least squares of the residual on those templates,
+    degenerate ones dropped in :attr:`Residuals.LEVELS` order. Returns ``{level name: coefficient}``
+    (scales are relative changes, the offset is in ADU)."""
     import tomli_w
+
+    from detector.diagnosis import LEVEL_DEGENERACY, _at, _independent
 
     from ..scene import load_scene
     from .model import build_model, read_measurement, residuals
 
     path.write_text(tomli_w.dumps(data))
-    model = build_model(load_scene(str(path)), realisation=False)
+    sc = load_scene(str(path))
+    model = build_model(sc, realisation=False)
     d, _ = read_measurement(measured, model)
     res = residuals(d, model)
     idx, r, w = res.flat()
-    t = model.photo_adu.ravel()[idx].astype(np.float64)
-    den = float(np.dot(t * t, w))
-    return 1.0 + float(np.dot(t * r, w)) / den if den > 0 else None
+    if not idx.size:
+        return {}
+    if sc.exposure.frame == "light":
+        if sc.sky.flat_e_per_s:
+            wanted = [0]  # the flat screen: the whole photo-signal
+        elif sc.sky.background_mag_arcsec2 is not None:
+            wanted = [1]  # the sky: the uniform part of the light
+        else:
+            return {}
+    else:
+        wanted = [2, 3] if float(np.sum(res.dark_e)) > 0 else [2]
+    temps = res.level_templates()
+    x = np.stack([_at(temps[i], res.data_adu.shape, idx) for i in wanted])
+    xw = x * w
+    g = xw @ x.T
+    keep = _independent(g, tol=LEVEL_DEGENERACY)
+    if not keep:
+        return {}
+    coef = np.linalg.solve(g[np.ix_(keep, keep)], (xw @ r)[keep])
+    return {res.LEVELS[wanted[k]]: float(c) for k, c in zip(keep, coef)}
+
+
+def carry_levels(data: dict, levels: dict[str, float], scene) -> tuple[dict, list[str]]:
+    """Write refitted global levels into the keys of the scene ``data`` (a dump of ``scene``) that hold
+    them. Returns (scene data, notes)."""
+    notes, sensor = [], scene.sensor()
+    sky, det = data.setdefault("sky", {}), data.setdefault("detector", {})
+    c = levels.get("light_scale", 0.0)
+    if abs(c) > LEVEL_SCALE_TOL and sky.get("flat_e_per_s") and 1 + c > 0:
+        sky["flat_e_per_s"] = round(float(sky["flat_e_per_s"]) * (1 + c), 6)
+        notes.append(f"the flat-screen level refitted: flat_e_per_s x {1 + c:.5f}")
+    c = levels.get("background_scale", 0.0)
+    if abs(c) > LEVEL_SCALE_TOL and 1 + c > 0.05:
+        mag = scene.sky.background_mag_arcsec2
+        sky["background_mag_arcsec2"] = round(float(mag) - 2.5 * float(np.log10(1 + c)), 5)
+        notes.append(f"the sky level refitted: x {1 + c:.5f} ({mag:.4g} -> {sky['background_mag_arcsec2']:.5g} "
+                     "mag/arcsec^2)")
+    c = levels.get("offset_adu", 0.0)
+    if abs(c) > LEVEL_OFFSET_TOL_ADU:
+        det["bias_adu"] = round(max(float(sensor.bias_adu) + c, 0.0), 3)
+        notes.append(f"the bias level refitted: {sensor.bias_adu:.4g} -> {det['bias_adu']:.6g} ADU")
+    c = levels.get("dark_scale", 0.0)
+    if abs(c) > LEVEL_SCALE_TOL and 1 + c > 0:
+        det["dark_current_e_per_s"] = round(float(sensor.dark_current_e_per_s) * (1 + c), 6)
+        notes.append(f"the dark level refitted: dark_current_e_per_s x {1 + c:.5f}")
+    return data, notes
 
 
 # --- the ledger of rounds ------------------------------------------------------------------------------------
