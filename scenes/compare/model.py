@@ -19,6 +19,7 @@ from detector.diagnosis import Residuals, SpikeStats, spike_stats
 from detector.errors import DetectorError
 from detector.fits_io import read_image
 
+from ..projection import axis_crpix
 from ..render import Setup, prepare
 from ..scene import Scene
 
@@ -102,8 +103,8 @@ def read_measurement(path: str | Path, model: ModelFrame) -> tuple[np.ndarray, d
     notes["saturated_fraction"] = float(sat)
     notes["wcs_offset_px"] = _wcs_offset(header, model)
     if notes["wcs_offset_px"] is not None and notes["wcs_offset_px"] > 2:
-        notes["warnings"].append(f"the measured WCS centre is {notes['wcs_offset_px']:.1f} px from the scene's "
-                                 "pointing: sources will not line up")
+        notes["warnings"].append(f"the measured WCS puts the scene's pointing {notes['wcs_offset_px']:.1f} px from "
+                                 "the scene's optical axis: sources will not line up")
     exptime = header.get("EXPTIME")
     if exptime is not None and abs(float(exptime) - model.setup.exptime_s) > 1e-3 * max(1.0, float(exptime)):
         notes["warnings"].append(f"EXPTIME {exptime} s in the measured file, {model.setup.exptime_s} s in the scene")
@@ -134,7 +135,9 @@ def saturation_adu(s) -> float:
 
 
 def _wcs_offset(header, model: ModelFrame) -> float | None:
-    """Distance [output px] between the measured WCS's image of the scene pointing and the frame centre."""
+    """Distance [output px] between the measured WCS's image of the scene pointing and the scene's optical
+    axis, where the pointing lies (the full sensor's centre, which a read-out window moves:
+    :func:`scenes.projection.axis_crpix`)."""
     if "CTYPE1" not in header or "CRVAL1" not in header:
         return None
     import warnings
@@ -148,8 +151,8 @@ def _wcs_offset(header, model: ModelFrame) -> float | None:
             x, y = WCS(header).all_world2pix([[p.ra_deg, p.dec_deg]], 0)[0]
     except Exception:  # noqa: BLE001  (a broken WCS is reported as absent, not fatal)
         return None
-    h, w = model.sensor.output_shape
-    return float(np.hypot(x - (w - 1) / 2.0, y - (h - 1) / 2.0))
+    ax, ay = axis_crpix(model.sensor)  # 1-based
+    return float(np.hypot(x - (ax - 1), y - (ay - 1)))
 
 
 def source_peaks(model: ModelFrame, nsigma: float = 3.0) -> np.ndarray:

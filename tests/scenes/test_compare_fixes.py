@@ -5,10 +5,13 @@ Each test checks against a value derived independently of the code under test.""
 
 import numpy as np
 import pytest
+from astropy.io import fits
 
 from detector import Detector
 from detector.sensor import make_sensor
-from scenes.compare.model import saturation_adu
+from scenes.compare.model import build_model, read_measurement, saturation_adu
+from scenes.render import render
+from scenes.scene import load_scene
 
 # --- saturation of binned frames ------------------------------------------------------------------------------
 
@@ -35,3 +38,40 @@ def test_saturation_level_of_ccd_and_cmos_binning(preset, overrides, expected):
     margin = 5 * s.read_noise_e / s.gain_e_per_adu * (1 if s.kind == "ccd" else s.binning)
     margin /= s.binning ** 2 if s.binning_mode == "average" else 1  # 5 read-noise sigma of an output pixel
     assert saturation_adu(s) - 0.2 * margin <= frame.min() <= frame.max() <= saturation_adu(s) + 2.2 * margin
+
+
+# --- the WCS check about the optical axis ----------------------------------------------------------------------
+
+WINDOW = """
+[detector]
+preset = "ml11002"
+width = 128
+height = 128
+x0 = 40
+y0 = 2400
+binning = {b}
+[exposure]
+time_s = 2.0
+[sky]
+stars = false
+background_mag_arcsec2 = 20.0
+"""
+
+
+@pytest.mark.parametrize("b", [1, 2])
+def test_wcs_check_of_a_window_far_from_the_axis(tmp_path, b):
+    scene_path = tmp_path / "window.toml"
+    scene_path.write_text(WINDOW.format(b=b))
+    scene = load_scene(str(scene_path))
+    render(scene, tmp_path / "own.fits", seed=2)  # the frame carries the scene's own WCS
+    model = build_model(scene, realisation=False)
+    # the window is ~1900 px (unbinned) from the sensor's centre: the old check measured that distance
+    _, notes = read_measurement(tmp_path / "own.fits", model)
+    assert notes["wcs_offset_px"] < 0.01 and not notes["warnings"], notes
+    # a true shift of the measured WCS by 5 output pixels along the columns is still reported
+    with fits.open(tmp_path / "own.fits") as hd:
+        hd[0].header["CRPIX1"] += 5.0
+        hd.writeto(tmp_path / "shifted.fits")
+    _, notes = read_measurement(tmp_path / "shifted.fits", model)
+    assert notes["wcs_offset_px"] == pytest.approx(5.0, abs=0.01)
+    assert any("5.0 px" in w for w in notes["warnings"]), notes
