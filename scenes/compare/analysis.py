@@ -154,8 +154,17 @@ def _moments(stamp: np.ndarray, yy: np.ndarray, xx: np.ndarray) -> tuple[float, 
     return float(cx), float(cy), float(np.sqrt(r2 / 2)), float(s)
 
 
+def background_adu(res: Residuals) -> np.ndarray:
+    """The model's mean frame without its sources [ADU]: sky (or flat screen) and straylight through the chain,
+    dark signal and bias (``background_adu`` that :func:`scenes.compare.model.residuals` attaches). Without
+    it, bias and dark plus the uniform part of the photo-signal (:meth:`Residuals.level_templates`)."""
+    bg = res.__dict__.get("background_adu")
+    return res.model_adu - res.photo_adu + res.level_templates()[1] if bg is None else bg
+
+
 def star_photometry(res: Residuals, truth: np.ndarray | None, radius_px: float = 4.0, max_stars: int = 2000) -> dict:
-    """Aperture photometry of catalogue stars in measurement and model (background = the model's).
+    """Aperture photometry of catalogue stars in measurement and model, the model's whole background
+    (:func:`background_adu`, sky included) subtracted from both.
 
     For each star of the TRUTH table inside the frame (brightest first): flux ratio data/model in a circular
     aperture, centroid offset [px] and Gaussian-equivalent size sigma [px] of both; trends of the flux
@@ -174,13 +183,13 @@ def star_photometry(res: Residuals, truth: np.ndarray | None, radius_px: float =
     st = st[np.argsort(-st["flux_e"])][:max_stars]
     yy, xx = np.mgrid[-rad:rad + 1, -rad:rad + 1]
     ap = (xx ** 2 + yy ** 2) <= radius_px ** 2
-    bg = res.model_adu - res.photo_adu
+    bg = background_adu(res)
     rows = []
     for s_ in st:
-        xi, yi = int(round(s_["x"])), int(round(s_["y"]))
+        xi, yi = round(float(s_["x"])), round(float(s_["y"]))
         sl = (slice(yi - rad, yi + rad + 1), slice(xi - rad, xi + rad + 1))
         d = (res.data_adu[sl] - bg[sl]) * ap
-        m = res.photo_adu[sl] * ap
+        m = (res.model_adu[sl] - bg[sl]) * ap
         var = (res.var_adu2[sl] * ap).sum()
         fd, fm = float(d.sum()), float(m.sum())
         if fm <= 3 * np.sqrt(var):
@@ -210,13 +219,14 @@ def star_photometry(res: Residuals, truth: np.ndarray | None, radius_px: float =
 
 def streak_profiles(res: Residuals, truth: np.ndarray | None, segments: int = 10, half_width_px: float = 6.0) -> list:
     """For each object (streak) of the TRUTH table: flux data/model and cross-track offset [px] along its
-    length, in ``segments`` equal parts of the track from (x0, y0) to (x1, y1)."""
+    length, in ``segments`` equal parts of the track from (x0, y0) to (x1, y1); the model's whole background
+    (:func:`background_adu`) subtracted from data and model."""
     if truth is None or len(truth) == 0 or "x0" not in truth.dtype.names:
         return []
     kind = np.char.strip(np.asarray(truth["kind"]).astype(str))
     out = []
     h, w = res.data_adu.shape
-    bg = res.model_adu - res.photo_adu
+    bg = background_adu(res)
     for o in truth[kind != "star"]:
         p0, p1 = np.array([o["x0"], o["y0"]], float), np.array([o["x1"], o["y1"]], float)
         length = float(np.hypot(*(p1 - p0)))
@@ -234,7 +244,7 @@ def streak_profiles(res: Residuals, truth: np.ndarray | None, segments: int = 10
         sel = (np.abs(across) <= half_width_px) & (along >= 0) & (along <= length)
         seg = np.minimum((along / length * segments).astype(int), segments - 1)
         d = res.data_adu[y0:y1, x0:x1] - bg[y0:y1, x0:x1]
-        m = res.photo_adu[y0:y1, x0:x1]
+        m = res.model_adu[y0:y1, x0:x1] - bg[y0:y1, x0:x1]
         fd = np.bincount(seg[sel], d[sel], segments)
         fm = np.bincount(seg[sel], m[sel], segments)
         cd = np.bincount(seg[sel], (d * across)[sel], segments)

@@ -10,7 +10,7 @@ columns) that the measurement's are compared with.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -19,6 +19,7 @@ from detector.diagnosis import Residuals, SpikeStats, spike_stats
 from detector.errors import DetectorError
 from detector.fits_io import read_image
 
+from ..image.signal import Samples, SourceSignal, Trails
 from ..projection import axis_crpix
 from ..render import Setup, prepare
 from ..scene import Scene
@@ -39,6 +40,9 @@ class ModelFrame:
     dark_e: np.ndarray
     #: the photo-signal before the full-well clip [ADU]: what image-plane effects (blur, shift) transform
     photo_field_adu: np.ndarray | None = None
+    #: the mean frame of the background alone [ADU]: sky (or flat screen) and straylight through the whole
+    #: chain, dark signal and bias; the sources' photometry subtracts it from data and model
+    background_adu: np.ndarray | None = None
     realisation: np.ndarray | None = None  #: one noisy frame of the model [ADU], for the outlier statistics
     spikes: SpikeStats | None = None
     extra: dict = field(default_factory=dict)
@@ -66,13 +70,23 @@ def build_model(scene: Scene, workers: int | None = None, realisation: bool = Tr
     photo = mean - mean0
     dark_e = np.maximum(mean0 - np.float32((s.bias_adu - 0.5) * adu_sum), 0) * np.float32(s.gain_e_per_adu)
     unclipped = det.expose(setup.signal_e, t, 0, noiseless=True) - det.expose(0.0, t, 0, noiseless=True)
-    model = ModelFrame(setup, mean, var, flag, photo, dark_e, unclipped / np.float32(s.gain_e_per_adu))
+    bg = background_signal(setup.signal_e)
+    background = mean if bg is setup.signal_e else det.moments(bg, t)[0]
+    model = ModelFrame(setup, mean, var, flag, photo, dark_e, unclipped / np.float32(s.gain_e_per_adu), background)
     if realisation:
         real = det.expose(setup.signal_e, t, REALISATION_SEED).astype(np.float32)
         usable = ~flag & (real < saturation_adu(s))
         model.realisation = real
         model.spikes, _ = spike_stats(real, mean, var, usable, s.gain_e_per_adu)
     return model
+
+
+def background_signal(signal):
+    """The expected photo-electrons without the sources: the uniform background (sky, flat screen) and the
+    straylight of a :class:`scenes.image.signal.SourceSignal`; any other signal is all background."""
+    if isinstance(signal, SourceSignal):
+        return replace(signal, samples=Samples.empty(), trails=Trails.empty())
+    return signal
 
 
 def read_measurement(path: str | Path, model: ModelFrame) -> tuple[np.ndarray, dict]:
@@ -176,6 +190,7 @@ def residuals(data: np.ndarray, model: ModelFrame) -> Residuals:
     ys, xs = model.pixel_centres()
     res = Residuals(data, model.mean_adu, model.var_adu2, usable & ~statistical, model.photo_adu, model.dark_e,
                     ys, xs, s, model.setup.exptime_s, spikes, model.spikes or SpikeStats(0, 0, 0, 0, 0))
-    if model.photo_field_adu is not None:
-        res.__dict__["photo_field_adu"] = model.photo_field_adu
+    for extra in ("photo_field_adu", "background_adu"):  # model pieces beyond the Residuals' fields
+        if getattr(model, extra) is not None:
+            res.__dict__[extra] = getattr(model, extra)
     return res

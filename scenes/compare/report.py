@@ -488,7 +488,7 @@ def section_stars(result: dict) -> str:
     for a in (axes[0], axes[1], axes[3]):
         a.ticklabel_format(axis="y", useOffset=False)
     cap = (summary + (". " + ", ".join(s for s in slopes if s) if any(slopes) else "") +
-           ". Aperture photometry (radius 4 px) over the model's background. A ratio falling with radius: "
+           ". Aperture photometry (radius 4 px), the model's whole background (sky included) subtracted. A ratio falling with radius: "
            "vignetting; with magnitude: nonlinearity or a wrong zero point; sizes growing with radius: "
            "coma/field PSF; common offsets: a pointing/WCS error, radial ones: distortion.")
     return _section("stars", "Stars", _fig_html(fig, _e(cap)))

@@ -6,9 +6,11 @@ Each test checks against a value derived independently of the code under test.""
 import numpy as np
 import pytest
 from astropy.io import fits
+from test_compare import SCENE
 
 from detector import Detector
 from detector.sensor import make_sensor
+from scenes.compare import run_compare
 from scenes.compare.model import build_model, read_measurement, saturation_adu
 from scenes.render import render
 from scenes.scene import load_scene
@@ -75,3 +77,45 @@ def test_wcs_check_of_a_window_far_from_the_axis(tmp_path, b):
     _, notes = read_measurement(tmp_path / "shifted.fits", model)
     assert notes["wcs_offset_px"] == pytest.approx(5.0, abs=0.01)
     assert any("5.0 px" in w for w in notes["warnings"]), notes
+
+
+# --- sources over the model's whole background -----------------------------------------------------------------
+
+def _field(stars: bool, streak: bool) -> str:
+    """test_compare's scene (ML11002 512 x 512, two catalogue stars) with 2 s and an 8" PSF, so that a star
+    stays below the full well; its object moves faster and is brighter (a 17-px streak)."""
+    base, obj = SCENE.split("[[objects]]")
+    for old, new in (("time_s = 10.0", "time_s = 2.0"), ("fwhm_arcsec = 3.0", "fwhm_arcsec = 8.0"),
+                     ("stars = true", f"stars = {str(stars).lower()}")):
+        assert old in base
+        base = base.replace(old, new)
+    for old, new in (("0.0008", "0.004"), ("-0.0005", "-0.0025"), ("200000", "4e6")):
+        assert old in obj
+        obj = obj.replace(old, new)
+    return base + ("[[objects]]" + obj if streak else "")
+
+
+def test_sources_scaled_by_one_percent_give_a_flux_ratio_of_one_percent(tmp_path):
+    """The measured frame: a noisy sky-only frame plus 1 % of the sources' expected electrons (the noiseless
+    renders of the scene with and without its sources). The ratio must be 0.01; with only bias and dark
+    subtracted (the sky left in both apertures) it was 0.04 for the streak and 0.03 for the star."""
+    (tmp_path / "full.toml").write_text(_field(stars=True, streak=True))
+    (tmp_path / "sky.toml").write_text(_field(stars=False, streak=False))
+    full, sky = load_scene(str(tmp_path / "full.toml")), load_scene(str(tmp_path / "sky.toml"))
+    render(full, tmp_path / "full_e.fits", seed=1, noiseless=True)
+    render(sky, tmp_path / "sky_e.fits", seed=1, noiseless=True)
+    render(sky, tmp_path / "sky.fits", seed=7)
+    src_e = fits.getdata(tmp_path / "full_e.fits").astype(np.float64) - fits.getdata(tmp_path / "sky_e.fits")
+    with fits.open(tmp_path / "sky.fits") as hd:
+        hd[0].data = (hd[0].data + 0.01 * src_e / hd[0].header["GAIN"]).astype(np.float32)
+        hd.writeto(tmp_path / "dim.fits")
+    cmp = run_compare(full, tmp_path / "dim.fits")
+    (streak,) = cmp["streaks"]
+    assert streak["total_flux_ratio"] == pytest.approx(0.01, abs=0.002), streak
+    # the catalogue stars the model does not clip at the full well (a clipped model star is brighter in 1 %)
+    st, flag = cmp["stars"], cmp["_model"].flag
+    clean = [i for i, (x, y) in enumerate(zip(st["x"], st["y"]))
+             if not flag[round(y) - 4:round(y) + 5, round(x) - 4:round(x) + 5].any()]
+    assert clean
+    for i in clean:
+        assert abs(st["flux_ratio"][i] - 0.01) < 4 * st["flux_ratio_err"][i] + 1e-4, (st["flux_ratio"][i], i)
