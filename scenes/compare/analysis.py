@@ -19,7 +19,7 @@ from __future__ import annotations
 import numpy as np
 from scipy import stats as sstats
 
-from detector.diagnosis import Residuals, poisson_deviance
+from detector.diagnosis import Residuals, two_sample_count_gain
 
 #: block size target for the residual map in the report (pixels per side of the small map)
 MAP_SIDE = 256
@@ -137,9 +137,11 @@ def distribution(res: Residuals, z: np.ndarray, realisation: np.ndarray | None) 
 
 
 def outlier_counts(res: Residuals) -> dict:
-    """Measured against expected outlier counts (a model realisation), with their Poisson deviances."""
+    """Measured against one model realisation's outlier counts. Both are Poisson draws, so ``deviance`` is the
+    likelihood ratio of two Poisson samples, separate rates against a common one
+    (:func:`detector.diagnosis.two_sample_count_gain`, sign flipped): ~chi2(1), mean ~1, when they agree."""
     d, m = res.data_spikes.counts(), res.model_spikes.counts()
-    return {k: {"data": d[k], "model": m[k], "deviance": poisson_deviance(d[k], m[k])} for k in d}
+    return {k: {"data": d[k], "model": m[k], "deviance": -two_sample_count_gain(d[k], m[k])} for k in d}
 
 
 # --- sources ---------------------------------------------------------------------------------------------------
@@ -270,8 +272,8 @@ def small_map(z: np.ndarray, side: int = MAP_SIDE) -> tuple[np.ndarray, int]:
 
 def misfit(chi2: float, dof: int, counts: dict, extra: dict | None = None) -> float:
     """Standardised excess of the deviances: ``max(0, (chi2 - dof) / sqrt(2 dof))`` for the pixels plus, for
-    each outlier class, ``max(0, (D - 1) / sqrt(2))`` (a Poisson deviance has mean ~1 and variance ~2 for one
-    count), plus any ``extra`` standardised terms. ~0-2 when the model explains the frame."""
+    each outlier class, ``max(0, (D - 1) / sqrt(2))`` (the two-sample count statistic of
+    :func:`outlier_counts` is ~chi2(1): mean 1, variance 2), plus any ``extra`` standardised terms. ~0-2 when the model explains the frame."""
     total = max(0.0, (chi2 - dof) / np.sqrt(2 * max(dof, 1)))
     for c in counts.values():
         total += max(0.0, (c["deviance"] - 1) / np.sqrt(2))

@@ -423,10 +423,12 @@ def section_outliers(result: dict) -> str:
     for k, v in out.items():
         rows.append([_OUTLIER_LABELS.get(k, k), v.get("data"), v.get("model"), v.get("deviance")])
         cls.append("flag" if _num(v.get("deviance")) > DEVIANCE_FLAG else "")
-    tab = _table(["outlier class", "measured", "model (expected)", "Poisson deviance"], rows, numeric={1, 2, 3},
+    tab = _table(["outlier class", "measured", "model (one realisation)", "deviance"], rows, numeric={1, 2, 3},
                  row_class=cls)
-    note = ('<p class="note">Pixels the model can only predict statistically are compared by their counts; the '
-            f"deviance 2[o ln(o/e) - (o - e)] is ~1 when the counts agree (highlighted above {DEVIANCE_FLAG:g}).</p>")
+    note = ('<p class="note">Pixels the model can only predict statistically are compared by their counts with '
+            "those of one noisy realisation of the model. Both counts are Poisson, so the deviance is the "
+            "likelihood ratio of two Poisson samples, 2[o ln(2o/(o+m)) + m ln(2m/(o+m))], ~1 when the rates agree "
+            f"(highlighted above {DEVIANCE_FLAG:g}).</p>")
     return _section("outliers", "Outlier counts", tab + note)
 
 

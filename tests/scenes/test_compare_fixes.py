@@ -3,14 +3,18 @@ check about the optical axis, the full-resolution residual spectrum, the two-sam
 chi2/dof with the global levels refitted, row-noise error bars and the saturation level of binned frames.
 Each test checks against a value derived independently of the code under test."""
 
+from types import SimpleNamespace
+
 import numpy as np
 import pytest
 from astropy.io import fits
 from test_compare import SCENE
 
 from detector import Detector
+from detector.diagnosis import SpikeStats
 from detector.sensor import make_sensor
 from scenes.compare import run_compare
+from scenes.compare.analysis import misfit, outlier_counts
 from scenes.compare.model import build_model, read_measurement, saturation_adu
 from scenes.render import render
 from scenes.scene import load_scene
@@ -119,3 +123,16 @@ def test_sources_scaled_by_one_percent_give_a_flux_ratio_of_one_percent(tmp_path
     assert clean
     for i in clean:
         assert abs(st["flux_ratio"][i] - 0.01) < 4 * st["flux_ratio_err"][i] + 1e-4, (st["flux_ratio"][i], i)
+
+
+# --- outlier counts: two Poisson samples -----------------------------------------------------------------------
+
+def test_outlier_counts_are_compared_as_two_poisson_samples():
+    """5 hot pixels in the data, none in the model realisation: 2 x 5 ln 2 = 6.93 (the one-sample deviance
+    against an expectation of 0 was 75); 30 against 20: 2 [30 ln(60/50) + 20 ln(40/50)] = 2.013; equal: 0."""
+    data, model = SpikeStats(5, 30, 7, 0, 0), SpikeStats(0, 20, 7, 0, 0)
+    out = outlier_counts(SimpleNamespace(data_spikes=data, model_spikes=model))
+    assert out["single_pos"]["deviance"] == pytest.approx(10 * np.log(2), rel=1e-9)
+    assert out["cluster_pos"]["deviance"] == pytest.approx(2 * (30 * np.log(1.2) + 20 * np.log(0.8)), rel=1e-9)
+    assert out["single_neg"]["deviance"] == 0 == out["hot_cols"]["deviance"]
+    assert misfit(100.0, 100, out) == pytest.approx((10 * np.log(2) - 1 + 2.0134 - 1) / np.sqrt(2), abs=1e-3)
