@@ -79,14 +79,20 @@ def region_table(res: Residuals, z: np.ndarray) -> dict[str, dict]:
 
 
 def profiles(res: Residuals) -> dict:
-    """Mean residual [ADU] per row and per column over the fitted pixels, and their z (standard errors)."""
+    """Mean residual [ADU] per row and per column over the fitted pixels, and their z (standard errors).
+
+    The variance of a row's mean over n pixels is ``sum(var) / n^2`` plus ``(1 - 1/n) c``, with ``c`` the
+    covariance the pixels of a row share (``row_var_adu2`` of the model: row noise); a column's mean averages
+    independent rows, so ``sum(var) / n^2`` (which holds the row noise's variance) is all of it."""
     out = {}
     r = np.where(res.fit, res.data_adu - res.model_adu, 0.0)
     v = np.where(res.fit, res.var_adu2, 0.0)
+    row_cov = float(res.__dict__.get("row_var_adu2", 0.0))
     for axis, name in ((1, "row"), (0, "column")):
         n = res.fit.sum(axis=axis)
         mean = r.sum(axis=axis) / np.maximum(n, 1)
-        err = np.sqrt(v.sum(axis=axis)) / np.maximum(n, 1)
+        shared = row_cov * (1 - 1 / np.maximum(n, 1)) if name == "row" else 0.0
+        err = np.sqrt(v.sum(axis=axis) / np.maximum(n, 1) ** 2 + shared)
         zz = np.where(n > 0, mean / np.maximum(err, 1e-12), 0.0)
         out[name] = {"mean_residual_adu": mean.astype(np.float32), "z": zz.astype(np.float32),
                      "chi2_per_dof": float(np.mean(zz[n > 0] ** 2)) if (n > 0).any() else float("nan")}

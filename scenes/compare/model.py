@@ -46,6 +46,8 @@ class ModelFrame:
     realisation: np.ndarray | None = None  #: one noisy frame of the model [ADU], for the outlier statistics
     spikes: SpikeStats | None = None
     extra: dict = field(default_factory=dict)
+    #: variance [ADU^2] the pixels of one output row share (their covariance: per-row offsets of row noise)
+    row_var_adu2: float = 0.0
 
     @property
     def sensor(self):
@@ -73,12 +75,26 @@ def build_model(scene: Scene, workers: int | None = None, realisation: bool = Tr
     bg = background_signal(setup.signal_e)
     background = mean if bg is setup.signal_e else det.moments(bg, t)[0]
     model = ModelFrame(setup, mean, var, flag, photo, dark_e, unclipped / np.float32(s.gain_e_per_adu), background)
+    model.row_var_adu2 = row_offset_var_adu2(det)
     if realisation:
         real = det.expose(setup.signal_e, t, REALISATION_SEED).astype(np.float32)
         usable = ~flag & (real < saturation_adu(s))
         model.realisation = real
         model.spikes, _ = spike_stats(real, mean, var, usable, s.gain_e_per_adu)
     return model
+
+
+def row_offset_var_adu2(det) -> float:
+    """Covariance [ADU^2] of two output pixels of one output row: the variance of the per-row offsets of
+    ``row_noise`` (``sigma_e`` per read-out row). A CCD reads a binned row once; an output row of a CMOS sums
+    b sensor rows over b columns each (b^3 offsets' variance); average binning divides by b^4."""
+    eff = next((e for e in det.effects if e.name == "row_noise"), None)
+    if eff is None:
+        return 0.0
+    s = det.sensor
+    b = s.binning
+    rows = (1 if s.kind == "ccd" else b ** 3) / (b ** 4 if s.binning_mode == "average" else 1)
+    return float(rows * (eff.params.sigma_e / s.gain_e_per_adu) ** 2)
 
 
 def background_signal(signal):
@@ -190,7 +206,7 @@ def residuals(data: np.ndarray, model: ModelFrame) -> Residuals:
     ys, xs = model.pixel_centres()
     res = Residuals(data, model.mean_adu, model.var_adu2, usable & ~statistical, model.photo_adu, model.dark_e,
                     ys, xs, s, model.setup.exptime_s, spikes, model.spikes or SpikeStats(0, 0, 0, 0, 0))
-    for extra in ("photo_field_adu", "background_adu"):  # model pieces beyond the Residuals' fields
+    for extra in ("photo_field_adu", "background_adu", "row_var_adu2"):  # model pieces beyond Residuals' fields
         if getattr(model, extra) is not None:
             res.__dict__[extra] = getattr(model, extra)
     return res

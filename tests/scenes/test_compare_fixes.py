@@ -136,3 +136,34 @@ def test_outlier_counts_are_compared_as_two_poisson_samples():
     assert out["cluster_pos"]["deviance"] == pytest.approx(2 * (30 * np.log(1.2) + 20 * np.log(0.8)), rel=1e-9)
     assert out["single_neg"]["deviance"] == 0 == out["hot_cols"]["deviance"]
     assert misfit(100.0, 100, out) == pytest.approx((10 * np.log(2) - 1 + 2.0134 - 1) / np.sqrt(2), abs=1e-3)
+
+
+# --- row profiles of a model with row noise ----------------------------------------------------------------------
+
+ROWS = """
+[detector]
+preset = "{preset}"
+width = 256
+height = 256
+binning = {b}
+[exposure]
+time_s = 5.0
+[sky]
+stars = false
+background_mag_arcsec2 = 20.0
+[effects.row_noise]
+sigma_e = 20.0
+"""
+
+
+@pytest.mark.parametrize("preset, b", [("ml11002", 1), ("imx411", 2)])
+def test_row_profile_of_a_model_with_row_noise_is_noise(tmp_path, preset, b):
+    """A frame of the scene itself: its row means scatter as the model says (chi2/dof 1 within 5 sigma), the
+    row noise included (20 e- rms per read-out row; the per-pixel errors alone gave 142 and 216)."""
+    (tmp_path / "rows.toml").write_text(ROWS.format(preset=preset, b=b))
+    scene = load_scene(str(tmp_path / "rows.toml"))
+    render(scene, tmp_path / "rows.fits", seed=9)
+    prof = run_compare(scene, tmp_path / "rows.fits")["profiles"]
+    for key in ("row", "column"):
+        n = prof[key]["z"].size
+        assert abs(prof[key]["chi2_per_dof"] - 1) < 5 * np.sqrt(2 / n), (key, prof[key]["chi2_per_dof"])
