@@ -288,6 +288,16 @@ def misfit(chi2: float, dof: int, counts: dict, extra: dict | None = None) -> fl
     return float(total)
 
 
+def level_fit(res: Residuals) -> dict:
+    """chi2/dof with the global levels refitted (:func:`detector.diagnosis.level_profiled`: light, background,
+    bias offset and dark level as nuisance parameters, their shot noise included; dof = pixels - levels) and
+    the fitted levels: relative changes of the light, background and dark signal [1], the offset [ADU]."""
+    lv = res.levels()
+    dof = max(res.n_fit - len(lv["keep"]), 1)
+    return {"chi2_per_dof_levels": res.chi2_profiled() / dof,
+            "levels": {name: float(c) for name, c in zip(lv["names"], lv["coef"])}}
+
+
 def compare(res: Residuals, truth=None, realisation: np.ndarray | None = None) -> dict:
     """All statistics of the comparison (JSON-able after :func:`detector.jsonable.jsonable`)."""
     z = zmap(res)
@@ -309,6 +319,7 @@ def compare(res: Residuals, truth=None, realisation: np.ndarray | None = None) -
         "outliers": counts, "stars": star_photometry(res, truth), "streaks": streak_profiles(res, truth),
         "z_map": zsmall, "z_map_block": k,
     }
+    out.update(level_fit(res))
     out["misfit"] = misfit(chi2, n, counts, {"rows": rows_excess, "columns": cols_excess})
     out["worst_regions"] = sorted(out["regions"], key=lambda r: -out["regions"][r]["chi2_per_dof"])[:3]
     return out
@@ -316,7 +327,7 @@ def compare(res: Residuals, truth=None, realisation: np.ndarray | None = None) -
 
 def summary(result: dict) -> dict:
     """The JSON of the contract: the headline numbers without the large arrays."""
-    keep = ("chi2_per_dof", "misfit", "n_pixels", "n_compared", "n_statistical", "measured", "model", "model_mean",
+    keep = ("chi2_per_dof", "chi2_per_dof_levels", "levels", "misfit", "n_pixels", "n_compared", "n_statistical", "measured", "model", "model_mean",
             "regions", "outliers", "worst_regions")
     out = {k: result[k] for k in keep if k in result}
     out["profiles"] = {k: {"chi2_per_dof": v["chi2_per_dof"]} for k, v in result["profiles"].items()}

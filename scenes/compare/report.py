@@ -227,6 +227,22 @@ def _worst_regions_html(result: dict) -> str:
     return "<p>Largest residuals: " + "; ".join(parts) + ".</p>" if parts else ""
 
 
+_LEVEL_WORDS = {"light_scale": "light", "background_scale": "background", "offset_adu": "bias offset",
+                "dark_scale": "dark"}
+
+
+def _levels_text(result: dict) -> str:
+    """chi2/dof with the global levels refitted, and the fitted levels in words ('' when absent)."""
+    chi2 = _num(result.get("chi2_per_dof_levels"))
+    if not math.isfinite(chi2):
+        return ""
+    levels = result.get("levels") or {}
+    parts = [f"{_LEVEL_WORDS.get(k, k)} {_num(v):+.3g} ADU" if k == "offset_adu" else
+             f"{_LEVEL_WORDS.get(k, k)} {100 * _num(v):+.3g} %" for k, v in levels.items()]
+    return (f"With the global levels refitted: chi2/dof = {_fmt(chi2)}" +
+            (f" ({', '.join(parts)})" if parts else "") + ".")
+
+
 def section_verdict(result: dict, diagnosis: dict | None) -> str:
     """The box at the top: the diagnosis verdict (or the plain-words reading), chi2/dof, misfit, worst regions."""
     text, level = reading(result)
@@ -234,6 +250,8 @@ def section_verdict(result: dict, diagnosis: dict | None) -> str:
     head = (f"chi2/dof = {_fmt(chi2)} over {_fmt(result.get('n_compared'))} pixels "
             f"({_fmt(result.get('n_statistical'))} compared statistically); misfit = {_fmt(result.get('misfit'), 3)}")
     body = [f'<p class="headline">{_e(head)}</p>']
+    if chi2 is not None and _levels_text(result):
+        body.append(f"<p>{_e(_levels_text(result))}</p>")
     if diagnosis is not None:
         sig = [c for c in diagnosis.get("candidates", []) if c.get("significant")]
         if sig:

@@ -3,6 +3,7 @@ check about the optical axis, the full-resolution residual spectrum, the two-sam
 chi2/dof with the global levels refitted, row-noise error bars and the saturation level of binned frames.
 Each test checks against a value derived independently of the code under test."""
 
+import re
 from types import SimpleNamespace
 
 import numpy as np
@@ -16,6 +17,7 @@ from detector.sensor import make_sensor
 from scenes.compare import run_compare
 from scenes.compare.analysis import misfit, outlier_counts
 from scenes.compare.model import build_model, read_measurement, saturation_adu
+from scenes.compare.report import write_report
 from scenes.render import render
 from scenes.scene import load_scene
 
@@ -167,3 +169,24 @@ def test_row_profile_of_a_model_with_row_noise_is_noise(tmp_path, preset, b):
     for key in ("row", "column"):
         n = prof[key]["z"].size
         assert abs(prof[key]["chi2_per_dof"] - 1) < 5 * np.sqrt(2 / n), (key, prof[key]["chi2_per_dof"])
+
+
+# --- chi2/dof with the global levels refitted --------------------------------------------------------------------
+
+def test_a_brighter_sky_is_a_level_not_a_misfit(tmp_path):
+    """The measured sky is 10 % brighter than the scene's (0.1035 mag): the raw chi2/dof is far above 1,
+    with the levels refitted it is 1 and the fitted background level is +10 %."""
+    (tmp_path / "scene.toml").write_text(SCENE)
+    mag = 19.72 + 2.5 * np.log10(1 / 1.1)
+    (tmp_path / "bright.toml").write_text(SCENE.replace("background_mag_arcsec2 = 19.72",
+                                                        f"background_mag_arcsec2 = {mag:.6f}"))
+    render(load_scene(str(tmp_path / "bright.toml")), tmp_path / "bright.fits", seed=4)
+    cmp = run_compare(load_scene(str(tmp_path / "scene.toml")), tmp_path / "bright.fits")
+    s = cmp["summary"]
+    assert s["chi2_per_dof"] > 2
+    assert abs(s["chi2_per_dof_levels"] - 1) < 5 * np.sqrt(2 / s["n_compared"]), s["chi2_per_dof_levels"]
+    assert s["levels"]["background_scale"] == pytest.approx(0.10, abs=0.003), s["levels"]
+    page = write_report(cmp, tmp_path / "r.html").read_text()
+    shown = re.search(r"With the global levels refitted: chi2/dof = ([0-9.]+) \(([^)]*)\)", page)
+    assert shown and float(shown[1]) == pytest.approx(s["chi2_per_dof_levels"], rel=1e-3)
+    assert "background +10 %" in shown[2]
