@@ -23,6 +23,8 @@ from detector.diagnosis import Residuals, two_sample_count_gain
 
 #: block size target for the residual map in the report (pixels per side of the small map)
 MAP_SIDE = 256
+#: side [pixels] of the central cut-out of the z map whose full-resolution spectrum is searched for peaks
+PEAK_SIDE = 512
 
 
 def robust_std(x: np.ndarray) -> float:
@@ -121,6 +123,38 @@ def power_spectrum(z: np.ndarray, nbins: int = 40) -> dict:
     return {"freq": 0.5 * (edges[1:] + edges[:-1]), "radial": radial,
             "row_freq": np.fft.rfftfreq(h), "row_power": rows, "col_freq": np.fft.rfftfreq(w), "col_power": cols,
             "low_freq_power": float(np.nanmean(radial[:3]))}
+
+
+def source_mask(res: Residuals) -> np.ndarray:
+    """Pixels where the model's sources add more than one sigma to its background (:func:`background_adu`)."""
+    return (res.model_adu - background_adu(res)) > np.sqrt(res.var_adu2)
+
+
+def spectrum_peaks(z: np.ndarray, side: int = PEAK_SIDE, n_peaks: int = 5) -> dict:
+    """The strongest periodic patterns of z at full resolution, pixel-scale ones included (a Bayer mosaic
+    at the Nyquist frequency (0.5, 0.5), which the block-averaged spectrum cannot show).
+
+    The 2-D power of a central ``side`` x ``side`` cut-out of z (give it with 0 where nothing is compared),
+    its 3 x 3 local maxima ranked by power over the median power. White noise: the strongest of ~1e5
+    frequencies is ~15-25 x the median. Returns ``side`` and ``peaks``: ``[{"fx", "fy" [cycles/pixel],
+    "power_ratio"}]``, best first (fx >= 0; fy >= 0 where fx is 0 or 0.5, which rfft2 holds twice).
+    """
+    from scipy import ndimage
+
+    h, w = z.shape
+    y0, x0 = max(0, (h - side) // 2), max(0, (w - side) // 2)
+    cut = np.asarray(z[y0:y0 + side, x0:x0 + side], np.float64)
+    p = np.abs(np.fft.rfft2(cut - cut.mean())) ** 2 / max(cut.size, 1)
+    fy, fx = np.fft.fftfreq(cut.shape[0]), np.fft.rfftfreq(cut.shape[1])
+    med = float(np.median(p))
+    p[0, 0] = 0.0
+    p[np.ix_((fy < 0) & (fy > -0.5), (fx == 0) | (fx == 0.5))] = 0.0  # mirror images within those columns
+    local = p == ndimage.maximum_filter(p, size=3, mode="wrap")
+    best = np.argsort(-np.where(local, p, 0.0), axis=None)[:n_peaks]
+    peaks = [{"fx": float(fx[j]), "fy": float(abs(fy[i]) if fy[i] == -0.5 else fy[i]),
+              "power_ratio": float(p[i, j] / med) if med > 0 else float("nan")}
+             for i, j in zip(*np.unravel_index(best, p.shape))]
+    return {"side": int(min(cut.shape)), "peaks": peaks}
 
 
 def distribution(res: Residuals, z: np.ndarray, realisation: np.ndarray | None) -> dict:
@@ -319,6 +353,7 @@ def compare(res: Residuals, truth=None, realisation: np.ndarray | None = None) -
         "outliers": counts, "stars": star_photometry(res, truth), "streaks": streak_profiles(res, truth),
         "z_map": zsmall, "z_map_block": k,
     }
+    out["power_peaks"] = spectrum_peaks(np.where(source_mask(res), 0.0, z))
     out.update(level_fit(res))
     out["misfit"] = misfit(chi2, n, counts, {"rows": rows_excess, "columns": cols_excess})
     out["worst_regions"] = sorted(out["regions"], key=lambda r: -out["regions"][r]["chi2_per_dof"])[:3]
@@ -336,5 +371,7 @@ def summary(result: dict) -> dict:
     out["streaks"] = [{"name": s["name"], "length_px": s["length_px"], "total_flux_ratio": s["total_flux_ratio"]}
                       for s in result.get("streaks", [])]
     out["power_low_freq"] = result["power"]["low_freq_power"]
+    if "power_peaks" in result:
+        out["power_peaks"] = result["power_peaks"]
     out["distribution"] = {k: result["distribution"][k] for k in ("skew", "kurtosis")}
     return out

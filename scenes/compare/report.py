@@ -37,6 +37,8 @@ Z_CLIP = 5.0
 FLAG_SIGMA = 5.0
 #: Poisson deviance of an outlier count above which it is flagged (~3 sigma for one count)
 DEVIANCE_FLAG = 10.0
+#: power over the median above which a full-resolution spectral peak is flagged (white noise: ~15-25)
+PEAK_FLAG = 100.0
 #: misfit below which the model explains the frame (noise-only frames give ~0-3)
 MISFIT_OK = 5.0
 #: candidates whose delta BIC is at or above this are not significant (DESIGN.md contract)
@@ -352,7 +354,25 @@ def section_power(result: dict) -> str:
     cap = (f"Power spectrum of the z map (one map pixel = {k} x {k} pixels), normalised so that white noise is "
            "flat at 1 (dashed). Power rising at low frequency: large-scale structure (gradients, glow, vignetting, "
            "straylight); peaks: periodic patterns.")
-    return _section("power", "Residual power spectrum", _fig_html(fig, _e(cap)))
+    return _section("power", "Residual power spectrum", _fig_html(fig, _e(cap)) + _peaks_html(result))
+
+
+def _peaks_html(result: dict, shown: int = 3) -> str:
+    """The strongest peaks of the full-resolution spectrum as a small table ('' when absent)."""
+    pk = result.get("power_peaks") or {}
+    peaks = [p for p in (pk.get("peaks") or []) if isinstance(p, dict)][:shown]
+    if not peaks:
+        return ""
+    rows = [[p.get("fx"), p.get("fy"), p.get("power_ratio")] for p in peaks]
+    cls = ["flag" if _num(p.get("power_ratio")) > PEAK_FLAG else "" for p in peaks]
+    tab = _table(["fx [cycles/px]", "fy [cycles/px]", "power / median"], rows, numeric={0, 1, 2}, row_class=cls,
+                 digits=3)
+    side = pk.get("side")
+    note = (f'<p class="note">Strongest peaks of the full-resolution spectrum of z (central {_e(side)} x {_e(side)} '
+            "pixels, sources and pixels not compared set to 0). White noise tops out at ~15-25 x the median "
+            f"(highlighted above {PEAK_FLAG:g}). (0.5, 0.5): a 2 x 2 pattern such as a Bayer mosaic; (0.5, 0) or "
+            "(0, 0.5): alternate columns or rows.</p>")
+    return tab + note
 
 
 # --- distributions and statistics -----------------------------------------------------------------------------------

@@ -9,7 +9,7 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 from astropy.io import fits
-from test_compare import SCENE
+from test_compare import SCENE, SMALL
 
 from detector import Detector
 from detector.diagnosis import SpikeStats
@@ -190,3 +190,30 @@ def test_a_brighter_sky_is_a_level_not_a_misfit(tmp_path):
     shown = re.search(r"With the global levels refitted: chi2/dof = ([0-9.]+) \(([^)]*)\)", page)
     assert shown and float(shown[1]) == pytest.approx(s["chi2_per_dof_levels"], rel=1e-3)
     assert "background +10 %" in shown[2]
+
+
+# --- the full-resolution residual spectrum -----------------------------------------------------------------------
+
+def test_a_checkerboard_response_is_the_top_peak_of_the_full_resolution_spectrum(tmp_path):
+    """A 2 x 2 response pattern (+-a of the photo-signal, 0.5 sigma a pixel) puts the Nyquist frequency (0.5,
+    0.5) on top, at ~N a^2 / (sigma^2 ln 2) = 2.4e4 x the median power (median of an exponential: ln 2);
+    the frame of the scene itself has no peak above ~25 x the median."""
+    (tmp_path / "sky.toml").write_text(SMALL)  # ML11002 256 x 256, sky only
+    scene = load_scene(str(tmp_path / "sky.toml"))
+    render(scene, tmp_path / "own.fits", seed=5)
+    model = build_model(scene, realisation=False)
+    with fits.open(tmp_path / "own.fits") as hd:
+        yy, xx = np.indices(hd[0].data.shape)
+        a = 0.5 * np.median(np.sqrt(model.var_adu2)) / np.median(model.photo_adu)  # 0.5 sigma on the sky
+        bump = a * model.photo_adu * np.where((xx + yy) % 2, -1.0, 1.0)
+        hd[0].data = (hd[0].data + bump).astype(np.float32)
+        hd.writeto(tmp_path / "cfa.fits")
+    own = run_compare(scene, tmp_path / "own.fits")["summary"]["power_peaks"]
+    assert own["side"] == 256 and own["peaks"][0]["power_ratio"] < 30, own["peaks"][0]
+    cmp = run_compare(scene, tmp_path / "cfa.fits")
+    top = cmp["summary"]["power_peaks"]["peaks"][0]
+    assert (top["fx"], top["fy"]) == (0.5, 0.5)
+    assert top["power_ratio"] == pytest.approx(256 ** 2 * 0.25 / np.log(2), rel=0.15)
+    # the report's table has it on top, highlighted
+    page = write_report(cmp, tmp_path / "r.html").read_text()
+    assert re.search(r'<tr class="flag"><td class="num">0.5</td><td class="num">0.5</td>', page)
