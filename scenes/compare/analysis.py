@@ -181,7 +181,7 @@ def outlier_counts(res: Residuals) -> dict:
     likelihood ratio of two Poisson samples, separate rates against a common one
     (:func:`detector.diagnosis.two_sample_count_gain`, sign flipped): ~chi2(1), mean ~1, when they agree."""
     d, m = res.data_spikes.counts(), res.model_spikes.counts()
-    return {k: {"data": d[k], "model": m[k], "deviance": -two_sample_count_gain(d[k], m[k])} for k in d}
+    return {k: {"data": d[k], "model": m[k], "deviance": 0.0 - two_sample_count_gain(d[k], m[k])} for k in d}
 
 
 # --- sources ---------------------------------------------------------------------------------------------------

@@ -239,8 +239,8 @@ def _levels_text(result: dict) -> str:
     if not math.isfinite(chi2):
         return ""
     levels = result.get("levels") or {}
-    parts = [f"{_LEVEL_WORDS.get(k, k)} {_num(v):+.3g} ADU" if k == "offset_adu" else
-             f"{_LEVEL_WORDS.get(k, k)} {100 * _num(v):+.3g} %" for k, v in levels.items()]
+    parts = [f"{_LEVEL_WORDS.get(k, k)} {_num(v):+.2f} ADU" if k == "offset_adu" else
+             f"{_LEVEL_WORDS.get(k, k)} {100 * _num(v):+.1f} %" for k, v in levels.items()]
     return (f"With the global levels refitted: chi2/dof = {_fmt(chi2)}" +
             (f" ({', '.join(parts)})" if parts else "") + ".")
 

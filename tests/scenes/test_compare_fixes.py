@@ -189,7 +189,7 @@ def test_a_brighter_sky_is_a_level_not_a_misfit(tmp_path):
     page = write_report(cmp, tmp_path / "r.html").read_text()
     shown = re.search(r"With the global levels refitted: chi2/dof = ([0-9.]+) \(([^)]*)\)", page)
     assert shown and float(shown[1]) == pytest.approx(s["chi2_per_dof_levels"], rel=1e-3)
-    assert "background +10 %" in shown[2]
+    assert "background +10.0 %" in shown[2]
 
 
 # --- the full-resolution residual spectrum -----------------------------------------------------------------------
