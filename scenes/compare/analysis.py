@@ -19,10 +19,12 @@ from __future__ import annotations
 import numpy as np
 from scipy import stats as sstats
 
-from detector.diagnosis import Residuals, poisson_deviance
+from detector.diagnosis import Residuals, two_sample_count_gain
 
 #: block size target for the residual map in the report (pixels per side of the small map)
 MAP_SIDE = 256
+#: side [pixels] of the central cut-out of the z map whose full-resolution spectrum is searched for peaks
+PEAK_SIDE = 512
 
 
 def robust_std(x: np.ndarray) -> float:
@@ -79,14 +81,20 @@ def region_table(res: Residuals, z: np.ndarray) -> dict[str, dict]:
 
 
 def profiles(res: Residuals) -> dict:
-    """Mean residual [ADU] per row and per column over the fitted pixels, and their z (standard errors)."""
+    """Mean residual [ADU] per row and per column over the fitted pixels, and their z (standard errors).
+
+    The variance of a row's mean over n pixels is ``sum(var) / n^2`` plus ``(1 - 1/n) c``, with ``c`` the
+    covariance the pixels of a row share (``row_var_adu2`` of the model: row noise); a column's mean averages
+    independent rows, so ``sum(var) / n^2`` (which holds the row noise's variance) is all of it."""
     out = {}
     r = np.where(res.fit, res.data_adu - res.model_adu, 0.0)
     v = np.where(res.fit, res.var_adu2, 0.0)
+    row_cov = float(res.__dict__.get("row_var_adu2", 0.0))
     for axis, name in ((1, "row"), (0, "column")):
         n = res.fit.sum(axis=axis)
         mean = r.sum(axis=axis) / np.maximum(n, 1)
-        err = np.sqrt(v.sum(axis=axis)) / np.maximum(n, 1)
+        shared = row_cov * (1 - 1 / np.maximum(n, 1)) if name == "row" else 0.0
+        err = np.sqrt(v.sum(axis=axis) / np.maximum(n, 1) ** 2 + shared)
         zz = np.where(n > 0, mean / np.maximum(err, 1e-12), 0.0)
         out[name] = {"mean_residual_adu": mean.astype(np.float32), "z": zz.astype(np.float32),
                      "chi2_per_dof": float(np.mean(zz[n > 0] ** 2)) if (n > 0).any() else float("nan")}
@@ -117,6 +125,38 @@ def power_spectrum(z: np.ndarray, nbins: int = 40) -> dict:
             "low_freq_power": float(np.nanmean(radial[:3]))}
 
 
+def source_mask(res: Residuals) -> np.ndarray:
+    """Pixels where the model's sources add more than one sigma to its background (:func:`background_adu`)."""
+    return (res.model_adu - background_adu(res)) > np.sqrt(res.var_adu2)
+
+
+def spectrum_peaks(z: np.ndarray, side: int = PEAK_SIDE, n_peaks: int = 5) -> dict:
+    """The strongest periodic patterns of z at full resolution, pixel-scale ones included (a Bayer mosaic
+    at the Nyquist frequency (0.5, 0.5), which the block-averaged spectrum cannot show).
+
+    The 2-D power of a central ``side`` x ``side`` cut-out of z (give it with 0 where nothing is compared),
+    its 3 x 3 local maxima ranked by power over the median power. White noise: the strongest of ~1e5
+    frequencies is ~15-25 x the median. Returns ``side`` and ``peaks``: ``[{"fx", "fy" [cycles/pixel],
+    "power_ratio"}]``, best first (fx >= 0; fy >= 0 where fx is 0 or 0.5, which rfft2 holds twice).
+    """
+    from scipy import ndimage
+
+    h, w = z.shape
+    y0, x0 = max(0, (h - side) // 2), max(0, (w - side) // 2)
+    cut = np.asarray(z[y0:y0 + side, x0:x0 + side], np.float64)
+    p = np.abs(np.fft.rfft2(cut - cut.mean())) ** 2 / max(cut.size, 1)
+    fy, fx = np.fft.fftfreq(cut.shape[0]), np.fft.rfftfreq(cut.shape[1])
+    med = float(np.median(p))
+    p[0, 0] = 0.0
+    p[np.ix_((fy < 0) & (fy > -0.5), (fx == 0) | (fx == 0.5))] = 0.0  # mirror images within those columns
+    local = p == ndimage.maximum_filter(p, size=3, mode="wrap")
+    best = np.argsort(-np.where(local, p, 0.0), axis=None)[:n_peaks]
+    peaks = [{"fx": float(fx[j]), "fy": float(abs(fy[i]) if fy[i] == -0.5 else fy[i]),
+              "power_ratio": float(p[i, j] / med) if med > 0 else float("nan")}
+             for i, j in zip(*np.unravel_index(best, p.shape))]
+    return {"side": int(min(cut.shape)), "peaks": peaks}
+
+
 def distribution(res: Residuals, z: np.ndarray, realisation: np.ndarray | None) -> dict:
     """Histogram and QQ of z over the fitted pixels; histograms of measured and model-realisation ADU."""
     zz = z[res.fit]
@@ -137,9 +177,11 @@ def distribution(res: Residuals, z: np.ndarray, realisation: np.ndarray | None) 
 
 
 def outlier_counts(res: Residuals) -> dict:
-    """Measured against expected outlier counts (a model realisation), with their Poisson deviances."""
+    """Measured against one model realisation's outlier counts. Both are Poisson draws, so ``deviance`` is the
+    likelihood ratio of two Poisson samples, separate rates against a common one
+    (:func:`detector.diagnosis.two_sample_count_gain`, sign flipped): ~chi2(1), mean ~1, when they agree."""
     d, m = res.data_spikes.counts(), res.model_spikes.counts()
-    return {k: {"data": d[k], "model": m[k], "deviance": poisson_deviance(d[k], m[k])} for k in d}
+    return {k: {"data": d[k], "model": m[k], "deviance": 0.0 - two_sample_count_gain(d[k], m[k])} for k in d}
 
 
 # --- sources ---------------------------------------------------------------------------------------------------
@@ -154,8 +196,17 @@ def _moments(stamp: np.ndarray, yy: np.ndarray, xx: np.ndarray) -> tuple[float, 
     return float(cx), float(cy), float(np.sqrt(r2 / 2)), float(s)
 
 
+def background_adu(res: Residuals) -> np.ndarray:
+    """The model's mean frame without its sources [ADU]: sky (or flat screen) and straylight through the chain,
+    dark signal and bias (``background_adu`` that :func:`scenes.compare.model.residuals` attaches). Without
+    it, bias and dark plus the uniform part of the photo-signal (:meth:`Residuals.level_templates`)."""
+    bg = res.__dict__.get("background_adu")
+    return res.model_adu - res.photo_adu + res.level_templates()[1] if bg is None else bg
+
+
 def star_photometry(res: Residuals, truth: np.ndarray | None, radius_px: float = 4.0, max_stars: int = 2000) -> dict:
-    """Aperture photometry of catalogue stars in measurement and model (background = the model's).
+    """Aperture photometry of catalogue stars in measurement and model, the model's whole background
+    (:func:`background_adu`, sky included) subtracted from both.
 
     For each star of the TRUTH table inside the frame (brightest first): flux ratio data/model in a circular
     aperture, centroid offset [px] and Gaussian-equivalent size sigma [px] of both; trends of the flux
@@ -174,13 +225,13 @@ def star_photometry(res: Residuals, truth: np.ndarray | None, radius_px: float =
     st = st[np.argsort(-st["flux_e"])][:max_stars]
     yy, xx = np.mgrid[-rad:rad + 1, -rad:rad + 1]
     ap = (xx ** 2 + yy ** 2) <= radius_px ** 2
-    bg = res.model_adu - res.photo_adu
+    bg = background_adu(res)
     rows = []
     for s_ in st:
-        xi, yi = int(round(s_["x"])), int(round(s_["y"]))
+        xi, yi = round(float(s_["x"])), round(float(s_["y"]))
         sl = (slice(yi - rad, yi + rad + 1), slice(xi - rad, xi + rad + 1))
         d = (res.data_adu[sl] - bg[sl]) * ap
-        m = res.photo_adu[sl] * ap
+        m = (res.model_adu[sl] - bg[sl]) * ap
         var = (res.var_adu2[sl] * ap).sum()
         fd, fm = float(d.sum()), float(m.sum())
         if fm <= 3 * np.sqrt(var):
@@ -210,13 +261,14 @@ def star_photometry(res: Residuals, truth: np.ndarray | None, radius_px: float =
 
 def streak_profiles(res: Residuals, truth: np.ndarray | None, segments: int = 10, half_width_px: float = 6.0) -> list:
     """For each object (streak) of the TRUTH table: flux data/model and cross-track offset [px] along its
-    length, in ``segments`` equal parts of the track from (x0, y0) to (x1, y1)."""
+    length, in ``segments`` equal parts of the track from (x0, y0) to (x1, y1); the model's whole background
+    (:func:`background_adu`) subtracted from data and model."""
     if truth is None or len(truth) == 0 or "x0" not in truth.dtype.names:
         return []
     kind = np.char.strip(np.asarray(truth["kind"]).astype(str))
     out = []
     h, w = res.data_adu.shape
-    bg = res.model_adu - res.photo_adu
+    bg = background_adu(res)
     for o in truth[kind != "star"]:
         p0, p1 = np.array([o["x0"], o["y0"]], float), np.array([o["x1"], o["y1"]], float)
         length = float(np.hypot(*(p1 - p0)))
@@ -234,7 +286,7 @@ def streak_profiles(res: Residuals, truth: np.ndarray | None, segments: int = 10
         sel = (np.abs(across) <= half_width_px) & (along >= 0) & (along <= length)
         seg = np.minimum((along / length * segments).astype(int), segments - 1)
         d = res.data_adu[y0:y1, x0:x1] - bg[y0:y1, x0:x1]
-        m = res.photo_adu[y0:y1, x0:x1]
+        m = res.model_adu[y0:y1, x0:x1] - bg[y0:y1, x0:x1]
         fd = np.bincount(seg[sel], d[sel], segments)
         fm = np.bincount(seg[sel], m[sel], segments)
         cd = np.bincount(seg[sel], (d * across)[sel], segments)
@@ -260,14 +312,24 @@ def small_map(z: np.ndarray, side: int = MAP_SIDE) -> tuple[np.ndarray, int]:
 
 def misfit(chi2: float, dof: int, counts: dict, extra: dict | None = None) -> float:
     """Standardised excess of the deviances: ``max(0, (chi2 - dof) / sqrt(2 dof))`` for the pixels plus, for
-    each outlier class, ``max(0, (D - 1) / sqrt(2))`` (a Poisson deviance has mean ~1 and variance ~2 for one
-    count), plus any ``extra`` standardised terms. ~0-2 when the model explains the frame."""
+    each outlier class, ``max(0, (D - 1) / sqrt(2))`` (the two-sample count statistic of
+    :func:`outlier_counts` is ~chi2(1): mean 1, variance 2), plus any ``extra`` standardised terms. ~0-2 when the model explains the frame."""
     total = max(0.0, (chi2 - dof) / np.sqrt(2 * max(dof, 1)))
     for c in counts.values():
         total += max(0.0, (c["deviance"] - 1) / np.sqrt(2))
     for v in (extra or {}).values():
         total += max(0.0, v)
     return float(total)
+
+
+def level_fit(res: Residuals) -> dict:
+    """chi2/dof with the global levels refitted (:func:`detector.diagnosis.level_profiled`: light, background,
+    bias offset and dark level as nuisance parameters, their shot noise included; dof = pixels - levels) and
+    the fitted levels: relative changes of the light, background and dark signal [1], the offset [ADU]."""
+    lv = res.levels()
+    dof = max(res.n_fit - len(lv["keep"]), 1)
+    return {"chi2_per_dof_levels": res.chi2_profiled() / dof,
+            "levels": {name: float(c) for name, c in zip(lv["names"], lv["coef"])}}
 
 
 def compare(res: Residuals, truth=None, realisation: np.ndarray | None = None) -> dict:
@@ -291,6 +353,8 @@ def compare(res: Residuals, truth=None, realisation: np.ndarray | None = None) -
         "outliers": counts, "stars": star_photometry(res, truth), "streaks": streak_profiles(res, truth),
         "z_map": zsmall, "z_map_block": k,
     }
+    out["power_peaks"] = spectrum_peaks(np.where(source_mask(res), 0.0, z))
+    out.update(level_fit(res))
     out["misfit"] = misfit(chi2, n, counts, {"rows": rows_excess, "columns": cols_excess})
     out["worst_regions"] = sorted(out["regions"], key=lambda r: -out["regions"][r]["chi2_per_dof"])[:3]
     return out
@@ -298,7 +362,7 @@ def compare(res: Residuals, truth=None, realisation: np.ndarray | None = None) -
 
 def summary(result: dict) -> dict:
     """The JSON of the contract: the headline numbers without the large arrays."""
-    keep = ("chi2_per_dof", "misfit", "n_pixels", "n_compared", "n_statistical", "measured", "model", "model_mean",
+    keep = ("chi2_per_dof", "chi2_per_dof_levels", "levels", "misfit", "n_pixels", "n_compared", "n_statistical", "measured", "model", "model_mean",
             "regions", "outliers", "worst_regions")
     out = {k: result[k] for k in keep if k in result}
     out["profiles"] = {k: {"chi2_per_dof": v["chi2_per_dof"]} for k, v in result["profiles"].items()}
@@ -307,5 +371,7 @@ def summary(result: dict) -> dict:
     out["streaks"] = [{"name": s["name"], "length_px": s["length_px"], "total_flux_ratio": s["total_flux_ratio"]}
                       for s in result.get("streaks", [])]
     out["power_low_freq"] = result["power"]["low_freq_power"]
+    if "power_peaks" in result:
+        out["power_peaks"] = result["power_peaks"]
     out["distribution"] = {k: result["distribution"][k] for k in ("skew", "kurtosis")}
     return out

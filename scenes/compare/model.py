@@ -10,7 +10,7 @@ columns) that the measurement's are compared with.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -19,6 +19,8 @@ from detector.diagnosis import Residuals, SpikeStats, spike_stats
 from detector.errors import DetectorError
 from detector.fits_io import read_image
 
+from ..image.signal import Samples, SourceSignal, Trails
+from ..projection import axis_crpix
 from ..render import Setup, prepare
 from ..scene import Scene
 
@@ -38,9 +40,14 @@ class ModelFrame:
     dark_e: np.ndarray
     #: the photo-signal before the full-well clip [ADU]: what image-plane effects (blur, shift) transform
     photo_field_adu: np.ndarray | None = None
+    #: the mean frame of the background alone [ADU]: sky (or flat screen) and straylight through the whole
+    #: chain, dark signal and bias; the sources' photometry subtracts it from data and model
+    background_adu: np.ndarray | None = None
     realisation: np.ndarray | None = None  #: one noisy frame of the model [ADU], for the outlier statistics
     spikes: SpikeStats | None = None
     extra: dict = field(default_factory=dict)
+    #: variance [ADU^2] the pixels of one output row share (their covariance: per-row offsets of row noise)
+    row_var_adu2: float = 0.0
 
     @property
     def sensor(self):
@@ -65,13 +72,37 @@ def build_model(scene: Scene, workers: int | None = None, realisation: bool = Tr
     photo = mean - mean0
     dark_e = np.maximum(mean0 - np.float32((s.bias_adu - 0.5) * adu_sum), 0) * np.float32(s.gain_e_per_adu)
     unclipped = det.expose(setup.signal_e, t, 0, noiseless=True) - det.expose(0.0, t, 0, noiseless=True)
-    model = ModelFrame(setup, mean, var, flag, photo, dark_e, unclipped / np.float32(s.gain_e_per_adu))
+    bg = background_signal(setup.signal_e)
+    background = mean if bg is setup.signal_e else det.moments(bg, t)[0]
+    model = ModelFrame(setup, mean, var, flag, photo, dark_e, unclipped / np.float32(s.gain_e_per_adu), background)
+    model.row_var_adu2 = row_offset_var_adu2(det)
     if realisation:
         real = det.expose(setup.signal_e, t, REALISATION_SEED).astype(np.float32)
-        usable = ~flag & (real < s.adc_max_adu * (adu_sum if s.binning > 1 else 1))
+        usable = ~flag & (real < saturation_adu(s))
         model.realisation = real
         model.spikes, _ = spike_stats(real, mean, var, usable, s.gain_e_per_adu)
     return model
+
+
+def row_offset_var_adu2(det) -> float:
+    """Covariance [ADU^2] of two output pixels of one output row: the variance of the per-row offsets of
+    ``row_noise`` (``sigma_e`` per read-out row). A CCD reads a binned row once; an output row of a CMOS sums
+    b sensor rows over b columns each (b^3 offsets' variance); average binning divides by b^4."""
+    eff = next((e for e in det.effects if e.name == "row_noise"), None)
+    if eff is None:
+        return 0.0
+    s = det.sensor
+    b = s.binning
+    rows = (1 if s.kind == "ccd" else b ** 3) / (b ** 4 if s.binning_mode == "average" else 1)
+    return float(rows * (eff.params.sigma_e / s.gain_e_per_adu) ** 2)
+
+
+def background_signal(signal):
+    """The expected photo-electrons without the sources: the uniform background (sky, flat screen) and the
+    straylight of a :class:`scenes.image.signal.SourceSignal`; any other signal is all background."""
+    if isinstance(signal, SourceSignal):
+        return replace(signal, samples=Samples.empty(), trails=Trails.empty())
+    return signal
 
 
 def read_measurement(path: str | Path, model: ModelFrame) -> tuple[np.ndarray, dict]:
@@ -102,8 +133,8 @@ def read_measurement(path: str | Path, model: ModelFrame) -> tuple[np.ndarray, d
     notes["saturated_fraction"] = float(sat)
     notes["wcs_offset_px"] = _wcs_offset(header, model)
     if notes["wcs_offset_px"] is not None and notes["wcs_offset_px"] > 2:
-        notes["warnings"].append(f"the measured WCS centre is {notes['wcs_offset_px']:.1f} px from the scene's "
-                                 "pointing: sources will not line up")
+        notes["warnings"].append(f"the measured WCS puts the scene's pointing {notes['wcs_offset_px']:.1f} px from "
+                                 "the scene's optical axis: sources will not line up")
     exptime = header.get("EXPTIME")
     if exptime is not None and abs(float(exptime) - model.setup.exptime_s) > 1e-3 * max(1.0, float(exptime)):
         notes["warnings"].append(f"EXPTIME {exptime} s in the measured file, {model.setup.exptime_s} s in the scene")
@@ -111,17 +142,32 @@ def read_measurement(path: str | Path, model: ModelFrame) -> tuple[np.ndarray, d
 
 
 def saturation_adu(s) -> float:
-    """Measured level [ADU per output pixel] at or above which a pixel is saturated: the ADC maximum or the
-    full well seen through the gain, whichever comes first, less 5 read-noise sigma."""
-    n = s.binning ** 2 if s.binning > 1 and s.binning_mode == "sum" else 1
-    adc = s.adc_max_adu * (n if s.kind != "ccd" else 1)
-    well = (s.bias_adu + s.full_well_e / s.gain_e_per_adu) * n if s.kind != "ccd" else \
-        s.bias_adu + s.full_well_e * n / s.gain_e_per_adu
-    return float(min(adc, well) - 5 * s.read_noise_e / s.gain_e_per_adu)
+    """Measured level [ADU per output pixel] at or above which a pixel is saturated, less 5 read-noise sigma
+    of the output pixel.
+
+    As the chain makes it (:meth:`detector.Detector.process_tile`): a CCD sums the charge of ``b x b`` pixels
+    (each clipped at the full well) before its one read, so the binned pixel is clipped at the ADC maximum
+    (or ``b^2`` full wells); a CMOS reads every pixel (clipped at the ADC maximum or one full well) and sums
+    the ``b^2`` digital values, up to ``b^2`` times one read, clipped again at the ADC maximum (the output
+    word). Average binning divides the sum by ``b^2``.
+    """
+    n = s.binning ** 2
+    top = float(s.adc_max_adu)
+    ccd = s.kind == "ccd"
+    read = min(top, s.bias_adu + (n if ccd else 1) * s.full_well_e / s.gain_e_per_adu)  # one read [ADU]
+    average = s.binning_mode == "average"
+    if average:
+        level = read / n if ccd else read
+    else:
+        level = read if ccd else min(top, n * read)
+    sigma = s.read_noise_e / s.gain_e_per_adu * (1 if ccd else s.binning)
+    return float(level - 5 * sigma / (n if average else 1))
 
 
 def _wcs_offset(header, model: ModelFrame) -> float | None:
-    """Distance [output px] between the measured WCS's image of the scene pointing and the frame centre."""
+    """Distance [output px] between the measured WCS's image of the scene pointing and the scene's optical
+    axis, where the pointing lies (the full sensor's centre, which a read-out window moves:
+    :func:`scenes.projection.axis_crpix`)."""
     if "CTYPE1" not in header or "CRVAL1" not in header:
         return None
     import warnings
@@ -135,8 +181,8 @@ def _wcs_offset(header, model: ModelFrame) -> float | None:
             x, y = WCS(header).all_world2pix([[p.ra_deg, p.dec_deg]], 0)[0]
     except Exception:  # noqa: BLE001  (a broken WCS is reported as absent, not fatal)
         return None
-    h, w = model.sensor.output_shape
-    return float(np.hypot(x - (w - 1) / 2.0, y - (h - 1) / 2.0))
+    ax, ay = axis_crpix(model.sensor)  # 1-based
+    return float(np.hypot(x - (ax - 1), y - (ay - 1)))
 
 
 def source_peaks(model: ModelFrame, nsigma: float = 3.0) -> np.ndarray:
@@ -160,6 +206,7 @@ def residuals(data: np.ndarray, model: ModelFrame) -> Residuals:
     ys, xs = model.pixel_centres()
     res = Residuals(data, model.mean_adu, model.var_adu2, usable & ~statistical, model.photo_adu, model.dark_e,
                     ys, xs, s, model.setup.exptime_s, spikes, model.spikes or SpikeStats(0, 0, 0, 0, 0))
-    if model.photo_field_adu is not None:
-        res.__dict__["photo_field_adu"] = model.photo_field_adu
+    for extra in ("photo_field_adu", "background_adu", "row_var_adu2"):  # model pieces beyond Residuals' fields
+        if getattr(model, extra) is not None:
+            res.__dict__[extra] = getattr(model, extra)
     return res

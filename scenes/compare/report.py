@@ -37,6 +37,8 @@ Z_CLIP = 5.0
 FLAG_SIGMA = 5.0
 #: Poisson deviance of an outlier count above which it is flagged (~3 sigma for one count)
 DEVIANCE_FLAG = 10.0
+#: power over the median above which a full-resolution spectral peak is flagged (white noise: ~15-25)
+PEAK_FLAG = 100.0
 #: misfit below which the model explains the frame (noise-only frames give ~0-3)
 MISFIT_OK = 5.0
 #: candidates whose delta BIC is at or above this are not significant (DESIGN.md contract)
@@ -227,6 +229,22 @@ def _worst_regions_html(result: dict) -> str:
     return "<p>Largest residuals: " + "; ".join(parts) + ".</p>" if parts else ""
 
 
+_LEVEL_WORDS = {"light_scale": "light", "background_scale": "background", "offset_adu": "bias offset",
+                "dark_scale": "dark"}
+
+
+def _levels_text(result: dict) -> str:
+    """chi2/dof with the global levels refitted, and the fitted levels in words ('' when absent)."""
+    chi2 = _num(result.get("chi2_per_dof_levels"))
+    if not math.isfinite(chi2):
+        return ""
+    levels = result.get("levels") or {}
+    parts = [f"{_LEVEL_WORDS.get(k, k)} {_num(v):+.2f} ADU" if k == "offset_adu" else
+             f"{_LEVEL_WORDS.get(k, k)} {100 * _num(v):+.1f} %" for k, v in levels.items()]
+    return (f"With the global levels refitted: chi2/dof = {_fmt(chi2)}" +
+            (f" ({', '.join(parts)})" if parts else "") + ".")
+
+
 def section_verdict(result: dict, diagnosis: dict | None) -> str:
     """The box at the top: the diagnosis verdict (or the plain-words reading), chi2/dof, misfit, worst regions."""
     text, level = reading(result)
@@ -234,6 +252,8 @@ def section_verdict(result: dict, diagnosis: dict | None) -> str:
     head = (f"chi2/dof = {_fmt(chi2)} over {_fmt(result.get('n_compared'))} pixels "
             f"({_fmt(result.get('n_statistical'))} compared statistically); misfit = {_fmt(result.get('misfit'), 3)}")
     body = [f'<p class="headline">{_e(head)}</p>']
+    if chi2 is not None and _levels_text(result):
+        body.append(f"<p>{_e(_levels_text(result))}</p>")
     if diagnosis is not None:
         sig = [c for c in diagnosis.get("candidates", []) if c.get("significant")]
         if sig:
@@ -334,7 +354,25 @@ def section_power(result: dict) -> str:
     cap = (f"Power spectrum of the z map (one map pixel = {k} x {k} pixels), normalised so that white noise is "
            "flat at 1 (dashed). Power rising at low frequency: large-scale structure (gradients, glow, vignetting, "
            "straylight); peaks: periodic patterns.")
-    return _section("power", "Residual power spectrum", _fig_html(fig, _e(cap)))
+    return _section("power", "Residual power spectrum", _fig_html(fig, _e(cap)) + _peaks_html(result))
+
+
+def _peaks_html(result: dict, shown: int = 3) -> str:
+    """The strongest peaks of the full-resolution spectrum as a small table ('' when absent)."""
+    pk = result.get("power_peaks") or {}
+    peaks = [p for p in (pk.get("peaks") or []) if isinstance(p, dict)][:shown]
+    if not peaks:
+        return ""
+    rows = [[p.get("fx"), p.get("fy"), p.get("power_ratio")] for p in peaks]
+    cls = ["flag" if _num(p.get("power_ratio")) > PEAK_FLAG else "" for p in peaks]
+    tab = _table(["fx [cycles/px]", "fy [cycles/px]", "power / median"], rows, numeric={0, 1, 2}, row_class=cls,
+                 digits=3)
+    side = pk.get("side")
+    note = (f'<p class="note">Strongest peaks of the full-resolution spectrum of z (central {_e(side)} x {_e(side)} '
+            "pixels, sources and pixels not compared set to 0). White noise tops out at ~15-25 x the median "
+            f"(highlighted above {PEAK_FLAG:g}). (0.5, 0.5): a 2 x 2 pattern such as a Bayer mosaic; (0.5, 0) or "
+            "(0, 0.5): alternate columns or rows.</p>")
+    return tab + note
 
 
 # --- distributions and statistics -----------------------------------------------------------------------------------
@@ -423,10 +461,12 @@ def section_outliers(result: dict) -> str:
     for k, v in out.items():
         rows.append([_OUTLIER_LABELS.get(k, k), v.get("data"), v.get("model"), v.get("deviance")])
         cls.append("flag" if _num(v.get("deviance")) > DEVIANCE_FLAG else "")
-    tab = _table(["outlier class", "measured", "model (expected)", "Poisson deviance"], rows, numeric={1, 2, 3},
+    tab = _table(["outlier class", "measured", "model (one realisation)", "deviance"], rows, numeric={1, 2, 3},
                  row_class=cls)
-    note = ('<p class="note">Pixels the model can only predict statistically are compared by their counts; the '
-            f"deviance 2[o ln(o/e) - (o - e)] is ~1 when the counts agree (highlighted above {DEVIANCE_FLAG:g}).</p>")
+    note = ('<p class="note">Pixels the model can only predict statistically are compared by their counts with '
+            "those of one noisy realisation of the model. Both counts are Poisson, so the deviance is the "
+            "likelihood ratio of two Poisson samples, 2[o ln(2o/(o+m)) + m ln(2m/(o+m))], ~1 when the rates agree "
+            f"(highlighted above {DEVIANCE_FLAG:g}).</p>")
     return _section("outliers", "Outlier counts", tab + note)
 
 
@@ -488,7 +528,7 @@ def section_stars(result: dict) -> str:
     for a in (axes[0], axes[1], axes[3]):
         a.ticklabel_format(axis="y", useOffset=False)
     cap = (summary + (". " + ", ".join(s for s in slopes if s) if any(slopes) else "") +
-           ". Aperture photometry (radius 4 px) over the model's background. A ratio falling with radius: "
+           ". Aperture photometry (radius 4 px), the model's whole background (sky included) subtracted. A ratio falling with radius: "
            "vignetting; with magnitude: nonlinearity or a wrong zero point; sizes growing with radius: "
            "coma/field PSF; common offsets: a pointing/WCS error, radial ones: distortion.")
     return _section("stars", "Stars", _fig_html(fig, _e(cap)))
