@@ -31,10 +31,15 @@ class _Table(BaseModel):
 class TelescopeCfg(_Table):
     """``[telescope]``. ``distortion``: ``"none"`` (gnomonic TAN), ``"optics"`` (SIP fitted to the design's
     ray-traced field, cached by the optics) or ``"sip"`` (the coefficients of ``[telescope.sip]``); the
-    ``[telescope.sip]`` table is checked by :func:`scenes.projection.sip_from_table`."""
+    ``[telescope.sip]`` table is checked by :func:`scenes.projection.sip_from_table`. ``parity``: the
+    handedness of the frame's WCS (:func:`scenes.projection.tan_wcs`); ``pointing.roll_deg`` keeps its
+    meaning (where north points on the detector), ``+1`` puts east on the other side."""
 
     design: str = "art"
     pixel_scale_arcsec: float | None = Field(None, gt=0, le=3600, description="plate-scale override [arcsec/pixel]")
+    parity: Literal[-1, 1] = Field(-1, description="sign of det(CD) of the frame's WCS [1]: -1 the sky as seen "
+                                   "looking up (north up, east left), +1 its east-west mirror image (an odd number "
+                                   "of reflections before the camera, or a camera reading its columns reversed)")
     distortion: Literal["none", "optics", "sip"] = "none"
     sip: dict[str, Any] | None = None
 
@@ -294,6 +299,14 @@ def _check_optics_keys(scene: Scene, base: Path | None) -> None:
                          expected="a table with order and coefficients a_p_q / b_p_q")
     if tel.sip is not None:
         sip_from_table(tel.sip, file=file, allow_coefficients=tel.distortion == "sip")
+    if tel.parity == 1:  # the optics' PSF grid and straylight maps are oriented for parity -1 only
+        if scene.psf.model == "optics":
+            raise SceneError("parity = +1 with the optics PSF grid (its stamps are not mirrored yet)",
+                             key="telescope.parity", file=file, expected="parity = -1, or psf.model = 'gaussian' / "
+                             "'moffat'")
+        if (scene.effects.get("straylight") or {}).get("pst") == "optics":
+            raise SceneError("parity = +1 with the ray-traced straylight maps (not mirrored yet)",
+                             key="telescope.parity", file=file, expected="parity = -1, or a PST value/table")
     psf = scene.psf
     given = psf.model_fields_set
     if psf.model == "optics":

@@ -136,7 +136,8 @@ def frame_wcs(scene: Scene, sensor, pixel_scale_arcsec: float, binned: bool = Tr
     """The frame's WCS: the written (binned) frame, or the unbinned read-out window.
 
     TAN about the pointing, which is the optical axis at the full sensor's centre (CRPIX moves with the
-    window and the binning, :func:`scenes.projection.axis_crpix`); with ``distortion`` (unbinned sensor
+    window and the binning, :func:`scenes.projection.axis_crpix`), with the handedness of
+    ``[telescope] parity``; with ``distortion`` (unbinned sensor
     pixels) the SIP terms in this frame's pixels and the reverse polynomials fitted over it
     (``margin_px`` beyond its edges, in its own pixels).
     """
@@ -145,7 +146,7 @@ def frame_wcs(scene: Scene, sensor, pixel_scale_arcsec: float, binned: bool = Tr
     p = scene.pointing
     sip = distortion.binned(b) if distortion is not None else None
     return tan_wcs(p.ra_deg, p.dec_deg, p.roll_deg, pixel_scale_arcsec * b, shape, crpix=axis_crpix(sensor, binned),
-                   sip=sip, margin_px=margin_px)
+                   sip=sip, margin_px=margin_px, parity=scene.telescope.parity)
 
 
 def _path_truth(fr: _Frame, x, y, t_lo, t_hi, e):
