@@ -4,7 +4,8 @@ FITS WCS conventions (Greisen & Calabretta 2002, A&A 395, 1061; Calabretta & Gre
 CRPIX is 1-based. The pointing (CRVAL) is the telescope's optical axis, which falls on the centre of the
 full sensor, ``((W - 1) / 2, (H - 1) / 2)`` in 0-based sensor pixels; a read-out window (ROI) and binning
 move CRPIX, not CRVAL (:func:`axis_crpix`). East is to the left (``CD1_1 < 0``) and north up for roll 0,
-the sky as a telescope with two mirrors shows it.
+the sky as a telescope with two mirrors shows it; ``[telescope] parity = +1`` gives the mirror image
+(det CD > 0, east to the right; :func:`tan_wcs`).
 
 SIP distortion (Shupe et al. 2005, ASP Conf. Ser. 347, 491). With pixel offsets (x, y) = pixel - CRPIX,
 the forward polynomials give the undistorted ("ideal") offsets that the CD matrix maps to the sky,
@@ -151,7 +152,8 @@ def axis_crpix(sensor, binned: bool = True) -> tuple[float, float]:
 
 
 def tan_wcs(ra_deg: float, dec_deg: float, roll_deg: float, scale_arcsec: float, shape: tuple[int, int],
-            crpix: tuple[float, float] | None = None, sip: Sip | None = None, margin_px: float = 16.0) -> WCS:
+            crpix: tuple[float, float] | None = None, sip: Sip | None = None, margin_px: float = 16.0,
+            parity: int = -1) -> WCS:
     """A TAN (or TAN-SIP) WCS, ``scale_arcsec`` per pixel, north rotated by ``roll_deg``.
 
     Parameters
@@ -163,9 +165,19 @@ def tan_wcs(ra_deg: float, dec_deg: float, roll_deg: float, scale_arcsec: float,
     crpix : 1-based position of the optical axis; default the frame's centre
     sip : forward distortion **in this frame's pixels** (already :meth:`Sip.binned`); the reverse
         polynomials are fitted over the frame plus ``margin_px`` (:func:`fit_reverse`)
+    parity : sign of det(CD) [1]: -1 (default) the sky as seen looking up, +1 its east-west mirror image
 
-    East is to the left (``CD1_1 < 0``) for roll 0, as on the sky seen through a telescope with an even
-    number of mirrors. With ``sip`` the WCS has CTYPE ``RA---TAN-SIP`` and carries the fitted reverse
+    With s the scale and r the roll, the CD matrix (Calabretta & Greisen 2002, eq. 1; CDELT1 = -p s and
+    CROTA2 = -r in the older notation) is
+
+        CD = s [[p cos r, -p sin r], [sin r, cos r]],      det CD = p s^2,      p = parity,
+
+    so north points along (sin r, cos r) in pixels for either parity (``roll_deg`` is where north is) and
+    east along p (cos r, -sin r): to the left (``CD1_1 < 0``) for p = -1 and roll 0, as on the sky seen
+    through a telescope with an even number of mirrors; to the right for p = +1 (an odd number of
+    reflections, a diagonal, or a camera reading its columns in reverse: a FITS header with det CD > 0).
+    p = +1 mirrors the sky's east-west axis (the first intermediate world coordinate), not the pixels: for
+    roll 0 that is x -> 2 CRPIX1 - x. With ``sip`` the WCS has CTYPE ``RA---TAN-SIP`` and carries the fitted reverse
     residuals as ``wcs.sip_reverse_rms_px`` / ``wcs.sip_reverse_max_px`` (attributes, not cards).
     """
     ny, nx = shape
@@ -175,7 +187,9 @@ def tan_wcs(ra_deg: float, dec_deg: float, roll_deg: float, scale_arcsec: float,
     w.wcs.crpix = list(crpix) if crpix is not None else [(nx + 1) / 2.0, (ny + 1) / 2.0]
     s = scale_arcsec / 3600.0
     c, si = np.cos(np.radians(roll_deg)), np.sin(np.radians(roll_deg))
-    w.wcs.cd = np.array([[-s * c, s * si], [s * si, s * c]])
+    if parity not in (-1, 1):
+        raise ValueError(f"parity {parity!r}: -1 or +1")
+    w.wcs.cd = np.array([[parity * s * c, -parity * s * si], [s * si, s * c]])
     w.wcs.radesys = "ICRS"
     w.pixel_shape = (nx, ny)
     if sip is not None:
@@ -245,12 +259,17 @@ def sip_from_table(table: dict, *, file: str | None = None, allow_coefficients: 
     return out
 
 
-def sip_from_optics(fit: dict, sensor, *, reverse_order: int | None = None) -> Sip:
+def sip_from_optics(fit: dict, sensor, *, reverse_order: int | None = None, parity: int = -1) -> Sip:
     """A :class:`Sip` in scene pixel axes from an :func:`optics.distortion.fit_sip` result.
 
     The fit's CRPIX must be the centre of the full sensor (the optical axis); its pixel offsets are
-    (u, v) / pitch, turned into scene offsets (x, y) = (u, -v) / pitch: A_p_q (-1)^q, B_p_q (-1)^(q+1)
-    (module notes).
+    (u, v) / pitch, turned into scene offsets (x, y) = (s_x u, s_y v) / pitch with s_y =
+    :data:`FOCAL_PLANE_Y_SIGN` and s_x = -parity (a mirrored camera, ``parity = +1``, reads the focal plane's
+    u axis reversed). The ideal offsets transform the same way, X = s_x (u + A(u, v)), so
+
+        A'_p_q = s_x^(p + 1) s_y^q A_p_q,        B'_p_q = s_x^p s_y^(q + 1) B_p_q
+
+    (for parity -1: A_p_q (-1)^q, B_p_q (-1)^(q+1), the module notes).
     """
     cx, cy = (sensor.sensor_width_px + 1) / 2.0, (sensor.sensor_height_px + 1) / 2.0
     if abs(float(fit["CRPIX1"]) - cx) > 1e-6 or abs(float(fit["CRPIX2"]) - cy) > 1e-6:
@@ -258,16 +277,16 @@ def sip_from_optics(fit: dict, sensor, *, reverse_order: int | None = None) -> S
                          f"({cx}, {cy}): fit it with shape = (sensor_height_px, sensor_width_px)")
     order = int(fit["A_ORDER"])
     a, b = {}, {}
-    sgn = FOCAL_PLANE_Y_SIGN
+    sy, sx = FOCAL_PLANE_Y_SIGN, -float(parity)
     for key, v in fit.items():
         m = re.match(r"^(A|B)_(\d+)_(\d+)$", key)
         if not m:
             continue
         p, q = int(m.group(2)), int(m.group(3))
         if m.group(1) == "A":
-            a[(p, q)] = float(v) * sgn ** q
+            a[(p, q)] = float(v) * sx ** (p + 1) * sy ** q
         else:
-            b[(p, q)] = float(v) * sgn ** (q + 1)
+            b[(p, q)] = float(v) * sx ** p * sy ** (q + 1)
     info = {k: fit[k] for k in ("rms_px", "max_px", "max_distortion_px", "effective_focal_length_mm",
                                 "wavelength_nm", "method") if k in fit}
     return Sip(order, a, b, reverse_order, "optics", info)

@@ -76,7 +76,7 @@ def resolve_distortion(scene: Scene, sensor, design) -> Sip | None:
     shape = (sensor.sensor_height_px, sensor.sensor_width_px)
     try:
         fit = cached_sip(design, float(sensor.pixel_pitch_um), shape, order=t["order"] or OPTICS_SIP_ORDER)
-        return sip_from_optics(fit, sensor, reverse_order=t["reverse_order"])
+        return sip_from_optics(fit, sensor, reverse_order=t["reverse_order"], parity=scene.telescope.parity)
     except (OpticsError, ImportError, ValueError, KeyError) as exc:
         raise SceneError(f"cannot get the SIP distortion of design '{design.name}': {exc}", key="telescope.distortion",
                          file=scene.source) from None

@@ -6,6 +6,7 @@ Every user mistake becomes a :class:`SceneError` naming the file, the dotted key
 from __future__ import annotations
 
 import copy
+import os
 from pathlib import Path
 from typing import Any, Literal
 
@@ -30,10 +31,15 @@ class _Table(BaseModel):
 class TelescopeCfg(_Table):
     """``[telescope]``. ``distortion``: ``"none"`` (gnomonic TAN), ``"optics"`` (SIP fitted to the design's
     ray-traced field, cached by the optics) or ``"sip"`` (the coefficients of ``[telescope.sip]``); the
-    ``[telescope.sip]`` table is checked by :func:`scenes.projection.sip_from_table`."""
+    ``[telescope.sip]`` table is checked by :func:`scenes.projection.sip_from_table`. ``parity``: the
+    handedness of the frame's WCS (:func:`scenes.projection.tan_wcs`); ``pointing.roll_deg`` keeps its
+    meaning (where north points on the detector), ``+1`` puts east on the other side."""
 
     design: str = "art"
     pixel_scale_arcsec: float | None = Field(None, gt=0, le=3600, description="plate-scale override [arcsec/pixel]")
+    parity: Literal[-1, 1] = Field(-1, description="sign of det(CD) of the frame's WCS [1]: -1 the sky as seen "
+                                   "looking up (north up, east left), +1 its east-west mirror image (an odd number "
+                                   "of reflections before the camera, or a camera reading its columns reversed)")
     distortion: Literal["none", "optics", "sip"] = "none"
     sip: dict[str, Any] | None = None
 
@@ -192,15 +198,48 @@ def load_scene(path_or_name: str, overrides: list[str] | None = None) -> Scene:
     return scene
 
 
+def scene_dir(scene: Scene) -> Path | None:
+    """The absolute folder of the scene file (None for a built-in scene or a scene built in code)."""
+    file = scene.source
+    return Path(os.path.abspath(Path(file).parent)) if file and file != "<built-in>" else None
+
+
+def resolve_path(value: str, base: Path | None) -> Path:
+    """A file path of a scene as an absolute path: ``~`` expanded, relative paths taken from ``base`` (the
+    scene file's folder, :func:`scene_dir`), else from the working directory; ``..`` normalised, symbolic
+    links kept (``os.path.abspath``, not ``Path.resolve``)."""
+    p = Path(value).expanduser()
+    if not p.is_absolute() and base is not None:
+        p = base / p
+    return Path(os.path.abspath(p))
+
+
+#: effect parameters that hold a file path (resolved like the catalogue); values that are keywords, not files
+EFFECT_PATH_SUFFIX = "_file"
+EFFECT_PATH_KEYWORDS = ("optics",)
+
+
+def _is_effect_path_key(key: str) -> bool:
+    return key == "path" or key.endswith(EFFECT_PATH_SUFFIX)
+
+
 def check_scene(scene: Scene) -> None:
     """Cross-key checks and the tables validated by their own modules, each error naming its key.
 
     ``[[objects]]`` entries go through :func:`scenes.objects.object_from_table`, ``[observer]`` through
-    :func:`scenes.objects.observer_from_table`; a star-catalogue path is resolved relative to the scene
-    file's folder (and written back, absolute, so the resolved scene re-renders from anywhere).
+    :func:`scenes.objects.observer_from_table`.
+
+    File paths. Every file a scene names (``sky.catalog``, ``psf.grid_file``, ``telescope.design`` when it
+    is a design TOML, ``tle_file`` of ``[[objects]]`` and ``[observer]``, and the effect parameters named
+    ``path`` or ``*_file``, e.g. ``effects.bias_map.path``, ``effects.vignetting.map_file``) is relative to
+    the scene file's folder and is written back **absolute**: the validated scene (``Scene.resolved``,
+    the FITS ``SCENE`` extension, ``diagnose --apply``) then names the same files from any working
+    directory and from any folder it is written to. (Writing them back relative to a *new* scene's folder
+    would need the writer to know that folder; absolute paths need nothing and the user's own file keeps
+    its relative paths.)
     """
     file = scene.source
-    base = Path(file).parent if file and file != "<built-in>" else None
+    base = scene_dir(scene)
     exp = scene.exposure
     if exp.tracking != "rate":
         for k in ("rate_ra_deg_s", "rate_dec_deg_s"):
@@ -209,19 +248,41 @@ def check_scene(scene: Scene) -> None:
                                  expected="tracking = 'rate' with rate_ra_deg_s / rate_dec_deg_s, or no rates")
     cat = scene.sky.catalog
     if cat not in ("builtin", "gaia"):
-        p = Path(cat).expanduser()
-        if not p.is_absolute() and base is not None:
-            p = base / p
+        p = resolve_path(cat, base)
         if scene.sky.stars and not p.is_file():
             raise SceneError(f"star catalogue {str(p)!r} not found", key="sky.catalog", file=file,
                              expected="'builtin', 'gaia' or a CSV/ECSV/FITS file (relative to the scene file)")
         scene.sky.catalog = str(p)
+    _resolve_design(scene, base)
     from .objects import object_from_table, observer_from_table
 
     observer_from_table(scene.observer, file=file, base_dir=base)
+    if isinstance(scene.observer, dict) and isinstance(scene.observer.get("tle_file"), str):
+        scene.observer["tle_file"] = str(resolve_path(scene.observer["tle_file"], base))
     for i, table in enumerate(scene.objects):
         object_from_table(table, i, file=file, base_dir=base)
+        if isinstance(table.get("tle_file"), str):
+            table["tle_file"] = str(resolve_path(table["tle_file"], base))
+    for table in scene.effects.values():
+        for key, value in list((table or {}).items()) if isinstance(table, dict) else ():
+            if _is_effect_path_key(key) and isinstance(value, str) and value not in EFFECT_PATH_KEYWORDS:
+                table[key] = str(resolve_path(value, base))
     _check_optics_keys(scene, base)
+
+
+def _resolve_design(scene: Scene, base: Path | None) -> None:
+    """``[telescope] design``: a built-in name stays; a design TOML path becomes absolute (scene folder first,
+    then the working directory, where it was looked up before)."""
+    from optics.design import BUILTIN as BUILTIN_DESIGNS
+
+    d = scene.telescope.design
+    if (BUILTIN_DESIGNS / f"{d}.toml").is_file():
+        return
+    p = resolve_path(d, base)
+    if not p.is_file() and Path(d).expanduser().is_file():
+        p = Path(os.path.abspath(Path(d).expanduser()))
+    if p.is_file():
+        scene.telescope.design = str(p)
 
 
 def _check_optics_keys(scene: Scene, base: Path | None) -> None:
@@ -238,6 +299,14 @@ def _check_optics_keys(scene: Scene, base: Path | None) -> None:
                          expected="a table with order and coefficients a_p_q / b_p_q")
     if tel.sip is not None:
         sip_from_table(tel.sip, file=file, allow_coefficients=tel.distortion == "sip")
+    if tel.parity == 1:  # the optics' PSF grid and straylight maps are oriented for parity -1 only
+        if scene.psf.model == "optics":
+            raise SceneError("parity = +1 with the optics PSF grid (its stamps are not mirrored yet)",
+                             key="telescope.parity", file=file, expected="parity = -1, or psf.model = 'gaussian' / "
+                             "'moffat'")
+        if (scene.effects.get("straylight") or {}).get("pst") == "optics":
+            raise SceneError("parity = +1 with the ray-traced straylight maps (not mirrored yet)",
+                             key="telescope.parity", file=file, expected="parity = -1, or a PST value/table")
     psf = scene.psf
     given = psf.model_fields_set
     if psf.model == "optics":
@@ -246,9 +315,7 @@ def _check_optics_keys(scene: Scene, base: Path | None) -> None:
                 raise SceneError(f"{k} with model = 'optics'", key=f"psf.{k}", file=file,
                                  expected="seeing_fwhm_arcsec / jitter_rms_arcsec with the optics PSF grid")
         if psf.grid_file is not None:
-            p = Path(psf.grid_file).expanduser()
-            if not p.is_absolute() and base is not None:
-                p = base / p
+            p = resolve_path(psf.grid_file, base)
             if not p.is_file():
                 raise SceneError(f"PSF cube {str(p)!r} not found", key="psf.grid_file", file=file,
                                  expected="a FITS PSF cube written by optics.psf.write_psf_fits (relative to the "

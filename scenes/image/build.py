@@ -14,7 +14,9 @@ carried into the t = 0 frame (:class:`scenes.image.motion.Boresight`), checked a
 ``objects[i]``), and sampled at equal time steps of at most 0.25 pixel of motion. The photo-electron rate
 is :meth:`Brightness.photon_rate` through QE x mirror reflectance; a ``photons`` object (photons at the
 aperture, no spectrum given) is converted with the band efficiency of a solar spectrum over the QE table's
-wavelength range.
+wavelength range. An object's ``light_curve`` (:mod:`scenes.objects.lightcurve`) multiplies each sample's
+electrons by the mean of the curve over the sample's interval, and the samples are then at most
+``LightCurve.max_step_s`` apart (so a rolling shutter's row windows see the curve's time structure).
 
 Energy: each sample carries rate x dt of the interval it stands for, so the samples of a source add up to
 the electrons it sends during the time its light is recorded; the truth's ``flux_e`` is that total for the
@@ -136,7 +138,8 @@ def frame_wcs(scene: Scene, sensor, pixel_scale_arcsec: float, binned: bool = Tr
     """The frame's WCS: the written (binned) frame, or the unbinned read-out window.
 
     TAN about the pointing, which is the optical axis at the full sensor's centre (CRPIX moves with the
-    window and the binning, :func:`scenes.projection.axis_crpix`); with ``distortion`` (unbinned sensor
+    window and the binning, :func:`scenes.projection.axis_crpix`), with the handedness of
+    ``[telescope] parity``; with ``distortion`` (unbinned sensor
     pixels) the SIP terms in this frame's pixels and the reverse polynomials fitted over it
     (``margin_px`` beyond its edges, in its own pixels).
     """
@@ -145,7 +148,7 @@ def frame_wcs(scene: Scene, sensor, pixel_scale_arcsec: float, binned: bool = Tr
     p = scene.pointing
     sip = distortion.binned(b) if distortion is not None else None
     return tan_wcs(p.ra_deg, p.dec_deg, p.roll_deg, pixel_scale_arcsec * b, shape, crpix=axis_crpix(sensor, binned),
-                   sip=sip, margin_px=margin_px)
+                   sip=sip, margin_px=margin_px, parity=scene.telescope.parity)
 
 
 def _path_truth(fr: _Frame, x, y, t_lo, t_hi, e):
@@ -274,7 +277,13 @@ def _photons_efficiency(fr: _Frame) -> float:
 
 
 def _objects(scene: Scene, fr: _Frame, base_dir: Path | None, observer) -> tuple[Trails, list]:
-    from ..objects import Track, object_from_table, object_track, require_in_field
+    from ..objects import (
+        Track,
+        light_curve_from_table,
+        object_from_table,
+        object_track,
+        require_in_field,
+    )
     from ..objects.frames import angle_between_deg, unit_to_radec
 
     parts, rows = [], []
@@ -305,12 +314,14 @@ def _objects(scene: Scene, fr: _Frame, base_dir: Path | None, observer) -> tuple
             return units_to_pixel(fr.wcs, fr.boresight, track.unit_vector(t), t)
 
         t_start, t_stop = _near_interval(derot, fr, w)
+        curve = light_curve_from_table(table.get("light_curve"), f"objects[{i}].light_curve", file=file)
+        n_min = 8 if curve is None else max(8, math.ceil((t_stop - t_start) / curve.max_step_s()))
         # sample at <= STEP_PX of motion, refined until the largest step obeys it
         tc = np.linspace(t_start, t_stop, 257)
         xc, yc = xy(tc)
         speed = float(np.max(np.hypot(np.diff(xc), np.diff(yc)))) / max(tc[1] - tc[0], 1e-30) * 1.05
         for _ in range(12):
-            n = max(8, math.ceil(speed * (t_stop - t_start) / STEP_PX))
+            n = max(n_min, math.ceil(speed * (t_stop - t_start) / STEP_PX))
             dt = (t_stop - t_start) / n
             ts = t_start + (np.arange(n) + 0.5) * dt
             x, y = xy(ts)
@@ -320,6 +331,8 @@ def _objects(scene: Scene, fr: _Frame, base_dir: Path | None, observer) -> tuple
             speed *= 1.1 * step / STEP_PX
         e = track.interp(rate, ts) * dt
         t_lo, t_hi = ts - dt / 2, ts + dt / 2
+        if curve is not None:  # the light of each interval: rate x the interval mean of the light curve
+            e = e * curve.interval_mean(t_lo, t_hi)
         t_a, t_b, flux, seen = (v[0] if np.ndim(v) else v for v in
                                 _path_truth(fr, x[:, None], y[:, None], t_lo[:, None], t_hi[:, None], e[:, None]))
         keep = fr.reaches(x, y, w)

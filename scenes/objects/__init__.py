@@ -8,7 +8,9 @@ The renderer's entry points:
   shadow, elevation) with a cubic-spline interpolator (:meth:`Track.radec`);
 * :func:`require_in_field` / :func:`in_field`, :func:`check_pointing_visible`: field and horizon tests;
 * :meth:`Brightness.photon_rate` (``obj.brightness.photon_rate(track, ...)``): photons/s at the aperture
-  through a band, per track sample; :func:`pixel_dwell_time_s` for SNR expectations.
+  through a band, per track sample; :func:`pixel_dwell_time_s` for SNR expectations;
+* :func:`light_curve_from_table` / :class:`LightCurve`: the optional ``light_curve`` of an object (a
+  modulation of its rate in time, mean 1 over a period).
 
 Conventions, equations, references and validation numbers: ``docs/scenes_objects.md``.
 """
@@ -37,6 +39,7 @@ from .brightness import (
 from .config import brightness_from_table, object_from_table, observer_from_table
 from .errors import ObjectError
 from .frames import GroundSite, SpaceObserver, aberrate, offline_iers
+from .lightcurve import LightCurve, light_curve_from_table
 from .tle import Tle, load_tle, parse_tle, propagate_teme, tle_checksum
 from .track import (
     FRAMES,
@@ -58,6 +61,7 @@ __all__ = [
     "T_SUN_K",
     "Brightness",
     "GroundSite",
+    "LightCurve",
     "ObjectError",
     "RateObject",
     "SpaceObserver",
@@ -70,6 +74,7 @@ __all__ = [
     "check_pointing_visible",
     "in_field",
     "lambertian_sphere_phase",
+    "light_curve_from_table",
     "load_tle",
     "object_from_table",
     "object_track",

@@ -25,6 +25,9 @@
     range_km = 1000.0               # RA/Dec objects given by size only (TLE objects get range and phase
     phase_angle_deg = 30.0          # from the orbit, the Sun and the observer)
     name = "debris 1"               # optional label
+    # optional brightness modulation in time, mean 1 over a period (scenes.objects.lightcurve)
+    light_curve = { kind = "sinusoid", amplitude = 0.62, period_s = 3.68, phase = 0.0 }
+    # or { kind = "glint", amplitude = 20.0, period_s = 3.68, width_s = 0.05, phase = 0.0 }
 
 ``[observer]`` table (absent: the geocentre)::
 
@@ -44,6 +47,7 @@ from typing import Any
 from .brightness import PHASE_FUNCTIONS, PLATE_NORMALS, Brightness
 from .errors import ObjectError
 from .frames import GroundSite, SpaceObserver
+from .lightcurve import light_curve_from_table
 from .tle import load_tle, parse_tle
 from .track import RateObject, TleObject
 
@@ -51,7 +55,7 @@ RATE_KEYS = ("ra_deg", "dec_deg", "rate_ra_deg_s", "rate_dec_deg_s")
 TLE_KEYS = ("tle", "tle_file", "satellite")
 BRIGHTNESS_KEYS = ("photons", "mag", "mag_system", "diameter_m", "area_m2", "albedo", "phase_function",
                    "specular_fraction", "plate_normal", "range_km", "phase_angle_deg", "sun_distance_au")
-OBJECT_KEYS = RATE_KEYS + TLE_KEYS + BRIGHTNESS_KEYS + ("name",)
+OBJECT_KEYS = RATE_KEYS + TLE_KEYS + BRIGHTNESS_KEYS + ("name", "light_curve")
 OBSERVER_KEYS = ("name", "lat_deg", "lon_deg", "alt_m", "tle", "tle_file", "satellite")
 MAG_SYSTEMS = ("ab", "solar_v")
 
@@ -188,6 +192,7 @@ def object_from_table(table: dict, index: int, *, file: str | None = None, base_
         raise ObjectError("no position given", key=prefix, file=file,
                           expected="ra_deg and dec_deg (+ rate_ra_deg_s, rate_dec_deg_s), or tle, or tle_file")
     brightness = brightness_from_table(table, prefix, file=file, has_orbit=has_tle)
+    light_curve_from_table(table.get("light_curve"), f"{prefix}.light_curve", file=file)
     if has_tle:
         return TleObject(_tle_from(table, prefix, file, base_dir), brightness, prefix, name)
     ra = _num(table, "ra_deg", prefix, file, 0.0, 360.0, required=True)
