@@ -6,7 +6,8 @@ the plugin's own (functional form and amplitude: the real world never matches a 
 falling as a power law from a point beyond the corner instead of the plugin's exponential edge, a
 cos^4 vignetting about an off-axis centre instead of ``1 - a2 rho^2 - a4 rho^4``, a bias with a ripple
 and an amplifier step, a cubic nonlinearity, a gamma-distributed DSNU with a low-frequency part, hot
-pixels with a lognormal rate law, 1/f row noise ... Every measured frame also carries the nuisances of a
+pixels with a lognormal rate law, 1/f row noise, a Bayer CFA with a dye jitter and a drifting red response,
+moonlight rising exponentially towards the Moon ... Every measured frame also carries the nuisances of a
 real camera that the model only knows statistically or approximately:
 
 * its own hardware: the measured sensor has another ``hardware_seed`` (hot pixels at other positions);
