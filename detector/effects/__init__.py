@@ -9,11 +9,14 @@ Each module holds pure physics functions and their registered adapters:
 * ``blooming``: ``blooming``
 * ``cosmic_rays``: ``cosmic_rays``
 * ``optical``: ``vignetting``
-* ``image_plane``: ``psf_blur``, ``jitter``, ``pointing_offset``, ``distortion``, ``ghost``
+* ``image_plane``: ``psf_blur``, ``jitter``, ``pointing_drift``, ``pointing_offset``, ``distortion``, ``ghost``
 * ``maps``: ``bias_map``, ``flat_map`` (measured master bias / flat FITS files)
+* ``colour``: ``cfa``
+* ``sky``: ``sky_gradient``
 """
 
 from .base import Effect, EffectParams, Stage, Tile, build_effects, register_effect, registry
-from . import pixel_response, defects, readout, glow, blooming, cosmic_rays, optical, image_plane, maps  # noqa: F401  (registration)
+from . import pixel_response, defects, readout, glow, blooming, cosmic_rays, optical, image_plane  # noqa: F401  (registration)
+from . import colour, maps, sky  # noqa: F401  (registration)
 
 __all__ = ["Effect", "EffectParams", "Stage", "Tile", "build_effects", "register_effect", "registry"]

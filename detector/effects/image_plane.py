@@ -1,4 +1,5 @@
-"""Image-plane effects of the optics: extra blur, pointing jitter, a pointing offset, field distortion, ghosts.
+"""Image-plane effects of the optics: extra blur, pointing jitter and drift, a pointing offset, field distortion,
+ghosts.
 
 They act once per frame on the whole expected photo-electron image (stage FIELD), before the sensor, so a
 scene can add them to any rendering (catalogue stars, streaks, a flat screen) and ``newtsim diagnose`` can
@@ -13,6 +14,8 @@ from the model image's derivatives:
 * Gaussian blur of covariance ``C``: ``I * G_C ~ I + 1/2 (C_xx d2I/dx2 + 2 C_xy d2I/dxdy + C_yy d2I/dy2)``
   (heat equation: convolution with a Gaussian of variance s^2 is diffusion for a time s^2 / 2);
 * shift by ``(dx, dy)``: ``I(x - dx, y - dy) ~ I - dx dI/dx - dy dI/dy``;
+* uniform drift ``d`` during the exposure: convolution with a line segment (a box of length ``|d|``), whose
+  covariance is ``d d^T / 12``, so to first order a blur of that (rank-one) covariance;
 * radial distortion ``r' = r (1 + k r^2)``: a shift field ``k r^2 (x - x_c, y - y_c)``;
 * ghost: ``alpha`` times the image reflected through the optical axis and defocused into a disc (a
   double reflection between two surfaces of a refractive corrector; Gross, *Handbook of Optical Systems*
@@ -73,6 +76,29 @@ def shift(image: np.ndarray, dx_px: float, dy_px: float) -> np.ndarray:
     it now overlaps by area, which is bilinear interpolation (flux-conserving and never negative, unlike a
     spline, which rings by tens of percent around an undersampled bright star)."""
     return ndimage.shift(image, (dy_px, dx_px), order=1, mode="nearest").astype(image.dtype)
+
+
+def drift_smear(image: np.ndarray, dx_px: float, dy_px: float) -> np.ndarray:
+    """The image smeared uniformly along the segment from ``-d/2`` to ``+d/2``, ``d = (dx, dy)`` [px]: what a
+    pointing that drifts at a constant rate by ``d`` during the exposure records (centred: the nominal
+    pointing is the mid-exposure one). Flux conserving; edges are extended with their own values.
+
+    The segment's (box) kernel has the transfer function ``H(f) = sinc(f . d)`` (``sinc(u) = sin(pi u) /
+    (pi u)``; Bracewell, *The Fourier Transform and its Applications*, 3rd ed. 2000, ch. 6), applied in
+    Fourier space: exact for any sub-pixel length and direction, and the output's covariance is the input's
+    plus ``d d^T / 12`` (a box of length L has variance L^2 / 12 along it). For an undersampled image the
+    band limit rings faintly around sharp peaks (clipped at zero by the adapter, as for :func:`blur`).
+    """
+    if dx_px == 0 and dy_px == 0:
+        return image.copy()
+    pad = int(np.ceil(0.5 * max(abs(dx_px), abs(dy_px)))) + 2
+    work = np.float64 if image.dtype == np.float64 else np.float32
+    big = np.pad(image.astype(work), pad, mode="edge")
+    fy = np.fft.fftfreq(big.shape[0])[:, None]
+    fx = np.fft.rfftfreq(big.shape[1])[None, :]
+    h = np.sinc(fx * dx_px + fy * dy_px)
+    out = np.fft.irfft2(np.fft.rfft2(big) * h.astype(work), s=big.shape)
+    return out[pad:-pad, pad:-pad].astype(image.dtype)
 
 
 def radial_distortion(image: np.ndarray, ys: np.ndarray, xs: np.ndarray, yc: float, xc: float, k_per_px2: float,
@@ -289,6 +315,37 @@ def _offset_params(th, res):
     return {"dx_px": round(dx, 4), "dy_px": round(dy, 4)} if np.hypot(dx, dy) < 20 * b else None
 
 
+# drift: theta = (dx, dy) [output px]
+#: drift length [output px] below which a fitted trail is not proposed: a box shorter than this is a blur any
+#: small PSF change makes (psf_blur, jitter), not a trail
+DRIFT_MIN_LENGTH = 1.5
+
+
+def _drift_start(res):
+    """A box of length L has variance L^2 / 12: the major axis of the linearised smear, sqrt(12) times."""
+    w, ang = _jitter_axes(_jitter_start(res))
+    length = float(np.sqrt(12 * max(w[1], 0.05)))
+    return length * np.array([np.cos(np.radians(ang)), np.sin(np.radians(ang))])
+
+
+def _drift_params(th, res):
+    b = res.sensor.binning
+    dx, dy = float(th[0]), float(th[1])
+    if dx < 0 or (dx == 0 and dy < 0):  # d and -d make the same trail
+        dx, dy = -dx, -dy
+    length = float(np.hypot(dx, dy))
+    if not DRIFT_MIN_LENGTH <= length <= 200:
+        return None
+    return {"dx_px": round(dx * b, 4), "dy_px": round(dy * b, 4)}
+
+
+def _drift_words(p, res) -> str:
+    length = float(np.hypot(p["dx_px"], p["dy_px"]))
+    ang = float(np.degrees(np.arctan2(p["dy_px"], p["dx_px"])))
+    return (f"every source trailed uniformly along a {length:.3g} px segment at {ang:.0f} deg (a box profile, not a "
+            "Gaussian smear): the pointing drifted during the exposure (tracking-rate error, wind push)")
+
+
 # distortion: theta = k [sensor px^-2]
 def _distortion_start(res):
     d, b = _derivatives(res), res.sensor.binning
@@ -395,6 +452,30 @@ class PointingOffset(Effect):
 
     def apply(self, stage: Stage, tile: Tile, data: np.ndarray) -> None:
         _store(data, shift(data, self.params.dx_px, self.params.dy_px))
+
+
+class DriftParams(EffectParams):
+    dx_px: float = Field(3.0, ge=-1e3, le=1e3, description="total drift of the image along the columns during the "
+                         "exposure [sensor px]", json_schema_extra={"unit": "pixel"})
+    dy_px: float = Field(0.0, ge=-1e3, le=1e3, description="total drift of the image along the rows during the "
+                         "exposure [sensor px]", json_schema_extra={"unit": "pixel"})
+
+
+@register_effect
+class PointingDrift(Effect):
+    """A uniform drift of the pointing during the exposure (a tracking-rate error, a steady wind push): every
+    source is trailed along the segment ``(dx, dy)``, centred on its mid-exposure position (a box kernel,
+    variance ``L^2 / 12`` along the drift; :func:`drift_smear`)."""
+
+    name = "pointing_drift"
+    stages = (Stage.FIELD,)
+    Params = DriftParams
+    signature = TransformSignature(
+        _drift_start, lambda res, photo, th: drift_smear(photo, float(th[0]), float(th[1])), _drift_params,
+        [0.02, 0.02], pattern="sources trailed along one direction with a flat (box) profile", explain=_drift_words)
+
+    def apply(self, stage: Stage, tile: Tile, data: np.ndarray) -> None:
+        _store(data, drift_smear(data, self.params.dx_px, self.params.dy_px))
 
 
 class DistortionParams(EffectParams):

@@ -6,7 +6,8 @@ the plugin's own (functional form and amplitude: the real world never matches a 
 falling as a power law from a point beyond the corner instead of the plugin's exponential edge, a
 cos^4 vignetting about an off-axis centre instead of ``1 - a2 rho^2 - a4 rho^4``, a bias with a ripple
 and an amplifier step, a cubic nonlinearity, a gamma-distributed DSNU with a low-frequency part, hot
-pixels with a lognormal rate law, 1/f row noise ... Every measured frame also carries the nuisances of a
+pixels with a lognormal rate law, 1/f row noise, a Bayer CFA with a dye jitter and a drifting red response,
+moonlight rising exponentially towards the Moon ... Every measured frame also carries the nuisances of a
 real camera that the model only knows statistically or approximately:
 
 * its own hardware: the measured sensor has another ``hardware_seed`` (hot pixels at other positions);
@@ -66,8 +67,9 @@ from detector.effects.readout import K_BOLTZMANN, Q_ELECTRON
 from detector.rng import generator
 
 #: the detector effects whose diagnosis is proved here (catalogue effects with a signature)
-EFFECTS = ("amp_glow", "bias_gradient", "blooming", "column_defects", "cosmic_rays", "crosstalk", "dead_pixels",
-           "dsnu", "gain_regions", "hot_pixels", "nonlinearity", "prnu", "reset_noise", "row_noise", "vignetting")
+EFFECTS = ("amp_glow", "bias_gradient", "blooming", "cfa", "column_defects", "cosmic_rays", "crosstalk", "dead_pixels",
+           "dsnu", "gain_regions", "hot_pixels", "nonlinearity", "prnu", "reset_noise", "row_noise", "sky_gradient",
+           "vignetting")
 
 #: the measured camera's hardware seed (the model scene keeps the preset's): other defect positions
 MEASURED_HARDWARE_SEED = 77_123_401
@@ -447,6 +449,51 @@ class OffCentreCos4Vignetting(RealWorld):
         data *= (np.cos(np.arctan(r / p.pupil_mm)) ** 4).astype(np.float32)
 
 
+class DyeCFA(RealWorld):
+    """A Bayer colour filter array whose dyes are not uniform: the four cell responses (by sensor row and column
+    parity) times a per-pixel dye-thickness jitter (``jitter`` rms, hardware) and a red response drifting by
+    ``red_drift`` across the sensor (a filter-thickness gradient): not the plugin's four constants."""
+
+    name = "rw_cfa"
+    stages = (Stage.RESPONSE,)
+
+    def apply(self, stage, tile, data):
+        p = self.params
+        ys, xs = tile.pixel_centres()  # unbinned at this stage
+        py, px = ys.astype(int) % 2, xs.astype(int) % 2
+        resp = np.asarray(p.response, np.float64).reshape(2, 2)[py[:, None], px[None, :]]
+        u, _ = _uv(tile)
+        red = (py[:, None] == p.red_cell[0]) & (px[None, :] == p.red_cell[1])
+        resp = resp * np.where(red, 1 + p.red_drift * (u[None, :] - 0.5), 1.0)
+        dye = tile.hardware_map(self.name, lambda rng, shape: rng.standard_normal(shape, dtype=np.float32))
+        data *= (resp * (1 + p.jitter * dye)).astype(np.float32)
+
+
+class MoonlitSky(RealWorld):
+    """Scattered moonlight rising towards the Moon as ``R0 exp(-(d - d0) / D)`` [e-/s/pixel], ``d`` the distance to
+    a point ``d0`` beyond the sensor centre in the direction ``angle_deg`` (a plane to first order, with the
+    curvature of the exponential), minus its value at the centre: the model's sky level is the one measured
+    on the frame (as for the real-data scenes). ``R0 = g D / 1000`` makes the gradient ``g`` [e-/s/pixel per
+    1000 px] at the centre. Added to the light, absent when no light reaches the sensor."""
+
+    name = "rw_sky"
+    stages = (Stage.FIELD,)
+
+    def apply(self, stage, tile, data):
+        if not data.any():
+            return
+        p, s = self.params, self.sensor
+        ys, xs = tile.pixel_centres()
+        a = np.radians(p.angle_deg)
+        xm = (s.sensor_width_px - 1) / 2 + p.distance_px * np.cos(a)
+        ym = (s.sensor_height_px - 1) / 2 + p.distance_px * np.sin(a)
+        d = np.hypot(xs[None, :] - xm, ys[:, None] - ym)
+        r0 = p.gradient_e_per_s_per_kpx * p.scale_px / 1000.0
+        rate = r0 * (np.exp(-(d - p.distance_px) / p.scale_px) - 1.0)
+        data += (rate * tile.exptime_s).astype(np.float32)
+        np.maximum(data, 0, out=data)
+
+
 # --- the cases --------------------------------------------------------------------------------------------------
 
 @dataclass
@@ -475,6 +522,10 @@ CASES: dict[str, Case] = {c.effect: c for c in [
          lambda s: [RippleStepBias(s, ramp_y_adu=4.0, ripple_adu=1.2, ripple_cycles=0.7, step_adu=0.8)]),
     Case("blooming", "stars", "bleeding above 0.9 full well, 75 % upwards, 20 % of the excess drained",
          lambda s: [LossyBleed(s, threshold=0.9, up_fraction=0.75, drain=0.2)], Levels(0.01, 0.02, -0.4)),
+    Case("cfa", "flat", "Bayer cells 1.05/0.80/0.60/1.02 with a 0.2 % per-pixel dye jitter and the red cell's "
+         "response drifting 3 % across the sensor",
+         lambda s: [DyeCFA(s, response=[1.05, 0.80, 0.60, 1.02], jitter=0.002, red_cell=(1, 0), red_drift=0.03)],
+         Levels(0.012, -0.02, 0.4)),
     Case("column_defects", "dark", "8 trap columns (partial, from the trap to the register), lognormal rates",
          lambda s: [TrapColumns(s, n_columns=8, median_rate_e_per_s=0.08, sigma_ln=0.6)]),
     Case("cosmic_rays", "dark", "muons at 0.04 /cm2/s (altitude) plus 5 MeV alpha blobs at 0.25 /cm2/s (window)",
@@ -498,6 +549,11 @@ CASES: dict[str, Case] = {c.effect: c for c in [
          lambda s: [VariableKTC(s, capacitance_ff=0.6, spread_ln=0.25)], Levels(0.0, 0.02, -0.6)),
     Case("row_noise", "dark", "1/f row noise 3 e- rms + white 1.5 e-",
          lambda s: [PinkRowNoise(s, pink_e=3.0, white_e=1.5)], Levels(0.0, -0.02, 0.7)),
+    Case("sky_gradient", "stars", "moonlight rising towards 120 deg as exp(-d / 8000 px) from a point 12000 px "
+         "beyond the centre, 6 e-/s per pixel per 1000 px at the centre (5 % of the sky across the window)",
+         lambda s: [MoonlitSky(s, gradient_e_per_s_per_kpx=6.0, scale_px=8000.0, distance_px=12000.0,
+                               angle_deg=120.0)],
+         Levels(0.01, -0.02, 0.3)),
     Case("vignetting", "flat_full", "cos^4(atan(r/70 mm)) about a centre offset by (2.5, -1.5) mm",
          lambda s: [OffCentreCos4Vignetting(s, pupil_mm=70.0, centre_x_mm=2.5, centre_y_mm=-1.5)],
          Levels(0.012, -0.02, -0.5)),

@@ -1,4 +1,4 @@
-"""Image-plane effects (psf_blur, jitter, pointing_offset, distortion, ghost): exact physics checks."""
+"""Image-plane effects (psf_blur, jitter, pointing_drift, pointing_offset, distortion, ghost): exact physics checks."""
 
 import numpy as np
 import pytest
@@ -75,3 +75,41 @@ def test_effects_run_in_the_chain_and_zero_strength_is_identity():
         assert np.allclose(out, base, atol=1e-2), name
     moved = Detector(s, build_effects({"pointing_offset": {"dx_px": 2.0}}, s)).expose(img, 1.0, 1, noiseless=True)
     assert abs(_moments(moved)[1] - 42.0) < 0.01
+
+
+@pytest.mark.parametrize("dx,dy", [(6.0, 0.0), (4.3, -2.7), (0.0, 9.5)])
+def test_drift_adds_the_box_variance_along_the_drift_and_keeps_flux_and_centroid(dx, dy):
+    img = _star(sigma=2.0)
+    f0, cx0, cy0, *_ = _moments(img)
+    f, cx, cy, cxx, cyy, cxy = _moments(ip.drift_smear(img, dx, dy))
+    assert abs(f - f0) < 1e-5 * f0
+    assert abs(cx - cx0) < 1e-3 and abs(cy - cy0) < 1e-3
+    # a uniform segment d adds the covariance d d^T / 12 (a box of length L has variance L^2 / 12)
+    assert np.allclose([cxx, cyy, cxy], [4.0 + dx * dx / 12, 4.0 + dy * dy / 12, dx * dy / 12], atol=2e-3)
+
+
+def test_drift_profile_is_a_box_not_a_gaussian():
+    """A well-sampled source (1-px PSF) drifted by 8 px: flat top along the drift, nothing beyond its ends.
+    (An undersampled source rings by a few per cent: the Fourier line kernel interpolates band-limited.)"""
+    img = _star((161, 161), 80.0, 80.0, sigma=1.0)
+    out = ip.drift_smear(img.astype(np.float64), 8.0, 0.0)
+    row = out[80, 60:101]
+    x = np.arange(60, 101) - 80.0
+    inside = np.abs(x) <= 1  # 3 PSF sigma inside the ends
+    assert np.ptp(row[inside]) < 0.01 * row[inside].mean()  # flat top
+    assert np.all(row[np.abs(x) >= 8] < 0.01 * row.max())  # nothing beyond the ends (4 px + 4 PSF sigma)
+    # a Gaussian of the same variance (jitter) peaks higher: the box is not a Gaussian smear
+    gauss = ip.blur(img.astype(np.float64), np.sqrt(64 / 12), 0.0, 0.0)[80, 60:101]
+    assert gauss.max() > 1.1 * row.max()
+
+
+def test_drift_in_the_chain_zero_is_identity():
+    s = make_sensor("ml11002", {"width": 128, "height": 128, "x0": 0, "y0": 0, "dark_current_e_per_s": 0.0})
+    img = _star((128, 128), 40.0, 70.0, 1.5, 1e5)
+    base = Detector(s, []).expose(img, 1.0, 1, noiseless=True)
+    zero = Detector(s, build_effects({"pointing_drift": {"dx_px": 0.0, "dy_px": 0.0}}, s)).expose(img, 1.0, 1,
+                                                                                              noiseless=True)
+    assert np.allclose(zero, base, atol=1e-3)
+    moved = Detector(s, build_effects({"pointing_drift": {"dx_px": 5.0, "dy_px": 0.0}}, s)).expose(img, 1.0, 1,
+                                                                                               noiseless=True)
+    assert np.isclose(_moments(moved)[3], _moments(base)[3] + 25 / 12, atol=0.01)

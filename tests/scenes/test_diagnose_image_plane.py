@@ -36,6 +36,9 @@ CASES = {
     "pointing_offset": ({"dx_px": 0.4, "dy_px": -0.25}, {"dx_px": (0.4, 0.03), "dy_px": (-0.25, 0.03)}),
     "jitter": ({"sigma_major_px": 1.2, "sigma_minor_px": 0.3, "angle_deg": 35.0},
                {"sigma_major_px": (1.2, 0.1), "angle_deg": (35.0, 5.0)}),
+    # a 6-px trail at 30 deg: a box, told from the Gaussian smear of jitter (which must not take it, and
+    # whose own case above must not be taken by the drift: every case asserts its effect ranks first)
+    "pointing_drift": ({"dx_px": 5.2, "dy_px": 3.0}, {"dx_px": (5.2, 0.2), "dy_px": (3.0, 0.2)}),
 }
 
 
@@ -48,7 +51,7 @@ def test_hidden_image_plane_effect_is_found_and_the_error_falls(tmp_path, effect
     render(load_scene(str(tmp_path / "truth.toml")), tmp_path / "m.fits", seed=3)
     out = run_diagnose(load_scene(str(tmp_path / "model.toml")), tmp_path / "m.fits")
     best = out["candidates"][0]
-    assert best["effect"] == effect and best["significant"]
+    assert best["effect"] == effect and best["significant"], [(c["effect"], c["delta_bic"]) for c in out["candidates"][:3]]
     for k, (value, tol) in expect.items():
         assert abs(best["params"][k] - value) < tol, (k, best["params"])
     diagnose.apply_candidate(load_scene(str(tmp_path / "model.toml")), best, tmp_path / "round2.toml")

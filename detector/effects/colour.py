@@ -1,0 +1,194 @@
+"""Colour filter array of a one-shot-colour sensor: ``cfa``.
+
+A Bayer mosaic (Bayer 1976, US patent 3,971,065) puts a red, green or blue filter over every pixel in a
+2 x 2 period (two greens on one diagonal). Seen through the camera's grey model, the photo-signal of pixel
+(y, x) is multiplied by the relative response of its cell,
+
+    S'(y, x) = R[y mod 2, x mod 2] S(y, x),
+
+with (y, x) *sensor* coordinates, so the pattern stays put under a read-out window with an odd origin.
+The response acts on the light only (sources, sky, flat screen: stage RESPONSE), not on dark charge or bias.
+
+A binned pixel of ``b x b`` sensor pixels starting at (y0, x0) collects ``sum_pq n_p(y0) m_q(x0) R[p, q] / b^2``
+with ``n_p``, ``m_q`` the numbers of its rows and columns of parity p, q: with even ``b`` every binned pixel
+holds each cell ``b^2 / 4`` times and the pattern averages out to the mean response.
+
+Approximation: the response is grey per cell. A real CFA's response is the filter's transmission integrated
+against each source's spectrum times the QE, so it differs from star to star with their colour and from
+the sky's (Sharma, *Digital Color Imaging Handbook*, 2003, ch. 1; PANOPTES: Guyon et al. 2021 use the
+per-channel frames separately). One set of four numbers describes a flat screen or a sky-dominated frame.
+"""
+
+from __future__ import annotations
+
+from typing import Literal
+
+import numpy as np
+from pydantic import Field, field_validator
+
+from ..diagnosis import Fit, Signature, _at, lstsq_delta
+from .base import Effect, EffectParams, Stage, Tile, register_effect
+
+# --- pure functions ---------------------------------------------------------------------------------------
+
+
+def parity_fractions(starts: np.ndarray, b: int = 1) -> np.ndarray:
+    """Fractions of the ``b`` consecutive sensor rows (or columns) beginning at each of ``starts`` whose index
+    is even (row 0 of the result) and odd (row 1), shape (2, len(starts)) [1]."""
+    s = np.asarray(starts).astype(np.int64) % 2
+    even = (b + 1 - s) // 2  # even integers in [start, start + b)
+    return np.stack([even, b - even]).astype(np.float64) / b
+
+
+def cfa_response(y0s: np.ndarray, x0s: np.ndarray, response, b: int = 1) -> np.ndarray:
+    """Mean relative response [1] of the ``b x b`` blocks of sensor pixels beginning at rows ``y0s`` and
+    columns ``x0s`` (the pixel itself for ``b = 1``), for cell responses ``response = [r00, r01, r10, r11]``
+    indexed by (row parity, column parity); shape (len(y0s), len(x0s))."""
+    r = np.asarray(response, np.float64).reshape(2, 2)
+    return np.einsum("pi,pq,qj->ij", parity_fractions(y0s, b), r, parity_fractions(x0s, b))
+
+
+def bayer_label(response) -> str:
+    """A Bayer pattern name for four cell responses: the green pair is the diagonal with the larger mean; of
+    the other two cells the lower is labelled red (as for a sky or a daylight-balanced screen, whose
+    red response through a silicon sensor's QE is the lowest; a label only, the physics is the numbers)."""
+    r = np.asarray(response, float)
+    if r[0] + r[3] > r[1] + r[2]:  # green on the main diagonal: cells 01 and 10 are red/blue
+        return "GRBG" if r[1] <= r[2] else "GBRG"
+    return "RGGB" if r[0] <= r[3] else "BGGR"
+
+
+# --- diagnosis: the photo-signal times each cell's indicator (relative responses of mean 1) ---------------------
+
+def _cell_fractions(res) -> np.ndarray | None:
+    """Per output pixel, the fraction of its sensor pixels in each of the four cells, shape (4, H, W); None
+    when every output pixel holds the four cells equally (even binning: the pattern averages out)."""
+    b = res.sensor.binning
+    fy = parity_fractions(np.rint(res.ys - (b - 1) / 2.0), b)
+    fx = parity_fractions(np.rint(res.xs - (b - 1) / 2.0), b)
+    if np.allclose(fy, 0.5) and np.allclose(fx, 0.5):
+        return None
+    return np.stack([fy[p][:, None] * fx[q][None, :] for p in (0, 1) for q in (0, 1)])
+
+
+#: light pixels the response fit uses at most (a random subsample, fixed seed: regular strides would alias with
+#: the 2-pixel period) [pixels]
+CFA_FIT_PIXELS = 1_000_000
+#: |z| above which a pixel is left out of the response fit as an outlier (hot pixel, cosmic ray) [sigma]
+CFA_CLIP_SIGMA = 5.0
+
+
+def _unsaturated(res) -> np.ndarray:
+    """Light pixels well below the ADC ceiling and the full well (data and model), with a finite variance."""
+    s = res.sensor
+    ceiling = min(s.adc_max_adu * res.adu_sum, s.bias_adu * res.adu_sum + s.full_well_e * res.pixel_sum / res.gain)
+    ok = np.isfinite(res.data_adu) & (res.var_adu2 > 0) & (res.photo_adu > 0)
+    return ok & (res.data_adu < 0.9 * ceiling) & (res.model_adu < 0.9 * ceiling)
+
+
+class CFASignature(Signature):
+    """Three templates ``P (f_k - f_11)``, k = 00, 01, 10 (``P`` the model's photo-signal, ``f_k`` the fraction of
+    an output pixel's sensor pixels in cell k): responses ``1 + c_k``, ``c_11 = -(c_00 + c_01 + c_10)``, of mean
+    1 over the cells, since their common factor is the light level the diagnosis fits anyway (a fourth
+    template would be degenerate with it). Fitted jointly with the global levels by weighted least squares.
+
+    Unlike the generic linear kind, the fit does not use only the pixels the comparison fits pixel by pixel: a
+    CFA of tens of per cent makes every other column an "outlier column" and many pixels "spikes" of the grey
+    model, so the fit takes every unsaturated light pixel and clips its own outliers (|z| > CFA_CLIP_SIGMA
+    after the fit, iterated: hot pixels, cosmic rays), on a random subsample of at most CFA_FIT_PIXELS.
+    """
+
+    kind = "linear"
+    pattern = "the light modulated with a period of 2 pixels along rows and columns"
+
+    def fit(self, res, name):
+        f = _cell_fractions(res)
+        if f is None or not np.any(res.photo_adu > 0):
+            return None
+        idx = np.flatnonzero(_unsaturated(res))
+        if idx.size < 100:
+            return None
+        scale = 1.0
+        if idx.size > CFA_FIT_PIXELS:
+            scale = idx.size / CFA_FIT_PIXELS
+            idx = np.sort(np.random.default_rng(0).choice(idx, CFA_FIT_PIXELS, replace=False))
+        shape = res.data_adu.shape
+        y, x = np.divmod(idx, shape[1])
+        rel = f[:3] - f[3]
+        r = (res.data_adu.ravel()[idx] - res.model_adu.ravel()[idx]).astype(np.float64)
+        w = 1.0 / res.var_adu2.ravel()[idx].astype(np.float64)
+        temps = res.photo_adu.ravel()[idx].astype(np.float64) * rel[:, y, x]
+        levels = np.stack([_at(t, shape, idx) for t in res.level_templates()])
+        keep = np.ones(idx.size, bool)
+        for _ in range(3):
+            c, d, _ = lstsq_delta(r[keep], w[keep], temps[:, keep], levels[:, keep])
+            rest = r - c @ temps
+            c_levels, _, _ = lstsq_delta(rest[keep], w[keep], levels[:, keep])  # the levels of that joint fit
+            new = np.abs(rest - c_levels @ levels) * np.sqrt(w) < CFA_CLIP_SIGMA
+            if np.array_equal(new, keep):
+                break
+            keep = new
+        # the light level L of the joint fit: the cells' responses are 1 + c_k / L (the data are L P (1 + delta_k))
+        photo = res.photo_adu.ravel()[idx[keep]].astype(np.float64)
+        wk = w[keep] * photo
+        level = float(np.dot(wk, photo + (c_levels @ levels)[keep]) / np.dot(wk, photo))
+        params = _cfa_params(np.asarray(c) / level) if level > 0 else None
+        if params is None:
+            return None
+        delta = (res.photo_adu.astype(np.float64) * np.tensordot(c, rel, axes=1)).astype(np.float32)
+        return Fit(name, params, d * scale, len(c), int(keep.sum() * scale), _cfa_words(params, res),
+                   delta_adu=delta, note="2x2 cells")
+
+
+def _cfa_params(c) -> dict | None:
+    resp = np.append(1.0 + np.asarray(c, float), 1.0 - float(np.sum(c)))
+    if not np.all((resp > 0) & (resp <= 4)):
+        return None
+    resp = [round(float(x), 5) for x in resp]
+    return {"pattern": bayer_label(resp), "response": resp}
+
+
+def _cfa_words(p, res) -> str:
+    return ("2x2 periodic response of the light, cells " + "/".join(f"{x:.3g}" for x in p["response"])
+            + f" (row, column parity 00/01/10/11; mean 1): a colour filter array (Bayer {p['pattern']})")
+
+
+# --- adapter -------------------------------------------------------------------------------------------------
+
+
+class CFAParams(EffectParams):
+    pattern: Literal["RGGB", "BGGR", "GRBG", "GBRG"] = Field(
+        "RGGB", description="Bayer layout of the cells (row-major from sensor pixel (0, 0)); a label: the "
+                            "response list carries the physics")
+    response: list[float] = Field(
+        [0.57, 1.06, 1.06, 0.79], min_length=4, max_length=4,
+        description="relative response of the cells [r00, r01, r10, r11], indexed by (row parity, column "
+                    "parity) of the sensor pixel, each in (0, 4] [1]", json_schema_extra={"unit": "1"})
+
+    @field_validator("response")
+    @classmethod
+    def _positive(cls, v: list[float]) -> list[float]:
+        if not all(0 < r <= 4 for r in v):
+            raise ValueError("every cell response must be in (0, 4]")
+        return v
+
+
+@register_effect
+class ColourFilterArray(Effect):
+    """Bayer colour filter array: the light of sensor pixel (y, x) times the response of its 2 x 2 cell,
+    ``R[y mod 2, x mod 2]`` (grey per cell; see the module docstring for the colour approximation).
+
+    Default responses: the sky of a raw PANOPTES Canon frame, G 185 / B 131 / R 93 ADU above bias per cell
+    (docs/compare_realdata_sky.md), i.e. R 0.57, G 1.06, B 0.79 of a common level (RGGB).
+    """
+
+    name = "cfa"
+    stages = (Stage.RESPONSE,)
+    Params = CFAParams
+    signature = CFASignature()
+
+    def apply(self, stage: Stage, tile: Tile, data: np.ndarray) -> None:
+        ys, xs = tile.pixel_centres()
+        b = tile.bin
+        data *= cfa_response(np.rint(ys - (b - 1) / 2.0), np.rint(xs - (b - 1) / 2.0), self.params.response,
+                             b).astype(np.float32)

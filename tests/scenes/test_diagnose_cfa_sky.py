@@ -1,0 +1,62 @@
+"""cfa and sky_gradient hidden in a "measured" frame are named first by the diagnosis, with their parameters
+recovered; the look-alikes (vignetting, bias_gradient, amp_glow) do not take them."""
+
+import numpy as np
+import pytest
+from test_diagnose_image_plane import BASE as STARS
+
+from scenes.compare import run_diagnose
+from scenes.render import render
+from scenes.scene import load_scene
+
+#: a flat-field screen on a window with an odd column origin (the CFA pattern follows the sensor parity)
+FLAT = """
+[telescope]
+design = "art"
+[detector]
+preset = "ml11002"
+width = 256
+height = 256
+x0 = 1001
+y0 = 700
+[exposure]
+time_s = 10.0
+frame = "light"
+[sky]
+stars = false
+flat_e_per_s = 1500.0
+"""
+
+# STARS: the star field of the image-plane cases (tests/scenes/test_diagnose_image_plane.py)
+
+
+def _diagnose(tmp_path, base, table):
+    (tmp_path / "model.toml").write_text(base)
+    (tmp_path / "truth.toml").write_text(base + table)
+    render(load_scene(str(tmp_path / "truth.toml")), tmp_path / "m.fits", seed=3)
+    return run_diagnose(load_scene(str(tmp_path / "model.toml")), tmp_path / "m.fits")["candidates"]
+
+
+def test_hidden_cfa_is_named_first_with_its_relative_responses(tmp_path):
+    truth = np.array([1.05, 0.8, 0.6, 1.02])
+    cands = _diagnose(tmp_path, FLAT, f"[effects.cfa]\nresponse = {truth.tolist()}\n")
+    best = cands[0]
+    assert best["effect"] == "cfa" and best["significant"], [(c["effect"], c["delta_bic"]) for c in cands[:3]]
+    # the light level is fitted with every candidate: the responses come back relative, of mean 1
+    assert np.allclose(best["params"]["response"], truth / truth.mean(), rtol=0.01), best["params"]
+    assert best["params"]["pattern"] == "GBRG"  # greens on the main diagonal, the lowest (red) in cell 10
+
+
+@pytest.mark.parametrize("base,gx,gy", [(FLAT, 40.0, -25.0), (STARS, 3.0, -5.0)], ids=["flat", "stars"])
+def test_hidden_sky_gradient_is_named_first_not_vignetting(tmp_path, base, gx, gy):
+    cands = _diagnose(tmp_path, base, f"[effects.sky_gradient]\ngx_e_per_s_per_kpx = {gx}\n"
+                                      f"gy_e_per_s_per_kpx = {gy}\n")
+    best = cands[0]
+    assert best["effect"] == "sky_gradient" and best["significant"], [(c["effect"], c["delta_bic"]) for c in cands[:4]]
+    p = best["params"]
+    assert abs(p["gx_e_per_s_per_kpx"] - gx) < 0.1 * np.hypot(gx, gy), p
+    assert abs(p["gy_e_per_s_per_kpx"] - gy) < 0.1 * np.hypot(gx, gy), p
+    # vignetting (radial, multiplicative) is far behind; bias_gradient (a plane and a bowl in ADU) fits the plane
+    # as well on one light frame and loses by its extra parameter (its bowl finds nothing)
+    bic = {c["effect"]: c["delta_bic"] for c in cands}
+    assert bic.get("vignetting", 0.0) > best["delta_bic"] + 30
