@@ -598,6 +598,23 @@ def joint_levels(res: Residuals, values: Callable[[np.ndarray], np.ndarray], idx
     return dict(zip(res.levels()["names"], (float(v) for v in np.linalg.solve(nn, ny))))
 
 
+def with_shot_noise(res: Residuals, fit: Fit) -> Fit:
+    """``fit`` (a mean change ``delta`` of charge) with the shot noise of that charge: ``dv = delta / g``
+    [ADU^2] (Poisson: variance = mean; :attr:`Residuals.poisson_adu`) added to the model variance, and the
+    Gaussian likelihood's change ``sum ln(1 + dv/v) + r'^2 / (v + dv) - r'^2 / v`` (``r'`` the residual
+    after the fit and the levels) added to ``delta(-2 ln L)``. Light and bias of the same shape differ in
+    this term only: for ``n`` pixels it is about ``-/+ n <(dv/v)^2> / 2``."""
+    from dataclasses import replace
+
+    idx, r, _ = res.flat()
+    delta = np.asarray(fit.delta_adu, np.float64).ravel()[idx]
+    rr, v = res.project(r - delta), 1.0 / res.levels()["w"]
+    dv = np.maximum(delta * res.poisson_adu, -0.9 * v)
+    corr = float(np.sum(np.log1p(dv / v) + rr * rr * (1.0 / (v + dv) - 1.0 / v)))
+    extra = (np.asarray(fit.delta_adu, np.float32) * np.float32(res.poisson_adu)).astype(np.float32)
+    return replace(fit, delta_m2lnl=fit.delta_m2lnl + corr, extra_var_adu2=extra)
+
+
 def profiled_chi2(res: Residuals, idx: np.ndarray, y: np.ndarray, w: np.ndarray) -> float:
     """chi2 of the residual ``y`` at flat pixels ``idx`` once the global levels are refitted to it
     (``y'Wy - (N'Wy)' (N'WN)^-1 (N'Wy)``, accumulated in chunks)."""
@@ -651,15 +668,20 @@ class LinearSignature(Signature):
         multiplies the light, which the joint fit also scales by ``1 + L`` (the light level), so the
         coefficients are ``c (1 + L)`` of the effect's own and are divided by it before ``to_params``
         (otherwise a model 3 % short of light gets a vignetting 3 % too deep).
+    adds_charge : bool
+        The effect adds (or removes) charge, which carries its shot noise (a sky, a glow): the likelihood
+        includes the variance change ``dv = delta x poisson_adu`` (:func:`with_shot_noise`), which tells
+        added light from an added bias of the same shape (no noise) on one frame.
     """
 
     kind = "linear"
 
     def __init__(self, variants: Callable[[Residuals], Iterable[Variant]], explain: Callable[[dict, Residuals], str],
                  pattern: str = "", extra_k: int = 1,
-                 refine: Callable[[Variant, Residuals], Iterable[Variant]] | None = None, of_light: bool = False):
+                 refine: Callable[[Variant, Residuals], Iterable[Variant]] | None = None, of_light: bool = False,
+                 adds_charge: bool = False):
         self.variants, self.explain, self.pattern, self.extra_k = variants, explain, pattern, extra_k
-        self.refine, self.of_light = refine, of_light
+        self.refine, self.of_light, self.adds_charge = refine, of_light, adds_charge
 
     def fit(self, res: Residuals, name: str) -> Fit | None:
         ctx = search_sample(res)
@@ -684,8 +706,9 @@ class LinearSignature(Signature):
         maps = v.maps()
         k = len(maps) + self.extra_k
         delta = sum(ci * np.asarray(t, np.float32) for ci, t in zip(c, maps))
-        return Fit(name, params, d, k, res.n_fit, self.explain(params, res),
-                   delta_adu=np.broadcast_to(delta, res.data_adu.shape), note=v.label)
+        fit = Fit(name, params, d, k, res.n_fit, self.explain(params, res),
+                  delta_adu=np.broadcast_to(delta, res.data_adu.shape), note=v.label)
+        return with_shot_noise(res, fit) if self.adds_charge else fit
 
     @staticmethod
     def _best(res: Residuals, ctx: dict, variants: Iterable[Variant]):

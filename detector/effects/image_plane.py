@@ -59,14 +59,34 @@ def blur(image: np.ndarray, sigma_major_px: float, sigma_minor_px: float | None 
     c, s = np.cos(np.radians(angle_deg)), np.sin(np.radians(angle_deg))
     rot = np.array([[c, -s], [s, c]])
     cov = rot @ np.diag([sigma_major_px ** 2, minor ** 2]) @ rot.T  # (x, y)
-    pad = int(np.ceil(4 * max(sigma_major_px, minor))) + 1
+    return gaussian_filter_cov(image, cov)
+
+
+def fourier_filter(image: np.ndarray, pad: int, transfer) -> np.ndarray:
+    """``image`` filtered in Fourier space by ``transfer(fx, fy)`` [cycles/px], edges extended by ``pad``
+    pixels of their own values (so a frame's border does not wrap onto the opposite one)."""
     work = np.float64 if image.dtype == np.float64 else np.float32  # the diagnosis fits in double precision
     big = np.pad(image.astype(work), pad, mode="edge")
     fy = np.fft.fftfreq(big.shape[0])[:, None]
     fx = np.fft.rfftfreq(big.shape[1])[None, :]
-    h = np.exp(-2 * np.pi ** 2 * (cov[0, 0] * fx * fx + 2 * cov[0, 1] * fx * fy + cov[1, 1] * fy * fy))
-    out = np.fft.irfft2(np.fft.rfft2(big) * h.astype(work), s=big.shape)
+    out = np.fft.irfft2(np.fft.rfft2(big) * transfer(fx, fy).astype(work), s=big.shape)
     return out[pad:-pad, pad:-pad].astype(image.dtype)
+
+
+def gaussian_filter_cov(image: np.ndarray, cov: np.ndarray, max_gain: float = 1.0) -> np.ndarray:
+    """``image`` convolved with a Gaussian of covariance ``cov`` [px^2, (x, y)]: ``H(f) = exp(-2 pi^2 f^T C f)``.
+
+    ``C`` may have a negative eigenvalue (``max_gain > 1``): the image then becomes *narrower* along that
+    axis (a deconvolution; the second moments still add: ``C_out = C_in + C``), the gain capped at
+    ``max_gain`` at the high frequencies a smooth image does not hold anyway."""
+    ev = np.linalg.eigvalsh(cov)
+    pad = int(np.ceil(4 * np.sqrt(max(np.max(np.abs(ev)), 0.0)))) + 1
+
+    def transfer(fx, fy):
+        q = cov[0, 0] * fx * fx + 2 * cov[0, 1] * fx * fy + cov[1, 1] * fy * fy
+        return np.minimum(np.exp(-2 * np.pi ** 2 * q), max_gain)
+
+    return fourier_filter(image, pad, transfer)
 
 
 def shift(image: np.ndarray, dx_px: float, dy_px: float) -> np.ndarray:
@@ -92,13 +112,7 @@ def drift_smear(image: np.ndarray, dx_px: float, dy_px: float) -> np.ndarray:
     if dx_px == 0 and dy_px == 0:
         return image.copy()
     pad = int(np.ceil(0.5 * max(abs(dx_px), abs(dy_px)))) + 2
-    work = np.float64 if image.dtype == np.float64 else np.float32
-    big = np.pad(image.astype(work), pad, mode="edge")
-    fy = np.fft.fftfreq(big.shape[0])[:, None]
-    fx = np.fft.rfftfreq(big.shape[1])[None, :]
-    h = np.sinc(fx * dx_px + fy * dy_px)
-    out = np.fft.irfft2(np.fft.rfft2(big) * h.astype(work), s=big.shape)
-    return out[pad:-pad, pad:-pad].astype(image.dtype)
+    return fourier_filter(image, pad, lambda fx, fy: np.sinc(fx * dx_px + fy * dy_px))
 
 
 def radial_distortion(image: np.ndarray, ys: np.ndarray, xs: np.ndarray, yc: float, xc: float, k_per_px2: float,
@@ -304,6 +318,41 @@ def _jitter_params(th, res):
             "angle_deg": round(ang, 2)}
 
 
+# elongation: theta = (c_xx, c_yy, c_xy) [output px^2], one eigenvalue negative
+#: smallest |negative eigenvalue| / largest |eigenvalue| of a fitted second-moment change that counts as an
+#: elongation (narrower along one axis); below it the change is a blur (psf_blur, jitter: nested in them)
+ELONGATION_MIN_NEGATIVE = 0.1
+#: highest gain of the narrowing filter (the smooth image a PSF makes holds no power where it would matter)
+ELONGATION_MAX_GAIN = 50.0
+
+
+def _elongation_start(res):
+    return _linear_start(res, ["xx", "yy", "xy"], [0.5, 0.5, 1.0])
+
+
+def _elongation_transform(res, photo, th):
+    cov = np.array([[th[0], th[2]], [th[2], th[1]]])
+    w, v = np.linalg.eigh(cov)
+    cov = v @ np.diag(np.clip(w, -_max_var(res), _max_var(res))) @ v.T
+    return gaussian_filter_cov(photo, cov, max_gain=ELONGATION_MAX_GAIN)
+
+
+def _elongation_params(th, res):
+    w, _ = _jitter_axes(th)
+    if w[1] <= 0 or w[0] >= 0 or -w[0] < ELONGATION_MIN_NEGATIVE * max(w[1], -w[0]) or max(w[1], -w[0]) >= 100:
+        return None  # a pure blur (or a pure narrowing: a PSF too wide everywhere) is not an elongation
+    b2 = res.sensor.binning ** 2
+    return {"dcxx_px2": round(float(th[0]) * b2, 5), "dcyy_px2": round(float(th[1]) * b2, 5),
+            "dcxy_px2": round(float(th[2]) * b2, 5)}
+
+
+def _elongation_words(p, res) -> str:
+    w, ang = _jitter_axes(np.array([p["dcxx_px2"], p["dcyy_px2"], p["dcxy_px2"]]))
+    return (f"sources wider than the model along {ang:.0f} deg (+{w[1]:.3g} px^2) and narrower across "
+            f"({w[0]:.3g} px^2): an elongated PSF (astigmatism, tilt, wind shake), which the scene's round PSF "
+            "lacks")
+
+
 # offset: theta = (dx, dy) [output px]
 def _offset_start(res):
     return _linear_start(res, ["x", "y"], [-1.0, -1.0])
@@ -433,6 +482,38 @@ class Jitter(Effect):
         _store(data, blur(data, p.sigma_major_px, p.sigma_minor_px, p.angle_deg))
 
 
+class ElongationParams(EffectParams):
+    dcxx_px2: float = Field(0.0, ge=-25, le=25, description="change of the sources' second moment along x "
+                            "[sensor px^2]", json_schema_extra={"unit": "pixel^2"})
+    dcyy_px2: float = Field(0.0, ge=-25, le=25, description="change of the second moment along y [sensor px^2]",
+                            json_schema_extra={"unit": "pixel^2"})
+    dcxy_px2: float = Field(0.0, ge=-25, le=25, description="change of the cross moment xy [sensor px^2]",
+                            json_schema_extra={"unit": "pixel^2"})
+
+
+@register_effect
+class PSFElongation(Effect):
+    """The sources' second moments differ from the model's by ``dC`` with one axis *narrower*: an
+    elongated PSF (astigmatism, a tilted detector, wind shake along one axis) where the scene has a round
+    one. Applied as the Gaussian filter of covariance ``dC`` (``H = exp(-2 pi^2 f^T dC f)``, the narrowing
+    axis a capped deconvolution), so the second moments of every source become ``C_psf + dC`` (moments of
+    a convolution add; for a Gaussian PSF the result is exact, for a Moffat its core). ``dC`` must leave
+    ``C_psf + dC`` positive: a narrowing larger than the PSF's own variance has no meaning."""
+
+    name = "psf_elongation"
+    stages = (Stage.FIELD,)
+    Params = ElongationParams
+    signature = TransformSignature(
+        _elongation_start, _elongation_transform, _elongation_params, [0.02, 0.02, 0.02],
+        pattern="sources wider than the model along one axis and narrower across (a quadrupole residual)",
+        explain=_elongation_words)
+
+    def apply(self, stage: Stage, tile: Tile, data: np.ndarray) -> None:
+        p = self.params
+        cov = np.array([[p.dcxx_px2, p.dcxy_px2], [p.dcxy_px2, p.dcyy_px2]])
+        _store(data, gaussian_filter_cov(data, cov, max_gain=ELONGATION_MAX_GAIN))
+
+
 class OffsetParams(EffectParams):
     dx_px: float = Field(0.0, ge=-1e4, le=1e4, description="image shift along columns [sensor px]")
     dy_px: float = Field(0.0, ge=-1e4, le=1e4, description="image shift along rows [sensor px]")
@@ -471,7 +552,8 @@ class PointingDrift(Effect):
     stages = (Stage.FIELD,)
     Params = DriftParams
     signature = TransformSignature(
-        _drift_start, lambda res, photo, th: drift_smear(photo, float(th[0]), float(th[1])), _drift_params,
+        _drift_start, lambda res, photo, th: drift_smear(photo, *(float(v) for v in np.clip(th, -400, 400))),
+        _drift_params,
         [0.02, 0.02], pattern="sources trailed along one direction with a flat (box) profile", explain=_drift_words)
 
     def apply(self, stage: Stage, tile: Tile, data: np.ndarray) -> None:

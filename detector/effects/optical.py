@@ -127,6 +127,8 @@ def _vignetting_variants(res):
             yield _vignetting_variant(res, fx * rc, fy * rc)
 
 
+#: farthest centre offset the refinement may reach [fraction of the half-diagonal]: the grid's edge, plus a step
+_CENTRE_MAX = 0.25
 #: the centre refinement stops at this step [fraction of the half-diagonal] (0.02 mm on the ML11002)
 _CENTRE_TOL = 0.001
 
@@ -141,6 +143,8 @@ def _vignetting_refine(best, res):
     ctx, shape = search_sample(res), res.data_adu.shape
 
     def score(x, y):
+        if max(abs(x), abs(y)) > _CENTRE_MAX * rc:  # a centre far off the field makes a plane, not vignetting
+            return np.inf
         v = _vignetting_variant(res, x, y)
         c, d = fit_linear(res, lambda i: v.values(i, shape), ctx["idx"], ctx["r"], ctx["w"])
         return d if v.to_params(c) is not None else np.inf

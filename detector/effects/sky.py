@@ -72,7 +72,8 @@ def _sky_words(p, res) -> str:
             "(moonlight, twilight, airglow)")
 
 
-_SKY_SIGNATURE = LinearSignature(_sky_variants, _sky_words, pattern="additive plane of light", extra_k=0)
+_SKY_SIGNATURE = LinearSignature(_sky_variants, _sky_words, pattern="additive plane of light (with its shot noise)",
+                                 extra_k=0, adds_charge=True)
 
 
 # --- adapter -------------------------------------------------------------------------------------------------

@@ -589,7 +589,9 @@ def section_candidates(diagnosis: dict | None) -> str:
     parts = []
     if cands:
         rows = [[i + 1, c.get("effect"), c.get("delta_bic"), c.get("chi2_per_dof"),
-                 "yes" if c.get("significant") else "no", c.get("explanation", ""), _params_text(c.get("params"))]
+                 "yes" if c.get("significant") else ("rejected" if c.get("rejected") else "no"),
+                 c.get("explanation", "") + (f" (rejected: {c['rejected']})" if c.get("rejected") else ""),
+                 _params_text(c.get("params"))]
                 for i, c in enumerate(cands)]
         cls = ["sig" if c.get("significant") else "" for c in cands]
         parts.append(_table(["#", "effect", "delta BIC", "chi2/dof after", "significant", "explanation", "params"],
@@ -600,7 +602,9 @@ def section_candidates(diagnosis: dict | None) -> str:
     parts.append(f'<p class="note">Baseline chi2/dof {_e(_fmt(base.get("chi2_per_dof")))}. Each absent effect is '
                  "fitted to the residuals under the model's noise and ranked by delta BIC = delta(-2 ln L) + k ln n; "
                  f"a candidate is significant when delta BIC &lt; {SIGNIFICANT_DELTA_BIC:g} (highlighted). "
-                 "chi2/dof after: with the fitted effect in the model.</p>")
+                 "chi2/dof after: with the fitted effect in the model and the global levels refitted (compare "
+                 "with the baseline's chi2/dof with levels refitted). A candidate that only adds noise and brings "
+                 "chi2/dof far below 1 is rejected: it absorbs a residual pattern, it does not explain it.</p>")
     problems = diagnosis.get("problems") or []
     if problems:
         items = "".join(f"<li><code>{_e(p.get('effect'))}</code>: {_e(p.get('error'))}</li>" for p in problems)

@@ -58,3 +58,38 @@ def test_hidden_image_plane_effect_is_found_and_the_error_falls(tmp_path, effect
     after = run_compare(load_scene(str(tmp_path / "round2.toml")), tmp_path / "m.fits")["summary"]["chi2_per_dof"]
     before = out["baseline"]["chi2_per_dof"]
     assert after - 1 < 0.05 * (before - 1)
+
+
+def test_an_elongated_psf_is_named_and_its_moments_recovered(tmp_path):
+    """A real-world elongated PSF that the model's round one cannot hold: the "measured" stars are narrower
+    (FWHM 4.8" instead of 6.0", 2.5 px) and smeared along the columns (1.2 px rms), so their second moments
+    are *smaller* along x and larger along y than the model's. No blur can narrow a source; psf_elongation
+    (a second-moment change with one negative axis) must be named, with dC_xx = s_true^2 - s_model^2 and
+    dC_yy = that + 1.2^2 (moments of a convolution add; Gaussian sigma = FWHM / 2.3548 / scale). Well
+    sampled: an undersampled PSF cannot be narrowed by filtering its pixels (their own 1/12 px^2 stays)."""
+    from scenes.render import prepare
+
+    base = BASE.replace("fwhm_arcsec = 3.0", "fwhm_arcsec = 6.0")
+    model = load_scene(_write(tmp_path / "model.toml", base))
+    scale = prepare(model).pixel_scale_arcsec
+    truth = base.replace("fwhm_arcsec = 6.0", "fwhm_arcsec = 4.8") + (
+        "[effects.jitter]\nsigma_major_px = 1.2\nsigma_minor_px = 0.0\nangle_deg = 90.0\n")
+    render(load_scene(_write(tmp_path / "truth.toml", truth)), tmp_path / "m.fits", seed=3)
+    out = run_diagnose(model, tmp_path / "m.fits")
+    best = out["candidates"][0]
+    assert best["effect"] == "psf_elongation" and best["significant"], \
+        [(c["effect"], c["delta_bic"]) for c in out["candidates"][:4]]
+    s_model2, s_true2 = ((f / 2.3548 / scale) ** 2 for f in (6.0, 4.8))
+    p = best["params"]
+    assert p["dcxx_px2"] == pytest.approx(s_true2 - s_model2, rel=0.1), p
+    assert p["dcyy_px2"] == pytest.approx(s_true2 - s_model2 + 1.44, rel=0.1), p
+    assert abs(p["dcxy_px2"]) < 0.05, p
+    diagnose.apply_candidate(model, best, tmp_path / "round2.toml")
+    after = run_compare(load_scene(str(tmp_path / "round2.toml")), tmp_path / "m.fits")["summary"]["chi2_per_dof"]
+    before = out["baseline"]["chi2_per_dof"]
+    assert after - 1 < 0.1 * (before - 1), (before, after)
+
+
+def _write(path, text):
+    path.write_text(text)
+    return str(path)
