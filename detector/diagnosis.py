@@ -180,6 +180,13 @@ class Residuals:
     exptime_s : float [s]
     data_spikes, model_spikes : SpikeStats
         Local-outlier statistics of the measurement and of one noisy realisation of the model.
+    photo_field_adu : 2-D float32 [ADU], optional
+        The photo-signal before the full-well clip and the pixel response: what image-plane effects
+        transform and blooming spills.
+    background_adu : 2-D float32 [ADU], optional
+        The model's mean frame without its sources (sky or flat screen, straylight, dark, bias).
+    row_var_adu2 : float [ADU^2]
+        Variance the pixels of one output row share (row noise's per-row offsets).
     """
 
     data_adu: np.ndarray
@@ -195,6 +202,25 @@ class Residuals:
     data_spikes: SpikeStats
     model_spikes: SpikeStats
     _flat: dict = field(default_factory=dict, repr=False)
+    photo_field_adu: np.ndarray | None = None
+    background_adu: np.ndarray | None = None
+    row_var_adu2: float = 0.0
+
+    @property
+    def photo_field(self) -> np.ndarray:
+        """The photo-signal an image-plane effect acts on: before the clip and the response when known."""
+        return self.photo_adu if self.photo_field_adu is None else self.photo_field_adu
+
+    @property
+    def background_photo_adu(self) -> np.ndarray:
+        """The light of the background alone [ADU] (sky or flat screen through the response: a CFA, the
+        vignetting), the model's mean without sources minus its dark and bias; without ``background_adu``,
+        the uniform part of the photo-signal ``min(photo, median(photo))``."""
+        if self.background_adu is not None:
+            return (self.background_adu - (self.model_adu - self.photo_adu)).astype(np.float32)
+        photo = self.photo_adu
+        sample = photo.ravel()[:: max(1, photo.size // 1_000_000)]
+        return np.minimum(photo, np.float32(np.median(sample))) if photo.size else photo
 
     @property
     def gain(self) -> float:
@@ -243,7 +269,7 @@ class Residuals:
         """Templates [ADU per unit] of the global levels a model only knows to a few per cent:
 
         * the light level: the whole photo-signal (flat lamp, transparency, throughput, star zero point);
-        * the background level: the uniform part of the light (the sky; ``min(photo, median(photo))``);
+        * the background level: the light of the background alone (the sky, :attr:`background_photo_adu`);
         * a bias offset (1 ADU; not on a light frame, :meth:`levels_not_fitted`);
         * the dark level: the mean dark signal (dark current at the actual temperature).
 
@@ -251,9 +277,7 @@ class Residuals:
         (so the change of its shot noise is carried along, :meth:`levels`), on a star field the sky (not a
         bias offset), on a uniform dark a bias offset (not a dark current many times off)."""
         if "level_templates" not in self._flat:
-            photo = self.photo_adu
-            sample = photo.ravel()[:: max(1, photo.size // 1_000_000)]
-            bg = np.minimum(photo, np.float32(np.median(sample))) if photo.size else photo
+            photo, bg = self.photo_adu, self.background_photo_adu
             self._flat["level_templates"] = [photo, bg, np.ones(1, np.float32),
                                              (self.dark_e / np.float32(self.gain)).astype(np.float32)]
         return self._flat["level_templates"]
@@ -284,6 +308,7 @@ class Residuals:
             shape = self.data_adu.shape
             temps = self.level_templates()
             charge = [i for i in range(len(temps)) if self.LEVEL_IS_CHARGE[i]]
+            allowed = [i for i in range(len(temps)) if i not in self.levels_not_fitted()]
             w, keep, coef = w0, [], np.zeros(0)
             for _ in range(3):
                 # normal equations of all level templates, accumulated in chunks
@@ -295,7 +320,7 @@ class Residuals:
                     xw = x * w[sl]
                     g += xw @ x.T
                     b += xw @ r[sl]
-                keep = [i for i in _independent(g, tol=LEVEL_DEGENERACY) if i not in self.levels_not_fitted()]
+                keep = [allowed[i] for i in _independent(g[np.ix_(allowed, allowed)], tol=LEVEL_DEGENERACY)]
                 if not keep:
                     break
                 coef = np.linalg.solve(g[np.ix_(keep, keep)], b[keep])
@@ -422,12 +447,9 @@ def level_profiled(res: Residuals) -> Residuals:
     from dataclasses import replace
 
     mean, var = res.level_maps()
-    out = replace(res, model_adu=(res.model_adu + mean).astype(np.float32),
-                  var_adu2=np.maximum(res.var_adu2 + var, 0.25 * res.var_adu2).astype(np.float32), _flat={})
-    for k, v in res.__dict__.items():  # extra model pieces (photo_field_adu ...)
-        if k not in out.__dict__:
-            out.__dict__[k] = v
-    return out
+    return replace(res, model_adu=(res.model_adu + mean).astype(np.float32),
+                   var_adu2=np.maximum(res.var_adu2 + var, 0.25 * res.var_adu2).astype(np.float32), _flat={},
+                   background_adu=None if res.background_adu is None else res.background_adu + mean)
 
 
 @dataclass
@@ -611,7 +633,8 @@ def with_shot_noise(res: Residuals, fit: Fit) -> Fit:
     rr, v = res.project(r - delta), 1.0 / res.levels()["w"]
     dv = np.maximum(delta * res.poisson_adu, -0.9 * v)
     corr = float(np.sum(np.log1p(dv / v) + rr * rr * (1.0 / (v + dv) - 1.0 / v)))
-    extra = (np.asarray(fit.delta_adu, np.float32) * np.float32(res.poisson_adu)).astype(np.float32)
+    extra = np.maximum(np.asarray(fit.delta_adu, np.float32) * np.float32(res.poisson_adu),
+                       np.float32(-0.9) * res.var_adu2).astype(np.float32)  # less light: less noise, never < 0
     return replace(fit, delta_m2lnl=fit.delta_m2lnl + corr, extra_var_adu2=extra)
 
 

@@ -61,7 +61,7 @@ def _blooming_variants(res):
     ``photo_field_adu``) spilled along the columns, minus the clipped charge the model has. Variants over
     the spill threshold and the upward share; the fitted amplitude (1 for charge conservation) absorbs a
     drain that removes part of the excess."""
-    photo = res.__dict__.get("photo_field_adu")
+    photo = res.photo_field_adu
     if photo is None:
         return
     g = np.float32(res.gain)

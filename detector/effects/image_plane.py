@@ -190,7 +190,7 @@ class TransformSignature(Signature):
         ctx = search_sample(res)
         sidx, sr, sw = ctx["idx"], ctx["r"], ctx["w"]
         # transform the photo-signal before the full-well clip, then clip as the chain does
-        photo = np.asarray(res.__dict__.get("photo_field_adu", res.photo_adu), np.float64)
+        photo = np.asarray(res.photo_field, np.float64)
         cap = res.sensor.full_well_e * res.pixel_sum / res.gain
         clipped = np.minimum(photo, cap)
         theta = self.start(res)
@@ -231,14 +231,14 @@ class TransformSignature(Signature):
 
 def _derivatives(res) -> dict:
     """First and second derivatives of the model's photo-signal image [ADU / output px^n], cached."""
-    cached = res.__dict__.get("_image_plane_derivatives")
+    cached = res._flat.get("image_plane_derivatives")
     if cached is None:
         p = res.photo_adu.astype(np.float64)
         gy, gx = np.gradient(p)
         gyy, gyx = np.gradient(gy)
         gxy, gxx = np.gradient(gx)
         cached = {"x": gx, "y": gy, "xx": gxx, "yy": gyy, "xy": 0.5 * (gxy + gyx)}
-        res.__dict__["_image_plane_derivatives"] = cached
+        res._flat["image_plane_derivatives"] = cached
     return cached
 
 
@@ -246,10 +246,10 @@ def _has_structure(res) -> bool:
     """Image-plane effects need sources: a flat screen or a dark (even a vignetted one: its gradients are far
     wider than any blur or shift) has nothing to move or blur. Sources are what a 7 x 7 box average does
     not keep (a high-pass) well above the noise."""
-    p = res.photo_adu
+    p = np.asarray(res.photo_field, np.float32)  # before the response (a CFA)
     if not p.size:
         return False
-    hp = p - ndimage.uniform_filter(p.astype(np.float32), 7, mode="nearest")
+    hp = p - ndimage.uniform_filter(p, 7, mode="nearest")
     return float(np.ptp(hp)) > 10 * float(np.sqrt(np.median(res.var_adu2)))
 
 
@@ -342,6 +342,8 @@ def _elongation_params(th, res):
     if w[1] <= 0 or w[0] >= 0 or -w[0] < ELONGATION_MIN_NEGATIVE * max(w[1], -w[0]) or max(w[1], -w[0]) >= 100:
         return None  # a pure blur (or a pure narrowing: a PSF too wide everywhere) is not an elongation
     b2 = res.sensor.binning ** 2
+    if np.max(np.abs(th)) * b2 > 25:  # ElongationParams' bounds [sensor px^2]
+        return None
     return {"dcxx_px2": round(float(th[0]) * b2, 5), "dcyy_px2": round(float(th[1]) * b2, 5),
             "dcxy_px2": round(float(th[2]) * b2, 5)}
 
@@ -383,7 +385,7 @@ def _drift_params(th, res):
     if dx < 0 or (dx == 0 and dy < 0):  # d and -d make the same trail
         dx, dy = -dx, -dy
     length = float(np.hypot(dx, dy))
-    if not DRIFT_MIN_LENGTH <= length <= 200:
+    if not DRIFT_MIN_LENGTH <= length <= 200 or max(abs(dx), abs(dy)) * b > 1000:  # DriftParams' bounds
         return None
     return {"dx_px": round(dx * b, 4), "dy_px": round(dy * b, 4)}
 

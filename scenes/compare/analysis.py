@@ -89,7 +89,7 @@ def profiles(res: Residuals) -> dict:
     out = {}
     r = np.where(res.fit, res.data_adu - res.model_adu, 0.0)
     v = np.where(res.fit, res.var_adu2, 0.0)
-    row_cov = float(res.__dict__.get("row_var_adu2", 0.0))
+    row_cov = float(res.row_var_adu2)
     for axis, name in ((1, "row"), (0, "column")):
         n = res.fit.sum(axis=axis)
         mean = r.sum(axis=axis) / np.maximum(n, 1)
@@ -200,8 +200,8 @@ def background_adu(res: Residuals) -> np.ndarray:
     """The model's mean frame without its sources [ADU]: sky (or flat screen) and straylight through the chain,
     dark signal and bias (``background_adu`` that :func:`scenes.compare.model.residuals` attaches). Without
     it, bias and dark plus the uniform part of the photo-signal (:meth:`Residuals.level_templates`)."""
-    bg = res.__dict__.get("background_adu")
-    return res.model_adu - res.photo_adu + res.level_templates()[1] if bg is None else bg
+    bg = res.background_adu
+    return res.model_adu - res.photo_adu + res.background_photo_adu if bg is None else bg
 
 
 def star_photometry(res: Residuals, truth: np.ndarray | None, radius_px: float = 4.0, max_stars: int = 2000) -> dict:

@@ -111,9 +111,9 @@ def apply_candidate(scene, cand: dict, path: str | Path, measured: str | Path | 
     (:meth:`detector.diagnosis.Residuals.levels`: light, sky background, bias offset, dark level). The new
     scene therefore carries the levels that go with the effect: with ``measured`` given, the levels that
     frame measures are refitted with the new effect in the model (weighted least squares,
-    :func:`refit_levels`) and written to the scene keys that hold them (``[sky] flat_e_per_s``, ``[sky] background_mag_arcsec2``,
-    ``[detector] bias_adu``, ``[detector] dark_current_e_per_s``); each change is noted in the file's
-    header comment. A multiplicative effect such as vignetting would otherwise lower the whole model."""
+    :func:`refit_levels`) and written to the scene keys that hold them (``[sky] flat_e_per_s``,
+    ``[sky] background_mag_arcsec2``, ``[detector] bias_adu``); each change is noted in the file's header
+    comment. A multiplicative effect such as vignetting would otherwise lower the whole model."""
     import tomli_w
 
     data = scene.model_dump(mode="json", exclude_none=True, exclude_unset=True)
@@ -163,7 +163,10 @@ def refit_levels(path: Path, data: dict, measured) -> dict[str, float]:
         else:
             return {}
     else:
-        wanted = [2, 3] if float(np.sum(res.dark_e)) > 0 else [2]
+        # a dark or bias frame: the bias offset. A uniform dark level is the same in one dark frame (it is
+        # kept as the bias, as Residuals.levels does), and the dark template holds glow, DSNU and bias
+        # structure too: scaling the dark current by its fit would be wrong
+        wanted = [2]
     temps = res.level_templates()
     x = np.stack([_at(temps[i], res.data_adu.shape, idx) for i in wanted])
     xw = x * w
@@ -190,15 +193,20 @@ def carry_levels(data: dict, levels: dict[str, float], scene) -> tuple[dict, lis
         sky["background_mag_arcsec2"] = round(float(mag) - 2.5 * float(np.log10(1 + c)), 5)
         notes.append(f"the sky level refitted: x {1 + c:.5f} ({mag:.4g} -> {sky['background_mag_arcsec2']:.5g} "
                      "mag/arcsec^2)")
-    c = levels.get("offset_adu", 0.0)
+    c = levels.get("offset_adu", 0.0) / bias_per_output_adu(sensor)
     if abs(c) > LEVEL_OFFSET_TOL_ADU:
         det["bias_adu"] = round(max(float(sensor.bias_adu) + c, 0.0), 3)
         notes.append(f"the bias level refitted: {sensor.bias_adu:.4g} -> {det['bias_adu']:.6g} ADU")
-    c = levels.get("dark_scale", 0.0)
-    if abs(c) > LEVEL_SCALE_TOL and 1 + c > 0:
-        det["dark_current_e_per_s"] = round(float(sensor.dark_current_e_per_s) * (1 + c), 6)
-        notes.append(f"the dark level refitted: dark_current_e_per_s x {1 + c:.5f}")
     return data, notes
+
+
+def bias_per_output_adu(sensor) -> float:
+    """Output ADU per ADU of ``bias_adu``: a CMOS sums (or averages) ``b^2`` digitised reads, each with the
+    bias; a CCD reads a binned pixel once (and an average divides that by ``b^2``)."""
+    b2 = sensor.binning ** 2
+    if sensor.binning_mode == "sum":
+        return float(b2) if sensor.kind != "ccd" else 1.0
+    return 1.0 if sensor.kind != "ccd" else 1.0 / b2
 
 
 # --- the ledger of rounds ------------------------------------------------------------------------------------

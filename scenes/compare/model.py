@@ -204,9 +204,7 @@ def residuals(data: np.ndarray, model: ModelFrame) -> Residuals:
     # not a defect: keep those pixels in the pixel-by-pixel comparison
     statistical &= ~source_peaks(model)
     ys, xs = model.pixel_centres()
-    res = Residuals(data, model.mean_adu, model.var_adu2, usable & ~statistical, model.photo_adu, model.dark_e,
-                    ys, xs, s, model.setup.exptime_s, spikes, model.spikes or SpikeStats(0, 0, 0, 0, 0))
-    for extra in ("photo_field_adu", "background_adu", "row_var_adu2"):  # model pieces beyond Residuals' fields
-        if getattr(model, extra) is not None:
-            res.__dict__[extra] = getattr(model, extra)
-    return res
+    return Residuals(data, model.mean_adu, model.var_adu2, usable & ~statistical, model.photo_adu, model.dark_e,
+                     ys, xs, s, model.setup.exptime_s, spikes, model.spikes or SpikeStats(0, 0, 0, 0, 0),
+                     photo_field_adu=model.photo_field_adu, background_adu=model.background_adu,
+                     row_var_adu2=model.row_var_adu2)

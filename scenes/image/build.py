@@ -52,6 +52,9 @@ STEP_PX = 0.25  # largest motion between two samples of a path [pixels]
 STAR_STEP_SIGMA = 0.5  # trailed stars: sample spacing up to this many PSF core rms (see trail_step_px)
 SEGMENT_STAMPS = 2.0  # motion per trail segment, in stamp widths (2w + 1)
 MAX_TRAIL_SAMPLES = 10_000_000  # trailed-star samples per frame (memory: ~100 bytes each while building)
+#: time samples a light curve may ask for per object (a 1 ms glint in 100 s would ask for 2e5: each sample
+#: still carries the exact mean of the curve over its slice, so fewer samples keep the flux, not the shape)
+MAX_CURVE_SAMPLES = 100_000
 WAVELENGTH_STEP_NM = 5.0
 
 
@@ -315,7 +318,7 @@ def _objects(scene: Scene, fr: _Frame, base_dir: Path | None, observer) -> tuple
 
         t_start, t_stop = _near_interval(derot, fr, w)
         curve = light_curve_from_table(table.get("light_curve"), f"objects[{i}].light_curve", file=file)
-        n_min = 8 if curve is None else max(8, math.ceil((t_stop - t_start) / curve.max_step_s()))
+        n_min = 8 if curve is None else min(MAX_CURVE_SAMPLES, max(8, math.ceil((t_stop - t_start) / curve.max_step_s())))
         # sample at <= STEP_PX of motion, refined until the largest step obeys it
         tc = np.linspace(t_start, t_stop, 257)
         xc, yc = xy(tc)

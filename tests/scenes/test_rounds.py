@@ -5,6 +5,8 @@ calibrated (bias 0) data and rows it cannot weigh."""
 
 import json
 import math
+import tempfile
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -108,3 +110,54 @@ def test_hot_pixels_on_bias_subtracted_data_use_a_nominal_doubling_level():
     (eff,) = build_effects({"hot_pixels": {"count": 200000, "scale_s": 600.0, "doubling_level_adu": 500.0}}, sensor)
     assert np.all(eff.rate > 0)
     np.testing.assert_allclose(eff.rate, hot_rate_e_per_s(eff.t2, 500.0, sensor.gain_e_per_adu), rtol=1e-6)
+
+
+def _residuals(data, model, var, photo, sensor):
+    from detector.diagnosis import Residuals, SpikeStats
+
+    h, w = data.shape
+    return Residuals(data.astype(np.float32), model.astype(np.float32), var.astype(np.float32),
+                     np.ones((h, w), bool), photo.astype(np.float32), np.zeros((h, w), np.float32),
+                     np.arange(h, dtype=float), np.arange(w, dtype=float), sensor, 10.0,
+                     SpikeStats(0, 0, 0, 0, 0), SpikeStats(0, 0, 0, 0, 0))
+
+
+def test_the_shot_noise_of_added_light_tells_a_sky_plane_from_a_bias_plane():
+    """The same mean plane d as light (variance v + d/g) or as bias (variance v): with_shot_noise's change of
+    -2 ln L is about -n <(dv/v)^2> / 2 on the first and +n <(dv/v)^2> / 2 on the second (second order of
+    the Gaussian likelihood in dv/v; the first order cancels in expectation)."""
+    from detector.diagnosis import with_shot_noise
+    from detector.sensor import make_sensor
+
+    sensor = make_sensor("ml11002", {"width": 400, "height": 300, "gain_e_per_adu": 1.0, "read_noise_e": 5.0})
+    rng = np.random.default_rng(7)
+    h, w = 300, 400
+    photo = np.full((h, w), 400.0)
+    v = photo / 1.0 + 25.0 + 1 / 12
+    plane = np.broadcast_to(np.linspace(-150, 150, w)[None, :], (h, w))
+    dv = plane * 1.0
+    expect = 0.5 * h * w * float(np.mean((dv / v) ** 2))
+    for extra_var, sign in ((dv, -1), (0.0, +1)):  # light (its own shot noise) or bias (none)
+        data = 1000 + photo + plane + rng.normal(0, 1, (h, w)) * np.sqrt(v + extra_var)
+        res = _residuals(data, 1000 + photo, v, photo, sensor)
+        fit = Fit("sky_gradient", {}, 0.0, 2, h * w, "", delta_adu=plane.astype(np.float32))
+        corr = with_shot_noise(res, fit).delta_m2lnl
+        # the sampling spread of the correction: sum of (dv/v) (z^2 - 1) terms, sd ~ sqrt(2 sum (dv/v)^2)
+        assert corr == pytest.approx(sign * expect, abs=5 * math.sqrt(4 * expect)), (sign, corr, expect)
+
+
+def test_a_bias_offset_fitted_on_a_binned_cmos_dark_is_carried_per_read():
+    """A CMOS sums b^2 digitised reads: 8 ADU more in a 2x2-binned output is 2 ADU more bias per read (the
+    chain's own dark frames with the two bias levels differ by 8 ADU)."""
+    from detector import Detector
+    from scenes.compare.diagnose import bias_per_output_adu, carry_levels
+
+    scene = load_scene_from({"detector": {"preset": "imx411", "width": 64, "height": 64, "binning": 2},
+                             "exposure": {"time_s": 1.0, "frame": "dark"}}, Path(tempfile.mkdtemp()) / "d.toml")
+    sensor = scene.sensor()
+    data, notes = carry_levels(scene.model_dump(mode="json", exclude_unset=True), {"offset_adu": 8.0}, scene)
+    assert data["detector"]["bias_adu"] == pytest.approx(sensor.bias_adu + 2.0) and notes
+    shifted = sensor.model_copy(update={"bias_adu": sensor.bias_adu + 2.0})
+    m0 = Detector(sensor).moments(0.0, 1.0)[0].mean()
+    m1 = Detector(shifted).moments(0.0, 1.0)[0].mean()
+    assert m1 - m0 == pytest.approx(8.0, abs=0.01) == 2.0 * bias_per_output_adu(sensor)
