@@ -47,11 +47,37 @@ class Candidate:
                 "seconds": self.seconds}
 
 
-def overfit(fit: Fit, chi2_per_dof: float) -> str:
-    """Why a candidate that only adds variance is not the missing effect ("" when it may be)."""
-    if fit.delta_adu is None and fit.extra_var_adu2 is not None and chi2_per_dof < OVERFIT_CHI2_PER_DOF:
+#: a noise-only candidate may claim at most this many times the variance the data show beyond the model's
+#: (robustly, from the median squared residual) and never less than this fraction of the model's variance
+NOISE_EXCESS_FACTOR, NOISE_FLOOR_FRACTION = 3.0, 0.05
+
+
+def robust_excess_var(res: Residuals) -> tuple[float, float]:
+    """(the data's variance beyond the model's, the model's) [ADU^2], medians over the fitted pixels with
+    the levels refitted: ``median(r^2) / 0.4549 - median(v)`` (0.4549 = median of chi2 with 1 dof), which
+    sources the model misplaces (a few per cent of the pixels) cannot inflate, unlike a mean."""
+    if "robust_excess" not in res._flat:
+        _, r, w = res.flat_profiled()
+        v = float(np.median(1.0 / w)) if w.size else 0.0
+        res._flat["robust_excess"] = (float(np.median(r * r)) / 0.4549 - v if r.size else 0.0, v)
+    return res._flat["robust_excess"]
+
+
+def overfit(fit: Fit, chi2_per_dof: float, res: Residuals | None = None) -> str:
+    """Why a candidate that only adds variance is not the missing effect ("" when it may be): it brings
+    chi2/dof far below 1, or it claims far more variance than the bulk of the pixels shows (a structured
+    residual, e.g. misplaced stars, taken for noise)."""
+    if fit.delta_adu is not None or fit.extra_var_adu2 is None:
+        return ""
+    if chi2_per_dof < OVERFIT_CHI2_PER_DOF:
         return (f"adds so much noise that chi2/dof falls to {chi2_per_dof:.3g} (< {OVERFIT_CHI2_PER_DOF}): it "
                 "absorbs a structured residual, it does not explain it")
+    if res is not None:
+        excess, v = robust_excess_var(res)
+        claimed = float(np.median(np.asarray(fit.extra_var_adu2, np.float64)))
+        if claimed > NOISE_EXCESS_FACTOR * max(excess, NOISE_FLOOR_FRACTION * v):
+            return (f"claims {claimed:.3g} ADU^2 of noise where the bulk of the pixels shows {max(excess, 0):.3g} "
+                    f"beyond the model's {v:.3g}: a structured residual taken for noise")
     return ""
 
 
@@ -90,7 +116,7 @@ def candidates(res: Residuals, present: set[str], progress=None) -> tuple[list[C
         if fit is None or not np.isfinite(fit.delta_m2lnl):
             continue
         chi2 = chi2_after(res, fit)
-        out.append(Candidate(fit, chi2, seconds, overfit(fit, chi2)))
+        out.append(Candidate(fit, chi2, seconds, overfit(fit, chi2, res)))
     out.sort(key=lambda c: (bool(c.rejected), c.fit.delta_bic))
     return out, problems
 

@@ -161,3 +161,27 @@ def test_a_bias_offset_fitted_on_a_binned_cmos_dark_is_carried_per_read():
     m0 = Detector(sensor).moments(0.0, 1.0)[0].mean()
     m1 = Detector(shifted).moments(0.0, 1.0)[0].mean()
     assert m1 - m0 == pytest.approx(8.0, abs=0.01) == 2.0 * bias_per_output_adu(sensor)
+
+
+def test_noise_claimed_beyond_what_the_bulk_of_the_pixels_shows_is_rejected():
+    """Noise the data have (white, 0.5 v extra) may be claimed; the same amount claimed where the pixels'
+    scatter is the model's and only 3 % of them are off (misplaced stars) is a structured residual. The
+    data's excess is measured robustly: median(r^2) / 0.4549 - v (0.4549: median of chi2 with 1 dof)."""
+    from detector.sensor import make_sensor
+
+    sensor = make_sensor("ml11002", {"width": 300, "height": 200})
+    rng = np.random.default_rng(11)
+    h, w, v = 200, 300, 100.0
+    photo = np.full((h, w), 500.0)
+    noisy = 1000 + photo + rng.normal(0, np.sqrt(1.5 * v), (h, w))
+    structured = 1000 + photo + rng.normal(0, np.sqrt(v), (h, w))
+    off = rng.random((h, w)) < 0.03  # misplaced stars: as much light too much as too little (dipoles)
+    structured[off] += 400.0 * rng.choice([-1.0, 1.0], int(off.sum()))
+    claim = Fit("reset_noise", {}, -1e4, 1, h * w, "", extra_var_adu2=0.5 * v)
+    res_noisy = _residuals(noisy, 1000 + photo, np.full((h, w), v), photo, sensor)
+    res_struct = _residuals(structured, 1000 + photo, np.full((h, w), v), photo, sensor)
+    from scenes.compare.diagnose import robust_excess_var
+
+    assert robust_excess_var(res_noisy)[0] == pytest.approx(0.5 * v, rel=0.1)
+    assert not overfit(claim, 1.0, res_noisy)
+    assert "structured residual" in overfit(claim, 1.0, res_struct)
