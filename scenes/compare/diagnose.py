@@ -160,8 +160,9 @@ LEVEL_SCALE_TOL, LEVEL_OFFSET_TOL_ADU = 1e-4, 0.01
 def refit_levels(path: Path, data: dict, measured) -> dict[str, float]:
     """The global levels the scene ``data`` (written to ``path``) needs to match ``measured``.
 
-    A level is refitted from the frame that measures it: the light level (flat screen) or the sky level
-    from a light frame, the bias offset and the dark level from a dark or bias frame (a light frame cannot
+    A level is refitted from the frame that measures it, on the pixels where the model's sources add less
+    than one sigma to its background (misplaced or mis-sized stars would pull a sky level): the light level
+    (flat screen) or the sky level from a light frame, the bias offset and the dark level from a dark or bias frame (a light frame cannot
     separate a bias offset from its light: on a vignetted flat screen the least squares trade hundreds of
     ADU of bias against a per cent of light). Weighted least squares of the residual on those templates,
     degenerate ones dropped in :attr:`Residuals.LEVELS` order. Returns ``{level name: coefficient}``
@@ -179,6 +180,10 @@ def refit_levels(path: Path, data: dict, measured) -> dict[str, float]:
     d, _ = read_measurement(measured, model)
     res = residuals(d, model)
     idx, r, w = res.flat()
+    if res.background_adu is not None:  # the levels from the background's pixels: a misfit star is not sky
+        sources = (res.model_adu - res.background_adu).ravel()[idx] * np.sqrt(w)
+        keep = sources < 1.0
+        idx, r, w = idx[keep], r[keep], w[keep]
     if not idx.size:
         return {}
     if sc.exposure.frame == "light":
