@@ -328,7 +328,10 @@ def sequence_overrides(scene: Scene, dt_s: float) -> dict[str, Any]:
         out["pointing.ra_deg"] = float(ra)
     objects, moved = [], False
     for table in scene.objects:
-        table = dict(table)
+        # an object may leave the field during a sequence: those frames are rendered without it (the base
+        # scene, step 0, still refuses an object that never enters)
+        table = {**table, "outside": table.get("outside", "skip")}
+        moved = True
         if "ra_deg" in table and (table.get("rate_ra_deg_s") or table.get("rate_dec_deg_s")):
             ra, dec, rra, rdec = _advance(table["ra_deg"], table["dec_deg"], table.get("rate_ra_deg_s", 0.0),
                                           table.get("rate_dec_deg_s", 0.0), dt_s)

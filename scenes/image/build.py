@@ -282,6 +282,7 @@ def _photons_efficiency(fr: _Frame) -> float:
 def _objects(scene: Scene, fr: _Frame, base_dir: Path | None, observer) -> tuple[Trails, list]:
     from ..objects import (
         Track,
+        in_field,
         light_curve_from_table,
         object_from_table,
         object_track,
@@ -309,8 +310,10 @@ def _objects(scene: Scene, fr: _Frame, base_dir: Path | None, observer) -> tuple
         length_px = float(np.sum(angle_between_deg(u0[:-1], u0[1:]))) * 3600.0 / fr.scale_arcsec * (
             fr.exptime_s / fr.t_end_s)
         w = int(np.max(trail_radius(fr.psf, np.array([max(mean_total, 1e-30)]), length_px)))
-        require_in_field(derot, fr.linear_wcs or fr.wcs, i, shape=(h, wd), margin_px=float(w) + fr.max_shift_px,
-                         file=file)
+        field, margin = fr.linear_wcs or fr.wcs, float(w) + fr.max_shift_px
+        if table.get("outside") == "skip" and not in_field(derot, field, shape=(h, wd), margin_px=margin):
+            continue  # a sequence frame after the object left the field: rendered without it
+        require_in_field(derot, field, i, shape=(h, wd), margin_px=margin, file=file)
 
         def xy(t, track=track):
             t = np.atleast_1d(np.asarray(t, dtype=float))

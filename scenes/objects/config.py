@@ -28,6 +28,8 @@
     # optional brightness modulation in time, mean 1 over a period (scenes.objects.lightcurve)
     light_curve = { kind = "sinusoid", amplitude = 0.62, period_s = 3.68, phase = 0.0 }
     # or { kind = "glint", amplitude = 20.0, period_s = 3.68, width_s = 0.05, phase = 0.0 }
+    outside = "error"               # an object that never enters the field: "error" (a typo in its rates?)
+                                    # or "skip" (render the frame without it; batch sequences set it)
 
 ``[observer]`` table (absent: the geocentre)::
 
@@ -55,7 +57,9 @@ RATE_KEYS = ("ra_deg", "dec_deg", "rate_ra_deg_s", "rate_dec_deg_s")
 TLE_KEYS = ("tle", "tle_file", "satellite")
 BRIGHTNESS_KEYS = ("photons", "mag", "mag_system", "diameter_m", "area_m2", "albedo", "phase_function",
                    "specular_fraction", "plate_normal", "range_km", "phase_angle_deg", "sun_distance_au")
-OBJECT_KEYS = RATE_KEYS + TLE_KEYS + BRIGHTNESS_KEYS + ("name", "light_curve")
+OBJECT_KEYS = RATE_KEYS + TLE_KEYS + BRIGHTNESS_KEYS + ("name", "light_curve", "outside")
+#: what an object that stays outside the field for the whole exposure does
+OUTSIDE_CHOICES = ("error", "skip")
 OBSERVER_KEYS = ("name", "lat_deg", "lon_deg", "alt_m", "tle", "tle_file", "satellite")
 MAG_SYSTEMS = ("ab", "solar_v")
 
@@ -193,6 +197,9 @@ def object_from_table(table: dict, index: int, *, file: str | None = None, base_
                           expected="ra_deg and dec_deg (+ rate_ra_deg_s, rate_dec_deg_s), or tle, or tle_file")
     brightness = brightness_from_table(table, prefix, file=file, has_orbit=has_tle)
     light_curve_from_table(table.get("light_curve"), f"{prefix}.light_curve", file=file)
+    if table.get("outside", "error") not in OUTSIDE_CHOICES:
+        raise ObjectError(f"{table['outside']!r}", key=f"{prefix}.outside", file=file,
+                          expected=" or ".join(repr(c) for c in OUTSIDE_CHOICES))
     if has_tle:
         return TleObject(_tle_from(table, prefix, file, base_dir), brightness, prefix, name)
     ra = _num(table, "ra_deg", prefix, file, 0.0, 360.0, required=True)

@@ -296,3 +296,28 @@ def test_scheduler_file_is_accepted(tmp_path, client):
     s = json.loads(js.read_text())
     assert s["scheduler"] == client.scheduler.address and (s["frames"], s["rendered"]) == (1, 1)
     assert fits.getheader(tmp_path / "out" / "frame_0000.fits")["SEED"] == frame_seed(11, 0)
+
+
+def test_sequence_frames_after_an_object_left_the_field_render_without_it(tmp_path):
+    """A sequence step's objects carry outside = "skip": the object crosses the 64-px window in step 0 and
+    is 0.5 deg away 10 s later; that frame renders without it (no TRUTH row), while the base scene with the
+    object placed there still refuses it (a typo in the rates is a user error)."""
+    from scenes.render import prepare
+    from scenes.scene import SceneError
+
+    p = tmp_path / "s.toml"
+    p.write_text('[detector]\npreset = "ml11002"\nwidth = 64\nheight = 64\n'
+                 '[pointing]\nra_deg = 120.0\ndec_deg = -29.0\nepoch = "2023-02-01T22:00:00"\n'
+                 '[exposure]\ntime_s = 0.1\n'
+                 '[[objects]]\nra_deg = 120.0\ndec_deg = -29.0\nrate_ra_deg_s = 0.0\nrate_dec_deg_s = 0.05\n'
+                 'photons = 1e5\n')
+    sc = load_scene(str(p))
+    assert int(np.sum(prepare(sc).truth["kind"] == b"object")) == 1
+    o = sequence_overrides(sc, 10.0)
+    assert o["objects"][0]["outside"] == "skip"
+    later = load_scene(str(p), [f"{k}={toml_inline(v)}" for k, v in o.items()])
+    assert int(np.sum(prepare(later).truth["kind"] == b"object")) == 0
+    moved = {k: v for k, v in o["objects"][0].items() if k != "outside"}
+    base = load_scene(str(p), [f"objects={toml_inline([moved])}", f"pointing.epoch={toml_inline(o['pointing.epoch'])}"])
+    with pytest.raises(SceneError, match="stays outside the field"):
+        prepare(base)
