@@ -97,6 +97,10 @@ GROW_PIXELS = 3
 #: a column in which more than this fraction of the pixels are spikes is a candidate defective column: its
 #: spikes count towards its mean, not towards the spike statistics
 DENSE_COLUMN_FRACTION = 0.05
+#: when more than this fraction of the columns are outliers they are a pattern of the whole frame (a Bayer
+#: mosaic: every other column), not defective columns: counted, but kept in the pixel-by-pixel comparison
+#: (PANOPTES's raw frame flagged 520 of 700 columns and left a quarter of its pixels to compare)
+MAX_LINE_FRACTION = 0.1
 
 
 def spike_stats(data: np.ndarray, model: np.ndarray, var: np.ndarray, usable: np.ndarray, gain: float
@@ -154,7 +158,8 @@ def spike_stats(data: np.ndarray, model: np.ndarray, var: np.ndarray, usable: np
     statistical = ndimage.binary_dilation(pos_all, box, iterations=GROW_PIXELS, mask=usable & (z > GROW_SIGMA))
     statistical |= ndimage.binary_dilation(neg_all, box, iterations=GROW_PIXELS, mask=usable & (z < -GROW_SIGMA))
     statistical |= pos_all | neg_all
-    statistical[:, lines] = True
+    if lines.mean() <= MAX_LINE_FRACTION:
+        statistical[:, lines] = True
     return stats, statistical
 
 

@@ -185,3 +185,24 @@ def test_noise_claimed_beyond_what_the_bulk_of_the_pixels_shows_is_rejected():
     assert robust_excess_var(res_noisy)[0] == pytest.approx(0.5 * v, rel=0.1)
     assert not overfit(claim, 1.0, res_noisy)
     assert "structured residual" in overfit(claim, 1.0, res_struct)
+
+
+def test_a_column_pattern_of_the_whole_frame_stays_in_the_pixel_comparison():
+    """A few outlier columns are defects (compared by their counts, masked from the pixel fit); most of the
+    columns off (column fixed-pattern noise, a mosaic the model lacks) is a pattern the pixel comparison
+    must keep: masking it would leave a fraction of the frame to compare, and its candidates to the rest."""
+    from detector.diagnosis import MAX_LINE_FRACTION, spike_stats
+
+    rng = np.random.default_rng(5)
+    h, w, v = 200, 300, 100.0
+    model = np.full((h, w), 1500.0)
+    var = np.full((h, w), v)
+    usable = np.ones((h, w), bool)
+    defects = model + rng.normal(0, 10.0, (h, w))
+    defects[:, [40, 170]] += 30.0  # two hot columns (30 ADU = 3 sigma per pixel, 42 sigma per column mean)
+    stats, stat = spike_stats(defects, model, var, usable, 1.0)
+    assert stats.hot_cols == 2 and stat[:, 40].all() and stat[:, 170].all() and not stat[:, 100].any()
+    pattern = model + rng.normal(0, 10.0, (h, w)) + rng.normal(0, 20.0, w)[None, :]  # 28 sigma per column mean
+    stats, stat = spike_stats(pattern, model, var, usable, 1.0)
+    assert (stats.hot_cols + stats.cold_cols) / w > MAX_LINE_FRACTION  # counted as outlier columns ...
+    assert stat.mean() < 0.05  # ... but kept in the pixel comparison (only their pixel spikes are not)
