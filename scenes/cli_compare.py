@@ -50,9 +50,11 @@ def compare(scene, measured, json_out, report, sets, workers):
 @click.option("--apply", "apply_to", default=None, type=click.Path(dir_okay=False),
               help="write the scene with the best significant candidate added here")
 @click.option("--report", "report", default=None, type=click.Path(dir_okay=False), help="write an HTML report")
+@click.option("--prefer", "prefer", multiple=True, metavar="EFFECT",
+              help="with --apply: add this effect instead of the best one when it is significant (repeatable)")
 @click.option("--set", "sets", multiple=True, metavar="KEY=VALUE", help="override a scene key")
 @click.option("--workers", type=int, default=None, help="threads (default: CPUs, at most 4)")
-def diagnose(scene, measured, json_out, apply_to, report, sets, workers):
+def diagnose(scene, measured, json_out, apply_to, report, prefer, sets, workers):
     """Rank the effects SCENE lacks by how much of the MEASURED frame they explain (delta BIC)."""
     from rich.progress import Progress
 
@@ -63,7 +65,7 @@ def diagnose(scene, measured, json_out, apply_to, report, sets, workers):
     with Progress(transient=True) as bar:
         task = bar.add_task("fitting candidate effects", total=None)
         out = diagnose_round(sc, scene, measured, apply_to=apply_to, workers=workers,
-                             progress=lambda name: bar.update(task, description=name))
+                             progress=lambda name: bar.update(task, description=name), prefer=tuple(prefer))
     cmp = out.pop("_compare")
     if apply_to and out["applied"] is None:
         click.echo("newtsim: nothing applied: no significant candidate", err=True)

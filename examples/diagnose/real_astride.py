@@ -800,12 +800,13 @@ def streak_model_profile(cmp: dict, meas_streak: dict, bin_px: int = 4) -> dict:
 
 
 # ============================================================================ rounds
-def rounds(scene: dict, measured: str, out: Path, name: str, n_rounds: int, extra=None) -> list[dict]:
+def rounds(scene: dict, measured: str, out: Path, name: str, n_rounds: int, extra=None, prefer=()) -> list[dict]:
     """compare/diagnose/apply until no candidate is significant (at most ``n_rounds``), with this script's
-    own checks (``extra``) in every round's JSON and table row."""
+    own checks (``extra``) in every round's JSON and table row; ``prefer``: effects applied before the
+    ranking's best when significant (``newtsim diagnose --prefer``)."""
     from scenes.compare.rounds import run_rounds
 
-    return run_rounds(scene, measured, out, name, n_rounds, workers=2, extra=extra,
+    return run_rounds(scene, measured, out, name, n_rounds, workers=2, extra=extra, prefer=tuple(prefer),
                       log=lambda line: print(line, flush=True))
 
 

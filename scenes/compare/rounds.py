@@ -18,22 +18,30 @@ from detector.jsonable import jsonable
 from . import diagnose as dg
 
 
-def best_candidate(diagnosis: dict) -> dict | None:
-    """The first significant (and not rejected) candidate of a diagnosis, or None."""
-    return next((c for c in diagnosis["candidates"] if c["significant"]), None)
+def best_candidate(diagnosis: dict, prefer: tuple[str, ...] = ()) -> dict | None:
+    """The first significant (and not rejected) candidate of a diagnosis, or None; with ``prefer``, the
+    first significant candidate named there (in that order) comes first: the user's physical judgement
+    over the ranking (a raw DSLR frame: ``cfa`` before a blur that only hides the mosaic)."""
+    sig = [c for c in diagnosis["candidates"] if c["significant"]]
+    for name in prefer:
+        chosen = next((c for c in sig if c["effect"] == name), None)
+        if chosen is not None:
+            return chosen
+    return sig[0] if sig else None
 
 
 def diagnose_round(scene, scene_path: str | Path, measured: str | Path, apply_to: str | Path | None = None,
-                   workers: int | None = None, progress=None) -> dict:
+                   workers: int | None = None, progress=None, prefer: tuple[str, ...] = ()) -> dict:
     """One round: the diagnosis of ``scene`` (loaded from ``scene_path``) against ``measured``; with
-    ``apply_to``, the best significant candidate added there. The ledger continues the scene's own.
+    ``apply_to``, the best significant candidate (or the first of ``prefer`` that is significant) added
+    there. The ledger continues the scene's own.
 
     Returns the diagnosis (``run_diagnose``) with ``applied`` (or None), ``ledger`` and the comparison under
     ``_compare``."""
     from . import run_diagnose
 
     out = run_diagnose(scene, measured, workers=workers, progress=progress)
-    best = best_candidate(out)
+    best = best_candidate(out, prefer)
     applied = None
     if apply_to is not None and best is not None:
         applied = dg.apply_candidate(scene, best, apply_to, measured)
@@ -48,7 +56,7 @@ def round_row(k: int, diagnosis: dict, extra: dict | None = None, top: int = 6) 
     """The table row of round ``k``: the baseline's errors, the top candidates, what was applied; the
     ``row_*`` keys of ``extra`` (a caller's own checks) are copied."""
     b, applied = diagnosis["baseline"], diagnosis.get("applied")
-    best, stars = best_candidate(diagnosis), b.get("stars") or {}
+    best, stars = best_candidate(diagnosis), b.get("stars") or {}  # the ranking's best, whatever was applied
     return {"round": k, "chi2_per_dof": b["chi2_per_dof"], "chi2_per_dof_levels": b.get("chi2_per_dof_levels"),
             "misfit": b["misfit"], "worst_regions": b.get("worst_regions"), "n_stars": stars.get("n", 0),
             "star_flux_ratio": stars.get("median_flux_ratio"), "star_offset_px": stars.get("median_offset_px"),
@@ -63,14 +71,15 @@ def round_row(k: int, diagnosis: dict, extra: dict | None = None, top: int = 6) 
 
 def run_rounds(scene: dict, measured: str | Path, out: Path, name: str, n_rounds: int = 3, *,
                workers: int | None = None, extra: Callable[[dict], dict] | None = None, report: bool = True,
-               log: Callable[[str], None] | None = print) -> list[dict]:
+               log: Callable[[str], None] | None = print, prefer: tuple[str, ...] = ()) -> list[dict]:
     """compare / diagnose / apply until no candidate is significant (at most ``n_rounds`` diagnoses).
 
     ``scene`` is a scene table (written to ``out/NAME_round1.toml``; relative paths in it are resolved
     against ``out``). Round ``k`` writes ``NAME_round{k}.json`` (baseline, candidates, verdict, problems and
     ``extra(comparison)``), ``NAME_round{k}.html`` (with ``report``) and, when a candidate is applied,
-    ``NAME_round{k+1}.toml``; the ledger (``*.ledger.json`` / ``.png``) follows the last scene. Returns one
-    :func:`round_row` per round."""
+    ``NAME_round{k+1}.toml``; the ledger (``*.ledger.json`` / ``.png``) follows the last scene. ``prefer``:
+    effects applied before the ranking's best whenever they are significant. Returns one :func:`round_row`
+    per round."""
     import tomli_w
 
     from ..scene import load_scene
@@ -84,7 +93,7 @@ def run_rounds(scene: dict, measured: str | Path, out: Path, name: str, n_rounds
     table = []
     for k in range(1, n_rounds + 1):
         nxt = out / f"{name}_round{k + 1}.toml" if k < n_rounds else None
-        res = diagnose_round(load_scene(str(path)), path, measured, apply_to=nxt, workers=workers)
+        res = diagnose_round(load_scene(str(path)), path, measured, apply_to=nxt, workers=workers, prefer=prefer)
         cmp = res.pop("_compare")
         checks = extra(cmp) if extra else {}
         (out / f"{name}_round{k}.json").write_text(json.dumps(jsonable(

@@ -206,3 +206,15 @@ def test_a_column_pattern_of_the_whole_frame_stays_in_the_pixel_comparison():
     stats, stat = spike_stats(pattern, model, var, usable, 1.0)
     assert (stats.hot_cols + stats.cold_cols) / w > MAX_LINE_FRACTION  # counted as outlier columns ...
     assert stat.mean() < 0.05  # ... but kept in the pixel comparison (only their pixel spikes are not)
+
+
+def test_a_preferred_effect_is_applied_before_the_ranking_best_only_when_significant():
+    from scenes.compare.rounds import best_candidate
+
+    diag = {"candidates": [{"effect": "jitter", "significant": True}, {"effect": "cfa", "significant": True},
+                           {"effect": "prnu", "significant": False}]}
+    assert best_candidate(diag)["effect"] == "jitter"
+    assert best_candidate(diag, ("cfa",))["effect"] == "cfa"
+    assert best_candidate(diag, ("prnu", "cfa"))["effect"] == "cfa"  # prnu is not significant
+    assert best_candidate(diag, ("ghost",))["effect"] == "jitter"
+    assert best_candidate({"candidates": []}, ("cfa",)) is None
