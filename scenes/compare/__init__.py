@@ -43,7 +43,8 @@ def run_diagnose(scene, measured: str | Path, workers: int | None = None, progre
     """compare + every absent effect fitted and ranked: ``{"baseline", "candidates", "verdict", ...}``."""
     cmp = run_compare(scene, measured, workers=workers)
     t0 = time.perf_counter()
-    cands, problems = candidates(cmp["_residuals"], set(scene.effects), progress=progress)
+    cands, problems = candidates(cmp["_residuals"], set(scene.effects), progress=progress,
+                                 truth=cmp["_model"].setup.truth)
     out = {"baseline": cmp["summary"], "candidates": [c.to_json() for c in cands], "problems": problems,
            "verdict": verdict(cands), "seconds": time.perf_counter() - t0, "_compare": cmp}
     out["significant"] = [c["effect"] for c in out["candidates"] if c["significant"]]

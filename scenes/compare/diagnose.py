@@ -95,8 +95,45 @@ def chi2_after(res: Residuals, fit: Fit) -> float:
     return float(np.dot(r * r, w) / max(idx.size, 1))
 
 
-def candidates(res: Residuals, present: set[str], progress=None) -> tuple[list[Candidate], list[dict]]:
-    """Fit every absent effect with a signature. Returns (candidates best first, problems)."""
+#: a candidate that moves light around the sources may worsen the bright stars' aperture photometry by at
+#: most this much in median |ln(data / model flux)| (and must leave it below STARS_OK_LN)
+STARS_WORSE_LN, STARS_OK_LN = 0.1, 0.2
+#: bright stars needed for that test
+STARS_MIN = 10
+
+
+def stars_check(res: Residuals, fit: Fit, truth) -> str:
+    """Why a candidate that reshapes sources (an image-plane transform) is not physical ("" when it may be):
+    with it in the model, the catalogue stars the model already measures right (aperture photometry over
+    the model's background, :func:`scenes.compare.analysis.star_photometry`) are measured wrong. A blur that
+    lowers the pixel chi2 of a crowded field by spreading its sources towards what the model lacks (blends,
+    unresolved stars) fails this; a real blur, elongation or shift leaves the stars right or makes them
+    right."""
+    from dataclasses import replace
+
+    from .analysis import star_photometry
+
+    if truth is None or fit.delta_adu is None:
+        return ""
+    before = star_photometry(res, truth, max_stars=300)
+    if before.get("n", 0) < STARS_MIN:
+        return ""
+    moved = replace(res, model_adu=(res.model_adu + fit.delta_adu).astype(np.float32), _flat={})
+    after = star_photometry(moved, truth, max_stars=300)
+    if after.get("n", 0) < STARS_MIN:
+        return ""
+    b = float(np.nanmedian(np.abs(np.log(np.clip(before["flux_ratio"], 1e-6, None)))))
+    a = float(np.nanmedian(np.abs(np.log(np.clip(after["flux_ratio"], 1e-6, None)))))
+    if a > b + STARS_WORSE_LN and a > STARS_OK_LN:
+        return (f"makes the bright stars' photometry wrong: median data/model flux {before['median_flux_ratio']:.3g} "
+                f"-> {after['median_flux_ratio']:.3g} over {after['n']} stars; the light it moves belongs to sources "
+                "the model lacks (blends, unresolved stars), not to a wider PSF")
+    return ""
+
+
+def candidates(res: Residuals, present: set[str], progress=None, truth=None) -> tuple[list[Candidate], list[dict]]:
+    """Fit every absent effect with a signature. Returns (candidates best first, problems). With the model's
+    TRUTH table, image-plane candidates must keep the catalogue stars' photometry (:func:`stars_check`)."""
     out, problems = [], []
     for name, cls in sorted(registry().items()):
         if name in present or cls.signature is None:
@@ -116,7 +153,10 @@ def candidates(res: Residuals, present: set[str], progress=None) -> tuple[list[C
         if fit is None or not np.isfinite(fit.delta_m2lnl):
             continue
         chi2 = chi2_after(res, fit)
-        out.append(Candidate(fit, chi2, seconds, overfit(fit, chi2, res)))
+        why = overfit(fit, chi2, res)
+        if not why and getattr(cls.signature, "kind", "") == "transform":
+            why = stars_check(res, fit, truth)
+        out.append(Candidate(fit, chi2, seconds, why))
     out.sort(key=lambda c: (bool(c.rejected), c.fit.delta_bic))
     return out, problems
 

@@ -93,3 +93,31 @@ def test_an_elongated_psf_is_named_and_its_moments_recovered(tmp_path):
 def _write(path, text):
     path.write_text(text)
     return str(path)
+
+
+def test_a_blur_that_spoils_the_bright_stars_is_rejected(tmp_path):
+    """A blur the stars do not have (4 px rms on stars the model measures right) makes their aperture
+    photometry wrong (flux in 4 px falls to a fraction): it is rejected, whatever chi2 says; the stars'
+    own frame is left alone (no candidate rejected for it)."""
+    import numpy as np
+
+    from detector.diagnosis import Fit
+    from detector.effects.image_plane import blur
+    from scenes.compare.diagnose import stars_check
+
+    # a user catalogue of 40 stars of G 11-13 on the window (the photometry check uses catalogue stars)
+    rng = np.random.default_rng(2)
+    ra = 120.95115 + rng.uniform(-0.08, 0.08, 40) / np.cos(np.radians(29.25))
+    dec = -29.25022 + rng.uniform(-0.08, 0.08, 40)
+    (tmp_path / "stars.csv").write_text("ra_deg,dec_deg,mag_g\n" + "".join(
+        f"{a:.6f},{d:.6f},{m:.2f}\n" for a, d, m in zip(ra, dec, rng.uniform(11, 13, 40))))
+    (tmp_path / "model.toml").write_text(BASE.replace("star_mag_limit = 15.0", 'star_mag_limit = 15.0\ncatalog = "stars.csv"'))
+    model = load_scene(str(tmp_path / "model.toml"))
+    render(model, tmp_path / "m.fits", seed=3)
+    cmp = run_compare(model, tmp_path / "m.fits")
+    res, truth = cmp["_residuals"], cmp["_model"].setup.truth
+    photo = res.photo_adu.astype(np.float32)
+    wide = Fit("jitter", {}, -1e6, 3, res.n_fit, "", delta_adu=blur(photo, 4.0) - photo)
+    assert "bright stars' photometry" in stars_check(res, wide, truth)
+    slight = Fit("psf_blur", {}, -1e6, 1, res.n_fit, "", delta_adu=blur(photo, 0.2) - photo)
+    assert stars_check(res, slight, truth) == ""
