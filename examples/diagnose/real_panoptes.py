@@ -327,13 +327,9 @@ def main(argv=None) -> int:
     sb, info = frame_catalogue_scene(scene, meas, img, out)
     summary["frame_catalogue"] = {"catalogue": info, "rounds": ra.rounds(sb, str(DATA), out, "panoptes_framecat",
                                                                          args.rounds, extra=extra)}
-    # the user's judgement over the ranking: a raw DSLR frame has a Bayer mosaic, whatever ranks first
-    summary["frame_catalogue_cfa_first"] = ra.rounds(sb, str(DATA), out, "panoptes_cfa_first", args.rounds,
-                                                     extra=extra, prefer=("cfa",))
     (out / "setup.json").write_text(json.dumps(jsonable(meas), indent=1, default=str))
     (out / "summary.json").write_text(json.dumps(jsonable(summary), indent=1, default=str))
-    for name, table in (("builtin catalogue", summary["builtin"]), ("frame's own stars", summary["frame_catalogue"]["rounds"]),
-                        ("own stars, cfa preferred", summary["frame_catalogue_cfa_first"])):
+    for name, table in (("builtin catalogue", summary["builtin"]), ("frame's own stars", summary["frame_catalogue"]["rounds"])):
         print(f"\n{name}: round  chi2/dof   misfit  stars(n, flux, offset px, size)  Nyquist power  cell mean z  "
               "best candidates (dBIC)")
         for r in table:
