@@ -920,8 +920,8 @@ def smooth_component(res: Residuals, template: np.ndarray) -> tuple[float, float
     if not np.any(t):
         return 0.0, 0.0, 0
     basis = cosine_basis(res.data_adu.shape, vs["idx"], constant=False)
-    levels = np.stack([_at(x, res.data_adu.shape, vs["idx"]) for x in res.level_templates()])
-    _, d, part = lstsq_delta(vs["r"], vs["w"], basis * t, levels)
+    levels = res.level_values(vs["idx"])  # the levels the frame fits (Residuals.levels)
+    _, d, part = lstsq_delta(vs["r"], vs["w"], basis * t, levels if levels.size else None)
     rel = part / np.where(t != 0, t, np.inf)
     return d * vs["scale"], float(np.sqrt(np.mean(rel * rel))), basis.shape[0]
 

@@ -26,7 +26,7 @@ from typing import Literal
 import numpy as np
 from pydantic import Field, field_validator
 
-from ..diagnosis import Fit, Signature, _at, lstsq_delta
+from ..diagnosis import Fit, Signature, lstsq_delta
 from .base import Effect, EffectParams, Stage, Tile, register_effect
 
 # --- pure functions ---------------------------------------------------------------------------------------
@@ -118,7 +118,9 @@ class CFASignature(Signature):
         r = (res.data_adu.ravel()[idx] - res.model_adu.ravel()[idx]).astype(np.float64)
         w = 1.0 / res.var_adu2.ravel()[idx].astype(np.float64)
         temps = res.photo_adu.ravel()[idx].astype(np.float64) * rel[:, y, x]
-        levels = np.stack([_at(t, shape, idx) for t in res.level_templates()])
+        levels = res.level_values(idx)  # the global levels this frame fits (no bias offset on a light frame)
+        if not levels.size:
+            levels = np.zeros((1, idx.size))
         keep = np.ones(idx.size, bool)
         for _ in range(3):
             c, d, _ = lstsq_delta(r[keep], w[keep], temps[:, keep], levels[:, keep])
