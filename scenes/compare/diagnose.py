@@ -161,6 +161,17 @@ def candidates(res: Residuals, present: set[str], progress=None, truth=None) -> 
     return out, problems
 
 
+def source_candidates(res: Residuals, truth, scene) -> list[Candidate]:
+    """Candidates of the scene's sources (an object's light curve, :mod:`.sources`), as :class:`Candidate`."""
+    from .sources import source_candidates as fits
+
+    out = []
+    for fit in fits(res, truth, scene):
+        t0 = time.perf_counter()
+        out.append(Candidate(fit, chi2_after(res, fit), time.perf_counter() - t0))
+    return out
+
+
 def verdict(cands: list[Candidate]) -> str:
     """One sentence for the report."""
     sig = [c for c in cands if c.significant]
@@ -183,12 +194,17 @@ def apply_candidate(scene, cand: dict, path: str | Path, measured: str | Path | 
     import tomli_w
 
     data = scene.model_dump(mode="json", exclude_none=True, exclude_unset=True)
-    data.setdefault("effects", {})[cand["effect"]] = cand["params"]
+    if cand["effect"] == "light_curve":  # a source's property: into its [[objects]] table
+        data["objects"][cand["params"]["object"]]["light_curve"] = cand["params"]["light_curve"]
+        added = f"objects[{cand['params']['object']}].light_curve"
+    else:
+        data.setdefault("effects", {})[cand["effect"]] = cand["params"]
+        added = f"[effects.{cand['effect']}]"
     p = Path(path)
     notes = []
     if measured is not None:
         data, notes = carry_levels(data, refit_levels(p, data, measured), scene)
-    p.write_text(f"# written by newtsim diagnose --apply: added [effects.{cand['effect']}]\n"
+    p.write_text(f"# written by newtsim diagnose --apply: added {added}\n"
                  f"# {cand['explanation']}\n" + "".join(f"# and {n}\n" for n in notes) + tomli_w.dumps(data))
     return p
 

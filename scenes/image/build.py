@@ -44,10 +44,12 @@ from .motion import (
 from .psf import psf_from_config
 from .signal import Samples, SourceSignal, Trails
 
-#: the TRUTH extension: one row per source (positions in 0-based pixels of the written, binned frame)
+#: the TRUTH extension: one row per source (positions in 0-based pixels of the written, binned frame); an
+#: object's (x0, y0) and (x1, y1) are where it is at t0_s and t1_s [s from the exposure start], the first and
+#: last moments it is seen on the frame (NaN for stars)
 TRUTH_DTYPE = [("ra_deg", "f8"), ("dec_deg", "f8"), ("x", "f8"), ("y", "f8"), ("x0", "f8"), ("y0", "f8"),
                ("x1", "f8"), ("y1", "f8"), ("flux_e", "f8"), ("kind", "S9"), ("mag", "f8"), ("source_id", "i8"),
-               ("name", "S32")]
+               ("name", "S32"), ("t0_s", "f8"), ("t1_s", "f8")]
 STEP_PX = 0.25  # largest motion between two samples of a path [pixels]
 STAR_STEP_SIGMA = 0.5  # trailed stars: sample spacing up to this many PSF core rms (see trail_step_px)
 SEGMENT_STAMPS = 2.0  # motion per trail segment, in stamp widths (2w + 1)
@@ -360,7 +362,8 @@ def _objects(scene: Scene, fr: _Frame, base_dir: Path | None, observer) -> tuple
             mag = float(obj.brightness.magnitude(track)[np.argmin(np.abs(track.t_s - tm))])
         rows.append({"ra_deg": ra_m, "dec_deg": dec_m, "x": X[1:2], "y": Y[1:2], "x0": X[0:1], "y0": Y[0:1],
                      "x1": X[2:3], "y1": Y[2:3], "flux_e": np.array([flux]), "kind": np.array(["object"]),
-                     "mag": np.array([mag]), "source_id": np.array([i]), "name": np.array([obj.name or obj.key])})
+                     "mag": np.array([mag]), "source_id": np.array([i]), "name": np.array([obj.name or obj.key]),
+                     "t0_s": np.array([t_a]), "t1_s": np.array([t_b])})
     return Trails.concat(parts), rows
 
 
@@ -389,7 +392,7 @@ def _truth_table(rows: list) -> np.ndarray:
     for r in rows:
         m = len(r["x"])
         for name in out.dtype.names:
-            v = np.asarray(r[name])
+            v = np.asarray(r.get(name, np.nan))
             if out.dtype[name].kind == "S":
                 v = np.char.encode(v.astype(str), "ascii", "replace")
             out[name][k:k + m] = v

@@ -1,0 +1,129 @@
+"""Candidates that belong to a scene's sources, not to the detector: an object's light curve.
+
+The detector catalogue's signatures see pixels; a tumbling or glinting object shows as a streak whose flux
+varies along its length, which only the object's track can turn into time. For every object of the model's
+TRUTH table (``t0_s``, ``t1_s``: when it is at the streak's ends), the flux along the track in 1-px bins,
+data against model over the model's background (:func:`scenes.compare.analysis.background_adu`), is
+fitted by a sinusoidal modulation ``D_k = M_k (1 + L) (1 + a sin(2 pi (t_k / P + phi)))`` (L the object's
+flux scale, profiled): linear in ``(a cos 2 pi phi, a sin 2 pi phi)`` for each period P of a logarithmic
+grid (a Lomb-Scargle periodogram weighted by the model's variance; Lomb 1976, Ap&SS 39, 447; Scargle 1982,
+ApJ 263, 835), the best P refined. It is ranked with the catalogue's candidates by
+``delta_BIC = delta chi^2 + 3 ln n`` (amplitude, phase, period). ``--apply`` writes the fitted
+``light_curve`` into the object's ``[[objects]]`` table (:mod:`scenes.objects.lightcurve`, same phase
+convention).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from detector.diagnosis import Fit, Residuals
+
+from .analysis import background_adu
+
+#: name of the candidate (not a detector effect: ``apply_candidate`` writes it into ``[[objects]]``)
+LIGHT_CURVE = "light_curve"
+#: half-width of the band around the track that holds the streak's light [px]
+HALF_WIDTH_PX = 6.0
+#: shortest period tried, in bins of the track (Nyquist: 2; a PSF spreads light over a few bins)
+MIN_PERIOD_BINS = 4.0
+#: periods tried on the logarithmic grid (then refined around the best)
+N_PERIODS = 400
+#: bins needed along the track
+MIN_BINS = 16
+
+
+def track_profile(res: Residuals, row) -> dict | None:
+    """Flux per 1-px bin along an object's track: data, model (both over the model's background), the
+    model's variance, the time of each bin [s] and the bin of every pixel of the band (-1 outside)."""
+    p0, p1 = np.array([row["x0"], row["y0"]], float), np.array([row["x1"], row["y1"]], float)
+    t0, t1 = float(row["t0_s"]), float(row["t1_s"])
+    length = float(np.hypot(*(p1 - p0)))
+    if not (np.isfinite(t0) and np.isfinite(t1) and t1 > t0) or length < MIN_BINS:
+        return None
+    h, w = res.data_adu.shape
+    t_hat = (p1 - p0) / length
+    yy, xx = np.mgrid[0:h, 0:w]
+    along = (xx - p0[0]) * t_hat[0] + (yy - p0[1]) * t_hat[1]
+    across = (xx - p0[0]) * -t_hat[1] + (yy - p0[1]) * t_hat[0]
+    n = int(np.floor(length))
+    band = (np.abs(across) <= HALF_WIDTH_PX) & (along >= 0) & (along < n) & res.fit
+    bins = np.where(band, np.floor(along).astype(int), -1)
+    sel = bins >= 0
+    bg = background_adu(res)
+    d = np.bincount(bins[sel], (res.data_adu - bg)[sel], n)
+    m = np.bincount(bins[sel], (res.model_adu - bg)[sel], n)
+    v = np.bincount(bins[sel], res.var_adu2[sel], n)
+    ok = (v > 0) & (m > 3 * np.sqrt(np.maximum(v, 1e-30)))
+    if ok.sum() < MIN_BINS:
+        return None
+    t = t0 + (np.arange(n) + 0.5) / length * (t1 - t0)
+    return {"d": d, "m": m, "v": v, "t": t, "ok": ok, "bins": bins, "dt_bin": (t1 - t0) / length}
+
+
+def _fit_period(prof: dict, period: float) -> tuple[float, np.ndarray]:
+    """Weighted least squares of the flux on (M, M sin, M cos) at ``period``: (chi2, coefficients)."""
+    ok = prof["ok"]
+    m, d, w, t = prof["m"][ok], prof["d"][ok], 1.0 / prof["v"][ok], prof["t"][ok]
+    ph = 2 * np.pi * t / period
+    x = np.stack([m, m * np.sin(ph), m * np.cos(ph)])
+    xw = x * w
+    c = np.linalg.solve(xw @ x.T + 1e-12 * np.eye(3), xw @ d)
+    r = d - c @ x
+    return float(np.dot(r * r, w)), c
+
+
+def light_curve_fit(res: Residuals, row, index: int) -> Fit | None:
+    """The sinusoidal light curve of object ``index`` (its TRUTH ``row``), or None without a usable track."""
+    prof = track_profile(res, row)
+    if prof is None:
+        return None
+    ok = prof["ok"]
+    m, d, w = prof["m"][ok], prof["d"][ok], 1.0 / prof["v"][ok]
+    scale = float(np.dot(m * d, w) / np.dot(m * m, w))  # the constant-brightness fit (flux scale only)
+    chi2_0 = float(np.dot((d - scale * m) ** 2, w))
+    span = prof["t"][ok][-1] - prof["t"][ok][0]
+    periods = np.geomspace(MIN_PERIOD_BINS * prof["dt_bin"], 2.0 * span, N_PERIODS)
+    chi2 = np.array([_fit_period(prof, p)[0] for p in periods])
+    j = int(np.argmin(chi2))
+    lo, hi = periods[max(j - 1, 0)], periods[min(j + 1, len(periods) - 1)]
+    fine = np.linspace(lo, hi, 41)
+    chi2_fine = np.array([_fit_period(prof, p)[0] for p in fine])
+    period = float(fine[int(np.argmin(chi2_fine))])
+    best, c = _fit_period(prof, period)
+    if c[0] <= 0:
+        return None
+    a = float(np.hypot(c[1], c[2]) / c[0])
+    if not 0 < a <= 1:
+        return None
+    phase = float(np.arctan2(c[2], c[1]) / (2 * np.pi)) % 1.0
+    curve = {"kind": "sinusoid", "amplitude": round(a, 4), "period_s": round(period, 5), "phase": round(phase, 4)}
+    # the mean change of the model: every pixel of the band times the fitted modulation of its bin
+    bins, sel = prof["bins"], prof["bins"] >= 0
+    mod = np.zeros(len(prof["t"]))
+    ph = 2 * np.pi * prof["t"] / period
+    mod[:] = c[0] * (1 + a * np.sin(ph + 2 * np.pi * phase)) - 1.0
+    bg = background_adu(res)
+    delta = np.zeros(res.data_adu.shape, np.float32)
+    delta[sel] = ((res.model_adu - bg)[sel] * mod[bins[sel]]).astype(np.float32)
+    n = int(ok.sum())
+    name = str(row["name"].decode() if isinstance(row["name"], bytes) else row["name"]).strip()
+    words = (f"the streak of {name or f'objects[{index}]'} brightens and fades by {100 * a / np.sqrt(2):.2g} % rms "
+             f"with a {period:.3g} s period along its track: a tumbling or glinting object (a light curve)")
+    return Fit(LIGHT_CURVE, {"object": index, "light_curve": curve}, best - chi2_0, 3, n, words, delta_adu=delta,
+               note=f"period {period:.4g} s")
+
+
+def source_candidates(res: Residuals, truth, scene) -> list[Fit]:
+    """The light-curve fits of the scene's objects that do not have a light curve yet."""
+    if truth is None or len(truth) == 0 or "t0_s" not in truth.dtype.names:
+        return []
+    kind = np.char.strip(np.asarray(truth["kind"]).astype(str))
+    out = []
+    for row in truth[kind == "object"]:
+        i = int(row["source_id"])
+        if i < len(scene.objects) and "light_curve" not in scene.objects[i]:
+            fit = light_curve_fit(res, row, i)
+            if fit is not None:
+                out.append(fit)
+    return out
