@@ -78,5 +78,7 @@ def diagnose(scene, measured, json_out, apply_to, report, prefer, sets, workers)
         click.echo(f"  {c['effect']:15s} dBIC {c['delta_bic']:12.4g}  chi2/dof after {c['chi2_per_dof']:.4g}  "
                    f"{c['explanation']}", err=True)
     if out["applied"]:
-        click.echo(f"wrote {out['applied']['scene']} (+[effects.{out['applied']['effect']}]); ledger "
-                   f"{out['ledger']['path']}", err=True)
+        a = out["applied"]
+        what = (f"objects[{a['params']['object']}].light_curve" if a["effect"] == "light_curve"
+                else f"[effects.{a['effect']}]")
+        click.echo(f"wrote {a['scene']} (+{what}); ledger {out['ledger']['path']}", err=True)
