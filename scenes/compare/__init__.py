@@ -14,7 +14,13 @@ from pathlib import Path
 from detector.errors import DetectorError
 
 from .analysis import compare, summary
-from .diagnose import SIGNIFICANT_DELTA_BIC, candidates, source_candidates, verdict
+from .diagnose import (
+    SIGNIFICANT_DELTA_BIC,
+    candidates,
+    rank,
+    source_candidates,
+    verdict,
+)
 from .model import ModelFrame, build_model, read_measurement, residuals
 
 __all__ = ["SIGNIFICANT_DELTA_BIC", "ModelFrame", "build_model", "run_compare", "run_diagnose"]
@@ -45,8 +51,7 @@ def run_diagnose(scene, measured: str | Path, workers: int | None = None, progre
     t0 = time.perf_counter()
     truth = cmp["_model"].setup.truth
     cands, problems = candidates(cmp["_residuals"], set(scene.effects), progress=progress, truth=truth)
-    cands = sorted(cands + source_candidates(cmp["_residuals"], truth, scene),
-                   key=lambda c: (bool(c.rejected), c.fit.delta_bic))
+    cands = rank(cands + source_candidates(cmp["_residuals"], truth, scene))
     out = {"baseline": cmp["summary"], "candidates": [c.to_json() for c in cands], "problems": problems,
            "verdict": verdict(cands), "seconds": time.perf_counter() - t0, "_compare": cmp}
     out["significant"] = [c["effect"] for c in out["candidates"] if c["significant"]]

@@ -259,6 +259,26 @@ def star_photometry(res: Residuals, truth: np.ndarray | None, radius_px: float =
     return out
 
 
+def track_band(shape: tuple[int, int], row, half_width_px: float) -> dict | None:
+    """The pixels around an object's straight track from (x0, y0) to (x1, y1) of its TRUTH ``row``: the
+    bounding box (a pair of slices into a frame of ``shape``) and, on it, every pixel's distance ``along``
+    the track from (x0, y0) and ``across`` it [px], and the track's ``length``; None when the box is empty."""
+    h, w = shape
+    p0, p1 = np.array([row["x0"], row["y0"]], float), np.array([row["x1"], row["y1"]], float)
+    length = float(np.hypot(*(p1 - p0)))
+    if length <= 0:
+        return None
+    t_hat = (p1 - p0) / length
+    x0, x1 = int(max(0, min(p0[0], p1[0]) - half_width_px - 2)), int(min(w, max(p0[0], p1[0]) + half_width_px + 3))
+    y0, y1 = int(max(0, min(p0[1], p1[1]) - half_width_px - 2)), int(min(h, max(p0[1], p1[1]) + half_width_px + 3))
+    if x1 <= x0 or y1 <= y0:
+        return None
+    yy, xx = np.mgrid[y0:y1, x0:x1]
+    along = (xx - p0[0]) * t_hat[0] + (yy - p0[1]) * t_hat[1]
+    across = (xx - p0[0]) * -t_hat[1] + (yy - p0[1]) * t_hat[0]
+    return {"box": (slice(y0, y1), slice(x0, x1)), "along": along, "across": across, "length": length}
+
+
 def streak_profiles(res: Residuals, truth: np.ndarray | None, segments: int = 10, half_width_px: float = 6.0) -> list:
     """For each object (streak) of the TRUTH table: flux data/model and cross-track offset [px] along its
     length, in ``segments`` equal parts of the track from (x0, y0) to (x1, y1); the model's whole background
@@ -267,26 +287,16 @@ def streak_profiles(res: Residuals, truth: np.ndarray | None, segments: int = 10
         return []
     kind = np.char.strip(np.asarray(truth["kind"]).astype(str))
     out = []
-    h, w = res.data_adu.shape
     bg = background_adu(res)
     for o in truth[kind != "star"]:
-        p0, p1 = np.array([o["x0"], o["y0"]], float), np.array([o["x1"], o["y1"]], float)
-        length = float(np.hypot(*(p1 - p0)))
-        if length < 2:
+        band = track_band(res.data_adu.shape, o, half_width_px)
+        if band is None or band["length"] < 2:
             continue
-        t_hat = (p1 - p0) / length
-        n_hat = np.array([-t_hat[1], t_hat[0]])
-        x0, x1 = int(max(0, min(p0[0], p1[0]) - half_width_px - 2)), int(min(w, max(p0[0], p1[0]) + half_width_px + 3))
-        y0, y1 = int(max(0, min(p0[1], p1[1]) - half_width_px - 2)), int(min(h, max(p0[1], p1[1]) + half_width_px + 3))
-        if x1 <= x0 or y1 <= y0:
-            continue
-        yy, xx = np.mgrid[y0:y1, x0:x1]
-        along = (xx - p0[0]) * t_hat[0] + (yy - p0[1]) * t_hat[1]
-        across = (xx - p0[0]) * n_hat[0] + (yy - p0[1]) * n_hat[1]
+        box, along, across, length = band["box"], band["along"], band["across"], band["length"]
         sel = (np.abs(across) <= half_width_px) & (along >= 0) & (along <= length)
         seg = np.minimum((along / length * segments).astype(int), segments - 1)
-        d = res.data_adu[y0:y1, x0:x1] - bg[y0:y1, x0:x1]
-        m = res.model_adu[y0:y1, x0:x1] - bg[y0:y1, x0:x1]
+        d = res.data_adu[box] - bg[box]
+        m = res.model_adu[box] - bg[box]
         fd = np.bincount(seg[sel], d[sel], segments)
         fm = np.bincount(seg[sel], m[sel], segments)
         cd = np.bincount(seg[sel], (d * across)[sel], segments)

@@ -115,7 +115,9 @@ def stars_check(res: Residuals, fit: Fit, truth) -> str:
 
     if truth is None or fit.delta_adu is None:
         return ""
-    before = star_photometry(res, truth, max_stars=300)
+    if "stars_before" not in res._flat:  # the same for every candidate of this comparison
+        res._flat["stars_before"] = star_photometry(res, truth, max_stars=300)
+    before = res._flat["stars_before"]
     if before.get("n", 0) < STARS_MIN:
         return ""
     moved = replace(res, model_adu=(res.model_adu + fit.delta_adu).astype(np.float32), _flat={})
@@ -157,18 +159,25 @@ def candidates(res: Residuals, present: set[str], progress=None, truth=None) -> 
         if not why and getattr(cls.signature, "kind", "") == "transform":
             why = stars_check(res, fit, truth)
         out.append(Candidate(fit, chi2, seconds, why))
-    out.sort(key=lambda c: (bool(c.rejected), c.fit.delta_bic))
-    return out, problems
+    return rank(out), problems
+
+
+def rank(cands: list[Candidate]) -> list[Candidate]:
+    """Best first: the accepted candidates by delta BIC, then the rejected ones by delta BIC."""
+    return sorted(cands, key=lambda c: (bool(c.rejected), c.fit.delta_bic))
 
 
 def source_candidates(res: Residuals, truth, scene) -> list[Candidate]:
-    """Candidates of the scene's sources (an object's light curve, :mod:`.sources`), as :class:`Candidate`."""
+    """Candidates of the scene's sources (an object's light curve, :mod:`.sources`), as :class:`Candidate`;
+    ``seconds`` is each one's fit and chi2."""
     from .sources import source_candidates as fits
 
     out = []
+    t0 = time.perf_counter()
     for fit in fits(res, truth, scene):
+        chi2 = chi2_after(res, fit)
+        out.append(Candidate(fit, chi2, time.perf_counter() - t0))
         t0 = time.perf_counter()
-        out.append(Candidate(fit, chi2_after(res, fit), time.perf_counter() - t0))
     return out
 
 

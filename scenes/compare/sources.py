@@ -19,7 +19,7 @@ import numpy as np
 
 from detector.diagnosis import Fit, Residuals
 
-from .analysis import background_adu
+from .analysis import background_adu, track_band
 
 #: name of the candidate (not a detector effect: ``apply_candidate`` writes it into ``[[objects]]``)
 LIGHT_CURVE = "light_curve"
@@ -33,32 +33,27 @@ N_PERIODS = 400
 MIN_BINS = 16
 
 
-def track_profile(res: Residuals, row) -> dict | None:
-    """Flux per 1-px bin along an object's track: data, model (both over the model's background), the
-    model's variance, the time of each bin [s] and the bin of every pixel of the band (-1 outside)."""
-    p0, p1 = np.array([row["x0"], row["y0"]], float), np.array([row["x1"], row["y1"]], float)
+def track_profile(res: Residuals, row, bg: np.ndarray) -> dict | None:
+    """Flux per 1-px bin along an object's track: data, model (both over the model's background ``bg``),
+    the model's variance, the time of each bin [s], and the band's box with the bin of each of its pixels
+    (-1 outside the band)."""
     t0, t1 = float(row["t0_s"]), float(row["t1_s"])
-    length = float(np.hypot(*(p1 - p0)))
-    if not (np.isfinite(t0) and np.isfinite(t1) and t1 > t0) or length < MIN_BINS:
+    band = track_band(res.data_adu.shape, row, HALF_WIDTH_PX)
+    if not (np.isfinite(t0) and np.isfinite(t1) and t1 > t0) or band is None or band["length"] < MIN_BINS:
         return None
-    h, w = res.data_adu.shape
-    t_hat = (p1 - p0) / length
-    yy, xx = np.mgrid[0:h, 0:w]
-    along = (xx - p0[0]) * t_hat[0] + (yy - p0[1]) * t_hat[1]
-    across = (xx - p0[0]) * -t_hat[1] + (yy - p0[1]) * t_hat[0]
+    box, along, length = band["box"], band["along"], band["length"]
     n = int(np.floor(length))
-    band = (np.abs(across) <= HALF_WIDTH_PX) & (along >= 0) & (along < n) & res.fit
-    bins = np.where(band, np.floor(along).astype(int), -1)
+    inside = (np.abs(band["across"]) <= HALF_WIDTH_PX) & (along >= 0) & (along < n) & res.fit[box]
+    bins = np.where(inside, np.floor(along).astype(int), -1)
     sel = bins >= 0
-    bg = background_adu(res)
-    d = np.bincount(bins[sel], (res.data_adu - bg)[sel], n)
-    m = np.bincount(bins[sel], (res.model_adu - bg)[sel], n)
-    v = np.bincount(bins[sel], res.var_adu2[sel], n)
+    d = np.bincount(bins[sel], (res.data_adu[box] - bg[box])[sel], n)
+    m = np.bincount(bins[sel], (res.model_adu[box] - bg[box])[sel], n)
+    v = np.bincount(bins[sel], res.var_adu2[box][sel], n)
     ok = (v > 0) & (m > 3 * np.sqrt(np.maximum(v, 1e-30)))
     if ok.sum() < MIN_BINS:
         return None
     t = t0 + (np.arange(n) + 0.5) / length * (t1 - t0)
-    return {"d": d, "m": m, "v": v, "t": t, "ok": ok, "bins": bins, "dt_bin": (t1 - t0) / length}
+    return {"d": d, "m": m, "v": v, "t": t, "ok": ok, "box": box, "bins": bins, "dt_bin": (t1 - t0) / length}
 
 
 def _fit_period(prof: dict, period: float) -> tuple[float, np.ndarray]:
@@ -73,9 +68,11 @@ def _fit_period(prof: dict, period: float) -> tuple[float, np.ndarray]:
     return float(np.dot(r * r, w)), c
 
 
-def light_curve_fit(res: Residuals, row, index: int) -> Fit | None:
-    """The sinusoidal light curve of object ``index`` (its TRUTH ``row``), or None without a usable track."""
-    prof = track_profile(res, row)
+def light_curve_fit(res: Residuals, row, index: int, bg: np.ndarray | None = None) -> Fit | None:
+    """The sinusoidal light curve of object ``index`` (its TRUTH ``row``), or None without a usable track;
+    ``bg`` the model's background (:func:`background_adu`, computed when not given)."""
+    bg = background_adu(res) if bg is None else bg
+    prof = track_profile(res, row, bg)
     if prof is None:
         return None
     ok = prof["ok"]
@@ -99,13 +96,13 @@ def light_curve_fit(res: Residuals, row, index: int) -> Fit | None:
     phase = float(np.arctan2(c[2], c[1]) / (2 * np.pi)) % 1.0
     curve = {"kind": "sinusoid", "amplitude": round(a, 4), "period_s": round(period, 5), "phase": round(phase, 4)}
     # the mean change of the model: every pixel of the band times the fitted modulation of its bin
-    bins, sel = prof["bins"], prof["bins"] >= 0
-    mod = np.zeros(len(prof["t"]))
-    ph = 2 * np.pi * prof["t"] / period
-    mod[:] = c[0] * (1 + a * np.sin(ph + 2 * np.pi * phase)) - 1.0
-    bg = background_adu(res)
+    box, bins = prof["box"], prof["bins"]
+    sel = bins >= 0
+    mod = c[0] * (1 + a * np.sin(2 * np.pi * (prof["t"] / period + phase))) - 1.0
     delta = np.zeros(res.data_adu.shape, np.float32)
-    delta[sel] = ((res.model_adu - bg)[sel] * mod[bins[sel]]).astype(np.float32)
+    patch = np.zeros(bins.shape, np.float32)
+    patch[sel] = ((res.model_adu[box] - bg[box])[sel] * mod[bins[sel]]).astype(np.float32)
+    delta[box] = patch
     n = int(ok.sum())
     name = str(row["name"].decode() if isinstance(row["name"], bytes) else row["name"]).strip()
     words = (f"the streak of {name or f'objects[{index}]'} brightens and fades by {100 * a / np.sqrt(2):.2g} % rms "
@@ -114,16 +111,17 @@ def light_curve_fit(res: Residuals, row, index: int) -> Fit | None:
                note=f"period {period:.4g} s")
 
 
-def source_candidates(res: Residuals, truth, scene) -> list[Fit]:
-    """The light-curve fits of the scene's objects that do not have a light curve yet."""
+def source_candidates(res: Residuals, truth, scene):
+    """The light-curve fits of the scene's objects that do not have a light curve yet (a generator: each
+    fit is made when it is asked for)."""
     if truth is None or len(truth) == 0 or "t0_s" not in truth.dtype.names:
-        return []
+        return
     kind = np.char.strip(np.asarray(truth["kind"]).astype(str))
-    out = []
+    bg = None
     for row in truth[kind == "object"]:
         i = int(row["source_id"])
         if i < len(scene.objects) and "light_curve" not in scene.objects[i]:
-            fit = light_curve_fit(res, row, i)
+            bg = background_adu(res) if bg is None else bg
+            fit = light_curve_fit(res, row, i, bg)
             if fit is not None:
-                out.append(fit)
-    return out
+                yield fit
