@@ -677,14 +677,12 @@ def catalogue_check(header, img: np.ndarray, epoch: str, mag_limit: float = 10.0
 
 def source_maps(cmp: dict) -> tuple[np.ndarray, np.ndarray]:
     """(sources-only model [ADU], the model's background [ADU]) of a comparison. The model's ``photo_adu``
-    holds every photo-electron, sky included; the background is the detector chain's mean frame for the
-    uniform sky alone (``Setup.sky_e_per_s``: vignetting and every other effect of the chain applied)."""
-    res, model = cmp["_residuals"], cmp["_model"]
-    setup = model.setup
-    if "_background_adu" not in cmp:
-        bg, _, _ = setup.detector.moments(float(setup.sky_e_per_s * setup.exptime_s), setup.exptime_s)
-        cmp["_background_adu"] = np.asarray(bg, np.float64)
-    bg = cmp["_background_adu"]
+    holds every photo-electron, sky included; the background is the chain's mean frame without the sources
+    (:func:`scenes.compare.analysis.background_adu`: the sky through vignetting and every other effect)."""
+    from scenes.compare.analysis import background_adu
+
+    res = cmp["_residuals"]
+    bg = np.asarray(background_adu(res), np.float64)
     return res.model_adu - bg, bg
 
 
