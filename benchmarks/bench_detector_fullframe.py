@@ -37,7 +37,7 @@ print(time.perf_counter() - t0)
 NEWTSIM = r'''
 import sys, time
 from scenes.scene import load_scene
-from scenes.render import render
+from scenes.app.render import render
 rows, cols, out = int(sys.argv[1]), int(sys.argv[2]), sys.argv[3]
 sets = ["detector.width=%d" % cols, "detector.height=%d" % rows, "exposure.seed=1",
         "sky.background_mag_arcsec2=19.72",

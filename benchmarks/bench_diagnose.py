@@ -4,7 +4,7 @@ The frame is a 10 s star field on a 2048x2048 window of the ML11002 (stars to ma
 rays in the scene), "measured" with another hardware seed, levels a few per cent off and a hidden real-world
 vignetting (``examples/diagnose/hidden_effects.py``). Printed as JSON:
 
-* ``diagnose_s``: the whole :func:`scenes.compare.run_diagnose` wall time, split into ``model_s`` (the
+* ``diagnose_s``: the whole :func:`scenes.app.compare.run_diagnose` wall time, split into ``model_s`` (the
   scene's mean, variance and one realisation), ``compare_s`` (residual statistics) and ``candidates_s``
   (every absent effect fitted), with ``per_effect_s`` for each candidate;
 * references measured in the same run on the same machine: ``reference.render_s``, one plain
@@ -87,7 +87,7 @@ def main(argv=None) -> int:
     render_rss_mb = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024
 
     # the diagnosis, in this process
-    from scenes.compare import run_diagnose
+    from scenes.app.compare import run_diagnose
     from scenes.scene import load_scene
 
     # per-effect time from the progress callback (called after every fit, also the ones that find nothing)

@@ -37,7 +37,7 @@ SCENE = ROOT / "examples" / "scenarios" / "navstar71_imx411.toml"
 NEWTSIM = r'''
 import sys, time
 from scenes.scene import load_scene
-from scenes.render import render
+from scenes.app.render import render
 scene = load_scene(sys.argv[2])
 t0 = time.perf_counter()
 info = render(scene, sys.argv[1], progress=False)

@@ -25,8 +25,16 @@ from __future__ import annotations
 import numpy as np
 from pydantic import Field
 
-from detector import Detector, Effect, EffectParams, Stage, build_effects, make_sensor, register_effect
-from detector.diagnosis import LinearSignature, Variant
+from detector import (
+    Detector,
+    Effect,
+    EffectParams,
+    Stage,
+    build_effects,
+    make_sensor,
+    register_effect,
+)
+from detector.signatures import LinearSignature, Variant
 
 
 def persistence_e(previous_e: np.ndarray, fraction: float, tau_s: float, exptime_s: float) -> np.ndarray:
@@ -83,8 +91,9 @@ def diagnosis_demo(folder: str) -> tuple[float, float, dict]:
 
     import tomli_w
 
-    from scenes.compare import diagnose, run_compare, run_diagnose
-    from scenes.render import render
+    from scenes.app.compare import run_compare, run_diagnose
+    from scenes.app.compare.apply import apply_candidate
+    from scenes.app.render import render
     from scenes.scene import load_scene
 
     d = Path(folder)
@@ -95,7 +104,7 @@ def diagnosis_demo(folder: str) -> tuple[float, float, dict]:
     render(load_scene(str(d / "truth.toml")), d / "measured.fits", seed=7)
     out = run_diagnose(load_scene(str(d / "model.toml")), d / "measured.fits")
     best = out["candidates"][0]
-    diagnose.apply_candidate(load_scene(str(d / "model.toml")), best, d / "model_round2.toml")
+    apply_candidate(load_scene(str(d / "model.toml")), best, d / "model_round2.toml")
     after = run_compare(load_scene(str(d / "model_round2.toml")), d / "measured.fits")
     return out["baseline"]["chi2_per_dof"], after["summary"]["chi2_per_dof"], best
 

@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 from astropy.io import fits
 
-from scenes.render import render
+from scenes.app.render import render
 from scenes.scene import load_scene
 
 HERE = Path(__file__).parent / "scenes"

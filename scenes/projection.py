@@ -39,6 +39,8 @@ import numpy as np
 from astropy.wcs import WCS
 from astropy.wcs import Sip as _AstropySip
 
+from .errors import SceneError
+
 SIP_MAX_ORDER = 9
 #: the scene reads the optics' focal plane (u, v) as pixel offsets (u / pitch, FOCAL_PLANE_Y_SIGN v / pitch)
 FOCAL_PLANE_Y_SIGN = -1.0
@@ -213,7 +215,6 @@ def sip_from_table(table: dict, *, file: str | None = None, allow_coefficients: 
     >= order), and coefficients ``a_p_q`` / ``b_p_q`` (unbinned sensor pixels about the optical axis,
     1 <= p + q <= order). Errors name ``telescope.sip.KEY``.
     """
-    from .scene import SceneError
 
     table = dict(table or {})
     out = {"order": None, "reverse_order": None, "a": {}, "b": {}}

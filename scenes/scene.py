@@ -14,14 +14,16 @@ import tomli_w
 import tomllib
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
-from detector import DetectorError, make_sensor
+from detector import make_sensor
 from detector.config import validate
+from optics.design import BUILTIN as BUILTIN_DESIGNS
+
+from .errors import SceneError
+from .objects import object_from_table, observer_from_table
+from .projection import sip_from_table
+from .straylight import straylight_config
 
 BUILTIN_SCENES = Path(__file__).with_name("data")
-
-
-class SceneError(DetectorError):
-    """A user error in a scene file or a ``--set`` override."""
 
 
 class _Table(BaseModel):
@@ -254,8 +256,6 @@ def check_scene(scene: Scene) -> None:
                              expected="'builtin', 'gaia' or a CSV/ECSV/FITS file (relative to the scene file)")
         scene.sky.catalog = str(p)
     _resolve_design(scene, base)
-    from .objects import object_from_table, observer_from_table
-
     observer_from_table(scene.observer, file=file, base_dir=base)
     if isinstance(scene.observer, dict) and isinstance(scene.observer.get("tle_file"), str):
         scene.observer["tle_file"] = str(resolve_path(scene.observer["tle_file"], base))
@@ -273,8 +273,6 @@ def check_scene(scene: Scene) -> None:
 def _resolve_design(scene: Scene, base: Path | None) -> None:
     """``[telescope] design``: a built-in name stays; a design TOML path becomes absolute (scene folder first,
     then the working directory, where it was looked up before)."""
-    from optics.design import BUILTIN as BUILTIN_DESIGNS
-
     d = scene.telescope.design
     if (BUILTIN_DESIGNS / f"{d}.toml").is_file():
         return
@@ -287,8 +285,6 @@ def _resolve_design(scene: Scene, base: Path | None) -> None:
 
 def _check_optics_keys(scene: Scene, base: Path | None) -> None:
     """``[telescope] distortion`` / ``[telescope.sip]``, the optics ``[psf]`` keys, ``[effects.straylight]``."""
-    from .projection import sip_from_table
-
     file = scene.source
     tel = scene.telescope
     if tel.distortion == "none" and tel.sip is not None:
@@ -327,6 +323,4 @@ def _check_optics_keys(scene: Scene, base: Path | None) -> None:
                 raise SceneError(f"{k} with model = {psf.model!r}", key=f"psf.{k}", file=file,
                                  expected="model = 'optics' (the optics PSF grid)")
     if "straylight" in scene.effects:
-        from .straylight import straylight_config
-
         straylight_config(scene.effects["straylight"], file=file)

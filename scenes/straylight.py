@@ -59,10 +59,29 @@ import math
 from dataclasses import dataclass, field
 from typing import Literal
 
+import astropy.units as u
 import numpy as np
+from astropy.coordinates import get_body_barycentric
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
-from .scene import SceneError
+from detector.config import validate
+from optics import cache
+from optics.llvm import init_mitsuba
+from optics.straylight import irradiance_map
+
+from .errors import SceneError
+from .objects.brightness import M_SUN_V, solar_photon_irradiance, sunlit_fraction
+from .objects.frames import (
+    AU_KM,
+    R_EARTH_KM,
+    GroundSite,
+    SpaceObserver,
+    as_time,
+    east_north,
+    itrs_to_gcrs,
+    offline_iers,
+    radec_to_unit,
+)
 
 MOON_MEAN_DISTANCE_KM = 384400.0
 MOON_V_FULL = -12.73  # Allen 1973, p. 144
@@ -104,8 +123,6 @@ class StraylightCfg(BaseModel):
 
 def straylight_config(table: dict, *, file: str | None = None) -> StraylightCfg:
     """Validate ``[effects.straylight]``; errors name ``effects.straylight.KEY`` and the file."""
-    from detector.config import validate
-
     if not isinstance(table, dict):
         raise SceneError(f"{table!r}", key="effects.straylight", file=file, expected="a table")
     return validate(StraylightCfg, table, prefix="effects.straylight", file=file)
@@ -140,8 +157,6 @@ def pst_from_table(table, theta_deg) -> np.ndarray:
 
 def telescope_axes(ra_deg: float, dec_deg: float, roll_deg: float) -> np.ndarray:
     """Rows: the telescope's +x (azimuth 0, focuser side), +y and +z (optical axis), GCRS components."""
-    from .objects.frames import east_north, radec_to_unit
-
     b = radec_to_unit(ra_deg, dec_deg)
     e, n = east_north(b)
     c, s = math.cos(math.radians(roll_deg)), math.sin(math.radians(roll_deg))
@@ -173,20 +188,6 @@ def bodies(epoch, observer, wavelength_nm, qe, names=("sun", "moon")) -> dict[st
 
     ``wavelength_nm``, ``qe``: the sensor's QE curve, which turns irradiance into photo-electrons.
     """
-    import astropy.units as u
-    from astropy.coordinates import get_body_barycentric
-
-    from .objects.brightness import M_SUN_V, solar_photon_irradiance, sunlit_fraction
-    from .objects.frames import (
-        AU_KM,
-        R_EARTH_KM,
-        GroundSite,
-        SpaceObserver,
-        as_time,
-        itrs_to_gcrs,
-        offline_iers,
-    )
-
     t = as_time(epoch).reshape(1)
     with offline_iers():
         earth = get_body_barycentric("earth", t, ephemeris="builtin").xyz.to_value(u.km).T[0]
@@ -229,17 +230,12 @@ def bodies(epoch, observer, wavelength_nm, qe, names=("sun", "moon")) -> dict[st
 # ------------------------------------------------------------------------------------------ focal plane
 def _optics_map(design, theta_deg: float, phi_deg: float, cfg: StraylightCfg) -> tuple[np.ndarray, tuple]:
     """Ray-traced PST map (rows along v, columns along u) and its extent [mm], from the optics cache."""
-    from optics import cache
-    from optics.straylight import irradiance_map
-
     th = round(theta_deg / PST_ANGLE_STEP_DEG) * PST_ANGLE_STEP_DEG
     ph = (round(phi_deg / PST_AZIMUTH_STEP_DEG) * PST_AZIMUTH_STEP_DEG) % 360.0
     settings = {"theta_deg": round(th, 6), "phi_deg": round(ph, 6), "rays": cfg.rays, "bins": list(cfg.bins),
                 "seed": cfg.seed, "wavelength_nm": 550.0}
 
     def compute():
-        from optics.llvm import init_mitsuba
-
         emap, ext = irradiance_map(design, init_mitsuba(), th, ph, rays=cfg.rays, bins=tuple(cfg.bins),
                                    seed=cfg.seed)
         return {"map": np.asarray(emap).tolist(), "extent": list(ext)}
@@ -313,10 +309,6 @@ def straylight_signal(table: dict, scene, sensor, design, exptime_s: float, obse
     ri : the chain's vignetting ``ri(ys, xs)`` (sensor rows, columns), divided out; None without vignetting
     wavelength_nm, qe : band for N_in (default the sensor's QE table)
     """
-    import astropy.units as u
-
-    from .objects.frames import as_time
-
     cfg = straylight_config(table, file=scene.source)
     lam = np.asarray(sensor.qe_wavelength_nm if wavelength_nm is None else wavelength_nm, dtype=float)
     q = np.asarray(sensor.qe if qe is None else qe, dtype=float)

@@ -1,10 +1,15 @@
-"""Shared test helpers: small sensors, the real-data folder."""
+"""Fixtures of every test: the real-data folder, the one Mitsuba fixture, and the effect registry restored
+after each test (a test that registers an effect must not change the catalogue of the tests after it)."""
 
+import sys
 from pathlib import Path
 
 import pytest
 
+from detector.effects import base as effects_base
+
 REALDATA = Path(__file__).resolve().parents[1].parent / "shared" / "realdata"
+sys.path.insert(0, str(Path(__file__).parent))  # tests/helpers.py
 
 
 @pytest.fixture
@@ -12,3 +17,21 @@ def realdata() -> Path:
     if not REALDATA.is_dir():
         pytest.skip(f"real data folder {REALDATA} not found (../shared/realdata next to the project)")
     return REALDATA
+
+
+@pytest.fixture(scope="session")
+def mi():
+    """Mitsuba with the llvm variant: the one place tests select it (DESIGN.md convention 6)."""
+    pytest.importorskip("mitsuba", reason="Mitsuba 3 is not installed (pip install 'newtsim[optics]')")
+    from optics.llvm import init_mitsuba
+
+    return init_mitsuba()
+
+
+@pytest.fixture(autouse=True)
+def _restore_registry():
+    """Whatever a test registers (plugins, examples/custom_effect.py) is gone after it."""
+    saved = dict(effects_base._REGISTRY)
+    yield
+    effects_base._REGISTRY.clear()
+    effects_base._REGISTRY.update(saved)

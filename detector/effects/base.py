@@ -125,9 +125,14 @@ class Effect:
     #: positions). A real camera has its own realisation, so the model of the mean frame leaves the
     #: pattern out and adds its :meth:`variance_e2` (maps) or compares its outliers by their counts.
     pattern: ClassVar[bool] = False
-    #: How the effect shows in residuals, for ``newtsim diagnose`` (a :class:`detector.diagnosis.Signature`),
+    #: How the effect shows in residuals, for ``newtsim diagnose`` (a :class:`detector.signatures.Signature`),
     #: or None when it cannot be diagnosed from one frame.
     signature: ClassVar[object] = None
+    #: Parameters at which the effect is the identity (zero strength): the registry-wide contract test
+    #: (tests/detector/test_effect_contract.py) renders a frame with them and requires the same bytes as
+    #: without the effect. None only with :attr:`no_identity` saying why the effect has no zero strength.
+    identity: ClassVar[dict | None] = None
+    no_identity: ClassVar[str] = ""
 
     def __init__(self, params: EffectParams, sensor: SensorConfig):
         self.params = params

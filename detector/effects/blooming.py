@@ -13,7 +13,7 @@ from __future__ import annotations
 import numpy as np
 from pydantic import Field
 
-from ..diagnosis import LinearSignature, Variant
+from ..signatures import LinearSignature, Variant
 from .base import Effect, EffectParams, Stage, Tile, register_effect
 
 
@@ -106,6 +106,7 @@ class Blooming(Effect):
     """Blooming along columns of the expected charge above the full well, charge-conserving (see module)."""
 
     name = "blooming"
+    identity = {"threshold_e": 1e7}
     stages = (Stage.FIELD,)
     signature = _BLOOMING_SIGNATURE
     Params = BloomingParams

@@ -26,7 +26,7 @@ from typing import Literal
 import numpy as np
 from pydantic import Field, field_validator
 
-from ..diagnosis import Fit, Signature, lstsq_delta
+from ..signatures import Fit, Signature, lstsq_delta
 from .base import Effect, EffectParams, Stage, Tile, register_effect
 
 # --- pure functions ---------------------------------------------------------------------------------------
@@ -185,6 +185,7 @@ class ColourFilterArray(Effect):
     """
 
     name = "cfa"
+    identity = {"response": [1.0, 1.0, 1.0, 1.0]}
     stages = (Stage.RESPONSE,)
     Params = CFAParams
     signature = CFASignature()

@@ -20,9 +20,9 @@ import numpy as np
 from pydantic import Field, model_validator
 
 from .. import cosmics
-from ..diagnosis import CountSignature
 from ..errors import DetectorError
 from ..rng import generator
+from ..signatures import CountSignature
 from .base import Effect, EffectParams, Stage, Tile, register_effect
 
 #: Refuse frames expecting more hits than this (memory: ~ 200 bytes per hit); split the exposure instead.
@@ -122,6 +122,7 @@ class CosmicRays(Effect):
     """
 
     name = "cosmic_rays"
+    identity = {"flux_per_cm2_s": 0.0}
     stages = (Stage.CHARGE,)
     stochastic = True  # compared by its statistics (tail counts), not pixel by pixel
     signature = _COSMIC_SIGNATURE

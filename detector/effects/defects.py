@@ -16,7 +16,8 @@ from typing import Literal
 import numpy as np
 from pydantic import Field
 
-from ..diagnosis import CountSignature, Fit, Signature, frame_fraction
+from ..signatures import CountSignature, Fit, Signature, frame_fraction
+from ..stats import mad_std
 from .base import Effect, EffectParams, Stage, Tile, register_effect
 from .common import hardware_positions, in_tile, output_xy, roi_mask
 
@@ -45,7 +46,7 @@ def doubling_level_adu(bias_adu: float, override: float | None) -> float:
     return float(bias_adu) if bias_adu > 0 else NOMINAL_DOUBLING_LEVEL_ADU
 
 
-# --- diagnosis signatures (detector.diagnosis) -------------------------------------------------------------
+# --- diagnosis signatures (detector.signatures) -------------------------------------------------------------
 
 def weibull_from_detections(t2_detected_s: np.ndarray, t2_limit_s: float, shape: float) -> tuple[float, float]:
     """Weibull scale [s] whose part below the detection limit ``t2_limit_s`` has the detections' median,
@@ -143,12 +144,12 @@ class ColumnSignature(Signature):
 
     @staticmethod
     def _gain(z: np.ndarray) -> tuple[float, int, np.ndarray]:
-        from ..diagnosis import LINE_SIGMA
+        from ..signatures import LINE_SIGMA
 
         z = z[np.isfinite(z)] if z.size else z
         if z.size < 16:
             return 0.0, 0, z
-        scale = max(1.0, 1.4826 * float(np.median(np.abs(z - np.median(z)))))
+        scale = max(1.0, mad_std(z, max_n=None))
         x = z / scale
         d, k = column_mixture_gain(x, LINE_SIGMA)
         return d, k, x
@@ -161,7 +162,7 @@ class ColumnSignature(Signature):
         return (res.charge_e >= 0.8 * fw).any(axis=0)
 
     def fit(self, res, name):
-        from ..diagnosis import LINE_SIGMA
+        from ..signatures import LINE_SIGMA
 
         src = self._source_columns(res)
         zd = np.where(src, np.nan, res.data_spikes.col_z) if res.data_spikes.col_z.size == src.size else \
@@ -221,6 +222,7 @@ class HotPixels(Effect):
     """
 
     name = "hot_pixels"
+    identity = {"count": 0}
     stages = (Stage.DARK, Stage.DIGITAL)
     Params = HotPixelParams
     pattern = True
@@ -270,6 +272,7 @@ class ColumnDefects(Effect):
     """
 
     name = "column_defects"
+    identity = {"hot_columns": 0, "dead_columns": 0}
     stages = (Stage.RESPONSE, Stage.DARK)
     Params = ColumnDefectParams
     pattern = True

@@ -13,7 +13,7 @@ from typing import Literal
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
-from ..diagnosis import LinearSignature, Variant
+from ..signatures import LinearSignature, Variant
 from .base import Effect, EffectParams, Stage, Tile, register_effect
 
 # --- pure functions ---------------------------------------------------------------------------------------
@@ -50,7 +50,7 @@ def edge_rate(ys: np.ndarray, xs: np.ndarray, height: int, width: int, where: st
     out += (peak * np.exp(-d / scale_px)).astype(np.float32)
 
 
-# --- diagnosis signature (detector.diagnosis) --------------------------------------------------------------
+# --- diagnosis signature (detector.signatures) --------------------------------------------------------------
 
 _EDGES = ("left", "right", "top", "bottom", "bottom-left", "bottom-right", "top-left", "top-right")
 _SCALES = tuple(np.geomspace(0.005, 0.5, 9))  # e-folding lengths tried, fractions of the longer sensor side
@@ -138,6 +138,7 @@ class AmpGlow(Effect):
     """
 
     name = "amp_glow"
+    identity = {"sources": [{"amplitude_e_per_s": 0.0}]}
     stages = (Stage.DARK,)
     signature = _GLOW_SIGNATURE
     Params = AmpGlowParams

@@ -30,7 +30,7 @@ import numpy as np
 from pydantic import Field
 from scipy import ndimage, signal
 
-from ..diagnosis import (
+from ..signatures import (
     Fit,
     LinearSignature,
     Signature,
@@ -186,7 +186,7 @@ class TransformSignature(Signature):
         if not _has_structure(res):
             return None
         # Gauss-Newton on the search subsample of the fitted pixels, with the global levels refitted at every
-        # step (detector.diagnosis.fit_linear / profiled_chi2); the result is evaluated on every fitted pixel
+        # step (detector.signatures.fit_linear / profiled_chi2); the result is evaluated on every fitted pixel
         ctx = search_sample(res)
         sidx, sr, sw = ctx["idx"], ctx["r"], ctx["w"]
         # transform the photo-signal before the full-well clip, then clip as the chain does
@@ -448,6 +448,7 @@ class PSFBlur(Effect):
     """Extra isotropic Gaussian blur of the image (defocus, seeing or optics the PSF model lacks)."""
 
     name = "psf_blur"
+    identity = {"sigma_px": 0.0}
     stages = (Stage.FIELD,)
     Params = BlurParams
     signature = TransformSignature(
@@ -471,6 +472,7 @@ class Jitter(Effect):
     """Pointing jitter during the exposure: an elongated Gaussian blur (mount vibration, wind, tracking)."""
 
     name = "jitter"
+    identity = {"sigma_major_px": 0.0, "sigma_minor_px": 0.0}
     stages = (Stage.FIELD,)
     Params = JitterParams
     signature = TransformSignature(
@@ -503,6 +505,7 @@ class PSFElongation(Effect):
     ``C_psf + dC`` positive: a narrowing larger than the PSF's own variance has no meaning."""
 
     name = "psf_elongation"
+    identity = {"dcxx_px2": 0.0, "dcyy_px2": 0.0, "dcxy_px2": 0.0}
     stages = (Stage.FIELD,)
     Params = ElongationParams
     signature = TransformSignature(
@@ -526,6 +529,7 @@ class PointingOffset(Effect):
     """The telescope points slightly elsewhere than the header says: the whole image moves (WCS unchanged)."""
 
     name = "pointing_offset"
+    identity = {"dx_px": 0.0, "dy_px": 0.0}
     stages = (Stage.FIELD,)
     Params = OffsetParams
     signature = TransformSignature(
@@ -551,6 +555,7 @@ class PointingDrift(Effect):
     variance ``L^2 / 12`` along the drift; :func:`drift_smear`)."""
 
     name = "pointing_drift"
+    identity = {"dx_px": 0.0, "dy_px": 0.0}
     stages = (Stage.FIELD,)
     Params = DriftParams
     signature = TransformSignature(
@@ -571,6 +576,7 @@ class Distortion(Effect):
     """Radial (barrel k < 0, pincushion k > 0) distortion about the optical axis the WCS does not describe."""
 
     name = "distortion"
+    identity = {"k_per_px2": 0.0}
     stages = (Stage.FIELD,)
     Params = DistortionParams
     signature = TransformSignature(
@@ -595,6 +601,7 @@ class Ghost(Effect):
     corrector): ``alpha`` of the flux spread over a disc of ``radius_px``, added to the image."""
 
     name = "ghost"
+    identity = {"alpha": 0.0}
     stages = (Stage.FIELD,)
     Params = GhostParams
     signature = LinearSignature(

@@ -127,6 +127,7 @@ class BiasMap(_MapEffect):
     """
 
     name = "bias_map"
+    no_identity = "a measured map: its zero is a map of zeros (tests/detector/test_maps.py)"
     stages = (Stage.ADU,)
     Params = BiasMapParams
     signature = None
@@ -149,6 +150,7 @@ class FlatMap(_MapEffect):
     """A measured flat field multiplying the light: F / mean(F) per unbinned pixel (RESPONSE stage)."""
 
     name = "flat_map"
+    no_identity = "a measured map: its identity is a map of ones (tests/detector/test_maps.py)"
     stages = (Stage.RESPONSE,)
     Params = MapParams
     signature = None

@@ -25,8 +25,8 @@ from pathlib import Path
 import numpy as np
 from pydantic import Field, model_validator
 
-from ..diagnosis import LinearSignature, Variant, fit_linear, search_sample
 from ..errors import DetectorError
+from ..signatures import LinearSignature, Variant, fit_linear, search_sample
 from .base import Effect, EffectParams, Stage, Tile, register_effect
 
 
@@ -195,6 +195,7 @@ class Vignetting(Effect):
     """Relative illumination of the focal plane: a ray-traced map or a radial polynomial (multiplies light)."""
 
     name = "vignetting"
+    identity = {"a2": 0.0, "a4": 0.0}
     stages = (Stage.RESPONSE,)
     Params = VignettingParams
     signature = _VIGNETTING_SIGNATURE

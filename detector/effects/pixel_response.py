@@ -16,7 +16,7 @@ from typing import Literal
 import numpy as np
 from pydantic import Field, model_validator
 
-from ..diagnosis import (
+from ..signatures import (
     CountSignature,
     LinearSignature,
     VarianceSignature,
@@ -70,7 +70,7 @@ def region_index(ys: np.ndarray, xs: np.ndarray, nx: int, ny: int, height: int, 
     return iy, ix
 
 
-# --- diagnosis signatures (detector.diagnosis) -------------------------------------------------------------
+# --- diagnosis signatures (detector.signatures) -------------------------------------------------------------
 
 def _prnu_params(theta: float, res) -> dict | None:
     sigma = float(np.sqrt(theta))
@@ -109,7 +109,7 @@ def _dsnu_lognormal_k3(theta: float, res, idx) -> np.ndarray:
 def _lit(res, index: np.ndarray) -> np.ndarray:
     """Which of these pixels receive enough light that losing it is a 5-sigma deficit (a dead pixel can only
     be seen where light falls: it loses its photo-response, not its dark signal or bias)."""
-    from ..diagnosis import SPIKE_SIGMA
+    from ..signatures import SPIKE_SIGMA
 
     if index.size == 0:
         return np.zeros(0, bool)
@@ -236,6 +236,7 @@ class PRNU(Effect):
     """
 
     name = "prnu"
+    identity = {"sigma": 0.0}
     stages = (Stage.RESPONSE,)
     Params = PRNUParams
     pattern = True
@@ -264,6 +265,7 @@ class DSNU(Effect):
     """
 
     name = "dsnu"
+    identity = {"sigma": 0.0}
     stages = (Stage.DARK,)
     Params = DSNUParams
     pattern = True
@@ -293,6 +295,7 @@ class DeadPixels(Effect):
     """
 
     name = "dead_pixels"
+    identity = {"count": 0}
     stages = (Stage.RESPONSE,)
     Params = DeadParams
     pattern = True
@@ -316,8 +319,8 @@ class DeadPixels(Effect):
 
 
 class GainRegionParams(EffectParams):
-    nx: int = Field(2, ge=1, le=64, description="amplifier regions across the columns")
-    ny: int = Field(1, ge=1, le=64, description="amplifier regions across the rows")
+    nx: int = Field(2, ge=1, le=64, description="amplifier regions across the columns [regions]")
+    ny: int = Field(1, ge=1, le=64, description="amplifier regions across the rows [regions]")
     sigma: float = Field(0.01, ge=0, le=0.5, description="std of the relative gains when drawn [1]")
     gains: list[float] | None = Field(None, description="explicit relative gains, row-major, ny*nx values [1]")
 
@@ -341,6 +344,7 @@ class GainRegions(Effect):
     """
 
     name = "gain_regions"
+    identity = {"sigma": 0.0}
     stages = (Stage.ADU,)
     Params = GainRegionParams
     signature = _GAINREGIONS_SIGNATURE
@@ -374,6 +378,7 @@ class Nonlinearity(Effect):
     """
 
     name = "nonlinearity"
+    identity = {"beta": 0.0}
     stages = (Stage.READ,)
     Params = NonlinearityParams
     signature = _NONLINEARITY_SIGNATURE

@@ -14,7 +14,7 @@ from __future__ import annotations
 import numpy as np
 from pydantic import Field
 
-from ..diagnosis import (
+from ..signatures import (
     Fit,
     LinearSignature,
     Signature,
@@ -71,7 +71,7 @@ def channel_crosstalk(data: np.ndarray, n_channels: int, alpha: float, mirrored:
         view[:, j] += np.float32(alpha) * others
 
 
-# --- diagnosis signatures (detector.diagnosis) -------------------------------------------------------------
+# --- diagnosis signatures (detector.signatures) -------------------------------------------------------------
 
 class RowOffsetSignature(Signature):
     """Row noise: the means of the residual rows scatter more than the pixel noise allows (ML of the extra
@@ -91,7 +91,7 @@ class RowOffsetSignature(Signature):
         ok = cnt > 1
         if ok.sum() < 8:
             return None
-        level, level_var = res.level_maps()  # the global levels refitted (detector.diagnosis.Residuals.levels)
+        level, level_var = res.level_maps()  # the global levels refitted (detector.signatures.Residuals.levels)
         r = np.where(keep, res.data_adu - res.model_adu - level, 0.0).sum(axis=1)[ok] / cnt[ok]
         v = np.where(keep, res.var_adu2 + level_var, 0.0).sum(axis=1)[ok] / cnt[ok] ** 2
         theta, d = ml_variance_scale(r.astype(np.float64), v.astype(np.float64), np.ones_like(v, np.float64),
@@ -186,6 +186,7 @@ class RowNoise(Effect):
     """
 
     name = "row_noise"
+    identity = {"sigma_e": 0.0}
     stages = (Stage.READ,)
     Params = RowNoiseParams
     stochastic = True
@@ -215,6 +216,7 @@ class ResetNoise(Effect):
     """
 
     name = "reset_noise"
+    identity = {"correlated_double_sampling": True}
     stages = (Stage.READ,)
     Params = ResetNoiseParams
     stochastic = True
@@ -253,6 +255,7 @@ class BiasGradient(Effect):
     """
 
     name = "bias_gradient"
+    identity = {"gradient_x_adu": 0.0, "gradient_y_adu": 0.0, "quadratic_adu": 0.0}
     stages = (Stage.ADU,)
     Params = BiasGradientParams
     signature = _BIAS_SIGNATURE
@@ -265,7 +268,7 @@ class BiasGradient(Effect):
 
 
 class CrosstalkParams(EffectParams):
-    n_channels: int = Field(4, ge=2, le=64, description="read-out channels (vertical stripes) across the sensor")
+    n_channels: int = Field(4, ge=2, le=64, description="read-out channels (vertical stripes) across the sensor [channels]")
     alpha: float = Field(1e-3, ge=-0.1, le=0.1, description="coupling coefficient victim/source [1]")
     mirrored: bool = Field(True, description="every second channel read from the other side")
 
@@ -281,6 +284,7 @@ class Crosstalk(Effect):
     """
 
     name = "crosstalk"
+    identity = {"alpha": 0.0}
     stages = (Stage.ADU,)
     Params = CrosstalkParams
     signature = _CROSSTALK_SIGNATURE

@@ -24,7 +24,7 @@ from __future__ import annotations
 import numpy as np
 from pydantic import Field
 
-from ..diagnosis import LinearSignature, Variant
+from ..signatures import LinearSignature, Variant
 from .base import Effect, EffectParams, Stage, Tile, register_effect
 
 #: the gradient's length unit: the rates change per this many sensor pixels
@@ -98,6 +98,7 @@ class SkyGradient(Effect):
     """
 
     name = "sky_gradient"
+    identity = {"gx_e_per_s_per_kpx": 0.0, "gy_e_per_s_per_kpx": 0.0}
     stages = (Stage.FIELD,)
     Params = SkyGradientParams
     signature = _SKY_SIGNATURE

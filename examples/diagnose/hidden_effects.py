@@ -20,16 +20,16 @@ additive charge (glow, DSNU, hot pixels, hot columns) before the Poisson draw, s
 read-out effects (nonlinearity, kTC, row noise) on the charge before read noise; ADU effects (bias
 structure, crosstalk, amplifier gains) after the conversion, without shot noise.
 
-Each frame is diagnosed against its model scene (:func:`scenes.compare.run_diagnose`); the first-ranked
+Each frame is diagnosed against its model scene (:func:`scenes.app.compare.run_diagnose`); the first-ranked
 significant candidate is compared with the hidden effect (a confusion matrix, "none" when nothing is
-significant), the candidate is applied (:func:`scenes.compare.diagnose.apply_candidate`) and the frame
-compared again with the new scene (:func:`scenes.compare.run_compare`). The null cases (no hidden effect,
+significant), the candidate is applied (:func:`scenes.app.compare.apply.apply_candidate`) and the frame
+compared again with the new scene (:func:`scenes.app.compare.run_compare`). The null cases (no hidden effect,
 one per base scene) must give no significant candidate.
 
-The error is measured with the global levels profiled (:func:`detector.diagnosis.level_profiled`): the
+The error is measured with the global levels profiled (:func:`detector.signatures.level_profiled`): the
 bias offset, the light level and the dark level the model can only know to a few per cent are refitted
 (as every reduction does with the overscan and a normalised flat) before ``chi2_per_dof`` and the
-``misfit`` of :func:`scenes.compare.analysis.compare` are computed. The error of a case is
+``misfit`` of :func:`scenes.app.compare.statistics.compare` are computed. The error of a case is
 ``chi2/dof - 1`` over the hidden effect's support (the pixels whose expected value it changes by more
 than 0.2 sigma; all pixels for an effect that adds noise) for effects the model predicts pixel by pixel,
 and the ``misfit`` (standardised excess of the pixel, outlier-count and row/column deviances) for effects
@@ -575,7 +575,7 @@ def make_frame(base: str, extra, levels: Levels, out: Path, seed: int = 11, work
     """Render the measured frame: the measured camera (its hardware, its levels, its cosmic rays and hot
     pixels) plus the ``extra`` real-world effects (callable(sensor) -> list of Effects), to ``out``."""
     from detector.fits_io import primary_header, table_hdu, write_streamed
-    from scenes.render import header_cards, prepare, scene_hdu
+    from scenes.app.render import header_cards, prepare, scene_hdu
     from scenes.scene import load_scene
 
     sc_path = write_scene(measured_scene(base, levels), out.with_suffix(".measured.toml"))
@@ -619,12 +619,12 @@ def _jsonable(d: dict) -> dict:
 # --- the diagnosis of one case --------------------------------------------------------------------------------------
 
 def error_of(cmp: dict, support: np.ndarray | None = None) -> dict:
-    """The error of a comparison with the global levels profiled (:func:`detector.diagnosis.level_profiled`):
+    """The error of a comparison with the global levels profiled (:func:`detector.signatures.level_profiled`):
     ``chi2_minus_1`` = chi2/dof - 1 over the fitted pixels of the hidden effect's ``support`` (all by
-    default), and the ``misfit`` of the whole frame (:func:`scenes.compare.analysis.compare`); the raw
+    default), and the ``misfit`` of the whole frame (:func:`scenes.app.compare.statistics.compare`); the raw
     (unprofiled) chi2/dof and misfit of the comparison for reference."""
-    from detector.diagnosis import level_profiled
-    from scenes.compare.analysis import compare
+    from detector.signatures import level_profiled
+    from scenes.app.compare.statistics import compare
 
     res = level_profiled(cmp["_residuals"])
     out = compare(res)
@@ -641,8 +641,8 @@ STATISTICAL = {"cosmic_rays", "hot_pixels", "dead_pixels", "column_defects"}
 def diagnose_frame(model_toml: Path, measured: Path, hidden: str | None, apply_dir: Path | None = None,
                    support: np.ndarray | None = None, workers: int | None = None) -> dict:
     """Diagnose ``measured`` against ``model_toml``; apply the best significant candidate and compare again."""
-    from scenes.compare import diagnose as dg
-    from scenes.compare import run_compare, run_diagnose
+    from scenes.app.compare import run_compare, run_diagnose
+    from scenes.app.compare.apply import apply_candidate
     from scenes.scene import load_scene
 
     t0 = time.perf_counter()
@@ -660,7 +660,7 @@ def diagnose_frame(model_toml: Path, measured: Path, hidden: str | None, apply_d
     row["hidden_rank"] = next((i + 1 for i, c in enumerate(cands) if c["effect"] == hidden and c["significant"]),
                               None)
     if best is not None and apply_dir is not None:
-        new = dg.apply_candidate(load_scene(str(model_toml)), best, apply_dir / f"{model_toml.stem}.applied.toml")
+        new = apply_candidate(load_scene(str(model_toml)), best, apply_dir / f"{model_toml.stem}.applied.toml")
         row["after"] = error_of(run_compare(load_scene(str(new)), measured, workers=workers), support)
         b, a = row["before"][metric], row["after"][metric]
         row["error_before"], row["error_after"] = b, a

@@ -28,7 +28,7 @@ Then compare / diagnose / apply, round by round. Usage::
 
 writes ``OUT_DIR`` (default ``out/realdata/astride``): the measured setup (``setup.json``), the scene of
 every round, the diagnosis JSON, the ledger, the streak profile (data vs model), the HTML report when
-``scenes.compare.report`` exists, and ``summary.json``. ``--write-scene`` also refreshes the committed
+``scenes.app.compare.report`` exists, and ``summary.json``. ``--write-scene`` also refreshes the committed
 ``examples/diagnose/scenes/astride.toml``.
 """
 
@@ -45,6 +45,7 @@ from pathlib import Path
 import numpy as np
 
 from detector.jsonable import jsonable
+from detector.stats import mad_std
 
 ROOT = Path(__file__).resolve().parents[2]
 REALDATA = ROOT.parent / "shared" / "realdata"
@@ -65,8 +66,8 @@ CCD_QE = ([350, 400, 450, 500, 550, 600, 650, 700, 750, 800, 850, 900, 950, 1000
 
 # ============================================================================ generic frame measurements
 def robust_std(x) -> float:
-    x = np.asarray(x, float).ravel()
-    return float(1.4826 * np.median(np.abs(x - np.median(x))))
+    """1.4826 x the median absolute deviation of every value (:func:`detector.stats.mad_std`)."""
+    return mad_std(x, max_n=None)
 
 
 def read_frame(path) -> tuple[np.ndarray, object]:
@@ -208,8 +209,8 @@ def wcs_geometry(header) -> dict:
 def scene_wcs(scene_dict: dict, base_dir: Path):
     """The WCS that the scene gives its frame (written pixels, 0-based via astropy's origin argument)."""
     from optics.design import load_design
+    from scenes.app.render import resolve_distortion
     from scenes.image.build import frame_wcs
-    from scenes.render import resolve_distortion
 
     sc = load_scene_dict(scene_dict, base_dir / "_wcs_probe.toml")
     sensor = sc.sensor()
@@ -459,7 +460,7 @@ def streak_object(scene_dict: dict, start_xy, end_xy, exptime_s: float, base_dir
 def calibrate_photons(scene_dict: dict, measured_e: float, base_dir: Path) -> float:
     """Photons at the aperture that give ``measured_e`` electrons on the frame (a trial render of the scene
     with 1e6 photons; its TRUTH flux_e scales linearly)."""
-    from scenes.render import prepare
+    from scenes.app.render import prepare
 
     trial = json.loads(json.dumps(scene_dict))
     trial["objects"][0]["photons"] = 1e6
@@ -579,7 +580,7 @@ def measure(path=DATA, work: Path | None = None, read_noise_e: float = READ_NOIS
     photons = calibrate_photons(scene, streak["flux_adu"] * gain, work)
     scene["objects"][0]["photons"] = float(f"{photons:.6g}")
     # sky: the model's own median (faint stars, PSF wings) is taken out of the measured one (one iteration)
-    from scenes.compare import build_model
+    from scenes.app.compare import build_model
 
     sc = load_scene_dict(scene, work / "_sky_probe.toml")
     model = build_model(sc, workers=1, realisation=False)
@@ -630,7 +631,7 @@ def frame_catalogue(img: np.ndarray, det: dict, scene_dict: dict, meas: dict, cs
 def frame_catalogue_scene(scene: dict, meas: dict, img: np.ndarray, out: Path, name: str, exclude=None) -> dict:
     """Scene B: scene A with the frame's own star list instead of the built-in catalogue, and its sky
     re-levelled against the model's median."""
-    from scenes.compare import build_model
+    from scenes.app.compare import build_model
 
     bg = background_map(img)
     det = detect_sources(img, bg, meas["sky_robust_std_adu"], nsigma=5.0)
@@ -678,8 +679,8 @@ def catalogue_check(header, img: np.ndarray, epoch: str, mag_limit: float = 10.0
 def source_maps(cmp: dict) -> tuple[np.ndarray, np.ndarray]:
     """(sources-only model [ADU], the model's background [ADU]) of a comparison. The model's ``photo_adu``
     holds every photo-electron, sky included; the background is the chain's mean frame without the sources
-    (:func:`scenes.compare.analysis.background_adu`: the sky through vignetting and every other effect)."""
-    from scenes.compare.analysis import background_adu
+    (:func:`scenes.app.compare.statistics.background_adu`: the sky through vignetting and every other effect)."""
+    from scenes.app.compare.statistics import background_adu
 
     res = cmp["_residuals"]
     bg = np.asarray(background_adu(res), np.float64)
@@ -707,7 +708,7 @@ def star_check(cmp: dict, radius: float = 4.0, min_snr: float = 10.0, max_stars:
     h, w = res.data_adu.shape
     # S/N against the sky's noise (the model's variance of star pixels may hold hardware-pattern terms)
     sky_var = float(np.median(res.var_adu2[res.fit & (src < 0.5 * np.sqrt(res.var_adu2))]))
-    from scenes.compare.model import saturation_adu
+    from scenes.app.compare.model import saturation_adu
 
     sat = saturation_adu(model.sensor)
     R = math.ceil(radius)
@@ -802,7 +803,7 @@ def rounds(scene: dict, measured: str, out: Path, name: str, n_rounds: int, extr
     """compare/diagnose/apply until no candidate is significant (at most ``n_rounds``), with this script's
     own checks (``extra``) in every round's JSON and table row; ``prefer``: effects applied before the
     ranking's best when significant (``newtsim diagnose --prefer``)."""
-    from scenes.compare.rounds import run_rounds
+    from scenes.app.compare.run import run_rounds
 
     return run_rounds(scene, measured, out, name, n_rounds, workers=2, extra=extra, prefer=tuple(prefer),
                       log=lambda line: print(line, flush=True))

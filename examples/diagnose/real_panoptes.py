@@ -105,7 +105,7 @@ def scene_sip(header, roll_deg: float, scale_arcsec: float) -> dict:
 
 def measure(path=DATA, work: Path | None = None) -> tuple[dict, dict]:
     """Measure the frame and set up the scene (zero point from the catalogue stars). Returns (scene, meas)."""
-    from scenes.compare import build_model, run_compare
+    from scenes.app.compare import build_model, run_compare
 
     work = Path(work or ROOT / "out" / "realdata" / "panoptes")
     work.mkdir(parents=True, exist_ok=True)
@@ -345,7 +345,7 @@ def main(argv=None) -> int:
 def frame_catalogue_scene(scene: dict, meas: dict, img: np.ndarray, out: Path) -> tuple[dict, dict]:
     """Scene B: the frame's own detections (on the channel-equalised frame) as the star catalogue,
     magnitudes from raw-frame aperture fluxes (the Bayer-averaged flux that the model's band describes)."""
-    from scenes.compare import build_model
+    from scenes.app.compare import build_model
 
     eq = equalised(img)
     bg = ra.background_map(eq, 21)

@@ -60,7 +60,7 @@ def flat_scene(camera: dict, flat_path: str) -> dict:
 
 def rounds(scene: dict, measured: str, out: Path, name: str, n_rounds: int) -> list[dict]:
     """compare/diagnose/apply until no candidate is significant (at most ``n_rounds``)."""
-    from scenes.compare.rounds import run_rounds
+    from scenes.app.compare.run import run_rounds
 
     return run_rounds(scene, measured, out, name, n_rounds, log=lambda line: print(line, flush=True))
 

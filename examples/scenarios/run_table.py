@@ -1,7 +1,7 @@
 """Render the 15 validation scenarios and the two real-vs-synthetic cases, and print the thesis's Annex VII
 table: per frame the std, median and mean [ADU], the stars visible (matched-filter detection above
 5 sigma, matched to TRUTH), their median SNR, and the target's (the object's) SNR in an aperture along its
-path. Measurements: ``scenario_metrics.py`` (numpy/scipy; definitions in docs/scenarios.md).
+path. Measurements: ``scenes.app.metrics`` (numpy/scipy; definitions in docs/scenarios.md).
 
     python examples/scenarios/run_table.py                       # all 17 frames -> out/scenarios/
     python examples/scenarios/run_table.py --only s07 s13        # some of them
@@ -25,12 +25,12 @@ from pathlib import Path
 import numpy as np
 from astropy.io import fits
 
-from scenes.render import render
+from scenes.app.render import render
 from scenes.scene import load_scene
 
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
-from scenario_metrics import measure_frame
+from scenes.app.metrics import measure_frame
 
 CASES = ("navstar71_imx411", "navstar67_ml11002")
 THESIS = "n/a: thesis table not in repo"

@@ -31,8 +31,22 @@ from pathlib import Path
 
 import numpy as np
 
+from ..objects import (
+    Track,
+    check_pointing_visible,
+    in_field,
+    light_curve_from_table,
+    object_from_table,
+    object_track,
+    observer_from_table,
+    require_in_field,
+)
+from ..objects.brightness import solar_photon_irradiance
+from ..objects.frames import GroundSite, angle_between_deg, radec_to_unit, unit_to_radec
 from ..projection import Sip, axis_crpix, tan_wcs
 from ..scene import Scene, SceneError
+from ..sky import star_electron_rate, stars_in_field
+from .gridpsf import optics_psf
 from .motion import (
     Boresight,
     StarPaths,
@@ -104,8 +118,6 @@ class _Frame:
     @property
     def half_diagonal_deg(self) -> float:
         """Largest angle from the window's centre to its corners [deg] (distortion included)."""
-        from ..objects.frames import angle_between_deg, radec_to_unit
-
         h, w = self.shape
         ra, dec = self.wcs.all_pix2world([-0.5, w - 0.5, -0.5, w - 0.5], [-0.5, -0.5, h - 0.5, h - 0.5], 0)
         c = radec_to_unit(*self.centre_radec)
@@ -197,8 +209,6 @@ def trail_radius(psf, total_e, length_px) -> np.ndarray:
 
 # ------------------------------------------------------------------------------------------------- stars
 def _stars(scene: Scene, fr: _Frame, base_dir: Path | None) -> tuple[Samples | Trails, list, dict]:
-    from ..sky import star_electron_rate, stars_in_field
-
     sky = scene.sky
     w_guess = int(fr.psf.radius_px(1e12).max()) if hasattr(fr.psf, "radius_px") else 64
     radius = fr.half_diagonal_deg + fr.boresight.speed_deg_s * fr.t_end_s + (w_guess + 2) * fr.scale_arcsec / 3600
@@ -226,7 +236,6 @@ def _stars(scene: Scene, fr: _Frame, base_dir: Path | None) -> tuple[Samples | T
                  "source_id": stars.source_id[ins], "name": np.full(int(ins.sum()), "")}]
         return samples, rows, counts
     # trailed stars: paths in the t = 0 frame, sampled in time
-    from ..objects.frames import radec_to_unit
 
     u = radec_to_unit(stars.ra_deg, stars.dec_deg)
     speed = fr.boresight.speed_deg_s * 3600.0 / fr.scale_arcsec
@@ -275,23 +284,11 @@ def _stars(scene: Scene, fr: _Frame, base_dir: Path | None) -> tuple[Samples | T
 # ----------------------------------------------------------------------------------------------- objects
 def _photons_efficiency(fr: _Frame) -> float:
     """Photo-electrons per photon at the aperture for a solar spectrum over the QE table's range."""
-    from ..objects.brightness import solar_photon_irradiance
-
     lam = fr.wavelength_nm
     return solar_photon_irradiance(lam, fr.qe * fr.mirror) / solar_photon_irradiance(lam, np.ones_like(lam))
 
 
 def _objects(scene: Scene, fr: _Frame, base_dir: Path | None, observer) -> tuple[Trails, list]:
-    from ..objects import (
-        Track,
-        in_field,
-        light_curve_from_table,
-        object_from_table,
-        object_track,
-        require_in_field,
-    )
-    from ..objects.frames import angle_between_deg, unit_to_radec
-
     parts, rows = [], []
     file = scene.source
     h, wd = fr.shape
@@ -369,8 +366,6 @@ def _objects(scene: Scene, fr: _Frame, base_dir: Path | None, observer) -> tuple
 
 def _near_interval(derot, fr: _Frame, w: int) -> tuple[float, float]:
     """The part of [0, T_end] during which the object is within reach of the window (coarse, padded)."""
-    from ..objects.frames import angle_between_deg, radec_to_unit
-
     u = radec_to_unit(derot.ra_deg, derot.dec_deg)
     path = float(np.sum(angle_between_deg(u[:-1], u[1:])))
     reach_deg = fr.half_diagonal_deg + (w + 2) * fr.scale_arcsec / 3600.0
@@ -423,8 +418,6 @@ def build_sources(scene: Scene, sensor, design, pixel_scale_arcsec: float, expti
     """
     cfg = scene.psf
     if psf is None and cfg.model == "optics":
-        from .gridpsf import optics_psf
-
         psf = optics_psf(scene, sensor, design, pixel_scale_arcsec, distortion)
     elif psf is None:
         psf = psf_from_config(cfg.model, cfg.fwhm_arcsec, cfg.beta, cfg.jitter_rms_arcsec, pixel_scale_arcsec)
@@ -446,9 +439,6 @@ def build_sources(scene: Scene, sensor, design, pixel_scale_arcsec: float, expti
     counts = {"catalog": 0, "synthetic": 0, "objects": 0}
     light = exp.frame == "light" and scene.sky.flat_e_per_s is None
     if light and (scene.objects or scene.sky.stars):
-        from ..objects import check_pointing_visible, observer_from_table
-        from ..objects.frames import GroundSite
-
         observer = observer_from_table(scene.observer, file=scene.source, base_dir=base_dir)
         if isinstance(observer, GroundSite):
             check_pointing_visible(bore.ra_deg, bore.dec_deg, scene.pointing.epoch, exptime_s, observer,

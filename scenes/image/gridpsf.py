@@ -53,7 +53,11 @@ import math
 from dataclasses import dataclass, field
 
 import numpy as np
+from scipy.ndimage import convolve1d
 
+from optics.psf import cached_psf_grid, read_psf_fits
+
+from ..errors import SceneError
 from .psf import GAUSS_FWHM
 
 CHUNK_SAMPLES = 64  # samples blended at once (memory: 8 (M + 1)^2 bytes each)
@@ -119,8 +123,6 @@ def gaussian_cell_kernel(sigma_cells: float) -> np.ndarray:
 
 
 def _convolve(images: np.ndarray, kernel: np.ndarray) -> np.ndarray:
-    from scipy.ndimage import convolve1d
-
     if kernel.size == 1:
         return images
     out = convolve1d(images, kernel, axis=1, mode="constant")
@@ -320,22 +322,13 @@ def optics_psf(scene, sensor, design, pixel_scale_arcsec: float, distortion=None
     ``distortion``: the frame's :class:`scenes.projection.Sip` (unbinned sensor pixels about the optical
     axis), used to put each star at its ideal (field-angle) position for the field interpolation.
     """
-    from ..scene import SceneError
 
     cfg = scene.psf
     pitch = sensor.pixel_pitch_um
     try:
-        from optics.psf import read_psf_fits
-
         if cfg.grid_file is not None:
             path = cfg.grid_file
         else:
-            try:
-                from optics.psf import cached_psf_grid
-            except ImportError:
-                raise SceneError("this optics package has no cached_psf_grid (the optics PSF grid is not "
-                                 "available on this branch)", key="psf.model", file=scene.source,
-                                 expected="psf.grid_file = a PSF cube, or model = 'gaussian' / 'moffat'") from None
             path = cached_psf_grid(design, float(pitch), int(cfg.grid[0]), int(cfg.grid[1]))
         grid = read_psf_fits(path)
     except SceneError:

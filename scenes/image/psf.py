@@ -46,8 +46,8 @@ The hook for other PSFs (e.g. an optics PSF that varies over the field): any obj
 ``factors(x, y, dx, dy) -> (ex (n, wx), ey (n, wy))`` (optional)
     for a separable PSF (P = ey x ex): streaks are then rendered as matrix products (much faster),
 
-can be passed as ``psf=`` to :func:`scenes.image.build.build_sources` (and to ``scenes.render.prepare`` /
-``scenes.render.render``). ``x, y`` are 0-based unbinned pixels of the read-out window: add
+can be passed as ``psf=`` to :func:`scenes.image.build.build_sources` (and to ``scenes.app.render.prepare`` /
+``scenes.app.render.render``). ``x, y`` are 0-based unbinned pixels of the read-out window: add
 ``SensorConfig.roi_x0`` / ``roi_y0`` for full-sensor pixels, then subtract ``(W - 1) / 2``, ``(H - 1) / 2``
 of the sensor and multiply by the pitch for the focal-plane position (u, v) [mm] of an optics PSF cube.
 """

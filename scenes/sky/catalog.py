@@ -9,7 +9,7 @@ import numpy as np
 from .archive import GAIA_ARCHIVE_LIMIT_G, gaia_archive_stars
 from .astrometry import epoch_to_jyear
 from .builtin import GAIA_CATALOG_LIMIT_G, builtin_stars
-from .starcounts import synthetic_stars
+from .starcounts import expected_synthetic_count, synthetic_stars
 from .table import CatalogError, StarTable
 from .usertable import user_stars
 
@@ -132,8 +132,6 @@ def _check_field(ra_deg, dec_deg, radius_deg, mag_limit) -> tuple[float, float, 
 
 
 def _check_size(ra, dec, radius, g_lo, g_hi) -> None:
-    from .starcounts import expected_synthetic_count
-
     n = expected_synthetic_count(ra, dec, radius, g_lo, g_hi, oversample=4)
     if n > MAX_STARS:
         raise CatalogError(f"about {n:.3g} synthetic stars expected in this field", key="sky.star_mag_limit",

@@ -51,6 +51,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .astrometry import angular_distance_deg, in_cone, to_galactic
 from .colours import (
     GIANT_BP_RP,
     dwarf_colours_from_mv,
@@ -316,8 +317,6 @@ class Tile:
 
 def tiles_in_cone(ra_deg: float, dec_deg: float, radius_deg: float) -> list[Tile]:
     """Every tile that may overlap the cone (conservative: tile centres within radius + one tile diagonal)."""
-    from .astrometry import angular_distance_deg
-
     out = []
     margin = TILE_DEG * 1.5
     for band in range(_n_bands()):
@@ -350,8 +349,6 @@ def tile_stars(tile: Tile, g_lo: float, g_hi: float, seed: int = 0,
     dict
         ``ra_deg, dec_deg, mag_g, bp_rp, source_id`` arrays.
     """
-    from .astrometry import to_galactic
-
     slabs = _slab_range(g_lo, g_hi)
     if model is None:
         ra_c, dec_c = tile.centre
@@ -409,8 +406,6 @@ def synthetic_stars(ra_deg: float, dec_deg: float, radius_deg: float, g_lo: floa
     seed : int
         User seed (>= 0), combined with each tile's indices; the same seed gives the same sky.
     """
-    from .astrometry import in_cone
-
     meta = {"model": f"Bahcall-Soneira Galaxy model in G (scenes.sky.starcounts v{MODEL_VERSION})",
             "tile_deg": TILE_DEG, "seed": int(seed), "g_range": (float(g_lo), float(g_hi))}
     if g_hi <= g_lo:
@@ -435,8 +430,6 @@ def expected_synthetic_count(ra_deg: float, dec_deg: float, radius_deg: float, g
 
     The overlap is measured on an ``oversample`` x ``oversample`` equal-area sub-grid of each tile.
     """
-    from .astrometry import in_cone, to_galactic
-
     total = 0.0
     f = (np.arange(oversample) + 0.5) / oversample
     for tile in tiles_in_cone(ra_deg, dec_deg, radius_deg):

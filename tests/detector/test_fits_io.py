@@ -7,7 +7,13 @@ import pytest
 from astropy.io import fits
 
 from detector import Detector, DetectorError, make_sensor
-from detector.fits_io import primary_header, read_image, table_hdu, write_image, write_streamed
+from detector.fits_io import (
+    primary_header,
+    read_image,
+    table_hdu,
+    write_image,
+    write_streamed,
+)
 
 
 def test_uint16_round_trip_with_extensions(tmp_path):

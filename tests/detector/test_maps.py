@@ -120,7 +120,7 @@ def test_hdu_and_scale(tmp_path):
 
 def test_scene_paths_resolve_like_the_catalogue(tmp_path, monkeypatch):
     """[effects.flat_map] path relative to the scene file, rendered from another working directory."""
-    from scenes.render import render
+    from scenes.app.render import render
     from scenes.scene import load_scene
 
     (tmp_path / "cal").mkdir()

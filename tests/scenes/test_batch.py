@@ -17,7 +17,7 @@ import pytest
 from astropy.io import fits
 from click.testing import CliRunner
 
-from scenes.batch import (
+from scenes.app.batch import (
     MANIFEST,
     frame_seed,
     load_batch,
@@ -25,7 +25,7 @@ from scenes.batch import (
     sequence_overrides,
     toml_inline,
 )
-from scenes.cli import cli
+from scenes.app.cli import cli
 from scenes.objects.frames import angle_between_deg, radec_to_unit
 from scenes.scene import SceneError, load_scene, parse_value
 
@@ -272,7 +272,7 @@ def test_dry_run_lists_frames_and_flags_invalid_ones_without_writing(tmp_path):
 
 def test_local_cluster_of_processes_from_the_command_line(tmp_path):
     p = write_batch(tmp_path, "[montecarlo]\ndraws = 2\n")
-    proc = subprocess.Popen([sys.executable, "-m", "scenes.cli", "batch", str(p), "--workers", "2", "--set",
+    proc = subprocess.Popen([sys.executable, "-m", "scenes.app.cli", "batch", str(p), "--workers", "2", "--set",
                              "exposure.time_s=0.5"], cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
                             text=True)
     _, err = proc.communicate(timeout=240)
@@ -302,7 +302,7 @@ def test_sequence_frames_after_an_object_left_the_field_render_without_it(tmp_pa
     """A sequence step's objects carry outside = "skip": the object crosses the 64-px window in step 0 and
     is 0.5 deg away 10 s later; that frame renders without it (no TRUTH row), while the base scene with the
     object placed there still refuses it (a typo in the rates is a user error)."""
-    from scenes.render import prepare
+    from scenes.app.render import prepare
     from scenes.scene import SceneError
 
     p = tmp_path / "s.toml"

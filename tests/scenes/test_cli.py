@@ -6,11 +6,11 @@ import sys
 import pytest
 from astropy.io import fits
 
-from scenes.cli import expand_multi_file_options
+from scenes.app.cli import expand_multi_file_options
 
 
 def newtsim(*args, cwd=None):
-    return subprocess.run([sys.executable, "-m", "scenes.cli", *map(str, args)], capture_output=True, text=True,
+    return subprocess.run([sys.executable, "-m", "scenes.app.cli", *map(str, args)], capture_output=True, text=True,
                           cwd=cwd, timeout=300)
 
 

@@ -12,7 +12,7 @@ from astropy.io import fits
 
 def newtsim(*args, cache):
     env = {**os.environ, "NEWTSIM_CACHE_DIR": str(cache)}
-    return subprocess.run([sys.executable, "-m", "scenes.cli", *map(str, args)], capture_output=True, text=True,
+    return subprocess.run([sys.executable, "-m", "scenes.app.cli", *map(str, args)], capture_output=True, text=True,
                           timeout=600, env=env, check=False)
 
 

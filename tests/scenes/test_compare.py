@@ -11,62 +11,26 @@ import numpy as np
 import pytest
 from astropy.io import fits
 from click.testing import CliRunner
+from helpers import SMALL_SKY_TOML, STREAK_TOML, star_field_toml
 
 from detector import Effect, EffectParams, Stage, register_effect
-from detector.diagnosis import Signature
 from detector.effects import base as effects_base
 from detector.errors import DetectorError
 from detector.jsonable import jsonable
-from scenes.cli import cli
-from scenes.compare import run_compare, run_diagnose
-from scenes.compare.report import write_report
-from scenes.render import render
+from detector.signatures import Signature
+from scenes.app.cli import cli
+from scenes.app.compare import run_compare, run_diagnose
+from scenes.app.compare.report import write_report
+from scenes.app.render import render
 from scenes.scene import load_scene
 
 # ML11002 (CCD) window of 512 x 512 around the pointing: two catalogue stars, faint model stars, one streak
-SCENE = """
-[telescope]
-design = "art"
-[detector]
-preset = "ml11002"
-width = 512
-height = 512
-[pointing]
-ra_deg = 120.95115
-dec_deg = -29.25022
-epoch = "2023-02-01T22:00:00"
-[exposure]
-time_s = 10.0
-frame = "light"
-tracking = "sidereal"
-[sky]
-background_mag_arcsec2 = 19.72
-stars = true
-star_mag_limit = 15.0
-[psf]
-model = "gaussian"
-fwhm_arcsec = 3.0
-[[objects]]
-ra_deg = 120.95115
-dec_deg = -29.25022
-rate_ra_deg_s = 0.0008
-rate_dec_deg_s = -0.0005
-photons = 200000
-"""
+SCENE = star_field_toml(512, STREAK_TOML)
+
 BIAS_GRADIENT = {"gradient_x_adu": 150.0, "gradient_y_adu": -80.0}
 
 # a small frame without sources for the error paths
-SMALL = """
-[detector]
-preset = "ml11002"
-width = 256
-height = 256
-[exposure]
-time_s = 5.0
-[sky]
-stars = false
-background_mag_arcsec2 = 20.0
-"""
+SMALL = SMALL_SKY_TOML
 
 
 @pytest.fixture(scope="module")

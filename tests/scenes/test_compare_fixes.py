@@ -9,17 +9,20 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 from astropy.io import fits
-from test_compare import SCENE, SMALL
+from helpers import SMALL_SKY_TOML as SMALL
+from helpers import STREAK_TOML, star_field_toml
 
 from detector import Detector
-from detector.diagnosis import SpikeStats
 from detector.sensor import make_sensor
-from scenes.compare import run_compare
-from scenes.compare.analysis import misfit, outlier_counts
-from scenes.compare.model import build_model, read_measurement, saturation_adu
-from scenes.compare.report import write_report
-from scenes.render import render
+from detector.signatures import SpikeStats
+from scenes.app.compare import run_compare
+from scenes.app.compare.model import build_model, read_measurement, saturation_adu
+from scenes.app.compare.report import write_report
+from scenes.app.compare.statistics import misfit, outlier_counts
+from scenes.app.render import render
 from scenes.scene import load_scene
+
+SCENE = star_field_toml(512, STREAK_TOML)
 
 # --- saturation of binned frames ------------------------------------------------------------------------------
 

@@ -3,10 +3,10 @@ recovered; the look-alikes (vignetting, bias_gradient, amp_glow) do not take the
 
 import numpy as np
 import pytest
-from test_diagnose_image_plane import BASE as STARS
+from helpers import star_field_toml
 
-from scenes.compare import run_diagnose
-from scenes.render import render
+from scenes.app.compare import run_diagnose
+from scenes.app.render import render
 from scenes.scene import load_scene
 
 #: a flat-field screen on a window with an odd column origin (the CFA pattern follows the sensor parity)
@@ -28,6 +28,7 @@ flat_e_per_s = 1500.0
 """
 
 # STARS: the star field of the image-plane cases (tests/scenes/test_diagnose_image_plane.py)
+STARS = star_field_toml(384)
 
 
 def _diagnose(tmp_path, base, table):

@@ -2,34 +2,14 @@
 through the transformation), and the error falls to the noise once they are applied."""
 
 import pytest
+from helpers import star_field_toml
 
-from scenes.compare import diagnose, run_compare, run_diagnose
-from scenes.render import render
+from scenes.app.compare import run_compare, run_diagnose
+from scenes.app.compare.apply import apply_candidate
+from scenes.app.render import render
 from scenes.scene import load_scene
 
-BASE = """
-[telescope]
-design = "art"
-[detector]
-preset = "ml11002"
-width = 384
-height = 384
-[pointing]
-ra_deg = 120.95115
-dec_deg = -29.25022
-epoch = "2023-02-01T22:00:00"
-[exposure]
-time_s = 10.0
-frame = "light"
-tracking = "sidereal"
-[sky]
-background_mag_arcsec2 = 19.72
-stars = true
-star_mag_limit = 15.0
-[psf]
-model = "gaussian"
-fwhm_arcsec = 3.0
-"""
+BASE = star_field_toml(384)
 
 CASES = {
     "psf_blur": ({"sigma_px": 0.7}, {"sigma_px": (0.7, 0.05)}),
@@ -54,7 +34,7 @@ def test_hidden_image_plane_effect_is_found_and_the_error_falls(tmp_path, effect
     assert best["effect"] == effect and best["significant"], [(c["effect"], c["delta_bic"]) for c in out["candidates"][:3]]
     for k, (value, tol) in expect.items():
         assert abs(best["params"][k] - value) < tol, (k, best["params"])
-    diagnose.apply_candidate(load_scene(str(tmp_path / "model.toml")), best, tmp_path / "round2.toml")
+    apply_candidate(load_scene(str(tmp_path / "model.toml")), best, tmp_path / "round2.toml")
     after = run_compare(load_scene(str(tmp_path / "round2.toml")), tmp_path / "m.fits")["summary"]["chi2_per_dof"]
     before = out["baseline"]["chi2_per_dof"]
     assert after - 1 < 0.05 * (before - 1)
@@ -67,7 +47,7 @@ def test_an_elongated_psf_is_named_and_its_moments_recovered(tmp_path):
     (a second-moment change with one negative axis) must be named, with dC_xx = s_true^2 - s_model^2 and
     dC_yy = that + 1.2^2 (moments of a convolution add; Gaussian sigma = FWHM / 2.3548 / scale). Well
     sampled: an undersampled PSF cannot be narrowed by filtering its pixels (their own 1/12 px^2 stays)."""
-    from scenes.render import prepare
+    from scenes.app.render import prepare
 
     base = BASE.replace("fwhm_arcsec = 3.0", "fwhm_arcsec = 6.0")
     model = load_scene(_write(tmp_path / "model.toml", base))
@@ -84,7 +64,7 @@ def test_an_elongated_psf_is_named_and_its_moments_recovered(tmp_path):
     assert p["dcxx_px2"] == pytest.approx(s_true2 - s_model2, rel=0.1), p
     assert p["dcyy_px2"] == pytest.approx(s_true2 - s_model2 + 1.44, rel=0.1), p
     assert abs(p["dcxy_px2"]) < 0.05, p
-    diagnose.apply_candidate(model, best, tmp_path / "round2.toml")
+    apply_candidate(model, best, tmp_path / "round2.toml")
     after = run_compare(load_scene(str(tmp_path / "round2.toml")), tmp_path / "m.fits")["summary"]["chi2_per_dof"]
     before = out["baseline"]["chi2_per_dof"]
     assert after - 1 < 0.1 * (before - 1), (before, after)
@@ -101,9 +81,9 @@ def test_a_blur_that_spoils_the_bright_stars_is_rejected(tmp_path):
     own frame is left alone (no candidate rejected for it)."""
     import numpy as np
 
-    from detector.diagnosis import Fit
     from detector.effects.image_plane import blur
-    from scenes.compare.diagnose import stars_check
+    from detector.signatures import Fit
+    from scenes.app.compare.candidates import stars_check
 
     # a user catalogue of 40 stars of G 11-13 on the window (the photometry check uses catalogue stars)
     rng = np.random.default_rng(2)

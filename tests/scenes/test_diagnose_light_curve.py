@@ -6,8 +6,9 @@ import math
 
 import pytest
 
-from scenes.compare import diagnose, run_compare, run_diagnose
-from scenes.render import render
+from scenes.app.compare import run_compare, run_diagnose
+from scenes.app.compare.apply import apply_candidate
+from scenes.app.render import render
 from scenes.scene import load_scene
 
 SCENE = """
@@ -56,7 +57,7 @@ def test_a_light_curve_is_named_with_its_period_amplitude_and_phase(tmp_path):
     assert lc["period_s"] == pytest.approx(CURVE["period_s"], rel=0.01)
     assert lc["amplitude"] == pytest.approx(CURVE["amplitude"], abs=0.04)
     assert abs((lc["phase"] - CURVE["phase"] + 0.5) % 1.0 - 0.5) < 0.03  # phase in cycles, modulo 1
-    new = diagnose.apply_candidate(model, best, tmp_path / "round2.toml", measured)
+    new = apply_candidate(model, best, tmp_path / "round2.toml", measured)
     assert load_scene(str(new)).objects[0]["light_curve"]["kind"] == "sinusoid"
     before = out["baseline"]["chi2_per_dof"]
     after = run_compare(load_scene(str(new)), measured)["summary"]["chi2_per_dof"]

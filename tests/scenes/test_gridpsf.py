@@ -5,15 +5,15 @@ import math
 import numpy as np
 import pytest
 from astropy.io import fits
-from frametools import isolated_stars
+from helpers import isolated_stars
 from scipy.special import ndtr
 
 from detector import DetectorError
 from optics import load_design
 from optics.psf import PSFGrid, detector_fields, write_psf_fits
+from scenes.app.render import prepare, render
 from scenes.image import GAUSS_FWHM, GaussianPSF
 from scenes.image.gridpsf import GridPSF, gaussian_cell_kernel
-from scenes.render import prepare, render
 from scenes.scene import load_scene
 
 PITCH = 9.0  # um (ML11002)

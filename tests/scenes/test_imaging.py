@@ -6,9 +6,10 @@ import numpy as np
 import pytest
 from astropy.io import fits
 from astropy.wcs import WCS
-from frametools import isolated_stars
+from helpers import isolated_stars
 
 from detector import DetectorError
+from scenes.app.render import prepare, render
 from scenes.image import (
     GAUSS_FWHM,
     SIDEREAL_RATE_DEG_S,
@@ -19,7 +20,6 @@ from scenes.image import (
 )
 from scenes.image.psf import TAIL_E, TAIL_REL_MAX
 from scenes.image.signal import Trails, render_trails
-from scenes.render import prepare, render
 from scenes.scene import load_scene
 
 BASE = """

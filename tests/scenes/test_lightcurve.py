@@ -7,8 +7,8 @@ import pytest
 from scipy import integrate, optimize
 
 from detector import DetectorError
+from scenes.app.render import prepare
 from scenes.objects import LightCurve, light_curve_from_table
-from scenes.render import prepare
 from scenes.scene import load_scene
 
 SCENE = """

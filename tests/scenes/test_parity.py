@@ -6,11 +6,11 @@ import numpy as np
 import pytest
 from astropy.io import fits
 from astropy.wcs import WCS
-from frametools import isolated_stars
+from helpers import isolated_stars
 
 from detector import DetectorError
+from scenes.app.render import prepare, render
 from scenes.projection import Sip, eval_poly, sip_from_optics, tan_wcs
-from scenes.render import prepare, render
 from scenes.scene import load_scene
 
 RA0, DEC0, SCALE = 120.0, -30.0, 1.0

@@ -75,7 +75,7 @@ def _scene_dict(name: str) -> dict:
 @pytest.fixture(scope="module")
 def astride_builtin(ra, astride):
     """compare of the committed scene (built-in catalogue + faint population) with the frame."""
-    from scenes.compare import run_compare
+    from scenes.app.compare import run_compare
     from scenes.scene import load_scene
 
     return run_compare(load_scene(str(SCENES / "astride.toml")), str(ASTRIDE), workers=2)
@@ -84,7 +84,7 @@ def astride_builtin(ra, astride):
 @pytest.fixture(scope="module")
 def astride_framecat(ra, astride, tmp_path_factory):
     """The committed scene with the frame's own stars as its catalogue, and its diagnosis."""
-    from scenes.compare import run_diagnose
+    from scenes.app.compare import run_diagnose
 
     img, _ = astride
     scene = _scene_dict("astride")
@@ -217,7 +217,7 @@ def test_panoptes_catalogue_stars_on_measured_stars_and_the_bayer_pattern(ra, rp
     < 1.5 px) at the calibrated flux; the raw frame's Bayer pattern, which the model lacks, is in the
     residuals: green cells above the model, red and blue below it, and the z map's strongest frequency is
     the Nyquist (0.5, 0.5) checkerboard."""
-    from scenes.compare import run_compare
+    from scenes.app.compare import run_compare
     from scenes.scene import load_scene
 
     sc = load_scene(str(SCENES / "panoptes.toml"), ["sky.star_mag_limit=10.0"])

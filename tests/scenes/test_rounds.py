@@ -1,4 +1,4 @@
-"""compare / diagnose / apply round by round (scenes.compare.rounds, scenes.compare.diagnose): the applied
+"""compare / diagnose / apply round by round (scenes.app.compare.run, .apply, .ledger): the applied
 scene carries the global levels fitted with the candidate, the error falls to the noise, the loop stops when
 nothing is significant; a candidate that only inflates the noise is rejected; the diagnosis survives
 calibrated (bias 0) data and rows it cannot weigh."""
@@ -11,15 +11,15 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from detector.diagnosis import Fit, ml_variance_scale
 from detector.effects.defects import (
     NOMINAL_DOUBLING_LEVEL_ADU,
     doubling_level_adu,
     hot_rate_e_per_s,
 )
-from scenes.compare.diagnose import OVERFIT_CHI2_PER_DOF, overfit
-from scenes.compare.rounds import run_rounds
-from scenes.render import render
+from detector.signatures import Fit, ml_variance_scale
+from scenes.app.compare.candidates import OVERFIT_CHI2_PER_DOF, overfit
+from scenes.app.compare.run import run_rounds
+from scenes.app.render import render
 from scenes.scene import load_scene
 
 #: the model camera: the whole ML11002 binned 8 x 8 (501 x 334) under a flat screen (a user's first scene)
@@ -113,7 +113,7 @@ def test_hot_pixels_on_bias_subtracted_data_use_a_nominal_doubling_level():
 
 
 def _residuals(data, model, var, photo, sensor):
-    from detector.diagnosis import Residuals, SpikeStats
+    from detector.signatures import Residuals, SpikeStats
 
     h, w = data.shape
     return Residuals(data.astype(np.float32), model.astype(np.float32), var.astype(np.float32),
@@ -126,8 +126,8 @@ def test_the_shot_noise_of_added_light_tells_a_sky_plane_from_a_bias_plane():
     """The same mean plane d as light (variance v + d/g) or as bias (variance v): with_shot_noise's change of
     -2 ln L is about -n <(dv/v)^2> / 2 on the first and +n <(dv/v)^2> / 2 on the second (second order of
     the Gaussian likelihood in dv/v; the first order cancels in expectation)."""
-    from detector.diagnosis import with_shot_noise
     from detector.sensor import make_sensor
+    from detector.signatures import with_shot_noise
 
     sensor = make_sensor("ml11002", {"width": 400, "height": 300, "gain_e_per_adu": 1.0, "read_noise_e": 5.0})
     rng = np.random.default_rng(7)
@@ -150,7 +150,7 @@ def test_a_bias_offset_fitted_on_a_binned_cmos_dark_is_carried_per_read():
     """A CMOS sums b^2 digitised reads: 8 ADU more in a 2x2-binned output is 2 ADU more bias per read (the
     chain's own dark frames with the two bias levels differ by 8 ADU)."""
     from detector import Detector
-    from scenes.compare.diagnose import bias_per_output_adu, carry_levels
+    from scenes.app.compare.apply import bias_per_output_adu, carry_levels
 
     scene = load_scene_from({"detector": {"preset": "imx411", "width": 64, "height": 64, "binning": 2},
                              "exposure": {"time_s": 1.0, "frame": "dark"}}, Path(tempfile.mkdtemp()) / "d.toml")
@@ -180,7 +180,7 @@ def test_noise_claimed_beyond_what_the_bulk_of_the_pixels_shows_is_rejected():
     claim = Fit("reset_noise", {}, -1e4, 1, h * w, "", extra_var_adu2=0.5 * v)
     res_noisy = _residuals(noisy, 1000 + photo, np.full((h, w), v), photo, sensor)
     res_struct = _residuals(structured, 1000 + photo, np.full((h, w), v), photo, sensor)
-    from scenes.compare.diagnose import robust_excess_var
+    from scenes.app.compare.candidates import robust_excess_var
 
     assert robust_excess_var(res_noisy)[0] == pytest.approx(0.5 * v, rel=0.1)
     assert not overfit(claim, 1.0, res_noisy)
@@ -191,7 +191,7 @@ def test_a_column_pattern_of_the_whole_frame_stays_in_the_pixel_comparison():
     """A few outlier columns are defects (compared by their counts, masked from the pixel fit); most of the
     columns off (column fixed-pattern noise, a mosaic the model lacks) is a pattern the pixel comparison
     must keep: masking it would leave a fraction of the frame to compare, and its candidates to the rest."""
-    from detector.diagnosis import MAX_LINE_FRACTION, spike_stats
+    from detector.signatures import MAX_LINE_FRACTION, spike_stats
 
     rng = np.random.default_rng(5)
     h, w, v = 200, 300, 100.0
@@ -209,7 +209,7 @@ def test_a_column_pattern_of_the_whole_frame_stays_in_the_pixel_comparison():
 
 
 def test_a_preferred_effect_is_applied_before_the_ranking_best_only_when_significant():
-    from scenes.compare.rounds import best_candidate
+    from scenes.app.compare.ledger import best_candidate
 
     diag = {"candidates": [{"effect": "jitter", "significant": True}, {"effect": "cfa", "significant": True},
                            {"effect": "prnu", "significant": False}]}

@@ -11,6 +11,7 @@ import pytest
 
 from detector import make_sensor
 from optics.design import load_design
+from scenes.app.render import prepare
 from scenes.image import GAUSS_FWHM, GaussianPSF, gaussian_pixel_fractions
 from scenes.image import build as image_build
 from scenes.image import psf as image_psf
@@ -18,14 +19,14 @@ from scenes.image import signal as image_signal
 from scenes.image.build import band, trail_step_px
 from scenes.image.signal import Trails, render_trails
 from scenes.objects.brightness import solar_photon_irradiance
-from scenes.render import prepare
 from scenes.scene import load_scene
 from scenes.sky.starflux import star_electron_rate, star_photon_rate
 
 SCENARIOS = Path(__file__).resolve().parents[2] / "examples" / "scenarios"
 sys.path.insert(0, str(SCENARIOS))
 import run_table
-from scenario_metrics import (
+
+from scenes.app.metrics import (
     analytic_snr,
     detect,
     frame_stats,

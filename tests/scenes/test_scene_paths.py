@@ -43,7 +43,7 @@ def test_relative_catalogue_of_a_relative_scene_becomes_absolute(relative_scene,
 
 def test_scene_written_by_diagnose_apply_reloads_from_anywhere(relative_scene, tmp_path, monkeypatch):
     """The bug of docs/compare_realdata_sky.md sect. 4 item 4: round 2 looked for out/x/out/x/stars.csv."""
-    from scenes.compare.diagnose import apply_candidate
+    from scenes.app.compare.apply import apply_candidate
 
     cand = {"effect": "column_defects", "params": {"count": 3}, "explanation": "test"}
     sc = load_scene(relative_scene)

@@ -8,8 +8,8 @@ from astropy.wcs.utils import proj_plane_pixel_scales
 
 from detector import DetectorError
 from optics.design import load_design
+from scenes.app.render import render
 from scenes.photometry import ab_electron_rate, sky_electron_rate_per_pixel
-from scenes.render import render
 from scenes.scene import apply_overrides, load_scene, parse_value
 
 SMALL = ["detector.width=480", "detector.height=480"]

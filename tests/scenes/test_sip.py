@@ -4,12 +4,12 @@ import numpy as np
 import pytest
 from astropy.io import fits
 from astropy.wcs import WCS
-from frametools import isolated_stars
+from helpers import isolated_stars
 
 from detector import DetectorError
+from scenes.app.render import prepare, render
 from scenes.image import frame_wcs
 from scenes.projection import REVERSE_WARN_PX, Sip, fit_reverse, sip_from_optics
-from scenes.render import prepare, render
 from scenes.scene import load_scene
 
 CORNER = ["detector.preset='imx411'", "detector.width=1024", "detector.height=1024", "detector.x0=0",

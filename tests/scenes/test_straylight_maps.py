@@ -8,9 +8,9 @@ import pytest
 from astropy.io import fits
 
 from detector import DetectorError
+from scenes.app.render import prepare, render
 from scenes.objects import solar_spectral_irradiance
 from scenes.objects.frames import east_north, radec_to_unit, unit_to_radec
-from scenes.render import prepare, render
 from scenes.scene import load_scene
 from scenes.straylight import (
     bodies,

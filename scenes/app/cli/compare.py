@@ -3,18 +3,12 @@
 from __future__ import annotations
 
 import click
+from rich.progress import Progress
 
+from scenes.app.compare import diagnose_round, run_compare
+from scenes.app.compare.report import write_report
 
-def _load(scene, sets):
-    from .scene import load_scene
-
-    return load_scene(scene, list(sets))
-
-
-def _report(result, path, diagnosis=None):
-    from .compare.report import write_report
-
-    return write_report(result, path, diagnosis=diagnosis)
+from .common import load, warn, write_json
 
 
 @click.command()
@@ -26,18 +20,14 @@ def _report(result, path, diagnosis=None):
 @click.option("--workers", type=int, default=None, help="threads (default: CPUs, at most 4)")
 def compare(scene, measured, json_out, report, sets, workers):
     """Model of SCENE vs the MEASURED frame: chi2/dof, residuals per region, row/column, source; report."""
-    from .cli import _write_json
-    from .compare import run_compare
-
-    sc = _load(scene, sets)
+    sc = load(scene, sets)
     result = run_compare(sc, measured, workers=workers)
     s = result["summary"]
-    for w in s["warnings"]:
-        click.echo(f"newtsim: warning: {w}", err=True)
+    warn(s["warnings"])
     if report:
-        s["report"] = str(_report(result, report))
+        s["report"] = str(write_report(result, report))
     if json_out:
-        _write_json(s, json_out)
+        write_json(s, json_out)
     click.echo(f"chi2/dof {s['chi2_per_dof']:.4g} over {s['n_compared']} pixels ({s['n_statistical']} compared "
                f"statistically), misfit {s['misfit']:.3g}; worst regions: {', '.join(s['worst_regions'])}"
                + (f"; report {report}" if report else ""), err=True)
@@ -56,12 +46,7 @@ def compare(scene, measured, json_out, report, sets, workers):
 @click.option("--workers", type=int, default=None, help="threads (default: CPUs, at most 4)")
 def diagnose(scene, measured, json_out, apply_to, report, prefer, sets, workers):
     """Rank the effects SCENE lacks by how much of the MEASURED frame they explain (delta BIC)."""
-    from rich.progress import Progress
-
-    from .cli import _write_json
-    from .compare.rounds import diagnose_round
-
-    sc = _load(scene, sets)
+    sc = load(scene, sets)
     with Progress(transient=True) as bar:
         task = bar.add_task("fitting candidate effects", total=None)
         out = diagnose_round(sc, scene, measured, apply_to=apply_to, workers=workers,
@@ -70,9 +55,9 @@ def diagnose(scene, measured, json_out, apply_to, report, prefer, sets, workers)
     if apply_to and out["applied"] is None:
         click.echo("newtsim: nothing applied: no significant candidate", err=True)
     if report:
-        out["report"] = str(_report(cmp, report, diagnosis=out))
+        out["report"] = str(write_report(cmp, report, diagnosis=out))
     if json_out:
-        _write_json(out, json_out)
+        write_json(out, json_out)
     click.echo(f"baseline chi2/dof {out['baseline']['chi2_per_dof']:.4g}; {out['verdict']}", err=True)
     for c in out["candidates"][:5]:
         click.echo(f"  {c['effect']:15s} dBIC {c['delta_bic']:12.4g}  chi2/dof after {c['chi2_per_dof']:.4g}  "

@@ -11,16 +11,17 @@ from pathlib import Path
 import click
 
 from detector import DetectorError
+from scenes.app.batch import frame_sets, load_batch, plan, run_batch
+from scenes.scene import load_scene
+
+from .common import EXIT_INTERRUPTED, write_json
 
 EXIT_FRAMES_FAILED = 1
-EXIT_INTERRUPTED = 130
+
 
 
 def _dry_run(batch, force: bool) -> dict:
     """The frames, each with what a run would do: skip (done), render, or invalid (and why)."""
-    from .batch import frame_sets, plan
-    from .scene import load_scene
-
     todo = {s.index for s in plan(batch, force)[0]}
     frames = []
     for spec in batch.frames:
@@ -61,9 +62,6 @@ def batch(ctx, batch_file, scheduler, workers, output_dir, sets, force, dry_run,
     that are done. Each frame equals `newtsim render SCENE --seed S --set ...` with the seed and
     overrides of its manifest entry.
     """
-    from .batch import load_batch, run_batch
-    from .cli import _write_json
-
     if scheduler and workers:
         raise DetectorError("--workers sets the size of the local cluster", key="--workers",
                             expected="no --workers with --scheduler (the scheduler's workers are used)")
@@ -71,7 +69,7 @@ def batch(ctx, batch_file, scheduler, workers, output_dir, sets, force, dry_run,
     if dry_run:
         result = _dry_run(b, force)
         if json_out:
-            _write_json(result, json_out)
+            write_json(result, json_out)
         else:
             for f in result["plan"]:
                 click.echo(f"{f['file']}  seed {f['seed']:>20d}  step {f['step']:>3d}  draw {f['draw']:>3d}  "
@@ -90,7 +88,7 @@ def batch(ctx, batch_file, scheduler, workers, output_dir, sets, force, dry_run,
         click.echo(f"newtsim: frame {f['index']} ({f['file']}; {_overrides_text(f['overrides'])}) failed: "
                    f"{f['error']}", err=True)
     if json_out:
-        _write_json(summary, json_out)
+        write_json(summary, json_out)
     click.echo(f"batch: {summary['frames']} frames: {summary['rendered']} rendered, {summary['skipped']} already "
                f"done, {summary['failed']} failed in {summary['wall_s']:.1f} s -> {summary['manifest']}", err=True)
     if summary["failed"]:

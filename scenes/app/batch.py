@@ -46,8 +46,7 @@ from pydantic import Field
 from detector import DetectorError
 from detector.config import validate
 from detector.jsonable import jsonable
-
-from .scene import BUILTIN_SCENES, Scene, SceneError, _Table, load_scene
+from scenes.scene import BUILTIN_SCENES, Scene, SceneError, _Table, load_scene
 
 __all__ = ["Batch", "FrameSpec", "frame_seed", "frame_sets", "load_batch", "plan", "render_frame", "run_batch",
            "sequence_overrides", "toml_inline"]
@@ -283,8 +282,8 @@ def _advance(ra_deg: float, dec_deg: float, rate_ra: float, rate_dec: float, dt_
     Rates are dRA/dt cos(Dec) and dDec/dt [deg/s] (the convention of ``[[objects]]`` and ``rate``
     tracking); the speed is kept and the rates are re-expressed in the new position's east/north.
     """
-    from .image.motion import Boresight
-    from .objects.frames import east_north, radec_to_unit, unit_to_radec
+    from scenes.image.motion import Boresight
+    from scenes.objects.frames import east_north, radec_to_unit, unit_to_radec
 
     p0 = radec_to_unit(ra_deg, dec_deg)
     east, north = east_north(p0)
@@ -321,8 +320,8 @@ def sequence_overrides(scene: Scene, dt_s: float) -> dict[str, Any]:
         out.update({"pointing.ra_deg": ra, "pointing.dec_deg": dec, "exposure.rate_ra_deg_s": rra,
                     "exposure.rate_dec_deg_s": rdec})
     elif exp.tracking == "none":
-        from .image.motion import Boresight
-        from .objects.frames import unit_to_radec
+        from scenes.image.motion import Boresight
+        from scenes.objects.frames import unit_to_radec
 
         ra, _ = unit_to_radec(Boresight(p.ra_deg, p.dec_deg, "none").unit(dt_s)[0])
         out["pointing.ra_deg"] = float(ra)
@@ -378,8 +377,7 @@ def render_frame(spec: FrameSpec) -> dict:
     removed first, so a file on disk always belongs to its manifest entry.
     """
     from optics.design import OpticsError
-
-    from .render import render
+    from scenes.app.render import render
 
     t0 = time.perf_counter()
     res: dict[str, Any] = {"index": spec.index, "status": "failed", "host": socket.gethostname(), "pid": os.getpid()}
@@ -392,7 +390,7 @@ def render_frame(spec: FrameSpec) -> dict:
         summary = render(scene, spec.file, seed=spec.seed, noiseless=spec.noiseless, expected=spec.expected,
                          progress=False, workers=1)
         if spec.png:
-            from .quicklook import write_png
+            from scenes.app.quicklook import write_png
 
             png = Path(spec.file).with_suffix(".png")
             tmp = png.with_name(f".{png.stem}.{os.getpid()}.tmp.png")

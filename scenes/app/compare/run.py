@@ -1,33 +1,72 @@
-"""compare / diagnose / apply, round by round: the loop a user runs by hand with ``newtsim diagnose --apply``.
+"""Run a comparison, a diagnosis, one compare / diagnose / apply round, or several rounds.
 
-:func:`diagnose_round` is one round (what the CLI does): diagnose the scene against the measurement, add the
-best significant candidate to a new scene (with the global levels refitted, :func:`.diagnose.apply_candidate`)
-and append the round to the ledger (JSON and plot). :func:`run_rounds` repeats it until no candidate is
-significant, writing every round's scene, diagnosis JSON and HTML report to one folder, and returns one
-table row per round.
+``run_compare(scene, measured)`` builds the model (:mod:`.model`) and the residual statistics
+(:mod:`.statistics`); ``run_diagnose`` adds the ranked candidates (:mod:`.candidates`); ``diagnose_round``
+applies the best one (:mod:`.apply`) and updates the ledger (:mod:`.ledger`); ``run_rounds`` repeats the
+round until nothing significant is left. The CLI commands ``newtsim compare`` / ``newtsim diagnose``
+(:mod:`scenes.app.cli.compare`) and the HTML report (:mod:`.report`) are thin layers over these.
 """
 
 from __future__ import annotations
 
 import json
+import time
 from collections.abc import Callable
 from pathlib import Path
 
+import tomli_w
+
+from detector.errors import DetectorError
 from detector.jsonable import jsonable
+from scenes.scene import load_scene
 
-from . import diagnose as dg
+from .apply import apply_candidate
+from .candidates import (
+    SIGNIFICANT_DELTA_BIC,
+    candidates,
+    rank,
+    source_candidates,
+    verdict,
+)
+from .ledger import best_candidate, plot_ledger, round_row, update_ledger
+from .model import ModelFrame, build_model, read_measurement, residuals
+from .report import write_report
+from .statistics import compare, summary
+
+__all__ = ["SIGNIFICANT_DELTA_BIC", "ModelFrame", "best_candidate", "build_model", "diagnose_round", "run_compare",
+           "run_diagnose", "run_rounds"]
 
 
-def best_candidate(diagnosis: dict, prefer: tuple[str, ...] = ()) -> dict | None:
-    """The first significant (and not rejected) candidate of a diagnosis, or None; with ``prefer``, the
-    first significant candidate named there (in that order) comes first: the user's physical judgement
-    over the ranking (a raw DSLR frame: ``cfa`` before a blur that only hides the mosaic)."""
-    sig = [c for c in diagnosis["candidates"] if c["significant"]]
-    for name in prefer:
-        chosen = next((c for c in sig if c["effect"] == name), None)
-        if chosen is not None:
-            return chosen
-    return sig[0] if sig else None
+def run_compare(scene, measured: str | Path, workers: int | None = None) -> dict:
+    """Model vs measurement: the full result (arrays included) with ``summary`` (the contract's JSON)."""
+    t0 = time.perf_counter()
+    model = build_model(scene, workers=workers)
+    data, notes = read_measurement(measured, model)
+    t1 = time.perf_counter()
+    res = residuals(data, model)
+    if res.n_fit == 0:
+        raise DetectorError("no pixel of the measured frame can be compared pixel by pixel (all saturated, "
+                            "flagged or outliers)", file=str(measured), expected="a frame the model predicts")
+    result = compare(res, model.setup.truth, model.realisation)
+    result["summary"] = summary(result)
+    result["summary"].update(scene_file=scene.source, measured_file=str(measured), warnings=notes["warnings"] +
+                             model.setup.warnings, wcs_offset_px=notes["wcs_offset_px"],
+                             seconds={"model": t1 - t0, "compare": time.perf_counter() - t1})
+    result["_residuals"], result["_model"] = res, model
+    return result
+
+
+def run_diagnose(scene, measured: str | Path, workers: int | None = None, progress=None) -> dict:
+    """compare + every absent effect fitted and ranked: ``{"baseline", "candidates", "verdict", ...}``."""
+    cmp = run_compare(scene, measured, workers=workers)
+    t0 = time.perf_counter()
+    truth = cmp["_model"].setup.truth
+    cands, problems = candidates(cmp["_residuals"], set(scene.effects), progress=progress, truth=truth)
+    cands = rank(cands + source_candidates(cmp["_residuals"], truth, scene))
+    out = {"baseline": cmp["summary"], "candidates": [c.to_json() for c in cands], "problems": problems,
+           "verdict": verdict(cands), "seconds": time.perf_counter() - t0, "_compare": cmp}
+    out["significant"] = [c["effect"] for c in out["candidates"] if c["significant"]]
+    return out
 
 
 def diagnose_round(scene, scene_path: str | Path, measured: str | Path, apply_to: str | Path | None = None,
@@ -38,35 +77,16 @@ def diagnose_round(scene, scene_path: str | Path, measured: str | Path, apply_to
 
     Returns the diagnosis (``run_diagnose``) with ``applied`` (or None), ``ledger`` and the comparison under
     ``_compare``."""
-    from . import run_diagnose
-
     out = run_diagnose(scene, measured, workers=workers, progress=progress)
     best = best_candidate(out, prefer)
     applied = None
     if apply_to is not None and best is not None:
-        applied = dg.apply_candidate(scene, best, apply_to, measured)
+        applied = apply_candidate(scene, best, apply_to, measured)
     out["applied"] = {"effect": best["effect"], "params": best["params"], "scene": str(applied)} if applied else None
-    ledger, rounds = dg.update_ledger(scene_path, applied, str(measured), out["baseline"], best if applied else None)
+    ledger, rounds = update_ledger(scene_path, applied, str(measured), out["baseline"], best if applied else None)
     out["ledger"] = {"path": str(ledger), "rounds": rounds,
-                     "plot": str(dg.plot_ledger(rounds, Path(ledger).with_suffix(".png")))}
+                     "plot": str(plot_ledger(rounds, Path(ledger).with_suffix(".png")))}
     return out
-
-
-def round_row(k: int, diagnosis: dict, extra: dict | None = None, top: int = 6) -> dict:
-    """The table row of round ``k``: the baseline's errors, the top candidates, what was applied; the
-    ``row_*`` keys of ``extra`` (a caller's own checks) are copied."""
-    b, applied = diagnosis["baseline"], diagnosis.get("applied")
-    best, stars = best_candidate(diagnosis), b.get("stars") or {}  # the ranking's best, whatever was applied
-    return {"round": k, "chi2_per_dof": b["chi2_per_dof"], "chi2_per_dof_levels": b.get("chi2_per_dof_levels"),
-            "misfit": b["misfit"], "worst_regions": b.get("worst_regions"), "n_stars": stars.get("n", 0),
-            "star_flux_ratio": stars.get("median_flux_ratio"), "star_offset_px": stars.get("median_offset_px"),
-            "star_size_ratio": stars.get("median_size_ratio"),
-            "streak_flux_ratio": [s["total_flux_ratio"] for s in b.get("streaks") or []],
-            "candidates": [(c["effect"], c["delta_bic"], c["chi2_per_dof"]) for c in diagnosis["candidates"][:top]],
-            "best": best["effect"] if best else None, "delta_bic": best["delta_bic"] if best else None,
-            "explanation": best["explanation"] if best else diagnosis["verdict"],
-            "applied": applied["effect"] if applied else None, "params": applied["params"] if applied else None,
-            "verdict": diagnosis["verdict"], **{k2: v for k2, v in (extra or {}).items() if k2.startswith("row_")}}
 
 
 def run_rounds(scene: dict, measured: str | Path, out: Path, name: str, n_rounds: int = 3, *,
@@ -80,10 +100,6 @@ def run_rounds(scene: dict, measured: str | Path, out: Path, name: str, n_rounds
     ``NAME_round{k+1}.toml``; the ledger (``*.ledger.json`` / ``.png``) follows the last scene. ``prefer``:
     effects applied before the ranking's best whenever they are significant. Returns one :func:`round_row`
     per round."""
-    import tomli_w
-
-    from ..scene import load_scene
-
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     path = out / f"{name}_round1.toml"
@@ -100,8 +116,6 @@ def run_rounds(scene: dict, measured: str | Path, out: Path, name: str, n_rounds
             {"baseline": res["baseline"], "candidates": res["candidates"][:10], "verdict": res["verdict"],
              "problems": res["problems"], "applied": res["applied"], **checks}), indent=1, default=str))
         if report:
-            from .report import write_report
-
             write_report(cmp, out / f"{name}_round{k}.html", diagnosis=res)
         row = round_row(k, res, checks)
         table.append(row)
@@ -113,4 +127,3 @@ def run_rounds(scene: dict, measured: str | Path, out: Path, name: str, n_rounds
             break
         path = nxt
     return table
-

@@ -1,6 +1,6 @@
 """Where the model fails: statistics of the normalised residuals ``z = (data - model) / sigma_model``.
 
-Everything here is a pure function of a :class:`detector.diagnosis.Residuals` (and the model's truth
+Everything here is a pure function of a :class:`detector.signatures.Residuals` (and the model's truth
 table), returning plain dicts and small arrays that the JSON, the HTML report and the ledger use:
 
 * ``chi2_per_dof`` over the pixels the model predicts deterministically (DESIGN.md contract), with the
@@ -19,7 +19,8 @@ from __future__ import annotations
 import numpy as np
 from scipy import stats as sstats
 
-from detector.diagnosis import Residuals, two_sample_count_gain
+from detector.signatures import Residuals, two_sample_count_gain
+from detector.stats import mad_std
 
 #: block size target for the residual map in the report (pixels per side of the small map)
 MAP_SIDE = 256
@@ -28,11 +29,8 @@ PEAK_SIDE = 512
 
 
 def robust_std(x: np.ndarray) -> float:
-    """1.4826 x median absolute deviation: the std of a Gaussian, insensitive to outliers."""
-    x = np.asarray(x, np.float64).ravel()
-    if x.size == 0:
-        return float("nan")
-    return float(1.4826 * np.median(np.abs(x - np.median(x))))
+    """1.4826 x median absolute deviation of every value: the std of a Gaussian, insensitive to outliers."""
+    return mad_std(x, max_n=None)
 
 
 def global_stats(img: np.ndarray) -> dict:
@@ -179,7 +177,7 @@ def distribution(res: Residuals, z: np.ndarray, realisation: np.ndarray | None) 
 def outlier_counts(res: Residuals) -> dict:
     """Measured against one model realisation's outlier counts. Both are Poisson draws, so ``deviance`` is the
     likelihood ratio of two Poisson samples, separate rates against a common one
-    (:func:`detector.diagnosis.two_sample_count_gain`, sign flipped): ~chi2(1), mean ~1, when they agree."""
+    (:func:`detector.signatures.two_sample_count_gain`, sign flipped): ~chi2(1), mean ~1, when they agree."""
     d, m = res.data_spikes.counts(), res.model_spikes.counts()
     return {k: {"data": d[k], "model": m[k], "deviance": 0.0 - two_sample_count_gain(d[k], m[k])} for k in d}
 
@@ -198,7 +196,7 @@ def _moments(stamp: np.ndarray, yy: np.ndarray, xx: np.ndarray) -> tuple[float, 
 
 def background_adu(res: Residuals) -> np.ndarray:
     """The model's mean frame without its sources [ADU]: sky (or flat screen) and straylight through the chain,
-    dark signal and bias (``background_adu`` that :func:`scenes.compare.model.residuals` attaches). Without
+    dark signal and bias (``background_adu`` that :func:`scenes.app.compare.model.residuals` attaches). Without
     it, bias and dark plus the uniform part of the photo-signal (:meth:`Residuals.level_templates`)."""
     bg = res.background_adu
     return res.model_adu - res.photo_adu + res.background_photo_adu if bg is None else bg
@@ -333,7 +331,7 @@ def misfit(chi2: float, dof: int, counts: dict, extra: dict | None = None) -> fl
 
 
 def level_fit(res: Residuals) -> dict:
-    """chi2/dof with the global levels refitted (:func:`detector.diagnosis.level_profiled`: light, background,
+    """chi2/dof with the global levels refitted (:func:`detector.signatures.level_profiled`: light, background,
     bias offset and dark level as nuisance parameters, their shot noise included; dof = pixels - levels) and
     the fitted levels: relative changes of the light, background and dark signal [1], the offset [ADU]."""
     lv = res.levels()

@@ -1,7 +1,7 @@
 """One self-contained HTML page of a comparison (and diagnosis): what a person reads in a minute.
 
-:func:`write_report` turns the result of :func:`scenes.compare.run_compare` (arrays included) and,
-optionally, of :func:`scenes.compare.run_diagnose` into a single HTML file: every plot is a small PNG
+:func:`write_report` turns the result of :func:`scenes.app.compare.run_compare` (arrays included) and,
+optionally, of :func:`scenes.app.compare.run_diagnose` into a single HTML file: every plot is a small PNG
 embedded as base64 (no external file, script or style sheet), so the report can be mailed or archived
 alone. The page opens with the verdict, then shows where and how the model fails:
 
@@ -695,11 +695,11 @@ def write_report(result: dict, path, *, diagnosis: dict | None = None, title: st
     Parameters
     ----------
     result : dict
-        :func:`scenes.compare.run_compare` output (arrays included; a JSON round trip of it works too).
+        :func:`scenes.app.compare.run_compare` output (arrays included; a JSON round trip of it works too).
     path : str or Path
         The HTML file to write (its folder must exist).
     diagnosis : dict, optional
-        :func:`scenes.compare.run_diagnose` output (``verdict``, ``candidates``, ``problems``, ``ledger``).
+        :func:`scenes.app.compare.run_diagnose` output (``verdict``, ``candidates``, ``problems``, ``ledger``).
     title : str, optional
         Page title (default: the scene and measured file names).
     """

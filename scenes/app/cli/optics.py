@@ -14,6 +14,8 @@ import click
 
 from optics.design import OpticsError, load_design
 
+from .common import write_json
+
 
 @contextmanager
 def _progress(label: str, enabled: bool = True):
@@ -52,9 +54,7 @@ def _design(name):
 
 
 def _echo_json(obj, path):
-    from .cli import _write_json
-
-    _write_json(obj, path)
+    write_json(obj, path)
 
 
 @click.group()

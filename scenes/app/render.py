@@ -18,18 +18,23 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+import tomli_w
 from astropy.io import fits
+from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 
 from detector import Detector, build_effects
 from detector.fits_io import primary_header, table_hdu, write_streamed
 from detector.rng import fresh_seed
 from optics.design import OpticsError, load_design
-
-from .image import TRUTH_DTYPE, build_sources, frame_wcs
-from .image.signal import Samples, SourceSignal
-from .photometry import sky_electron_rate_per_pixel
-from .projection import REVERSE_WARN_PX, Sip, sip_from_optics, sip_from_table
-from .scene import Scene, SceneError
+from optics.distortion import cached_sip
+from optics.vignetting import cached_map_fits
+from scenes.image import TRUTH_DTYPE, build_sources, frame_wcs
+from scenes.image.signal import Samples, SourceSignal
+from scenes.objects import observer_from_table
+from scenes.photometry import sky_electron_rate_per_pixel
+from scenes.projection import REVERSE_WARN_PX, Sip, sip_from_optics, sip_from_table
+from scenes.scene import Scene, SceneError
+from scenes.straylight import straylight_signal
 
 #: SIP order of the optics' distortion fit: the art corrector's distortion has 7th-order terms (order 5
 #: leaves 0.03-0.07 px, order 7 below 0.01 px; docs/optics_psf.md)
@@ -67,12 +72,6 @@ def resolve_distortion(scene: Scene, sensor, design) -> Sip | None:
     t = sip_from_table(tel.sip or {}, file=scene.source, allow_coefficients=tel.distortion == "sip")
     if tel.distortion == "sip":
         return Sip(t["order"], t["a"], t["b"], t["reverse_order"], "scene")
-    try:
-        from optics.distortion import cached_sip
-    except ImportError:
-        raise SceneError("this optics package has no cached_sip (the optics SIP fit is not available on this "
-                         "branch)", key="telescope.distortion", file=scene.source,
-                         expected="distortion = 'none', or 'sip' with a [telescope.sip] table") from None
     shape = (sensor.sensor_height_px, sensor.sensor_width_px)
     try:
         fit = cached_sip(design, float(sensor.pixel_pitch_um), shape, order=t["order"] or OPTICS_SIP_ORDER)
@@ -84,9 +83,6 @@ def resolve_distortion(scene: Scene, sensor, design) -> Sip | None:
 
 def _straylight(scene: Scene, sensor, design, effects_list, exptime_s: float):
     """``[effects.straylight]`` -> (StraylightSignal, header cards), the chain's vignetting divided out."""
-    from .objects import observer_from_table
-    from .straylight import straylight_signal
-
     base_dir = Path(scene.source).parent if scene.source and scene.source != "<built-in>" else None
     observer = observer_from_table(scene.observer, file=scene.source, base_dir=base_dir)
     vig = next((e for e in effects_list if e.name == "vignetting"), None)
@@ -103,7 +99,6 @@ def _resolve_optics_maps(effects: dict, design, scene: Scene) -> dict:
     vig = effects.get("vignetting")
     if not vig or vig.get("map_file") != "optics":
         return effects
-    from optics.vignetting import cached_map_fits
 
     try:
         path = cached_map_fits(design)
@@ -221,8 +216,6 @@ def header_cards(setup: Setup, seed: int, noiseless: bool) -> fits.Header:
 
 def scene_hdu(scene: Scene) -> fits.BinTableHDU:
     """The resolved scene as TOML text in a one-row table (extension ``SCENE``)."""
-    import tomli_w
-
     text = tomli_w.dumps(scene.resolved())
     col = fits.Column(name="toml", format=f"{max(len(text), 1)}A", array=np.array([text]))
     return fits.BinTableHDU.from_columns([col], name="SCENE")
@@ -280,8 +273,6 @@ def render(scene: Scene, out: str | Path, *, seed: int | None = None, noiseless:
 
 
 def _with_progress(bands, total: int, label: str):
-    from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
-
     with Progress(TextColumn("[bold]render[/bold] {task.description}"), BarColumn(), TextColumn("{task.completed}/{task.total} bands"),
                   TimeElapsedColumn(), transient=True) as prog:
         task = prog.add_task(label, total=total)

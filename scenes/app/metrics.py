@@ -26,7 +26,7 @@ import math
 import numpy as np
 from scipy import ndimage
 
-MAD_TO_SIGMA = 1.482602218505602  # 1 / Phi^-1(3/4)
+from detector.stats import clipped_median_std
 
 
 # ------------------------------------------------------------------------------------------ statistics
@@ -52,36 +52,8 @@ def frame_stats(img: np.ndarray, rows_per_block: int = 512) -> dict:
         median = 0.5 * (lo + hi)
     else:
         median = float(np.median(img))
-    core = clipped_stats(img[::4, ::4], nsigma=4.0)[1]  # the Gaussian core, blind to hot pixels and sources
+    core = clipped_median_std(img[::4, ::4], nsigma=4.0)[1]  # the Gaussian core, blind to hot pixels and sources
     return {"mean": mean, "median": median, "std": math.sqrt(ss / n), "std_clipped": core}
-
-
-def clipped_stats(values: np.ndarray, nsigma: float = 3.0, iters: int = 5) -> tuple[float, float, int]:
-    """Sigma-clipped median and standard deviation of ``values``, and how many were kept.
-
-    Clipping at ``nsigma`` about the median with the MAD's sigma, iterated; the std of the kept values is
-    divided by that of a Gaussian truncated at +-nsigma, so that it estimates the Gaussian core's sigma."""
-    v = np.asarray(values, dtype=np.float64).ravel()
-    v = v[np.isfinite(v)]
-    if v.size == 0:
-        return math.nan, math.nan, 0
-    for _ in range(iters):
-        med = float(np.median(v))
-        sig = MAD_TO_SIGMA * float(np.median(np.abs(v - med)))
-        if sig == 0:  # integer data with a narrow core: fall back on the std of the core
-            sig = float(np.std(v))
-        keep = np.abs(v - med) <= nsigma * sig if sig > 0 else np.ones(v.size, bool)
-        if keep.all():
-            break
-        v = v[keep]
-    med = float(np.median(v))
-    return med, float(np.std(v)) / _truncation_factor(nsigma), int(v.size)
-
-
-def _truncation_factor(k: float) -> float:
-    """std of a Gaussian truncated at +-k sigma over sigma (0.9866 at k = 3): corrects the clipped std."""
-    phi = math.exp(-0.5 * k * k) / math.sqrt(2 * math.pi)
-    return math.sqrt(1.0 - 2.0 * k * phi / math.erf(k / math.sqrt(2.0)))
 
 
 def background_map(img: np.ndarray, box: int | None = 64, nsigma: float = 3.0) -> tuple[np.ndarray, np.ndarray]:
@@ -101,7 +73,7 @@ def background_map(img: np.ndarray, box: int | None = 64, nsigma: float = 3.0) -
     sig = np.empty((ny, nx))
     for j in range(ny):
         for i in range(nx):
-            med[j, i], sig[j, i], _ = clipped_stats(cells[j, i], nsigma)
+            med[j, i], sig[j, i], _ = clipped_median_std(cells[j, i], nsigma)
     if ny >= 3 and nx >= 3:
         med = ndimage.median_filter(med, size=3, mode="nearest")
         sig = ndimage.median_filter(sig, size=3, mode="nearest")
@@ -225,7 +197,7 @@ def path_photometry(img: np.ndarray, x0: float, y0: float, x1: float, y1: float,
         ann &= ~mask[ya:yb, xa:xb]
     if not ap.any() or ann.sum() < 8:
         return nan
-    b, s_b, n_ann = clipped_stats(cut[ann])
+    b, s_b, n_ann = clipped_median_std(cut[ann])
     n_ap = int(ap.sum())
     flux = float(np.sum(cut[ap] - b))
     var = max(flux, 0.0) / gain_e_per_adu + n_ap * s_b ** 2 * (1.0 + n_ap / max(n_ann, 1))

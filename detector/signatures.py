@@ -41,7 +41,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy import optimize
 
-from .sensor import SensorConfig
+from detector.sensor import SensorConfig
 
 #: |z - median_3x3(z)| above which a pixel is a spike (hot/dead pixel, cosmic-ray hit) [sigma]
 SPIKE_SIGMA = 5.0

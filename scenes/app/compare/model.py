@@ -15,14 +15,13 @@ from pathlib import Path
 
 import numpy as np
 
-from detector.diagnosis import Residuals, SpikeStats, spike_stats
 from detector.errors import DetectorError
 from detector.fits_io import read_image
-
-from ..image.signal import Samples, SourceSignal, Trails
-from ..projection import axis_crpix
-from ..render import Setup, prepare
-from ..scene import Scene
+from detector.signatures import Residuals, SpikeStats, spike_stats
+from scenes.app.render import Setup, prepare
+from scenes.image.signal import Samples, SourceSignal, Trails
+from scenes.projection import axis_crpix
+from scenes.scene import Scene
 
 #: seed of the model realisation used for outlier statistics (fixed: the comparison is reproducible)
 REALISATION_SEED = 20231101

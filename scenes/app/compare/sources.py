@@ -3,7 +3,7 @@
 The detector catalogue's signatures see pixels; a tumbling or glinting object shows as a streak whose flux
 varies along its length, which only the object's track can turn into time. For every object of the model's
 TRUTH table (``t0_s``, ``t1_s``: when it is at the streak's ends), the flux along the track in 1-px bins,
-data against model over the model's background (:func:`scenes.compare.analysis.background_adu`), is
+data against model over the model's background (:func:`scenes.app.compare.statistics.background_adu`), is
 fitted by a sinusoidal modulation ``D_k = M_k (1 + L) (1 + a sin(2 pi (t_k / P + phi)))`` (L the object's
 flux scale, profiled): linear in ``(a cos 2 pi phi, a sin 2 pi phi)`` for each period P of a logarithmic
 grid (a Lomb-Scargle periodogram weighted by the model's variance; Lomb 1976, Ap&SS 39, 447; Scargle 1982,
@@ -17,9 +17,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from detector.diagnosis import Fit, Residuals
+from detector.signatures import Fit, Residuals
 
-from .analysis import background_adu, track_band
+from .statistics import background_adu, track_band
 
 #: name of the candidate (not a detector effect: ``apply_candidate`` writes it into ``[[objects]]``)
 LIGHT_CURVE = "light_curve"
@@ -111,7 +111,7 @@ def light_curve_fit(res: Residuals, row, index: int, bg: np.ndarray | None = Non
                note=f"period {period:.4g} s")
 
 
-def source_candidates(res: Residuals, truth, scene):
+def light_curve_candidates(res: Residuals, truth, scene):
     """The light-curve fits of the scene's objects that do not have a light curve yet (a generator: each
     fit is made when it is asked for)."""
     if truth is None or len(truth) == 0 or "t0_s" not in truth.dtype.names:

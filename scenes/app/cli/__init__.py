@@ -1,0 +1,68 @@
+"""The ``newtsim`` command line (contract in DESIGN.md): one module per command group.
+
+* :mod:`.render`        ``render``, ``effects``
+* :mod:`.characterize`  ``characterize``
+* :mod:`.compare`       ``compare``, ``diagnose``
+* :mod:`.batch`         ``batch``
+* :mod:`.optics`        ``optics vignetting | psf | pst | layout``
+* :mod:`.common`        error handling, JSON output, scene loading, progress bars
+
+The optics commands import Mitsuba only when they run, so ``newtsim render`` works without it.
+"""
+
+from __future__ import annotations
+
+import sys
+
+import click
+
+from .batch import batch as batch_command
+from .characterize import characterize as characterize_command
+from .characterize import expand_multi_file_options
+from .common import EXIT_INTERRUPTED, Group
+from .compare import compare as compare_command
+from .compare import diagnose as diagnose_command
+from .optics import optics as optics_group
+from .render import effects as effects_command
+from .render import render as render_command
+
+
+@click.group(cls=Group, context_settings={"help_option_names": ["-h", "--help"]})
+@click.version_option(package_name="newtsim")
+def cli():
+    """newtsim: what a Newtonian telescope with a CCD or CMOS camera records.
+
+    \b
+    render        a scene to a FITS frame (+ PNG quick-look)
+    batch         many frames (sweeps, time sequences, Monte-Carlo draws) on Dask, resumable
+    characterize  bias/dark/flat calibration frames -> camera parameters (+ a scene that reproduces it)
+    effects       the catalogue of optional effects, their parameters and units
+    compare       model vs measured frame: chi2, residuals per region/row/column/source, HTML report
+    diagnose      which physical effect the model lacks, ranked by delta BIC; --apply adds it
+    optics        vignetting | psf | pst: ray tracing of the telescope (Mitsuba 3, llvm)
+    """
+
+
+cli.add_command(render_command, name="render")
+cli.add_command(characterize_command, name="characterize")
+cli.add_command(effects_command, name="effects")
+cli.add_command(compare_command, name="compare")
+cli.add_command(diagnose_command, name="diagnose")
+cli.add_command(optics_group, name="optics")
+cli.add_command(batch_command, name="batch")
+
+
+def main(argv=None):
+    """Console-script entry point."""
+    argv = list(sys.argv[1:] if argv is None else argv)
+    if argv[:1] == ["characterize"]:
+        argv = expand_multi_file_options(argv)
+    try:
+        cli.main(args=argv, prog_name="newtsim", standalone_mode=True)
+    except KeyboardInterrupt:
+        click.echo("newtsim: interrupted", err=True)
+        sys.exit(EXIT_INTERRUPTED)
+
+
+if __name__ == "__main__":
+    main()

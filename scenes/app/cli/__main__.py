@@ -1,0 +1,5 @@
+"""``python -m scenes.app.cli``: the ``newtsim`` command."""
+
+from . import main
+
+main()

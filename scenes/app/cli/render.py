@@ -1,0 +1,52 @@
+"""``newtsim render`` (a scene to a FITS frame and its quick-look) and ``newtsim effects`` (the catalogue)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import click
+
+from detector import DetectorError, registry
+from scenes.app.quicklook import write_png
+from scenes.app.render import render as do_render
+
+from .common import load, warn, write_json
+
+
+@click.command()
+@click.argument("scene")
+@click.option("-o", "--output", "output", required=True, type=click.Path(dir_okay=False), help="output FITS file")
+@click.option("--seed", type=int, default=None, help="frame seed (noise); default: scene's exposure.seed or random")
+@click.option("--noiseless", is_flag=True, help="write expected electrons (float32) before any random draw")
+@click.option("--set", "sets", multiple=True, metavar="KEY=VALUE", help="override a scene key, e.g. exposure.time_s=150")
+@click.option("--png/--no-png", default=True, help="also write OUTPUT.png, a quick-look (default on)")
+@click.option("--expected", is_flag=True, help="add the expected electrons as extension EXPECTED")
+@click.option("--workers", type=int, default=None, help="threads (default: CPUs, at most 4)")
+@click.option("--json", "json_out", default=None, help="write a JSON summary here ('-' for stdout)")
+def render(scene, output, seed, noiseless, sets, png, expected, workers, json_out):
+    """Render SCENE (a TOML file or a built-in name such as 'default') to a FITS frame."""
+    sc = load(scene, sets)
+    summary = do_render(sc, output, seed=seed, noiseless=noiseless, expected=expected, workers=workers)
+    warn(summary["warnings"])
+    if png:
+        summary["png"] = str(write_png(output, Path(output).with_suffix(".png")))
+    if json_out:
+        write_json(summary, json_out)
+    else:
+        click.echo(f"wrote {summary['path']} ({summary['shape'][1]}x{summary['shape'][0]}, seed {summary['seed']})"
+                   + (f" and {summary['png']}" if png else ""), err=True)
+
+
+@click.command()
+@click.argument("name", required=False)
+def effects(name):
+    """List the optional effects (or describe NAME: stages, parameters, units, bounds)."""
+    reg = registry()
+    if name is None:
+        for n, cls in sorted(reg.items()):
+            first = (cls.__doc__ or "").strip().splitlines()[0] if cls.__doc__ else ""
+            click.echo(f"{n:16s} {first}")
+        return
+    if name not in reg:
+        raise DetectorError(f"unknown effect {name!r}", key="effects", expected="one of " + ", ".join(sorted(reg)))
+    write_json(reg[name].describe(), None)

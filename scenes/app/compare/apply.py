@@ -1,0 +1,124 @@
+"""``diagnose --apply``: write the scene with the chosen candidate added, and the global levels that go with it.
+
+The diagnosis fits every candidate together with the global levels the model only knows roughly (light,
+sky, bias offset, dark level; :meth:`detector.signatures.Residuals.levels`). The new scene carries those
+levels, refitted on the measured frame with the new effect in the model, in the scene keys that hold them.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import tomli_w
+
+from detector.signatures import LEVEL_DEGENERACY, _at, _independent
+from scenes.scene import load_scene
+
+from .model import build_model, read_measurement, residuals
+
+
+def apply_candidate(scene, cand: dict, path: str | Path, measured: str | Path | None = None) -> Path:
+    """Write ``scene`` with the candidate's effect and fitted parameters added (a new scene TOML).
+
+    The diagnosis fits every candidate together with the global levels the model only knows roughly
+    (:meth:`detector.signatures.Residuals.levels`: light, sky background, bias offset, dark level). The new
+    scene therefore carries the levels that go with the effect: with ``measured`` given, the levels that
+    frame measures are refitted with the new effect in the model (weighted least squares,
+    :func:`refit_levels`) and written to the scene keys that hold them (``[sky] flat_e_per_s``,
+    ``[sky] background_mag_arcsec2``, ``[detector] bias_adu``); each change is noted in the file's header
+    comment. A multiplicative effect such as vignetting would otherwise lower the whole model."""
+    data = scene.model_dump(mode="json", exclude_none=True, exclude_unset=True)
+    if cand["effect"] == "light_curve":  # a source's property: into its [[objects]] table
+        data["objects"][cand["params"]["object"]]["light_curve"] = cand["params"]["light_curve"]
+        added = f"objects[{cand['params']['object']}].light_curve"
+    else:
+        data.setdefault("effects", {})[cand["effect"]] = cand["params"]
+        added = f"[effects.{cand['effect']}]"
+    p = Path(path)
+    notes = []
+    if measured is not None:
+        data, notes = carry_levels(data, refit_levels(p, data, measured), scene)
+    p.write_text(f"# written by newtsim diagnose --apply: added {added}\n"
+                 f"# {cand['explanation']}\n" + "".join(f"# and {n}\n" for n in notes) + tomli_w.dumps(data))
+    return p
+
+
+#: level changes below these are not written back (relative for scales, ADU for the bias offset)
+LEVEL_SCALE_TOL, LEVEL_OFFSET_TOL_ADU = 1e-4, 0.01
+
+
+def refit_levels(path: Path, data: dict, measured) -> dict[str, float]:
+    """The global levels the scene ``data`` (written to ``path``) needs to match ``measured``.
+
+    A level is refitted from the frame that measures it, on the pixels where the model's sources add less
+    than one sigma to its background (misplaced or mis-sized stars would pull a sky level): the light level
+    (flat screen) or the sky level from a light frame, the bias offset and the dark level from a dark or bias frame (a light frame cannot
+    separate a bias offset from its light: on a vignetted flat screen the least squares trade hundreds of
+    ADU of bias against a per cent of light). Weighted least squares of the residual on those templates,
+    degenerate ones dropped in :attr:`Residuals.LEVELS` order. Returns ``{level name: coefficient}``
+    (scales are relative changes, the offset is in ADU)."""
+    path.write_text(tomli_w.dumps(data))
+    sc = load_scene(str(path))
+    model = build_model(sc, realisation=False)
+    d, _ = read_measurement(measured, model)
+    res = residuals(d, model)
+    idx, r, w = res.flat()
+    if res.background_adu is not None:  # the levels from the background's pixels: a misfit star is not sky
+        sources = (res.model_adu - res.background_adu).ravel()[idx] * np.sqrt(w)
+        keep = sources < 1.0
+        idx, r, w = idx[keep], r[keep], w[keep]
+    if not idx.size:
+        return {}
+    if sc.exposure.frame == "light":
+        if sc.sky.flat_e_per_s:
+            wanted = [0]  # the flat screen: the whole photo-signal
+        elif sc.sky.background_mag_arcsec2 is not None:
+            wanted = [1]  # the sky: the uniform part of the light
+        else:
+            return {}
+    else:
+        # a dark or bias frame: the bias offset. A uniform dark level is the same in one dark frame (it is
+        # kept as the bias, as Residuals.levels does), and the dark template holds glow, DSNU and bias
+        # structure too: scaling the dark current by its fit would be wrong
+        wanted = [2]
+    temps = res.level_templates()
+    x = np.stack([_at(temps[i], res.data_adu.shape, idx) for i in wanted])
+    xw = x * w
+    g = xw @ x.T
+    keep = _independent(g, tol=LEVEL_DEGENERACY)
+    if not keep:
+        return {}
+    coef = np.linalg.solve(g[np.ix_(keep, keep)], (xw @ r)[keep])
+    return {res.LEVELS[wanted[k]]: float(c) for k, c in zip(keep, coef)}
+
+
+def carry_levels(data: dict, levels: dict[str, float], scene) -> tuple[dict, list[str]]:
+    """Write refitted global levels into the keys of the scene ``data`` (a dump of ``scene``) that hold
+    them. Returns (scene data, notes)."""
+    notes, sensor = [], scene.sensor()
+    sky, det = data.setdefault("sky", {}), data.setdefault("detector", {})
+    c = levels.get("light_scale", 0.0)
+    if abs(c) > LEVEL_SCALE_TOL and sky.get("flat_e_per_s") and 1 + c > 0:
+        sky["flat_e_per_s"] = round(float(sky["flat_e_per_s"]) * (1 + c), 6)
+        notes.append(f"the flat-screen level refitted: flat_e_per_s x {1 + c:.5f}")
+    c = levels.get("background_scale", 0.0)
+    if abs(c) > LEVEL_SCALE_TOL and 1 + c > 0.05:
+        mag = scene.sky.background_mag_arcsec2
+        sky["background_mag_arcsec2"] = round(float(mag) - 2.5 * float(np.log10(1 + c)), 5)
+        notes.append(f"the sky level refitted: x {1 + c:.5f} ({mag:.4g} -> {sky['background_mag_arcsec2']:.5g} "
+                     "mag/arcsec^2)")
+    c = levels.get("offset_adu", 0.0) / bias_per_output_adu(sensor)
+    if abs(c) > LEVEL_OFFSET_TOL_ADU:
+        det["bias_adu"] = round(max(float(sensor.bias_adu) + c, 0.0), 3)
+        notes.append(f"the bias level refitted: {sensor.bias_adu:.4g} -> {det['bias_adu']:.6g} ADU")
+    return data, notes
+
+
+def bias_per_output_adu(sensor) -> float:
+    """Output ADU per ADU of ``bias_adu``: a CMOS sums (or averages) ``b^2`` digitised reads, each with the
+    bias; a CCD reads a binned pixel once (and an average divides that by ``b^2``)."""
+    b2 = sensor.binning ** 2
+    if sensor.binning_mode == "sum":
+        return float(b2) if sensor.kind != "ccd" else 1.0
+    return 1.0 if sensor.kind != "ccd" else 1.0 / b2
