@@ -973,12 +973,17 @@ def characterize(bias_paths: Sequence, dark_paths: Sequence, flat_paths: Sequenc
         raise DetectorError("no bias frame given", key="bias", expected="one or more bias FITS files")
     if not dark_paths:
         raise DetectorError("no dark frame given", key="dark", expected="one or more dark FITS files")
+    check_sigma(hot_sigma)
+    if flat_paths and len(flat_paths) != 2:
+        raise DetectorError(f"{len(flat_paths)} flat frames given", key="flat",
+                            expected="exactly two flats of the same illumination and exposure")
     rng = np.random.default_rng(seed)
     thresholds = [float(t) for t in count_thresholds_adu]
     bias = read_frames(bias_paths, "bias", need_exptime=False)
     shape, ref = bias[0].data.shape, bias[0].path
     darks = read_frames(dark_paths, "dark", need_exptime=True, shape=shape, shape_file=ref)
     flats = read_frames(flat_paths, "flat", need_exptime=False, shape=shape, shape_file=ref) if flat_paths else []
+    sanity_checks(bias, darks, flats)
     warns: list[str] = []
 
     bias_res, master, w = analyze_bias(bias, rng)
@@ -1022,7 +1027,94 @@ def characterize(bias_paths: Sequence, dark_paths: Sequence, flat_paths: Sequenc
              "bit_depth": _bit_depth(header0, min(sats))}
     result = {"frame": frame, "gain": gain_res, "bias": bias_res, "dark": dark_res, "hot_pixels": hot_res,
               "flat": flat_res, "warnings": warns}
+    warns += physical_warnings(result)
     return jsonable(result)
+
+
+#: the range of ``hot_sigma`` that makes sense: below 2 sigma the normal bulk itself is flagged
+SIGMA_RANGE = (2.0, 100.0)
+
+
+def check_sigma(hot_sigma: float) -> None:
+    """``hot_sigma`` within :data:`SIGMA_RANGE` (a threshold of 2 sigma already flags 2.3 % of a normal bulk)."""
+    lo, hi = SIGMA_RANGE
+    if not (isinstance(hot_sigma, (int, float)) and math.isfinite(hot_sigma) and lo <= hot_sigma <= hi):
+        raise DetectorError(f"outlier threshold {hot_sigma!r} sigma", key="sigma",
+                            expected=f"a number of robust sigma in [{lo:g}, {hi:g}]")
+
+
+def _saturated_fraction(f: Frame) -> float:
+    if not math.isfinite(f.saturation_adu):
+        return 0.0
+    return float(np.mean(_flat_sample(f.data, 1_000_000) >= f.saturation_adu - 0.5))
+
+
+def sanity_checks(bias: Sequence[Frame], darks: Sequence[Frame], flats: Sequence[Frame]) -> None:
+    """Refuse calibration sets that cannot give a meaningful answer; one :class:`DetectorError` each.
+
+    Identical frames (the same data twice: the pair difference would be 0), constant frames (an all-zero
+    or blank bias), frames mostly (> 50 %) at the ADC saturation, bias frames with an exposure time
+    (> 0.01 s), darks without two different exposure times > 0 s, flats of different exposure times.
+    """
+    groups = {"bias": bias, "dark": darks, "flat": flats}
+    for role, frames in groups.items():
+        for i, a in enumerate(frames):
+            for b in frames[i + 1:]:
+                if a.data.shape == b.data.shape and np.array_equal(a.data, b.data):
+                    raise DetectorError(f"{role} frame has the same pixels as {b.path}", file=a.path,
+                                        expected=f"independent {role} exposures (not the same frame twice)")
+            sf = _saturated_fraction(a)
+            if sf > 0.5:
+                raise DetectorError(f"{role} frame is saturated ({100 * sf:.0f} % of pixels at "
+                                    f"{a.saturation_adu:g} ADU)", file=a.path,
+                                    expected=f"a {role} frame below the ADC saturation")
+            if np.ptp(_flat_sample(a.data, 1_000_000)) == 0 and np.ptp(a.data) == 0:
+                raise DetectorError(f"{role} frame is constant ({float(a.data.flat[0]):g} ADU everywhere)",
+                                    file=a.path, expected=f"a real {role} exposure (pixels that vary)")
+    for f in bias:
+        if f.exptime_s is not None and f.exptime_s > 0.01:
+            raise DetectorError(f"bias frame has an exposure time of {f.exptime_s:g} s", key="EXPTIME", file=f.path,
+                                expected="a bias frame: exposure time 0 s (use it as a dark with --dark)")
+    t_pos = sorted({float(f.exptime_s) for f in darks if f.exptime_s and f.exptime_s > 0})
+    if len(t_pos) < 2:
+        all_t = sorted({float(f.exptime_s) for f in darks})
+        raise DetectorError(f"darks at {', '.join(f'{t:g}' for t in all_t)} s only", key="dark",
+                            expected="darks of at least two different exposure times > 0 s")
+    if flats:
+        tf = {f.exptime_s for f in flats}
+        if len(tf) > 1:
+            raise DetectorError(f"flats of different exposure times ({', '.join(f'{t}' for t in tf)} s)", key="flat",
+                                expected="two flats of the same exposure time and illumination")
+
+
+def physical_warnings(result: dict) -> list[str]:
+    """Results outside physical ranges, one sentence each (they go into ``warnings`` of the JSON)."""
+    out = []
+    b, d, fr = result["bias"], result["dark"], result["frame"]
+    if not b.get("read_noise_adu", 0) > 0:
+        out.append(f"read noise {b.get('read_noise_adu')} ADU is not positive: the bias frames carry no temporal noise")
+    if d["dark_current_adu_per_s"] < 0:
+        out.append(f"negative dark current ({d['dark_current_e_per_s']:.4g} e-/s): the darks' level falls with "
+                   "exposure (saturated, mislabelled or bias-shifted frames?); the emitted scene uses 0")
+    elif d["dark_current_adu_per_s_se"] and d["dark_current_adu_per_s"] < 2 * d["dark_current_adu_per_s_se"]:
+        out.append("dark current not significant (below 2 standard errors)")
+    hp = result["hot_pixels"]
+    n_pix = fr["width"] * fr["height"]
+    if hp.get("n_outliers", 0) > 0.1 * n_pix:
+        out.append(f"{hp['n_outliers']} outliers ({100 * hp['n_outliers'] / n_pix:.1f} % of the pixels): not a defect "
+                   "population (threshold too low, or a gradient/glow in the darks)")
+    f = result.get("flat")
+    if f:
+        k = result["gain"].get("photon_transfer_e_per_adu")
+        if k is None or not (isinstance(k, (int, float)) and math.isfinite(k) and k > 0):
+            out.append("photon-transfer gain not positive/finite: the flat pair's difference is not shot-noise "
+                       "limited (identical, saturated or too faint flats?)")
+        if f.get("prnu_rel", 0) > 0.1:
+            out.append(f"PRNU {f['prnu_rel']:.3f} above 10 %: not a pixel response (dust, structure?)")
+        v = f.get("vignetting", {}).get("corner_over_centre_mean")
+        if v is not None and v > 1.1:
+            out.append(f"corners {v:.3f} x the centre: brighter corners are not vignetting")
+    return out
 
 
 def _pixel_size(header) -> float | None:
@@ -1196,7 +1288,7 @@ def dark_rate_map(ts: np.ndarray, darks: Sequence[np.ndarray], bias_map: np.ndar
     ``se(r) = 1 / sqrt(sum w t^2)`` (the pixel's own shot noise is used for its error). The intercept is the
     noise-free bias structure (:func:`bias_structure`), so the rate's noise is the darks' alone.
 
-    The bulk (pixels within ``nsigma`` standard errors of the median rate) is shrunk towards the median by
+    The bulk (pixels within ``nsigma`` clipped standard deviations of the median rate) is shrunk towards the median by
     ``s = sqrt((V - N) / V)`` (``V`` the bulk's clipped variance, ``N`` the mean squared standard error):
     the map then has the *measured* dark-signal non-uniformity, not that plus its noise; outliers (hot and
     warm pixels) keep their measured rates.
@@ -1204,8 +1296,8 @@ def dark_rate_map(ts: np.ndarray, darks: Sequence[np.ndarray], bias_map: np.ndar
     Returns
     -------
     rate_adu_s, se_adu_s : 2-D float32 arrays
-    stuck : 2-D bool array (at least half their longest-dark excess already in the shortest dark, and
-        above ``nsigma`` there: stuck or instantly saturated pixels, not a rate)
+    stuck : 2-D bool array (above ``nsigma`` in the longest dark, at least half of that already in the
+        shortest, and the same value, within 5 sqrt(2) sigma_read or 5 %, in every dark: stuck pixels)
     info : dict
     """
     ts = np.asarray(ts, dtype=np.float64)
@@ -1233,8 +1325,9 @@ def dark_rate_map(ts: np.ndarray, darks: Sequence[np.ndarray], bias_map: np.ndar
         se = np.where(se2 > 0, 1.0 / np.sqrt(se2), np.inf)
     med = float(np.median(_flat_sample(rate)))
     noise2 = float(np.median(_flat_sample(se)) ** 2)
-    bulk = np.abs(rate - med) <= nsigma * np.maximum(se, 1e-12)
-    cs = clipped_stats(rate[bulk], 5.0)
+    spread0 = clipped_stats(rate, 3.0)["std"]  # DSNU and noise together
+    bulk = np.abs(rate - med) <= nsigma * max(spread0, 1e-12)
+    cs = clipped_stats(rate[bulk], nsigma)
     V = cs["std"] ** 2
     s = math.sqrt(max(V - noise2, 0.0) / V) if V > 0 else 0.0
     out = rate.copy()
@@ -1242,8 +1335,13 @@ def dark_rate_map(ts: np.ndarray, darks: Sequence[np.ndarray], bias_map: np.ndar
     # stuck: large already at the shortest exposure and not growing
     x0 = darks[0].astype(np.float64) - bias_map - offset_adu
     xl = darks[-1].astype(np.float64) - bias_map - offset_adu
-    stuck = (xl > nsigma * math.sqrt(read_noise_adu ** 2 + max(r_bar, 0) * ts[-1] / gain) + med * ts[-1]) \
-        & (x0 >= 0.5 * xl) & (ts[0] <= 0.5 * ts[-1])
+    stack = np.stack([d.astype(np.float32) for d in darks])
+    spread = stack.max(axis=0) - stack.min(axis=0)
+    del stack
+    high = xl > nsigma * math.sqrt(read_noise_adu ** 2 + max(r_bar, 0) * ts[-1] / gain) + med * ts[-1]
+    # stuck: high, already there at the shortest exposure, and the same value in every dark
+    stuck = high & (x0 >= 0.5 * xl) & (ts[0] <= 0.5 * ts[-1]) \
+        & (spread <= np.maximum(5 * math.sqrt(2) * read_noise_adu, 0.05 * xl))
     info = {"median_rate_adu_per_s": med, "mean_rate_adu_per_s": float(np.mean(out)),
             "bulk_clipped_std_adu_per_s": cs["std"], "noise_std_adu_per_s": math.sqrt(noise2),
             "dsnu_std_adu_per_s": math.sqrt(max(V - noise2, 0.0)),
@@ -1320,6 +1418,8 @@ def fit_rate_laws(excess: np.ndarray, floor: float, bias_level_adu: float) -> di
 
     def nll_ln(p):
         mu, ls = p
+        if abs(ls) > 10:
+            return 1e300
         s = math.exp(ls)
         tail = stats.norm.logsf((lf - mu) / s)
         return -float(np.sum(stats.norm.logpdf(lr, mu, s) - lr) - n * tail)
@@ -1328,7 +1428,7 @@ def fit_rate_laws(excess: np.ndarray, floor: float, bias_level_adu: float) -> di
                             options={"xatol": 1e-6, "fatol": 1e-6, "maxiter": 4000})
     mu, s = float(res.x[0]), math.exp(float(res.x[1]))
     p0 = stats.norm.cdf((lf - mu) / s)
-    cdf_l = lambda x: (stats.norm.cdf((np.log(x) - mu) / s) - p0) / (1 - p0)  # noqa: E731
+    cdf_l = lambda x: (stats.norm.cdf((np.log(x) - mu) / s) - p0) / max(1 - p0, 1e-300)  # noqa: E731
     out["lognormal"] = {"log_mu": mu, "log_sigma": s, "loglik": -float(res.fun), "aic": 4 + 2 * float(res.fun),
                         "ks": float(stats.kstest(r, cdf_l).statistic)}
     t2 = bias_level_adu / r
@@ -1336,12 +1436,16 @@ def fit_rate_laws(excess: np.ndarray, floor: float, bias_level_adu: float) -> di
     lt = np.log(t2)
 
     def nll_w(p):
+        if abs(p[0]) > 10 or abs(p[1]) > 60:
+            return 1e300
         k, lam = math.exp(p[0]), math.exp(p[1])
-        z = (t2 / lam) ** k
-        logF = math.log(max(-math.expm1(-(tmax / lam) ** k), 1e-300))
-        ll = np.sum(math.log(k) - math.log(lam) + (k - 1) * (lt - math.log(lam)) - z) - n * logF
+        with np.errstate(all="ignore"):
+            z = (t2 / lam) ** k
+            logF = float(np.log(max(-np.expm1(-np.float64(tmax / lam) ** k), 1e-300)))
+            ll = np.sum(math.log(k) - math.log(lam) + (k - 1) * (lt - math.log(lam)) - z) - n * logF
         # density of r from that of t2: |dt2/dr| = t2 / r
-        return -float(ll + np.sum(lt - lr))
+        v = -float(ll + np.sum(lt - lr))
+        return v if math.isfinite(v) else 1e300
 
     res = optimize.minimize(nll_w, [0.0, float(np.median(lt))], method="Nelder-Mead",
                             options={"xatol": 1e-6, "fatol": 1e-6, "maxiter": 4000})
@@ -1482,6 +1586,8 @@ def write_twin(out_toml, result: dict, maps: dict, info: dict, preset_hint: str 
                 fits.Column("t_double_s", "D", array=d["t_double_s"])], name="DEFECTS")]
     scene["effects"]["dark_map"] = {"path": write("dark", hdus), "sigma_hdu": "SIGMA", "stuck_hdu": "STUCK",
                                     "offset_e": round(float(info["dark"]["offset_adu"]) * float(info["gain_e_per_adu"]), 4)}
+    if result["dark"].get("temperature_c") is not None:
+        scene["effects"]["dark_map"]["temperature_c"] = round(float(result["dark"]["temperature_c"]), 2)
     if "flat" in maps:
         scene["effects"]["flat_map"] = {"path": write("flat", [
             fits.PrimaryHDU(maps["flat"]), fits.ImageHDU(maps["flat_se"], name="SIGMA"),

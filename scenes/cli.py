@@ -93,10 +93,13 @@ def render(scene, output, seed, noiseless, sets, png, expected, workers, json_ou
 @click.option("--dark", "dark", multiple=True, required=True, type=click.Path(), help="dark frames, several exposures")
 @click.option("--flat", "flat", multiple=True, type=click.Path(), help="a pair of flats (photon transfer)")
 @click.option("--json", "json_out", default=None, help="write the numbers as JSON here ('-' for stdout)")
-@click.option("--emit-scene", "emit_scene", default=None, help="write a scene TOML whose detector reproduces the camera")
+@click.option("--emit-scene", "emit_scene", default=None,
+              help="write a scene TOML of this camera (its bias, dark-rate and flat maps as FITS beside it)")
+@click.option("--population", is_flag=True,
+              help="with --emit-scene: the statistical description instead (no maps), for sensors like it")
 @click.option("--plots", "plots", default=None, type=click.Path(file_okay=False), help="folder for the plots")
 @click.option("--sigma", default=5.0, show_default=True, help="outlier (hot pixel) threshold [robust sigma]")
-def characterize(bias, dark, flat, json_out, emit_scene, plots, sigma):
+def characterize(bias, dark, flat, json_out, emit_scene, population, plots, sigma):
     """Calibration-frame analysis: bias, read noise, dark current, hot pixels, gain and PRNU.
 
     Accepts shell-style multiple files after one option: --bias b1.fits b2.fits --dark d1.fits ...
@@ -113,7 +116,16 @@ def characterize(bias, dark, flat, json_out, emit_scene, plots, sigma):
     if emit_scene:
         import tomli_w
 
-        Path(emit_scene).write_text(tomli_w.dumps(emit_scene_dict(result)))
+        from detector.characterize import camera_twin, emit_population_dict, write_twin
+
+        out = Path(emit_scene)
+        if not out.parent.is_dir():
+            raise DetectorError("folder does not exist", key="--emit-scene", file=str(out),
+                                expected="a TOML path in an existing folder")
+        maps, info = camera_twin(result, list(bias), list(dark), list(flat) or None, nsigma=sigma)
+        result["camera"] = info
+        scene = emit_population_dict(result, info) if population else write_twin(out, result, maps, info)
+        out.write_text(tomli_w.dumps(scene))
     _write_json(result if json_out else _summary(result), json_out)
     if json_out not in (None, "-"):
         click.echo(f"wrote {json_out}" + (f", {emit_scene}" if emit_scene else "")

@@ -24,7 +24,9 @@ signal becomes ``R t`` [e-], R the map of per-pixel dark rates [e-/s] (hot and w
 positions with their measured rates, and the dark-signal non-uniformity of the bulk): it adds
 ``(R - I_d) t``, ``I_d`` the sensor's ``dark_current_e_per_s`` already in the mean. Pixels listed in the
 optional ``STUCK`` table (x, y, value_adu; sensor pixels) are set to their value after the ADC in every
-frame of non-zero exposure (stuck or saturated-from-the-start defects; Janesick 2007, ch. 7).
+frame of non-zero exposure (stuck or saturated-from-the-start defects; Janesick 2007, ch. 7). With the
+map's ``temperature_c`` and the sensor's, the rates scale as ``2^((T - T_map) / doubling_c)`` (the dark
+current doubles every ~6-7 C in silicon CCDs near -10 C; Widenhorn et al. 2002, Proc. SPIE 4669, 193).
 
 Uncertainty. A map measured from a few frames carries their noise. ``flat_map`` and ``dark_map`` accept
 ``sigma_hdu``, an HDU of the same file holding each pixel's standard error (flat: in units of the map;
@@ -126,6 +128,11 @@ class SigmaMapParams(MapParams):
 class DarkMapParams(SigmaMapParams):
     stuck_hdu: int | str | None = Field(None, description="HDU of a table (x, y, value_adu) of stuck pixels "
                                         "(sensor pixels; default: none)")
+    temperature_c: float | None = Field(None, ge=-150, le=100, description="temperature the map was measured at; "
+                                        "with the sensor's temperature_c the rates scale as 2^(dT / doubling_c) [C]",
+                                        json_schema_extra={"unit": "C"})
+    doubling_c: float = Field(6.3, gt=0, le=50, description="temperature step that doubles the dark current [C]",
+                              json_schema_extra={"unit": "C"})
     offset_e: float = Field(0.0, ge=-1e6, le=1e6, description="signal every frame of non-zero exposure has above the "
                             "bias frames (the darks' intercept minus the bias, e.g. dark current during read-out) [e-]",
                             json_schema_extra={"unit": "e-"})
@@ -250,6 +257,14 @@ class DarkMap(_MapEffect):
         (full, key), p = self.load(), self.params
         self._map = window_of(full, self.sensor, p.path, key).astype(np.float32)  # [e-/s]
         self._sigma = self.load_sigma(full.shape)
+        self.temperature_factor = 1.0
+        t_sensor = getattr(self.sensor, "temperature_c", None)
+        if p.temperature_c is not None and t_sensor is not None:
+            # dark current doubles every doubling_c degrees (Widenhorn et al. 2002, Proc. SPIE 4669, 193)
+            self.temperature_factor = float(2.0 ** ((t_sensor - p.temperature_c) / p.doubling_c))
+            self._map *= np.float32(self.temperature_factor)
+            if self._sigma is not None:
+                self._sigma *= np.float32(self.temperature_factor)
         self._stuck = None
         if p.stuck_hdu is not None:
             from astropy.io import fits
