@@ -139,7 +139,8 @@ class Detector:
                 eff.apply(stage, tile, data)
 
     def _variance(self, stage: Stage, tile: Tile, mean: np.ndarray) -> float | np.ndarray:
-        return sum((e.variance_e2(stage, tile, mean) for e in self._by_stage[stage] if e.stochastic or e.pattern),
+        return sum((e.variance_e2(stage, tile, mean) for e in self._by_stage[stage] if e.stochastic or e.pattern
+                    or getattr(e, "adds_variance", False)),
                    0.0)
 
     def mean_electrons(self, signal: Signal, tile: Tile) -> np.ndarray:

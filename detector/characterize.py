@@ -973,12 +973,17 @@ def characterize(bias_paths: Sequence, dark_paths: Sequence, flat_paths: Sequenc
         raise DetectorError("no bias frame given", key="bias", expected="one or more bias FITS files")
     if not dark_paths:
         raise DetectorError("no dark frame given", key="dark", expected="one or more dark FITS files")
+    check_sigma(hot_sigma)
+    if flat_paths and len(flat_paths) != 2:
+        raise DetectorError(f"{len(flat_paths)} flat frames given", key="flat",
+                            expected="exactly two flats of the same illumination and exposure")
     rng = np.random.default_rng(seed)
     thresholds = [float(t) for t in count_thresholds_adu]
     bias = read_frames(bias_paths, "bias", need_exptime=False)
     shape, ref = bias[0].data.shape, bias[0].path
     darks = read_frames(dark_paths, "dark", need_exptime=True, shape=shape, shape_file=ref)
     flats = read_frames(flat_paths, "flat", need_exptime=False, shape=shape, shape_file=ref) if flat_paths else []
+    sanity_checks(bias, darks, flats)
     warns: list[str] = []
 
     bias_res, master, w = analyze_bias(bias, rng)
@@ -1022,7 +1027,94 @@ def characterize(bias_paths: Sequence, dark_paths: Sequence, flat_paths: Sequenc
              "bit_depth": _bit_depth(header0, min(sats))}
     result = {"frame": frame, "gain": gain_res, "bias": bias_res, "dark": dark_res, "hot_pixels": hot_res,
               "flat": flat_res, "warnings": warns}
+    warns += physical_warnings(result)
     return jsonable(result)
+
+
+#: the range of ``hot_sigma`` that makes sense: below 2 sigma the normal bulk itself is flagged
+SIGMA_RANGE = (2.0, 100.0)
+
+
+def check_sigma(hot_sigma: float) -> None:
+    """``hot_sigma`` within :data:`SIGMA_RANGE` (a threshold of 2 sigma already flags 2.3 % of a normal bulk)."""
+    lo, hi = SIGMA_RANGE
+    if not (isinstance(hot_sigma, (int, float)) and math.isfinite(hot_sigma) and lo <= hot_sigma <= hi):
+        raise DetectorError(f"outlier threshold {hot_sigma!r} sigma", key="sigma",
+                            expected=f"a number of robust sigma in [{lo:g}, {hi:g}]")
+
+
+def _saturated_fraction(f: Frame) -> float:
+    if not math.isfinite(f.saturation_adu):
+        return 0.0
+    return float(np.mean(_flat_sample(f.data, 1_000_000) >= f.saturation_adu - 0.5))
+
+
+def sanity_checks(bias: Sequence[Frame], darks: Sequence[Frame], flats: Sequence[Frame]) -> None:
+    """Refuse calibration sets that cannot give a meaningful answer; one :class:`DetectorError` each.
+
+    Identical frames (the same data twice: the pair difference would be 0), constant frames (an all-zero
+    or blank bias), frames mostly (> 50 %) at the ADC saturation, bias frames with an exposure time
+    (> 0.01 s), darks without two different exposure times > 0 s, flats of different exposure times.
+    """
+    groups = {"bias": bias, "dark": darks, "flat": flats}
+    for role, frames in groups.items():
+        for i, a in enumerate(frames):
+            for b in frames[i + 1:]:
+                if a.data.shape == b.data.shape and np.array_equal(a.data, b.data):
+                    raise DetectorError(f"{role} frame has the same pixels as {b.path}", file=a.path,
+                                        expected=f"independent {role} exposures (not the same frame twice)")
+            sf = _saturated_fraction(a)
+            if sf > 0.5:
+                raise DetectorError(f"{role} frame is saturated ({100 * sf:.0f} % of pixels at "
+                                    f"{a.saturation_adu:g} ADU)", file=a.path,
+                                    expected=f"a {role} frame below the ADC saturation")
+            if np.ptp(_flat_sample(a.data, 1_000_000)) == 0 and np.ptp(a.data) == 0:
+                raise DetectorError(f"{role} frame is constant ({float(a.data.flat[0]):g} ADU everywhere)",
+                                    file=a.path, expected=f"a real {role} exposure (pixels that vary)")
+    for f in bias:
+        if f.exptime_s is not None and f.exptime_s > 0.01:
+            raise DetectorError(f"bias frame has an exposure time of {f.exptime_s:g} s", key="EXPTIME", file=f.path,
+                                expected="a bias frame: exposure time 0 s (use it as a dark with --dark)")
+    t_pos = sorted({float(f.exptime_s) for f in darks if f.exptime_s and f.exptime_s > 0})
+    if len(t_pos) < 2:
+        all_t = sorted({float(f.exptime_s) for f in darks})
+        raise DetectorError(f"darks at {', '.join(f'{t:g}' for t in all_t)} s only", key="dark",
+                            expected="darks of at least two different exposure times > 0 s")
+    if flats:
+        tf = {f.exptime_s for f in flats}
+        if len(tf) > 1:
+            raise DetectorError(f"flats of different exposure times ({', '.join(f'{t}' for t in tf)} s)", key="flat",
+                                expected="two flats of the same exposure time and illumination")
+
+
+def physical_warnings(result: dict) -> list[str]:
+    """Results outside physical ranges, one sentence each (they go into ``warnings`` of the JSON)."""
+    out = []
+    b, d, fr = result["bias"], result["dark"], result["frame"]
+    if not b.get("read_noise_adu", 0) > 0:
+        out.append(f"read noise {b.get('read_noise_adu')} ADU is not positive: the bias frames carry no temporal noise")
+    if d["dark_current_adu_per_s"] < 0:
+        out.append(f"negative dark current ({d['dark_current_e_per_s']:.4g} e-/s): the darks' level falls with "
+                   "exposure (saturated, mislabelled or bias-shifted frames?); the emitted scene uses 0")
+    elif d["dark_current_adu_per_s_se"] and d["dark_current_adu_per_s"] < 2 * d["dark_current_adu_per_s_se"]:
+        out.append("dark current not significant (below 2 standard errors)")
+    hp = result["hot_pixels"]
+    n_pix = fr["width"] * fr["height"]
+    if hp.get("n_outliers", 0) > 0.1 * n_pix:
+        out.append(f"{hp['n_outliers']} outliers ({100 * hp['n_outliers'] / n_pix:.1f} % of the pixels): not a defect "
+                   "population (threshold too low, or a gradient/glow in the darks)")
+    f = result.get("flat")
+    if f:
+        k = result["gain"].get("photon_transfer_e_per_adu")
+        if k is None or not (isinstance(k, (int, float)) and math.isfinite(k) and k > 0):
+            out.append("photon-transfer gain not positive/finite: the flat pair's difference is not shot-noise "
+                       "limited (identical, saturated or too faint flats?)")
+        if f.get("prnu_rel", 0) > 0.1:
+            out.append(f"PRNU {f['prnu_rel']:.3f} above 10 %: not a pixel response (dust, structure?)")
+        v = f.get("vignetting", {}).get("corner_over_centre_mean")
+        if v is not None and v > 1.1:
+            out.append(f"corners {v:.3f} x the centre: brighter corners are not vignetting")
+    return out
 
 
 def _pixel_size(header) -> float | None:
@@ -1126,4 +1218,419 @@ def emit_scene_dict(result: dict, preset_hint: str | None = None) -> dict:
     sig = float(d.get("dsnu", {}).get("sigma_rel") or 0.0)
     if sig > 0 and d.get("dsnu", {}).get("significant", True):
         scene["effects"]["dsnu"] = {"sigma": round(min(sig, 5.0), 4), "law": "lognormal"}
+    return scene
+
+
+# ============================================================================================
+# the camera itself: per-pixel maps (the "digital twin")
+# ============================================================================================
+
+def _robust_mean_1d(a: np.ndarray, axis: int, centre: float, sigma: float, nsig: float = 5.0) -> np.ndarray:
+    """Mean along ``axis`` of the values within ``centre +- nsig sigma`` (the level where none is)."""
+    keep = np.abs(a - centre) <= nsig * sigma
+    n = keep.sum(axis=axis)
+    s = np.where(keep, a, 0.0).sum(axis=axis, dtype=np.float64)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.where(n > 0, s / np.maximum(n, 1), centre)
+
+
+def bias_structure(master: np.ndarray, read_noise_adu: float, n_bias: int, nsigma: float = 5.0
+                   ) -> tuple[np.ndarray, dict]:
+    """Noise-free estimate of the bias structure [ADU] from a master bias (Janesick 2007, ch. 9).
+
+    ``B(y, x) = L + c(x) + r(y)``: ``L`` the clipped level, ``c`` the clipped column means of ``M - L``,
+    ``r`` the clipped row means of ``M - L - c`` (5 sigma, sigma = the master's noise ``sigma_read /
+    sqrt(n_bias)``; each mean averages over a whole column or row, so its noise is negligible). Pixels
+    whose master value departs from ``B`` by more than ``nsigma`` noise sigma keep their master value
+    (bias defects). The pixel-level fixed pattern left, ``var(M - B) - sigma_read^2 / n_bias`` over the
+    inliers, is added back shrunk by ``sqrt(var_fp / var(M - B))`` when it is significant: a map with the
+    measured fixed-pattern spread whose noise does not inflate a rendered frame's spread.
+    """
+    m = master.astype(np.float64)
+    noise = read_noise_adu / math.sqrt(max(n_bias, 1))
+    level = clipped_stats(m, 5.0)["mean"]
+    col = _robust_mean_1d(m - level, 0, 0.0, max(noise, 1e-6) * 3)
+    row = _robust_mean_1d(m - level - col[None, :], 1, 0.0, max(noise, 1e-6) * 3)
+    struct = level + col[None, :] + row[:, None]
+    resid = m - struct
+    rs = clipped_stats(resid, 5.0)
+    var_fp = rs["std"] ** 2 - noise ** 2
+    n_pix = min(resid.size, MAX_STAT_PIXELS)
+    significant = var_fp > 3 * rs["std"] ** 2 * math.sqrt(2.0 / n_pix)
+    out = struct.copy()
+    inl = np.abs(resid) <= nsigma * max(rs["std"], noise)
+    if significant:
+        out[inl] += resid[inl] * math.sqrt(var_fp) / rs["std"]
+    out[~inl] = m[~inl]
+    # the column offsets as a population: a normal core and the outlier columns' quantiles
+    cc = clipped_stats(col, 3.0)
+    core2 = cc["std"] ** 2 - noise ** 2 / m.shape[0]
+    out_cols = np.abs(col - cc["median"]) > 5 * cc["std"]
+    info = {"level_adu": level, "column_std_adu": float(np.std(col)),
+            "column_core_std_adu": math.sqrt(core2) if core2 > 0 else 0.0,
+            "column_outlier_fraction": float(out_cols.mean()),
+            "column_outlier_quantiles_adu": np.quantile(col[out_cols], np.linspace(0, 1, 33)).round(3).tolist()
+            if out_cols.sum() >= 2 else [], "row_std_adu": float(np.std(row)),
+            "master_noise_adu": noise, "residual_std_adu": rs["std"],
+            "pixel_fixed_pattern_std_adu": math.sqrt(var_fp) if var_fp > 0 else 0.0,
+            "pixel_fixed_pattern_significant": bool(significant), "n_bias_defects": int((~inl).sum()),
+            "method": "level + clipped column means + clipped row means; defects kept; pixel pattern shrunk"}
+    return out.astype(np.float32), info
+
+
+def dark_rate_map(ts: np.ndarray, darks: Sequence[np.ndarray], bias_map: np.ndarray, offset_adu: float,
+                  read_noise_adu: float, gain: float, sat_adu: float, nsigma: float = 5.0) -> tuple[np.ndarray, ...]:
+    """Per-pixel dark rates [ADU/s] and their standard errors from darks of several exposures.
+
+    Each pixel's line through its bias, ``y(t) = B(y, x) + offset + r t``, fitted by weighted least squares
+    over the unsaturated darks: ``r = sum w t (y - B - o) / sum w t^2`` with ``w = 1 / sigma_t^2``,
+    ``sigma_t^2 = sigma_read^2 + r_bar t / g`` (read and shot noise, ADU^2; Janesick 2007, ch. 7), and
+    ``se(r) = 1 / sqrt(sum w t^2)`` (the pixel's own shot noise is used for its error). The intercept is the
+    noise-free bias structure (:func:`bias_structure`), so the rate's noise is the darks' alone.
+
+    The bulk (pixels within ``nsigma`` clipped standard deviations of the median rate) is shrunk towards the median by
+    ``s = sqrt((V - N) / V)`` (``V`` the bulk's clipped variance, ``N`` the mean squared standard error):
+    the map then has the *measured* dark-signal non-uniformity, not that plus its noise; outliers (hot and
+    warm pixels) keep their measured rates.
+
+    Returns
+    -------
+    rate_adu_s, se_adu_s : 2-D float32 arrays
+    stuck : 2-D bool array (above ``nsigma`` in the longest dark, at least half of that already in the
+        shortest, and the same value, within 5 sqrt(2) sigma_read or 5 %, in every dark: stuck pixels)
+    info : dict
+    """
+    ts = np.asarray(ts, dtype=np.float64)
+    r_bar = np.median([(np.median(_flat_sample(d)) - np.median(_flat_sample(bias_map)) - offset_adu) / t
+                       for d, t in zip(darks, ts)])
+    num = np.zeros(bias_map.shape, np.float64)
+    den = np.zeros(bias_map.shape, np.float64)
+    for d, t in zip(darks, ts):
+        w = 1.0 / (read_noise_adu ** 2 + max(r_bar, 0.0) * t / gain + 1.0 / 12.0)
+        ok = d < sat_adu - 0.5
+        y = d.astype(np.float64) - bias_map - offset_adu
+        num += np.where(ok, w * t * y, 0.0)
+        den += np.where(ok, w * t * t, 0.0)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        rate = np.where(den > 0, num / np.where(den > 0, den, 1.0), np.nan)
+    allsat = ~np.isfinite(rate)
+    rate[allsat] = (sat_adu - bias_map[allsat] - offset_adu) / ts.min()  # saturated in every dark: a lower limit
+    # the pixel's own shot noise in its error
+    se2 = np.zeros_like(rate)
+    for d, t in zip(darks, ts):
+        var = read_noise_adu ** 2 + np.maximum(rate, 0.0) * t / gain + 1.0 / 12.0
+        ok = d < sat_adu - 0.5
+        se2 += np.where(ok, t * t / var, 0.0)
+    with np.errstate(divide="ignore"):
+        se = np.where(se2 > 0, 1.0 / np.sqrt(se2), np.inf)
+    med = float(np.median(_flat_sample(rate)))
+    noise2 = float(np.median(_flat_sample(se)) ** 2)
+    spread0 = clipped_stats(rate, 3.0)["std"]  # DSNU and noise together
+    bulk = np.abs(rate - med) <= nsigma * max(spread0, 1e-12)
+    cs = clipped_stats(rate[bulk], nsigma)
+    V = cs["std"] ** 2
+    s = math.sqrt(max(V - noise2, 0.0) / V) if V > 0 else 0.0
+    out = rate.copy()
+    out[bulk] = med + s * (rate[bulk] - med)
+    # stuck: large already at the shortest exposure and not growing
+    x0 = darks[0].astype(np.float64) - bias_map - offset_adu
+    xl = darks[-1].astype(np.float64) - bias_map - offset_adu
+    stack = np.stack([d.astype(np.float32) for d in darks])
+    spread = stack.max(axis=0) - stack.min(axis=0)
+    del stack
+    high = xl > nsigma * math.sqrt(read_noise_adu ** 2 + max(r_bar, 0) * ts[-1] / gain) + med * ts[-1]
+    # stuck: high, already there at the shortest exposure, and the same value in every dark
+    stuck = high & (x0 >= 0.5 * xl) & (ts[0] <= 0.5 * ts[-1]) \
+        & (spread <= np.maximum(5 * math.sqrt(2) * read_noise_adu, 0.05 * xl))
+    info = {"median_rate_adu_per_s": med, "mean_rate_adu_per_s": float(np.mean(out)),
+            "bulk_clipped_std_adu_per_s": cs["std"], "noise_std_adu_per_s": math.sqrt(noise2),
+            "dsnu_std_adu_per_s": math.sqrt(max(V - noise2, 0.0)),
+            "dsnu_sigma_rel": math.sqrt(max(V - noise2, 0.0)) / med if med > 0 else 0.0,
+            "bulk_shrink_factor": s, "n_bulk": int(bulk.sum()), "n_outliers": int((~bulk).sum()),
+            "n_saturated_in_every_dark": int(allsat.sum()), "n_stuck": int(stuck.sum()),
+            "offset_adu": offset_adu, "exposures_s": ts.tolist(),
+            "method": "weighted line through the bias structure per pixel; bulk shrunk to the measured DSNU"}
+    return out.astype(np.float32), se.astype(np.float32), stuck, info
+
+
+def flat_response(flats: Sequence[np.ndarray], bias_map: np.ndarray, dark_adu: np.ndarray, read_noise_adu: float,
+                  gain: float, n_bias: int, smooth_px: float = 16.0) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict]:
+    """Per-pixel response (PRNU x vignetting) of a flat (or flat pair), its standard error and the vignetting.
+
+    ``F = mean_k(f_k s_k) - B - D`` (``s_k`` scales every flat to the first's median, ``B`` the bias
+    structure, ``D`` the dark signal of the flat's exposure), normalised to mean 1; its standard error per
+    pixel ``sqrt(S/g + sigma_read^2) / sqrt(n) / mean`` (shot and read noise of the ``n`` flats, Janesick
+    2007, ch. 4). The vignetting is ``F`` Gaussian-smoothed (sigma ``smooth_px``, outliers replaced by the
+    median first), the per-pixel response ``F / vignetting``.
+    """
+    ref = None
+    acc = np.zeros(bias_map.shape, np.float64)
+    for f in flats:
+        x = f.astype(np.float64) - bias_map - dark_adu
+        med = float(np.median(_flat_sample(x)))
+        ref = med if ref is None else ref
+        acc += x * (ref / med)
+    mean_flat = acc / len(flats)
+    mean = float(mean_flat.mean())
+    if not mean > 0:
+        raise DetectorError(f"bias-subtracted flat has mean {mean:.4g} ADU", key="flat",
+                            expected="flats with light (mean above the bias)")
+    sig = np.sqrt(np.maximum(mean_flat, 0) / gain + read_noise_adu ** 2 * (1 + 1 / max(n_bias, 1))) \
+        / math.sqrt(len(flats))
+    F = np.maximum(mean_flat / mean, 0.0)
+    cs = clipped_stats(F, 5.0)
+    clean = np.where(np.abs(F - cs["median"]) > 5 * cs["std"] + 0.05, cs["median"], F)
+    vig = ndimage.gaussian_filter(clean, smooth_px, mode="nearest")
+    info = {"signal_adu": mean, "n_flats": len(flats), "smoothing_sigma_px": smooth_px,
+            "relative_se_median": float(np.median(sig) / mean),
+            "response_std": clipped_stats(F / vig, 5.0)["std"]}
+    return F.astype(np.float32), (sig / mean).astype(np.float32), vig.astype(np.float32), info
+
+
+def fit_rate_laws(excess: np.ndarray, floor: float, bias_level_adu: float) -> dict:
+    """Laws of the excess dark rates above ``floor`` (one unit throughout), compared by AIC and KS.
+
+    * ``pareto``: ``P(R > r) = (r / floor)^-alpha``, MLE ``alpha = n / sum ln(r / floor)`` (Clauset, Shalizi
+      & Newman 2009, SIAM Rev. 51, 661, eq. 3.1); ``se = alpha / sqrt(n)``.
+    * ``lognormal`` truncated at the floor: MLE of (mu, sigma) of ``ln r`` (numerical).
+    * ``weibull_t2``: the thesis's law (eqs. 38-40), a Weibull of ``t2 = B / r`` truncated to ``t2 <
+      B / floor`` (numerical MLE of shape and scale).
+    * ``empirical``: 65 quantiles (no AIC: it is the data).
+
+    KS: the one-sample statistic of the rates against each fitted truncated law.
+    """
+    from scipy import optimize
+
+    r = np.asarray(excess, dtype=np.float64)
+    r = r[np.isfinite(r) & (r > floor)]
+    n = r.size
+    out: dict = {"n": int(n), "floor": floor}
+    if n < 20:
+        out["note"] = "fewer than 20 rates above the floor: no fit"
+        return out
+    lr = np.log(r)
+    lf = math.log(floor)
+    alpha = n / float(np.sum(lr - lf))
+    ll_p = float(n * math.log(alpha) + n * alpha * lf - (alpha + 1) * lr.sum())
+    cdf_p = lambda x: 1 - (np.asarray(x) / floor) ** (-alpha)  # noqa: E731
+    out["pareto"] = {"alpha": alpha, "alpha_se": alpha / math.sqrt(n), "loglik": ll_p, "aic": 2 - 2 * ll_p,
+                     "ks": float(stats.kstest(r, cdf_p).statistic)}
+
+    def nll_ln(p):
+        mu, ls = p
+        if abs(ls) > 10:
+            return 1e300
+        s = math.exp(ls)
+        tail = stats.norm.logsf((lf - mu) / s)
+        return -float(np.sum(stats.norm.logpdf(lr, mu, s) - lr) - n * tail)
+
+    res = optimize.minimize(nll_ln, [float(lr.mean()), math.log(max(lr.std(), 0.1))], method="Nelder-Mead",
+                            options={"xatol": 1e-6, "fatol": 1e-6, "maxiter": 4000})
+    mu, s = float(res.x[0]), math.exp(float(res.x[1]))
+    p0 = stats.norm.cdf((lf - mu) / s)
+    cdf_l = lambda x: (stats.norm.cdf((np.log(x) - mu) / s) - p0) / max(1 - p0, 1e-300)  # noqa: E731
+    out["lognormal"] = {"log_mu": mu, "log_sigma": s, "loglik": -float(res.fun), "aic": 4 + 2 * float(res.fun),
+                        "ks": float(stats.kstest(r, cdf_l).statistic)}
+    t2 = bias_level_adu / r
+    tmax = bias_level_adu / floor
+    lt = np.log(t2)
+
+    def nll_w(p):
+        if abs(p[0]) > 10 or abs(p[1]) > 60:
+            return 1e300
+        k, lam = math.exp(p[0]), math.exp(p[1])
+        with np.errstate(all="ignore"):
+            z = (t2 / lam) ** k
+            logF = float(np.log(max(-np.expm1(-np.float64(tmax / lam) ** k), 1e-300)))
+            ll = np.sum(math.log(k) - math.log(lam) + (k - 1) * (lt - math.log(lam)) - z) - n * logF
+        # density of r from that of t2: |dt2/dr| = t2 / r
+        v = -float(ll + np.sum(lt - lr))
+        return v if math.isfinite(v) else 1e300
+
+    res = optimize.minimize(nll_w, [0.0, float(np.median(lt))], method="Nelder-Mead",
+                            options={"xatol": 1e-6, "fatol": 1e-6, "maxiter": 4000})
+    k, lam = math.exp(float(res.x[0])), math.exp(float(res.x[1]))
+    Fm = -math.expm1(-(tmax / lam) ** k)
+    cdf_w = lambda x: 1 - (-np.expm1(-((bias_level_adu / np.asarray(x)) / lam) ** k)) / Fm  # noqa: E731
+    out["weibull_t2"] = {"shape": k, "scale_s": lam, "loglik": -float(res.fun), "aic": 4 + 2 * float(res.fun),
+                         "ks": float(stats.kstest(r, cdf_w).statistic)}
+    laws = ("pareto", "lognormal", "weibull_t2")
+    best = min(laws, key=lambda k_: out[k_]["aic"])
+    out["preferred"] = best
+    out["delta_aic"] = {k_: out[k_]["aic"] - out[best]["aic"] for k_ in laws}
+    from .effects.maps import tail_probabilities
+
+    pr = tail_probabilities(n)
+    out["empirical_probabilities"] = pr.tolist()
+    out["empirical_quantiles"] = np.quantile(r, pr).tolist()
+    return out
+
+
+def camera_twin(result: dict, bias_paths: Sequence, dark_paths: Sequence, flat_paths: Sequence | None = None,
+                *, nsigma: float = 5.0, hot_threshold_s: float = 60.0) -> tuple[dict, dict]:
+    """The camera itself from its calibration frames: per-pixel maps and the defect table.
+
+    Parameters
+    ----------
+    result : dict
+        What :func:`characterize` returned for the same frames (read noise, gain, levels).
+    bias_paths, dark_paths, flat_paths : lists of paths
+
+    Returns
+    -------
+    (maps, info): ``maps`` holds 2-D float32 arrays ``bias_adu`` (absolute, :func:`bias_structure`),
+    ``dark_rate_e_per_s`` and ``dark_rate_se_e_per_s`` (:func:`dark_rate_map`), with flats ``flat``,
+    ``flat_se`` and ``vignetting`` (:func:`flat_response`), and the tables ``defects`` (x, y, kind,
+    rate_e_per_s, rate_se_e_per_s, t_double_s) and ``stuck`` (x, y, value_adu); ``info`` the JSON numbers,
+    with the population law of the excess rates (:func:`fit_rate_laws`).
+    """
+    g = float(result["gain"]["adopted_e_per_adu"])
+    read = float(result["bias"]["read_noise_adu"])
+    bias = read_frames(bias_paths, "bias", need_exptime=False)
+    shape, ref = bias[0].data.shape, bias[0].path
+    master = np.mean([f.data for f in bias], axis=0, dtype=np.float64)
+    nb = len(bias)
+    del bias
+    bmap, binfo = bias_structure(master, read, nb, nsigma)
+    del master
+    darks = read_frames(dark_paths, "dark", need_exptime=True, shape=shape, shape_file=ref)
+    ts, images, groups = _group_darks(darks)
+    sat = min(f.saturation_adu for f in darks)
+    sat = sat if math.isfinite(sat) else float(np.max([im.max() for im in images])) + 1
+    offset = float(result["dark"]["intercept_minus_bias_adu"]) if len(ts) >= 2 else 0.0
+    if abs(offset) > 3 * read:
+        offset = 0.0
+    rate, se, stuck, dinfo = dark_rate_map(ts, images, bmap, offset, read, g, sat, nsigma)
+    maps: dict = {"bias_adu": bmap, "dark_rate_e_per_s": rate * np.float32(g),
+                  "dark_rate_se_e_per_s": np.minimum(se, 1e6).astype(np.float32) * np.float32(g)}
+    # stuck pixels: their median raw value over the darks
+    sy, sx = np.nonzero(stuck)
+    stuck_vals = np.median(np.stack([im[sy, sx] for im in images], axis=1), axis=1) if sy.size else np.zeros(0)
+    maps["stuck"] = {"x": sx.astype(np.int32), "y": sy.astype(np.int32), "value_adu": stuck_vals.astype(np.float32)}
+    med = dinfo["median_rate_adu_per_s"]
+    bulk_sd = max(dinfo["dsnu_std_adu_per_s"], dinfo["noise_std_adu_per_s"])
+    excess = rate.astype(np.float64) - med
+    floor = max(nsigma * bulk_sd, 1e-6)
+    hot = (excess > floor) & ~stuck
+    hy, hx = np.nonzero(hot)
+    B = float(result["bias"]["level_median_adu"])
+    t2 = B / excess[hy, hx]
+    defects = {"x": hx.astype(np.int32), "y": hy.astype(np.int32),
+               "kind": np.where(t2 < hot_threshold_s, "hot", "warm"),
+               "rate_e_per_s": (rate[hy, hx] * g).astype(np.float64),
+               "rate_se_e_per_s": (se[hy, hx] * g).astype(np.float64), "t_double_s": t2}
+    maps["defects"] = defects
+    dinfo["excess_floor_adu_per_s"] = floor
+    dinfo["n_hot"] = int(np.count_nonzero(t2 < hot_threshold_s))
+    dinfo["n_warm"] = int(np.count_nonzero(t2 >= hot_threshold_s))
+    dinfo["rate_laws_adu_per_s"] = fit_rate_laws(excess[hot], floor, B)
+    info = {"bias": binfo, "dark": dinfo, "gain_e_per_adu": g, "shape": list(shape)}
+    if flat_paths:
+        flats = read_frames(flat_paths, "flat", need_exptime=False, shape=shape, shape_file=ref)
+        tf = flats[0].exptime_s or 0.0
+        F, Fse, vig, finfo = flat_response([f.data for f in flats], bmap, rate * np.float32(tf), read, g, nb)
+        maps.update({"flat": F, "flat_se": Fse, "vignetting": vig})
+        finfo["exposure_s"] = tf
+        finfo["files"] = [f.path for f in flats]
+        h, w = vig.shape
+        bh, bw = max(1, h // 10), max(1, w // 10)
+        c = float(np.median(vig[h // 2 - bh // 2:h // 2 + bh // 2 + 1, w // 2 - bw // 2:w // 2 + bw // 2 + 1]))
+        finfo["vignetting_corner_over_centre"] = float(np.mean([np.median(v) for v in (
+            vig[:bh, :bw], vig[:bh, -bw:], vig[-bh:, :bw], vig[-bh:, -bw:])]) / c)
+        info["flat"] = finfo
+    return maps, jsonable(info)
+
+
+def write_twin(out_toml, result: dict, maps: dict, info: dict, preset_hint: str | None = None) -> dict:
+    """Write the camera's maps as FITS files beside ``out_toml`` and return the scene (a TOML-ready dict).
+
+    Files: ``<stem>_bias.fits`` (the bias structure [ADU]), ``<stem>_dark.fits`` (dark rate [e-/s]; HDUs
+    ``SIGMA`` its standard error, ``STUCK`` and ``DEFECTS`` tables), with flats ``<stem>_flat.fits``
+    (response, mean 1; ``SIGMA``; ``VIGNETTING``). The scene: :func:`emit_scene_dict`'s detector with the
+    dark current set to the map's mean, and the effects ``bias_map``, ``dark_map`` (and ``flat_map``)
+    instead of the population's ``hot_pixels`` and ``dsnu``. Paths in the scene are relative to it.
+    """
+    from pathlib import Path
+
+    from astropy.io import fits
+
+    out = Path(out_toml)
+    stem = out.with_suffix("")
+    scene = emit_scene_dict(result, preset_hint)
+    scene["effects"] = {}
+    names = {}
+
+    def write(suffix, hdus):
+        p = Path(f"{stem}_{suffix}.fits")
+        fits.HDUList(hdus).writeto(p, overwrite=True)
+        names[suffix] = p
+        return p.name
+
+    h = fits.Header()
+    h["BUNIT"] = "adu"
+    h["COMMENT"] = "bias structure: level + column + row means (+ defects), newtsim characterize"
+    scene["effects"]["bias_map"] = {"path": write("bias", [fits.PrimaryHDU(maps["bias_adu"], h)])}
+    st = maps["stuck"]
+    d = maps["defects"]
+    hd = fits.Header()
+    hd["BUNIT"] = "electron/s"
+    hdus = [fits.PrimaryHDU(maps["dark_rate_e_per_s"], hd),
+            fits.ImageHDU(maps["dark_rate_se_e_per_s"], name="SIGMA"),
+            fits.BinTableHDU.from_columns([fits.Column("x", "J", array=st["x"]), fits.Column("y", "J", array=st["y"]),
+                                           fits.Column("value_adu", "E", array=st["value_adu"])], name="STUCK"),
+            fits.BinTableHDU.from_columns([
+                fits.Column("x", "J", array=d["x"]), fits.Column("y", "J", array=d["y"]),
+                fits.Column("kind", "5A", array=np.asarray(d["kind"], dtype="S5")),
+                fits.Column("rate_e_per_s", "D", array=d["rate_e_per_s"]),
+                fits.Column("rate_se_e_per_s", "D", array=d["rate_se_e_per_s"]),
+                fits.Column("t_double_s", "D", array=d["t_double_s"])], name="DEFECTS")]
+    scene["effects"]["dark_map"] = {"path": write("dark", hdus), "sigma_hdu": "SIGMA", "stuck_hdu": "STUCK",
+                                    "offset_e": round(float(info["dark"]["offset_adu"]) * float(info["gain_e_per_adu"]), 4)}
+    if result["dark"].get("temperature_c") is not None:
+        scene["effects"]["dark_map"]["temperature_c"] = round(float(result["dark"]["temperature_c"]), 2)
+    if "flat" in maps:
+        scene["effects"]["flat_map"] = {"path": write("flat", [
+            fits.PrimaryHDU(maps["flat"]), fits.ImageHDU(maps["flat_se"], name="SIGMA"),
+            fits.ImageHDU(maps["vignetting"], name="VIGNETTING")]), "sigma_hdu": "SIGMA"}
+    bmed = float(np.median(maps["bias_adu"]))
+    integer = bool(result["frame"].get("integer_data", True))
+    scene["detector"]["bias_adu"] = round(bmed + (0.5 if integer else 0.0), 3)
+    scene["detector"]["dark_current_e_per_s"] = round(float(np.mean(maps["dark_rate_e_per_s"])), 6)
+    return scene
+
+
+def emit_population_dict(result: dict, info: dict, preset_hint: str | None = None) -> dict:
+    """The statistical description of the camera (no maps): for sensors like it without calibration frames.
+
+    :func:`emit_scene_dict`'s detector; ``dsnu`` with the per-pixel rate map's non-uniformity (its spread
+    grows as ``sigma I_d t``, the measured growth); ``dark_rate_tail`` with the measured excess-rate law
+    (the empirical quantiles, whose counts above any threshold grow with exposure as measured; the
+    parametric fits and their AIC are in the JSON); ``hot_pixels`` keeps only the stuck pixels.
+    """
+    scene = emit_scene_dict(result, preset_hint)
+    d = info["dark"]
+    g = float(info["gain_e_per_adu"])
+    eff: dict = {}
+    if d["dsnu_sigma_rel"] > 0:
+        eff["dsnu"] = {"sigma": round(min(d["dsnu_sigma_rel"], 5.0), 4), "law": "normal"}
+    laws = d["rate_laws_adu_per_s"]
+    if laws.get("empirical_quantiles"):
+        q = [round(v * g, 6) for v in laws["empirical_quantiles"]]
+        eff["dark_rate_tail"] = {"count": int(laws["n"]), "law": "empirical", "floor_e_per_s": round(q[0], 6),
+                                 "quantiles_e_per_s": q, "probabilities": laws["empirical_probabilities"]}
+    b = info["bias"]
+    if b.get("column_core_std_adu") is not None:
+        eff["column_offsets"] = {"sigma_adu": round(b["column_core_std_adu"], 4),
+                                 "outlier_fraction": round(b["column_outlier_fraction"], 6),
+                                 **({"outlier_quantiles_adu": b["column_outlier_quantiles_adu"]}
+                                    if b["column_outlier_fraction"] > 0 else {})}
+    if d["n_stuck"]:
+        hp = result["hot_pixels"]
+        lvl = (hp.get("stuck_raw_level_adu") or {}).get("median")
+        eff["hot_pixels"] = {"count": int(d["n_stuck"]), "stuck_fraction": 1.0,
+                             **({"stuck_value_adu": round(float(lvl), 1)} if lvl is not None else {})}
+    scene["detector"]["dark_current_e_per_s"] = round(d["median_rate_adu_per_s"] * g, 6)
+    scene["detector"]["bias_adu"] = round(float(info["bias"]["level_adu"])
+                                          + (0.5 if result["frame"].get("integer_data", True) else 0.0), 3)
+    scene["effects"] = eff
     return scene
