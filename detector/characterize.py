@@ -66,9 +66,8 @@ from scipy import ndimage, stats
 from .errors import DetectorError
 from .fits_io import read_image
 from .jsonable import jsonable
+from .stats import MAX_STAT_PIXELS, clipped_stats, mad_std, subsample
 
-#: Above this many pixels, robust statistics use a regular sub-grid of the frame (speed, not accuracy).
-MAX_STAT_PIXELS = 4_000_000
 #: Pixels drawn for the normality tests (Shapiro-Wilk is defined up to 5000).
 NORMALITY_SAMPLE = 5000
 EXPTIME_KEYS = ("EXPTIME", "EXPOSURE")
@@ -199,71 +198,6 @@ def header_gain(frames: Sequence[Frame]) -> tuple[float | None, str | None, str 
 # pure statistics
 # ============================================================================================
 
-def _flat_sample(x: np.ndarray, max_n: int = MAX_STAT_PIXELS) -> np.ndarray:
-    x = np.asarray(x).ravel()
-    if x.size > max_n:
-        x = x[:: int(math.ceil(x.size / max_n))]
-    return x
-
-
-def _truncation_factor(k: float) -> float:
-    """Variance of a unit normal truncated to +-k sigma (to undo the bias of a clipped std)."""
-    if not math.isfinite(k):
-        return 1.0
-    p = 2 * stats.norm.cdf(k) - 1
-    return 1 - 2 * k * stats.norm.pdf(k) / p
-
-
-def clipped_stats(x, sigma: float = 3.0, maxiters: int = 20, max_n: int = MAX_STAT_PIXELS) -> dict:
-    """Sigma-clipped statistics of an array (clipping about the median).
-
-    The first pass uses the MAD as the spread, the next ones the std of the inliers, until no pixel changes.
-    ``std`` is divided by the square root of the variance of a normal truncated at +-``sigma``, so for normal
-    data it estimates the normal's sigma (a 3-sigma clip alone would underestimate it by 1.3 %).
-
-    Returns
-    -------
-    dict with ``mean``, ``median``, ``std`` [units of x], ``n`` (inliers), ``n_rejected``, ``lo``, ``hi``
-    (the final clipping bounds).
-    """
-    v = _flat_sample(x, max_n)
-    v = v.astype(np.float32 if v.dtype.itemsize <= 4 else np.float64)
-    v = v[np.isfinite(v)]
-    if v.size == 0:
-        return {"mean": math.nan, "median": math.nan, "std": math.nan, "n": 0, "n_rejected": 0,
-                "lo": math.nan, "hi": math.nan}
-    med = float(np.median(v))
-    spread = 1.482602218505602 * float(np.median(np.abs(v - med)))
-    if spread == 0:
-        spread = float(v.std())
-    keep = np.ones(v.size, bool)
-    n_prev = -1
-    lo = hi = med
-    for _ in range(maxiters):
-        lo, hi = med - sigma * spread, med + sigma * spread
-        keep = (v >= lo) & (v <= hi)
-        n = int(keep.sum())
-        if n == n_prev or n < 2:
-            break
-        n_prev = n
-        kept = v[keep]
-        med = float(np.median(kept[:: max(1, kept.size // 250_000)]))  # a regular sub-grid: the bounds only
-        spread = float(kept.std(dtype=np.float64))
-        if spread == 0:
-            break
-    kept = v[keep] if keep.any() else v
-    std = float(kept.std(ddof=1, dtype=np.float64)) if kept.size > 1 else 0.0
-    return {"mean": float(kept.mean(dtype=np.float64)), "median": float(np.median(kept)),
-            "std": std / math.sqrt(_truncation_factor(sigma)), "n": int(kept.size),
-            "n_rejected": int(v.size - kept.size), "lo": float(lo), "hi": float(hi)}
-
-
-def mad_std(x) -> float:
-    """Normal-consistent median absolute deviation: 1.4826 median(|x - median(x)|)."""
-    v = _flat_sample(x).astype(np.float64)
-    return float(1.482602218505602 * np.median(np.abs(v - np.median(v))))
-
-
 def pair_noise(a: np.ndarray, b: np.ndarray, sigma: float = 5.0) -> dict:
     """Temporal noise of one frame from the difference of two frames of the same kind [ADU].
 
@@ -273,7 +207,7 @@ def pair_noise(a: np.ndarray, b: np.ndarray, sigma: float = 5.0) -> dict:
     d = a.astype(np.float64) - b.astype(np.float64)
     cs = clipped_stats(d, sigma=sigma)
     return {"sigma_adu": cs["std"] / math.sqrt(2), "sigma_mad_adu": mad_std(d) / math.sqrt(2),
-            "sigma_unclipped_adu": float(_flat_sample(d).std()) / math.sqrt(2), "diff_mean_adu": cs["mean"],
+            "sigma_unclipped_adu": float(subsample(d).std()) / math.sqrt(2), "diff_mean_adu": cs["mean"],
             "n": cs["n"], "n_rejected": cs["n_rejected"]}
 
 
@@ -410,12 +344,12 @@ def analyze_bias(frames: Sequence[Frame], rng: np.random.Generator) -> tuple[dic
     res: dict = {
         "n_frames": len(frames),
         "files": [f.path for f in frames],
-        "level_median_adu": float(np.median(_flat_sample(master))),
+        "level_median_adu": float(np.median(subsample(master))),
         "level_mean_adu": ms["mean"],
-        "level_mean_all_adu": float(_flat_sample(master).mean(dtype=np.float64)),
-        "frame_medians_adu": [float(np.median(_flat_sample(f.data))) for f in frames],
+        "level_mean_all_adu": float(subsample(master).mean(dtype=np.float64)),
+        "frame_medians_adu": [float(np.median(subsample(f.data))) for f in frames],
         "single_frame_std_adu": single["std"],
-        "single_frame_std_unclipped_adu": float(_flat_sample(frames[0].data).std(dtype=np.float64)),
+        "single_frame_std_unclipped_adu": float(subsample(frames[0].data).std(dtype=np.float64)),
     }
     for f in frames:
         if f.exptime_s is not None and f.exptime_s > 1.0:
@@ -433,7 +367,7 @@ def analyze_bias(frames: Sequence[Frame], rng: np.random.Generator) -> tuple[dic
         res["pair_difference_mean_adu"] = pn[0]["diff_mean_adu"]
         d = pairs[0][0].data.astype(np.float64) - pairs[0][1].data.astype(np.float64)
         cd = clipped_stats(d, sigma=5.0)
-        dv = _flat_sample(d)
+        dv = subsample(d)
         dv = dv[(dv >= cd["lo"]) & (dv <= cd["hi"])]
         sample = rng.choice(dv, size=min(NORMALITY_SAMPLE, dv.size), replace=False)
         integer = bool(np.all(np.floor(frames[0].data[:8, :8]) == frames[0].data[:8, :8]))
@@ -460,7 +394,7 @@ def analyze_bias(frames: Sequence[Frame], rng: np.random.Generator) -> tuple[dic
     m64 = master.astype(np.float64)
     res["column_pattern_std_adu"] = float(clipped_stats(np.median(m64, axis=0), 5.0)["std"])
     res["row_pattern_std_adu"] = float(clipped_stats(np.median(m64, axis=1), 5.0)["std"])
-    res["plot_data"]["single_frame_hist"] = _int_histogram(_flat_sample(frames[0].data), single["median"],
+    res["plot_data"]["single_frame_hist"] = _int_histogram(subsample(frames[0].data), single["median"],
                                                            single["std"])
     res["plot_data"]["single_frame_mean_std"] = [single["mean"], single["std"]]
     temps = [f.temperature_c for f in frames if f.temperature_c is not None]
@@ -651,8 +585,8 @@ def _dark_table(ts, images, groups, master, thresholds, nsigma) -> tuple[list[di
         counts = {f"{thr:g}": int(np.count_nonzero(x > thr)) for thr in thresholds}
         temps = [f.temperature_c for f in g if f.temperature_c is not None]
         rows.append({"exposure_s": float(t), "n_frames": len(g), "files": [f.path for f in g],
-                     "median_adu": float(np.median(_flat_sample(img))), "inlier_mean_adu": cs["mean"],
-                     "inlier_std_adu": cs["std"], "mean_all_adu": float(_flat_sample(img).mean(dtype=np.float64)),
+                     "median_adu": float(np.median(subsample(img))), "inlier_mean_adu": cs["mean"],
+                     "inlier_std_adu": cs["std"], "mean_all_adu": float(subsample(img).mean(dtype=np.float64)),
                      "n_clipped": cs["n_rejected"],
                      "dark_signal_inlier_mean_adu": xcs["mean"], "dark_robust_sigma_adu": xcs["std"],
                      "count_above_bias_adu": counts,
@@ -921,11 +855,11 @@ def analyze_flats(frames: Sequence[Frame], master: np.ndarray, bias_res: dict) -
     temporal = pt["variance_adu2"] / 2 + read ** 2 / max(bias_res["n_frames"], 1)
     pv = prnu_and_vignetting(mean_flat, temporal)
     sat = min(f.saturation_adu for f in frames)
-    raw_med = float(np.median(_flat_sample(f0.data)))
+    raw_med = float(np.median(subsample(f0.data)))
     if math.isfinite(sat) and raw_med > 0.8 * sat:
         warns.append(f"flats are at {raw_med:.0f} ADU, near saturation {sat:.0f}: photon transfer is biased")
     res = {"files": [f.path for f in frames], "exposure_s": [f.exptime_s for f in frames],
-           "median_raw_adu": [raw_med, float(np.median(_flat_sample(f1.data)))],
+           "median_raw_adu": [raw_med, float(np.median(subsample(f1.data)))],
            "signal_adu": pt["signal_adu"], "photon_transfer": pt, "prnu_rel": pv["prnu_rel"],
            "prnu": {k: v for k, v in pv.items() if k not in ("vignetting",)},
            "vignetting": pv["vignetting"],
@@ -1046,7 +980,7 @@ def check_sigma(hot_sigma: float) -> None:
 def _saturated_fraction(f: Frame) -> float:
     if not math.isfinite(f.saturation_adu):
         return 0.0
-    return float(np.mean(_flat_sample(f.data, 1_000_000) >= f.saturation_adu - 0.5))
+    return float(np.mean(subsample(f.data, 1_000_000) >= f.saturation_adu - 0.5))
 
 
 def sanity_checks(bias: Sequence[Frame], darks: Sequence[Frame], flats: Sequence[Frame]) -> None:
@@ -1068,7 +1002,7 @@ def sanity_checks(bias: Sequence[Frame], darks: Sequence[Frame], flats: Sequence
                 raise DetectorError(f"{role} frame is saturated ({100 * sf:.0f} % of pixels at "
                                     f"{a.saturation_adu:g} ADU)", file=a.path,
                                     expected=f"a {role} frame below the ADC saturation")
-            if np.ptp(_flat_sample(a.data, 1_000_000)) == 0 and np.ptp(a.data) == 0:
+            if np.ptp(subsample(a.data, 1_000_000)) == 0 and np.ptp(a.data) == 0:
                 raise DetectorError(f"{role} frame is constant ({float(a.data.flat[0]):g} ADU everywhere)",
                                     file=a.path, expected=f"a real {role} exposure (pixels that vary)")
     for f in bias:
@@ -1301,7 +1235,7 @@ def dark_rate_map(ts: np.ndarray, darks: Sequence[np.ndarray], bias_map: np.ndar
     info : dict
     """
     ts = np.asarray(ts, dtype=np.float64)
-    r_bar = np.median([(np.median(_flat_sample(d)) - np.median(_flat_sample(bias_map)) - offset_adu) / t
+    r_bar = np.median([(np.median(subsample(d)) - np.median(subsample(bias_map)) - offset_adu) / t
                        for d, t in zip(darks, ts)])
     num = np.zeros(bias_map.shape, np.float64)
     den = np.zeros(bias_map.shape, np.float64)
@@ -1323,8 +1257,8 @@ def dark_rate_map(ts: np.ndarray, darks: Sequence[np.ndarray], bias_map: np.ndar
         se2 += np.where(ok, t * t / var, 0.0)
     with np.errstate(divide="ignore"):
         se = np.where(se2 > 0, 1.0 / np.sqrt(se2), np.inf)
-    med = float(np.median(_flat_sample(rate)))
-    noise2 = float(np.median(_flat_sample(se)) ** 2)
+    med = float(np.median(subsample(rate)))
+    noise2 = float(np.median(subsample(se)) ** 2)
     spread0 = clipped_stats(rate, 3.0)["std"]  # DSNU and noise together
     bulk = np.abs(rate - med) <= nsigma * max(spread0, 1e-12)
     cs = clipped_stats(rate[bulk], nsigma)
@@ -1367,7 +1301,7 @@ def flat_response(flats: Sequence[np.ndarray], bias_map: np.ndarray, dark_adu: n
     acc = np.zeros(bias_map.shape, np.float64)
     for f in flats:
         x = f.astype(np.float64) - bias_map - dark_adu
-        med = float(np.median(_flat_sample(x)))
+        med = float(np.median(subsample(x)))
         ref = med if ref is None else ref
         acc += x * (ref / med)
     mean_flat = acc / len(flats)

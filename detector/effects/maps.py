@@ -251,6 +251,7 @@ class DarkMap(_MapEffect):
     """
 
     name = "dark_map"
+    no_identity = "a measured map: its zero is a map of zeros (tests/detector/test_camtwin.py)"
     stages = (Stage.DARK, Stage.DIGITAL)
     Params = DarkMapParams
     signature = None
@@ -376,6 +377,7 @@ class DarkRateTail(Effect):
     """
 
     name = "dark_rate_tail"
+    identity = {"count": 0}
     stages = (Stage.DARK,)
     Params = DarkTailParams
     pattern = True
@@ -433,6 +435,7 @@ class ColumnOffsets(Effect):
     """
 
     name = "column_offsets"
+    identity = {"sigma_adu": 0.0, "outlier_fraction": 0.0}
     stages = (Stage.ADU,)
     Params = ColumnOffsetParams
     pattern = True

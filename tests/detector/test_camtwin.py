@@ -171,7 +171,7 @@ def test_sanity_checks(frames):
 
 
 def test_cli_exit_2_one_line(frames, capsys):
-    from scenes.cli import main
+    from scenes.app.cli import main
 
     b = frames("b0.fits", 0.0)
     with pytest.raises(SystemExit) as e:
@@ -208,7 +208,7 @@ def twin_scenes(tmp_path_factory):
 @pytest.mark.realdata
 @pytest.mark.parametrize("kind,tol", [("cam", 0.10), ("pop", 0.20)])
 def test_sbig_predicts_held_out_darks(twin_scenes, kind, tol):
-    from scenes.render import render
+    from scenes.app.render import render
     from scenes.scene import load_scene
 
     out, _ = twin_scenes
@@ -238,7 +238,7 @@ def test_sbig_twin_maps_and_laws(twin_scenes):
 def test_sbig_second_flat_from_the_first(tmp_path):
     import tomli_w
 
-    from scenes.compare import run_compare
+    from scenes.app.compare import run_compare
     from scenes.scene import load_scene
 
     d = _sbig()
