@@ -36,7 +36,7 @@ unit parameters, and the fitted parameters are the plugin's own.
 from __future__ import annotations
 
 from collections.abc import Callable, Iterable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from scipy import optimize
@@ -210,6 +210,9 @@ class Residuals:
     photo_field_adu: np.ndarray | None = None
     background_adu: np.ndarray | None = None
     row_var_adu2: float = 0.0
+    #: pixels a signature may use at all (a held-out fold: :func:`heldout_delta`); None: every pixel. The
+    #: generic kinds use ``fit`` only; a signature that picks its own pixels (a CFA) honours this too
+    train: np.ndarray | None = None
 
     @property
     def photo_field(self) -> np.ndarray:
@@ -449,8 +452,6 @@ def _at(t: np.ndarray, shape: tuple[int, int], idx: np.ndarray) -> np.ndarray:
 def level_profiled(res: Residuals) -> Residuals:
     """A copy of ``res`` whose model includes the fitted global levels (:meth:`Residuals.levels`): the
     comparison as it stands once the bias offset, light level and dark level are refitted."""
-    from dataclasses import replace
-
     mean, var = res.level_maps()
     return replace(res, model_adu=(res.model_adu + mean).astype(np.float32),
                    var_adu2=np.maximum(res.var_adu2 + var, 0.25 * res.var_adu2).astype(np.float32), _flat={},
@@ -471,6 +472,8 @@ class Fit:
     delta_adu: np.ndarray | None = None
     extra_var_adu2: np.ndarray | float | None = None
     note: str = ""
+    #: what the signature needs to score this fit on other pixels (its :meth:`Signature.score`)
+    state: dict = field(default_factory=dict)
 
     @property
     def delta_bic(self) -> float:
@@ -478,7 +481,17 @@ class Fit:
 
 
 class Signature:
-    """Base of a diagnosis signature: ``fit(residuals, name) -> Fit | None`` (None: nothing to fit)."""
+    """Base of a diagnosis signature: ``fit(residuals, name) -> Fit | None`` (None: nothing to fit).
+
+    Besides the fit, a signature answers two questions the ranking asks of every candidate:
+
+    * :meth:`plausible`: is the fitted pattern physically this effect? "" when it may be, else the reason
+      in one line (a row noise whose row offsets form a smooth curve is a gradient, not row noise);
+    * :meth:`score`: ``delta(-2 ln L)`` of a fit on pixels it was not fitted on (:func:`heldout_delta`);
+      the default is the per-pixel Gaussian likelihood of the fit's mean change and added variance; a
+      signature whose pixels are not independent (row offsets) scores its own statistic; None when the
+      effect is compared by counts and cannot be scored on a part of the frame.
+    """
 
     kind = "custom"
     #: a short phrase for reports: which residual pattern the effect makes
@@ -486,6 +499,78 @@ class Signature:
 
     def fit(self, res: Residuals, name: str) -> Fit | None:  # pragma: no cover - abstract
         raise NotImplementedError
+
+    def plausible(self, fit: Fit, res: Residuals) -> str:
+        """Why the fitted pattern is not physically this effect ("" when it may be)."""
+        check = getattr(self, "check", None)
+        return check(fit, res) if check is not None else ""
+
+    def score(self, fit: Fit, res: Residuals) -> float | None:
+        """delta(-2 ln L) of ``fit`` on the fitted pixels of ``res`` (global levels refitted on them)."""
+        return pixel_score(fit, res)
+
+
+def pixel_score(fit: Fit, res: Residuals) -> float | None:
+    """Gaussian delta(-2 ln L) over the fitted pixels of ``res`` when ``fit``'s mean change and added
+    variance join the model, the global levels refitted to what is left in both cases:
+    ``sum ln((v + e) / v) + r1^2 / (v + e) - r0^2 / v``."""
+    if fit.delta_adu is None and fit.extra_var_adu2 is None:
+        return None
+    idx, r, _ = res.flat()
+    if not idx.size:
+        return 0.0
+    w = res.levels()["w"]
+    r0 = res.project(r)
+    m2l0 = float(np.dot(r0 * r0, w))
+    r1 = r if fit.delta_adu is None else r - np.asarray(fit.delta_adu, np.float64).ravel()[idx]
+    r1 = res.project(r1)
+    v = 1.0 / w
+    if fit.extra_var_adu2 is None:
+        return float(np.dot(r1 * r1, w)) - m2l0
+    e = np.broadcast_to(np.asarray(fit.extra_var_adu2, np.float64), res.data_adu.shape).ravel()[idx]
+    ve = np.maximum(v + e, 0.1 * v)
+    return float(np.sum(np.log(ve / v) + r1 * r1 / ve)) - m2l0
+
+
+#: side of the blocks of the held-out checkerboard [output pixels]; smaller on small frames (>= 8 blocks a side)
+HELDOUT_BLOCK = 32
+
+
+def checkerboard(shape: tuple[int, int], block: int | None = None) -> np.ndarray:
+    """The black squares (True) of a checkerboard of ``block`` x ``block`` pixels over a frame."""
+    if block is None:
+        block = int(max(4, min(HELDOUT_BLOCK, min(shape) // 8)))
+    y = (np.arange(shape[0]) // block)[:, None]
+    x = (np.arange(shape[1]) // block)[None, :]
+    return ((y + x) % 2 == 0)
+
+
+def heldout_delta(signature: Signature, res: Residuals, name: str) -> float | None:
+    """delta(-2 ln L) of an effect on pixels its fit did not see (two-fold block cross-validation).
+
+    The fitted pixels are split into the black and the white squares of a checkerboard of blocks
+    (:func:`checkerboard`); the signature is fitted on one half and scored (:meth:`Signature.score`) on the
+    other, and the other way round; the sum is returned. A flexible candidate that only follows the noise
+    (or a structure it does not share) fits one half and fails the other, so its held-out score is near
+    zero or positive however large its in-sample delta BIC; an effect that is there improves the pixels it
+    never saw (Arlot & Celisse 2010, Stat. Surveys 4, 40: cross-validation for model selection; blocks keep
+    the folds apart for spatially correlated residuals, Roberts et al. 2017, Ecography 40, 913).
+    None when the signature cannot be scored on a part of the frame (outlier counts)."""
+    black = checkerboard(res.data_adu.shape)
+    total = 0.0
+    for train, test in ((black, ~black), (~black, black)):
+        part = replace(res, fit=res.fit & train, train=train, _flat={})
+        if not part.fit.any():
+            return None
+        fit = signature.fit(part, name)
+        held = replace(res, fit=res.fit & test, train=test, _flat={})
+        if fit is None:
+            continue
+        s = signature.score(fit, held)
+        if s is None:
+            return None
+        total += s
+    return float(total)
 
 
 # --- linear templates ----------------------------------------------------------------------------------------
@@ -631,8 +716,6 @@ def with_shot_noise(res: Residuals, fit: Fit) -> Fit:
     Gaussian likelihood's change ``sum ln(1 + dv/v) + r'^2 / (v + dv) - r'^2 / v`` (``r'`` the residual
     after the fit and the levels) added to ``delta(-2 ln L)``. Light and bias of the same shape differ in
     this term only: for ``n`` pixels it is about ``-/+ n <(dv/v)^2> / 2``."""
-    from dataclasses import replace
-
     idx, r, _ = res.flat()
     delta = np.asarray(fit.delta_adu, np.float64).ravel()[idx]
     rr, v = res.project(r - delta), 1.0 / res.levels()["w"]
@@ -700,6 +783,9 @@ class LinearSignature(Signature):
         The effect adds (or removes) charge, which carries its shot noise (a sky, a glow): the likelihood
         includes the variance change ``dv = delta x poisson_adu`` (:func:`with_shot_noise`), which tells
         added light from an added bias of the same shape (no noise) on one frame.
+    check : callable(Fit, Residuals) -> str, optional
+        The physical plausibility of a fit (:meth:`Signature.plausible`): "" or the reason it is not this
+        effect (a glow brighter than full well at the edge, a vignetting that brightens the corners).
     """
 
     kind = "linear"
@@ -707,9 +793,9 @@ class LinearSignature(Signature):
     def __init__(self, variants: Callable[[Residuals], Iterable[Variant]], explain: Callable[[dict, Residuals], str],
                  pattern: str = "", extra_k: int = 1,
                  refine: Callable[[Variant, Residuals], Iterable[Variant]] | None = None, of_light: bool = False,
-                 adds_charge: bool = False):
+                 adds_charge: bool = False, check: Callable[[Fit, Residuals], str] | None = None):
         self.variants, self.explain, self.pattern, self.extra_k = variants, explain, pattern, extra_k
-        self.refine, self.of_light, self.adds_charge = refine, of_light, adds_charge
+        self.refine, self.of_light, self.adds_charge, self.check = refine, of_light, adds_charge, check
 
     def fit(self, res: Residuals, name: str) -> Fit | None:
         ctx = search_sample(res)
@@ -800,7 +886,8 @@ def _mixture_m2l(core_m2l: np.ndarray, out_m2l: np.ndarray, eps0: float, outlier
 
 def ml_variance_scale(r: np.ndarray, v: np.ndarray, t: np.ndarray, z_cap: float = 8.0, outliers: bool = False,
                       k3: Callable[[float], np.ndarray | float] | None = None,
-                      k3_base: np.ndarray | float | None = None) -> tuple[float, float]:
+                      k3_base: np.ndarray | float | None = None, fixed_theta: float | None = None
+                      ) -> tuple[float, float]:
     """Maximum-likelihood ``theta >= 0`` of ``r ~ N(0, v + theta t)``: (theta, delta(-2 ln L)).
 
     ``-2 ln L = sum r^2 / (v + theta t) + ln(v + theta t)``; ``r`` is clipped at ``z_cap`` model sigmas so a
@@ -810,7 +897,8 @@ def ml_variance_scale(r: np.ndarray, v: np.ndarray, t: np.ndarray, z_cap: float 
     Gaussian likelihood would mistake for added variance (a mixture model of outliers: Hogg, Bovy & Lang
     2010, arXiv:1008.4686). ``k3(theta)`` is the effect's third cumulant per pixel (a skewed law: lognormal
     DSNU), entering through the first Edgeworth term; ``k3_base`` the model's own (Poisson: the mean charge),
-    so that only skewness beyond the shot noise's counts for a skewed effect.
+    so that only skewness beyond the shot noise's counts for a skewed effect. With ``fixed_theta`` the
+    likelihood is evaluated there (a fit's theta scored on other pixels), not maximised.
     """
     ok = np.isfinite(r) & np.isfinite(v) & (v > 0) & np.isfinite(t)
     if not ok.all():  # pixels or rows the model cannot weigh (no variance, NaN levels) carry no information
@@ -836,6 +924,8 @@ def ml_variance_scale(r: np.ndarray, v: np.ndarray, t: np.ndarray, z_cap: float 
         return val
 
     base = m2l(0.0)
+    if fixed_theta is not None:
+        return float(fixed_theta), m2l(float(fixed_theta)) - base
     tmax = max(float(np.mean(r * r) / max(np.mean(t), 1e-30)), 1e-30) * 10
     if not np.isfinite(tmax):
         return 0.0, 0.0
@@ -945,9 +1035,10 @@ class VarianceSignature(Signature):
 
     def __init__(self, template: Callable[[Residuals], np.ndarray], to_params: Callable[..., dict | None],
                  explain: Callable[[dict, Residuals], str], pattern: str = "", laws: dict | None = None,
-                 smooth: Callable[[Residuals], np.ndarray] | None = None):
+                 smooth: Callable[[Residuals], np.ndarray] | None = None,
+                 check: Callable[[Fit, Residuals], str] | None = None):
         self.template, self.to_params, self.explain, self.pattern = template, to_params, explain, pattern
-        self.laws, self.smooth = laws, smooth
+        self.laws, self.smooth, self.check = laws, smooth, check
 
     def fit(self, res: Residuals, name: str) -> Fit | None:
         vs = variance_sample(res)
@@ -978,7 +1069,23 @@ class VarianceSignature(Signature):
                 note = (note + " " if note else "") + f"+ low-frequency pattern {100 * rms:.2g} % rms"
         params_explain = {**params, **extra}
         return Fit(name, params, d, k, n, self.explain(params_explain, res),
-                   extra_var_adu2=theta * np.broadcast_to(full, res.data_adu.shape), note=note)
+                   extra_var_adu2=theta * np.broadcast_to(full, res.data_adu.shape), note=note,
+                   state={"theta": theta, "law": law})
+
+    def score(self, fit: Fit, res: Residuals) -> float | None:
+        """The fit's variance likelihood (its law's skewness, the outlier mixture) at its theta on the
+        pixel-to-pixel residual of ``res`` (the low-frequency part of the pattern is not scored)."""
+        if "theta" not in fit.state:
+            return pixel_score(fit, res)
+        vs = variance_sample(res)
+        if not vs["idx"].size:
+            return 0.0
+        t = _at(self.template(res), res.data_adu.shape, vs["idx"])
+        k3 = (self.laws or {}).get(fit.state["law"])
+        k3f = None if k3 is None else (lambda th, k3=k3: k3(th, res, vs["idx"]))
+        _, d = ml_variance_scale(vs["r_white"], vs["v"], t, outliers=True, k3=k3f, k3_base=vs["k3_poisson"],
+                                 fixed_theta=fit.state["theta"])
+        return float(d * vs["scale"])
 
 
 # --- counts ------------------------------------------------------------------------------------------------------
@@ -1015,6 +1122,9 @@ class CountSignature(Signature):
     def __init__(self, fit_counts: Callable[[Residuals], tuple | None], explain: Callable[[dict, Residuals], str],
                  pattern: str = ""):
         self.fit_counts, self.explain, self.pattern = fit_counts, explain, pattern
+
+    def score(self, fit: Fit, res: Residuals) -> float | None:
+        return None  # compared by counts over the whole frame, not pixel by pixel
 
     def fit(self, res: Residuals, name: str) -> Fit | None:
         out = self.fit_counts(res)

@@ -66,8 +66,8 @@ from pydantic import BaseModel, ConfigDict, Field, field_validator
 
 from detector.config import validate
 from optics import cache
+from optics import straylight as optics_straylight
 from optics.llvm import init_mitsuba
-from optics.straylight import irradiance_map
 
 from .errors import SceneError
 from .objects.brightness import M_SUN_V, solar_photon_irradiance, sunlit_fraction
@@ -236,7 +236,7 @@ def _optics_map(design, theta_deg: float, phi_deg: float, cfg: StraylightCfg) ->
                 "seed": cfg.seed, "wavelength_nm": 550.0}
 
     def compute():
-        emap, ext = irradiance_map(design, init_mitsuba(), th, ph, rays=cfg.rays, bins=tuple(cfg.bins),
+        emap, ext = optics_straylight.irradiance_map(design, init_mitsuba(), th, ph, rays=cfg.rays, bins=tuple(cfg.bins),
                                    seed=cfg.seed)
         return {"map": np.asarray(emap).tolist(), "extent": list(ext)}
 

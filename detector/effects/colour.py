@@ -105,7 +105,8 @@ class CFASignature(Signature):
         f = _cell_fractions(res)
         if f is None or not np.any(res.photo_adu > 0):
             return None
-        idx = np.flatnonzero(_unsaturated(res))
+        ok = _unsaturated(res)
+        idx = np.flatnonzero(ok if res.train is None else ok & res.train)
         if idx.size < 100:
             return None
         scale = 1.0
@@ -140,6 +141,29 @@ class CFASignature(Signature):
         delta = (res.photo_adu.astype(np.float64) * np.tensordot(c, rel, axes=1)).astype(np.float32)
         return Fit(name, params, d * scale, len(c), int(keep.sum() * scale), _cfa_words(params, res),
                    delta_adu=delta, note="2x2 cells")
+
+
+    def score(self, fit, res):
+        """delta(-2 ln L) on this signature's own pixels (every unsaturated light pixel of ``res.train``, the
+        outliers beyond CFA_CLIP_SIGMA of either model clipped), with the global levels refitted."""
+        ok = _unsaturated(res)
+        idx = np.flatnonzero(ok if res.train is None else ok & res.train)
+        if idx.size < 100:
+            return None
+        r = (res.data_adu.ravel()[idx] - res.model_adu.ravel()[idx]).astype(np.float64)
+        w = 1.0 / res.var_adu2.ravel()[idx].astype(np.float64)
+        delta = np.asarray(fit.delta_adu, np.float64).ravel()[idx]
+        levels = res.level_values(idx)
+        if not levels.size:
+            levels = np.zeros((1, idx.size))
+
+        def profiled(y):
+            c, _, _ = lstsq_delta(y, w, levels)
+            return y - c @ levels
+
+        r0, r1 = profiled(r), profiled(r - delta)
+        keep = (np.abs(r0) * np.sqrt(w) < CFA_CLIP_SIGMA) | (np.abs(r1) * np.sqrt(w) < CFA_CLIP_SIGMA)
+        return float(np.dot(r1[keep] ** 2 - r0[keep] ** 2, w[keep]))
 
 
 def _cfa_params(c) -> dict | None:

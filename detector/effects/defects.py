@@ -142,6 +142,9 @@ class ColumnSignature(Signature):
     kind = "columns"
     pattern = "outlier columns"
 
+    def score(self, fit, res):
+        return None  # compared by the statistics of all the columns, not pixel by pixel
+
     @staticmethod
     def _gain(z: np.ndarray) -> tuple[float, int, np.ndarray]:
         from ..signatures import LINE_SIGMA

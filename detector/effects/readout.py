@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import numpy as np
 from pydantic import Field
+from scipy.ndimage import binary_dilation
 
 from ..signatures import (
     Fit,
@@ -76,26 +77,41 @@ def channel_crosstalk(data: np.ndarray, n_channels: int, alpha: float, mirrored:
 class RowOffsetSignature(Signature):
     """Row noise: the means of the residual rows scatter more than the pixel noise allows (ML of the extra
     variance of the row means; each output row of a CMOS with ``b x b`` sum binning adds ``b^3`` row
-    offsets worth of variance, one of a binned CCD row one)."""
+    offsets worth of variance, one of a binned CCD row one).
+
+    Physically, row offsets are independent from row to row (a new offset per row read: Janesick 2007,
+    Photon Transfer, ch. 10) and leave the column means alone. A fit whose row offsets form a smooth curve
+    (a polynomial of the row index takes most of their excess variance), or that comes with an equal
+    scatter of the column means, is a 2-D pattern (a gradient, a radial fall-off) seen through the rows:
+    :meth:`plausible` says so."""
 
     kind = "rows"
     pattern = "row means scatter beyond the pixel noise"
+    #: a row-offset fit is a smooth curve when a polynomial of this degree in the row index takes more than
+    #: SMOOTH_FRACTION of the row means' excess chi2
+    SMOOTH_DEGREE, SMOOTH_FRACTION = 4, 0.8
+    #: ... or a pattern of the whole frame when the column means' excess variance is this fraction of the rows'
+    COLUMN_FRACTION = 0.5
+
+    @staticmethod
+    def line_means(res, axis: int = 1):
+        """Means of the level-profiled residual along ``axis`` (1: row means, 0: column means) over the
+        fitted pixels away from spikes, their variances [ADU^2] and which lines have enough pixels."""
+        keep = res.fit & ~binary_dilation(~res.fit, structure=np.ones((3, 3), bool), iterations=2)
+        cnt = keep.sum(axis=axis)
+        ok = cnt > 1
+        level, level_var = res.level_maps()  # the global levels refitted (detector.signatures.Residuals.levels)
+        r = np.where(keep, res.data_adu - res.model_adu - level, 0.0).sum(axis=axis)[ok] / cnt[ok]
+        v = np.where(keep, res.var_adu2 + level_var, 0.0).sum(axis=axis)[ok] / cnt[ok] ** 2
+        return r.astype(np.float64), v.astype(np.float64), ok
 
     def fit(self, res, name):
-        from scipy.ndimage import binary_dilation
-
         # the pixels next to a spike (a cosmic-ray track's diffusion halo, a hot pixel's neighbours) are not
         # part of the row level: leave them out of the row means
-        keep = res.fit & ~binary_dilation(~res.fit, structure=np.ones((3, 3), bool), iterations=2)
-        cnt = keep.sum(axis=1)
-        ok = cnt > 1
+        r, v, ok = self.line_means(res)
         if ok.sum() < 8:
             return None
-        level, level_var = res.level_maps()  # the global levels refitted (detector.signatures.Residuals.levels)
-        r = np.where(keep, res.data_adu - res.model_adu - level, 0.0).sum(axis=1)[ok] / cnt[ok]
-        v = np.where(keep, res.var_adu2 + level_var, 0.0).sum(axis=1)[ok] / cnt[ok] ** 2
-        theta, d = ml_variance_scale(r.astype(np.float64), v.astype(np.float64), np.ones_like(v, np.float64),
-                                     z_cap=1e6)
+        theta, d = ml_variance_scale(r, v, np.ones_like(v, np.float64), z_cap=1e6)
         if theta <= 0:
             return None
         b = res.sensor.binning
@@ -104,6 +120,37 @@ class RowOffsetSignature(Signature):
         return Fit(name, {"sigma_e": round(sigma_e, 4)}, d, 1, int(ok.sum()),
                    f"every row offset by its own amount, {sigma_e:.3g} e- rms: row (banding) noise",
                    extra_var_adu2=theta)
+
+    def score(self, fit, res):
+        """Gaussian delta(-2 ln L) of the row means of ``res`` with the fit's extra variance per row mean."""
+        r, v, ok = self.line_means(res)
+        if not ok.any():
+            return 0.0
+        theta = float(np.asarray(fit.extra_var_adu2, np.float64).ravel()[0])
+        return float(np.sum(np.log1p(theta / v) + r * r / (v + theta) - r * r / v))
+
+    def plausible(self, fit, res) -> str:
+        r, v, ok = self.line_means(res)
+        theta = float(np.asarray(fit.extra_var_adu2, np.float64).ravel()[0])
+        n = r.size
+        if n >= 3 * (self.SMOOTH_DEGREE + 1):
+            x = np.linspace(-1.0, 1.0, n)
+            basis = np.polynomial.legendre.legvander(x, self.SMOOTH_DEGREE)
+            wts = 1.0 / (v + theta)
+            coef = np.linalg.lstsq(basis * np.sqrt(wts)[:, None], r * np.sqrt(wts), rcond=None)[0]
+            excess = float(np.sum(r * r / v) - n)
+            smooth = float(np.sum((basis @ coef) ** 2 / v))
+            if excess > 0 and smooth > self.SMOOTH_FRACTION * excess:
+                return (f"the row offsets form a smooth curve (a degree-{self.SMOOTH_DEGREE} polynomial of the row "
+                        f"takes {100 * min(smooth / excess, 1):.0f} % of their excess): a large-scale 2-D pattern "
+                        "seen through the rows, not independent row noise")
+        rc, vc, okc = self.line_means(res, axis=0)
+        if okc.sum() >= 8:
+            theta_c, _ = ml_variance_scale(rc, vc, np.ones_like(vc), z_cap=1e6)
+            if theta_c > self.COLUMN_FRACTION * theta:
+                return (f"the column means scatter as much as the row means ({np.sqrt(max(theta_c, 0)):.3g} vs "
+                        f"{np.sqrt(theta):.3g} ADU rms): a 2-D pattern, not row offsets")
+        return ""
 
 
 def _ktc_params(theta: float, res) -> dict | None:

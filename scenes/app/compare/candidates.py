@@ -15,7 +15,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from detector import registry
-from detector.signatures import Fit, Residuals
+from detector.signatures import Fit, Residuals, heldout_delta
 
 from .sources import light_curve_candidates
 from .statistics import star_photometry
@@ -28,24 +28,75 @@ SIGNIFICANT_DELTA_BIC = -10.0
 OVERFIT_CHI2_PER_DOF = 0.5
 
 
+#: a candidate must improve the pixels its fit did not see by at least this much (delta -2 ln L, summed
+#: over the two folds of :func:`detector.signatures.heldout_delta`) to be significant
+SIGNIFICANT_HELDOUT = -10.0
+#: candidates (plausible, not rejected, delta BIC below the threshold) scored on held-out pixels, best first
+HELDOUT_CANDIDATES = 8
+
+
 @dataclass
 class Candidate:
+    """One effect fitted to the residuals, with what the ranking asks of it.
+
+    ``rejected``: the fit only hides a residual (noise that makes everything fit, a blur that spoils the
+    stars' photometry); ``implausible``: the fitted pattern is not physically this effect (its signature's
+    structure test, a parameter at its bound); ``heldout``: delta(-2 ln L) on pixels the fit did not see
+    (None: not scored: compared by counts, or not a contender). A significant candidate passes all three.
+    """
+
     fit: Fit
     chi2_per_dof: float
     seconds: float
     rejected: str = ""  #: why a candidate with a large delta BIC is not physical ("" if it is)
+    implausible: str = ""  #: why the fitted pattern is not this effect ("" if it may be)
+    heldout: float | None = None
+
+    @property
+    def plausible(self) -> bool:
+        return not self.implausible
+
+    @property
+    def contender(self) -> bool:
+        """Significant by delta BIC and neither rejected nor implausible: worth a held-out score."""
+        return self.fit.delta_bic < SIGNIFICANT_DELTA_BIC and not self.rejected and not self.implausible
 
     @property
     def significant(self) -> bool:
-        return self.fit.delta_bic < SIGNIFICANT_DELTA_BIC and not self.rejected
+        return self.contender and (self.heldout is None or self.heldout < SIGNIFICANT_HELDOUT)
+
+    @property
+    def score(self) -> float:
+        """What the ranking sorts by: the held-out delta when there is one, else delta BIC."""
+        return self.heldout if self.heldout is not None else self.fit.delta_bic
 
     def to_json(self) -> dict:
         f = self.fit
         return {"effect": f.effect, "params": f.params, "chi2_per_dof": self.chi2_per_dof,
                 "delta_bic": f.delta_bic, "delta_m2lnl": f.delta_m2lnl, "k": f.k, "explanation": f.explanation,
                 "kind": type(registry()[f.effect].signature).__name__ if f.effect in registry() else "",
-                "significant": self.significant, "rejected": self.rejected, "variant": f.note,
+                "significant": self.significant, "rejected": self.rejected, "plausible": self.plausible,
+                "implausible_because": self.implausible, "heldout_delta": self.heldout, "variant": f.note,
                 "seconds": self.seconds}
+
+
+def at_bound(cls, params: dict) -> str:
+    """"" or which fitted parameter sits at a bound of the effect's parameter model (the form cannot follow
+    the data any further: the effect, if there, is not of this form)."""
+    props = cls.Params.model_json_schema().get("properties", {})
+    for key, value in params.items():
+        sch = props.get(key)
+        if sch is None or isinstance(value, bool) or not isinstance(value, (int, float)):
+            continue
+        alts = [sch, *sch.get("anyOf", [])]
+        for a in alts:
+            for bkey in ("minimum", "maximum", "exclusiveMinimum", "exclusiveMaximum"):
+                bound = a.get(bkey)
+                if bound is None or not np.isfinite(bound) or bound == 0:
+                    continue  # a zero lower bound is where an absent effect sits, not a pinned fit
+                if abs(value - bound) <= 1e-3 * max(1.0, abs(bound)):
+                    return f"the fitted {key} = {value:.4g} sits at its bound {bound:.4g}: the form cannot follow the data"
+    return ""
 
 
 #: a noise-only candidate may claim at most this many times the variance the data show beyond the model's
@@ -155,13 +206,44 @@ def candidates(res: Residuals, present: set[str], progress=None, truth=None) -> 
         why = overfit(fit, chi2, res)
         if not why and getattr(cls.signature, "kind", "") == "transform":
             why = stars_check(res, fit, truth)
-        out.append(Candidate(fit, chi2, seconds, why))
+        out.append(Candidate(fit, chi2, seconds, why, implausibility(cls, fit, res)))
+    score_heldout(res, out, progress=progress)
     return rank(out), problems
 
 
+def implausibility(cls, fit: Fit, res: Residuals) -> str:
+    """"" or why the fitted pattern is not physically the effect: its signature's own structure test
+    (:meth:`detector.signatures.Signature.plausible`), then a parameter pinned at its bound."""
+    try:
+        why = cls.signature.plausible(fit, res) if hasattr(cls.signature, "plausible") else ""
+    except Exception as exc:  # noqa: BLE001  (a plugin's check that raises does not stop the diagnosis)
+        why = f"its plausibility check failed ({type(exc).__name__}: {exc})"
+    return why or at_bound(cls, fit.params)
+
+
+def score_heldout(res: Residuals, cands: list[Candidate], progress=None) -> None:
+    """The held-out delta of the contenders (at most HELDOUT_CANDIDATES, best delta BIC first)."""
+    reg = registry()
+    for c in sorted((c for c in cands if c.contender), key=lambda c: c.fit.delta_bic)[:HELDOUT_CANDIDATES]:
+        sig = reg[c.fit.effect].signature if c.fit.effect in reg else None
+        if sig is None or not hasattr(sig, "score"):
+            continue
+        t0 = time.perf_counter()
+        try:
+            c.heldout = heldout_delta(sig, res, c.fit.effect)
+        except Exception as exc:  # noqa: BLE001
+            c.implausible = f"cannot be scored on held-out pixels ({type(exc).__name__}: {exc})"
+        c.seconds += time.perf_counter() - t0
+        if progress is not None:
+            progress(f"{c.fit.effect} (held out)")
+
+
 def rank(cands: list[Candidate]) -> list[Candidate]:
-    """Best first: the accepted candidates by delta BIC, then the rejected ones by delta BIC."""
-    return sorted(cands, key=lambda c: (bool(c.rejected), c.fit.delta_bic))
+    """Best first: the significant candidates by their held-out score (delta BIC where there is none), then
+    the others that are plausible and not rejected, then the implausible and the rejected, each by delta
+    BIC."""
+    return sorted(cands, key=lambda c: (0 if c.significant else 1 if c.plausible and not c.rejected else 2,
+                                        c.score if c.significant else c.fit.delta_bic))
 
 
 def source_candidates(res: Residuals, truth, scene) -> list[Candidate]:
