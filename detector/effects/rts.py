@@ -40,6 +40,7 @@ from typing import Literal
 import numpy as np
 from pydantic import Field, model_validator
 
+from ..diagnosis import CountSignature
 from ..rng import generator
 from .base import Effect, EffectParams, Stage, Tile, register_effect
 
@@ -76,6 +77,56 @@ def rts_offsets(rng: np.random.Generator, amplitude_e, tau0_s, tau1_s, levels: i
     return amp * (s_sig - s_rst) if levels == 3 else amp * s_sig
 
 
+def _mean_flip_probability(tau_min_s: float, tau_max_s: float, cds_interval_s: float) -> float:
+    """Per-pixel probability of a downward CDS step ``P(s_rst = 1, s_sig = 0) = p_1 p_0 (1 - exp(-dt/tau_c))``,
+    averaged over log-uniform time constants (a 64 x 64 grid in log tau)."""
+    t = np.exp(np.linspace(np.log(tau_min_s), np.log(tau_max_s), 64))
+    t0, t1 = np.meshgrid(t, t)
+    p1 = t1 / (t0 + t1)
+    return float((p1 * (1 - p1) * (1.0 - np.exp(-cds_interval_s * (1 / t0 + 1 / t1)))).mean())
+
+
+def _rts_counts(res):
+    """Three-level RTS makes isolated pixels step *down* as often as up, independently of light: negative
+    single spikes where no light falls (a dead pixel cannot show there), with as many positive ones. The
+    count compared is the unlit negative spikes plus the positive ones up to the same excess (so that a
+    population of hot pixels alone, positive only, gives no RTS candidate). Fraction and median amplitude
+    from the negative spikes, for the plugin's default time constants and amplitude spread."""
+    from math import erfc, log, sqrt
+
+    from ..diagnosis import SPIKE_SIGMA
+    from .pixel_response import _lit
+
+    d, m = res.data_spikes, res.model_spikes
+    if not d.single_neg_index.size:
+        return None
+    dark_d = ~_lit(res, d.single_neg_index)
+    neg_d = int(dark_d.sum())
+    neg_m = int((~_lit(res, m.single_neg_index)).sum()) if m.single_neg_index.size else m.single_neg
+    if neg_d <= neg_m + 2:
+        return None
+    pos_d = min(d.single_pos, m.single_pos + (neg_d - neg_m))
+    idx = d.single_neg_index[dark_d]
+    g = res.gain
+    steps_e = (res.model_adu.ravel()[idx] - res.data_adu.ravel()[idx]).astype(np.float64) * g
+    amp = float(np.median(steps_e))
+    thr_e = SPIKE_SIGMA * float(np.median(np.sqrt(res.var_adu2.ravel()[idx]))) * g
+    p = RTSParams()
+    visible = 0.5 * erfc((log(thr_e) - log(max(amp, 1e-3))) / (p.amplitude_sigma_ln * sqrt(2)))
+    per_px = _mean_flip_probability(p.tau_min_s, p.tau_max_s, p.cds_interval_s) * max(visible, 0.05)
+    n_dark = max(int((res.photo_adu <= 0).sum()), 1) if (res.photo_adu <= 0).any() else res.data_adu.size
+    frac = min((neg_d - neg_m) / (per_px * n_dark), 0.1)
+    return ({"fraction": float(f"{frac:.3g}"), "amplitude_e": round(amp, 2)}, neg_d + pos_d,
+            neg_m + m.single_pos, 2)
+
+
+_RTS_SIGNATURE = CountSignature(
+    _rts_counts,
+    lambda p, res: (f"isolated pixels stepping up and down by ~{p['amplitude_e']:.3g} e- where no light falls "
+                    f"({100 * p['fraction']:.2g} % of the pixels): random telegraph noise"),
+    pattern="isolated positive and negative spikes in equal numbers, independent of light")
+
+
 class RTSParams(EffectParams):
     fraction: float = Field(5e-4, ge=0, le=0.1, description="fraction of the pixels with an RTS trap [1]")
     amplitude_e: float = Field(3.0, gt=0, le=1e4, description="median RTS amplitude [e-]")
@@ -104,6 +155,7 @@ class RTSNoise(Effect):
     stages = (Stage.READ,)
     Params = RTSParams
     stochastic = True
+    signature = _RTS_SIGNATURE
 
     def population(self, y0: int, y1: int) -> tuple[np.ndarray, ...]:
         """(rows, cols, amplitude_e, tau0_s, tau1_s) of the trap pixels in sensor rows [y0, y1), drawn per
