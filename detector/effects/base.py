@@ -225,5 +225,10 @@ def build_effects(tables: dict[str, dict], sensor: SensorConfig, *, file: str | 
                                 expected="one of " + ", ".join(sorted(known)), file=file)
         cls = known[name]
         p = validate(cls.Params, params or {}, prefix=f"effects.{name}", file=file)
-        out.append(cls(p, sensor))
+        try:
+            out.append(cls(p, sensor))
+        except DetectorError as exc:  # an effect refusing this sensor or a file: name the scene file
+            if exc.file is None and file is not None and (exc.key or "").startswith("effects."):
+                raise DetectorError(exc.message, key=exc.key, expected=exc.expected, file=file) from None
+            raise
     return out

@@ -171,7 +171,10 @@ class BrighterFatterParams(EffectParams):
 
 @register_effect
 class BrighterFatter(Effect):
-    """Brighter-fatter: charge-dependent pixel boundaries (Antilogus 2014 / Coulton 2018 kernel form)."""
+    """Brighter-fatter: collected charge pushes pixel boundaries outwards (Antilogus et al. 2014 JINST 9
+    C03048; Coulton et al. 2018 AJ 155 258). Q' = Q - 1/2 sum_n c (Q_i+Q_n)/2 (phi_i - phi_n), phi = K (x) Q,
+    K = exp(-r/scale) (3x3); charge conserved; flats get Cov_ij = a_ij mu^2 with a = c Laplacian(K), a_10 given.
+    Details: detector/effects/coupling.py."""
 
     name = "brighter_fatter"
     stages = (Stage.COUPLING,)
@@ -191,7 +194,10 @@ class IPCParams(EffectParams):
 
 @register_effect
 class IPC(Effect):
-    """Inter-pixel capacitance: a 3x3 coupling kernel on the read signal (charge seen, not moved)."""
+    """Inter-pixel capacitance: each pixel reads alpha of each nearest (alpha_diag of each diagonal)
+    neighbour's charge, V = K_ipc (x) Q, charge seen but not moved (Moore et al. 2004 Opt. Eng. 45 076402).
+    A flat's nearest-neighbour correlation is 2 alpha (1 - 4 alpha) / ((1 - 4 alpha)^2 + 4 alpha^2).
+    Details: detector/effects/coupling.py."""
 
     name = "ipc"
     stages = (Stage.COUPLING,)

@@ -218,7 +218,11 @@ _CTI_SIGNATURE = LinearSignature(
 
 @register_effect
 class CTI(Effect):
-    """Charge-transfer inefficiency (trap species, CDM03 / ArCTIc; parallel and serial); see the module."""
+    """Charge-transfer inefficiency of a CCD: trap species capture charge from passing packets and release it
+    into later ones (trails away from the register). A packet of n e- reaches rho_k (n/w)^beta traps per
+    pixel, a filled trap releases with probability 1 - exp(-t_d/tau_k) per transfer (CDM03, Short et al.
+    2013 MNRAS 430 3078; ArCTIc well fill, Massey et al. 2014 MNRAS 439 887). Parallel and serial; densities
+    given or from a proton-dose model (days_in_orbit). CCD only. Details: detector/effects/cti.py."""
 
     name = "cti"
     stages = (Stage.COUPLING,)

@@ -77,7 +77,10 @@ class PersistenceParams(EffectParams):
 
 @register_effect
 class Persistence(Effect):
-    """Persistence: an exponentially decaying residual of earlier frames' charge above a threshold."""
+    """Persistence: a fraction f of an earlier frame's charge above threshold_e is trapped and released with
+    time constant tau; an exposure of T s starting t0 s after it collects f (Q - Q_th) [exp(-t0/tau) -
+    exp(-(t0+T)/tau)] (Smith et al. 2008 SPIE 7021). previous_frame: FITS in ADU (its BIAS/GAIN cards),
+    time_since_s: from its end to this frame's start. Details: detector/effects/persistence.py."""
 
     name = "persistence"
     stages = (Stage.DARK,)

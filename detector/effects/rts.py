@@ -149,7 +149,10 @@ _RTS_BAND = 240
 
 @register_effect
 class RTSNoise(Effect):
-    """Random telegraph signal of a population of CMOS pixels (two or three levels); see the module."""
+    """Random telegraph signal: a fraction of the pixels (hardware seed) has a two-state source-follower
+    trap with exponential dwell times (log-uniform means) and a log-normal amplitude; read by CDS it gives
+    offsets -A, 0, +A (levels = 3) or 0, A (levels = 2), drawn anew every frame (frame seed): a sequence
+    shows blinking pixels (Kirton & Uren 1989; Wang et al. 2006 IEDM). Details: detector/effects/rts.py."""
 
     name = "rts_noise"
     stages = (Stage.READ,)

@@ -298,3 +298,16 @@ def test_persistence_wrong_shape_is_one_clear_error(tmp_path):
     fits.PrimaryHDU(np.zeros((10, 10), np.uint16)).writeto(path)
     with pytest.raises(DetectorError, match="previous frame"):
         build_effects({"persistence": {"previous_frame": str(path), "time_since_s": 1.0}}, s)
+
+
+def test_model_of_the_mean_frame_couples_the_mean_charge():
+    """Detector.moments (compare/diagnose) applies the coupling effects to the mean charge."""
+    s = _ccd(dark_current_e_per_s=0.0)
+    sig = np.full(s.shape, 100.0, np.float32)
+    sig[150, 60] = 20000.0
+    eff = {"cti": {"density_per_px": [0.3], "release_time_s": [1.5e-3]}}
+    mean, var, _ = Detector(s, build_effects(eff, s)).moments(sig, 1.0)
+    expect = cti_transfer(sig, [0.3], [1.5e-3], 5.01e-4, 0.478, s.full_well_e, first_transfers=s.roi_y0 + 1)
+    expect_adu = expect / s.gain_e_per_adu + s.bias_adu - 0.5
+    assert np.allclose(mean, expect_adu, atol=0.05)
+    assert mean[151:160, 60].sum() > mean[141:150, 60].sum() + 5  # the trail, above the star
