@@ -9,6 +9,9 @@ Order, and why:
 3. **one** Poisson draw of that total (shot noise of photo-electrons and dark electrons together: the sum
    of independent Poisson variables is Poisson), then CHARGE effects (cosmic-ray charge);
 4. clip at the full well *before* any read-out noise (a pixel cannot hold more; eq. 34);
+4b. COUPLING effects, which move or share charge between pixels (brighter-fatter, charge-transfer
+   inefficiency, inter-pixel capacitance): each tile is given the rows of its neighbours it needs (the
+   effect's ``halo_rows``) or, for an effect that needs whole columns (CTI), the whole window at once;
 5. charge-domain binning for a CCD (charge is summed in the serial register before the amplifier);
 6. READ effects (nonlinearity, kTC reset noise, row noise), then Gaussian read noise (eq. 33);
 7. conversion to ADU by the gain (e-/ADU), ADU effects, plus the bias (eq. 34);
@@ -92,6 +95,23 @@ class Detector:
         self.effects = list(effects or [])
         self.workers = workers or min(4, os.cpu_count() or 1)
         self._by_stage = {st: [e for e in self.effects if st in e.stages] for st in Stage}
+        self._by_stage[Stage.COUPLING].sort(key=lambda e: e.coupling_order)
+
+    @property
+    def coupling_halo(self) -> int | None:
+        """Rows of the neighbouring tiles the COUPLING effects need together (None: the whole window)."""
+        halos = [e.halo_rows for e in self._by_stage[Stage.COUPLING]]
+        return None if any(h is None for h in halos) else int(sum(halos))
+
+    def couple(self, tile: Tile, center: np.ndarray, above: np.ndarray | None = None,
+               below: np.ndarray | None = None, mean_only: bool = False) -> np.ndarray:
+        """Apply the COUPLING effects to a tile's charge [e-] with its neighbours' rows; a new array."""
+        pt = 0 if above is None else above.shape[0]
+        pb = 0 if below is None else below.shape[0]
+        a = np.concatenate([x for x in (above, center, below) if x is not None]) if (pt or pb) else center.copy()
+        for e in self._by_stage[Stage.COUPLING]:
+            a = e.couple(tile, a, pt, pb, mean_only)
+        return np.ascontiguousarray(a[pt:a.shape[0] - pb], dtype=np.float32)
 
     # -- geometry and timing
     def row_start_times_s(self) -> np.ndarray:
@@ -155,14 +175,28 @@ class Detector:
     def process_tile(self, signal: Signal, tile: Tile, noiseless: bool = False) -> np.ndarray:
         s = self.sensor
         b = s.binning
-        mean = self.mean_electrons(signal, tile)
         if noiseless:
+            mean = self.mean_electrons(signal, tile)
             out = bin_sum(mean, b)
             return out / np.float32(b * b) if s.binning_mode == "average" else out
+        charge = self.charge_tile(signal, tile)
+        if self._by_stage[Stage.COUPLING]:
+            charge = self.couple(tile, charge)
+        return self.finish_tile(tile, charge)
+
+    def charge_tile(self, signal: Signal, tile: Tile) -> np.ndarray:
+        """The collected charge [e-] of a tile: mean, one Poisson draw, CHARGE effects, full-well clip."""
+        mean = self.mean_electrons(signal, tile)
         charge = shot_noise(tile.rng("shot_noise"), mean)
         del mean
         self._run(Stage.CHARGE, tile, charge)
-        np.minimum(charge, np.float32(s.full_well_e), out=charge)
+        np.minimum(charge, np.float32(self.sensor.full_well_e), out=charge)
+        return charge
+
+    def finish_tile(self, tile: Tile, charge: np.ndarray) -> np.ndarray:
+        """From the (coupled) charge [e-] of a tile to its digital frame: binning, read-out, ADC."""
+        s = self.sensor
+        b = s.binning
         if s.kind == "ccd" and b > 1:
             charge = bin_sum(charge, b)
             tile.bin = b
@@ -183,7 +217,8 @@ class Detector:
             adu = np.floor(adu / (b * b))
         return adu.astype(dtype)
 
-    def moments_tile(self, signal: Signal, tile: Tile) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def moments_tile(self, signal: Signal, tile: Tile, _split: bool = False
+                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Mean [ADU], variance [ADU^2] and a "statistical only" flag of every output pixel of a tile.
 
         The same chain as :meth:`process_tile` with every random draw replaced by its moments: Poisson
@@ -196,7 +231,9 @@ class Detector:
         their statistics). Pixels whose
         mean lies within 3 sigma of the full well or of the ADC maximum are flagged: there the clipped
         distribution is not Gaussian and the pixel can only be compared statistically. Deterministic
-        READ/ADU effects act on the mean only (their effect on the variance is second order).
+        READ/ADU effects act on the mean only (their effect on the variance is second order), and so do the
+        COUPLING effects (brighter-fatter, CTI, IPC: what they do to the noise is diagnosed from the
+        frame's correlations, not from this per-pixel variance).
         """
         s = self.sensor
         b = s.binning
@@ -212,6 +249,17 @@ class Detector:
         var = mean + np.float32(pattern_var)
         flag = mean + 3 * np.sqrt(var) >= fw
         np.minimum(mean, fw, out=mean)
+        if self._by_stage[Stage.COUPLING] and not _split:
+            mean = self.couple(tile, mean, mean_only=True)
+        if _split:
+            return mean, var, flag
+        return self.moments_finish(tile, mean, var, flag)
+
+    def moments_finish(self, tile: Tile, mean: np.ndarray, var: np.ndarray, flag: np.ndarray
+                       ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Second half of :meth:`moments_tile`: from the (coupled) mean charge to ADU moments."""
+        s = self.sensor
+        b = s.binning
         if s.kind == "ccd" and b > 1:
             mean, var, flag = bin_sum(mean, b), bin_sum(var, b), bin_sum(flag.astype(np.float32), b) > 0
             tile.bin = b
@@ -249,7 +297,16 @@ class Detector:
         b, y0 = self.sensor.binning, self.sensor.roi_y0
         tiles = self.tiles(exptime_s, frame_seed, state)
         with ThreadPoolExecutor(max_workers=self.workers) as pool:
-            for t, (m, v, f) in zip(tiles, pool.map(lambda t: self.moments_tile(signal, t), tiles)):
+            if self._by_stage[Stage.COUPLING]:  # the whole mean frame is in memory anyway: couple it at once
+                parts = list(pool.map(lambda t: self.moments_tile(signal, t, _split=True), tiles))
+                (h, w), x0 = self.sensor.shape, self.sensor.roi_x0
+                whole = Tile(self.sensor, -1, y0, y0 + h, x0, x0 + w, exptime_s, frame_seed, state=state)
+                coupled = self.couple(whole, np.concatenate([p[0] for p in parts]), mean_only=True)
+                jobs = [(t, coupled[t.y0 - y0:t.y1 - y0], p[1], p[2]) for t, p in zip(tiles, parts)]
+                results = pool.map(lambda j: self.moments_finish(*j), jobs)
+            else:
+                results = pool.map(lambda t: self.moments_tile(signal, t), tiles)
+            for t, (m, v, f) in zip(tiles, results):
                 r0, r1 = (t.y0 - y0) // b, (t.y1 - y0) // b
                 mean[r0:r1], var[r0:r1], flag[r0:r1] = m, v, f
         return mean, var, flag
@@ -273,6 +330,9 @@ class Detector:
         tiles = self.tiles(exptime_s, frame_seed, state)
         b = self.sensor.binning
         y0 = self.sensor.roi_y0
+        if self._by_stage[Stage.COUPLING] and not noiseless:
+            yield from self._iter_coupled(signal, tiles, exptime_s, frame_seed, state)
+            return
         with ThreadPoolExecutor(max_workers=self.workers) as pool:
             pending: deque = deque()
             it = iter(tiles)
@@ -287,6 +347,60 @@ class Detector:
                 if nxt is not None:
                     pending.append((nxt, pool.submit(self.process_tile, signal, nxt, noiseless)))
                 yield (t.y0 - y0) // b, (t.y1 - y0) // b, arr
+
+    def _iter_coupled(self, signal: Signal, tiles: list[Tile], exptime_s: float, frame_seed: int, state: dict
+                      ) -> Iterator[tuple[int, int, np.ndarray]]:
+        """:meth:`iter_frame` with COUPLING effects: every tile's charge is drawn (phase A), coupled with
+        its neighbours' rows, then read out (phase B). With a finite halo the tiles stream (at most a few
+        tiles' charge in memory); an effect that needs whole columns (CTI, a CCD's small frame) gets the
+        whole window. The coupled charge depends only on the drawn charges, so the bytes do not depend on
+        the number of threads."""
+        s = self.sensor
+        b, y0 = s.binning, s.roi_y0
+        halo = self.coupling_halo
+        with ThreadPoolExecutor(max_workers=self.workers) as pool:
+            if halo is None:
+                charges = list(pool.map(lambda t: self.charge_tile(signal, t), tiles))
+                (h, w), x0 = s.shape, s.roi_x0
+                whole = Tile(s, -1, y0, y0 + h, x0, x0 + w, exptime_s, frame_seed, state=state)
+                coupled = self.couple(whole, np.concatenate(charges))
+                del charges
+                futs = [pool.submit(self.finish_tile, t, coupled[t.y0 - y0:t.y1 - y0].copy()) for t in tiles]
+                for t, f in zip(tiles, futs):
+                    yield (t.y0 - y0) // b, (t.y1 - y0) // b, f.result()
+                return
+            if any(t.y1 - t.y0 < halo for t in tiles[:-1]):
+                raise DetectorError(f"coupling effects need {halo} rows of neighbours", key="effects",
+                                    expected=f"a total reach below the {tiles[0].y1 - tiles[0].y0}-row tile")
+            n = len(tiles)
+            charge: dict = {}
+            done: deque = deque()
+
+            def ensure(i):
+                if 0 <= i < n and i not in charge:
+                    charge[i] = pool.submit(self.charge_tile, signal, tiles[i])
+
+            def job(i, center, above, below):
+                return self.finish_tile(tiles[i], self.couple(tiles[i], center, above, below))
+
+            charge_i: dict = {}
+            for i in range(n):
+                for j in (i, i + 1, i + 2):
+                    ensure(j)
+                for j in (i - 1, i, i + 1):
+                    if 0 <= j < n and j not in charge_i:
+                        charge_i[j] = charge[j].result()
+                above = charge_i[i - 1][-halo:] if i > 0 and halo else None
+                below = charge_i[i + 1][:halo] if i + 1 < n and halo else None
+                done.append((tiles[i], pool.submit(job, i, charge_i[i], above, below)))
+                for j in [k for k in charge_i if k < i - 1]:
+                    del charge_i[j], charge[j]
+                while len(done) > self.workers:
+                    t, f = done.popleft()
+                    yield (t.y0 - y0) // b, (t.y1 - y0) // b, f.result()
+            while done:
+                t, f = done.popleft()
+                yield (t.y0 - y0) // b, (t.y1 - y0) // b, f.result()
 
     def field_signal(self, signal: Signal, exptime_s: float, frame_seed: int, state: dict) -> np.ndarray:
         """The whole expected photo-electron image after the FIELD effects (a new array)."""

@@ -8,9 +8,9 @@ Register it with ``@register_effect`` (in code), or from an installed package th
 ``newtsim.effects`` in its pyproject.toml::
 
     [project.entry-points."newtsim.effects"]
-    persistence = "mypackage.effects:Persistence"
+    residual_image = "mypackage.effects:Persistence"
 
-then switch it on from any scene with ``[effects.persistence]``.
+then switch it on from any scene with ``[effects.residual_image]``.
 
 A ``signature`` tells ``newtsim diagnose`` how the effect shows in the residuals of a measured frame: here
 a linear template (the released charge per unit trapped fraction), so the diagnosis can fit ``fraction``
@@ -69,7 +69,7 @@ def _persistence_variants(res):
 class Persistence(Effect):
     """Residual image of the previous frame: f Q (1 - exp(-t/tau)) electrons added to the mean."""
 
-    name = "persistence"
+    name = "residual_image"
     stages = (Stage.DARK,)
     Params = PersistenceParams
     signature = LinearSignature(
@@ -100,7 +100,7 @@ def diagnosis_demo(folder: str) -> tuple[float, float, dict]:
     base = {"detector": {"preset": "ml11002", "width": 256, "height": 256, "x0": 0, "y0": 0},
             "exposure": {"time_s": 30.0, "frame": "dark"}}
     (d / "model.toml").write_text(tomli_w.dumps(base))
-    (d / "truth.toml").write_text(tomli_w.dumps({**base, "effects": {"persistence": {"fraction": 0.003}}}))
+    (d / "truth.toml").write_text(tomli_w.dumps({**base, "effects": {"residual_image": {"fraction": 0.003}}}))
     render(load_scene(str(d / "truth.toml")), d / "measured.fits", seed=7)
     out = run_diagnose(load_scene(str(d / "model.toml")), d / "measured.fits")
     best = out["candidates"][0]
@@ -113,7 +113,7 @@ if __name__ == "__main__":
     import tempfile
 
     s = make_sensor("ml11002", {"width": 256, "height": 256, "x0": 0, "y0": 0})
-    det = Detector(s, build_effects({"persistence": {"fraction": 0.002}}, s))
+    det = Detector(s, build_effects({"residual_image": {"fraction": 0.002}}, s))
     frame = det.expose(0.0, exptime_s=30.0, frame_seed=1, noiseless=True)
     print(f"residual in the old bright box: {frame[120, 120]:.1f} e- "
           f"(expected {50000 * 0.002 * (1 - np.exp(-1)) + 0.05 * 30:.1f}); elsewhere {frame[10, 10]:.2f} e-")

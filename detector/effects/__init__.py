@@ -13,10 +13,12 @@ Each module holds pure physics functions and their registered adapters:
 * ``maps``: ``bias_map``, ``flat_map`` (measured master bias / flat FITS files)
 * ``colour``: ``cfa``
 * ``sky``: ``sky_gradient``
+* ``cti``: ``cti`` (charge-transfer inefficiency, CCD only, with a proton-dose model)
+* ``coupling``: ``brighter_fatter``, ``ipc`` (stage COUPLING: on the drawn charge, with neighbour rows)
+* ``rts``: ``rts_noise`` (random telegraph signal of CMOS pixels)
+* ``persistence``: ``persistence`` (residual image of earlier frames)
 """
 
-from .base import Effect, EffectParams, Stage, Tile, build_effects, register_effect, registry
-from . import pixel_response, defects, readout, glow, blooming, cosmic_rays, optical, image_plane  # noqa: F401  (registration)
-from . import colour, maps, sky  # noqa: F401  (registration)
-
-__all__ = ["Effect", "EffectParams", "Stage", "Tile", "build_effects", "register_effect", "registry"]
+from .base import Effect, EffectParams, Stage, Tile, build_effects, register_effect, registry  # isort: skip
+from . import blooming, colour, cosmic_rays, coupling, cti, defects, glow, image_plane  # noqa: F401,I001  (registration)
+from . import maps, optical, persistence, pixel_response, readout, rts, sky  # noqa: F401  (registration)

@@ -39,6 +39,11 @@ class Stage(enum.IntEnum):
     READ = 4  #: acts on the clipped charge at read-out, before read noise [e-] (nonlinearity, kTC, rows)
     ADU = 5  #: acts on the converted signal, bias not yet added [ADU] (gain regions, crosstalk, bias shape)
     DIGITAL = 6  #: acts on the quantised frame before binning [ADU] (stuck pixels)
+    #: couples pixels after the full-well clip, before binning and READ [e-] (brighter-fatter, CTI, IPC). Its
+    #: number is last so the older stages keep theirs; in the chain it runs between CHARGE and READ. The
+    #: effect sees the tile's rows plus ``halo_rows`` rows of the neighbouring tiles above and below
+    #: (``halo_rows = None``: the whole read-out window) and returns a new array of the same shape.
+    COUPLING = 7
 
 
 class EffectParams(BaseModel):
@@ -133,6 +138,11 @@ class Effect:
     #: without the effect. None only with :attr:`no_identity` saying why the effect has no zero strength.
     identity: ClassVar[dict | None] = None
     no_identity: ClassVar[str] = ""
+    #: COUPLING effects only: rows of the neighbouring tiles the effect needs on each side (its kernel's
+    #: reach), or None for the whole read-out window (CTI: a whole column); and the order among COUPLING
+    #: effects (0 charge collection: brighter-fatter, 1 transfer: CTI, 2 sense node: IPC)
+    halo_rows: ClassVar[int | None] = 0
+    coupling_order: ClassVar[int] = 1
 
     def __init__(self, params: EffectParams, sensor: SensorConfig):
         self.params = params
@@ -152,6 +162,14 @@ class Effect:
 
     def apply(self, stage: Stage, tile: Tile, data: np.ndarray) -> None:  # pragma: no cover - abstract
         raise NotImplementedError
+
+    def couple(self, tile: Tile, charge_e: np.ndarray, pad_top: int, pad_bottom: int,
+               mean_only: bool = False) -> np.ndarray:
+        """COUPLING stage: return the new charge [e-] of ``charge_e`` (the tile's rows with ``pad_top`` /
+        ``pad_bottom`` rows of the neighbouring tiles around them). Rows within the effect's reach of an
+        edge that is not the frame's may be wrong; the chain crops them. ``mean_only``: the array is the
+        model's mean charge (:meth:`detector.Detector.moments`), not a noisy realisation."""
+        raise NotImplementedError  # pragma: no cover - abstract
 
     def variance_e2(self, stage: Stage, tile: Tile, mean_e: np.ndarray) -> float | np.ndarray:
         """Variance [e-^2] a stochastic or pattern effect adds at ``stage`` to a pixel of mean ``mean_e``
@@ -212,5 +230,10 @@ def build_effects(tables: dict[str, dict], sensor: SensorConfig, *, file: str | 
                                 expected="one of " + ", ".join(sorted(known)), file=file)
         cls = known[name]
         p = validate(cls.Params, params or {}, prefix=f"effects.{name}", file=file)
-        out.append(cls(p, sensor))
+        try:
+            out.append(cls(p, sensor))
+        except DetectorError as exc:  # an effect refusing this sensor or a file: name the scene file
+            if exc.file is None and file is not None and (exc.key or "").startswith("effects."):
+                raise DetectorError(exc.message, key=exc.key, expected=exc.expected, file=file) from None
+            raise
     return out

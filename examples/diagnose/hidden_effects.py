@@ -69,7 +69,7 @@ from detector.rng import generator
 #: the detector effects whose diagnosis is proved here (catalogue effects with a signature)
 EFFECTS = ("amp_glow", "bias_gradient", "blooming", "cfa", "column_defects", "cosmic_rays", "crosstalk", "dead_pixels",
            "dsnu", "gain_regions", "hot_pixels", "nonlinearity", "prnu", "reset_noise", "row_noise", "sky_gradient",
-           "vignetting")
+           "vignetting", "cti", "brighter_fatter", "ipc", "rts_noise")
 
 #: the measured camera's hardware seed (the model scene keeps the preset's): other defect positions
 MEASURED_HARDWARE_SEED = 77_123_401
@@ -98,6 +98,10 @@ BASES: dict[str, dict] = {
                                  "binning": 2},
                     "exposure": {"time_s": 120.0, "frame": "dark"},
                     "sky": {"stars": False}},
+    # a 10 s dark on a 512x512 window of the CMOS (read noise 3.5 e-): pixel-level read-out effects (RTS)
+    "dark_cmos": {"detector": {"preset": "imx411", "width": 512, "height": 512},
+                  "exposure": {"time_s": 10.0, "frame": "dark"},
+                  "sky": {"stars": False}},
     # bias frames of the whole CCD, binned 8x8: bias structure
     "bias_full": {"detector": {"preset": "ml11002", "binning": 8},
                   "exposure": {"time_s": 0.0, "frame": "bias"},
@@ -494,6 +498,96 @@ class MoonlitSky(RealWorld):
         np.maximum(data, 0, out=data)
 
 
+class TwoSpeciesCTI(RealWorld):
+    """CTI with two trap species whose release times (1.6 and 22 parallel transfers) and well-fill power
+    (0.6) differ from the plugin's single-species templates (ACS-like 0.74 / 7.7 / 37 transfers, beta 0.478)."""
+
+    stages = (Stage.COUPLING,)
+    halo_rows = None
+
+    def couple(self, tile, charge_e, pad_top, pad_bottom, mean_only=False):
+        from detector.effects.cti import cti_transfer
+
+        p = self.params
+        dwell = 4008 / 8e6
+        return cti_transfer(charge_e, p.density, [t * dwell for t in p.release_transfers], dwell, p.beta,
+                            self.sensor.full_well_e, first_transfers=tile.y0 - pad_top + 1).astype(np.float32)
+
+
+def _flux_kernel(q, k, c):
+    """Charge moved by boundaries shifting with the potential ``k (x) q`` (any kernel), charge conserved."""
+    from scipy.ndimage import correlate
+
+    phi = correlate(q, k.astype(np.float32), mode="nearest")
+    out = q.copy()
+    f = (q[:, :-1] + q[:, 1:]) * (phi[:, :-1] - phi[:, 1:]) * np.float32(0.25 * c)
+    out[:, :-1] -= f
+    out[:, 1:] += f
+    f = (q[:-1] + q[1:]) * (phi[:-1] - phi[1:]) * np.float32(0.25 * c)
+    out[:-1] -= f
+    out[1:] += f
+    return out
+
+
+class PowerLawBrighterFatter(RealWorld):
+    """Brighter-fatter with a 5x5 power-law potential ``(r + 0.4)^-3`` and 30 % stronger coupling along the
+    columns than along the rows (the plugin: a 3x3 isotropic exponential kernel)."""
+
+    stages = (Stage.COUPLING,)
+    halo_rows = 3
+
+    def couple(self, tile, charge_e, pad_top, pad_bottom, mean_only=False):
+        y, x = np.mgrid[-2:3, -2:3]
+        k = (np.hypot(1.3 * y, x) + 0.4) ** -3.0
+        k /= k[2, 2]
+        # strength from the nearest-neighbour (along the row) area coefficient: a_01 = c (Laplacian k)_01
+        c = self.params.a10_per_e / (k[2, 2] + k[2, 4] + k[1, 3] + k[3, 3] - 4 * k[2, 3])
+        return _flux_kernel(np.asarray(charge_e, np.float32), k, c)
+
+
+class AnisotropicIPC(RealWorld):
+    """Inter-pixel capacitance stronger along rows (1.3 %) than columns (0.9 %), with 0.1 % diagonals (the
+    plugin: the same coupling in both directions)."""
+
+    stages = (Stage.COUPLING,)
+    halo_rows = 1
+    coupling_order = 2
+
+    def couple(self, tile, charge_e, pad_top, pad_bottom, mean_only=False):
+        from scipy.ndimage import correlate
+
+        p = self.params
+        k = np.array([[p.diag, p.ay, p.diag], [p.ax, 0.0, p.ax], [p.diag, p.ay, p.diag]], np.float32)
+        k[1, 1] = 1.0 - k.sum()
+        return correlate(np.asarray(charge_e, np.float32), k, mode="nearest")
+
+
+class ExponentialRTS(RealWorld):
+    """Three-level RTS of 0.4 % of the pixels, exponential amplitudes (mean 25 e-), time constants
+    log-uniform in 5-60 us (the plugin: log-normal amplitudes, 10 us - 100 ms), CDS interval 4 us."""
+
+    stages = (Stage.READ,)
+
+    def setup(self):
+        p, s = self.params, self.sensor
+        rng = generator(MEASURED_HARDWARE_SEED, "real_rts")
+        n = s.sensor_width_px * s.sensor_height_px
+        k = rng.binomial(n, p.fraction)
+        flat = np.unique(rng.integers(0, n, k))
+        self.rows, self.cols = flat // s.sensor_width_px, flat % s.sensor_width_px
+        self.amp = rng.exponential(p.mean_e, flat.size)
+        self.t0 = np.exp(rng.uniform(np.log(5e-6), np.log(6e-5), flat.size))
+        self.t1 = np.exp(rng.uniform(np.log(5e-6), np.log(6e-5), flat.size))
+
+    def apply(self, stage, tile, data):
+        from detector.effects.rts import rts_offsets
+
+        sel = (self.rows >= tile.y0) & (self.rows < tile.y1) & (self.cols >= tile.x0) & (self.cols < tile.x1)
+        if sel.any():
+            off = rts_offsets(tile.rng("real_rts"), self.amp[sel], self.t0[sel], self.t1[sel], 3, 4e-6)
+            np.add.at(data, (self.rows[sel] - tile.y0, self.cols[sel] - tile.x0), off.astype(np.float32))
+
+
 # --- the cases --------------------------------------------------------------------------------------------------
 
 @dataclass
@@ -554,6 +648,18 @@ CASES: dict[str, Case] = {c.effect: c for c in [
          lambda s: [MoonlitSky(s, gradient_e_per_s_per_kpx=6.0, scale_px=8000.0, distance_px=12000.0,
                                angle_deg=120.0)],
          Levels(0.01, -0.02, 0.3)),
+    Case("cti", "stars", "two trap species (0.15 and 0.25 traps/px) releasing in 1.6 and 22 transfers, well-fill "
+         "power 0.6",
+         lambda s: [TwoSpeciesCTI(s, density=[0.15, 0.25], release_transfers=[1.6, 22.0], beta=0.6)],
+         Levels(0.01, -0.02, 0.3)),
+    Case("brighter_fatter", "stars", "5x5 power-law potential (r + 0.4)^-3, 30 % stronger along columns, "
+         "a_10 ~ 2e-6 /e-",
+         lambda s: [PowerLawBrighterFatter(s, a10_per_e=2e-6)], Levels(0.012, -0.02, 0.4)),
+    Case("ipc", "stars", "anisotropic IPC: 1.3 % along rows, 0.9 % along columns, 0.1 % diagonals",
+         lambda s: [AnisotropicIPC(s, ax=0.013, ay=0.009, diag=0.001)], Levels(-0.01, 0.02, 0.3)),
+    Case("rts_noise", "dark_cmos", "three-level RTS of 0.4 % of the pixels, exponential amplitudes (mean 25 e-), "
+         "time constants 5-60 us",
+         lambda s: [ExponentialRTS(s, fraction=0.004, mean_e=25.0)], Levels(0.0, 0.02, -0.4)),
     Case("vignetting", "flat_full", "cos^4(atan(r/70 mm)) about a centre offset by (2.5, -1.5) mm",
          lambda s: [OffCentreCos4Vignetting(s, pupil_mm=70.0, centre_x_mm=2.5, centre_y_mm=-1.5)],
          Levels(0.012, -0.02, -0.5)),
@@ -635,7 +741,7 @@ def error_of(cmp: dict, support: np.ndarray | None = None) -> dict:
 
 
 #: effects the model compares statistically (outlier counts): their error is the misfit, the others' chi2 - 1
-STATISTICAL = {"cosmic_rays", "hot_pixels", "dead_pixels", "column_defects"}
+STATISTICAL = {"cosmic_rays", "hot_pixels", "dead_pixels", "column_defects", "rts_noise"}
 
 
 def diagnose_frame(model_toml: Path, measured: Path, hidden: str | None, apply_dir: Path | None = None,

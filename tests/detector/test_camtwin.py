@@ -16,8 +16,16 @@ import pytest
 from astropy.io import fits
 
 from detector import Detector, DetectorError, build_effects, make_sensor
-from detector.characterize import (bias_structure, camera_twin, characterize, clipped_stats, dark_rate_map,
-                                   emit_population_dict, fit_rate_laws, write_twin)
+from detector.characterize import (
+    bias_structure,
+    camera_twin,
+    characterize,
+    clipped_stats,
+    dark_rate_map,
+    emit_population_dict,
+    fit_rate_laws,
+    write_twin,
+)
 from detector.effects.maps import draw_excess_rates, tail_probabilities
 
 SBIG = Path(__file__).resolve().parents[2] / ".." / "shared" / "realdata" / "sbig_stl1001e_calib"

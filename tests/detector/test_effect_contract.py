@@ -10,6 +10,8 @@ from detector import Detector, build_effects, registry
 
 NAMES = sorted(registry())
 def _numeric(schema: dict) -> bool:
+    if "enum" in schema or "const" in schema:  # a choice among values, not a quantity
+        return False
     kinds = {schema.get("type")} | {a.get("type") for a in schema.get("anyOf", [])}
     return bool(kinds & {"number", "integer"}) and not kinds & {"array", "object", "string"}
 

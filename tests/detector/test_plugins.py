@@ -13,9 +13,9 @@ EXAMPLE = Path(__file__).resolve().parents[2] / "examples" / "custom_effect.py"
 
 def test_example_plugin_registers_and_follows_its_law():
     ns = runpy.run_path(str(EXAMPLE))
-    assert "persistence" in registry()
+    assert "residual_image" in registry()
     s = make_sensor("ml11002", {"width": 256, "height": 256, "x0": 0, "y0": 0, "dark_current_e_per_s": 0.0})
-    det = Detector(s, build_effects({"persistence": {"fraction": 0.01, "tau_s": 10.0}}, s))
+    det = Detector(s, build_effects({"residual_image": {"fraction": 0.01, "tau_s": 10.0}}, s))
     m = det.expose(0.0, 20.0, 1, noiseless=True)
     assert np.isclose(m[120, 120], ns["persistence_e"](50000.0, 0.01, 10.0, 20.0)) and m[10, 10] == 0
 

@@ -1,0 +1,212 @@
+"""Pixel coupling at and after charge collection: the brighter-fatter effect and inter-pixel capacitance.
+
+Both act on the drawn charge (stage COUPLING, after the full-well clip), so they shape the *noise* of a
+flat as well as the mean image of a star: that is how they are told apart from an optical blur, which acts
+before the Poisson draw and leaves the pixels of a flat uncorrelated.
+
+**Brighter-fatter** (Antilogus et al. 2014, JINST 9, C03048; Coulton et al. 2018, AJ 155, 258, eq. 10;
+the kernel form imSim/GalSim and the LSST pipelines use): the charge already collected repels the charge
+still arriving, so pixel boundaries move away from bright pixels. With a potential ``phi = K (x) Q`` of the
+pixels' charge ``Q`` [e-], the charge crossing the boundary between neighbours ``i`` and ``n`` is
+``F_in = c (Q_i + Q_n)/2 (phi_i - phi_n)`` and, because the boundaries grow from zero during the exposure,
+half of it is collected on average::
+
+    Q'_i = Q_i - 1/2 sum_n F_in          (charge conserved exactly: what leaves i enters n)
+
+For a flat of mean ``mu`` this gives, to first order in ``a = c Laplacian(K)`` (the area coefficients of
+Antilogus et al. 2014, ``sum a = 0``), the covariances of Astier et al. 2019 (A&A 629, A36, eq. 20):
+``Cov(Q_0, Q_ij) = a_ij mu^2`` for ``(i, j) != 0`` and ``Var Q_0 = mu + a_00 mu^2`` (the photon transfer
+curve bends down). ``K`` here is a 3x3 kernel ``exp(-r / lambda)`` (``lambda`` = ``kernel_scale_px``),
+whose Laplacian gives positive ``a_ij`` out to two pixels; its strength ``c`` is set by the nearest-neighbour
+coefficient ``a10_per_e`` (what a flat pair measures: ``Cov_10 / mu^2``).
+
+Defaults: thick deep-depleted CCDs show ``a_10 ~ 2-4e-7 /e-`` (LSST e2v/ITL sensors, Astier et al. 2019).
+No measurement exists for the IMX411 (3.76 um pinned photodiodes, a thin epitaxial layer) or the ML11002
+(KAI-11002 interline photodiodes): the default ``a_10 = 1e-7 /e-`` is a defensible guess (a 0.8 %
+nearest-neighbour correlation at the IMX411's 80 ke- full well); measure it with flat pairs.
+
+**Inter-pixel capacitance** (Moore et al. 2004, Opt. Eng. 45, 076402; Kannawadi et al. 2016, PASP 128,
+095001): the voltage of a pixel's sense node couples capacitively into its neighbours, so each pixel *reads*
+a fraction of its neighbours' charge without any charge moving::
+
+    V = K_ipc (x) Q,   K_ipc = [[a_d, a, a_d], [a, 1 - 4a - 4a_d, a], [a_d, a, a_d]]
+
+The kernel conserves the total signal. For a flat (white Poisson noise of variance ``mu``) the read values
+are correlated: ``Cov_10 = mu sum_j K_j K_{j+(1,0)} = mu [2a(1 - 4a - 4a_d) + 4 a a_d]`` (with
+``a_d = 0``: ``2 a (1 - 4 a) mu``), ``Var = mu sum_j K_j^2`` and ``rho_10 = Cov_10 / Var``. Small-pixel CMOS
+sensors show ``a`` of 0.5-2 % (e.g. Kannawadi et al. for HgCdTe; for CMOS image sensors IPC is rarely
+published): default ``a = 0.005``, ``a_d = 0`` for the IMX411 (assumed, not measured); a CCD reads its
+charge at one output node, so its IPC is negligible (switch it on only to model a measured correlation).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from pydantic import Field
+
+from ..signatures import LinearSignature, Variant
+from .base import Effect, EffectParams, Stage, Tile, register_effect
+
+
+def _shift_sums(q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(sum of the 4 nearest neighbours, sum of the 4 diagonal ones), edges replicated (float32)."""
+    p = np.pad(q, 1, mode="edge")
+    n4 = p[:-2, 1:-1] + p[2:, 1:-1]
+    n4 += p[1:-1, :-2]
+    n4 += p[1:-1, 2:]
+    d4 = p[:-2, :-2] + p[:-2, 2:]
+    d4 += p[2:, :-2]
+    d4 += p[2:, 2:]
+    return n4, d4
+
+
+def bf_kernel(scale_px: float) -> tuple[float, float, float]:
+    """(K_00, K_10, K_11) of the 3x3 potential kernel ``exp(-r / scale_px)`` [1]."""
+    return 1.0, float(np.exp(-1.0 / scale_px)), float(np.exp(-np.sqrt(2.0) / scale_px))
+
+
+def bf_area_coefficients(scale_px: float) -> dict[tuple[int, int], float]:
+    """Discrete Laplacian of the 3x3 kernel, per unit ``c``: ``a_ij / c`` for ``i, j >= 0`` up to 2 px."""
+    k0, k1, k2 = bf_kernel(scale_px)
+    return {(0, 0): 4 * k1 - 4 * k0, (1, 0): k0 + 2 * k2 - 4 * k1, (1, 1): 2 * k1 - 4 * k2,
+            (2, 0): k1, (2, 1): k2, (2, 2): 0.0}
+
+
+def brighter_fatter(charge_e: np.ndarray, a10_per_e: float, scale_px: float = 0.5) -> np.ndarray:
+    """Brighter-fatter redistribution of ``charge_e`` [e-] (module docstring); a new float32 array.
+
+    ``a10_per_e`` [1/e-] is the nearest-neighbour area coefficient of a flat (``Cov_10 / mu^2``); the
+    kernel strength is ``c = a10 / (Laplacian K)_10``. No charge crosses the array's outer edges.
+    """
+    q = np.asarray(charge_e, np.float32)
+    if a10_per_e == 0:
+        return q.copy()
+    k0, k1, k2 = bf_kernel(scale_px)
+    c = np.float32(a10_per_e / bf_area_coefficients(scale_px)[(1, 0)])
+    n4, d4 = _shift_sums(q)
+    phi = q * np.float32(k0)
+    n4 *= np.float32(k1)
+    phi += n4
+    d4 *= np.float32(k2)
+    phi += d4
+    del n4, d4
+    out = q.copy()
+    # flux across vertical boundaries (between columns x and x+1), positive towards +x
+    f = (q[:, :-1] + q[:, 1:]) * (phi[:, :-1] - phi[:, 1:])
+    f *= np.float32(0.25) * c  # (Q_i + Q_n)/2, times 1/2 for the growing boundary
+    out[:, :-1] -= f
+    out[:, 1:] += f
+    f = (q[:-1] + q[1:]) * (phi[:-1] - phi[1:])
+    f *= np.float32(0.25) * c
+    out[:-1] -= f
+    out[1:] += f
+    return out
+
+
+def ipc(charge_e: np.ndarray, alpha: float, alpha_diag: float = 0.0) -> np.ndarray:
+    """Inter-pixel capacitance: ``K_ipc (x) Q`` (module docstring), edges replicated; a new float32 array."""
+    q = np.asarray(charge_e, np.float32)
+    if alpha == 0 and alpha_diag == 0:
+        return q.copy()
+    n4, d4 = _shift_sums(q)
+    out = q * np.float32(1.0 - 4.0 * alpha - 4.0 * alpha_diag)
+    n4 *= np.float32(alpha)
+    out += n4
+    if alpha_diag:
+        d4 *= np.float32(alpha_diag)
+        out += d4
+    return out
+
+
+# --- diagnosis signatures ---------------------------------------------------------------------------------
+
+def _bf_variants(res):
+    """Brighter-fatter of the model's own charge (stars widen with flux): ``BF(Q) - Q`` is linear in
+    ``a10`` to first order; variants over the kernel scale."""
+    g = np.float32(res.gain)
+    q = res.charge_e
+    if not (q > 0.05 * res.sensor.full_well_e * res.pixel_sum).any():
+        return  # nothing bright enough to widen
+    unit = 1e-7
+    for scale in (0.35, 0.5, 0.8):
+        t = ((brighter_fatter(q, unit, scale) - q) / g).astype(np.float32)
+
+        def to_params(c, scale=scale):
+            return {"a10_per_e": float(f"{c[0] * unit:.3g}"), "kernel_scale_px": scale} if 0 < c[0] < 1e3 else None
+
+        yield Variant([t], to_params, f"kernel scale {scale:g} px")
+
+
+def _ipc_variants(res):
+    """IPC of the model's charge: ``K_ipc(Q) - Q`` per unit coupling (nearest, and nearest + diagonal)."""
+    g = np.float32(res.gain)
+    q = res.charge_e
+    for diag in (0.0, 0.2):
+        t = ((ipc(q, 1.0, diag) - q) / g).astype(np.float32)
+
+        def to_params(c, diag=diag):
+            return ({"alpha": float(f"{c[0]:.3g}"), "alpha_diag": float(f"{c[0] * diag:.3g}")}
+                    if 0 < c[0] < 0.05 else None)
+
+        yield Variant([t], to_params, f"diagonal {diag:g} of nearest")
+
+
+_BF_SIGNATURE = LinearSignature(
+    _bf_variants,
+    lambda p, res: (f"bright sources wider than faint ones, charge pushed out of their cores (a_10 = "
+                    f"{p['a10_per_e']:.2g} /e-): the brighter-fatter effect"),
+    pattern="flux-dependent widening of bright sources", extra_k=1)
+_IPC_SIGNATURE = LinearSignature(
+    _ipc_variants,
+    lambda p, res: (f"a fixed fraction {p['alpha']:.2g} of every pixel's signal read in its neighbours, "
+                    "independent of flux: inter-pixel capacitance"),
+    pattern="a flux-independent 3x3 coupling of every pixel into its neighbours", extra_k=1)
+
+
+class BrighterFatterParams(EffectParams):
+    a10_per_e: float = Field(1e-7, ge=0, le=1e-4,
+                             description="nearest-neighbour area coefficient, Cov_10 / mu^2 of a flat [1/e-]")
+    kernel_scale_px: float = Field(0.5, gt=0.1, le=5, description="scale of the exp(-r/scale) potential [px]")
+
+
+@register_effect
+class BrighterFatter(Effect):
+    """Brighter-fatter: collected charge pushes pixel boundaries outwards (Antilogus et al. 2014 JINST 9
+    C03048; Coulton et al. 2018 AJ 155 258). Q' = Q - 1/2 sum_n c (Q_i+Q_n)/2 (phi_i - phi_n), phi = K (x) Q,
+    K = exp(-r/scale) (3x3); charge conserved; flats get Cov_ij = a_ij mu^2 with a = c Laplacian(K), a_10 given.
+    Details: detector/effects/coupling.py."""
+
+    name = "brighter_fatter"
+    identity = {"a10_per_e": 0.0}
+    stages = (Stage.COUPLING,)
+    Params = BrighterFatterParams
+    signature = _BF_SIGNATURE
+    halo_rows = 2
+    coupling_order = 0
+
+    def couple(self, tile: Tile, charge_e, pad_top, pad_bottom, mean_only=False):
+        return brighter_fatter(charge_e, self.params.a10_per_e, self.params.kernel_scale_px)
+
+
+class IPCParams(EffectParams):
+    alpha: float = Field(0.005, ge=0, le=0.05, description="coupling into each nearest neighbour [1]")
+    alpha_diag: float = Field(0.0, ge=0, le=0.02, description="coupling into each diagonal neighbour [1]")
+
+
+@register_effect
+class IPC(Effect):
+    """Inter-pixel capacitance: each pixel reads alpha of each nearest (alpha_diag of each diagonal)
+    neighbour's charge, V = K_ipc (x) Q, charge seen but not moved (Moore et al. 2004 Opt. Eng. 45 076402).
+    A flat's nearest-neighbour correlation is 2 alpha (1 - 4 alpha) / ((1 - 4 alpha)^2 + 4 alpha^2).
+    Details: detector/effects/coupling.py."""
+
+    name = "ipc"
+    identity = {"alpha": 0.0, "alpha_diag": 0.0}
+    stages = (Stage.COUPLING,)
+    Params = IPCParams
+    signature = _IPC_SIGNATURE
+    halo_rows = 1
+    coupling_order = 2
+
+    def couple(self, tile: Tile, charge_e, pad_top, pad_bottom, mean_only=False):
+        return ipc(charge_e, self.params.alpha, self.params.alpha_diag)
