@@ -9,7 +9,7 @@ import pytest
 from detector.effects import base as effects_base
 
 REALDATA = Path(__file__).resolve().parents[1].parent / "shared" / "realdata"
-sys.path.insert(0, str(Path(__file__).parent))  # tests/helpers.py
+sys.path.append(str(Path(__file__).parent))  # tests/helpers.py (after the packages: tests/detector is no package)
 
 
 @pytest.fixture

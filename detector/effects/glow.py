@@ -102,11 +102,32 @@ def _glow_refine(best: Variant, res):
         yield _glow_variant(res, where, float(scale) * f)
 
 
+#: an amplifier glow is localised: its e-folding distance is at most this fraction of the sensor's longer side
+GLOW_MAX_SCALE = 0.25
+
+
+def _glow_check(fit, res) -> str:
+    """An amplifier (or hot-electronics) glow is a localised light near an edge or corner of the sensor: its
+    charge at the edge stays below the full well, its e-folding distance is a small fraction of the sensor,
+    and it reaches the read-out window from that edge (Janesick 2001, Scientific CCDs, sect. 5.9; the IMX411
+    glows within a few hundred pixels of its amplifiers)."""
+    p, s = fit.params, res.sensor
+    edge_e = p["amplitude_e_per_s"] * res.exptime_s
+    if edge_e > s.full_well_e:
+        return (f"{edge_e:.3g} e- at the edge, more than the full well ({s.full_well_e:.3g} e-): no glow is that "
+                "bright; a smooth light across the field taken for a glow")
+    longest = max(s.sensor_width_px, s.sensor_height_px)
+    if p["scale_px"] > GLOW_MAX_SCALE * longest:
+        return (f"e-folding distance {p['scale_px']:.0f} px, {100 * p['scale_px'] / longest:.0f} % of the sensor: a glow "
+                "is localised near its amplifier, this is a field-wide gradient")
+    return ""
+
+
 _GLOW_SIGNATURE = LinearSignature(
     _glow_variants,
     lambda p, res: (f"additive glow rising towards the {p['edge']} edge, {p['amplitude_e_per_s'] * res.exptime_s:.3g} "
                     f"e- at the edge (e-folding {p['scale_px']:.0f} px), growing with exposure: amplifier glow"),
-    pattern="additive glow decaying away from an edge or corner", extra_k=2, refine=_glow_refine)
+    pattern="additive glow decaying away from an edge or corner", extra_k=2, refine=_glow_refine, check=_glow_check)
 
 
 # --- adapter -----------------------------------------------------------------------------------------------

@@ -82,12 +82,12 @@ def map_interpolator(u: np.ndarray, v: np.ndarray, ri: np.ndarray):
 _CENTRE_GRID = (-0.2, -0.1, 0.0, 0.1, 0.2)
 
 
-def _vignetting_variant(res, cx_mm: float, cy_mm: float):
+def _vignetting_variant(res, cx_mm: float, cy_mm: float, radius_mm: float | None = None):
     s = res.sensor
     pitch_mm = s.pixel_pitch_um * 1e-3
     u = (res.xs - (s.sensor_width_px - 1) / 2.0) * pitch_mm - cx_mm
     v = (res.ys - (s.sensor_height_px - 1) / 2.0) * pitch_mm - cy_mm
-    r_corner = 0.5 * pitch_mm * float(np.hypot(s.sensor_width_px, s.sensor_height_px))
+    r_corner = radius_mm or 0.5 * pitch_mm * float(np.hypot(s.sensor_width_px, s.sensor_height_px))
     photo = res.photo_adu
     w = photo.shape[1]
 
@@ -108,9 +108,21 @@ def _vignetting_variant(res, cx_mm: float, cy_mm: float):
         p = {"a2": round(a2, 6), "a4": round(a4, 6)}
         if cx_mm or cy_mm:
             p.update(centre_x_mm=round(cx_mm, 3), centre_y_mm=round(cy_mm, 3))
+        if radius_mm:
+            p["radius_mm"] = round(float(radius_mm), 4)
         return p if ok else None
 
-    return Variant(maps, to_params, f"{cx_mm}|{cy_mm}", at=at)
+    return Variant(maps, to_params, f"{cx_mm}|{cy_mm}|{radius_mm or 0.0}", at=at)
+
+
+def _window_geometry_mm(res) -> tuple[float, float, float]:
+    """(centre x, centre y, half-diagonal) of the read-out window [mm from the sensor centre]."""
+    s = res.sensor
+    pitch_mm = s.pixel_pitch_um * 1e-3
+    w, h = s.roi_shape
+    cx = (s.roi_x0 + w / 2.0 - s.sensor_width_px / 2.0) * pitch_mm
+    cy = (s.roi_y0 + h / 2.0 - s.sensor_height_px / 2.0) * pitch_mm
+    return cx, cy, 0.5 * pitch_mm * float(np.hypot(w, h))
 
 
 def _half_diagonal_mm(res) -> float:
@@ -125,6 +137,13 @@ def _vignetting_variants(res):
     for fx in _CENTRE_GRID:
         for fy in _CENTRE_GRID:
             yield _vignetting_variant(res, fx * rc, fy * rc)
+    # a window much smaller than the sensor: a fall-off on the window's own scale (a shadow of the tube or
+    # a baffle, a filter's edge, vignetting about a centre far off the optical axis), about centres around it
+    wx, wy, rw = _window_geometry_mm(res)
+    if rw < 0.5 * rc:
+        for fx in (-1.0, -0.5, 0.0, 0.5, 1.0):
+            for fy in (-1.0, -0.5, 0.0, 0.5, 1.0):
+                yield _vignetting_variant(res, wx + fx * rw, wy + fy * rw, 2 * rw)
 
 
 #: farthest centre offset the refinement may reach [fraction of the half-diagonal]: the grid's edge, plus a step
@@ -138,14 +157,20 @@ def _vignetting_refine(best, res):
     the step, moved to the best, the step halved when none is better; Kolda, Lewis & Torczon 2003, SIAM
     Rev. 45, 385) on the search sample, down to :data:`_CENTRE_TOL`; a centre off by a grid step leaves a
     gradient a bias or glow candidate would take next."""
-    cx, cy = (float(x) for x in best.label.split("|"))
+    cx, cy, radius = (float(x) for x in best.label.split("|"))
+    radius = radius or None
     rc = _half_diagonal_mm(res)
     ctx, shape = search_sample(res), res.data_adu.shape
+    if radius is None:
+        ox, oy, reach = 0.0, 0.0, _CENTRE_MAX * rc
+    else:  # the window's own scale: centres within a window half-diagonal of its edge
+        ox, oy, rw = _window_geometry_mm(res)
+        reach = 1.5 * rw
 
     def score(x, y):
-        if max(abs(x), abs(y)) > _CENTRE_MAX * rc:  # a centre far off the field makes a plane, not vignetting
+        if max(abs(x - ox), abs(y - oy)) > reach:  # a centre far off the field makes a plane, not vignetting
             return np.inf
-        v = _vignetting_variant(res, x, y)
+        v = _vignetting_variant(res, x, y, radius)
         c, d = fit_linear(res, lambda i: v.values(i, shape), ctx["idx"], ctx["r"], ctx["w"])
         return d if v.to_params(c) is not None else np.inf
 
@@ -160,16 +185,28 @@ def _vignetting_refine(best, res):
             here, cx, cy = d, x, y
         else:
             step /= 2
-    yield _vignetting_variant(res, cx, cy)
+    yield _vignetting_variant(res, cx, cy, radius)
+
+
+def _vignetting_check(fit, res) -> str:
+    """Vignetting takes light away towards the edge of the field (relative illumination <= 1, falling with
+    the distance to its centre); a pattern that brightens away from the centre is something else."""
+    p = fit.params
+    if p["a2"] + p["a4"] <= 0 or p["a2"] < -0.05:
+        return (f"the fitted fall-off brightens away from its centre (a2 + a4 = {p['a2'] + p['a4']:+.3g}): vignetting "
+                "only takes light away (an added light or a flat-field error)")
+    return ""
 
 
 _VIGNETTING_SIGNATURE = LinearSignature(
     _vignetting_variants,
-    lambda p, res: (f"light falling off towards the corners, {100 * (p['a2'] + p['a4']):.3g} % at the corner, "
-                    "proportional to the signal"
+    lambda p, res: (f"light falling off towards the corners, {100 * (p['a2'] + p['a4']):.3g} % at "
+                    + (f"{p['radius_mm']:.3g} mm from its centre, " if "radius_mm" in p else "the corner, ")
+                    + "proportional to the signal"
                     + (f", centred at ({p['centre_x_mm']:+.3g}, {p['centre_y_mm']:+.3g}) mm off the axis"
                        if "centre_x_mm" in p else "") + ": vignetting"),
-    pattern="multiplicative radial fall-off of the light", extra_k=2, refine=_vignetting_refine, of_light=True)
+    pattern="multiplicative radial fall-off of the light", extra_k=3, refine=_vignetting_refine, of_light=True,
+    check=_vignetting_check)
 
 
 class VignettingParams(EffectParams):
@@ -182,6 +219,8 @@ class VignettingParams(EffectParams):
                                json_schema_extra={"unit": "mm"})
     centre_y_mm: float = Field(0.0, ge=-100, le=100, description="radial model: centre offset along rows",
                                json_schema_extra={"unit": "mm"})
+    radius_mm: float | None = Field(None, gt=0, le=500, description="radial model: the radius where rho = 1 "
+                                    "(default: the sensor's half-diagonal)", json_schema_extra={"unit": "mm"})
 
     @model_validator(mode="after")
     def _one_form(self):
@@ -219,7 +258,7 @@ class Vignetting(Effect):
         if self._interp is not None:
             return self._interp(v, u)
         p = self.params
-        r_corner = 0.5 * pitch_mm * float(np.hypot(s.sensor_width_px, s.sensor_height_px))
+        r_corner = p.radius_mm or 0.5 * pitch_mm * float(np.hypot(s.sensor_width_px, s.sensor_height_px))
         return radial_vignetting(u[None, :], v[:, None], r_corner, p.a2, p.a4, (p.centre_x_mm, p.centre_y_mm))
 
     def apply(self, stage: Stage, tile: Tile, data: np.ndarray) -> None:

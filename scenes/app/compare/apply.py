@@ -11,6 +11,7 @@ from pathlib import Path
 
 import numpy as np
 import tomli_w
+from astropy.io import fits
 
 from detector.signatures import LEVEL_DEGENERACY, _at, _independent
 from scenes.scene import load_scene
@@ -122,3 +123,50 @@ def bias_per_output_adu(sensor) -> float:
     if sensor.binning_mode == "sum":
         return float(b2) if sensor.kind != "ccd" else 1.0
     return 1.0 if sensor.kind != "ccd" else 1.0 / b2
+
+
+#: the effect an empirical map is applied through, by the kind of the residual (and the frame type)
+EMPIRICAL_EFFECTS = {"multiplicative": "flat_map", "additive": "dark_map", "additive_bias": "bias_map"}
+
+
+def apply_empirical(scene, empirical: dict, morphology: dict, path: str | Path, measured: str | Path | None = None
+                    ) -> tuple[Path, dict] | None:
+    """Write ``scene`` with the residual's own smooth pattern added as a measured map, when no catalogue
+    effect explains it (the verdict says so): a multiplicative pattern as a ``flat_map`` (relative response),
+    an additive one as a ``dark_map`` (charge that grows with the exposure and carries its shot noise: light
+    the model lacks) or, on a bias frame, a ``bias_map`` [ADU]. The map (unbinned read-out window, FITS) is
+    written beside the new scene as ``NAME_empirical.fits``. Returns (scene path, the applied entry) or None
+    when the scene already has that map effect."""
+    sensor = scene.sensor()
+    kind = empirical["kind"]
+    if kind == "additive" and scene.exposure.frame == "bias":
+        kind = "additive_bias"
+    effect = EMPIRICAL_EFFECTS.get(kind)
+    if effect is None or effect in scene.effects:
+        return None
+    p = Path(path)
+    b = sensor.binning
+    out_map = np.asarray(empirical["map"], np.float64)  # per output pixel: relative (x light) or ADU
+    full = np.repeat(np.repeat(out_map, b, axis=0), b, axis=1)  # unbinned read-out window
+    gain = float(sensor.gain_e_per_adu)
+    per_sensor_px = float(b * b) if sensor.binning_mode == "sum" else 1.0  # output value = sum of b^2 pixels
+    if kind == "multiplicative":  # the map is the relative change of the light
+        data, params, unit = 1.0 + full, {}, "relative response"
+    elif kind == "additive_bias":
+        reads = per_sensor_px if sensor.kind != "ccd" else 1.0  # a CMOS sums b^2 digitised reads
+        data, params, unit = full / reads, {}, "ADU"
+    else:
+        t = max(float(scene.exposure.time_s), 1e-6)
+        data = float(sensor.dark_current_e_per_s) + full * gain / per_sensor_px / t
+        params, unit = {}, "e-/s"
+    map_path = p.with_name(p.stem + "_empirical.fits")
+    hdu = fits.PrimaryHDU(np.asarray(data, np.float32))
+    hdu.header["BUNIT"] = unit
+    hdu.header["COMMENT"] = "empirical map of a residual no catalogue effect explains (newtsim diagnose --apply)"
+    hdu.writeto(map_path, overwrite=True)
+    params = {"path": str(map_path.resolve()), **params}
+    cand = {"effect": effect, "params": params,
+            "explanation": "an empirical map of the residual (" + morphology["explanation"] + "); no catalogue "
+            "effect explains it"}
+    return apply_candidate(scene, cand, p, measured), cand
+

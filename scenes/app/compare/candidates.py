@@ -258,10 +258,23 @@ def source_candidates(res: Residuals, truth, scene) -> list[Candidate]:
     return out
 
 
-def verdict(cands: list[Candidate]) -> str:
-    """One sentence for the report."""
+def verdict(cands: list[Candidate], morphology: dict | None = None) -> str:
+    """One sentence for the report: the most likely missing effect (significant, plausible, better on
+    held-out pixels), or that no catalogue effect explains the residual and what the residual looks like."""
     sig = [c for c in cands if c.significant]
-    if not sig:
-        return "no missing effect was found: no candidate improves the fit significantly (delta BIC < -10)"
-    best = sig[0].fit
-    return f"most likely missing: {best.effect} (delta BIC {best.delta_bic:.4g}): {best.explanation}"
+    if sig:
+        best = sig[0]
+        held = f", held-out {best.heldout:.4g}" if best.heldout is not None else ""
+        return (f"most likely missing: {best.fit.effect} (delta BIC {best.fit.delta_bic:.4g}{held}): "
+                f"{best.fit.explanation}")
+    named = [c for c in cands if c.fit.delta_bic < SIGNIFICANT_DELTA_BIC]
+    why = ""
+    if named:
+        c = named[0]
+        reason = c.rejected or c.implausible or (f"it does not improve the pixels it was not fitted on (held-out "
+                                                  f"{c.heldout:.3g})" if c.heldout is not None else "")
+        why = f" ({c.fit.effect} fits but is not credible: {reason})" if reason else ""
+    if morphology and morphology.get("significant"):
+        return ("no catalogue effect explains the residual" + why + "; what is missing looks like "
+                + morphology["explanation"])
+    return "no missing effect was found: no candidate improves the fit significantly (delta BIC < -10)" + why

@@ -18,9 +18,10 @@ import tomli_w
 
 from detector.errors import DetectorError
 from detector.jsonable import jsonable
+from detector.morphology import describe
 from scenes.scene import load_scene
 
-from .apply import apply_candidate
+from .apply import apply_candidate, apply_empirical
 from .candidates import (
     SIGNIFICANT_DELTA_BIC,
     candidates,
@@ -63,8 +64,20 @@ def run_diagnose(scene, measured: str | Path, workers: int | None = None, progre
     truth = cmp["_model"].setup.truth
     cands, problems = candidates(cmp["_residuals"], set(scene.effects), progress=progress, truth=truth)
     cands = rank(cands + source_candidates(cmp["_residuals"], truth, scene))
+    if progress is not None:
+        progress("residual morphology")
+    res = cmp["_residuals"]
+    morph = describe(res)
+    best = next((c for c in cands if c.significant), None)
+    remaining = describe(res, best.fit.delta_adu) if best is not None and best.fit.delta_adu is not None else None
+    empirical = morph.pop("empirical")
     out = {"baseline": cmp["summary"], "candidates": [c.to_json() for c in cands], "problems": problems,
-           "verdict": verdict(cands), "seconds": time.perf_counter() - t0, "_compare": cmp}
+           "verdict": verdict(cands, morph), "residual_morphology": morph, "seconds": time.perf_counter() - t0,
+           "_compare": cmp}
+    cmp["_empirical"] = empirical  # the smooth fit of the residual's pattern (an array: not for the JSON)
+    if remaining is not None:
+        remaining.pop("empirical")
+        out["remaining_morphology"] = remaining
     out["significant"] = [c["effect"] for c in out["candidates"] if c["significant"]]
     return out
 
@@ -82,6 +95,11 @@ def diagnose_round(scene, scene_path: str | Path, measured: str | Path, apply_to
     applied = None
     if apply_to is not None and best is not None:
         applied = apply_candidate(scene, best, apply_to, measured)
+    elif apply_to is not None and out["residual_morphology"]["significant"] and out["_compare"].get("_empirical"):
+        done = apply_empirical(scene, out["_compare"]["_empirical"], out["residual_morphology"], apply_to, measured)
+        if done is not None:
+            applied, best = done
+            best = {**best, "delta_bic": None}
     out["applied"] = {"effect": best["effect"], "params": best["params"], "scene": str(applied)} if applied else None
     ledger, rounds = update_ledger(scene_path, applied, str(measured), out["baseline"], best if applied else None)
     out["ledger"] = {"path": str(ledger), "rounds": rounds,

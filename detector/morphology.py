@@ -1,0 +1,369 @@
+"""What the residual of a frame looks like, in words and numbers: the description of a missing effect.
+
+When no effect of the catalogue explains a residual (or to check that the one named does), the residual
+itself is described by the questions an instrument scientist asks of it:
+
+* **kind**: ``additive`` (the same in ADU wherever the light is), ``multiplicative`` (proportional to the
+  model's light: a response, a transmission), ``redistributed`` (light moved around the sources, their
+  fluxes kept: a PSF change, a ghost ring) or ``mixed``. Told apart by weighted least squares of the
+  binned residual on smooth maps ``A(x, y)`` and ``M(x, y) L(x, y)`` (``L`` the model's light) and, where
+  the light is uniform and the two are the same, by the sources: a multiplicative error scales with the
+  stars' light too. When the data cannot tell them apart the block says so (``kind_certain`` false).
+* **geometry** (a fixed vocabulary): ``gradient`` (a smooth large-scale field: a plane, a quadratic),
+  ``radial`` (a function of the distance to a centre, fitted), ``rows`` / ``columns`` (offsets of whole
+  lines beyond a smooth field), ``periodic`` (a peak of the power spectrum: fringes, a 2 x 2 mosaic),
+  ``sources`` (the excess sits on the sources), ``local`` (a few compact blobs or rings), ``noise`` (extra
+  pixel-to-pixel variance without a mean pattern). Each family's share of the structured chi2 is reported;
+  the geometry lists those that take a sizeable share.
+* **scale_px**, **amplitude** (with its unit) and an **explanation** naming the nearest physical families.
+
+Significance: the block map's chi2 beyond its degrees of freedom, in standard deviations
+(``(chi2 - n) / sqrt(2 n)``), and the pixel chi2 for added noise. The smooth fit of the described family is
+also returned (``empirical``) so the caller can offer it as an empirical map when no catalogue effect fits.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from scipy.ndimage import gaussian_filter
+
+from .signatures import Residuals
+
+#: the residual is structured when the block chi2 (or the pixel chi2 for added noise) exceeds its degrees of
+#: freedom by this many standard deviations
+SIGNIFICANT_SIGMA = 8.0
+#: a family is part of the geometry when it takes at least this share of the structured chi2
+GEOMETRY_SHARE = 0.25
+#: blocks across the shorter side of the frame for the binned maps
+BLOCKS = 48
+#: order of the 2-D Legendre basis of the smooth fields (the ``gradient`` family and the kind test)
+SMOOTH_ORDER = 3
+
+FAMILIES = {
+    ("additive", "gradient"): "straylight or scattered light, a sky or bias gradient, amplifier glow",
+    ("additive", "radial"): "glow or straylight centred on a point, a defocused ghost",
+    ("additive", "rows"): "row (banding) noise, a bias drifting during the read-out",
+    ("additive", "columns"): "column offsets, hot columns, a bias pattern of the read-out",
+    ("additive", "periodic"): "electronic pick-up (a pattern noise), fringing of a sky line",
+    ("additive", "local"): "glints, ghosts, hot spots, light leaks",
+    ("additive", "sources"): "sources the model lacks (faint stars, a missing object) or misplaced sources",
+    ("additive", "noise"): "read noise or kTC noise above the model, a noise gradient",
+    ("multiplicative", "gradient"): "a flat-field error, vignetting off the model's centre",
+    ("multiplicative", "radial"): "vignetting, a filter's or corrector's radial transmission",
+    ("multiplicative", "rows"): "a row-wise response pattern (a rolling-shutter flicker)",
+    ("multiplicative", "columns"): "a column-wise response pattern (column gains)",
+    ("multiplicative", "periodic"): "fringing (thin-film interference), a colour filter mosaic",
+    ("multiplicative", "local"): "dust shadows (donuts) on a window or filter",
+    ("multiplicative", "sources"): "a photometric (zero-point) or non-linearity error of the sources",
+    ("multiplicative", "noise"): "pixel response non-uniformity (PRNU) above the model",
+    ("redistributed", "sources"): "a PSF change (focus, seeing, jitter), a diffraction or ghost ring",
+}
+
+
+def _blocks(a: np.ndarray, b: int, weights: np.ndarray | None = None) -> np.ndarray:
+    h, w = (a.shape[0] // b) * b, (a.shape[1] // b) * b
+    x = a[:h, :w].reshape(h // b, b, w // b, b)
+    if weights is None:
+        return x.sum(axis=(1, 3))
+    return (x * weights[:h, :w].reshape(h // b, b, w // b, b)).sum(axis=(1, 3))
+
+
+def _legendre_basis(ny: int, nx: int, order: int) -> np.ndarray:
+    """Products P_i(u) P_j(v), 1 <= i + j <= order, on an ny x nx grid of u, v in [-1, 1]: (terms, ny, nx)."""
+    u = np.polynomial.legendre.legvander(np.linspace(-1, 1, nx), order)
+    v = np.polynomial.legendre.legvander(np.linspace(-1, 1, ny), order)
+    return np.stack([v[:, j][:, None] * u[:, i][None, :] for i in range(order + 1) for j in range(order + 1)
+                     if 1 <= i + j <= order])
+
+
+def _wls(y: np.ndarray, w: np.ndarray, temps: np.ndarray) -> tuple[np.ndarray, float, np.ndarray]:
+    """Weighted least squares of y on temps (terms, n) with a free constant: (coefficients, delta chi2, fit)."""
+    x = np.vstack([np.ones((1, y.size)), temps]) if temps.size else np.ones((1, y.size))
+    sw = np.sqrt(w)
+    c = np.linalg.lstsq((x * sw).T, y * sw, rcond=None)[0]
+    fit = c @ x
+    const = float(np.sum(w * y) / max(np.sum(w), 1e-300))
+    chi0 = float(np.sum(w * (y - const) ** 2))
+    return c[1:], float(np.sum(w * (y - fit) ** 2)) - chi0, fit - c[0]
+
+
+def _radial(y, w, yy, xx, ny, nx):
+    """Best radial fit (a + b rho^2 + c rho^4 about a grid-searched centre): (delta chi2, fit, centre)."""
+    best = (0.0, np.zeros_like(y), (0.0, 0.0))
+    scale = max(ny, nx)
+    for cy in np.linspace(-0.5 * ny, 1.5 * ny, 9):
+        for cx in np.linspace(-0.5 * nx, 1.5 * nx, 9):
+            r2 = ((yy - cy) ** 2 + (xx - cx) ** 2) / scale ** 2
+            _, d, fit = _wls(y, w, np.stack([r2, r2 * r2]))
+            if d < best[0]:
+                best = (d, fit, (cy, cx))
+    return best
+
+
+def _peak(z: np.ndarray) -> tuple[float, float, float]:
+    """(period [px], peak power over the median power, the share of the power in the peak) of the strongest
+    spatial frequency of a map, the lowest frequencies (smooth fields) excluded."""
+    side = min(512, *z.shape)
+    y0, x0 = (z.shape[0] - side) // 2, (z.shape[1] - side) // 2
+    cut = np.nan_to_num(z[y0:y0 + side, x0:x0 + side])
+    if side < 16:
+        return 0.0, 0.0, 0.0
+    p = np.abs(np.fft.rfft2(cut - cut.mean())) ** 2
+    fy = np.fft.fftfreq(side)[:, None]
+    fx = np.fft.rfftfreq(side)[None, :]
+    f = np.hypot(fy, fx)
+    p = np.where(f > 6.0 / side, p, 0.0)
+    k = int(np.argmax(p))
+    med = float(np.median(p[p > 0])) if np.any(p > 0) else 0.0
+    ky, kx = np.unravel_index(k, p.shape)
+    near = p[max(ky - 1, 0):ky + 2, max(kx - 1, 0):kx + 2].sum()
+    if ky in (0, 1, side - 1) or kx <= 1:  # and its mirror image across the axis
+        near += p[(-ky - 1) % side:(-ky - 1) % side + 3, max(kx - 1, 0):kx + 2].sum() if ky else 0.0
+    # (period, contrast over the median power, the peak's share of the whole power)
+    return ((1.0 / float(f.ravel()[k]) if f.ravel()[k] > 0 else 0.0), (float(p.ravel()[k]) / med if med > 0 else 0.0),
+            float(near / max(p.sum(), 1e-300)))
+
+
+def describe(res: Residuals, delta_adu: np.ndarray | None = None) -> dict:
+    """The morphology of the level-profiled residual of ``res`` (minus ``delta_adu``, a candidate's mean
+    change, when given): the contract's ``residual_morphology`` block, plus ``shares`` (each family's share
+    of the structured chi2), ``significance_sigma`` and ``empirical`` (``{"kind", "map"}``: the smooth fit of
+    the described pattern on the output pixels [ADU for additive, relative for multiplicative], or None)."""
+    shape = res.data_adu.shape
+    idx, r, w = res.flat_profiled()
+    if delta_adu is not None:
+        r = res.project(r - np.asarray(delta_adu, np.float64).ravel()[idx])
+    out = {"significant": False, "kind": "additive", "kind_certain": True, "geometry": [], "scale_px": 0.0,
+           "amplitude": 0.0, "unit": "ADU", "explanation": "the residual looks like noise", "shares": {},
+           "significance_sigma": 0.0, "empirical": None}
+    if idx.size < 64:
+        return out
+    rmap = np.zeros(shape, np.float64)
+    wmap = np.zeros(shape, np.float64)
+    rmap.ravel()[idx] = r
+    wmap.ravel()[idx] = w
+    light = np.asarray(res.photo_adu, np.float64)
+    b = int(max(2, min(shape) // BLOCKS))
+    sw = _blocks(wmap, b)
+    ok = sw > 0
+    if ok.sum() < 16:
+        return out
+    mean = np.where(ok, _blocks(rmap, b, wmap) / np.where(ok, sw, 1), 0.0)  # weighted block means [ADU]
+    lb = np.where(ok, _blocks(light, b, wmap) / np.where(ok, sw, 1), 0.0)  # the light there [ADU]
+    ny, nx = mean.shape
+    yy, xx = np.mgrid[0:ny, 0:nx].astype(np.float64)
+    y, wb = mean[ok], sw[ok]
+    zb = y * np.sqrt(wb)
+    nb = y.size
+    block_excess = float(np.sum(zb * zb) - nb)
+    block_sigma = block_excess / math.sqrt(2 * nb)
+    # added noise: the pixel chi2 beyond the block means' share
+    pix_chi2 = float(np.sum(r * r * w))
+    noise_excess = pix_chi2 - idx.size - max(block_excess, 0.0) * 1.0
+    noise_sigma = noise_excess / math.sqrt(2 * idx.size)
+    out["significance_sigma"] = round(max(block_sigma, noise_sigma), 2)
+    if max(block_sigma, noise_sigma) < SIGNIFICANT_SIGMA:
+        return out
+    out["significant"] = True
+    gain = res.gain
+    if block_sigma < SIGNIFICANT_SIGMA:  # extra scatter, no mean pattern: where is it?
+        z2 = np.where(wmap > 0, rmap * rmap * wmap, np.nan)
+        vb = np.nanmean(z2[: (shape[0] // b) * b, : (shape[1] // b) * b].reshape(ny, b, nx, b), axis=(1, 3))
+        okv = np.isfinite(vb)
+        tv = _legendre_basis(ny, nx, 1)[:, okv]
+        _, dgrad, _ = _wls(vb[okv], np.ones(okv.sum()), tv)
+        spread = float(np.nanstd(vb)) / max(float(np.nanmean(vb)), 1e-9)
+        geom = ["noise", "gradient"] if spread > 0.1 and -dgrad > 0.5 * np.nansum((vb - np.nanmean(vb)) ** 2) else ["noise"]
+        extra = max(float(np.median(r * r) / 0.4549 - np.median(1 / w)), 0.0)
+        kind = "multiplicative" if np.corrcoef(light.ravel()[idx][:200000], (r * r * w)[:200000])[0, 1] > 0.3 \
+            and np.ptp(light) > 0 else "additive"
+        out.update(kind=kind, geometry=geom, scale_px=float(min(shape)), amplitude=round(math.sqrt(extra) * gain, 4),
+                   unit="e- rms", explanation=_words(kind, geom, f"extra pixel-to-pixel noise of "
+                                                     f"{math.sqrt(extra) * gain:.3g} e- rms"
+                                                     + (" varying across the frame" if "gradient" in geom else "")))
+        return out
+
+    # --- kind: additive A(x, y), multiplicative M(x, y) L, or both (block level) --------------------------------
+    basis = _legendre_basis(ny, nx, SMOOTH_ORDER)[:, ok]
+    lmean = float(np.sum(lb[ok] * wb) / np.sum(wb)) if np.any(lb[ok]) else 0.0
+    has_light = lmean > 0
+    _, d_add, fit_add = _wls(y, wb, basis)
+    kind_certain = True
+    if has_light:
+        lrel = lb[ok] / lmean
+        mtemps = np.vstack([lrel[None, :], basis * lrel])
+        _, d_mul, fit_mul = _wls(y, wb, mtemps)
+        _, d_both, _ = _wls(y, wb, np.vstack([basis, mtemps]))
+        light_contrast = float(np.sqrt(np.sum(wb * (lrel - 1) ** 2) / np.sum(wb)))
+        if light_contrast < 0.05:  # uniform light: A and M L cannot be told apart at large scales
+            kind_certain = False
+            kind = _kind_from_sources(res, idx, r, w)
+            if kind is None:
+                kind = "additive" if res.exptime_s >= 0 and d_add <= d_mul else "multiplicative"
+            else:
+                kind_certain = True
+        else:
+            k_terms = basis.shape[0]
+            ln = math.log(max(nb, 2))
+            bic = {"additive": d_add + k_terms * ln, "multiplicative": d_mul + (k_terms + 1) * ln,
+                   "mixed": d_both + (2 * k_terms + 1) * ln}
+            kind = min(bic, key=bic.get)
+            if kind == "mixed" and min(bic["additive"], bic["multiplicative"]) - bic["mixed"] < 10:
+                kind = "additive" if bic["additive"] <= bic["multiplicative"] else "multiplicative"
+    else:
+        kind, d_mul, fit_mul = "additive", 0.0, fit_add
+    # redistributed: the excess sits on the sources and their fluxes add up
+    src = _source_share(res, idx, r, w)
+    if src is not None and src["share"] > 0.6:
+        if src["flux_kept"]:
+            kind = "redistributed"
+        elif kind not in ("multiplicative",):
+            kind = "additive"
+    # --- geometry on the block map (the kind's own normalisation) -----------------------------------------------
+    if kind == "multiplicative" and has_light:
+        yg, wg = y / np.maximum(lb[ok], 1e-9), wb * np.maximum(lb[ok], 1e-9) ** 2
+    else:
+        yg, wg = y, wb
+    total = float(np.sum(wg * (yg - np.sum(wg * yg) / np.sum(wg)) ** 2))
+    shares = {}
+    _, d_grad, fit_grad = _wls(yg, wg, basis)
+    _, d_plane, _ = _wls(yg, wg, _legendre_basis(ny, nx, 1)[:, ok])
+    d_rad, fit_rad, centre = _radial(yg, wg, yy[ok], xx[ok], ny, nx)
+    smooth = min(d_grad, d_rad)
+    shares["gradient"] = -d_grad / max(total, 1e-300)
+    shares["radial"] = -d_rad / max(total, 1e-300)
+    # lines beyond the smooth field (pixel level: one row or column is one line)
+    lines = {}
+    for name, axis in (("rows", 1), ("columns", 0)):
+        cnt = (wmap > 0).sum(axis=axis)
+        okl = cnt > 2
+        if okl.sum() < 8:
+            continue
+        lm = (rmap * wmap).sum(axis=axis)[okl] / np.maximum(wmap.sum(axis=axis)[okl], 1e-300)
+        lw = wmap.sum(axis=axis)[okl]
+        x = np.linspace(-1, 1, lm.size)
+        _, _, lfit = _wls(lm, lw, np.polynomial.legendre.legvander(x, 4)[:, 1:].T)
+        rest = lm - lfit - np.sum(lw * (lm - lfit)) / np.sum(lw)
+        lines[name] = float(np.sum(lw * rest * rest) - okl.sum())
+    pixel_total = max(pix_chi2 - idx.size, 1e-300)
+    for name, ex in lines.items():
+        shares[name] = max(ex, 0.0) / pixel_total
+    # periodic: the strongest frequency of the pixel z-map once its smooth part (a block-scale Gaussian) and,
+    # where they dominate, the line patterns are taken out
+    zmap = np.where(wmap > 0, rmap * np.sqrt(wmap), 0.0)
+    zmap = zmap - gaussian_filter(zmap, b, mode="nearest")
+    if max(shares.get("rows", 0.0), shares.get("columns", 0.0)) < GEOMETRY_SHARE:
+        period, contrast, peak_share = _peak(zmap)
+    else:
+        period, contrast, peak_share = 0.0, 0.0, 0.0
+    # a periodic pattern puts a large share of the (high-passed) power into one frequency, far above the rest
+    shares["periodic"] = min(1.0, 2 * peak_share) if contrast > 50 else 0.0
+    if src is not None:
+        shares["sources"] = src["share"]
+    # local: what the smooth field leaves in a few blocks
+    resid = (yg - (fit_grad if d_grad <= d_rad else fit_rad)) * np.sqrt(wg)
+    resid -= np.mean(resid)
+    strong = np.abs(resid) > 5
+    shares["local"] = float(np.sum(resid[strong] ** 2) / max(total, 1e-300)) if strong.sum() <= 0.1 * nb else 0.0
+    shares = {k: round(float(min(max(v, 0.0), 1.0)), 3) for k, v in shares.items()}
+    geometry = [k for k, v in sorted(shares.items(), key=lambda kv: -kv[1]) if v >= GEOMETRY_SHARE]
+    if "radial" in geometry or "gradient" in geometry:
+        # a plane (and a radial field about a far centre, which is nearly one) is a gradient; a field is radial
+        # when a function of the distance to a centre near the frame takes nearly as much as the whole smooth
+        # basis and clearly more than a plane
+        near = -0.5 * ny <= centre[0] <= 1.5 * ny and -0.5 * nx <= centre[1] <= 1.5 * nx
+        radial = d_rad <= 0.85 * d_grad and d_plane > 0.9 * d_grad and near
+        geometry = [g for g in geometry if g not in ("radial", "gradient")]
+        geometry.insert(0, "radial" if radial else "gradient")
+    if not geometry:
+        geometry = [max(shares, key=shares.get)] if shares else ["local"]
+    if kind == "redistributed" and "sources" not in geometry:
+        geometry.insert(0, "sources")
+    # scale and amplitude
+    main = geometry[0]
+    smooth_fit = fit_grad if d_grad <= d_rad else fit_rad
+    if main == "periodic":
+        scale = period
+    elif main in ("rows", "columns"):
+        scale = 1.0
+    elif main == "radial":
+        scale = float(b * max(ny, nx))
+    elif main == "local":
+        scale = float(b * math.sqrt(max(strong.sum(), 1)))
+    else:
+        scale = float(b * max(ny, nx))
+    if kind == "multiplicative" and has_light:
+        amp, unit = float(np.ptp(smooth_fit)) * 100, "%"
+        desc = f"{amp:.3g} % peak-to-peak of the light"
+    else:
+        amp, unit = float(np.ptp(smooth_fit)) * gain, "e-"
+        desc = f"{amp:.4g} e- ({amp / gain:.4g} ADU) peak-to-peak"
+    if main == "radial":
+        desc += f" about (x, y) = ({(centre[1] + 0.5) * b:.0f}, {(centre[0] + 0.5) * b:.0f}) output px"
+    if main == "periodic":
+        desc += f", period {period:.3g} px"
+    certain = "" if kind_certain else " (additive and multiplicative cannot be told apart on this uniform light)"
+    out.update(kind=kind, kind_certain=kind_certain, geometry=geometry, scale_px=round(scale, 2),
+               amplitude=round(amp, 4), unit=unit, shares=shares,
+               explanation=_words(kind, geometry, desc) + certain)
+    if main in ("gradient", "radial") and kind in ("additive", "multiplicative"):
+        full = np.zeros((ny, nx))
+        full[ok] = smooth_fit
+        full[~ok] = np.mean(smooth_fit)
+        out["empirical"] = {"kind": kind, "map": _upsample(full, b, shape)}
+    return out
+
+
+def _upsample(blocks: np.ndarray, b: int, shape: tuple[int, int]) -> np.ndarray:
+    """A block map to every output pixel (bilinear through the block centres, edges held)."""
+    ny, nx = blocks.shape
+    yc, xc = (np.arange(ny) + 0.5) * b - 0.5, (np.arange(nx) + 0.5) * b - 0.5
+    y, x = np.arange(shape[0]), np.arange(shape[1])
+    tmp = np.stack([np.interp(x, xc, row) for row in blocks])
+    return np.stack([np.interp(y, yc, tmp[:, j]) for j in range(shape[1])], axis=1).astype(np.float32)
+
+
+def _source_share(res: Residuals, idx, r, w) -> dict | None:
+    """The share of the pixel chi2 excess on the sources, and whether their fluxes are kept (the residual
+    sums to little over them: light moved, not added or lost)."""
+    if res.background_adu is None:
+        return None
+    srcl = (np.asarray(res.model_adu, np.float64) - res.background_adu).ravel()[idx]
+    on = srcl * np.sqrt(w) > 2.0
+    if on.sum() < 50:
+        return None
+    z2 = r * r * w
+    excess_on, excess_all = float(np.sum(z2[on]) - on.sum()), float(np.sum(z2) - idx.size)
+    if excess_all <= 0:
+        return None
+    s, sa = float(np.sum(r[on])), float(np.sum(np.abs(r[on])))
+    return {"share": max(excess_on, 0.0) / excess_all, "flux_kept": abs(s) < 0.15 * sa}
+
+
+def _kind_from_sources(res: Residuals, idx, r, w) -> str | None:
+    """On a uniform light: does the residual scale with the sources' light too (multiplicative) or not?
+    None when there are too few sources to tell."""
+    if res.background_adu is None:
+        return None
+    srcl = (np.asarray(res.model_adu, np.float64) - res.background_adu).ravel()[idx]
+    on = srcl * np.sqrt(w) > 5.0
+    if on.sum() < 200:
+        return None
+    bg = np.asarray(res.background_photo_adu, np.float64).ravel()[idx]
+    off = ~on
+    # the relative residual of the background predicts that of the sources if multiplicative
+    rel_bg = float(np.sum(r[off] * bg[off] * w[off]) / max(np.sum(bg[off] ** 2 * w[off]), 1e-300))
+    pred = rel_bg * srcl[on]
+    c_mul = float(np.sum((r[on] - pred) ** 2 * w[on]))
+    c_add = float(np.sum((r[on] - rel_bg * bg[on]) ** 2 * w[on]))
+    if abs(c_mul - c_add) < 25:
+        return None
+    return "multiplicative" if c_mul < c_add else "additive"
+
+
+def _words(kind: str, geometry: list[str], desc: str) -> str:
+    fam = [FAMILIES.get((kind, g)) for g in geometry if FAMILIES.get((kind, g))]
+    head = f"a {kind} pattern ({', '.join(geometry)}): {desc}"
+    return head + (f"; nearest physical families: {fam[0]}" if fam else "")
