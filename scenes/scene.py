@@ -21,7 +21,7 @@ from optics.design import BUILTIN as BUILTIN_DESIGNS
 from .errors import SceneError
 from .objects import object_from_table, observer_from_table
 from .projection import sip_from_table
-from .straylight import straylight_config
+from .straylight import is_traced_straylight, straylight_config
 
 BUILTIN_SCENES = Path(__file__).with_name("data")
 
@@ -322,5 +322,5 @@ def _check_optics_keys(scene: Scene, base: Path | None) -> None:
             if k in given:
                 raise SceneError(f"{k} with model = {psf.model!r}", key=f"psf.{k}", file=file,
                                  expected="model = 'optics' (the optics PSF grid)")
-    if "straylight" in scene.effects:
+    if "straylight" in scene.effects and is_traced_straylight(scene.effects["straylight"]):
         straylight_config(scene.effects["straylight"], file=file)

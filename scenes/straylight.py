@@ -121,6 +121,12 @@ class StraylightCfg(BaseModel):
         return v
 
 
+def is_traced_straylight(table) -> bool:
+    """``[effects.straylight]`` is the scene's own (Sun and Moon through a PST) unless it says
+    ``model = "field"`` (the detector's smooth-field form, :class:`detector.effects.sky.StraylightField`)."""
+    return not (isinstance(table, dict) and table.get("model") == "field")
+
+
 def straylight_config(table: dict, *, file: str | None = None) -> StraylightCfg:
     """Validate ``[effects.straylight]``; errors name ``effects.straylight.KEY`` and the file."""
     if not isinstance(table, dict):

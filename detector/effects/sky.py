@@ -1,4 +1,4 @@
-"""Light of the sky that the scene's uniform background lacks: ``sky_gradient``.
+"""Light the scene's uniform background lacks: ``sky_gradient`` (a plane) and ``straylight`` (a smooth field).
 
 The night sky is not uniform across a field: the scattered light of the Moon falls off with the angular
 distance from it, twilight with the solar depression along the vertical, airglow grows with the airmass
@@ -17,9 +17,23 @@ its shot noise, and absent when no light reaches the sensor (dark and bias frame
 zero everywhere). That, and its form (a plane, proportional to the exposure time), tell it from a bias
 gradient (ADU, in bias frames too), an amplifier glow (dark charge, localised at an edge) and vignetting
 (a radial, multiplicative loss of every source's light).
+
+``straylight`` with ``model = "field"``: light scattered into the field by the telescope (baffles, tube,
+spider, the mirror's roughness: a PST map of the Sun or the Moon at some angle, docs/optics_straylight.md)
+is smooth over the sensor and, to second order about the sensor centre,
+
+    S(x, y) = g_x X + g_y Y + g_xx X^2 + g_xy X Y + g_yy Y^2,   X = (x - x_c) / 1000, Y = (y - y_c) / 1000
+
+[e-/s per pixel]: light with its shot noise, growing with the exposure, absent in darks. It is the form the
+diagnosis fits when a field-wide additive light is missing and the scene's straylight source is unknown;
+the scene's own ray-traced straylight (``[effects.straylight]`` with ``pst = ...``: the Sun and the Moon
+through the design's PST, :mod:`scenes.straylight`) is the physical model to move to once the source is
+known. (Mitigation of straylight: Breault 1995, Handbook of Optics vol. I, ch. 38.)
 """
 
 from __future__ import annotations
+
+from typing import Literal
 
 import numpy as np
 from pydantic import Field
@@ -110,4 +124,103 @@ class SkyGradient(Effect):
         yc, xc = _sensor_centre(self.sensor)
         p = self.params
         data += sky_ramp_e(ys, xs, yc, xc, p.gx_e_per_s_per_kpx, p.gy_e_per_s_per_kpx, tile.exptime_s)
+        np.maximum(data, 0, out=data)
+
+
+# --- straylight as a smooth field of light ------------------------------------------------------------------------
+
+#: bound of the straylight field's coefficients [e-/s/pixel per 1000 px (squared)]
+MAX_FIELD = 1e5
+
+
+def straylight_field_e(ys: np.ndarray, xs: np.ndarray, yc: float, xc: float, c: dict, exptime_s: float) -> np.ndarray:
+    """Photo-electrons [e-] of the second-order straylight field at sensor rows ``ys``, columns ``xs`` (the
+    module's polynomial, zero at the sensor centre ``(x_c, y_c)``); shape (len(ys), len(xs))."""
+    x = ((np.asarray(xs, np.float64) - xc) / KPX)[None, :]
+    y = ((np.asarray(ys, np.float64) - yc) / KPX)[:, None]
+    rate = c["gx"] * x + c["gy"] * y + c["gxx"] * x * x + c["gxy"] * x * y + c["gyy"] * y * y
+    return (rate * exptime_s).astype(np.float32)
+
+
+_FIELD_KEYS = ("gx", "gy", "gxx", "gxy", "gyy")
+
+
+def _field_variants(res):
+    if res.exptime_s <= 0 or not np.any(res.photo_adu > 0):
+        return
+    yc, xc = _sensor_centre(res.sensor)
+    f = res.exptime_s * res.pixel_sum / res.gain  # ADU per output pixel per e-/s/pixel
+    x = ((res.xs - xc) / KPX).astype(np.float64)
+    y = ((res.ys - yc) / KPX).astype(np.float64)
+    temps = [(f * x)[None, :].astype(np.float32), (f * y)[:, None].astype(np.float32),
+             (f * x * x)[None, :].astype(np.float32), (f * y[:, None] * x[None, :]).astype(np.float32),
+             (f * y * y)[:, None].astype(np.float32)]
+
+    def to_params(c):
+        vals = [float(v) for v in c]
+        if max(abs(v) for v in vals) > MAX_FIELD:
+            return None
+        return {"model": "field", **{k: round(v, 6) for k, v in zip(_FIELD_KEYS, vals)}}
+
+    yield Variant(temps, to_params, "quadratic")
+
+
+def _field_words(p, res) -> str:
+    s = res.sensor
+    yc, xc = _sensor_centre(s)
+    w, h = s.roi_shape
+    ys = np.array([s.roi_y0, s.roi_y0 + h - 1, s.roi_y0, s.roi_y0 + h - 1, s.roi_y0 + h / 2.0])
+    xs = np.array([s.roi_x0, s.roi_x0, s.roi_x0 + w - 1, s.roi_x0 + w - 1, s.roi_x0 + w / 2.0])
+    vals = [float(straylight_field_e(np.array([y]), np.array([x]), yc, xc, p, res.exptime_s)[0, 0]) for y, x in zip(ys, xs)]
+    return (f"a smooth additive light across the field, {max(vals) - min(vals):.3g} e- from its faintest to its "
+            "brightest corner, curved, growing with exposure, in the light only: straylight (or a sky gradient "
+            "that is not a plane)")
+
+
+def _field_check(fit, res) -> str:
+    """Straylight is light: on a frame without light there is none (the variants already skip darks)."""
+    return ""
+
+
+_FIELD_SIGNATURE = LinearSignature(_field_variants, _field_words,
+                                   pattern="additive smooth (second-order) field of light, with its shot noise",
+                                   extra_k=0, adds_charge=True, check=_field_check)
+
+
+class StraylightFieldParams(EffectParams):
+    model: Literal["field"] = Field("field", description="the smooth-field form (the scene's ray-traced form "
+                                    "has pst = ... instead)")
+    gx: float = Field(0.0, ge=-MAX_FIELD, le=MAX_FIELD, description="linear term along the columns "
+                      "[e-/s/pixel per 1000 px]", json_schema_extra={"unit": "electron / (s pixel kpixel)"})
+    gy: float = Field(0.0, ge=-MAX_FIELD, le=MAX_FIELD, description="linear term along the rows "
+                      "[e-/s/pixel per 1000 px]", json_schema_extra={"unit": "electron / (s pixel kpixel)"})
+    gxx: float = Field(0.0, ge=-MAX_FIELD, le=MAX_FIELD, description="quadratic term x^2 "
+                       "[e-/s/pixel per (1000 px)^2]", json_schema_extra={"unit": "electron / (s pixel kpixel2)"})
+    gxy: float = Field(0.0, ge=-MAX_FIELD, le=MAX_FIELD, description="cross term x y "
+                       "[e-/s/pixel per (1000 px)^2]", json_schema_extra={"unit": "electron / (s pixel kpixel2)"})
+    gyy: float = Field(0.0, ge=-MAX_FIELD, le=MAX_FIELD, description="quadratic term y^2 "
+                       "[e-/s/pixel per (1000 px)^2]", json_schema_extra={"unit": "electron / (s pixel kpixel2)"})
+
+
+@register_effect
+class StraylightField(Effect):
+    """Straylight as a smooth second-order field of light about the sensor centre (the diagnosis's form);
+    ``[effects.straylight]`` with ``pst = ...`` is the scene's ray-traced straylight of the Sun and the Moon.
+
+    Light only, like ``sky_gradient``; where the field would take the light below zero it is clipped at zero.
+    """
+
+    name = "straylight"
+    identity = {"model": "field"}
+    stages = (Stage.FIELD,)
+    Params = StraylightFieldParams
+    signature = _FIELD_SIGNATURE
+
+    def apply(self, stage: Stage, tile: Tile, data: np.ndarray) -> None:
+        if not data.any():  # shutter closed: no light
+            return
+        ys, xs = tile.pixel_centres()
+        yc, xc = _sensor_centre(self.sensor)
+        p = self.params
+        data += straylight_field_e(ys, xs, yc, xc, {k: getattr(p, k) for k in _FIELD_KEYS}, tile.exptime_s)
         np.maximum(data, 0, out=data)

@@ -34,7 +34,7 @@ from scenes.objects import observer_from_table
 from scenes.photometry import sky_electron_rate_per_pixel
 from scenes.projection import REVERSE_WARN_PX, Sip, sip_from_optics, sip_from_table
 from scenes.scene import Scene, SceneError
-from scenes.straylight import straylight_signal
+from scenes.straylight import is_traced_straylight, straylight_signal
 
 #: SIP order of the optics' distortion fit: the art corrector's distortion has 7th-order terms (order 5
 #: leaves 0.03-0.07 px, order 7 below 0.01 px; docs/optics_psf.md)
@@ -119,7 +119,8 @@ def prepare(scene: Scene, workers: int | None = None, psf=None) -> Setup:
         design = load_design(scene.telescope.design)
     except OpticsError as exc:
         raise SceneError(str(exc), key="telescope.design", file=scene.source) from None
-    tables = {k: v for k, v in scene.effects.items() if k != "straylight"}  # straylight is the scene's
+    traced = "straylight" in scene.effects and is_traced_straylight(scene.effects["straylight"])
+    tables = {k: v for k, v in scene.effects.items() if not (k == "straylight" and traced)}  # the scene's own
     effects = build_effects(_resolve_optics_maps(tables, design, scene), sensor, file=scene.source)
     scale = scene.telescope.pixel_scale_arcsec or design.pixel_scale_arcsec(sensor.pixel_pitch_um)
     exp = scene.exposure
@@ -139,7 +140,7 @@ def prepare(scene: Scene, workers: int | None = None, psf=None) -> Setup:
     truth, cards = np.zeros(0, dtype=TRUTH_DTYPE), {}
     distortion = resolve_distortion(scene, sensor, design)
     stray = None
-    if exp.frame == "light" and "straylight" in scene.effects and scene.sky.flat_e_per_s is None:
+    if exp.frame == "light" and traced and scene.sky.flat_e_per_s is None:
         stray, stray_cards = _straylight(scene, sensor, design, effects, exptime)
         cards.update(stray_cards)
     if exp.frame == "light" and (scene.sky.stars or scene.objects):
