@@ -51,6 +51,11 @@ def _design(name):
     return load_design(name)
 
 
+def _perturbation(d) -> dict:
+    """The design's non-zero ``[perturbation]`` entries (reported in the JSON; empty when nominal)."""
+    return {k: v for k, v in d.perturbation.model_dump().items() if v}
+
+
 def _echo_json(obj, path):
     from .cli import _write_json
 
@@ -94,7 +99,7 @@ def vignetting(design, grid, rays, wavelength_nm, obstruct, json_out, plot_out, 
             return vig.vignetting_map(tracer, grid, rays, wavelength_nm, seed, progress=prog).to_json()
 
     out, hit = cache.cached_json("vignetting", d, settings, compute, use_cache=not no_cache)
-    out = {"design": d.name, **out, "cached": hit}
+    out = {"design": d.name, "perturbation": _perturbation(d), **out, "cached": hit}
     res = vig.VignettingResult.from_json(out)
     if plot_out:
         vig.plot(res, plot_out, d, title=f"{d.name}: relative illumination")
@@ -164,8 +169,8 @@ def psf(design, field_deg, wavelength_nm, band, band_samples, geometric, seeing_
 
     # a FITS image needs the PSF itself, which the JSON cache does not hold: compute (and store) it
     out, hit = cache.cached_json("psf", d, settings, compute, use_cache=not no_cache, read=not fits_out)
-    out = {"design": d.name, "field_deg": list(field_deg), "wavelengths_nm": wl, "weights": w, **out,
-           "cached": hit}
+    out = {"design": d.name, "perturbation": _perturbation(d), "field_deg": list(field_deg),
+           "wavelengths_nm": wl, "weights": w, **out, "cached": hit}
     if fits_out:
         psfmod.write_psf_fits(state["result"], fits_out)
     _echo_json(out, json_out)
