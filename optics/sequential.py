@@ -282,16 +282,23 @@ class SequentialTracer:
         parameters overriding the design's (:meth:`_params`). ``soft_eps`` [mm]: the optical apertures
         (primary rim, diagonal outline, lens rims, sensor edges) weight a ray by the logistic function of
         its margin inside the edge over ``soft_eps`` (key ``"soft"``) instead of stopping it, so that the
-        throughput and the moments are differentiable in the perturbations; the mechanical obstructions
-        stay hard."""
+        throughput and the moments are differentiable in the perturbations; so do, with
+        ``obstruct="analytic"``, the tube front, the vanes and the focuser bore on the way back from the
+        primary and behind the diagonal (:meth:`_margin_tube_side`, :meth:`_margin_focuser`). The incoming
+        bundle's obstructions do not move with the optics and stay hard."""
         import drjit as dr
         from drjit.llvm.ad import Array3f64, Float64, UInt32
 
         L = self.layout
         F = Float64
         pert, dpar = self._params(params)
-        fd = np.asarray(field_deg, dtype=float)
-        if fd.ndim == 1:
+        fd = None if _is_dr(field_deg) else np.asarray(field_deg, dtype=float)
+        if fd is None:
+            # drjit directions per ray (built inside the kernel by the caller, e.g. optics.gradients)
+            d = field_deg
+            fd = np.zeros((0, 2))
+            dz_np = None
+        elif fd.ndim == 1:
             d_np = direction(fd)
             # opaque: the field changes from call to call, the compiled kernel must not
             d = Array3f64(*[dr.opaque(F, float(c)) for c in d_np])
@@ -300,17 +307,23 @@ class SequentialTracer:
             t = np.tan(np.radians(fd))
             d_np = -np.stack([t[:, 0], t[:, 1], np.ones(len(t))], -1)
             d_np /= np.linalg.norm(d_np, axis=1, keepdims=True)
-            d = Array3f64(*[F(d_np[:, i]) for i in range(3)])
+            d = Array3f64(*[to_dr(d_np[:, i]) for i in range(3)])
             dz_np = d_np[:, 2]
         z_rim = float(L.primary_sag(L.r_primary))
-        p_rim = Array3f64(F(px), F(py), F(z_rim))
+        px = px if _is_dr(px) else to_dr(px)
+        py = py if _is_dr(py) else to_dr(py)
+        p_rim = Array3f64(px, py, F(z_rim))
         z_start = L.tube_top + 1.0
-        s0 = dr.opaque(F, (z_start - z_rim) / (-dz_np)) if fd.ndim == 1 else F((z_start - z_rim) / (-dz_np))
+        if dz_np is None:
+            s0 = (z_start - z_rim) / (-d.z)
+        else:
+            s0 = dr.opaque(F, (z_start - z_rim) / (-dz_np)) if fd.ndim == 1 else to_dr((z_start - z_rim) / (-dz_np))
         o = p_rim - d * s0
         opl = dr.dot(o, d)                       # plane wave: zero on the plane through the origin
-        lost = dr.zeros(UInt32, len(px))
-        trans = dr.full(F, 1.0, len(px))
-        soft = dr.full(F, 1.0, len(px)) if soft_eps else None
+        n_rays = dr.width(px)
+        lost = dr.zeros(UInt32, n_rays)
+        trans = dr.full(F, 1.0, n_rays)
+        soft = dr.full(F, 1.0, n_rays) if soft_eps else None
 
         def kill(mask, code):
             nonlocal lost
@@ -380,7 +393,9 @@ class SequentialTracer:
             aperture((1.0 - (qa / L.diag_a) ** 2 - (rel.y / L.diag_b) ** 2) * (0.5 * L.diag_b), DIAGONAL_MISS)
         else:
             kill((qa / L.diag_a) ** 2 + (rel.y / L.diag_b) ** 2 > 1.0, DIAGONAL_MISS)
-        if self.obstruct == "analytic":
+        if self.obstruct == "analytic" and soft_eps:
+            aperture(self._margin_tube_side(p1, d1, t), TO_DIAGONAL)
+        elif self.obstruct == "analytic":
             kill(self._blocked_tube_side(p1, d1, t, incoming=False), TO_DIAGONAL)
         elif self.obstruct == "mesh":
             kill(self._blocked_mesh(p1, d1, t), TO_DIAGONAL)
@@ -450,7 +465,9 @@ class SequentialTracer:
         p3 = p + dcur * t
         opl += n_medium * t
         chain.append(p3)
-        if self.obstruct == "analytic":
+        if self.obstruct == "analytic" and soft_eps:
+            aperture(self._margin_focuser(chain), FOCUSER)
+        elif self.obstruct == "analytic":
             kill(self._blocked_focuser(chain), FOCUSER)
         elif self.obstruct == "mesh":
             kill(self._blocked_mesh_chain(chain), FOCUSER)
@@ -502,6 +519,38 @@ class SequentialTracer:
             lo, hi = _clip_linear(lo, hi, o.x - L.r_tube, d.x, upper=0.0)
             blocked |= dr.maximum(lo, 0.0) < dr.minimum(hi, t_end)
         return blocked
+
+    def _margin_tube_side(self, o, d, t_end):
+        """Soft-edge version of the way back from the primary to the diagonal (``soft_eps``): the smallest
+        margin [mm] inside the tube front's and the annular vanes' openings where the ray crosses them.
+        The spider is left out on this leg: the incoming bundle already carries its (fixed) shadow, and
+        the returning rays cross the vanes' thin slabs again close to where they passed them."""
+        import drjit as dr
+
+        L = self.layout
+        m = dr.full(type(o.x), 1e30, dr.width(o.x))
+        for z, r in [(L.tube_top, L.r_tube), *[(zv, L.r_vane) for zv in L.vane_z]]:
+            tz = (z - o.z) / d.z
+            x = o.x + d.x * tz
+            y = o.y + d.y * tz
+            inside = (tz > 1e-9) & (tz < t_end)
+            m = dr.minimum(m, dr.select(inside, r - dr.sqrt(x * x + y * y), 1e30))
+        return m
+
+    def _margin_focuser(self, chain):
+        """Soft-edge version of :meth:`_blocked_focuser`: the smallest margin [mm] inside the bore."""
+        import drjit as dr
+
+        L = self.layout
+        m = dr.full(type(chain[0].x), 1e30, dr.width(chain[0].x))
+        for a, b in itertools.pairwise(chain):
+            dd = b - a
+            for xq in (L.focuser_start_x, L.x_housing):
+                s = (xq - a.x) / dd.x
+                y = a.y + dd.y * s
+                z = a.z + dd.z * s - L.z_axis
+                m = dr.minimum(m, dr.select((s > 0) & (s <= 1), L.r_focuser - dr.sqrt(y * y + z * z), 1e30))
+        return m
 
     def _hits_diagonal_body(self, o, d, t_end):
         """The diagonal with its holder: inside the vertical cylinder r < b about the ellipse centre, above
@@ -584,6 +633,24 @@ class SequentialTracer:
 
 
 # ---- small drjit helpers ---------------------------------------------------------------------------------
+def _is_dr(x) -> bool:
+    import drjit as dr
+
+    return dr.is_array_v(x)
+
+
+def to_dr(a):
+    """A drjit Float64 copy of the numpy array ``a``. drjit maps numpy memory without copying, and the
+    kernel's IR records the buffer's alignment (``align 128`` or ``align 1``), so an unlucky numpy
+    allocation changes the kernel's hash and costs a recompilation. The copy helps for numpy's buffers; for
+    repeated kernels with many inputs (the AD kernels of :mod:`optics.gradients`) the per-ray inputs are
+    built inside the kernel instead (counters and gathers carry no alignment)."""
+    import drjit as dr
+    from drjit.llvm.ad import Float64
+
+    return dr.copy(Float64(np.ascontiguousarray(a, dtype=np.float64)))
+
+
 def _Bool():
     from drjit.llvm.ad import Bool
 
