@@ -134,3 +134,29 @@ def test_psf_and_vignetting_honour_the_perturbation_table(tmp_path, cache):
     r = newtsim("optics", "psf", path, "--field-deg", 0, 0, "--geometric", cache=cache)
     assert r.returncode == 2 and len(r.stderr.strip().splitlines()) == 1
     assert "perturbation.primary_tilt_q_deg" in r.stderr and str(path) in r.stderr
+
+
+@pytest.mark.parametrize("args, needle", [
+    (["optics", "optimize", "art", "--goal", "baffle", "-o", "x.toml"], "--angles"),
+    (["optics", "optimize", "bare", "--goal", "corrector", "-o", "x.toml"], "corrector"),
+    (["optics", "optimize", "art", "--goal", "baffle", "--angles", "0,500", "-o", "x.toml"], "--angles"),
+])
+def test_optimize_user_errors_are_one_line(args, needle, cache, tmp_path):
+    r = newtsim(*args, cache=cache)
+    assert r.returncode == 2, r.stderr
+    assert needle in r.stderr and "Traceback" not in r.stderr
+    assert len(r.stderr.strip().splitlines()) == 1
+
+
+def test_optimize_corrector_writes_design_json_and_plot(tmp_path, cache):
+    out = tmp_path / "opt.toml"
+    r = newtsim("optics", "optimize", "art", "--goal", "corrector", "-o", out, "--json", tmp_path / "o.json",
+                "--plot", tmp_path / "o.png", "--band", "none", "--rays", 300, "--iterations", 4, "--grid", 2,
+                cache=cache)
+    assert r.returncode == 0, r.stderr
+    j = json.loads((tmp_path / "o.json").read_text())
+    assert j["goal"] == "corrector" and j["mean_after_um"] <= j["mean_before_um"]
+    assert (tmp_path / "o.png").stat().st_size > 10_000
+    from optics import load_design
+
+    assert load_design(str(out)).corrector.enabled
