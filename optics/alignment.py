@@ -49,11 +49,26 @@ CORRECTOR_PARAMETERS = ("corrector_decenter_x_mm", "corrector_decenter_y_mm", "c
 NUISANCES = ("shift_u_mm", "shift_v_mm", "rotation_rad", "scale", "extra_moment_mm2")
 
 
+#: one family per physical cause (the candidates of :func:`rank_perturbations`)
+FAMILIES = {
+    "defocus": ("sensor_piston_um",),
+    "sensor_tilt": ("sensor_tilt_x_deg", "sensor_tilt_y_deg"),
+    "diagonal_tilt": ("diagonal_tilt_x_deg", "diagonal_tilt_y_deg"),
+    "primary_tilt": ("primary_tilt_x_deg", "primary_tilt_y_deg"),
+    "primary_decenter": ("primary_decenter_x_mm", "primary_decenter_y_mm"),
+    "corrector_decenter": ("corrector_decenter_x_mm", "corrector_decenter_y_mm"),
+    "corrector_tilt": ("corrector_tilt_x_deg", "corrector_tilt_y_deg"),
+    "corrector_spacing": ("corrector_spacing_mm",),
+}
+
+
 def default_parameters(design: Design) -> tuple:
-    """The perturbations a star field can tell apart: focus, sensor tilt, diagonal and primary tilt (and
-    the corrector's decentre, tilt and spacing when the design has one). Primary decentre is left out: on
-    the field it is a shift (absorbed by the pointing) plus second-order terms."""
-    return ALIGNMENT_PARAMETERS + (CORRECTOR_PARAMETERS if design.corrector.enabled else ())
+    """Focus, sensor tilt, diagonal tilt and primary tilt: a set the stars can tell apart. Left out:
+    the primary's decentre (on the field a shift, absorbed by the pointing, plus the beam's decentre in
+    the corrector) and the corrector's decentre and tilt, which a diagonal tilt mimics (turning the beam
+    at the diagonal = moving corrector and sensor rigidly about it): fit those one family at a time with
+    :func:`rank_perturbations`."""
+    return ALIGNMENT_PARAMETERS
 
 
 @dataclass
@@ -159,8 +174,9 @@ def _model(m_values, jac, nuis, fields_u, fields_v, keys):
 
 
 def fit_perturbations(design: Design, mi, fields_deg, measured: dict, sigma: dict | None = None, *,
-                      params=None, nodes: int = 5, n_rays: int = 1500, wavelengths_nm=(550.0,), weights=None,
-                      max_iter: int = 12, tracer: SequentialTracer | None = None) -> AlignmentFit:
+                      params=None, nodes: int = 8, n_rays: int = 1500, wavelengths_nm=(550.0,), weights=None,
+                      max_iter: int = 15, tracer: SequentialTracer | None = None, explain_top: bool = True,
+                      _freeze: bool = False) -> AlignmentFit:
     """Fit perturbations of ``design`` to measured stars.
 
     Parameters
@@ -232,8 +248,13 @@ def fit_perturbations(design: Design, mi, fields_deg, measured: dict, sigma: dic
             Jn.append(dn[k] / scale[:, None])
         return np.concatenate(r), np.vstack(Jp), np.vstack(Jn), m
 
-    # the unit of each column (for damping): a perturbation's effect is measured in its own units
     lam = 1e-3
+    if _freeze:                 # the reference fit: no perturbation, only the nuisances
+        names_all = names
+        def residuals_frozen(x, nuis, want_jac=True, _r=residuals):
+            r, Jp, Jn, m = _r(x, nuis, want_jac)
+            return r, Jp[:, :0], Jn, m
+        residuals = residuals_frozen
     r, Jp, Jn, m = residuals(x, nuis)
     chi2 = float(r @ r)
     it = 0
@@ -249,14 +270,15 @@ def fit_perturbations(design: Design, mi, fields_deg, measured: dict, sigma: dic
             except np.linalg.LinAlgError:
                 lam *= 10
                 continue
-            x_new = x + step[:len(names)]
-            n_new = nuis + step[len(names):]
+            npar = len(x) if not _freeze else 0
+            x_new = x + step[:npar] if npar else x
+            n_new = nuis + step[npar:]
             n_new[4] = max(n_new[4], 0.0)
             x_new = _clip_to_bounds(names, x_new)
             r_new, Jp_new, Jn_new, m_new = residuals(x_new, n_new)
             chi2_new = float(r_new @ r_new)
             if chi2_new <= chi2:
-                small = np.all(np.abs(step) <= 1e-4 * (np.abs(np.concatenate([x, nuis])) + 1e-9)) or \
+                small = np.all(np.abs(step) <= 1e-4 * (np.abs(np.concatenate([x[:npar], nuis])) + 1e-9)) or \
                     chi2 - chi2_new < 1e-6 * max(chi2, 1e-30)
                 x, nuis, r, Jp, Jn, m, chi2 = x_new, n_new, r_new, Jp_new, Jn_new, m_new, chi2_new
                 lam = max(lam / 10, 1e-9)
@@ -271,14 +293,16 @@ def fit_perturbations(design: Design, mi, fields_deg, measured: dict, sigma: dic
     cov = np.linalg.pinv(fisher)
     if sigma is None or any(k not in sigma for k in keys):
         cov = cov * max(chi2 / dof, 1e-30)
+    if _freeze:
+        names, x = (), np.zeros(0)
     errs = np.sqrt(np.clip(np.diag(cov)[:len(names)], 0, None))
-    expl = {n: explain(n, v, e, tr, F, kw) for n, v, e in zip(names, x, errs)}
+    expl = {n: explain(n, v, e) for n, v, e in zip(names, x, errs)}
     z = np.abs(x) / np.where(errs > 0, errs, np.inf)
     top = int(np.argmax(z)) if len(z) else None
     if top is None or z[top] < 3.0:
         summary = "no significant misalignment: every fitted perturbation is within 3 sigma of zero"
     else:
-        summary = expl[names[top]]
+        summary = explain(names[top], x[top], errs[top], tr, F, kw) if explain_top else expl[names[top]]
     return AlignmentFit(names, x, errs, cov[:len(names), :len(names)],
                         dict(zip(NUISANCES, map(float, nuis))), chi2, dof, it, time.perf_counter() - t0,
                         summary, expl, F, n_stars)
@@ -310,29 +334,42 @@ def _clip_to_bounds(names, x):
 _EDGE = {(1, 0): "right (+x) edge", (-1, 0): "left (-x) edge", (0, 1): "top (+y) edge", (0, -1): "bottom (-y) edge"}
 
 
-def _direction_words(b, c):
-    """The sensor edge a gradient (b along x = u, c along y = v) points to."""
-    if abs(b) >= abs(c):
-        return _EDGE[(1 if b > 0 else -1, 0)]
-    return _EDGE[(0, 1 if c > 0 else -1)]
-
-
 def _pattern(name, value, tracer, fields, kw):
-    """Where the spot grows over the field for this perturbation at ``value``: the change of the RMS spot
-    between the perturbed and the nominal model, fitted with a plane a + b u + c v."""
+    """How this perturbation at ``value`` changes the RMS spot [mm] at the field's centre and at the middle
+    of each edge (a 3 x 3 grid over ``fields``' extent): ``{"centre": d, "right (+x) edge": d, ...}``."""
     try:
         pert = with_perturbation(tracer.design, **{name: float(value)})
     except Exception:
         return None
-    base = spot_moments(tracer, fields, **kw)
-    moved = spot_moments(SequentialTracer(pert, tracer.mi), fields, **kw)
+    lo, hi = fields.min(0), fields.max(0)
+    mid = 0.5 * (lo + hi)
+    pts = np.array([mid, [lo[0], mid[1]], [hi[0], mid[1]], [mid[0], lo[1]], [mid[0], hi[1]]])
+    base = spot_moments(tracer, pts, **kw)
+    moved = spot_moments(SequentialTracer(pert, tracer.mi), pts, **kw)
     d = moved.get("rms_mm") - base.get("rms_mm")
-    u, v = base.get("cu_mm"), base.get("cv_mm")
-    if len(d) < 3:
-        return float(np.mean(d)), 0.0, 0.0
-    A = np.stack([np.ones_like(u), u, v], -1)
-    a, b, c = np.linalg.lstsq(A, d, rcond=None)[0]
-    return float(a), float(b), float(c)
+    out = {"centre": float(d[0])}
+    for k in range(1, 5):
+        # the image of field (theta_x, theta_y) lies at -f tan(theta): name the sensor edge by its image
+        u, v = base.get("cu_mm")[k] - base.get("cu_mm")[0], base.get("cv_mm")[k] - base.get("cv_mm")[0]
+        edge = _EDGE[(int(np.sign(u)), 0)] if abs(u) > abs(v) else _EDGE[(0, int(np.sign(v)))]
+        out[edge] = float(d[k])
+    return out
+
+
+def _pattern_words(pat) -> str:
+    if pat is None:
+        return ""
+    centre = pat["centre"]
+    edges = {k: v for k, v in pat.items() if k != "centre"}
+    top = max(edges, key=edges.get)
+    if edges[top] <= 0 and centre <= 0:
+        return "the spots shrink (the perturbation compensates another)"
+    grow = [k for k, v in edges.items() if v > 0.5 * edges[top] and v > 1.3 * max(centre, 0)]
+    if centre > 0.6 * edges[top]:
+        return f"over the whole field, most at the {top}"
+    if len(grow) >= 2:
+        return "growing towards the " + " and ".join(e.replace(" edge", "") for e in grow) + " edges"
+    return f"growing towards the {top}"
 
 
 def explain(name: str, value: float, error: float, tracer=None, fields=None, kw=None) -> str:
@@ -340,34 +377,72 @@ def explain(name: str, value: float, error: float, tracer=None, fields=None, kw=
     mag = abs(value)
     pm = f"{mag:.3g} +- {error:.2g}"
     part = name.split("_")[0]
-    pattern = _pattern(name, value, tracer, fields, kw or {}) if tracer is not None and fields is not None else None
-    growth = ""
-    if pattern is not None:
-        a, b, c = pattern
-        half = 0.5 * max(np.ptp(fields[:, 0]), np.ptp(fields[:, 1]), 1e-9)
-        # the edge where the spot grows, when the field gradient beats the uniform part
-        if math.hypot(b, c) * tracer.layout.focal_length * math.radians(half) > 0.3 * abs(a):
-            growth = f"growing towards the {_direction_words(b, c)}"
-        else:
-            growth = "over the whole field"
+    growth = _pattern_words(_pattern(name, value, tracer, fields, kw or {})) \
+        if tracer is not None and fields is not None else ""
     if name == "sensor_piston_um":
         where = "beyond focus (too far from the mirror)" if value > 0 else "inside focus (too close to the mirror)"
         return f"sensor {pm} um {where}: defocus blur {growth or 'over the whole field'}"
     if name.startswith("sensor_tilt"):
         axis = name[-5]
-        return (f"sensor tilted {pm} deg about its {axis} axis: focus varies across the field, blur "
+        return (f"sensor tilted {value:+.3g} +- {error:.2g} deg about its {axis} axis: focus varies across the field, blur "
                 f"{growth or 'towards opposite edges'}")
     if name.endswith("_deg"):
         axis = name[-5]
         what = {"primary": "primary mirror", "diagonal": "diagonal", "corrector": "corrector"}[part]
         kind = "coma" if part in ("primary", "diagonal") else "coma and astigmatism"
-        sign = "+" if value > 0 else "-"
-        return f"{what} tilted {pm} deg ({sign}) about {axis}: {kind} {growth or 'over the field'}"
+        return f"{what} tilted {value:+.3g} +- {error:.2g} deg about {axis}: {kind} {growth or 'over the field'}"
     if "decenter" in name:
         axis = name.split("_")[-2]
         what = {"primary": "primary mirror", "corrector": "corrector"}.get(part, part)
-        return f"{what} decentred {pm} mm along {axis}: coma {growth or 'over the field'}"
+        return f"{what} decentred {value:+.3g} +- {error:.2g} mm along {axis}: coma {growth or 'over the field'}"
     if name == "corrector_spacing_mm":
         way = "too far from" if value > 0 else "too close to"
         return f"corrector {pm} mm {way} the sensor: field-dependent blur (spacing error) {growth}".rstrip()
     return f"{name} = {value:.3g} +- {error:.2g}"
+
+
+# ---- which perturbation? -------------------------------------------------------------------------------
+@dataclass
+class Candidate:
+    """One family's fit in :func:`rank_perturbations`."""
+
+    family: str
+    fit: AlignmentFit
+    delta_chi2: float       # chi^2(no perturbation) - chi^2(this family)
+    p_value: float          # of delta_chi2 under "no perturbation" (chi^2 with len(params) dof)
+
+    def to_json(self) -> dict:
+        return {"family": self.family, "delta_chi2": self.delta_chi2, "p_value": self.p_value,
+                **self.fit.to_json()}
+
+
+def rank_perturbations(design: Design, mi, fields_deg, measured: dict, sigma: dict | None = None, *,
+                       families=None, significance: float = 1e-4, **kw) -> tuple[list, AlignmentFit]:
+    """Fit each family of perturbations alone (:data:`FAMILIES`; the corrector's only for a design with
+    one) and rank them by the chi^2 they remove: ``(candidates best first, the fit with no perturbation)``.
+
+    A family whose chi^2 drop has a p-value below ``significance`` (chi^2 distribution with as many degrees
+    of freedom as the family has parameters, Wilks 1938, doi:10.1214/aoms/1177732360) is a detection; with
+    ``sigma=None`` the chi^2 are in units of the no-perturbation fit's residual variance. Keyword
+    arguments go to :func:`fit_perturbations` (``nodes``, ``n_rays``, ``wavelengths_nm``, ...)."""
+    from scipy.stats import chi2 as chi2_dist
+
+    fams = families or [f for f in FAMILIES if design.corrector.enabled or not f.startswith("corrector")]
+    tracer = kw.pop("tracer", None) or SequentialTracer(design, mi)
+    base = fit_perturbations(design, mi, fields_deg, measured, sigma, params=("sensor_piston_um",),
+                             tracer=tracer, explain_top=False, _freeze=True, **kw)
+    scale = 1.0 if sigma is not None else max(base.chi2 / base.dof, 1e-30)
+    out = []
+    for fam in fams:
+        fit = fit_perturbations(design, mi, fields_deg, measured, sigma, params=FAMILIES[fam], tracer=tracer,
+                                explain_top=False, **kw)
+        dchi = (base.chi2 - fit.chi2) / scale
+        out.append(Candidate(fam, fit, float(dchi), float(chi2_dist.sf(max(dchi, 0.0), len(FAMILIES[fam])))))
+    out.sort(key=lambda c: -c.delta_chi2)
+    if out and out[0].p_value < significance:
+        top = out[0].fit
+        i = int(np.argmax(top.significance))
+        top.explanation = explain(top.names[i], top.values[i], top.errors[i], tracer, top.fields_deg,
+                                  dict(n_rays=kw.get("n_rays", 1500), wavelengths_nm=kw.get("wavelengths_nm", (550.0,)),
+                                       weights=kw.get("weights")))
+    return out, base
