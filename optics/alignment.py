@@ -175,8 +175,8 @@ def _model(m_values, jac, nuis, fields_u, fields_v, keys):
 
 def fit_perturbations(design: Design, mi, fields_deg, measured: dict, sigma: dict | None = None, *,
                       params=None, nodes: int = 8, n_rays: int = 1500, wavelengths_nm=(550.0,), weights=None,
-                      max_iter: int = 15, tracer: SequentialTracer | None = None, explain_top: bool = True,
-                      _freeze: bool = False) -> AlignmentFit:
+                      max_iter: int = 15, tracer: SequentialTracer | None = None,
+                      explain_top: bool = True) -> AlignmentFit:
     """Fit perturbations of ``design`` to measured stars.
 
     Parameters
@@ -197,7 +197,7 @@ def fit_perturbations(design: Design, mi, fields_deg, measured: dict, sigma: dic
         and the errors are scaled by sqrt(chi^2 / dof).
     params : sequence of str, optional
         ``[perturbation]`` names to fit (default :func:`default_parameters`); e.g. ``("sensor_piston_um",)``
-        for a defocus-only fit.
+        for a defocus-only fit, ``()`` for the nuisances alone (the reference of :func:`rank_perturbations`).
     nodes : int
         Field points per axis (Chebyshev nodes over the stars' field) where the optics is traced; the
         moments and their Jacobian are interpolated to each star (tensor Lagrange, degree nodes - 1).
@@ -211,7 +211,7 @@ def fit_perturbations(design: Design, mi, fields_deg, measured: dict, sigma: dic
         (one line), ``explanations`` (one per parameter), ``significance``.
     """
     t0 = time.perf_counter()
-    names = tuple(params or default_parameters(design))
+    names = tuple(default_parameters(design) if params is None else params)
     keys = [k for k in QUANTITIES if k in measured]
     if not keys:
         raise ValueError(f"measured: no known quantity (expected some of {', '.join(QUANTITIES)})")
@@ -231,11 +231,11 @@ def fit_perturbations(design: Design, mi, fields_deg, measured: dict, sigma: dic
     x = np.array([float(getattr(design.perturbation, n)) for n in names])
     nuis = np.zeros(5)
     nuis[4] = _initial_extra_moment(M)
-    kw = dict(n_rays=n_rays, wavelengths_nm=wavelengths_nm, weights=weights)
+    kw = {"n_rays": n_rays, "wavelengths_nm": wavelengths_nm, "weights": weights}
 
-    def residuals(x, nuis, want_jac=True):
-        m = spot_moments(tr, F, names if want_jac else (), at=dict(zip(names, x)), **kw)
-        jac = m.jacobian if want_jac else np.zeros((len(F), 7, len(names)))
+    def residuals(x, nuis):
+        m = spot_moments(tr, F, names, at=dict(zip(names, x)), **kw)
+        jac = m.jacobian if names else np.zeros((len(F), 7, 0))
         vals = W @ m.values
         jst = np.einsum("sn,nqp->sqp", W, jac)
         pred, dp, dn = _model(vals, jst, nuis, None, None, keys)
@@ -246,16 +246,11 @@ def fit_perturbations(design: Design, mi, fields_deg, measured: dict, sigma: dic
             r.append((M[k] - pred[k]) / scale)
             Jp.append(dp[k] / scale[:, None])
             Jn.append(dn[k] / scale[:, None])
-        return np.concatenate(r), np.vstack(Jp), np.vstack(Jn), m
+        return np.concatenate(r), np.vstack(Jp), np.vstack(Jn)
 
     lam = 1e-3
-    if _freeze:                 # the reference fit: no perturbation, only the nuisances
-        names_all = names
-        def residuals_frozen(x, nuis, want_jac=True, _r=residuals):
-            r, Jp, Jn, m = _r(x, nuis, want_jac)
-            return r, Jp[:, :0], Jn, m
-        residuals = residuals_frozen
-    r, Jp, Jn, m = residuals(x, nuis)
+    npar = len(names)
+    r, Jp, Jn = residuals(x, nuis)
     chi2 = float(r @ r)
     it = 0
     for it in range(1, max_iter + 1):
@@ -270,17 +265,16 @@ def fit_perturbations(design: Design, mi, fields_deg, measured: dict, sigma: dic
             except np.linalg.LinAlgError:
                 lam *= 10
                 continue
-            npar = len(x) if not _freeze else 0
-            x_new = x + step[:npar] if npar else x
+            x_new = x + step[:npar]
             n_new = nuis + step[npar:]
             n_new[4] = max(n_new[4], 0.0)
             x_new = _clip_to_bounds(names, x_new)
-            r_new, Jp_new, Jn_new, m_new = residuals(x_new, n_new)
+            r_new, Jp_new, Jn_new = residuals(x_new, n_new)
             chi2_new = float(r_new @ r_new)
             if chi2_new <= chi2:
                 small = np.all(np.abs(step) <= 1e-4 * (np.abs(np.concatenate([x[:npar], nuis])) + 1e-9)) or \
                     chi2 - chi2_new < 1e-6 * max(chi2, 1e-30)
-                x, nuis, r, Jp, Jn, m, chi2 = x_new, n_new, r_new, Jp_new, Jn_new, m_new, chi2_new
+                x, nuis, r, Jp, Jn, chi2 = x_new, n_new, r_new, Jp_new, Jn_new, chi2_new
                 lam = max(lam / 10, 1e-9)
                 accepted = True
                 break
@@ -293,8 +287,6 @@ def fit_perturbations(design: Design, mi, fields_deg, measured: dict, sigma: dic
     cov = np.linalg.pinv(fisher)
     if sigma is None or any(k not in sigma for k in keys):
         cov = cov * max(chi2 / dof, 1e-30)
-    if _freeze:
-        names, x = (), np.zeros(0)
     errs = np.sqrt(np.clip(np.diag(cov)[:len(names)], 0, None))
     expl = {n: explain(n, v, e) for n, v, e in zip(names, x, errs)}
     z = np.abs(x) / np.where(errs > 0, errs, np.inf)
@@ -337,9 +329,11 @@ _EDGE = {(1, 0): "right (+x) edge", (-1, 0): "left (-x) edge", (0, 1): "top (+y)
 def _pattern(name, value, tracer, fields, kw):
     """How this perturbation at ``value`` changes the RMS spot [mm] at the field's centre and at the middle
     of each edge (a 3 x 3 grid over ``fields``' extent): ``{"centre": d, "right (+x) edge": d, ...}``."""
+    from pydantic import ValidationError
+
     try:
         pert = with_perturbation(tracer.design, **{name: float(value)})
-    except Exception:
+    except ValidationError:          # beyond the table's bounds: no pattern to describe
         return None
     lo, hi = fields.min(0), fields.max(0)
     mid = 0.5 * (lo + hi)
@@ -429,8 +423,8 @@ def rank_perturbations(design: Design, mi, fields_deg, measured: dict, sigma: di
 
     fams = families or [f for f in FAMILIES if design.corrector.enabled or not f.startswith("corrector")]
     tracer = kw.pop("tracer", None) or SequentialTracer(design, mi)
-    base = fit_perturbations(design, mi, fields_deg, measured, sigma, params=("sensor_piston_um",),
-                             tracer=tracer, explain_top=False, _freeze=True, **kw)
+    base = fit_perturbations(design, mi, fields_deg, measured, sigma, params=(), tracer=tracer,
+                             explain_top=False, **kw)
     scale = 1.0 if sigma is not None else max(base.chi2 / base.dof, 1e-30)
     out = []
     for fam in fams:
@@ -443,6 +437,6 @@ def rank_perturbations(design: Design, mi, fields_deg, measured: dict, sigma: di
         top = out[0].fit
         i = int(np.argmax(top.significance))
         top.explanation = explain(top.names[i], top.values[i], top.errors[i], tracer, top.fields_deg,
-                                  dict(n_rays=kw.get("n_rays", 1500), wavelengths_nm=kw.get("wavelengths_nm", (550.0,)),
-                                       weights=kw.get("weights")))
+                                  {"n_rays": kw.get("n_rays", 1500), "wavelengths_nm": kw.get("wavelengths_nm", (550.0,)),
+                                   "weights": kw.get("weights")})
     return out, base

@@ -177,9 +177,11 @@ def optimize_corrector(design: Design, mi, wavelengths_nm=(550.0,), weights=None
     sol = least_squares(fun, x0, jac=jac, bounds=(lo, hi), method="trf", x_scale="jac", max_nfev=max_iter,
                         xtol=1e-10, ftol=1e-8)
     best = dict(zip(names, sol.x))
+    from pydantic import ValidationError
+
     try:
         new = _with_values(design, best)
-    except Exception as exc:  # pydantic: the optimised stack is not a valid corrector
+    except ValidationError as exc:  # the optimised stack is not a valid corrector
         raise OpticsError(f"optimize --goal corrector: the optimised corrector is invalid ({exc})") from None
     new = new.model_copy(update={"name": f"{design.name}_corrector_opt"})
     before = rms_spots(tracer, fields, lam, wts, verify_rays, seed=seed + 1)
@@ -273,9 +275,11 @@ def optimize_baffle(design: Design, mi, angles_deg, *, rays: int = 100_000, veri
         for h in history:
             if tuple(h["params"].values()) == key:
                 return h["cost"], h["corner"]
+        from pydantic import ValidationError
+
         try:
             d = _baffle_design(design, *key)
-        except Exception:
+        except ValidationError:            # e.g. vanes closing the aperture: not a design
             return math.inf, math.nan
         corner = corner_illumination(d, mi)
         if abs(corner / corner0 - 1.0) > max_corner_change:
@@ -304,7 +308,7 @@ def optimize_baffle(design: Design, mi, angles_deg, *, rays: int = 100_000, veri
                 lo, hi = bounds[key]
                 cand[key] = min(max(cur[key] + sgn * steps[key], lo), hi)
                 if key == "vanes":
-                    cand[key] = int(round(cand[key]))
+                    cand[key] = round(cand[key])
                 if cand[key] == cur[key]:
                     continue
                 c, _ = cost(cand)

@@ -9,7 +9,7 @@ from optics.design import with_perturbation
 from optics.gradients import spot_moments
 from optics.sequential import SequentialTracer
 
-FAST = dict(nodes=8, n_rays=1500)
+FAST = {"nodes": 8, "n_rays": 1500}
 
 
 def _stars(mi, design, truth, n=200, seed=1):
@@ -68,7 +68,7 @@ def test_nominal_stars_give_no_significant_perturbation(mi):
 def test_the_right_family_is_named_first_and_its_value_recovered(mi, truth):
     art = load_design("art")
     fields, meas, sigma = _stars(mi, art, truth)
-    cands, base = rank_perturbations(art, mi, fields, meas, sigma)
+    cands, _ = rank_perturbations(art, mi, fields, meas, sigma)
     (name, value), = truth.items()
     best = cands[0]
     assert name in FAMILIES[best.family], [(c.family, c.delta_chi2) for c in cands[:3]]
