@@ -23,9 +23,17 @@ def cache_dir() -> Path:
 
 
 def cache_key(product: str, design, settings: dict) -> str:
-    """Hex digest of the design's content (not its name or path), the product and the settings."""
+    """Hex digest of the design's content (not its name or path), the product and the settings.
+
+    The ``[perturbation]`` table is part of the content when any entry is non-zero (a perturbed design
+    gets its own PSF grids, SIP and maps); an all-zero table hashes like a design without one, so the
+    nominal design's cached products stay valid."""
+    exclude = {"name"}
+    pert = getattr(design, "perturbation", None)
+    if pert is None or pert.is_zero:
+        exclude.add("perturbation")
     payload = {"v": CACHE_VERSION, "product": product, "settings": settings,
-               "design": design.model_dump(mode="json", exclude={"name"})}
+               "design": design.model_dump(mode="json", exclude=exclude)}
     return hashlib.sha256(json.dumps(payload, sort_keys=True).encode()).hexdigest()[:20]
 
 

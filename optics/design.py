@@ -116,6 +116,49 @@ class Corrector(_Table):
         return self.ar_reflectance != "uncoated"
 
 
+class Perturbation(_Table):
+    """Misalignments of the optics relative to the nominal design (all zero by default).
+
+    Frame of :mod:`optics.layout`: x toward the focuser, z up the tube, y completing the right-handed
+    frame; the sensor's axes are x = u (along z) and y = v (along y). Rotations are right-handed about
+    the named axis through the part's pivot:
+
+    * primary: decentre along frame x/y; tilt about frame x/y through the vertex (an on-axis star's
+      image moves by f tan(2 tilt), the reflected beam turns by twice the tilt);
+    * diagonal: tilt about its major axis (``_x``, in the x-z plane, seen from the sky along x) and about
+      its minor axis (``_y``, frame y) through the ellipse's centre; ``_y`` changes the fold angle (the
+      image moves along u), ``_x`` throws the beam sideways (along v);
+    * sensor: piston along the beam (+ = away from the mirror, i.e. farther from the diagonal), tilt
+      about the sensor's x (u) and y (v) axes through its centre;
+    * corrector (designs with a corrector only): decentre along the sensor's x/y, tilt about them
+      through the middle of the lens stack, and ``corrector_spacing_mm``: the corrector-to-sensor
+      spacing (back focus) grows by this much (the whole lens group moves toward the diagonal).
+    """
+    primary_decenter_x_mm: float = Field(0.0, ge=-50, le=50)
+    primary_decenter_y_mm: float = Field(0.0, ge=-50, le=50)
+    primary_tilt_x_deg: float = Field(0.0, ge=-5, le=5)
+    primary_tilt_y_deg: float = Field(0.0, ge=-5, le=5)
+    diagonal_tilt_x_deg: float = Field(0.0, ge=-5, le=5)
+    diagonal_tilt_y_deg: float = Field(0.0, ge=-5, le=5)
+    sensor_piston_um: float = Field(0.0, ge=-20_000, le=20_000)
+    sensor_tilt_x_deg: float = Field(0.0, ge=-10, le=10)
+    sensor_tilt_y_deg: float = Field(0.0, ge=-10, le=10)
+    corrector_decenter_x_mm: float = Field(0.0, ge=-20, le=20)
+    corrector_decenter_y_mm: float = Field(0.0, ge=-20, le=20)
+    corrector_tilt_x_deg: float = Field(0.0, ge=-10, le=10)
+    corrector_tilt_y_deg: float = Field(0.0, ge=-10, le=10)
+    corrector_spacing_mm: float = Field(0.0, ge=-20, le=20)
+
+    @property
+    def is_zero(self) -> bool:
+        return not any(self.model_dump().values())
+
+
+#: names of the perturbation parameters, in the order of :class:`Perturbation`
+PERTURBATION_NAMES = tuple(Perturbation.model_fields)
+CORRECTOR_PERTURBATIONS = tuple(n for n in PERTURBATION_NAMES if n.startswith("corrector_"))
+
+
 class Design(_Table):
     """A Newtonian telescope: see DESIGN.md, "Design file"."""
 
@@ -128,6 +171,7 @@ class Design(_Table):
     coatings: Coatings = Coatings()
     focal_plane: FocalPlane
     corrector: Corrector = Corrector()
+    perturbation: Perturbation = Perturbation()
 
     @model_validator(mode="after")
     def _consistent(self):
@@ -156,6 +200,11 @@ class Design(_Table):
         if t.focuser_diameter_mm >= t.inner_diameter_mm:
             raise ValueError("tube.focuser_diameter_mm must be smaller than tube.inner_diameter_mm")
         c = self.corrector
+        if not c.enabled:
+            for name in CORRECTOR_PERTURBATIONS:
+                if getattr(self.perturbation, name):
+                    raise ValueError(f"perturbation.{name}: the design has no corrector (corrector.enabled "
+                                     "is false); expected 0 or no entry")
         if c.enabled:
             if not c.surfaces:
                 raise ValueError("corrector.surfaces: an enabled corrector needs at least one surface")
@@ -276,4 +325,14 @@ def load_design(name_or_path: str) -> Design:
     except ValidationError as exc:
         e = exc.errors()[0]
         loc = ".".join(str(x) for x in e["loc"]) or "design"
-        raise OpticsError(f"{path}: key '{loc}': {e['msg']}") from None
+        msg = e["msg"]
+        if e.get("type") == "extra_forbidden" and e["loc"][:1] == ("perturbation",):
+            msg = f"unknown perturbation (expected one of: {', '.join(PERTURBATION_NAMES)})"
+        raise OpticsError(f"{path}: key '{loc}': {msg}") from None
+
+
+def with_perturbation(design: Design, **values: float) -> Design:
+    """A copy of ``design`` with the named ``[perturbation]`` entries replaced (others kept)."""
+    data = design.model_dump()
+    data["perturbation"] = {**data["perturbation"], **values}
+    return Design.model_validate(data)

@@ -26,7 +26,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .design import Design
+from .design import PERTURBATION_NAMES, Design
 from .layout import Layout, make_layout
 
 # where a ray was lost (0 = reached the detector)
@@ -36,6 +36,69 @@ LOSS_NAMES = {OK: "detector", ENTRANCE: "blocked before the primary (tube front,
               DIAGONAL_MISS: "missed the diagonal", FOCUSER: "blocked in the focuser or housing",
               LENS: "outside a corrector lens or totally reflected", DETECTOR_MISS: "outside the detector"}
 BATCH = 1 << 21
+SQRT2 = math.sqrt(2.0)
+
+
+def _design_parameter(name: str) -> bool:
+    """Design parameters the kernel can take as drjit values (for gradients)."""
+    parts = name.split(".")
+    return name in ("primary.conic", "corrector.back_focus_mm") or (
+        len(parts) == 4 and parts[:2] == ["corrector", "surfaces"] and parts[2].isdigit()
+        and parts[3] in ("radius_mm", "thickness_mm"))
+
+
+class _Pose:
+    """Rigid placement of a part: local -> world is p -> pivot + shift + R (p - pivot), R = R1 R2 with
+    R_k the right-handed rotation by angle_k [deg] about the unit axis_k (Rodrigues' formula), the shift
+    a sum of (unit axis, length [mm]) terms. Angles and lengths are drjit values (possibly with
+    gradients) or None (left out)."""
+
+    def __init__(self, pivot, rots, shifts):
+        self.pivot, self.rots, self.shifts = pivot, rots, shifts
+
+    @classmethod
+    def make(cls, pivot, rots, shifts):
+        rots = [(a, ang) for a, ang in rots if ang is not None]
+        shifts = [(a, s) for a, s in shifts if s is not None]
+        return cls(pivot, rots, shifts) if rots or shifts else None
+
+    @staticmethod
+    def _rot(v, axis, ang_deg, sign):
+        import drjit as dr
+        from drjit.llvm.ad import Array3f64
+
+        a = ang_deg * (sign * math.pi / 180.0)
+        co, si = dr.cos(a), dr.sin(a)
+        k = Array3f64(*axis)
+        return v * co + dr.cross(k, v) * si + k * (dr.dot(k, v) * (1.0 - co))
+
+    def to_world_dir(self, v):
+        for axis, ang in reversed(self.rots):
+            v = self._rot(v, axis, ang, 1.0)
+        return v
+
+    def to_local_dir(self, v):
+        for axis, ang in self.rots:
+            v = self._rot(v, axis, ang, -1.0)
+        return v
+
+    def _offset(self):
+        from drjit.llvm.ad import Array3f64
+
+        off = Array3f64(*self.pivot)
+        for axis, s in self.shifts:
+            off = off + Array3f64(*axis) * s
+        return off
+
+    def to_world(self, p):
+        from drjit.llvm.ad import Array3f64
+
+        return self._offset() + self.to_world_dir(p - Array3f64(*self.pivot))
+
+    def to_local(self, p):
+        from drjit.llvm.ad import Array3f64
+
+        return Array3f64(*self.pivot) + self.to_local_dir(p - self._offset())
 
 
 @dataclass
@@ -164,34 +227,128 @@ class SequentialTracer:
         return out
 
     # ------------------------------------------------------------------------------------------------
-    def _trace_dr(self, field_deg, px, py, wavelength_nm, keep_path=False):
+    def _params(self, params):
+        """Perturbations and design parameters that enter the kernel as drjit values.
+
+        Returns ``(pert, dpar)``: ``pert`` maps :data:`optics.design.PERTURBATION_NAMES` to drjit Float64
+        values (only the non-zero ones of the design, opaque, plus every entry of ``params``), ``dpar`` the
+        design parameters of ``params`` (:data:`DESIGN_PARAMETERS`). Both empty for the nominal design:
+        then the kernel is exactly the unperturbed one."""
+        import drjit as dr
+        from drjit.llvm.ad import Float64
+
+        pert = {k: dr.opaque(Float64, v) for k, v in self.design.perturbation.model_dump().items() if v}
+        dpar = {}
+        for k, v in (params or {}).items():
+            if k in PERTURBATION_NAMES:
+                pert[k] = v
+            elif _design_parameter(k):
+                dpar[k] = v
+            else:
+                raise ValueError(f"unknown parameter {k!r}: a perturbation ({', '.join(PERTURBATION_NAMES)}) "
+                                 "or a design parameter (primary.conic, corrector.back_focus_mm, "
+                                 "corrector.surfaces.N.radius_mm, corrector.surfaces.N.thickness_mm)")
+        return pert, dpar
+
+    def _lens_geometry(self, dpar, pert):
+        """Vertex x [mm] and radius [mm] of each corrector surface (floats, or drjit values when a design
+        parameter or the corrector spacing is varied)."""
+        L = self.layout
+        c = self.design.corrector
+        if not L.lenses:
+            return []
+        if not any(k.startswith("corrector.") for k in dpar) and "corrector_spacing_mm" not in pert:
+            return [(s.x_mm, s.radius_mm) for s in L.lenses]
+        n = len(c.surfaces)
+        bf = dpar.get("corrector.back_focus_mm", c.back_focus_mm)
+        if "corrector_spacing_mm" in pert:
+            bf = bf + pert["corrector_spacing_mm"]
+        th = [dpar.get(f"corrector.surfaces.{i}.thickness_mm", c.surfaces[i].thickness_mm) for i in range(n)]
+        rad = [dpar.get(f"corrector.surfaces.{i}.radius_mm", c.surfaces[i].radius_mm) for i in range(n)]
+        out = []
+        x = L.x_detector - bf
+        for i in range(n - 2, -1, -1):
+            x = x - th[i]
+        for i in range(n):
+            out.append((x, rad[i]))
+            x = x + th[i]
+        return out
+
+    def _trace_dr(self, field_deg, px, py, wavelength_nm, keep_path=False, params=None, soft_eps=None):
+        """The trace as drjit arrays.
+
+        ``field_deg``: (theta_x, theta_y) for all rays, or an (n, 2) array, one field per ray.
+        ``params``: drjit Float64 values (e.g. with gradients enabled) of perturbations and design
+        parameters overriding the design's (:meth:`_params`). ``soft_eps`` [mm]: the optical apertures
+        (primary rim, diagonal outline, lens rims, sensor edges) weight a ray by the logistic function of
+        its margin inside the edge over ``soft_eps`` (key ``"soft"``) instead of stopping it, so that the
+        throughput and the moments are differentiable in the perturbations; so do, with
+        ``obstruct="analytic"``, the tube front, the vanes and the focuser bore on the way back from the
+        primary and behind the diagonal (:meth:`_margin_tube_side`, :meth:`_margin_focuser`). The incoming
+        bundle's obstructions do not move with the optics and stay hard."""
         import drjit as dr
         from drjit.llvm.ad import Array3f64, Float64, UInt32
 
         L = self.layout
         F = Float64
-        d_np = direction(field_deg)
-        # opaque: the field changes from call to call, the compiled kernel must not
-        d = Array3f64(*[dr.opaque(F, float(c)) for c in d_np])
+        pert, dpar = self._params(params)
+        fd = None if _is_dr(field_deg) else np.asarray(field_deg, dtype=float)
+        if fd is None:
+            # drjit directions per ray (built inside the kernel by the caller, e.g. optics.gradients)
+            d = field_deg
+            fd = np.zeros((0, 2))
+            dz_np = None
+        elif fd.ndim == 1:
+            d_np = direction(fd)
+            # opaque: the field changes from call to call, the compiled kernel must not
+            d = Array3f64(*[dr.opaque(F, float(c)) for c in d_np])
+            dz_np = d_np[2]
+        else:
+            t = np.tan(np.radians(fd))
+            d_np = -np.stack([t[:, 0], t[:, 1], np.ones(len(t))], -1)
+            d_np /= np.linalg.norm(d_np, axis=1, keepdims=True)
+            d = Array3f64(*[to_dr(d_np[:, i]) for i in range(3)])
+            dz_np = d_np[:, 2]
         z_rim = float(L.primary_sag(L.r_primary))
-        p_rim = Array3f64(F(px), F(py), F(z_rim))
+        px = px if _is_dr(px) else to_dr(px)
+        py = py if _is_dr(py) else to_dr(py)
+        p_rim = Array3f64(px, py, F(z_rim))
         z_start = L.tube_top + 1.0
-        s0 = dr.opaque(F, (z_start - z_rim) / (-d_np[2]))
+        if dz_np is None:
+            s0 = (z_start - z_rim) / (-d.z)
+        else:
+            s0 = dr.opaque(F, (z_start - z_rim) / (-dz_np)) if fd.ndim == 1 else to_dr((z_start - z_rim) / (-dz_np))
         o = p_rim - d * s0
         opl = dr.dot(o, d)                       # plane wave: zero on the plane through the origin
-        lost = dr.zeros(UInt32, len(px))
-        trans = dr.full(F, 1.0, len(px))
+        n_rays = dr.width(px)
+        lost = dr.zeros(UInt32, n_rays)
+        trans = dr.full(F, 1.0, n_rays)
+        soft = dr.full(F, 1.0, n_rays) if soft_eps else None
 
         def kill(mask, code):
             nonlocal lost
             lost = dr.select((lost == 0) & mask, UInt32(code), lost)
 
-        # -- primary (conic: c(x^2+y^2) + (1+k)c z^2 - 2z = 0, c = 1/(2f)) ------------------------------
+        def aperture(margin, code):
+            """A ray ``margin`` [mm] inside an optical aperture's edge (negative: outside)."""
+            nonlocal soft
+            if soft_eps:
+                soft = soft * (1.0 / (1.0 + dr.exp(-dr.clip(margin / soft_eps, -60.0, 60.0))))
+            else:
+                kill(margin < 0, code)
+
+        # -- primary (conic: c(x^2+y^2) + (1+k)c z^2 - 2z = 0, c = 1/(2f)), in its own (perturbed) frame ----
+        pose_p = _Pose.make((0.0, 0.0, 0.0),
+                            [((1.0, 0.0, 0.0), pert.get("primary_tilt_x_deg")),
+                             ((0.0, 1.0, 0.0), pert.get("primary_tilt_y_deg"))],
+                            [((1.0, 0.0, 0.0), pert.get("primary_decenter_x_mm")),
+                             ((0.0, 1.0, 0.0), pert.get("primary_decenter_y_mm"))])
+        ol, dl = (pose_p.to_local(o), pose_p.to_local_dir(d)) if pose_p else (o, d)
         c = 1.0 / (2.0 * L.focal_length)
-        k1 = 1.0 + L.conic
-        A = c * (d.x * d.x + d.y * d.y + k1 * d.z * d.z)
-        B = 2.0 * (c * (o.x * d.x + o.y * d.y + k1 * o.z * d.z) - d.z)
-        C = c * (o.x * o.x + o.y * o.y + k1 * o.z * o.z) - 2.0 * o.z
+        k1 = 1.0 + dpar["primary.conic"] if "primary.conic" in dpar else 1.0 + L.conic
+        A = c * (dl.x * dl.x + dl.y * dl.y + k1 * dl.z * dl.z)
+        B = 2.0 * (c * (ol.x * dl.x + ol.y * dl.y + k1 * ol.z * dl.z) - dl.z)
+        C = c * (ol.x * ol.x + ol.y * ol.y + k1 * ol.z * ol.z) - 2.0 * ol.z
         disc = B * B - 4.0 * A * C
         q = -0.5 * (B + dr.copysign(dr.sqrt(dr.maximum(disc, 0.0)), B))
         t1 = dr.select(dr.abs(A) > 1e-18, q / A, dr.inf)
@@ -201,80 +358,138 @@ class SequentialTracer:
         t2 = dr.select(t2 > 1e-9, t2, big)
         t = dr.minimum(t1, t2)
         kill((disc < 0) | (t >= big), PRIMARY_MISS)
-        p1 = o + d * t
-        kill(p1.x * p1.x + p1.y * p1.y > L.r_primary ** 2, PRIMARY_MISS)
+        p1l = ol + dl * t
+        if soft_eps:
+            aperture(L.r_primary - dr.sqrt(p1l.x * p1l.x + p1l.y * p1l.y), PRIMARY_MISS)
+        else:
+            kill(p1l.x * p1l.x + p1l.y * p1l.y > L.r_primary ** 2, PRIMARY_MISS)
+        p1 = pose_p.to_world(p1l) if pose_p else p1l
         if self.obstruct == "analytic":
             kill(self._blocked_tube_side(o, d, t), ENTRANCE)
         elif self.obstruct == "mesh":
             kill(self._blocked_mesh(o, d, t), ENTRANCE)
         opl += t
-        n = dr.normalize(Array3f64(-c * p1.x, -c * p1.y, 1.0 - c * k1 * p1.z))
+        n = dr.normalize(Array3f64(-c * p1l.x, -c * p1l.y, 1.0 - c * k1 * p1l.z))
+        if pose_p:
+            n = pose_p.to_world_dir(n)
         d1 = d - 2.0 * dr.dot(d, n) * n
 
-        # -- diagonal (plane through its centre, elliptical outline) --------------------------------------
+        # -- diagonal (plane through its centre, elliptical outline), tilted about its axes ---------------
         cen = Array3f64(*[F(v) for v in L.diag_centre])
+        pose_d = _Pose.make(L.diag_centre,
+                            [((1.0 / SQRT2, 0.0, 1.0 / SQRT2), pert.get("diagonal_tilt_x_deg")),
+                             ((0.0, 1.0, 0.0), pert.get("diagonal_tilt_y_deg"))], [])
         nd = Array3f64(*[F(v) for v in L.diag_normal])
+        if pose_d:
+            nd = pose_d.to_world_dir(nd)
         denom = dr.dot(d1, nd)
         t = dr.dot(cen - p1, nd) / denom
         kill((t <= 0) | (denom >= 0), DIAGONAL_MISS)
         p2 = p1 + d1 * t
-        rel = p2 - cen
+        rel = pose_d.to_local(p2) - cen if pose_d else p2 - cen
         qa = (rel.x + rel.z) * (1.0 / math.sqrt(2.0))
-        kill((qa / L.diag_a) ** 2 + (rel.y / L.diag_b) ** 2 > 1.0, DIAGONAL_MISS)
-        if self.obstruct == "analytic":
+        if soft_eps:
+            # distance inside the ellipse, to first order: (1 - rho^2) b / 2
+            aperture((1.0 - (qa / L.diag_a) ** 2 - (rel.y / L.diag_b) ** 2) * (0.5 * L.diag_b), DIAGONAL_MISS)
+        else:
+            kill((qa / L.diag_a) ** 2 + (rel.y / L.diag_b) ** 2 > 1.0, DIAGONAL_MISS)
+        if self.obstruct == "analytic" and soft_eps:
+            aperture(self._margin_tube_side(p1, d1, t), TO_DIAGONAL)
+        elif self.obstruct == "analytic":
             kill(self._blocked_tube_side(p1, d1, t, incoming=False), TO_DIAGONAL)
         elif self.obstruct == "mesh":
             kill(self._blocked_mesh(p1, d1, t), TO_DIAGONAL)
         opl += t
         d2 = d1 - 2.0 * dr.dot(d1, nd) * nd
 
-        # -- corrector lenses on the focuser axis (y = 0, z = z_axis, direction +x) ---------------------
-        p, dcur, n_medium = p2, d2, 1.0
+        # -- corrector lenses on the focuser axis (y = 0, z = z_axis, direction +x), in the cell's frame -----
+        geo = self._lens_geometry(dpar, pert)
+        pose_c = None
+        if geo:
+            x_mid = 0.5 * (L.lenses[0].x_mm + L.lenses[-1].x_mm)
+            pose_c = _Pose.make((x_mid, 0.0, L.z_axis),
+                                [((0.0, 0.0, 1.0), pert.get("corrector_tilt_x_deg")),
+                                 ((0.0, 1.0, 0.0), pert.get("corrector_tilt_y_deg"))],
+                                [((0.0, 0.0, 1.0), pert.get("corrector_decenter_x_mm")),
+                                 ((0.0, 1.0, 0.0), pert.get("corrector_decenter_y_mm"))])
+        p, dcur = (pose_c.to_local(p2), pose_c.to_local_dir(d2)) if pose_c else (p2, d2)
+        n_medium = 1.0
         chain = [p2]
         coat = self.design.corrector
         t_coated = 1.0 - coat.ar_reflectance if coat.coated else None
-        for s in L.lenses:
+        for s, (x_s, r_s) in zip(L.lenses, geo):
             # opaque: a new wavelength changes the indices, not the compiled kernel
             n_after = dr.opaque(F, float(_index(s.after, wavelength_nm)))
             if s.radius_mm == 0.0:
-                t = (s.x_mm - p.x) / dcur.x
+                t = (x_s - p.x) / dcur.x
                 hit = p + dcur * t
                 normal = Array3f64(F(-1.0), F(0.0), F(0.0))
             else:
-                centre = Array3f64(F(s.x_mm + s.radius_mm), F(0.0), F(L.z_axis))
+                centre = Array3f64(F(x_s + r_s), F(0.0), F(L.z_axis))
                 oc = p - centre
                 b = dr.dot(oc, dcur)
-                cc = dr.dot(oc, oc) - s.radius_mm ** 2
+                cc = dr.dot(oc, oc) - r_s * r_s
                 disc = b * b - cc
                 kill(disc < 0, LENS)
                 t = -b - math.copysign(1.0, s.radius_mm) * dr.sqrt(dr.maximum(disc, 0.0))
                 hit = p + dcur * t
-                normal = (hit - centre) * (1.0 / s.radius_mm)
+                normal = (hit - centre) * (1.0 / r_s)
             kill(t <= 0, LENS)
-            kill(hit.y * hit.y + (hit.z - L.z_axis) ** 2 > s.semi_diameter_mm ** 2, LENS)
+            if soft_eps:
+                aperture(s.semi_diameter_mm - dr.sqrt(hit.y * hit.y + (hit.z - L.z_axis) ** 2), LENS)
+            else:
+                kill(hit.y * hit.y + (hit.z - L.z_axis) ** 2 > s.semi_diameter_mm ** 2, LENS)
             opl += n_medium * t
             dcur, tr, tir = _refract(dcur, normal, n_medium, n_after)
             kill(tir, LENS)
             coated = t_coated is not None and "air" in (s.before.lower(), s.after.lower())
             trans *= t_coated if coated else tr          # cemented glass-glass surfaces: Fresnel
             p, n_medium = hit, n_after
-            chain.append(hit)
-        # -- detector plane x = x_detector ---------------------------------------------------------------
-        t = (L.x_detector - p.x) / dcur.x
+            chain.append(pose_c.to_world(hit) if pose_c else hit)
+        if pose_c:
+            p, dcur = pose_c.to_world(p), pose_c.to_world_dir(dcur)
+        # -- detector plane x = x_detector (+ piston), tilted about its centre ---------------------------
+        x_det = L.x_detector
+        if "sensor_piston_um" in pert:
+            x_det = x_det + pert["sensor_piston_um"] * 1e-3
+        pose_s = _Pose.make((L.x_detector, 0.0, L.z_axis),
+                            [((0.0, 0.0, 1.0), pert.get("sensor_tilt_x_deg")),
+                             ((0.0, 1.0, 0.0), pert.get("sensor_tilt_y_deg"))], [])
+        if pose_s:
+            ndet = pose_s.to_world_dir(Array3f64(F(1.0), F(0.0), F(0.0)))
+            centre = Array3f64(x_det, F(0.0), F(L.z_axis))
+            t = dr.dot(centre - p, ndet) / dr.dot(dcur, ndet)
+        else:
+            t = (x_det - p.x) / dcur.x
         kill(t <= 0, DETECTOR_MISS)
         p3 = p + dcur * t
         opl += n_medium * t
         chain.append(p3)
-        if self.obstruct == "analytic":
+        if self.obstruct == "analytic" and soft_eps:
+            aperture(self._margin_focuser(chain), FOCUSER)
+        elif self.obstruct == "analytic":
             kill(self._blocked_focuser(chain), FOCUSER)
         elif self.obstruct == "mesh":
             kill(self._blocked_mesh_chain(chain), FOCUSER)
-        u = p3.z - L.z_axis
-        v = p3.y
+        if pose_s:
+            rel = pose_s.to_local(p3 - Array3f64(x_det - L.x_detector, F(0.0), F(0.0)))
+            u = rel.z - L.z_axis
+            v = rel.y
+            dloc = pose_s.to_local_dir(dcur)
+            du, dv, dw = dloc.z, dloc.y, dloc.x
+        else:
+            u = p3.z - L.z_axis
+            v = p3.y
+            du, dv, dw = dcur.z, dcur.y, dcur.x
         hu, hv = L.detector_half
-        kill((dr.abs(u) > hu) | (dr.abs(v) > hv), DETECTOR_MISS)
-        out = {"u": u, "v": v, "du": dcur.z, "dv": dcur.y, "dw": dcur.x, "opl": opl,
+        if soft_eps:
+            aperture(dr.minimum(hu - dr.abs(u), hv - dr.abs(v)), DETECTOR_MISS)
+        else:
+            kill((dr.abs(u) > hu) | (dr.abs(v) > hv), DETECTOR_MISS)
+        out = {"u": u, "v": v, "du": du, "dv": dv, "dw": dw, "opl": opl,
                "transmission": trans, "lost": lost}
+        if soft_eps:
+            out["soft"] = soft
         if keep_path:
             for k, pt in enumerate([o, p1, *chain]):
                 out[f"path{k}_x"], out[f"path{k}_y"], out[f"path{k}_z"] = pt.x, pt.y, pt.z
@@ -304,6 +519,38 @@ class SequentialTracer:
             lo, hi = _clip_linear(lo, hi, o.x - L.r_tube, d.x, upper=0.0)
             blocked |= dr.maximum(lo, 0.0) < dr.minimum(hi, t_end)
         return blocked
+
+    def _margin_tube_side(self, o, d, t_end):
+        """Soft-edge version of the way back from the primary to the diagonal (``soft_eps``): the smallest
+        margin [mm] inside the tube front's and the annular vanes' openings where the ray crosses them.
+        The spider is left out on this leg: the incoming bundle already carries its (fixed) shadow, and
+        the returning rays cross the vanes' thin slabs again close to where they passed them."""
+        import drjit as dr
+
+        L = self.layout
+        m = dr.full(type(o.x), 1e30, dr.width(o.x))
+        for z, r in [(L.tube_top, L.r_tube), *[(zv, L.r_vane) for zv in L.vane_z]]:
+            tz = (z - o.z) / d.z
+            x = o.x + d.x * tz
+            y = o.y + d.y * tz
+            inside = (tz > 1e-9) & (tz < t_end)
+            m = dr.minimum(m, dr.select(inside, r - dr.sqrt(x * x + y * y), 1e30))
+        return m
+
+    def _margin_focuser(self, chain):
+        """Soft-edge version of :meth:`_blocked_focuser`: the smallest margin [mm] inside the bore."""
+        import drjit as dr
+
+        L = self.layout
+        m = dr.full(type(chain[0].x), 1e30, dr.width(chain[0].x))
+        for a, b in itertools.pairwise(chain):
+            dd = b - a
+            for xq in (L.focuser_start_x, L.x_housing):
+                s = (xq - a.x) / dd.x
+                y = a.y + dd.y * s
+                z = a.z + dd.z * s - L.z_axis
+                m = dr.minimum(m, dr.select((s > 0) & (s <= 1), L.r_focuser - dr.sqrt(y * y + z * z), 1e30))
+        return m
 
     def _hits_diagonal_body(self, o, d, t_end):
         """The diagonal with its holder: inside the vertical cylinder r < b about the ellipse centre, above
@@ -386,6 +633,24 @@ class SequentialTracer:
 
 
 # ---- small drjit helpers ---------------------------------------------------------------------------------
+def _is_dr(x) -> bool:
+    import drjit as dr
+
+    return dr.is_array_v(x)
+
+
+def to_dr(a):
+    """A drjit Float64 copy of the numpy array ``a``. drjit maps numpy memory without copying, and the
+    kernel's IR records the buffer's alignment (``align 128`` or ``align 1``), so an unlucky numpy
+    allocation changes the kernel's hash and costs a recompilation. The copy helps for numpy's buffers; for
+    repeated kernels with many inputs (the AD kernels of :mod:`optics.gradients`) the per-ray inputs are
+    built inside the kernel instead (counters and gathers carry no alignment)."""
+    import drjit as dr
+    from drjit.llvm.ad import Float64
+
+    return dr.copy(Float64(np.ascontiguousarray(a, dtype=np.float64)))
+
+
 def _Bool():
     from drjit.llvm.ad import Bool
 

@@ -104,3 +104,59 @@ def test_psf_band_is_weighted_by_the_detector_qe(tmp_path, cache):
     assert len(j["wavelengths_nm"]) >= 5 and sum(j["weights"]) == pytest.approx(1.0, abs=1e-5)
     assert min(j["wavelengths_nm"]) < 500 and max(j["wavelengths_nm"]) > 900
     assert 2 * j["rms_spot_um"] < 30.0
+
+
+def test_psf_and_vignetting_honour_the_perturbation_table(tmp_path, cache):
+    """A design TOML with a [perturbation] table: the geometric spot moves by f tan(2 tilt) for a primary
+    tilt, the JSON reports the perturbation, and the cache keeps the nominal and perturbed designs apart."""
+    import tomli_w
+
+    from optics import load_design
+
+    data = load_design("bare").model_dump(exclude_none=True)
+    data["perturbation"] = {"primary_tilt_y_deg": 0.05}
+    path = tmp_path / "tilted.toml"
+    path.write_text(tomli_w.dumps(data))
+    out = {}
+    for name in ("bare", path):
+        r = newtsim("optics", "psf", name, "--field-deg", 0, 0, "--geometric", "--json", "-", cache=cache)
+        assert r.returncode == 0, r.stderr
+        out[str(name)] = json.loads(r.stdout)
+    nominal, tilted = out["bare"], out[str(path)]
+    assert nominal["perturbation"] == {} and tilted["perturbation"] == {"primary_tilt_y_deg": 0.05}
+    assert not tilted["cached"]
+    shift_mm = (tilted["centroid_um"][0] - nominal["centroid_um"][0]) / 1e3
+    assert shift_mm == pytest.approx(960.0 * math.tan(math.radians(0.1)), rel=0.01)
+    r = newtsim("optics", "vignetting", path, "--grid", 3, "--rays", 20000, "--json", "-", cache=cache)
+    assert r.returncode == 0, r.stderr
+    assert json.loads(r.stdout)["perturbation"] == {"primary_tilt_y_deg": 0.05}
+    path.write_text(tomli_w.dumps({**data, "perturbation": {"primary_tilt_q_deg": 1.0}}))
+    r = newtsim("optics", "psf", path, "--field-deg", 0, 0, "--geometric", cache=cache)
+    assert r.returncode == 2 and len(r.stderr.strip().splitlines()) == 1
+    assert "perturbation.primary_tilt_q_deg" in r.stderr and str(path) in r.stderr
+
+
+@pytest.mark.parametrize("args, needle", [
+    (["optics", "optimize", "art", "--goal", "baffle", "-o", "x.toml"], "--angles"),
+    (["optics", "optimize", "bare", "--goal", "corrector", "-o", "x.toml"], "corrector"),
+    (["optics", "optimize", "art", "--goal", "baffle", "--angles", "0,500", "-o", "x.toml"], "--angles"),
+])
+def test_optimize_user_errors_are_one_line(args, needle, cache, tmp_path):
+    r = newtsim(*args, cache=cache)
+    assert r.returncode == 2, r.stderr
+    assert needle in r.stderr and "Traceback" not in r.stderr
+    assert len(r.stderr.strip().splitlines()) == 1
+
+
+def test_optimize_corrector_writes_design_json_and_plot(tmp_path, cache):
+    out = tmp_path / "opt.toml"
+    r = newtsim("optics", "optimize", "art", "--goal", "corrector", "-o", out, "--json", tmp_path / "o.json",
+                "--plot", tmp_path / "o.png", "--band", "none", "--rays", 300, "--iterations", 4, "--grid", 2,
+                cache=cache)
+    assert r.returncode == 0, r.stderr
+    j = json.loads((tmp_path / "o.json").read_text())
+    assert j["goal"] == "corrector" and j["mean_after_um"] <= j["mean_before_um"]
+    assert (tmp_path / "o.png").stat().st_size > 10_000
+    from optics import load_design
+
+    assert load_design(str(out)).corrector.enabled

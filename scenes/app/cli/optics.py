@@ -53,6 +53,11 @@ def _design(name):
     return load_design(name)
 
 
+def _perturbation(d) -> dict:
+    """The design's non-zero ``[perturbation]`` entries (reported in the JSON; empty when nominal)."""
+    return {k: v for k, v in d.perturbation.model_dump().items() if v}
+
+
 def _echo_json(obj, path):
     write_json(obj, path)
 
@@ -94,7 +99,7 @@ def vignetting(design, grid, rays, wavelength_nm, obstruct, json_out, plot_out, 
             return vig.vignetting_map(tracer, grid, rays, wavelength_nm, seed, progress=prog).to_json()
 
     out, hit = cache.cached_json("vignetting", d, settings, compute, use_cache=not no_cache)
-    out = {"design": d.name, **out, "cached": hit}
+    out = {"design": d.name, "perturbation": _perturbation(d), **out, "cached": hit}
     res = vig.VignettingResult.from_json(out)
     if plot_out:
         vig.plot(res, plot_out, d, title=f"{d.name}: relative illumination")
@@ -164,8 +169,8 @@ def psf(design, field_deg, wavelength_nm, band, band_samples, geometric, seeing_
 
     # a FITS image needs the PSF itself, which the JSON cache does not hold: compute (and store) it
     out, hit = cache.cached_json("psf", d, settings, compute, use_cache=not no_cache, read=not fits_out)
-    out = {"design": d.name, "field_deg": list(field_deg), "wavelengths_nm": wl, "weights": w, **out,
-           "cached": hit}
+    out = {"design": d.name, "perturbation": _perturbation(d), "field_deg": list(field_deg),
+           "wavelengths_nm": wl, "weights": w, **out, "cached": hit}
     if fits_out:
         psfmod.write_psf_fits(state["result"], fits_out)
     _echo_json(out, json_out)
@@ -232,3 +237,76 @@ def layout(design, plot_out, export_out):
 
         plot_layout(SequentialTracer(d, _mitsuba()), plot_out)
         click.echo(f"wrote {plot_out}", err=True)
+
+
+@optics.command()
+@click.argument("design")
+@click.option("--goal", type=click.Choice(["corrector", "baffle"]), required=True,
+              help="corrector: smallest RMS spot over field and band (gradients); baffle: lowest PST at "
+                   "--angles without vignetting the field (derivative-free, common random numbers)")
+@click.option("-o", "--output", "out_toml", required=True, type=click.Path(dir_okay=False),
+              help="the optimised design (TOML)")
+@click.option("--json", "json_out", default=None, help="write the JSON report here ('-' for stdout)")
+@click.option("--plot", "plot_out", default=None, type=click.Path(dir_okay=False), help="before/after plot (PNG)")
+@click.option("--band", default="imx411", show_default=True, type=click.Choice(["imx411", "ml11002", "none"]),
+              help="corrector: the detector preset's band weighted by its QE ('none': --wavelength-nm)")
+@click.option("--band-samples", default=6, show_default=True, type=click.IntRange(1, 20))
+@click.option("--wavelength-nm", default=550.0, show_default=True, type=click.FloatRange(200, 2000))
+@click.option("--grid", default=3, show_default=True, type=click.IntRange(1, 7),
+              help="corrector: field points per axis over the sensor")
+@click.option("--rays", default=None, type=click.IntRange(100, 10 ** 8),
+              help="rays per field point (corrector, default 2000) or PST paths per angle (baffle, default 100000)")
+@click.option("--iterations", default=None, type=click.IntRange(1, 1000),
+              help="corrector: least-squares evaluations (default 20); baffle: PST evaluations (default 30)")
+@click.option("--angles", default=None, help="baffle: off-axis Sun angles [deg], comma separated, e.g. 10,20")
+@click.option("--seed", default=0, show_default=True)
+def optimize(design, goal, out_toml, json_out, plot_out, band, band_samples, wavelength_nm, grid, rays, iterations,
+             angles, seed):
+    """Optimise a design and write it as a new design TOML (with a before/after report)."""
+    from pathlib import Path
+
+    from optics import optimize as opt
+
+    d = _design(design)
+    mi = _mitsuba()
+    t0 = time.perf_counter()
+    if goal == "corrector":
+        if angles:
+            raise OpticsError("--angles belongs to --goal baffle")
+        if not d.corrector.enabled:
+            raise OpticsError(f"{design}: key 'corrector.enabled': --goal corrector needs a design with a corrector")
+        wl, w = _band(None if band == "none" else band, wavelength_nm, band_samples)
+        with _progress(f"optimise corrector {d.name}") as prog:
+            res = opt.optimize_corrector(d, mi, wl, w, grid=grid, n_rays=rays or 2000, max_iter=iterations or 20,
+                                         seed=seed, progress=prog)
+        report = {"design": d.name, "wavelengths_nm": wl, "weights": w, **res.to_json()}
+        comment = (f"{res.design.name}: corrector of '{d.name}' optimised by `newtsim optics optimize --goal "
+                   f"corrector` (band {band}, {grid}x{grid} field points)\nmean RMS spot radius "
+                   f"{report['mean_before_um']} -> {report['mean_after_um']} um (independent check)")
+        if plot_out:
+            opt.plot_corrector(res, plot_out, title=f"{d.name}: corrector optimisation (band {band})")
+    else:
+        if not angles:
+            raise OpticsError("--goal baffle needs --angles (off-axis Sun angles [deg], e.g. 10,20)")
+        try:
+            angle_list = [float(a) for a in angles.split(",") if a.strip()]
+        except ValueError:
+            raise OpticsError(f"--angles {angles!r}: expected comma-separated degrees, e.g. 10,20") from None
+        if not angle_list or any(not 0 < a <= 180 for a in angle_list):
+            raise OpticsError(f"--angles {angles!r}: each angle must be in (0, 180] degrees")
+        with _progress(f"optimise baffle {d.name}") as prog:
+            res = opt.optimize_baffle(d, mi, angle_list, rays=rays or 100_000, max_evals=iterations or 30,
+                                      seed=seed, wavelength_nm=wavelength_nm, progress=prog)
+        report = {"design": d.name, **res.to_json()}
+        comment = (f"{res.design.name}: baffle of '{d.name}' optimised by `newtsim optics optimize --goal baffle "
+                   f"--angles {angles}`\nPST ratio after/before {report['pst_ratio']}, corner relative "
+                   f"illumination {report['corner_relative_illumination_before']} -> "
+                   f"{report['corner_relative_illumination_after']}")
+        if plot_out:
+            opt.plot_baffle(res, plot_out, title=f"{d.name}: baffle optimisation at {angles} deg")
+    Path(out_toml).write_text(opt.design_toml(res.design, comment))
+    report["output"] = str(out_toml)
+    report["wall_s"] = round(time.perf_counter() - t0, 2)
+    if json_out:
+        _echo_json(report, json_out)
+    click.echo(f"wrote {out_toml}", err=True)
