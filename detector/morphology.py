@@ -126,6 +126,26 @@ def _peak(z: np.ndarray) -> tuple[float, float, float]:
             float(near / max(p.sum(), 1e-300)))
 
 
+def block_chi2(res: Residuals, delta_adu: np.ndarray | None = None) -> tuple[float, int]:
+    """(chi2, number) of the weighted block means of the level-profiled residual (minus ``delta_adu``): the
+    large-scale structure a mean pattern leaves, blind to pixel-to-pixel noise."""
+    shape = res.data_adu.shape
+    idx, r, w = res.flat_profiled()
+    if delta_adu is not None:
+        r = res.project(r - np.asarray(delta_adu, np.float64).ravel()[idx])
+    if idx.size < 64:
+        return 0.0, 0
+    rmap = np.zeros(shape, np.float64)
+    wmap = np.zeros(shape, np.float64)
+    rmap.ravel()[idx] = r
+    wmap.ravel()[idx] = w
+    b = int(max(2, min(shape) // BLOCKS))
+    sw = _blocks(wmap, b)
+    ok = sw > 0
+    mean = _blocks(rmap, b, wmap)[ok] / sw[ok]
+    return float(np.sum(mean * mean * sw[ok])), int(ok.sum())
+
+
 def describe(res: Residuals, delta_adu: np.ndarray | None = None) -> dict:
     """The morphology of the level-profiled residual of ``res`` (minus ``delta_adu``, a candidate's mean
     change, when given): the contract's ``residual_morphology`` block, plus ``shares`` (each family's share

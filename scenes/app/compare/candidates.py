@@ -15,6 +15,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from detector import registry
+from detector.morphology import block_chi2
 from detector.signatures import Fit, Residuals, heldout_delta
 
 from .sources import light_curve_candidates
@@ -33,6 +34,11 @@ OVERFIT_CHI2_PER_DOF = 0.5
 SIGNIFICANT_HELDOUT = -10.0
 #: candidates (plausible, not rejected, delta BIC below the threshold) scored on held-out pixels, best first
 HELDOUT_CANDIDATES = 8
+#: where the frame has a significant large-scale structure, a candidate that changes the mean must remove at
+#: least this share of it to be named: one that takes a corner of a pattern it does not share is not it
+MIN_EXPLAINED = 0.5
+#: large-scale structure is significant when the block chi2 exceeds its dof by this many standard deviations
+STRUCTURE_SIGMA = 8.0
 
 
 @dataclass
@@ -51,6 +57,9 @@ class Candidate:
     rejected: str = ""  #: why a candidate with a large delta BIC is not physical ("" if it is)
     implausible: str = ""  #: why the fitted pattern is not this effect ("" if it may be)
     heldout: float | None = None
+    #: share of the frame's large-scale structure (block chi2 beyond its dof) the candidate's mean change
+    #: removes; None when there is no such structure or the candidate changes no mean
+    explains: float | None = None
 
     @property
     def plausible(self) -> bool:
@@ -63,7 +72,8 @@ class Candidate:
 
     @property
     def significant(self) -> bool:
-        return self.contender and (self.heldout is None or self.heldout < SIGNIFICANT_HELDOUT)
+        return (self.contender and (self.heldout is None or self.heldout < SIGNIFICANT_HELDOUT)
+                and (self.explains is None or self.explains >= MIN_EXPLAINED))
 
     @property
     def score(self) -> float:
@@ -76,7 +86,8 @@ class Candidate:
                 "delta_bic": f.delta_bic, "delta_m2lnl": f.delta_m2lnl, "k": f.k, "explanation": f.explanation,
                 "kind": type(registry()[f.effect].signature).__name__ if f.effect in registry() else "",
                 "significant": self.significant, "rejected": self.rejected, "plausible": self.plausible,
-                "implausible_because": self.implausible, "heldout_delta": self.heldout, "variant": f.note,
+                "implausible_because": self.implausible, "heldout_delta": self.heldout,
+                "explains_structure": self.explains, "variant": f.note,
                 "seconds": self.seconds}
 
 
@@ -207,6 +218,7 @@ def candidates(res: Residuals, present: set[str], progress=None, truth=None) -> 
         if not why and getattr(cls.signature, "kind", "") == "transform":
             why = stars_check(res, fit, truth)
         out.append(Candidate(fit, chi2, seconds, why, implausibility(cls, fit, res)))
+    structure_shares(res, out)
     score_heldout(res, out, progress=progress)
     return rank(out), problems
 
@@ -219,6 +231,18 @@ def implausibility(cls, fit: Fit, res: Residuals) -> str:
     except Exception as exc:  # noqa: BLE001  (a plugin's check that raises does not stop the diagnosis)
         why = f"its plausibility check failed ({type(exc).__name__}: {exc})"
     return why or at_bound(cls, fit.params)
+
+
+def structure_shares(res: Residuals, cands: list[Candidate]) -> None:
+    """For every candidate with a mean change, the share of the frame's significant large-scale structure
+    (block chi2 beyond its dof, :func:`detector.morphology.block_chi2`) that it removes."""
+    chi2, n = block_chi2(res)
+    if n == 0 or (chi2 - n) / np.sqrt(2 * n) < STRUCTURE_SIGMA:
+        return
+    for c in cands:
+        if c.fit.delta_adu is not None and c.fit.delta_bic < SIGNIFICANT_DELTA_BIC:
+            after, _ = block_chi2(res, c.fit.delta_adu)
+            c.explains = round(float(np.clip((chi2 - after) / (chi2 - n), -1.0, 1.0)), 4)
 
 
 def score_heldout(res: Residuals, cands: list[Candidate], progress=None) -> None:
@@ -271,8 +295,10 @@ def verdict(cands: list[Candidate], morphology: dict | None = None) -> str:
     why = ""
     if named:
         c = named[0]
-        reason = c.rejected or c.implausible or (f"it does not improve the pixels it was not fitted on (held-out "
-                                                  f"{c.heldout:.3g})" if c.heldout is not None else "")
+        reason = c.rejected or c.implausible or (
+            f"it removes only {100 * c.explains:.0f} % of the large-scale structure" if c.explains is not None
+            and c.explains < MIN_EXPLAINED else f"it does not improve the pixels it was not fitted on (held-out "
+            f"{c.heldout:.3g})" if c.heldout is not None else "")
         why = f" ({c.fit.effect} fits but is not credible: {reason})" if reason else ""
     if morphology and morphology.get("significant"):
         return ("no catalogue effect explains the residual" + why + "; what is missing looks like "
