@@ -1001,6 +1001,35 @@ def variance_sample(res: Residuals) -> dict:
     return res._flat["variance_sample"]
 
 
+def neighbour_correlation(res: Residuals) -> tuple[float, float]:
+    """(correlation, its significance in sigma) of the level-profiled, locally-whitened residual (the
+    residual minus its Gaussian local mean of :data:`WHITE_SCALE` px, in model sigmas) between horizontally
+    and vertically adjacent fitted pixels. Pixel-to-pixel noise gives ~0 (slightly negative from the local
+    mean); a pattern a few pixels wide gives a clearly positive value. Cached."""
+    if "neighbour_correlation" not in res._flat:
+        from scipy.ndimage import gaussian_filter
+
+        idx, r, w = res.flat_profiled()
+        shape = res.data_adu.shape
+        z = np.zeros(shape, np.float32)
+        m = np.zeros(shape, np.float32)
+        z.ravel()[idx] = r * np.sqrt(w)
+        m.ravel()[idx] = 1.0
+        num = gaussian_filter(z, WHITE_SCALE, mode="nearest")
+        den = gaussian_filter(m, WHITE_SCALE, mode="nearest")
+        zw = np.where(m > 0, z - num / np.maximum(den, 1e-6), 0.0)
+        pairs = 0.0
+        n = 0
+        for a, b, ma, mb in ((zw[:, :-1], zw[:, 1:], m[:, :-1], m[:, 1:]), (zw[:-1], zw[1:], m[:-1], m[1:])):
+            both = (ma > 0) & (mb > 0)
+            pairs += float(np.sum(a[both] * b[both]))
+            n += int(both.sum())
+        var = float(np.sum(zw * zw) / max(np.count_nonzero(m), 1))
+        rho = pairs / max(n, 1) / max(var, 1e-30)
+        res._flat["neighbour_correlation"] = (rho, rho * np.sqrt(max(n, 1)))
+    return res._flat["neighbour_correlation"]
+
+
 def smooth_component(res: Residuals, template: np.ndarray) -> tuple[float, float, int]:
     """The low-frequency part of a multiplicative pattern: the level-profiled residual fitted by the smooth
     cosine basis times ``template`` (e.g. the photo-signal for a PRNU map's large scales). Returns (delta
@@ -1071,6 +1100,21 @@ class VarianceSignature(Signature):
         return Fit(name, params, d, k, n, self.explain(params_explain, res),
                    extra_var_adu2=theta * np.broadcast_to(full, res.data_adu.shape), note=note,
                    state={"theta": theta, "law": law})
+
+    #: added scatter is pixel-to-pixel: a neighbour correlation of the whitened residual above this (and
+    #: significant) is a structure of a few pixels (rings, fringes, blurred sources), not a non-uniformity
+    MAX_NEIGHBOUR_CORRELATION = 0.1
+
+    def plausible(self, fit: Fit, res: Residuals) -> str:
+        if self.check is not None:
+            why = self.check(fit, res)
+            if why:
+                return why
+        rho, z = neighbour_correlation(res)
+        if rho > self.MAX_NEIGHBOUR_CORRELATION and z > 5:
+            return (f"the extra scatter is correlated between neighbouring pixels (correlation {rho:.2f}, {z:.0f} "
+                    "sigma): a structure a few pixels wide, not a pixel-to-pixel non-uniformity or noise")
+        return ""
 
     def score(self, fit: Fit, res: Residuals) -> float | None:
         """The fit's variance likelihood (its law's skewness, the outlier mixture) at its theta on the

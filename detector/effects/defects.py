@@ -145,6 +145,32 @@ class ColumnSignature(Signature):
     def score(self, fit, res):
         return None  # compared by the statistics of all the columns, not pixel by pixel
 
+    #: a defective column is defective along its length: the excess of an outlier column may not sit in one
+    #: quarter of its rows by more than this share
+    MAX_SEGMENT_SHARE = 0.7
+
+    def plausible(self, fit, res) -> str:
+        from ..signatures import LINE_SIGMA
+
+        z = res.data_spikes.col_z
+        if z.size != res.data_adu.shape[1]:
+            return ""
+        cols = np.flatnonzero(np.abs(np.nan_to_num(z)) > LINE_SIGMA)
+        if not cols.size:
+            return ""
+        level, _ = res.level_maps()
+        # every pixel of the columns (an outlier column is not fitted pixel by pixel), spikes clipped at 5 sigma
+        d = res.data_adu[:, cols] - res.model_adu[:, cols] - level[:, cols]
+        lim = 5 * np.sqrt(res.var_adu2[:, cols])
+        r = np.where(np.isfinite(d), np.clip(d, -lim, lim), 0.0)
+        seg = np.array_split(np.arange(r.shape[0]), 4)
+        excess = np.abs(np.stack([r[s_].sum(axis=0) for s_ in seg]))  # (4, columns)
+        share = excess.max(axis=0) / np.maximum(excess.sum(axis=0), 1e-30)
+        if float(np.median(share)) > self.MAX_SEGMENT_SHARE:
+            return (f"the outlier columns' excess sits in a quarter of their rows ({100 * float(np.median(share)):.0f} % "
+                    "of it): a local blob crossing them, not defective columns")
+        return ""
+
     @staticmethod
     def _gain(z: np.ndarray) -> tuple[float, int, np.ndarray]:
         from ..signatures import LINE_SIGMA
