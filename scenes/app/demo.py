@@ -19,12 +19,12 @@ from __future__ import annotations
 import copy
 import json
 import time
-import tomllib
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import tomli_w
+import tomllib
 from astropy.io import fits
 
 from detector.jsonable import jsonable
@@ -52,28 +52,32 @@ class HiddenRound:
     Attributes
     ----------
     width, height : window size [pixels]
-    centre_x, centre_y : window centre on the sensor [pixels]; the default lies on the showcase's streak,
-        so the window holds stars, a stretch of the streak and the vignetting off the axis
+    centre_x, centre_y : window centre on the sensor [pixels]; None: the sensor's centre (the optical axis),
+        where the showcase's streak passes ~100 px away, so the window holds stars and a stretch of streak
     hidden : the effect the "measured" frame has and the scene lacks (a catalogue name)
-    params : its parameters; the default is a sky gradient of 3.6 e-/s per pixel per 1000 pixels rising
-        towards the upper left (scattered moonlight: 18 % of the scene's 20 e-/s sky across a 1024-pixel
-        window, about 1.5 sigma of a pixel's noise from one corner to the other)
+    params : its parameters. The default is a sky gradient (``sky_gradient``: a plane of e-/s per pixel
+        about the sensor's centre, as scattered moonlight or twilight makes) of 10 e-/s per pixel per 1000
+        pixels rising towards the upper left: +-25 % of the scene's 20 e-/s sky at the corners of a
+        1024-pixel window, about 1 sigma of a pixel's noise there. About the sensor's centre the plane adds
+        no mean light to the window, so the error it makes is its shape, not a sky level.
     seed : the frame seed of the measured frame (the model scene keeps its own: another noise and
         cosmic-ray draw)
     """
 
     width: int = 1024
     height: int = 1024
-    centre_x: int = 4608
-    centre_y: int = 4150
+    centre_x: int | None = None
+    centre_y: int | None = None
     hidden: str = "sky_gradient"
-    params: dict = field(default_factory=lambda: {"gx_e_per_s_per_kpx": -3.0, "gy_e_per_s_per_kpx": 2.0})
+    params: dict = field(default_factory=lambda: {"gx_e_per_s_per_kpx": -8.0, "gy_e_per_s_per_kpx": 6.0})
     seed: int = 20231
 
-    def window(self) -> dict:
-        """The ``[detector]`` window keys (x0, y0 the lower-left corner on the sensor)."""
+    def window(self, sensor_width_px: int, sensor_height_px: int) -> dict:
+        """The ``[detector]`` window keys (x0, y0: the lower-left corner on the sensor)."""
+        cx = self.centre_x if self.centre_x is not None else sensor_width_px // 2
+        cy = self.centre_y if self.centre_y is not None else sensor_height_px // 2
         return {"width": self.width, "height": self.height,
-                "x0": self.centre_x - self.width // 2, "y0": self.centre_y - self.height // 2}
+                "x0": int(cx - self.width // 2), "y0": int(cy - self.height // 2)}
 
 
 def scene_table(name: str = SHOWCASE) -> dict:
@@ -100,7 +104,7 @@ def insets_for(fits_path: str | Path) -> list[Inset]:
 
 
 def showcase_frame(out_dir: str | Path, scene: str = SHOWCASE, overrides: list[str] | None = None,
-                   workers: int | None = None, log: Log = _quiet) -> dict:
+                   workers: int | None = None) -> dict:
     """Render ``scene`` to ``OUT/demo.fits`` and its quick-look with insets to ``OUT/demo.png``."""
     out = Path(out_dir)
     sc = load_scene(scene, overrides or [])
@@ -130,13 +134,15 @@ def hidden_effect_round(out_dir: str | Path, cfg: HiddenRound | None = None, sce
     cfg = cfg or HiddenRound()
     out = Path(out_dir)
     base = scene_table(scene)
-    base["detector"] = {**base["detector"], **cfg.window()}
+    if cfg.hidden in base.get("effects", {}):
+        raise ValueError(f"the scene already has [effects.{cfg.hidden}]: nothing would be hidden")
+    full = load_scene(scene).sensor()
+    window = cfg.window(full.sensor_width_px, full.sensor_height_px)
+    base["detector"] = {**base["detector"], **window}
     model_path = _write(base, out / "round_model.toml")
     measured = copy.deepcopy(base)
     measured.setdefault("effects", {})[cfg.hidden] = dict(cfg.params)
     measured_path = _write(measured, out / "round_measured.toml")
-    if cfg.hidden in base.get("effects", {}):
-        raise ValueError(f"the scene already has [effects.{cfg.hidden}]: nothing would be hidden")
     t = {}
     t0 = time.perf_counter()
     log(f"rendering the measured frame: a {cfg.width}x{cfg.height} window with [effects.{cfg.hidden}] "
@@ -168,7 +174,7 @@ def hidden_effect_round(out_dir: str | Path, cfg: HiddenRound | None = None, sce
                      title=f"newtsim demo: the applied scene (+{diag['applied']['effect']}) vs the measured frame")
         t["compare_after"] = time.perf_counter() - t0
     result = {
-        "hidden": cfg.hidden, "hidden_params": cfg.params, "window": cfg.window(), "seed": cfg.seed,
+        "hidden": cfg.hidden, "hidden_params": cfg.params, "window": window, "seed": cfg.seed,
         "named_first": first["effect"] if first else None,
         "named_first_significant": bool(first and first["significant"]),
         "delta_bic": first["delta_bic"] if first else None,
@@ -224,7 +230,7 @@ def run_demo(out_dir: str | Path = "out", *, frame: bool = True, cfg: HiddenRoun
     shown = None
     if frame:
         log("rendering the built-in scene 'showcase' (full frame; the optics are ray-traced once and cached)")
-        shown = showcase_frame(out, workers=workers, log=log)
+        shown = showcase_frame(out, workers=workers)
     t1 = time.perf_counter()
     rnd = hidden_effect_round(out, cfg, workers=workers, log=log)
     t2 = time.perf_counter()

@@ -17,9 +17,10 @@ from scenes.app.demo import HiddenRound, hidden_effect_round, insets_for, run_de
 from scenes.app.quicklook import Inset, star_inset, streak_inset, write_png_insets
 from scenes.scene import load_scene
 
-#: a 384 x 384 window about the showcase's streak; the default gradient scaled up so that it is as
-#: significant as on the demo's 1024 x 1024 window (chi2 excess ~ amplitude^2 x window^2)
-SMALL = HiddenRound(width=384, height=384, params={"gx_e_per_s_per_kpx": -8.0, "gy_e_per_s_per_kpx": 5.3})
+#: a 256 x 256 window at the sensor's centre (as the demo's); the default gradient scaled by 1024 / 256 so that
+#: it makes the same error as on the demo's 1024 x 1024 window (the chi2 excess grows as (gradient x side)^2)
+SMALL = HiddenRound(width=256, height=256, params={"gx_e_per_s_per_kpx": -32.0, "gy_e_per_s_per_kpx": 24.0},
+                    seed=11)
 
 
 def _error(chi2_per_dof: float) -> float:
@@ -96,6 +97,8 @@ def test_round_names_the_hidden_effect_first_and_the_error_halves(small_round):
     # the fitted gradient is the hidden one (to 15 %: the stars and the streak share the window)
     for k, v in SMALL.params.items():
         assert r["fitted_params"][k] == pytest.approx(v, rel=0.15), r["fitted_params"]
+    # the window is centred on the sensor, where the plane adds no mean light
+    assert r["window"] == {"width": 256, "height": 256, "x0": 7096 - 128, "y0": 5320 - 128}
     assert r["applied"]["effect"] == SMALL.hidden
     assert _error(r["chi2_per_dof_before"]) > 0.3
     assert _error(r["chi2_per_dof_after"]) <= 0.5 * _error(r["chi2_per_dof_before"]), r
@@ -113,9 +116,8 @@ def test_round_names_the_hidden_effect_first_and_the_error_halves(small_round):
 
 def test_showcase_window_quicklook_has_the_streak_and_a_star(small_round, tmp_path):
     # a 2048 x 1024 window of the showcase about the streak, rendered by the demo's own frame step
-    c = HiddenRound()
-    sets = ["detector.width=2048", "detector.height=1024", f"detector.x0={c.centre_x - 1024}",
-            f"detector.y0={c.centre_y - 512}", "sky.star_mag_limit=13"]
+    sets = ["detector.width=2048", "detector.height=1024", "detector.x0=3800", "detector.y0=3400",
+            "sky.star_mag_limit=13"]
     summary = showcase_frame(tmp_path, overrides=sets)
     assert summary["sources"]["objects"] == 1 and summary["sources"]["stars"] > 5
     labels = [i["label"] for i in summary["insets"]]

@@ -9,6 +9,7 @@ from pathlib import Path
 import click
 from rich.console import Console
 
+from detector.jsonable import jsonable
 from scenes.app.demo import HiddenRound, run_demo
 
 
@@ -40,4 +41,4 @@ def demo(out_dir, no_frame, window, workers, json_out):
                          r["files"]["applied_scene"]) if f]
     err.print(f"[dim]also written: {', '.join(files)}; {time.perf_counter() - t0:.0f} s in all[/dim]")
     if json_out:
-        Path(json_out).write_text(json.dumps({k: v for k, v in res.items()}, indent=1, default=str) + "\n")
+        Path(json_out).write_text(json.dumps(jsonable(res), indent=1, default=str) + "\n")
