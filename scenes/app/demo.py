@@ -28,6 +28,7 @@ import tomllib
 from astropy.io import fits
 
 from detector.jsonable import jsonable
+from scenes.errors import SceneError
 from scenes.scene import BUILTIN_SCENES, load_scene
 
 from .compare import diagnose_round, run_compare
@@ -85,8 +86,9 @@ def scene_table(name: str = SHOWCASE) -> dict:
     return tomllib.loads((BUILTIN_SCENES / f"{name}.toml").read_text())
 
 
-def _write(table: dict, path: Path) -> Path:
-    path.write_text(tomli_w.dumps(table))
+def _write(table: dict, path: Path, comment: str = "") -> Path:
+    head = "".join(f"# {line}\n" for line in comment.splitlines())
+    path.write_text(head + tomli_w.dumps(table))
     return path
 
 
@@ -121,6 +123,18 @@ def showcase_frame(out_dir: str | Path, scene: str = SHOWCASE, overrides: list[s
     return summary
 
 
+def round_window(cfg: HiddenRound, scene: str = SHOWCASE) -> dict:
+    """The round's ``[detector]`` window on the scene's sensor, checked (a :class:`scenes.errors.SceneError`
+    naming the key when it does not fit the sensor, or when the scene already has the hidden effect)."""
+    full = load_scene(scene).sensor()
+    window = cfg.window(full.sensor_width_px, full.sensor_height_px)
+    sc = load_scene(scene, [f"detector.{k}={v}" for k, v in window.items()])
+    if cfg.hidden in sc.effects:
+        raise SceneError(f"the scene already has [effects.{cfg.hidden}]: nothing would be hidden",
+                         key=f"effects.{cfg.hidden}", file=sc.source)
+    return window
+
+
 def hidden_effect_round(out_dir: str | Path, cfg: HiddenRound | None = None, scene: str = SHOWCASE,
                         workers: int | None = None, log: Log = _quiet) -> dict:
     """One compare / diagnose / apply / compare round on a window of ``scene`` with ``cfg.hidden`` hidden.
@@ -134,15 +148,16 @@ def hidden_effect_round(out_dir: str | Path, cfg: HiddenRound | None = None, sce
     cfg = cfg or HiddenRound()
     out = Path(out_dir)
     base = scene_table(scene)
-    if cfg.hidden in base.get("effects", {}):
-        raise ValueError(f"the scene already has [effects.{cfg.hidden}]: nothing would be hidden")
-    full = load_scene(scene).sensor()
-    window = cfg.window(full.sensor_width_px, full.sensor_height_px)
+    window = round_window(cfg, scene)
     base["detector"] = {**base["detector"], **window}
-    model_path = _write(base, out / "round_model.toml")
+    model_path = _write(base, out / "round_model.toml",
+                        f"newtsim demo: the model scene, a {cfg.width}x{cfg.height} window of the built-in '{scene}'")
     measured = copy.deepcopy(base)
     measured.setdefault("effects", {})[cfg.hidden] = dict(cfg.params)
-    measured_path = _write(measured, out / "round_measured.toml")
+    measured_path = _write(measured, out / "round_measured.toml",
+                           f"newtsim demo: what the 'measured' frame round_measured.fits was rendered from (seed "
+                           f"{cfg.seed}):\nthe model scene round_model.toml plus [effects.{cfg.hidden}], which the "
+                           "model lacks")
     t = {}
     t0 = time.perf_counter()
     log(f"rendering the measured frame: a {cfg.width}x{cfg.height} window with [effects.{cfg.hidden}] "
@@ -163,7 +178,7 @@ def hidden_effect_round(out_dir: str | Path, cfg: HiddenRound | None = None, sce
     t["diagnose"] = time.perf_counter() - t0
     before = diag["baseline"]["chi2_per_dof"]
     cands = diag["candidates"]
-    first = cands[0] if cands else None
+    first = cands[0] if cands else None  # ranked best first; the first is the verdict's when significant
     after = None
     if diag["applied"]:
         log(f"comparing the applied scene ({applied_path.name}) with the measured frame")
@@ -210,8 +225,8 @@ def summary_lines(frame: dict | None, rnd: dict | None) -> list[str]:
                      f"quick-look {frame['png']}")
     if rnd is not None:
         lines.append(f"hidden in the measured frame: {rnd['hidden']} ({_fmt_params(rnd['hidden_params'])})")
-        if rnd["named_first"] is None:
-            lines.append("diagnose names: nothing")
+        if rnd["named_first"] is None or not rnd["named_first_significant"]:
+            lines.append("diagnose names: no significant missing effect")
         else:
             lines.append(f"diagnose names: {rnd['named_first']} (delta BIC {rnd['delta_bic']:,.0f}; "
                          f"fitted {_fmt_params(rnd['fitted_params'])})")
@@ -224,6 +239,7 @@ def summary_lines(frame: dict | None, rnd: dict | None) -> list[str]:
 def run_demo(out_dir: str | Path = "out", *, frame: bool = True, cfg: HiddenRound | None = None,
              workers: int | None = None, log: Log = _quiet) -> dict:
     """Both steps of the demo into ``out_dir``; returns ``{"frame", "round", "lines", "seconds"}``."""
+    round_window(cfg or HiddenRound())  # a window that does not fit fails now, not after the frame
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()

@@ -8,6 +8,8 @@ is ``slow``.
 """
 
 import json
+import subprocess
+import sys
 
 import numpy as np
 import pytest
@@ -78,6 +80,16 @@ def test_quicklook_with_insets_has_the_right_size(tmp_path):
     h, w = mpimg.imread(png).shape[:2]
     main_w = 10.0 * 2 / (2 + 600 / 800)  # the main panel's width: the inset column as tall as it
     assert w == 1000 and h == round((main_w * 600 / 800 + 0.7) * 100)
+
+
+def test_cli_window_that_does_not_fit_is_one_line_and_exit_2_before_any_render(tmp_path):
+    out = tmp_path / "out"
+    p = subprocess.run([sys.executable, "-m", "scenes.app.cli", "demo", "-o", str(out), "--window", "20000"],
+                       capture_output=True, text=True, timeout=120)
+    assert p.returncode == 2
+    lines = p.stderr.strip().splitlines()
+    assert len(lines) == 1 and "detector.x0" in lines[0] and "showcase.toml" in lines[0], p.stderr
+    assert not out.exists()  # nothing written
 
 
 @pytest.fixture(scope="module")

@@ -17,7 +17,7 @@ from scenes.app.demo import HiddenRound, run_demo
 @click.option("-o", "--output", "out_dir", default="out", show_default=True, type=click.Path(file_okay=False),
               help="folder for the frame, its quick-look and the round's files")
 @click.option("--no-frame", is_flag=True, help="skip the full-frame render (only the compare/diagnose round)")
-@click.option("--window", type=int, default=HiddenRound.width, show_default=True,
+@click.option("--window", type=click.IntRange(min=64), default=HiddenRound.width, show_default=True,
               help="side of the window of the round [pixels]")
 @click.option("--workers", type=int, default=None, help="threads (default: CPUs, at most 4)")
 @click.option("--json", "json_out", default=None, help="also write the demo's summary JSON here")
