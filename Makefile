@@ -1,5 +1,6 @@
 # newtsim: two commands on a fresh Debian machine (as root, or with sudo):
-#   make demo   installs everything and renders the built-in default scene -> out/demo.fits + out/demo.png
+#   make demo   installs everything, renders the built-in showcase scene -> out/demo.fits + out/demo.png,
+#               then runs one compare/diagnose round on a frame with a hidden effect -> out/round_*
 #   make test   installs everything and runs the test suite
 VENV    ?= .venv
 PYTHON  ?= python3
@@ -18,8 +19,7 @@ $(STAMP): pyproject.toml scripts/system-deps.sh
 install: $(STAMP)
 
 demo: install
-	mkdir -p out
-	$(VENV)/bin/newtsim render default -o out/demo.fits
+	$(VENV)/bin/newtsim demo -o out
 
 test: install
 	$(PY) -m pytest -q

@@ -22,6 +22,7 @@ from .characterize import expand_multi_file_options
 from .common import EXIT_INTERRUPTED, Group
 from .compare import compare as compare_command
 from .compare import diagnose as diagnose_command
+from .demo import demo as demo_command
 from .optics import optics as optics_group
 from .render import effects as effects_command
 from .render import render as render_command
@@ -50,6 +51,7 @@ cli.add_command(compare_command, name="compare")
 cli.add_command(diagnose_command, name="diagnose")
 cli.add_command(optics_group, name="optics")
 cli.add_command(batch_command, name="batch")
+cli.add_command(demo_command, name="demo")
 
 
 def main(argv=None):
