@@ -385,5 +385,6 @@ def _kind_from_sources(res: Residuals, idx, r, w) -> str | None:
 
 def _words(kind: str, geometry: list[str], desc: str) -> str:
     fam = [FAMILIES.get((kind, g)) for g in geometry if FAMILIES.get((kind, g))]
-    head = f"{"an" if kind[0] in "aeiou" else "a"} {kind} pattern ({', '.join(geometry)}): {desc}"
+    article = "an" if kind[0] in "aeiou" else "a"
+    head = f"{article} {kind} pattern ({', '.join(geometry)}): {desc}"
     return head + (f"; nearest physical families: {fam[0]}" if fam else "")
