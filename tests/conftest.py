@@ -1,6 +1,7 @@
 """Fixtures of every test: the real-data folder, the one Mitsuba fixture, and the effect registry restored
 after each test (a test that registers an effect must not change the catalogue of the tests after it)."""
 
+import os
 import sys
 from pathlib import Path
 
@@ -35,3 +36,15 @@ def _restore_registry():
     yield
     effects_base._REGISTRY.clear()
     effects_base._REGISTRY.update(saved)
+
+
+def pytest_collection_modifyitems(config, items):
+    """Tests marked ``slow`` (long statistical runs, full-size frames, optimisations) run only when asked:
+    ``pytest -m slow`` or NEWTSIM_SLOW=1 (``make test-slow``); the default run stays well under 30 minutes."""
+    expr = config.getoption("markexpr", "") or ""
+    if "slow" in expr.replace("not slow", "") or os.environ.get("NEWTSIM_SLOW"):
+        return
+    skip = pytest.mark.skip(reason="slow: run `pytest -m slow` or set NEWTSIM_SLOW=1 (make test-slow)")
+    for item in items:
+        if "slow" in item.keywords:
+            item.add_marker(skip)

@@ -8,7 +8,7 @@ model's. The error is chi2/dof - 1 over the pixels where the hidden effect acts 
 compared statistically), with the global levels refitted (docs/diagnose_validation.md).
 
 The unmarked tests run a fast subset (one effect of each kind of signature and a null case, ~1 min); the
-whole confusion matrix is ``slow``.
+whole confusion matrix runs by default too (the diagnosis is the product's heart).
 """
 
 import runpy
@@ -63,20 +63,18 @@ def test_nothing_hidden_gives_no_significant_candidate(base, tmp_path_factory):
     assert not row["significant"]
 
 
-@pytest.mark.slow
+# the whole matrix runs by default (the diagnosis is the product's heart): about 5 minutes on 2 cores
 @pytest.mark.parametrize("effect", [e for e in EFFECTS if e not in FAST])
 def test_hidden_effect_full_matrix(effect, tmp_path_factory):
     _check_identified_and_error_halved(_row(effect, tmp_path_factory))
 
 
-@pytest.mark.slow
 @pytest.mark.parametrize("base", [b for b in BASES if b not in FAST_NULL])
 def test_null_case_full_matrix(base, tmp_path_factory):
     row = _row(("null", base), tmp_path_factory)
     assert row["first"] == "none", row["ranking"]
 
 
-@pytest.mark.slow
 def test_confusion_matrix_accuracy(tmp_path_factory, tmp_path):
     rows = [_row(e, tmp_path_factory) for e in EFFECTS] + [_row(("null", b), tmp_path_factory) for b in BASES]
     conf = NS["confusion"](rows)
