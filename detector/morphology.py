@@ -308,8 +308,10 @@ def describe(res: Residuals, delta_adu: np.ndarray | None = None) -> dict:
         scale = period
     elif main in ("rows", "columns"):
         scale = 1.0
-    elif main == "radial":
-        scale = float(b * max(ny, nx))
+    elif main == "radial":  # the rms radius of the pattern about its centre (its departure from its edge value)
+        rr2 = (yy[ok] - centre[0]) ** 2 + (xx[ok] - centre[1]) ** 2
+        amp_r = np.abs(fit_rad - fit_rad[np.argmax(rr2)])
+        scale = float(b * np.sqrt(np.sum(amp_r * rr2) / max(np.sum(amp_r), 1e-300)))
     elif main == "local":
         scale = float(b * math.sqrt(max(strong.sum(), 1)))
     else:
@@ -328,11 +330,16 @@ def describe(res: Residuals, delta_adu: np.ndarray | None = None) -> dict:
     out.update(kind=kind, kind_certain=kind_certain, geometry=geometry, scale_px=round(scale, 2),
                amplitude=round(amp, 4), unit=unit, shares=shares,
                explanation=_words(kind, geometry, desc) + certain)
-    if main in ("gradient", "radial") and kind in ("additive", "multiplicative"):
-        full = np.zeros((ny, nx))
-        full[ok] = smooth_fit
-        full[~ok] = np.mean(smooth_fit)
-        out["empirical"] = {"kind": kind, "map": _upsample(full, b, shape)}
+    if main in ("gradient", "radial", "local") and kind in ("additive", "multiplicative", "mixed"):
+        # the empirical map: the block means themselves, smoothed over a block (normalised convolution
+        # over the blocks with data), not a parametric form: it follows whatever shape the pattern has
+        # at scales of a block and more. Relative to the light for a multiplicative pattern [1], else [ADU]
+        ek = "multiplicative" if kind == "multiplicative" and has_light else "additive"
+        vals = np.where(ok, mean / np.maximum(lb, 1e-9) if ek == "multiplicative" else mean, 0.0)
+        wts = ok.astype(float)
+        sm = gaussian_filter(vals * wts, 1.0, mode="nearest") / np.maximum(gaussian_filter(wts, 1.0, mode="nearest"),
+                                                                         1e-9)
+        out["empirical"] = {"kind": ek, "map": _upsample(sm, b, shape)}
     return out
 
 

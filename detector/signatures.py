@@ -1164,8 +1164,8 @@ class CountSignature(Signature):
     kind = "counts"
 
     def __init__(self, fit_counts: Callable[[Residuals], tuple | None], explain: Callable[[dict, Residuals], str],
-                 pattern: str = ""):
-        self.fit_counts, self.explain, self.pattern = fit_counts, explain, pattern
+                 pattern: str = "", check: Callable[[Fit, Residuals], str] | None = None):
+        self.fit_counts, self.explain, self.pattern, self.check = fit_counts, explain, pattern, check
 
     def score(self, fit: Fit, res: Residuals) -> float | None:
         return None  # compared by counts over the whole frame, not pixel by pixel
@@ -1178,6 +1178,37 @@ class CountSignature(Signature):
         # the model's count is one realisation's (Poisson itself): the two-sample likelihood ratio
         return Fit(name, params, two_sample_count_gain(observed, expected), k, max(int(observed + expected), 2),
                    self.explain(params, res))
+
+
+def clustered(index: np.ndarray, shape: tuple[int, int], cells: int = 8) -> tuple[float, float]:
+    """Whether outliers at flat pixel ``index`` are spread over the frame as independent defects are (a
+    Poisson process): (the largest share of them in one of ``cells`` x ``cells`` cells, the index of
+    dispersion's significance in sigma: ``(sum (n - m)^2 / m - (K - 1)) / sqrt(2 (K - 1))``)."""
+    index = np.asarray(index)
+    if index.size < 10:
+        return 0.0, 0.0
+    y, x = np.divmod(index, shape[1])
+    cy = np.minimum(y * cells // max(shape[0], 1), cells - 1)
+    cx = np.minimum(x * cells // max(shape[1], 1), cells - 1)
+    n = np.bincount(cy * cells + cx, minlength=cells * cells).astype(float)
+    m = n.mean()
+    k = n.size
+    return float(n.max() / n.sum()), float((np.sum((n - m) ** 2) / m - (k - 1)) / np.sqrt(2 * (k - 1)))
+
+
+def spread_check(which: str) -> Callable[[Fit, Residuals], str]:
+    """A plausibility check for defects at random positions (hot, dead pixels): the data's isolated spikes
+    of that sign (``which``: "pos" or "neg") are not crowded into one region (a blob, a glint, a ring)."""
+    def check(fit: Fit, res: Residuals) -> str:
+        idx = res.data_spikes.single_pos_index if which == "pos" else res.data_spikes.single_neg_index
+        share, sigma = clustered(idx, res.data_adu.shape)
+        if sigma > 10 and share > 0.2:
+            return (f"{100 * share:.0f} % of the isolated {'bright' if which == 'pos' else 'dark'} pixels crowd into one "
+                    f"sixty-fourth of the frame ({sigma:.0f} sigma over a random spread): a local structure, not "
+                    "defects at random positions")
+        return ""
+
+    return check
 
 
 # --- helpers for templates --------------------------------------------------------------------------------------

@@ -16,7 +16,7 @@ from typing import Literal
 import numpy as np
 from pydantic import Field
 
-from ..signatures import CountSignature, Fit, Signature, frame_fraction
+from ..signatures import CountSignature, Fit, Signature, frame_fraction, spread_check
 from ..stats import mad_std
 from .base import Effect, EffectParams, Stage, Tile, register_effect
 from .common import hardware_positions, in_tile, output_xy, roi_mask
@@ -221,7 +221,7 @@ _HOT_SIGNATURE = CountSignature(
     _hot_counts,
     lambda p, res: (f"isolated bright pixels that do not move with the sky ({p['count']} on the sensor, "
                     f"time-to-double scale {p['scale_s']:.3g} s): hot and warm pixels"),
-    pattern="isolated positive spikes")
+    pattern="isolated positive spikes", check=spread_check("pos"))
 _COLUMN_SIGNATURE = ColumnSignature()
 
 

@@ -22,6 +22,7 @@ from ..signatures import (
     VarianceSignature,
     Variant,
     frame_fraction,
+    spread_check,
 )
 from .base import Effect, EffectParams, Stage, Tile, register_effect
 from .common import hardware_positions, in_tile, output_xy, roi_mask
@@ -209,7 +210,7 @@ _DEADPIXELS_SIGNATURE = CountSignature(
     _dead_counts,
     lambda p, res: (f"isolated pixels far below their neighbours ({p['count']} on the sensor, response "
                     f"{p['response']:.2g}): dead pixels"),
-    pattern="isolated negative spikes where light falls")
+    pattern="isolated negative spikes where light falls", check=spread_check("neg"))
 
 _GAINREGIONS_SIGNATURE = LinearSignature(_gain_variants, _gain_words, pattern="signal steps between sensor regions")
 

@@ -282,6 +282,22 @@ def source_candidates(res: Residuals, truth, scene) -> list[Candidate]:
     return out
 
 
+#: a significant candidate whose score is within this fraction of the best one's (both held-out scores,
+#: of a different effect) cannot be told apart from it on this frame
+TWIN_FRACTION = 0.02
+
+
+def indistinguishable(sig: list[Candidate]) -> list[Candidate]:
+    """The significant candidates after the first whose held-out score is as good as the first's (within
+    TWIN_FRACTION, and within the scores' own scatter ~ sqrt(2 |score|)): a multiplicative fall-off and an
+    additive light on a uniform flat, kTC noise and a symmetric DSNU on one dark."""
+    if len(sig) < 2 or sig[0].heldout is None:
+        return []
+    best = sig[0].heldout
+    tol = max(TWIN_FRACTION * abs(best), 2 * np.sqrt(2 * abs(best)))
+    return [c for c in sig[1:] if c.heldout is not None and c.heldout - best <= tol]
+
+
 def verdict(cands: list[Candidate], morphology: dict | None = None) -> str:
     """One sentence for the report: the most likely missing effect (significant, plausible, better on
     held-out pixels), or that no catalogue effect explains the residual and what the residual looks like."""
@@ -289,8 +305,11 @@ def verdict(cands: list[Candidate], morphology: dict | None = None) -> str:
     if sig:
         best = sig[0]
         held = f", held-out {best.heldout:.4g}" if best.heldout is not None else ""
+        twins = indistinguishable(sig)
+        also = (f"; the data cannot tell it apart from {', '.join(c.fit.effect for c in twins)} (their held-out "
+                "scores are as good)") if twins else ""
         return (f"most likely missing: {best.fit.effect} (delta BIC {best.fit.delta_bic:.4g}{held}): "
-                f"{best.fit.explanation}")
+                f"{best.fit.explanation}{also}")
     named = [c for c in cands if c.fit.delta_bic < SIGNIFICANT_DELTA_BIC]
     why = ""
     if named:

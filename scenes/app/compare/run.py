@@ -22,13 +22,7 @@ from detector.morphology import describe
 from scenes.scene import load_scene
 
 from .apply import apply_candidate, apply_empirical
-from .candidates import (
-    SIGNIFICANT_DELTA_BIC,
-    candidates,
-    rank,
-    source_candidates,
-    verdict,
-)
+from .candidates import SIGNIFICANT_DELTA_BIC, candidates, indistinguishable, rank, source_candidates, verdict
 from .ledger import best_candidate, plot_ledger, round_row, update_ledger
 from .model import ModelFrame, build_model, read_measurement, residuals
 from .report import write_report
@@ -79,6 +73,7 @@ def run_diagnose(scene, measured: str | Path, workers: int | None = None, progre
         remaining.pop("empirical")
         out["remaining_morphology"] = remaining
     out["significant"] = [c["effect"] for c in out["candidates"] if c["significant"]]
+    out["indistinguishable"] = [c.fit.effect for c in indistinguishable([c for c in cands if c.significant])]
     return out
 
 
