@@ -1223,7 +1223,8 @@ def _run_one(args):
 
 
 def run_cases(names, workdir: Path | None = None, seed: int = 11, workers: int = 2, progress=None) -> list[dict]:
-    """Every case of ``names``, ``workers`` processes at a time (each renders and diagnoses on one thread)."""
+    """Every case of ``names``, ``workers`` processes at a time (each renders and diagnoses on one thread);
+    ``progress(name, row)`` is called as each case finishes."""
     tmp = None
     if workdir is None:
         tmp = tempfile.TemporaryDirectory()
@@ -1233,9 +1234,9 @@ def run_cases(names, workdir: Path | None = None, seed: int = 11, workers: int =
         if workers <= 1:
             rows = []
             for j in jobs:
-                if progress:
-                    progress(j[0])
                 rows.append(_run_one(j))
+                if progress:
+                    progress(j[0], rows[-1])
             return rows
         rows = {}
         with ProcessPoolExecutor(max_workers=workers, mp_context=mp.get_context("fork")) as pool:
@@ -1243,7 +1244,7 @@ def run_cases(names, workdir: Path | None = None, seed: int = 11, workers: int =
             for f in as_completed(futs):
                 rows[futs[f]] = f.result()
                 if progress:
-                    progress(futs[f])
+                    progress(futs[f], rows[futs[f]])
         return [rows[n] for n in names]
     finally:
         if tmp is not None:
@@ -1373,6 +1374,8 @@ def main(argv=None) -> int:
     ap.add_argument("--seed", type=int, default=11)
     ap.add_argument("--keep", action="store_true", help="keep the frames and scenes in OUT/work")
     ap.add_argument("--list", action="store_true", help="list the cases and exit")
+    ap.add_argument("--summarise", action="store_true", help="no new runs: rebuild the reports from the rows "
+                    "stored in OUT/rows/*.json (e.g. after re-running some cases into the same OUT)")
     args = ap.parse_args(argv)
     if args.list:
         for n, c in CASES.items():
@@ -1385,17 +1388,30 @@ def main(argv=None) -> int:
         return 2
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
+    if args.summarise:
+        rows = [json.loads((out / "rows" / f"{n}.json").read_text()) for n in names
+                if (out / "rows" / f"{n}.json").exists()]
+        return report(rows, out, wall=None)
     t0 = time.perf_counter()
     done = {"n": 0}
 
-    def progress(label):
+    (out / "rows").mkdir(exist_ok=True)
+
+    def progress(label, row):
         done["n"] += 1
-        print(f"[{done['n']}/{len(names)}] {label} ({time.perf_counter() - t0:.0f} s)", flush=True)
+        (out / "rows" / f"{label}.json").write_text(json.dumps(row, indent=1, default=float) + "\n")
+        print(f"[{done['n']}/{len(names)}] {label}: first {row.get('first')} "
+              f"({time.perf_counter() - t0:.0f} s)", flush=True)
 
     rows = run_cases(names, workdir=out / "work" if args.keep else None, seed=args.seed, workers=args.workers,
                      progress=progress)
+    return report(rows, out, wall=round(time.perf_counter() - t0, 1))
+
+
+def report(rows: list[dict], out: Path, wall: float | None) -> int:
+    """Write OUT/unseen.md, unseen.json, unseen.png from the rows and print the table."""
     summ = summary(rows)
-    summ["wall_seconds"] = round(time.perf_counter() - t0, 1)
+    summ["wall_seconds"] = wall
     conf = confusion(rows)
     md = markdown(rows, summ, conf)
     (out / "unseen.md").write_text(md)
