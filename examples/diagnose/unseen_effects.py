@@ -31,7 +31,8 @@ Summary metrics (``OUT_DIR/unseen.md``, ``unseen.json``, ``unseen.png``, also pr
   any significant plausible candidate naming a catalogue effect is wrong (an empirical map is not);
 * morphology match: out-of-catalogue cases whose ``residual_morphology`` is significant with the expected
   kind and at least one expected geometry word;
-* error halved: after / before <= 0.5 (over every non-null case; a case with nothing applied fails);
+* error halved: after / before <= 0.5 (over every non-null case; a case with nothing applied fails unless its
+  error before was already within the noise, :func:`error_halved`);
 * null frames clean: no significant candidate.
 
 Usage::
@@ -77,10 +78,11 @@ NEW_BASES: dict[str, dict] = {
     "flat_imx": {"detector": {"preset": "imx411", "width": 512, "height": 512},
                  "exposure": {"time_s": 10.0, "frame": "light"},
                  "sky": {"stars": False, "flat_e_per_s": 3000.0}},
-    # a 4096x4096 corner of the CMOS (its amplifier corner is elsewhere) binned 8x8 under a faint flat
+    # a 4096x4096 corner of the CMOS (its amplifier corner is elsewhere) binned 8x8 under a faint flat (the
+    # CMOS sums 64 read-out values of 16 bits: 64 x (500 ADU bias + 164 ADU) stays below 65535)
     "flat_imx_bin": {"detector": {"preset": "imx411", "width": 4096, "height": 4096, "x0": 0, "y0": 0, "binning": 8},
                      "exposure": {"time_s": 10.0, "frame": "light"},
-                     "sky": {"stars": False, "flat_e_per_s": 100.0}},
+                     "sky": {"stars": False, "flat_e_per_s": 20.0}},
     # bias frames of that corner of the CMOS, binned 8x8
     "bias_imx": {"detector": {"preset": "imx411", "width": 4096, "height": 4096, "x0": 0, "y0": 0, "binning": 8},
                  "exposure": {"time_s": 0.0, "frame": "bias"},
@@ -1034,8 +1036,8 @@ _CASE_LIST = [
     _c("sky_gradient", "sky_quadratic", "stars", "quadratic additive light across the field (straylight), "
        "bowl about (1.3, -0.2) of the window, 2 e-/s/px at the far corner",
        lambda s: [ExtraLight(s, law="quadratic", pu=1.3, pv=-0.2, level=1.5)], accept=("sky_gradient", "straylight")),
-    _c("sky_gradient", "sky_point_imx", "stars_imx", "light from a point 3 windows beyond the left edge, 1/d^2, "
-       "0.2 e-/s/px at the window's near edge", lambda s: [ExtraLight(s, law="point", pu=-3.0, pv=0.3, level=0.3)],
+    _c("sky_gradient", "sky_point_imx", "stars_imx", "light from a point 3 windows beyond the left edge, 1/d^2: "
+       "+0.11 / -0.07 e-/s/px at the near / far edge (relative to the centre)", lambda s: [ExtraLight(s, law="point", pu=-3.0, pv=0.3, level=0.3)],
        "weak", accept=("sky_gradient", "straylight")),
     # psf_blur
     _c("psf_blur", "blur_moffat", "stars", "Moffat broadening (FWHM 1.6 px, beta 2.5)",
@@ -1253,6 +1255,17 @@ def run_cases(names, workdir: Path | None = None, seed: int = 11, workers: int =
 
 # --- summary ------------------------------------------------------------------------------------------------------
 
+def error_halved(row: dict) -> bool:
+    """The error fell by at least half after the apply; or, with nothing to halve, the error before was within
+    the noise (chi2/dof - 1 below 3 sqrt(2 / n) over the support: a weak effect the comparison cannot see)."""
+    if row.get("error_ratio") is not None and row["error_ratio"] <= 0.5:
+        return True
+    before = row.get("before") or {}
+    if row.get("metric") == "chi2_minus_1" and before.get("n_support"):
+        return before["chi2_minus_1"] < 3 * np.sqrt(2 / before["n_support"])
+    return False
+
+
 def summary(rows: list[dict]) -> dict:
     cat = [r for r in rows if r["group"] == "catalogue"]
     ooc = [r for r in rows if r["group"] == "ooc"]
@@ -1272,10 +1285,8 @@ def summary(rows: list[dict]) -> dict:
             "confidently_wrong_ooc": frac(sum(bool(r.get("confidently_wrong")) for r in ooc), len(ooc)),
             "missed_catalogue": frac(sum(r.get("first") == "none" for r in cat), len(cat)),
             "morphology_match": frac(sum(bool(r.get("morphology_match")) for r in ooc), len(ooc)),
-            "error_halved": frac(sum((r.get("error_ratio") is not None and r["error_ratio"] <= 0.5) for r in eff),
-                                 len(eff)),
-            "error_halved_catalogue": frac(sum((r.get("error_ratio") is not None and r["error_ratio"] <= 0.5)
-                                               for r in cat), len(cat)),
+            "error_halved": frac(sum(error_halved(r) for r in eff), len(eff)),
+            "error_halved_catalogue": frac(sum(error_halved(r) for r in cat), len(cat)),
             "null_clean": frac(sum(r.get("first_any", r.get("first")) == "none" for r in nul), len(nul)),
             "errors": [r["case"] for r in rows if r.get("first") == "error"],
             "seconds": round(sum(r.get("case_seconds", 0) for r in rows), 1)}
