@@ -319,7 +319,7 @@ class WeakColumns(RealWorld):
         self.cols = rng.choice(np.arange(s.roi_x0, s.roi_x0 + s.roi_shape[0]), p.n_columns, replace=False)
 
     def apply(self, stage, tile, data):
-        ys, xs = tile.pixel_centres()
+        _ys, xs = tile.pixel_centres()
         for c in self.cols:
             j = np.nonzero(np.abs(xs - c) < tile.bin / 2 + 1e-9)[0]
             if j.size:
@@ -404,7 +404,7 @@ class DeadClusters(RealWorld):
         p = self.params
         for dy in range(p.size):
             for dx in range(p.size):
-                sel, r, c = in_tile(tile, self.ys + dy, self.xs + dx)
+                _sel, r, c = in_tile(tile, self.ys + dy, self.xs + dx)
                 data[r, c] *= np.float32(p.response)
 
 
@@ -502,7 +502,7 @@ class ColumnPRNU(RealWorld):
 
     def apply(self, stage, tile, data):
         p = self.params
-        ys, xs = tile.pixel_centres()
+        _ys, xs = tile.pixel_centres()
         if p.law == "lognormal":
             m = _hw(tile, self.name, lambda rng, shape: np.exp(p.white * rng.standard_normal(shape)
                                                                  - p.white ** 2 / 2).astype(np.float32), data.shape)
@@ -1215,7 +1215,7 @@ def _run_one(args):
     name, workdir, seed, workers = args
     try:
         return run_case(name, Path(workdir), seed=seed, workers=workers)
-    except Exception as exc:  # a case that fails is reported, the others go on
+    except Exception as exc:  # noqa: BLE001 - a case that fails is reported, the others go on
         import traceback
 
         case = CASES[name]
@@ -1347,8 +1347,8 @@ def markdown(rows: list[dict], summ: dict, conf: dict) -> str:
              f"| named first (catalogue cases) | {pct('named_first')} |",
              f"| named first, strong / weak | {pct('named_first_strong')} / {pct('named_first_weak')} |",
              f"| confidently wrong (all effect cases) | {pct('confidently_wrong')} |",
-             f"| confidently wrong, catalogue / out of catalogue | {pct('confidently_wrong_catalogue')} / "
-             f"{pct('confidently_wrong_ooc')} |",
+             (f"| confidently wrong, catalogue / out of catalogue | {pct('confidently_wrong_catalogue')} / "
+             f"{pct('confidently_wrong_ooc')} |"),
              f"| catalogue effect missed (nothing significant) | {pct('missed_catalogue')} |",
              f"| morphology kind + geometry match (out of catalogue) | {pct('morphology_match')} |",
              f"| error halved after one apply (all effect cases) | {pct('error_halved')} |",
@@ -1356,8 +1356,8 @@ def markdown(rows: list[dict], summ: dict, conf: dict) -> str:
              f"| null frames clean | {pct('null_clean')} |", ""]
     if summ["errors"]:
         lines += [f"cases that raised: {', '.join(summ['errors'])}", ""]
-    lines += ["| case | group | base | strength | first (delta BIC) | accepted | wrong? | runner-up | morphology "
-              "(kind / geometry) | expected | error before | after | ratio | s |",
+    lines += [("| case | group | base | strength | first (delta BIC) | accepted | wrong? | runner-up | morphology "
+              "(kind / geometry) | expected | error before | after | ratio | s |"),
               "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
         if r.get("first") == "error":
