@@ -1,0 +1,117 @@
+"""newtsim diagnose on effects in forms it has not been told (issue 10; examples/diagnose/unseen_effects.py).
+
+Catalogue effects in functional forms that neither the plugins nor ``hidden_effects.py`` use must be named
+first (one of the case's accepted names, significant) and the error must fall by half after one apply; an
+effect that no plugin models must get no significant plausible catalogue name, and the diagnosis's
+``residual_morphology`` must describe it with the right kind (additive / multiplicative / redistributed) and
+geometry; a frame with nothing hidden must give no significant candidate.
+
+The unmarked tests run a fast subset (three catalogue forms, two effects in no plugin, one null frame:
+about 1-2 min on 2 cores); the whole set (70 cases, ~25 min on 2 cores) is ``slow``. Cases that today's
+diagnosis fails are ``xfail(strict=False)`` ("issue 10 in progress"): the baseline in
+docs/diagnose_validation.md, section "Unseen forms and out-of-catalogue effects (issue 10)".
+"""
+
+import runpy
+from pathlib import Path
+
+import pytest
+
+EXAMPLE = Path(__file__).resolve().parents[2] / "examples" / "diagnose" / "unseen_effects.py"
+NS = runpy.run_path(str(EXAMPLE), run_name="unseen_effects")
+CASES = NS["CASES"]
+
+#: the fast subset: the issue's own examples (a vignetting inside a window, a quadratic straylight), a
+#: catalogue effect in another law, an out-of-catalogue multiplicative local pattern and a variance gradient,
+#: one null frame
+FAST = ("vig_gauss_window", "sky_quadratic", "rows_telegraph", "dust_donuts", "readnoise_gradient", "null_dark")
+
+#: cases today's diagnosis fails (baseline of 2026-11-24, seed 11; see docs/diagnose_validation.md)
+FAILS_TODAY: set[str] = {"bias_drift_readout", "bias_sawtooth_full", "bloom_soft_bright", "cfa_quad_bayer",
+    "cr_segments", "dead_clusters", "diffraction_ring", "dist_tangential", "drift_accelerating", "drift_arc_imx",
+    "dsnu_uniform", "dust_donuts", "dust_donuts_full", "elong_coma", "fringes", "gains_rows_imxbin",
+    "gains_soft_strips", "ghost_gauss_offaxis_imx", "ghost_shifted_annulus", "herringbone", "nl_gamma_imx",
+    "persistence", "readnoise_gradient", "rows_pickup_imx", "satellite_glint", "sky_quadratic", "vig_cone_imxbin",
+    "vig_gauss_window", "xtalk_2ch_undershoot_imx", "xtalk_3ch_delayed"}
+
+ISSUE = "issue 10 in progress"
+
+_CACHE: dict = {}
+
+
+def _row(name, tmp_path_factory):
+    if name not in _CACHE:
+        _CACHE[name] = NS["run_case"](name, tmp_path_factory.mktemp(name))
+    return _CACHE[name]
+
+
+def _check(row):
+    assert row.get("first") != "error", row.get("traceback")
+    group = row["group"]
+    if group == "catalogue":
+        assert row["first"] in row["accept"], (row["case"], row["ranking"])
+        assert row["first_delta_bic"] < -10
+        # the error falls by at least half after one apply (or was within the noise: nothing to halve)
+        assert NS["error_halved"](row), (row["metric"], row["before"], row.get("after"))
+    elif group == "ooc":
+        # no significant, plausible catalogue name: the honest answer is a description
+        assert not row["confidently_wrong"], (row["case"], row["wrong_names"])
+        morph = row["residual_morphology"] or {}
+        assert row["morphology_match"], (row["case"], row["kind"], row["geometry"], morph)
+        # the empirical map offered by the morphology still halves the error
+        assert NS["error_halved"](row), (row["metric"], row["before"], row.get("after"))
+    else:
+        assert row["first_any"] == "none", row["ranking"]
+
+
+def _param(names):
+    return [pytest.param(n, marks=pytest.mark.xfail(strict=False, reason=ISSUE)) if n in FAILS_TODAY else n
+            for n in names]
+
+
+def test_the_set_is_as_large_as_the_issue_asks():
+    """>= 40 cases; every catalogue effect with a signature in >= 2 forms; >= 6 effects in no plugin with an
+    expected kind and geometry from the vocabulary; a null frame for every base; both cameras; strong and
+    weak amplitudes; full (binned) sensors and windows."""
+    import detector
+
+    with_signature = {n for n, e in detector.registry().items() if getattr(e, "signature", None)}
+    cat = [c for c in CASES.values() if c.group == "catalogue"]
+    ooc = [c for c in CASES.values() if c.group == "ooc"]
+    assert len(cat) + len(ooc) >= 40
+    for name in with_signature:
+        assert sum(c.effect == name for c in cat) >= 2, name
+    assert len(ooc) >= 6
+    vocab = {"radial", "gradient", "rows", "columns", "periodic", "sources", "local", "rings", "blobs"}
+    for c in ooc:
+        assert c.kind in ("additive", "multiplicative", "redistributed", "mixed") and set(c.geometry) <= vocab
+    assert {c.base for c in CASES.values() if c.group == "null"} == set(NS["BASES"])
+    presets = {NS["BASES"][c.base]["detector"]["preset"] for c in cat}
+    assert presets == {"ml11002", "imx411"}
+    assert {c.strength for c in cat} == {"strong", "weak"}
+    assert any(NS["BASES"][c.base]["detector"].get("binning", 1) > 1 for c in cat)
+
+
+@pytest.mark.parametrize("name", _param(FAST))
+def test_unseen_fast(name, tmp_path_factory):
+    _check(_row(name, tmp_path_factory))
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name", _param([n for n in CASES if n not in FAST]))
+def test_unseen_full_set(name, tmp_path_factory):
+    _check(_row(name, tmp_path_factory))
+
+
+@pytest.mark.slow
+@pytest.mark.xfail(strict=False, reason=ISSUE)
+def test_unseen_goals(tmp_path_factory):
+    """The issue's goals on the whole set: named first >= 95 %, confidently wrong 0, every out-of-catalogue case
+    described, the error halved everywhere, null frames clean."""
+    rows = [_row(n, tmp_path_factory) for n in CASES]
+    s = NS["summary"](rows)
+    assert s["named_first"]["rate"] >= 0.95, s["named_first"]
+    assert s["confidently_wrong"]["n"] == 0, s["confidently_wrong"]
+    assert s["morphology_match"]["n"] == s["morphology_match"]["of"], s["morphology_match"]
+    assert s["error_halved"]["n"] == s["error_halved"]["of"], s["error_halved"]
+    assert s["null_clean"]["n"] == s["null_clean"]["of"], s["null_clean"]
