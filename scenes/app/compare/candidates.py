@@ -266,8 +266,15 @@ def rank(cands: list[Candidate]) -> list[Candidate]:
     """Best first: the significant candidates by their held-out score (delta BIC where there is none), then
     the others that are plausible and not rejected, then the implausible and the rejected, each by delta
     BIC."""
-    return sorted(cands, key=lambda c: (0 if c.significant else 1 if c.plausible and not c.rejected else 2,
-                                        c.score if c.significant else c.fit.delta_bic))
+    out = sorted(cands, key=lambda c: (0 if c.significant else 1 if c.plausible and not c.rejected else 2,
+                                       c.score if c.significant else c.fit.delta_bic))
+    sig = [c for c in out if c.significant]
+    twins = indistinguishable(sig)
+    if twins:  # as good on held-out pixels: the one delta BIC prefers (fewer parameters for the same fit) first
+        group = sorted([sig[0], *twins], key=lambda c: c.fit.delta_bic)
+        rest = [c for c in out if c not in group]
+        out = group + rest
+    return out
 
 
 def source_candidates(res: Residuals, truth, scene) -> list[Candidate]:
