@@ -213,6 +213,9 @@ class Residuals:
     #: pixels a signature may use at all (a held-out fold: :func:`heldout_delta`); None: every pixel. The
     #: generic kinds use ``fit`` only; a signature that picks its own pixels (a CFA) honours this too
     train: np.ndarray | None = None
+    #: where the frame's light comes from: "flat" (a screen, which blocks the sky), "sky", "none" (dark, bias),
+    #: or "" when unknown; sky-light candidates are not plausible on a flat-screen frame
+    light_source: str = ""
 
     @property
     def photo_field(self) -> np.ndarray:
@@ -1110,10 +1113,47 @@ class VarianceSignature(Signature):
             why = self.check(fit, res)
             if why:
                 return why
+        why = self.uniformity(fit, res)
+        if why:
+            return why
         rho, z = neighbour_correlation(res)
         if rho > self.MAX_NEIGHBOUR_CORRELATION and z > 5:
             return (f"the extra scatter is correlated between neighbouring pixels (correlation {rho:.2f}, {z:.0f} "
                     "sigma): a structure a few pixels wide, not a pixel-to-pixel non-uniformity or noise")
+        return ""
+
+    #: the excess variance of a cell may exceed the template's prediction by this factor over the median cell
+    MAX_CELL_RATIO = 4.0
+
+    def uniformity(self, fit: Fit, res: Residuals, cells: int = 4) -> str:
+        """The added scatter follows its template over the frame (kTC noise is the same everywhere, PRNU
+        follows the light squared): the robust excess variance of each of ``cells`` x ``cells`` regions over
+        the template's prediction; one region far above the rest is a structure the local whitening left,
+        not this noise."""
+        vs = variance_sample(res)
+        theta = fit.state.get("theta")
+        if not theta or vs["idx"].size < 400 * cells * cells:
+            return ""
+        shape = res.data_adu.shape
+        y, x = np.divmod(vs["idx"], shape[1])
+        cell = np.minimum(y * cells // shape[0], cells - 1) * cells + np.minimum(x * cells // shape[1], cells - 1)
+        t = _at(self.template(res), shape, vs["idx"])
+        ratios = []
+        for c in range(cells * cells):
+            sel = cell == c
+            if sel.sum() < 200:
+                continue
+            excess = float(np.median(vs["r_white"][sel] ** 2)) / 0.4549 - float(np.median(vs["v"][sel]))
+            pred = theta * float(np.mean(t[sel]))
+            if pred > 0:
+                ratios.append(excess / pred)
+        if len(ratios) < 4:
+            return ""
+        ratios = np.asarray(ratios)
+        med = float(np.median(ratios))
+        if ratios.max() > self.MAX_CELL_RATIO * max(med, 0.05) and ratios.max() > 2.0:
+            return (f"the extra scatter sits in one part of the frame ({ratios.max():.2g} x the fit's there, {med:.2g} x "
+                    "in the median region): a local structure the fit took for noise, not this noise")
         return ""
 
     def score(self, fit: Fit, res: Residuals) -> float | None:

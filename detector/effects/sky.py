@@ -87,7 +87,7 @@ def _sky_words(p, res) -> str:
 
 
 _SKY_SIGNATURE = LinearSignature(_sky_variants, _sky_words, pattern="additive plane of light (with its shot noise)",
-                                 extra_k=0, adds_charge=True)
+                                 extra_k=0, adds_charge=True, check=lambda fit, res: sky_light_check(fit, res))
 
 
 # --- adapter -------------------------------------------------------------------------------------------------
@@ -177,9 +177,16 @@ def _field_words(p, res) -> str:
             "that is not a plane)")
 
 
-def _field_check(fit, res) -> str:
-    """Straylight is light: on a frame without light there is none (the variants already skip darks)."""
+def sky_light_check(fit, res) -> str:
+    """Light from the sky (a gradient, straylight of the Sun or the Moon) cannot reach the sensor through a
+    flat-field screen, which blocks the sky: a smooth pattern of a flat is a response (vignetting, a flat field)."""
+    if getattr(res, "light_source", "") == "flat":
+        return ("the frame's light is a flat-field screen, which blocks the sky: no sky light or straylight reaches "
+                "the sensor; a smooth pattern on a flat is a response (vignetting, a flat-field error)")
     return ""
+
+
+_field_check = sky_light_check
 
 
 _FIELD_SIGNATURE = LinearSignature(_field_variants, _field_words,

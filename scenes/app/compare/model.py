@@ -206,4 +206,12 @@ def residuals(data: np.ndarray, model: ModelFrame) -> Residuals:
     return Residuals(data, model.mean_adu, model.var_adu2, usable & ~statistical, model.photo_adu, model.dark_e,
                      ys, xs, s, model.setup.exptime_s, spikes, model.spikes or SpikeStats(0, 0, 0, 0, 0),
                      photo_field_adu=model.photo_field_adu, background_adu=model.background_adu,
-                     row_var_adu2=model.row_var_adu2)
+                     row_var_adu2=model.row_var_adu2, light_source=light_source(model.setup.scene))
+
+
+def light_source(scene) -> str:
+    """Where the frame's light comes from: "flat" (a flat-field screen, which blocks the sky), "sky" (the
+    sky, its stars and objects), "none" (a dark or bias frame)."""
+    if scene.exposure.frame != "light":
+        return "none"
+    return "flat" if scene.sky.flat_e_per_s is not None else "sky"
