@@ -825,7 +825,8 @@ class LinearSignature(Signature):
         delta = sum(ci * np.asarray(t, np.float32) for ci, t in zip(c, maps))
         fit = Fit(name, params, d, k, res.n_fit, self.explain(params, res),
                   delta_adu=np.broadcast_to(delta, res.data_adu.shape), note=v.label)
-        return with_shot_noise(res, fit) if self.adds_charge else fit
+        # a change of the light (added, or a multiplicative loss) is a change of charge: its shot noise changes too
+        return with_shot_noise(res, fit) if (self.adds_charge or self.of_light) else fit
 
     @staticmethod
     def _best(res: Residuals, ctx: dict, variants: Iterable[Variant]):
