@@ -1237,11 +1237,36 @@ def clustered(index: np.ndarray, shape: tuple[int, int], cells: int = 8) -> tupl
     return float(n.max() / n.sum()), float((np.sum((n - m) ** 2) / m - (k - 1)) / np.sqrt(2 * (k - 1)))
 
 
+def lattice(index: np.ndarray, shape: tuple[int, int], periods=(2, 3, 4, 6, 8)) -> tuple[int, float]:
+    """Whether outliers prefer some phases of a period: (the period, the significance in sigma of the
+    non-uniformity of their (y mod p, x mod p) phases, as :func:`clustered`'s index of dispersion). Random
+    defects fill every phase evenly."""
+    index = np.asarray(index)
+    best = (0, 0.0)
+    if index.size < 20:
+        return best
+    y, x = np.divmod(index, shape[1])
+    for p in periods:
+        k = p * p
+        if index.size < 5 * k:
+            break
+        n = np.bincount((y % p) * p + (x % p), minlength=k).astype(float)
+        m = n.mean()
+        sig = float((np.sum((n - m) ** 2) / m - (k - 1)) / np.sqrt(2 * (k - 1)))
+        if sig > best[1]:
+            best = (p, sig)
+    return best
+
+
 def spread_check(which: str) -> Callable[[Fit, Residuals], str]:
     """A plausibility check for defects at random positions (hot, dead pixels): the data's isolated spikes
     of that sign (``which``: "pos" or "neg") are not crowded into one region (a blob, a glint, a ring)."""
     def check(fit: Fit, res: Residuals) -> str:
         idx = res.data_spikes.single_pos_index if which == "pos" else res.data_spikes.single_neg_index
+        period, sig_p = lattice(idx, res.data_adu.shape)
+        if sig_p > 10:
+            return (f"the isolated {'bright' if which == 'pos' else 'dark'} pixels sit on a regular lattice (period "
+                    f"{period} px, {sig_p:.0f} sigma): a periodic response pattern (a filter mosaic), not defects")
         share, sigma = clustered(idx, res.data_adu.shape)
         if sigma > 10 and share > 0.2:
             return (f"{100 * share:.0f} % of the isolated {'bright' if which == 'pos' else 'dark'} pixels crowd into one "
