@@ -162,7 +162,10 @@ class Sampler:
             return sub.ravel().copy()
         first = (a - self.y0) * self.rw  # flat index (in the region) of the band's first value
         start = (-first) % self.step
-        return sub.ravel()[start::self.step].copy()
+        if sub.flags.c_contiguous:
+            return sub.ravel()[start::self.step].copy()
+        k = np.arange(start, sub.shape[0] * self.rw, self.step)  # no copy of the whole region
+        return sub[k // self.rw, k % self.rw]
 
 
 class Gather:

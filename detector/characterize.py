@@ -440,7 +440,8 @@ def _first_pass(bias, darks, flats, groups, B: _Bands, thresholds) -> dict:
     h, w = shape
     S4, S1 = Sampler(shape), Sampler(shape, 1_000_000)
     tiles = _tiles(shape) if flats else []
-    St = [Sampler(shape, region=t) for t in tiles]
+    # the 16 tiles' subsamples together hold as many values as the frame's (small frames: every pixel)
+    St = [Sampler(shape, MAX_STAT_PIXELS // max(len(tiles), 1), region=t) for t in tiles]
     G = Gather()
     master = BandStore(shape, np.float32)
     row_med = np.empty(h, np.float64)
@@ -499,12 +500,11 @@ def _column_medians(store: BandStore, block: int = 512) -> np.ndarray:
     """Median of every column of a float32 band store (column blocks through a read-only memory map)."""
     h, w = store.shape
     store._f.flush()
-    mm = np.memmap(store.path, dtype=store.dtype, mode="r", shape=store.shape)
     out = np.empty(w, np.float64)
-    try:
-        for c0 in range(0, w, block):
-            out[c0:c0 + block] = np.median(np.asarray(mm[:, c0:c0 + block], dtype=np.float64), axis=0)
-    finally:
+    for c0 in range(0, w, block):
+        # a fresh map per block: the pages it touches leave the resident set when it is dropped
+        mm = np.memmap(store.path, dtype=store.dtype, mode="r", shape=store.shape)
+        out[c0:c0 + block] = np.median(np.asarray(mm[:, c0:c0 + block], dtype=np.float64), axis=0)
         del mm
     return out
 
@@ -1052,14 +1052,17 @@ def photon_transfer(f0: np.ndarray, f1: np.ndarray, master: np.ndarray, read_noi
     ``S`` is the mean bias-subtracted signal [ADU]; the second flat is scaled to the first's mean before the
     difference, which cancels PRNU and illumination and leaves ``2 (S/K + s_r^2)``. Computed on the whole
     frame and on ``tiles x tiles`` tiles (the tiles' spread gives the standard error). Every statistic is
-    taken on the regular subsample (:func:`detector.stats.subsample`) of the frame or tile, so the work is
+    taken on the regular subsample (at most ``MAX_STAT_PIXELS`` values for the frame, that divided by the
+    number of tiles for each tile) (:func:`detector.stats.subsample`) of the frame or tile, so the work is
     done by :func:`photon_transfer_samples` on those subsamples.
     """
     a = f0.astype(np.float64) - master
     b = f1.astype(np.float64) - master
     tl = _tiles(a.shape, tiles)
-    return photon_transfer_samples(subsample(a), subsample(b), [subsample(a[y0:y1, x0:x1]) for y0, y1, x0, x1 in tl],
-                                   [subsample(b[y0:y1, x0:x1]) for y0, y1, x0, x1 in tl], a.size, read_noise_adu)
+    nt = MAX_STAT_PIXELS // len(tl)
+    return photon_transfer_samples(subsample(a), subsample(b),
+                                   [subsample(a[y0:y1, x0:x1], nt) for y0, y1, x0, x1 in tl],
+                                   [subsample(b[y0:y1, x0:x1], nt) for y0, y1, x0, x1 in tl], a.size, read_noise_adu)
 
 
 def photon_transfer_samples(a: np.ndarray, b: np.ndarray, ta: Sequence[np.ndarray], tb: Sequence[np.ndarray],
@@ -1144,7 +1147,7 @@ def prnu_and_vignetting(mean_flat, temporal_var_adu2: float, smooth_px: float = 
     step = max(1, max(h, w) // 64)
     thumb, smin = [], math.inf
     for r0, r1, f, sm in _smoothed_bands(rows_fn, (h, w), smooth_px, B, "flat: PRNU and vignetting"):
-        G.add("ratio", S_in.take(r0, f / sm))
+        G.add("ratio", S_in.take(r0, f) / S_in.take(r0, sm))
         for k, (y0, y1, x0, x1) in boxes.items():
             a, b = max(y0, r0), min(y1, r1)
             if a < b:
@@ -1173,8 +1176,15 @@ class _MeanFlatRows:
         self.shape = tuple(f0.shape)
 
     def rows(self, a, b):
-        return 0.5 * (self.f0.rows(a, b).astype(np.float64) + self.s * self.f1.rows(a, b).astype(np.float64)) \
-            - self.master.rows(a, b)
+        # 0.5 (f0 + s f1) - master, in place (the same operations in the same order)
+        out = self.f0.rows(a, b).astype(np.float64)
+        t = self.f1.rows(a, b).astype(np.float64)
+        t *= self.s
+        out += t
+        del t
+        out *= 0.5
+        out -= self.master.rows(a, b)
+        return out
 
 
 def analyze_flats(frames: Sequence[Frame], P: dict, bias_res: dict, B: _Bands,
@@ -1189,8 +1199,8 @@ def analyze_flats(frames: Sequence[Frame], P: dict, bias_res: dict, B: _Bands,
     S = P["samples"]
     a = S[id(f0)].astype(np.float64) - master_sample
     b = S[id(f1)].astype(np.float64) - master_sample
-    ta = [t.astype(np.float64) - m for t, m in zip(P["tile_samples"][0], P["tile_master"])]
-    tb = [t.astype(np.float64) - m for t, m in zip(P["tile_samples"][1], P["tile_master"])]
+    ta = (t.astype(np.float64) - m for t, m in zip(P["tile_samples"][0], P["tile_master"]))
+    tb = (t.astype(np.float64) - m for t, m in zip(P["tile_samples"][1], P["tile_master"]))
     pt = photon_transfer_samples(a, b, ta, tb, f0.shape[0] * f0.shape[1], read)
     s = pt["scale_second_flat"]
     mf_sample = 0.5 * (S[id(f0)].astype(np.float64) + s * S[id(f1)].astype(np.float64)) - master_sample
