@@ -1151,10 +1151,10 @@ def prnu_and_vignetting(mean_flat, temporal_var_adu2: float, smooth_px: float = 
         for k, (y0, y1, x0, x1) in boxes.items():
             a, b = max(y0, r0), min(y1, r1)
             if a < b:
-                G.add(k, sm[a - r0:b - r0, x0:x1].ravel())
+                G.add(k, sm[a - r0:b - r0, x0:x1].flatten())
         smin = min(smin, float(sm.min()))
         first = (-r0) % step
-        thumb.append(sm[first::step, ::step])
+        thumb.append(sm[first::step, ::step].copy())  # a copy: a view would keep the whole band alive
     rs = clipped_stats(G.get("ratio"), 5.0)
     S = cs["median"]
     var_rel = rs["std"] ** 2 - temporal_var_adu2 / (S * S)
@@ -2138,7 +2138,7 @@ def _camera_twin(result, bias, darks, flats, nsigma, hot_threshold_s, B: _Bands)
             for k, (y0, y1, x0, x1) in enumerate(boxes):
                 a, b = max(y0, r0), min(y1, r1)
                 if a < b:
-                    vals[k].append(v[a - r0:b - r0, x0:x1].ravel())
+                    vals[k].append(v[a - r0:b - r0, x0:x1].flatten())
         med_box = [np.median(np.concatenate(v)) for v in vals]  # float32, as the whole-frame code had
         finfo["vignetting_corner_over_centre"] = float(np.mean(med_box[1:]) / float(med_box[0]))
         info["flat"] = finfo

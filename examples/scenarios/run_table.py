@@ -271,7 +271,12 @@ def thesis_main(a) -> int:
         task = prog.add_task("", total=len(rows))
         for t in rows:
             prog.update(task, description=t["label"][:40])
-            comps.append(compare_row(t, out / "fits", a.set, a.nsigma, keep=False))
+            try:
+                comps.append(compare_row(t, out / "fits", a.set, a.nsigma, keep=False))
+            except Exception as exc:  # one row's failure (a scene error) does not lose the others
+                print(f"{t['label']}: {type(exc).__name__}: {exc}", file=sys.stderr)
+                comps.append({"tables": t["tables"], "label": t["label"], "scenario": t["scenario"], "frame": "-",
+                              "error": f"{type(exc).__name__}: {exc}", "quantities": []})
             prog.advance(task)
     md = thesis_markdown(comps)
     (out / "thesis.md").write_text(md)
