@@ -73,8 +73,12 @@ def load_thesis(path: Path = THESIS_FILE) -> list[dict]:
     ``"<1"`` where the thesis gives none)."""
     import tomllib
 
-    rows = tomllib.loads(Path(path).read_text())["row"]
+    data = tomllib.loads(Path(path).read_text())
+    rows = data["row"]
+    defaults = data.get("defaults", {}).get("scenario_set", [])
     for i, r in enumerate(rows):
+        if r.get("defaults"):
+            r["set"] = list(defaults) + list(r.get("set", []))
         where = f"{path}: row {i + 1} ({r.get('label')!r})"
         if not r.get("tables") or not set(r["tables"]) <= set(THESIS_TABLES):
             raise ValueError(f"{where}: tables {r.get('tables')} not among {THESIS_TABLES}")
