@@ -85,7 +85,10 @@ class FitsRows:
             self.close()
             raise DetectorError(f"{what} is truncated ({exc})", file=self.path,
                                 expected="a complete FITS file") from None
-        except Exception as exc:  # astropy raises OSError/ValueError/TypeError/IndexError for damaged files
+        except MemoryError:
+            self.close()
+            raise
+        except Exception as exc:  # noqa: BLE001 -- astropy raises OSError/ValueError/TypeError/IndexError
             self.close()
             raise DetectorError(f"{what} cannot be read as FITS ({type(exc).__name__}: {exc})", file=self.path,
                                 expected="a complete FITS file") from None
@@ -124,7 +127,9 @@ class FitsRows:
         """Rows ``a:b`` as stored (scaled), not converted."""
         try:
             return self._read(a, b)
-        except Exception as exc:
+        except MemoryError:
+            raise
+        except Exception as exc:  # noqa: BLE001 -- a damaged file: one line naming it
             raise DetectorError(f"file cannot be read at rows {a}:{b} ({type(exc).__name__}: {exc})",
                                 file=self.path, expected="a complete FITS file") from None
 
@@ -149,7 +154,7 @@ class Sampler:
         self.y0, self.y1, self.x0, self.x1 = region if region is not None else (0, h, 0, w)
         self.rw = self.x1 - self.x0
         n = (self.y1 - self.y0) * self.rw
-        self.step = int(math.ceil(n / max_n)) if n > max_n else 1
+        self.step = math.ceil(n / max_n) if n > max_n else 1
         self.n = n
 
     def take(self, r0: int, band: np.ndarray) -> np.ndarray:
@@ -231,7 +236,7 @@ class BandStore:
     def __del__(self):
         try:
             self.close()
-        except Exception:
+        except OSError:  # interpreter shutdown: the file may already be gone
             pass
 
 

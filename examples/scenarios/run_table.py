@@ -97,9 +97,9 @@ def _scene_with_object(path: Path, obj: dict | None):
     """The scene file, or (``obj``) a temporary copy beside it with ``obj`` merged into its first object."""
     import contextlib
     import tempfile
-    import tomllib
 
     import tomli_w
+    import tomllib
 
     if not obj:
         return contextlib.nullcontext(path)
@@ -277,7 +277,7 @@ def thesis_main(a) -> int:
             prog.update(task, description=t["label"][:40])
             try:
                 comps.append(compare_row(t, out / "fits", a.set, a.nsigma, keep=False))
-            except Exception as exc:  # one row's failure (a scene error) does not lose the others
+            except Exception as exc:  # noqa: BLE001 -- one row's failure (a scene error) does not lose the others
                 print(f"{t['label']}: {type(exc).__name__}: {exc}", file=sys.stderr)
                 comps.append({"tables": t["tables"], "label": t["label"], "scenario": t["scenario"], "frame": "-",
                               "error": f"{type(exc).__name__}: {exc}", "quantities": []})

@@ -14,7 +14,7 @@ import pytest
 
 ROOT = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(ROOT / "examples" / "scenarios"))
-import run_table  # noqa: E402
+import run_table
 
 THESIS = ROOT / ".." / "shared" / "reference" / "thesis.txt"
 
