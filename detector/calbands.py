@@ -204,6 +204,11 @@ class BandStore:
         self.dtype = np.dtype(dtype)
         fd, self.path = tempfile.mkstemp(prefix="newtsim_band_", suffix=".raw", dir=folder)
         self._f = os.fdopen(fd, "w+b")
+        try:  # unlinked at once (POSIX): the space comes back when the file is closed, even if killed
+            os.unlink(self.path)
+            self._unlinked = True
+        except OSError:
+            self._unlinked = False
         self._f.truncate(self.shape[0] * self.shape[1] * self.dtype.itemsize)
         self.ndim = 2
         self.size = self.shape[0] * self.shape[1]
@@ -228,10 +233,11 @@ class BandStore:
         if self._f is not None:
             self._f.close()
             self._f = None
-            try:
-                os.unlink(self.path)
-            except OSError:
-                pass
+            if not self._unlinked:
+                try:
+                    os.unlink(self.path)
+                except OSError:
+                    pass
 
     def __del__(self):
         try:

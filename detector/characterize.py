@@ -503,7 +503,7 @@ def _column_medians(store: BandStore, block: int = 512) -> np.ndarray:
     out = np.empty(w, np.float64)
     for c0 in range(0, w, block):
         # a fresh map per block: the pages it touches leave the resident set when it is dropped
-        mm = np.memmap(store.path, dtype=store.dtype, mode="r", shape=store.shape)
+        mm = np.memmap(store._f, dtype=store.dtype, mode="r", shape=store.shape)
         out[c0:c0 + block] = np.median(np.asarray(mm[:, c0:c0 + block], dtype=np.float64), axis=0)
         del mm
     return out
