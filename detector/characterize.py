@@ -48,9 +48,16 @@ transfer gain, else 1.0 with a warning.
 Public API: :func:`characterize` (files in, dict out), :func:`emit_scene_dict` (dict in, scene tables out),
 :func:`detector.calplots.write_plots` (dict in, PNG files out); the pure functions (:func:`clipped_stats`,
 :func:`pair_noise`, :func:`normality_tests`, :func:`linear_fit`, :func:`fit_lifetimes`,
-:func:`photon_transfer`, :func:`prnu_and_vignetting` ...) work on plain arrays. Memory: every dark, its
-bias-subtracted copy and the master bias are held as float32 (about ``(2 n_exposures + 4) x 4`` bytes per
-pixel); statistics use at most ``MAX_STAT_PIXELS`` pixels (a regular sub-grid).
+:func:`photon_transfer`, :func:`prnu_and_vignetting` ...) work on plain arrays.
+
+Memory (issue 12: a full 14192 x 10640 IMX411 set of 7 frames in at most 3 GiB): the frames are read band
+by band (:mod:`detector.calbands`, row bands of ``BAND_PIXELS`` pixels); the robust statistics use at most
+``MAX_STAT_PIXELS`` pixels of every frame (a regular sub-grid, :func:`detector.stats.subsample`, gathered
+in the first pass: the very values the whole-frame code used); counts, outliers, column and row medians and
+the smoothing of the flat are exact over all pixels (the smoothing on bands with a halo of ``4 sigma``
+rows). The master bias and the camera twin's per-pixel maps live in float32 temporary files and are written
+to FITS band by band. A frame of at most ``BAND_PIXELS`` pixels is one band: the same arithmetic as the
+whole-frame code.
 """
 
 from __future__ import annotations
@@ -58,11 +65,14 @@ from __future__ import annotations
 import math
 import warnings
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Iterable, Sequence
 
 import numpy as np
+from astropy.io import fits
 from scipy import ndimage, stats
 
+from .calbands import BandStore, FitsRows, Gather, Sampler, as_rows, band_rows, bands, halo_rows
 from .errors import DetectorError
 from .fits_io import read_image
 from .jsonable import jsonable
@@ -80,14 +90,27 @@ TEMP_KEYS = ("CCD-TEMP", "CCDTEMP", "TEMPERAT", "DET-TEMP")
 
 @dataclass
 class Frame:
-    """One calibration frame as read from disk."""
+    """One calibration frame: its header values and its pixels, in memory (``data``) or read by rows (``src``)."""
 
     path: str
-    data: np.ndarray  # float32, 2-D, ADU
+    data: np.ndarray | None  # float32, 2-D, ADU (None when read band by band)
     header: dict = field(repr=False)
     exptime_s: float | None
     saturation_adu: float
     temperature_c: float | None
+    src: object = field(default=None, repr=False)  # a rows(a, b) source (detector.calbands.FitsRows)
+    shape: tuple = ()
+    checks: dict = field(default_factory=dict, repr=False)  # filled by the first pass (sanity checks)
+
+    def rows(self, a: int, b: int) -> np.ndarray:
+        """Rows ``a:b`` as float32 [ADU]."""
+        if self.src is None:
+            return self.data[a:b]
+        return self.src.rows(a, b).astype(np.float32)
+
+    def close(self) -> None:
+        if self.src is not None and hasattr(self.src, "close"):
+            self.src.close()
 
 
 def _card(header, keys: Iterable[str]):
@@ -97,8 +120,39 @@ def _card(header, keys: Iterable[str]):
     return None, None
 
 
+def _header_values(name: str, header, role: str, need_exptime: bool):
+    exptime = None
+    key, val = _card(header, EXPTIME_KEYS)
+    if key is None:
+        if need_exptime:
+            raise DetectorError(f"{role} frame has no exposure time", key="EXPTIME", file=name,
+                                expected="header card EXPTIME (or EXPOSURE) in seconds")
+    else:
+        try:
+            exptime = float(val)
+        except (TypeError, ValueError):
+            raise DetectorError(f"exposure time {val!r} is not a number", key=key, file=name,
+                                expected="a number of seconds >= 0") from None
+        if not math.isfinite(exptime) or exptime < 0:
+            raise DetectorError(f"exposure time {val!r}", key=key, file=name, expected="a number of seconds >= 0")
+    _, t = _card(header, TEMP_KEYS)
+    try:
+        temp = float(t) if t is not None else None
+    except (TypeError, ValueError):
+        temp = None
+    return exptime, temp
+
+
+def _nonfinite_error(name: str, role: str, arr: np.ndarray, row0: int = 0, count: int | None = None):
+    finite = np.isfinite(arr)
+    bad = np.argwhere(~finite)[0]
+    n = int((~finite).sum()) if count is None else count
+    raise DetectorError(f"{role} image has {n} non-finite pixels, first at (x={bad[1]}, y={bad[0] + row0})",
+                        file=name, expected="finite pixel values")
+
+
 def read_frame(path, *, role: str = "frame", need_exptime: bool = False) -> Frame:
-    """Read and validate one FITS calibration frame.
+    """Read and validate one FITS calibration frame, whole, into memory (small frames; see :func:`open_frame`).
 
     Checks: the file exists and is a readable FITS file, holds a 2-D image (the first HDU with one), all
     pixels finite, and (``need_exptime``) an ``EXPTIME`` or ``EXPOSURE`` card >= 0 s. Every failure is a
@@ -118,32 +172,31 @@ def read_frame(path, *, role: str = "frame", need_exptime: bool = False) -> Fram
     if data.dtype.kind not in "iuf":
         raise DetectorError(f"{role} image has data type {data.dtype}", file=name, expected="numbers")
     arr = data.astype(np.float32)
-    finite = np.isfinite(arr)
-    if not finite.all():
-        bad = np.argwhere(~finite)[0]
-        raise DetectorError(f"{role} image has {int((~finite).sum())} non-finite pixels, first at "
-                            f"(x={bad[1]}, y={bad[0]})", file=name, expected="finite pixel values")
-    exptime = None
-    key, val = _card(header, EXPTIME_KEYS)
-    if key is None:
-        if need_exptime:
-            raise DetectorError(f"{role} frame has no exposure time", key="EXPTIME", file=name,
-                                expected="header card EXPTIME (or EXPOSURE) in seconds")
-    else:
-        try:
-            exptime = float(val)
-        except (TypeError, ValueError):
-            raise DetectorError(f"exposure time {val!r} is not a number", key=key, file=name,
-                                expected="a number of seconds >= 0") from None
-        if not math.isfinite(exptime) or exptime < 0:
-            raise DetectorError(f"exposure time {val!r}", key=key, file=name, expected="a number of seconds >= 0")
+    if not np.isfinite(arr).all():
+        _nonfinite_error(name, role, arr)
+    exptime, temp = _header_values(name, header, role, need_exptime)
     sat = _saturation_adu(header, data)
-    _, t = _card(header, TEMP_KEYS)
+    return Frame(name, arr, header, exptime, sat, temp, shape=arr.shape)
+
+
+def open_frame(path, *, role: str = "frame", need_exptime: bool = False) -> Frame:
+    """Open one FITS calibration frame for reading band by band (:class:`detector.calbands.FitsRows`).
+
+    The header is checked here (2-D image, numeric type, exposure time); the pixels (finite values) in the
+    first pass of :func:`characterize`. Same errors as :func:`read_frame`.
+    """
+    name = str(path)
+    src = FitsRows(path, role=role)
     try:
-        temp = float(t) if t is not None else None
-    except (TypeError, ValueError):
-        temp = None
-    return Frame(name, arr, header, exptime, sat, temp)
+        header = dict(src.header)
+        if src.dtype.kind not in "iuf":
+            raise DetectorError(f"{role} image has data type {src.dtype}", file=name, expected="numbers")
+        exptime, temp = _header_values(name, header, role, need_exptime)
+        sat = _saturation_adu(header, np.zeros(0, src.dtype))
+    except BaseException:
+        src.close()
+        raise
+    return Frame(name, None, header, exptime, sat, temp, src=src, shape=src.shape)
 
 
 def _saturation_adu(header, raw: np.ndarray) -> float:
@@ -166,17 +219,22 @@ def _saturation_adu(header, raw: np.ndarray) -> float:
 
 
 def read_frames(paths: Sequence, role: str, *, need_exptime: bool, shape: tuple | None = None,
-                shape_file: str | None = None) -> list[Frame]:
-    """Read several frames of one role; all must have ``shape`` (or the first frame's shape)."""
+                shape_file: str | None = None, lazy: bool = False) -> list[Frame]:
+    """Read (or, ``lazy``, open for band reading) several frames of one role; all of ``shape`` (or the first's)."""
     out = []
-    for p in paths:
-        f = read_frame(p, role=role, need_exptime=need_exptime)
-        if shape is None:
-            shape, shape_file = f.data.shape, f.path
-        elif f.data.shape != tuple(shape):
-            raise DetectorError(f"{role} frame is {f.data.shape[1]}x{f.data.shape[0]} pixels but {shape_file} is "
-                                f"{shape[1]}x{shape[0]}", file=f.path, expected="frames of one size")
-        out.append(f)
+    try:
+        for p in paths:
+            f = (open_frame if lazy else read_frame)(p, role=role, need_exptime=need_exptime)
+            out.append(f)
+            if shape is None:
+                shape, shape_file = f.shape, f.path
+            elif tuple(f.shape) != tuple(shape):
+                raise DetectorError(f"{role} frame is {f.shape[1]}x{f.shape[0]} pixels but {shape_file} is "
+                                    f"{shape[1]}x{shape[0]}", file=f.path, expected="frames of one size")
+    except BaseException:
+        for f in out:
+            f.close()
+        raise
     return out
 
 
@@ -331,46 +389,186 @@ def lifetime_cdf(fits: dict, t_s: float, law: str | None = None) -> float:
 
 
 # ============================================================================================
+# band passes
+# ============================================================================================
+
+class _Bands:
+    """Row bands of one frame shape and the progress callback: ``for r0, r1 in bands.run("label")``."""
+
+    def __init__(self, shape, band_pixels: int | None = None, progress=None):
+        self.shape = tuple(shape)
+        self.rows = band_rows(self.shape, band_pixels)
+        self.progress = progress
+        self.n = int(math.ceil(self.shape[0] / self.rows))
+
+    def run(self, label: str):
+        if self.progress:
+            self.progress(label, 0, self.n)
+        for k, (r0, r1) in enumerate(bands(self.shape, self.rows)):
+            yield r0, r1
+            if self.progress:
+                self.progress(label, k + 1, self.n)
+
+
+def _mean32(arrs: Sequence[np.ndarray]) -> np.ndarray:
+    """Pixel mean of frames as float32 (float64 accumulation), or the one frame itself."""
+    if len(arrs) == 1:
+        return arrs[0]
+    return np.mean(arrs, axis=0, dtype=np.float64).astype(np.float32)
+
+
+def _group_by_time(frames: Sequence[Frame]) -> tuple[np.ndarray, list[list[Frame]]]:
+    by_t: dict[float, list[Frame]] = {}
+    for f in frames:
+        by_t.setdefault(float(f.exptime_s), []).append(f)
+    ts = np.array(sorted(by_t))
+    return ts, [by_t[t] for t in ts]
+
+
+def _tiles(shape, tiles: int = 4) -> list[tuple[int, int, int, int]]:
+    h, w = shape
+    return [(i * h // tiles, (i + 1) * h // tiles, j * w // tiles, (j + 1) * w // tiles)
+            for i in range(tiles) for j in range(tiles)]
+
+
+def _first_pass(bias, darks, flats, groups, B: _Bands, thresholds) -> dict:
+    """One pass over every frame: regular subsamples (the robust statistics), finiteness, the checks of
+    :func:`sanity_checks`, the master bias (to a float32 band store), its row medians, and the counts of
+    bias-subtracted dark pixels above the fixed thresholds."""
+    frames = list(bias) + list(darks) + list(flats)
+    shape = B.shape
+    h, w = shape
+    S4, S1 = Sampler(shape), Sampler(shape, 1_000_000)
+    tiles = _tiles(shape) if flats else []
+    # the 16 tiles' subsamples together hold as many values as the frame's (small frames: every pixel)
+    St = [Sampler(shape, MAX_STAT_PIXELS // max(len(tiles), 1), region=t) for t in tiles]
+    G = Gather()
+    master = BandStore(shape, np.float32)
+    row_med = np.empty(h, np.float64)
+    roles = [("bias", bias), ("dark", darks), ("flat", flats)]
+    same = {id(f): [True] * len(fr) for _, fr in roles for f in fr}
+    lo = {id(f): math.inf for f in frames}
+    hi = {id(f): -math.inf for f in frames}
+    counts = [{thr: 0 for thr in thresholds} for _ in groups]
+    for r0, r1 in B.run("read frames, master bias"):
+        raw = {id(f): f.rows(r0, r1) for f in frames}
+        for k, f in enumerate(frames):
+            a = raw[id(f)]
+            if a.dtype.kind == "f" and not np.isfinite(a).all():
+                _nonfinite_error(f.path, f.checks.get("role", "frame"), a, r0)
+            G.add(f"s{k}", S4.take(r0, a))
+            G.add(f"q{k}", S1.take(r0, a))
+            lo[id(f)] = min(lo[id(f)], float(a.min()))
+            hi[id(f)] = max(hi[id(f)], float(a.max()))
+            if r0 == 0:
+                f.checks["head"] = a[:16, :16].copy()
+        for _, fr in roles:
+            for i, a in enumerate(fr):
+                for j in range(i + 1, len(fr)):
+                    if same[id(a)][j]:
+                        same[id(a)][j] = bool(np.array_equal(raw[id(a)], raw[id(fr[j])]))
+        m = _mean32([raw[id(f)] for f in bias])
+        master.write(r0, m)
+        row_med[r0:r1] = np.median(m.astype(np.float64), axis=1)
+        for k, f in enumerate(flats):
+            for t, s in enumerate(St):
+                G.add(f"t{k}_{t}", s.take(r0, raw[id(f)]))
+        for t, s in enumerate(St):
+            G.add(f"tm_{t}", s.take(r0, m))
+        for gi, g in enumerate(groups):
+            x = _mean32([raw[id(f)] for f in g]) - m
+            for thr in thresholds:
+                counts[gi][thr] += int(np.count_nonzero(x > thr))
+        del raw
+    for _, fr in roles:
+        for i, a in enumerate(fr):
+            a.checks["identical_to"] = next((fr[j].path for j in range(i + 1, len(fr)) if same[id(a)][j]), None)
+    for k, f in enumerate(frames):
+        q = G.get(f"q{k}")
+        f.checks["saturated_fraction"] = float(np.mean(q >= f.saturation_adu - 0.5)) \
+            if math.isfinite(f.saturation_adu) and q.size else 0.0
+        f.checks["constant"] = lo[id(f)] == hi[id(f)]
+        f.checks["first_value"] = lo[id(f)]
+    samples = {id(f): G.get(f"s{k}").astype(np.float32) for k, f in enumerate(frames)}
+    return {"samples": samples, "master": master, "row_median": row_med, "counts": counts, "tiles": tiles,
+            "tile_samples": [[G.get(f"t{k}_{t}").astype(np.float32) for t in range(len(tiles))]
+                             for k in range(len(flats))],
+            "tile_master": [G.get(f"tm_{t}").astype(np.float32) for t in range(len(tiles))]}
+
+
+def _column_medians(store: BandStore, block: int = 512) -> np.ndarray:
+    """Median of every column of a float32 band store (column blocks through a read-only memory map)."""
+    h, w = store.shape
+    store._f.flush()
+    out = np.empty(w, np.float64)
+    for c0 in range(0, w, block):
+        # a fresh map per block: the pages it touches leave the resident set when it is dropped
+        mm = np.memmap(store._f, dtype=store.dtype, mode="r", shape=store.shape)
+        out[c0:c0 + block] = np.median(np.asarray(mm[:, c0:c0 + block], dtype=np.float64), axis=0)
+        del mm
+    return out
+
+
+# ============================================================================================
 # bias
 # ============================================================================================
 
-def analyze_bias(frames: Sequence[Frame], rng: np.random.Generator) -> tuple[dict, np.ndarray, list[str]]:
-    """Bias level, temporal read noise, fixed pattern and normality. Returns (result, master bias, warnings)."""
+def analyze_bias(frames: Sequence[Frame], rng: np.random.Generator, samples: dict | None = None,
+                 column_median=None, row_median=None) -> tuple[dict, np.ndarray | None, list[str]]:
+    """Bias level, temporal read noise, fixed pattern and normality. Returns (result, master bias, warnings).
+
+    In memory (frames with ``data``): as written. Band by band (:func:`characterize`): ``samples`` maps each
+    frame's ``id`` to its regular subsample (:func:`detector.stats.subsample`, the values every statistic
+    here uses), ``column_median`` and ``row_median`` are the master's column and row medians; the master
+    itself is then not returned (None).
+    """
     warns: list[str] = []
-    stack = [f.data for f in frames]
-    master = np.mean(stack, axis=0, dtype=np.float64).astype(np.float32) if len(stack) > 1 else stack[0].copy()
-    ms = clipped_stats(master, sigma=5.0)
-    single = clipped_stats(frames[0].data, sigma=5.0)
+    master = None
+    if samples is None:
+        master = _mean32([f.data for f in frames]).copy()
+        samples = {id(f): subsample(f.data) for f in frames}
+        m64 = master.astype(np.float64)
+        column_median, row_median = np.median(m64, axis=0), np.median(m64, axis=1)
+        del m64
+    ms_v = _mean32([samples[id(f)] for f in frames])  # the master's subsample
+    s0 = samples[id(frames[0])]
+    ms = clipped_stats(ms_v, sigma=5.0)
+    single = clipped_stats(s0, sigma=5.0)
     res: dict = {
         "n_frames": len(frames),
         "files": [f.path for f in frames],
-        "level_median_adu": float(np.median(subsample(master))),
+        "level_median_adu": float(np.median(ms_v)),
         "level_mean_adu": ms["mean"],
-        "level_mean_all_adu": float(subsample(master).mean(dtype=np.float64)),
-        "frame_medians_adu": [float(np.median(subsample(f.data))) for f in frames],
+        "level_mean_all_adu": float(ms_v.mean(dtype=np.float64)),
+        "frame_medians_adu": [float(np.median(samples[id(f)])) for f in frames],
         "single_frame_std_adu": single["std"],
-        "single_frame_std_unclipped_adu": float(subsample(frames[0].data).std(dtype=np.float64)),
+        "single_frame_std_unclipped_adu": float(s0.std(dtype=np.float64)),
     }
     for f in frames:
         if f.exptime_s is not None and f.exptime_s > 1.0:
             warns.append(f"{f.path}: bias frame has an exposure time of {f.exptime_s} s")
     if len(frames) >= 2:
         pairs = [(frames[i], frames[i + 1]) for i in range(0, len(frames) - 1, 2)]
-        pn = [pair_noise(a.data, b.data) for a, b in pairs]
+        pn = [pair_noise(samples[id(a)], samples[id(b)]) for a, b in pairs]
         var = float(np.mean([p["sigma_adu"] ** 2 for p in pn]))
         read = math.sqrt(var)
         res["read_noise_adu"] = read
         res["read_noise_mad_adu"] = float(np.sqrt(np.mean([p["sigma_mad_adu"] ** 2 for p in pn])))
         res["read_noise_unclipped_adu"] = float(np.sqrt(np.mean([p["sigma_unclipped_adu"] ** 2 for p in pn])))
+        n_pix = frames[0].shape[0] * frames[0].shape[1]
+        # the pair noise's n counts the subsample: the standard error is that of the sample used
         res["read_noise_se_adu"] = read / math.sqrt(2 * sum(p["n"] for p in pn))
         res["read_noise_method"] = "std(b1 - b2)/sqrt(2), 5-sigma clipped, over consecutive pairs"
+        if n_pix > MAX_STAT_PIXELS:
+            res["read_noise_method"] += f" (regular subsample of {MAX_STAT_PIXELS} pixels at most)"
         res["pair_difference_mean_adu"] = pn[0]["diff_mean_adu"]
-        d = pairs[0][0].data.astype(np.float64) - pairs[0][1].data.astype(np.float64)
+        d = samples[id(pairs[0][0])].astype(np.float64) - samples[id(pairs[0][1])].astype(np.float64)
         cd = clipped_stats(d, sigma=5.0)
         dv = subsample(d)
         dv = dv[(dv >= cd["lo"]) & (dv <= cd["hi"])]
         sample = rng.choice(dv, size=min(NORMALITY_SAMPLE, dv.size), replace=False)
-        integer = bool(np.all(np.floor(frames[0].data[:8, :8]) == frames[0].data[:8, :8]))
+        head = frames[0].data[:8, :8] if frames[0].data is not None else frames[0].checks["head"][:8, :8]
+        integer = bool(np.all(np.floor(head) == head))
         res["normality"] = normality_tests(sample, rng, dither=integer)
         res["normality"]["data"] = "pair difference b1 - b2 [ADU], 5-sigma clipped, random subsample"
         fp2 = single["std"] ** 2 - read ** 2
@@ -391,11 +589,9 @@ def analyze_bias(frames: Sequence[Frame], rng: np.random.Generator) -> tuple[dic
         res["fixed_pattern_std_adu"] = math.nan
         res["plot_data"] = {}
         warns.append("one bias frame: the read noise includes the bias fixed pattern (give two bias frames)")
-    m64 = master.astype(np.float64)
-    res["column_pattern_std_adu"] = float(clipped_stats(np.median(m64, axis=0), 5.0)["std"])
-    res["row_pattern_std_adu"] = float(clipped_stats(np.median(m64, axis=1), 5.0)["std"])
-    res["plot_data"]["single_frame_hist"] = _int_histogram(subsample(frames[0].data), single["median"],
-                                                           single["std"])
+    res["column_pattern_std_adu"] = float(clipped_stats(np.asarray(column_median), 5.0)["std"])
+    res["row_pattern_std_adu"] = float(clipped_stats(np.asarray(row_median), 5.0)["std"])
+    res["plot_data"]["single_frame_hist"] = _int_histogram(s0, single["median"], single["std"])
     res["plot_data"]["single_frame_mean_std"] = [single["mean"], single["std"]]
     temps = [f.temperature_c for f in frames if f.temperature_c is not None]
     res["temperature_c"] = float(np.mean(temps)) if temps else None
@@ -418,27 +614,58 @@ def _int_histogram(v: np.ndarray, centre: float, sigma: float, nsig: float = 5.0
 # darks and hot pixels
 # ============================================================================================
 
-def _group_darks(frames: Sequence[Frame]) -> tuple[np.ndarray, list[np.ndarray], list[list[Frame]]]:
-    by_t: dict[float, list[Frame]] = {}
-    for f in frames:
-        by_t.setdefault(float(f.exptime_s), []).append(f)
-    ts = np.array(sorted(by_t))
-    groups = [by_t[t] for t in ts]
-    images = [np.mean([f.data for f in g], axis=0, dtype=np.float64).astype(np.float32) if len(g) > 1
-              else g[0].data for g in groups]
-    return ts, images, groups
-
-
 def detect_outliers(x_long: np.ndarray, nsigma: float) -> tuple[np.ndarray, dict]:
     """Pixels of a bias-subtracted dark more than ``nsigma`` robust sigma above its clipped centre.
 
     Returns the flat indices and the detection statistics (centre, sigma and threshold, in ADU above bias).
     """
-    cs = clipped_stats(x_long, sigma=3.0)
+    det = _detection(x_long, nsigma)
+    return np.flatnonzero(x_long.ravel() > det["threshold_adu"]), det
+
+
+def _detection(sample: np.ndarray, nsigma: float) -> dict:
+    """Detection threshold from (a regular subsample of) the longest bias-subtracted dark."""
+    cs = clipped_stats(sample, sigma=3.0)
     thr = cs["median"] + nsigma * cs["std"]
-    idx = np.flatnonzero(x_long.ravel() > thr)
-    return idx, {"centre_adu": cs["median"], "robust_sigma_adu": cs["std"], "threshold_adu": float(thr),
-                 "nsigma": nsigma}
+    return {"centre_adu": cs["median"], "robust_sigma_adu": cs["std"], "threshold_adu": float(thr),
+            "nsigma": nsigma}
+
+
+class _OutlierGather:
+    """The pixels :func:`analyze_hot_pixels` needs, gathered band by band.
+
+    Outliers: pixels of the longest dark of ``sel`` (exposure indices) above ``threshold``; with their values
+    in every selected dark, their saturation flags and their master-bias values. Candidates stuck in the
+    bias: master above ``master_threshold``, with their values in the selected darks.
+    """
+
+    def __init__(self, sel: Sequence[int], threshold: float, master_threshold: float | None, width: int):
+        self.sel, self.thr, self.mthr, self.w = list(sel), threshold, master_threshold, width
+        self.idx, self.Y, self.sat, self.m = [], [], [], []
+        self.cand, self.cand_x, self.cand_m = [], [], []
+
+    def add(self, r0: int, xs: Sequence[np.ndarray], sats: Sequence[np.ndarray] | None, master: np.ndarray | None):
+        xl = xs[self.sel[-1]]
+        hit = np.flatnonzero(xl.ravel() > self.thr)
+        off = r0 * self.w
+        self.idx.append(hit + off)
+        self.Y.append(np.stack([xs[j].ravel()[hit] for j in self.sel], axis=1))
+        self.sat.append(np.stack([sats[j].ravel()[hit] for j in self.sel], axis=1) if sats is not None
+                        else np.zeros((hit.size, len(self.sel)), bool))
+        self.m.append(master.ravel()[hit] if master is not None else np.zeros(hit.size, np.float32))
+        if master is not None and self.mthr is not None:
+            c = np.flatnonzero(master.ravel() > self.mthr)
+            self.cand.append(c + off)
+            self.cand_x.append(np.stack([xs[j].ravel()[c] for j in self.sel], axis=1))
+            self.cand_m.append(master.ravel()[c])
+
+    def result(self) -> dict:
+        n = len(self.sel)
+        cat = lambda p, shape, dt: np.concatenate(p) if p else np.zeros(shape, dt)  # noqa: E731
+        return {"idx": cat(self.idx, 0, np.int64), "Y": cat(self.Y, (0, n), np.float32),
+                "sat": cat(self.sat, (0, n), bool), "master": cat(self.m, 0, np.float32),
+                "cand": cat(self.cand, 0, np.int64), "cand_x": cat(self.cand_x, (0, n), np.float32),
+                "cand_master": cat(self.cand_m, 0, np.float32), "has_master": self.mthr is not None}
 
 
 def analyze_hot_pixels(ts: np.ndarray, xs: Sequence[np.ndarray], sat_mask: Sequence[np.ndarray] | None,
@@ -469,14 +696,31 @@ def analyze_hot_pixels(ts: np.ndarray, xs: Sequence[np.ndarray], sat_mask: Seque
         bias level, and raw values in the darks within ``max(5 sqrt(1.5) sigma_read, 10 %)`` of it.
 
     Stuck pixels are the union of these and of the outliers of the longest dark that are already at half
-    their level or more at the shortest exposure (they do not grow with time).
+    their level or more at the shortest exposure (they do not grow with time). The work is done by
+    :func:`hot_pixels_from_gathered` (which :func:`characterize` feeds band by band).
     """
     h, w = xs[-1].shape
-    idx, det = detect_outliers(xs[-1], nsigma)
+    det = _detection(xs[-1], nsigma)
+    mthr = None
+    if master is not None:
+        mcs = clipped_stats(master, sigma=3.0)
+        mthr = mcs["median"] + nsigma * mcs["std"]
+    g = _OutlierGather(range(len(xs)), det["threshold_adu"], mthr, w)
+    g.add(0, xs, sat_mask, master)
+    return hot_pixels_from_gathered(ts, g.result(), det, (h, w), mean_rate_adu_s, bias_level_adu, nsigma,
+                                    read_noise_adu, keep_per_pixel)
+
+
+def hot_pixels_from_gathered(ts, g: dict, det: dict, shape, mean_rate_adu_s: float, bias_level_adu: float,
+                             nsigma: float, read_noise_adu: float, keep_per_pixel: bool = False) -> dict:
+    """:func:`analyze_hot_pixels` on the pixels :class:`_OutlierGather` collected (see there)."""
+    h, w = shape
+    det = dict(det)
     det["exposure_s"] = float(ts[-1])
+    idx = g["idx"]
     n_t = len(ts)
-    Y = np.stack([x.ravel()[idx] for x in xs], axis=1).astype(np.float64)  # (n_out, n_t)
-    valid = np.ones_like(Y, bool) if sat_mask is None else ~np.stack([m.ravel()[idx] for m in sat_mask], axis=1)
+    Y = g["Y"].astype(np.float64)  # (n_out, n_t)
+    valid = ~g["sat"]
     x_long = Y[:, -1]
     stuck = np.zeros(idx.size, bool)
     transient = np.zeros(idx.size, bool)
@@ -500,16 +744,14 @@ def analyze_hot_pixels(ts: np.ndarray, xs: Sequence[np.ndarray], sat_mask: Seque
         npts = np.ones(idx.size, int)
     # stuck in the bias frames too: high raw value that the darks do not change
     stuck_bias = np.zeros(0, np.int64)
-    if master is not None:
-        mcs = clipped_stats(master, sigma=3.0)
-        cand = np.flatnonzero(master.ravel() > mcs["median"] + nsigma * mcs["std"])
-        if cand.size:
-            lvl = master.ravel()[cand].astype(np.float64)
-            spread = np.max(np.abs(np.stack([x.ravel()[cand] for x in xs], axis=1)), axis=1)
-            tol = np.maximum(5 * math.sqrt(1.5) * read_noise_adu, 0.1 * (lvl - bias_level_adu))
-            keep = spread <= tol
-            stuck_bias = cand[keep]
-            stuck |= np.isin(idx, stuck_bias)
+    keep = np.zeros(0, bool)
+    if g["has_master"] and g["cand"].size:
+        lvl = g["cand_master"].astype(np.float64)
+        spread = np.max(np.abs(g["cand_x"]), axis=1)
+        tol = np.maximum(5 * math.sqrt(1.5) * read_noise_adu, 0.1 * (lvl - bias_level_adu))
+        keep = spread <= tol
+        stuck_bias = g["cand"][keep]
+        stuck |= np.isin(idx, stuck_bias)
     excess = rate - mean_rate_adu_s
     hot = ~stuck & ~transient & np.isfinite(excess) & (excess > 0)
     t2 = np.full(idx.size, np.nan)
@@ -552,8 +794,15 @@ def analyze_hot_pixels(ts: np.ndarray, xs: Sequence[np.ndarray], sat_mask: Seque
         counts, _ = np.histogram(tt, bins=edges)
         res["plot_data"] = {"t_double_hist": {"edges": edges.tolist(), "counts": counts.tolist()}}
     if stuck_all.size:
-        raw_long = (xs[-1].ravel()[stuck_all] + (master.ravel()[stuck_all] if master is not None
-                                                  else bias_level_adu)).astype(np.float64)
+        # raw value in the longest dark: bias-subtracted value + master (the bias level without a master)
+        vals = {}
+        m_out = g["master"] if g["has_master"] else np.full(idx.size, bias_level_adu, np.float32)
+        for i, v in zip(idx[stuck], (g["Y"][stuck, -1] + m_out[stuck]).astype(np.float64)):
+            vals[int(i)] = v
+        if keep.size:
+            for i, v in zip(g["cand"][keep], (g["cand_x"][keep, -1] + g["cand_master"][keep]).astype(np.float64)):
+                vals.setdefault(int(i), v)
+        raw_long = np.array([vals[int(i)] for i in stuck_all], np.float64)
         res["stuck_raw_level_adu"] = _summary(raw_long)
     order = np.argsort(-np.nan_to_num(rate, nan=-np.inf))[:20]
     cls = np.where(stuck, "stuck", np.where(transient, "transient", np.where(hot, "hot", "not_growing")))
@@ -576,26 +825,6 @@ def _summary(v: np.ndarray) -> dict:
             "max": float(p[4]), "mean": float(v.mean())}
 
 
-def _dark_table(ts, images, groups, master, thresholds, nsigma) -> tuple[list[dict], list[np.ndarray]]:
-    rows, xs = [], []
-    for t, img, g in zip(ts, images, groups):
-        cs = clipped_stats(img, sigma=3.0)
-        x = img - master
-        xcs = clipped_stats(x, sigma=3.0)
-        counts = {f"{thr:g}": int(np.count_nonzero(x > thr)) for thr in thresholds}
-        temps = [f.temperature_c for f in g if f.temperature_c is not None]
-        rows.append({"exposure_s": float(t), "n_frames": len(g), "files": [f.path for f in g],
-                     "median_adu": float(np.median(subsample(img))), "inlier_mean_adu": cs["mean"],
-                     "inlier_std_adu": cs["std"], "mean_all_adu": float(subsample(img).mean(dtype=np.float64)),
-                     "n_clipped": cs["n_rejected"],
-                     "dark_signal_inlier_mean_adu": xcs["mean"], "dark_robust_sigma_adu": xcs["std"],
-                     "count_above_bias_adu": counts,
-                     f"count_above_{nsigma:g}_sigma": int(np.count_nonzero(x > xcs["median"] + nsigma * xcs["std"])),
-                     "temperature_c": float(np.mean(temps)) if temps else None})
-        xs.append(x)
-    return rows, xs
-
-
 def _fit_levels(ts, rows, key="inlier_mean_adu", bias_level=None):
     y = [r[key] for r in rows]
     if len(ts) >= 2:
@@ -606,38 +835,63 @@ def _fit_levels(ts, rows, key="inlier_mean_adu", bias_level=None):
     return f
 
 
-def holdout_prediction(ts, rows, xs, sat_masks, hold: Sequence[float], bias_level: float, read_noise_adu: float,
-                       thresholds: Sequence[float], nsigma: float, master: np.ndarray | None = None) -> dict:
-    """Fit the dark line (and the hot-pixel law) on the other exposures; predict the held-out ones.
+def _sat_level(g: Sequence[Frame]) -> float:
+    return min(f.saturation_adu for f in g)
 
-    For every held-out exposure ``t_h``:
 
-    * the mean level (inlier mean) ``a + r t_h`` against the measured one, and the dark signal ``r t_h``
-      against ``mean(t_h) - a``;
-    * the number of pixels more than ``thr`` ADU above the bias, three ways: per pixel (each pixel's own
-      straight line, fitted on the other exposures, extrapolated); from the fitted time-to-double law
-      (``N_hot F(tau) + stuck pixels above thr``, with ``tau = B / (thr / t_h - r)`` the largest ``t_double``
-      that puts a pixel above ``thr``); and empirically (the fitted pixels with ``t_double < tau``). The
-      last two only see the hot pixels detected in the longest fitted dark: ``tau_within_detection_limit``
-      says whether ``tau`` lies inside that population (otherwise they undercount).
-    """
+def _dark_row(t, g, img_s, x_s, count_thr: dict, nsigma) -> dict:
+    cs = clipped_stats(img_s, sigma=3.0)
+    xcs = clipped_stats(x_s, sigma=3.0)
+    temps = [f.temperature_c for f in g if f.temperature_c is not None]
+    return {"exposure_s": float(t), "n_frames": len(g), "files": [f.path for f in g],
+            "median_adu": float(np.median(img_s)), "inlier_mean_adu": cs["mean"],
+            "inlier_std_adu": cs["std"], "mean_all_adu": float(img_s.mean(dtype=np.float64)),
+            "n_clipped": cs["n_rejected"],
+            "dark_signal_inlier_mean_adu": xcs["mean"], "dark_robust_sigma_adu": xcs["std"],
+            "count_above_bias_adu": {f"{thr:g}": int(n) for thr, n in count_thr.items()},
+            f"count_above_{nsigma:g}_sigma": None, "_xcs": xcs,
+            "temperature_c": float(np.mean(temps)) if temps else None}
+
+
+def _holdout_setup(ts, rows, hold, bias_level, read_noise_adu, nsigma, x_samples, master_thr):
+    """The fit on the exposures not held out, and the outlier gather of its longest exposure."""
     hold = sorted(float(h) for h in hold)
     fit_sel = np.array([not any(np.isclose(t, h) for h in hold) for t in ts])
-    hold_sel = ~fit_sel
-    if fit_sel.sum() < 2 or hold_sel.sum() < 1:
-        return {"note": "hold-out needs at least two fitted and one held-out exposure time",
-                "exposures_s": hold}
+    if fit_sel.sum() < 2 or (~fit_sel).sum() < 1:
+        return None
     tf = ts[fit_sel]
-    rows_f = [r for r, s in zip(rows, fit_sel) if s]
-    fit = _fit_levels(tf, rows_f)
-    xs_f = [x for x, s in zip(xs, fit_sel) if s]
-    sm_f = [m for m, s in zip(sat_masks, fit_sel) if s]
-    hp = analyze_hot_pixels(tf, xs_f, sm_f, fit["slope"], bias_level, nsigma, read_noise_adu, keep_per_pixel=True,
-                            master=master)
+    fit = _fit_levels(tf, [r for r, s in zip(rows, fit_sel) if s])
+    sel = list(np.flatnonzero(fit_sel))
+    det = _detection(x_samples[sel[-1]], nsigma)
+    return {"hold": hold, "fit_sel": fit_sel, "tf": tf, "fit": fit, "sel": sel, "det": det,
+            "n_pp": {float(t): {} for t, s in zip(ts, fit_sel) if not s}}
+
+
+def _holdout_band(H: dict, xs, sats, thresholds) -> None:
+    """Per-pixel extrapolation of one band (each pixel's line on the fitted darks) to the held-out exposures."""
+    xs_f = [xs[j] for j in H["sel"]]
+    sm_f = [sats[j] for j in H["sel"]]
+    w = xs_f[0].shape[1]
+    rows_per = max(1, 1_000_000 // w)
+    for r0 in range(0, xs_f[0].shape[0], rows_per):
+        Yc = np.stack([xx[r0:r0 + rows_per].ravel() for xx in xs_f], axis=1)
+        vc = ~np.stack([mm[r0:r0 + rows_per].ravel() for mm in sm_f], axis=1)
+        b, a, _ = masked_linear_fit(H["tf"], Yc, vc)
+        for t, acc in H["n_pp"].items():
+            p = a + b * t
+            p = np.where(np.isnan(p), np.inf, p)  # saturated in every fitted dark: above any threshold
+            for thr in thresholds:
+                acc[thr] = acc.get(thr, 0) + int(np.count_nonzero(p > thr))
+
+
+def _holdout_result(H, ts, rows, g_res, shape, bias_level, read_noise_adu, thresholds, nsigma) -> dict:
+    fit, tf = H["fit"], H["tf"]
+    hp = hot_pixels_from_gathered(tf, g_res, H["det"], shape, fit["slope"], bias_level, nsigma, read_noise_adu,
+                                  keep_per_pixel=True)
     pp = hp.pop("_per_pixel")
     preds = []
-    for t, r, x, sm, s in zip(ts, rows, xs, sat_masks, hold_sel):
-        if not s:
+    for t, r, s in zip(ts, rows, H["fit_sel"]):
+        if s:
             continue
         pred_level = fit["intercept"] + fit["slope"] * t
         meas_level = r["inlier_mean_adu"]
@@ -651,26 +905,15 @@ def holdout_prediction(ts, rows, xs, sat_masks, hold: Sequence[float], bias_leve
                  "dark_signal_adu": {"predicted": pred_sig, "measured": meas_sig,
                                      "rel_error": (pred_sig - meas_sig) / meas_sig if meas_sig else math.nan},
                  "count_above_bias_adu": {}}
-        # per-pixel extrapolation over all pixels, in chunks of rows
-        n_pp_all = {thr: 0 for thr in thresholds}
-        rows_per = max(1, 1_000_000 // x.shape[1])
-        for r0 in range(0, x.shape[0], rows_per):
-            Yc = np.stack([xx[r0:r0 + rows_per].ravel() for xx in xs_f], axis=1)
-            vc = ~np.stack([mm[r0:r0 + rows_per].ravel() for mm in sm_f], axis=1)
-            b, a, _ = masked_linear_fit(tf, Yc, vc)
-            p = a + b * t
-            p = np.where(np.isnan(p), np.inf, p)  # saturated in every fitted dark: above any threshold
-            for thr in thresholds:
-                n_pp_all[thr] += int(np.count_nonzero(p > thr))
         for thr in thresholds:
-            n_pp = n_pp_all[thr]
+            n_pp = H["n_pp"][float(t)][thr]
             tau = bias_level / (thr / t - fit["slope"]) if thr / t > fit["slope"] else math.inf
             stuck_above = int(np.count_nonzero(pp["stuck"] & (pp["x_long"] > thr)))
             n_hot = hp["n_hot"]
             law = hp["fits"].get("preferred")
             model = n_hot * (lifetime_cdf(hp["fits"], tau) if law else math.nan) + stuck_above
             emp = int(np.count_nonzero(pp["hot"] & (pp["t_double_s"] < tau))) + stuck_above
-            meas = r["count_above_bias_adu"].get(f"{thr:g}", int(np.count_nonzero(x > thr)))
+            meas = r["count_above_bias_adu"][f"{thr:g}"]
             entry["count_above_bias_adu"][f"{thr:g}"] = {
                 "measured": meas, "per_pixel_extrapolation": n_pp, "t_double_law": model,
                 "t_double_empirical": emp, "tau_s": tau,
@@ -678,23 +921,27 @@ def holdout_prediction(ts, rows, xs, sat_masks, hold: Sequence[float], bias_leve
                 "rel_error_per_pixel": (n_pp - meas) / meas if meas else math.nan,
                 "rel_error_t_double_law": (model - meas) / meas if meas else math.nan}
         preds.append(entry)
-    return {"exposures_s": [float(t) for t in ts[hold_sel]], "fit_exposures_s": tf.tolist(),
+    return {"exposures_s": [float(t) for t, s in zip(ts, H["fit_sel"]) if not s], "fit_exposures_s": tf.tolist(),
             "fit": {k: fit[k] for k in ("intercept", "slope", "intercept_se", "slope_se", "dof")},
             "hot_pixels_fit": {"n_hot": hp["n_hot"], "n_stuck": hp["n_stuck"], "fits": hp["fits"],
                                "detection": hp["detection"]},
             "predictions": preds}
 
 
-def analyze_darks(frames: Sequence[Frame], master: np.ndarray, bias_res: dict, gain: float,
-                  nsigma: float, thresholds: Sequence[float], holdout_exposures) -> tuple[dict, dict, list[str]]:
-    """Dark level vs exposure (thesis regression), DSNU, hot pixels, leave-one-out and hold-out."""
+def analyze_darks(groups, ts, P: dict, bias_res: dict, gain: float, nsigma: float, thresholds: Sequence[float],
+                  holdout_exposures, B: _Bands, master_sample: np.ndarray) -> tuple[dict, dict, list[str]]:
+    """Dark level vs exposure (thesis regression), DSNU, hot pixels, leave-one-out and hold-out.
+
+    The statistics come from the regular subsamples of the first pass (``P``); the counts above the
+    thresholds, the outliers and the hold-out's per-pixel extrapolation from one more pass over the darks.
+    """
     warns: list[str] = []
-    ts, images, groups = _group_darks(frames)
+    S = P["samples"]
     bias_level = bias_res["level_median_adu"]
     read = bias_res["read_noise_adu"]
-    rows, xs = _dark_table(ts, images, groups, master, thresholds, nsigma)
-    sat = [np.zeros(img.shape, bool) if not math.isfinite(min(f.saturation_adu for f in g))
-           else img >= min(f.saturation_adu for f in g) - 0.5 for img, g in zip(images, groups)]
+    img_s = [_mean32([S[id(f)] for f in g]) for g in groups]
+    x_s = [im - master_sample for im in img_s]
+    rows = [_dark_row(t, g, im, x, c, nsigma) for t, g, im, x, c in zip(ts, groups, img_s, x_s, P["counts"])]
     fit = _fit_levels(ts, rows, "inlier_mean_adu", bias_level)
     if len(ts) < 2:
         warns.append("darks at one exposure time only: dark rate from the line through the bias level")
@@ -704,6 +951,38 @@ def analyze_darks(frames: Sequence[Frame], master: np.ndarray, bias_res: dict, g
         r["predicted_inlier_mean_adu"] = fit["intercept"] + fit["slope"] * r["exposure_s"]
         r["residual_adu"] = r["inlier_mean_adu"] - r["predicted_inlier_mean_adu"]
     rate, rate_se = fit["slope"], fit["slope_se"]
+    if holdout_exposures is None:
+        holdout_exposures = [float(ts[-1])] if len(ts) >= 3 else []
+    unknown = [h for h in holdout_exposures if not np.isclose(ts, float(h)).any()]
+    if unknown:
+        raise DetectorError(f"hold-out exposure(s) {unknown} s not among the darks",
+                            key="holdout_exposures", expected="one of " + ", ".join(f"{t:g}" for t in ts))
+    # the pass over the darks: counts above n sigma, outliers of the longest dark, hold-out extrapolation
+    mcs = clipped_stats(master_sample, sigma=3.0)
+    mthr = mcs["median"] + nsigma * mcs["std"]
+    det = _detection(x_s[-1], nsigma)
+    h, w = B.shape
+    main = _OutlierGather(range(len(ts)), det["threshold_adu"], mthr, w)
+    H = _holdout_setup(ts, rows, holdout_exposures, bias_level, read, nsigma, x_s, mthr) \
+        if len(holdout_exposures) else None
+    hold_g = _OutlierGather(H["sel"], H["det"]["threshold_adu"], mthr, w) if H else None
+    n_sig = [0] * len(ts)
+    sat_lvl = [_sat_level(g) for g in groups]
+    for r0, r1 in B.run("darks: outliers and hold-out"):
+        m = P["master"].rows(r0, r1)
+        imgs = [_mean32([f.rows(r0, r1) for f in g]) for g in groups]
+        xs = [im - m for im in imgs]
+        sats = [np.zeros(im.shape, bool) if not math.isfinite(s) else im >= s - 0.5 for im, s in zip(imgs, sat_lvl)]
+        del imgs
+        for j, (x, r) in enumerate(zip(xs, rows)):
+            n_sig[j] += int(np.count_nonzero(x > r["_xcs"]["median"] + nsigma * r["_xcs"]["std"]))
+        main.add(r0, xs, sats, m)
+        if H:
+            hold_g.add(r0, xs, sats, m)
+            _holdout_band(H, xs, sats, thresholds)
+    for r, n in zip(rows, n_sig):
+        r[f"count_above_{nsigma:g}_sigma"] = n
+        del r["_xcs"]
     res: dict = {
         "exposures_s": ts.tolist(),
         "per_exposure": rows,
@@ -722,7 +1001,7 @@ def analyze_darks(frames: Sequence[Frame], master: np.ndarray, bias_res: dict, g
     d_sig = xl["dark_signal_inlier_mean_adu"]
     var_model = (read ** 2 + max(d_sig, 0) / gain) / xl["n_frames"] + read ** 2 / max(bias_res["n_frames"], 1)
     var_dsnu = xl["dark_robust_sigma_adu"] ** 2 - var_model
-    n_pix = min(images[-1].size, MAX_STAT_PIXELS)
+    n_pix = min(h * w, MAX_STAT_PIXELS)
     var_se = xl["dark_robust_sigma_adu"] ** 2 * math.sqrt(2.0 / n_pix)
     res["dsnu"] = {"exposure_s": xl["exposure_s"], "dark_signal_adu": d_sig,
                    "spatial_std_adu": math.sqrt(var_dsnu) if var_dsnu > 0 else 0.0,
@@ -731,7 +1010,7 @@ def analyze_darks(frames: Sequence[Frame], master: np.ndarray, bias_res: dict, g
                    "significant": bool(var_dsnu > 3 * var_se),
                    "method": "robust std of (longest dark - master bias) with the temporal noise of both (read "
                              "noise, dark shot noise = signal/gain) removed in quadrature, over the dark signal"}
-    hot = analyze_hot_pixels(ts, xs, sat, rate, bias_level, nsigma, read, master=master)
+    hot = hot_pixels_from_gathered(ts, main.result(), det, B.shape, rate, bias_level, nsigma, read)
     # leave-one-out
     loo = []
     if len(ts) >= 3:
@@ -739,20 +1018,20 @@ def analyze_darks(frames: Sequence[Frame], master: np.ndarray, bias_res: dict, g
             sel = np.arange(len(ts)) != i
             f = linear_fit(ts[sel], [rows[j]["inlier_mean_adu"] for j in np.flatnonzero(sel)])
             p = f["intercept"] + f["slope"] * ts[i]
-            m = rows[i]["inlier_mean_adu"]
-            loo.append({"exposure_s": float(ts[i]), "predicted_adu": p, "measured_adu": m,
-                        "rel_error": (p - m) / m, "dark_signal_rel_error":
-                        (f["slope"] * ts[i] - (m - f["intercept"])) / (m - f["intercept"])
-                        if m != f["intercept"] else math.nan})
+            m_ = rows[i]["inlier_mean_adu"]
+            loo.append({"exposure_s": float(ts[i]), "predicted_adu": p, "measured_adu": m_,
+                        "rel_error": (p - m_) / m_, "dark_signal_rel_error":
+                        (f["slope"] * ts[i] - (m_ - f["intercept"])) / (m_ - f["intercept"])
+                        if m_ != f["intercept"] else math.nan})
     res["leave_one_out"] = loo
-    if holdout_exposures is None:
-        holdout_exposures = [float(ts[-1])] if len(ts) >= 3 else []
-    unknown = [h for h in holdout_exposures if not np.isclose(ts, float(h)).any()]
-    if unknown:
-        raise DetectorError(f"hold-out exposure(s) {unknown} s not among the darks",
-                            key="holdout_exposures", expected="one of " + ", ".join(f"{t:g}" for t in ts))
-    res["holdout"] = holdout_prediction(ts, rows, xs, sat, holdout_exposures, bias_level, read, thresholds,
-                                        nsigma, master) if len(holdout_exposures) else {"note": "no hold-out"}
+    if not len(holdout_exposures):
+        res["holdout"] = {"note": "no hold-out"}
+    elif H is None:
+        res["holdout"] = {"note": "hold-out needs at least two fitted and one held-out exposure time",
+                          "exposures_s": sorted(float(x) for x in holdout_exposures)}
+    else:
+        res["holdout"] = _holdout_result(H, ts, rows, hold_g.result(), B.shape, bias_level, read, thresholds,
+                                         nsigma)
     res["plot_data"] = {"t": ts.tolist(), "inlier_mean": [r["inlier_mean_adu"] for r in rows],
                         "median": [r["median_adu"] for r in rows], "mean_all": [r["mean_all_adu"] for r in rows],
                         "counts": {f"{thr:g}": [r["count_above_bias_adu"][f"{thr:g}"] for r in rows]
@@ -772,10 +1051,24 @@ def photon_transfer(f0: np.ndarray, f1: np.ndarray, master: np.ndarray, read_noi
 
     ``S`` is the mean bias-subtracted signal [ADU]; the second flat is scaled to the first's mean before the
     difference, which cancels PRNU and illumination and leaves ``2 (S/K + s_r^2)``. Computed on the whole
-    frame and on ``tiles x tiles`` tiles (the tiles' spread gives the standard error).
+    frame and on ``tiles x tiles`` tiles (the tiles' spread gives the standard error). Every statistic is
+    taken on the regular subsample (at most ``MAX_STAT_PIXELS`` values for the frame, that divided by the
+    number of tiles for each tile) (:func:`detector.stats.subsample`) of the frame or tile, so the work is
+    done by :func:`photon_transfer_samples` on those subsamples.
     """
     a = f0.astype(np.float64) - master
     b = f1.astype(np.float64) - master
+    tl = _tiles(a.shape, tiles)
+    nt = MAX_STAT_PIXELS // len(tl)
+    return photon_transfer_samples(subsample(a), subsample(b),
+                                   [subsample(a[y0:y1, x0:x1], nt) for y0, y1, x0, x1 in tl],
+                                   [subsample(b[y0:y1, x0:x1], nt) for y0, y1, x0, x1 in tl], a.size, read_noise_adu)
+
+
+def photon_transfer_samples(a: np.ndarray, b: np.ndarray, ta: Sequence[np.ndarray], tb: Sequence[np.ndarray],
+                            n_pixels: int, read_noise_adu: float) -> dict:
+    """:func:`photon_transfer` on the regular subsamples of the two bias-subtracted flats (``a``, ``b``, float64)
+    and of their tiles (``ta``, ``tb``); ``n_pixels`` the frame's pixel count (statistical error)."""
 
     def one(aa, bb):
         sa, sb = clipped_stats(aa, 5.0)["mean"], clipped_stats(bb, 5.0)["mean"]
@@ -787,17 +1080,14 @@ def photon_transfer(f0: np.ndarray, f1: np.ndarray, master: np.ndarray, read_noi
         return sig, var, shot, s
 
     sig, var, shot, s = one(a, b)
-    h, w = a.shape
     ks, pts = [], []
-    for i in range(tiles):
-        for j in range(tiles):
-            sl = (slice(i * h // tiles, (i + 1) * h // tiles), slice(j * w // tiles, (j + 1) * w // tiles))
-            ts_, tv, tsh, _ = one(a[sl], b[sl])
-            pts.append([ts_, tv])
-            if tsh > 0:
-                ks.append(ts_ / tsh)
+    for aa, bb in zip(ta, tb):
+        ts_, tv, tsh, _ = one(aa, bb)
+        pts.append([ts_, tv])
+        if tsh > 0:
+            ks.append(ts_ / tsh)
     K = sig / shot if shot > 0 else math.nan
-    n = a.size
+    n = n_pixels
     se_stat = K * math.sqrt(2 / n) * var / shot if shot > 0 else math.nan
     se_tiles = float(np.std(ks, ddof=1) / math.sqrt(len(ks))) if len(ks) > 2 else math.nan
     return {"signal_adu": sig, "variance_adu2": var, "shot_variance_adu2": shot, "scale_second_flat": s,
@@ -807,8 +1097,22 @@ def photon_transfer(f0: np.ndarray, f1: np.ndarray, master: np.ndarray, read_noi
             "plot_data": {"tiles_signal_variance": pts, "read_variance_adu2": read_noise_adu ** 2}}
 
 
-def prnu_and_vignetting(mean_flat: np.ndarray, temporal_var_adu2: float, smooth_px: float = 16.0,
-                        box_frac: float = 0.1) -> dict:
+def _smoothed_bands(rows_fn, shape, smooth_px: float, B: _Bands, label: str):
+    """Yield ``(r0, r1, f, smooth)`` band by band: ``f`` the rows ``r0:r1`` of the image ``rows_fn(a, b)``
+    gives, ``smooth`` those rows of its Gaussian smoothing (sigma ``smooth_px``, mode "nearest"), computed on
+    the band plus :func:`detector.calbands.halo_rows` rows either side: the same values as filtering the
+    whole image (the filter never reaches past the halo)."""
+    h = shape[0]
+    halo = halo_rows(smooth_px)
+    for r0, r1 in B.run(label):
+        a, b = max(0, r0 - halo), min(h, r1 + halo)
+        f, clean = rows_fn(a, b)
+        sm = ndimage.gaussian_filter(clean, smooth_px, mode="nearest")
+        yield r0, r1, f[r0 - a:r1 - a], sm[r0 - a:r1 - a]
+
+
+def prnu_and_vignetting(mean_flat, temporal_var_adu2: float, smooth_px: float = 16.0, box_frac: float = 0.1,
+                        *, sample: np.ndarray | None = None, B: _Bands | None = None) -> dict:
     """PRNU (small-scale fixed pattern of a bias-subtracted mean flat) and large-scale vignetting.
 
     The flat is divided by its Gaussian-smoothed self (sigma ``smooth_px`` pixels, outliers replaced by the
@@ -816,50 +1120,98 @@ def prnu_and_vignetting(mean_flat: np.ndarray, temporal_var_adu2: float, smooth_
     ``PRNU = sqrt(std(ratio)^2 - temporal_var / S^2)`` (EMVA 1288, the temporal noise of the averaged flat
     removed in quadrature); border of ``2 smooth_px`` excluded. Vignetting: medians of the smoothed flat in
     the four corner boxes (``box_frac`` of the frame's sides) over the centre box.
+
+    ``mean_flat`` is a 2-D array or a ``rows(a, b)`` source of float64 rows; ``sample`` its regular
+    subsample (computed when not given); ``B`` the bands (one band for an array).
     """
-    f = mean_flat.astype(np.float64)
-    cs = clipped_stats(f, 5.0)
-    clean = np.where((f < cs["lo"] - 5 * cs["std"]) | (f > cs["hi"] + 5 * cs["std"]), cs["median"], f)
-    smooth = ndimage.gaussian_filter(clean, smooth_px, mode="nearest")
-    b = int(2 * smooth_px)
-    h, w = f.shape
-    inner = (slice(b, h - b), slice(b, w - b)) if h > 4 * b and w > 4 * b else (slice(None), slice(None))
-    ratio = f[inner] / smooth[inner]
-    rs = clipped_stats(ratio, 5.0)
-    S = cs["median"]
-    var_rel = rs["std"] ** 2 - temporal_var_adu2 / (S * S)
+    src = as_rows(mean_flat)
+    h, w = src.shape
+    B = B or _Bands((h, w), band_pixels=h * w)
+    if sample is None:
+        sample = subsample(np.asarray(src.rows(0, h), dtype=np.float64))
+    cs = clipped_stats(sample, 5.0)
+
+    def rows_fn(a, b):
+        f = np.asarray(src.rows(a, b), dtype=np.float64)
+        return f, np.where((f < cs["lo"] - 5 * cs["std"]) | (f > cs["hi"] + 5 * cs["std"]), cs["median"], f)
+
+    bd = int(2 * smooth_px)
+    inner = (bd, h - bd, bd, w - bd) if h > 4 * bd and w > 4 * bd else (0, h, 0, w)
+    S_in = Sampler((h, w), region=inner)
     bh, bw = max(1, int(h * box_frac)), max(1, int(w * box_frac))
     cy, cx = h // 2 - bh // 2, w // 2 - bw // 2
-    centre = float(np.median(smooth[cy:cy + bh, cx:cx + bw]))
-    corners = {"first_row_first_col": smooth[:bh, :bw], "first_row_last_col": smooth[:bh, -bw:],
-               "last_row_first_col": smooth[-bh:, :bw], "last_row_last_col": smooth[-bh:, -bw:]}
-    ratios = {k: float(np.median(v)) / centre for k, v in corners.items()}
+    boxes = {"centre": (cy, cy + bh, cx, cx + bw), "first_row_first_col": (0, bh, 0, bw),
+             "first_row_last_col": (0, bh, w - bw, w), "last_row_first_col": (h - bh, h, 0, bw),
+             "last_row_last_col": (h - bh, h, w - bw, w)}
+    G = Gather()
     step = max(1, max(h, w) // 64)
+    thumb, smin = [], math.inf
+    for r0, r1, f, sm in _smoothed_bands(rows_fn, (h, w), smooth_px, B, "flat: PRNU and vignetting"):
+        G.add("ratio", S_in.take(r0, f) / S_in.take(r0, sm))
+        for k, (y0, y1, x0, x1) in boxes.items():
+            a, b = max(y0, r0), min(y1, r1)
+            if a < b:
+                G.add(k, sm[a - r0:b - r0, x0:x1].flatten())
+        smin = min(smin, float(sm.min()))
+        first = (-r0) % step
+        thumb.append(sm[first::step, ::step].copy())  # a copy: a view would keep the whole band alive
+    rs = clipped_stats(G.get("ratio"), 5.0)
+    S = cs["median"]
+    var_rel = rs["std"] ** 2 - temporal_var_adu2 / (S * S)
+    centre = float(np.median(G.get("centre")))
+    ratios = {k: float(np.median(G.get(k))) / centre for k in boxes if k != "centre"}
     return {"prnu_rel": math.sqrt(var_rel) if var_rel > 0 else 0.0, "ratio_std_raw": rs["std"],
             "temporal_rel_std": math.sqrt(temporal_var_adu2) / S, "smoothing_sigma_px": smooth_px,
             "vignetting": {"corner_over_centre": ratios,
                            "corner_over_centre_mean": float(np.mean(list(ratios.values()))),
-                           "min_over_centre": float(smooth.min() / centre), "box_px": [bw, bh]},
-            "plot_data": {"smooth_map_rel": (smooth[::step, ::step] / centre).tolist()}}
+                           "min_over_centre": float(smin / centre), "box_px": [bw, bh]},
+            "plot_data": {"smooth_map_rel": (np.concatenate(thumb) / centre).tolist()}}
 
 
-def analyze_flats(frames: Sequence[Frame], master: np.ndarray, bias_res: dict) -> tuple[dict, list[str]]:
+class _MeanFlatRows:
+    """Rows of the bias-subtracted mean flat ``0.5 (f0 + s f1) - master`` [ADU, float64]."""
+
+    def __init__(self, f0: Frame, f1: Frame, master, s: float):
+        self.f0, self.f1, self.master, self.s = f0, f1, master, s
+        self.shape = tuple(f0.shape)
+
+    def rows(self, a, b):
+        # 0.5 (f0 + s f1) - master, in place (the same operations in the same order)
+        out = self.f0.rows(a, b).astype(np.float64)
+        t = self.f1.rows(a, b).astype(np.float64)
+        t *= self.s
+        out += t
+        del t
+        out *= 0.5
+        out -= self.master.rows(a, b)
+        return out
+
+
+def analyze_flats(frames: Sequence[Frame], P: dict, bias_res: dict, B: _Bands,
+                  master_sample: np.ndarray) -> tuple[dict, list[str]]:
+    """Photon transfer (from the first pass's subsamples), PRNU and vignetting (one band pass)."""
     warns: list[str] = []
     if len(frames) != 2:
         raise DetectorError(f"{len(frames)} flat frames given", key="flat",
                             expected="exactly two flats of the same illumination and exposure")
     f0, f1 = frames
     read = bias_res["read_noise_adu"]
-    pt = photon_transfer(f0.data, f1.data, master, read)
-    mean_flat = 0.5 * (f0.data.astype(np.float64) + pt["scale_second_flat"] * f1.data.astype(np.float64)) - master
+    S = P["samples"]
+    a = S[id(f0)].astype(np.float64) - master_sample
+    b = S[id(f1)].astype(np.float64) - master_sample
+    ta = (t.astype(np.float64) - m for t, m in zip(P["tile_samples"][0], P["tile_master"]))
+    tb = (t.astype(np.float64) - m for t, m in zip(P["tile_samples"][1], P["tile_master"]))
+    pt = photon_transfer_samples(a, b, ta, tb, f0.shape[0] * f0.shape[1], read)
+    s = pt["scale_second_flat"]
+    mf_sample = 0.5 * (S[id(f0)].astype(np.float64) + s * S[id(f1)].astype(np.float64)) - master_sample
     temporal = pt["variance_adu2"] / 2 + read ** 2 / max(bias_res["n_frames"], 1)
-    pv = prnu_and_vignetting(mean_flat, temporal)
+    pv = prnu_and_vignetting(_MeanFlatRows(f0, f1, P["master"], s), temporal, sample=mf_sample, B=B)
     sat = min(f.saturation_adu for f in frames)
-    raw_med = float(np.median(subsample(f0.data)))
+    raw_med = float(np.median(S[id(f0)]))
     if math.isfinite(sat) and raw_med > 0.8 * sat:
         warns.append(f"flats are at {raw_med:.0f} ADU, near saturation {sat:.0f}: photon transfer is biased")
     res = {"files": [f.path for f in frames], "exposure_s": [f.exptime_s for f in frames],
-           "median_raw_adu": [raw_med, float(np.median(subsample(f1.data)))],
+           "median_raw_adu": [raw_med, float(np.median(S[id(f1)]))],
            "signal_adu": pt["signal_adu"], "photon_transfer": pt, "prnu_rel": pv["prnu_rel"],
            "prnu": {k: v for k, v in pv.items() if k not in ("vignetting",)},
            "vignetting": pv["vignetting"],
@@ -874,7 +1226,8 @@ def analyze_flats(frames: Sequence[Frame], master: np.ndarray, bias_res: dict) -
 
 def characterize(bias_paths: Sequence, dark_paths: Sequence, flat_paths: Sequence | None = None, *,
                  holdout_exposures: Sequence[float] | None = None, hot_sigma: float = 5.0,
-                 count_thresholds_adu: Sequence[float] = (100.0, 1000.0), seed: int = 0) -> dict:
+                 count_thresholds_adu: Sequence[float] = (100.0, 1000.0), seed: int = 0,
+                 band_pixels: int | None = None, progress=None) -> dict:
     """Characterise a camera from its calibration frames (thesis sections 3.6.5 and 3.7.1).
 
     Parameters
@@ -895,11 +1248,20 @@ def characterize(bias_paths: Sequence, dark_paths: Sequence, flat_paths: Sequenc
         Thresholds above the bias (pixel by pixel) for the per-exposure pixel counts.
     seed : int
         Seed of the normality tests' subsample and dither.
+    band_pixels : int, optional
+        Pixels per row band (default :data:`detector.calbands.BAND_PIXELS`; a frame no larger is one band).
+    progress : callable(label, done, total), optional
+        Called as every band pass advances (the CLI draws a progress bar).
 
     Returns
     -------
     dict (JSON-serialisable): ``frame``, ``gain``, ``bias``, ``dark``, ``hot_pixels``, ``flat`` (or None),
     ``warnings``; ``*.plot_data`` entries feed :func:`detector.calplots.write_plots`.
+
+    Memory: the frames are read band by band (:class:`detector.calbands.FitsRows`); what is kept is one
+    regular subsample of every frame (at most ``MAX_STAT_PIXELS`` values each), the master bias in a float32
+    temporary file, the outlier pixels and per-band temporaries; running out of memory anyway is a
+    :class:`DetectorError`.
     """
     bias_paths, dark_paths = list(bias_paths or []), list(dark_paths or [])
     flat_paths = list(flat_paths or [])
@@ -911,54 +1273,83 @@ def characterize(bias_paths: Sequence, dark_paths: Sequence, flat_paths: Sequenc
     if flat_paths and len(flat_paths) != 2:
         raise DetectorError(f"{len(flat_paths)} flat frames given", key="flat",
                             expected="exactly two flats of the same illumination and exposure")
+    opened: list[Frame] = []
+    try:
+        bias = read_frames(bias_paths, "bias", need_exptime=False, lazy=True)
+        opened += bias
+        shape, ref = bias[0].shape, bias[0].path
+        darks = read_frames(dark_paths, "dark", need_exptime=True, shape=shape, shape_file=ref, lazy=True)
+        opened += darks
+        flats = read_frames(flat_paths, "flat", need_exptime=False, shape=shape, shape_file=ref, lazy=True) \
+            if flat_paths else []
+        opened += flats
+        return _characterize(bias, darks, flats, holdout_exposures, hot_sigma, count_thresholds_adu, seed,
+                             _Bands(shape, band_pixels, progress))
+    except MemoryError:
+        raise DetectorError("out of memory while characterising the frames", key="bias/dark/flat",
+                            file=bias_paths[0],
+                            expected="more free memory, or fewer/smaller frames (see docs/detector.md)") from None
+    finally:
+        for f in opened:
+            f.close()
+
+
+def _characterize(bias, darks, flats, holdout_exposures, hot_sigma, count_thresholds_adu, seed, B: _Bands) -> dict:
     rng = np.random.default_rng(seed)
     thresholds = [float(t) for t in count_thresholds_adu]
-    bias = read_frames(bias_paths, "bias", need_exptime=False)
-    shape, ref = bias[0].data.shape, bias[0].path
-    darks = read_frames(dark_paths, "dark", need_exptime=True, shape=shape, shape_file=ref)
-    flats = read_frames(flat_paths, "flat", need_exptime=False, shape=shape, shape_file=ref) if flat_paths else []
-    sanity_checks(bias, darks, flats)
-    warns: list[str] = []
-
-    bias_res, master, w = analyze_bias(bias, rng)
-    warns += w
-    flat_res = None
-    if flats:
-        flat_res, w = analyze_flats(flats, master, bias_res)
+    for role, fr in (("bias", bias), ("dark", darks), ("flat", flats)):
+        for f in fr:
+            f.checks["role"] = role
+    # darks without two exposure times are refused before reading any pixel
+    _check_dark_times(darks)
+    ts, groups = _group_by_time(darks)
+    P = _first_pass(bias, darks, flats, groups, B, thresholds)
+    try:
+        sanity_checks(bias, darks, flats)
+        warns: list[str] = []
+        bias_res, _, w = analyze_bias(bias, rng, P["samples"], _column_medians(P["master"]), P["row_median"])
         warns += w
-    g_hdr, g_key, g_file = header_gain(bias + darks + flats)
-    pt_gain = flat_res["photon_transfer"]["gain_e_per_adu"] if flat_res else math.nan
-    if g_hdr is not None:
-        gain, source = g_hdr, f"header {g_key} ({g_file})"
-    elif flat_res and math.isfinite(pt_gain) and pt_gain > 0:
-        gain, source = pt_gain, "photon transfer (flat pair)"
-    else:
-        gain, source = 1.0, "default 1.0"
-        warns.append("no gain in the headers (EGAIN/GAIN) and no flat pair: gain set to 1.0 e-/ADU, so every "
-                     "value in e- is really in ADU")
-    gain_res = {"adopted_e_per_adu": gain, "source": source, "header_e_per_adu": g_hdr, "header_card": g_key,
-                "photon_transfer_e_per_adu": pt_gain if flat_res else None,
-                "photon_transfer_se": flat_res["photon_transfer"]["gain_se"] if flat_res else None}
-    if flat_res and g_hdr is not None and math.isfinite(pt_gain):
-        gain_res["photon_transfer_over_header"] = pt_gain / g_hdr
-    bias_res["read_noise_e"] = bias_res["read_noise_adu"] * gain
-    bias_res["read_noise_se_e"] = bias_res["read_noise_se_adu"] * gain
-    dark_res, hot_res, w = analyze_darks(darks, master, bias_res, gain, hot_sigma, thresholds, holdout_exposures)
-    warns += w
+        master_s = _mean32([P["samples"][id(f)] for f in bias])
+        flat_res = None
+        if flats:
+            flat_res, w = analyze_flats(flats, P, bias_res, B, master_s)
+            warns += w
+        g_hdr, g_key, g_file = header_gain(bias + darks + flats)
+        pt_gain = flat_res["photon_transfer"]["gain_e_per_adu"] if flat_res else math.nan
+        if g_hdr is not None:
+            gain, source = g_hdr, f"header {g_key} ({g_file})"
+        elif flat_res and math.isfinite(pt_gain) and pt_gain > 0:
+            gain, source = pt_gain, "photon transfer (flat pair)"
+        else:
+            gain, source = 1.0, "default 1.0"
+            warns.append("no gain in the headers (EGAIN/GAIN) and no flat pair: gain set to 1.0 e-/ADU, so every "
+                         "value in e- is really in ADU")
+        gain_res = {"adopted_e_per_adu": gain, "source": source, "header_e_per_adu": g_hdr, "header_card": g_key,
+                    "photon_transfer_e_per_adu": pt_gain if flat_res else None,
+                    "photon_transfer_se": flat_res["photon_transfer"]["gain_se"] if flat_res else None}
+        if flat_res and g_hdr is not None and math.isfinite(pt_gain):
+            gain_res["photon_transfer_over_header"] = pt_gain / g_hdr
+        bias_res["read_noise_e"] = bias_res["read_noise_adu"] * gain
+        bias_res["read_noise_se_e"] = bias_res["read_noise_se_adu"] * gain
+        dark_res, hot_res, w = analyze_darks(groups, ts, P, bias_res, gain, hot_sigma, thresholds,
+                                             holdout_exposures, B, master_s)
+        warns += w
+    finally:
+        P["master"].close()
     if flat_res:
         ft = [t for t in flat_res["temperature_c"] if t is not None]
         if ft and dark_res["temperature_c"] is not None and abs(np.mean(ft) - dark_res["temperature_c"]) > 2:
             warns.append(f"flats at {np.mean(ft):.1f} C, darks at {dark_res['temperature_c']:.1f} C")
         flat_res["signal_e"] = flat_res["signal_adu"] * gain
     sats = {f.saturation_adu for f in bias + darks + flats}
-    h, w_ = shape
+    h, w_ = B.shape
     header0 = darks[-1].header
-    integer = all(bool(np.all(f.data[:16, :16] == np.floor(f.data[:16, :16]))) for f in bias + darks)
+    integer = all(bool(np.all(f.checks["head"] == np.floor(f.checks["head"]))) for f in bias + darks)
     frame = {"width": int(w_), "height": int(h), "n_bias": len(bias), "n_dark": len(darks), "n_flat": len(flats),
              "integer_data": integer,
              "saturation_adu": float(min(sats)), "instrument": str(header0.get("INSTRUME", "")).strip() or None,
              "pixel_size_um": _pixel_size(header0), "binning": int(header0.get("XBINNING", 1) or 1),
-             "bit_depth": _bit_depth(header0, min(sats))}
+             "bit_depth": _bit_depth(header0, min(sats)), "band_rows": B.rows}
     result = {"frame": frame, "gain": gain_res, "bias": bias_res, "dark": dark_res, "hot_pixels": hot_res,
               "flat": flat_res, "warnings": warns}
     warns += physical_warnings(result)
@@ -977,10 +1368,23 @@ def check_sigma(hot_sigma: float) -> None:
                             expected=f"a number of robust sigma in [{lo:g}, {hi:g}]")
 
 
-def _saturated_fraction(f: Frame) -> float:
-    if not math.isfinite(f.saturation_adu):
-        return 0.0
-    return float(np.mean(subsample(f.data, 1_000_000) >= f.saturation_adu - 0.5))
+def _check_dark_times(darks: Sequence[Frame]) -> None:
+    t_pos = sorted({float(f.exptime_s) for f in darks if f.exptime_s and f.exptime_s > 0})
+    if len(t_pos) < 2:
+        all_t = sorted({float(f.exptime_s) for f in darks})
+        raise DetectorError(f"darks at {', '.join(f'{t:g}' for t in all_t)} s only", key="dark",
+                            expected="darks of at least two different exposure times > 0 s")
+
+
+def _frame_checks(f: Frame) -> dict:
+    """The pass-1 checks of a frame held in memory (:func:`read_frame`)."""
+    if "saturated_fraction" not in f.checks:
+        q = subsample(f.data, 1_000_000)
+        f.checks["saturated_fraction"] = float(np.mean(q >= f.saturation_adu - 0.5)) \
+            if math.isfinite(f.saturation_adu) else 0.0
+        f.checks["constant"] = bool(np.ptp(f.data) == 0)
+        f.checks["first_value"] = float(f.data.flat[0])
+    return f.checks
 
 
 def sanity_checks(bias: Sequence[Frame], darks: Sequence[Frame], flats: Sequence[Frame]) -> None:
@@ -989,31 +1393,32 @@ def sanity_checks(bias: Sequence[Frame], darks: Sequence[Frame], flats: Sequence
     Identical frames (the same data twice: the pair difference would be 0), constant frames (an all-zero
     or blank bias), frames mostly (> 50 %) at the ADC saturation, bias frames with an exposure time
     (> 0.01 s), darks without two different exposure times > 0 s, flats of different exposure times.
+    Frames read band by band carry these facts from the first pass (``Frame.checks``).
     """
     groups = {"bias": bias, "dark": darks, "flat": flats}
     for role, frames in groups.items():
         for i, a in enumerate(frames):
-            for b in frames[i + 1:]:
-                if a.data.shape == b.data.shape and np.array_equal(a.data, b.data):
-                    raise DetectorError(f"{role} frame has the same pixels as {b.path}", file=a.path,
-                                        expected=f"independent {role} exposures (not the same frame twice)")
-            sf = _saturated_fraction(a)
+            ident = a.checks.get("identical_to", "?")
+            if ident == "?":  # frames in memory
+                ident = next((b.path for b in frames[i + 1:] if a.data.shape == b.data.shape
+                              and np.array_equal(a.data, b.data)), None)
+            if ident is not None:
+                raise DetectorError(f"{role} frame has the same pixels as {ident}", file=a.path,
+                                    expected=f"independent {role} exposures (not the same frame twice)")
+            c = _frame_checks(a) if a.data is not None else a.checks
+            sf = c["saturated_fraction"]
             if sf > 0.5:
                 raise DetectorError(f"{role} frame is saturated ({100 * sf:.0f} % of pixels at "
                                     f"{a.saturation_adu:g} ADU)", file=a.path,
                                     expected=f"a {role} frame below the ADC saturation")
-            if np.ptp(subsample(a.data, 1_000_000)) == 0 and np.ptp(a.data) == 0:
-                raise DetectorError(f"{role} frame is constant ({float(a.data.flat[0]):g} ADU everywhere)",
+            if c["constant"]:
+                raise DetectorError(f"{role} frame is constant ({c['first_value']:g} ADU everywhere)",
                                     file=a.path, expected=f"a real {role} exposure (pixels that vary)")
     for f in bias:
         if f.exptime_s is not None and f.exptime_s > 0.01:
             raise DetectorError(f"bias frame has an exposure time of {f.exptime_s:g} s", key="EXPTIME", file=f.path,
                                 expected="a bias frame: exposure time 0 s (use it as a dark with --dark)")
-    t_pos = sorted({float(f.exptime_s) for f in darks if f.exptime_s and f.exptime_s > 0})
-    if len(t_pos) < 2:
-        all_t = sorted({float(f.exptime_s) for f in darks})
-        raise DetectorError(f"darks at {', '.join(f'{t:g}' for t in all_t)} s only", key="dark",
-                            expected="darks of at least two different exposure times > 0 s")
+    _check_dark_times(darks)
     if flats:
         tf = {f.exptime_s for f in flats}
         if len(tf) > 1:
@@ -1168,8 +1573,27 @@ def _robust_mean_1d(a: np.ndarray, axis: int, centre: float, sigma: float, nsig:
         return np.where(n > 0, s / np.maximum(n, 1), centre)
 
 
-def bias_structure(master: np.ndarray, read_noise_adu: float, n_bias: int, nsigma: float = 5.0
-                   ) -> tuple[np.ndarray, dict]:
+
+def _robust_sums(a: np.ndarray, axis: int, centre: float, sigma: float, nsig: float = 5.0):
+    """Sum and count along ``axis`` of the values within ``centre +- nsig sigma`` (see :func:`_robust_mean_1d`)."""
+    keep = np.abs(a - centre) <= nsig * sigma
+    return np.where(keep, a, 0.0).sum(axis=axis, dtype=np.float64), keep.sum(axis=axis)
+
+
+def _out(shape, like_array: bool, dtype=np.float32):
+    """Where a per-pixel map goes: an in-memory array (array inputs) or a :class:`BandStore`."""
+    return np.empty(shape, dtype) if like_array else BandStore(shape, dtype)
+
+
+def _write_rows(dst, r0: int, band: np.ndarray) -> None:
+    if isinstance(dst, np.ndarray):
+        dst[r0:r0 + band.shape[0]] = band
+    else:
+        dst.write(r0, band)
+
+
+def bias_structure(master, read_noise_adu: float, n_bias: int, nsigma: float = 5.0, *,
+                   B: _Bands | None = None, sample: np.ndarray | None = None) -> tuple[np.ndarray, dict]:
     """Noise-free estimate of the bias structure [ADU] from a master bias (Janesick 2007, ch. 9).
 
     ``B(y, x) = L + c(x) + r(y)``: ``L`` the clipped level, ``c`` the clipped column means of ``M - L``,
@@ -1179,27 +1603,60 @@ def bias_structure(master: np.ndarray, read_noise_adu: float, n_bias: int, nsigm
     (bias defects). The pixel-level fixed pattern left, ``var(M - B) - sigma_read^2 / n_bias`` over the
     inliers, is added back shrunk by ``sqrt(var_fp / var(M - B))`` when it is significant: a map with the
     measured fixed-pattern spread whose noise does not inflate a rendered frame's spread.
+
+    ``master`` is a 2-D array (the map is returned as a float32 array) or a ``rows(a, b)`` source read in
+    the bands ``B`` (the map is returned as a float32 :class:`BandStore`); ``sample`` the master's regular
+    subsample (computed from an array when not given). Three passes: column means, row means and the
+    residual's subsample, the map.
     """
-    m = master.astype(np.float64)
+    src = as_rows(master)
+    shape = tuple(src.shape)
+    h, w = shape
+    is_arr = isinstance(master, np.ndarray)
+    B = B or _Bands(shape, band_pixels=h * w)
+    m_rows = lambda a, b: np.asarray(src.rows(a, b), dtype=np.float64)  # noqa: E731
+    if sample is None:
+        sample = subsample(m_rows(0, h))
     noise = read_noise_adu / math.sqrt(max(n_bias, 1))
-    level = clipped_stats(m, 5.0)["mean"]
-    col = _robust_mean_1d(m - level, 0, 0.0, max(noise, 1e-6) * 3)
-    row = _robust_mean_1d(m - level - col[None, :], 1, 0.0, max(noise, 1e-6) * 3)
-    struct = level + col[None, :] + row[:, None]
-    resid = m - struct
-    rs = clipped_stats(resid, 5.0)
+    level = clipped_stats(np.asarray(sample, np.float64), 5.0)["mean"]
+    s_c, n_c = np.zeros(w), np.zeros(w, np.int64)
+    for r0, r1 in B.run("bias structure: columns"):
+        s, n = _robust_sums(m_rows(r0, r1) - level, 0, 0.0, max(noise, 1e-6) * 3)
+        s_c += s
+        n_c += n
+    with np.errstate(invalid="ignore", divide="ignore"):
+        col = np.where(n_c > 0, s_c / np.maximum(n_c, 1), 0.0)
+    row = np.empty(h)
+    Sm = Sampler(shape)
+    G = Gather()
+    for r0, r1 in B.run("bias structure: rows"):
+        m = m_rows(r0, r1)
+        row[r0:r1] = _robust_mean_1d(m - level - col[None, :], 1, 0.0, max(noise, 1e-6) * 3)
+        G.add("resid", Sm.take(r0, m - (level + col[None, :] + row[r0:r1, None])))
+    rs = clipped_stats(G.get("resid"), 5.0)
     var_fp = rs["std"] ** 2 - noise ** 2
-    n_pix = min(resid.size, MAX_STAT_PIXELS)
+    n_pix = min(h * w, MAX_STAT_PIXELS)
     significant = var_fp > 3 * rs["std"] ** 2 * math.sqrt(2.0 / n_pix)
-    out = struct.copy()
-    inl = np.abs(resid) <= nsigma * max(rs["std"], noise)
-    if significant:
-        out[inl] += resid[inl] * math.sqrt(var_fp) / rs["std"]
-    out[~inl] = m[~inl]
+    out = _out(shape, is_arr)
+    n_def = 0
+    for r0, r1 in B.run("bias structure: map"):
+        m = m_rows(r0, r1)
+        struct = level + col[None, :] + row[r0:r1, None]
+        resid = m - struct
+        o = struct.copy()
+        inl = np.abs(resid) <= nsigma * max(rs["std"], noise)
+        if significant:
+            o[inl] += resid[inl] * math.sqrt(var_fp) / rs["std"]
+        o[~inl] = m[~inl]
+        n_def += int((~inl).sum())
+        o32 = o.astype(np.float32)
+        _write_rows(out, r0, o32)
+        G.add("map", Sm.take(r0, o32))
     # the column offsets as a population: a normal core and the outlier columns' quantiles
     cc = clipped_stats(col, 3.0)
-    core2 = cc["std"] ** 2 - noise ** 2 / m.shape[0]
+    core2 = cc["std"] ** 2 - noise ** 2 / h
     out_cols = np.abs(col - cc["median"]) > 5 * cc["std"]
+    msample = G.get("map")
     info = {"level_adu": level, "column_std_adu": float(np.std(col)),
             "column_core_std_adu": math.sqrt(core2) if core2 > 0 else 0.0,
             "column_outlier_fraction": float(out_cols.mean()),
@@ -1207,13 +1664,18 @@ def bias_structure(master: np.ndarray, read_noise_adu: float, n_bias: int, nsigm
             if out_cols.sum() >= 2 else [], "row_std_adu": float(np.std(row)),
             "master_noise_adu": noise, "residual_std_adu": rs["std"],
             "pixel_fixed_pattern_std_adu": math.sqrt(var_fp) if var_fp > 0 else 0.0,
-            "pixel_fixed_pattern_significant": bool(significant), "n_bias_defects": int((~inl).sum()),
+            "pixel_fixed_pattern_significant": bool(significant), "n_bias_defects": n_def,
+            "map_median_adu": float(np.median(msample)),
             "method": "level + clipped column means + clipped row means; defects kept; pixel pattern shrunk"}
-    return out.astype(np.float32), info
+    if not is_arr:
+        out.sample = msample
+    return out, info
 
 
-def dark_rate_map(ts: np.ndarray, darks: Sequence[np.ndarray], bias_map: np.ndarray, offset_adu: float,
-                  read_noise_adu: float, gain: float, sat_adu: float, nsigma: float = 5.0) -> tuple[np.ndarray, ...]:
+def dark_rate_map(ts: np.ndarray, darks, bias_map, offset_adu: float, read_noise_adu: float, gain: float,
+                  sat_adu: float, nsigma: float = 5.0, *, B: _Bands | None = None,
+                  samples: Sequence[np.ndarray] | None = None, bias_sample: np.ndarray | None = None,
+                  hot_floor=None) -> tuple:
     """Per-pixel dark rates [ADU/s] and their standard errors from darks of several exposures.
 
     Each pixel's line through its bias, ``y(t) = B(y, x) + offset + r t``, fitted by weighted least squares
@@ -1227,68 +1689,146 @@ def dark_rate_map(ts: np.ndarray, darks: Sequence[np.ndarray], bias_map: np.ndar
     the map then has the *measured* dark-signal non-uniformity, not that plus its noise; outliers (hot and
     warm pixels) keep their measured rates.
 
+    ``darks`` and ``bias_map`` are 2-D arrays (the maps come back as arrays) or ``rows(a, b)`` sources read
+    in the bands ``B`` (the maps come back as :class:`BandStore`; ``samples``/``bias_sample`` are then
+    their regular subsamples). Two passes: the rates and their errors (to a float64 temporary file), then
+    the shrunk map, the stuck pixels and, with ``hot_floor`` (callable(info) -> excess-rate floor
+    [ADU/s]), the table of pixels above it.
+
     Returns
     -------
-    rate_adu_s, se_adu_s : 2-D float32 arrays
+    rate_adu_s, se_adu_s : 2-D float32 arrays (or stores)
     stuck : 2-D bool array (above ``nsigma`` in the longest dark, at least half of that already in the
-        shortest, and the same value, within 5 sqrt(2) sigma_read or 5 %, in every dark: stuck pixels)
-    info : dict
+        shortest, and the same value, within 5 sqrt(2) sigma_read or 5 %, in every dark: stuck pixels);
+        for sources, the (y, x) positions and their median raw value over the darks
+    info : dict (with sources: ``_hot`` the pixels above the floor: y, x, rate, se)
     """
     ts = np.asarray(ts, dtype=np.float64)
-    r_bar = np.median([(np.median(subsample(d)) - np.median(subsample(bias_map)) - offset_adu) / t
-                       for d, t in zip(darks, ts)])
-    num = np.zeros(bias_map.shape, np.float64)
-    den = np.zeros(bias_map.shape, np.float64)
-    for d, t in zip(darks, ts):
-        w = 1.0 / (read_noise_adu ** 2 + max(r_bar, 0.0) * t / gain + 1.0 / 12.0)
-        ok = d < sat_adu - 0.5
-        y = d.astype(np.float64) - bias_map - offset_adu
-        num += np.where(ok, w * t * y, 0.0)
-        den += np.where(ok, w * t * t, 0.0)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        rate = np.where(den > 0, num / np.where(den > 0, den, 1.0), np.nan)
-    allsat = ~np.isfinite(rate)
-    rate[allsat] = (sat_adu - bias_map[allsat] - offset_adu) / ts.min()  # saturated in every dark: a lower limit
-    # the pixel's own shot noise in its error
-    se2 = np.zeros_like(rate)
-    for d, t in zip(darks, ts):
-        var = read_noise_adu ** 2 + np.maximum(rate, 0.0) * t / gain + 1.0 / 12.0
-        ok = d < sat_adu - 0.5
-        se2 += np.where(ok, t * t / var, 0.0)
-    with np.errstate(divide="ignore"):
-        se = np.where(se2 > 0, 1.0 / np.sqrt(se2), np.inf)
-    med = float(np.median(subsample(rate)))
-    noise2 = float(np.median(subsample(se)) ** 2)
-    spread0 = clipped_stats(rate, 3.0)["std"]  # DSNU and noise together
-    bulk = np.abs(rate - med) <= nsigma * max(spread0, 1e-12)
-    cs = clipped_stats(rate[bulk], nsigma)
-    V = cs["std"] ** 2
-    s = math.sqrt(max(V - noise2, 0.0) / V) if V > 0 else 0.0
-    out = rate.copy()
-    out[bulk] = med + s * (rate[bulk] - med)
-    # stuck: large already at the shortest exposure and not growing
-    x0 = darks[0].astype(np.float64) - bias_map - offset_adu
-    xl = darks[-1].astype(np.float64) - bias_map - offset_adu
-    stack = np.stack([d.astype(np.float32) for d in darks])
-    spread = stack.max(axis=0) - stack.min(axis=0)
-    del stack
-    high = xl > nsigma * math.sqrt(read_noise_adu ** 2 + max(r_bar, 0) * ts[-1] / gain) + med * ts[-1]
-    # stuck: high, already there at the shortest exposure, and the same value in every dark
-    stuck = high & (x0 >= 0.5 * xl) & (ts[0] <= 0.5 * ts[-1]) \
-        & (spread <= np.maximum(5 * math.sqrt(2) * read_noise_adu, 0.05 * xl))
-    info = {"median_rate_adu_per_s": med, "mean_rate_adu_per_s": float(np.mean(out)),
-            "bulk_clipped_std_adu_per_s": cs["std"], "noise_std_adu_per_s": math.sqrt(noise2),
-            "dsnu_std_adu_per_s": math.sqrt(max(V - noise2, 0.0)),
-            "dsnu_sigma_rel": math.sqrt(max(V - noise2, 0.0)) / med if med > 0 else 0.0,
-            "bulk_shrink_factor": s, "n_bulk": int(bulk.sum()), "n_outliers": int((~bulk).sum()),
-            "n_saturated_in_every_dark": int(allsat.sum()), "n_stuck": int(stuck.sum()),
-            "offset_adu": offset_adu, "exposures_s": ts.tolist(),
-            "method": "weighted line through the bias structure per pixel; bulk shrunk to the measured DSNU"}
-    return out.astype(np.float32), se.astype(np.float32), stuck, info
+    srcs = [as_rows(d) for d in darks]
+    bsrc = as_rows(bias_map)
+    shape = tuple(bsrc.shape)
+    h, w = shape
+    is_arr = isinstance(bias_map, np.ndarray)
+    B = B or _Bands(shape, band_pixels=h * w)
+    if samples is None:
+        samples = [subsample(np.asarray(d)) for d in darks]
+    if bias_sample is None:
+        bias_sample = subsample(np.asarray(bias_map))
+    r_bar = np.median([(np.median(s) - np.median(bias_sample) - offset_adu) / t for s, t in zip(samples, ts)])
+    Sm = Sampler(shape)
+    G = Gather()
+    tmp_rate = BandStore(shape, np.float64)
+    tmp_se = BandStore(shape, np.float64)
+    n_allsat = 0
+    try:
+        for r0, r1 in B.run("dark rates: fit"):
+            bm = bsrc.rows(r0, r1)
+            ds = [s.rows(r0, r1) for s in srcs]
+            num = np.zeros(bm.shape, np.float64)
+            den = np.zeros(bm.shape, np.float64)
+            for d, t in zip(ds, ts):
+                wt = 1.0 / (read_noise_adu ** 2 + max(r_bar, 0.0) * t / gain + 1.0 / 12.0)
+                ok = d < sat_adu - 0.5
+                y = d.astype(np.float64) - bm - offset_adu
+                num += np.where(ok, wt * t * y, 0.0)
+                den += np.where(ok, wt * t * t, 0.0)
+            with np.errstate(invalid="ignore", divide="ignore"):
+                rate = np.where(den > 0, num / np.where(den > 0, den, 1.0), np.nan)
+            del num, den
+            allsat = ~np.isfinite(rate)
+            rate[allsat] = (sat_adu - bm[allsat] - offset_adu) / ts.min()  # saturated in every dark: a lower limit
+            n_allsat += int(allsat.sum())
+            se2 = np.zeros_like(rate)
+            for d, t in zip(ds, ts):
+                var = read_noise_adu ** 2 + np.maximum(rate, 0.0) * t / gain + 1.0 / 12.0
+                ok = d < sat_adu - 0.5
+                se2 += np.where(ok, t * t / var, 0.0)
+            with np.errstate(divide="ignore"):
+                se = np.where(se2 > 0, 1.0 / np.sqrt(se2), np.inf)
+            tmp_rate.write(r0, rate)
+            tmp_se.write(r0, se)
+            G.add("rate", Sm.take(r0, rate))
+            G.add("se", Sm.take(r0, se))
+        rs_, ses = G.get("rate"), G.get("se")
+        med = float(np.median(rs_))
+        noise2 = float(np.median(ses) ** 2)
+        spread0 = clipped_stats(rs_, 3.0)["std"]  # DSNU and noise together
+        lim = nsigma * max(spread0, 1e-12)
+        cs = clipped_stats(rs_[np.abs(rs_ - med) <= lim], nsigma)
+        V = cs["std"] ** 2
+        s = math.sqrt(max(V - noise2, 0.0) / V) if V > 0 else 0.0
+        info = {"median_rate_adu_per_s": med, "bulk_clipped_std_adu_per_s": cs["std"],
+                "noise_std_adu_per_s": math.sqrt(noise2), "dsnu_std_adu_per_s": math.sqrt(max(V - noise2, 0.0)),
+                "dsnu_sigma_rel": math.sqrt(max(V - noise2, 0.0)) / med if med > 0 else 0.0,
+                "bulk_shrink_factor": s, "n_saturated_in_every_dark": n_allsat, "offset_adu": offset_adu,
+                "exposures_s": ts.tolist(),
+                "method": "weighted line through the bias structure per pixel; bulk shrunk to the measured DSNU"}
+        floor = hot_floor(info) if hot_floor else None
+        out_r, out_se = _out(shape, is_arr), _out(shape, is_arr)
+        stuck_arr = np.zeros(shape, bool) if is_arr else None
+        sy, sx, sv, hy, hx, hr, hs = [], [], [], [], [], [], []
+        n_bulk, total, total32 = 0, 0.0, 0.0
+        high_thr = nsigma * math.sqrt(read_noise_adu ** 2 + max(r_bar, 0) * ts[-1] / gain) + med * ts[-1]
+        for r0, r1 in B.run("dark rates: map"):
+            rate = tmp_rate.rows(r0, r1)
+            bulk = np.abs(rate - med) <= lim
+            n_bulk += int(bulk.sum())
+            o = rate.copy()
+            o[bulk] = med + s * (rate[bulk] - med)
+            total += float(o.sum())
+            o32 = o.astype(np.float32)
+            total32 += float(o32.sum(dtype=np.float64))
+            se32 = tmp_se.rows(r0, r1).astype(np.float32)
+            _write_rows(out_r, r0, o32)
+            _write_rows(out_se, r0, se32)
+            G.add("map", Sm.take(r0, o32))
+            # stuck: high, already there at the shortest exposure, and the same value in every dark
+            bm = bsrc.rows(r0, r1)
+            ds = [sr.rows(r0, r1) for sr in srcs]
+            x0 = ds[0].astype(np.float64) - bm - offset_adu
+            xl = ds[-1].astype(np.float64) - bm - offset_adu
+            stack = np.stack([d.astype(np.float32) for d in ds])
+            spread = stack.max(axis=0) - stack.min(axis=0)
+            high = xl > high_thr
+            st = high & (x0 >= 0.5 * xl) & (ts[0] <= 0.5 * ts[-1]) \
+                & (spread <= np.maximum(5 * math.sqrt(2) * read_noise_adu, 0.05 * xl))
+            if is_arr:
+                stuck_arr[r0:r1] = st
+            else:
+                yy, xx = np.nonzero(st)
+                sy.append(yy + r0)
+                sx.append(xx)
+                sv.append(np.median(stack[:, yy, xx], axis=0) if yy.size else np.zeros(0, np.float32))
+                if floor is not None:
+                    hot = ((o32.astype(np.float64) - med) > floor) & ~st
+                    yy, xx = np.nonzero(hot)
+                    hy.append(yy + r0)
+                    hx.append(xx)
+                    hr.append(o32[yy, xx])
+                    hs.append(se32[yy, xx])
+            del stack
+        info["mean_rate_adu_per_s"] = total / (h * w)
+        info["map_mean_adu_per_s"] = total32 / (h * w)
+        info["n_bulk"] = n_bulk
+        info["n_outliers"] = h * w - n_bulk
+        cat = lambda p, dt: np.concatenate(p).astype(dt) if p else np.zeros(0, dt)  # noqa: E731
+        if is_arr:
+            info["n_stuck"] = int(stuck_arr.sum())
+            return out_r, out_se, stuck_arr, info
+        info["n_stuck"] = int(sum(len(v) for v in sy))
+        out_r.sample = G.get("map")
+        stuck = {"y": cat(sy, np.int64), "x": cat(sx, np.int64), "value_adu": cat(sv, np.float32)}
+        info["_hot"] = {"y": cat(hy, np.int64), "x": cat(hx, np.int64), "rate": cat(hr, np.float32),
+                        "se": cat(hs, np.float32)}
+        return out_r, out_se, stuck, info
+    finally:
+        tmp_rate.close()
+        tmp_se.close()
 
 
-def flat_response(flats: Sequence[np.ndarray], bias_map: np.ndarray, dark_adu: np.ndarray, read_noise_adu: float,
-                  gain: float, n_bias: int, smooth_px: float = 16.0) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict]:
+def flat_response(flats, bias_map, dark_adu, read_noise_adu: float, gain: float, n_bias: int,
+                  smooth_px: float = 16.0, *, B: _Bands | None = None, samples=None, bias_sample=None,
+                  dark_sample=None) -> tuple:
     """Per-pixel response (PRNU x vignetting) of a flat (or flat pair), its standard error and the vignetting.
 
     ``F = mean_k(f_k s_k) - B - D`` (``s_k`` scales every flat to the first's median, ``B`` the bias
@@ -1296,29 +1836,70 @@ def flat_response(flats: Sequence[np.ndarray], bias_map: np.ndarray, dark_adu: n
     pixel ``sqrt(S/g + sigma_read^2) / sqrt(n) / mean`` (shot and read noise of the ``n`` flats, Janesick
     2007, ch. 4). The vignetting is ``F`` Gaussian-smoothed (sigma ``smooth_px``, outliers replaced by the
     median first), the per-pixel response ``F / vignetting``.
+
+    Arrays in, arrays out; ``rows(a, b)`` sources in (with their regular subsamples), :class:`BandStore`
+    out, in two passes (the mean, then the maps with the smoothing on bands with a halo).
     """
-    ref = None
-    acc = np.zeros(bias_map.shape, np.float64)
-    for f in flats:
-        x = f.astype(np.float64) - bias_map - dark_adu
-        med = float(np.median(subsample(x)))
-        ref = med if ref is None else ref
-        acc += x * (ref / med)
-    mean_flat = acc / len(flats)
-    mean = float(mean_flat.mean())
+    fsrc = [as_rows(f) for f in flats]
+    bsrc, dsrc = as_rows(bias_map), as_rows(dark_adu)
+    shape = tuple(bsrc.shape)
+    h, w = shape
+    is_arr = isinstance(bias_map, np.ndarray)
+    B = B or _Bands(shape, band_pixels=h * w)
+    if samples is None:
+        samples = [subsample(np.asarray(f)) for f in flats]
+        bias_sample, dark_sample = subsample(np.asarray(bias_map)), subsample(np.asarray(dark_adu))
+    meds = []
+    for s in samples:
+        x = s.astype(np.float64) - bias_sample - dark_sample
+        meds.append(float(np.median(x)))
+    ref = meds[0]
+    nf = len(flats)
+
+    def mean_rows(a, b):
+        bm, dk = bsrc.rows(a, b), dsrc.rows(a, b)
+        acc = np.zeros(bm.shape, np.float64)
+        for fs, med in zip(fsrc, meds):
+            acc += (fs.rows(a, b).astype(np.float64) - bm - dk) * (ref / med)
+        return acc / nf
+
+    def mean_sample():
+        acc = np.zeros(bias_sample.shape, np.float64)
+        for s, med in zip(samples, meds):
+            acc += (s.astype(np.float64) - bias_sample - dark_sample) * (ref / med)
+        return acc / nf
+
+    if is_arr:
+        mean = float(mean_rows(0, h).mean())
+    else:
+        tot = 0.0
+        for r0, r1 in B.run("flat response: mean"):
+            tot += float(mean_rows(r0, r1).sum())
+        mean = tot / (h * w)
     if not mean > 0:
         raise DetectorError(f"bias-subtracted flat has mean {mean:.4g} ADU", key="flat",
                             expected="flats with light (mean above the bias)")
-    sig = np.sqrt(np.maximum(mean_flat, 0) / gain + read_noise_adu ** 2 * (1 + 1 / max(n_bias, 1))) \
-        / math.sqrt(len(flats))
-    F = np.maximum(mean_flat / mean, 0.0)
-    cs = clipped_stats(F, 5.0)
-    clean = np.where(np.abs(F - cs["median"]) > 5 * cs["std"] + 0.05, cs["median"], F)
-    vig = ndimage.gaussian_filter(clean, smooth_px, mode="nearest")
-    info = {"signal_adu": mean, "n_flats": len(flats), "smoothing_sigma_px": smooth_px,
-            "relative_se_median": float(np.median(sig) / mean),
-            "response_std": clipped_stats(F / vig, 5.0)["std"]}
-    return F.astype(np.float32), (sig / mean).astype(np.float32), vig.astype(np.float32), info
+    cs = clipped_stats(np.maximum(mean_sample() / mean, 0.0), 5.0)
+
+    def rows_fn(a, b):
+        F = np.maximum(mean_rows(a, b) / mean, 0.0)
+        return F, np.where(np.abs(F - cs["median"]) > 5 * cs["std"] + 0.05, cs["median"], F)
+
+    outF, outS, outV = _out(shape, is_arr), _out(shape, is_arr), _out(shape, is_arr)
+    Sm = Sampler(shape)
+    G = Gather()
+    for r0, r1, F, vig in _smoothed_bands(rows_fn, shape, smooth_px, B, "flat response: maps"):
+        sig = np.sqrt(np.maximum(mean_rows(r0, r1), 0) / gain + read_noise_adu ** 2 * (1 + 1 / max(n_bias, 1))) \
+            / math.sqrt(nf)
+        _write_rows(outF, r0, F.astype(np.float32))
+        _write_rows(outS, r0, (sig / mean).astype(np.float32))
+        _write_rows(outV, r0, vig.astype(np.float32))
+        G.add("sig", Sm.take(r0, sig))
+        G.add("resp", Sm.take(r0, F / vig))
+    info = {"signal_adu": mean, "n_flats": nf, "smoothing_sigma_px": smooth_px,
+            "relative_se_median": float(np.median(G.get("sig")) / mean),
+            "response_std": clipped_stats(G.get("resp"), 5.0)["std"]}
+    return outF, outS, outV, info
 
 
 def fit_rate_laws(excess: np.ndarray, floor: float, bias_level_adu: float) -> dict:
@@ -1400,8 +1981,52 @@ def fit_rate_laws(excess: np.ndarray, floor: float, bias_level_adu: float) -> di
     return out
 
 
+class _Scaled:
+    """Rows of a float32 store times a float32 factor (after an optional cap): ``min(x, cap) * factor``."""
+
+    def __init__(self, src, factor: float, cap: float | None = None):
+        self.src, self.f, self.cap = src, np.float32(factor), cap
+        self.shape = tuple(src.shape)
+        self.dtype = np.dtype(np.float32)
+
+    def rows(self, a, b):
+        x = self.src.rows(a, b)
+        if self.cap is not None:
+            x = np.minimum(x, self.cap).astype(np.float32)
+        return x * self.f
+
+    def __array__(self, dtype=None, copy=None):
+        a = self.rows(0, self.shape[0])
+        return a if dtype is None else a.astype(dtype)
+
+
+class _GroupMean:
+    """Rows of the pixel mean of frames of one exposure (float32), as :func:`_mean32`."""
+
+    def __init__(self, frames: Sequence[Frame]):
+        self.frames = list(frames)
+        self.shape = tuple(frames[0].shape)
+
+    def rows(self, a, b):
+        return _mean32([f.rows(a, b) for f in self.frames])
+
+
+def _sample_frames(frames: Sequence[Frame], B: _Bands, label: str) -> dict:
+    """Regular subsamples of frames (id -> float32 values) in one band pass; also checks finiteness."""
+    S = Sampler(B.shape)
+    G = Gather()
+    for r0, r1 in B.run(label):
+        for k, f in enumerate(frames):
+            a = f.rows(r0, r1)
+            if a.dtype.kind == "f" and not np.isfinite(a).all():
+                _nonfinite_error(f.path, f.checks.get("role", "frame"), a, r0)
+            G.add(str(k), S.take(r0, a))
+    return {id(f): G.get(str(k)).astype(np.float32) for k, f in enumerate(frames)}
+
+
 def camera_twin(result: dict, bias_paths: Sequence, dark_paths: Sequence, flat_paths: Sequence | None = None,
-                *, nsigma: float = 5.0, hot_threshold_s: float = 60.0) -> tuple[dict, dict]:
+                *, nsigma: float = 5.0, hot_threshold_s: float = 60.0, band_pixels: int | None = None,
+                progress=None) -> tuple[dict, dict]:
     """The camera itself from its calibration frames: per-pixel maps and the defect table.
 
     Parameters
@@ -1409,70 +2034,170 @@ def camera_twin(result: dict, bias_paths: Sequence, dark_paths: Sequence, flat_p
     result : dict
         What :func:`characterize` returned for the same frames (read noise, gain, levels).
     bias_paths, dark_paths, flat_paths : lists of paths
+    band_pixels, progress : as for :func:`characterize`
 
     Returns
     -------
-    (maps, info): ``maps`` holds 2-D float32 arrays ``bias_adu`` (absolute, :func:`bias_structure`),
-    ``dark_rate_e_per_s`` and ``dark_rate_se_e_per_s`` (:func:`dark_rate_map`), with flats ``flat``,
-    ``flat_se`` and ``vignetting`` (:func:`flat_response`), and the tables ``defects`` (x, y, kind,
-    rate_e_per_s, rate_se_e_per_s, t_double_s) and ``stuck`` (x, y, value_adu); ``info`` the JSON numbers,
-    with the population law of the excess rates (:func:`fit_rate_laws`).
+    (maps, info): ``maps`` holds the 2-D float32 maps, each as a ``rows(a, b)`` source kept on disk
+    (:class:`detector.calbands.BandStore`; ``np.asarray(maps[k])`` loads one): ``bias_adu`` (absolute,
+    :func:`bias_structure`), ``dark_rate_e_per_s`` and ``dark_rate_se_e_per_s`` (:func:`dark_rate_map`),
+    with flats ``flat``, ``flat_se`` and ``vignetting`` (:func:`flat_response`), and the tables ``defects``
+    (x, y, kind, rate_e_per_s, rate_se_e_per_s, t_double_s) and ``stuck`` (x, y, value_adu); ``info`` the
+    JSON numbers, with the population law of the excess rates (:func:`fit_rate_laws`). The frames are read
+    band by band; running out of memory is a :class:`DetectorError`.
     """
+    opened: list[Frame] = []
+    try:
+        bias = read_frames(bias_paths, "bias", need_exptime=False, lazy=True)
+        opened += bias
+        shape, ref = bias[0].shape, bias[0].path
+        darks = read_frames(dark_paths, "dark", need_exptime=True, shape=shape, shape_file=ref, lazy=True)
+        opened += darks
+        flats = read_frames(flat_paths, "flat", need_exptime=False, shape=shape, shape_file=ref, lazy=True) \
+            if flat_paths else []
+        opened += flats
+        return _camera_twin(result, bias, darks, flats, nsigma, hot_threshold_s, _Bands(shape, band_pixels, progress))
+    except MemoryError:
+        raise DetectorError("out of memory while building the camera's maps", key="--emit-scene",
+                            file=str(bias_paths[0]),
+                            expected="more free memory, or fewer/smaller frames (see docs/detector.md)") from None
+    finally:
+        for f in opened:
+            f.close()
+
+
+def _camera_twin(result, bias, darks, flats, nsigma, hot_threshold_s, B: _Bands):
     g = float(result["gain"]["adopted_e_per_adu"])
     read = float(result["bias"]["read_noise_adu"])
-    bias = read_frames(bias_paths, "bias", need_exptime=False)
-    shape, ref = bias[0].data.shape, bias[0].path
-    master = np.mean([f.data for f in bias], axis=0, dtype=np.float64)
+    shape = B.shape
     nb = len(bias)
-    del bias
-    bmap, binfo = bias_structure(master, read, nb, nsigma)
-    del master
-    darks = read_frames(dark_paths, "dark", need_exptime=True, shape=shape, shape_file=ref)
-    ts, images, groups = _group_darks(darks)
+    S = _sample_frames(bias + darks + flats, B, "camera: read frames")
+
+    class _Master:
+        shape = B.shape
+
+        def rows(self, a, b):
+            return np.mean([f.rows(a, b) for f in bias], axis=0, dtype=np.float64)
+
+    m_sample = np.mean([S[id(f)] for f in bias], axis=0, dtype=np.float64)
+    bmap, binfo = bias_structure(_Master(), read, nb, nsigma, B=B, sample=m_sample)
+    ts, groups = _group_by_time(darks)
+    imgs = [_GroupMean(gr) for gr in groups]
+    img_s = [_mean32([S[id(f)] for f in gr]) for gr in groups]
     sat = min(f.saturation_adu for f in darks)
-    sat = sat if math.isfinite(sat) else float(np.max([im.max() for im in images])) + 1
+    if not math.isfinite(sat):
+        sat = max(float(s.max()) for s in img_s) + 1
+        for r0, r1 in B.run("darks: maximum"):
+            sat = max(sat, max(float(im.rows(r0, r1).max()) for im in imgs) + 1)
     offset = float(result["dark"]["intercept_minus_bias_adu"]) if len(ts) >= 2 else 0.0
     if abs(offset) > 3 * read:
         offset = 0.0
-    rate, se, stuck, dinfo = dark_rate_map(ts, images, bmap, offset, read, g, sat, nsigma)
-    maps: dict = {"bias_adu": bmap, "dark_rate_e_per_s": rate * np.float32(g),
-                  "dark_rate_se_e_per_s": np.minimum(se, 1e6).astype(np.float32) * np.float32(g)}
-    # stuck pixels: their median raw value over the darks
-    sy, sx = np.nonzero(stuck)
-    stuck_vals = np.median(np.stack([im[sy, sx] for im in images], axis=1), axis=1) if sy.size else np.zeros(0)
-    maps["stuck"] = {"x": sx.astype(np.int32), "y": sy.astype(np.int32), "value_adu": stuck_vals.astype(np.float32)}
+
+    def hot_floor(info):
+        return max(nsigma * max(info["dsnu_std_adu_per_s"], info["noise_std_adu_per_s"]), 1e-6)
+
+    rate, se, stuck, dinfo = dark_rate_map(ts, imgs, bmap, offset, read, g, sat, nsigma, B=B, samples=img_s,
+                                           bias_sample=bmap.sample, hot_floor=hot_floor)
+    hotp = dinfo.pop("_hot")
+    maps: dict = {"bias_adu": bmap, "dark_rate_e_per_s": _Scaled(rate, g),
+                  "dark_rate_se_e_per_s": _Scaled(se, g, cap=1e6), "_stores": [bmap, rate, se]}
+    maps["stuck"] = {"x": stuck["x"].astype(np.int32), "y": stuck["y"].astype(np.int32),
+                     "value_adu": stuck["value_adu"].astype(np.float32)}
     med = dinfo["median_rate_adu_per_s"]
-    bulk_sd = max(dinfo["dsnu_std_adu_per_s"], dinfo["noise_std_adu_per_s"])
-    excess = rate.astype(np.float64) - med
-    floor = max(nsigma * bulk_sd, 1e-6)
-    hot = (excess > floor) & ~stuck
-    hy, hx = np.nonzero(hot)
-    B = float(result["bias"]["level_median_adu"])
-    t2 = B / excess[hy, hx]
-    defects = {"x": hx.astype(np.int32), "y": hy.astype(np.int32),
-               "kind": np.where(t2 < hot_threshold_s, "hot", "warm"),
-               "rate_e_per_s": (rate[hy, hx] * g).astype(np.float64),
-               "rate_se_e_per_s": (se[hy, hx] * g).astype(np.float64), "t_double_s": t2}
-    maps["defects"] = defects
+    floor = hot_floor(dinfo)
+    excess = hotp["rate"].astype(np.float64) - med
+    Bl = float(result["bias"]["level_median_adu"])
+    t2 = Bl / excess
+    maps["defects"] = {"x": hotp["x"].astype(np.int32), "y": hotp["y"].astype(np.int32),
+                       "kind": np.where(t2 < hot_threshold_s, "hot", "warm"),
+                       "rate_e_per_s": (hotp["rate"] * g).astype(np.float64),
+                       "rate_se_e_per_s": (hotp["se"] * g).astype(np.float64), "t_double_s": t2}
     dinfo["excess_floor_adu_per_s"] = floor
     dinfo["n_hot"] = int(np.count_nonzero(t2 < hot_threshold_s))
     dinfo["n_warm"] = int(np.count_nonzero(t2 >= hot_threshold_s))
-    dinfo["rate_laws_adu_per_s"] = fit_rate_laws(excess[hot], floor, B)
-    info = {"bias": binfo, "dark": dinfo, "gain_e_per_adu": g, "shape": list(shape)}
-    if flat_paths:
-        flats = read_frames(flat_paths, "flat", need_exptime=False, shape=shape, shape_file=ref)
+    dinfo["rate_laws_adu_per_s"] = fit_rate_laws(excess, floor, Bl)
+    dinfo["map_mean_e_per_s"] = dinfo.pop("map_mean_adu_per_s") * g
+    info = {"bias": binfo, "dark": dinfo, "gain_e_per_adu": g, "shape": list(shape), "band_rows": B.rows}
+    if flats:
         tf = flats[0].exptime_s or 0.0
-        F, Fse, vig, finfo = flat_response([f.data for f in flats], bmap, rate * np.float32(tf), read, g, nb)
+        dark_src = _Scaled(rate, tf)
+        F, Fse, vig, finfo = flat_response(flats, bmap, dark_src, read, g, nb, B=B,
+                                           samples=[S[id(f)] for f in flats], bias_sample=bmap.sample,
+                                           dark_sample=rate.sample * np.float32(tf))
         maps.update({"flat": F, "flat_se": Fse, "vignetting": vig})
+        maps["_stores"] += [F, Fse, vig]
         finfo["exposure_s"] = tf
         finfo["files"] = [f.path for f in flats]
-        h, w = vig.shape
+        h, w = shape
         bh, bw = max(1, h // 10), max(1, w // 10)
-        c = float(np.median(vig[h // 2 - bh // 2:h // 2 + bh // 2 + 1, w // 2 - bw // 2:w // 2 + bw // 2 + 1]))
-        finfo["vignetting_corner_over_centre"] = float(np.mean([np.median(v) for v in (
-            vig[:bh, :bw], vig[:bh, -bw:], vig[-bh:, :bw], vig[-bh:, -bw:])]) / c)
+        boxes = [(h // 2 - bh // 2, h // 2 + bh // 2 + 1, w // 2 - bw // 2, w // 2 + bw // 2 + 1),
+                 (0, bh, 0, bw), (0, bh, w - bw, w), (h - bh, h, 0, bw), (h - bh, h, w - bw, w)]
+        vals = [[] for _ in boxes]
+        for r0, r1 in B.run("flat response: vignetting"):
+            v = vig.rows(r0, r1)
+            for k, (y0, y1, x0, x1) in enumerate(boxes):
+                a, b = max(y0, r0), min(y1, r1)
+                if a < b:
+                    vals[k].append(v[a - r0:b - r0, x0:x1].flatten())
+        med_box = [np.median(np.concatenate(v)) for v in vals]  # float32, as the whole-frame code had
+        finfo["vignetting_corner_over_centre"] = float(np.mean(med_box[1:]) / float(med_box[0]))
         info["flat"] = finfo
     return maps, jsonable(info)
+
+
+def _image_header(shape, extname: str | None, cards: dict | None = None) -> fits.Header:
+    """Header of a float32 image HDU (primary when ``extname`` is None)."""
+    h = fits.Header()
+    if extname is None:
+        h["SIMPLE"] = True
+    else:
+        h["XTENSION"] = "IMAGE"
+    h["BITPIX"] = -32
+    h["NAXIS"] = 2
+    h["NAXIS1"] = int(shape[1])
+    h["NAXIS2"] = int(shape[0])
+    if extname is None:
+        h["EXTEND"] = True
+    else:
+        h["PCOUNT"] = 0
+        h["GCOUNT"] = 1
+        h["EXTNAME"] = extname
+    for k, v in (cards or {}).items():
+        if k == "COMMENT":
+            h.add_comment(v)
+        else:
+            h[k] = v
+    return h
+
+
+def write_image_hdus(path, images: Sequence[tuple], tables: Sequence = (), band_rows_: int = 512) -> None:
+    """Write a FITS file of float32 images read band by band (``(extname or None, source, cards)``; the
+    first is the primary), followed by table HDUs; atomic (a temporary file renamed when complete)."""
+    import os
+    import tempfile
+
+    from .fits_io import BLOCK, _extension_bytes
+
+    path = Path(path)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".part", dir=path.parent)
+    try:
+        with os.fdopen(fd, "wb") as f:
+            for name, src, cards in images:
+                src = as_rows(src)
+                f.write(_image_header(src.shape, name, cards).tostring().encode("ascii"))
+                n = 0
+                for r0 in range(0, src.shape[0], band_rows_):
+                    raw = np.asarray(src.rows(r0, r0 + band_rows_), dtype=np.float32).astype(">f4").tobytes()
+                    f.write(raw)
+                    n += len(raw)
+                f.write(b"\0" * (-n % BLOCK))
+            f.write(_extension_bytes(list(tables)))
+        os.chmod(tmp, 0o644)
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
 
 
 def write_twin(out_toml, result: dict, maps: dict, info: dict, preset_hint: str | None = None) -> dict:
@@ -1482,54 +2207,51 @@ def write_twin(out_toml, result: dict, maps: dict, info: dict, preset_hint: str 
     ``SIGMA`` its standard error, ``STUCK`` and ``DEFECTS`` tables), with flats ``<stem>_flat.fits``
     (response, mean 1; ``SIGMA``; ``VIGNETTING``). The scene: :func:`emit_scene_dict`'s detector with the
     dark current set to the map's mean, and the effects ``bias_map``, ``dark_map`` (and ``flat_map``)
-    instead of the population's ``hot_pixels`` and ``dsnu``. Paths in the scene are relative to it.
+    instead of the population's ``hot_pixels`` and ``dsnu``. Paths in the scene are relative to it. The
+    images are written band by band from the maps (arrays or ``rows(a, b)`` sources).
     """
-    from pathlib import Path
-
-    from astropy.io import fits
-
     out = Path(out_toml)
     stem = out.with_suffix("")
     scene = emit_scene_dict(result, preset_hint)
     scene["effects"] = {}
-    names = {}
 
-    def write(suffix, hdus):
+    def write(suffix, images, tables=()):
         p = Path(f"{stem}_{suffix}.fits")
-        fits.HDUList(hdus).writeto(p, overwrite=True)
-        names[suffix] = p
+        write_image_hdus(p, images, tables)
         return p.name
 
-    h = fits.Header()
-    h["BUNIT"] = "adu"
-    h["COMMENT"] = "bias structure: level + column + row means (+ defects), newtsim characterize"
-    scene["effects"]["bias_map"] = {"path": write("bias", [fits.PrimaryHDU(maps["bias_adu"], h)])}
+    scene["effects"]["bias_map"] = {"path": write("bias", [(None, maps["bias_adu"], {
+        "BUNIT": "adu", "COMMENT": "bias structure: level + column + row means (+ defects), newtsim characterize"})])}
     st = maps["stuck"]
     d = maps["defects"]
-    hd = fits.Header()
-    hd["BUNIT"] = "electron/s"
-    hdus = [fits.PrimaryHDU(maps["dark_rate_e_per_s"], hd),
-            fits.ImageHDU(maps["dark_rate_se_e_per_s"], name="SIGMA"),
-            fits.BinTableHDU.from_columns([fits.Column("x", "J", array=st["x"]), fits.Column("y", "J", array=st["y"]),
-                                           fits.Column("value_adu", "E", array=st["value_adu"])], name="STUCK"),
-            fits.BinTableHDU.from_columns([
-                fits.Column("x", "J", array=d["x"]), fits.Column("y", "J", array=d["y"]),
-                fits.Column("kind", "5A", array=np.asarray(d["kind"], dtype="S5")),
-                fits.Column("rate_e_per_s", "D", array=d["rate_e_per_s"]),
-                fits.Column("rate_se_e_per_s", "D", array=d["rate_se_e_per_s"]),
-                fits.Column("t_double_s", "D", array=d["t_double_s"])], name="DEFECTS")]
-    scene["effects"]["dark_map"] = {"path": write("dark", hdus), "sigma_hdu": "SIGMA", "stuck_hdu": "STUCK",
+    tables = [fits.BinTableHDU.from_columns([fits.Column("x", "J", array=st["x"]), fits.Column("y", "J", array=st["y"]),
+                                             fits.Column("value_adu", "E", array=st["value_adu"])], name="STUCK"),
+              fits.BinTableHDU.from_columns([
+                  fits.Column("x", "J", array=d["x"]), fits.Column("y", "J", array=d["y"]),
+                  fits.Column("kind", "5A", array=np.asarray(d["kind"], dtype="S5")),
+                  fits.Column("rate_e_per_s", "D", array=d["rate_e_per_s"]),
+                  fits.Column("rate_se_e_per_s", "D", array=d["rate_se_e_per_s"]),
+                  fits.Column("t_double_s", "D", array=d["t_double_s"])], name="DEFECTS")]
+    scene["effects"]["dark_map"] = {"path": write("dark", [(None, maps["dark_rate_e_per_s"], {"BUNIT": "electron/s"}),
+                                                           ("SIGMA", maps["dark_rate_se_e_per_s"], None)], tables),
+                                    "sigma_hdu": "SIGMA", "stuck_hdu": "STUCK",
                                     "offset_e": round(float(info["dark"]["offset_adu"]) * float(info["gain_e_per_adu"]), 4)}
     if result["dark"].get("temperature_c") is not None:
         scene["effects"]["dark_map"]["temperature_c"] = round(float(result["dark"]["temperature_c"]), 2)
     if "flat" in maps:
-        scene["effects"]["flat_map"] = {"path": write("flat", [
-            fits.PrimaryHDU(maps["flat"]), fits.ImageHDU(maps["flat_se"], name="SIGMA"),
-            fits.ImageHDU(maps["vignetting"], name="VIGNETTING")]), "sigma_hdu": "SIGMA"}
-    bmed = float(np.median(maps["bias_adu"]))
+        scene["effects"]["flat_map"] = {"path": write("flat", [(None, maps["flat"], None),
+                                                               ("SIGMA", maps["flat_se"], None),
+                                                               ("VIGNETTING", maps["vignetting"], None)]),
+                                        "sigma_hdu": "SIGMA"}
+    bmed = info["bias"].get("map_median_adu")
+    if bmed is None:
+        bmed = float(np.median(np.asarray(maps["bias_adu"])))
+    mean_e = info["dark"].get("map_mean_e_per_s")
+    if mean_e is None:
+        mean_e = float(np.mean(np.asarray(maps["dark_rate_e_per_s"])))
     integer = bool(result["frame"].get("integer_data", True))
-    scene["detector"]["bias_adu"] = round(bmed + (0.5 if integer else 0.0), 3)
-    scene["detector"]["dark_current_e_per_s"] = round(float(np.mean(maps["dark_rate_e_per_s"])), 6)
+    scene["detector"]["bias_adu"] = round(float(bmed) + (0.5 if integer else 0.0), 3)
+    scene["detector"]["dark_current_e_per_s"] = round(float(mean_e), 6)
     return scene
 
 

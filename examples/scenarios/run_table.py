@@ -9,7 +9,17 @@ path. Measurements: ``scenes.app.metrics`` (numpy/scipy; definitions in docs/sce
     python examples/scenarios/run_table.py --set detector.width=512 --set detector.height=512   # quick look
 
 Writes ``table.md`` and ``table.json`` in ``--out`` (and the FITS frames in ``--out``/fits unless
-``--discard-fits``). The thesis's own Annex VII numbers are not in this repository: that column says so.
+``--discard-fits``).
+
+The thesis's own tables side by side (``thesis_tables.toml``: its Tables 10-15, 17-22, 26 and 31, each row
+with the scenario file and the overrides that state the thesis's settings)::
+
+    python examples/scenarios/run_table.py --thesis                          # every row -> thesis.md/.json
+    python examples/scenarios/run_table.py --thesis --tables 10 11 13        # some tables
+    python examples/scenarios/run_table.py --thesis --set detector.width=512 --set detector.height=512
+
+prints, per row and quantity, the thesis's value, newtsim's and their relative difference (counts of
+stars and outliers scaled to the full sensor by area when a window is rendered).
 """
 
 from __future__ import annotations
@@ -33,7 +43,15 @@ sys.path.insert(0, str(HERE))
 from scenes.app.metrics import measure_frame
 
 CASES = ("navstar71_imx411", "navstar67_ml11002")
-THESIS = "n/a: thesis table not in repo"
+THESIS = "see --thesis (thesis_tables.toml)"
+THESIS_FILE = HERE / "thesis_tables.toml"
+#: the quantities a thesis row may give, and the key of newtsim's measurement for each
+QUANTITIES = {"std": "std", "median": "median", "mean": "mean", "std_background": "std_clipped",
+              "stars_visible": "stars_visible", "star_snr_median": "star_snr_median", "target_snr": "target_snr",
+              "outliers_5sigma": "outliers_5sigma"}
+#: counts that scale with the frame's area (a window's count is scaled to the full sensor)
+COUNTS = ("stars_visible", "outliers_5sigma")
+THESIS_TABLES = (10, 11, 12, 13, 14, 15, 17, 18, 19, 20, 21, 22, 26, 31)
 CATEGORY = {"bias": "bias", "dark": "darks", "empty_sky": "empty sky", "stars": "stars", "object": "objects",
             "sidereal_cosmics": "sidereal + cosmics (+ straylight)", "tracking": "tracking", "full": "full",
             "navstar71": "real vs synthetic (Tables 25, 27)", "navstar67": "real vs synthetic (Tables 30, 32)"}
@@ -49,8 +67,103 @@ def category(name: str) -> str:
     return CATEGORY.get(key, key)
 
 
-def table_row(path: Path, out_dir: Path | None, overrides=(), nsigma: float = 5.0, keep: bool = True) -> dict:
-    """Render one scene file and measure its frame: the table's row (a dict)."""
+def load_thesis(path: Path = THESIS_FILE) -> list[dict]:
+    """The thesis's values (``thesis_tables.toml``), checked: every row names its tables (among
+    :data:`THESIS_TABLES`), an existing scenario file and known quantities with numbers (or a string such as
+    ``"<1"`` where the thesis gives none)."""
+    import tomllib
+
+    data = tomllib.loads(Path(path).read_text())
+    rows = data["row"]
+    defaults = data.get("defaults", {}).get("scenario_set", [])
+    for i, r in enumerate(rows):
+        if r.get("defaults"):
+            r["set"] = list(defaults) + list(r.get("set", []))
+        where = f"{path}: row {i + 1} ({r.get('label')!r})"
+        if not r.get("tables") or not set(r["tables"]) <= set(THESIS_TABLES):
+            raise ValueError(f"{where}: tables {r.get('tables')} not among {THESIS_TABLES}")
+        if not (HERE / f"{r['scenario']}.toml").is_file():
+            raise ValueError(f"{where}: no scenario file {r['scenario']}.toml")
+        for part in ("values", "real"):
+            for k, v in r.get(part, {}).items():
+                if k not in QUANTITIES or not isinstance(v, (int, float, str)):
+                    raise ValueError(f"{where}: {part}.{k} = {v!r} (expected one of {sorted(QUANTITIES)}: a number)")
+        if not r.get("values"):
+            raise ValueError(f"{where}: no values")
+    return rows
+
+
+def _scene_with_object(path: Path, obj: dict | None):
+    """The scene file, or (``obj``) a temporary copy beside it with ``obj`` merged into its first object."""
+    import contextlib
+    import tempfile
+
+    import tomli_w
+    import tomllib
+
+    if not obj:
+        return contextlib.nullcontext(path)
+
+    @contextlib.contextmanager
+    def tmp():
+        data = tomllib.loads(path.read_text())
+        data["objects"][0].update(obj)
+        fd, name = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=".toml", dir=path.parent)
+        try:
+            with open(fd, "w") as f:
+                f.write(tomli_w.dumps(data))
+            yield Path(name)
+        finally:
+            Path(name).unlink(missing_ok=True)
+
+    return tmp()
+
+
+def compare_row(t: dict, out_dir: Path | None, overrides=(), nsigma: float = 5.0, keep: bool = False) -> dict:
+    """Render one thesis row's frame (its scenario, its overrides, then ``overrides``) and compare."""
+    path = HERE / f"{t['scenario']}.toml"
+    with _scene_with_object(path, t.get("object")) as p:
+        row = table_row(p, out_dir, list(t.get("set", [])) + list(overrides), nsigma, keep, outliers=True)
+    row["scenario"] = t["scenario"]
+    area = row.pop("_area_ratio")
+    out = {"tables": t["tables"], "label": t["label"], "scenario": t["scenario"], "frame": row["frame"],
+           "window_area_ratio": area, "set": t.get("set", []) + list(overrides), "object": t.get("object"),
+           "quantities": []}
+    for q, tv in t["values"].items():
+        nv = row.get(QUANTITIES[q])
+        if q in COUNTS and nv is not None and area != 1:
+            nv = nv * area  # a window's count, scaled to the thesis's full frame
+        rel = (nv / tv - 1) if isinstance(tv, (int, float)) and tv and nv is not None and math.isfinite(nv) \
+            else None
+        if isinstance(tv, str) and tv.startswith("<") and nv is not None:
+            rel = None
+        real = t.get("real", {}).get(q)
+        out["quantities"].append({"quantity": q, "thesis": tv, "newtsim": nv, "rel_diff": rel, "real": real,
+                                  "over_10_percent": bool(rel is not None and abs(rel) > 0.10)})
+    return out
+
+
+def thesis_markdown(comps: list[dict]) -> str:
+    head = ["tables", "thesis row", "newtsim frame", "quantity", "thesis", "newtsim", "newtsim/thesis - 1",
+            "real frame"]
+    lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    for c in comps:
+        for q in c["quantities"]:
+            nv = q["newtsim"]
+            nd = 0 if q["quantity"] in COUNTS else 2
+            lines.append("| " + " | ".join([", ".join(str(x) for x in c["tables"]), c["label"], c["frame"],
+                                            q["quantity"], str(q["thesis"]), _fmt(None if nv is None else
+                                                                                   float(nv), nd),
+                                            "-" if q["rel_diff"] is None else f"{100 * q['rel_diff']:+.0f} %",
+                                            "-" if q["real"] is None else str(q["real"])]) + " |")
+    return "\n".join(lines) + "\n"
+
+
+def table_row(path: Path, out_dir: Path | None, overrides=(), nsigma: float = 5.0, keep: bool = True,
+              outliers: bool = False) -> dict:
+    """Render one scene file and measure its frame: the table's row (a dict). ``outliers``: also the count
+    of pixels more than 5 clipped sigma above the median (thesis section 3.7.1's outliers) and the ratio of
+    the full sensor's area to the rendered window's (``_area_ratio``)."""
     import tempfile
 
     scene = load_scene(str(path), list(overrides))
@@ -67,6 +180,9 @@ def table_row(path: Path, out_dir: Path | None, overrides=(), nsigma: float = 5.
             truth = np.asarray(hdul["TRUTH"].data) if "TRUTH" in hdul else None
             t0 = time.perf_counter()
             m = measure_frame(img, header, truth, nsigma=nsigma)
+            if outliers:
+                m["outliers_5sigma"] = int(np.count_nonzero(img.astype(np.float64) - m["median"]
+                                                             > 5 * m["std_clipped"]))
             measure_s = time.perf_counter() - t0
     exp = scene.exposure
     s = scene.sensor()
@@ -76,6 +192,9 @@ def table_row(path: Path, out_dir: Path | None, overrides=(), nsigma: float = 5.
            "exptime_s": info["exptime_s"], "tracking": exp.tracking if exp.frame == "light" else "-",
            "seed": info["seed"], **m, "thesis": THESIS, "render_s": round(render_s, 2),
            "measure_s": round(measure_s, 2), "fits": str(fits_path) if keep and out_dir is not None else None}
+    if outliers:
+        w, h = s.roi_shape
+        row["_area_ratio"] = (s.sensor_width_px * s.sensor_height_px) / (w * h)
     return row
 
 
@@ -107,7 +226,12 @@ def main(argv=None) -> int:
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="override a key in every scene")
     ap.add_argument("--nsigma", type=float, default=5.0, help="detection threshold [sigma] (default 5)")
     ap.add_argument("--discard-fits", action="store_true", help="do not keep the rendered frames")
+    ap.add_argument("--thesis", action="store_true",
+                    help="the thesis's Tables 10-15, 17-22, 26, 31 side by side (thesis_tables.toml)")
+    ap.add_argument("--tables", nargs="+", type=int, default=(), help="with --thesis: only these table numbers")
     a = ap.parse_args(argv)
+    if a.thesis:
+        return thesis_main(a)
     files = scenario_files(a.only, not a.no_cases)
     if not files:
         ap.error(f"no scenario matches {a.only}")
@@ -132,6 +256,39 @@ def main(argv=None) -> int:
     (out / "table.json").write_text(json.dumps({"meta": meta, "rows": rows}, indent=2, default=float))
     print(md)
     print(f"wrote {out / 'table.md'} and {out / 'table.json'}")
+    return 0
+
+
+def thesis_main(a) -> int:
+    rows = [t for t in load_thesis() if (not a.tables or set(t["tables"]) & set(a.tables))
+            and (not a.only or any(o in t["scenario"] for o in a.only))]
+    if not rows:
+        raise SystemExit(f"no thesis row matches tables {list(a.tables)} / {list(a.only)}")
+    out = Path(a.out)
+    out.mkdir(parents=True, exist_ok=True)
+    from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
+
+    comps = []
+    t0 = time.perf_counter()
+    with Progress(TextColumn("[bold]thesis rows[/bold] {task.description}"), BarColumn(),
+                  TextColumn("{task.completed}/{task.total}"), TimeElapsedColumn(), transient=True) as prog:
+        task = prog.add_task("", total=len(rows))
+        for t in rows:
+            prog.update(task, description=t["label"][:40])
+            try:
+                comps.append(compare_row(t, out / "fits", a.set, a.nsigma, keep=False))
+            except Exception as exc:  # noqa: BLE001 -- one row's failure (a scene error) does not lose the others
+                print(f"{t['label']}: {type(exc).__name__}: {exc}", file=sys.stderr)
+                comps.append({"tables": t["tables"], "label": t["label"], "scenario": t["scenario"], "frame": "-",
+                              "error": f"{type(exc).__name__}: {exc}", "quantities": []})
+            prog.advance(task)
+    md = thesis_markdown(comps)
+    (out / "thesis.md").write_text(md)
+    (out / "thesis.json").write_text(json.dumps({"overrides": a.set, "nsigma": a.nsigma, "rows": comps,
+                                                 "wall_s": round(time.perf_counter() - t0, 1)},
+                                                indent=2, default=float))
+    print(md)
+    print(f"wrote {out / 'thesis.md'} and {out / 'thesis.json'}")
     return 0
 
 

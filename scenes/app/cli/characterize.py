@@ -12,7 +12,7 @@ from detector.calplots import write_plots
 from detector.characterize import camera_twin, emit_population_dict, write_twin
 from detector.characterize import characterize as run
 
-from .common import write_json
+from .common import progress_bar, write_json
 
 
 @click.command()
@@ -31,23 +31,65 @@ def characterize(bias, dark, flat, json_out, emit_scene, population, plots, sigm
 
     Accepts shell-style multiple files after one option: --bias b1.fits b2.fits --dark d1.fits ...
     """
-    result = run(list(bias), list(dark), list(flat) or None, hot_sigma=sigma)
+    if emit_scene and not Path(emit_scene).parent.is_dir():
+        raise DetectorError("folder does not exist", key="--emit-scene", file=str(emit_scene),
+                            expected="a TOML path in an existing folder")
+    with _Progress() as progress:
+        result = _run_bounded(lambda: run(list(bias), list(dark), list(flat) or None, hot_sigma=sigma,
+                                          progress=progress), bias)
+        if emit_scene:
+            out = Path(emit_scene)
+            maps, info = _run_bounded(lambda: camera_twin(result, list(bias), list(dark), list(flat) or None,
+                                                          nsigma=sigma, progress=progress), bias)
+            result["camera"] = info
+            scene = emit_population_dict(result, info) if population else \
+                _run_bounded(lambda: write_twin(out, result, maps, info), bias)
+            out.write_text(tomli_w.dumps(scene))
     if plots:
         Path(plots).mkdir(parents=True, exist_ok=True)
         result["plots"] = [str(p) for p in write_plots(result, plots)]
-    if emit_scene:
-        out = Path(emit_scene)
-        if not out.parent.is_dir():
-            raise DetectorError("folder does not exist", key="--emit-scene", file=str(out),
-                                expected="a TOML path in an existing folder")
-        maps, info = camera_twin(result, list(bias), list(dark), list(flat) or None, nsigma=sigma)
-        result["camera"] = info
-        scene = emit_population_dict(result, info) if population else write_twin(out, result, maps, info)
-        out.write_text(tomli_w.dumps(scene))
     write_json(result if json_out else _summary(result), json_out)
     if json_out not in (None, "-"):
         click.echo(f"wrote {json_out}" + (f", {emit_scene}" if emit_scene else "")
                    + (f", plots in {plots}" if plots else ""), err=True)
+
+
+def _run_bounded(fn, bias):
+    """``fn()``, with running out of memory turned into one line (exit 2) instead of a traceback."""
+    try:
+        return fn()
+    except MemoryError:
+        raise DetectorError("out of memory", key="characterize", file=str(bias[0]) if bias else None,
+                            expected="more free memory (the analysis needs about 1 GiB for a 151-Mpixel "
+                                     "set), or smaller frames") from None
+
+
+class _Progress:
+    """A rich progress bar on stderr for the band passes (one task per pass), only when stderr is a terminal."""
+
+    def __init__(self):
+        import sys
+
+        self.bar = progress_bar("[bold]characterize[/bold] {task.description}") if sys.stderr.isatty() else None
+        self.tasks: dict = {}
+
+    def __enter__(self):
+        if self.bar:
+            self.bar.__enter__()
+            return self
+        return None
+
+    def __exit__(self, *exc):
+        if self.bar:
+            self.bar.__exit__(*exc)
+        return False
+
+    def __call__(self, label: str, done: int, total: int) -> None:
+        if total <= 1:  # one band: a small frame, done in a moment
+            return
+        if label not in self.tasks:
+            self.tasks[label] = self.bar.add_task(label, total=total)
+        self.bar.update(self.tasks[label], completed=done)
 
 
 def _summary(result: dict) -> dict:
