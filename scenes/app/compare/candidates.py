@@ -239,10 +239,27 @@ def structure_shares(res: Residuals, cands: list[Candidate]) -> None:
     chi2, n = block_chi2(res)
     if n == 0 or (chi2 - n) / np.sqrt(2 * n) < STRUCTURE_SIGMA:
         return
+    idx, _, w = res.flat_profiled()
     for c in cands:
         if c.fit.delta_adu is not None and c.fit.delta_bic < SIGNIFICANT_DELTA_BIC:
+            if large_scale_share(res, c.fit.delta_adu, idx, w) < 0.5:
+                continue  # a pattern of a few pixels (a CFA, a blur, a shift): not judged by the block means
             after, _ = block_chi2(res, c.fit.delta_adu)
             c.explains = round(float(np.clip((chi2 - after) / (chi2 - n), -1.0, 1.0)), 4)
+
+
+def large_scale_share(res: Residuals, delta: np.ndarray, idx: np.ndarray, w: np.ndarray) -> float:
+    """The share of a candidate's own mean change (its chi2 over the fitted pixels) that survives averaging
+    into the blocks of :func:`detector.morphology.block_chi2`: ~1 for a smooth pattern, ~0 for a pattern of
+    a few pixels."""
+    d = np.asarray(delta, np.float64).ravel()[idx]
+    total = float(np.dot(d * d, w))
+    if total <= 0:
+        return 0.0
+    zero = replace(res, data_adu=(res.model_adu + np.broadcast_to(delta, res.data_adu.shape)).astype(np.float32),
+                   _flat={})
+    big, _ = block_chi2(zero)
+    return big / total
 
 
 def score_heldout(res: Residuals, cands: list[Candidate], progress=None) -> None:
