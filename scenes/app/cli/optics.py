@@ -12,9 +12,11 @@ from contextlib import contextmanager
 
 import click
 
+import os
+
 from optics.design import OpticsError, load_design
 
-from .common import write_json
+from .common import Outputs, json_target, write_json
 
 
 @contextmanager
@@ -57,6 +59,11 @@ def _echo_json(obj, path):
     write_json(obj, path)
 
 
+def _outputs(design: str) -> Outputs:
+    """The command's outputs; a design TOML given as a path is an input (never overwritten)."""
+    return Outputs(inputs=[design] if os.path.isfile(design) else [])
+
+
 @click.group()
 def optics():
     """Ray tracing of the telescope (Mitsuba 3, llvm): vignetting, psf, pst.
@@ -85,24 +92,30 @@ def vignetting(design, grid, rays, wavelength_nm, obstruct, json_out, plot_out, 
     from optics import vignetting as vig
     from optics.sequential import SequentialTracer
 
-    d = _design(design)
-    settings = {"grid": grid, "rays": rays, "wavelength_nm": wavelength_nm, "obstruct": obstruct, "seed": seed}
+    with _outputs(design) as outs:
+        json_path = json_target(outs, json_out)
+        plot_path = outs.file(plot_out, "--plot") if plot_out else None
+        fits_path = outs.file(fits_out, "--fits") if fits_out else None
+        d = _design(design)
+        settings = {"grid": grid, "rays": rays, "wavelength_nm": wavelength_nm, "obstruct": obstruct, "seed": seed}
 
-    def compute():
-        tracer = SequentialTracer(d, _mitsuba(), obstruct=obstruct)
-        with _progress(f"vignetting {d.name}") as prog:
-            return vig.vignetting_map(tracer, grid, rays, wavelength_nm, seed, progress=prog).to_json()
+        def compute():
+            tracer = SequentialTracer(d, _mitsuba(), obstruct=obstruct)
+            with _progress(f"vignetting {d.name}") as prog:
+                return vig.vignetting_map(tracer, grid, rays, wavelength_nm, seed, progress=prog).to_json()
 
-    out, hit = cache.cached_json("vignetting", d, settings, compute, use_cache=not no_cache)
-    out = {"design": d.name, **out, "cached": hit}
-    res = vig.VignettingResult.from_json(out)
-    if plot_out:
-        vig.plot(res, plot_out, d, title=f"{d.name}: relative illumination")
-    if fits_out:
-        vig.write_fits(res, fits_out, d.name)
-    if json_out or not (plot_out or fits_out):
-        _echo_json(out, json_out)
-    else:
+        out, hit = cache.cached_json("vignetting", d, settings, compute, use_cache=not no_cache)
+        out = {"design": d.name, **out, "cached": hit}
+        res = vig.VignettingResult.from_json(out)
+        if plot_path is not None:
+            vig.plot(res, plot_path, d, title=f"{d.name}: relative illumination")
+        if fits_path is not None:
+            vig.write_fits(res, fits_path, d.name)
+        if json_path is not None:
+            _echo_json(out, json_path)
+    if json_out == "-" or not (json_out or plot_out or fits_out):
+        _echo_json(out, None)
+    elif not json_out:
         click.echo(f"on-axis throughput {out['on_axis_throughput']:.4f}, corner relative illumination "
                    f"{out['corner_relative_illumination']:.4f}", err=True)
 
@@ -141,6 +154,19 @@ def _band(preset: str | None, wavelength_nm: float | None, n: int):
 def psf(design, field_deg, wavelength_nm, band, band_samples, geometric, seeing_arcsec, jitter_arcsec,
         json_out, fits_out, no_cache):
     """The PSF at one field point: encircled energy, FWHM, centroid (and the geometric spot)."""
+    with _outputs(design) as outs:
+        json_path = json_target(outs, json_out)
+        fits_path = outs.file(fits_out, "--fits") if fits_out else None
+        out = _psf(design, field_deg, wavelength_nm, band, band_samples, geometric, seeing_arcsec, jitter_arcsec,
+                   fits_path, no_cache)
+        if json_path is not None:
+            _echo_json(out, json_path)
+    if json_path is None:
+        _echo_json(out, None)
+
+
+def _psf(design, field_deg, wavelength_nm, band, band_samples, geometric, seeing_arcsec, jitter_arcsec, fits_out,
+         no_cache) -> dict:
     d = _design(design)
     if band and wavelength_nm:
         raise OpticsError("--band and --wavelength-nm exclude each other (one wavelength, or a QE-weighted band)")
@@ -168,7 +194,7 @@ def psf(design, field_deg, wavelength_nm, band, band_samples, geometric, seeing_
            "cached": hit}
     if fits_out:
         psfmod.write_psf_fits(state["result"], fits_out)
-    _echo_json(out, json_out)
+    return out
 
 
 @optics.command()
@@ -184,6 +210,17 @@ def psf(design, field_deg, wavelength_nm, band, band_samples, geometric, seeing_
 @click.option("--no-cache", is_flag=True)
 def pst(design, angles, azimuth_deg, rays, wavelength_nm, seed, json_out, plot_out, no_cache):
     """Point-source transmittance PST(angle) with a 1-sigma Monte-Carlo error per angle."""
+    with _outputs(design) as outs:
+        json_path = json_target(outs, json_out)
+        plot_path = outs.file(plot_out, "--plot") if plot_out else None
+        out = _pst(design, angles, azimuth_deg, rays, wavelength_nm, seed, plot_path, no_cache)
+        if json_path is not None:
+            _echo_json(out, json_path)
+    if json_path is None:
+        _echo_json(out, None)
+
+
+def _pst(design, angles, azimuth_deg, rays, wavelength_nm, seed, plot_out, no_cache) -> dict:
     d = _design(design)
     try:
         angle_list = [float(a) for a in angles.split(",") if a.strip()]
@@ -206,7 +243,7 @@ def pst(design, angles, azimuth_deg, rays, wavelength_nm, seed, json_out, plot_o
     out = {"design": d.name, **out, "cached": hit}
     if plot_out:
         straylight.plot_pst({d.name: straylight.PSTResult.from_json(out)}, plot_out)
-    _echo_json(out, json_out)
+    return out
 
 
 @optics.command()
@@ -220,15 +257,19 @@ def layout(design, plot_out, export_out):
     from optics.layout import make_layout
     from optics.meshes import export, telescope_parts
 
-    d = _design(design)
     if not (plot_out or export_out):
         raise OpticsError("optics layout: give --plot OUT.png and/or --export OUT.glb")
-    if export_out:
-        export(telescope_parts(make_layout(d)), export_out)
-        click.echo(f"wrote {export_out}", err=True)
-    if plot_out:
-        from optics.layout_plot import plot_layout
-        from optics.sequential import SequentialTracer
+    with _outputs(design) as outs:
+        export_path = outs.file(export_out, "--export") if export_out else None
+        plot_path = outs.file(plot_out, "--plot") if plot_out else None
+        d = _design(design)
+        if export_path is not None:
+            export(telescope_parts(make_layout(d)), export_path)
+        if plot_path is not None:
+            from optics.layout_plot import plot_layout
+            from optics.sequential import SequentialTracer
 
-        plot_layout(SequentialTracer(d, _mitsuba()), plot_out)
-        click.echo(f"wrote {plot_out}", err=True)
+            plot_layout(SequentialTracer(d, _mitsuba()), plot_path)
+    for p in (export_out, plot_out):
+        if p:
+            click.echo(f"wrote {p}", err=True)
