@@ -102,6 +102,16 @@ def exit_interrupted(exc: BaseException | None = None) -> None:
         os._exit(exit_code(exc))
 
 
+def exit_now(code: int) -> None:
+    """Flush the standard streams and end the process with ``code`` at once (no interpreter shutdown)."""
+    for stream in (sys.stdout, sys.stderr):
+        try:
+            stream.flush()
+        except Exception:  # noqa: BLE001
+            pass
+    os._exit(code)
+
+
 class blocked:
     """Hold SIGINT and SIGTERM for the duration (the rename of finished outputs is never cut in half);
     a signal that arrives meanwhile is delivered when the block ends."""

@@ -72,8 +72,6 @@ def _usage_line(exc: click.ClickException) -> str:
 def main(argv=None):
     """Console-script entry point: exit 0, 1 (frames failed, or an operating-system error such as a full
     disk), 2 (a user error, one line), 130 / 143 (SIGINT / SIGTERM); never a traceback for any of them."""
-    if not _interrupts.installed():
-        _interrupts.install()
     argv = list(sys.argv[1:] if argv is None else argv)
     try:
         if argv[:1] == ["characterize"]:
@@ -86,7 +84,10 @@ def main(argv=None):
     except click.ClickException as exc:
         click.echo(_usage_line(exc), err=True)
         sys.exit(exc.exit_code if exc.exit_code else EXIT_USER_ERROR)
-    sys.exit(code if isinstance(code, int) else 0)
+    code = code if isinstance(code, int) else 0
+    if code in (128 + 2, 128 + 15):  # interrupted and cleaned up: leave now (a second signal during the
+        _interrupts.exit_now(code)   # interpreter's shutdown would otherwise kill it with -SIGINT)
+    sys.exit(code)
 
 
 if __name__ == "__main__":
