@@ -460,3 +460,48 @@ def test_a_full_disk_is_one_line_and_leaves_nothing(tmp_path):
     assert proc.returncode == 1, err
     assert "no room" in line and "nothing was written" in line
     assert sorted(os.listdir(tmp_path)) == ["s.toml"]
+
+
+def test_a_folder_output_is_created_or_its_files_replaced(tmp_path):
+    """``--plots``: a new folder appears whole at commit; an existing one gets its files replaced one by one
+    (other files in it stay); nothing appears on an error."""
+    with Outputs() as outs:
+        d = outs.folder(tmp_path / "plots", "--plots")
+        (d / "a.png").write_bytes(b"a1")
+        assert not (tmp_path / "plots").exists()
+    assert (tmp_path / "plots" / "a.png").read_bytes() == b"a1"
+    (tmp_path / "plots" / "mine.txt").write_text("keep")
+    with Outputs() as outs:
+        d = outs.folder(tmp_path / "plots", "--plots")
+        (d / "a.png").write_bytes(b"a2")
+        (d / "b.png").write_bytes(b"b2")
+    assert sorted(os.listdir(tmp_path / "plots")) == ["a.png", "b.png", "mine.txt"]
+    assert (tmp_path / "plots" / "a.png").read_bytes() == b"a2"
+    with pytest.raises(KeyboardInterrupt):
+        with Outputs() as outs:
+            d = outs.folder(tmp_path / "new", "--plots")
+            (d / "a.png").write_bytes(b"x")
+            raise KeyboardInterrupt
+    assert not (tmp_path / "new").exists() and not leftovers(tmp_path)
+    (tmp_path / "file").write_text("x")
+    with pytest.raises(OutputError, match="--plots"):
+        Outputs().folder(tmp_path / "file", "--plots")
+
+
+def test_staged_paths_are_reported_as_the_users(tmp_path):
+    with Outputs() as outs:
+        p = outs.file(tmp_path / "a.toml", "--apply")
+        sibling = p.with_name("a.ledger.json")
+        shown = outs.public({"scene": str(p), "ledger": [str(sibling)]})
+        p.write_text("x = 1\n")
+        sibling.write_text("{}")
+    assert shown == {"scene": str(tmp_path / "a.toml"), "ledger": [str(tmp_path / "a.ledger.json")]}
+    assert sorted(os.listdir(tmp_path)) == ["a.ledger.json", "a.toml"]
+
+
+def test_a_field_angle_no_ray_reaches_is_one_line(mi, tmp_path):
+    code, _, err = run("optics", "psf", "bare", "--field-deg", "45", "0", "--geometric", "--no-cache",
+                       "--json", tmp_path / "p.json")
+    line = one_line(err)
+    assert code == 2 and "--field-deg" in line and "no ray reached" in line
+    assert sorted(os.listdir(tmp_path)) == []

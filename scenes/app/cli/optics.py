@@ -84,7 +84,7 @@ def optics():
 @click.option("--plot", "plot_out", default=None, type=click.Path(dir_okay=False), help="PNG map and profiles")
 @click.option("--fits", "fits_out", default=None, type=click.Path(dir_okay=False),
               help="FITS map of the relative illumination (for scenes)")
-@click.option("--seed", default=0, show_default=True)
+@click.option("--seed", default=0, show_default=True, type=click.IntRange(min=0))
 @click.option("--no-cache", is_flag=True, help="recompute even if a cached result exists")
 def vignetting(design, grid, rays, wavelength_nm, obstruct, json_out, plot_out, fits_out, seed, no_cache):
     """Relative illumination over the focal plane and the on-axis geometric throughput."""
@@ -182,9 +182,15 @@ def _psf(design, field_deg, wavelength_nm, band, band_samples, geometric, seeing
     def compute():
         tracer = SequentialTracer(d, _mitsuba())
         t0 = time.perf_counter()
-        res = psfmod.compute_psf(tracer, field_deg=tuple(field_deg), wavelengths_nm=wl, weights=w,
-                                 geometric=geometric, seeing_fwhm_arcsec=seeing_arcsec,
-                                 jitter_rms_arcsec=jitter_arcsec)
+        try:
+            res = psfmod.compute_psf(tracer, field_deg=tuple(field_deg), wavelengths_nm=wl, weights=w,
+                                     geometric=geometric, seeing_fwhm_arcsec=seeing_arcsec,
+                                     jitter_rms_arcsec=jitter_arcsec)
+        except ValueError as exc:
+            if "no ray reached" not in str(exc):
+                raise
+            raise OpticsError(f"{d.name}: key '--field-deg': {exc} (expected a field angle inside the "
+                              "telescope's field of view)") from None
         state["result"] = res
         return {**res.to_json(), "seconds": round(time.perf_counter() - t0, 3)}
 
@@ -204,7 +210,7 @@ def _psf(design, field_deg, wavelength_nm, band, band_samples, geometric, seeing
 @click.option("--rays", default=400_000, show_default=True, type=click.IntRange(1000, 10 ** 10),
               help="detector paths per angle")
 @click.option("--wavelength-nm", default=550.0, show_default=True, type=click.FloatRange(200, 2000))
-@click.option("--seed", default=0, show_default=True)
+@click.option("--seed", default=0, show_default=True, type=click.IntRange(min=0))
 @click.option("--json", "json_out", default=None, help="write the JSON here ('-' for stdout)")
 @click.option("--plot", "plot_out", default=None, type=click.Path(dir_okay=False), help="PST curve (PNG)")
 @click.option("--no-cache", is_flag=True)
