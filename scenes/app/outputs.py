@@ -157,6 +157,17 @@ class Outputs:
         self._shown[str(staged)] = s
         return staged
 
+    def also_inputs(self, paths) -> None:
+        """More inputs, known only once the scene is loaded (its catalogue, maps, design, TLE files): an
+        output already declared on one of them is refused now, still before the work."""
+        new = [str(p) for p in paths if p is not None and os.path.isfile(str(p))]
+        for final, option in self._finals.items():
+            for inp in new:
+                if _same_file(final, inp) if os.path.exists(final) else False:
+                    raise OutputError(f"is a file the scene reads ({inp})", key=option, file=final,
+                                      expected="an output path that is not one of the inputs")
+        self._inputs += new
+
     def _claim(self, final: str, option: str, shown: str) -> None:
         if final in self._finals:
             raise OutputError(f"is also the output of {self._finals[final]}", key=option, file=shown,

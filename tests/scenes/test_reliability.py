@@ -505,3 +505,15 @@ def test_a_field_angle_no_ray_reaches_is_one_line(mi, tmp_path):
     line = one_line(err)
     assert code == 2 and "--field-deg" in line and "no ray reached" in line
     assert sorted(os.listdir(tmp_path)) == []
+
+
+def test_a_file_the_scene_reads_is_not_overwritten(tmp_path):
+    h = fits.Header()
+    for k, v in (("CRVAL1", -20.0), ("CDELT1", 2.0), ("CRVAL2", -20.0), ("CDELT2", 2.0)):
+        h[k] = v
+    fits.PrimaryHDU(np.ones((21, 21)), h).writeto(tmp_path / "vig.fits")
+    before = (tmp_path / "vig.fits").read_bytes()
+    sc = write_scene(tmp_path / "s.toml", {**TINY, "effects": {"vignetting": {"map_file": "vig.fits"}}})
+    code, _, err = run("render", sc, "-o", tmp_path / "vig.fits")
+    assert code == 2 and "the scene reads" in one_line(err)
+    assert (tmp_path / "vig.fits").read_bytes() == before and not leftovers(tmp_path)

@@ -36,16 +36,19 @@ BASE = {"detector": {"preset": "ml11002", "width": 64, "height": 48},
 finite = st.floats(allow_nan=False, allow_infinity=False)
 nonfinite = st.sampled_from([math.nan, math.inf, -math.inf])
 text = st.text(alphabet="abcxyz019 -_", min_size=0, max_size=8)
+#: an array or a table where a value is expected
+structural = st.one_of(st.lists(st.integers(0, 3), min_size=1, max_size=2),
+                       st.fixed_dictionaries({"a": st.integers(0, 3)}))
 
 #: key -> (strategy of valid values, strategy of invalid values)
 KEYS = {
     "exposure.time_s": (st.floats(0, 30), st.one_of(st.floats(max_value=-1e-3, allow_nan=False, allow_infinity=False),
                                                      st.floats(min_value=1.01e6, allow_infinity=False), nonfinite,
-                                                     st.booleans(), finite.map(str))),
+                                                     st.booleans(), finite.map(str), structural)),
     "exposure.frame": (st.sampled_from(["dark", "bias", "light"]),
                        st.one_of(st.sampled_from(["flat", "Dark", ""]), st.integers(), st.booleans())),
     "detector.width": (st.integers(8, 64), st.one_of(st.integers(max_value=0), st.booleans(),
-                                                     st.integers(1, 64).map(str), st.floats(1.5, 60.5))),
+                                                     st.integers(1, 64).map(str), st.floats(1.5, 60.5), structural)),
     "detector.height": (st.integers(8, 48), st.one_of(st.integers(max_value=0), st.booleans(), nonfinite)),
     "detector.read_noise_e": (st.floats(0, 50), st.one_of(st.floats(max_value=-1e-3, allow_nan=False,
                                                                     allow_infinity=False), nonfinite, st.booleans(),
@@ -61,7 +64,7 @@ KEYS = {
     "sky.background_mag_arcsec2": (st.floats(15, 25), st.one_of(st.floats(max_value=4.99, allow_infinity=False),
                                                                 nonfinite, st.booleans(), finite.map(str))),
     "psf.fwhm_arcsec": (st.floats(0.5, 20), st.one_of(st.floats(max_value=0, allow_infinity=False), nonfinite,
-                                                      st.booleans())),
+                                                      st.booleans(), structural)),
     "exposure.seed": (st.integers(0, 2 ** 63 - 1), st.one_of(st.integers(max_value=-1), st.booleans(),
                                                              st.floats(0.5, 1e6), st.integers(0, 99).map(str))),
     "exposure.bogus_key": (st.nothing(), st.integers()),
@@ -82,6 +85,10 @@ def _toml_literal(value) -> str:
         return "nan"
     if isinstance(value, float) and math.isinf(value):
         return "inf" if value > 0 else "-inf"
+    if isinstance(value, list):
+        return "[" + ", ".join(_toml_literal(v) for v in value) + "]"
+    if isinstance(value, dict):
+        return "{ " + ", ".join(f"{k} = {_toml_literal(v)}" for k, v in value.items()) + " }"
     return tomli_w.dumps({"v": value}).partition(" = ")[2].strip()
 
 

@@ -13,6 +13,7 @@ The table of failure classes: docs/reliability.md.
 from __future__ import annotations
 
 import json
+import os
 import warnings
 from pathlib import Path
 
@@ -109,9 +110,31 @@ def write_json(obj, path) -> None:
         Path(path).write_text(text + "\n")
 
 
-def load(scene: str, sets) -> object:
-    """The scene file (or built-in name) with the command's ``--set KEY=VALUE`` overrides."""
-    return load_scene(scene, list(sets))
+def load(scene: str, sets, outs: Outputs | None = None) -> object:
+    """The scene file (or built-in name) with the command's ``--set KEY=VALUE`` overrides; with ``outs``,
+    the files the scene reads (catalogue, maps, design, TLEs) become inputs no output may overwrite."""
+    sc = load_scene(scene, list(sets))
+    if outs is not None:
+        outs.also_inputs(scene_files(sc))
+    return sc
+
+
+def scene_files(scene) -> list[str]:
+    """Every existing file a loaded scene names (its paths are absolute after :func:`load_scene`)."""
+    found = []
+
+    def walk(v):
+        if isinstance(v, dict):
+            for x in v.values():
+                walk(x)
+        elif isinstance(v, (list, tuple)):
+            for x in v:
+                walk(x)
+        elif isinstance(v, str) and os.path.isabs(v) and os.path.isfile(v):
+            found.append(v)
+
+    walk(scene.model_dump(mode="json"))
+    return found
 
 
 def warn(lines) -> None:

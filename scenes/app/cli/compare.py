@@ -38,7 +38,7 @@ def compare(scene, measured, json_out, report, sets, workers):
     with Outputs(inputs=[scene, measured]) as outs:
         json_path = json_target(outs, json_out)
         report_path = outs.file(report, "--report") if report else None
-        sc = load(scene, sets)
+        sc = load(scene, sets, outs)
         result = run_compare(sc, measured, workers=workers)
         s = result["summary"]
         if report_path is not None:
@@ -76,7 +76,7 @@ def diagnose(scene, measured, json_out, apply_to, report, prefer, sets, workers)
         for base, option in ([(apply_to, "--apply (its ledger)")] if apply_to else []) + [(scene, "ledger")]:
             lj = ledger_path(base)
             ledgers[base] = (outs.file(lj, option), outs.file(lj.with_suffix(".png"), option))
-        sc = load(scene, sets)
+        sc = load(scene, sets, outs)
         with Progress(transient=True) as bar:
             task = bar.add_task("fitting candidate effects", total=None)
             out = run_diagnose(sc, measured, workers=workers, progress=lambda name: bar.update(task, description=name))

@@ -32,7 +32,7 @@ def render(scene, output, seed, noiseless, sets, png, expected, workers, json_ou
         fits_path = outs.file(output, "-o")
         png_path = outs.file(Path(output).with_suffix(".png"), "-o (its .png quick-look)") if png else None
         json_path = json_target(outs, json_out)
-        sc = load(scene, sets)
+        sc = load(scene, sets, outs)
         summary = do_render(sc, fits_path, seed=seed, noiseless=noiseless, expected=expected, workers=workers)
         summary["path"] = output
         if png:
