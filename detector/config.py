@@ -58,6 +58,12 @@ def _expected_from(err: dict) -> str:
         return f"{what}, not {why}"
     if kind == "bool_type":
         return "true or false (unquoted)"
+    if kind in ("dict_type", "model_type", "model_attributes_type", "dataclass_type"):
+        return "a table"
+    if kind in ("list_type", "tuple_type", "set_type"):
+        return "an array"
+    if kind == "string_type":
+        return "text in quotes"
     if "ge" in ctx:
         return f">= {ctx['ge']}"
     if "gt" in ctx:

@@ -59,6 +59,18 @@ class PointingCfg(_Table):
     roll_deg: float = Field(0.0, ge=-360, le=360)
     epoch: str = "2023-02-01T22:00:00"
 
+    @field_validator("epoch", mode="before")
+    @classmethod
+    def _toml_datetime(cls, value):
+        """An unquoted TOML date-time (``epoch = 2023-02-01T22:00:00``) is the same time as the quoted text."""
+        import datetime as dt
+
+        if isinstance(value, dt.datetime):
+            if value.tzinfo is not None:
+                value = value.astimezone(dt.timezone.utc).replace(tzinfo=None)
+            return value.isoformat()
+        return value
+
     @field_validator("epoch")
     @classmethod
     def _epoch(cls, value: str) -> str:

@@ -517,3 +517,23 @@ def test_a_file_the_scene_reads_is_not_overwritten(tmp_path):
     code, _, err = run("render", sc, "-o", tmp_path / "vig.fits")
     assert code == 2 and "the scene reads" in one_line(err)
     assert (tmp_path / "vig.fits").read_bytes() == before and not leftovers(tmp_path)
+
+
+def test_a_failing_report_leaves_no_json_and_no_applied_scene(sky_frame, tmp_path, monkeypatch):
+    """One of several outputs fails (the HTML report): none of them is written (before: a JSON without its
+    report, an --apply scene without its diagnosis)."""
+    import scenes.app.cli.compare as cmp_cli
+    from detector import DetectorError
+
+    def broken(*a, **k):
+        raise DetectorError("cannot write the report (No space left on device)", file="r.html")
+
+    monkeypatch.setattr(cmp_cli, "write_report", broken)
+    code, _, err = run("compare", sky_frame / "sky.toml", sky_frame / "sky.fits", "--json", tmp_path / "c.json",
+                       "--report", tmp_path / "r.html")
+    assert code == 2 and "cannot write the report" in one_line(err)
+    assert sorted(os.listdir(tmp_path)) == []
+    code, _, err = run("diagnose", sky_frame / "sky.toml", sky_frame / "sky.fits", "--json", tmp_path / "d.json",
+                       "--apply", tmp_path / "next.toml", "--report", tmp_path / "r.html")
+    assert code == 2 and sorted(os.listdir(tmp_path)) == []
+    assert not list(sky_frame.glob("*.ledger.*")) and not leftovers(sky_frame)
