@@ -132,6 +132,8 @@ def _error(err: dict, prefix: str, file: str | None) -> DetectorError:
         text = err.get("msg", "")
         for head in ("Value error, ", "Assertion failed, "):
             text = text.removeprefix(head)
-        return DetectorError(text, key=key, file=file)
+        if isinstance(got, dict):  # a check across a table's keys: the sentence says what is wrong
+            return DetectorError(text, key=key, file=file)
+        return DetectorError(f"invalid value {got!r}", key=key, expected=text, file=file)
     shown = "a table" if isinstance(got, dict) else repr(got)
     return DetectorError(f"invalid value {shown}", key=key, expected=_expected_from(err), file=file)

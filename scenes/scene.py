@@ -49,7 +49,7 @@ class TelescopeCfg(_Table):
     @classmethod
     def _parity_not_bool(cls, value):
         if isinstance(value, bool):  # true == 1 in Python: refuse it explicitly
-            raise ValueError(f"invalid value {value!r} (expected -1 or 1)")
+            raise ValueError("-1 or 1 (not true/false)")
         return value
 
 
@@ -83,7 +83,7 @@ class PointingCfg(_Table):
                 warnings.simplefilter("ignore")
                 Time(value, format="isot", scale="utc")
         except ValueError:
-            raise ValueError(f"invalid value {value!r} (expected an ISO UTC time like 2023-02-01T22:00:00)") from None
+            raise ValueError("an ISO UTC time like 2023-02-01T22:00:00") from None
         return value
 
 
