@@ -12,7 +12,7 @@ from typing import Any, Literal
 
 import tomli_w
 import tomllib
-from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+from pydantic import BaseModel, ConfigDict, Field, field_validator
 
 from detector import make_sensor
 from detector.config import validate
@@ -49,7 +49,7 @@ class TelescopeCfg(_Table):
     @classmethod
     def _parity_not_bool(cls, value):
         if isinstance(value, bool):  # true == 1 in Python: refuse it explicitly
-            raise ValueError("-1 or 1 (not true/false)")
+            raise ValueError("-1 or 1 (not true/false)")  # noqa: TRY004  (pydantic reports ValueError)
         return value
 
 
@@ -130,11 +130,12 @@ class PsfCfg(_Table):
     grid: tuple[int, int] = Field((3, 3), description="optics model: PSF field points along x and y")
     grid_file: str | None = Field(None, description="optics model: a PSF cube (optics.psf.write_psf_fits) instead")
 
-    @model_validator(mode="after")
-    def _grid(self):
-        if not all(1 <= n <= 15 for n in self.grid):
-            raise ValueError(f"grid {list(self.grid)}: each count must be 1..15")
-        return self
+    @field_validator("grid")
+    @classmethod
+    def _grid(cls, value):
+        if not all(1 <= n <= 15 for n in value):
+            raise ValueError("two counts, each 1..15")
+        return value
 
 
 class Scene(_Table):

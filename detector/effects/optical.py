@@ -39,9 +39,9 @@ def radial_vignetting(u_mm: np.ndarray, v_mm: np.ndarray, r_corner_mm: float, a2
 
 def read_vignetting_map(path: str | Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(u_mm, v_mm, RI[v, u]) from a FITS map with linear axes CRVAL/CDELT/CRPIX in mm."""
-    from astropy.io import fits
-
     import warnings
+
+    from astropy.io import fits
 
     try:
         with warnings.catch_warnings():
@@ -49,7 +49,7 @@ def read_vignetting_map(path: str | Path) -> tuple[np.ndarray, np.ndarray, np.nd
             with fits.open(path, memmap=False) as hdul:
                 h = hdul[0].header
                 ri = np.asarray(hdul[0].data, dtype=np.float64)
-    except Exception as exc:  # astropy raises OSError/ValueError/TypeError (and the warning) for damaged files
+    except Exception as exc:  # noqa: BLE001  (astropy raises OSError/ValueError/TypeError and the warning)
         raise DetectorError(f"cannot read vignetting map ({type(exc).__name__}: {str(exc).splitlines()[0]})",
                             key="effects.vignetting.map_file",
                             expected="a FITS map from 'newtsim optics vignetting --fits'", file=str(path)) from None

@@ -54,7 +54,7 @@ def discard_all() -> None:
     for obj in list(_cleanups.values()):
         try:
             obj.discard()
-        except Exception:  # noqa: BLE001  (a clean-up on the way out must not raise)
+        except Exception:  # noqa: BLE001, S110  (a clean-up on the way out must not raise)
             pass
 
 
@@ -107,7 +107,7 @@ def exit_now(code: int) -> None:
     for stream in (sys.stdout, sys.stderr):
         try:
             stream.flush()
-        except Exception:  # noqa: BLE001
+        except Exception:  # noqa: BLE001, S110  (a closed stream: nothing to flush)
             pass
     os._exit(code)
 
@@ -116,7 +116,7 @@ class blocked:
     """Hold SIGINT and SIGTERM for the duration (the rename of finished outputs is never cut in half);
     a signal that arrives meanwhile is delivered when the block ends."""
 
-    _SIGS = {signal.SIGINT, signal.SIGTERM}
+    _SIGS = frozenset({signal.SIGINT, signal.SIGTERM})
 
     def __enter__(self):
         try:

@@ -31,7 +31,7 @@ from astropy.io import fits
 from helpers import SMALL_SKY_TOML, write_scene
 
 from scenes.app.cli import main
-from scenes.app.outputs import STAGE_SUFFIX, Outputs, OutputError
+from scenes.app.outputs import STAGE_SUFFIX, OutputError, Outputs
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -202,21 +202,19 @@ def test_read_only_folder_is_one_line(scene, tmp_path):
 def test_outputs_commit_all_or_nothing(tmp_path):
     """The layer itself: an error after the work removes every staged file; a later target that became a
     folder stops the commit before any rename."""
-    with pytest.raises(RuntimeError):
-        with Outputs() as outs:
-            a = outs.file(tmp_path / "a.json", "--json")
-            b = outs.file(tmp_path / "b.html", "--report")
-            a.write_text("{}")
-            b.write_text("<html>")
-            raise RuntimeError("the report failed")
+    with pytest.raises(RuntimeError), Outputs() as outs:
+        a = outs.file(tmp_path / "a.json", "--json")
+        b = outs.file(tmp_path / "b.html", "--report")
+        a.write_text("{}")
+        b.write_text("<html>")
+        raise RuntimeError("the report failed")
     assert sorted(os.listdir(tmp_path)) == []
-    with pytest.raises(OutputError, match="is a directory"):
-        with Outputs() as outs:
-            a = outs.file(tmp_path / "a.json", "--json")
-            b = outs.file(tmp_path / "b.html", "--report")
-            a.write_text("{}")
-            b.write_text("<html>")
-            (tmp_path / "b.html").mkdir()  # meanwhile
+    with pytest.raises(OutputError, match="is a directory"), Outputs() as outs:
+        a = outs.file(tmp_path / "a.json", "--json")
+        b = outs.file(tmp_path / "b.html", "--report")
+        a.write_text("{}")
+        b.write_text("<html>")
+        (tmp_path / "b.html").mkdir()  # meanwhile
     assert sorted(os.listdir(tmp_path)) == ["b.html"] and not (tmp_path / "a.json").exists()
 
 
@@ -317,9 +315,8 @@ def test_a_truncated_vignetting_map_is_one_line(tmp_path):
 
 
 def test_impossible_designs_are_one_line(tmp_path):
-    import tomllib
-
     import tomli_w
+    import tomllib
 
     base = tomllib.loads((ROOT / "optics" / "designs" / "bare.toml").read_text())
     for change, needle in (({"spider": {"vanes": 4, "width_mm": 500.0}}, "wider than the aperture"),
@@ -441,7 +438,7 @@ def test_an_interrupt_is_one_line_and_leaves_nothing(tmp_path, sig, moment, twic
     if twice:
         time.sleep(0.05)
         proc.send_signal(sig)
-    out, err = proc.communicate(timeout=120)
+    _, err = proc.communicate(timeout=120)
     assert proc.returncode == 128 + sig, (proc.returncode, err)
     assert err.strip() == "newtsim: interrupted", err
     assert sorted(os.listdir(tmp_path)) == ["slow.toml"], os.listdir(tmp_path)
@@ -477,11 +474,10 @@ def test_a_folder_output_is_created_or_its_files_replaced(tmp_path):
         (d / "b.png").write_bytes(b"b2")
     assert sorted(os.listdir(tmp_path / "plots")) == ["a.png", "b.png", "mine.txt"]
     assert (tmp_path / "plots" / "a.png").read_bytes() == b"a2"
-    with pytest.raises(KeyboardInterrupt):
-        with Outputs() as outs:
-            d = outs.folder(tmp_path / "new", "--plots")
-            (d / "a.png").write_bytes(b"x")
-            raise KeyboardInterrupt
+    with pytest.raises(KeyboardInterrupt), Outputs() as outs:
+        d = outs.folder(tmp_path / "new", "--plots")
+        (d / "a.png").write_bytes(b"x")
+        raise KeyboardInterrupt
     assert not (tmp_path / "new").exists() and not leftovers(tmp_path)
     (tmp_path / "file").write_text("x")
     with pytest.raises(OutputError, match="--plots"):

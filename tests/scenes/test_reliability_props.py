@@ -22,13 +22,13 @@ import pytest
 
 hypothesis = pytest.importorskip("hypothesis", reason="the property-based suite needs hypothesis "
                                  "(pip install -e '.[test]')")
-import tomli_w  # noqa: E402
-from astropy.io import fits  # noqa: E402
-from hypothesis import HealthCheck, given, settings  # noqa: E402
-from hypothesis import strategies as st  # noqa: E402
+import tomli_w
+from astropy.io import fits
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
 
-from scenes.app.cli import main  # noqa: E402
-from scenes.app.outputs import STAGE_SUFFIX  # noqa: E402
+from scenes.app.cli import main
+from scenes.app.outputs import STAGE_SUFFIX
 
 BASE = {"detector": {"preset": "ml11002", "width": 64, "height": 48},
         "exposure": {"time_s": 1.0, "frame": "dark", "seed": 1}}
@@ -155,8 +155,8 @@ def check_case(case) -> None:
         shutil.rmtree(d, ignore_errors=True)
 
 
-COMMON = dict(deadline=None, derandomize=True, suppress_health_check=[HealthCheck.too_slow,
-                                                                      HealthCheck.filter_too_much])
+COMMON = {"deadline": None, "derandomize": True,
+          "suppress_health_check": [HealthCheck.too_slow, HealthCheck.filter_too_much]}
 
 
 @settings(max_examples=40, **COMMON)

@@ -12,10 +12,9 @@ from pathlib import Path
 import click
 
 from detector import DetectorError
+from scenes.app import interrupts
 from scenes.app.batch import frame_sets, load_batch, plan, run_batch
 from scenes.scene import load_scene
-
-from scenes.app import interrupts
 
 from .common import Outputs, json_target, write_json
 

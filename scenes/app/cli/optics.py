@@ -7,12 +7,11 @@ import ``detector``. Results are cached by a hash of the design's content and th
 
 from __future__ import annotations
 
+import os
 import time
 from contextlib import contextmanager
 
 import click
-
-import os
 
 from optics.design import OpticsError, load_design
 
