@@ -26,6 +26,7 @@ EXIT_INTERRUPTED = 130  #: 128 + SIGINT
 _cleanups: dict[int, object] = {}
 _count = 0
 _installed = False
+_reported = False
 
 
 class Interrupted(KeyboardInterrupt):
@@ -64,10 +65,17 @@ def _handler(signum, frame):
     if _count >= 2:  # the second signal: clean up and go, whatever the first one is still doing
         discard_all()
         try:
-            os.write(2, b"newtsim: interrupted\n")
+            if not _reported:
+                os.write(2, b"newtsim: interrupted\n")
         finally:
             os._exit(128 + signum)
     raise Interrupted(signum)
+
+
+def reported() -> None:
+    """The command has printed its interrupt line (a second signal then prints nothing more)."""
+    global _reported
+    _reported = True
 
 
 def install() -> None:
@@ -96,7 +104,8 @@ def exit_interrupted(exc: BaseException | None = None) -> None:
     """Print the one line and exit 128 + signal (for interrupts outside a command, e.g. during imports)."""
     discard_all()
     try:
-        sys.stderr.write("newtsim: interrupted\n")
+        if not _reported:
+            sys.stderr.write("newtsim: interrupted\n")
         sys.stderr.flush()
     finally:
         os._exit(exit_code(exc))
@@ -110,6 +119,20 @@ def exit_now(code: int) -> None:
         except Exception:  # noqa: BLE001, S110  (a closed stream: nothing to flush)
             pass
     os._exit(code)
+
+
+def exit_on_signal(code: int) -> None:
+    """From now on SIGINT / SIGTERM end the process at once with ``code`` (for the shutdown after an
+    interrupt: libraries' exit handlers still run, a second signal does not wait for them)."""
+
+    def _now(signum, frame):
+        exit_now(code)
+
+    try:
+        signal.signal(signal.SIGINT, _now)
+        signal.signal(signal.SIGTERM, _now)
+    except ValueError:  # not the main thread
+        pass
 
 
 class blocked:

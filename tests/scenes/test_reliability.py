@@ -537,3 +537,30 @@ def test_a_failing_report_leaves_no_json_and_no_applied_scene(sky_frame, tmp_pat
                        "--apply", out / "next.toml", "--report", out / "r.html")
     assert code == 2 and "cannot write the report" in one_line(err)
     assert sorted(os.listdir(out)) == [] and sorted(os.listdir(src)) == ["sky.toml"]
+
+
+def test_sigterm_stops_a_batch_in_one_line_and_it_resumes(tmp_path):
+    """A batch is committed frame by frame: SIGTERM keeps the frames done (in the manifest), leaves no
+    temporary file, and says the same command resumes."""
+    write_scene(tmp_path / "s.toml", SLOW)
+    (tmp_path / "b.toml").write_text('[batch]\nscene = "s.toml"\noutput_dir = "out"\nseed = 3\n'
+                                     '[[sweep]]\nkey = "exposure.time_s"\nvalues = [1, 2, 3, 4, 5, 6]\n')
+    proc = newtsim_proc("batch", tmp_path / "b.toml", "--workers", "1", cwd=tmp_path)
+    t_end = time.monotonic() + 180
+    while time.monotonic() < t_end and proc.poll() is None and not (tmp_path / "out" / "manifest.json").exists():
+        time.sleep(0.05)
+    _wait_for(proc, 1.0)
+    if proc.poll() is not None:
+        pytest.skip("the batch finished before the signal")
+    proc.send_signal(signal.SIGTERM)
+    _, err = proc.communicate(timeout=120)
+    assert proc.returncode == 143, err
+    # newtsim's own line; Dask's worker processes may log their own shutdown around it (docs/reliability.md)
+    ours = [ln for ln in err.strip().splitlines() if ln.startswith("newtsim:")]
+    assert len(ours) == 1 and re.fullmatch(r"newtsim: interrupted; \S+manifest\.json lists the frames done: the "
+                                           r"same command resumes", ours[0]), err
+    names = sorted(os.listdir(tmp_path / "out"))
+    assert "manifest.json" in names and not [n for n in names if n.startswith(".")], names
+    entries = json.loads((tmp_path / "out" / "manifest.json").read_text())["frames"]
+    done = {f"frame_{e['index']:04d}.fits" for e in entries if e["status"] == "done"}
+    assert done == {n for n in names if n.endswith(".fits")}

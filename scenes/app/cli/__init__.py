@@ -85,8 +85,11 @@ def main(argv=None):
         click.echo(_usage_line(exc), err=True)
         sys.exit(exc.exit_code if exc.exit_code else EXIT_USER_ERROR)
     code = code if isinstance(code, int) else 0
-    if code in (128 + 2, 128 + 15):  # interrupted and cleaned up: leave now (a second signal during the
-        _interrupts.exit_now(code)   # interpreter's shutdown would otherwise kill it with -SIGINT)
+    if code in (128 + 2, 128 + 15):  # interrupted and cleaned up
+        if argv[:1] == ["batch"]:  # Dask's worker processes need the interpreter's exit handlers
+            _interrupts.exit_on_signal(code)
+        else:  # nothing left to do: leave now (a second signal during the shutdown would kill it with -SIGINT)
+            _interrupts.exit_now(code)
     sys.exit(code)
 
 

@@ -40,6 +40,18 @@ def _dry_run(batch, force: bool) -> dict:
             "root_seed": batch.cfg.batch.seed, "frames": len(frames), "counts": counts, "plan": frames}
 
 
+def _no_second_cluster_close() -> None:
+    """After an interrupt, run_batch has closed (or abandoned) its local cluster: Dask's own exit handler
+    would close it again and print a traceback about the stopped event loop. Drop that handler."""
+    import atexit
+
+    try:
+        from distributed.deploy.spec import close_clusters
+    except ImportError:
+        return
+    atexit.unregister(close_clusters)
+
+
 def _check_output_dir(folder: Path) -> None:
     """The frames' folder (created with its parents): not a file, and below no file."""
     folder = Path(folder).absolute()
@@ -107,8 +119,10 @@ def batch(ctx, batch_file, scheduler, workers, output_dir, sets, force, dry_run,
             summary = run_batch(b, scheduler=scheduler, workers=workers, force=force)
         except KeyboardInterrupt as exc:
             outs.discard()
+            _no_second_cluster_close()
             click.echo(f"newtsim: interrupted; {b.manifest_path} lists the frames done: the same command resumes",
                        err=True)
+            interrupts.reported()
             ctx.exit(interrupts.exit_code(exc))
         if json_path is not None:
             write_json(summary, json_path)

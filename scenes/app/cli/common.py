@@ -86,6 +86,7 @@ class Group(click.Group):
                 ctx.exit(EXIT_OS_ERROR)
             except KeyboardInterrupt as exc:
                 click.echo("newtsim: interrupted", err=True)
+                interrupts.reported()
                 ctx.exit(interrupts.exit_code(exc))
         seen = set()
         for w in caught:
