@@ -417,7 +417,7 @@ def _wait_for_staging(proc, folder: Path, seconds: float) -> bool:
 
 
 @pytest.mark.parametrize("sig, moment, twice", [
-    (signal.SIGINT, "import", False),    # 0.1 s in: while Python imports numpy / astropy
+    (signal.SIGINT, "import", False),    # 0.5 s in: while Python imports numpy / astropy
     (signal.SIGINT, "work", False),      # the outputs are staged, the frame is being computed
     (signal.SIGTERM, "work", False),
     (signal.SIGINT, "late", False),      # 1.5 s into the work
@@ -428,7 +428,7 @@ def test_an_interrupt_is_one_line_and_leaves_nothing(tmp_path, sig, moment, twic
     proc = newtsim_proc("render", sc, "-o", tmp_path / "f.fits", "--expected", "--json", tmp_path / "f.json",
                         cwd=tmp_path)
     if moment == "import":
-        _wait_for(proc, 0.1)
+        _wait_for(proc, 0.5)
     else:
         assert _wait_for_staging(proc, tmp_path, 120), "the render never started writing"
         _wait_for(proc, 1.5 if moment == "late" else 0.2)
@@ -563,4 +563,7 @@ def test_sigterm_stops_a_batch_in_one_line_and_it_resumes(tmp_path):
     assert "manifest.json" in names and not [n for n in names if n.startswith(".")], names
     entries = json.loads((tmp_path / "out" / "manifest.json").read_text())["frames"]
     done = {f"frame_{e['index']:04d}.fits" for e in entries if e["status"] == "done"}
-    assert done == {n for n in names if n.endswith(".fits")}
+    on_disk = {n for n in names if n.endswith(".fits")}
+    assert done <= on_disk  # a frame finished as the signal came may be on disk, not yet marked done
+    for n in on_disk:  # every frame on disk is complete (written aside, renamed when whole)
+        assert fits.getdata(tmp_path / "out" / n).shape == (2672, 4008)
