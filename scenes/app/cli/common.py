@@ -81,6 +81,12 @@ class Group(click.Group):
             except (DetectorError, OpticsError) as exc:
                 click.echo(f"newtsim: error: {exc}", err=True)
                 ctx.exit(getattr(exc, "exit_status", EXIT_USER_ERROR))
+            except BrokenPipeError:  # `newtsim effects | head`: the reader is gone; say nothing more
+                try:
+                    os.dup2(os.open(os.devnull, os.O_WRONLY), 1)
+                except OSError:
+                    pass
+                ctx.exit(EXIT_OS_ERROR)
             except OSError as exc:
                 click.echo(f"newtsim: error: {os_error_line(exc)}", err=True)
                 ctx.exit(EXIT_OS_ERROR)
