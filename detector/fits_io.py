@@ -146,6 +146,10 @@ def read_image(path: str | os.PathLike, *, key: str | None = None, role: str = "
     """
     p = Path(path)
     what = f"{role} file" if role else "file"
+    if p.is_dir():
+        raise DetectorError(f"{what} is a directory", key=key, file=str(p), expected="a FITS file")
+    if p.exists() and not p.is_file():
+        raise DetectorError(f"{what} is not a regular file", key=key, file=str(p), expected="a FITS file")
     if not p.is_file():
         raise DetectorError(f"{what} not found", key=key, file=str(p), expected="an existing FITS file")
     try:

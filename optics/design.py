@@ -185,6 +185,14 @@ class Design(_Table):
         if s.distance_to_focus_mm < t.inner_diameter_mm / 2:
             raise ValueError("secondary.distance_to_focus_mm puts the focus inside the tube wall "
                              f"(needs >= tube radius {t.inner_diameter_mm / 2} mm)")
+        sp = self.spider
+        if sp.vanes and sp.width_mm >= p.diameter_mm:
+            raise ValueError(f"spider.width_mm ({sp.width_mm}) is wider than the aperture (primary.diameter_mm "
+                             f"{p.diameter_mm})")
+        ring = math.pi / 4 * (p.diameter_mm ** 2 - s.minor_axis_mm ** 2)
+        if sp.vanes and sp.vanes * sp.width_mm * (p.diameter_mm - s.minor_axis_mm) / 2 >= ring:
+            raise ValueError(f"spider: {sp.vanes} vanes of {sp.width_mm} mm cover the whole aperture (expected "
+                             "vanes much narrower than the annulus between the secondary and the primary's rim)")
         if self.baffle.vanes and self.baffle.vane_inner_diameter_mm < p.diameter_mm:
             raise ValueError("baffle.vane_inner_diameter_mm closes the aperture (must be >= primary.diameter_mm)")
         if self.baffle.vane_inner_diameter_mm > t.inner_diameter_mm:
@@ -312,6 +320,8 @@ def load_design(name_or_path: str) -> Design:
     path = BUILTIN / f"{name_or_path}.toml"
     if not path.is_file():
         path = Path(name_or_path)
+        if path.is_dir():
+            raise OpticsError(f"{name_or_path}: is a directory (expected a design TOML or a built-in design)")
         if not path.is_file():
             builtin = ", ".join(sorted(p.stem for p in BUILTIN.glob("*.toml")))
             raise OpticsError(f"{name_or_path}: no such design (built-in: {builtin}, or a path to a design TOML)")
@@ -325,7 +335,7 @@ def load_design(name_or_path: str) -> Design:
     except ValidationError as exc:
         e = exc.errors()[0]
         loc = ".".join(str(x) for x in e["loc"]) or "design"
-        msg = e["msg"]
+        msg = e["msg"].removeprefix("Value error, ")
         if e.get("type") == "extra_forbidden" and e["loc"][:1] == ("perturbation",):
             msg = f"unknown perturbation (expected one of: {', '.join(PERTURBATION_NAMES)})"
         raise OpticsError(f"{path}: key '{loc}': {msg}") from None

@@ -12,7 +12,7 @@ from typing import Any, Literal
 
 import tomli_w
 import tomllib
-from pydantic import BaseModel, ConfigDict, Field, model_validator
+from pydantic import BaseModel, ConfigDict, Field, field_validator
 
 from detector import make_sensor
 from detector.config import validate
@@ -45,6 +45,13 @@ class TelescopeCfg(_Table):
     distortion: Literal["none", "optics", "sip"] = "none"
     sip: dict[str, Any] | None = None
 
+    @field_validator("parity", mode="before")
+    @classmethod
+    def _parity_not_bool(cls, value):
+        if isinstance(value, bool):  # true == 1 in Python: refuse it explicitly
+            raise ValueError("-1 or 1 (not true/false)")  # noqa: TRY004  (pydantic reports ValueError)
+        return value
+
 
 class PointingCfg(_Table):
     ra_deg: float = Field(120.95115, ge=0, lt=360)
@@ -52,15 +59,32 @@ class PointingCfg(_Table):
     roll_deg: float = Field(0.0, ge=-360, le=360)
     epoch: str = "2023-02-01T22:00:00"
 
-    @model_validator(mode="after")
-    def _epoch(self):
+    @field_validator("epoch", mode="before")
+    @classmethod
+    def _toml_datetime(cls, value):
+        """An unquoted TOML date-time (``epoch = 2023-02-01T22:00:00``) is the same time as the quoted text."""
+        import datetime as dt
+
+        if isinstance(value, dt.datetime):
+            if value.tzinfo is not None:
+                value = value.astimezone(dt.timezone.utc).replace(tzinfo=None)
+            return value.isoformat()
+        return value
+
+    @field_validator("epoch")
+    @classmethod
+    def _epoch(cls, value: str) -> str:
+        import warnings
+
         from astropy.time import Time
 
         try:
-            Time(self.epoch, format="isot", scale="utc")
+            with warnings.catch_warnings():  # ERFA's "dubious year" for a far epoch: a warning, not an error
+                warnings.simplefilter("ignore")
+                Time(value, format="isot", scale="utc")
         except ValueError:
-            raise ValueError(f"epoch {self.epoch!r} is not an ISO time like 2023-02-01T22:00:00") from None
-        return self
+            raise ValueError("an ISO UTC time like 2023-02-01T22:00:00") from None
+        return value
 
 
 class ExposureCfg(_Table):
@@ -106,11 +130,12 @@ class PsfCfg(_Table):
     grid: tuple[int, int] = Field((3, 3), description="optics model: PSF field points along x and y")
     grid_file: str | None = Field(None, description="optics model: a PSF cube (optics.psf.write_psf_fits) instead")
 
-    @model_validator(mode="after")
-    def _grid(self):
-        if not all(1 <= n <= 15 for n in self.grid):
-            raise ValueError(f"grid {list(self.grid)}: each count must be 1..15")
-        return self
+    @field_validator("grid")
+    @classmethod
+    def _grid(cls, value):
+        if not all(1 <= n <= 15 for n in value):
+            raise ValueError("two counts, each 1..15")
+        return value
 
 
 class Scene(_Table):
@@ -183,6 +208,11 @@ def load_scene(path_or_name: str, overrides: list[str] | None = None) -> Scene:
     if not p.is_file() and (BUILTIN_SCENES / f"{path_or_name}.toml").is_file():
         p = BUILTIN_SCENES / f"{path_or_name}.toml"
     file = str(p)
+    if p.is_dir():
+        raise SceneError("is a directory", file=file, expected="a scene TOML file or a built-in scene: "
+                         + ", ".join(builtin_scene_names()))
+    if p.exists() and not p.is_file():
+        raise SceneError("is not a regular file", file=file, expected="a scene TOML file")
     if not p.is_file():
         raise SceneError("scene file not found", file=file,
                          expected="a scene TOML path or a built-in scene: " + ", ".join(builtin_scene_names()))
@@ -192,6 +222,9 @@ def load_scene(path_or_name: str, overrides: list[str] | None = None) -> Scene:
         raise SceneError(f"not valid TOML ({exc})", file=file, expected="a TOML scene file") from None
     except (OSError, UnicodeDecodeError) as exc:
         raise SceneError(f"cannot read ({exc})", file=file) from None
+    if not data:
+        raise SceneError("the scene is empty (no table, no key)", file=file,
+                         expected="at least one table such as [exposure], or the built-in scene 'default'")
     data = apply_overrides(data, overrides or [], file=file)
     data["source"] = file
     scene = validate(Scene, data, file=file)
@@ -243,6 +276,10 @@ def check_scene(scene: Scene) -> None:
     file = scene.source
     base = scene_dir(scene)
     exp = scene.exposure
+    if exp.tracking == "rate" and not {"rate_ra_deg_s", "rate_dec_deg_s"} & exp.model_fields_set:
+        raise SceneError("tracking = 'rate' without a rate", key="exposure.rate_ra_deg_s", file=file,
+                         expected="rate_ra_deg_s and/or rate_dec_deg_s [deg/s] with tracking = 'rate' (an absent "
+                         "one is 0)")
     if exp.tracking != "rate":
         for k in ("rate_ra_deg_s", "rate_dec_deg_s"):
             if getattr(exp, k) != 0:

@@ -39,14 +39,19 @@ def radial_vignetting(u_mm: np.ndarray, v_mm: np.ndarray, r_corner_mm: float, a2
 
 def read_vignetting_map(path: str | Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(u_mm, v_mm, RI[v, u]) from a FITS map with linear axes CRVAL/CDELT/CRPIX in mm."""
+    import warnings
+
     from astropy.io import fits
 
     try:
-        with fits.open(path) as hdul:
-            h = hdul[0].header
-            ri = np.asarray(hdul[0].data, dtype=np.float64)
-    except (OSError, ValueError) as exc:
-        raise DetectorError(f"cannot read vignetting map: {exc}", key="effects.vignetting.map_file",
+        with warnings.catch_warnings():
+            warnings.filterwarnings("error", message=".*truncated.*")  # a truncated map is an error, not zeros
+            with fits.open(path, memmap=False) as hdul:
+                h = hdul[0].header
+                ri = np.asarray(hdul[0].data, dtype=np.float64)
+    except Exception as exc:  # noqa: BLE001  (astropy raises OSError/ValueError/TypeError and the warning)
+        raise DetectorError(f"cannot read vignetting map ({type(exc).__name__}: {str(exc).splitlines()[0]})",
+                            key="effects.vignetting.map_file",
                             expected="a FITS map from 'newtsim optics vignetting --fits'", file=str(path)) from None
     if ri.ndim != 2 or not all(k in h for k in ("CRVAL1", "CDELT1", "CRVAL2", "CDELT2")):
         raise DetectorError("not a vignetting map (needs a 2-D image with CRVAL/CDELT axes in mm)",

@@ -14,18 +14,27 @@ from __future__ import annotations
 
 import sys
 
-import click
+# before anything heavy: SIGINT/SIGTERM while numpy, astropy or Mitsuba load is one line, not a traceback
+from scenes.app import interrupts as _interrupts
 
-from .batch import batch as batch_command
-from .characterize import characterize as characterize_command
-from .characterize import expand_multi_file_options
-from .common import EXIT_INTERRUPTED, Group
-from .compare import compare as compare_command
-from .compare import diagnose as diagnose_command
-from .demo import demo as demo_command
-from .optics import optics as optics_group
-from .render import effects as effects_command
-from .render import render as render_command
+if _interrupts.running_as_program() and not _interrupts.installed():
+    _interrupts.install()
+
+try:
+    import click
+
+    from .batch import batch as batch_command
+    from .characterize import characterize as characterize_command
+    from .characterize import expand_multi_file_options
+    from .common import EXIT_USER_ERROR, Group
+    from .compare import compare as compare_command
+    from .compare import diagnose as diagnose_command
+    from .demo import demo as demo_command
+    from .optics import optics as optics_group
+    from .render import effects as effects_command
+    from .render import render as render_command
+except KeyboardInterrupt as _exc:
+    _interrupts.exit_interrupted(_exc)
 
 
 @click.group(cls=Group, context_settings={"help_option_names": ["-h", "--help"]})
@@ -54,16 +63,36 @@ cli.add_command(batch_command, name="batch")
 cli.add_command(demo_command, name="demo")
 
 
+def _usage_line(exc: click.ClickException) -> str:
+    """A click usage error (bad option value, missing argument) as one line with where to look."""
+    msg = exc.format_message().replace("\n", " ").strip()
+    ctx = getattr(exc, "ctx", None)
+    hint = f" (see '{ctx.command_path} -h')" if ctx is not None else ""
+    return f"newtsim: error: {msg}{hint}"
+
+
 def main(argv=None):
-    """Console-script entry point."""
+    """Console-script entry point: exit 0, 1 (frames failed, or an operating-system error such as a full
+    disk), 2 (a user error, one line), 130 / 143 (SIGINT / SIGTERM); never a traceback for any of them."""
     argv = list(sys.argv[1:] if argv is None else argv)
-    if argv[:1] == ["characterize"]:
-        argv = expand_multi_file_options(argv)
     try:
-        cli.main(args=argv, prog_name="newtsim", standalone_mode=True)
-    except KeyboardInterrupt:
-        click.echo("newtsim: interrupted", err=True)
-        sys.exit(EXIT_INTERRUPTED)
+        if argv[:1] == ["characterize"]:
+            argv = expand_multi_file_options(argv)
+        code = cli.main(args=argv, prog_name="newtsim", standalone_mode=False)
+    except click.exceptions.Abort as exc:  # click's form of an interrupt at a prompt or while parsing
+        _interrupts.exit_interrupted(exc.__context__)
+    except KeyboardInterrupt as exc:
+        _interrupts.exit_interrupted(exc)
+    except click.ClickException as exc:
+        click.echo(_usage_line(exc), err=True)
+        sys.exit(exc.exit_code if exc.exit_code else EXIT_USER_ERROR)
+    code = code if isinstance(code, int) else 0
+    if code in (128 + 2, 128 + 15):  # interrupted and cleaned up
+        if argv[:1] == ["batch"]:  # Dask's worker processes need the interpreter's exit handlers
+            _interrupts.exit_on_signal(code)
+        else:  # nothing left to do: leave now (a second signal during the shutdown would kill it with -SIGINT)
+            _interrupts.exit_now(code)
+    sys.exit(code)
 
 
 if __name__ == "__main__":

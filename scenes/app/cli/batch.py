@@ -6,15 +6,17 @@ manifest), 2 for a user error in the batch file, its base scene or the options (
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 import click
 
 from detector import DetectorError
+from scenes.app import interrupts
 from scenes.app.batch import frame_sets, load_batch, plan, run_batch
 from scenes.scene import load_scene
 
-from .common import EXIT_INTERRUPTED, write_json
+from .common import Outputs, json_target, write_json
 
 EXIT_FRAMES_FAILED = 1
 
@@ -36,6 +38,32 @@ def _dry_run(batch, force: bool) -> dict:
     counts = {a: sum(f["action"] == a for f in frames) for a in ("render", "skip", "invalid")}
     return {"batch_file": batch.path, "scene": batch.scene, "output_dir": str(batch.output_dir),
             "root_seed": batch.cfg.batch.seed, "frames": len(frames), "counts": counts, "plan": frames}
+
+
+def _no_second_cluster_close() -> None:
+    """After an interrupt, run_batch has closed (or abandoned) its local cluster: Dask's own exit handler
+    would close it again and print a traceback about the stopped event loop. Drop that handler."""
+    import atexit
+
+    try:
+        from distributed.deploy.spec import close_clusters
+    except ImportError:
+        return
+    atexit.unregister(close_clusters)
+
+
+def _check_output_dir(folder: Path) -> None:
+    """The frames' folder (created with its parents): not a file, and below no file."""
+    folder = Path(folder).absolute()
+    for p in (folder, *folder.parents):
+        if p.exists():
+            if not p.is_dir():
+                raise DetectorError(f"{p} is not a folder", key="output_dir", file=str(folder),
+                                    expected="a folder for the frames (existing or new)")
+            if not os.access(p, os.W_OK | os.X_OK):
+                raise DetectorError(f"folder {p} is not writable", key="output_dir", file=str(folder),
+                                    expected="a folder this user can write")
+            return
 
 
 def _overrides_text(overrides: dict) -> str:
@@ -66,11 +94,16 @@ def batch(ctx, batch_file, scheduler, workers, output_dir, sets, force, dry_run,
         raise DetectorError("--workers sets the size of the local cluster", key="--workers",
                             expected="no --workers with --scheduler (the scheduler's workers are used)")
     b = load_batch(batch_file, list(sets), output_dir)
+    _check_output_dir(b.output_dir)
     if dry_run:
-        result = _dry_run(b, force)
-        if json_out:
-            write_json(result, json_out)
-        else:
+        with Outputs(inputs=[batch_file]) as outs:
+            json_path = json_target(outs, json_out)
+            result = _dry_run(b, force)
+            if json_path is not None:
+                write_json(result, json_path)
+        if json_out == "-":
+            write_json(result, None)
+        elif not json_out:
             for f in result["plan"]:
                 click.echo(f"{f['file']}  seed {f['seed']:>20d}  step {f['step']:>3d}  draw {f['draw']:>3d}  "
                            f"{f['action']:7s}  {_overrides_text(f['overrides'])}  {f.get('error', '')}".rstrip())
@@ -78,17 +111,26 @@ def batch(ctx, batch_file, scheduler, workers, output_dir, sets, force, dry_run,
         click.echo(f"dry run: {result['frames']} frames -> {result['output_dir']}: {c['render']} to render, "
                    f"{c['skip']} done, {c['invalid']} invalid", err=True)
         ctx.exit(EXIT_FRAMES_FAILED if c["invalid"] else 0)
-    try:
-        summary = run_batch(b, scheduler=scheduler, workers=workers, force=force)
-    except KeyboardInterrupt:
-        click.echo(f"newtsim: interrupted; {b.manifest_path} lists the frames done: the same command resumes",
-                   err=True)
-        ctx.exit(EXIT_INTERRUPTED)
+    # frames are committed one by one (each atomic, listed in the manifest: a re-run resumes); the summary
+    # JSON is checked now and written at the end
+    with Outputs(inputs=[batch_file]) as outs:
+        json_path = json_target(outs, json_out)
+        try:
+            summary = run_batch(b, scheduler=scheduler, workers=workers, force=force)
+        except KeyboardInterrupt as exc:
+            outs.discard()
+            _no_second_cluster_close()
+            click.echo(f"newtsim: interrupted; {b.manifest_path} lists the frames done: the same command resumes",
+                       err=True)
+            interrupts.reported()
+            ctx.exit(interrupts.exit_code(exc))
+        if json_path is not None:
+            write_json(summary, json_path)
     for f in summary["failures"]:
         click.echo(f"newtsim: frame {f['index']} ({f['file']}; {_overrides_text(f['overrides'])}) failed: "
                    f"{f['error']}", err=True)
-    if json_out:
-        write_json(summary, json_out)
+    if json_out == "-":
+        write_json(summary, None)
     click.echo(f"batch: {summary['frames']} frames: {summary['rendered']} rendered, {summary['skipped']} already "
                f"done, {summary['failed']} failed in {summary['wall_s']:.1f} s -> {summary['manifest']}", err=True)
     if summary["failed"]:

@@ -12,7 +12,7 @@ from detector.calplots import write_plots
 from detector.characterize import camera_twin, emit_population_dict, write_twin
 from detector.characterize import characterize as run
 
-from .common import progress_bar, write_json
+from .common import Outputs, json_target, progress_bar, write_json
 
 
 @click.command()
@@ -24,32 +24,39 @@ from .common import progress_bar, write_json
               help="write a scene TOML of this camera (its bias, dark-rate and flat maps as FITS beside it)")
 @click.option("--population", is_flag=True,
               help="with --emit-scene: the statistical description instead (no maps), for sensors like it")
-@click.option("--plots", "plots", default=None, type=click.Path(file_okay=False), help="folder for the plots")
-@click.option("--sigma", default=5.0, show_default=True, help="outlier (hot pixel) threshold [robust sigma]")
+@click.option("--plots", "plots", default=None, help="folder for the plots (created; its parent must exist)")
+@click.option("--sigma", type=float, default=5.0, show_default=True, help="outlier (hot pixel) threshold [robust sigma]")
 def characterize(bias, dark, flat, json_out, emit_scene, population, plots, sigma):
     """Calibration-frame analysis: bias, read noise, dark current, hot pixels, gain and PRNU.
 
     Accepts shell-style multiple files after one option: --bias b1.fits b2.fits --dark d1.fits ...
+    The JSON, the scene and its maps and the plots are written together at the end (or not at all).
     """
-    if emit_scene and not Path(emit_scene).parent.is_dir():
-        raise DetectorError("folder does not exist", key="--emit-scene", file=str(emit_scene),
-                            expected="a TOML path in an existing folder")
-    with _Progress() as progress:
-        result = _run_bounded(lambda: run(list(bias), list(dark), list(flat) or None, hot_sigma=sigma,
-                                          progress=progress), bias)
-        if emit_scene:
-            out = Path(emit_scene)
-            maps, info = _run_bounded(lambda: camera_twin(result, list(bias), list(dark), list(flat) or None,
-                                                          nsigma=sigma, progress=progress), bias)
-            result["camera"] = info
-            scene = emit_population_dict(result, info) if population else \
-                _run_bounded(lambda: write_twin(out, result, maps, info), bias)
-            out.write_text(tomli_w.dumps(scene))
-    if plots:
-        Path(plots).mkdir(parents=True, exist_ok=True)
-        result["plots"] = [str(p) for p in write_plots(result, plots)]
-    write_json(result if json_out else _summary(result), json_out)
-    if json_out not in (None, "-"):
+    with Outputs(inputs=[*bias, *dark, *flat]) as outs:
+        json_path = json_target(outs, json_out)
+        plots_dir = outs.folder(plots, "--plots") if plots else None
+        scene_path = outs.file(emit_scene, "--emit-scene") if emit_scene else None
+        if emit_scene and not population:  # the maps beside it (detector.characterize.write_twin)
+            stem = Path(emit_scene).with_suffix("")
+            for part in ("bias", "dark") + (("flat",) if flat else ()):
+                outs.file(f"{stem}_{part}.fits", "--emit-scene (its maps)")
+        with _Progress() as progress:
+            result = _run_bounded(lambda: run(list(bias), list(dark), list(flat) or None, hot_sigma=sigma,
+                                              progress=progress), bias)
+            if scene_path is not None:
+                maps, info = _run_bounded(lambda: camera_twin(result, list(bias), list(dark), list(flat) or None,
+                                                              nsigma=sigma, progress=progress), bias)
+                result["camera"] = info
+                scene = emit_population_dict(result, info) if population else \
+                    _run_bounded(lambda: write_twin(scene_path, result, maps, info), bias)
+                scene_path.write_text(tomli_w.dumps(scene))
+        if plots_dir is not None:
+            result["plots"] = [str(Path(plots) / Path(p).name) for p in write_plots(result, plots_dir)]
+        if json_path is not None:
+            write_json(result, json_path)
+    if json_out in (None, "-"):
+        write_json(result if json_out else _summary(result), None)
+    else:
         click.echo(f"wrote {json_out}" + (f", {emit_scene}" if emit_scene else "")
                    + (f", plots in {plots}" if plots else ""), err=True)
 

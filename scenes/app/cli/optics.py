@@ -7,14 +7,16 @@ import ``detector``. Results are cached by a hash of the design's content and th
 
 from __future__ import annotations
 
+import os
 import time
 from contextlib import contextmanager
+from pathlib import Path
 
 import click
 
 from optics.design import OpticsError, load_design
 
-from .common import write_json
+from .common import Outputs, json_target, write_json
 
 
 @contextmanager
@@ -62,6 +64,11 @@ def _echo_json(obj, path):
     write_json(obj, path)
 
 
+def _outputs(design: str) -> Outputs:
+    """The command's outputs; a design TOML given as a path is an input (never overwritten)."""
+    return Outputs(inputs=[design] if os.path.isfile(design) else [])
+
+
 @click.group()
 def optics():
     """Ray tracing of the telescope (Mitsuba 3, llvm): vignetting, psf, pst.
@@ -82,7 +89,7 @@ def optics():
 @click.option("--plot", "plot_out", default=None, type=click.Path(dir_okay=False), help="PNG map and profiles")
 @click.option("--fits", "fits_out", default=None, type=click.Path(dir_okay=False),
               help="FITS map of the relative illumination (for scenes)")
-@click.option("--seed", default=0, show_default=True)
+@click.option("--seed", default=0, show_default=True, type=click.IntRange(min=0))
 @click.option("--no-cache", is_flag=True, help="recompute even if a cached result exists")
 def vignetting(design, grid, rays, wavelength_nm, obstruct, json_out, plot_out, fits_out, seed, no_cache):
     """Relative illumination over the focal plane and the on-axis geometric throughput."""
@@ -90,24 +97,30 @@ def vignetting(design, grid, rays, wavelength_nm, obstruct, json_out, plot_out, 
     from optics import vignetting as vig
     from optics.sequential import SequentialTracer
 
-    d = _design(design)
-    settings = {"grid": grid, "rays": rays, "wavelength_nm": wavelength_nm, "obstruct": obstruct, "seed": seed}
+    with _outputs(design) as outs:
+        json_path = json_target(outs, json_out)
+        plot_path = outs.file(plot_out, "--plot") if plot_out else None
+        fits_path = outs.file(fits_out, "--fits") if fits_out else None
+        d = _design(design)
+        settings = {"grid": grid, "rays": rays, "wavelength_nm": wavelength_nm, "obstruct": obstruct, "seed": seed}
 
-    def compute():
-        tracer = SequentialTracer(d, _mitsuba(), obstruct=obstruct)
-        with _progress(f"vignetting {d.name}") as prog:
-            return vig.vignetting_map(tracer, grid, rays, wavelength_nm, seed, progress=prog).to_json()
+        def compute():
+            tracer = SequentialTracer(d, _mitsuba(), obstruct=obstruct)
+            with _progress(f"vignetting {d.name}") as prog:
+                return vig.vignetting_map(tracer, grid, rays, wavelength_nm, seed, progress=prog).to_json()
 
-    out, hit = cache.cached_json("vignetting", d, settings, compute, use_cache=not no_cache)
-    out = {"design": d.name, "perturbation": _perturbation(d), **out, "cached": hit}
-    res = vig.VignettingResult.from_json(out)
-    if plot_out:
-        vig.plot(res, plot_out, d, title=f"{d.name}: relative illumination")
-    if fits_out:
-        vig.write_fits(res, fits_out, d.name)
-    if json_out or not (plot_out or fits_out):
-        _echo_json(out, json_out)
-    else:
+        out, hit = cache.cached_json("vignetting", d, settings, compute, use_cache=not no_cache)
+        out = {"design": d.name, "perturbation": _perturbation(d), **out, "cached": hit}
+        res = vig.VignettingResult.from_json(out)
+        if plot_path is not None:
+            vig.plot(res, plot_path, d, title=f"{d.name}: relative illumination")
+        if fits_path is not None:
+            vig.write_fits(res, fits_path, d.name)
+        if json_path is not None:
+            _echo_json(out, json_path)
+    if json_out == "-" or not (json_out or plot_out or fits_out):
+        _echo_json(out, None)
+    elif not json_out:
         click.echo(f"on-axis throughput {out['on_axis_throughput']:.4f}, corner relative illumination "
                    f"{out['corner_relative_illumination']:.4f}", err=True)
 
@@ -146,6 +159,19 @@ def _band(preset: str | None, wavelength_nm: float | None, n: int):
 def psf(design, field_deg, wavelength_nm, band, band_samples, geometric, seeing_arcsec, jitter_arcsec,
         json_out, fits_out, no_cache):
     """The PSF at one field point: encircled energy, FWHM, centroid (and the geometric spot)."""
+    with _outputs(design) as outs:
+        json_path = json_target(outs, json_out)
+        fits_path = outs.file(fits_out, "--fits") if fits_out else None
+        out = _psf(design, field_deg, wavelength_nm, band, band_samples, geometric, seeing_arcsec, jitter_arcsec,
+                   fits_path, no_cache)
+        if json_path is not None:
+            _echo_json(out, json_path)
+    if json_path is None:
+        _echo_json(out, None)
+
+
+def _psf(design, field_deg, wavelength_nm, band, band_samples, geometric, seeing_arcsec, jitter_arcsec, fits_out,
+         no_cache) -> dict:
     d = _design(design)
     if band and wavelength_nm:
         raise OpticsError("--band and --wavelength-nm exclude each other (one wavelength, or a QE-weighted band)")
@@ -161,9 +187,15 @@ def psf(design, field_deg, wavelength_nm, band, band_samples, geometric, seeing_
     def compute():
         tracer = SequentialTracer(d, _mitsuba())
         t0 = time.perf_counter()
-        res = psfmod.compute_psf(tracer, field_deg=tuple(field_deg), wavelengths_nm=wl, weights=w,
-                                 geometric=geometric, seeing_fwhm_arcsec=seeing_arcsec,
-                                 jitter_rms_arcsec=jitter_arcsec)
+        try:
+            res = psfmod.compute_psf(tracer, field_deg=tuple(field_deg), wavelengths_nm=wl, weights=w,
+                                     geometric=geometric, seeing_fwhm_arcsec=seeing_arcsec,
+                                     jitter_rms_arcsec=jitter_arcsec)
+        except ValueError as exc:
+            if "no ray reached" not in str(exc):
+                raise
+            raise OpticsError(f"{d.name}: key '--field-deg': {exc} (expected a field angle inside the "
+                              "telescope's field of view)") from None
         state["result"] = res
         return {**res.to_json(), "seconds": round(time.perf_counter() - t0, 3)}
 
@@ -173,7 +205,7 @@ def psf(design, field_deg, wavelength_nm, band, band_samples, geometric, seeing_
            "wavelengths_nm": wl, "weights": w, **out, "cached": hit}
     if fits_out:
         psfmod.write_psf_fits(state["result"], fits_out)
-    _echo_json(out, json_out)
+    return out
 
 
 @optics.command()
@@ -183,12 +215,23 @@ def psf(design, field_deg, wavelength_nm, band, band_samples, geometric, seeing_
 @click.option("--rays", default=400_000, show_default=True, type=click.IntRange(1000, 10 ** 10),
               help="detector paths per angle")
 @click.option("--wavelength-nm", default=550.0, show_default=True, type=click.FloatRange(200, 2000))
-@click.option("--seed", default=0, show_default=True)
+@click.option("--seed", default=0, show_default=True, type=click.IntRange(min=0))
 @click.option("--json", "json_out", default=None, help="write the JSON here ('-' for stdout)")
 @click.option("--plot", "plot_out", default=None, type=click.Path(dir_okay=False), help="PST curve (PNG)")
 @click.option("--no-cache", is_flag=True)
 def pst(design, angles, azimuth_deg, rays, wavelength_nm, seed, json_out, plot_out, no_cache):
     """Point-source transmittance PST(angle) with a 1-sigma Monte-Carlo error per angle."""
+    with _outputs(design) as outs:
+        json_path = json_target(outs, json_out)
+        plot_path = outs.file(plot_out, "--plot") if plot_out else None
+        out = _pst(design, angles, azimuth_deg, rays, wavelength_nm, seed, plot_path, no_cache)
+        if json_path is not None:
+            _echo_json(out, json_path)
+    if json_path is None:
+        _echo_json(out, None)
+
+
+def _pst(design, angles, azimuth_deg, rays, wavelength_nm, seed, plot_out, no_cache) -> dict:
     d = _design(design)
     try:
         angle_list = [float(a) for a in angles.split(",") if a.strip()]
@@ -211,7 +254,7 @@ def pst(design, angles, azimuth_deg, rays, wavelength_nm, seed, json_out, plot_o
     out = {"design": d.name, **out, "cached": hit}
     if plot_out:
         straylight.plot_pst({d.name: straylight.PSTResult.from_json(out)}, plot_out)
-    _echo_json(out, json_out)
+    return out
 
 
 @optics.command()
@@ -225,18 +268,22 @@ def layout(design, plot_out, export_out):
     from optics.layout import make_layout
     from optics.meshes import export, telescope_parts
 
-    d = _design(design)
     if not (plot_out or export_out):
         raise OpticsError("optics layout: give --plot OUT.png and/or --export OUT.glb")
-    if export_out:
-        export(telescope_parts(make_layout(d)), export_out)
-        click.echo(f"wrote {export_out}", err=True)
-    if plot_out:
-        from optics.layout_plot import plot_layout
-        from optics.sequential import SequentialTracer
+    with _outputs(design) as outs:
+        export_path = outs.file(export_out, "--export") if export_out else None
+        plot_path = outs.file(plot_out, "--plot") if plot_out else None
+        d = _design(design)
+        if export_path is not None:
+            export(telescope_parts(make_layout(d)), export_path)
+        if plot_path is not None:
+            from optics.layout_plot import plot_layout
+            from optics.sequential import SequentialTracer
 
-        plot_layout(SequentialTracer(d, _mitsuba()), plot_out)
-        click.echo(f"wrote {plot_out}", err=True)
+            plot_layout(SequentialTracer(d, _mitsuba()), plot_path)
+    for p in (export_out, plot_out):
+        if p:
+            click.echo(f"wrote {p}", err=True)
 
 
 @optics.command()
@@ -263,11 +310,27 @@ def layout(design, plot_out, export_out):
 def optimize(design, goal, out_toml, json_out, plot_out, band, band_samples, wavelength_nm, grid, rays, iterations,
              angles, seed):
     """Optimise a design and write it as a new design TOML (with a before/after report)."""
-    from pathlib import Path
+    d = _design(design)
+    inputs = [design] if Path(design).is_file() else []
+    with Outputs(inputs=inputs) as outs:
+        toml_path = outs.file(out_toml, "--output")
+        json_path = json_target(outs, json_out)
+        plot_path = outs.file(plot_out, "--plot") if plot_out else None
+        report = _optimize(d, design, goal, plot_path, band, band_samples, wavelength_nm, grid, rays, iterations,
+                           angles, seed, toml_path)
+        report["output"] = str(out_toml)
+        if json_path is not None:
+            _echo_json(report, json_path)
+    if json_out == "-":
+        _echo_json(report, None)
+    click.echo(f"wrote {out_toml}", err=True)
 
+
+def _optimize(d, design, goal, plot_out, band, band_samples, wavelength_nm, grid, rays, iterations, angles, seed,
+              out_toml) -> dict:
+    """The optimisation of ``newtsim optics optimize``: writes the new design to ``out_toml``, returns the report."""
     from optics import optimize as opt
 
-    d = _design(design)
     mi = _mitsuba()
     t0 = time.perf_counter()
     if goal == "corrector":
@@ -305,8 +368,5 @@ def optimize(design, goal, out_toml, json_out, plot_out, band, band_samples, wav
         if plot_out:
             opt.plot_baffle(res, plot_out, title=f"{d.name}: baffle optimisation at {angles} deg")
     Path(out_toml).write_text(opt.design_toml(res.design, comment))
-    report["output"] = str(out_toml)
     report["wall_s"] = round(time.perf_counter() - t0, 2)
-    if json_out:
-        _echo_json(report, json_out)
-    click.echo(f"wrote {out_toml}", err=True)
+    return report

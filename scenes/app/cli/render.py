@@ -10,29 +10,40 @@ from detector import DetectorError, registry
 from scenes.app.quicklook import write_png
 from scenes.app.render import render as do_render
 
-from .common import load, warn, write_json
+from .common import Outputs, json_target, load, warn, write_json
 
 
 @click.command()
 @click.argument("scene")
 @click.option("-o", "--output", "output", required=True, type=click.Path(dir_okay=False), help="output FITS file")
-@click.option("--seed", type=int, default=None, help="frame seed (noise); default: scene's exposure.seed or random")
+@click.option("--seed", type=click.IntRange(min=0), default=None, help="frame seed (noise); default: scene's exposure.seed or random")
 @click.option("--noiseless", is_flag=True, help="write expected electrons (float32) before any random draw")
 @click.option("--set", "sets", multiple=True, metavar="KEY=VALUE", help="override a scene key, e.g. exposure.time_s=150")
 @click.option("--png/--no-png", default=True, help="also write OUTPUT.png, a quick-look (default on)")
 @click.option("--expected", is_flag=True, help="add the expected electrons as extension EXPECTED")
-@click.option("--workers", type=int, default=None, help="threads (default: CPUs, at most 4)")
+@click.option("--workers", type=click.IntRange(min=1), default=None, help="threads (default: CPUs, at most 4)")
 @click.option("--json", "json_out", default=None, help="write a JSON summary here ('-' for stdout)")
 def render(scene, output, seed, noiseless, sets, png, expected, workers, json_out):
-    """Render SCENE (a TOML file or a built-in name such as 'default') to a FITS frame."""
-    sc = load(scene, sets)
-    summary = do_render(sc, output, seed=seed, noiseless=noiseless, expected=expected, workers=workers)
+    """Render SCENE (a TOML file or a built-in name such as 'default') to a FITS frame.
+
+    The FITS file, its PNG and the JSON are written together when the frame is complete (or not at all).
+    """
+    with Outputs(inputs=[scene]) as outs:
+        fits_path = outs.file(output, "-o")
+        png_path = outs.file(Path(output).with_suffix(".png"), "-o (its .png quick-look)") if png else None
+        json_path = json_target(outs, json_out)
+        sc = load(scene, sets, outs)
+        summary = do_render(sc, fits_path, seed=seed, noiseless=noiseless, expected=expected, workers=workers)
+        summary["path"] = output
+        if png:
+            write_png(fits_path, png_path)
+            summary["png"] = str(Path(output).with_suffix(".png"))
+        if json_path is not None:
+            write_json(summary, json_path)
     warn(summary["warnings"])
-    if png:
-        summary["png"] = str(write_png(output, Path(output).with_suffix(".png")))
-    if json_out:
-        write_json(summary, json_out)
-    else:
+    if json_out == "-":
+        write_json(summary, None)
+    elif not json_out:
         click.echo(f"wrote {summary['path']} ({summary['shape'][1]}x{summary['shape'][0]}, seed {summary['seed']})"
                    + (f" and {summary['png']}" if png else ""), err=True)
 

@@ -25,6 +25,8 @@ from scenes.scene import Scene
 
 #: seed of the model realisation used for outlier statistics (fixed: the comparison is reproducible)
 REALISATION_SEED = 20231101
+#: a measured frame with more non-finite (NaN, inf) pixels than this fraction is refused
+MAX_NONFINITE_FRACTION = 0.5
 
 
 @dataclass
@@ -108,6 +110,12 @@ def read_measurement(path: str | Path, model: ModelFrame) -> tuple[np.ndarray, d
     """The measured frame as float32 ADU, checked against the model's size, binning and WCS.
 
     Returns the data and a dict of warnings/notes. Size or binning mismatches are errors naming the file.
+
+    Non-finite pixels (NaN, +-inf: a camera's or a pipeline's mark for bad or missing data) are counted
+    (``notes["nonfinite_pixels"]``, a warning line), set to the model's mean (a zero residual, so that no
+    row, column or region statistic sees them) and masked: ``model.extra["nonfinite"]`` is the mask, which
+    :func:`residuals` removes from the fit and every statistic. A frame with more than
+    :data:`MAX_NONFINITE_FRACTION` of them is refused (one line naming the file).
     """
     data, header = read_image(path, key="MEASURED", role="measured", dtype=np.float32)
     s = model.sensor
@@ -120,8 +128,19 @@ def read_measurement(path: str | Path, model: ModelFrame) -> tuple[np.ndarray, d
         if card in header and int(header[card]) != s.binning:
             raise DetectorError(f"measured frame has {card} = {header[card]}", key="detector.binning",
                                 file=str(path), expected=f"{s.binning} as the scene")
-    if not np.isfinite(data).any():
-        raise DetectorError("measured frame has no finite pixel", file=str(path), expected="an image with data")
+    bad = ~np.isfinite(data)
+    n_bad = int(bad.sum())
+    if n_bad > MAX_NONFINITE_FRACTION * data.size:
+        raise DetectorError(f"{100 * n_bad / data.size:.0f} % of the measured pixels are NaN or infinite",
+                            key="MEASURED", file=str(path), expected="a frame with at most "
+                            f"{100 * MAX_NONFINITE_FRACTION:.0f} % non-finite pixels")
+    notes["nonfinite_pixels"] = n_bad
+    model.extra["nonfinite"] = bad if n_bad else None
+    model.extra["nonfinite_pixels"] = n_bad
+    if n_bad:
+        notes["warnings"].append(f"{n_bad} measured pixels ({100 * n_bad / data.size:.3g} %) are NaN or infinite: "
+                                 "masked (left out of the fit and every statistic)")
+        data = np.where(bad, model.mean_adu, data).astype(np.float32)
     sat = np.mean(data >= saturation_adu(s))
     if sat > 0.5:
         raise DetectorError(f"{100 * sat:.0f} % of the measured pixels are saturated (at or above "
@@ -137,7 +156,7 @@ def read_measurement(path: str | Path, model: ModelFrame) -> tuple[np.ndarray, d
     exptime = header.get("EXPTIME")
     if exptime is not None and abs(float(exptime) - model.setup.exptime_s) > 1e-3 * max(1.0, float(exptime)):
         notes["warnings"].append(f"EXPTIME {exptime} s in the measured file, {model.setup.exptime_s} s in the scene")
-    return np.nan_to_num(data, nan=0.0).astype(np.float32), notes
+    return data.astype(np.float32, copy=False), notes
 
 
 def saturation_adu(s) -> float:
@@ -198,6 +217,8 @@ def residuals(data: np.ndarray, model: ModelFrame) -> Residuals:
     """Everything the comparison and the signatures need: masks, spike statistics, model pieces."""
     s = model.sensor
     usable = ~model.flag & (data < saturation_adu(s)) & np.isfinite(data)
+    if model.extra.get("nonfinite") is not None:  # NaN / inf in the measured file (read_measurement)
+        usable &= ~model.extra["nonfinite"]
     spikes, statistical = spike_stats(data, model.mean_adu, model.var_adu2, usable, s.gain_e_per_adu)
     # where the model itself peaks (star cores) a local outlier is a source the model misplaces or mis-sizes,
     # not a defect: keep those pixels in the pixel-by-pixel comparison

@@ -46,6 +46,7 @@ def run_compare(scene, measured: str | Path, workers: int | None = None) -> dict
     result["summary"] = summary(result)
     result["summary"].update(scene_file=scene.source, measured_file=str(measured), warnings=notes["warnings"] +
                              model.setup.warnings, wcs_offset_px=notes["wcs_offset_px"],
+                             nonfinite_pixels=notes.get("nonfinite_pixels", 0),
                              seconds={"model": t1 - t0, "compare": time.perf_counter() - t1})
     result["_residuals"], result["_model"] = res, model
     return result
