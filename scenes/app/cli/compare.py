@@ -13,7 +13,7 @@ import click
 from rich.progress import Progress
 
 from scenes.app.compare import run_compare
-from scenes.app.compare.apply import apply_candidate
+from scenes.app.compare.apply import apply_candidate, apply_empirical
 from scenes.app.compare.ledger import best_candidate, ledger_path, plot_ledger, update_ledger
 from scenes.app.compare.report import write_report
 from scenes.app.compare.run import run_diagnose
@@ -82,6 +82,15 @@ def diagnose(scene, measured, json_out, apply_to, report, prefer, sets, workers)
             out = run_diagnose(sc, measured, workers=workers, progress=lambda name: bar.update(task, description=name))
         best = best_candidate(out, tuple(prefer))
         applied = apply_candidate(sc, best, apply_path, measured) if apply_path is not None and best else None
+        empirical = out["_compare"].get("_empirical")
+        if apply_path is not None and best is None and out["residual_morphology"]["significant"] and empirical:
+            # no catalogue effect explains the residual: its smooth pattern as an empirical map beside the scene
+            outs.file(Path(apply_to).with_name(Path(apply_to).stem + "_empirical.fits"), "--apply (its map)")
+            done = apply_empirical(sc, empirical, out["residual_morphology"], apply_path, measured,
+                                   public=outs.public)
+            if done is not None:
+                applied, best = done
+                best = {**best, "delta_bic": None}
         out["applied"] = {"effect": best["effect"], "params": best["params"], "scene": apply_to} if applied else None
         staged_json = ledgers[apply_to if applied else scene][0]
         ledger, rounds = update_ledger(scene, applied or staged_json.with_name(Path(scene).name), str(measured),

@@ -129,14 +129,15 @@ def bias_per_output_adu(sensor) -> float:
 EMPIRICAL_EFFECTS = {"multiplicative": "flat_map", "additive": "dark_map", "additive_bias": "bias_map"}
 
 
-def apply_empirical(scene, empirical: dict, morphology: dict, path: str | Path, measured: str | Path | None = None
-                    ) -> tuple[Path, dict] | None:
+def apply_empirical(scene, empirical: dict, morphology: dict, path: str | Path, measured: str | Path | None = None,
+                    public=None) -> tuple[Path, dict] | None:
     """Write ``scene`` with the residual's own smooth pattern added as a measured map, when no catalogue
     effect explains it (the verdict says so): a multiplicative pattern as a ``flat_map`` (relative response),
     an additive one as a ``dark_map`` (charge that grows with the exposure and carries its shot noise: light
     the model lacks) or, on a bias frame, a ``bias_map`` [ADU]. The map (unbinned read-out window, FITS) is
     written beside the new scene as ``NAME_empirical.fits``. Returns (scene path, the applied entry) or None
-    when the scene already has that map effect."""
+    when the scene already has that map effect. ``public`` maps a staged path to the path the user named
+    (:meth:`scenes.app.outputs.Outputs.public`)."""
     sensor = scene.sensor()
     kind = empirical["kind"]
     if kind == "additive" and scene.exposure.frame == "bias":
@@ -164,7 +165,8 @@ def apply_empirical(scene, empirical: dict, morphology: dict, path: str | Path, 
     hdu.header["BUNIT"] = unit
     hdu.header["COMMENT"] = "empirical map of a residual no catalogue effect explains (newtsim diagnose --apply)"
     hdu.writeto(map_path, overwrite=True)
-    params = {"path": str(map_path.resolve()), **params}
+    where = str(map_path.resolve())
+    params = {"path": public(where) if public is not None else where, **params}  # the path once committed
     cand = {"effect": effect, "params": params,
             "explanation": "an empirical map of the residual (" + morphology["explanation"] + "); no catalogue "
             "effect explains it"}
