@@ -46,6 +46,10 @@ from pydantic import Field
 from detector import DetectorError
 from detector.config import validate
 from detector.jsonable import jsonable
+from scenes.app.quicklook import write_png
+from scenes.app.render import render
+from scenes.image.motion import Boresight
+from scenes.objects.frames import east_north, radec_to_unit, unit_to_radec
 from scenes.scene import BUILTIN_SCENES, Scene, SceneError, _Table, load_scene
 
 __all__ = ["Batch", "FrameSpec", "frame_seed", "frame_sets", "load_batch", "plan", "render_frame", "run_batch",
@@ -282,9 +286,6 @@ def _advance(ra_deg: float, dec_deg: float, rate_ra: float, rate_dec: float, dt_
     Rates are dRA/dt cos(Dec) and dDec/dt [deg/s] (the convention of ``[[objects]]`` and ``rate``
     tracking); the speed is kept and the rates are re-expressed in the new position's east/north.
     """
-    from scenes.image.motion import Boresight
-    from scenes.objects.frames import east_north, radec_to_unit, unit_to_radec
-
     p0 = radec_to_unit(ra_deg, dec_deg)
     east, north = east_north(p0)
     w = rate_ra * east + rate_dec * north
@@ -320,9 +321,6 @@ def sequence_overrides(scene: Scene, dt_s: float) -> dict[str, Any]:
         out.update({"pointing.ra_deg": ra, "pointing.dec_deg": dec, "exposure.rate_ra_deg_s": rra,
                     "exposure.rate_dec_deg_s": rdec})
     elif exp.tracking == "none":
-        from scenes.image.motion import Boresight
-        from scenes.objects.frames import unit_to_radec
-
         ra, _ = unit_to_radec(Boresight(p.ra_deg, p.dec_deg, "none").unit(dt_s)[0])
         out["pointing.ra_deg"] = float(ra)
     objects, moved = [], False
@@ -377,7 +375,6 @@ def render_frame(spec: FrameSpec) -> dict:
     removed first, so a file on disk always belongs to its manifest entry.
     """
     from optics.design import OpticsError
-    from scenes.app.render import render
 
     t0 = time.perf_counter()
     res: dict[str, Any] = {"index": spec.index, "status": "failed", "host": socket.gethostname(), "pid": os.getpid()}
@@ -390,8 +387,6 @@ def render_frame(spec: FrameSpec) -> dict:
         summary = render(scene, spec.file, seed=spec.seed, noiseless=spec.noiseless, expected=spec.expected,
                          progress=False, workers=1)
         if spec.png:
-            from scenes.app.quicklook import write_png
-
             png = Path(spec.file).with_suffix(".png")
             tmp = png.with_name(f".{png.stem}.{os.getpid()}.tmp.png")
             write_png(spec.file, tmp)
