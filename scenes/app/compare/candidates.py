@@ -105,7 +105,7 @@ def at_bound(cls, params: dict) -> str:
                 bound = a.get(bkey)
                 if bound is None or not np.isfinite(bound) or bound == 0:
                     continue  # a zero lower bound is where an absent effect sits, not a pinned fit
-                if abs(value - bound) <= 1e-3 * max(1.0, abs(bound)):
+                if abs(value - bound) <= 1e-3 * abs(bound):
                     return f"the fitted {key} = {value:.4g} sits at its bound {bound:.4g}: the form cannot follow the data"
     return ""
 
