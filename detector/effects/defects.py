@@ -145,9 +145,9 @@ class ColumnSignature(Signature):
     def score(self, fit, res):
         return None  # compared by the statistics of all the columns, not pixel by pixel
 
-    #: a defective column is defective along its length: the excess of an outlier column may not sit in one
-    #: quarter of its rows by more than this share
-    MAX_SEGMENT_SHARE = 0.7
+    #: a defective column is defective along its length: the median of its eight stretches' mean excess is at
+    #: least this fraction of the strongest one's
+    MIN_EVENNESS = 0.25
 
     def plausible(self, fit, res) -> str:
         from ..signatures import LINE_SIGMA
@@ -163,12 +163,14 @@ class ColumnSignature(Signature):
         d = res.data_adu[:, cols] - res.model_adu[:, cols] - level[:, cols]
         lim = 5 * np.sqrt(res.var_adu2[:, cols])
         r = np.where(np.isfinite(d), np.clip(d, -lim, lim), 0.0)
-        seg = np.array_split(np.arange(r.shape[0]), 4)
-        excess = np.abs(np.stack([r[s_].sum(axis=0) for s_ in seg]))  # (4, columns)
-        share = excess.max(axis=0) / np.maximum(excess.sum(axis=0), 1e-30)
-        if float(np.median(share)) > self.MAX_SEGMENT_SHARE:
-            return (f"the outlier columns' excess sits in a quarter of their rows ({100 * float(np.median(share)):.0f} % "
-                    "of it): a local blob crossing them, not defective columns")
+        seg = np.array_split(np.arange(r.shape[0]), 8)
+        excess = np.abs(np.stack([r[s_].mean(axis=0) for s_ in seg]))  # (8, columns): mean excess per stretch
+        # a defective column is defective along its length: its typical stretch carries a good part of its
+        # strongest stretch's excess; a blob, a ring or a track crossing it leaves most stretches empty
+        evenness = float(np.median(np.median(excess, axis=0) / np.maximum(excess.max(axis=0), 1e-30)))
+        if evenness < self.MIN_EVENNESS:
+            return (f"the outlier columns' excess sits in a few stretches of their rows (typical stretch "
+                    f"{100 * evenness:.0f} % of the strongest): a local structure crossing them, not defective columns")
         return ""
 
     @staticmethod
