@@ -96,6 +96,8 @@ def write_catalogue(path: Path, nx: int = 25, ny: int = 16, mags=(11.0, 13.0), s
 
 def scene_table(design: str, cube: str, catalogue: str, *, binning: int = 2, seeing: float = 1.0,
                 width: int = W_PX, height: int = H_PX, time_s: float = 2.0) -> dict:
+    """The scene (a TOML table): ``design`` (a built-in name or a design TOML), the PSF ``cube``, the star
+    ``catalogue``; the full ML11002 binned 2 x 2 unless ``width``/``height``/``binning`` say otherwise."""
     return {
         "telescope": {"design": design},
         "detector": {"preset": "ml11002", "width": width, "height": height, "binning": binning},
