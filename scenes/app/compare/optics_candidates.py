@@ -50,8 +50,11 @@ What is fitted
 
     :func:`optics.alignment.rank_perturbations` fits each family of perturbations alone (defocus, sensor
     tilt, diagonal tilt, primary tilt and decentre) with its isotropic nuisance, against the
-    nuisance-only fit (:data:`FAMILIES`). Each family becomes a candidate: ``defocus`` (``sensor_piston_um``) and
-    ``misalignment`` (the others; the family in ``variant``), with ``delta_m2lnl = -delta chi^2 / q`` and
+    nuisance-only fit (:data:`FAMILIES`). The reference a family must beat is the better of that fit (the
+    design as it is) and the scene's own PSF (the model frame's moments plus the isotropic nuisance,
+    :func:`model_psf_chi2`): a Gaussian-PSF scene and a frame made with it agree, and the traced design's
+    field curvature, absent from such a frame, must not come out as a defocus. Each family becomes a candidate: ``defocus`` (``sensor_piston_um``) and
+    ``misalignment`` (the others; the family in ``variant``), with ``delta_m2lnl = -(chi^2_ref - chi^2) / q`` and
     ``k`` = the family's parameters, ``n`` = the fitted moments; ``q = max(1, chi^2 / dof)`` of the best
     family: scatter no family explains (blends, the model's own systematics) makes every drop less
     significant and every error larger by sqrt(q). ``params``: the ``[perturbation]`` names with the
@@ -308,6 +311,20 @@ def fit_inputs(stars: dict, sensor, design, parity: int, optics_psf: bool, nomin
     return fields, measured, sigma
 
 
+def model_psf_chi2(stars: dict, sigma: dict, sensor, parity: int) -> float:
+    """chi^2 of the measured moments against the model frame's (the scene's own PSF) plus one isotropic
+    nuisance s (weighted least squares), with the errors ``sigma`` of :func:`fit_inputs` [mm^2]: the
+    reference a perturbation must beat besides the unperturbed design. A scene whose PSF is not the optics'
+    (a Gaussian) and a frame made with it agree; the traced design would not, and a 'defocus' flattening
+    the design's field curvature would otherwise be found in every such frame."""
+    d = moments_to_focal(stars["data"]["mxx"], stars["data"]["myy"], stars["data"]["mxy"], sensor, parity)
+    m = moments_to_focal(stars["model"]["mxx"], stars["model"]["myy"], stars["model"]["mxy"], sensor, parity)
+    w = [1.0 / np.maximum(sigma[k], 1e-30) ** 2 for k in ("muu_mm2", "mvv_mm2", "muv_mm2")]
+    r = [d[i] - m[i] for i in range(3)]
+    s = float((np.sum(w[0] * r[0]) + np.sum(w[1] * r[1])) / (np.sum(w[0]) + np.sum(w[1])))
+    return float(np.sum(w[0] * (r[0] - s) ** 2) + np.sum(w[1] * (r[1] - s) ** 2) + np.sum(w[2] * r[2] ** 2))
+
+
 def optics_candidates(res: Residuals, truth, scene, *, mi=None, families=None, progress=None) -> tuple[list, list]:
     """The ``misalignment`` / ``defocus`` candidates of a comparison (module notes), as
     :class:`scenes.app.compare.candidates.Candidate`, and the problems (a list of ``{"effect", "error"}``)
@@ -354,6 +371,10 @@ def optics_candidates(res: Residuals, truth, scene, *, mi=None, families=None, p
                                      tracer=tracer, **kw)
     best = cands[0].fit if cands else base
     q = max(1.0, best.chi2 / max(best.dof, 1))
+    # the reference: the better of the design as it is (the nuisance-only fit) and the scene's own PSF (the
+    # model frame's moments plus the isotropic nuisance): a perturbation must explain the stars better than both
+    own = model_psf_chi2(stars, sigma, sensor, parity)
+    ref = min(base.chi2, own)
     n = 3 * stars["n"]
     note_psf = ("" if optics_psf else
                 "; the scene's PSF is not the optics' ([psf] model = 'optics'), so --apply changes only its "
@@ -364,22 +385,24 @@ def optics_candidates(res: Residuals, truth, scene, *, mi=None, families=None, p
     explained = {}
     for c in cands:
         fit = c.fit
+        drop = (ref - fit.chi2) / q
         errs = fit.errors * math.sqrt(q)
         z = fit.values / np.where(errs > 0, errs, np.inf)
         i = int(np.argmax(np.abs(z)))
         effect = DEFOCUS if c.family == "defocus" else MISALIGNMENT
-        if effect not in explained and c.delta_chi2 / q > 10:   # the best of each kind: with the field pattern
+        if effect not in explained and drop > 10:   # the best of each kind: with the field pattern
             words = explain(fit.names[i], fit.values[i], errs[i], tracer, fit.fields_deg,
                             {"n_rays": N_RAYS, "wavelengths_nm": WAVELENGTHS_NM})
         else:
             words = explain(fit.names[i], fit.values[i], errs[i])
         explained.setdefault(effect, True)
         words += (f" ({c.family.replace('_', ' ')} fitted to the second moments of {stars['n']} stars: chi2 drop "
-                  f"{c.delta_chi2 / q:.4g} for {len(fit.names)} parameter{'s' if len(fit.names) > 1 else ''}"
+                  f"{drop:.4g} for {len(fit.names)} parameter{'s' if len(fit.names) > 1 else ''}"
                   + (f", errors x {math.sqrt(q):.3g} for the unexplained scatter" if q > 1.05 else "") + ")" + note_psf)
         params = {k: round(float(v), 6) for k, v in zip(fit.names, fit.values)}
         params["errors"] = {k: round(float(e), 6) for k, e in zip(fit.names, errs)}
-        f = Fit(effect, params, -float(c.delta_chi2) / q, len(fit.names), n, words, note=c.family,
-                state={"nuisances": fit.nuisances, "chi2": fit.chi2, "dof": fit.dof, "n_stars": stars["n"]})
+        f = Fit(effect, params, -float(drop), len(fit.names), n, words, note=c.family,
+                state={"nuisances": fit.nuisances, "chi2": fit.chi2, "dof": fit.dof, "n_stars": stars["n"],
+                       "chi2_design": base.chi2, "chi2_scene_psf": own, "scale": q})
         out.append(Candidate(f, chi2_after(res, f), seconds))
     return out, []
