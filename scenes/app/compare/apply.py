@@ -17,6 +17,7 @@ from detector.signatures import LEVEL_DEGENERACY, _at, _independent
 from scenes.scene import load_scene
 
 from .model import build_model, read_measurement, residuals
+from .optics_candidates import OPTICS_CANDIDATES
 
 
 def apply_candidate(scene, cand: dict, path: str | Path, measured: str | Path | None = None) -> Path:
@@ -33,6 +34,10 @@ def apply_candidate(scene, cand: dict, path: str | Path, measured: str | Path | 
     if cand["effect"] == "light_curve":  # a source's property: into its [[objects]] table
         data["objects"][cand["params"]["object"]]["light_curve"] = cand["params"]["light_curve"]
         added = f"objects[{cand['params']['object']}].light_curve"
+    elif cand["effect"] in OPTICS_CANDIDATES:  # the telescope's alignment: a new design file beside the scene
+        design = write_perturbed_design(scene, cand["params"], Path(path))
+        data.setdefault("telescope", {})["design"] = design.name
+        added = f"[perturbation] of the design in {design.name}"
     else:
         data.setdefault("effects", {})[cand["effect"]] = cand["params"]
         added = f"[effects.{cand['effect']}]"
@@ -43,6 +48,24 @@ def apply_candidate(scene, cand: dict, path: str | Path, measured: str | Path | 
     p.write_text(f"# written by newtsim diagnose --apply: added {added}\n"
                  f"# {cand['explanation']}\n" + "".join(f"# and {n}\n" for n in notes) + tomli_w.dumps(data))
     return p
+
+
+def write_perturbed_design(scene, params: dict, scene_path: Path) -> Path:
+    """Write the scene's design with the fitted ``[perturbation]`` entries of ``params`` (names of
+    :data:`optics.design.PERTURBATION_NAMES`; other keys such as ``errors`` are ignored) as
+    ``NEW_SCENE_design.toml`` beside the new scene; returns its path. The design's other perturbations are
+    kept. With ``[psf] model = "optics"`` the new scene's PSF grid and (``distortion = "optics"``) SIP are
+    traced for the perturbed design (cached by its hash); with another PSF model only the SIP follows."""
+    from optics.design import PERTURBATION_NAMES, load_design, with_perturbation
+
+    values = {k: float(v) for k, v in params.items() if k in PERTURBATION_NAMES}
+    design = with_perturbation(load_design(scene.telescope.design), **values)
+    out = scene_path.with_name(scene_path.stem + "_design.toml")
+    data = design.model_dump(mode="json", exclude_none=True)
+    data["name"] = out.stem
+    out.write_text(f"# written by newtsim diagnose --apply: {scene.telescope.design} with the fitted perturbation\n"
+                   + tomli_w.dumps(data))
+    return out
 
 
 #: level changes below these are not written back (relative for scales, ADU for the bias offset)

@@ -25,6 +25,7 @@ from .apply import apply_candidate, apply_empirical
 from .candidates import SIGNIFICANT_DELTA_BIC, candidates, indistinguishable, rank, source_candidates, verdict
 from .ledger import best_candidate, plot_ledger, round_row, update_ledger
 from .model import ModelFrame, build_model, read_measurement, residuals
+from .optics_candidates import optics_candidates
 from .report import write_report
 from .statistics import compare, summary
 
@@ -58,7 +59,9 @@ def run_diagnose(scene, measured: str | Path, workers: int | None = None, progre
     t0 = time.perf_counter()
     truth = cmp["_model"].setup.truth
     cands, problems = candidates(cmp["_residuals"], set(scene.effects), progress=progress, truth=truth)
-    cands = rank(cands + source_candidates(cmp["_residuals"], truth, scene))
+    optical, optical_problems = optics_candidates(cmp["_residuals"], truth, scene, progress=progress)
+    cands = rank(cands + source_candidates(cmp["_residuals"], truth, scene) + optical)
+    problems = problems + optical_problems
     if progress is not None:
         progress("residual morphology")
     res = cmp["_residuals"]

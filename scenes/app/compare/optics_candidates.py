@@ -1,0 +1,408 @@
+"""Candidates of the telescope's alignment: ``misalignment`` and ``defocus`` fitted to the stars' second moments.
+
+What is measured
+    For every isolated, unsaturated catalogue star of the model's TRUTH table, the centroid and the
+    *unweighted* second central moments (Mxx, Myy, Mxy) [output px^2] inside a circular aperture, in the
+    measured frame and in the model's mean frame, each over its background: the model's background frame
+    (:func:`.statistics.background_adu`) and, in the measured frame, what it holds beyond that where the
+    model has no source (a quadratic surface, :func:`sky_surface`; a local annulus would hold the star's own
+    wings, more of them in a star the perturbation widens). Unweighted moments, because only they add
+    under convolution (the measured star is the optical spot convolved with seeing, diffraction, the pixel
+    and charge diffusion), which is what the alignment fit's model assumes (:mod:`optics.alignment`:
+    ``M = m_optics(p) + s I``). The aperture (radius :data:`APERTURE_SIGMA` times the larger of the two
+    stars' rms sizes, :data:`MIN_RADIUS_PX` to :data:`MAX_RADIUS_PX`) is the same in both frames; it trades
+    noise (the moments' error grows as r^3) against truncation (the wings it cuts shrink the measured change:
+    a diagonal tilted 0.1 deg on 9 um pixels comes out 10 % low at 4 sigma, 5.5 % at 6, 4.5 % at 8 with twice
+    the error). The error of each moment is the pixel noise propagated through the unweighted sum,
+    ``var(Mxx) = sum_i ((x_i - cx)^2 - Mxx)^2 var_i / F^2`` (var_i the model's variance of pixel i, F the
+    star's flux), plus that of the background level.
+
+From pixels to the optics' focal plane
+    The scene reads the optics' focal plane (u, v) [mm] (:mod:`optics.layout`; origin on the optical axis,
+    the sensor's centre) as sensor pixels x = s_x u / pitch, y = s_y v / pitch about the sensor's centre
+    ((W - 1) / 2, (H - 1) / 2), with s_y = :data:`scenes.projection.FOCAL_PLANE_Y_SIGN` = -1 and s_x =
+    -parity (= +1 for the default ``parity = -1``; :func:`scenes.projection.sip_from_optics`, and the
+    stamps' row flip of :mod:`scenes.image.gridpsf`). An output pixel (x_o, y_o) of a window at (x0, y0)
+    binned by b is the sensor pixel (x0 + b x_o + (b - 1) / 2, ...). So
+
+        u = s_x (x_s - (W - 1) / 2) p,   v = s_y (y_s - (H - 1) / 2) p,
+        muu = Mxx (b p)^2,   mvv = Myy (b p)^2,   muv = s_x s_y Mxy (b p)^2,
+
+    and the star's field angles are theta = atan(-(u, v) / f) (the image of field theta lies at -f tan theta,
+    :mod:`optics.distortion`). :func:`pixel_to_focal` does this; ``tests/scenes/test_diagnose_optics.py``
+    checks it against the render (a perturbed frame's fitted sign, and the model frame's cross moments
+    against the traced ones).
+
+What is fitted
+    With ``[psf] model = "optics"`` the model frame already holds the nominal optics' PSF, drawn through the
+    same grid interpolation, pixel integration and aperture as the measured star. The fit is then given
+
+        M_fit = M_data - M_model + m_design(theta) + c,
+
+    the measured moments less the model's, on top of the design's own traced moments at the star and the
+    model's median isotropic rest c (pixel, seeing, diffraction): the model frame calibrates everything the
+    render adds that is not a perturbation (the grid's bilinear blend, the aperture's truncation). With any
+    other PSF model the model frame holds no optics and ``M_fit = M_data``: the measured stars against the
+    traced design, the seeing/pixel/PSF-model part the fit's isotropic nuisance. The centroids are not
+    fitted: the frame's WCS (TAN, or the chief-ray SIP of the *scene's* design) puts both frames' stars
+    where the scene says, so their positions carry the pointing and the plate solution, not the optics of
+    the measured telescope.
+
+    :func:`optics.alignment.rank_perturbations` fits each family of perturbations alone (defocus, sensor
+    tilt, diagonal tilt, primary tilt and decentre) with its isotropic nuisance, against the
+    nuisance-only fit (:data:`FAMILIES`). The reference a family must beat is the better of that fit (the
+    design as it is) and the scene's own PSF (the model frame's moments plus the isotropic nuisance,
+    :func:`model_psf_chi2`): a Gaussian-PSF scene and a frame made with it agree, and the traced design's
+    field curvature, absent from such a frame, must not come out as a defocus. Each family becomes a candidate: ``defocus`` (``sensor_piston_um``) and
+    ``misalignment`` (the others; the family in ``variant``), with ``delta_m2lnl = -(chi^2_ref - chi^2) / q`` and
+    ``k`` = the family's parameters, ``n`` = the fitted moments; ``q = max(1, chi^2 / dof)`` of the best
+    family: scatter no family explains (blends, the model's own systematics) makes every drop less
+    significant and every error larger by sqrt(q). ``params``: the ``[perturbation]`` names with the
+    fitted values (the design's own perturbation included: they are the values to write) and ``errors``
+    (same names).
+
+Runtime: one trace per iteration of each family's fit (Chebyshev nodes over the stars' field, forward-mode
+AD; :func:`optics.alignment.fit_perturbations`), about 10-40 s for the whole ranking on 2 cores.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+
+import numpy as np
+
+from detector.signatures import Fit, Residuals
+
+from .statistics import background_adu
+
+#: the candidates' names (``--apply`` writes them into a design TOML: :mod:`.apply`)
+MISALIGNMENT, DEFOCUS = "misalignment", "defocus"
+OPTICS_CANDIDATES = (MISALIGNMENT, DEFOCUS)
+#: measurable stars needed for a fit
+MIN_STARS = 30
+#: stars measured at most (brightest first)
+MAX_STARS = 600
+#: the aperture's radius in units of the star's rms size sqrt((Mxx + Myy) / 2), and its floor and ceiling [px]
+APERTURE_SIGMA, MIN_RADIUS_PX, MAX_RADIUS_PX = 6.0, 4, 12
+#: aperture [px] of the first pass that sizes the star (small: the moments of a wide aperture are dominated by the
+#: error of the background level, sum r^2 / F per ADU)
+FIRST_RADIUS_PX = 6
+#: a star needs this signal-to-noise in its aperture, and no other source brighter than NEIGHBOUR_FRACTION of
+#: it within its box
+MIN_SNR, NEIGHBOUR_FRACTION = 50.0, 0.02
+#: pupil rays per field point and wavelengths [nm] of the optics model (450-900 nm, the grid's band
+#: optics.psf.DEFAULT_BAND_NM, sampled at three wavelengths), and field points per axis
+N_RAYS, WAVELENGTHS_NM, NODES = 1000, (500.0, 650.0, 800.0), 6
+#: families fitted (:data:`optics.alignment.FAMILIES`): the issue's perturbations. The corrector's (decentre, tilt,
+#: spacing) are left out: a spacing error refocuses the field like a sensor piston (on a defocused ``art`` frame
+#: both fit, the spacing slightly better), and a diagonal tilt mimics the corrector's decentre and tilt (the
+#: beam turned at the diagonal moves corrector and sensor rigidly); pass ``families=`` to fit them
+FAMILIES = ("defocus", "sensor_tilt", "diagonal_tilt", "primary_tilt", "primary_decenter")
+
+
+# ---------------------------------------------------------------------------------------------- geometry
+def focal_plane_axes(parity: int = -1) -> tuple[float, float]:
+    """(s_x, s_y): sensor pixel offsets (x, y) = (s_x u, s_y v) / pitch (module notes)."""
+    from scenes.projection import FOCAL_PLANE_Y_SIGN
+
+    return -float(parity), float(FOCAL_PLANE_Y_SIGN)
+
+
+def pixel_to_focal(x_out, y_out, sensor, parity: int = -1) -> tuple[np.ndarray, np.ndarray]:
+    """Focal-plane position (u, v) [mm] of output pixel coordinates (0-based, binned, in the read-out window)."""
+    sx, sy = focal_plane_axes(parity)
+    b = sensor.binning
+    p_mm = sensor.pixel_pitch_um * 1e-3
+    xs = sensor.roi_x0 + b * np.asarray(x_out, float) + (b - 1) / 2.0
+    ys = sensor.roi_y0 + b * np.asarray(y_out, float) + (b - 1) / 2.0
+    return (sx * (xs - (sensor.sensor_width_px - 1) / 2.0) * p_mm,
+            sy * (ys - (sensor.sensor_height_px - 1) / 2.0) * p_mm)
+
+
+def moments_to_focal(mxx, myy, mxy, sensor, parity: int = -1) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Second moments [output px^2] -> (muu, mvv, muv) [mm^2] (module notes)."""
+    sx, sy = focal_plane_axes(parity)
+    s2 = (sensor.binning * sensor.pixel_pitch_um * 1e-3) ** 2
+    return np.asarray(mxx) * s2, np.asarray(myy) * s2, sx * sy * np.asarray(mxy) * s2
+
+
+def field_angles_deg(u_mm, v_mm, focal_length_mm: float) -> np.ndarray:
+    """(n, 2) field angles [deg] of stars imaged at (u, v) [mm]: theta = atan(-(u, v) / f)."""
+    return np.degrees(np.arctan(-np.stack([np.asarray(u_mm, float), np.asarray(v_mm, float)], -1) / focal_length_mm))
+
+
+# ---------------------------------------------------------------------------------------------- measurement
+def _disk(r: int, r_out: int):
+    yy, xx = np.mgrid[-r_out:r_out + 1, -r_out:r_out + 1]
+    rr = np.hypot(xx, yy)
+    return yy, xx, rr
+
+
+def unweighted_moments(img: np.ndarray, var: np.ndarray | None, xx, yy, ap) -> dict | None:
+    """Flux, centroid and unweighted second central moments of ``img`` (background-free) over the aperture
+    mask ``ap``, with their errors from the per-pixel variance ``var`` (None: no errors)."""
+    w = np.where(ap, img, 0.0)
+    f = float(w.sum())
+    if not f > 0:
+        return None
+    cx, cy = float((w * xx).sum() / f), float((w * yy).sum() / f)
+    dx, dy = xx - cx, yy - cy
+    mxx, myy, mxy = (float((w * dx * dx).sum() / f), float((w * dy * dy).sum() / f), float((w * dx * dy).sum() / f))
+    out = {"flux": f, "cx": cx, "cy": cy, "mxx": mxx, "myy": myy, "mxy": mxy}
+    if var is not None:
+        v = np.where(ap, var, 0.0)
+        out["var_flux"] = float(v.sum())
+        out["var_mxx"] = float(((dx * dx - mxx) ** 2 * v).sum() / f ** 2)
+        out["var_myy"] = float(((dy * dy - myy) ** 2 * v).sum() / f ** 2)
+        out["var_mxy"] = float(((dx * dy - mxy) ** 2 * v).sum() / f ** 2)
+    return out
+
+
+def measure_stars(res: Residuals, truth, *, max_stars: int = MAX_STARS) -> dict:
+    """Moments of the isolated, unsaturated catalogue stars in the measured frame and in the model (module
+    notes). Returns ``{"n", "x", "y", "data": {...}, "model": {...}, "err": {...}, "radius_px", "rejected"}``
+    (arrays over the measured stars; moments in output px^2)."""
+    empty = {"n": 0, "rejected": {}}
+    if truth is None or len(truth) == 0 or "kind" not in truth.dtype.names:
+        return empty
+    kind = np.char.strip(np.asarray(truth["kind"]).astype(str))
+    st = truth[kind == "star"]
+    if len(st) == 0:
+        return empty
+    h, w = res.data_adu.shape
+    rbox = MAX_RADIUS_PX + 2
+    inside = (st["x"] > rbox) & (st["x"] < w - 1 - rbox) & (st["y"] > rbox) & (st["y"] < h - 1 - rbox)
+    rejected = {"edge": int((~inside).sum())}
+    st = st[inside]
+    st = st[np.argsort(-st["flux_e"])]
+    # neighbours: any source (stars and objects' mid-points) within the box brighter than a fraction
+    from scipy.spatial import cKDTree
+
+    xy_all = np.stack([truth["x"], truth["y"]], -1)
+    ok_all = np.isfinite(xy_all).all(1)
+    tree = cKDTree(xy_all[ok_all])
+    flux_all = np.asarray(truth["flux_e"], float)[ok_all]
+    bg = background_adu(res)
+    sky = sky_surface(res, bg)
+    yy, xx, rr = _disk(0, rbox)
+    rows = []
+    counts = {"neighbour": 0, "flagged": 0, "faint": 0, "bad": 0}
+    for s_ in st:
+        if len(rows) >= max_stars:
+            break
+        x, y = float(s_["x"]), float(s_["y"])
+        near = tree.query_ball_point([x, y], r=math.sqrt(2) * rbox + 1)
+        if sum(1 for j in near if flux_all[j] > NEIGHBOUR_FRACTION * float(s_["flux_e"])) > 1:
+            counts["neighbour"] += 1
+            continue
+        xi, yi = round(x), round(y)
+        sl = (slice(yi - rbox, yi + rbox + 1), slice(xi - rbox, xi + rbox + 1))
+        if not res.fit[sl][rr <= rbox].all():  # saturated, flagged (hot pixels, defects) or an outlier (a cosmic ray)
+            counts["flagged"] += 1
+            continue
+        d_img = (res.data_adu[sl] - bg[sl]).astype(np.float64)
+        m_img = (res.model_adu[sl] - bg[sl]).astype(np.float64)
+        var = res.var_adu2[sl].astype(np.float64)
+        meas = _measure_pair(d_img - sky(xi, yi)[0], m_img, var, xx + (xi - x), yy + (yi - y), rr, sky(xi, yi)[1])
+        if meas is None:
+            counts["bad"] += 1
+            continue
+        d, m, r, ann_var = meas
+        if d["flux"] < MIN_SNR * math.sqrt(d["var_flux"]) or m["flux"] < MIN_SNR * math.sqrt(d["var_flux"]):
+            counts["faint"] += 1
+            continue
+        rows.append((x, y, d, m, r, ann_var))
+    rejected.update(counts)
+    if not rows:
+        return {**empty, "rejected": rejected}
+    out = {"n": len(rows), "x": np.array([r[0] for r in rows]), "y": np.array([r[1] for r in rows]),
+           "radius_px": np.array([r[4] for r in rows]), "rejected": rejected, "data": {}, "model": {}, "err": {}}
+    for k in ("flux", "cx", "cy", "mxx", "myy", "mxy"):
+        out["data"][k] = np.array([r[2][k] for r in rows])
+        out["model"][k] = np.array([r[3][k] for r in rows])
+    for k in ("mxx", "myy", "mxy"):
+        out["err"][k] = np.sqrt(np.array([r[2]["var_" + k] + (r[5][k] if k != "mxy" else 0.0) for r in rows]))
+    return out
+
+
+def sky_surface(res: Residuals, bg: np.ndarray, step: int = 4):
+    """What the measured frame holds beyond the model's background where the model has no source: a quadratic
+    surface in (x, y) fitted (3-sigma clipped least squares) to ``data - bg`` on every ``step``-th row and column
+    of the pixels where the model's sources add less than 0.05 sigma. Returns ``f(x, y) -> (level [ADU], its
+    standard error [ADU])``.
+
+    A global surface rather than each star's annulus: an annulus holds the star's own wings, more of them in
+    a star the perturbation widens, and taking them off with the sky shrinks the measured change of its
+    moments (a diagonal tilted 0.1 deg came out 10 % low on 9 um pixels)."""
+    h, w = res.data_adu.shape
+    ys, xs = np.mgrid[0:h:step, 0:w:step]
+    d = (res.data_adu[::step, ::step] - bg[::step, ::step]).astype(np.float64)
+    src = (res.model_adu[::step, ::step] - bg[::step, ::step]) / np.sqrt(np.maximum(res.var_adu2[::step, ::step], 1e-12))
+    keep = res.fit[::step, ::step] & (src < 0.05)
+    xn, yn, z = (xs[keep] / max(w, 1) - 0.5).ravel(), (ys[keep] / max(h, 1) - 0.5).ravel(), d[keep].ravel()
+
+    def design(x, y):
+        x, y = np.atleast_1d(x), np.atleast_1d(y)
+        return np.stack([np.ones_like(x), x, y, x * x, x * y, y * y], -1)
+
+    if z.size < 50:
+        return lambda x, y: (0.0, 0.0)
+    A = design(xn, yn)
+    ok = np.ones(z.size, bool)
+    for _ in range(4):
+        coef, *_ = np.linalg.lstsq(A[ok], z[ok], rcond=None)
+        r = z - A @ coef
+        sd = float(np.std(r[ok]))
+        new = np.abs(r) <= 3 * max(sd, 1e-12)
+        if (new == ok).all():
+            break
+        ok = new
+    cov = sd ** 2 * np.linalg.pinv(A[ok].T @ A[ok])
+
+    def at(x, y):
+        a = design(np.asarray(x, float) / max(w, 1) - 0.5, np.asarray(y, float) / max(h, 1) - 0.5)
+        return float((a @ coef)[0]), float(np.sqrt(max((a @ cov @ a.T)[0, 0], 0.0)))
+    return at
+
+
+def _measure_pair(d_img, m_img, var, xx, yy, rr, level_err: float = 0.0):
+    """Moments of one star in data and model (both over their background already) with a common aperture.
+    ``xx``, ``yy``: pixel offsets from the star's TRUTH position; ``rr`` the distance from the box centre;
+    ``level_err`` the error [ADU] of the data's background level."""
+    r = FIRST_RADIUS_PX
+    sizes = []
+    for img in (d_img, m_img):   # first pass: the star's size
+        mo = unweighted_moments(img, None, xx, yy, rr <= r)
+        if mo is None or not (mo["mxx"] > 0 and mo["myy"] > 0):
+            return None
+        sizes.append(math.sqrt(0.5 * (mo["mxx"] + mo["myy"])))
+    r = int(np.clip(math.ceil(APERTURE_SIGMA * max(sizes)), MIN_RADIUS_PX, MAX_RADIUS_PX))
+    ap = rr <= r
+    d = unweighted_moments(d_img, var, xx, yy, ap)
+    m = unweighted_moments(m_img, None, xx, yy, ap)
+    if d is None or m is None:
+        return None
+    # the level's error moves Mxx by sum_ap((x - cx)^2 - Mxx) / F per ADU
+    dx, dy = xx - d["cx"], yy - d["cy"]
+    lv_var = {"mxx": (level_err * float(np.where(ap, dx * dx - d["mxx"], 0).sum()) / d["flux"]) ** 2,
+              "myy": (level_err * float(np.where(ap, dy * dy - d["myy"], 0).sum()) / d["flux"]) ** 2}
+    return d, m, r, lv_var
+
+
+# ---------------------------------------------------------------------------------------------- the fit
+def fit_inputs(stars: dict, sensor, design, parity: int, optics_psf: bool, nominal=None) -> tuple:
+    """(field angles [deg], measured moments {muu_mm2, mvv_mm2, muv_mm2}, their sigma) for
+    :func:`optics.alignment.rank_perturbations` (module notes). ``nominal``: the design's traced moments at
+    the stars (an :class:`optics.gradients.SpotMoments`), needed when ``optics_psf``."""
+    u, v = pixel_to_focal(stars["x"], stars["y"], sensor, parity)
+    fields = field_angles_deg(u, v, design.primary.focal_length_mm)
+    d = moments_to_focal(stars["data"]["mxx"], stars["data"]["myy"], stars["data"]["mxy"], sensor, parity)
+    e = moments_to_focal(stars["err"]["mxx"], stars["err"]["myy"], stars["err"]["mxy"], sensor, parity)
+    keys = ("muu_mm2", "mvv_mm2", "muv_mm2")
+    measured = dict(zip(keys, d))
+    if optics_psf:
+        m = moments_to_focal(stars["model"]["mxx"], stars["model"]["myy"], stars["model"]["mxy"], sensor, parity)
+        m0 = [nominal.get(k) for k in keys]
+        rest = float(np.median(0.5 * (m[0] + m[1] - m0[0] - m0[1])))
+        rest = max(rest, (sensor.binning * sensor.pixel_pitch_um * 1e-3) ** 2 / 12.0)
+        measured = {k: d[i] - m[i] + m0[i] + (rest if i < 2 else 0.0) for i, k in enumerate(keys)}
+    sigma = {k: np.abs(e[i]) for i, k in enumerate(keys)}
+    return fields, measured, sigma
+
+
+def model_psf_chi2(stars: dict, sigma: dict, sensor, parity: int) -> float:
+    """chi^2 of the measured moments against the model frame's (the scene's own PSF) plus one isotropic
+    nuisance s (weighted least squares), with the errors ``sigma`` of :func:`fit_inputs` [mm^2]: the
+    reference a perturbation must beat besides the unperturbed design. A scene whose PSF is not the optics'
+    (a Gaussian) and a frame made with it agree; the traced design would not, and a 'defocus' flattening
+    the design's field curvature would otherwise be found in every such frame."""
+    d = moments_to_focal(stars["data"]["mxx"], stars["data"]["myy"], stars["data"]["mxy"], sensor, parity)
+    m = moments_to_focal(stars["model"]["mxx"], stars["model"]["myy"], stars["model"]["mxy"], sensor, parity)
+    w = [1.0 / np.maximum(sigma[k], 1e-30) ** 2 for k in ("muu_mm2", "mvv_mm2", "muv_mm2")]
+    r = [d[i] - m[i] for i in range(3)]
+    s = float((np.sum(w[0] * r[0]) + np.sum(w[1] * r[1])) / (np.sum(w[0]) + np.sum(w[1])))
+    return float(np.sum(w[0] * (r[0] - s) ** 2) + np.sum(w[1] * (r[1] - s) ** 2) + np.sum(w[2] * r[2] ** 2))
+
+
+def optics_candidates(res: Residuals, truth, scene, *, mi=None, families=None, progress=None) -> tuple[list, list]:
+    """The ``misalignment`` / ``defocus`` candidates of a comparison (module notes), as
+    :class:`scenes.app.compare.candidates.Candidate`, and the problems (a list of ``{"effect", "error"}``)
+    when they cannot be fitted (no Mitsuba, too few stars)."""
+    from .candidates import Candidate, chi2_after
+
+    if scene.exposure.frame != "light" or not scene.sky.stars or scene.sky.flat_e_per_s is not None:
+        return [], []
+    name = f"{MISALIGNMENT}/{DEFOCUS}"
+    t0 = time.perf_counter()
+    stars = measure_stars(res, truth)
+    if stars["n"] < MIN_STARS:
+        return [], [{"effect": name, "error": f"skipped: {stars['n']} measurable catalogue stars (isolated, "
+                     f"unsaturated, S/N > {MIN_SNR:g}), {MIN_STARS} needed to fit the optics' alignment "
+                     f"(rejected: {stars['rejected']})"}]
+    try:
+        from optics.design import OpticsError, load_design
+
+        if mi is None:
+            from optics.llvm import init_mitsuba
+
+            mi = init_mitsuba()
+        design = load_design(scene.telescope.design)
+    except (ImportError, OpticsError) as exc:
+        return [], [{"effect": name, "error": f"skipped: the optics cannot be traced ({exc})"}]
+    from optics.alignment import explain, rank_perturbations
+    from optics.gradients import spot_moments
+    from optics.sequential import SequentialTracer
+
+    if progress is not None:
+        progress("misalignment/defocus")
+    sensor = scene.sensor()
+    parity = int(scene.telescope.parity)
+    optics_psf = scene.psf.model == "optics"
+    tracer = SequentialTracer(design, mi)
+    kw = {"n_rays": N_RAYS, "wavelengths_nm": WAVELENGTHS_NM, "nodes": NODES}
+    nominal = None
+    if optics_psf:
+        u, v = pixel_to_focal(stars["x"], stars["y"], sensor, parity)
+        nominal = spot_moments(tracer, field_angles_deg(u, v, design.primary.focal_length_mm), n_rays=N_RAYS,
+                               wavelengths_nm=WAVELENGTHS_NM)
+    fields, measured, sigma = fit_inputs(stars, sensor, design, parity, optics_psf, nominal)
+    cands, base = rank_perturbations(design, mi, fields, measured, sigma, families=families or FAMILIES,
+                                     tracer=tracer, **kw)
+    best = cands[0].fit if cands else base
+    q = max(1.0, best.chi2 / max(best.dof, 1))
+    # the reference: the better of the design as it is (the nuisance-only fit) and the scene's own PSF (the
+    # model frame's moments plus the isotropic nuisance): a perturbation must explain the stars better than both
+    own = model_psf_chi2(stars, sigma, sensor, parity)
+    ref = min(base.chi2, own)
+    n = 3 * stars["n"]
+    note_psf = ("" if optics_psf else
+                "; the scene's PSF is not the optics' ([psf] model = 'optics'), so --apply changes only its "
+                + ("SIP distortion" if scene.telescope.distortion == "optics" else
+                   "design file (no distortion = 'optics', no optics PSF: the frame does not change)"))
+    out = []
+    seconds = (time.perf_counter() - t0) / max(len(cands), 1)
+    explained = {}
+    for c in cands:
+        fit = c.fit
+        drop = (ref - fit.chi2) / q
+        errs = fit.errors * math.sqrt(q)
+        z = fit.values / np.where(errs > 0, errs, np.inf)
+        i = int(np.argmax(np.abs(z)))
+        effect = DEFOCUS if c.family == "defocus" else MISALIGNMENT
+        if effect not in explained and drop > 10:   # the best of each kind: with the field pattern
+            words = explain(fit.names[i], fit.values[i], errs[i], tracer, fit.fields_deg,
+                            {"n_rays": N_RAYS, "wavelengths_nm": WAVELENGTHS_NM})
+        else:
+            words = explain(fit.names[i], fit.values[i], errs[i])
+        explained.setdefault(effect, True)
+        words += (f" ({c.family.replace('_', ' ')} fitted to the second moments of {stars['n']} stars: chi2 drop "
+                  f"{drop:.4g} for {len(fit.names)} parameter{'s' if len(fit.names) > 1 else ''}"
+                  + (f", errors x {math.sqrt(q):.3g} for the unexplained scatter" if q > 1.05 else "") + ")" + note_psf)
+        params = {k: round(float(v), 6) for k, v in zip(fit.names, fit.values)}
+        params["errors"] = {k: round(float(e), 6) for k, e in zip(fit.names, errs)}
+        f = Fit(effect, params, -float(drop), len(fit.names), n, words, note=c.family,
+                state={"nuisances": fit.nuisances, "chi2": fit.chi2, "dof": fit.dof, "n_stars": stars["n"],
+                       "chi2_design": base.chi2, "chi2_scene_psf": own, "scale": q})
+        out.append(Candidate(f, chi2_after(res, f), seconds))
+    return out, []
