@@ -143,7 +143,8 @@ def block_chi2(res: Residuals, delta_adu: np.ndarray | None = None) -> tuple[flo
     sw = _blocks(wmap, b)
     ok = sw > 0
     mean = _blocks(rmap, b, wmap)[ok] / sw[ok]
-    return float(np.sum(mean * mean * sw[ok])), int(ok.sum())
+    wb = 1.0 / (1.0 / sw[ok] + float(res.row_var_adu2) / b)  # a block mean shares the offsets of its b rows
+    return float(np.sum(mean * mean * wb)), int(ok.sum())
 
 
 def describe(res: Residuals, delta_adu: np.ndarray | None = None) -> dict:
@@ -174,7 +175,9 @@ def describe(res: Residuals, delta_adu: np.ndarray | None = None) -> dict:
     lb = np.where(ok, _blocks(light, b, wmap) / np.where(ok, sw, 1), 0.0)  # the light there [ADU]
     ny, nx = mean.shape
     yy, xx = np.mgrid[0:ny, 0:nx].astype(np.float64)
-    y, wb = mean[ok], sw[ok]
+    # the variance of a block mean: its pixels' own, plus the row offsets (row noise) its b rows share
+    row_var = float(res.row_var_adu2)
+    y, wb = mean[ok], 1.0 / (1.0 / sw[ok] + row_var / b)
     zb = y * np.sqrt(wb)
     nb = y.size
     block_excess = float(np.sum(zb * zb) - nb)
@@ -262,7 +265,7 @@ def describe(res: Residuals, delta_adu: np.ndarray | None = None) -> dict:
         if okl.sum() < 8:
             continue
         lm = (rmap * wmap).sum(axis=axis)[okl] / np.maximum(wmap.sum(axis=axis)[okl], 1e-300)
-        lw = wmap.sum(axis=axis)[okl]
+        lw = 1.0 / (1.0 / wmap.sum(axis=axis)[okl] + (row_var if axis == 1 else row_var / max(shape[0], 1)))
         x = np.linspace(-1, 1, lm.size)
         _, _, lfit = _wls(lm, lw, np.polynomial.legendre.legvander(x, 4)[:, 1:].T)
         rest = lm - lfit - np.sum(lw * (lm - lfit)) / np.sum(lw)

@@ -560,6 +560,12 @@ def heldout_delta(signature: Signature, res: Residuals, name: str) -> float | No
     the folds apart for spatially correlated residuals, Roberts et al. 2017, Ecography 40, 913).
     None when the signature cannot be scored on a part of the frame (outlier counts)."""
     black = checkerboard(res.data_adu.shape)
+    if res.row_var_adu2 > 0:
+        # row noise: the pixels of a row share an offset, so the folds are bands of whole rows (a form that
+        # follows one fold's row offsets must fail on the other's)
+        block = int(max(4, min(HELDOUT_BLOCK, res.data_adu.shape[0] // 8)))
+        black = np.broadcast_to(((np.arange(res.data_adu.shape[0]) // block) % 2 == 0)[:, None],
+                                res.data_adu.shape).copy()
     total = 0.0
     for train, test in ((black, ~black), (~black, black)):
         part = replace(res, fit=res.fit & train, train=train, _flat={})
