@@ -1,0 +1,161 @@
+"""compare / diagnose of large frames in bounded memory (scenes.app.compare.fullframe, issue 12).
+
+The large-frame path is forced on small windows (``large_px=0``, an explicit super-pixel side ``k``) and
+checked against the full-resolution path on the same frame and against the statistics a correct noise model
+must give (binned chi2/dof ~ 1 within its standard error sqrt(2/n))."""
+
+from __future__ import annotations
+
+import copy
+import tomllib
+from pathlib import Path
+
+import numpy as np
+import pytest
+from astropy.io import fits
+from helpers import write_scene
+
+import scenes
+from scenes.app.compare import run_compare, run_diagnose
+from scenes.app.compare.fullframe import (
+    BandReader,
+    choose_binning,
+    is_large,
+    run_compare_large,
+    run_diagnose_large,
+)
+from scenes.app.render import render
+from scenes.scene import load_scene
+
+DEFAULT = tomllib.loads((Path(scenes.__file__).parent / "data" / "default.toml").read_text())
+
+
+def _default_window(size: int, corner: bool = False, drop: tuple[str, ...] = (), **effects) -> dict:
+    """The built-in default scene (full IMX411 effects) on a ``size`` x ``size`` window; ``corner`` puts it
+    at the bottom-right corner, where the default amplifier glow is."""
+    t = copy.deepcopy(DEFAULT)
+    t["detector"].update(width=size, height=size)
+    if corner:
+        t["detector"].update(x0=14192 - size, y0=0)
+    for name in drop:
+        t["effects"].pop(name)
+    for name, table in effects.items():
+        t["effects"][name] = table
+    return t
+
+
+def test_binning_choice_keeps_the_binned_frame_small_and_prefers_exact_divisors():
+    # full IMX411: 10640 x 14192 -> 8 divides both sides, 1330 x 1774 = 2.36 Mpx <= 4 Mpx
+    assert choose_binning((10640, 14192)) == 8
+    k = choose_binning((1001, 1003), target_px=10_000)
+    assert (1001 // k) * (1003 // k) <= 10_000 * 1.0 + 0 or k == 11
+    assert choose_binning((512, 512), target_px=4_000_000) == 1
+
+
+def test_band_reader_matches_astropy_on_a_scaled_uint16_file(tmp_path):
+    rng = np.random.default_rng(1)
+    img = rng.integers(0, 65535, size=(37, 53)).astype(np.uint16)
+    path = tmp_path / "u16.fits"
+    fits.PrimaryHDU(img).writeto(path)  # stored as int16 with BZERO = 32768
+    rd = BandReader(path, (37, 53), 1)
+    try:
+        got = np.concatenate([rd.rows(0, 10), rd.rows(10, 37)])
+    finally:
+        rd.close()
+    assert got.dtype == np.float32
+    np.testing.assert_array_equal(got, img.astype(np.float32))
+
+
+def test_wrong_size_is_one_line_naming_the_file(tmp_path):
+    path = tmp_path / "small.fits"
+    fits.PrimaryHDU(np.zeros((10, 12), np.uint16)).writeto(path)
+    with pytest.raises(Exception) as err:
+        BandReader(path, (20, 12), 1)
+    assert "small.fits" in str(err.value) and "12x10" in str(err.value)
+
+
+@pytest.fixture(scope="module")
+def self_frame(tmp_path_factory):
+    """A 1024 x 1024 dark-ish IMX411 window of the default scene with strong row noise, rendered by the scene
+    itself (the model explains it)."""
+    d = tmp_path_factory.mktemp("ff_self")
+    table = _default_window(1024, row_noise={"sigma_e": 4.0})
+    table["sky"]["background_mag_arcsec2"] = 22.0
+    scene = write_scene(d / "scene.toml", table)
+    render(load_scene(str(scene)), d / "frame.fits", seed=3, progress=False)
+    return load_scene(str(scene)), d / "frame.fits"
+
+
+def test_large_path_compare_agrees_with_full_resolution_and_its_binned_chi2_is_one(self_frame):
+    scene, frame = self_frame
+    assert not is_large(scene) and is_large(scene, 0)
+    full = run_compare(scene, frame)["summary"]
+    out = run_compare_large(scene, frame, k=8, sample_bands=4, sample_rows=64)
+    large = out["summary"]
+    # the same pixels compared at full resolution (spikes found by a cheaper local test: a few differ)
+    assert abs(large["n_compared"] - full["n_compared"]) < 1e-3 * full["n_compared"]
+    assert abs(large["chi2_per_dof"] - full["chi2_per_dof"]) < 3e-3
+    assert abs(large["measured"]["mean"] - full["measured"]["mean"]) < 1e-3 * full["measured"]["mean"]
+    assert abs(large["model_mean"]["mean"] - full["model_mean"]["mean"]) < 1e-4 * full["model_mean"]["mean"]
+    # the binned frame's variance holds the row-noise covariance k^2 (k - 1) c of each super-pixel: with 4 e-
+    # of row noise on a faint sky it is most of the variance. chi2/dof of the binned frame is then ~1 within
+    # the standard error of a sum dominated by its 128 binned rows' offsets (share f of the variance):
+    # var(chi2/n) = 2 (1 - f)^2 / n + 2 f^2 / rows + 4 f (1 - f) / n
+    res_b = out["_residuals"]
+    b = large["binned"]
+    n = b["n_compared"]
+    assert n > 0.95 * 128 * 128 and res_b.sensor.binning == 8 and res_b.pixel_sum == 64
+    cov = 8 * 8 * 7 * res_b.row_var_adu2 / 8 ** 3  # k^2 (k - 1) c, with row_var_adu2 = k^3 c
+    f = res_b.row_var_adu2 / float(np.median(res_b.var_adu2))
+    sd = np.sqrt(2 * (1 - f) ** 2 / n + 2 * f ** 2 / 128 + 4 * f * (1 - f) / n)
+    assert abs(b["chi2_per_dof"] - 1) < 4 * sd, (b, f, sd)
+    # without that covariance the binned chi2/dof would be far off
+    without = b["chi2_per_dof"] * float(np.median(res_b.var_adu2 / (res_b.var_adu2 - cov)))
+    assert without - 1 > 8 * sd, (without, sd)
+    # the sampling block says what was computed how
+    s = large["sampling"]
+    assert s["binning_k"] == 8 and s["binned_shape"] == [128, 128]
+    assert len(s["bands"]) == 4 and s["sample_rows"] == 4 * 64
+    assert {"chi2_per_dof", "profiles"} <= set(s["full_resolution"])
+    for key in ("chi2_per_dof", "measured", "model", "model_mean", "regions", "outliers", "misfit"):
+        assert key in large
+    # a frame the model makes: the outlier counts of the sample agree with one realisation of the model
+    assert all(v["deviance"] < 12 for v in large["outliers"].values())
+
+
+def test_large_path_is_taken_above_the_threshold(self_frame):
+    scene, frame = self_frame
+    out = run_compare(scene, frame, large_px=1000)
+    assert "sampling" in out["summary"]
+    assert "sampling" not in run_compare(scene, frame)["summary"]
+
+
+@pytest.mark.slow
+def test_large_path_diagnosis_agrees_with_the_full_resolution_one_on_2048(tmp_path):
+    """The default scene's 2048 x 2048 bottom-right corner, measured with amplifier glow and hot pixels the
+    model lacks: both diagnoses name both, with the same parameters within their statistical errors."""
+    meas = write_scene(tmp_path / "meas.toml", _default_window(2048, corner=True))
+    model = write_scene(tmp_path / "model.toml", _default_window(2048, corner=True, drop=("amp_glow", "hot_pixels")))
+    frame = tmp_path / "meas.fits"
+    render(load_scene(str(meas)), frame, seed=11, progress=False)
+    sc = load_scene(str(model))
+    full = run_diagnose(sc, frame)
+    large = run_diagnose_large(sc, frame, k=4, sample_bands=8, sample_rows=64)
+    names_full = set(full["significant"])
+    names_large = set(large["significant"])
+    assert {"amp_glow", "hot_pixels"} <= names_full
+    assert names_large == names_full, (names_full, names_large)
+    cf = {c["effect"]: c for c in full["candidates"]}
+    cl = {c["effect"]: c for c in large["candidates"]}
+    assert cl["amp_glow"]["scale"] == "binned" and cl["hot_pixels"]["scale"] == "sample"
+    # glow: the same corner; amplitude and e-folding length within 10 % (the full-resolution fit's own
+    # statistical error is ~1-3 % here: ~1e4 pixels of the glow at 5-10 sigma each)
+    pf, pl = cf["amp_glow"]["params"], cl["amp_glow"]["params"]
+    assert pf["edge"] == pl["edge"] == "bottom-right"
+    assert pl["amplitude_e_per_s"] == pytest.approx(pf["amplitude_e_per_s"], rel=0.1)
+    assert pl["scale_px"] == pytest.approx(pf["scale_px"], rel=0.1)
+    # hot pixels: the count scales from the sample (8 x 64 of 2048 rows = 1/4): a Poisson count of N
+    # sampled spikes has a relative error 1/sqrt(N); allow 4 sigma of the sample's count
+    hf, hl = cf["hot_pixels"]["params"]["count"], cl["hot_pixels"]["params"]["count"]
+    n_sampled = max(large["baseline"]["outliers"]["single_pos"]["data"], 1)
+    assert abs(hl - hf) < 4 * hf / np.sqrt(n_sampled) + 0.05 * hf, (hf, hl, n_sampled)
