@@ -154,8 +154,17 @@ def test_large_path_diagnosis_agrees_with_the_full_resolution_one_on_2048(tmp_pa
     assert pf["edge"] == pl["edge"] == "bottom-right"
     assert pl["amplitude_e_per_s"] == pytest.approx(pf["amplitude_e_per_s"], rel=0.1)
     assert pl["scale_px"] == pytest.approx(pf["scale_px"], rel=0.1)
-    # hot pixels: the count scales from the sample (8 x 64 of 2048 rows = 1/4): a Poisson count of N
-    # sampled spikes has a relative error 1/sqrt(N); allow 4 sigma of the sample's count
-    hf, hl = cf["hot_pixels"]["params"]["count"], cl["hot_pixels"]["params"]["count"]
-    n_sampled = max(large["baseline"]["outliers"]["single_pos"]["data"], 1)
-    assert abs(hl - hf) < 4 * hf / np.sqrt(n_sampled) + 0.05 * hf, (hf, hl, n_sampled)
+    # a smooth fit the pixels deny (its shot noise) is not named: checked on the full-resolution sample
+    for c in large["candidates"]:
+        if c["scale"] == "binned" and c.get("sample_delta") is not None and c["sample_delta"] > 10:
+            assert not c["significant"]
+    # hot pixels: what the data determine is the rate of spikes beyond the model's (the extrapolation to
+    # every hot pixel of a heavy-tailed law from a few dozen amplitudes is not: count and scale_s are
+    # degenerate). The sample's excess, scaled by its fraction of the rows, agrees with the whole frame's
+    # within 4 Poisson sigma of the sample's counts
+    of, ol = full["baseline"]["outliers"]["single_pos"], large["baseline"]["outliers"]["single_pos"]
+    frac = large["sampling"]["sample_fraction"]
+    assert frac == pytest.approx(8 * 64 / 2048)
+    rate_full = of["data"] - of["model"]
+    rate_large = (ol["data"] - ol["model"]) / frac
+    assert abs(rate_large - rate_full) < 4 * np.sqrt(ol["data"] + ol["model"] + 1) / frac, (of, ol)

@@ -660,6 +660,49 @@ class _ModelView:
         return self.setup.detector.sensor
 
 
+#: a smooth candidate fitted on the binned frame must not worsen the full-resolution band sample by more than
+#: this (delta -2 ln L of its mean change and shot noise there, :func:`sample_score`)
+SAMPLE_WORSE = 10.0
+
+
+def upsample_to_sample(a, res_b: Residuals, res_s: Residuals, per_pixel: float) -> np.ndarray | float:
+    """A binned-frame map (or scalar) at the band sample's pixels, bilinear in the super-pixel centres, divided
+    by ``per_pixel`` (``k^2`` for a sum over super-pixels: the value of one output pixel)."""
+    if a is None:
+        return None
+    if np.ndim(a) == 0 or np.size(a) == 1:
+        return float(np.asarray(a).ravel()[0]) / per_pixel
+    a = np.broadcast_to(np.asarray(a, np.float32), res_b.data_adu.shape)
+    step = float(res_b.sensor.binning)
+    fy = (res_s.ys - res_b.ys[0]) / step
+    fx = (res_s.xs - res_b.xs[0]) / step
+    yy, xx = np.meshgrid(fy.astype(np.float32), fx.astype(np.float32), indexing="ij")
+    out = ndimage.map_coordinates(a, [yy, xx], order=1, mode="nearest", prefilter=False)
+    return (out / np.float32(per_pixel)).astype(np.float32)
+
+
+def sample_score(fit, res_b: Residuals, res_s: Residuals) -> float | None:
+    """delta(-2 ln L) on the full-resolution band sample of a candidate fitted on the binned frame: its mean
+    change and added variance (the shot noise of a change of charge) at the sample's pixels
+    (:func:`detector.signatures.pixel_score`, levels refitted). The binned frame holds ``k^2`` times less
+    information on the variance than the pixels do: a smooth fit whose implied shot noise the pixels deny
+    (a negative charge, a change of the noise the data do not show) is told here, as the full-resolution
+    diagnosis tells it."""
+    from dataclasses import replace
+
+    from detector.signatures import pixel_score
+
+    if fit.delta_adu is None and fit.extra_var_adu2 is None:
+        return None
+    sb, ss = res_b.sensor, res_s.sensor
+    ratio = (sb.binning / ss.binning) ** 2
+    mean_norm = ratio if sb.binning_mode == "sum" else 1.0
+    var_norm = ratio if sb.binning_mode == "sum" else 1.0 / ratio
+    moved = replace(fit, delta_adu=upsample_to_sample(fit.delta_adu, res_b, res_s, mean_norm),
+                    extra_var_adu2=upsample_to_sample(fit.extra_var_adu2, res_b, res_s, var_norm))
+    return pixel_score(moved, res_s)
+
+
 def _scale_of(name: str, cls) -> str:
     sig = cls.signature
     return "binned" if name in SMOOTH_EFFECTS or getattr(sig, "scale", "") == "smooth" else "sample"
@@ -676,8 +719,15 @@ def run_diagnose_large(scene, measured: str | Path, workers: int | None = None, 
     smooth = {n for n, c in reg.items() if _scale_of(n, c) == "binned"}
     cb, pb = candidates(res_b, present | (set(reg) - smooth), progress=progress, truth=None)
     cs, ps = candidates(res_s, present | smooth, progress=progress, truth=cmp["_truth_sample"])
+    sample_deltas = {}
     for c in cb:
         c.fit.note = (c.fit.note + " " if c.fit.note else "") + f"[binned {cmp['sampling']['binning_k']}x]"
+        if c.contender:
+            d = sample_score(c.fit, res_b, res_s)
+            sample_deltas[id(c)] = d
+            if d is not None and d > SAMPLE_WORSE:
+                c.implausible = (f"worsens the full-resolution band sample (delta -2 ln L {d:.4g}): the pixels deny "
+                                 "its mean change or the shot noise it implies")
     cands = rank(cb + cs)
     scale = {id(c): "binned" for c in cb} | {id(c): "sample" for c in cs}
     if progress is not None:
@@ -696,6 +746,8 @@ def run_diagnose_large(scene, measured: str | Path, workers: int | None = None, 
     for c in cands:
         j = c.to_json()
         j["scale"] = scale[id(c)]
+        if id(c) in sample_deltas:
+            j["sample_delta"] = sample_deltas[id(c)]
         cjson.append(j)
     out = {"baseline": cmp["summary"], "candidates": cjson, "problems": pb + ps, "verdict": verdict(cands, morph),
            "residual_morphology": morph, "seconds": time.perf_counter() - t0, "_compare": cmp,
