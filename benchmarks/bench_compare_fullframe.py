@@ -46,7 +46,7 @@ def step(args: list[str]) -> dict:
     """Run ``newtsim ARGS`` in a wrapper: wall time [s], peak RSS [bytes] and return code of the step alone."""
     env = {**os.environ, "PYTHONPATH": str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", "")}
     cmd = [sys.executable, "-c", _WRAPPER, sys.executable, "-m", "scenes.app.cli", *args]
-    p = subprocess.run(cmd, capture_output=True, text=True, env=env, cwd=ROOT)
+    p = subprocess.run(cmd, check=False, capture_output=True, text=True, env=env, cwd=ROOT)
     dt, rss, rc = p.stdout.split()[-3:]
     if int(rc) != 0:
         raise SystemExit(f"newtsim {' '.join(args)} failed ({rc}): {p.stderr[-2000:]}")

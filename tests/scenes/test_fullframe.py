@@ -7,13 +7,13 @@ must give (binned chi2/dof ~ 1 within its standard error sqrt(2/n))."""
 from __future__ import annotations
 
 import copy
-import tomllib
 from pathlib import Path
 
 import numpy as np
 import pytest
+import tomllib
 from astropy.io import fits
-from helpers import write_scene
+from helpers import star_field_toml, write_scene
 
 import scenes
 from scenes.app.compare import run_compare, run_diagnose
@@ -168,3 +168,48 @@ def test_large_path_diagnosis_agrees_with_the_full_resolution_one_on_2048(tmp_pa
     rate_full = of["data"] - of["model"]
     rate_large = (ol["data"] - ol["model"]) / frac
     assert abs(rate_large - rate_full) < 4 * np.sqrt(ol["data"] + ol["model"] + 1) / frac, (of, ol)
+
+
+def test_star_cut_outs_measure_the_stars_as_the_full_resolution_comparison(tmp_path):
+    """Every catalogue star of the frame is measured in its cut-out (not only those of the band sample): the
+    aperture photometry of the large path is the full-resolution one, star by star."""
+    scene = tmp_path / "stars.toml"
+    scene.write_text(star_field_toml(1024, "[effects.psf_blur]\nsigma_px = 0.8\n").replace("limit = 15.0", "limit = 17.0"))
+    frame = tmp_path / "stars.fits"
+    render(load_scene(str(scene)), frame, seed=4, progress=False)
+    model = tmp_path / "model.toml"
+    model.write_text(star_field_toml(1024).replace("limit = 15.0", "limit = 17.0"))
+    sc = load_scene(str(model))
+    full = run_compare(sc, frame)["stars"]
+    large = run_compare_large(sc, frame, k=4, sample_bands=3, sample_rows=32)
+    st = large["stars"]
+    assert large["summary"]["sampling"]["cut_outs"]["stars"] >= st["n"] >= 8
+    # the same stars (the cut-outs keep 6 px from the frame's edges, the full comparison 4 px)
+    assert abs(st["n"] - full["n"]) <= max(1, 0.05 * full["n"])
+    common = {(round(x, 3), round(y, 3)): i for i, (x, y) in enumerate(zip(full["x"], full["y"]))}
+    pairs = [(common[(round(x, 3), round(y, 3))], j) for j, (x, y) in enumerate(zip(st["x"], st["y"]))
+             if (round(x, 3), round(y, 3)) in common]
+    assert len(pairs) >= st["n"] - 1
+    i, j = np.array(pairs).T
+    np.testing.assert_allclose(st["flux_ratio"][j], full["flux_ratio"][i], rtol=1e-4)
+    np.testing.assert_allclose(st["size_data_px"][j], full["size_data_px"][i], rtol=1e-4)
+    np.testing.assert_allclose(st["r_field"][j], full["r_field"][i], rtol=1e-6)
+    # the blur the model lacks shows: the measured stars are wider than the model's
+    assert st["median_size_ratio"] > 1.05
+
+
+def test_memory_exhausted_is_one_line_naming_the_file(self_frame, monkeypatch):
+    from detector.errors import DetectorError
+    from scenes.app.compare import fullframe
+
+    scene, frame = self_frame
+
+    def boom(*a, **k):
+        raise MemoryError("Unable to allocate 1.12 GiB for an array with shape (10640, 14192)")
+
+    monkeypatch.setattr(fullframe, "run_pass", boom)
+    for call in (lambda: run_compare(scene, frame, large_px=0), lambda: run_diagnose(scene, frame, large_px=0)):
+        with pytest.raises(DetectorError) as err:
+            call()
+        msg = str(err.value)
+        assert "\n" not in msg and "out of memory" in msg and str(frame) in msg

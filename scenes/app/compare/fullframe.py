@@ -54,11 +54,18 @@ from scipy import stats as sstats
 from detector import registry
 from detector.errors import DetectorError
 from detector.morphology import describe
-from detector.signatures import LINE_SIGMA, LINE_WINDOW, MAX_LINE_FRACTION, SPIKE_SIGMA, GROW_SIGMA, Residuals, \
-    SpikeStats, spike_stats
+from detector.signatures import (
+    GROW_SIGMA,
+    LINE_SIGMA,
+    LINE_WINDOW,
+    MAX_LINE_FRACTION,
+    SPIKE_SIGMA,
+    Residuals,
+    SpikeStats,
+    spike_stats,
+)
 from detector.stats import mad_std
 from scenes.app.render import Setup, prepare
-from scenes.image.signal import SourceSignal
 
 from .candidates import candidates, rank, verdict
 from .model import REALISATION_SEED, _wcs_offset, background_signal, row_offset_var_adu2, saturation_adu
@@ -77,6 +84,9 @@ SMOOTH_EFFECTS = frozenset({"amp_glow", "bias_gradient", "gain_regions", "sky_gr
                             "ghost"})
 #: a super-pixel is compared when at least this fraction of its pixels is good
 MIN_GOOD_FRACTION = 0.5
+#: half side of the cut-outs around catalogue stars [output pixels], and the most stars cut out (brightest)
+STAMP_HALF = 6
+MAX_STAMPS = 2000
 #: bins of the full-resolution z histogram: edges from -8 to 8 in steps of 0.2
 Z_EDGES = np.linspace(-8, 8, 81)
 
@@ -195,6 +205,8 @@ class Pass:
     z_sub: list = field(default_factory=list)
     data_sub: list = field(default_factory=list)
     model_sub: list = field(default_factory=list)
+    stamps: dict = field(default_factory=dict)
+    stars: object = None
 
 
 def _moments_acc() -> dict:
@@ -234,6 +246,80 @@ def spikes_fast(z: np.ndarray, usable: np.ndarray) -> np.ndarray:
     return sp
 
 
+def star_stamps_wanted(truth, shape: tuple[int, int], half: int = STAMP_HALF, max_stars: int = MAX_STAMPS):
+    """The catalogue stars of the TRUTH table whose ``(2 half + 1)^2`` cut-out lies inside the frame (the
+    brightest ``max_stars``): (table, rounded x, rounded y), or None without stars."""
+    if truth is None or len(truth) == 0 or "kind" not in truth.dtype.names:
+        return None
+    kind = np.char.strip(np.asarray(truth["kind"]).astype(str))
+    st = truth[kind == "star"]
+    h, w = shape
+    st = st[(st["x"] > half) & (st["x"] < w - 1 - half) & (st["y"] > half) & (st["y"] < h - 1 - half)]
+    if not len(st):
+        return None
+    st = st[np.argsort(-st["flux_e"])][:max_stars]
+    return st, np.round(st["x"]).astype(int), np.round(st["y"]).astype(int)
+
+
+def stamp_mosaic(stars, stamps: dict, half: int, setup: Setup) -> tuple[Residuals, np.ndarray, np.ndarray] | None:
+    """The stars' cut-outs (data, model mean, variance, background) side by side in one small frame, as a
+    :class:`Residuals`, and the TRUTH rows moved to it (their offsets from the pixel centre kept); with the
+    original (x, y)."""
+    if stars is None:
+        return None
+    st, xi, yi = stars
+    side = 2 * half + 1
+    cell = side + 2
+    n = len(st)
+    ncol = int(np.ceil(np.sqrt(n)))
+    nrow = int(np.ceil(n / ncol))
+    keys = ("data", "mean", "var", "bg")
+    mos = {key: np.zeros((nrow * cell, ncol * cell), np.float32) for key in keys}
+    mos["var"][:] = 1.0
+    moved = st.copy()
+    ok = np.zeros(n, bool)
+    for j in range(n):
+        part = stamps.get(j)
+        if part is None or part["rows"] < side:
+            continue
+        r, c = divmod(j, ncol)
+        y0, x0 = r * cell + 1, c * cell + 1
+        for key in keys:
+            mos[key][y0:y0 + side, x0:x0 + side] = part[key]
+        moved["x"][j] = x0 + half + (st["x"][j] - xi[j])
+        moved["y"][j] = y0 + half + (st["y"][j] - yi[j])
+        ok[j] = True
+    s = setup.detector.sensor
+    b = s.binning
+    h, w = mos["data"].shape
+    res = Residuals(mos["data"], mos["mean"], mos["var"], np.ones((h, w), bool), mos["mean"] - mos["bg"],
+                    np.zeros((h, w), np.float32), s.roi_y0 + b * np.arange(h) + (b - 1) / 2.0,
+                    s.roi_x0 + b * np.arange(w) + (b - 1) / 2.0, s, setup.exptime_s, SpikeStats(0, 0, 0, 0, 0),
+                    SpikeStats(0, 0, 0, 0, 0), background_adu=mos["bg"])
+    return res, moved[ok], st[ok]
+
+
+def stamp_photometry(mosaic, shape: tuple[int, int]) -> dict:
+    """:func:`scenes.app.compare.statistics.star_photometry` of every cut-out star, its positions and field
+    radius those of the frame (not of the mosaic)."""
+    if mosaic is None:
+        return {"n": 0}
+    res, moved, orig = mosaic
+    out = star_photometry(res, moved, max_stars=len(moved))
+    if out.get("n", 0) == 0:
+        return out
+    # the rows star_photometry kept, in order: match them back by their mosaic position
+    key = {(round(float(a), 6), round(float(b), 6)): i for i, (a, b) in enumerate(zip(moved["x"], moved["y"]))}
+    idx = np.array([key[(round(float(a), 6), round(float(b), 6))] for a, b in zip(out["x"], out["y"])])
+    h, w = shape
+    out["x"], out["y"] = orig["x"][idx], orig["y"][idx]
+    out["r_field"] = np.hypot(out["x"] - (w - 1) / 2, out["y"] - (h - 1) / 2) / np.hypot(w / 2, h / 2)
+    if out["n"] >= 3:
+        ok = np.isfinite(out["flux_ratio"])
+        out["flux_ratio_vs_radius_slope"] = float(np.polyfit(out["r_field"][ok], out["flux_ratio"][ok], 1)[0])
+    return out
+
+
 def _sample_tiles(n_tiles: int, n: int) -> list[int]:
     """Indices of ``n`` tiles spread evenly over ``n_tiles`` (the centre of each of n equal strata)."""
     n = min(n, n_tiles)
@@ -268,6 +354,8 @@ def run_pass(setup: Setup, reader: BandReader, k: int, sample_bands: int = SAMPL
     real_tiles = det.tiles(t, REALISATION_SEED, real_state)
     sampled = set(_sample_tiles(len(tiles), sample_bands))
     y0 = s.roi_y0
+    stars = star_stamps_wanted(setup.truth, (h, w))
+    half = STAMP_HALF
 
     P = Pass(k, (h, w), np.zeros((hb, w), np.float32), np.zeros((hb, w), np.float32), np.zeros((hb, w), np.uint16),
              np.zeros((hb, wb)), np.zeros((hb, wb)), np.zeros((hb, wb)), np.zeros((hb, wb)), np.zeros((hb, wb)),
@@ -316,6 +404,16 @@ def run_pass(setup: Setup, reader: BandReader, k: int, sample_bands: int = SAMPL
 
             out.update(mean_b=binned(mean), var_b=binned(var), photo_b=binned(photo), dark_b=binned(dark),
                        bg_b=binned(bg), flagged_b=binned(flag | ~finite).astype(np.int32))
+        if stars is not None:  # the parts of the stars' cut-outs in this band
+            _, xi, yi = stars
+            hit = np.flatnonzero((yi + half >= r0) & (yi - half < r1))
+            cut = {}
+            for j in hit:
+                a, e = max(yi[j] - half, r0), min(yi[j] + half + 1, r1)
+                cols = slice(xi[j] - half, xi[j] + half + 1)
+                cut[int(j)] = (a - (yi[j] - half), {"data": data[a - r0:e - r0, cols], "mean": mean[a - r0:e - r0, cols],
+                                                    "var": var[a - r0:e - r0, cols], "bg": bg[a - r0:e - r0, cols]})
+            out["stamps"] = {j: (off, {key: v.copy() for key, v in d.items()}) for j, (off, d) in cut.items()}
         out["row_r"] = r.sum(axis=1, dtype=np.float64)
         out["row_v"] = vg.sum(axis=1, dtype=np.float64)
         out["row_n"] = good.sum(axis=1)
@@ -372,6 +470,13 @@ def run_pass(setup: Setup, reader: BandReader, k: int, sample_bands: int = SAMPL
         P.z_sub.append(o["z_sub"])
         if "sample" in o:
             P.sample.append(o["sample"])
+        for j, (off, d) in o.get("stamps", {}).items():
+            st_ = P.stamps.setdefault(j, {"rows": 0, **{key: np.zeros((2 * half + 1, 2 * half + 1), np.float32)
+                                                       for key in ("data", "mean", "var", "bg")}})
+            n_ = d["data"].shape[0]
+            for key, v in d.items():
+                st_[key][off:off + n_] = v
+            st_["rows"] += n_
 
     workers = max(1, det.workers)
     with ThreadPoolExecutor(max_workers=workers) as pool, _bar(progress, len(tiles), "model and measurement") as tick:
@@ -388,6 +493,7 @@ def run_pass(setup: Setup, reader: BandReader, k: int, sample_bands: int = SAMPL
             if nxt is not None:
                 pending.append(pool.submit(band, nxt))
     P.sample.sort(key=lambda d: d["rows"][0])
+    P.stars = stars
     return P
 
 
@@ -608,7 +714,7 @@ def run_compare_large(scene, measured: str | Path, workers: int | None = None, p
                   "robust_std": mad_std(rsub, max_n=None), "min": float(real.min()), "max": float(real.max())},
         "model_mean": _global(st["model"], model_sub),
         "profiles": prof, "distribution": dist, "outliers": counts,
-        "stars": star_photometry(res_s, truth_s), "streaks": [],
+        "stars": stamp_photometry(stamp_mosaic(P.stars, P.stamps, STAMP_HALF, setup), shape), "streaks": [],
         "power_peaks": spectrum_peaks(zmap(res_s)),
     })
     result["misfit"] = misfit(chi2_full * col_n, col_n, counts, {"rows": rows_excess, "columns": cols_excess})
@@ -624,7 +730,9 @@ def run_compare_large(scene, measured: str | Path, workers: int | None = None, p
         "full_resolution": ["chi2_per_dof", "n_compared", "profiles", "distribution.z_hist", "distribution.skew",
                             "distribution.kurtosis", "measured", "model_mean"],
         "binned": ["regions", "worst_regions", "power", "z_map", "chi2_per_dof_levels", "levels"],
-        "sample": ["outliers", "model", "stars", "power_peaks"],
+        "sample": ["outliers", "model", "power_peaks"],
+        "cut_outs": {"stars": len(P.stars[0]) if P.stars is not None else 0, "half_side_px": STAMP_HALF,
+                     "quantities": ["stars"]},
         "not_computed": ["streaks"],
     }
     result["sampling"] = sampling
