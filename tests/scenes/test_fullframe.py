@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 import tomllib
 from astropy.io import fits
-from helpers import star_field_toml, write_scene
+from helpers import STREAK_TOML, star_field_toml, write_scene
 
 import scenes
 from scenes.app.compare import run_compare, run_diagnose
@@ -213,3 +213,21 @@ def test_memory_exhausted_is_one_line_naming_the_file(self_frame, monkeypatch):
             call()
         msg = str(err.value)
         assert "\n" not in msg and "out of memory" in msg and str(frame) in msg
+
+
+def test_streak_profiles_summed_band_by_band_are_the_full_resolution_ones(tmp_path):
+    """A debris streak's flux and offset along its track, summed over the bands it crosses, equal those of the
+    whole frame (sums add up)."""
+    scene = tmp_path / "streak.toml"
+    scene.write_text(star_field_toml(512, STREAK_TOML).replace("stars = true", "stars = false"))
+    frame = tmp_path / "streak.fits"
+    render(load_scene(str(scene)), frame, seed=2, progress=False)
+    sc = load_scene(str(scene))
+    full = run_compare(sc, frame)["streaks"]
+    large = run_compare_large(sc, frame, k=4, sample_bands=2, sample_rows=32)["streaks"]
+    assert len(full) == len(large) == 1
+    f, g = full[0], large[0]
+    assert g["length_px"] == pytest.approx(f["length_px"])
+    assert g["total_flux_ratio"] == pytest.approx(f["total_flux_ratio"], rel=1e-5)
+    np.testing.assert_allclose(g["flux_ratio"], f["flux_ratio"], rtol=1e-4)
+    np.testing.assert_allclose(g["offset_px"], f["offset_px"], rtol=1e-3, atol=1e-4)

@@ -69,7 +69,7 @@ from scenes.app.render import Setup, prepare
 
 from .candidates import candidates, rank, verdict
 from .model import REALISATION_SEED, _wcs_offset, background_signal, row_offset_var_adu2, saturation_adu
-from .statistics import compare, misfit, outlier_counts, spectrum_peaks, star_photometry, summary, zmap
+from .statistics import compare, misfit, outlier_counts, spectrum_peaks, star_photometry, summary, track_band, zmap
 
 #: output pixels above which compare / diagnose take the banded, bounded-memory path
 LARGE_FRAME_PX = 16_000_000
@@ -207,6 +207,8 @@ class Pass:
     model_sub: list = field(default_factory=list)
     stamps: dict = field(default_factory=dict)
     stars: object = None
+    streak_objects: list = field(default_factory=list)
+    streak_sums: list = field(default_factory=list)
 
 
 def _moments_acc() -> dict:
@@ -320,6 +322,62 @@ def stamp_photometry(mosaic, shape: tuple[int, int]) -> dict:
     return out
 
 
+#: segments of a streak's track and half width of its band [output pixels] (as statistics.streak_profiles)
+STREAK_SEGMENTS, STREAK_HALF_WIDTH = 10, 6.0
+
+
+def streak_objects(truth) -> list:
+    """The TRUTH rows of the objects (streaks) with a track, as :func:`statistics.streak_profiles` takes them."""
+    if truth is None or len(truth) == 0 or "x0" not in truth.dtype.names:
+        return []
+    kind = np.char.strip(np.asarray(truth["kind"]).astype(str))
+    return list(truth[kind != "star"])
+
+
+def streak_band_sums(shape, objects: list, r0: int, r1: int, data, mean, bg) -> list:
+    """Per object, the sums :func:`statistics.streak_profiles` takes over the track's band, restricted to the
+    output rows ``r0:r1`` (sums over bands add up to the whole track's): per segment, data and model flux over
+    the background and their first moments across the track."""
+    out = []
+    for o in objects:
+        band = track_band(shape, o, STREAK_HALF_WIDTH)
+        if band is None or band["length"] < 2:
+            out.append(None)
+            continue
+        (ys, xs) = band["box"]
+        a, e = max(ys.start, r0), min(ys.stop, r1)
+        if a >= e:
+            out.append(None)
+            continue
+        sub = slice(a - ys.start, e - ys.start)
+        along, across, length = band["along"][sub], band["across"][sub], band["length"]
+        sel = (np.abs(across) <= STREAK_HALF_WIDTH) & (along >= 0) & (along <= length)
+        seg = np.minimum((along / length * STREAK_SEGMENTS).astype(int), STREAK_SEGMENTS - 1)
+        rows = slice(a - r0, e - r0)
+        d = (data[rows, xs] - bg[rows, xs]).astype(np.float64)
+        m = (mean[rows, xs] - bg[rows, xs]).astype(np.float64)
+        n = STREAK_SEGMENTS
+        out.append(np.stack([np.bincount(seg[sel], d[sel], n), np.bincount(seg[sel], m[sel], n),
+                             np.bincount(seg[sel], (d * across)[sel], n), np.bincount(seg[sel], (m * across)[sel], n)]))
+    return out
+
+
+def streak_results(objects: list, sums: list, shape) -> list:
+    """:func:`statistics.streak_profiles`' entries from the band sums."""
+    out = []
+    for o, acc in zip(objects, sums):
+        band = track_band(shape, o, STREAK_HALF_WIDTH)
+        if acc is None or band is None or band["length"] < 2:
+            continue
+        fd, fm, cd, cm = acc
+        with np.errstate(invalid="ignore", divide="ignore"):
+            name = o["name"] if "name" in o.dtype.names else b""
+            out.append({"name": (name.decode() if isinstance(name, bytes) else str(name)).strip(),
+                        "length_px": band["length"], "flux_ratio": fd / fm, "offset_px": cd / fd - cm / fm,
+                        "total_flux_ratio": float(fd.sum() / fm.sum()) if fm.sum() > 0 else float("nan")})
+    return out
+
+
 def _sample_tiles(n_tiles: int, n: int) -> list[int]:
     """Indices of ``n`` tiles spread evenly over ``n_tiles`` (the centre of each of n equal strata)."""
     n = min(n, n_tiles)
@@ -356,11 +414,13 @@ def run_pass(setup: Setup, reader: BandReader, k: int, sample_bands: int = SAMPL
     y0 = s.roi_y0
     stars = star_stamps_wanted(setup.truth, (h, w))
     half = STAMP_HALF
+    objects = streak_objects(setup.truth)
 
     P = Pass(k, (h, w), np.zeros((hb, w), np.float32), np.zeros((hb, w), np.float32), np.zeros((hb, w), np.uint16),
              np.zeros((hb, wb)), np.zeros((hb, wb)), np.zeros((hb, wb)), np.zeros((hb, wb)), np.zeros((hb, wb)),
              np.zeros((hb, wb), np.int32), np.zeros(h), np.zeros(h), np.zeros(h, np.int64), np.zeros(w),
              np.zeros(len(Z_EDGES) - 1, np.int64))
+    P.streak_objects, P.streak_sums = objects, [None] * len(objects)
     P.stats = {"data": _moments_acc(), "model": _moments_acc(), "saturated": 0, "finite": 0, "chi2": 0.0,
                "n_fit": 0}
 
@@ -414,6 +474,8 @@ def run_pass(setup: Setup, reader: BandReader, k: int, sample_bands: int = SAMPL
                 cut[int(j)] = (a - (yi[j] - half), {"data": data[a - r0:e - r0, cols], "mean": mean[a - r0:e - r0, cols],
                                                     "var": var[a - r0:e - r0, cols], "bg": bg[a - r0:e - r0, cols]})
             out["stamps"] = {j: (off, {key: v.copy() for key, v in d.items()}) for j, (off, d) in cut.items()}
+        if objects:
+            out["streaks"] = streak_band_sums((h, w), objects, r0, r1, data, mean, bg)
         out["row_r"] = r.sum(axis=1, dtype=np.float64)
         out["row_v"] = vg.sum(axis=1, dtype=np.float64)
         out["row_n"] = good.sum(axis=1)
@@ -470,6 +532,9 @@ def run_pass(setup: Setup, reader: BandReader, k: int, sample_bands: int = SAMPL
         P.z_sub.append(o["z_sub"])
         if "sample" in o:
             P.sample.append(o["sample"])
+        for j, acc in enumerate(o.get("streaks", [])):
+            if acc is not None:
+                P.streak_sums[j] = acc if P.streak_sums[j] is None else P.streak_sums[j] + acc
         for j, (off, d) in o.get("stamps", {}).items():
             st_ = P.stamps.setdefault(j, {"rows": 0, **{key: np.zeros((2 * half + 1, 2 * half + 1), np.float32)
                                                        for key in ("data", "mean", "var", "bg")}})
@@ -714,7 +779,8 @@ def run_compare_large(scene, measured: str | Path, workers: int | None = None, p
                   "robust_std": mad_std(rsub, max_n=None), "min": float(real.min()), "max": float(real.max())},
         "model_mean": _global(st["model"], model_sub),
         "profiles": prof, "distribution": dist, "outliers": counts,
-        "stars": stamp_photometry(stamp_mosaic(P.stars, P.stamps, STAMP_HALF, setup), shape), "streaks": [],
+        "stars": stamp_photometry(stamp_mosaic(P.stars, P.stamps, STAMP_HALF, setup), shape),
+        "streaks": streak_results(P.streak_objects, P.streak_sums, shape),
         "power_peaks": spectrum_peaks(zmap(res_s)),
     })
     result["misfit"] = misfit(chi2_full * col_n, col_n, counts, {"rows": rows_excess, "columns": cols_excess})
@@ -732,8 +798,8 @@ def run_compare_large(scene, measured: str | Path, workers: int | None = None, p
         "binned": ["regions", "worst_regions", "power", "z_map", "chi2_per_dof_levels", "levels"],
         "sample": ["outliers", "model", "power_peaks"],
         "cut_outs": {"stars": len(P.stars[0]) if P.stars is not None else 0, "half_side_px": STAMP_HALF,
-                     "quantities": ["stars"]},
-        "not_computed": ["streaks"],
+                     "quantities": ["stars", "streaks (band by band along the track)"]},
+        "not_computed": ["light-curve candidates", "source-based candidates outside the band sample"],
     }
     result["sampling"] = sampling
     result["summary"] = summary(result)
