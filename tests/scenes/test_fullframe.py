@@ -231,3 +231,21 @@ def test_streak_profiles_summed_band_by_band_are_the_full_resolution_ones(tmp_pa
     assert g["total_flux_ratio"] == pytest.approx(f["total_flux_ratio"], rel=1e-5)
     np.testing.assert_allclose(g["flux_ratio"], f["flux_ratio"], rtol=1e-4)
     np.testing.assert_allclose(g["offset_px"], f["offset_px"], rtol=1e-3, atol=1e-4)
+
+
+def test_coupling_effects_see_their_neighbours_rows_band_by_band(tmp_path):
+    """With inter-pixel capacitance (a coupling effect with a halo of rows) the banded model is the whole-frame
+    model: every band's coupling sees the neighbouring bands' rows."""
+    from scenes.app.compare.model import build_model
+
+    scene = tmp_path / "ipc.toml"
+    scene.write_text(star_field_toml(512, "[effects.ipc]\nalpha = 0.03\n").replace("limit = 15.0", "limit = 18.0")
+                     .replace("fwhm_arcsec = 3.0", "fwhm_arcsec = 1.5"))
+    frame = tmp_path / "ipc.fits"
+    render(load_scene(str(scene)), frame, seed=2, progress=False)
+    sc = load_scene(str(scene))
+    whole = build_model(sc, realisation=False)
+    out = run_compare_large(sc, frame, k=4, sample_bands=2, sample_rows=32)
+    k = 4
+    binned = whole.mean_adu.astype(np.float64).reshape(128, k, 128, k).sum(axis=(1, 3))
+    np.testing.assert_allclose(out["_residuals"].model_adu, binned, rtol=2e-6)

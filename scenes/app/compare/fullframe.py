@@ -424,12 +424,39 @@ def run_pass(setup: Setup, reader: BandReader, k: int, sample_bands: int = SAMPL
     P.stats = {"data": _moments_acc(), "model": _moments_acc(), "saturated": 0, "finite": 0, "chi2": 0.0,
                "n_fit": 0}
 
+    coupling = bool(det._by_stage[Stage.COUPLING])
+    halo = det.coupling_halo if coupling else 0
+    if coupling and halo is None:
+        names = ", ".join(e.name for e in det._by_stage[Stage.COUPLING] if e.halo_rows is None)
+        raise DetectorError(f"{names} couples whole columns: the model of a frame this large cannot be built band by "
+                            "band", key="effects", file=setup.scene.source,
+                            expected=f"a [detector] width/height window of at most {LARGE_FRAME_PX} output pixels")
+
+    def moments(sig, tile):
+        """The tile's moments; coupling effects see ``halo`` rows of mean charge above and below it."""
+        if not coupling:
+            return det.moments_tile(sig, tile)
+        from detector.effects.base import Tile
+
+        mean, var, flag = det.moments_tile(sig, tile, _split=True)
+        top, bottom = s.roi_y0, s.roi_y0 + s.shape[0]
+
+        def rows(a, e):
+            if e <= a:
+                return None
+            return det.moments_tile(sig, Tile(s, -1, a, e, tile.x0, tile.x1, t, 0, state=state), _split=True)[0]
+
+        above = rows(max(top, tile.y0 - halo), tile.y0)
+        below = rows(tile.y1, min(bottom, tile.y1 + halo))
+        mean = det.couple(tile, mean, above, below, mean_only=True)
+        return det.moments_finish(tile, mean, var, flag)
+
     def band(i: int):
         tile = tiles[i]
         r0, r1 = (tile.y0 - y0) // b, (tile.y1 - y0) // b
-        mean, var, flag = det.moments_tile(signal, tile)
-        mean0 = det.moments_tile(0.0, tile)[0]
-        bg = det.moments_tile(bg_signal, tile)[0] if has_sources else mean
+        mean, var, flag = moments(signal, tile)
+        mean0 = moments(0.0, tile)[0]
+        bg = moments(bg_signal, tile)[0] if has_sources else mean
         photo = mean - mean0
         dark = np.maximum(mean0 - np.float32((s.bias_adu - 0.5) * adu_sum), 0) * gain
         del mean0
