@@ -23,11 +23,16 @@ memory-mapped, band by band) are reduced on the fly, in one pass over the frame,
     :class:`Residuals` whose sensor's read-out window has the sample's area, so that counts scale to the
     full sensor through :func:`detector.signatures.frame_fraction`, and whose ``ys`` are the true rows);
 (c) **full-resolution accumulations**: chi2 of every compared pixel, row and column profiles, the
-    histogram of z, the global statistics of measurement and model.
+    histogram of z, the global statistics of measurement and model;
+(d) **cut-outs around the sources**: a ``(2 STAMP_HALF + 1)^2`` stamp of data, model and background around
+    every catalogue star of the TRUTH table (the brightest :data:`MAX_STAMPS`), and the sums of
+    :func:`scenes.app.compare.statistics.streak_profiles` along every object's track, band by band.
 
 ``compare`` reports chi2/dof, profiles, the z histogram and global statistics at full resolution over the
 whole frame; regions, the residual map and the power spectrum from the binned frame; outlier counts and
-the stars in the band sample; and a ``sampling`` block saying what was computed how. ``diagnose`` fits
+the model realisation's statistics from the band sample; the stars' photometry from their cut-outs and the
+streaks' profiles from their tracks; and a ``sampling`` block saying what was computed how. Coupling
+effects (IPC, brighter-fatter) see their neighbour bands' rows; whole-column coupling (CTI) is refused. ``diagnose`` fits
 the smooth effects (:data:`SMOOTH_EFFECTS`: vignetting, glow, gradients, straylight, gain regions, bias
 structure) on the binned frame and the pixel-scale ones (PRNU, DSNU, defects, cosmic rays, row noise,
 image-plane transforms ...) on the band sample with :func:`scenes.app.compare.candidates.candidates`, and
