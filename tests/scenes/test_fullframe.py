@@ -249,3 +249,31 @@ def test_coupling_effects_see_their_neighbours_rows_band_by_band(tmp_path):
     k = 4
     binned = whole.mean_adu.astype(np.float64).reshape(128, k, 128, k).sum(axis=(1, 3))
     np.testing.assert_allclose(out["_residuals"].model_adu, binned, rtol=2e-6)
+
+
+def test_cli_compare_and_diagnose_of_a_large_frame_write_the_contract_json_with_sampling(self_frame, tmp_path,
+                                                                                          monkeypatch):
+    import json
+
+    from click.testing import CliRunner
+
+    from scenes.app.cli import cli
+    from scenes.app.compare import fullframe
+
+    scene, frame = self_frame
+    monkeypatch.setattr(fullframe, "LARGE_FRAME_PX", 1000)
+    out = tmp_path / "cmp.json"
+    r = CliRunner().invoke(cli, ["compare", scene.source, str(frame), "--json", str(out)])
+    assert r.exit_code == 0, r.output
+    j = json.loads(out.read_text())
+    assert {"chi2_per_dof", "measured", "model", "regions", "sampling"} <= set(j)
+    assert "large frame" in r.output
+    out = tmp_path / "diag.json"
+    r = CliRunner().invoke(cli, ["diagnose", scene.source, str(frame), "--json", str(out)])
+    assert r.exit_code == 0, r.output
+    j = json.loads(out.read_text())
+    assert "chi2_per_dof" in j["baseline"] and "sampling" in j and isinstance(j["candidates"], list)
+    for c in j["candidates"]:
+        assert {"effect", "params", "chi2_per_dof", "delta_bic", "explanation", "scale"} <= set(c)
+    # the scene explains its own frame: nothing significant (row noise included in the model)
+    assert not j["significant"], j["verdict"]
