@@ -277,3 +277,22 @@ def test_cli_compare_and_diagnose_of_a_large_frame_write_the_contract_json_with_
         assert {"effect", "params", "chi2_per_dof", "delta_bic", "explanation", "scale"} <= set(c)
     # the scene explains its own frame: nothing significant (row noise included in the model)
     assert not j["significant"], j["verdict"]
+
+
+@pytest.mark.parametrize("effect", [{"sky_gradient": {"gx_e_per_s_per_kpx": 3.0, "gy_e_per_s_per_kpx": -2.0}},
+                                    {"psf_blur": {"sigma_px": 1.0}}])
+def test_field_effects_band_by_band_give_the_whole_frame_model(tmp_path, effect):
+    """A pointwise field effect (a sky gradient) applied band by band, and a convolution (a blur) on the whole
+    image, give the model of the whole frame."""
+    from scenes.app.compare.model import build_model
+
+    table = _default_window(512)
+    table["effects"] = dict(effect)
+    scene = write_scene(tmp_path / "f.toml", table)
+    frame = tmp_path / "f.fits"
+    render(load_scene(str(scene)), frame, seed=2, progress=False)
+    sc = load_scene(str(scene))
+    whole = build_model(sc, realisation=False)
+    out = run_compare_large(sc, frame, k=4, sample_bands=2, sample_rows=32)
+    binned = whole.mean_adu.astype(np.float64).reshape(128, 4, 128, 4).sum(axis=(1, 3))
+    np.testing.assert_allclose(out["_residuals"].model_adu, binned, rtol=2e-6)

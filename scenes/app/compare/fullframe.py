@@ -383,6 +383,28 @@ def streak_results(objects: list, sums: list, shape) -> list:
     return out
 
 
+#: FIELD effects that act on each pixel alone (a plane or a polynomial of light): applied band by band, where
+#: the chain applies them to the whole image at once (a float32 copy of the frame and its temporaries: 2 GB on
+#: the IMX411)
+POINTWISE_FIELD = frozenset({"sky_gradient", "straylight"})
+
+
+def _pointwise_field_signal(det, signal, exptime_s: float, state: dict):
+    """The expected photo-electrons after pointwise FIELD effects, as a tile callable (what
+    :meth:`detector.Detector.field_signal` gives on the whole image, band by band)."""
+    from detector.effects.base import Stage, Tile
+
+    s = det.sensor
+
+    def tile_signal(y0: int, y1: int, x0: int, x1: int) -> np.ndarray:
+        tile = Tile(s, -1, y0, y1, x0, x1, exptime_s, 0, state=state)
+        a = det._photo(signal, tile)
+        det._run(Stage.FIELD, tile, a)
+        return a
+
+    return tile_signal
+
+
 def _sample_tiles(n_tiles: int, n: int) -> list[int]:
     """Indices of ``n`` tiles spread evenly over ``n_tiles`` (the centre of each of n equal strata)."""
     n = min(n, n_tiles)
@@ -408,7 +430,10 @@ def run_pass(setup: Setup, reader: BandReader, k: int, sample_bands: int = SAMPL
     state = det.frame_state(t, 0)
     from detector.effects.base import Stage
 
-    if det._by_stage[Stage.FIELD]:  # whole-frame effects need the whole image once (float32, sensor pixels)
+    field = det._by_stage[Stage.FIELD]
+    if field and all(e.name in POINTWISE_FIELD for e in field):
+        signal = _pointwise_field_signal(det, signal, t, state)
+    elif field:  # whole-frame effects need the whole image once (float32, sensor pixels)
         signal = det.field_signal(signal, t, 0, state)
     bg_signal = background_signal(setup.signal_e)
     has_sources = bg_signal is not setup.signal_e
