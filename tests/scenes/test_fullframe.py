@@ -296,3 +296,23 @@ def test_field_effects_band_by_band_give_the_whole_frame_model(tmp_path, effect)
     out = run_compare_large(sc, frame, k=4, sample_bands=2, sample_rows=32)
     binned = whole.mean_adu.astype(np.float64).reshape(128, 4, 128, 4).sum(axis=(1, 3))
     np.testing.assert_allclose(out["_residuals"].model_adu, binned, rtol=2e-6)
+
+
+def test_apply_on_the_large_path_adds_the_glow_and_refits_the_levels_on_the_binned_frame(tmp_path, monkeypatch):
+    from scenes.app.compare import diagnose_round, fullframe
+
+    monkeypatch.setattr(fullframe, "LARGE_FRAME_PX", 1000)
+    meas = write_scene(tmp_path / "meas.toml", _default_window(768, corner=True))
+    model = write_scene(tmp_path / "model.toml", _default_window(768, corner=True, drop=("amp_glow",)))
+    frame = tmp_path / "meas.fits"
+    render(load_scene(str(meas)), frame, seed=5, progress=False)
+    out = diagnose_round(load_scene(str(model)), model, frame, apply_to=tmp_path / "next.toml")
+    assert out["applied"]["effect"] == "amp_glow", out["verdict"]
+    p = out["applied"]["params"]
+    assert p["edge"] == "bottom-right"
+    assert p["amplitude_e_per_s"] == pytest.approx(5.0, rel=0.1) and p["scale_px"] == pytest.approx(400, rel=0.1)
+    nxt = tomllib.loads((tmp_path / "next.toml").read_text())
+    assert nxt["effects"]["amp_glow"]["edge"] == "bottom-right"
+    # the applied scene explains the frame: its diagnosis finds nothing significant
+    again = diagnose_round(load_scene(str(tmp_path / "next.toml")), tmp_path / "next.toml", frame)
+    assert not again["significant"], again["verdict"]
