@@ -262,6 +262,7 @@ def test_cli_compare_and_diagnose_of_a_large_frame_write_the_contract_json_with_
 
     scene, frame = self_frame
     monkeypatch.setattr(fullframe, "LARGE_FRAME_PX", 1000)
+    monkeypatch.setattr(fullframe, "BINNED_TARGET_PX", 256 * 256)  # k = 4: a fast test
     out = tmp_path / "cmp.json"
     r = CliRunner().invoke(cli, ["compare", scene.source, str(frame), "--json", str(out)])
     assert r.exit_code == 0, r.output
@@ -302,6 +303,7 @@ def test_apply_on_the_large_path_adds_the_glow_and_refits_the_levels_on_the_binn
     from scenes.app.compare import diagnose_round, fullframe
 
     monkeypatch.setattr(fullframe, "LARGE_FRAME_PX", 1000)
+    monkeypatch.setattr(fullframe, "BINNED_TARGET_PX", 256 * 256)  # k = 3: a fast test
     meas = write_scene(tmp_path / "meas.toml", _default_window(768, corner=True))
     model = write_scene(tmp_path / "model.toml", _default_window(768, corner=True, drop=("amp_glow",)))
     frame = tmp_path / "meas.fits"

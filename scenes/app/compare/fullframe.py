@@ -102,9 +102,10 @@ def is_large(scene, threshold: int | None = None) -> bool:
     return h * w > (LARGE_FRAME_PX if threshold is None else threshold)
 
 
-def choose_binning(shape: tuple[int, int], target_px: int = BINNED_TARGET_PX) -> int:
-    """The super-pixel side ``k``: the smallest with at most ``target_px`` binned pixels, or the first up to
-    twice that which divides both sides of the frame (nothing cropped)."""
+def choose_binning(shape: tuple[int, int], target_px: int | None = None) -> int:
+    """The super-pixel side ``k``: the smallest with at most ``target_px`` (default :data:`BINNED_TARGET_PX`)
+    binned pixels, or the first up to twice that which divides both sides of the frame (nothing cropped)."""
+    target_px = BINNED_TARGET_PX if target_px is None else target_px
     h, w = shape
     kmin = max(1, math.ceil(math.sqrt(h * w / target_px)))
     for k in range(kmin, 2 * kmin + 1):
