@@ -318,3 +318,19 @@ def test_apply_on_the_large_path_adds_the_glow_and_refits_the_levels_on_the_binn
     # the applied scene explains the frame: its diagnosis finds nothing significant
     again = diagnose_round(load_scene(str(tmp_path / "next.toml")), tmp_path / "next.toml", frame)
     assert not again["significant"], again["verdict"]
+
+
+def test_light_curve_is_fitted_in_the_tracks_cut_out_as_at_full_resolution(tmp_path):
+    """A tumbling object's light curve (tests/scenes/test_diagnose_light_curve.py) is named on the large path
+    from the cut-out of its track, with the full-resolution fit's parameters."""
+    from test_diagnose_light_curve import CURVE, _frames
+
+    model, measured = _frames(tmp_path, CURVE)
+    full = run_diagnose(model, measured)
+    large = run_diagnose_large(model, measured, k=4, sample_bands=2, sample_rows=32)
+    cf = next(c for c in full["candidates"] if c["effect"] == "light_curve")
+    cl = next(c for c in large["candidates"] if c["effect"] == "light_curve")
+    assert cl["scale"] == "cut-out" and cl["significant"] and cf["significant"]
+    assert large["candidates"][0]["effect"] == "light_curve"
+    assert cl["params"] == cf["params"]
+    assert cl["delta_bic"] == pytest.approx(cf["delta_bic"], rel=1e-3)

@@ -72,7 +72,7 @@ from detector.signatures import (
 from detector.stats import mad_std
 from scenes.app.render import Setup, prepare
 
-from .candidates import candidates, rank, verdict
+from .candidates import candidates, rank, source_candidates, verdict
 from .model import REALISATION_SEED, _wcs_offset, background_signal, row_offset_var_adu2, saturation_adu
 from .statistics import compare, misfit, outlier_counts, spectrum_peaks, star_photometry, summary, track_band, zmap
 
@@ -215,6 +215,8 @@ class Pass:
     stars: object = None
     streak_objects: list = field(default_factory=list)
     streak_sums: list = field(default_factory=list)
+    track_boxes: list = field(default_factory=list)
+    tracks: dict = field(default_factory=dict)
 
 
 def _moments_acc() -> dict:
@@ -340,6 +342,46 @@ def streak_objects(truth) -> list:
     return list(truth[kind != "star"])
 
 
+#: an object's track cut-out (its bounding box, for the light-curve candidates) is kept up to this area [px]
+MAX_TRACK_BOX_PX = 4_000_000
+_TRACK_KEYS = ("data", "mean", "var", "bg", "photo", "dark", "fit")
+
+
+def track_boxes(shape, objects: list) -> list:
+    """The bounding box (row and column slices) of each object's track band, None when it is too large to
+    cut out (:data:`MAX_TRACK_BOX_PX`) or empty."""
+    from .sources import HALF_WIDTH_PX
+
+    out = []
+    for o in objects:
+        band = track_band(shape, o, HALF_WIDTH_PX)
+        if band is None:
+            out.append(None)
+            continue
+        ys, xs = band["box"]
+        out.append((ys, xs) if (ys.stop - ys.start) * (xs.stop - xs.start) <= MAX_TRACK_BOX_PX else None)
+    return out
+
+
+def track_residuals(box, parts: dict, row, setup: Setup) -> tuple[Residuals, np.ndarray]:
+    """The cut-out of an object's track as :class:`Residuals` (at its true sensor coordinates) and its TRUTH row
+    moved into the cut-out."""
+    s = setup.detector.sensor
+    b = s.binning
+    ys, xs = box
+    res = Residuals(parts["data"], parts["mean"], parts["var"], parts["fit"], parts["photo"], parts["dark"],
+                    s.roi_y0 + b * np.arange(ys.start, ys.stop) + (b - 1) / 2.0,
+                    s.roi_x0 + b * np.arange(xs.start, xs.stop) + (b - 1) / 2.0, s, setup.exptime_s,
+                    SpikeStats(0, 0, 0, 0, 0), SpikeStats(0, 0, 0, 0, 0), background_adu=parts["bg"],
+                    row_var_adu2=row_offset_var_adu2(setup.detector))
+    moved = np.array([row]).copy()
+    for key in ("x", "x0", "x1"):
+        moved[key] -= xs.start
+    for key in ("y", "y0", "y1"):
+        moved[key] -= ys.start
+    return res, moved
+
+
 def streak_band_sums(shape, objects: list, r0: int, r1: int, data, mean, bg) -> list:
     """Per object, the sums :func:`statistics.streak_profiles` takes over the track's band, restricted to the
     output rows ``r0:r1`` (sums over bands add up to the whole track's): per segment, data and model flux over
@@ -452,6 +494,11 @@ def run_pass(setup: Setup, reader: BandReader, k: int, sample_bands: int = SAMPL
              np.zeros((hb, wb), np.int32), np.zeros(h), np.zeros(h), np.zeros(h, np.int64), np.zeros(w),
              np.zeros(len(Z_EDGES) - 1, np.int64))
     P.streak_objects, P.streak_sums = objects, [None] * len(objects)
+    boxes = track_boxes((h, w), objects)
+    P.track_boxes = boxes
+    P.tracks = {j: {key: np.zeros((bx[0].stop - bx[0].start, bx[1].stop - bx[1].start),
+                                  bool if key == "fit" else np.float32) for key in _TRACK_KEYS}
+                for j, bx in enumerate(boxes) if bx is not None}
     P.stats = {"data": _moments_acc(), "model": _moments_acc(), "saturated": 0, "finite": 0, "chi2": 0.0,
                "n_fit": 0}
 
@@ -534,6 +581,17 @@ def run_pass(setup: Setup, reader: BandReader, k: int, sample_bands: int = SAMPL
             out["stamps"] = {j: (off, {key: v.copy() for key, v in d.items()}) for j, (off, d) in cut.items()}
         if objects:
             out["streaks"] = streak_band_sums((h, w), objects, r0, r1, data, mean, bg)
+            parts = {}
+            full = {"data": np.where(finite, data, 0.0), "mean": mean, "var": var, "bg": bg, "photo": photo,
+                    "dark": dark, "fit": good}
+            for j, bx in enumerate(boxes):
+                if bx is None:
+                    continue
+                a, e = max(bx[0].start, r0), min(bx[0].stop, r1)
+                if a < e:
+                    parts[j] = (a - bx[0].start, {key: np.array(full[key][a - r0:e - r0, bx[1]])
+                                                  for key in _TRACK_KEYS})
+            out["tracks"] = parts
         out["row_r"] = r.sum(axis=1, dtype=np.float64)
         out["row_v"] = vg.sum(axis=1, dtype=np.float64)
         out["row_n"] = good.sum(axis=1)
@@ -593,6 +651,9 @@ def run_pass(setup: Setup, reader: BandReader, k: int, sample_bands: int = SAMPL
         for j, acc in enumerate(o.get("streaks", [])):
             if acc is not None:
                 P.streak_sums[j] = acc if P.streak_sums[j] is None else P.streak_sums[j] + acc
+        for j, (off, d) in o.get("tracks", {}).items():
+            for key, v in d.items():
+                P.tracks[j][key][off:off + v.shape[0]] = v
         for j, (off, d) in o.get("stamps", {}).items():
             st_ = P.stamps.setdefault(j, {"rows": 0, **{key: np.zeros((2 * half + 1, 2 * half + 1), np.float32)
                                                        for key in ("data", "mean", "var", "bg")}})
@@ -856,8 +917,9 @@ def run_compare_large(scene, measured: str | Path, workers: int | None = None, p
         "binned": ["regions", "worst_regions", "power", "z_map", "chi2_per_dof_levels", "levels"],
         "sample": ["outliers", "model", "power_peaks"],
         "cut_outs": {"stars": len(P.stars[0]) if P.stars is not None else 0, "half_side_px": STAMP_HALF,
-                     "quantities": ["stars", "streaks (band by band along the track)"]},
-        "not_computed": ["light-curve candidates", "source-based candidates outside the band sample"],
+                     "quantities": ["stars", "streaks (band by band along the track)",
+                                    "light-curve candidates (each object's track box)"]},
+        "not_computed": ["image-plane (PSF, shift) candidates outside the band sample"],
     }
     result["sampling"] = sampling
     result["summary"] = summary(result)
@@ -875,6 +937,7 @@ def run_compare_large(scene, measured: str | Path, workers: int | None = None, p
                              wcs_offset_px=wcs, seconds={"model": t1 - t0, "compare": time.perf_counter() - t1})
     result["_residuals"], result["_sample"], result["_model"] = res_b, res_s, _ModelView(setup)
     result["_truth_sample"] = truth_s
+    result["_tracks"] = [(P.track_boxes[j], P.tracks[j], P.streak_objects[j]) for j in sorted(P.tracks)]
     return result
 
 
@@ -960,8 +1023,12 @@ def run_diagnose_large(scene, measured: str | Path, workers: int | None = None, 
             if d is not None and d > SAMPLE_WORSE:
                 c.implausible = (f"worsens the full-resolution band sample (delta -2 ln L {d:.4g}): the pixels deny "
                                  "its mean change or the shot noise it implies")
-    cands = rank(cb + cs)
-    scale = {id(c): "binned" for c in cb} | {id(c): "sample" for c in cs}
+    ct = []
+    for box, parts, row in cmp.pop("_tracks", []):
+        res_t, truth_t = track_residuals(box, parts, row, cmp["_model"].setup)
+        ct += source_candidates(res_t, truth_t, scene)
+    cands = rank(cb + cs + ct)
+    scale = {id(c): "binned" for c in cb} | {id(c): "sample" for c in cs} | {id(c): "cut-out" for c in ct}
     if progress is not None:
         progress("residual morphology")
     morph = describe(res_b)
