@@ -473,13 +473,15 @@ def run_pass(setup: Setup, reader: BandReader, k: int, sample_bands: int = SAMPL
     state = det.frame_state(t, 0)
     from detector.effects.base import Stage
 
+    bg_signal = background_signal(setup.signal_e)
+    has_sources = bg_signal is not setup.signal_e
     field = det._by_stage[Stage.FIELD]
     if field and all(e.name in POINTWISE_FIELD for e in field):
         signal = _pointwise_field_signal(det, signal, t, state)
-    elif field:  # whole-frame effects need the whole image once (float32, sensor pixels)
+        bg_signal = _pointwise_field_signal(det, bg_signal, t, state) if has_sources else bg_signal
+    elif field:  # whole-frame effects need the whole image once (float32, sensor pixels); the background's
+        # field effects (a blur of a uniform sky: nothing) are left out here
         signal = det.field_signal(signal, t, 0, state)
-    bg_signal = background_signal(setup.signal_e)
-    has_sources = bg_signal is not setup.signal_e
     tiles = det.tiles(t, 0, state)
     real_state = det.frame_state(t, REALISATION_SEED)
     real_tiles = det.tiles(t, REALISATION_SEED, real_state)
