@@ -42,11 +42,12 @@ _WRAPPER = (
 )
 
 
-def step(args: list[str]) -> dict:
-    """Run ``newtsim ARGS`` in a wrapper: wall time [s], peak RSS [bytes] and return code of the step alone."""
+def step(args: list[str], cwd: Path) -> dict:
+    """Run ``newtsim ARGS`` in a wrapper (in ``cwd``: diagnose writes its ledger beside the scene, here the
+    built-in ``default``): wall time [s], peak RSS [bytes] and return code of the step alone."""
     env = {**os.environ, "PYTHONPATH": str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", "")}
     cmd = [sys.executable, "-c", _WRAPPER, sys.executable, "-m", "scenes.app.cli", *args]
-    p = subprocess.run(cmd, check=False, capture_output=True, text=True, env=env, cwd=ROOT)
+    p = subprocess.run(cmd, check=False, capture_output=True, text=True, env=env, cwd=cwd)
     dt, rss, rc = p.stdout.split()[-3:]
     if int(rc) != 0:
         raise SystemExit(f"newtsim {' '.join(args)} failed ({rc}): {p.stderr[-2000:]}")
@@ -67,9 +68,9 @@ def main(argv=None) -> int:
         work.mkdir(parents=True, exist_ok=True)
     frame = work / "full.fits"
     out: dict = {"frame": "default scene, full IMX411 14192 x 10640", "cpus": os.cpu_count()}
-    r = step(["render", "default", "-o", str(frame), "--no-png"])
+    r = step(["render", "default", "-o", str(frame), "--no-png"], work)
     out["render_s"], out["render_peak_rss_mb"] = r["s"], r["peak_rss_bytes"] / 2 ** 20
-    c = step(["compare", "default", str(frame), "--json", str(work / "compare.json")])
+    c = step(["compare", "default", str(frame), "--json", str(work / "compare.json")], work)
     out["compare_s"], out["compare_peak_rss_mb"] = c["s"], c["peak_rss_bytes"] / 2 ** 20
     out["compare_over_render"] = c["s"] / r["s"]
     cj = json.loads((work / "compare.json").read_text())
@@ -79,7 +80,7 @@ def main(argv=None) -> int:
     goals = {"compare_rss_le_3GiB": c["peak_rss_bytes"] <= 3 * GIB, "compare_le_3x_render": c["s"] <= 3 * r["s"]}
     if not args.skip_diagnose:
         time.sleep(1)
-        d = step(["diagnose", "default", str(frame), "--json", str(work / "diagnose.json")])
+        d = step(["diagnose", "default", str(frame), "--json", str(work / "diagnose.json")], work)
         out["diagnose_s"], out["diagnose_peak_rss_mb"] = d["s"], d["peak_rss_bytes"] / 2 ** 20
         out["diagnose_over_render"] = d["s"] / r["s"]
         dj = json.loads((work / "diagnose.json").read_text())
