@@ -52,6 +52,16 @@ def compare(scene, measured, json_out, report, sets, workers):
     click.echo(f"chi2/dof {s['chi2_per_dof']:.4g} over {s['n_compared']} pixels ({s['n_statistical']} compared "
                f"statistically), misfit {s['misfit']:.3g}; worst regions: {', '.join(s['worst_regions'])}"
                + _nonfinite_note(s) + (f"; report {report}" if report else ""), err=True)
+    _sampling_note(s.get("sampling"))
+
+
+def _sampling_note(sampling: dict | None) -> None:
+    """One line on how a large frame was compared (scenes.app.compare.fullframe)."""
+    if sampling:
+        click.echo(f"large frame: chi2/dof and profiles over every pixel; regions, spectra and smooth effects on "
+                   f"{sampling['binning_k']}x{sampling['binning_k']} super-pixels; outliers and pixel-scale effects "
+                   f"on {len(sampling['bands'])} full-resolution bands ({100 * sampling['sample_fraction']:.1f} % of "
+                   "the rows); see \"sampling\" in the JSON", err=True)
 
 
 @click.command()
@@ -109,6 +119,7 @@ def diagnose(scene, measured, json_out, apply_to, report, prefer, sets, workers)
         write_json(out, None)
     click.echo(f"baseline chi2/dof {out['baseline']['chi2_per_dof']:.4g}; {out['verdict']}"
                + _nonfinite_note(out["baseline"]), err=True)
+    _sampling_note(out.get("sampling"))
     for c in out["candidates"][:5]:
         click.echo(f"  {c['effect']:15s} dBIC {c['delta_bic']:12.4g}  chi2/dof after {c['chi2_per_dof']:.4g}  "
                    f"{c['explanation']}", err=True)

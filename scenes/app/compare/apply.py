@@ -84,9 +84,7 @@ def refit_levels(path: Path, data: dict, measured) -> dict[str, float]:
     (scales are relative changes, the offset is in ADU)."""
     path.write_text(tomli_w.dumps(data))
     sc = load_scene(str(path))
-    model = build_model(sc, realisation=False)
-    d, _ = read_measurement(measured, model)
-    res = residuals(d, model)
+    res, per_offset = _level_residuals(sc, measured)
     idx, r, w = res.flat()
     if res.background_adu is not None:  # the levels from the background's pixels: a misfit star is not sky
         sources = (res.model_adu - res.background_adu).ravel()[idx] * np.sqrt(w)
@@ -114,7 +112,23 @@ def refit_levels(path: Path, data: dict, measured) -> dict[str, float]:
     if not keep:
         return {}
     coef = np.linalg.solve(g[np.ix_(keep, keep)], (xw @ r)[keep])
-    return {res.LEVELS[wanted[k]]: float(c) for k, c in zip(keep, coef)}
+    return {res.LEVELS[wanted[k]]: float(c) / (per_offset if wanted[k] == 2 else 1.0) for k, c in zip(keep, coef)}
+
+
+def _level_residuals(sc, measured):
+    """The residuals the levels are refitted on, and how many output pixels' bias one unit of its offset
+    template holds: the whole frame, or a large frame's binned frame (:mod:`.fullframe`; ``k^2`` output
+    pixels summed per binned pixel)."""
+    from . import fullframe
+
+    if fullframe.is_large(sc):
+        out = fullframe.run_compare_large(sc, measured)
+        res = out["_residuals"]
+        k = out["sampling"]["binning_k"]
+        return res, (float(k * k) if res.sensor.binning_mode == "sum" else 1.0)
+    model = build_model(sc, realisation=False)
+    d, _ = read_measurement(measured, model)
+    return residuals(d, model), 1.0
 
 
 def carry_levels(data: dict, levels: dict[str, float], scene) -> tuple[dict, list[str]]:

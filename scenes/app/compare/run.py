@@ -21,6 +21,7 @@ from detector.jsonable import jsonable
 from detector.morphology import describe
 from scenes.scene import load_scene
 
+from . import fullframe
 from .apply import apply_candidate, apply_empirical
 from .candidates import SIGNIFICANT_DELTA_BIC, candidates, indistinguishable, rank, source_candidates, verdict
 from .ledger import best_candidate, plot_ledger, round_row, update_ledger
@@ -33,8 +34,24 @@ __all__ = ["SIGNIFICANT_DELTA_BIC", "ModelFrame", "best_candidate", "build_model
            "run_diagnose", "run_rounds"]
 
 
-def run_compare(scene, measured: str | Path, workers: int | None = None) -> dict:
-    """Model vs measurement: the full result (arrays included) with ``summary`` (the contract's JSON)."""
+def run_compare(scene, measured: str | Path, workers: int | None = None, *, large_px: int | None = None,
+                progress=None) -> dict:
+    """Model vs measurement: the full result (arrays included) with ``summary`` (the contract's JSON).
+
+    A frame of more than ``large_px`` output pixels (default :data:`.fullframe.LARGE_FRAME_PX`) takes the
+    bounded-memory path of :mod:`.fullframe` (binned frame, band sample; ``summary["sampling"]``)."""
+    if fullframe.is_large(scene, large_px):
+        try:
+            return fullframe.run_compare_large(scene, measured, workers=workers, progress=progress)
+        except MemoryError as exc:
+            raise fullframe.out_of_memory(measured, exc) from None
+    try:
+        return _run_compare(scene, measured, workers)
+    except MemoryError as exc:
+        raise fullframe.out_of_memory(measured, exc) from None
+
+
+def _run_compare(scene, measured: str | Path, workers: int | None = None) -> dict:
     t0 = time.perf_counter()
     model = build_model(scene, workers=workers)
     data, notes = read_measurement(measured, model)
@@ -53,9 +70,21 @@ def run_compare(scene, measured: str | Path, workers: int | None = None) -> dict
     return result
 
 
-def run_diagnose(scene, measured: str | Path, workers: int | None = None, progress=None) -> dict:
-    """compare + every absent effect fitted and ranked: ``{"baseline", "candidates", "verdict", ...}``."""
-    cmp = run_compare(scene, measured, workers=workers)
+def run_diagnose(scene, measured: str | Path, workers: int | None = None, progress=None, *,
+                 large_px: int | None = None) -> dict:
+    """compare + every absent effect fitted and ranked: ``{"baseline", "candidates", "verdict", ...}``.
+
+    Large frames (``large_px``, see :func:`run_compare`) take :func:`.fullframe.run_diagnose_large`."""
+    try:
+        if fullframe.is_large(scene, large_px):
+            return fullframe.run_diagnose_large(scene, measured, workers=workers, progress=progress)
+        return _run_diagnose(scene, measured, workers, progress)
+    except MemoryError as exc:
+        raise fullframe.out_of_memory(measured, exc) from None
+
+
+def _run_diagnose(scene, measured: str | Path, workers: int | None = None, progress=None) -> dict:
+    cmp = _run_compare(scene, measured, workers=workers)
     t0 = time.perf_counter()
     truth = cmp["_model"].setup.truth
     cands, problems = candidates(cmp["_residuals"], set(scene.effects), progress=progress, truth=truth)
@@ -82,14 +111,15 @@ def run_diagnose(scene, measured: str | Path, workers: int | None = None, progre
 
 
 def diagnose_round(scene, scene_path: str | Path, measured: str | Path, apply_to: str | Path | None = None,
-                   workers: int | None = None, progress=None, prefer: tuple[str, ...] = ()) -> dict:
+                   workers: int | None = None, progress=None, prefer: tuple[str, ...] = (),
+                   large_px: int | None = None) -> dict:
     """One round: the diagnosis of ``scene`` (loaded from ``scene_path``) against ``measured``; with
     ``apply_to``, the best significant candidate (or the first of ``prefer`` that is significant) added
     there. The ledger continues the scene's own.
 
     Returns the diagnosis (``run_diagnose``) with ``applied`` (or None), ``ledger`` and the comparison under
     ``_compare``."""
-    out = run_diagnose(scene, measured, workers=workers, progress=progress)
+    out = run_diagnose(scene, measured, workers=workers, progress=progress, large_px=large_px)
     best = best_candidate(out, prefer)
     applied = None
     if apply_to is not None and best is not None:
