@@ -48,7 +48,16 @@ def test_hidden_cfa_is_named_first_with_its_relative_responses(tmp_path):
     assert best["params"]["pattern"] == "GBRG"  # greens on the main diagonal, the lowest (red) in cell 10
 
 
-@pytest.mark.parametrize("base,gx,gy", [(FLAT, 40.0, -25.0), (STARS, 3.0, -5.0)], ids=["flat", "stars"])
+def test_a_sky_gradient_on_a_flat_screen_is_not_plausible(tmp_path):
+    """A flat-field screen blocks the sky: a plane of added light on a flat frame fits, but is not named as sky
+    light (issue 10's plausibility); on a sky frame it is (below)."""
+    cands = _diagnose(tmp_path, FLAT, "[effects.sky_gradient]\ngx_e_per_s_per_kpx = 40.0\ngy_e_per_s_per_kpx = -25.0\n")
+    sky = next(c for c in cands if c["effect"] == "sky_gradient")
+    assert sky["delta_bic"] < -10 and not sky["plausible"] and "flat-field screen" in sky["implausible_because"]
+    assert not sky["significant"]
+
+
+@pytest.mark.parametrize("base,gx,gy", [(STARS, 3.0, -5.0)], ids=["stars"])
 def test_hidden_sky_gradient_is_named_first_not_vignetting(tmp_path, base, gx, gy):
     cands = _diagnose(tmp_path, base, f"[effects.sky_gradient]\ngx_e_per_s_per_kpx = {gx}\n"
                                       f"gy_e_per_s_per_kpx = {gy}\n")
