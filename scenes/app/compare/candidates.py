@@ -39,6 +39,9 @@ HELDOUT_CANDIDATES = 8
 MIN_EXPLAINED = 0.5
 #: large-scale structure is significant when the block chi2 exceeds its dof by this many standard deviations
 STRUCTURE_SIGMA = 8.0
+#: where the frame's excess chi2 is this many standard deviations above its dof, a pixel candidate must
+#: remove at least MIN_EXCESS_SHARE of it to be named: a trace of a big pattern is not the missing effect
+EXCESS_SIGMA, MIN_EXCESS_SHARE = 50.0, 0.02
 
 
 @dataclass
@@ -70,10 +73,15 @@ class Candidate:
         """Significant by delta BIC and neither rejected nor implausible: worth a held-out score."""
         return self.fit.delta_bic < SIGNIFICANT_DELTA_BIC and not self.rejected and not self.implausible
 
+    #: share of the frame's whole excess chi2 (levels refitted) the candidate removes, where that excess is
+    #: large; None otherwise (or for candidates compared by counts)
+    excess_share: float | None = None
+
     @property
     def significant(self) -> bool:
         return (self.contender and (self.heldout is None or self.heldout < SIGNIFICANT_HELDOUT)
-                and (self.explains is None or self.explains >= MIN_EXPLAINED))
+                and (self.explains is None or self.explains >= MIN_EXPLAINED)
+                and (self.excess_share is None or self.excess_share >= MIN_EXCESS_SHARE))
 
     @property
     def score(self) -> float:
@@ -87,7 +95,7 @@ class Candidate:
                 "kind": type(registry()[f.effect].signature).__name__ if f.effect in registry() else "",
                 "significant": self.significant, "rejected": self.rejected, "plausible": self.plausible,
                 "implausible_because": self.implausible, "heldout_delta": self.heldout,
-                "explains_structure": self.explains, "variant": f.note,
+                "explains_structure": self.explains, "explains_excess": self.excess_share, "variant": f.note,
                 "seconds": self.seconds}
 
 
@@ -219,6 +227,7 @@ def candidates(res: Residuals, present: set[str], progress=None, truth=None) -> 
             why = stars_check(res, fit, truth)
         out.append(Candidate(fit, chi2, seconds, why, implausibility(cls, fit, res)))
     structure_shares(res, out)
+    excess_shares(res, out)
     score_heldout(res, out, progress=progress)
     return rank(out), problems
 
@@ -231,6 +240,18 @@ def implausibility(cls, fit: Fit, res: Residuals) -> str:
     except Exception as exc:  # noqa: BLE001  (a plugin's check that raises does not stop the diagnosis)
         why = f"its plausibility check failed ({type(exc).__name__}: {exc})"
     return why or at_bound(cls, fit.params)
+
+
+def excess_shares(res: Residuals, cands: list[Candidate]) -> None:
+    """For every pixel candidate (a mean change or an added variance), the share of the frame's excess chi2
+    (levels refitted) it removes, where that excess is large (EXCESS_SIGMA)."""
+    n = res.n_fit
+    excess = res.chi2_profiled() - n
+    if n == 0 or excess / np.sqrt(2 * n) < EXCESS_SIGMA:
+        return
+    for c in cands:
+        if (c.fit.delta_adu is not None or c.fit.extra_var_adu2 is not None) and np.isfinite(c.chi2_per_dof):
+            c.excess_share = round(float((excess + n - c.chi2_per_dof * n) / excess), 4)
 
 
 def structure_shares(res: Residuals, cands: list[Candidate]) -> None:
@@ -340,7 +361,9 @@ def verdict(cands: list[Candidate], morphology: dict | None = None) -> str:
         c = named[0]
         reason = c.rejected or c.implausible or (
             f"it removes only {100 * c.explains:.0f} % of the large-scale structure" if c.explains is not None
-            and c.explains < MIN_EXPLAINED else f"it does not improve the pixels it was not fitted on (held-out "
+            and c.explains < MIN_EXPLAINED else
+            f"it removes only {100 * c.excess_share:.2g} % of the excess chi2" if c.excess_share is not None
+            and c.excess_share < MIN_EXCESS_SHARE else f"it does not improve the pixels it was not fitted on (held-out "
             f"{c.heldout:.3g})" if c.heldout is not None else "")
         why = f" ({c.fit.effect} fits but is not credible: {reason})" if reason else ""
     if morphology and morphology.get("significant"):
