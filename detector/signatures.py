@@ -548,7 +548,7 @@ def checkerboard(shape: tuple[int, int], block: int | None = None) -> np.ndarray
     return ((y + x) % 2 == 0)
 
 
-def heldout_delta(signature: Signature, res: Residuals, name: str) -> float | None:
+def heldout_delta(signature: Signature, res: Residuals, name: str, fit: Fit | None = None) -> float | None:
     """delta(-2 ln L) of an effect on pixels its fit did not see (two-fold block cross-validation).
 
     The fitted pixels are split into the black and the white squares of a checkerboard of blocks
@@ -571,11 +571,14 @@ def heldout_delta(signature: Signature, res: Residuals, name: str) -> float | No
         part = replace(res, fit=res.fit & train, train=train, _flat={})
         if not part.fit.any():
             return None
-        fit = signature.fit(part, name)
+        # a signature that can refit the in-sample fit's form on the fold does so (its amplitudes are
+        # cross-validated, its form search is not repeated); the others fit the fold from scratch
+        part_fit = signature.refit(fit, part, name) if fit is not None and hasattr(signature, "refit") \
+            else signature.fit(part, name)
         held = replace(res, fit=res.fit & test, train=test, _flat={})
-        if fit is None:
+        if part_fit is None:
             continue
-        s = signature.score(fit, held)
+        s = signature.score(part_fit, held)
         if s is None:
             return None
         total += s
@@ -826,13 +829,36 @@ class LinearSignature(Signature):
             params = v.to_params(np.asarray(c) / (1.0 + light)) if light > -0.5 else None
             if params is None:
                 return None
+        return self._finish(res, name, v, c, d, params)
+
+    def _finish(self, res: Residuals, name: str, v: Variant, c, d: float, params: dict) -> Fit:
         maps = v.maps()
         k = len(maps) + self.extra_k
         delta = sum(ci * np.asarray(t, np.float32) for ci, t in zip(c, maps))
         fit = Fit(name, params, d, k, res.n_fit, self.explain(params, res),
-                  delta_adu=np.broadcast_to(delta, res.data_adu.shape), note=v.label)
+                  delta_adu=np.broadcast_to(delta, res.data_adu.shape), note=v.label, state={"variant": v})
         # a change of the light (added, or a multiplicative loss) is a change of charge: its shot noise changes too
         return with_shot_noise(res, fit) if (self.adds_charge or self.of_light) else fit
+
+    def refit(self, fit: Fit, res: Residuals, name: str) -> Fit | None:
+        """The coefficients of ``fit``'s variant (its form: edge, scale, centre) refitted on the fitted pixels
+        of ``res`` (a held-out fold): the cross-validation of the amplitudes, without the variant search."""
+        v = fit.state.get("variant")
+        if v is None:
+            return self.fit(res, name)
+        idx, _, w = res.flat_profiled()
+        if not idx.size:
+            return None
+        values = (lambda i: v.values(i, res.data_adu.shape))
+        c, d = fit_linear(res, values, idx, res.flat()[1], w)
+        params = v.to_params(c)
+        if params is None:
+            return None
+        if self.of_light:
+            light = joint_levels(res, values, idx, res.flat()[1], w, c).get("light_scale", 0.0)
+            if light <= -0.5 or v.to_params(np.asarray(c) / (1.0 + light)) is None:
+                return None
+        return self._finish(res, name, v, c, d, params)
 
     @staticmethod
     def _best(res: Residuals, ctx: dict, variants: Iterable[Variant]):

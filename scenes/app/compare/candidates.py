@@ -292,7 +292,7 @@ def score_heldout(res: Residuals, cands: list[Candidate], progress=None) -> None
             continue
         t0 = time.perf_counter()
         try:
-            c.heldout = heldout_delta(sig, res, c.fit.effect)
+            c.heldout = heldout_delta(sig, res, c.fit.effect, c.fit)
         except Exception as exc:  # noqa: BLE001
             c.implausible = f"cannot be scored on held-out pixels ({type(exc).__name__}: {exc})"
         c.seconds += time.perf_counter() - t0
