@@ -64,6 +64,7 @@ from __future__ import annotations
 
 import math
 import warnings
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Iterable, Sequence
@@ -1273,6 +1274,20 @@ def characterize(bias_paths: Sequence, dark_paths: Sequence, flat_paths: Sequenc
     if flat_paths and len(flat_paths) != 2:
         raise DetectorError(f"{len(flat_paths)} flat frames given", key="flat",
                             expected="exactly two flats of the same illumination and exposure")
+    try:
+        with open_frame_sets(bias_paths, dark_paths, flat_paths) as (bias, darks, flats):
+            return _characterize(bias, darks, flats, holdout_exposures, hot_sigma, count_thresholds_adu, seed,
+                                 _Bands(bias[0].shape, band_pixels, progress))
+    except MemoryError:
+        raise DetectorError("out of memory while characterising the frames", key="bias/dark/flat",
+                            file=bias_paths[0],
+                            expected="more free memory, or fewer/smaller frames (see docs/detector.md)") from None
+
+
+@contextmanager
+def open_frame_sets(bias_paths, dark_paths, flat_paths):
+    """The bias, dark and flat frames opened lazily (read band by band), darks and flats checked against the
+    first bias's shape; yields (bias, darks, flats) and closes every frame on the way out."""
     opened: list[Frame] = []
     try:
         bias = read_frames(bias_paths, "bias", need_exptime=False, lazy=True)
@@ -1283,12 +1298,7 @@ def characterize(bias_paths: Sequence, dark_paths: Sequence, flat_paths: Sequenc
         flats = read_frames(flat_paths, "flat", need_exptime=False, shape=shape, shape_file=ref, lazy=True) \
             if flat_paths else []
         opened += flats
-        return _characterize(bias, darks, flats, holdout_exposures, hot_sigma, count_thresholds_adu, seed,
-                             _Bands(shape, band_pixels, progress))
-    except MemoryError:
-        raise DetectorError("out of memory while characterising the frames", key="bias/dark/flat",
-                            file=bias_paths[0],
-                            expected="more free memory, or fewer/smaller frames (see docs/detector.md)") from None
+        yield bias, darks, flats
     finally:
         for f in opened:
             f.close()
@@ -2046,24 +2056,14 @@ def camera_twin(result: dict, bias_paths: Sequence, dark_paths: Sequence, flat_p
     JSON numbers, with the population law of the excess rates (:func:`fit_rate_laws`). The frames are read
     band by band; running out of memory is a :class:`DetectorError`.
     """
-    opened: list[Frame] = []
     try:
-        bias = read_frames(bias_paths, "bias", need_exptime=False, lazy=True)
-        opened += bias
-        shape, ref = bias[0].shape, bias[0].path
-        darks = read_frames(dark_paths, "dark", need_exptime=True, shape=shape, shape_file=ref, lazy=True)
-        opened += darks
-        flats = read_frames(flat_paths, "flat", need_exptime=False, shape=shape, shape_file=ref, lazy=True) \
-            if flat_paths else []
-        opened += flats
-        return _camera_twin(result, bias, darks, flats, nsigma, hot_threshold_s, _Bands(shape, band_pixels, progress))
+        with open_frame_sets(bias_paths, dark_paths, flat_paths) as (bias, darks, flats):
+            return _camera_twin(result, bias, darks, flats, nsigma, hot_threshold_s,
+                                _Bands(bias[0].shape, band_pixels, progress))
     except MemoryError:
         raise DetectorError("out of memory while building the camera's maps", key="--emit-scene",
                             file=str(bias_paths[0]),
                             expected="more free memory, or fewer/smaller frames (see docs/detector.md)") from None
-    finally:
-        for f in opened:
-            f.close()
 
 
 def _camera_twin(result, bias, darks, flats, nsigma, hot_threshold_s, B: _Bands):

@@ -13,10 +13,9 @@ import click
 from rich.progress import Progress
 
 from scenes.app.compare import run_compare
-from scenes.app.compare.apply import apply_candidate, apply_empirical
-from scenes.app.compare.ledger import best_candidate, ledger_path, plot_ledger, update_ledger
+from scenes.app.compare.ledger import ledger_path, plot_ledger, update_ledger
 from scenes.app.compare.report import write_report
-from scenes.app.compare.run import run_diagnose
+from scenes.app.compare.run import apply_best, run_diagnose
 
 from .common import Outputs, json_target, load, warn, write_json
 
@@ -90,17 +89,10 @@ def diagnose(scene, measured, json_out, apply_to, report, prefer, sets, workers)
         with Progress(transient=True) as bar:
             task = bar.add_task("fitting candidate effects", total=None)
             out = run_diagnose(sc, measured, workers=workers, progress=lambda name: bar.update(task, description=name))
-        best = best_candidate(out, tuple(prefer))
-        applied = apply_candidate(sc, best, apply_path, measured) if apply_path is not None and best else None
-        empirical = out["_compare"].get("_empirical")
-        if apply_path is not None and best is None and out["residual_morphology"]["significant"] and empirical:
-            # no catalogue effect explains the residual: its smooth pattern as an empirical map beside the scene
-            outs.file(Path(apply_to).with_name(Path(apply_to).stem + "_empirical.fits"), "--apply (its map)")
-            done = apply_empirical(sc, empirical, out["residual_morphology"], apply_path, measured,
+        # the map of an empirical apply goes beside the named scene, staged with the other outputs
+        applied, best = apply_best(sc, out, apply_path, measured, tuple(prefer),
+                                   reserve=lambda p: outs.file(Path(apply_to).with_name(p.name), "--apply (its map)"),
                                    public=outs.public)
-            if done is not None:
-                applied, best = done
-                best = {**best, "delta_bic": None}
         out["applied"] = {"effect": best["effect"], "params": best["params"], "scene": apply_to} if applied else None
         staged_json = ledgers[apply_to if applied else scene][0]
         ledger, rounds = update_ledger(scene, applied or staged_json.with_name(Path(scene).name), str(measured),

@@ -110,6 +110,30 @@ def _run_diagnose(scene, measured: str | Path, workers: int | None = None, progr
     return out
 
 
+def apply_best(scene, diagnosis: dict, apply_to: str | Path | None, measured: str | Path,
+               prefer: tuple[str, ...] = (), reserve=None, public=None) -> tuple[Path | None, dict | None]:
+    """``--apply``: the best significant candidate of ``diagnosis`` (or the first of ``prefer``) added to
+    ``scene`` at ``apply_to``; when none is significant but the residual is, its empirical map
+    (:func:`.apply.apply_empirical`). Returns (the written scene or None, the applied entry or the best
+    candidate). ``reserve(path)`` is called with the empirical map's path before it is written, ``public``
+    maps a staged path to the user's (the command line's output layer)."""
+    best = best_candidate(diagnosis, prefer)
+    if apply_to is None:
+        return None, best
+    if best is not None:
+        return apply_candidate(scene, best, apply_to, measured), best
+    empirical = diagnosis["_compare"].get("_empirical")
+    if not (diagnosis["residual_morphology"]["significant"] and empirical):
+        return None, None
+    if reserve is not None:
+        reserve(Path(apply_to).with_name(Path(apply_to).stem + "_empirical.fits"))
+    done = apply_empirical(scene, empirical, diagnosis["residual_morphology"], apply_to, measured, public=public)
+    if done is None:
+        return None, None
+    applied, entry = done
+    return applied, {**entry, "delta_bic": None}
+
+
 def diagnose_round(scene, scene_path: str | Path, measured: str | Path, apply_to: str | Path | None = None,
                    workers: int | None = None, progress=None, prefer: tuple[str, ...] = (),
                    large_px: int | None = None) -> dict:
@@ -120,15 +144,7 @@ def diagnose_round(scene, scene_path: str | Path, measured: str | Path, apply_to
     Returns the diagnosis (``run_diagnose``) with ``applied`` (or None), ``ledger`` and the comparison under
     ``_compare``."""
     out = run_diagnose(scene, measured, workers=workers, progress=progress, large_px=large_px)
-    best = best_candidate(out, prefer)
-    applied = None
-    if apply_to is not None and best is not None:
-        applied = apply_candidate(scene, best, apply_to, measured)
-    elif apply_to is not None and out["residual_morphology"]["significant"] and out["_compare"].get("_empirical"):
-        done = apply_empirical(scene, out["_compare"]["_empirical"], out["residual_morphology"], apply_to, measured)
-        if done is not None:
-            applied, best = done
-            best = {**best, "delta_bic": None}
+    applied, best = apply_best(scene, out, apply_to, measured, prefer)
     out["applied"] = {"effect": best["effect"], "params": best["params"], "scene": str(applied)} if applied else None
     ledger, rounds = update_ledger(scene_path, applied, str(measured), out["baseline"], best if applied else None)
     out["ledger"] = {"path": str(ledger), "rounds": rounds,
