@@ -17,8 +17,9 @@ Each module holds pure physics functions and their registered adapters:
 * ``coupling``: ``brighter_fatter``, ``ipc`` (stage COUPLING: on the drawn charge, with neighbour rows)
 * ``rts``: ``rts_noise`` (random telegraph signal of CMOS pixels)
 * ``persistence``: ``persistence`` (residual image of earlier frames)
+* ``thermal``: ``dark_gradient`` (a dark-current gradient from a temperature gradient across the die)
 """
 
 from .base import Effect, EffectParams, Stage, Tile, build_effects, register_effect, registry  # isort: skip
 from . import blooming, colour, cosmic_rays, coupling, cti, defects, glow, image_plane  # noqa: F401,I001  (registration)
-from . import maps, optical, persistence, pixel_response, readout, rts, sky  # noqa: F401  (registration)
+from . import maps, optical, persistence, pixel_response, readout, rts, sky, thermal  # noqa: F401  (registration)

@@ -138,6 +138,13 @@ class Effect:
     #: without the effect. None only with :attr:`no_identity` saying why the effect has no zero strength.
     identity: ClassVar[dict | None] = None
     no_identity: ClassVar[str] = ""
+    #: How the effect's signal changes from frame to frame of a series (``newtsim diagnose --series``):
+    #: "exposure" (a dark charge: grows with exposure time), "signal" (follows the collected light: a
+    #: response, a redistribution), "none" (the same in every frame: bias structure, read-out noise) - all
+    #: three are hardware the frames of a series share, fitted with one set of parameters - or "frame"
+    #: (changes with the pointing, the sky or the time: fitted frame by frame). None: undeclared (a
+    #: plugin), treated as "frame".
+    scaling: ClassVar[str | None] = None
     #: COUPLING effects only: rows of the neighbouring tiles the effect needs on each side (its kernel's
     #: reach), or None for the whole read-out window (CTI: a whole column); and the order among COUPLING
     #: effects (0 charge collection: brighter-fatter, 1 transfer: CTI, 2 sense node: IPC)

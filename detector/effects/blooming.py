@@ -106,6 +106,7 @@ class Blooming(Effect):
     """Blooming along columns of the expected charge above the full well, charge-conserving (see module)."""
 
     name = "blooming"
+    scaling = "signal"
     identity = {"threshold_e": 1e7}
     stages = (Stage.FIELD,)
     signature = _BLOOMING_SIGNATURE

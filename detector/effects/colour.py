@@ -209,6 +209,7 @@ class ColourFilterArray(Effect):
     """
 
     name = "cfa"
+    scaling = "signal"
     identity = {"response": [1.0, 1.0, 1.0, 1.0]}
     stages = (Stage.RESPONSE,)
     Params = CFAParams

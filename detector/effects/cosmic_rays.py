@@ -122,6 +122,7 @@ class CosmicRays(Effect):
     """
 
     name = "cosmic_rays"
+    scaling = "frame"
     identity = {"flux_per_cm2_s": 0.0}
     stages = (Stage.CHARGE,)
     stochastic = True  # compared by its statistics (tail counts), not pixel by pixel

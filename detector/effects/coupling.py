@@ -177,6 +177,7 @@ class BrighterFatter(Effect):
     Details: detector/effects/coupling.py."""
 
     name = "brighter_fatter"
+    scaling = "signal"
     identity = {"a10_per_e": 0.0}
     stages = (Stage.COUPLING,)
     Params = BrighterFatterParams
@@ -201,6 +202,7 @@ class IPC(Effect):
     Details: detector/effects/coupling.py."""
 
     name = "ipc"
+    scaling = "signal"
     identity = {"alpha": 0.0, "alpha_diag": 0.0}
     stages = (Stage.COUPLING,)
     Params = IPCParams

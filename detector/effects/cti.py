@@ -225,6 +225,7 @@ class CTI(Effect):
     given or from a proton-dose model (days_in_orbit). CCD only. Details: detector/effects/cti.py."""
 
     name = "cti"
+    scaling = "signal"
     identity = {"density_per_px": [0.0, 0.0, 0.0]}
     stages = (Stage.COUPLING,)
     Params = CTIParams

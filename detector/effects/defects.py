@@ -253,6 +253,7 @@ class HotPixels(Effect):
     """
 
     name = "hot_pixels"
+    scaling = "exposure"
     identity = {"count": 0}
     stages = (Stage.DARK, Stage.DIGITAL)
     Params = HotPixelParams
@@ -303,6 +304,7 @@ class ColumnDefects(Effect):
     """
 
     name = "column_defects"
+    scaling = "exposure"
     identity = {"hot_columns": 0, "dead_columns": 0}
     stages = (Stage.RESPONSE, Stage.DARK)
     Params = ColumnDefectParams

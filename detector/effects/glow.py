@@ -159,6 +159,7 @@ class AmpGlow(Effect):
     """
 
     name = "amp_glow"
+    scaling = "exposure"
     identity = {"sources": [{"amplitude_e_per_s": 0.0}]}
     stages = (Stage.DARK,)
     signature = _GLOW_SIGNATURE

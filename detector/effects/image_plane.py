@@ -448,6 +448,7 @@ class PSFBlur(Effect):
     """Extra isotropic Gaussian blur of the image (defocus, seeing or optics the PSF model lacks)."""
 
     name = "psf_blur"
+    scaling = "frame"
     identity = {"sigma_px": 0.0}
     stages = (Stage.FIELD,)
     Params = BlurParams
@@ -472,6 +473,7 @@ class Jitter(Effect):
     """Pointing jitter during the exposure: an elongated Gaussian blur (mount vibration, wind, tracking)."""
 
     name = "jitter"
+    scaling = "frame"
     identity = {"sigma_major_px": 0.0, "sigma_minor_px": 0.0}
     stages = (Stage.FIELD,)
     Params = JitterParams
@@ -505,6 +507,7 @@ class PSFElongation(Effect):
     ``C_psf + dC`` positive: a narrowing larger than the PSF's own variance has no meaning."""
 
     name = "psf_elongation"
+    scaling = "frame"
     identity = {"dcxx_px2": 0.0, "dcyy_px2": 0.0, "dcxy_px2": 0.0}
     stages = (Stage.FIELD,)
     Params = ElongationParams
@@ -529,6 +532,7 @@ class PointingOffset(Effect):
     """The telescope points slightly elsewhere than the header says: the whole image moves (WCS unchanged)."""
 
     name = "pointing_offset"
+    scaling = "frame"
     identity = {"dx_px": 0.0, "dy_px": 0.0}
     stages = (Stage.FIELD,)
     Params = OffsetParams
@@ -555,6 +559,7 @@ class PointingDrift(Effect):
     variance ``L^2 / 12`` along the drift; :func:`drift_smear`)."""
 
     name = "pointing_drift"
+    scaling = "frame"
     identity = {"dx_px": 0.0, "dy_px": 0.0}
     stages = (Stage.FIELD,)
     Params = DriftParams
@@ -576,6 +581,7 @@ class Distortion(Effect):
     """Radial (barrel k < 0, pincushion k > 0) distortion about the optical axis the WCS does not describe."""
 
     name = "distortion"
+    scaling = "signal"
     identity = {"k_per_px2": 0.0}
     stages = (Stage.FIELD,)
     Params = DistortionParams
@@ -601,6 +607,7 @@ class Ghost(Effect):
     corrector): ``alpha`` of the flux spread over a disc of ``radius_px``, added to the image."""
 
     name = "ghost"
+    scaling = "signal"
     identity = {"alpha": 0.0}
     stages = (Stage.FIELD,)
     Params = GhostParams

@@ -190,6 +190,7 @@ class BiasMap(_MapEffect):
     """
 
     name = "bias_map"
+    scaling = "none"
     no_identity = "a measured map: its zero is a map of zeros (tests/detector/test_maps.py)"
     stages = (Stage.ADU,)
     Params = BiasMapParams
@@ -213,6 +214,7 @@ class FlatMap(_MapEffect):
     """A measured flat field multiplying the light: F / mean(F) per unbinned pixel (RESPONSE stage)."""
 
     name = "flat_map"
+    scaling = "signal"
     no_identity = "a measured map: its identity is a map of ones (tests/detector/test_maps.py)"
     stages = (Stage.RESPONSE,)
     Params = SigmaMapParams
@@ -251,6 +253,7 @@ class DarkMap(_MapEffect):
     """
 
     name = "dark_map"
+    scaling = "exposure"
     no_identity = "a measured map: its zero is a map of zeros (tests/detector/test_camtwin.py)"
     stages = (Stage.DARK, Stage.DIGITAL)
     Params = DarkMapParams
@@ -377,6 +380,7 @@ class DarkRateTail(Effect):
     """
 
     name = "dark_rate_tail"
+    scaling = "exposure"
     identity = {"count": 0}
     stages = (Stage.DARK,)
     Params = DarkTailParams
@@ -435,6 +439,7 @@ class ColumnOffsets(Effect):
     """
 
     name = "column_offsets"
+    scaling = "none"
     identity = {"sigma_adu": 0.0, "outlier_fraction": 0.0}
     stages = (Stage.ADU,)
     Params = ColumnOffsetParams

@@ -239,6 +239,7 @@ class Vignetting(Effect):
     """Relative illumination of the focal plane: a ray-traced map or a radial polynomial (multiplies light)."""
 
     name = "vignetting"
+    scaling = "signal"
     identity = {"a2": 0.0, "a4": 0.0}
     stages = (Stage.RESPONSE,)
     Params = VignettingParams

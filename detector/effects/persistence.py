@@ -83,6 +83,7 @@ class Persistence(Effect):
     time_since_s: from its end to this frame's start. Details: detector/effects/persistence.py."""
 
     name = "persistence"
+    scaling = "frame"
     no_identity = "needs a previous frame; fraction = 0 is checked in tests/detector/test_sensor_physics.py"
     stages = (Stage.DARK,)
     Params = PersistenceParams

@@ -237,6 +237,7 @@ class PRNU(Effect):
     """
 
     name = "prnu"
+    scaling = "signal"
     identity = {"sigma": 0.0}
     stages = (Stage.RESPONSE,)
     Params = PRNUParams
@@ -266,6 +267,7 @@ class DSNU(Effect):
     """
 
     name = "dsnu"
+    scaling = "exposure"
     identity = {"sigma": 0.0}
     stages = (Stage.DARK,)
     Params = DSNUParams
@@ -296,6 +298,7 @@ class DeadPixels(Effect):
     """
 
     name = "dead_pixels"
+    scaling = "signal"
     identity = {"count": 0}
     stages = (Stage.RESPONSE,)
     Params = DeadParams
@@ -345,6 +348,7 @@ class GainRegions(Effect):
     """
 
     name = "gain_regions"
+    scaling = "signal"
     identity = {"sigma": 0.0}
     stages = (Stage.ADU,)
     Params = GainRegionParams
@@ -379,6 +383,7 @@ class Nonlinearity(Effect):
     """
 
     name = "nonlinearity"
+    scaling = "signal"
     identity = {"beta": 0.0}
     stages = (Stage.READ,)
     Params = NonlinearityParams

@@ -233,6 +233,7 @@ class RowNoise(Effect):
     """
 
     name = "row_noise"
+    scaling = "none"
     identity = {"sigma_e": 0.0}
     stages = (Stage.READ,)
     Params = RowNoiseParams
@@ -263,6 +264,7 @@ class ResetNoise(Effect):
     """
 
     name = "reset_noise"
+    scaling = "none"
     identity = {"correlated_double_sampling": True}
     stages = (Stage.READ,)
     Params = ResetNoiseParams
@@ -302,6 +304,7 @@ class BiasGradient(Effect):
     """
 
     name = "bias_gradient"
+    scaling = "none"
     identity = {"gradient_x_adu": 0.0, "gradient_y_adu": 0.0, "quadratic_adu": 0.0}
     stages = (Stage.ADU,)
     Params = BiasGradientParams
@@ -331,6 +334,7 @@ class Crosstalk(Effect):
     """
 
     name = "crosstalk"
+    scaling = "signal"
     identity = {"alpha": 0.0}
     stages = (Stage.ADU,)
     Params = CrosstalkParams

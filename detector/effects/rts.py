@@ -155,6 +155,7 @@ class RTSNoise(Effect):
     shows blinking pixels (Kirton & Uren 1989; Wang et al. 2006 IEDM). Details: detector/effects/rts.py."""
 
     name = "rts_noise"
+    scaling = "none"
     identity = {"fraction": 0.0}
     stages = (Stage.READ,)
     Params = RTSParams

@@ -112,6 +112,7 @@ class SkyGradient(Effect):
     """
 
     name = "sky_gradient"
+    scaling = "frame"
     identity = {"gx_e_per_s_per_kpx": 0.0, "gy_e_per_s_per_kpx": 0.0}
     stages = (Stage.FIELD,)
     Params = SkyGradientParams
@@ -218,6 +219,7 @@ class StraylightField(Effect):
     """
 
     name = "straylight"
+    scaling = "frame"
     identity = {"model": "field"}
     stages = (Stage.FIELD,)
     Params = StraylightFieldParams

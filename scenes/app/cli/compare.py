@@ -16,8 +16,17 @@ from scenes.app.compare import run_compare
 from scenes.app.compare.ledger import ledger_path, plot_ledger, update_ledger
 from scenes.app.compare.report import write_report
 from scenes.app.compare.run import apply_best, run_diagnose
+from scenes.app.compare.series import (
+    apply_series,
+    load_series,
+    public_json,
+    run_series_compare,
+    run_series_diagnose,
+    series_ledger,
+)
+from scenes.app.compare.series_report import write_series_report
 
-from .common import Outputs, json_target, load, warn, write_json
+from .common import Outputs, json_target, load, scene_files, warn, write_json
 
 
 def _nonfinite_note(s: dict) -> str:
@@ -25,15 +34,42 @@ def _nonfinite_note(s: dict) -> str:
     return f"; {n} non-finite measured pixels masked" if n else ""
 
 
+def _positional(scene, measured, series) -> None:
+    """SCENE MEASURED, or --series SERIES.toml (not both)."""
+    if series is not None and (scene is not None or measured is not None):
+        raise click.UsageError("give SCENE MEASURED or --series SERIES.toml, not both")
+    if series is None and (scene is None or measured is None):
+        raise click.UsageError("missing SCENE and MEASURED (or --series SERIES.toml)")
+
+
+def _series_inputs(path: str, sets) -> tuple:
+    """The series and every file it reads (its scenes, their files, the measured frames): inputs no output may
+    overwrite."""
+    ser = load_series(path, tuple(sets))
+    files = [path] + [str(f.file) for f in ser.frames]
+    for f in ser.frames:
+        files += scene_files(f.scene) + ([str(f.scene.source)] if f.scene.source else [])
+    return ser, files
+
+
+_SERIES_HELP = ("a series file (scene = ..., [[frames]] file = ..., set = {...}): compare / diagnose every frame "
+                "together, hardware effects shared by the frames (instead of SCENE MEASURED)")
+
+
 @click.command()
-@click.argument("scene")
-@click.argument("measured", type=click.Path())
+@click.argument("scene", required=False)
+@click.argument("measured", type=click.Path(), required=False)
+@click.option("--series", "series", default=None, type=click.Path(dir_okay=False), help=_SERIES_HELP)
 @click.option("--json", "json_out", default=None, help="write the comparison JSON here ('-' for stdout)")
 @click.option("--report", "report", default=None, type=click.Path(dir_okay=False), help="write an HTML report")
-@click.option("--set", "sets", multiple=True, metavar="KEY=VALUE", help="override a scene key")
+@click.option("--set", "sets", multiple=True, metavar="KEY=VALUE", help="override a scene key (every frame of a series)")
 @click.option("--workers", type=click.IntRange(min=1), default=None, help="threads (default: CPUs, at most 4)")
-def compare(scene, measured, json_out, report, sets, workers):
-    """Model of SCENE vs the MEASURED frame: chi2/dof, residuals per region, row/column, source; report."""
+def compare(scene, measured, series, json_out, report, sets, workers):
+    """Model of SCENE vs the MEASURED frame: chi2/dof, residuals per region, row/column, source; report.
+    With --series, every frame of a series file against its model, side by side."""
+    _positional(scene, measured, series)
+    if series is not None:
+        return _compare_series(series, json_out, report, sets, workers)
     with Outputs(inputs=[scene, measured]) as outs:
         json_path = json_target(outs, json_out)
         report_path = outs.file(report, "--report") if report else None
@@ -54,6 +90,32 @@ def compare(scene, measured, json_out, report, sets, workers):
     _sampling_note(s.get("sampling"))
 
 
+def _compare_series(series, json_out, report, sets, workers) -> None:
+    ser, files = _series_inputs(series, sets)
+    with Outputs(inputs=files) as outs:
+        json_path = json_target(outs, json_out)
+        report_path = outs.file(report, "--report") if report else None
+        with Progress(transient=True) as bar:
+            task = bar.add_task("series", total=None)
+            result = run_series_compare(ser, workers=workers, progress=lambda t: bar.update(task, description=t))
+        out = public_json(result)
+        if report_path is not None:
+            write_series_report(out, report_path, result["_compares"])
+            out["report"] = report
+        if json_path is not None:
+            write_json(out, json_path)
+    warn(out["baseline"]["warnings"])
+    if json_out == "-":
+        write_json(out, None)
+    b = out["baseline"]
+    click.echo(f"series of {b['n_frames']} frames: chi2/dof {b['chi2_per_dof']:.4g} ({b['chi2_per_dof_levels']:.4g} with "
+               f"the levels refitted, shared: {', '.join(out['shared_levels']) or 'none'}), misfit {b['misfit']:.3g}"
+               + (f"; report {report}" if report else ""), err=True)
+    for f in out["frames"]:
+        click.echo(f"  {f['label']:20s} {f['exposure_s']:8.3g} s  chi2/dof {f['chi2_per_dof']:.4g}  misfit "
+                   f"{f['misfit']:.3g}", err=True)
+
+
 def _sampling_note(sampling: dict | None) -> None:
     """One line on how a large frame was compared (scenes.app.compare.fullframe)."""
     if sampling:
@@ -64,18 +126,23 @@ def _sampling_note(sampling: dict | None) -> None:
 
 
 @click.command()
-@click.argument("scene")
-@click.argument("measured", type=click.Path())
+@click.argument("scene", required=False)
+@click.argument("measured", type=click.Path(), required=False)
+@click.option("--series", "series", default=None, type=click.Path(dir_okay=False), help=_SERIES_HELP)
 @click.option("--json", "json_out", default=None, help="write the diagnosis JSON here ('-' for stdout)")
 @click.option("--apply", "apply_to", default=None, type=click.Path(dir_okay=False),
               help="write the scene with the best significant candidate added here")
 @click.option("--report", "report", default=None, type=click.Path(dir_okay=False), help="write an HTML report")
 @click.option("--prefer", "prefer", multiple=True, metavar="EFFECT",
               help="with --apply: add this effect instead of the best one when it is significant (repeatable)")
-@click.option("--set", "sets", multiple=True, metavar="KEY=VALUE", help="override a scene key")
+@click.option("--set", "sets", multiple=True, metavar="KEY=VALUE", help="override a scene key (every frame of a series)")
 @click.option("--workers", type=click.IntRange(min=1), default=None, help="threads (default: CPUs, at most 4)")
-def diagnose(scene, measured, json_out, apply_to, report, prefer, sets, workers):
-    """Rank the effects SCENE lacks by how much of the MEASURED frame they explain (delta BIC)."""
+def diagnose(scene, measured, series, json_out, apply_to, report, prefer, sets, workers):
+    """Rank the effects SCENE lacks by how much of the MEASURED frame they explain (delta BIC). With --series,
+    the frames of a series file together: hardware effects shared, levels per frame."""
+    _positional(scene, measured, series)
+    if series is not None:
+        return _diagnose_series(series, json_out, apply_to, report, prefer, sets, workers)
     with Outputs(inputs=[scene, measured]) as outs:
         json_path = json_target(outs, json_out)
         report_path = outs.file(report, "--report") if report else None
@@ -120,3 +187,51 @@ def diagnose(scene, measured, json_out, apply_to, report, prefer, sets, workers)
         what = (f"objects[{a['params']['object']}].light_curve" if a["effect"] == "light_curve"
                 else f"[effects.{a['effect']}]")
         click.echo(f"wrote {a['scene']} (+{what}); ledger {out['ledger']['path']}", err=True)
+
+
+def _diagnose_series(series, json_out, apply_to, report, prefer, sets, workers) -> None:
+    ser, files = _series_inputs(series, sets)
+    with Outputs(inputs=files) as outs:
+        json_path = json_target(outs, json_out)
+        report_path = outs.file(report, "--report") if report else None
+        apply_path = outs.file(apply_to, "--apply") if apply_to else None
+        if apply_to:
+            nxt = Path(apply_to).with_name(Path(apply_to).stem + ".series.toml")
+            outs.file(nxt, "--apply (the next round's series)")
+            lj = ledger_path(nxt)
+            outs.file(lj, "--apply (its ledger)"), outs.file(lj.with_suffix(".png"), "--apply (its ledger)")
+        lj = ledger_path(series)
+        own_ledger = outs.file(lj, "ledger")
+        outs.file(lj.with_suffix(".png"), "ledger")
+        with Progress(transient=True) as bar:
+            task = bar.add_task("series", total=None)
+            out = run_series_diagnose(ser, workers=workers, progress=lambda t: bar.update(task, description=t))
+        applied, new_series, best = apply_series(ser, out, apply_path, tuple(prefer))
+        out["applied"] = ({"effect": best["effect"], "params": best["params"], "scene": apply_to,
+                           "series": outs.public(str(new_series))} if applied else None)
+        target = new_series if applied else own_ledger.with_name(Path(series).name)
+        out["ledger"] = outs.public(series_ledger(ser, out, target if applied else None, best if applied else None,
+                                                  target=None if applied else target))
+        compares = out["_compare"]["_compares"]
+        public = public_json(out)
+        if report_path is not None:
+            write_series_report(public, report_path, compares)
+            public["report"] = report
+        if json_path is not None:
+            write_json(public, json_path)
+    if apply_to and public["applied"] is None:
+        click.echo("newtsim: nothing applied: no significant candidate", err=True)
+    if json_out == "-":
+        write_json(public, None)
+    b = public["baseline"]
+    click.echo(f"series of {b['n_frames']} frames: chi2/dof {b['chi2_per_dof_levels']:.4g} (levels refitted); "
+               f"{public['verdict']}", err=True)
+    for c in public["candidates"][:5]:
+        click.echo(f"  {c['effect']:15s} {('shared' if c['shared'] else 'per frame'):9s} dBIC {c['delta_bic']:12.4g}  "
+                   f"chi2/dof after {c['chi2_per_dof']:.4g}  {c['explanation']}", err=True)
+    if public.get("separation"):
+        click.echo(f"told apart: {public['separation']['statement']}", err=True)
+    if public["applied"]:
+        a = public["applied"]
+        click.echo(f"wrote {a['scene']} (+[effects.{a['effect']}]) and {a['series']} (the next round: newtsim diagnose "
+                   f"--series {a['series']}); ledger {public['ledger']['path']}", err=True)

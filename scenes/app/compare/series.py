@@ -1,0 +1,731 @@
+"""Compare and diagnose a series of frames together (``newtsim compare|diagnose --series SERIES.toml``).
+
+One frame cannot tell apart effects that make the same pattern in it: a compressive non-linearity on a flat
+lowers the level like a dimmer lamp, a bias ramp on a dark looks like a dark-current gradient, a fixed glow
+like a straylight gradient. A series can, because the effects change differently from frame to frame: each
+effect declares its ``scaling`` (:attr:`detector.effects.base.Effect.scaling`): with exposure, with the
+signal, with nothing (hardware the frames share, fitted with one set of parameters) or frame by frame (a
+straylight that moves with the pointing).
+
+The series file (contract, DESIGN.md "series")::
+
+    scene = "camera.toml"                 # the base scene (relative to this file)
+    [[frames]]
+    file = "flat_1.fits"                  # the measured frame
+    set = { "exposure.time_s" = 2.0 }     # per-frame overrides, as --set
+    label = "flat 2 s"                    # optional
+    [[frames]]
+    file = "flat_2.fits"
+    scene = "other.toml"                  # optional: a frame with a scene of its own
+    [levels]                              # optional: "series" (one value for all frames) or "frame"
+    light_scale = "series"
+
+The levels a model knows only roughly (:meth:`detector.signatures.Residuals.levels`) are nuisance
+parameters: by default the light level of flat-screen frames is one for the series (the lamp's calibration
+is one number; its exposure times scale it), the dark level too (one sensor temperature), while the sky, the
+light of sky frames (transparency) and the bias offset (drift) are per frame.
+
+Linear candidates are fitted jointly (:mod:`detector.joint`); the others (added variance, counts, image
+transforms) frame by frame, their delta(-2 ln L) summed and their parameters counted once per frame. The
+ranking, the plausibility checks and the verdict are those of the single frame (:mod:`.candidates`); the
+held-out score of a shared effect is its leave-one-frame-out score.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+
+import numpy as np
+import tomli_w
+import tomllib
+
+from detector import registry
+from detector.characterize import linear_fit
+from detector.joint import frame_amplitude, frame_gram, leave_one_out, levels_chi2, solve_joint
+from detector.jsonable import jsonable
+from detector.morphology import describe
+from detector.signatures import LINEAR_SEARCH_PIXELS, Fit, LinearSignature, Residuals, heldout_delta
+from scenes.errors import SceneError
+from scenes.scene import load_scene
+
+from . import fullframe
+from .apply import apply_candidate
+from .candidates import (
+    EXCESS_SIGMA,
+    HELDOUT_CANDIDATES,
+    Candidate,
+    chi2_after,
+    implausibility,
+    indistinguishable,
+    overfit,
+    rank,
+    stars_check,
+    verdict,
+)
+from .ledger import plot_ledger, update_ledger
+from .run import _run_compare
+
+#: the scopes of the global levels (Residuals.LEVELS) by default: "series" for a flat-screen frame's light
+#: (one lamp) and the dark level (one temperature); the rest per frame
+LEVEL_SCOPES = ("series", "frame")
+#: a series of frames larger than this (output pixels each) is refused: the joint fit holds every frame
+MAX_SERIES_FRAME_PX = fullframe.LARGE_FRAME_PX
+#: fitted pixels per frame the variant search of a joint linear fit uses (the winner is refitted on all)
+MIN_SEARCH_PIXELS = 40_000
+
+
+@dataclass
+class SeriesFrame:
+    file: Path
+    scene: object  #: the loaded Scene (base or its own, with the overrides)
+    label: str
+    sets: dict = field(default_factory=dict)
+    scene_file: Path | None = None  #: the frame's own scene file, if any
+
+
+@dataclass
+class Series:
+    path: Path
+    scene_file: Path | None
+    frames: list[SeriesFrame]
+    levels: dict[str, str]  #: explicit scopes from the file's [levels]
+
+    @property
+    def key(self) -> str:
+        """What the ledger calls this series' measurement."""
+        return "series:" + ",".join(str(f.file) for f in self.frames)
+
+
+# --- the series file --------------------------------------------------------------------------------------
+
+def toml_inline(v) -> str:
+    """A value as inline TOML text (what ``--set KEY=VALUE`` parses)."""
+    if isinstance(v, bool):
+        return "true" if v else "false"
+    if isinstance(v, (int, float)):
+        return repr(v)
+    if isinstance(v, str):
+        return json.dumps(v)
+    if isinstance(v, (list, tuple)):
+        return "[" + ", ".join(toml_inline(x) for x in v) + "]"
+    if isinstance(v, dict):
+        return "{" + ", ".join(f"{json.dumps(str(k))} = {toml_inline(x)}" for k, x in v.items()) + "}"
+    raise TypeError(f"cannot write {type(v).__name__} as TOML")
+
+
+def _assignments(sets: dict, file: str, where: str) -> list[str]:
+    if not isinstance(sets, dict):
+        raise SceneError(f"{where}.set is a {type(sets).__name__}", key=f"{where}.set", file=file,
+                         expected='a table of dotted scene keys, e.g. { "exposure.time_s" = 2.0 }')
+    out = []
+    for k, v in sets.items():
+        try:
+            out.append(f"{k}={toml_inline(v)}")
+        except TypeError as exc:
+            raise SceneError(str(exc), key=f"{where}.set.{k}", file=file, expected="a TOML value") from None
+    return out
+
+
+def load_series(path: str | Path, sets: tuple[str, ...] | list[str] = ()) -> Series:
+    """Read and check a series file: every frame's scene loaded (base or own, with the frame's ``set`` and
+    then the command line's ``--set`` overrides) and every frame of the same camera, size and binning.
+    Errors are one line naming the file, the key and what is expected."""
+    p = Path(path)
+    file = str(p)
+    if not p.is_file():
+        raise SceneError("series file not found" if not p.exists() else "is not a regular file", file=file,
+                         expected="a series TOML file (scene = ..., [[frames]] file = ...)")
+    try:
+        data = tomllib.loads(p.read_text())
+    except tomllib.TOMLDecodeError as exc:
+        raise SceneError(f"not valid TOML ({exc})", file=file, expected="a series TOML file") from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise SceneError(f"cannot read ({exc})", file=file) from None
+    unknown = set(data) - {"scene", "frames", "levels", "title"}
+    if unknown:
+        raise SceneError(f"unknown key(s) {', '.join(sorted(unknown))}", key=min(unknown), file=file,
+                         expected="scene, [[frames]], [levels], title")
+    base = p.parent
+    frames_in = data.get("frames")
+    if not isinstance(frames_in, list) or len(frames_in) < 2:
+        raise SceneError(f"{0 if not isinstance(frames_in, list) else len(frames_in)} frame(s)", key="frames",
+                         file=file, expected="at least two [[frames]] tables, each with file = \"measured.fits\"")
+    scene_file = None
+    if "scene" in data:
+        if not isinstance(data["scene"], str):
+            raise SceneError("scene is not a string", key="scene", file=file, expected="a scene TOML path")
+        scene_file = _resolve(base, data["scene"])
+    levels = data.get("levels", {})
+    if not isinstance(levels, dict):
+        raise SceneError("[levels] is not a table", key="levels", file=file, expected="a table of level = scope")
+    for k, v in levels.items():
+        if k not in Residuals.LEVELS or v not in LEVEL_SCOPES:
+            raise SceneError(f"levels.{k} = {v!r}", key=f"levels.{k}", file=file,
+                             expected=f"one of {', '.join(Residuals.LEVELS)} = \"series\" or \"frame\"")
+    frames = []
+    for i, fr in enumerate(frames_in):
+        where = f"frames[{i}]"
+        if not isinstance(fr, dict) or not isinstance(fr.get("file"), str):
+            raise SceneError("no file", key=f"{where}.file", file=file, expected='file = "measured.fits"')
+        extra = set(fr) - {"file", "scene", "set", "label"}
+        if extra:
+            raise SceneError(f"unknown key(s) {', '.join(sorted(extra))}", key=f"{where}.{min(extra)}",
+                             file=file, expected="file, scene, set, label")
+        own = _resolve(base, fr["scene"]) if isinstance(fr.get("scene"), str) else None
+        if "scene" in fr and own is None:
+            raise SceneError("scene is not a string", key=f"{where}.scene", file=file, expected="a scene TOML path")
+        sc_file = own or scene_file
+        if sc_file is None:
+            raise SceneError("no scene", key=f"{where}.scene", file=file,
+                             expected="a top-level scene = \"...\" or one in every frame")
+        frame_sets = fr.get("set", {})
+        assigned = _assignments(frame_sets, file, where) + list(sets)
+        sc = load_scene(str(sc_file), assigned)
+        measured = _resolve(base, fr["file"])
+        if not measured.is_file():
+            raise SceneError("measured frame not found", key=f"{where}.file", file=file,
+                             expected=f"an existing FITS file ({measured})")
+        frames.append(SeriesFrame(measured, sc, str(fr.get("label") or measured.stem), dict(frame_sets), own))
+    _check_same_camera(frames, file)
+    return Series(p, scene_file, frames, dict(levels))
+
+
+def _resolve(base: Path, name: str) -> Path:
+    q = Path(name).expanduser()
+    return q if q.is_absolute() else (base / q).resolve()
+
+
+def _check_same_camera(frames: list[SeriesFrame], file: str) -> None:
+    """Every frame of one camera, size and binning (the joint fit shares its hardware); one line naming the
+    first frame that differs from the first."""
+    def ident(fr):
+        s = fr.scene.sensor()
+        return {"camera": s.kind, "size": f"{s.output_shape[1]}x{s.output_shape[0]}", "binning": s.binning,
+                "sensor": f"{s.sensor_width_px}x{s.sensor_height_px}"}
+    ref = ident(frames[0])
+    for i, fr in enumerate(frames[1:], start=1):
+        got = ident(fr)
+        for k in ref:
+            if got[k] != ref[k]:
+                raise SceneError(f"frame {i} ({fr.file.name}) has {k} {got[k]}, frame 0 ({frames[0].file.name}) "
+                                 f"{ref[k]}", key=f"frames[{i}]", file=file,
+                                 expected="every frame of one camera, size and binning")
+    s = frames[0].scene.sensor()
+    if s.output_shape[0] * s.output_shape[1] > MAX_SERIES_FRAME_PX:
+        raise SceneError(f"frames of {s.output_shape[1]}x{s.output_shape[0]} pixels", key="frames", file=file,
+                         expected=f"frames of at most {MAX_SERIES_FRAME_PX / 1e6:.0f} Mpixel each (bin them or read "
+                         "a window: --set detector.binning=... or detector.roi)")
+
+
+# --- the levels ---------------------------------------------------------------------------------------------
+
+def shared_levels(series: Series, frames: list[Residuals]) -> list[str]:
+    """The global levels that are one for the whole series: the explicit [levels] scopes, else the light
+    level when every lit frame is a flat screen (one lamp) and the dark level (one sensor temperature)."""
+    out = []
+    lit = [r.light_source for r in frames if r.light_source in ("flat", "sky")]
+    for name in Residuals.LEVELS:
+        scope = series.levels.get(name)
+        if scope is None:
+            scope = "series" if (name == "light_scale" and lit and all(s == "flat" for s in lit)) or \
+                name == "dark_scale" else "frame"
+        if scope == "series":
+            out.append(name)
+    return out
+
+
+# --- compare ------------------------------------------------------------------------------------------------
+
+def run_series_compare(series: Series, workers: int | None = None, progress: Callable[[str], None] | None = None
+                       ) -> dict:
+    """Every frame compared with its model (:func:`scenes.app.compare.run._run_compare`), and the series'
+    figures: chi2/dof over all frames, with the levels fitted per frame and with the shared ones joint."""
+    t0 = time.perf_counter()
+    cmps = []
+    for i, fr in enumerate(series.frames):
+        if progress is not None:
+            progress(f"model of frame {i + 1}/{len(series.frames)} ({fr.label})")
+        cmps.append(_run_compare(fr.scene, fr.file, workers=workers))
+    ress = [c["_residuals"] for c in cmps]
+    shared = shared_levels(series, ress)
+    grams = [_level_gram(r, shared) for r in ress]
+    chi2_joint, coef = levels_chi2(grams)
+    n = sum(r.n_fit for r in ress)
+    chi2 = sum(r.chi2() for r in ress)
+    frames = [_frame_row(fr, c) for fr, c in zip(series.frames, cmps)]
+    baseline = {"chi2_per_dof": chi2 / max(n, 1), "chi2_per_dof_levels": chi2_joint / max(n, 1),
+                "misfit": float(np.average([f["misfit"] for f in frames], weights=[max(f["n_compared"], 1)
+                                                                                    for f in frames])),
+                "n_compared": int(n), "n_frames": len(frames), "series_file": str(series.path),
+                "levels": {"series": {k: float(v) for k, v in zip(shared, coef)},
+                           "frame": [f["levels"] for f in frames]},
+                "warnings": [f"{f['label']}: {w}" for f in frames for w in f["warnings"]],
+                "seconds": {"compare": time.perf_counter() - t0}}
+    return {"baseline": baseline, "frames": frames, "shared_levels": shared, "calibration": calibration(series, cmps),
+            "_compares": cmps, "_series": series}
+
+
+def _level_gram(res: Residuals, shared: list[str]):
+    idx, _, w = res.flat_profiled()
+    return frame_gram(res, idx, res.flat()[1], w, shared_levels=shared)
+
+
+def _frame_row(fr: SeriesFrame, cmp: dict) -> dict:
+    s, res = cmp["summary"], cmp["_residuals"]
+    idx = res.flat()[0]
+    charge = res.charge_e.ravel()[idx] if idx.size else np.zeros(1)
+    return {"label": fr.label, "file": str(fr.file), "exposure_s": float(res.exptime_s),
+            "light_source": res.light_source, "signal_e": float(np.median(charge)),
+            "chi2_per_dof": s["chi2_per_dof"], "chi2_per_dof_levels": s.get("chi2_per_dof_levels"),
+            "misfit": s["misfit"], "n_compared": s["n_compared"], "levels": s.get("levels", {}),
+            "worst_regions": s.get("worst_regions"), "warnings": s.get("warnings", [])}
+
+
+def calibration(series: Series, cmps: list[dict]) -> dict:
+    """The series' own calibration regressions, as characterize computes them (:func:`detector.characterize
+    .linear_fit`): the dark level against exposure time (the dark rate, EMVA 1288 sect. 8.1) over the dark
+    frames and the flat signal against exposure time (the linearity, EMVA 1288 sect. 6.5) over the flats,
+    measured and modelled side by side."""
+    out = {}
+    for kind, src in (("dark_regression", "none"), ("linearity", "flat")):
+        rows = []
+        for fr, c in zip(series.frames, cmps):
+            res = c["_residuals"]
+            if res.light_source != src:
+                continue
+            idx = res.flat()[0]
+            if not idx.size:
+                continue
+            rows.append((res.exptime_s, float(np.median(res.data_adu.ravel()[idx])),
+                         float(np.median(res.model_adu.ravel()[idx])), fr.label, res.gain))
+        ts = np.array([r[0] for r in rows])
+        if len(rows) < 2 or np.ptp(ts) == 0:
+            continue
+        meas, mod = linear_fit(ts, [r[1] for r in rows]), linear_fit(ts, [r[2] for r in rows])
+        g = rows[0][4]
+        entry = {"frames": [r[3] for r in rows], "exposure_s": ts.tolist(), "measured_adu": [r[1] for r in rows],
+                 "model_adu": [r[2] for r in rows],
+                 "measured_slope_adu_per_s": meas["slope"], "model_slope_adu_per_s": mod["slope"],
+                 "measured_intercept_adu": meas["intercept"], "model_intercept_adu": mod["intercept"]}
+        if kind == "dark_regression":
+            entry["measured_rate_e_per_s"] = meas["slope"] * g
+            entry["model_rate_e_per_s"] = mod["slope"] * g
+        else:
+            fit_y = meas["intercept"] + meas["slope"] * ts
+            sig = np.maximum(np.abs(fit_y - meas["intercept"]), 1e-9)
+            entry["max_linearity_deviation"] = float(np.max(np.abs(np.array(entry["measured_adu"]) - fit_y) / sig))
+        out[kind] = entry
+    return out
+
+
+# --- diagnose -----------------------------------------------------------------------------------------------
+
+@dataclass
+class SeriesFit:
+    """One candidate over the series: the combined :class:`Fit` (delta -2 ln L summed, parameters counted
+    once when shared, once per frame otherwise), each frame's own fit, and the joint solution's pieces."""
+
+    fit: Fit
+    frames: list[Fit | None]
+    mode: str  #: "shared" or "frame"
+    per_frame_delta: list[float]
+    chi2_before: float  #: the series' chi2 with the levels alone
+    chi2_after: float  #: and with the candidate (levels refitted)
+    grams: list | None = None  #: the final normal equations (shared linear fits: leave-one-out scores)
+    solution: object = None  #: the joint solution (:class:`detector.joint.JointFit`) of a linear fit
+
+
+def _search_sample(res: Residuals, n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
+    idx, _, w = res.flat_profiled()
+    r = res.flat()[1]
+    step = max(1, int(math.ceil(idx.size / max(n, 1))))
+    sub = np.arange(0, idx.size, step)
+    return idx[sub], r[sub], w[sub], idx.size / max(sub.size, 1)
+
+
+def _values(v, res):
+    return lambda i: v.values(i, res.data_adu.shape)
+
+
+def joint_linear(name: str, sig: LinearSignature, frames: list[Residuals], shared: list[str], mode: str
+                 ) -> SeriesFit | None:
+    """A linear signature fitted to the whole series: one set of coefficients (``mode`` "shared") or one per
+    frame ("frame"), jointly with the levels; variants searched on a subsample of every frame and the winner
+    refitted on every fitted pixel."""
+    variant_lists = [list(sig.variants(r)) for r in frames]
+    if not variant_lists[0] or any(len(v) != len(variant_lists[0]) for v in variant_lists):
+        return None
+    nsearch = max(MIN_SEARCH_PIXELS, LINEAR_SEARCH_PIXELS // len(frames))
+    samples = [_search_sample(r, nsearch) for r in frames]
+
+    def evaluate(vs):
+        grams = []
+        for v, r, (idx, rr, w, scale) in zip(vs, frames, samples):
+            f = _values(v, r)
+            grams.append(frame_gram(r, idx, rr, w, shared=f if mode == "shared" else None,
+                                    own=f if mode == "frame" else None, shared_levels=shared).scaled(scale))
+        return solve_joint(grams)
+
+    def params_of(vs, sol):
+        if mode == "shared":
+            ps = [v.to_params(sol.shared) for v in vs]
+        else:
+            ps = [v.to_params(c) for v, c in zip(vs, sol.own)]
+        return ps
+
+    def search(cands):
+        best = None
+        for vs in cands:
+            sol = evaluate(vs)
+            ps = params_of(vs, sol)
+            if (mode == "shared" and any(p is None for p in ps)) or all(p is None for p in ps):
+                continue
+            if best is None or sol.delta_chi2 < best[1].delta_chi2:
+                best = (vs, sol)
+        return best
+
+    best = search(list(zip(*variant_lists)))
+    if best is not None and sig.refine is not None:
+        refined = [list(sig.refine(v, r)) for v, r in zip(best[0], frames)]
+        if all(len(x) == len(refined[0]) for x in refined):
+            best = search([best[0], *zip(*refined)]) or best
+    if best is None:
+        return None
+    vs = best[0]
+    grams = []
+    for v, r in zip(vs, frames):
+        idx, _, w = r.flat_profiled()
+        f = _values(v, r)
+        grams.append(frame_gram(r, idx, r.flat()[1], w, shared=f if mode == "shared" else None,
+                                own=f if mode == "frame" else None, shared_levels=shared))
+    sol = solve_joint(grams)
+    coefs = [sol.shared] * len(frames) if mode == "shared" else sol.own
+    if sig.of_light:  # a multiplicative effect's coefficients carry the light level (see LinearSignature)
+        coefs = [c / (1.0 + _light_level(sol, i, shared, frames[i])) for i, c in enumerate(coefs)]
+    ps = [v.to_params(c) for v, c in zip(vs, coefs)]
+    if mode == "shared" and any(p is None for p in ps):
+        return None
+    fits: list[Fit | None] = []
+    corr = 0.0
+    for v, r, c, p, d in zip(vs, frames, coefs, ps, sol.per_frame_delta):
+        if p is None:
+            fits.append(None)
+            continue
+        fi = sig._finish(r, name, v, c, d, p)
+        corr += fi.delta_m2lnl - d  # the shot noise of the added charge (with_shot_noise), frame by frame
+        fits.append(fi)
+    first = next(f for f in fits if f is not None)
+    k_one = first.k
+    k = k_one if mode == "shared" else k_one * sum(f is not None for f in fits)
+    n = sum(r.n_fit for r in frames)
+    params = first.params if mode == "shared" else {"per_frame": [f.params if f else None for f in fits]}
+    expl = first.explanation
+    fit = Fit(name, params, sol.delta_chi2 + corr, k, n, expl, note=first.note)
+    return SeriesFit(fit, fits, mode, list(sol.per_frame_delta), sol.chi2_levels, sol.chi2,
+                     grams if mode == "shared" else None, sol)
+
+
+def _light_level(sol, i: int, shared: list[str], res: Residuals) -> float:
+    if "light_scale" in shared:
+        return float(sol.shared_levels[shared.index("light_scale")]) if sol.shared_levels.size else 0.0
+    names = [n for n in res.levels()["names"] if n not in shared]
+    lv = sol.own_levels[i]
+    return float(lv[names.index("light_scale")]) if "light_scale" in names and lv.size else 0.0
+
+
+def per_frame(name: str, sig, frames: list[Residuals]) -> SeriesFit | None:
+    """A signature that is not linear, fitted frame by frame: delta(-2 ln L) and parameters summed over the
+    frames it fits."""
+    fits = []
+    for r in frames:
+        f = sig.fit(r, name)
+        fits.append(f if f is not None and np.isfinite(f.delta_m2lnl) else None)
+    got = [f for f in fits if f is not None]
+    if not got:
+        return None
+    best = min(got, key=lambda f: f.delta_m2lnl)
+    params = best.params if len(got) == 1 else {**best.params, "per_frame": [f.params if f else None for f in fits]}
+    fit = Fit(name, params, float(sum(f.delta_m2lnl for f in got)), sum(f.k for f in got),
+              sum(r.n_fit for r in frames), best.explanation, note=best.note)
+    before = sum(r.chi2_profiled() for r in frames)
+    after = sum(chi2_after(r, f) * r.n_fit if f is not None else r.chi2_profiled() for r, f in zip(frames, fits))
+    return SeriesFit(fit, fits, "frame", [f.delta_m2lnl if f else 0.0 for f in fits], before, after)
+
+
+def _mode(cls) -> str:
+    return "frame" if (cls.scaling or "frame") == "frame" else "shared"
+
+
+def series_candidates(frames: list[Residuals], labels: list[str], present: set[str], shared: list[str],
+                      truths: list, progress=None) -> tuple[list[Candidate], list[dict], dict]:
+    """Every absent effect with a signature, fitted to the series and judged as in one frame. Returns
+    (candidates best first, problems, {effect: SeriesFit})."""
+    out, problems, fits = [], [], {}
+    for name, cls in sorted(registry().items()):
+        if name in present or cls.signature is None:
+            continue
+        t0 = time.perf_counter()
+        if progress is not None:
+            progress(name)
+        mode = _mode(cls)
+        try:
+            if isinstance(cls.signature, LinearSignature):
+                sf = joint_linear(name, cls.signature, frames, shared, mode)
+            else:
+                sf = per_frame(name, cls.signature, frames)
+            if sf is not None:
+                for f in sf.frames:
+                    if f is not None:
+                        cls.Params.model_validate(f.params)
+        except Exception as exc:  # noqa: BLE001  (a plugin that raises is reported, the others still run)
+            problems.append({"effect": name, "error": f"{type(exc).__name__}: {exc}"})
+            continue
+        if sf is None or not np.isfinite(sf.fit.delta_m2lnl):
+            continue
+        fits[name] = sf
+        why, implaus = "", ""
+        for i, (lab, r, f, truth) in enumerate(zip(labels, frames, sf.frames, truths)):
+            if f is None or sf.per_frame_delta[i] >= -1.0:  # judged where it changes something
+                continue
+            if not why:
+                w = overfit(f, chi2_after(r, f), r) or (stars_check(r, f, truth)
+                                                        if cls.signature.kind == "transform" else "")
+                why = f"frame {lab}: {w}" if w else ""
+            if not implaus:
+                w = implausibility(cls, f, r)
+                implaus = f"frame {lab}: {w}" if w else ""
+        if not implaus and sf.mode == "frame" and _mode(cls) == "shared":
+            implaus = _consistency(sf, labels)
+        n_all = sum(r.n_fit for r in frames)
+        cand = Candidate(sf.fit, sf.chi2_after / max(n_all, 1), time.perf_counter() - t0, why, implaus)
+        cand.scaling = cls.scaling or "frame"  # type: ignore[attr-defined]
+        out.append(cand)
+    _excess_shares(frames, out, fits, shared)
+    _heldout(frames, out, fits, progress)
+    return rank(out), problems, fits
+
+
+#: a hardware (shared) effect fitted frame by frame whose first numeric parameter differs by more than this
+#: factor between frames where it is significant is not one piece of hardware
+CONSISTENCY_FACTOR = 3.0
+
+
+def _consistency(sf: SeriesFit, labels: list[str]) -> str:
+    vals = []
+    for lab, f, d in zip(labels, sf.frames, sf.per_frame_delta):
+        if f is None or d > -10:
+            continue
+        num = next((v for v in f.params.values() if isinstance(v, (int, float)) and not isinstance(v, bool)), None)
+        if num is not None and num != 0:
+            vals.append((abs(float(num)), lab))
+    if len(vals) < 2:
+        return ""
+    lo, hi = min(vals), max(vals)
+    if hi[0] > CONSISTENCY_FACTOR * lo[0]:
+        return (f"a hardware effect, but its fitted strength differs {hi[0] / lo[0]:.3g}x between frames {lo[1]} "
+                f"({lo[0]:.3g}) and {hi[1]} ({hi[0]:.3g}): not one property of the camera")
+    return ""
+
+
+def _excess_shares(frames: list[Residuals], cands: list[Candidate], fits: dict, shared: list[str]) -> None:
+    """Where the series' excess chi2 (levels alone, shared ones joint) is large (EXCESS_SIGMA), the share of
+    it each candidate removes."""
+    n = sum(r.n_fit for r in frames)
+    excess = levels_chi2([_level_gram(r, shared) for r in frames])[0] - n
+    if n == 0 or excess / math.sqrt(2 * n) < EXCESS_SIGMA:
+        return
+    for c in cands:
+        sf = fits[c.fit.effect]
+        if np.isfinite(sf.chi2_after):
+            c.excess_share = round(float((sf.chi2_before - sf.chi2_after) / excess), 4)
+
+
+def _heldout(frames: list[Residuals], cands: list[Candidate], fits: dict, progress=None) -> None:
+    """Held-out scores of the contenders: a shared linear effect's leave-one-frame-out score (fitted on the
+    other frames, scored on each left-out frame), the others' block cross-validation in every frame
+    (:func:`detector.signatures.heldout_delta`), summed."""
+    reg = registry()
+    for c in sorted((c for c in cands if c.contender), key=lambda c: c.fit.delta_bic)[:HELDOUT_CANDIDATES]:
+        sf = fits[c.fit.effect]
+        t0 = time.perf_counter()
+        try:
+            if sf.grams is not None:
+                c.heldout = float(sum(leave_one_out(sf.grams)))
+            else:
+                sig = reg[c.fit.effect].signature
+                total, scored = 0.0, False
+                for r, f in zip(frames, sf.frames):
+                    if f is None:
+                        continue
+                    h = heldout_delta(sig, r, c.fit.effect, f)
+                    if h is None:
+                        scored = False
+                        break
+                    total, scored = total + h, True
+                c.heldout = total if scored else None
+        except Exception as exc:  # noqa: BLE001
+            c.implausible = f"cannot be scored on held-out frames ({type(exc).__name__}: {exc})"
+        c.seconds += time.perf_counter() - t0
+        if progress is not None:
+            progress(f"{c.fit.effect} (held out)")
+
+
+def run_series_diagnose(series: Series, workers: int | None = None, progress=None) -> dict:
+    """compare + every absent effect fitted to the series and ranked (the single-frame JSON keys for the
+    series as a whole, ``frames`` with each frame's own figures, ``separation``: what told the winner from
+    its nearest rival)."""
+    cmp = run_series_compare(series, workers=workers, progress=progress)
+    t0 = time.perf_counter()
+    cmps = cmp["_compares"]
+    frames = [c["_residuals"] for c in cmps]
+    labels = [f.label for f in series.frames]
+    present = set().union(*(set(f.scene.effects) for f in series.frames))
+    truths = [c["_model"].setup.truth for c in cmps]
+    cands, problems, fits = series_candidates(frames, labels, present, cmp["shared_levels"], truths, progress)
+    morphs = [describe(r) for r in frames]
+    for m in morphs:
+        m.pop("empirical", None)
+    worst = int(np.argmax([m.get("significance_sigma", 0.0) for m in morphs]))
+    morph = {**morphs[worst], "frame": labels[worst]}
+    out = {"baseline": cmp["baseline"], "candidates": [_cand_json(c, fits, labels) for c in cands],
+           "problems": problems, "verdict": verdict(cands, morph), "residual_morphology": morph,
+           "frames": cmp["frames"], "shared_levels": cmp["shared_levels"], "calibration": cmp["calibration"],
+           "series": str(series.path), "_compare": cmp, "_fits": fits, "_candidates": cands}
+    for fr, m in zip(out["frames"], morphs):
+        fr["residual_morphology"] = m
+    sig = [c for c in cands if c.significant]
+    out["significant"] = [c.fit.effect for c in sig]
+    out["indistinguishable"] = [c.fit.effect for c in indistinguishable(sig)]
+    out["separation"] = separation(frames, labels, cands, fits, series)
+    out["seconds"] = time.perf_counter() - t0
+    return out
+
+
+def _cand_json(c: Candidate, fits: dict, labels: list[str]) -> dict:
+    d = c.to_json()
+    sf = fits.get(c.fit.effect)
+    d["scaling"] = getattr(c, "scaling", "frame")
+    d["shared"] = bool(sf is not None and sf.mode == "shared")
+    if sf is not None:
+        d["frames"] = [{"label": lab, "delta_chi2": round(float(dd), 4),
+                        "params": (f.params if f is not None else None)} for lab, f, dd in
+                       zip(labels, sf.frames, sf.per_frame_delta)]
+    return d
+
+
+# --- what told the winner apart ------------------------------------------------------------------------------
+
+def separation(frames: list[Residuals], labels: list[str], cands: list[Candidate], fits: dict, series: Series
+               ) -> dict | None:
+    """What separated the best candidate from its nearest rival (the next plausible, unrejected candidate of
+    another effect with delta BIC < -10): frame by frame, each one's share of the improvement and, for a
+    shared effect, its pattern fitted to that frame alone (amplitude relative to the joint fit, the shared
+    levels held: 1 where the frame agrees). A shared effect of the right scaling keeps 1 in every frame; one
+    of the wrong scaling drifts with exposure or signal (a bias ramp fitted to a dark-current gradient grows
+    with exposure time, a lamp-level error fitted as a non-linearity shrinks with the signal)."""
+    best = next((c for c in cands if c.significant), None)
+    if best is None:
+        return None
+    rival = next((c for c in cands if c is not best and c.fit.effect != best.fit.effect and c.plausible
+                  and not c.rejected and c.fit.delta_bic < -10), None)
+    pair = [("best", best, fits[best.fit.effect])]
+    if rival is not None:
+        pair.append(("rival", rival, fits[rival.fit.effect]))
+    rows = []
+    for i, (r, lab) in enumerate(zip(frames, labels)):
+        idx = r.flat()[0]
+        row = {"label": lab, "exposure_s": float(r.exptime_s),
+               "signal_e": float(np.median(r.charge_e.ravel()[idx])) if idx.size else 0.0}
+        for key, _, sf in pair:
+            row[f"delta_chi2_{key}"] = round(float(sf.per_frame_delta[i]), 3)
+            if sf.grams is not None and sf.solution is not None:
+                a, e = frame_amplitude(sf.grams[i], sf.solution)
+                row[f"amplitude_{key}"] = a if np.isfinite(a) else None
+                row[f"amplitude_error_{key}"] = e if np.isfinite(e) else None
+        rows.append(row)
+    total = {key: float(sum(sf.per_frame_delta)) for key, _, sf in pair}
+    if rival is None:
+        text = f"{best.fit.effect}: no plausible rival fits the series"
+    else:
+        text = (f"{best.fit.effect} (scaling: {getattr(best, 'scaling', '?')}) against {rival.fit.effect} "
+                f"(scaling: {getattr(rival, 'scaling', '?')}): over the series chi2 falls by {-total['best']:.4g} "
+                f"against {-total['rival']:.4g}")
+        amps = [row.get("amplitude_rival") for row in rows if row.get("amplitude_rival") is not None]
+        if len(amps) >= 2:
+            text += (f"; the rival's pattern fitted frame by frame ranges {min(amps):.3g}-{max(amps):.3g} of its "
+                     "joint amplitude, the winner's stays near 1")
+    return {"best": best.fit.effect, "rival": rival.fit.effect if rival is not None else None,
+            "scaling": {key: getattr(c, "scaling", None) for key, c, _ in pair}, "frames": rows, "statement": text}
+
+
+# --- apply and the ledger -----------------------------------------------------------------------------------
+
+def apply_series(series: Series, diagnosis: dict, apply_to: str | Path | None, prefer: tuple[str, ...] = ()
+                 ) -> tuple[Path | None, Path | None, dict | None]:
+    """``--apply``: the best significant candidate added to the series' base scene at ``apply_to`` (one scene
+    serving every frame), and ``APPLY.series.toml`` beside it: the series file of the next round (the new
+    scene, the same frames; a per-frame effect's parameters as each frame's ``set``). Returns (scene,
+    series file, the applied candidate) or Nones."""
+    sig = [c for c in diagnosis["candidates"] if c["significant"]]
+    best = next((c for n in prefer for c in sig if c["effect"] == n), sig[0] if sig else None)
+    if apply_to is None or best is None:
+        return None, None, best
+    base = series.frames[0].scene if series.scene_file is None else load_scene(str(series.scene_file))
+    per = best["params"].get("per_frame") if isinstance(best["params"], dict) else None
+    cand = dict(best)
+    if per is not None:
+        first = next(p for p in per if p is not None)
+        cand = {**best, "params": first}
+    scene_path = apply_candidate(base, cand, apply_to, None)
+    new_series = Path(apply_to).with_name(Path(apply_to).stem + ".series.toml")
+    frames = []
+    for i, fr in enumerate(series.frames):
+        entry = {"file": str(fr.file), "label": fr.label}
+        sets = dict(fr.sets)
+        if per is not None and per[i] is not None and best["effect"] != "light_curve":
+            for k, v in per[i].items():
+                sets[f"effects.{best['effect']}.{k}"] = v
+        if fr.scene_file is not None:
+            entry["scene"] = str(fr.scene_file)
+            if per is None:
+                for k, v in best["params"].items():
+                    sets[f"effects.{best['effect']}.{k}"] = v
+        if sets:
+            entry["set"] = sets
+        frames.append(entry)
+    body = {"scene": Path(scene_path).name, "frames": frames}  # beside it
+    if series.levels:
+        body["levels"] = series.levels
+    new_series.write_text(f"# written by newtsim diagnose --series --apply: {best['effect']} added\n"
+                          + tomli_w.dumps(body))
+    return Path(scene_path), new_series, best
+
+
+def series_ledger(series: Series, diagnosis: dict, new_series: Path | None, best: dict | None,
+                  target: Path | None = None) -> dict:
+    """The ledger of the series' rounds (beside the new series file, else beside the series file): the
+    series' chi2/dof with the levels refitted (shared ones joint: the lamp, sky and bias levels the scene
+    only knows to a per cent are not the error) and the misfit, per round."""
+    b = diagnosis["baseline"]
+    ledger, rounds = update_ledger(series.path, new_series or target, series.key,
+                                   {**b, "chi2_per_dof": b["chi2_per_dof_levels"]}, best if new_series else None)
+    plot = plot_ledger(rounds, Path(ledger).with_suffix(".png"))
+    return {"path": str(ledger), "rounds": rounds, "plot": str(plot)}
+
+
+def public_json(diagnosis: dict) -> dict:
+    """The diagnosis without its in-memory parts (arrays, residuals)."""
+    return jsonable({k: v for k, v in diagnosis.items() if not k.startswith("_")})
+
+
+def frames_of(cmp: dict) -> list[Residuals]:
+    return [c["_residuals"] for c in cmp["_compares"]]
+
+
+def replace_frames(series: Series, frames: list[SeriesFrame]) -> Series:
+    return replace(series, frames=frames)
