@@ -46,7 +46,7 @@ import tomllib
 
 from detector import registry
 from detector.characterize import linear_fit
-from detector.joint import frame_amplitude, frame_gram, leave_one_out, levels_chi2, solve_joint
+from detector.joint import fixed_score, frame_amplitude, frame_gram, leave_one_out, levels_chi2, solve_joint
 from detector.jsonable import jsonable
 from detector.morphology import describe
 from detector.signatures import LINEAR_SEARCH_PIXELS, Fit, LinearSignature, Residuals, heldout_delta
@@ -338,6 +338,7 @@ class SeriesFit:
     chi2_after: float  #: and with the candidate (levels refitted)
     grams: list | None = None  #: the final normal equations (shared linear fits: leave-one-out scores)
     solution: object = None  #: the joint solution (:class:`detector.joint.JointFit`) of a linear fit
+    shared_names: list = field(default_factory=list)  #: the shared levels of that solution, in order
 
 
 def _search_sample(res: Residuals, n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
@@ -369,21 +370,21 @@ def joint_linear(name: str, sig: LinearSignature, frames: list[Residuals], share
             f = _values(v, r)
             grams.append(frame_gram(r, idx, rr, w, shared=f if mode == "shared" else None,
                                     own=f if mode == "frame" else None, shared_levels=shared).scaled(scale))
-        return solve_joint(grams)
+        return solve_joint(grams), grams
 
-    def params_of(vs, sol):
+    def params_of(vs, sol, grams):
+        # a frame the effect does not reach (a vignetting on a dark, a dark charge on a bias: its templates are
+        # zero there) has no parameters of its own and is not asked for them
         if mode == "shared":
-            ps = [v.to_params(sol.shared) for v in vs]
-        else:
-            ps = [v.to_params(c) for v, c in zip(vs, sol.own)]
-        return ps
+            return [v.to_params(sol.shared) if _concerned(g) else "-" for v, g in zip(vs, grams)]
+        return [v.to_params(c) if _concerned(g) else "-" for v, c, g in zip(vs, sol.own, grams)]
 
     def search(cands):
         best = None
         for vs in cands:
-            sol = evaluate(vs)
-            ps = params_of(vs, sol)
-            if (mode == "shared" and any(p is None for p in ps)) or all(p is None for p in ps):
+            sol, grams = evaluate(vs)
+            ps = params_of(vs, sol, grams)
+            if (mode == "shared" and any(p is None for p in ps)) or all(p in (None, "-") for p in ps):
                 continue
             if best is None or sol.delta_chi2 < best[1].delta_chi2:
                 best = (vs, sol)
@@ -407,13 +408,13 @@ def joint_linear(name: str, sig: LinearSignature, frames: list[Residuals], share
     coefs = [sol.shared] * len(frames) if mode == "shared" else sol.own
     if sig.of_light:  # a multiplicative effect's coefficients carry the light level (see LinearSignature)
         coefs = [c / (1.0 + _light_level(sol, i, shared, frames[i])) for i, c in enumerate(coefs)]
-    ps = [v.to_params(c) for v, c in zip(vs, coefs)]
-    if mode == "shared" and any(p is None for p in ps):
+    ps = [v.to_params(c) if _concerned(g) else "-" for v, c, g in zip(vs, coefs, grams)]
+    if (mode == "shared" and any(p is None for p in ps)) or all(p in (None, "-") for p in ps):
         return None
     fits: list[Fit | None] = []
     corr = 0.0
     for v, r, c, p, d in zip(vs, frames, coefs, ps, sol.per_frame_delta):
-        if p is None:
+        if p is None or p == "-":
             fits.append(None)
             continue
         fi = sig._finish(r, name, v, c, d, p)
@@ -427,7 +428,13 @@ def joint_linear(name: str, sig: LinearSignature, frames: list[Residuals], share
     expl = first.explanation
     fit = Fit(name, params, sol.delta_chi2 + corr, k, n, expl, note=first.note)
     return SeriesFit(fit, fits, mode, list(sol.per_frame_delta), sol.chi2_levels, sol.chi2,
-                     grams if mode == "shared" else None, sol)
+                     grams if mode == "shared" else None, sol, list(shared))
+
+
+def _concerned(g) -> bool:
+    """Whether the candidate's templates reach the frame at all (not all zero on its fitted pixels)."""
+    cols = g.cols("ts") + g.cols("tp")
+    return bool(cols) and bool(np.any(np.diag(g.g)[cols] > 0))
 
 
 def _light_level(sol, i: int, shared: list[str], res: Residuals) -> float:
@@ -438,12 +445,17 @@ def _light_level(sol, i: int, shared: list[str], res: Residuals) -> float:
     return float(lv[names.index("light_scale")]) if "light_scale" in names and lv.size else 0.0
 
 
-def per_frame(name: str, sig, frames: list[Residuals]) -> SeriesFit | None:
+def per_frame(name: str, sig, frames: list[Residuals], params_model=None) -> SeriesFit | None:
     """A signature that is not linear, fitted frame by frame: delta(-2 ln L) and parameters summed over the
-    frames it fits."""
+    frames it fits (a frame whose fit the effect's parameter model refuses counts as not fitted)."""
     fits = []
     for r in frames:
         f = sig.fit(r, name)
+        if f is not None and params_model is not None:
+            try:
+                params_model.model_validate(f.params)
+            except ValueError:
+                f = None
         fits.append(f if f is not None and np.isfinite(f.delta_m2lnl) else None)
     got = [f for f in fits if f is not None]
     if not got:
@@ -477,7 +489,7 @@ def series_candidates(frames: list[Residuals], labels: list[str], present: set[s
             if isinstance(cls.signature, LinearSignature):
                 sf = joint_linear(name, cls.signature, frames, shared, mode)
             else:
-                sf = per_frame(name, cls.signature, frames)
+                sf = per_frame(name, cls.signature, frames, cls.Params)
             if sf is not None:
                 for f in sf.frames:
                     if f is not None:
@@ -533,16 +545,23 @@ def _consistency(sf: SeriesFit, labels: list[str]) -> str:
 
 
 def _excess_shares(frames: list[Residuals], cands: list[Candidate], fits: dict, shared: list[str]) -> None:
-    """Where the series' excess chi2 (levels alone, shared ones joint) is large (EXCESS_SIGMA), the share of
-    it each candidate removes."""
-    n = sum(r.n_fit for r in frames)
-    excess = levels_chi2([_level_gram(r, shared) for r in frames])[0] - n
-    if n == 0 or excess / math.sqrt(2 * n) < EXCESS_SIGMA:
+    """The excess-share rule of the single frame (:func:`.candidates.excess_shares`), frame by frame: in every
+    frame whose excess chi2 (levels alone, the shared ones at their joint values) is large (EXCESS_SIGMA),
+    the share of it the candidate removes; a candidate keeps the largest (an effect of the darks need not
+    remove a share of the flats' excess). None when no frame has a large excess."""
+    grams = [_level_gram(r, shared) for r in frames]
+    _, c_lv = levels_chi2(grams)
+    excess = []
+    for r, g in zip(frames, grams):
+        e = fixed_score(g, g.cols("ls"), c_lv, g.cols("lf")) - r.n_fit
+        excess.append(e if r.n_fit and e / math.sqrt(2 * r.n_fit) >= EXCESS_SIGMA else None)
+    if all(e is None for e in excess):
         return
     for c in cands:
         sf = fits[c.fit.effect]
-        if np.isfinite(sf.chi2_after):
-            c.excess_share = round(float((sf.chi2_before - sf.chi2_after) / excess), 4)
+        shares = [-d / e for d, e in zip(sf.per_frame_delta, excess) if e is not None and np.isfinite(d)]
+        if shares:
+            c.excess_share = round(float(max(shares)), 4)
 
 
 def _heldout(frames: list[Residuals], cands: list[Candidate], fits: dict, progress=None) -> None:
@@ -660,7 +679,44 @@ def separation(frames: list[Residuals], labels: list[str], cands: list[Candidate
             text += (f"; the rival's pattern fitted frame by frame ranges {min(amps):.3g}-{max(amps):.3g} of its "
                      "joint amplitude, the winner's stays near 1")
     return {"best": best.fit.effect, "rival": rival.fit.effect if rival is not None else None,
-            "scaling": {key: getattr(c, "scaling", None) for key, c, _ in pair}, "frames": rows, "statement": text}
+            "scaling": {key: getattr(c, "scaling", None) for key, c, _ in pair}, "frames": rows, "statement": text,
+            "residual_vs_signal": residual_vs_signal(frames, labels, pair)}
+
+
+def residual_vs_signal(frames: list[Residuals], labels: list[str], pair: list) -> list[dict] | None:
+    """The lit frames' mean residual relative to their light, against their signal level, with the shared
+    light level of the levels-only fit removed, and what each candidate predicts there (its mean change
+    plus the change it makes to the shared light level): a non-linearity is a deficit growing with the
+    signal, a lamp-level error a constant. None when the light level is not shared by the frames (then each
+    frame's own level absorbs any such curve: one frame's level cannot tell them apart)."""
+    key, _, sf = pair[0]
+    sol = sf.solution
+    if sol is None or not frames or "light_scale" not in _shared_names(sf):
+        return None
+    i_light = _shared_names(sf).index("light_scale")
+    out = []
+    for i, (r, lab) in enumerate(zip(frames, labels)):
+        idx, res_, _ = r.flat()
+        photo = r.photo_adu.ravel()[idx].astype(np.float64)
+        total = float(photo.sum())
+        if total <= 0:
+            continue
+        row = {"label": lab, "signal_e": float(np.median(r.charge_e.ravel()[idx])),
+               "residual_rel": float(res_.sum()) / total - float(sol.levels_only[i_light])}
+        for k, _, f in pair:
+            fi = f.frames[i]
+            if fi is None or fi.delta_adu is None or f.solution is None:
+                continue
+            names = _shared_names(f)
+            dl = (float(f.solution.shared_levels[names.index("light_scale")] - f.solution.levels_only[names.index(
+                "light_scale")]) if "light_scale" in names else 0.0)
+            row[f"{k}_rel"] = float(np.asarray(fi.delta_adu, np.float64).ravel()[idx].sum()) / total + dl
+        out.append(row)
+    return out or None
+
+
+def _shared_names(sf: SeriesFit) -> list[str]:
+    return list(getattr(sf, "shared_names", []) or [])
 
 
 # --- apply and the ledger -----------------------------------------------------------------------------------

@@ -66,6 +66,23 @@ def _separation(d: dict) -> str:
                "relative to its joint fit: an effect of the right scaling stays at 1 in every frame; one of the wrong "
                "scaling drifts with exposure or signal.")
     plot = _fig_html(fig, caption) if any(r.get("amplitude_best") is not None for r in rows) else ""
+    curve = sep.get("residual_vs_signal")
+    if curve:
+        fig, axes = _figure(1, 1, width=6, height=3.4)
+        ax = axes[0]
+        x = np.array([c["signal_e"] for c in curve])
+        ax.plot(x, [100 * c["residual_rel"] for c in curve], "ko", label="measured (data - model) / light")
+        for k, style in zip(keys, ("-", "--")):
+            pts = [(c["signal_e"], 100 * c[f"{k}_rel"]) for c in curve if f"{k}_rel" in c]
+            if pts:
+                ax.plot(*zip(*sorted(pts)), style, label=f"{sep[k]} predicts")
+        ax.axhline(0.0, color="grey", lw=0.8, ls=":")
+        ax.set_xlabel("signal [e-]")
+        ax.set_ylabel("residual [% of the light]")
+        ax.legend(fontsize=8)
+        plot += _fig_html(fig, "The lit frames' mean residual against their signal level, the series' shared light "
+                          "level (fitted without any candidate) removed: a non-linearity is a deficit growing with the "
+                          "signal, a lamp-level error a constant.")
     return _section("separation", "What told the candidates apart", html + plot)
 
 
