@@ -26,7 +26,7 @@ from pathlib import Path
 import tomli_w
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from real_sbig import DATA, camera_scene, files, flat_scene  # noqa: E402
+from real_sbig import DATA, camera_scene, files, flat_scene
 
 
 def series_table(camera_file: str, flat_rate: float) -> dict:

@@ -148,3 +148,20 @@ def test_series_errors_are_one_line_naming_the_key(series_dir, tmp_path, mutate,
 def test_series_and_positional_arguments_exclude_each_other(tmp_path):
     r = newtsim("diagnose", "a.toml", "b.fits", "--series", "s.toml")
     assert r.returncode == 2 and "not both" in r.stderr
+
+
+def test_calibration_pairs_measure_gain_and_read_noise_as_characterize_does(tmp_path):
+    """Two bias frames and two flats at one level in a series: the read noise from the bias pair and the
+    gain by photon transfer from the flat pair (characterize's own functions) recover the camera's."""
+    from scenes.app.compare.series import run_series_compare
+    from scenes.app.validation.series_cases import SeriesCase, _flat
+
+    model = _flat(160)
+    frames = [{"set": {"exposure.frame": "bias", "exposure.time_s": 0.0}, "truth": {}} for _ in range(2)]
+    frames += [{"set": {"exposure.time_s": 4.0}, "truth": {}} for _ in range(2)]
+    series = write_case(SeriesCase("pairs", model, frames), tmp_path)
+    cal = run_series_compare(load_series(series))["calibration"]
+    s = load_series(series).frames[0].scene.sensor()
+    (rn,), (pt,) = cal["read_noise"], cal["photon_transfer"]
+    assert rn["measured_e"] == pytest.approx(s.read_noise_e, rel=0.05)
+    assert pt["measured_gain_e_per_adu"] == pytest.approx(s.gain_e_per_adu, rel=0.05)

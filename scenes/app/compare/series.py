@@ -45,7 +45,7 @@ import tomli_w
 import tomllib
 
 from detector import registry
-from detector.characterize import linear_fit
+from detector.characterize import linear_fit, pair_noise, photon_transfer
 from detector.joint import fixed_score, frame_amplitude, frame_gram, leave_one_out, levels_chi2, solve_joint
 from detector.jsonable import jsonable
 from detector.morphology import describe
@@ -320,6 +320,36 @@ def calibration(series: Series, cmps: list[dict]) -> dict:
             sig = np.maximum(np.abs(fit_y - meas["intercept"]), 1e-9)
             entry["max_linearity_deviation"] = float(np.max(np.abs(np.array(entry["measured_adu"]) - fit_y) / sig))
         out[kind] = entry
+    out.update(_pairs(series, cmps))
+    return out
+
+
+def _pairs(series: Series, cmps: list[dict]) -> dict:
+    """Pairs of frames taken alike (same kind, exposure and light), measured as characterize measures them:
+    the read noise of two bias frames from their difference (:func:`detector.characterize.pair_noise`) and
+    the gain of two flats by photon transfer (:func:`detector.characterize.photon_transfer`, Janesick 2007
+    eq. 4.7, the model's bias and dark as the master), each against the scene's."""
+    groups: dict = {}
+    for fr, c in zip(series.frames, cmps):
+        res = c["_residuals"]
+        key = (res.light_source, round(res.exptime_s, 6), json.dumps(fr.sets.get("sky.flat_e_per_s")))
+        groups.setdefault(key, []).append((fr.label, res))
+    out: dict = {}
+    for (src, t, _), members in groups.items():
+        if len(members) < 2:
+            continue
+        (la, a), (lb, b) = members[:2]
+        s = a.sensor
+        if src == "none" and t == 0:
+            pn = pair_noise(a.data_adu, b.data_adu)
+            out.setdefault("read_noise", []).append(
+                {"frames": [la, lb], "measured_e": pn["sigma_adu"] * s.gain_e_per_adu, "scene_e": s.read_noise_e})
+        elif src == "flat":
+            master = (a.model_adu - a.photo_adu).astype(np.float64)
+            pt = photon_transfer(a.data_adu, b.data_adu, master, s.read_noise_e / s.gain_e_per_adu)
+            out.setdefault("photon_transfer", []).append(
+                {"frames": [la, lb], "signal_adu": pt["signal_adu"], "measured_gain_e_per_adu": pt["gain_e_per_adu"],
+                 "gain_se": pt["gain_se"], "scene_gain_e_per_adu": s.gain_e_per_adu})
     return out
 
 
@@ -689,7 +719,7 @@ def residual_vs_signal(frames: list[Residuals], labels: list[str], pair: list) -
     plus the change it makes to the shared light level): a non-linearity is a deficit growing with the
     signal, a lamp-level error a constant. None when the light level is not shared by the frames (then each
     frame's own level absorbs any such curve: one frame's level cannot tell them apart)."""
-    key, _, sf = pair[0]
+    _, _, sf = pair[0]
     sol = sf.solution
     if sol is None or not frames or "light_scale" not in _shared_names(sf):
         return None

@@ -143,7 +143,14 @@ def _calibration(d: dict) -> str:
                    if "max_linearity_deviation" in e else "") + "</p>")
         parts.append(text + _table(["frame", "exposure [s]", "measured median [ADU]", "model median [ADU]"], rows,
                                    numeric={1, 2, 3}))
-    return _section("calibration", "Calibration regressions of the series", "".join(parts)) if parts else ""
+    for r in cal.get("read_noise", []):
+        parts.append(f"<p>Read noise from the bias pair {_e(' / '.join(r['frames']))}: {_fmt(r['measured_e'])} e- "
+                     f"(scene {_fmt(r['scene_e'])} e-)</p>")
+    for r in cal.get("photon_transfer", []):
+        parts.append(f"<p>Gain by photon transfer from the flat pair {_e(' / '.join(r['frames']))} at "
+                     f"{_fmt(r['signal_adu'])} ADU: {_fmt(r['measured_gain_e_per_adu'])} +- {_fmt(r['gain_se'])} e-/ADU "
+                     f"(scene {_fmt(r['scene_gain_e_per_adu'])} e-/ADU)</p>")
+    return _section("calibration", "Calibration of the series", "".join(parts)) if parts else ""
 
 
 def _ledger(d: dict) -> str:
