@@ -49,7 +49,7 @@ from detector.characterize import linear_fit, pair_noise, photon_transfer
 from detector.joint import fixed_score, frame_amplitude, frame_gram, leave_one_out, levels_chi2, solve_joint
 from detector.jsonable import jsonable
 from detector.morphology import describe
-from detector.signatures import LINEAR_SEARCH_PIXELS, Fit, LinearSignature, Residuals, heldout_delta
+from detector.signatures import LINEAR_SEARCH_PIXELS, Fit, LinearSignature, Residuals, Variant, heldout_delta
 from scenes.errors import SceneError
 from scenes.scene import load_scene
 
@@ -388,8 +388,8 @@ def joint_linear(name: str, sig: LinearSignature, frames: list[Residuals], share
     """A linear signature fitted to the whole series: one set of coefficients (``mode`` "shared") or one per
     frame ("frame"), jointly with the levels; variants searched on a subsample of every frame and the winner
     refitted on every fitted pixel."""
-    variant_lists = [list(sig.variants(r)) for r in frames]
-    if not variant_lists[0] or any(len(v) != len(variant_lists[0]) for v in variant_lists):
+    variant_lists = _aligned([list(sig.variants(r)) for r in frames], frames)
+    if variant_lists is None:
         return None
     nsearch = max(MIN_SEARCH_PIXELS, LINEAR_SEARCH_PIXELS // len(frames))
     samples = [_search_sample(r, nsearch) for r in frames]
@@ -422,8 +422,9 @@ def joint_linear(name: str, sig: LinearSignature, frames: list[Residuals], share
 
     best = search(list(zip(*variant_lists)))
     if best is not None and sig.refine is not None:
-        refined = [list(sig.refine(v, r)) for v, r in zip(best[0], frames)]
-        if all(len(x) == len(refined[0]) for x in refined):
+        refined = _aligned([list(sig.refine(v, r)) if v.label != "(none)" else [] for v, r in zip(best[0], frames)],
+                           frames)
+        if refined is not None:
             best = search([best[0], *zip(*refined)]) or best
     if best is None:
         return None
@@ -459,6 +460,21 @@ def joint_linear(name: str, sig: LinearSignature, frames: list[Residuals], share
     fit = Fit(name, params, sol.delta_chi2 + corr, k, n, expl, note=first.note)
     return SeriesFit(fit, fits, mode, list(sol.per_frame_delta), sol.chi2_levels, sol.chi2,
                      grams if mode == "shared" else None, sol, list(shared))
+
+
+def _aligned(lists: list[list], frames: list[Residuals]) -> list[list] | None:
+    """The frames' variant lists made parallel: a frame a signature has no variant for (a light pattern on a
+    dark frame) gets zero templates of the same count (it is then not concerned, :func:`_concerned`); None
+    when frames that have variants have different numbers of them."""
+    ref_i = next((i for i, v in enumerate(lists) if v), None)
+    if ref_i is None or any(v and len(v) != len(lists[ref_i]) for v in lists):
+        return None
+    ref, res = lists[ref_i], frames[ref_i]
+    probe = np.zeros(1, dtype=np.intp)
+    counts = [np.atleast_2d(v.values(probe, res.data_adu.shape)).shape[0] for v in ref] if any(
+        not v for v in lists) else []
+    return [v if v else [Variant([np.zeros(1, np.float32)] * k, lambda c: None, label="(none)")
+                         for k in counts] for v in lists]
 
 
 def _concerned(g) -> bool:

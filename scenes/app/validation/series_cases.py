@@ -158,6 +158,8 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("out", type=Path)
     ap.add_argument("--cases", default="", help="comma-separated case names (default: all)")
+    ap.add_argument("--single", action="store_true",
+                    help="also diagnose the last frame of every series alone (what one frame names)")
     args = ap.parse_args(argv)
     chosen = [c for c in cases() if not args.cases or c.name in args.cases.split(",")]
     rows = []
@@ -167,9 +169,19 @@ def main(argv: list[str] | None = None) -> int:
         d = run_series_diagnose(load_series(series))
         row = judge(case, d)
         row["seconds"] = round(time.perf_counter() - t0, 1)
+        if args.single:
+            from scenes.app.compare import run_diagnose
+
+            last = load_series(series).frames[-1]
+            one = run_diagnose(last.scene, last.file)
+            row["single_frame"] = {"frame": last.label, "named": named(one), "cannot_tell_from": one["indistinguishable"],
+                                   "verdict": one["verdict"]}
         rows.append(row)
         print(f"{case.name:14s} expect {case.expect or 'nothing':22s} named {row['named'] or 'nothing':16s} "
-              f"{'ok' if row['ok'] else 'WRONG'} {row['params']} ({row['seconds']} s)", flush=True)
+              f"{'ok' if row['ok'] else 'WRONG'} {row['params']} ({row['seconds']} s)"
+              + (f"; one frame alone: {row['single_frame']['named'] or 'nothing'}"
+                 + (f" (cannot tell from {', '.join(row['single_frame']['cannot_tell_from'])})"
+                    if row["single_frame"]["cannot_tell_from"] else "") if args.single else ""), flush=True)
     (args.out / "series_cases.json").write_text(json.dumps(rows, indent=1))
     return 0 if all(r["ok"] for r in rows) else 1
 
