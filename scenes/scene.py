@@ -205,9 +205,9 @@ class Scene(_Table):
         return list(self._notes)
 
     def sensor(self) -> SensorConfig:
-        """The resolved sensor (a copy: changing it does not change the scene)."""
+        """The resolved sensor (a frozen :class:`detector.SensorConfig`, built once at loading)."""
         if self._parts is not None and self._parts_key == self._key():
-            return self._parts.sensor.model_copy(deep=True)
+            return self._parts.sensor
         det = dict(self.detector)
         preset = det.pop("preset", "imx411")
         return make_sensor(preset, det, file=self.source)
