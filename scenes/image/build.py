@@ -413,6 +413,7 @@ def build_sources(scene: Scene, sensor, design, pixel_scale_arcsec: float, expti
     -------
     SourceModel
     """
+    scene.parts  # noqa: B018  (a scene built in code is checked here: its short forms resolved, tables typed)
     cfg = scene.psf
     if psf is None and cfg.model == "optics":
         psf = optics_psf(scene, sensor, design, pixel_scale_arcsec, distortion)
