@@ -81,8 +81,8 @@ def test_jitter_short_form_same_frame_as_the_effect_and_moments_add(tmp_path):
           and np.sort(far[i])[1] > 2 * r]  # inside, no other source within 2 r
     assert ok, "no isolated star in the field"
     t = truth[max(ok, key=lambda i: truth["flux_e"][i])]
-    y, x = int(round(t["y"])), int(round(t["x"]))
-    yy, xx = np.mgrid[-r:r + 1, -r:r + 1]
+    y, x = round(float(t["y"])), round(float(t["x"]))
+    _, xx = np.mgrid[-r:r + 1, -r:r + 1]
 
     def var_x(img):
         s = img[y - r:y + r + 1, x - r:x + r + 1] - np.median(img)

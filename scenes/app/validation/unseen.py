@@ -63,7 +63,7 @@ from detector.effects.base import Stage
 from detector.effects.blooming import bleed_columns
 from detector.rng import generator
 
-HE = runpy.run_path(str(Path(__file__).resolve().with_name("hidden_effects.py")), run_name="hidden_effects")
+HE = runpy.run_path(str(Path(__file__).resolve().with_name("hidden.py")), run_name="hidden_effects")
 RealWorld, Levels = HE["RealWorld"], HE["Levels"]
 model_scene, make_frame, write_scene, error_of = HE["model_scene"], HE["make_frame"], HE["write_scene"], HE["error_of"]
 STATISTICAL = HE["STATISTICAL"]
