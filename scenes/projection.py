@@ -46,6 +46,9 @@ SIP_MAX_ORDER = 9
 FOCAL_PLANE_Y_SIGN = -1.0
 REVERSE_GRID = 48  # points per axis of the reverse fit (Algorithm 1)
 REVERSE_WARN_PX = 0.01  # largest acceptable reverse residual [pixel]
+RADIAL_K_MAX = 1e-4  # bound of radial_k_per_px2 [px^-2] (that of the detector's distortion effect)
+RADIAL_ORDER = 7  # least SIP order a radial term is fitted with (terms r^3, r^5, r^7 of 1 / (1 + k r^2))
+RADIAL_MIN_FACTOR = 0.5  # 1 + k r^2 must stay above this over the fitted area (no fold-over)
 _COEF = re.compile(r"^(a|b)_(\d)_(\d)$")
 
 
@@ -212,12 +215,21 @@ def sip_from_table(table: dict, *, file: str | None = None, allow_coefficients: 
     """Validate a ``[telescope.sip]`` table; return ``{"order", "reverse_order", "a", "b"}``.
 
     Keys: ``order`` (1..9, required when coefficients are given), ``reverse_order`` (optional, 1..9,
-    >= order), and coefficients ``a_p_q`` / ``b_p_q`` (unbinned sensor pixels about the optical axis,
-    1 <= p + q <= order). Errors name ``telescope.sip.KEY``.
+    >= order), coefficients ``a_p_q`` / ``b_p_q`` (unbinned sensor pixels about the optical axis,
+    1 <= p + q <= order) and ``radial_k_per_px2``: a radial distortion ``r' = r (1 + k r^2)`` about the optical
+    axis [sensor px^-2] composed with the rest (:func:`with_radial`; with it, ``distortion = 'sip'`` needs no
+    coefficient). Errors name ``telescope.sip.KEY``. Returns ``{"order", "reverse_order", "a", "b",
+    "radial_k"}``.
     """
 
     table = dict(table or {})
-    out = {"order": None, "reverse_order": None, "a": {}, "b": {}}
+    out = {"order": None, "reverse_order": None, "a": {}, "b": {}, "radial_k": 0.0}
+    if "radial_k_per_px2" in table:
+        v = table.pop("radial_k_per_px2")
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or abs(v) > RADIAL_K_MAX:
+            raise SceneError(f"invalid value {v!r}", key="telescope.sip.radial_k_per_px2", file=file,
+                             expected=f"a finite number [px^-2] in [-{RADIAL_K_MAX:g}, {RADIAL_K_MAX:g}]")
+        out["radial_k"] = float(v)
     for key in ("order", "reverse_order"):
         if key in table:
             v = table.pop(key)
@@ -229,7 +241,8 @@ def sip_from_table(table: dict, *, file: str | None = None, allow_coefficients: 
         m = _COEF.match(key)
         if not m:
             raise SceneError("unknown key", key=f"telescope.sip.{key}", file=file,
-                             expected="order, reverse_order or coefficients a_p_q / b_p_q (e.g. a_3_0)")
+                             expected="order, reverse_order, radial_k_per_px2 or coefficients a_p_q / b_p_q "
+                             "(e.g. a_3_0)")
         if not allow_coefficients:
             raise SceneError("coefficients given with distortion = 'optics'", key=f"telescope.sip.{key}",
                              file=file, expected="distortion = 'sip' for coefficients from the scene, or only "
@@ -243,7 +256,7 @@ def sip_from_table(table: dict, *, file: str | None = None, allow_coefficients: 
                              expected="terms with 1 <= p + q <= order (CRPIX absorbs a constant)")
         out[m.group(1)][(p, q)] = float(v)
     degree = max([p + q for p, q in list(out["a"]) + list(out["b"])], default=0)
-    if allow_coefficients:
+    if allow_coefficients and not (out["radial_k"] and not out["a"] and not out["b"]):
         if out["order"] is None:
             raise SceneError("missing", key="telescope.sip.order", file=file,
                              expected=f"the polynomial order (>= {max(degree, 1)})")
@@ -291,3 +304,51 @@ def sip_from_optics(fit: dict, sensor, *, reverse_order: int | None = None, pari
     info = {k: fit[k] for k in ("rms_px", "max_px", "max_distortion_px", "effective_focal_length_mm",
                                 "wavelength_nm", "method") if k in fit}
     return Sip(order, a, b, reverse_order, "optics", info)
+
+
+def with_radial(sip: Sip | None, k_per_px2: float, x_range, y_range, n: int = REVERSE_GRID, *,
+                file: str | None = None) -> Sip:
+    """``sip`` (None: no distortion) composed with a radial distortion ``r' = r (1 + k r^2)`` about the axis.
+
+    The radial term moves the image content at radius ``r`` from the optical axis to ``r (1 + k r^2)``
+    [sensor px] (k > 0 pincushion), after the distortion ``sip`` describes: the recorded pixel offset ``p``
+    holds what ``sip`` put at ``p' = p / (1 + k |p|^2)`` (the first-order inverse of ``r' = r (1 + k r^2)``,
+    the mapping :func:`detector.effects.image_plane.radial_distortion` resamples with), so the forward
+    polynomials of the whole are
+
+        (X, Y) = p' + (A(p'), B(p')),        p' = p / (1 + k |p|^2),
+
+    fitted by linear least squares on an ``n x n`` grid of offsets over ``x_range`` x ``y_range`` (unbinned
+    sensor pixels from the axis) at order ``max(sip.order, 7)`` (at most 9): the rational factor's
+    expansion ``1 - u + u^2 - u^3 ...`` (``u = k r^2``) has the odd degrees 3, 5, 7. The fit's residuals
+    [px] are in ``info`` (``radial_fit_rms_px``, ``radial_fit_max_px``).
+    """
+    xs = np.linspace(x_range[0], x_range[1], n)
+    ys = np.linspace(y_range[0], y_range[1], n)
+    x, y = (g.ravel() for g in np.meshgrid(xs, ys))
+    f = 1.0 + k_per_px2 * (x * x + y * y)
+    if f.min() < RADIAL_MIN_FACTOR:
+        r = float(np.sqrt(np.max(x * x + y * y)))
+        raise SceneError(f"radial distortion k = {k_per_px2:g} px^-2 folds the field over at {r:.0f} px from the axis",
+                         key="telescope.sip.radial_k_per_px2", file=file, expected=f"|k| r^2 below {1 - RADIAL_MIN_FACTOR:g} "
+                         f"over the frame (|k| < {(1 - RADIAL_MIN_FACTOR) / r ** 2:.3g} px^-2 here)")
+    xp, yp = x / f, y / f
+    if sip is not None:
+        X, Y = sip.forward(xp, yp)
+        order, rev, source, info = max(sip.order, RADIAL_ORDER), sip.reverse_order, sip.source, dict(sip.info)
+    else:
+        X, Y = xp, yp
+        order, rev, source, info = RADIAL_ORDER, None, "scene", {}
+    order = min(order, SIP_MAX_ORDER)
+    terms = poly_terms(order)
+    scale = max(float(np.max(np.abs(x))), float(np.max(np.abs(y))), 1.0)
+    M = np.stack([(x / scale) ** p * (y / scale) ** q for p, q in terms], axis=-1)
+    sol, *_ = np.linalg.lstsq(M, np.stack([X - x, Y - y], axis=-1), rcond=None)
+    a = {t: float(c / scale ** (t[0] + t[1])) for t, c in zip(terms, sol[:, 0])}
+    b = {t: float(c / scale ** (t[0] + t[1])) for t, c in zip(terms, sol[:, 1])}
+    res = np.hypot(x + eval_poly(a, x, y) - X, y + eval_poly(b, x, y) - Y)
+    info.update(radial_k_per_px2=float(k_per_px2), radial_fit_rms_px=float(np.sqrt(np.mean(res ** 2))),
+                radial_fit_max_px=float(res.max()))
+    if rev is not None and rev < order:
+        rev = order
+    return Sip(order, a, b, rev, source, info)

@@ -6,22 +6,26 @@ Every user mistake becomes a :class:`SceneError` naming the file, the dotted key
 from __future__ import annotations
 
 import copy
+import json
+import math
 import os
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Literal
 
 import tomli_w
 import tomllib
-from pydantic import BaseModel, ConfigDict, Field, field_validator
+from pydantic import BaseModel, ConfigDict, Field, PrivateAttr, field_validator
 
-from detector import make_sensor
+from detector import SensorConfig, make_sensor, registry
 from detector.config import validate
 from optics.design import BUILTIN as BUILTIN_DESIGNS
+from optics.design import OpticsError, load_design
 
 from .errors import SceneError
 from .objects import object_from_table, observer_from_table
 from .projection import sip_from_table
-from .straylight import is_traced_straylight, straylight_config
+from .straylight import StraylightCfg, is_traced_straylight, straylight_config
 
 BUILTIN_SCENES = Path(__file__).with_name("data")
 
@@ -33,7 +37,9 @@ class _Table(BaseModel):
 class TelescopeCfg(_Table):
     """``[telescope]``. ``distortion``: ``"none"`` (gnomonic TAN), ``"optics"`` (SIP fitted to the design's
     ray-traced field, cached by the optics) or ``"sip"`` (the coefficients of ``[telescope.sip]``); the
-    ``[telescope.sip]`` table is checked by :func:`scenes.projection.sip_from_table`. ``parity``: the
+    ``[telescope.sip]`` table is checked by :func:`scenes.projection.sip_from_table`; its
+    ``radial_k_per_px2`` adds a radial term ``r' = r (1 + k r^2)`` to either form (``[effects.distortion]``
+    of a scene becomes that key when the scene is loaded, :func:`resolve_effect_keys`). ``parity``: the
     handedness of the frame's WCS (:func:`scenes.projection.tan_wcs`); ``pointing.roll_deg`` keeps its
     meaning (where north points on the detector), ``+1`` puts east on the other side."""
 
@@ -120,7 +126,8 @@ class PsfCfg(_Table):
     ``model`` ``"gaussian"`` (sigma = FWHM / 2.3548), ``"moffat"`` ((1 + r^2/alpha^2)^-beta) or ``"optics"``
     (the design's PSF grid, :mod:`scenes.image.gridpsf`: ``grid = [nx, ny]`` field points, or a PSF cube
     ``grid_file``; ``seeing_fwhm_arcsec``: Gaussian seeing convolved with it); ``jitter_rms_arcsec``:
-    Gaussian pointing jitter, rms per axis, convolved with the PSF."""
+    Gaussian pointing jitter, rms per axis: a short form of ``[effects.jitter]`` (the one jitter mechanism),
+    into which the loaded scene turns it (:func:`resolve_effect_keys`; it then reads 0 here)."""
 
     model: Literal["gaussian", "moffat", "optics"] = "gaussian"
     fwhm_arcsec: float = Field(2.5, gt=0, le=600, description="PSF full width at half maximum [arcsec]")
@@ -138,8 +145,34 @@ class PsfCfg(_Table):
         return value
 
 
+@dataclass(frozen=True)
+class SceneParts:
+    """The typed parts of a validated scene, built once when it is loaded (:attr:`Scene.parts`).
+
+    Attributes
+    ----------
+    sensor : the resolved :class:`detector.SensorConfig` of ``[detector]``
+    observer : ``[observer]`` as a :class:`scenes.objects.GroundSite` / :class:`SpaceObserver`, or None
+    objects : the ``[[objects]]`` as :class:`scenes.objects.RateObject` / :class:`TleObject`, in file order
+    straylight : the scene's ray-traced straylight (``[effects.straylight]`` with ``pst``), or None
+    effect_tables : the ``[effects.NAME]`` tables the detector's registry builds (the ray-traced straylight,
+        which the scene evaluates, is not among them)
+    """
+
+    sensor: SensorConfig
+    observer: Any
+    objects: tuple
+    straylight: StraylightCfg | None
+    effect_tables: dict
+
+
 class Scene(_Table):
-    """A validated scene. ``detector`` and ``effects`` stay as tables; they are validated by the detector."""
+    """A validated scene.
+
+    The tables stay readable as in the file (``scene.detector``, ``scene.objects``, ``scene.effects`` are
+    dicts: outside code and ``diagnose --apply`` dump them back); :attr:`parts` holds them typed, parsed once
+    by :func:`check_scene` (and again only if a table was changed after loading).
+    """
 
     telescope: TelescopeCfg = TelescopeCfg()
     detector: dict[str, Any] = Field(default_factory=lambda: {"preset": "imx411"})
@@ -151,8 +184,30 @@ class Scene(_Table):
     objects: list[dict[str, Any]] = Field(default_factory=list)
     effects: dict[str, dict[str, Any]] = Field(default_factory=dict)
     source: str = Field("<built-in>", exclude=True)
+    _parts: SceneParts | None = PrivateAttr(None)
+    _parts_key: str | None = PrivateAttr(None)
+    _notes: list = PrivateAttr(default_factory=list)
 
-    def sensor(self):
+    def _key(self) -> str:
+        return json.dumps(self.model_dump(mode="json"), sort_keys=True, default=str)
+
+    @property
+    def parts(self) -> SceneParts:
+        """The typed parts (:class:`SceneParts`); a scene built in code, or changed after loading, is checked
+        (:func:`check_scene`) the first time they are asked for."""
+        if self._parts is None or self._parts_key != self._key():
+            check_scene(self)
+        return self._parts
+
+    @property
+    def resolution_notes(self) -> list[str]:
+        """What the short forms of the file became (``psf.jitter_rms_arcsec`` -> ``[effects.jitter]``, ...)."""
+        return list(self._notes)
+
+    def sensor(self) -> SensorConfig:
+        """The resolved sensor (a frozen :class:`detector.SensorConfig`, built once at loading)."""
+        if self._parts is not None and self._parts_key == self._key():
+            return self._parts.sensor
         det = dict(self.detector)
         preset = det.pop("preset", "imx411")
         return make_sensor(preset, det, file=self.source)
@@ -163,6 +218,12 @@ class Scene(_Table):
         d["detector"] = {"preset": self.detector.get("preset", "imx411"),
                          **self.sensor().model_dump(mode="json", exclude_none=True)}
         return d
+
+    def resolved_text(self) -> str:
+        """:meth:`resolved` as TOML, headed by a comment line per short form the file used and what it
+        became (the ``SCENE`` extension of a frame)."""
+        head = "".join(f"# {n}\n" for n in self._notes)
+        return head + tomli_w.dumps(self.resolved())
 
     def to_toml(self) -> str:
         return tomli_w.dumps(self.model_dump(mode="json", exclude_none=True))
@@ -228,8 +289,7 @@ def load_scene(path_or_name: str, overrides: list[str] | None = None) -> Scene:
     data = apply_overrides(data, overrides or [], file=file)
     data["source"] = file
     scene = validate(Scene, data, file=file)
-    scene.sensor()  # validates [detector] now, naming its keys
-    check_scene(scene)
+    check_scene(scene)  # [detector] and every other table, once, into scene.parts
     return scene
 
 
@@ -275,6 +335,8 @@ def check_scene(scene: Scene) -> None:
     """
     file = scene.source
     base = scene_dir(scene)
+    det = dict(scene.detector)
+    sensor = make_sensor(det.pop("preset", "imx411"), det, file=file)  # [detector], naming its keys
     exp = scene.exposure
     if exp.tracking == "rate" and not {"rate_ra_deg_s", "rate_dec_deg_s"} & exp.model_fields_set:
         raise SceneError("tracking = 'rate' without a rate", key="exposure.rate_ra_deg_s", file=file,
@@ -293,18 +355,90 @@ def check_scene(scene: Scene) -> None:
                              expected="'builtin', 'gaia' or a CSV/ECSV/FITS file (relative to the scene file)")
         scene.sky.catalog = str(p)
     _resolve_design(scene, base)
-    observer_from_table(scene.observer, file=file, base_dir=base)
+    observer = observer_from_table(scene.observer, file=file, base_dir=base)
     if isinstance(scene.observer, dict) and isinstance(scene.observer.get("tle_file"), str):
         scene.observer["tle_file"] = str(resolve_path(scene.observer["tle_file"], base))
+    objects = []
     for i, table in enumerate(scene.objects):
-        object_from_table(table, i, file=file, base_dir=base)
+        objects.append(object_from_table(table, i, file=file, base_dir=base))
         if isinstance(table.get("tle_file"), str):
             table["tle_file"] = str(resolve_path(table["tle_file"], base))
     for table in scene.effects.values():
         for key, value in list((table or {}).items()) if isinstance(table, dict) else ():
             if _is_effect_path_key(key) and isinstance(value, str) and value not in EFFECT_PATH_KEYWORDS:
                 table[key] = str(resolve_path(value, base))
+    resolve_effect_keys(scene, sensor)
     _check_optics_keys(scene, base)
+    straylight = None
+    tables = dict(scene.effects)
+    if "straylight" in tables and is_traced_straylight(tables["straylight"]):
+        straylight = straylight_config(tables.pop("straylight"), file=file)
+    scene._parts = SceneParts(sensor, observer, tuple(objects), straylight, tables)
+    scene._parts_key = scene._key()
+
+
+# ------------------------------------------------------------------------- one mechanism per effect
+#: the jitter effect's bound on either width [sensor px] (detector.effects.image_plane.JitterParams)
+JITTER_MAX_PX = 50.0
+
+
+def resolve_effect_keys(scene: Scene, sensor: SensorConfig) -> None:
+    """Turn the scene's second spelling of an effect into its one mechanism (in place; idempotent).
+
+    * ``[psf] jitter_rms_arcsec = J`` (isotropic Gaussian jitter, rms per axis) becomes ``[effects.jitter]``
+      (the registered image-plane jitter, :class:`detector.effects.image_plane.Jitter`) with
+      ``sigma = J / s`` [sensor px] on both axes (``s`` the plate scale [arcsec/px]); with an
+      ``[effects.jitter]`` table already there the covariances add (convolving two Gaussians adds their
+      covariances: an isotropic ``sigma_J^2 I`` adds to both principal variances and keeps the axes), so
+      ``sigma_major' = hypot(sigma_major, J / s)``, ``sigma_minor' = hypot(sigma_minor, J / s)``.
+      ``[psf] jitter_rms_arcsec`` then reads 0.
+    * ``[effects.distortion] k_per_px2 = k`` (radial distortion ``r' = r (1 + k r^2)`` about the optical axis)
+      becomes ``[telescope.sip] radial_k_per_px2`` (added to a value already there: two small radial
+      distortions compose to first order as the sum of their k), which the frame's SIP then carries
+      (:func:`scenes.projection.with_radial`): the sources are drawn where it puts them and the WCS says so.
+      ``distortion = "none"`` becomes ``"sip"``. The ``[effects.distortion]`` table is removed.
+
+    Each change is noted (:attr:`Scene.resolution_notes`): the ``SCENE`` extension of a frame starts with
+    those notes as TOML comments.
+    """
+    file = scene.source
+    effects = registry()
+    j = scene.psf.jitter_rms_arcsec
+    if j > 0:
+        try:
+            design = load_design(scene.telescope.design)
+        except OpticsError as exc:
+            raise SceneError(str(exc), key="telescope.design", file=file) from None
+        scale = scene.telescope.pixel_scale_arcsec or design.pixel_scale_arcsec(sensor.pixel_pitch_um)
+        s = j / scale
+        old = scene.effects.get("jitter")
+        if old is not None:
+            p = validate(effects["jitter"].Params, old, prefix="effects.jitter", file=file)
+            major, minor, angle = math.hypot(p.sigma_major_px, s), math.hypot(p.sigma_minor_px, s), p.angle_deg
+        else:
+            major, minor, angle = s, s, 0.0
+        if major > JITTER_MAX_PX:
+            raise SceneError(f"{j:g} arcsec of jitter is {major:.4g} sensor pixels", key="psf.jitter_rms_arcsec",
+                             file=file, expected=f"at most {JITTER_MAX_PX:g} pixels of jitter in all "
+                             f"({JITTER_MAX_PX * scale:.4g} arcsec at {scale:.4g} arcsec/pixel)")
+        scene.effects["jitter"] = {"sigma_major_px": major, "sigma_minor_px": minor, "angle_deg": angle}
+        scene.psf.jitter_rms_arcsec = 0.0
+        scene._notes.append(f"psf.jitter_rms_arcsec = {j:g} arcsec ({s:.6g} px at {scale:.6g} arcsec/px) became "
+                            f"[effects.jitter]" + (" (added to its covariance)" if old is not None else ""))
+    if "distortion" in scene.effects:
+        p = validate(effects["distortion"].Params, scene.effects["distortion"], prefix="effects.distortion", file=file)
+        del scene.effects["distortion"]
+        k = float(p.k_per_px2)
+        tel = scene.telescope
+        if k != 0:
+            sip = dict(tel.sip or {})
+            sip["radial_k_per_px2"] = float(sip.get("radial_k_per_px2", 0.0)) + k
+            tel.sip = sip
+            if tel.distortion == "none":
+                tel.distortion = "sip"
+        scene._notes.append(f"[effects.distortion] k_per_px2 = {k:g} became [telescope.sip] radial_k_per_px2 "
+                            f"(distortion = '{tel.distortion}'): the frame's SIP carries it" if k != 0 else
+                            "[effects.distortion] k_per_px2 = 0 (the identity) was dropped")
 
 
 def _resolve_design(scene: Scene, base: Path | None) -> None:
@@ -321,7 +455,7 @@ def _resolve_design(scene: Scene, base: Path | None) -> None:
 
 
 def _check_optics_keys(scene: Scene, base: Path | None) -> None:
-    """``[telescope] distortion`` / ``[telescope.sip]``, the optics ``[psf]`` keys, ``[effects.straylight]``."""
+    """``[telescope] distortion`` / ``[telescope.sip]`` and the optics ``[psf]`` keys."""
     file = scene.source
     tel = scene.telescope
     if tel.distortion == "none" and tel.sip is not None:
@@ -359,5 +493,3 @@ def _check_optics_keys(scene: Scene, base: Path | None) -> None:
             if k in given:
                 raise SceneError(f"{k} with model = {psf.model!r}", key=f"psf.{k}", file=file,
                                  expected="model = 'optics' (the optics PSF grid)")
-    if "straylight" in scene.effects and is_traced_straylight(scene.effects["straylight"]):
-        straylight_config(scene.effects["straylight"], file=file)

@@ -50,7 +50,14 @@ PST sources (``pst``)
 
 The chain's vignetting multiplies everything the scene hands it; the straylight map already is the
 irradiance of the focal plane, so it is handed over divided by the vignetting map (the chain's product
-restores it exactly).
+restores it exactly). The render passes that map as data (``ri``: the relative illumination of the scene's
+``[effects.vignetting]`` table, :func:`detector.effects.optical.relative_illumination`).
+
+One name, two forms. ``[effects.straylight]`` with ``pst`` is this module's (the scene evaluates it: it needs
+the ephemerides and the optics); with ``model = "field"`` it is the detector's smooth field
+(:class:`detector.effects.sky.StraylightField`, the form diagnosis fits). A loaded scene routes the table
+once (:func:`is_traced_straylight`): ``scene.parts.straylight`` holds this form, validated, and
+``scene.parts.effect_tables`` the field form with the other registry effects.
 """
 
 from __future__ import annotations
@@ -308,14 +315,14 @@ def straylight_signal(table: dict, scene, sensor, design, exptime_s: float, obse
 
     Parameters
     ----------
-    table : the ``[effects.straylight]`` table
+    table : the ``[effects.straylight]`` table, or its validated :class:`StraylightCfg` (``scene.parts.straylight``)
     scene, sensor, design : the scene, its :class:`detector.SensorConfig` and optics design
     exptime_s : exposure time [s]; the geometry is evaluated at mid-exposure
     observer : :class:`scenes.objects.GroundSite`, :class:`SpaceObserver` or None (geocentre)
     ri : the chain's vignetting ``ri(ys, xs)`` (sensor rows, columns), divided out; None without vignetting
     wavelength_nm, qe : band for N_in (default the sensor's QE table)
     """
-    cfg = straylight_config(table, file=scene.source)
+    cfg = table if isinstance(table, StraylightCfg) else straylight_config(table, file=scene.source)
     lam = np.asarray(sensor.qe_wavelength_nm if wavelength_nm is None else wavelength_nm, dtype=float)
     q = np.asarray(sensor.qe if qe is None else qe, dtype=float)
     t_mid = as_time(scene.pointing.epoch) + 0.5 * exptime_s * u.s

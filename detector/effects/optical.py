@@ -214,6 +214,32 @@ _VIGNETTING_SIGNATURE = LinearSignature(
     check=_vignetting_check)
 
 
+def relative_illumination(params: VignettingParams, sensor):
+    """The vignetting's relative illumination as a function ``ri(ys, xs)`` [1] of full-sensor pixel centres
+    (rows, columns; 2-D out): the FITS map of ``params.map_file`` (bilinear, :func:`map_interpolator`) or
+    the radial polynomial (:func:`radial_vignetting`). The data a consumer of the focal plane's light
+    (the scene's straylight, which is already focal-plane irradiance) needs, without the effect."""
+    interp = None
+    if params.map_file:
+        path = Path(params.map_file)
+        if not path.is_file():
+            raise DetectorError("vignetting map not found", key="effects.vignetting.map_file",
+                                expected="an existing FITS map", file=str(path))
+        interp = map_interpolator(*read_vignetting_map(path))
+    pitch_mm = sensor.pixel_pitch_um * 1e-3
+    r_corner = params.radius_mm or 0.5 * pitch_mm * float(np.hypot(sensor.sensor_width_px, sensor.sensor_height_px))
+
+    def ri(ys: np.ndarray, xs: np.ndarray) -> np.ndarray:
+        u = (xs - (sensor.sensor_width_px - 1) / 2.0) * pitch_mm
+        v = (ys - (sensor.sensor_height_px - 1) / 2.0) * pitch_mm
+        if interp is not None:
+            return interp(v, u)
+        return radial_vignetting(u[None, :], v[:, None], r_corner, params.a2, params.a4,
+                                 (params.centre_x_mm, params.centre_y_mm))
+
+    return ri
+
+
 class VignettingParams(EffectParams):
     map_file: str | None = Field(None, description="FITS map from 'newtsim optics vignetting --fits' (or, in a "
                                  "scene, 'optics': ray-trace the scene's telescope design)")
@@ -246,26 +272,11 @@ class Vignetting(Effect):
     signature = _VIGNETTING_SIGNATURE
 
     def setup(self) -> None:
-        p = self.params
-        self._interp = None
-        if p.map_file:
-            path = Path(p.map_file)
-            if not path.is_file():
-                raise DetectorError("vignetting map not found", key="effects.vignetting.map_file",
-                                    expected="an existing FITS map", file=str(path))
-            self._interp = map_interpolator(*read_vignetting_map(path))
+        self._ri = relative_illumination(self.params, self.sensor)
 
     def ri(self, ys: np.ndarray, xs: np.ndarray) -> np.ndarray:
         """Relative illumination at full-sensor pixel centres (rows ``ys``, columns ``xs``) [1]."""
-        s = self.sensor
-        pitch_mm = s.pixel_pitch_um * 1e-3
-        u = (xs - (s.sensor_width_px - 1) / 2.0) * pitch_mm
-        v = (ys - (s.sensor_height_px - 1) / 2.0) * pitch_mm
-        if self._interp is not None:
-            return self._interp(v, u)
-        p = self.params
-        r_corner = p.radius_mm or 0.5 * pitch_mm * float(np.hypot(s.sensor_width_px, s.sensor_height_px))
-        return radial_vignetting(u[None, :], v[:, None], r_corner, p.a2, p.a4, (p.centre_x_mm, p.centre_y_mm))
+        return self._ri(ys, xs)
 
     def apply(self, stage: Stage, tile: Tile, data: np.ndarray) -> None:
         ys, xs = tile.pixel_centres()

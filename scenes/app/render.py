@@ -18,11 +18,12 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-import tomli_w
 from astropy.io import fits
 from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 
 from detector import Detector, build_effects
+from detector.config import validate
+from detector.effects.optical import VignettingParams, relative_illumination
 from detector.fits_io import primary_header, table_hdu, write_streamed
 from detector.rng import fresh_seed
 from optics.design import OpticsError, load_design
@@ -30,11 +31,10 @@ from optics.distortion import cached_sip
 from optics.vignetting import cached_map_fits
 from scenes.image import TRUTH_DTYPE, build_sources, frame_wcs
 from scenes.image.signal import Samples, SourceSignal
-from scenes.objects import observer_from_table
 from scenes.photometry import sky_electron_rate_per_pixel
-from scenes.projection import REVERSE_WARN_PX, Sip, sip_from_optics, sip_from_table
+from scenes.projection import REVERSE_WARN_PX, Sip, axis_crpix, sip_from_optics, sip_from_table, with_radial
 from scenes.scene import Scene, SceneError
-from scenes.straylight import is_traced_straylight, straylight_signal
+from scenes.straylight import straylight_signal
 
 #: SIP order of the optics' distortion fit: the art corrector's distortion has 7th-order terms (order 5
 #: leaves 0.03-0.07 px, order 7 below 0.01 px; docs/optics_psf.md)
@@ -64,31 +64,52 @@ def resolve_distortion(scene: Scene, sensor, design) -> Sip | None:
     """The frame's SIP distortion from ``[telescope] distortion`` (unbinned sensor pixels about the axis).
 
     ``"optics"`` asks the optics for the design's SIP fit over the full sensor
-    (``optics.distortion.cached_sip``, cached on disk by the design's hash).
+    (``optics.distortion.cached_sip``, cached on disk by the design's hash). ``[telescope.sip]
+    radial_k_per_px2`` (what ``[effects.distortion]`` becomes, :func:`scenes.scene.resolve_effect_keys`) is
+    composed with either (:func:`scenes.projection.with_radial`, fitted over the read-out window).
     """
     tel = scene.telescope
     if tel.distortion == "none":
         return None
     t = sip_from_table(tel.sip or {}, file=scene.source, allow_coefficients=tel.distortion == "sip")
     if tel.distortion == "sip":
-        return Sip(t["order"], t["a"], t["b"], t["reverse_order"], "scene")
-    shape = (sensor.sensor_height_px, sensor.sensor_width_px)
-    try:
-        fit = cached_sip(design, float(sensor.pixel_pitch_um), shape, order=t["order"] or OPTICS_SIP_ORDER)
-        return sip_from_optics(fit, sensor, reverse_order=t["reverse_order"], parity=scene.telescope.parity)
-    except (OpticsError, ImportError, ValueError, KeyError) as exc:
-        raise SceneError(f"cannot get the SIP distortion of design '{design.name}': {exc}", key="telescope.distortion",
-                         file=scene.source) from None
+        sip = Sip(t["order"], t["a"], t["b"], t["reverse_order"], "scene") if (t["a"] or t["b"]) else None
+    else:
+        shape = (sensor.sensor_height_px, sensor.sensor_width_px)
+        try:
+            fit = cached_sip(design, float(sensor.pixel_pitch_um), shape, order=t["order"] or OPTICS_SIP_ORDER)
+            sip = sip_from_optics(fit, sensor, reverse_order=t["reverse_order"], parity=scene.telescope.parity)
+        except (OpticsError, ImportError, ValueError, KeyError) as exc:
+            raise SceneError(f"cannot get the SIP distortion of design '{design.name}': {exc}",
+                             key="telescope.distortion", file=scene.source) from None
+    if t["radial_k"]:
+        (h, w), (cx, cy) = sensor.shape, axis_crpix(sensor, binned=False)
+        margin = RADIAL_FIT_MARGIN_PX
+        sip = with_radial(sip, t["radial_k"], (-0.5 - cx + 1 - margin, w - 0.5 - cx + 1 + margin),
+                          (-0.5 - cy + 1 - margin, h - 0.5 - cy + 1 + margin), file=scene.source)
+        if t["reverse_order"] is not None:
+            sip = Sip(sip.order, sip.a, sip.b, max(t["reverse_order"], sip.order), sip.source, sip.info)
+    return sip
 
 
-def _straylight(scene: Scene, sensor, design, effects_list, exptime_s: float):
-    """``[effects.straylight]`` -> (StraylightSignal, header cards), the chain's vignetting divided out."""
-    base_dir = Path(scene.source).parent if scene.source and scene.source != "<built-in>" else None
-    observer = observer_from_table(scene.observer, file=scene.source, base_dir=base_dir)
-    vig = next((e for e in effects_list if e.name == "vignetting"), None)
-    ri = (lambda ys, xs: vig.ri(ys, xs)) if vig is not None else None
+#: the radial term's SIP is fitted over the read-out window plus this margin [sensor px] (sources just off it)
+RADIAL_FIT_MARGIN_PX = 64.0
+
+
+def _straylight(scene: Scene, sensor, design, tables: dict, exptime_s: float):
+    """The scene's ray-traced straylight (``scene.parts.straylight``) -> (StraylightSignal, header cards).
+
+    The straylight map is already focal-plane irradiance; the chain's vignetting multiplies all the light
+    it is handed, so the map goes in divided by the vignetting's relative illumination, which is passed as
+    data: :func:`detector.effects.optical.relative_illumination` of the scene's ``[effects.vignetting]``
+    table (``tables``, its ``map_file = "optics"`` resolved).
+    """
+    vig = tables.get("vignetting")
+    ri = (relative_illumination(validate(VignettingParams, vig, prefix="effects.vignetting", file=scene.source),
+                                sensor) if vig is not None else None)
     try:
-        return straylight_signal(scene.effects["straylight"], scene, sensor, design, exptime_s, observer, ri=ri)
+        return straylight_signal(scene.parts.straylight, scene, sensor, design, exptime_s, scene.parts.observer,
+                                 ri=ri)
     except (OpticsError, ImportError) as exc:
         raise SceneError(f"cannot ray-trace the straylight of design '{design.name}': {exc}",
                          key="effects.straylight.pst", file=scene.source) from None
@@ -114,14 +135,15 @@ def prepare(scene: Scene, workers: int | None = None, psf=None) -> Setup:
     ``psf`` replaces the scene's ``[psf]`` by any pixel-integrated PSF (the hook of
     :mod:`scenes.image.psf`, e.g. a field-dependent optics PSF).
     """
+    parts = scene.parts
     sensor = scene.sensor()
     try:
         design = load_design(scene.telescope.design)
     except OpticsError as exc:
         raise SceneError(str(exc), key="telescope.design", file=scene.source) from None
-    traced = "straylight" in scene.effects and is_traced_straylight(scene.effects["straylight"])
-    tables = {k: v for k, v in scene.effects.items() if not (k == "straylight" and traced)}  # the scene's own
-    effects = build_effects(_resolve_optics_maps(tables, design, scene), sensor, file=scene.source)
+    traced = parts.straylight is not None
+    tables = _resolve_optics_maps(parts.effect_tables, design, scene)
+    effects = build_effects(tables, sensor, file=scene.source)
     scale = scene.telescope.pixel_scale_arcsec or design.pixel_scale_arcsec(sensor.pixel_pitch_um)
     exp = scene.exposure
     exptime = 0.0 if exp.frame == "bias" else exp.time_s
@@ -141,7 +163,7 @@ def prepare(scene: Scene, workers: int | None = None, psf=None) -> Setup:
     distortion = resolve_distortion(scene, sensor, design)
     stray = None
     if exp.frame == "light" and traced and scene.sky.flat_e_per_s is None:
-        stray, stray_cards = _straylight(scene, sensor, design, effects, exptime)
+        stray, stray_cards = _straylight(scene, sensor, design, tables, exptime)
         cards.update(stray_cards)
     if exp.frame == "light" and (scene.sky.stars or scene.objects):
         model = build_sources(scene, sensor, design, scale, exptime, background_e=background, psf=psf,
@@ -208,16 +230,20 @@ def header_cards(setup: Setup, seed: int, noiseless: bool) -> fits.Header:
         h["SIPRMAX"] = (float(wcs.sip_reverse_max_px), "[pixel] largest residual of the fitted AP/BP")
         if "rms_px" in d.info:
             h["SIPFRMS"] = (float(d.info["rms_px"]), "[sensor pixel] optics forward-fit rms residual")
+        if d.info.get("radial_fit_max_px", 0.0) > REVERSE_WARN_PX:
+            h.add_history(f"radial distortion fitted to {d.info['radial_fit_max_px']:.3g} px: SIP order too low")
         if wcs.sip_reverse_max_px > REVERSE_WARN_PX:
             h.add_history(f"SIP reverse fit off by up to {wcs.sip_reverse_max_px:.3g} px: raise reverse_order")
     for w in setup.warnings:
         h.add_history(w[:70])
+    for n in sc.resolution_notes:  # what a short form of the scene file became (the SCENE extension too)
+        h.add_history(f"scene: {n}"[:70])
     return h
 
 
 def scene_hdu(scene: Scene) -> fits.BinTableHDU:
     """The resolved scene as TOML text in a one-row table (extension ``SCENE``)."""
-    text = tomli_w.dumps(scene.resolved())
+    text = scene.resolved_text()
     col = fits.Column(name="toml", format=f"{max(len(text), 1)}A", array=np.array([text]))
     return fits.BinTableHDU.from_columns([col], name="SCENE")
 

@@ -36,9 +36,7 @@ from ..objects import (
     check_pointing_visible,
     in_field,
     light_curve_from_table,
-    object_from_table,
     object_track,
-    observer_from_table,
     require_in_field,
 )
 from ..objects.brightness import solar_photon_irradiance
@@ -293,8 +291,7 @@ def _objects(scene: Scene, fr: _Frame, base_dir: Path | None, observer) -> tuple
     file = scene.source
     h, wd = fr.shape
     thr = fr.qe * fr.mirror  # photons -> photo-electrons
-    for i, table in enumerate(scene.objects):
-        obj = object_from_table(table, i, file=file, base_dir=base_dir)
+    for i, (table, obj) in enumerate(zip(scene.objects, scene.parts.objects)):  # parsed once, at loading
         track = object_track(obj, scene.pointing.epoch, fr.exptime_s, observer, t_end_s=fr.t_end_s, file=file)
         rate = obj.brightness.photon_rate(track, aperture_area_m2=fr.area_m2, wavelength_nm=fr.wavelength_nm,
                                           throughput=thr)
@@ -416,6 +413,7 @@ def build_sources(scene: Scene, sensor, design, pixel_scale_arcsec: float, expti
     -------
     SourceModel
     """
+    scene.parts  # noqa: B018  (a scene built in code is checked here: its short forms resolved, tables typed)
     cfg = scene.psf
     if psf is None and cfg.model == "optics":
         psf = optics_psf(scene, sensor, design, pixel_scale_arcsec, distortion)
@@ -439,7 +437,7 @@ def build_sources(scene: Scene, sensor, design, pixel_scale_arcsec: float, expti
     counts = {"catalog": 0, "synthetic": 0, "objects": 0}
     light = exp.frame == "light" and scene.sky.flat_e_per_s is None
     if light and (scene.objects or scene.sky.stars):
-        observer = observer_from_table(scene.observer, file=scene.source, base_dir=base_dir)
+        observer = scene.parts.observer
         if isinstance(observer, GroundSite):
             check_pointing_visible(bore.ra_deg, bore.dec_deg, scene.pointing.epoch, exptime_s, observer,
                                    file=scene.source)

@@ -1,5 +1,5 @@
-"""newtsim diagnose on "measured" frames with ONE hidden effect in a real-world form (examples/diagnose/
-hidden_effects.py): the hidden effect is named first, the error falls by at least half once the candidate is
+"""newtsim diagnose on "measured" frames with ONE hidden effect in a real-world form (scenes/app/validation/
+hidden.py, run by examples/diagnose/hidden_effects.py): the hidden effect is named first, the error falls by at least half once the candidate is
 applied, and a frame with nothing hidden gives no significant candidate.
 
 Every frame carries the nuisances of a real camera: its own hardware (another hardware seed: hot pixels
@@ -11,13 +11,12 @@ The unmarked tests run a fast subset (one effect of each kind of signature and a
 whole confusion matrix runs by default too (the diagnosis is the product's heart).
 """
 
-import runpy
-from pathlib import Path
 
 import pytest
 
-EXAMPLE = Path(__file__).resolve().parents[2] / "examples" / "diagnose" / "hidden_effects.py"
-NS = runpy.run_path(str(EXAMPLE))
+from scenes.app.validation import hidden
+
+NS = vars(hidden)
 EFFECTS = NS["EFFECTS"]
 BASES = tuple(NS["BASES"])
 

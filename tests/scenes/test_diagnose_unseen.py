@@ -1,4 +1,4 @@
-"""newtsim diagnose on effects in forms it has not been told (issue 10; examples/diagnose/unseen_effects.py).
+"""newtsim diagnose on effects in forms it has not been told (issue 10; scenes/app/validation/unseen.py).
 
 Catalogue effects in functional forms that neither the plugins nor ``hidden_effects.py`` use must be named
 first (one of the case's accepted names, significant) and the error must fall by half after one apply; an
@@ -12,13 +12,12 @@ diagnosis fails are ``xfail(strict=False)`` ("issue 10 in progress"): the baseli
 docs/diagnose_validation.md, section "Unseen forms and out-of-catalogue effects (issue 10)".
 """
 
-import runpy
-from pathlib import Path
 
 import pytest
 
-EXAMPLE = Path(__file__).resolve().parents[2] / "examples" / "diagnose" / "unseen_effects.py"
-NS = runpy.run_path(str(EXAMPLE), run_name="unseen_effects")
+from scenes.app.validation import unseen
+
+NS = vars(unseen)
 CASES = NS["CASES"]
 
 #: the fast subset: the issue's own examples (a vignetting inside a window, a quadratic straylight), a
