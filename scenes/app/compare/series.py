@@ -54,7 +54,7 @@ from scenes.errors import SceneError
 from scenes.scene import load_scene
 
 from . import fullframe
-from .apply import apply_candidate
+from .apply import LEVEL_SCALE_TOL, apply_candidate
 from .candidates import (
     EXCESS_SIGMA,
     HELDOUT_CANDIDATES,
@@ -783,14 +783,21 @@ def apply_series(series: Series, diagnosis: dict, apply_to: str | Path | None, p
     if per is not None:
         first = next(p for p in per if p is not None)
         cand = {**best, "params": first}
+    levels = series_levels(diagnosis, best["effect"])
+    base, notes = carry_series_levels(base, levels)
     scene_path = apply_candidate(base, cand, apply_to, None)
     new_series = Path(apply_to).with_name(Path(apply_to).stem + ".series.toml")
     frames = []
+    light = levels.get("light_scale", 0.0)
     for i, fr in enumerate(series.frames):
         entry = {"file": str(fr.file), "label": fr.label}
         sets = dict(fr.sets)
-        if per is not None and per[i] is not None and best["effect"] != "light_curve":
-            for k, v in per[i].items():
+        if "sky.flat_e_per_s" in sets and abs(light) > LEVEL_SCALE_TOL and 1 + light > 0:
+            sets["sky.flat_e_per_s"] = round(float(sets["sky.flat_e_per_s"]) * (1 + light), 6)
+        if per is not None and best["effect"] != "light_curve":
+            # the frame's own parameters; a frame the effect was not fitted on gets its zero strength
+            own = per[i] if per[i] is not None else (registry()[best["effect"]].identity or {})
+            for k, v in own.items():
                 sets[f"effects.{best['effect']}.{k}"] = v
         if fr.scene_file is not None:
             entry["scene"] = str(fr.scene_file)
@@ -804,8 +811,36 @@ def apply_series(series: Series, diagnosis: dict, apply_to: str | Path | None, p
     if series.levels:
         body["levels"] = series.levels
     new_series.write_text(f"# written by newtsim diagnose --series --apply: {best['effect']} added\n"
-                          + tomli_w.dumps(body))
+                          + "".join(f"# and {n}\n" for n in notes) + tomli_w.dumps(body))
     return Path(scene_path), new_series, best
+
+
+def series_levels(diagnosis: dict, effect: str) -> dict[str, float]:
+    """The series' shared levels fitted jointly with ``effect`` (its joint solution), or the levels-only
+    ones when the effect was fitted frame by frame."""
+    sf = diagnosis.get("_fits", {}).get(effect)
+    if sf is not None and sf.solution is not None and sf.shared_names:
+        return {n: float(v) for n, v in zip(sf.shared_names, sf.solution.shared_levels)}
+    return dict(diagnosis["baseline"]["levels"]["series"])
+
+
+def carry_series_levels(scene, levels: dict[str, float]):
+    """The base scene with the levels the series shares written into the keys that hold them (the flat-screen
+    level, the dark current), as the single-frame ``--apply`` carries a frame's levels
+    (:func:`.apply.carry_levels`); per-frame levels (sky, bias drift) stay per frame. Returns (scene, notes)."""
+    notes, update = [], {}
+    c = levels.get("light_scale", 0.0)
+    if abs(c) > LEVEL_SCALE_TOL and scene.sky.flat_e_per_s and 1 + c > 0:
+        update["sky"] = scene.sky.model_copy(update={"flat_e_per_s": round(scene.sky.flat_e_per_s * (1 + c), 6)})
+        notes.append(f"the series' flat-screen level refitted: flat_e_per_s x {1 + c:.5f}")
+    c = levels.get("dark_scale", 0.0)
+    if abs(c) > LEVEL_SCALE_TOL and 1 + c > 0:
+        det = dict(scene.detector)
+        rate = scene.sensor().dark_current_e_per_s
+        det["dark_current_e_per_s"] = round(rate * (1 + c), 6)
+        update["detector"] = det
+        notes.append(f"the series' dark level refitted: dark current {rate:.4g} -> {det['dark_current_e_per_s']:.4g} e-/s")
+    return (scene.model_copy(update=update) if update else scene), notes
 
 
 def series_ledger(series: Series, diagnosis: dict, new_series: Path | None, best: dict | None,
