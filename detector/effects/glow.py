@@ -128,6 +128,8 @@ _GLOW_SIGNATURE = LinearSignature(
     lambda p, res: (f"additive glow rising towards the {p['edge']} edge, {p['amplitude_e_per_s'] * res.exptime_s:.3g} "
                     f"e- at the edge (e-folding {p['scale_px']:.0f} px), growing with exposure: amplifier glow"),
     pattern="additive glow decaying away from an edge or corner", extra_k=2, refine=_glow_refine, check=_glow_check)
+#: the variant of a label ("edge|scale"), on any frame (a series refines on one frame, fits on all)
+_GLOW_SIGNATURE.rebuild = lambda label, res: _glow_variant(res, label.split("|")[0], float(label.split("|")[1]))
 
 
 # --- adapter -----------------------------------------------------------------------------------------------

@@ -212,6 +212,10 @@ _VIGNETTING_SIGNATURE = LinearSignature(
                        if "centre_x_mm" in p else "") + ": vignetting"),
     pattern="multiplicative radial fall-off of the light", extra_k=3, refine=_vignetting_refine, of_light=True,
     check=_vignetting_check)
+#: the variant of a label ("cx|cy|radius"), on any frame: a series refines the centre on one frame and fits
+#: that one form on every frame (scenes.app.compare.series)
+_VIGNETTING_SIGNATURE.rebuild = lambda label, res: _vignetting_variant(
+    res, *(float(x) for x in label.split("|")[:2]), float(label.split("|")[2]) or None)
 
 
 def relative_illumination(params: VignettingParams, sensor):

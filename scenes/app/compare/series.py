@@ -422,19 +422,30 @@ def joint_linear(name: str, sig: LinearSignature, frames: list[Residuals], share
 
     best = search(list(zip(*variant_lists)))
     if best is not None and sig.refine is not None:
-        refined = _aligned([list(sig.refine(v, r)) if v.label != "(none)" else [] for v, r in zip(best[0], frames)],
-                           frames)
-        if refined is not None:
-            best = search([best[0], *zip(*refined)]) or best
+        rebuild = getattr(sig, "rebuild", None)
+        if rebuild is not None:
+            # the form refined on the frame the best variant improves most, then that one form on every frame
+            # (one centre, one scale for the whole series)
+            top = int(np.argmin(best[1].per_frame_delta))
+            labels = [v.label for v in sig.refine(best[0][top], frames[top])]
+            refined = [[rebuild(lab, r) for r in frames] for lab in labels]
+            best = search([best[0], *refined]) or best
+        else:
+            refined = _aligned([list(sig.refine(v, r)) if v.label != "(none)" else [] for v, r in
+                                zip(best[0], frames)], frames)
+            if refined is not None:
+                best = search([best[0], *zip(*refined)]) or best
     if best is None:
         return None
     vs = best[0]
-    grams = []
-    for v, r in zip(vs, frames):
+
+    def final_gram(v, r):
         idx, _, w = r.flat_profiled()
         f = _values(v, r)
-        grams.append(frame_gram(r, idx, r.flat()[1], w, shared=f if mode == "shared" else None,
-                                own=f if mode == "frame" else None, shared_levels=shared))
+        return frame_gram(r, idx, r.flat()[1], w, shared=f if mode == "shared" else None,
+                          own=f if mode == "frame" else None, shared_levels=shared)
+
+    grams = _over_frames(final_gram, list(zip(vs, frames)))
     sol = solve_joint(grams)
     coefs = [sol.shared] * len(frames) if mode == "shared" else sol.own
     if sig.of_light:  # a multiplicative effect's coefficients carry the light level (see LinearSignature)
@@ -442,15 +453,16 @@ def joint_linear(name: str, sig: LinearSignature, frames: list[Residuals], share
     ps = [v.to_params(c) if _concerned(g) else "-" for v, c, g in zip(vs, coefs, grams)]
     if (mode == "shared" and any(p is None for p in ps)) or all(p in (None, "-") for p in ps):
         return None
-    fits: list[Fit | None] = []
-    corr = 0.0
-    for v, r, c, p, d in zip(vs, frames, coefs, ps, sol.per_frame_delta):
+    def finish(v, r, c, p, d):
         if p is None or p == "-":
-            fits.append(None)
-            continue
+            return None
         fi = sig._finish(r, name, v, c, d, p)
-        corr += fi.delta_m2lnl - d  # the shot noise of the added charge (with_shot_noise), frame by frame
-        fits.append(fi)
+        fi.state["coef"] = np.asarray(c, float)  # with the variant: what rebuilds the mean change (fit_delta)
+        return fi
+
+    fits: list[Fit | None] = _over_frames(finish, list(zip(vs, frames, coefs, ps, sol.per_frame_delta)))
+    # the shot noise of the added charge (with_shot_noise), frame by frame
+    corr = sum(fi.delta_m2lnl - d for fi, d in zip(fits, sol.per_frame_delta) if fi is not None)
     first = next(f for f in fits if f is not None)
     k_one = first.k
     k = k_one if mode == "shared" else k_one * sum(f is not None for f in fits)
@@ -477,6 +489,33 @@ def _aligned(lists: list[list], frames: list[Residuals]) -> list[list] | None:
                          for k in counts] for v in lists]
 
 
+def _over_frames(fn, args: list[tuple]) -> list:
+    """``[fn(*a) for a in args]``: one frame after the other (threads over frames were measured no faster on
+    2 cores: the work is numpy's, much of it already in BLAS threads)."""
+    return [fn(*a) for a in args]
+
+
+def fit_delta(fit: Fit, res: Residuals) -> np.ndarray | None:
+    """A fit's mean change [ADU] on its frame: kept, or rebuilt from its variant and coefficients (a series
+    drops the frames' maps once a candidate is judged, to stay in bounded memory)."""
+    if fit.delta_adu is not None:
+        return fit.delta_adu
+    v, c = fit.state.get("variant"), fit.state.get("coef")
+    if v is None or c is None:
+        return None
+    return sum(ci * np.asarray(t, np.float32) for ci, t in zip(c, v.maps()))
+
+
+def _drop_maps(sf: SeriesFit) -> None:
+    """Forget the frames' full-frame maps of a judged candidate (its mean change stays rebuildable when the
+    fit's variant and coefficients are known, :func:`fit_delta`): ten frames of a few hundred candidates'
+    maps would not fit in memory."""
+    for f in sf.frames:
+        if f is not None:
+            f.delta_adu = None
+            f.extra_var_adu2 = None
+
+
 def _concerned(g) -> bool:
     """Whether the candidate's templates reach the frame at all (not all zero on its fitted pixels)."""
     cols = g.cols("ts") + g.cols("tp")
@@ -494,15 +533,16 @@ def _light_level(sol, i: int, shared: list[str], res: Residuals) -> float:
 def per_frame(name: str, sig, frames: list[Residuals], params_model=None) -> SeriesFit | None:
     """A signature that is not linear, fitted frame by frame: delta(-2 ln L) and parameters summed over the
     frames it fits (a frame whose fit the effect's parameter model refuses counts as not fitted)."""
-    fits = []
-    for r in frames:
+    def one(r):
         f = sig.fit(r, name)
         if f is not None and params_model is not None:
             try:
                 params_model.model_validate(f.params)
             except ValueError:
                 f = None
-        fits.append(f if f is not None and np.isfinite(f.delta_m2lnl) else None)
+        return f if f is not None and np.isfinite(f.delta_m2lnl) else None
+
+    fits = _over_frames(one, [(r,) for r in frames])
     got = [f for f in fits if f is not None]
     if not got:
         return None
@@ -562,6 +602,7 @@ def series_candidates(frames: list[Residuals], labels: list[str], present: set[s
         n_all = sum(r.n_fit for r in frames)
         cand = Candidate(sf.fit, sf.chi2_after / max(n_all, 1), time.perf_counter() - t0, why, implaus)
         cand.scaling = cls.scaling or "frame"  # type: ignore[attr-defined]
+        _drop_maps(sf)
         out.append(cand)
     _excess_shares(frames, out, fits, shared)
     _heldout(frames, out, fits, progress)
@@ -751,12 +792,14 @@ def residual_vs_signal(frames: list[Residuals], labels: list[str], pair: list) -
                "residual_rel": float(res_.sum()) / total - float(sol.levels_only[i_light])}
         for k, _, f in pair:
             fi = f.frames[i]
-            if fi is None or fi.delta_adu is None or f.solution is None:
+            delta = fit_delta(fi, r) if fi is not None and f.solution is not None else None
+            if delta is None:
                 continue
             names = _shared_names(f)
             dl = (float(f.solution.shared_levels[names.index("light_scale")] - f.solution.levels_only[names.index(
                 "light_scale")]) if "light_scale" in names else 0.0)
-            row[f"{k}_rel"] = float(np.asarray(fi.delta_adu, np.float64).ravel()[idx].sum()) / total + dl
+            row[f"{k}_rel"] = float(np.asarray(np.broadcast_to(delta, r.data_adu.shape), np.float64).ravel()[idx].sum(
+            )) / total + dl
         out.append(row)
     return out or None
 
