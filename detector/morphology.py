@@ -196,9 +196,14 @@ def describe(res: Residuals, delta_adu: np.ndarray | None = None) -> dict:
         vb = np.nanmean(z2[: (shape[0] // b) * b, : (shape[1] // b) * b].reshape(ny, b, nx, b), axis=(1, 3))
         okv = np.isfinite(vb)
         tv = _legendre_basis(ny, nx, 1)[:, okv]
-        _, dgrad, _ = _wls(vb[okv], np.ones(okv.sum()), tv)
-        spread = float(np.nanstd(vb)) / max(float(np.nanmean(vb)), 1e-9)
-        geom = ["noise", "gradient"] if spread > 0.1 and -dgrad > 0.5 * np.nansum((vb - np.nanmean(vb)) ** 2) else ["noise"]
+        # a plane of the blocks' mean z^2, weighted by their errors (the mean of n values of chi2 with 1 dof has
+        # variance 2 / n, times its level squared): a gradient of the noise when the plane is significant and
+        # its change across the frame is a good part of the extra variance itself
+        npb = np.maximum(_blocks((wmap > 0).astype(np.float64), b), 1.0)[okv]
+        level = float(np.nanmean(vb))
+        _, dgrad, fitv = _wls(vb[okv], npb / (2 * level * level), tv)
+        varies = -dgrad > 25 and float(np.ptp(fitv)) > 0.5 * max(level - 1.0, 1e-9)
+        geom = ["noise", "gradient"] if varies else ["noise"]
         extra = max(float(np.median(r * r) / 0.4549 - np.median(1 / w)), 0.0)
         kind = "multiplicative" if np.corrcoef(light.ravel()[idx][:200000], (r * r * w)[:200000])[0, 1] > 0.3 \
             and np.ptp(light) > 0 else "additive"

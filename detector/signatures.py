@@ -1157,6 +1157,8 @@ class VarianceSignature(Signature):
 
     #: the excess variance of a cell may exceed the template's prediction by this factor over the median cell
     MAX_CELL_RATIO = 4.0
+    #: ... and the cells' excess variances (over the template's) may scatter by this fraction (rms) of their mean
+    MAX_CELL_SPREAD = 0.5
 
     def uniformity(self, fit: Fit, res: Residuals, cells: int = 4) -> str:
         """The added scatter follows its template over the frame (kTC noise is the same everywhere, PRNU
@@ -1171,22 +1173,35 @@ class VarianceSignature(Signature):
         y, x = np.divmod(vs["idx"], shape[1])
         cell = np.minimum(y * cells // shape[0], cells - 1) * cells + np.minimum(x * cells // shape[1], cells - 1)
         t = _at(self.template(res), shape, vs["idx"])
-        ratios = []
+        ratios, errs = [], []
         for c in range(cells * cells):
             sel = cell == c
             if sel.sum() < 200:
                 continue
-            excess = float(np.median(vs["r_white"][sel] ** 2)) / 0.4549 - float(np.median(vs["v"][sel]))
+            v = float(np.median(vs["v"][sel]))
+            excess = float(np.median(vs["r_white"][sel] ** 2)) / 0.4549 - v
             pred = theta * float(np.mean(t[sel]))
             if pred > 0:
                 ratios.append(excess / pred)
+                # standard error of the median-of-squares variance estimate: (v + excess) sqrt(5.44 / n)
+                errs.append(max(v + excess, v) * np.sqrt(5.44 / sel.sum()) / pred)
         if len(ratios) < 4:
             return ""
-        ratios = np.asarray(ratios)
+        ratios, errs = np.asarray(ratios), np.asarray(errs)
         med = float(np.median(ratios))
         if ratios.max() > self.MAX_CELL_RATIO * max(med, 0.05) and ratios.max() > 2.0:
             return (f"the extra scatter sits in one part of the frame ({ratios.max():.2g} x the fit's there, {med:.2g} x "
                     "in the median region): a local structure the fit took for noise, not this noise")
+        # ... or it varies across the frame far beyond the cells' errors (a gradient of the noise): chi2 of the
+        # cells' ratios about their weighted mean, and a spread of at least MAX_CELL_SPREAD of the fit's scatter
+        wts = 1.0 / np.maximum(errs, 1e-12) ** 2
+        mean = float(np.sum(wts * ratios) / np.sum(wts))
+        chi2, dof = float(np.sum(wts * (ratios - mean) ** 2)), ratios.size - 1
+        spread = float(np.sqrt(np.sum(wts * (ratios - mean) ** 2) / np.sum(wts))) / max(abs(mean), 1e-12)
+        if chi2 > dof + 5 * np.sqrt(2 * dof) and spread > self.MAX_CELL_SPREAD:
+            return (f"the extra scatter varies across the frame ({ratios.min():.2g} to {ratios.max():.2g} x the fit's, "
+                    f"chi2 {chi2:.0f} for {dof} dof): a gradient of the noise, which this noise's template does not "
+                    "have")
         return ""
 
     def score(self, fit: Fit, res: Residuals) -> float | None:

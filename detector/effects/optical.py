@@ -193,20 +193,53 @@ def _vignetting_refine(best, res):
     yield _vignetting_variant(res, cx, cy, radius)
 
 
+def _rho2_max(res, p: dict) -> float:
+    """The largest rho^2 of the radial model over the read-out window: its farthest pixel from the fitted
+    centre, in units of the model's radius (the sensor's half-diagonal, or ``radius_mm``)."""
+    s = res.sensor
+    pitch_mm = s.pixel_pitch_um * 1e-3
+    u = (np.array([res.xs.min(), res.xs.max()]) - (s.sensor_width_px - 1) / 2.0) * pitch_mm - p.get("centre_x_mm", 0.0)
+    v = (np.array([res.ys.min(), res.ys.max()]) - (s.sensor_height_px - 1) / 2.0) * pitch_mm - p.get("centre_y_mm", 0.0)
+    r_corner = p.get("radius_mm") or 0.5 * pitch_mm * float(np.hypot(s.sensor_width_px, s.sensor_height_px))
+    return float((np.max(u * u) + np.max(v * v)) / r_corner ** 2)
+
+
+def _loss_at_edge(p: dict, res) -> float:
+    """The fitted loss at the sensor's corner (rho = 1), or for a window-scale fit at the window's farthest pixel
+    (the polynomial beyond the window is not measured)."""
+    x = min(_rho2_max(res, p), 1.0) if "radius_mm" in p else 1.0
+    return p["a2"] * x + p["a4"] * x * x
+
+
+#: a fitted fall-off may rise towards its edge by at most this much of its own depth and still be a vignetting
+#: (the polynomial's wiggle about a profile it does not share exactly)
+_VIGNETTING_RISE = 0.05
+
+
 def _vignetting_check(fit, res) -> str:
-    """Vignetting takes light away towards the edge of the field (relative illumination <= 1, falling with
-    the distance to its centre); a pattern that brightens away from the centre is something else."""
+    """Vignetting takes light away towards the edge of the field: the relative illumination
+    ``1 - a2 rho^2 - a4 rho^4`` is at most 1 and does not rise with the distance to its centre, *over the
+    pixels it is seen on* (rho^2 from 0 to the window's farthest pixel; the polynomial beyond them is not
+    measured: a cone or a Gaussian fall-off fitted inside a window turns over outside it). A pattern that
+    brightens away from its centre where it is observed is an added light or a flat-field error."""
     p = fit.params
-    if p["a2"] + p["a4"] <= 0 or p["a2"] < -0.05:
-        return (f"the fitted fall-off brightens away from its centre (a2 + a4 = {p['a2'] + p['a4']:+.3g}): vignetting "
-                "only takes light away (an added light or a flat-field error)")
+    a2, a4 = p["a2"], p["a4"]
+    x = min(_rho2_max(res, p), 1.0) if "radius_mm" in p else 1.0
+    t = np.linspace(0.0, x, 65)
+    loss = a2 * t + a4 * t * t  # the loss from the centre to the window's farthest pixel (or the sensor's corner)
+    depth = max(float(np.max(np.abs(loss))), 1e-12)
+    rise = float(np.max(np.maximum.accumulate(loss) - loss))  # how much the light comes back further out
+    if loss[-1] <= 0 or float(np.min(loss)) < -_VIGNETTING_RISE * depth or rise > _VIGNETTING_RISE * depth:
+        return (f"the fitted fall-off brightens away from its centre where it is observed (loss {100 * loss[-1]:+.3g} % "
+                f"at rho^2 = {x:.3g}, it comes back by {100 * rise:.2g} % further out; a2 = {a2:+.3g}, a4 = {a4:+.3g}): "
+                "vignetting only takes light away (an added light or a flat-field error)")
     return ""
 
 
 _VIGNETTING_SIGNATURE = LinearSignature(
     _vignetting_variants,
-    lambda p, res: (f"light falling off towards the corners, {100 * (p['a2'] + p['a4']):.3g} % at "
-                    + (f"{p['radius_mm']:.3g} mm from its centre, " if "radius_mm" in p else "the corner, ")
+    lambda p, res: (f"light falling off towards the corners, {100 * _loss_at_edge(p, res):.3g} % at "
+                    + ("the window's farthest pixel from its centre, " if "radius_mm" in p else "the corner, ")
                     + "proportional to the signal"
                     + (f", centred at ({p['centre_x_mm']:+.3g}, {p['centre_y_mm']:+.3g}) mm off the axis"
                        if "centre_x_mm" in p else "") + ": vignetting"),

@@ -92,6 +92,10 @@ class RowOffsetSignature(Signature):
     SMOOTH_DEGREE, SMOOTH_FRACTION = 4, 0.8
     #: ... or a pattern of the whole frame when the column means' excess variance is this fraction of the rows'
     COLUMN_FRACTION = 0.5
+    #: ... or a drift when the extra row offsets (the smooth curve removed) keep this lag-1 autocorrelation: row
+    #: noise draws a new offset for every row read (Janesick 2007, ch. 10); a 1/f (pink) part correlates
+    #: neighbours far less (0.44 for the hidden-effect suite's pink row noise; 0.75 for a bias random walk)
+    MAX_LAG1 = 0.6
 
     @staticmethod
     def line_means(res, axis: int = 1):
@@ -144,6 +148,16 @@ class RowOffsetSignature(Signature):
                 return (f"the row offsets form a smooth curve (a degree-{self.SMOOTH_DEGREE} polynomial of the row "
                         f"takes {100 * min(smooth / excess, 1):.0f} % of their excess): a large-scale 2-D pattern "
                         "seen through the rows, not independent row noise")
+            # independent from row to row: the lag-1 autocorrelation of what the smooth curve leaves (whitened)
+            # (of the extra offsets: the pixel noise of the row means, white, dilutes it by (chi2/n - 1) / (chi2/n))
+            u = (r - basis @ coef) * np.sqrt(wts)
+            rho1 = float(np.dot(u[1:], u[:-1]) / max(np.dot(u, u), 1e-300))
+            ratio = float(np.sum(r * r / v)) / n
+            rho_extra = rho1 * ratio / (ratio - 1) if ratio > 1 else 0.0
+            if rho_extra > self.MAX_LAG1 and rho1 * np.sqrt(n) > 5:
+                return (f"the row offsets are correlated from one row to the next (lag-1 correlation {rho_extra:.2f} "
+                        f"of the extra offsets, {rho1 * np.sqrt(n):.0f} sigma): a level drifting during the read-out "
+                        "or a slow pickup, not independent row noise")
         rc, vc, okc = self.line_means(res, axis=0)
         if okc.sum() >= 8:
             theta_c, _ = ml_variance_scale(rc, vc, np.ones_like(vc), z_cap=1e6)

@@ -44,6 +44,16 @@ STRUCTURE_SIGMA = 8.0
 EXCESS_SIGMA, MIN_EXCESS_SHARE = 50.0, 0.02
 
 
+#: a candidate that changes the mean must remove at least this share of the excess chi2 over the pixels it acts
+#: on (where that excess is significant): an effect that leaves most of what is wrong where it acts is not
+#: what is wrong there (a shift that takes the centroid of a one-sided tail, a bowl under a few dust shadows)
+MIN_SUPPORT_SHARE = 0.5
+#: the pixels a candidate acts on: the largest of its weighted squared changes, which carry this share of them
+SUPPORT_MASS = 0.9
+#: the excess over those pixels is significant at this many standard deviations of its chi2
+SUPPORT_SIGMA = 8.0
+
+
 @dataclass
 class Candidate:
     """One effect fitted to the residuals, with what the ranking asks of it.
@@ -77,11 +87,15 @@ class Candidate:
     #: large; None otherwise (or for candidates compared by counts)
     excess_share: float | None = None
 
+    #: share of the excess chi2 over the pixels the candidate acts on that it removes (None: not measured)
+    support_share: float | None = None
+
     @property
     def significant(self) -> bool:
         return (self.contender and (self.heldout is None or self.heldout < SIGNIFICANT_HELDOUT)
                 and (self.explains is None or self.explains >= MIN_EXPLAINED)
-                and (self.excess_share is None or self.excess_share >= MIN_EXCESS_SHARE))
+                and (self.excess_share is None or self.excess_share >= MIN_EXCESS_SHARE)
+                and (self.support_share is None or self.support_share >= MIN_SUPPORT_SHARE))
 
     @property
     def score(self) -> float:
@@ -95,7 +109,8 @@ class Candidate:
                 "kind": type(registry()[f.effect].signature).__name__ if f.effect in registry() else "",
                 "significant": self.significant, "rejected": self.rejected, "plausible": self.plausible,
                 "implausible_because": self.implausible, "heldout_delta": self.heldout,
-                "explains_structure": self.explains, "explains_excess": self.excess_share, "variant": f.note,
+                "explains_structure": self.explains, "explains_excess": self.excess_share,
+                "explains_where_it_acts": self.support_share, "variant": f.note,
                 "seconds": self.seconds}
 
 
@@ -108,6 +123,9 @@ def at_bound(cls, params: dict) -> str:
         if sch is None or isinstance(value, bool) or not isinstance(value, (int, float)):
             continue
         alts = [sch, *sch.get("anyOf", [])]
+        if any(a.get("type") == "integer" for a in alts):
+            continue  # a count or a grid (amplifiers, channels) is a choice of form: its smallest value is a form too
+
         for a in alts:
             for bkey in ("minimum", "maximum", "exclusiveMinimum", "exclusiveMaximum"):
                 bound = a.get(bkey)
@@ -228,6 +246,7 @@ def candidates(res: Residuals, present: set[str], progress=None, truth=None) -> 
         out.append(Candidate(fit, chi2, seconds, why, implausibility(cls, fit, res)))
     structure_shares(res, out)
     excess_shares(res, out)
+    support_shares(res, out)
     score_heldout(res, out, progress=progress)
     return rank(out), problems
 
@@ -254,6 +273,47 @@ def excess_shares(res: Residuals, cands: list[Candidate]) -> None:
             c.excess_share = round(float((excess + n - c.chi2_per_dof * n) / excess), 4)
 
 
+def support_share(res: Residuals, fit: Fit) -> float | None:
+    """The share of the excess chi2 (levels refitted) over the pixels ``fit`` acts on that it removes: those
+    whose weighted squared mean change ``delta^2 w`` is among the largest, carrying SUPPORT_MASS of its sum.
+    None when the fit changes no mean or the excess there is not significant (SUPPORT_SIGMA)."""
+    if fit.delta_adu is None:
+        return None
+    idx, r0, w = res.flat_profiled()
+    if idx.size < 64:
+        return None
+    d = np.asarray(fit.delta_adu, np.float64).ravel()[idx] if np.size(fit.delta_adu) > 1 else \
+        np.full(idx.size, float(np.asarray(fit.delta_adu).ravel()[0]))
+    q = d * d * w
+    total = float(q.sum())
+    if total <= 0:
+        return None
+    sub = np.sort(q[:: max(1, idx.size // 200_000)])[::-1]
+    cum = np.cumsum(sub)
+    thr = float(sub[min(int(np.searchsorted(cum, SUPPORT_MASS * cum[-1])), sub.size - 1)])
+    on = q >= thr
+    n_on = int(on.sum())
+    if n_on < 16:
+        return None
+    before = float(np.dot(r0[on] ** 2, w[on])) - n_on
+    if before < SUPPORT_SIGMA * np.sqrt(2 * n_on):
+        return None
+    r1 = res.project(res.flat()[1] - d)
+    w1 = w
+    if fit.extra_var_adu2 is not None:
+        e = np.broadcast_to(np.asarray(fit.extra_var_adu2, np.float64), res.data_adu.shape).ravel()[idx]
+        w1 = 1.0 / np.maximum(1.0 / w + e, 0.1 / w)
+    after = float(np.dot(r1[on] ** 2, w1[on])) - n_on
+    return round(float((before - after) / before), 4)
+
+
+def support_shares(res: Residuals, cands: list[Candidate]) -> None:
+    """:func:`support_share` of every contender (significant by delta BIC, plausible, not rejected)."""
+    for c in cands:
+        if c.contender and c.fit.delta_adu is not None:
+            c.support_share = support_share(res, c.fit)
+
+
 def structure_shares(res: Residuals, cands: list[Candidate]) -> None:
     """For every candidate with a mean change, the share of the frame's significant large-scale structure
     (block chi2 beyond its dof, :func:`detector.morphology.block_chi2`) that it removes."""
@@ -273,7 +333,8 @@ def large_scale_share(res: Residuals, delta: np.ndarray, idx: np.ndarray, w: np.
     """The share of a candidate's own mean change (its chi2 over the fitted pixels) that survives averaging
     into the blocks of :func:`detector.morphology.block_chi2`: ~1 for a smooth pattern, ~0 for a pattern of
     a few pixels."""
-    d = np.asarray(delta, np.float64).ravel()[idx]
+    # both sides with the global levels refitted: a pattern's mean (a bias bowl's constant part) is a level
+    d = res.project(np.asarray(delta, np.float64).ravel()[idx])
     total = float(np.dot(d * d, w))
     if total <= 0:
         return 0.0
@@ -363,7 +424,10 @@ def verdict(cands: list[Candidate], morphology: dict | None = None) -> str:
             f"it removes only {100 * c.explains:.0f} % of the large-scale structure" if c.explains is not None
             and c.explains < MIN_EXPLAINED else
             f"it removes only {100 * c.excess_share:.2g} % of the excess chi2" if c.excess_share is not None
-            and c.excess_share < MIN_EXCESS_SHARE else f"it does not improve the pixels it was not fitted on (held-out "
+            and c.excess_share < MIN_EXCESS_SHARE else
+            f"it removes only {100 * c.support_share:.2g} % of the excess chi2 where it acts: what is wrong there is "
+            "something else, or more" if c.support_share is not None and c.support_share < MIN_SUPPORT_SHARE
+            else f"it does not improve the pixels it was not fitted on (held-out "
             f"{c.heldout:.3g})" if c.heldout is not None else "")
         why = f" ({c.fit.effect} fits but is not credible: {reason})" if reason else ""
     if morphology and morphology.get("significant"):

@@ -28,7 +28,10 @@ Summary metrics (``OUT_DIR/unseen.md``, ``unseen.json``, ``unseen.png``, also pr
 
 * named first: catalogue cases whose first candidate is one of the accepted names;
 * confidently wrong: a significant, plausible first candidate that is wrong; for an out-of-catalogue case
-  any significant plausible candidate naming a catalogue effect is wrong (an empirical map is not);
+  any significant plausible candidate naming a catalogue effect is wrong (an empirical map is not); a wrong
+  first candidate that the diagnosis itself says it cannot tell apart (``indistinguishable``: as good on
+  held-out pixels) from an accepted name is not confidently wrong, it is counted as ambiguous (the strict
+  count, which ignores the diagnosis's doubt, is reported too);
 * morphology match: out-of-catalogue cases whose ``residual_morphology`` is significant with the expected
   kind and at least one expected geometry word;
 * error halved: after / before <= 0.5 (over every non-null case; a case with nothing applied fails unless its
@@ -1177,6 +1180,8 @@ def diagnose_case(case: UnseenCase, model_toml: Path, measured: Path, support, w
            "residual_morphology": {k: v for k, v in morph.items() if not str(k).startswith("_")}
            if isinstance(morph, dict) else None,
            "verdict": out.get("verdict"), "seconds": round(seconds, 2), "metric": metric,
+           "cannot_tell_apart": ([best["effect"], *out.get("indistinguishable", [])]
+                                 if best is not None and out.get("indistinguishable") else []),
            "before": error_of(out["_compare"], support)}
     row["named_first"] = row["first"] in case.accept if case.accept else None
     if case.group == "ooc":
@@ -1185,7 +1190,11 @@ def diagnose_case(case: UnseenCase, model_toml: Path, measured: Path, support, w
         row["morphology_match"] = morphology_match(morph if isinstance(morph, dict) else None, case.kind,
                                                    case.geometry)
     elif case.group == "catalogue":
-        row["confidently_wrong"] = best is not None and best["effect"] not in case.accept
+        # a first candidate the diagnosis says it cannot tell apart from others (as good on held-out pixels) is a
+        # claim about the group: not confidently wrong when an accepted name is in it (counted as "ambiguous")
+        row["confidently_wrong"] = best is not None and best["effect"] not in case.accept and not (
+            set(row["cannot_tell_apart"]) & set(case.accept))
+        row["confidently_wrong_strict"] = best is not None and best["effect"] not in case.accept
     else:
         row["confidently_wrong"] = best is not None
         row["clean"] = first_any is None
@@ -1283,6 +1292,11 @@ def summary(rows: list[dict]) -> dict:
             "confidently_wrong": frac(sum(bool(r.get("confidently_wrong")) for r in eff), len(eff)),
             "confidently_wrong_catalogue": frac(sum(bool(r.get("confidently_wrong")) for r in cat), len(cat)),
             "confidently_wrong_ooc": frac(sum(bool(r.get("confidently_wrong")) for r in ooc), len(ooc)),
+            "confidently_wrong_strict": frac(sum(bool(r.get("confidently_wrong_strict", r.get("confidently_wrong")))
+                                                 for r in eff), len(eff)),
+            "ambiguous_right": frac(sum(bool(r.get("cannot_tell_apart")) and not r.get("named_first") and
+                                        bool(set(r["cannot_tell_apart"]) & set(r.get("accept", []))) for r in cat),
+                                    len(cat)),
             "missed_catalogue": frac(sum(r.get("first") == "none" for r in cat), len(cat)),
             "morphology_match": frac(sum(bool(r.get("morphology_match")) for r in ooc), len(ooc)),
             "error_halved": frac(sum(error_halved(r) for r in eff), len(eff)),
@@ -1349,6 +1363,10 @@ def markdown(rows: list[dict], summ: dict, conf: dict) -> str:
              f"| confidently wrong (all effect cases) | {pct('confidently_wrong')} |",
              (f"| confidently wrong, catalogue / out of catalogue | {pct('confidently_wrong_catalogue')} / "
              f"{pct('confidently_wrong_ooc')} |"),
+             (f"| wrong first, counting those the diagnosis says it cannot tell apart from an accepted name | "
+              f"{pct('confidently_wrong_strict')} |"),
+             (f"| first not accepted but flagged as not told apart from an accepted name (catalogue) | "
+              f"{pct('ambiguous_right')} |"),
              f"| catalogue effect missed (nothing significant) | {pct('missed_catalogue')} |",
              f"| morphology kind + geometry match (out of catalogue) | {pct('morphology_match')} |",
              f"| error halved after one apply (all effect cases) | {pct('error_halved')} |",
