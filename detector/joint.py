@@ -100,6 +100,38 @@ def frame_gram(res: Residuals, idx: np.ndarray, r: np.ndarray, w: np.ndarray, sh
     return FrameGram(g, z, rr, ts, tp, len(lsh), len(lown), int(idx.size))
 
 
+class SampleGrams:
+    """:func:`frame_gram` for many templates on one frame's fixed sample of pixels: the levels' columns and
+    their Gram matrix are computed once (they do not depend on the template), each template's only its own
+    products. ``scale`` multiplies everything (a subsample standing for all fitted pixels)."""
+
+    def __init__(self, res: Residuals, idx: np.ndarray, r: np.ndarray, w: np.ndarray,
+                 shared_levels: Sequence[str] = (), scale: float = 1.0):
+        shape = res.data_adu.shape
+        lsh, lown = level_columns(res, shared_levels)
+        self.ls, self.lf = len(lsh), len(lown)
+        self.lv = (np.stack([_at(t, shape, idx) for t in (*lsh, *lown)]) if lsh or lown
+                   else np.zeros((0, idx.size)))
+        self.idx, self.r, self.w, self.scale = idx, r, w, scale
+        lw = self.lv * w
+        self.ll, self.lr = lw @ self.lv.T, lw @ r
+        self.rr = float(np.dot(r * w, r))
+
+    def gram(self, shared: Values | None = None, own: Values | None = None) -> FrameGram:
+        parts = [np.atleast_2d(np.asarray(f(self.idx), np.float64)) for f in (shared, own) if f is not None]
+        ts = parts[0].shape[0] if shared is not None else 0
+        tp = parts[-1].shape[0] if own is not None else 0
+        t = np.concatenate(parts) if parts else np.zeros((0, self.idx.size))
+        tw = t * self.w
+        k, m = t.shape[0], t.shape[0] + self.lv.shape[0]
+        g, z = np.empty((m, m)), np.empty(m)
+        g[:k, :k], g[:k, k:] = tw @ t.T, tw @ self.lv.T
+        g[k:, :k], g[k:, k:] = g[:k, k:].T, self.ll
+        z[:k], z[k:] = tw @ self.r, self.lr
+        s = self.scale
+        return FrameGram(g * s, z * s, self.rr * s, ts, tp, self.ls, self.lf, int(self.idx.size * s))
+
+
 def _solve(g: np.ndarray, b: np.ndarray) -> np.ndarray:
     """``g^-1 b`` for a symmetric positive semi-definite ``g``, robust to degenerate columns (a template that
     is a combination of others carries no information: its share is set by the pseudo-inverse)."""

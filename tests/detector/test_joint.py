@@ -82,3 +82,30 @@ def test_leave_one_out_rewards_a_shared_pattern_and_not_noise():
     noise = [(z[[0, 2, 3]], r - 0.7 * z[0] - (0.2 * f - 0.3) * z[1], w) for f, (z, r, w) in enumerate(frames)]
     absent = sum(leave_one_out([_gram(z, r, w, 1, 0, 1, 1) for z, r, w in noise]))
     assert absent > -10
+
+
+def test_sample_grams_equal_the_chunked_frame_gram():
+    """The cached-levels Gram of a sample (the variant search) is the chunked one (the final refit)."""
+    from detector.joint import SampleGrams, frame_gram
+    from detector.signatures import Residuals, SpikeStats
+    from helpers import small_sensor
+
+    rng = np.random.default_rng(2)
+    s = small_sensor(width=64, height=48)
+    shape = (48, 64)
+    model = np.full(shape, 1000.0, np.float32)
+    photo = rng.uniform(100, 200, shape).astype(np.float32)
+    res = Residuals((model + rng.normal(0, 5, shape)).astype(np.float32), model, np.full(shape, 25.0, np.float32),
+                    np.ones(shape, bool), photo, np.full(shape, 2.0, np.float32), np.arange(48.0), np.arange(64.0),
+                    s, 10.0, SpikeStats(0, 0, 0, 0, 0), SpikeStats(0, 0, 0, 0, 0))
+    idx, _, w = res.flat_profiled()
+    r = res.flat()[1]
+    t = np.linspace(-1, 1, shape[0] * shape[1])
+
+    def tmpl(i):
+        return np.stack([t[i], t[i] ** 2])
+
+    a = frame_gram(res, idx, r, w, shared=tmpl, shared_levels=["light_scale"])
+    b = SampleGrams(res, idx, r, w, shared_levels=["light_scale"]).gram(shared=tmpl)
+    assert np.allclose(a.g, b.g, rtol=1e-10) and np.allclose(a.z, b.z, rtol=1e-10) and np.isclose(a.rr, b.rr)
+    assert (a.ts, a.tp, a.ls, a.lf) == (b.ts, b.tp, b.ls, b.lf)

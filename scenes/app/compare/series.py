@@ -46,7 +46,15 @@ import tomllib
 
 from detector import registry
 from detector.characterize import linear_fit, pair_noise, photon_transfer
-from detector.joint import fixed_score, frame_amplitude, frame_gram, leave_one_out, levels_chi2, solve_joint
+from detector.joint import (
+    SampleGrams,
+    fixed_score,
+    frame_amplitude,
+    frame_gram,
+    leave_one_out,
+    levels_chi2,
+    solve_joint,
+)
 from detector.jsonable import jsonable
 from detector.morphology import describe
 from detector.signatures import LINEAR_SEARCH_PIXELS, Fit, LinearSignature, Residuals, Variant, heldout_delta
@@ -383,23 +391,26 @@ def _values(v, res):
     return lambda i: v.values(i, res.data_adu.shape)
 
 
-def joint_linear(name: str, sig: LinearSignature, frames: list[Residuals], shared: list[str], mode: str
-                 ) -> SeriesFit | None:
+def joint_linear(name: str, sig: LinearSignature, frames: list[Residuals], shared: list[str], mode: str,
+                 chi2_base: float | None = None) -> SeriesFit | None:
     """A linear signature fitted to the whole series: one set of coefficients (``mode`` "shared") or one per
     frame ("frame"), jointly with the levels; variants searched on a subsample of every frame and the winner
-    refitted on every fitted pixel."""
+    refitted on every fitted pixel. With ``chi2_base`` (the series' chi2 with the levels alone), a form
+    whose search-sample delta BIC is positive is returned as it is, without per-frame fits."""
     variant_lists = _aligned([list(sig.variants(r)) for r in frames], frames)
     if variant_lists is None:
         return None
     nsearch = max(MIN_SEARCH_PIXELS, LINEAR_SEARCH_PIXELS // len(frames))
-    samples = [_search_sample(r, nsearch) for r in frames]
+    samples = []
+    for r in frames:
+        idx, rr, w, scale = _search_sample(r, nsearch)
+        samples.append(SampleGrams(r, idx, rr, w, shared_levels=shared, scale=scale))
 
     def evaluate(vs):
         grams = []
-        for v, r, (idx, rr, w, scale) in zip(vs, frames, samples):
+        for v, r, smp in zip(vs, frames, samples):
             f = _values(v, r)
-            grams.append(frame_gram(r, idx, rr, w, shared=f if mode == "shared" else None,
-                                    own=f if mode == "frame" else None, shared_levels=shared).scaled(scale))
+            grams.append(smp.gram(shared=f if mode == "shared" else None, own=f if mode == "frame" else None))
         return solve_joint(grams), grams
 
     def params_of(vs, sol, grams):
@@ -438,6 +449,16 @@ def joint_linear(name: str, sig: LinearSignature, frames: list[Residuals], share
     if best is None:
         return None
     vs = best[0]
+    sol = best[1]
+    # a form that does not improve the search sample even before its parameters are counted is not refitted on
+    # every pixel (the sample's estimate, scaled, is if anything optimistic: it also fits the sample's noise)
+    k_est = len(vs[0].values(np.zeros(1, np.intp), frames[0].data_adu.shape)) + sig.extra_k
+    k_est *= 1 if mode == "shared" else len(frames)
+    n = sum(r.n_fit for r in frames)
+    if chi2_base is not None and sol.delta_chi2 + k_est * math.log(max(n, 2)) > 0:
+        fit = Fit(name, {}, sol.delta_chi2, k_est, n, "does not improve the fit of the series", note=vs[0].label)
+        return SeriesFit(fit, [None] * len(frames), mode, list(sol.per_frame_delta), chi2_base,
+                         chi2_base + sol.delta_chi2)
 
     def final_gram(v, r):
         idx, _, w = r.flat_profiled()
@@ -560,7 +581,8 @@ def _mode(cls) -> str:
 
 
 def series_candidates(frames: list[Residuals], labels: list[str], present: set[str], shared: list[str],
-                      truths: list, progress=None) -> tuple[list[Candidate], list[dict], dict]:
+                      truths: list, progress=None, chi2_base: float | None = None
+                      ) -> tuple[list[Candidate], list[dict], dict]:
     """Every absent effect with a signature, fitted to the series and judged as in one frame. Returns
     (candidates best first, problems, {effect: SeriesFit})."""
     out, problems, fits = [], [], {}
@@ -573,7 +595,7 @@ def series_candidates(frames: list[Residuals], labels: list[str], present: set[s
         mode = _mode(cls)
         try:
             if isinstance(cls.signature, LinearSignature):
-                sf = joint_linear(name, cls.signature, frames, shared, mode)
+                sf = joint_linear(name, cls.signature, frames, shared, mode, chi2_base)
             else:
                 sf = per_frame(name, cls.signature, frames, cls.Params)
             if sf is not None:
@@ -692,7 +714,9 @@ def run_series_diagnose(series: Series, workers: int | None = None, progress=Non
     labels = [f.label for f in series.frames]
     present = set().union(*(set(f.scene.effects) for f in series.frames))
     truths = [c["_model"].setup.truth for c in cmps]
-    cands, problems, fits = series_candidates(frames, labels, present, cmp["shared_levels"], truths, progress)
+    chi2_base = cmp["baseline"]["chi2_per_dof_levels"] * cmp["baseline"]["n_compared"]
+    cands, problems, fits = series_candidates(frames, labels, present, cmp["shared_levels"], truths, progress,
+                                              chi2_base)
     morphs = [describe(r) for r in frames]
     for m in morphs:
         m.pop("empirical", None)
