@@ -225,11 +225,31 @@ _KTC_SIGNATURE = VarianceSignature(
     pattern="extra variance constant over the frame")
 _BIAS_SIGNATURE = LinearSignature(_bias_variants, _bias_words, pattern="additive ramps/bowl, independent of signal",
                                   extra_k=0)
+#: the largest electronic crosstalk coefficient a camera shows [1]: measured coefficients are 1e-5 .. 1e-3
+#: (LSST sensors, Snyder et al. 2021, JATIS 7, 048002; DECam, Bernstein et al. 2017, PASP 129, 114502)
+CROSSTALK_MAX = 0.01
+
+
+def _crosstalk_check(fit, res) -> str:
+    """Crosstalk copies compact bright sources into the other channels, by a coefficient of at most ~1e-3:
+    a coefficient of per cents is a structure of the light itself taken for copies; and on a flat-screen
+    frame every channel's copy of the uniform light is uniform, a step between channels (a gain), not a copy
+    of a source."""
+    a = abs(fit.params["alpha"])
+    if a > CROSSTALK_MAX:
+        return (f"a coupling of {a:.3g} is {a / 1e-3:.0f} times the largest crosstalk measured in cameras "
+                f"(~1e-3): a pattern of the light taken for copies of sources")
+    if res.light_source == "flat":
+        return ("on a flat-screen frame the copies of the uniform light are uniform per channel: a step between "
+                "channels (gains), not crosstalk of sources")
+    return ""
+
+
 _CROSSTALK_SIGNATURE = LinearSignature(
     _crosstalk_variants,
     lambda p, res: (f"faint copies of bright sources in the other {p['n_channels'] - 1} read-out channels, "
                     f"{p['alpha']:.2g} of the source: crosstalk"),
-    pattern="ghost copies of bright sources in other channels")
+    pattern="ghost copies of bright sources in other channels", check=_crosstalk_check)
 
 
 # --- adapters ----------------------------------------------------------------------------------------------
