@@ -325,11 +325,16 @@ def model_psf_chi2(stars: dict, sigma: dict, sensor, parity: int) -> float:
     return float(np.sum(w[0] * (r[0] - s) ** 2) + np.sum(w[1] * (r[1] - s) ** 2) + np.sum(w[2] * r[2] ** 2))
 
 
-def optics_candidates(res: Residuals, truth, scene, *, mi=None, families=None, progress=None) -> tuple[list, list]:
+def optics_candidates(res: Residuals, truth, scene, *, mi=None, families=None, progress=None,
+                      model=None) -> tuple[list, list]:
     """The ``misalignment`` / ``defocus`` candidates of a comparison (module notes), as
     :class:`scenes.app.compare.candidates.Candidate`, and the problems (a list of ``{"effect", "error"}``)
-    when they cannot be fitted (no Mitsuba, too few stars)."""
-    from .candidates import Candidate, chi2_after
+    when they cannot be fitted (no Mitsuba, too few stars). With the comparison's ``model``
+    (:class:`.model.ModelFrame`) and a scene whose PSF is the optics' grid, the best families are scored on the
+    pixels (module notes, "Pixels"); without it, by the moments alone."""
+    from detector.signatures import pixel_score
+
+    from .candidates import Candidate, chi2_after, excess_shares, structure_shares
 
     if scene.exposure.frame != "light" or not scene.sky.stars or scene.sky.flat_e_per_s is not None:
         return [], []
@@ -383,26 +388,243 @@ def optics_candidates(res: Residuals, truth, scene, *, mi=None, families=None, p
     out = []
     seconds = (time.perf_counter() - t0) / max(len(cands), 1)
     explained = {}
+    uniform = uniform_change_chi2(stars, sigma, sensor, parity)
+    pixels, pixel_problem = None, ""
+    if model is not None and any((ref - c.fit.chi2) / q > 10 for c in cands):
+        try:
+            pixels = PixelPredictor.build(model, scene, design, mi)
+        except (OSError, ValueError, KeyError) as exc:
+            pixel_problem = f"not scored on the pixels ({exc})"
+    scored = 0
     for c in cands:
         fit = c.fit
         drop = (ref - fit.chi2) / q
-        errs = fit.errors * math.sqrt(q)
-        z = fit.values / np.where(errs > 0, errs, np.inf)
+        values, errs = np.array(fit.values, float), fit.errors * math.sqrt(q)
+        t1 = time.perf_counter()
+        delta, m2l, scale = None, None, 1.0
+        if pixels is not None and drop > 10 and scored < PIXEL_FAMILIES:
+            # a prediction of every pixel: scored like the pixel candidates (their -2 ln L, levels refitted);
+            # the best family's amplitude refined on the pixels (the moments' aperture cuts the wings)
+            delta, m2l, scale = pixels.score(res, fit.names, values, refine=scored == 0)
+            scored += 1
+            values, errs = values * scale, errs * abs(scale)
+        z = values / np.where(errs > 0, errs, np.inf)
         i = int(np.argmax(np.abs(z)))
         effect = DEFOCUS if c.family == "defocus" else MISALIGNMENT
         if effect not in explained and drop > 10:   # the best of each kind: with the field pattern
-            words = explain(fit.names[i], fit.values[i], errs[i], tracer, fit.fields_deg,
+            words = explain(fit.names[i], values[i], errs[i], tracer, fit.fields_deg,
                             {"n_rays": N_RAYS, "wavelengths_nm": WAVELENGTHS_NM})
         else:
-            words = explain(fit.names[i], fit.values[i], errs[i])
+            words = explain(fit.names[i], values[i], errs[i])
         explained.setdefault(effect, True)
         words += (f" ({c.family.replace('_', ' ')} fitted to the second moments of {stars['n']} stars: chi2 drop "
                   f"{drop:.4g} for {len(fit.names)} parameter{'s' if len(fit.names) > 1 else ''}"
                   + (f", errors x {math.sqrt(q):.3g} for the unexplained scatter" if q > 1.05 else "") + ")" + note_psf)
-        params = {k: round(float(v), 6) for k, v in zip(fit.names, fit.values)}
+        if delta is not None:
+            words += (f"; its pixel prediction (the model's sources drawn with the perturbed design's PSF) changes "
+                      f"-2 ln L by {m2l:.4g}" + (f", with the amplitude {scale:.3g} times the moments' fit that the "
+                                                 "pixels prefer" if scale != 1.0 else ""))
+        params = {k: round(float(v), 6) for k, v in zip(fit.names, values)}
         params["errors"] = {k: round(float(e), 6) for k, e in zip(fit.names, errs)}
-        f = Fit(effect, params, -float(drop), len(fit.names), n, words, note=c.family,
-                state={"nuisances": fit.nuisances, "chi2": fit.chi2, "dof": fit.dof, "n_stars": stars["n"],
-                       "chi2_design": base.chi2, "chi2_scene_psf": own, "scale": q})
-        out.append(Candidate(f, chi2_after(res, f), seconds))
+        state = {"nuisances": fit.nuisances, "chi2": fit.chi2, "dof": fit.dof, "n_stars": stars["n"],
+                 "chi2_design": base.chi2, "chi2_scene_psf": own, "scale": q, "moments_delta_m2lnl": -float(drop),
+                 "chi2_uniform": uniform[0], "dof_uniform": uniform[1], "pixel_scale": scale,
+                 "moments_values": {k: float(v) for k, v in zip(fit.names, fit.values)}}
+        f = Fit(effect, params, -float(drop), len(fit.names), n, words, note=c.family, state=state)
+        if delta is not None:
+            f.delta_adu, f.delta_m2lnl, f.n = delta, float(m2l), int(res.n_fit)
+        cand = Candidate(f, chi2_after(res, f), seconds + time.perf_counter() - t1)
+        if f.delta_adu is not None:
+            # its parameters come from the stars' moments, not from a fit to these pixels (at most one amplitude
+            # is refined on them): the pixel delta is a prediction of pixels the fit did not see, as the pixel
+            # candidates' held-out score is
+            cand.heldout = f.delta_m2lnl
+        out.append(cand)
+    structure_shares(res, [c for c in out if c.fit.delta_adu is not None])
+    excess_shares(res, [c for c in out if c.fit.delta_adu is not None])
+    if pixel_problem:
+        for c in out:
+            c.fit.explanation += f"; {pixel_problem}"
     return out, []
+
+
+#: the pixel candidates that change every star's shape in the same way over the whole frame
+UNIFORM_PSF = ("psf_blur", "jitter", "psf_elongation")
+
+
+def uniform_change_chi2(stars: dict, sigma: dict, sensor, parity: int) -> tuple[float, int]:
+    """(chi^2, dof) of the stars' change of second moments (data - model) [mm^2] fitted by one constant
+    change (dMuu, dMvv, dMuv) over the field (weighted means): what a blur, a jitter or an elongation of the
+    PSF makes (the same kernel convolved with every star adds the same second moments, whatever the star)."""
+    d = moments_to_focal(stars["data"]["mxx"], stars["data"]["myy"], stars["data"]["mxy"], sensor, parity)
+    m = moments_to_focal(stars["model"]["mxx"], stars["model"]["myy"], stars["model"]["mxy"], sensor, parity)
+    chi2 = 0.0
+    for i, k in enumerate(("muu_mm2", "mvv_mm2", "muv_mm2")):
+        w = 1.0 / np.maximum(sigma[k], 1e-30) ** 2
+        r = d[i] - m[i]
+        c = float(np.sum(w * r) / np.sum(w))
+        chi2 += float(np.sum(w * (r - c) ** 2))
+    return chi2, 3 * int(stars["n"]) - 3
+
+
+def field_pattern_check(cands: list, optical: list) -> None:
+    """A uniform change of the PSF (:data:`UNIFORM_PSF`) that is significant only because the stars changed
+    shape is not plausible when that change varies over the field the way a perturbation of the optics
+    predicts: a blur or a jitter adds the same second moments to every star, so a constant change must fit
+    the stars' moment changes (``chi2_uniform`` within 5 sqrt(2 dof) of its dof), and an optics candidate
+    scored on the pixels must not fit them far better (a chi^2 lower by more than 10 q, q its scatter scale).
+    Marks those candidates ``implausible`` in place."""
+    best = next((c for c in optical if c.fit.delta_adu is not None and c.fit.delta_bic < -10), None)
+    if best is None:
+        return
+    st = best.fit.state
+    u, dof, q = st.get("chi2_uniform"), st.get("dof_uniform"), st.get("scale", 1.0)
+    if u is None or dof is None or dof <= 0:
+        return
+    varies = u - dof > 5.0 * math.sqrt(2.0 * dof)
+    explained = (u - st["chi2"]) / q > 10.0
+    if not (varies and explained):
+        return
+    family = best.fit.note.replace("_", " ")
+    why = (f"the stars' change of shape varies over the field: one change of their second moments for all "
+           f"(what a uniform blur, jitter or elongation makes) leaves chi2 {u:.4g} for {dof} dof, the "
+           f"{family} of the optics fits them with chi2 {st['chi2']:.4g}")
+    for c in cands:
+        if c.fit.effect in UNIFORM_PSF and not c.implausible:
+            c.implausible = why
+
+
+# ---------------------------------------------------------------------------------------------- pixels
+#: rays per wavelength of each geometric spot of the pixel prediction, and the families (best by the moments'
+#: chi^2 drop, significant ones only) that get one
+PIXEL_RAYS, PIXEL_FAMILIES = 20000, 3
+
+
+class PixelPredictor:
+    """The mean frame [ADU] of the model's sources drawn with the PSF of a perturbed design (module notes,
+    "Pixels"). Built once per comparison; :meth:`delta` per perturbation. ``None`` from :meth:`build` when the
+    scene's PSF is not the optics' grid (a Gaussian or Moffat scene: the model frame holds no optics to perturb).
+
+    The scene's PSF cube (its ``grid_file`` or the cached grid of its design) is kept, and each stamp changed by
+    the perturbation's change of the *geometric* spot at the same field point, wavelengths and weights:
+
+        I_p = I_0 + (G_p - G_0),
+
+    G the histogram of the traced rays (same pupil samples for both designs, so their sampling noise largely
+    cancels), each centred on its own centroid as the render centres every stamp. Diffraction changes little
+    with a perturbation at f/2.4 (the Airy core, 1.6 um at 550 nm, is a fraction of a cell): the difference
+    of the geometric spots is the difference of the PSFs. The new grid goes through the render's own path
+    (:meth:`scenes.image.gridpsf.GridPSF.from_grid` with the scene's seeing, jitter and distortion, the same
+    bilinear blend, pixel integration and detector chain :meth:`detector.Detector.moments`), so the prediction
+    differs from the model frame by the perturbation alone.
+    """
+
+    def __init__(self, model, design, mi, grid, psf0, n_rays: int = PIXEL_RAYS):
+        from scenes.image.gridpsf import recentre
+
+        self.model, self.design, self.mi, self.grid, self.psf0, self.n_rays = model, design, mi, grid, psf0, n_rays
+        img = np.clip(np.asarray(grid.images, float), 0.0, None)
+        self.base = recentre(img / img.sum(axis=(1, 2), keepdims=True))
+        self._nominal = None
+        self._reference = None
+
+    @classmethod
+    def build(cls, model, scene, design, mi):
+        from optics.psf import cached_psf_grid, read_psf_fits
+        from scenes.image.gridpsf import GridPSF
+
+        if model is None or scene.psf.model != "optics":
+            return None
+        psf0 = getattr(model.setup.signal_e, "psf", None)
+        if not isinstance(psf0, GridPSF):
+            return None
+        cfg = scene.psf
+        pitch = float(model.sensor.pixel_pitch_um)
+        path = cfg.grid_file if cfg.grid_file is not None else cached_psf_grid(design, pitch, int(cfg.grid[0]),
+                                                                                int(cfg.grid[1]))
+        return cls(model, design, mi, read_psf_fits(path), psf0)
+
+    def spots(self, design) -> np.ndarray:
+        """Geometric stamps (K, N, N) of ``design`` at the grid's fields, cells and band, each about its centroid."""
+        from optics.psf import _trace_spot
+        from optics.sequential import SequentialTracer
+
+        g = self.grid
+        data = design.model_dump()
+        fp = data["focal_plane"]   # a detector that does not cut moved images (as optics.distortion's)
+        fp["width_mm"], fp["height_mm"] = 1.5 * fp["width_mm"], 1.5 * fp["height_mm"]
+        tracer = SequentialTracer(type(design).model_validate(data), self.mi, obstruct="analytic")
+        lam = np.asarray(g.wavelengths_nm, float)
+        w = np.asarray(g.weights, float) if g.weights is not None and len(g.weights) else np.ones(lam.size)
+        w = w / w.sum()
+        n = self.base.shape[-1]
+        half = n * float(g.pixel_um) * 5e-4
+        out = np.zeros((len(g.fields_deg), n, n))
+        for k, f in enumerate(np.asarray(g.fields_deg, float)):
+            u, v, ww, _ = _trace_spot(tracer, (float(f[0]), float(f[1])), self.n_rays, lam, w, 0)
+            tot = float(ww.sum())
+            if not tot > 0:
+                raise ValueError(f"no ray of the perturbed design reaches the focal plane at field {tuple(f)} deg")
+            cu, cv = float(np.sum(ww * u) / tot), float(np.sum(ww * v) / tot)
+            h, _, _ = np.histogram2d(v - cv, u - cu, bins=n, range=[[-half, half], [-half, half]], weights=ww)
+            out[k] = h / tot
+        return out
+
+    def psf(self, values: dict):
+        """The scene's GridPSF with the perturbation ``values`` ([perturbation] names, totals)."""
+        from dataclasses import replace
+
+        from optics.design import with_perturbation
+        from scenes.image.gridpsf import GridPSF
+
+        if self._nominal is None:
+            self._nominal = self.spots(self.design)
+        pert = self.spots(with_perturbation(self.design, **values))
+        images = np.clip(self.base + pert - self._nominal, 0.0, None)
+        p0 = self.psf0
+        s = self.model.sensor
+        ax = (s.sensor_width_px - 1) / 2.0 - s.roi_x0
+        ay = (s.sensor_height_px - 1) / 2.0 - s.roi_y0
+        return GridPSF.from_grid(replace(self.grid, images=images), float(s.pixel_pitch_um),
+                                 self.design.primary.focal_length_mm, (ax, ay), jitter_px=p0.jitter_px,
+                                 seeing_fwhm_px=p0.seeing_fwhm_px, to_ideal=p0.to_ideal)
+
+    def mean(self, psf) -> np.ndarray:
+        """The model's mean frame [ADU] with its sources drawn with ``psf``."""
+        from dataclasses import replace
+
+        m = self.model
+        out, _, _ = m.setup.detector.moments(replace(m.setup.signal_e, psf=psf), m.setup.exptime_s)
+        return np.asarray(out, np.float64)
+
+    def score(self, res: Residuals, names, values, refine: bool = False) -> tuple[np.ndarray, float, float]:
+        """(mean frame change [ADU], its pixel delta(-2 ln L), scale s) of the perturbation ``s * values``.
+        Without ``refine`` s = 1; with it, s maximises the pixel likelihood along ``values`` (a parabola through
+        s = 0.9, 1, 1.1, then its vertex within [0.7, 1.4]): the moments' aperture cuts the wings of a widened
+        star, the pixels keep them."""
+        from detector.signatures import Fit, pixel_score
+
+        def at(sc):
+            d = self.delta({k: float(v) * sc for k, v in zip(names, values)})
+            return d, float(pixel_score(Fit("", {}, 0.0, 0, 0, "", delta_adu=d), res))
+
+        tried = {1.0: at(1.0)}
+        if refine:
+            for sc in (0.9, 1.1):
+                tried[sc] = at(sc)
+            y = [tried[sc][1] for sc in (0.9, 1.0, 1.1)]
+            a = (y[0] + y[2] - 2 * y[1]) / (2 * 0.1 ** 2)
+            b = (y[2] - y[0]) / (2 * 0.1)
+            if a > 0:
+                best = float(np.clip(1.0 - b / (2 * a), 0.7, 1.4))
+                if min(abs(best - sc) for sc in tried) > 0.01:
+                    tried[best] = at(best)
+        sc = min(tried, key=lambda k: tried[k][1])
+        return tried[sc][0], tried[sc][1], sc
+
+    def delta(self, values: dict) -> np.ndarray:
+        """Mean frame change [ADU] (output pixels) of the perturbation ``values`` ([perturbation] names, totals),
+        against the design's own perturbation drawn through the same path (zero for no change, exactly)."""
+        if self._reference is None:
+            self._reference = self.mean(self.psf(self.design.perturbation.model_dump()))
+        return (self.mean(self.psf(values)) - self._reference).astype(np.float32)
