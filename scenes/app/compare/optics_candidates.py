@@ -497,7 +497,7 @@ def field_pattern_check(cands: list, optical: list) -> None:
 # ---------------------------------------------------------------------------------------------- pixels
 #: rays per wavelength of each geometric spot of the pixel prediction, and the families (best by the moments'
 #: chi^2 drop, significant ones only) that get one
-PIXEL_RAYS, PIXEL_FAMILIES = 20000, 3
+PIXEL_RAYS, PIXEL_FAMILIES = 10000, 3
 
 
 class PixelPredictor:
@@ -546,8 +546,7 @@ class PixelPredictor:
 
     def spots(self, design) -> np.ndarray:
         """Geometric stamps (K, N, N) of ``design`` at the grid's fields, cells and band, each about its centroid."""
-        from optics.psf import _trace_spot
-        from optics.sequential import SequentialTracer
+        from optics.sequential import SequentialTracer, pupil_uniform
 
         g = self.grid
         data = design.model_dump()
@@ -559,12 +558,25 @@ class PixelPredictor:
         w = w / w.sum()
         n = self.base.shape[-1]
         half = n * float(g.pixel_um) * 5e-4
-        out = np.zeros((len(g.fields_deg), n, n))
-        for k, f in enumerate(np.asarray(g.fields_deg, float)):
-            u, v, ww, _ = _trace_spot(tracer, (float(f[0]), float(f[1])), self.n_rays, lam, w, 0)
+        fields = np.asarray(g.fields_deg, float).reshape(-1, 2)
+        kf = len(fields)
+        # the same pupil points for every field, wavelength and design (their sampling noise cancels in the
+        # difference); one trace per field and wavelength (the field is opaque: one kernel for all)
+        px, py = pupil_uniform(int(self.n_rays), tracer.layout.r_primary, seed=0)
+        m = px.size
+        us, vs, ws = (np.zeros((kf, m * len(lam))) for _ in range(3))
+        for k, f in enumerate(fields):
+            for j, (lam_i, w_i) in enumerate(zip(lam, w, strict=True)):
+                r = tracer.trace((float(f[0]), float(f[1])), px, py, wavelength_nm=float(lam_i))
+                sl = slice(j * m, (j + 1) * m)
+                us[k, sl], vs[k, sl] = np.where(r.ok, r.u, 0.0), np.where(r.ok, r.v, 0.0)
+                ws[k, sl] = w_i * np.where(r.ok, r.transmission, 0.0) / m
+        out = np.zeros((kf, n, n))
+        for k in range(kf):
+            u, v, ww = us[k], vs[k], ws[k]
             tot = float(ww.sum())
             if not tot > 0:
-                raise ValueError(f"no ray of the perturbed design reaches the focal plane at field {tuple(f)} deg")
+                raise ValueError(f"no ray of the perturbed design reaches the focal plane at field {tuple(fields[k])} deg")
             cu, cv = float(np.sum(ww * u) / tot), float(np.sum(ww * v) / tot)
             h, _, _ = np.histogram2d(v - cv, u - cu, bins=n, range=[[-half, half], [-half, half]], weights=ww)
             out[k] = h / tot
