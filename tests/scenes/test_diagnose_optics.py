@@ -198,6 +198,11 @@ def test_sensor_tilt_is_diagnosed_and_applied(mi, workdir, monkeypatch):
     v, e = best["params"]["sensor_tilt_y_deg"], best["params"]["errors"]["sensor_tilt_y_deg"]
     assert _recovered(v, e, 0.2), (v, e)
     assert best["explanation"].startswith("sensor tilted +0.") and "about its y axis" in best["explanation"]
+    # scored on the pixels (the model's stars drawn with the perturbed design's PSF): most of the frame's excess
+    # chi2 over the model goes away
+    assert "pixel prediction" in best["explanation"] and best["heldout_delta"] == best["delta_m2lnl"]
+    base = out["baseline"]["chi2_per_dof_levels"]
+    assert base > 1.5 and best["chi2_per_dof"] - 1 < 0.2 * (base - 1), (base, best["chi2_per_dof"])
     new = apply_candidate(load_scene(str(model)), best, workdir / "round2.toml")
     d = load_design(load_scene(str(new)).telescope.design)
     assert d.perturbation.sensor_tilt_y_deg == pytest.approx(v)

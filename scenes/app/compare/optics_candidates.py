@@ -61,8 +61,31 @@ What is fitted
     fitted values (the design's own perturbation included: they are the values to write) and ``errors``
     (same names).
 
+Pixels
+    The moments' likelihood (three numbers per star, a few hundred stars) cannot be ranked against the pixel
+    candidates' (millions of pixels): ``psf_blur`` or ``jitter`` would always win on a misaligned frame, since
+    the pixels see the changed stars too. So, given the comparison's model frame and a scene whose PSF is the
+    optics' grid, the best :data:`PIXEL_FAMILIES` families (those whose moments' drop is significant) are
+    scored on the pixels: the model's sources drawn again with the PSF of the design perturbed by the fitted
+    values (:class:`PixelPredictor`: the scene's cube, each stamp changed by the change of the geometric spot,
+    through the render's own grid blend, pixel integration and detector chain), and the candidate's
+    ``delta_adu`` is that frame less the model's. Its ``delta_m2lnl`` is the pixels' Gaussian -2 ln L with the
+    global levels refitted (:func:`detector.signatures.pixel_score`, what every pixel candidate is scored
+    with), ``n`` the fitted pixels, and its held-out score the same number: the parameters come from the
+    moments, not from these pixels' likelihood. The best family's amplitude is then refined on the pixels
+    (one scale along the fitted direction, :meth:`PixelPredictor.score`): the moments' aperture cuts the
+    wings of a widened star, the pixels keep all of it. A scene with a Gaussian or Moffat PSF has no optics
+    in its model frame to perturb: its candidates keep the moments' likelihood.
+
+    A blur, a jitter or an elongation of the PSF adds the same second moments to every star. When the stars'
+    change of moments is far from uniform over the field and an optics family fits it far better, those
+    candidates are marked implausible (:func:`field_pattern_check`, called by ``run_diagnose``): their pixel
+    fit follows the changed stars, not the effect.
+
 Runtime: one trace per iteration of each family's fit (Chebyshev nodes over the stars' field, forward-mode
-AD; :func:`optics.alignment.fit_perturbations`), about 10-40 s for the whole ranking on 2 cores.
+AD; :func:`optics.alignment.fit_perturbations`), about 10-40 s for the whole ranking on 2 cores; each pixel
+prediction 1-2 s on a 2048 x 2048 frame (75 spot traces, one render of the sources, the detector's moments), six
+or seven of them.
 """
 
 from __future__ import annotations
