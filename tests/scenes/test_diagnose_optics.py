@@ -292,3 +292,20 @@ def test_a_uniform_blur_loses_to_the_optics_when_the_stars_change_over_the_field
         c = cands()
         oc.field_pattern_check(c, optical(u, fam))
         assert not any(x.implausible for x in c)
+
+
+@pytest.mark.parametrize("s0", [1.0, 1.07, 0.8, 1.45, 0.55])
+def test_the_amplitude_search_finds_the_pixels_minimum(s0):
+    """scale_search on a -2 ln L that is a parabola in the scale (what a small change of a perturbation's
+    amplitude does to the pixels' chi2) finds its minimum within 1 %, also when it lies beyond the first bracket,
+    in at most 6 evaluations; a minimum beyond the bounds stops at the bound."""
+    calls = []
+
+    def at(s):
+        calls.append(s)
+        return None, 1e6 * (s - s0) ** 2 - 5e6
+
+    s, (_, m2l) = oc.scale_search(at)
+    assert s == pytest.approx(s0, abs=0.01) and len(calls) <= 6, (s, calls)
+    s, _ = oc.scale_search(lambda x: (None, (x - 3.0) ** 2), steps=10)
+    assert s == oc.SCALE_RANGE[1]

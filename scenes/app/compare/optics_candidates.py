@@ -521,6 +521,33 @@ def field_pattern_check(cands: list, optical: list) -> None:
 #: rays per wavelength of each geometric spot of the pixel prediction, and the families (best by the moments'
 #: chi^2 drop, significant ones only) that get one
 PIXEL_RAYS, PIXEL_FAMILIES = 10000, 3
+#: the best family's amplitude refined on the pixels: at most this many parabola steps, scales within this range
+REFINE_STEPS, SCALE_RANGE = 3, (0.5, 2.0)
+
+
+def scale_search(at, steps: int = None, bounds: tuple = None) -> tuple[float, tuple]:
+    """The scale s minimising ``at(s)[1]`` (a -2 ln L) near 1: s = 0.9, 1, 1.1, then the vertex of a parabola
+    through the three best so far (within ``bounds``, at most twice their span beyond them; a step beyond
+    the best end when they hold no minimum), ``steps`` times or until it moves by less than 0.01. Returns
+    (s, at(s))."""
+    steps = REFINE_STEPS if steps is None else steps
+    lo, hi = SCALE_RANGE if bounds is None else bounds
+    tried = {sc: at(sc) for sc in (1.0, 0.9, 1.1)}
+    for _ in range(steps):
+        xs = sorted(sorted(tried, key=lambda k: tried[k][1])[:3])
+        y = [tried[x][1] for x in xs]
+        a2, a1, _ = np.linalg.solve(np.vander(np.asarray(xs), 3), y)
+        span = xs[-1] - xs[0]
+        if a2 > 0:
+            nxt = -a1 / (2 * a2)
+        else:
+            nxt = xs[0] - span if y[0] < y[-1] else xs[-1] + span
+        nxt = float(np.clip(nxt, max(lo, xs[0] - 2 * span), min(hi, xs[-1] + 2 * span)))
+        if min(abs(nxt - k) for k in tried) < 0.01:
+            break
+        tried[nxt] = at(nxt)
+    best = min(tried, key=lambda k: tried[k][1])
+    return best, tried[best]
 
 
 class PixelPredictor:
@@ -634,28 +661,18 @@ class PixelPredictor:
 
     def score(self, res: Residuals, names, values, refine: bool = False) -> tuple[np.ndarray, float, float]:
         """(mean frame change [ADU], its pixel delta(-2 ln L), scale s) of the perturbation ``s * values``.
-        Without ``refine`` s = 1; with it, s maximises the pixel likelihood along ``values`` (a parabola through
-        s = 0.9, 1, 1.1, then its vertex within [0.7, 1.4]): the moments' aperture cuts the wings of a widened
-        star, the pixels keep them."""
+        Without ``refine`` s = 1; with it, s maximises the pixel likelihood along ``values`` (s = 0.9, 1, 1.1,
+        then the vertex of a parabola through the three best, at most :data:`REFINE_STEPS` times, within
+        :data:`SCALE_RANGE`): the moments' aperture cuts the wings of a widened star and their isotropic nuisance
+        takes the uniform part of a defocus; the pixels keep all of it."""
         from detector.signatures import Fit, pixel_score
 
         def at(sc):
             d = self.delta({k: float(v) * sc for k, v in zip(names, values)})
             return d, float(pixel_score(Fit("", {}, 0.0, 0, 0, "", delta_adu=d), res))
 
-        tried = {1.0: at(1.0)}
-        if refine:
-            for sc in (0.9, 1.1):
-                tried[sc] = at(sc)
-            y = [tried[sc][1] for sc in (0.9, 1.0, 1.1)]
-            a = (y[0] + y[2] - 2 * y[1]) / (2 * 0.1 ** 2)
-            b = (y[2] - y[0]) / (2 * 0.1)
-            if a > 0:
-                best = float(np.clip(1.0 - b / (2 * a), 0.7, 1.4))
-                if min(abs(best - sc) for sc in tried) > 0.01:
-                    tried[best] = at(best)
-        sc = min(tried, key=lambda k: tried[k][1])
-        return tried[sc][0], tried[sc][1], sc
+        sc, (d, m2l) = scale_search(at) if refine else (1.0, at(1.0))
+        return d, m2l, sc
 
     def delta(self, values: dict) -> np.ndarray:
         """Mean frame change [ADU] (output pixels) of the perturbation ``values`` ([perturbation] names, totals),
