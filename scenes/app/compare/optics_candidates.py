@@ -452,6 +452,8 @@ def optics_candidates(res: Residuals, truth, scene, *, mi=None, families=None, p
         state = {"nuisances": fit.nuisances, "chi2": fit.chi2, "dof": fit.dof, "n_stars": stars["n"],
                  "chi2_design": base.chi2, "chi2_scene_psf": own, "scale": q, "moments_delta_m2lnl": -float(drop),
                  "chi2_uniform": uniform[0], "dof_uniform": uniform[1], "pixel_scale": scale,
+                 "rest_correlation": None if fit.rest_correlation is None else
+                 [round(float(r), 4) for r in fit.rest_correlation],
                  "moments_values": {k: float(v) for k, v in zip(fit.names, fit.values)}}
         f = Fit(effect, params, -float(drop), len(fit.names), n, words, note=c.family, state=state)
         if delta is not None:
@@ -521,7 +523,9 @@ def field_pattern_check(cands: list, optical: list) -> None:
 #: rays per wavelength of each geometric spot of the pixel prediction, and the families (best by the moments'
 #: chi^2 drop, significant ones only) that get one
 PIXEL_RAYS, PIXEL_FAMILIES = 10000, 3
-#: the best family's amplitude refined on the pixels: at most this many parabola steps, scales within this range
+#: the best family's amplitude refined on the pixels: at most REFINE_STEPS parabola steps, scales within SCALE_RANGE
+#: (every family's amplitude correlates with the moments' isotropic rest, -0.93 to -0.99 on the test frames: the
+#: moments alone take part of a defocus for seeing, 28 % of a 70 um one)
 REFINE_STEPS, SCALE_RANGE = 3, (0.5, 2.0)
 
 
