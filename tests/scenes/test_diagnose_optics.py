@@ -2,8 +2,9 @@
 
 Frames of the ML11002 full field (binned 2 x 2) behind an ``art`` telescope with a perturbed design and the optics'
 PSF (``[psf] model = "optics"``, a cube traced for the perturbed design: tests/scenes/optics_frames.py), diagnosed
-against the nominal scene: the perturbation is named first among the optics candidates and its value recovered
-within 20 % or twice its error; the nominal frame shows no significant misalignment. The pixel <-> focal-plane
+against the nominal scene: the perturbation is named first (slow matrix: first of the whole ranking, every catalogue
+candidate included, the optics candidates scored on the pixels) and its value recovered within 20 % or twice its
+error; the nominal frame shows no significant misalignment (docs/optics.md, "Matrix of perturbed frames"). The pixel <-> focal-plane
 mapping is checked against the render's own conventions (the PSF grid's node positions, the sign of the cross
 moment in the model frame).
 """
