@@ -88,6 +88,9 @@ class AlignmentFit:
     explanations: dict
     fields_deg: np.ndarray          # the field points (interpolation nodes) where the optics was traced
     n_stars: int
+    #: correlation of each fitted perturbation with the isotropic rest ``extra_moment_mm2`` (Fisher matrix): near
+    #: +-1 the moments cannot tell the perturbation from a change of the seeing (a defocus, mostly)
+    rest_correlation: np.ndarray | None = None
 
     @property
     def significance(self) -> np.ndarray:
@@ -295,9 +298,12 @@ def fit_perturbations(design: Design, mi, fields_deg, measured: dict, sigma: dic
         summary = "no significant misalignment: every fitted perturbation is within 3 sigma of zero"
     else:
         summary = explain(names[top], x[top], errs[top], tr, F, kw) if explain_top else expl[names[top]]
+    k_rest = len(names) + NUISANCES.index("extra_moment_mm2")
+    d = np.sqrt(np.clip(np.diag(cov), 1e-300, None))
+    rest_corr = cov[:len(names), k_rest] / (d[:len(names)] * d[k_rest]) if cov.shape[0] > k_rest else None
     return AlignmentFit(names, x, errs, cov[:len(names), :len(names)],
                         dict(zip(NUISANCES, map(float, nuis))), chi2, dof, it, time.perf_counter() - t0,
-                        summary, expl, F, n_stars)
+                        summary, expl, F, n_stars, rest_corr)
 
 
 def _robust_scale(res):

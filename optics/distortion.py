@@ -51,6 +51,16 @@ def _fit_poly(x, y, target, order: int, scale: float):
     return {t: float(ci / scale ** (t[0] + t[1])) for t, ci in zip(terms, c, strict=True)}
 
 
+def _fit_shift(x, y, xi, yi, order: int, scale: float) -> tuple[float, float]:
+    """The constant (c_x, c_y) [px] of a fit ``(x, y) - (xi, yi) ~ c + poly(xi, yi)`` (no constant in poly): the
+    image's shift on the axis, zero for a centred design."""
+    terms = _terms(order)
+    M = np.stack([np.ones_like(xi)] + [(xi / scale) ** p * (yi / scale) ** q for p, q in terms], axis=-1)
+    cx, *_ = np.linalg.lstsq(M, x - xi, rcond=None)
+    cy, *_ = np.linalg.lstsq(M, y - yi, rcond=None)
+    return float(cx[0]), float(cy[0])
+
+
 def _eval_poly(coef: dict, x, y):
     return sum(c * x ** p * y ** q for (p, q), c in coef.items())
 
@@ -159,6 +169,13 @@ def fit_sip(tracer: SequentialTracer, pitch_um: float, order: int = 3, grid: int
     xi = -f * np.tan(np.radians(fields[ok, 0])) / pitch_mm                # ideal pixel offsets
     yi = -f * np.tan(np.radians(fields[ok, 1])) / pitch_mm
     scale = max(np.abs(x).max(), np.abs(y).max())
+    # a perturbed design moves its whole image (a decentred primary, a tilted diagonal: the pointing changes);
+    # SIP has no constant term, so the shift is fitted, reported (``shift_px``, traced - ideal on the axis) and
+    # removed: what the polynomials keep is the distortion about the moved axis, the shift itself is pointing,
+    # which a plate solution absorbs (CRVAL). For the nominal design it is zero (the unfolded system is
+    # rotationally symmetric, the mapping odd in the field) and nothing changes.
+    shift = _fit_shift(x, y, xi, yi, order, scale)
+    x, y = x - shift[0], y - shift[1]
     A = _fit_poly(x, y, xi - x, order, scale)
     B = _fit_poly(x, y, yi - y, order, scale)
     ro = reverse_order or order + 2
@@ -183,6 +200,7 @@ def fit_sip(tracer: SequentialTracer, pitch_um: float, order: int = 3, grid: int
         "effective_focal_length_mm": float(f / (1.0 + 0.5 * (A.get((1, 0), 0.0) + B.get((0, 1), 0.0)))),
         "focal_length_mm": float(f), "pitch_um": float(pitch_um), "order": int(order),
         "n_points": int(ok.sum()), "wavelength_nm": float(wavelength_nm), "method": method,
+        "shift_px": [float(shift[0]), float(shift[1])],
         "field_x_deg": fields[:, 0].reshape(grid, grid).tolist(),
         "field_y_deg": fields[:, 1].reshape(grid, grid).tolist(),
     })
@@ -250,6 +268,8 @@ def cached_sip(design, pitch_um: float, shape: tuple[int, int], order: int = 5) 
     shape = (int(shape[0]), int(shape[1]))
     settings = {"pitch_um": float(pitch_um), "shape": list(shape), "order": int(order), "grid": 9,
                 "wavelength_nm": 550.0, "method": "chief"}
+    if any(d.perturbation.model_dump().values()):
+        settings["shift"] = "removed"   # fits before the image's shift was removed are not reused
 
     def compute():
         from .llvm import init_mitsuba

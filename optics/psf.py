@@ -848,7 +848,14 @@ def cached_psf_grid(design, pitch_um: float, nx: int = 3, ny: int = 3, *, oversa
     def write(path):
         from .llvm import init_mitsuba
 
-        tracer = SequentialTracer(d, init_mitsuba(), obstruct="analytic")
+        # traced with a detector 1.5 times the focal plane (as optics.distortion's SIP): a perturbed design
+        # moves its image (a diagonal tilted 0.1 deg on art: 1.5 mm), and the grid's corner points, at 95 % of
+        # the focal plane, would lose their rays past its edge. The field points and the cache key stay the
+        # design's; for the nominal design nothing changes (its spots lie far inside the edge).
+        data = d.model_dump()
+        data["focal_plane"]["width_mm"] *= 1.5
+        data["focal_plane"]["height_mm"] *= 1.5
+        tracer = SequentialTracer(type(d).model_validate(data), init_mitsuba(), obstruct="analytic")
         grid = psf_grid(tracer, detector_fields(d, nx, ny), wavelengths_nm=lam, weights=w,
                         sampling_um=pitch_um / oversample, size_px=stamp_px * oversample, n_pupil=n_pupil)
         write_psf_fits(grid, path)

@@ -286,3 +286,28 @@ def test_cached_psf_grid_is_a_readable_cube_made_once(mi, tmp_path, monkeypatch)
     assert cached_psf_grid(load_design("bare"), 3.76, nx=2, ny=2, **kw) == path
     assert path.stat().st_mtime_ns == mtime
     assert cached_psf_grid("bare", 3.76, nx=2, ny=1, **kw) != path
+
+
+@pytest.mark.filterwarnings("ignore:field")
+def test_cached_psf_grid_of_a_moved_image_keeps_its_corners(mi, tmp_path, monkeypatch):
+    """A diagonal tilted 0.15 deg throws art's image 1.4-1.6 mm, more than the 5 % margin of the grid's corner
+    points: the grid is traced with a detector 1.5 times the focal plane, so every corner keeps its rays (the
+    stamps follow the moved image), and the nominal design's cube is the same as a trace with its own
+    detector (its spots lie far inside the edge)."""
+    from optics.design import with_perturbation
+    from optics.psf import cached_psf_grid, detector_fields, psf_grid
+    from optics.sequential import SequentialTracer
+
+    monkeypatch.setenv("NEWTSIM_CACHE_DIR", str(tmp_path))
+    kw = {"oversample": 1, "stamp_px": 9, "wavelengths_nm": [LAM], "n_pupil": 64}
+    art = load_design("art")
+    tilted = with_perturbation(art, diagonal_tilt_x_deg=0.15)
+    g1 = read_psf_fits(cached_psf_grid(tilted, 9.0, nx=2, ny=2, **kw))
+    g0 = read_psf_fits(cached_psf_grid(art, 9.0, nx=2, ny=2, **kw))
+    assert np.allclose(g1.images.sum(axis=(1, 2)), 1.0, atol=1e-5)
+    shift = g1.center_um - g0.center_um               # the image moves along v beyond the corners' margin
+    margin_um = 0.05 * art.focal_plane.height_mm / 2 * 1e3
+    assert np.all(np.abs(shift[:, 1]) > 1.4 * margin_um) and np.all(np.abs(shift[:, 0]) < 0.1 * margin_um)
+    own = psf_grid(SequentialTracer(art, mi, obstruct="analytic"), detector_fields(art, 2, 2), wavelengths_nm=[LAM],
+                   sampling_um=9.0, size_px=9, n_pupil=64)
+    assert np.allclose(own.images, g0.images, atol=1e-7)

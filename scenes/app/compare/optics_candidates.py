@@ -61,8 +61,31 @@ What is fitted
     fitted values (the design's own perturbation included: they are the values to write) and ``errors``
     (same names).
 
+Pixels
+    The moments' likelihood (three numbers per star, a few hundred stars) cannot be ranked against the pixel
+    candidates' (millions of pixels): ``psf_blur`` or ``jitter`` would always win on a misaligned frame, since
+    the pixels see the changed stars too. So, given the comparison's model frame and a scene whose PSF is the
+    optics' grid, the best :data:`PIXEL_FAMILIES` families (those whose moments' drop is significant) are
+    scored on the pixels: the model's sources drawn again with the PSF of the design perturbed by the fitted
+    values (:class:`PixelPredictor`: the scene's cube, each stamp changed by the change of the geometric spot,
+    through the render's own grid blend, pixel integration and detector chain), and the candidate's
+    ``delta_adu`` is that frame less the model's. Its ``delta_m2lnl`` is the pixels' Gaussian -2 ln L with the
+    global levels refitted (:func:`detector.signatures.pixel_score`, what every pixel candidate is scored
+    with), ``n`` the fitted pixels, and its held-out score the same number: the parameters come from the
+    moments, not from these pixels' likelihood. The best family's amplitude is then refined on the pixels
+    (one scale along the fitted direction, :meth:`PixelPredictor.score`): the moments' aperture cuts the
+    wings of a widened star, the pixels keep all of it. A scene with a Gaussian or Moffat PSF has no optics
+    in its model frame to perturb: its candidates keep the moments' likelihood.
+
+    A blur, a jitter or an elongation of the PSF adds the same second moments to every star. When the stars'
+    change of moments is far from uniform over the field and an optics family fits it far better, those
+    candidates are marked implausible (:func:`field_pattern_check`, called by ``run_diagnose``): their pixel
+    fit follows the changed stars, not the effect.
+
 Runtime: one trace per iteration of each family's fit (Chebyshev nodes over the stars' field, forward-mode
-AD; :func:`optics.alignment.fit_perturbations`), about 10-40 s for the whole ranking on 2 cores.
+AD; :func:`optics.alignment.fit_perturbations`), about 10-40 s for the whole ranking on 2 cores; each pixel
+prediction 1-2 s on a 2048 x 2048 frame (75 spot traces, one render of the sources, the detector's moments), six
+or seven of them.
 """
 
 from __future__ import annotations
@@ -325,11 +348,16 @@ def model_psf_chi2(stars: dict, sigma: dict, sensor, parity: int) -> float:
     return float(np.sum(w[0] * (r[0] - s) ** 2) + np.sum(w[1] * (r[1] - s) ** 2) + np.sum(w[2] * r[2] ** 2))
 
 
-def optics_candidates(res: Residuals, truth, scene, *, mi=None, families=None, progress=None) -> tuple[list, list]:
+def optics_candidates(res: Residuals, truth, scene, *, mi=None, families=None, progress=None,
+                      model=None) -> tuple[list, list]:
     """The ``misalignment`` / ``defocus`` candidates of a comparison (module notes), as
     :class:`scenes.app.compare.candidates.Candidate`, and the problems (a list of ``{"effect", "error"}``)
-    when they cannot be fitted (no Mitsuba, too few stars)."""
-    from .candidates import Candidate, chi2_after
+    when they cannot be fitted (no Mitsuba, too few stars). With the comparison's ``model``
+    (:class:`.model.ModelFrame`) and a scene whose PSF is the optics' grid, the best families are scored on the
+    pixels (module notes, "Pixels"); without it, by the moments alone."""
+    from detector.signatures import pixel_score
+
+    from .candidates import Candidate, chi2_after, excess_shares, structure_shares
 
     if scene.exposure.frame != "light" or not scene.sky.stars or scene.sky.flat_e_per_s is not None:
         return [], []
@@ -383,26 +411,276 @@ def optics_candidates(res: Residuals, truth, scene, *, mi=None, families=None, p
     out = []
     seconds = (time.perf_counter() - t0) / max(len(cands), 1)
     explained = {}
+    uniform = uniform_change_chi2(stars, sigma, sensor, parity)
+    pixels, pixel_problem = None, ""
+    if model is not None and any((ref - c.fit.chi2) / q > 10 for c in cands):
+        try:
+            pixels = PixelPredictor.build(model, scene, design, mi)
+        except (OSError, ValueError, KeyError) as exc:
+            pixel_problem = f"not scored on the pixels ({exc})"
+    scored = 0
     for c in cands:
         fit = c.fit
         drop = (ref - fit.chi2) / q
-        errs = fit.errors * math.sqrt(q)
-        z = fit.values / np.where(errs > 0, errs, np.inf)
+        values, errs = np.array(fit.values, float), fit.errors * math.sqrt(q)
+        t1 = time.perf_counter()
+        delta, m2l, scale = None, None, 1.0
+        if pixels is not None and drop > 10 and scored < PIXEL_FAMILIES:
+            # a prediction of every pixel: scored like the pixel candidates (their -2 ln L, levels refitted);
+            # the best family's amplitude refined on the pixels (the moments' aperture cuts the wings)
+            delta, m2l, scale = pixels.score(res, fit.names, values, refine=scored == 0)
+            scored += 1
+            values, errs = values * scale, errs * abs(scale)
+        z = values / np.where(errs > 0, errs, np.inf)
         i = int(np.argmax(np.abs(z)))
         effect = DEFOCUS if c.family == "defocus" else MISALIGNMENT
         if effect not in explained and drop > 10:   # the best of each kind: with the field pattern
-            words = explain(fit.names[i], fit.values[i], errs[i], tracer, fit.fields_deg,
+            words = explain(fit.names[i], values[i], errs[i], tracer, fit.fields_deg,
                             {"n_rays": N_RAYS, "wavelengths_nm": WAVELENGTHS_NM})
         else:
-            words = explain(fit.names[i], fit.values[i], errs[i])
+            words = explain(fit.names[i], values[i], errs[i])
         explained.setdefault(effect, True)
         words += (f" ({c.family.replace('_', ' ')} fitted to the second moments of {stars['n']} stars: chi2 drop "
                   f"{drop:.4g} for {len(fit.names)} parameter{'s' if len(fit.names) > 1 else ''}"
                   + (f", errors x {math.sqrt(q):.3g} for the unexplained scatter" if q > 1.05 else "") + ")" + note_psf)
-        params = {k: round(float(v), 6) for k, v in zip(fit.names, fit.values)}
+        if delta is not None:
+            words += (f"; its pixel prediction (the model's sources drawn with the perturbed design's PSF) changes "
+                      f"-2 ln L by {m2l:.4g}" + (f", with the amplitude {scale:.3g} times the moments' fit that the "
+                                                 "pixels prefer" if scale != 1.0 else ""))
+        params = {k: round(float(v), 6) for k, v in zip(fit.names, values)}
         params["errors"] = {k: round(float(e), 6) for k, e in zip(fit.names, errs)}
-        f = Fit(effect, params, -float(drop), len(fit.names), n, words, note=c.family,
-                state={"nuisances": fit.nuisances, "chi2": fit.chi2, "dof": fit.dof, "n_stars": stars["n"],
-                       "chi2_design": base.chi2, "chi2_scene_psf": own, "scale": q})
-        out.append(Candidate(f, chi2_after(res, f), seconds))
+        state = {"nuisances": fit.nuisances, "chi2": fit.chi2, "dof": fit.dof, "n_stars": stars["n"],
+                 "chi2_design": base.chi2, "chi2_scene_psf": own, "scale": q, "moments_delta_m2lnl": -float(drop),
+                 "chi2_uniform": uniform[0], "dof_uniform": uniform[1], "pixel_scale": scale,
+                 "rest_correlation": None if fit.rest_correlation is None else
+                 [round(float(r), 4) for r in fit.rest_correlation],
+                 "moments_values": {k: float(v) for k, v in zip(fit.names, fit.values)}}
+        f = Fit(effect, params, -float(drop), len(fit.names), n, words, note=c.family, state=state)
+        if delta is not None:
+            f.delta_adu, f.delta_m2lnl, f.n = delta, float(m2l), int(res.n_fit)
+        cand = Candidate(f, chi2_after(res, f), seconds + time.perf_counter() - t1)
+        if f.delta_adu is not None:
+            # its parameters come from the stars' moments, not from a fit to these pixels (at most one amplitude
+            # is refined on them): the pixel delta is a prediction of pixels the fit did not see, as the pixel
+            # candidates' held-out score is
+            cand.heldout = f.delta_m2lnl
+        out.append(cand)
+    structure_shares(res, [c for c in out if c.fit.delta_adu is not None])
+    excess_shares(res, [c for c in out if c.fit.delta_adu is not None])
+    if pixel_problem:
+        for c in out:
+            c.fit.explanation += f"; {pixel_problem}"
     return out, []
+
+
+#: the pixel candidates that change every star's shape in the same way over the whole frame
+UNIFORM_PSF = ("psf_blur", "jitter", "psf_elongation")
+
+
+def uniform_change_chi2(stars: dict, sigma: dict, sensor, parity: int) -> tuple[float, int]:
+    """(chi^2, dof) of the stars' change of second moments (data - model) [mm^2] fitted by one constant
+    change (dMuu, dMvv, dMuv) over the field (weighted means): what a blur, a jitter or an elongation of the
+    PSF makes (the same kernel convolved with every star adds the same second moments, whatever the star)."""
+    d = moments_to_focal(stars["data"]["mxx"], stars["data"]["myy"], stars["data"]["mxy"], sensor, parity)
+    m = moments_to_focal(stars["model"]["mxx"], stars["model"]["myy"], stars["model"]["mxy"], sensor, parity)
+    chi2 = 0.0
+    for i, k in enumerate(("muu_mm2", "mvv_mm2", "muv_mm2")):
+        w = 1.0 / np.maximum(sigma[k], 1e-30) ** 2
+        r = d[i] - m[i]
+        c = float(np.sum(w * r) / np.sum(w))
+        chi2 += float(np.sum(w * (r - c) ** 2))
+    return chi2, 3 * int(stars["n"]) - 3
+
+
+def field_pattern_check(cands: list, optical: list) -> None:
+    """A uniform change of the PSF (:data:`UNIFORM_PSF`) that is significant only because the stars changed
+    shape is not plausible when that change varies over the field the way a perturbation of the optics
+    predicts: a blur or a jitter adds the same second moments to every star, so a constant change must fit
+    the stars' moment changes (``chi2_uniform`` within 5 sqrt(2 dof) of its dof), and an optics candidate
+    scored on the pixels must not fit them far better (a chi^2 lower by more than 10 q, q its scatter scale).
+    Marks those candidates ``implausible`` in place."""
+    best = next((c for c in optical if c.fit.delta_adu is not None and c.fit.delta_bic < -10), None)
+    if best is None:
+        return
+    st = best.fit.state
+    u, dof, q = st.get("chi2_uniform"), st.get("dof_uniform"), st.get("scale", 1.0)
+    if u is None or dof is None or dof <= 0:
+        return
+    varies = u - dof > 5.0 * math.sqrt(2.0 * dof)
+    explained = (u - st["chi2"]) / q > 10.0
+    if not (varies and explained):
+        return
+    family = best.fit.note.replace("_", " ")
+    why = (f"the stars' change of shape varies over the field: one change of their second moments for all "
+           f"(what a uniform blur, jitter or elongation makes) leaves chi2 {u:.4g} for {dof} dof, the "
+           f"{family} of the optics fits them with chi2 {st['chi2']:.4g}")
+    for c in cands:
+        if c.fit.effect in UNIFORM_PSF and not c.implausible:
+            c.implausible = why
+
+
+# ---------------------------------------------------------------------------------------------- pixels
+#: rays per wavelength of each geometric spot of the pixel prediction, and the families (best by the moments'
+#: chi^2 drop, significant ones only) that get one
+PIXEL_RAYS, PIXEL_FAMILIES = 10000, 3
+#: the best family's amplitude refined on the pixels: at most REFINE_STEPS parabola steps, scales within SCALE_RANGE
+#: (every family's amplitude correlates with the moments' isotropic rest, -0.93 to -0.99 on the test frames: the
+#: moments alone take part of a defocus for seeing, 28 % of a 70 um one)
+REFINE_STEPS, SCALE_RANGE = 3, (0.5, 2.0)
+
+
+def scale_search(at, steps: int = None, bounds: tuple = None) -> tuple[float, tuple]:
+    """The scale s minimising ``at(s)[1]`` (a -2 ln L) near 1: s = 0.9, 1, 1.1, then the vertex of a parabola
+    through the three best so far (within ``bounds``, at most twice their span beyond them; a step beyond
+    the best end when they hold no minimum), ``steps`` times or until it moves by less than 0.01. Returns
+    (s, at(s))."""
+    steps = REFINE_STEPS if steps is None else steps
+    lo, hi = SCALE_RANGE if bounds is None else bounds
+    tried = {sc: at(sc) for sc in (1.0, 0.9, 1.1)}
+    for _ in range(steps):
+        xs = sorted(sorted(tried, key=lambda k: tried[k][1])[:3])
+        y = [tried[x][1] for x in xs]
+        a2, a1, _ = np.linalg.solve(np.vander(np.asarray(xs), 3), y)
+        span = xs[-1] - xs[0]
+        if a2 > 0:
+            nxt = -a1 / (2 * a2)
+        else:
+            nxt = xs[0] - span if y[0] < y[-1] else xs[-1] + span
+        nxt = float(np.clip(nxt, max(lo, xs[0] - 2 * span), min(hi, xs[-1] + 2 * span)))
+        if min(abs(nxt - k) for k in tried) < 0.01:
+            break
+        tried[nxt] = at(nxt)
+    best = min(tried, key=lambda k: tried[k][1])
+    return best, tried[best]
+
+
+class PixelPredictor:
+    """The mean frame [ADU] of the model's sources drawn with the PSF of a perturbed design (module notes,
+    "Pixels"). Built once per comparison; :meth:`delta` per perturbation. ``None`` from :meth:`build` when the
+    scene's PSF is not the optics' grid (a Gaussian or Moffat scene: the model frame holds no optics to perturb).
+
+    The scene's PSF cube (its ``grid_file`` or the cached grid of its design) is kept, and each stamp changed by
+    the perturbation's change of the *geometric* spot at the same field point, wavelengths and weights:
+
+        I_p = I_0 + (G_p - G_0),
+
+    G the histogram of the traced rays (same pupil samples for both designs, so their sampling noise largely
+    cancels), each centred on its own centroid as the render centres every stamp. Diffraction changes little
+    with a perturbation at f/2.4 (the Airy core, 1.6 um at 550 nm, is a fraction of a cell): the difference
+    of the geometric spots is the difference of the PSFs. The new grid goes through the render's own path
+    (:meth:`scenes.image.gridpsf.GridPSF.from_grid` with the scene's seeing, jitter and distortion, the same
+    bilinear blend, pixel integration and detector chain :meth:`detector.Detector.moments`), so the prediction
+    differs from the model frame by the perturbation alone.
+    """
+
+    def __init__(self, model, design, mi, grid, psf0, n_rays: int = PIXEL_RAYS):
+        from scenes.image.gridpsf import recentre
+
+        self.model, self.design, self.mi, self.grid, self.psf0, self.n_rays = model, design, mi, grid, psf0, n_rays
+        img = np.clip(np.asarray(grid.images, float), 0.0, None)
+        self.base = recentre(img / img.sum(axis=(1, 2), keepdims=True))
+        self._nominal = None
+        self._reference = None
+
+    @classmethod
+    def build(cls, model, scene, design, mi):
+        from optics.psf import cached_psf_grid, read_psf_fits
+        from scenes.image.gridpsf import GridPSF
+
+        if model is None or scene.psf.model != "optics":
+            return None
+        psf0 = getattr(model.setup.signal_e, "psf", None)
+        if not isinstance(psf0, GridPSF):
+            return None
+        cfg = scene.psf
+        pitch = float(model.sensor.pixel_pitch_um)
+        path = cfg.grid_file if cfg.grid_file is not None else cached_psf_grid(design, pitch, int(cfg.grid[0]),
+                                                                                int(cfg.grid[1]))
+        return cls(model, design, mi, read_psf_fits(path), psf0)
+
+    def spots(self, design) -> np.ndarray:
+        """Geometric stamps (K, N, N) of ``design`` at the grid's fields, cells and band, each about its centroid."""
+        from optics.sequential import SequentialTracer, pupil_uniform
+
+        g = self.grid
+        data = design.model_dump()
+        fp = data["focal_plane"]   # a detector that does not cut moved images (as optics.distortion's)
+        fp["width_mm"], fp["height_mm"] = 1.5 * fp["width_mm"], 1.5 * fp["height_mm"]
+        tracer = SequentialTracer(type(design).model_validate(data), self.mi, obstruct="analytic")
+        lam = np.asarray(g.wavelengths_nm, float)
+        w = np.asarray(g.weights, float) if g.weights is not None and len(g.weights) else np.ones(lam.size)
+        w = w / w.sum()
+        n = self.base.shape[-1]
+        half = n * float(g.pixel_um) * 5e-4
+        fields = np.asarray(g.fields_deg, float).reshape(-1, 2)
+        kf = len(fields)
+        # the same pupil points for every field, wavelength and design (their sampling noise cancels in the
+        # difference); one trace per field and wavelength (the field is opaque: one kernel for all)
+        px, py = pupil_uniform(int(self.n_rays), tracer.layout.r_primary, seed=0)
+        m = px.size
+        us, vs, ws = (np.zeros((kf, m * len(lam))) for _ in range(3))
+        for k, f in enumerate(fields):
+            for j, (lam_i, w_i) in enumerate(zip(lam, w, strict=True)):
+                r = tracer.trace((float(f[0]), float(f[1])), px, py, wavelength_nm=float(lam_i))
+                sl = slice(j * m, (j + 1) * m)
+                us[k, sl], vs[k, sl] = np.where(r.ok, r.u, 0.0), np.where(r.ok, r.v, 0.0)
+                ws[k, sl] = w_i * np.where(r.ok, r.transmission, 0.0) / m
+        out = np.zeros((kf, n, n))
+        for k in range(kf):
+            u, v, ww = us[k], vs[k], ws[k]
+            tot = float(ww.sum())
+            if not tot > 0:
+                raise ValueError(f"no ray of the perturbed design reaches the focal plane at field {tuple(fields[k])} deg")
+            cu, cv = float(np.sum(ww * u) / tot), float(np.sum(ww * v) / tot)
+            h, _, _ = np.histogram2d(v - cv, u - cu, bins=n, range=[[-half, half], [-half, half]], weights=ww)
+            out[k] = h / tot
+        return out
+
+    def psf(self, values: dict):
+        """The scene's GridPSF with the perturbation ``values`` ([perturbation] names, totals)."""
+        from dataclasses import replace
+
+        from optics.design import with_perturbation
+        from scenes.image.gridpsf import GridPSF
+
+        if self._nominal is None:
+            self._nominal = self.spots(self.design)
+        pert = self.spots(with_perturbation(self.design, **values))
+        images = np.clip(self.base + pert - self._nominal, 0.0, None)
+        p0 = self.psf0
+        s = self.model.sensor
+        ax = (s.sensor_width_px - 1) / 2.0 - s.roi_x0
+        ay = (s.sensor_height_px - 1) / 2.0 - s.roi_y0
+        return GridPSF.from_grid(replace(self.grid, images=images), float(s.pixel_pitch_um),
+                                 self.design.primary.focal_length_mm, (ax, ay), jitter_px=p0.jitter_px,
+                                 seeing_fwhm_px=p0.seeing_fwhm_px, to_ideal=p0.to_ideal)
+
+    def mean(self, psf) -> np.ndarray:
+        """The model's mean frame [ADU] with its sources drawn with ``psf``."""
+        from dataclasses import replace
+
+        m = self.model
+        out, _, _ = m.setup.detector.moments(replace(m.setup.signal_e, psf=psf), m.setup.exptime_s)
+        return np.asarray(out, np.float64)
+
+    def score(self, res: Residuals, names, values, refine: bool = False) -> tuple[np.ndarray, float, float]:
+        """(mean frame change [ADU], its pixel delta(-2 ln L), scale s) of the perturbation ``s * values``.
+        Without ``refine`` s = 1; with it, s maximises the pixel likelihood along ``values`` (s = 0.9, 1, 1.1,
+        then the vertex of a parabola through the three best, at most :data:`REFINE_STEPS` times, within
+        :data:`SCALE_RANGE`): the moments' aperture cuts the wings of a widened star and their isotropic nuisance
+        takes the uniform part of a defocus; the pixels keep all of it."""
+        from detector.signatures import Fit, pixel_score
+
+        def at(sc):
+            d = self.delta({k: float(v) * sc for k, v in zip(names, values)})
+            return d, float(pixel_score(Fit("", {}, 0.0, 0, 0, "", delta_adu=d), res))
+
+        sc, (d, m2l) = scale_search(at) if refine else (1.0, at(1.0))
+        return d, m2l, sc
+
+    def delta(self, values: dict) -> np.ndarray:
+        """Mean frame change [ADU] (output pixels) of the perturbation ``values`` ([perturbation] names, totals),
+        against the design's own perturbation drawn through the same path (zero for no change, exactly)."""
+        if self._reference is None:
+            self._reference = self.mean(self.psf(self.design.perturbation.model_dump()))
+        return (self.mean(self.psf(values)) - self._reference).astype(np.float32)

@@ -26,7 +26,7 @@ from .apply import apply_candidate, apply_empirical
 from .candidates import SIGNIFICANT_DELTA_BIC, candidates, indistinguishable, rank, source_candidates, verdict
 from .ledger import best_candidate, plot_ledger, round_row, update_ledger
 from .model import ModelFrame, build_model, read_measurement, residuals
-from .optics_candidates import optics_candidates
+from .optics_candidates import field_pattern_check, optics_candidates
 from .report import write_report
 from .statistics import compare, summary
 
@@ -88,7 +88,9 @@ def _run_diagnose(scene, measured: str | Path, workers: int | None = None, progr
     t0 = time.perf_counter()
     truth = cmp["_model"].setup.truth
     cands, problems = candidates(cmp["_residuals"], set(scene.effects), progress=progress, truth=truth)
-    optical, optical_problems = optics_candidates(cmp["_residuals"], truth, scene, progress=progress)
+    optical, optical_problems = optics_candidates(cmp["_residuals"], truth, scene, progress=progress,
+                                                  model=cmp["_model"])
+    field_pattern_check(cands, optical)  # a uniform blur/jitter that varies over the field as the optics predicts
     cands = rank(cands + source_candidates(cmp["_residuals"], truth, scene) + optical)
     problems = problems + optical_problems
     if progress is not None:
