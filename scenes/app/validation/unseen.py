@@ -204,6 +204,23 @@ class EdgeBumpGlow(RealWorld):
         data += (rate * tile.exptime_s).astype(np.float32)
 
 
+class ThermalDark(RealWorld):
+    """Dark rate under a linear temperature field across the sensor, ``T = dtx (u - 1/2) + dty (v - 1/2)`` [K],
+    with the dark current doubling every ``t2_k`` kelvin: ``D (2^(T / t2) - 1)`` added [e-/s] (the exponential
+    law, not the plugin's linearised ramp; Widenhorn et al. 2002)."""
+
+    name = "uw_thermal_dark"
+    stages = (Stage.DARK,)
+
+    def apply(self, stage, tile, data):
+        p, s = self.params, self.sensor
+        u, v = HE["_uv"](tile)
+        t = p.dtx * (u[None, :] - 0.5) + p.dty * (v[:, None] - 0.5)
+        rate = s.dark_current_e_per_s * (np.exp2(t / p.t2_k) - 1.0)
+        data += (rate * tile.exptime_s).astype(np.float32)
+        np.maximum(data, 0, out=data)
+
+
 class SawtoothBias(RealWorld):
     """Bias [ADU]: a sawtooth along the columns (``cycles`` across the sensor, ``ptp_adu`` peak to peak)."""
 
@@ -960,6 +977,11 @@ _CASE_LIST = [
     _c("amp_glow", "glow_edge_bump_full", "dark_full", "glow at the middle of the left CCD edge: Gaussian along it "
        "(400 px), exp(-x / 200 px) inwards, 0.004 e-/s", lambda s: [EdgeBumpGlow(
            s, amplitude_e_per_s=0.004, lambda_px=200.0, yc_frac=0.5, sigma_px=400.0)], "weak"),
+    # dark_gradient: a temperature gradient with the exponential law of the dark current
+    _c("dark_gradient", "dark_thermal_full", "dark_full", "temperature 4 K warmer at the right edge than the left, 2 K "
+       "cooler at the top, dark current doubling every 6.3 K", lambda s: [ThermalDark(s, dtx=4.0, dty=-2.0, t2_k=6.3)]),
+    _c("dark_gradient", "dark_thermal_weak", "dark_full", "temperature 1.5 K cooler at the right edge, 1 K warmer at "
+       "the top, doubling every 6.3 K", lambda s: [ThermalDark(s, dtx=-1.5, dty=1.0, t2_k=6.3)], "weak"),
     # bias_gradient
     _c("bias_gradient", "bias_sawtooth_full", "bias_full", "sawtooth bias along the columns, 3 cycles, 1.5 ADU p-p",
        lambda s: [SawtoothBias(s, cycles=3.0, ptp_adu=1.5)]),
