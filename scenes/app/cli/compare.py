@@ -206,7 +206,7 @@ def _diagnose_series(series, json_out, apply_to, report, prefer, sets, workers) 
         with Progress(transient=True) as bar:
             task = bar.add_task("series", total=None)
             out = run_series_diagnose(ser, workers=workers, progress=lambda t: bar.update(task, description=t))
-        applied, new_series, best = apply_series(ser, out, apply_path, tuple(prefer))
+        applied, new_series, best = apply_series(ser, out, apply_path, tuple(prefer), workers=workers)
         out["applied"] = ({"effect": best["effect"], "params": best["params"], "scene": apply_to,
                            "series": outs.public(str(new_series))} if applied else None)
         target = new_series if applied else own_ledger.with_name(Path(series).name)

@@ -834,12 +834,16 @@ def _shared_names(sf: SeriesFit) -> list[str]:
 
 # --- apply and the ledger -----------------------------------------------------------------------------------
 
-def apply_series(series: Series, diagnosis: dict, apply_to: str | Path | None, prefer: tuple[str, ...] = ()
-                 ) -> tuple[Path | None, Path | None, dict | None]:
+def apply_series(series: Series, diagnosis: dict, apply_to: str | Path | None, prefer: tuple[str, ...] = (),
+                 workers: int | None = None) -> tuple[Path | None, Path | None, dict | None]:
     """``--apply``: the best significant candidate added to the series' base scene at ``apply_to`` (one scene
     serving every frame), and ``APPLY.series.toml`` beside it: the series file of the next round (the new
-    scene, the same frames; a per-frame effect's parameters as each frame's ``set``). Returns (scene,
-    series file, the applied candidate) or Nones."""
+    scene, the same frames; a per-frame effect's parameters as each frame's ``set``). The levels the series
+    shares (the flat-screen level, the dark current) are then refitted with the new scene's model of every
+    frame and written into it, as the single-frame ``--apply`` refits a frame's levels: the levels fitted
+    jointly with a candidate are not those of its parameters when the two trade off (gain regions normalised to
+    a mean gain of 1 against the light and dark levels). Returns (scene, series file, the applied candidate)
+    or Nones."""
     sig = [c for c in diagnosis["candidates"] if c["significant"]]
     best = next((c for n in prefer for c in sig if c["effect"] == n), sig[0] if sig else None)
     if apply_to is None or best is None:
@@ -850,10 +854,21 @@ def apply_series(series: Series, diagnosis: dict, apply_to: str | Path | None, p
     if per is not None:
         first = next(p for p in per if p is not None)
         cand = {**best, "params": first}
-    levels = series_levels(diagnosis, best["effect"])
-    base, notes = carry_series_levels(base, levels)
-    scene_path = apply_candidate(base, cand, apply_to, None)
-    new_series = Path(apply_to).with_name(Path(apply_to).stem + ".series.toml")
+    scene_path = Path(apply_candidate(base, cand, apply_to, None))
+    new_series = scene_path.with_name(scene_path.stem + ".series.toml")
+    _write_next_series(series, best, per, scene_path, new_series, {}, [])
+    # the shared levels with the new scene in the model of every frame
+    refit = run_series_compare(load_series(new_series), workers=workers)
+    levels = refit["baseline"]["levels"]["series"]
+    new_base, notes = carry_series_levels(load_scene(str(scene_path)), levels)
+    if notes:
+        apply_candidate(new_base, cand, scene_path, None)
+        _write_next_series(series, best, per, scene_path, new_series, levels, notes)
+    return scene_path, new_series, best
+
+
+def _write_next_series(series: Series, best: dict, per: list | None, scene_path: Path, new_series: Path,
+                       levels: dict, notes: list[str]) -> None:
     frames = []
     light = levels.get("light_scale", 0.0)
     for i, fr in enumerate(series.frames):
@@ -874,21 +889,11 @@ def apply_series(series: Series, diagnosis: dict, apply_to: str | Path | None, p
         if sets:
             entry["set"] = sets
         frames.append(entry)
-    body = {"scene": Path(scene_path).name, "frames": frames}  # beside it
+    body = {"scene": scene_path.name, "frames": frames}  # beside it
     if series.levels:
         body["levels"] = series.levels
     new_series.write_text(f"# written by newtsim diagnose --series --apply: {best['effect']} added\n"
                           + "".join(f"# and {n}\n" for n in notes) + tomli_w.dumps(body))
-    return Path(scene_path), new_series, best
-
-
-def series_levels(diagnosis: dict, effect: str) -> dict[str, float]:
-    """The series' shared levels fitted jointly with ``effect`` (its joint solution), or the levels-only
-    ones when the effect was fitted frame by frame."""
-    sf = diagnosis.get("_fits", {}).get(effect)
-    if sf is not None and sf.solution is not None and sf.shared_names:
-        return {n: float(v) for n, v in zip(sf.shared_names, sf.solution.shared_levels)}
-    return dict(diagnosis["baseline"]["levels"]["series"])
 
 
 def carry_series_levels(scene, levels: dict[str, float]):
