@@ -142,7 +142,9 @@ _REGION_GRIDS = ((2, 1), (1, 2), (2, 2), (4, 1), (1, 4), (4, 2), (2, 4), (4, 4),
 
 def _gain_variants(res):
     s = res.sensor
-    sig = (res.model_adu - (s.bias_adu - 0.5) * res.adu_sum).astype(np.float32)
+    # an amplifier's gain multiplies the converted charge (light and dark), not the bias or its structure:
+    # on a bias frame gain regions change nothing
+    sig = (res.charge_e / np.float32(res.gain)).astype(np.float32)
     w = res.data_adu.shape[1]
     for nx, ny in _REGION_GRIDS:
         iy, ix = region_index(res.ys, res.xs, nx, ny, s.sensor_height_px, s.sensor_width_px)

@@ -863,6 +863,10 @@ def apply_series(series: Series, diagnosis: dict, apply_to: str | Path | None, p
     new_base, notes = carry_series_levels(load_scene(str(scene_path)), levels)
     if notes:
         apply_candidate(new_base, cand, scene_path, None)
+    light = levels.get("light_scale", 0.0)
+    if abs(light) > LEVEL_SCALE_TOL and any("sky.flat_e_per_s" in fr.sets for fr in series.frames):
+        notes.append(f"the frames' flat-screen levels refitted: sky.flat_e_per_s x {1 + light:.5f}")
+    if notes:
         _write_next_series(series, best, per, scene_path, new_series, levels, notes)
     return scene_path, new_series, best
 
