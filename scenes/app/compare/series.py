@@ -787,8 +787,8 @@ def separation(frames: list[Residuals], labels: list[str], cands: list[Candidate
                 f"against {-total['rival']:.4g}")
         amps = [row.get("amplitude_rival") for row in rows if row.get("amplitude_rival") is not None]
         if len(amps) >= 2:
-            text += (f"; the rival's pattern fitted frame by frame ranges {min(amps):.3g}-{max(amps):.3g} of its "
-                     "joint amplitude, the winner's stays near 1")
+            text += (f"; the rival's pattern fitted frame by frame ranges from {min(amps):.3g} to {max(amps):.3g} "
+                     "times its joint amplitude, the winner's stays near 1")
     return {"best": best.fit.effect, "rival": rival.fit.effect if rival is not None else None,
             "scaling": {key: getattr(c, "scaling", None) for key, c, _ in pair}, "frames": rows, "statement": text,
             "residual_vs_signal": residual_vs_signal(frames, labels, pair)}
