@@ -128,6 +128,8 @@ def _write(path, table):
     (lambda t: t["frames"][1].update(set={"detector.width": 96}), "frames[1]"),
     (lambda t: t.update(levels={"light_scale": "sometimes"}), "levels.light_scale"),
     (lambda t: t.update(colour="blue"), "colour"),
+    (lambda t: t["frames"][0].update(set={"exposure.time_s": -3}), "frames[0].set.exposure.time_s"),
+    (lambda t: t.update(frames="x"), "frames"),
 ])
 def test_series_errors_are_one_line_naming_the_key(series_dir, tmp_path, mutate, needle):
     import tomllib

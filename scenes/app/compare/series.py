@@ -46,6 +46,7 @@ import tomllib
 
 from detector import registry
 from detector.characterize import linear_fit, pair_noise, photon_transfer
+from detector.errors import DetectorError
 from detector.joint import (
     SampleGrams,
     fixed_score,
@@ -160,6 +161,9 @@ def load_series(path: str | Path, sets: tuple[str, ...] | list[str] = ()) -> Ser
                          expected="scene, [[frames]], [levels], title")
     base = p.parent
     frames_in = data.get("frames")
+    if "frames" in data and not isinstance(frames_in, list):
+        raise SceneError(f"frames is a {type(frames_in).__name__}", key="frames", file=file,
+                         expected="[[frames]] tables, each with file = \"measured.fits\"")
     if not isinstance(frames_in, list) or len(frames_in) < 2:
         raise SceneError(f"{0 if not isinstance(frames_in, list) else len(frames_in)} frame(s)", key="frames",
                          file=file, expected="at least two [[frames]] tables, each with file = \"measured.fits\"")
@@ -193,11 +197,17 @@ def load_series(path: str | Path, sets: tuple[str, ...] | list[str] = ()) -> Ser
                              expected="a top-level scene = \"...\" or one in every frame")
         frame_sets = fr.get("set", {})
         assigned = _assignments(frame_sets, file, where) + list(sets)
-        sc = load_scene(str(sc_file), assigned)
+        try:
+            sc = load_scene(str(sc_file), assigned)
+        except DetectorError as exc:  # say which frame (and which of its overrides) made the scene invalid
+            key = f"{where}.set.{exc.key}" if exc.key in frame_sets else (exc.key or where)
+            where_file = f" (scene {exc.file})" if exc.file and exc.file != str(sc_file) else f" (scene {sc_file})"
+            raise SceneError(f"frame {i} ({fr['file']}): {exc.message}{where_file}", key=key, file=file,
+                             expected=exc.expected) from None
         measured = _resolve(base, fr["file"])
         if not measured.is_file():
-            raise SceneError("measured frame not found", key=f"{where}.file", file=file,
-                             expected=f"an existing FITS file ({measured})")
+            raise SceneError("measured frame is a directory" if measured.is_dir() else "measured frame not found",
+                             key=f"{where}.file", file=file, expected=f"an existing FITS file ({measured})")
         frames.append(SeriesFrame(measured, sc, str(fr.get("label") or measured.stem), dict(frame_sets), own))
     _check_same_camera(frames, file)
     return Series(p, scene_file, frames, dict(levels))
