@@ -162,14 +162,16 @@ def compact_features(z: np.ndarray, ok: np.ndarray, on_source: np.ndarray | None
     model source (``on_source``: pixels of the sources' cores; a residual sitting on them is the ``sources``
     geometry instead). A ring is ``on_source`` when its filled footprint holds a source core.
 
-    Returns ``{"rings": share, "blobs": share, "n_rings", "n_blobs", "rings_on_sources", "ring_radius_px",
-    "blob_radius_px", "scale_rings", "scale_blobs", "peak_sigma" (the strongest kept feature's band-passed peak
-    over the map's robust standard deviation), "footprint": {"rings": bool map, "blobs": bool map}}``;
+    Rings centred on sources form their own family, ``srings`` (a property of the sources' light, not a free
+    ring like a dust donut). Returns, for each family ``f`` of "rings", "blobs", "srings": ``f`` (share),
+    ``n_f``, ``<f without s>_radius_px`` (median), ``scale_f``, ``footprint[f]`` (bool map); and "peak_sigma"
+    (the strongest kept feature's band-passed peak over the map's robust standard deviation);
     a share is the band-passed chi2 excess in the family's footprints over the whole frame's, at the scale
     where it is largest."""
-    best = {"rings": 0.0, "blobs": 0.0, "n_rings": 0, "n_blobs": 0, "rings_on_sources": 0, "ring_radius_px": 0.0,
-            "blob_radius_px": 0.0, "scale_rings": 0.0, "scale_blobs": 0.0, "peak_sigma": 0.0,
-            "footprint": {"rings": np.zeros(z.shape, bool), "blobs": np.zeros(z.shape, bool)}}
+    fams = ("rings", "blobs", "srings")
+    best = {"peak_sigma": 0.0, "footprint": {f: np.zeros(z.shape, bool) for f in fams}}
+    for f in fams:
+        best.update({f: 0.0, f"n_{f}": 0, f"{f[:-1]}_radius_px": 0.0, f"scale_{f}": 0.0})
     n_ok = int(ok.sum())
     if n_ok < 256:
         return best
@@ -185,10 +187,9 @@ def compact_features(z: np.ndarray, ok: np.ndarray, on_source: np.ndarray | None
         total = float(q[ok].sum()) - n_ok
         if total <= 0:
             continue
-        foot = {"rings": np.zeros(z.shape, bool), "blobs": np.zeros(z.shape, bool)}
-        radii = {"rings": [], "blobs": []}
-        peak = {"rings": 0.0, "blobs": 0.0}
-        on_src = 0
+        foot = {f: np.zeros(z.shape, bool) for f in fams}
+        radii = {f: [] for f in fams}
+        peak = {f: 0.0 for f in fams}
         for sign in (1.0, -1.0):
             lab, n = ndi.label(sign * bm > FEATURE_DETECT * sig)
             if n == 0:
@@ -212,8 +213,7 @@ def compact_features(z: np.ndarray, ok: np.ndarray, on_source: np.ndarray | None
                 src = bool(on_source is not None and on_source[y0:y1, x0:x1][filled].any())
                 rad = math.sqrt(filled.sum() / math.pi)
                 if ring:
-                    fam = "rings"
-                    on_src += src
+                    fam = "srings" if src else "rings"
                 else:
                     # a blob near a source (within its own radius or 3 s: a source's ring cut by a mask, a
                     # source's halo) belongs to the sources; one cut by the frame's border cannot be told
@@ -227,15 +227,13 @@ def compact_features(z: np.ndarray, ok: np.ndarray, on_source: np.ndarray | None
                 foot[fam][y0:y1, x0:x1] |= filled
                 radii[fam].append(rad)
                 peak[fam] = max(peak[fam], float(pk / sig))
-        for fam in ("rings", "blobs"):
+        for fam in fams:
             share = max(float(q[foot[fam] & ok].sum()) - int((foot[fam] & ok).sum()), 0.0) / total
             if radii[fam] and share > best[fam]:
                 best.update({fam: min(share, 1.0), f"n_{fam}": len(radii[fam]),
                              f"{fam[:-1]}_radius_px": float(np.median(radii[fam])), f"scale_{fam}": s})
                 best["footprint"][fam] = foot[fam]
                 best["peak_sigma"] = max(best["peak_sigma"], peak[fam])
-                if fam == "rings":
-                    best["rings_on_sources"] = on_src
     return best
 
 
@@ -309,7 +307,9 @@ def describe(res: Residuals, delta_adu: np.ndarray | None = None) -> dict:
         srcmap = np.asarray(res.model_adu, np.float64) - res.background_adu
         on_source = srcmap > 5.0 * np.sqrt(np.maximum(np.asarray(res.var_adu2, np.float64), 1e-12))
     feats = compact_features(zp, okp, on_source)
-    n_feat = feats["n_rings"] + feats["n_blobs"]
+    # rings about the sources: at least two, and twice as many as the free ones
+    rings_on_src = feats["n_srings"] >= 2 and feats["n_srings"] >= 2 * feats["n_rings"]
+    n_feat = feats["n_rings"] + feats["n_blobs"] + (feats["n_srings"] if rings_on_src else 0)
     gain = res.gain
     if max(block_sigma, noise_sigma) < SIGNIFICANT_SIGMA:
         if n_feat and feats["peak_sigma"] >= FEATURE_PEAK:
@@ -432,7 +432,6 @@ def describe(res: Residuals, delta_adu: np.ndarray | None = None) -> dict:
         shares["rings"] = feats["rings"]
     if feats["n_blobs"]:
         shares["blobs"] = feats["blobs"]
-    rings_on_src = feats["n_rings"] >= 2 and feats["rings_on_sources"] >= 2 * feats["n_rings"] / 3
     if rings_on_src and kind != "redistributed":
         # rings centred on the sources are a property of the sources' light (a diffraction or ghost ring: the
         # point-spread function), light moved around them whatever the fitted fluxes absorbed
@@ -467,16 +466,18 @@ def describe(res: Residuals, delta_adu: np.ndarray | None = None) -> dict:
         rr2 = (yy[ok] - centre[0]) ** 2 + (xx[ok] - centre[1]) ** 2
         amp_r = np.abs(fit_rad - fit_rad[np.argmax(rr2)])
         scale = float(b * np.sqrt(np.sum(amp_r * rr2) / max(np.sum(amp_r), 1e-300)))
-    elif main == "rings" or (main == "sources" and "rings" in geometry):
+    elif main == "rings":
         scale = feats["ring_radius_px"]
+    elif main == "sources" and rings_on_src:
+        scale = feats["sring_radius_px"]
     elif main == "blobs":
         scale = feats["blob_radius_px"]
     elif main == "local":
         scale = float(b * math.sqrt(max(strong.sum(), 1)))
     else:
         scale = float(b * max(ny, nx))
-    if main in ("rings", "blobs") or (main == "sources" and "rings" in geometry):
-        fam = "rings" if main == "sources" else main
+    if main in ("rings", "blobs") or (main == "sources" and rings_on_src):
+        fam = "srings" if main == "sources" else main
         amp, unit, desc = _feature_amplitude(res, feats, fam, rmap, light, kind == "multiplicative" and has_light)
     elif kind == "multiplicative" and has_light:
         amp, unit = float(np.ptp(smooth_fit)) * 100, "%"
@@ -488,7 +489,7 @@ def describe(res: Residuals, delta_adu: np.ndarray | None = None) -> dict:
         desc += f" about (x, y) = ({(centre[1] + 0.5) * b:.0f}, {(centre[0] + 0.5) * b:.0f}) output px"
     if main == "periodic":
         desc += f", period {period:.3g} px"
-    desc += _feature_words(feats, geometry)
+    desc += _feature_words(feats, geometry, rings_on_src)
     certain = "" if kind_certain else " (additive and multiplicative cannot be told apart on this uniform light)"
     out.update(kind=kind, kind_certain=kind_certain, geometry=geometry, scale_px=round(scale, 2),
                amplitude=round(amp, 4), unit=unit, shares=shares,
@@ -506,12 +507,14 @@ def describe(res: Residuals, delta_adu: np.ndarray | None = None) -> dict:
     return out
 
 
-def _feature_words(feats: dict, geometry: list[str]) -> str:
+def _feature_words(feats: dict, geometry: list[str], on_sources: bool = False) -> str:
     """``; 3 rings (median radius 9.7 px) ...`` for the rings and blobs named in ``geometry``."""
     words = []
-    if "rings" in geometry:
-        on = f", {feats['rings_on_sources']} centred on sources" if feats["rings_on_sources"] else ""
-        words.append(f"{feats['n_rings']} ring(s) of median radius {feats['ring_radius_px']:.3g} px{on}")
+    if "rings" in geometry and on_sources:
+        words.append(f"{feats['n_srings']} ring(s) of median radius {feats['sring_radius_px']:.3g} px centred on "
+                     "sources")
+    elif "rings" in geometry:
+        words.append(f"{feats['n_rings']} ring(s) of median radius {feats['ring_radius_px']:.3g} px")
     if "blobs" in geometry:
         words.append(f"{feats['n_blobs']} compact blob(s) of median radius {feats['blob_radius_px']:.3g} px "
                      "off the sources")
@@ -524,14 +527,14 @@ def _feature_amplitude(res: Residuals, feats: dict, fam: str, rmap: np.ndarray, 
     feature's scale, its largest absolute value in the footprints [e-], or relative to the light there [%]."""
     foot = feats["footprint"][fam]
     sm = gaussian_filter(rmap, max(feats[f"scale_{fam}"], 1.0), mode="nearest")
-    off = ~(feats["footprint"]["rings"] | feats["footprint"]["blobs"])
+    off = ~(feats["footprint"]["rings"] | feats["footprint"]["blobs"] | feats["footprint"]["srings"])
     ref = float(np.median(sm[off])) if off.any() else 0.0  # the level around the features (a refitted level)
     peak_adu = float(np.max(np.abs(sm[foot] - ref))) if foot.any() else 0.0
     if relative:
         amp = 100 * peak_adu / max(float(np.median(light[foot])) if foot.any() else 0.0, 1e-9)
-        return amp, "%", f"{amp:.3g} % of the light at the strongest {fam[:-1]}"
+        return amp, "%", f"{amp:.3g} % of the light at the strongest {fam[-5:-1]}"
     amp = peak_adu * res.gain
-    return amp, "e-", f"{amp:.4g} e- per pixel at the strongest {fam[:-1]}"
+    return amp, "e-", f"{amp:.4g} e- per pixel at the strongest {fam[-5:-1]}"
 
 
 def _compact_only(res: Residuals, feats: dict, rmap: np.ndarray, light: np.ndarray) -> dict:
@@ -540,18 +543,18 @@ def _compact_only(res: Residuals, feats: dict, rmap: np.ndarray, light: np.ndarr
     else ``multiplicative`` on a flat screen's frame (a prior, ``kind_certain`` false), else ``additive``
     (light added where the model has none: the features sit off the sources); the amplitude is the strongest
     feature's peak residual smoothed at its scale [e-] (or relative to the light [%] when multiplicative)."""
+    on_src = feats["n_srings"] >= 2 and feats["n_srings"] >= 2 * feats["n_rings"]
     fams = sorted((f for f in ("rings", "blobs") if feats[f"n_{f}"]), key=lambda f: -feats[f])
-    on_src = feats["n_rings"] >= 2 and feats["rings_on_sources"] >= 2 * feats["n_rings"] / 3
     certain = True
-    if "rings" in fams and on_src:
-        kind, geometry = "redistributed", ["sources"] + fams
+    if on_src:
+        kind, geometry = "redistributed", ["sources", "rings"] + [f for f in fams if f != "rings"]
     elif res.light_source == "flat":
         kind, geometry, certain = "multiplicative", fams, False
     else:
         kind, geometry = "additive", fams
-    main = geometry[0] if geometry[0] != "sources" else "rings"
+    main = geometry[0] if geometry[0] != "sources" else "srings"
     amp, unit, desc = _feature_amplitude(res, feats, main, rmap, light, kind == "multiplicative")
-    desc += _feature_words(feats, geometry)
+    desc += _feature_words(feats, geometry, on_src)
     extra = "" if certain else " (additive and multiplicative cannot be told apart on this uniform light)"
     shares = {f: round(float(feats[f]), 3) for f in fams}
     return {"kind": kind, "kind_certain": certain, "geometry": geometry,
