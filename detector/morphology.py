@@ -12,8 +12,11 @@ itself is described by the questions an instrument scientist asks of it:
 * **geometry** (a fixed vocabulary): ``gradient`` (a smooth large-scale field: a plane, a quadratic),
   ``radial`` (a function of the distance to a centre, fitted), ``rows`` / ``columns`` (offsets of whole
   lines beyond a smooth field), ``periodic`` (a peak of the power spectrum: fringes, a 2 x 2 mosaic),
-  ``sources`` (the excess sits on the sources), ``local`` (a few compact blobs or rings), ``noise`` (extra
-  pixel-to-pixel variance without a mean pattern). Each family's share of the structured chi2 is reported;
+  ``sources`` (the excess sits on the sources), ``local`` (a few compact blocks of the block map), ``rings``
+  (annuli: a dust donut's shadow, a diffraction or ghost ring; rings about the sources make the pattern
+  ``redistributed``), ``blobs`` (compact features off the sources: glints, a latent image), both from the
+  band-passed whitened pixel map (:func:`compact_features`), ``noise`` (extra pixel-to-pixel variance without
+  a mean pattern). Each family's share of the structured chi2 is reported;
   the geometry lists those that take a sizeable share.
 * **scale_px**, **amplitude** (with its unit) and an **explanation** naming the nearest physical families.
 
@@ -175,6 +178,7 @@ def compact_features(z: np.ndarray, ok: np.ndarray, on_source: np.ndarray | None
     n_ok = int(ok.sum())
     if n_ok < 256:
         return best
+    per_scale = []
     for s in scales:
         if 24 * s > min(z.shape):
             break
@@ -190,6 +194,7 @@ def compact_features(z: np.ndarray, ok: np.ndarray, on_source: np.ndarray | None
         foot = {f: np.zeros(z.shape, bool) for f in fams}
         radii = {f: [] for f in fams}
         peak = {f: 0.0 for f in fams}
+        blobs = []
         for sign in (1.0, -1.0):
             lab, n = ndi.label(sign * bm > FEATURE_DETECT * sig)
             if n == 0:
@@ -223,10 +228,24 @@ def compact_features(z: np.ndarray, ok: np.ndarray, on_source: np.ndarray | None
                         (x0 == 0 and filled[:, 0].any()) or (x1 == z.shape[1] and filled[:, -1].any())
                     if src or edge or filled.sum() > 0.02 * z.size:
                         continue
-                    fam = "blobs"
+                    blobs.append((y0, y1, x0, x1, filled, rad, float(pk / sig)))
+                    continue
                 foot[fam][y0:y1, x0:x1] |= filled
                 radii[fam].append(rad)
                 peak[fam] = max(peak[fam], float(pk / sig))
+        per_scale.append((s, q, total, foot, radii, peak, blobs))
+    # a blob inside or on a ring (found at any scale) is that ring's own band-passed echo (the difference of
+    # Gaussians turns a ring's interior into a blob of the other sign, a coarse scale blurs it into a disc)
+    rings_any = np.zeros(z.shape, bool)
+    for _, _, _, foot, _, _, _ in per_scale:
+        rings_any |= foot["rings"] | foot["srings"]
+    for s, q, total, foot, radii, peak, blobs in per_scale:
+        for y0, y1, x0, x1, filled, rad, pk in blobs:
+            if rings_any[y0:y1, x0:x1][filled].any():
+                continue
+            foot["blobs"][y0:y1, x0:x1] |= filled
+            radii["blobs"].append(rad)
+            peak["blobs"] = max(peak["blobs"], pk)
         for fam in fams:
             share = max(float(q[foot[fam] & ok].sum()) - int((foot[fam] & ok).sum()), 0.0) / total
             if radii[fam] and share > best[fam]:
