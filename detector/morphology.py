@@ -12,8 +12,11 @@ itself is described by the questions an instrument scientist asks of it:
 * **geometry** (a fixed vocabulary): ``gradient`` (a smooth large-scale field: a plane, a quadratic),
   ``radial`` (a function of the distance to a centre, fitted), ``rows`` / ``columns`` (offsets of whole
   lines beyond a smooth field), ``periodic`` (a peak of the power spectrum: fringes, a 2 x 2 mosaic),
-  ``sources`` (the excess sits on the sources), ``local`` (a few compact blobs or rings), ``noise`` (extra
-  pixel-to-pixel variance without a mean pattern). Each family's share of the structured chi2 is reported;
+  ``sources`` (the excess sits on the sources), ``local`` (a few compact blocks of the block map), ``rings``
+  (annuli: a dust donut's shadow, a diffraction or ghost ring; rings about the sources make the pattern
+  ``redistributed``), ``blobs`` (compact features off the sources: glints, a latent image), both from the
+  band-passed whitened pixel map (:func:`compact_features`), ``noise`` (extra pixel-to-pixel variance without
+  a mean pattern). Each family's share of the structured chi2 is reported;
   the geometry lists those that take a sizeable share.
 * **scale_px**, **amplitude** (with its unit) and an **explanation** naming the nearest physical families.
 
@@ -27,6 +30,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
+from scipy import ndimage as ndi
 from scipy.ndimage import gaussian_filter
 
 from .signatures import Residuals
@@ -38,6 +42,11 @@ SIGNIFICANT_SIGMA = 8.0
 GEOMETRY_SHARE = 0.25
 #: blocks across the shorter side of the frame for the binned maps
 BLOCKS = 48
+#: a compact feature is detected above this many (robust) standard deviations of the band-passed z map and kept
+#: when its peak reaches FEATURE_PEAK of them
+FEATURE_DETECT, FEATURE_PEAK = 5.0, 8.0
+#: smoothing scales [output px] of the compact-feature search (a difference of Gaussians s - 6 s each)
+FEATURE_SCALES = (1.0, 2.0, 4.0, 8.0)
 #: order of the 2-D Legendre basis of the smooth fields (the ``gradient`` family and the kind test)
 SMOOTH_ORDER = 3
 
@@ -48,6 +57,11 @@ FAMILIES = {
     ("additive", "columns"): "column offsets, hot columns, a bias pattern of the read-out",
     ("additive", "periodic"): "electronic pick-up (a pattern noise), fringing of a sky line",
     ("additive", "local"): "glints, ghosts, hot spots, light leaks",
+    ("additive", "blobs"): "satellite glints, a persistent (latent) image, hot spots, ghosts of bright sources",
+    ("additive", "rings"): "defocused ghosts (out-of-focus reflections of bright sources), halos",
+    ("multiplicative", "rings"): "dust shadows (donuts: out-of-focus images of the pupil) on a window or filter",
+    ("multiplicative", "blobs"): "dust or stains on a window, filter or the sensor's cover glass",
+    ("redistributed", "rings"): "a diffraction or ghost ring around the sources (light moved out of the cores)",
     ("additive", "sources"): "sources the model lacks (faint stars, a missing object) or misplaced sources",
     ("additive", "noise"): "read noise or kTC noise above the model, a noise gradient",
     ("multiplicative", "gradient"): "a flat-field error, vignetting off the model's centre",
@@ -126,6 +140,122 @@ def _peak(z: np.ndarray) -> tuple[float, float, float]:
             float(near / max(p.sum(), 1e-300)))
 
 
+def _band(z: np.ndarray, ok: np.ndarray, s: float) -> np.ndarray:
+    """The z map band-passed about the scale ``s`` [px]: a difference of Gaussians (s - 6 s) by normalised
+    convolution over the fitted pixels (masked pixels neither pull the map to zero nor make edges), zero off them."""
+    wt = ok.astype(np.float64)
+
+    def smooth(sig):
+        return gaussian_filter(z, sig, mode="nearest") / np.maximum(gaussian_filter(wt, sig, mode="nearest"), 1e-3)
+    return np.where(ok, smooth(s) - smooth(6.0 * s), 0.0)
+
+
+def compact_features(z: np.ndarray, ok: np.ndarray, on_source: np.ndarray | None = None,
+                     scales=FEATURE_SCALES) -> dict:
+    """Compact features of a whitened residual map: rings (annuli) and blobs, per smoothing scale.
+
+    The map ``z`` (residual over its standard deviation, 0 off the fitted pixels ``ok``) is band-passed about
+    each scale ``s`` (a difference of Gaussians s - 6 s, which removes smooth fields) and divided by its robust
+    standard deviation (1.4826 MAD: any correlation of the noise is included); connected regions of one sign
+    above FEATURE_DETECT whose peak reaches FEATURE_PEAK are features. The shape test is topological: a feature
+    cut at half its own peak is a **ring** when the cut encloses a hole (``binary_fill_holes`` adds at least
+    15 % of its filled area and at least pi s^2), the signature of an annulus (a dust donut's shadow: the
+    defocused pupil with its central obstruction; a diffraction or ghost ring around a source); otherwise a
+    **blob** (a glint, a latent image, a hot spot) when it is compact (at most 2 % of the frame) and not on a
+    model source (``on_source``: pixels of the sources' cores; a residual sitting on them is the ``sources``
+    geometry instead). A ring is ``on_source`` when its filled footprint holds a source core.
+
+    Rings centred on sources form their own family, ``srings`` (a property of the sources' light, not a free
+    ring like a dust donut). Returns, for each family ``f`` of "rings", "blobs", "srings": ``f`` (share),
+    ``n_f``, ``<f without s>_radius_px`` (median), ``scale_f``, ``footprint[f]`` (bool map); and "peak_sigma"
+    (the strongest kept feature's band-passed peak over the map's robust standard deviation);
+    a share is the band-passed chi2 excess in the family's footprints over the whole frame's, at the scale
+    where it is largest."""
+    fams = ("rings", "blobs", "srings")
+    best = {"peak_sigma": 0.0, "footprint": {f: np.zeros(z.shape, bool) for f in fams}}
+    for f in fams:
+        best.update({f: 0.0, f"n_{f}": 0, f"{f[:-1]}_radius_px": 0.0, f"scale_{f}": 0.0})
+    n_ok = int(ok.sum())
+    if n_ok < 256:
+        return best
+    per_scale = []
+    for s in scales:
+        if 24 * s > min(z.shape):
+            break
+        bm = _band(z, ok, s)
+        v = bm[ok]
+        sig = 1.4826 * float(np.median(np.abs(v - np.median(v))))
+        if not sig > 0:
+            continue
+        q = (bm / sig) ** 2
+        total = float(q[ok].sum()) - n_ok
+        if total <= 0:
+            continue
+        foot = {f: np.zeros(z.shape, bool) for f in fams}
+        radii = {f: [] for f in fams}
+        peak = {f: 0.0 for f in fams}
+        blobs = []
+        for sign in (1.0, -1.0):
+            lab, n = ndi.label(sign * bm > FEATURE_DETECT * sig)
+            if n == 0:
+                continue
+            peaks = ndi.maximum(sign * bm, lab, np.arange(1, n + 1))
+            for i, (sl, pk) in enumerate(zip(ndi.find_objects(lab), peaks)):
+                if pk < FEATURE_PEAK * sig:
+                    continue
+                mine = lab[sl] == i + 1
+                if mine.sum() < math.pi * s * s:
+                    continue
+                pad = int(3 * s) + 2
+                y0, y1 = max(sl[0].start - pad, 0), min(sl[0].stop + pad, z.shape[0])
+                x0, x1 = max(sl[1].start - pad, 0), min(sl[1].stop + pad, z.shape[1])
+                half, _ = ndi.label(sign * bm[y0:y1, x0:x1] > 0.5 * pk)
+                core = half[lab[y0:y1, x0:x1] == i + 1]
+                keep = np.isin(half, np.unique(core[core > 0]))
+                filled = ndi.binary_fill_holes(keep)
+                hole = int(filled.sum() - keep.sum())
+                ring = hole >= 0.15 * filled.sum() and hole >= math.pi * s * s
+                src = bool(on_source is not None and on_source[y0:y1, x0:x1][filled].any())
+                rad = math.sqrt(filled.sum() / math.pi)
+                if ring:
+                    fam = "srings" if src else "rings"
+                else:
+                    # a blob near a source (within its own radius or 3 s: a source's ring cut by a mask, a
+                    # source's halo) belongs to the sources; one cut by the frame's border cannot be told
+                    near = ndi.binary_dilation(filled, iterations=int(max(rad, 3 * s)))
+                    src = bool(on_source is not None and on_source[y0:y1, x0:x1][near].any())
+                    edge = (y0 == 0 and filled[0].any()) or (y1 == z.shape[0] and filled[-1].any()) or \
+                        (x0 == 0 and filled[:, 0].any()) or (x1 == z.shape[1] and filled[:, -1].any())
+                    if src or edge or filled.sum() > 0.02 * z.size:
+                        continue
+                    blobs.append((y0, y1, x0, x1, filled, rad, float(pk / sig)))
+                    continue
+                foot[fam][y0:y1, x0:x1] |= filled
+                radii[fam].append(rad)
+                peak[fam] = max(peak[fam], float(pk / sig))
+        per_scale.append((s, q, total, foot, radii, peak, blobs))
+    # a blob inside or on a ring (found at any scale) is that ring's own band-passed echo (the difference of
+    # Gaussians turns a ring's interior into a blob of the other sign, a coarse scale blurs it into a disc)
+    rings_any = np.zeros(z.shape, bool)
+    for _, _, _, foot, _, _, _ in per_scale:
+        rings_any |= foot["rings"] | foot["srings"]
+    for s, q, total, foot, radii, peak, blobs in per_scale:
+        for y0, y1, x0, x1, filled, rad, pk in blobs:
+            if rings_any[y0:y1, x0:x1][filled].any():
+                continue
+            foot["blobs"][y0:y1, x0:x1] |= filled
+            radii["blobs"].append(rad)
+            peak["blobs"] = max(peak["blobs"], pk)
+        for fam in fams:
+            share = max(float(q[foot[fam] & ok].sum()) - int((foot[fam] & ok).sum()), 0.0) / total
+            if radii[fam] and share > best[fam]:
+                best.update({fam: min(share, 1.0), f"n_{fam}": len(radii[fam]),
+                             f"{fam[:-1]}_radius_px": float(np.median(radii[fam])), f"scale_{fam}": s})
+                best["footprint"][fam] = foot[fam]
+                best["peak_sigma"] = max(best["peak_sigma"], peak[fam])
+    return best
+
+
 def block_chi2(res: Residuals, delta_adu: np.ndarray | None = None) -> tuple[float, int]:
     """(chi2, number) of the weighted block means of the level-profiled residual (minus ``delta_adu``): the
     large-scale structure a mean pattern leaves, blind to pixel-to-pixel noise."""
@@ -187,10 +317,26 @@ def describe(res: Residuals, delta_adu: np.ndarray | None = None) -> dict:
     noise_excess = pix_chi2 - idx.size - max(block_excess, 0.0) * 1.0
     noise_sigma = noise_excess / math.sqrt(2 * idx.size)
     out["significance_sigma"] = round(max(block_sigma, noise_sigma), 2)
+    # compact features (rings, blobs) of the whitened pixel map: a few of them are significant on their own
+    # even when the frame's chi2 dilutes them (a glint, a latent image)
+    okp = wmap > 0
+    zp = np.where(okp, rmap * np.sqrt(wmap), 0.0)
+    on_source = None
+    if res.background_adu is not None:
+        srcmap = np.asarray(res.model_adu, np.float64) - res.background_adu
+        on_source = srcmap > 5.0 * np.sqrt(np.maximum(np.asarray(res.var_adu2, np.float64), 1e-12))
+    feats = compact_features(zp, okp, on_source)
+    # rings about the sources: at least two, and twice as many as the free ones
+    rings_on_src = feats["n_srings"] >= 2 and feats["n_srings"] >= 2 * feats["n_rings"]
+    n_feat = feats["n_rings"] + feats["n_blobs"] + (feats["n_srings"] if rings_on_src else 0)
+    gain = res.gain
     if max(block_sigma, noise_sigma) < SIGNIFICANT_SIGMA:
+        if n_feat and feats["peak_sigma"] >= FEATURE_PEAK:
+            out["significant"] = True
+            out["significance_sigma"] = round(max(out["significance_sigma"], feats["peak_sigma"]), 2)
+            out.update(_compact_only(res, feats, rmap, light))
         return out
     out["significant"] = True
-    gain = res.gain
     if block_sigma < SIGNIFICANT_SIGMA:  # extra scatter, no mean pattern: where is it?
         z2 = np.where(wmap > 0, rmap * rmap * wmap, np.nan)
         vb = np.nanmean(z2[: (shape[0] // b) * b, : (shape[1] // b) * b].reshape(ny, b, nx, b), axis=(1, 3))
@@ -228,6 +374,11 @@ def describe(res: Residuals, delta_adu: np.ndarray | None = None) -> dict:
         if light_contrast < 0.05:  # uniform light: A and M L cannot be told apart at large scales
             kind_certain = False
             kind = _kind_from_sources(res, idx, r, w)
+            if kind is None and res.light_source == "flat":
+                # a flat screen's frame: its light (tens of ke-) dominates the signal, and a structure in it is
+                # far more often the light's transmission (dust, fringes, vignetting) than added light; a prior
+                # only, the block says the data cannot tell them apart (kind_certain false)
+                kind = "multiplicative"
             if kind is None:
                 kind = "additive" if res.exptime_s >= 0 and d_add <= d_mul else "multiplicative"
             else:
@@ -295,6 +446,15 @@ def describe(res: Residuals, delta_adu: np.ndarray | None = None) -> dict:
     resid -= np.mean(resid)
     strong = np.abs(resid) > 5
     shares["local"] = float(np.sum(resid[strong] ** 2) / max(total, 1e-300)) if strong.sum() <= 0.1 * nb else 0.0
+    # rings and blobs: the share of the band-passed structure in their footprints (compact_features)
+    if feats["n_rings"]:
+        shares["rings"] = feats["rings"]
+    if feats["n_blobs"]:
+        shares["blobs"] = feats["blobs"]
+    if rings_on_src and kind != "redistributed":
+        # rings centred on the sources are a property of the sources' light (a diffraction or ghost ring: the
+        # point-spread function), light moved around them whatever the fitted fluxes absorbed
+        kind, kind_certain = "redistributed", True
     shares = {k: round(float(min(max(v, 0.0), 1.0)), 3) for k, v in shares.items()}
     geometry = [k for k, v in sorted(shares.items(), key=lambda kv: -kv[1]) if v >= GEOMETRY_SHARE]
     if "radial" in geometry or "gradient" in geometry:
@@ -307,6 +467,11 @@ def describe(res: Residuals, delta_adu: np.ndarray | None = None) -> dict:
         geometry.insert(0, "radial" if radial else "gradient")
     if not geometry:
         geometry = [max(shares, key=shares.get)] if shares else ["local"]
+    if rings_on_src and kind == "redistributed":
+        # the same ring repeated about the sources is the pattern, whatever share of the frame's structure it
+        # takes; the compact block excess ("local") is those rings seen at block scale
+        geometry = [g for g in geometry if g not in ("local", "rings", "sources")]
+        geometry[:0] = ["sources", "rings"]
     if kind == "redistributed" and "sources" not in geometry:
         geometry.insert(0, "sources")
     # scale and amplitude
@@ -320,11 +485,20 @@ def describe(res: Residuals, delta_adu: np.ndarray | None = None) -> dict:
         rr2 = (yy[ok] - centre[0]) ** 2 + (xx[ok] - centre[1]) ** 2
         amp_r = np.abs(fit_rad - fit_rad[np.argmax(rr2)])
         scale = float(b * np.sqrt(np.sum(amp_r * rr2) / max(np.sum(amp_r), 1e-300)))
+    elif main == "rings":
+        scale = feats["ring_radius_px"]
+    elif main == "sources" and rings_on_src:
+        scale = feats["sring_radius_px"]
+    elif main == "blobs":
+        scale = feats["blob_radius_px"]
     elif main == "local":
         scale = float(b * math.sqrt(max(strong.sum(), 1)))
     else:
         scale = float(b * max(ny, nx))
-    if kind == "multiplicative" and has_light:
+    if main in ("rings", "blobs") or (main == "sources" and rings_on_src):
+        fam = "srings" if main == "sources" else main
+        amp, unit, desc = _feature_amplitude(res, feats, fam, rmap, light, kind == "multiplicative" and has_light)
+    elif kind == "multiplicative" and has_light:
         amp, unit = float(np.ptp(smooth_fit)) * 100, "%"
         desc = f"{amp:.3g} % peak-to-peak of the light"
     else:
@@ -334,11 +508,12 @@ def describe(res: Residuals, delta_adu: np.ndarray | None = None) -> dict:
         desc += f" about (x, y) = ({(centre[1] + 0.5) * b:.0f}, {(centre[0] + 0.5) * b:.0f}) output px"
     if main == "periodic":
         desc += f", period {period:.3g} px"
+    desc += _feature_words(feats, geometry, rings_on_src)
     certain = "" if kind_certain else " (additive and multiplicative cannot be told apart on this uniform light)"
     out.update(kind=kind, kind_certain=kind_certain, geometry=geometry, scale_px=round(scale, 2),
                amplitude=round(amp, 4), unit=unit, shares=shares,
                explanation=_words(kind, geometry, desc) + certain)
-    if main in ("gradient", "radial", "local") and kind in ("additive", "multiplicative", "mixed"):
+    if main in ("gradient", "radial", "local", "rings", "blobs") and kind in ("additive", "multiplicative", "mixed"):
         # the empirical map: the block means themselves, smoothed over a block (normalised convolution
         # over the blocks with data), not a parametric form: it follows whatever shape the pattern has
         # at scales of a block and more. Relative to the light for a multiplicative pattern [1], else [ADU]
@@ -349,6 +524,61 @@ def describe(res: Residuals, delta_adu: np.ndarray | None = None) -> dict:
                                                                          1e-9)
         out["empirical"] = {"kind": ek, "map": _upsample(sm, b, shape)}
     return out
+
+
+def _feature_words(feats: dict, geometry: list[str], on_sources: bool = False) -> str:
+    """``; 3 rings (median radius 9.7 px) ...`` for the rings and blobs named in ``geometry``."""
+    words = []
+    if "rings" in geometry and on_sources:
+        words.append(f"{feats['n_srings']} ring(s) of median radius {feats['sring_radius_px']:.3g} px centred on "
+                     "sources")
+    elif "rings" in geometry:
+        words.append(f"{feats['n_rings']} ring(s) of median radius {feats['ring_radius_px']:.3g} px")
+    if "blobs" in geometry:
+        words.append(f"{feats['n_blobs']} compact blob(s) of median radius {feats['blob_radius_px']:.3g} px "
+                     "off the sources")
+    return ("; " + ", ".join(words)) if words else ""
+
+
+def _feature_amplitude(res: Residuals, feats: dict, fam: str, rmap: np.ndarray, light: np.ndarray,
+                       relative: bool) -> tuple[float, str, str]:
+    """(amplitude, unit, words) of the strongest feature of family ``fam``: the residual smoothed at the
+    feature's scale, its largest absolute value in the footprints [e-], or relative to the light there [%]."""
+    foot = feats["footprint"][fam]
+    sm = gaussian_filter(rmap, max(feats[f"scale_{fam}"], 1.0), mode="nearest")
+    off = ~(feats["footprint"]["rings"] | feats["footprint"]["blobs"] | feats["footprint"]["srings"])
+    ref = float(np.median(sm[off])) if off.any() else 0.0  # the level around the features (a refitted level)
+    peak_adu = float(np.max(np.abs(sm[foot] - ref))) if foot.any() else 0.0
+    if relative:
+        amp = 100 * peak_adu / max(float(np.median(light[foot])) if foot.any() else 0.0, 1e-9)
+        return amp, "%", f"{amp:.3g} % of the light at the strongest {fam[-5:-1]}"
+    amp = peak_adu * res.gain
+    return amp, "e-", f"{amp:.4g} e- per pixel at the strongest {fam[-5:-1]}"
+
+
+def _compact_only(res: Residuals, feats: dict, rmap: np.ndarray, light: np.ndarray) -> dict:
+    """The description when only compact features stand out (the frame's chi2 dilutes them): geometry
+    ``rings`` and / or ``blobs`` by their shares; kind ``redistributed`` for rings centred on the sources,
+    else ``multiplicative`` on a flat screen's frame (a prior, ``kind_certain`` false), else ``additive``
+    (light added where the model has none: the features sit off the sources); the amplitude is the strongest
+    feature's peak residual smoothed at its scale [e-] (or relative to the light [%] when multiplicative)."""
+    on_src = feats["n_srings"] >= 2 and feats["n_srings"] >= 2 * feats["n_rings"]
+    fams = sorted((f for f in ("rings", "blobs") if feats[f"n_{f}"]), key=lambda f: -feats[f])
+    certain = True
+    if on_src:
+        kind, geometry = "redistributed", ["sources", "rings"] + [f for f in fams if f != "rings"]
+    elif res.light_source == "flat":
+        kind, geometry, certain = "multiplicative", fams, False
+    else:
+        kind, geometry = "additive", fams
+    main = geometry[0] if geometry[0] != "sources" else "srings"
+    amp, unit, desc = _feature_amplitude(res, feats, main, rmap, light, kind == "multiplicative")
+    desc += _feature_words(feats, geometry, on_src)
+    extra = "" if certain else " (additive and multiplicative cannot be told apart on this uniform light)"
+    shares = {f: round(float(feats[f]), 3) for f in fams}
+    return {"kind": kind, "kind_certain": certain, "geometry": geometry,
+            "scale_px": round(float(feats[f"{main[:-1]}_radius_px"]), 2), "amplitude": round(amp, 4), "unit": unit,
+            "shares": shares, "explanation": _words(kind, geometry, desc) + extra}
 
 
 def _upsample(blocks: np.ndarray, b: int, shape: tuple[int, int]) -> np.ndarray:

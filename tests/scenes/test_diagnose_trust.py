@@ -94,7 +94,8 @@ def test_dust_donuts_get_an_honest_description(tmp_path):
 
 def test_local_blob_is_described_and_the_empirical_map_removes_it(tmp_path):
     """A compact additive blob on a dark (a glint, a light leak): not column defects; the morphology says
-    additive and local; --apply writes an empirical map and the error falls by at least half."""
+    additive and local (a blob: the compact-feature test names it); --apply writes an empirical map and the
+    error falls by at least half."""
     rate = 0.02 + 3.0 * np.exp(-0.5 * (np.hypot(YY - 100, XX - 150) / 12.0) ** 2)
     model, meas = _case(tmp_path, DARK, "dark_map", rate)
     new = tmp_path / "round2.toml"
@@ -102,7 +103,7 @@ def test_local_blob_is_described_and_the_empirical_map_removes_it(tmp_path):
     assert _first_significant(out) is None, out["verdict"]
     morph = out["residual_morphology"]
     assert morph["significant"] and morph["kind"] == "additive", morph
-    assert morph["geometry"][0] in ("local", "radial") and morph["scale_px"] < 0.5 * W, morph
+    assert morph["geometry"][0] in ("blobs", "local", "radial") and morph["scale_px"] < 0.5 * W, morph
     cols = next((c for c in out["candidates"] if c["effect"] == "column_defects"), None)
     assert cols is None or not cols["significant"]
     assert out["applied"] is not None and out["applied"]["effect"] == "dark_map"
