@@ -359,6 +359,7 @@ def score_heldout(res: Residuals, cands: list[Candidate], progress=None) -> None
         c.seconds += time.perf_counter() - t0
         if progress is not None:
             progress(f"{c.fit.effect} (held out)")
+    res._flat.pop("heldout_folds", None)  # the folds every candidate shared (detector.signatures._folds)
 
 
 def rank(cands: list[Candidate]) -> list[Candidate]:
