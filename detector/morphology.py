@@ -33,7 +33,7 @@ import numpy as np
 from scipy import ndimage as ndi
 from scipy.ndimage import gaussian_filter
 
-from .signatures import Residuals
+from .signatures import Residuals, frame_at
 
 #: the residual is structured when the block chi2 (or the pixel chi2 for added noise) exceeds its degrees of
 #: freedom by this many standard deviations
@@ -268,7 +268,7 @@ def block_chi2(res: Residuals, delta_adu: np.ndarray | None = None) -> tuple[flo
     shape = res.data_adu.shape
     idx, r, w = res.flat_profiled()
     if delta_adu is not None:
-        r = res.project(r - np.asarray(delta_adu, np.float64).ravel()[idx])
+        r = res.project(r - frame_at(delta_adu, idx))
     if idx.size < 64:
         return 0.0, 0
     rmap = np.zeros(shape, np.float64)
@@ -291,7 +291,7 @@ def describe(res: Residuals, delta_adu: np.ndarray | None = None) -> dict:
     shape = res.data_adu.shape
     idx, r, w = res.flat_profiled()
     if delta_adu is not None:
-        r = res.project(r - np.asarray(delta_adu, np.float64).ravel()[idx])
+        r = res.project(r - frame_at(delta_adu, idx))
     out = {"significant": False, "kind": "additive", "kind_certain": True, "geometry": [], "scale_px": 0.0,
            "amplitude": 0.0, "unit": "ADU", "explanation": "the residual looks like noise", "shares": {},
            "significance_sigma": 0.0, "empirical": None}

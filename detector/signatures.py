@@ -321,13 +321,19 @@ class Residuals:
             charge = [i for i in range(len(temps)) if self.LEVEL_IS_CHARGE[i]]
             allowed = [i for i in range(len(temps)) if i not in self.levels_not_fitted()]
             w, keep, coef = w0, [], np.zeros(0)
+            # the templates at each chunk's pixels, gathered once (kept in float32 when the maps are: exact);
+            # kept for a copy with the same fitted pixels and templates (``shared_levels``)
+            chunks: dict[int, np.ndarray] = self._flat.setdefault("level_chunks", {})
+            store = np.float32 if all(np.asarray(t).dtype == np.float32 for t in temps) else np.float64
             for _ in range(3):
                 # normal equations of all level templates, accumulated in chunks
                 m = len(temps)
                 g, b = np.zeros((m, m)), np.zeros(m)
                 for a in range(0, idx.size, CHUNK_PIXELS):
                     sl = slice(a, a + CHUNK_PIXELS)
-                    x = np.stack([_at(t, shape, idx[sl]) for t in temps])
+                    if a not in chunks:
+                        chunks[a] = np.stack([_at(t, shape, idx[sl]) for t in temps]).astype(store)
+                    x = chunks[a].astype(np.float64)
                     xw = x * w[sl]
                     g += xw @ x.T
                     b += xw @ r[sl]
@@ -350,24 +356,48 @@ class Residuals:
                                     "coef": np.asarray(coef, float), "w": w}
         return self._flat["levels"]
 
-    def level_values(self, idx: np.ndarray) -> np.ndarray:
-        """The kept global-level templates at flat pixel indices, shape (levels, pixels)."""
-        temps = self.level_templates()
+    def level_values(self, idx: np.ndarray, sl: slice | None = None) -> np.ndarray:
+        """The kept global-level templates at flat pixel indices ``idx[sl]``, shape (levels, pixels).
+
+        Cached (whole) for the fitted pixels (:meth:`flat`) and the search sample (:func:`search_sample`),
+        which every fit and score reads again; other index arrays are gathered each time."""
         keep = self.levels()["keep"]
+        cache_key = None
+        if idx is self._flat.get("idx"):
+            cache_key = "level_values_fit"
+        elif idx is self._flat.get("search", {}).get("idx"):
+            cache_key = "level_values_search"
+        if cache_key is not None:
+            if cache_key not in self._flat:
+                self._flat[cache_key] = self._level_values(idx, keep)
+            n = self._flat[cache_key]
+            return n if sl is None else n[:, sl]
+        return self._level_values(idx if sl is None else idx[sl], keep)
+
+    def _level_values(self, idx: np.ndarray, keep: list[int]) -> np.ndarray:
         if not keep:
             return np.zeros((0, idx.size))
+        temps = self.level_templates()
         return np.stack([_at(temps[i], self.data_adu.shape, idx) for i in keep])
+
+    def shared_levels(self) -> dict:
+        """The cache entries a copy with the same fitted pixels, model and templates (only ``data_adu``
+        changed) may start from: the level templates and their values at the fitted pixels."""
+        self.levels()
+        return {k: self._flat[k] for k in ("level_templates", "level_chunks") if k in self._flat}
 
     def project(self, v: np.ndarray) -> np.ndarray:
         """``v`` (values on the fitted pixels) minus its weighted least-squares fit by the global levels: what
         is left of a template or residual once the levels are refitted (Frisch-Waugh-Lovell)."""
-        idx = self.flat()[0]
-        w = self.levels()["w"]
-        n = self.level_values(idx)
+        if "project" not in self._flat:  # the levels' weighted values and normal matrix, built once
+            idx = self.flat()[0]
+            n = self.level_values(idx)
+            nw = n * self.levels()["w"] if n.size else n
+            self._flat["project"] = (n, nw, nw @ n.T if n.size else None)
+        n, nw, nn = self._flat["project"]
         if not n.size:
             return v
-        nw = n * w
-        return v - np.linalg.solve(nw @ n.T, nw @ v) @ n
+        return v - np.linalg.solve(nn, nw @ v) @ n
 
     def flat_profiled(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(index, residual, weight) of the fitted pixels with the global levels refitted: the residual
@@ -452,6 +482,12 @@ def _at(t: np.ndarray, shape: tuple[int, int], idx: np.ndarray) -> np.ndarray:
     return np.broadcast_to(t, shape).ravel()[idx].astype(np.float64)
 
 
+def frame_at(a, idx: np.ndarray) -> np.ndarray:
+    """``np.asarray(a, np.float64).ravel()[idx]`` (a frame, or a view that broadcasts to one, at flat pixel
+    indices) without a float64 copy of the whole frame: the same numbers."""
+    return np.asarray(a).ravel()[idx].astype(np.float64)
+
+
 def level_profiled(res: Residuals) -> Residuals:
     """A copy of ``res`` whose model includes the fitted global levels (:meth:`Residuals.levels`): the
     comparison as it stands once the bias offset, light level and dark level are refitted."""
@@ -525,12 +561,12 @@ def pixel_score(fit: Fit, res: Residuals) -> float | None:
     w = res.levels()["w"]
     r0 = res.project(r)
     m2l0 = float(np.dot(r0 * r0, w))
-    r1 = r if fit.delta_adu is None else r - np.asarray(fit.delta_adu, np.float64).ravel()[idx]
+    r1 = r if fit.delta_adu is None else r - frame_at(fit.delta_adu, idx)
     r1 = res.project(r1)
     v = 1.0 / w
     if fit.extra_var_adu2 is None:
         return float(np.dot(r1 * r1, w)) - m2l0
-    e = np.broadcast_to(np.asarray(fit.extra_var_adu2, np.float64), res.data_adu.shape).ravel()[idx]
+    e = frame_at(np.broadcast_to(fit.extra_var_adu2, res.data_adu.shape), idx)
     ve = np.maximum(v + e, 0.1 * v)
     return float(np.sum(np.log(ve / v) + r1 * r1 / ve)) - m2l0
 
@@ -567,15 +603,14 @@ def heldout_delta(signature: Signature, res: Residuals, name: str, fit: Fit | No
         black = np.broadcast_to(((np.arange(res.data_adu.shape[0]) // block) % 2 == 0)[:, None],
                                 res.data_adu.shape).copy()
     total = 0.0
-    for train, test in ((black, ~black), (~black, black)):
-        part = replace(res, fit=res.fit & train, train=train, _flat={})
+    folds = _folds(res, black)
+    for part, held in ((folds[0], folds[1]), (folds[1], folds[0])):
         if not part.fit.any():
             return None
         # a signature that can refit the in-sample fit's form on the fold does so (its amplitudes are
         # cross-validated, its form search is not repeated); the others fit the fold from scratch
         part_fit = signature.refit(fit, part, name) if fit is not None and hasattr(signature, "refit") \
             else signature.fit(part, name)
-        held = replace(res, fit=res.fit & test, train=test, _flat={})
         if part_fit is None:
             continue
         s = signature.score(part_fit, held)
@@ -583,6 +618,21 @@ def heldout_delta(signature: Signature, res: Residuals, name: str, fit: Fit | No
             return None
         total += s
     return float(total)
+
+
+def _folds(res: Residuals, black: np.ndarray) -> tuple[Residuals, Residuals]:
+    """The two held-out folds of ``res`` (its fitted pixels on the black, then the white squares), cached on
+    ``res`` so every candidate's :func:`heldout_delta` reuses their flattened pixels, global levels and
+    search samples; they share ``res``'s level templates. Each fold is the same object whether a signature
+    is fitted on it or scored on it (``fit`` and ``train`` are the same mask either way)."""
+    cached = res._flat.get("heldout_folds")
+    if cached is not None and np.array_equal(cached[0], black):
+        return cached[1]
+    temps = res.level_templates()
+    folds = tuple(replace(res, fit=res.fit & m, train=m, _flat={"level_templates": temps})
+                  for m in (black, ~black))
+    res._flat["heldout_folds"] = (black, folds)
+    return folds
 
 
 # --- linear templates ----------------------------------------------------------------------------------------
@@ -669,12 +719,20 @@ def fit_linear(res: Residuals, values: Callable[[np.ndarray], np.ndarray], idx: 
     of them (Frisch-Waugh-Lovell: ``A = T'WT - T'WN (N'WN)^-1 N'WT``), so no template is ever held on
     more than CHUNK_PIXELS pixels."""
     tt = tn = tr = nn = nr = None
+    # the levels' own normal equations on the search sample, which every variant of a search shares
+    shared = res._flat.setdefault("level_normal", {}) if idx is res._flat.get("search", {}).get("idx") else None
     for a in range(0, idx.size, CHUNK_PIXELS):
         sl = slice(a, a + CHUNK_PIXELS)
         t = np.atleast_2d(np.asarray(values(idx[sl]), np.float64))
-        n = res.level_values(idx[sl])
-        tw, nw = t * w[sl], n * w[sl]
-        parts = (_gram(tw, t), _gram(tw, n), tw @ r[sl], _gram(nw, n), nw @ r[sl])
+        n = res.level_values(idx, sl)
+        tw = t * w[sl]
+        hit = shared.get(a) if shared is not None else None
+        if hit is None or hit[0] is not w or hit[1] is not r:
+            nw = n * w[sl]
+            hit = (w, r, _gram(nw, n), nw @ r[sl])
+            if shared is not None:
+                shared[a] = hit
+        parts = (_gram(tw, t), _gram(tw, n), tw @ r[sl], hit[2], hit[3])
         if tt is None:
             tt, tn, tr, nn, nr = (np.array(p) for p in parts)
         else:
@@ -712,7 +770,7 @@ def joint_levels(res: Residuals, values: Callable[[np.ndarray], np.ndarray], idx
     nn = ny = None
     for a in range(0, idx.size, CHUNK_PIXELS):
         sl = slice(a, a + CHUNK_PIXELS)
-        n = res.level_values(idx[sl])
+        n = res.level_values(idx, sl)
         y = r[sl] - np.asarray(c, np.float64) @ np.atleast_2d(np.asarray(values(idx[sl]), np.float64))
         nw = n * w[sl]
         nn = nw @ n.T if nn is None else nn + nw @ n.T
@@ -729,7 +787,7 @@ def with_shot_noise(res: Residuals, fit: Fit) -> Fit:
     after the fit and the levels) added to ``delta(-2 ln L)``. Light and bias of the same shape differ in
     this term only: for ``n`` pixels it is about ``-/+ n <(dv/v)^2> / 2``."""
     idx, r, _ = res.flat()
-    delta = np.asarray(fit.delta_adu, np.float64).ravel()[idx]
+    delta = frame_at(fit.delta_adu, idx)
     rr, v = res.project(r - delta), 1.0 / res.levels()["w"]
     dv = np.maximum(delta * res.poisson_adu, -0.9 * v)
     corr = float(np.sum(np.log1p(dv / v) + rr * rr * (1.0 / (v + dv) - 1.0 / v)))
@@ -744,7 +802,7 @@ def profiled_chi2(res: Residuals, idx: np.ndarray, y: np.ndarray, w: np.ndarray)
     yy, nn, ny = 0.0, None, None
     for a in range(0, idx.size, CHUNK_PIXELS):
         sl = slice(a, a + CHUNK_PIXELS)
-        n = res.level_values(idx[sl])
+        n = res.level_values(idx, sl)
         yw = y[sl] * w[sl]
         yy += float(yw @ y[sl])
         parts = ((n * w[sl]) @ n.T, n @ yw)

@@ -26,7 +26,11 @@ Coordinates are sensor pixels; the optical axis is at the sensor centre.
 
 from __future__ import annotations
 
+import inspect
+import os
+
 import numpy as np
+import scipy.fft
 from pydantic import Field
 from scipy import ndimage, signal
 
@@ -44,14 +48,14 @@ from .base import Effect, EffectParams, Stage, Tile, register_effect
 # --- pure functions -------------------------------------------------------------------------------------------
 
 
-def blur(image: np.ndarray, sigma_major_px: float, sigma_minor_px: float | None = None, angle_deg: float = 0.0
-         ) -> np.ndarray:
+def blur(image: np.ndarray, sigma_major_px: float, sigma_minor_px: float | None = None, angle_deg: float = 0.0,
+         spectra: dict | None = None, workers: int | None = None) -> np.ndarray:
     """The image convolved with a (possibly elongated) Gaussian of principal widths [px] and major-axis angle
     (counter-clockwise from +x), flux conserving; edges are extended with their own values.
 
     Done in Fourier space, ``H(f) = exp(-2 pi^2 f^T C f)`` with ``C`` the covariance: exact for any width,
     including the sub-pixel ones a pixel-sampled kernel gets wrong (the output's second moments are the
-    input's plus ``C``).
+    input's plus ``C``). ``spectra``, ``workers``: see :func:`fourier_filter`.
     """
     minor = sigma_major_px if sigma_minor_px is None else sigma_minor_px
     if sigma_major_px <= 0 and minor <= 0:
@@ -59,21 +63,52 @@ def blur(image: np.ndarray, sigma_major_px: float, sigma_minor_px: float | None 
     c, s = np.cos(np.radians(angle_deg)), np.sin(np.radians(angle_deg))
     rot = np.array([[c, -s], [s, c]])
     cov = rot @ np.diag([sigma_major_px ** 2, minor ** 2]) @ rot.T  # (x, y)
-    return gaussian_filter_cov(image, cov)
+    return gaussian_filter_cov(image, cov, spectra=spectra, workers=workers)
 
 
-def fourier_filter(image: np.ndarray, pad: int, transfer) -> np.ndarray:
+#: padded spectra a ``spectra`` cache of :func:`fourier_filter` keeps at most (each ~ 16 bytes per pixel)
+MAX_CACHED_SPECTRA = 3
+#: threads of the diagnosis fits' Fourier transforms (:class:`TransformSignature`; the rendering's stay numpy's)
+FIT_FFT_WORKERS = max(1, min(4, os.cpu_count() or 1))
+
+
+def fourier_filter(image: np.ndarray, pad: int, transfer, spectra: dict | None = None, workers: int | None = None
+                   ) -> np.ndarray:
     """``image`` filtered in Fourier space by ``transfer(fx, fy)`` [cycles/px], edges extended by ``pad``
-    pixels of their own values (so a frame's border does not wrap onto the opposite one)."""
+    pixels of their own values (so a frame's border does not wrap onto the opposite one).
+
+    ``spectra``, optional: a dict the caller keeps for *one* ``image`` (a fit that filters the same image
+    with many transfer functions): the padded image's spectrum is stored there by ``pad`` and reused
+    (the same numbers as recomputing it). ``workers``: None, numpy's transforms (the rendering); a number,
+    scipy's on that many threads (the diagnosis fits; the same transform to rounding, ~1e-15 relative)."""
+    if workers is None:
+        rfft2, irfft2 = np.fft.rfft2, np.fft.irfft2
+    else:
+        def rfft2(a):
+            return scipy.fft.rfft2(a, workers=workers)
+
+        def irfft2(a, s):
+            return scipy.fft.irfft2(a, s=s, workers=workers)
     work = np.float64 if image.dtype == np.float64 else np.float32  # the diagnosis fits in double precision
-    big = np.pad(image.astype(work), pad, mode="edge")
-    fy = np.fft.fftfreq(big.shape[0])[:, None]
-    fx = np.fft.rfftfreq(big.shape[1])[None, :]
-    out = np.fft.irfft2(np.fft.rfft2(big) * transfer(fx, fy).astype(work), s=big.shape)
+    key = (int(pad), np.dtype(work).str, image.shape, workers)
+    cached = None if spectra is None else spectra.get(key)
+    if cached is None:
+        big = np.pad(image.astype(work, copy=False), pad, mode="edge")
+        cached = (rfft2(big), big.shape)
+        del big
+        if spectra is not None:
+            while len(spectra) >= MAX_CACHED_SPECTRA:
+                spectra.pop(next(iter(spectra)))
+            spectra[key] = cached
+    spec, shape = cached
+    fy = np.fft.fftfreq(shape[0])[:, None]
+    fx = np.fft.rfftfreq(shape[1])[None, :]
+    out = irfft2(spec * transfer(fx, fy).astype(work), s=shape)
     return out[pad:-pad, pad:-pad].astype(image.dtype)
 
 
-def gaussian_filter_cov(image: np.ndarray, cov: np.ndarray, max_gain: float = 1.0) -> np.ndarray:
+def gaussian_filter_cov(image: np.ndarray, cov: np.ndarray, max_gain: float = 1.0, spectra: dict | None = None,
+                        workers: int | None = None) -> np.ndarray:
     """``image`` convolved with a Gaussian of covariance ``cov`` [px^2, (x, y)]: ``H(f) = exp(-2 pi^2 f^T C f)``.
 
     ``C`` may have a negative eigenvalue (``max_gain > 1``): the image then becomes *narrower* along that
@@ -86,7 +121,7 @@ def gaussian_filter_cov(image: np.ndarray, cov: np.ndarray, max_gain: float = 1.
         q = cov[0, 0] * fx * fx + 2 * cov[0, 1] * fx * fy + cov[1, 1] * fy * fy
         return np.minimum(np.exp(-2 * np.pi ** 2 * q), max_gain)
 
-    return fourier_filter(image, pad, transfer)
+    return fourier_filter(image, pad, transfer, spectra, workers)
 
 
 def shift(image: np.ndarray, dx_px: float, dy_px: float) -> np.ndarray:
@@ -98,7 +133,8 @@ def shift(image: np.ndarray, dx_px: float, dy_px: float) -> np.ndarray:
     return ndimage.shift(image, (dy_px, dx_px), order=1, mode="nearest").astype(image.dtype)
 
 
-def drift_smear(image: np.ndarray, dx_px: float, dy_px: float) -> np.ndarray:
+def drift_smear(image: np.ndarray, dx_px: float, dy_px: float, spectra: dict | None = None,
+                workers: int | None = None) -> np.ndarray:
     """The image smeared uniformly along the segment from ``-d/2`` to ``+d/2``, ``d = (dx, dy)`` [px]: what a
     pointing that drifts at a constant rate by ``d`` during the exposure records (centred: the nominal
     pointing is the mid-exposure one). Flux conserving; edges are extended with their own values.
@@ -108,11 +144,12 @@ def drift_smear(image: np.ndarray, dx_px: float, dy_px: float) -> np.ndarray:
     Fourier space: exact for any sub-pixel length and direction, and the output's covariance is the input's
     plus ``d d^T / 12`` (a box of length L has variance L^2 / 12 along it). For an undersampled image the
     band limit rings faintly around sharp peaks (clipped at zero by the adapter, as for :func:`blur`).
+    ``spectra``, ``workers``: see :func:`fourier_filter`.
     """
     if dx_px == 0 and dy_px == 0:
         return image.copy()
     pad = int(np.ceil(0.5 * max(abs(dx_px), abs(dy_px)))) + 2
-    return fourier_filter(image, pad, lambda fx, fy: np.sinc(fx * dx_px + fy * dy_px))
+    return fourier_filter(image, pad, lambda fx, fy: np.sinc(fx * dx_px + fy * dy_px), spectra, workers)
 
 
 def radial_distortion(image: np.ndarray, ys: np.ndarray, xs: np.ndarray, yc: float, xc: float, k_per_px2: float,
@@ -173,7 +210,8 @@ class TransformSignature(Signature):
     Started from the first-order (linearised) estimate ``theta_0`` and refined by Gauss-Newton with
     finite-difference Jacobians of the transformation itself, so large blurs and shifts (comparable to the
     PSF) are fitted as well as small ones. Works in output pixels; ``to_params`` converts to the effect's
-    parameters (sensor pixels).
+    parameters (sensor pixels). A ``transform`` that takes ``spectra`` and ``workers`` keywords gets a cache
+    of the photo-signal's Fourier transform for the fit and FIT_FFT_WORKERS threads (:func:`fourier_filter`).
     """
 
     kind = "transform"
@@ -181,6 +219,7 @@ class TransformSignature(Signature):
     def __init__(self, start, transform, to_params, steps, explain, pattern="", n_iter: int = 6):
         self.start, self.transform, self.to_params, self.steps = start, transform, to_params, np.asarray(steps, float)
         self.explain, self.pattern, self.n_iter = explain, pattern, n_iter
+        self._spectra = {"spectra", "workers"} <= set(inspect.signature(transform).parameters)
 
     def fit(self, res, name):
         if not _has_structure(res):
@@ -197,18 +236,28 @@ class TransformSignature(Signature):
         if theta is None:
             return None
 
-        def image(th):
-            return np.minimum(self.transform(res, photo, th), cap)
+        spectra: dict = {}
+        kw = {"spectra": spectra, "workers": FIT_FFT_WORKERS} if self._spectra else {}
 
-        def chi2_of(th, idx=sidx, r=sr, w=sw):
-            return profiled_chi2(res, idx, r - (image(th) - clipped).ravel()[idx], w)
+        def image(th):
+            return np.minimum(self.transform(res, photo, th, **kw), cap)
+
+        def on_sample(th):
+            """The transformed, clipped image at the search sample's pixels only (what the steps use)."""
+            return np.minimum(self.transform(res, photo, th, **kw).ravel()[sidx], cap)
+
+        clipped_s = clipped.ravel()[sidx]
+
+        def chi2_of(th):
+            return profiled_chi2(res, sidx, sr - (on_sample(th) - clipped_s), sw)
 
         best = chi2_of(theta)
         for _ in range(self.n_iter):
-            base = image(theta)
-            jac = [((image(theta + h * e) - base) / h).ravel() for h, e in zip(self.steps, np.eye(theta.size))]
-            step, _ = fit_linear(res, lambda i, jac=jac: np.stack([j[i] for j in jac]), sidx,
-                                 sr - (base - clipped).ravel()[sidx], sw)
+            base = on_sample(theta)
+            jac = np.stack([(on_sample(theta + h * e) - base) / h for h, e in zip(self.steps, np.eye(theta.size))])
+            # fit_linear asks for the templates at (chunks of) the sample's pixels: their positions in it
+            step, _ = fit_linear(res, lambda i, jac=jac: jac[:, np.searchsorted(sidx, i)], sidx,
+                                 sr - (base - clipped_s), sw)
             lam, improved = 1.0, False
             while lam > 1e-3:
                 trial = theta + lam * step
@@ -279,8 +328,8 @@ def _blur_start(res):
     return np.array([max(float(np.mean(c)), 0.05)])
 
 
-def _blur_transform(res, photo, th):
-    return blur(photo, float(np.sqrt(np.clip(th[0], 0.0, _max_var(res)))))
+def _blur_transform(res, photo, th, spectra=None, workers=None):
+    return blur(photo, float(np.sqrt(np.clip(th[0], 0.0, _max_var(res)))), spectra=spectra, workers=workers)
 
 
 def _blur_params(th, res):
@@ -302,10 +351,10 @@ def _jitter_axes(th):
     return w, float(np.degrees(np.arctan2(v[1, 1], v[0, 1]))) % 180.0
 
 
-def _jitter_transform(res, photo, th):
+def _jitter_transform(res, photo, th, spectra=None, workers=None):
     w, ang = _jitter_axes(th)
     w = np.clip(w, 0.0, _max_var(res))
-    return blur(photo, float(np.sqrt(w[1])), float(np.sqrt(w[0])), ang)
+    return blur(photo, float(np.sqrt(w[1])), float(np.sqrt(w[0])), ang, spectra=spectra, workers=workers)
 
 
 def _jitter_params(th, res):
@@ -330,11 +379,11 @@ def _elongation_start(res):
     return _linear_start(res, ["xx", "yy", "xy"], [0.5, 0.5, 1.0])
 
 
-def _elongation_transform(res, photo, th):
+def _elongation_transform(res, photo, th, spectra=None, workers=None):
     cov = np.array([[th[0], th[2]], [th[2], th[1]]])
     w, v = np.linalg.eigh(cov)
     cov = v @ np.diag(np.clip(w, -_max_var(res), _max_var(res))) @ v.T
-    return gaussian_filter_cov(photo, cov, max_gain=ELONGATION_MAX_GAIN)
+    return gaussian_filter_cov(photo, cov, max_gain=ELONGATION_MAX_GAIN, spectra=spectra, workers=workers)
 
 
 def _elongation_params(th, res):
@@ -377,6 +426,10 @@ def _drift_start(res):
     w, ang = _jitter_axes(_jitter_start(res))
     length = float(np.sqrt(12 * max(w[1], 0.05)))
     return length * np.array([np.cos(np.radians(ang)), np.sin(np.radians(ang))])
+
+
+def _drift_transform(res, photo, th, spectra=None, workers=None):
+    return drift_smear(photo, *(float(v) for v in np.clip(th, -400, 400)), spectra=spectra, workers=workers)
 
 
 def _drift_params(th, res):
@@ -564,7 +617,7 @@ class PointingDrift(Effect):
     stages = (Stage.FIELD,)
     Params = DriftParams
     signature = TransformSignature(
-        _drift_start, lambda res, photo, th: drift_smear(photo, *(float(v) for v in np.clip(th, -400, 400))),
+        _drift_start, _drift_transform,
         _drift_params,
         [0.02, 0.02], pattern="sources trailed along one direction with a flat (box) profile", explain=_drift_words)
 

@@ -16,7 +16,7 @@ import numpy as np
 
 from detector import registry
 from detector.morphology import block_chi2
-from detector.signatures import Fit, Residuals, heldout_delta
+from detector.signatures import Fit, Residuals, frame_at, heldout_delta
 
 from .sources import light_curve_candidates
 from .statistics import star_photometry
@@ -176,7 +176,7 @@ def chi2_after(res: Residuals, fit: Fit) -> float:
     candidate's templates may carry part of a level, e.g. gain regions summing to the light level)."""
     idx, r, _ = res.flat()
     if fit.delta_adu is not None:
-        r = r - np.asarray(fit.delta_adu, np.float64).ravel()[idx]
+        r = r - frame_at(fit.delta_adu, idx)
     r, w = res.project(r), res.levels()["w"]
     if fit.extra_var_adu2 is not None:
         extra = np.broadcast_to(np.asarray(fit.extra_var_adu2, np.float64), res.data_adu.shape).ravel()[idx]
@@ -282,7 +282,7 @@ def support_share(res: Residuals, fit: Fit) -> float | None:
     idx, r0, w = res.flat_profiled()
     if idx.size < 64:
         return None
-    d = np.asarray(fit.delta_adu, np.float64).ravel()[idx] if np.size(fit.delta_adu) > 1 else \
+    d = frame_at(fit.delta_adu, idx) if np.size(fit.delta_adu) > 1 else \
         np.full(idx.size, float(np.asarray(fit.delta_adu).ravel()[0]))
     q = d * d * w
     total = float(q.sum())
@@ -334,12 +334,12 @@ def large_scale_share(res: Residuals, delta: np.ndarray, idx: np.ndarray, w: np.
     into the blocks of :func:`detector.morphology.block_chi2`: ~1 for a smooth pattern, ~0 for a pattern of
     a few pixels."""
     # both sides with the global levels refitted: a pattern's mean (a bias bowl's constant part) is a level
-    d = res.project(np.asarray(delta, np.float64).ravel()[idx])
+    d = res.project(frame_at(delta, idx))
     total = float(np.dot(d * d, w))
     if total <= 0:
         return 0.0
     zero = replace(res, data_adu=(res.model_adu + np.broadcast_to(delta, res.data_adu.shape)).astype(np.float32),
-                   _flat={})
+                   _flat=res.shared_levels())  # the same fitted pixels and templates: only the data changed
     big, _ = block_chi2(zero)
     return big / total
 
@@ -359,6 +359,7 @@ def score_heldout(res: Residuals, cands: list[Candidate], progress=None) -> None
         c.seconds += time.perf_counter() - t0
         if progress is not None:
             progress(f"{c.fit.effect} (held out)")
+    res._flat.pop("heldout_folds", None)  # the folds every candidate shared (detector.signatures._folds)
 
 
 def rank(cands: list[Candidate]) -> list[Candidate]:
