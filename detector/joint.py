@@ -51,9 +51,6 @@ class FrameGram:
         a = {"ts": 0, "tp": self.ts, "ls": self.ts + self.tp, "lf": self.ts + self.tp + self.ls}[which]
         return list(range(a, a + getattr(self, which)))
 
-    def scaled(self, s: float) -> FrameGram:
-        return FrameGram(self.g * s, self.z * s, self.rr * s, self.ts, self.tp, self.ls, self.lf, int(self.n * s))
-
 
 def level_columns(res: Residuals, shared: Sequence[str]) -> tuple[list, list]:
     """The frame's level templates split into the shared ones (in the order of ``shared``; a level the frame

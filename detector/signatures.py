@@ -815,18 +815,19 @@ def profiled_chi2(res: Residuals, idx: np.ndarray, y: np.ndarray, w: np.ndarray)
     return yy - float(ny @ np.linalg.solve(nn, ny))
 
 
-def search_sample(res: Residuals) -> dict:
-    """Where linear variants are compared (cached): at most LINEAR_SEARCH_PIXELS regularly spaced fitted
-    pixels with their residual and (level-profiled) weight; ``scale`` = all fitted pixels / subsample
-    (delta chi2 scales with it)."""
-    if "search" not in res._flat:
+def search_sample(res: Residuals, size: int = LINEAR_SEARCH_PIXELS) -> dict:
+    """Where linear variants are compared (cached): at most ``size`` regularly spaced fitted pixels with their
+    residual and (level-profiled) weight; ``scale`` = all fitted pixels / subsample (delta chi2 scales with
+    it). A series searches a smaller sample of each of its frames."""
+    key = "search" if size == LINEAR_SEARCH_PIXELS else f"search_{size}"
+    if key not in res._flat:
         idx, _, w = res.flat_profiled()
         r = res.flat()[1]
         n = idx.size
-        sub = np.arange(0, n, max(1, int(np.ceil(n / LINEAR_SEARCH_PIXELS))))
-        res._flat["search"] = {"idx": idx[sub], "r": r[sub], "w": w[sub], "scale": n / max(sub.size, 1),
-                               "full": sub.size == n}
-    return res._flat["search"]
+        sub = np.arange(0, n, max(1, int(np.ceil(n / max(size, 1)))))
+        res._flat[key] = {"idx": idx[sub], "r": r[sub], "w": w[sub], "scale": n / max(sub.size, 1),
+                          "full": sub.size == n}
+    return res._flat[key]
 
 
 class LinearSignature(Signature):

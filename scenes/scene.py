@@ -263,6 +263,16 @@ def builtin_scene_names() -> list[str]:
     return sorted(p.stem for p in BUILTIN_SCENES.glob("*.toml"))
 
 
+def read_toml(p: Path, expected: str) -> dict:
+    """A TOML file's tables; an undecodable or unreadable file is one :class:`SceneError` naming it."""
+    try:
+        return tomllib.loads(p.read_text())
+    except tomllib.TOMLDecodeError as exc:
+        raise SceneError(f"not valid TOML ({exc})", file=str(p), expected=expected) from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise SceneError(f"cannot read ({exc})", file=str(p)) from None
+
+
 def load_scene(path_or_name: str, overrides: list[str] | None = None) -> Scene:
     """Load, override and validate a scene (a path, or the name of a built-in scene such as ``default``)."""
     p = Path(path_or_name)
@@ -277,12 +287,7 @@ def load_scene(path_or_name: str, overrides: list[str] | None = None) -> Scene:
     if not p.is_file():
         raise SceneError("scene file not found", file=file,
                          expected="a scene TOML path or a built-in scene: " + ", ".join(builtin_scene_names()))
-    try:
-        data = tomllib.loads(p.read_text())
-    except tomllib.TOMLDecodeError as exc:
-        raise SceneError(f"not valid TOML ({exc})", file=file, expected="a TOML scene file") from None
-    except (OSError, UnicodeDecodeError) as exc:
-        raise SceneError(f"cannot read ({exc})", file=file) from None
+    data = read_toml(p, "a TOML scene file")
     if not data:
         raise SceneError("the scene is empty (no table, no key)", file=file,
                          expected="at least one table such as [exposure], or the built-in scene 'default'")

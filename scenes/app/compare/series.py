@@ -37,12 +37,11 @@ import json
 import math
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 import tomli_w
-import tomllib
 
 from detector import registry
 from detector.characterize import linear_fit, pair_noise, photon_transfer
@@ -58,9 +57,17 @@ from detector.joint import (
 )
 from detector.jsonable import jsonable
 from detector.morphology import describe
-from detector.signatures import LINEAR_SEARCH_PIXELS, Fit, LinearSignature, Residuals, Variant, heldout_delta
+from detector.signatures import (
+    LINEAR_SEARCH_PIXELS,
+    Fit,
+    LinearSignature,
+    Residuals,
+    Variant,
+    heldout_delta,
+    search_sample,
+)
 from scenes.errors import SceneError
-from scenes.scene import load_scene
+from scenes.scene import load_scene, read_toml
 
 from . import fullframe
 from .apply import LEVEL_SCALE_TOL, apply_candidate
@@ -149,12 +156,7 @@ def load_series(path: str | Path, sets: tuple[str, ...] | list[str] = ()) -> Ser
     if not p.is_file():
         raise SceneError("series file not found" if not p.exists() else "is not a regular file", file=file,
                          expected="a series TOML file (scene = ..., [[frames]] file = ...)")
-    try:
-        data = tomllib.loads(p.read_text())
-    except tomllib.TOMLDecodeError as exc:
-        raise SceneError(f"not valid TOML ({exc})", file=file, expected="a series TOML file") from None
-    except (OSError, UnicodeDecodeError) as exc:
-        raise SceneError(f"cannot read ({exc})", file=file) from None
+    data = read_toml(p, "a series TOML file")
     unknown = set(data) - {"scene", "frames", "levels", "title"}
     if unknown:
         raise SceneError(f"unknown key(s) {', '.join(sorted(unknown))}", key=min(unknown), file=file,
@@ -285,7 +287,7 @@ def run_series_compare(series: Series, workers: int | None = None, progress: Cal
                 "warnings": [f"{f['label']}: {w}" for f in frames for w in f["warnings"]],
                 "seconds": {"compare": time.perf_counter() - t0}}
     return {"baseline": baseline, "frames": frames, "shared_levels": shared, "calibration": calibration(series, cmps),
-            "_compares": cmps, "_series": series}
+            "_compares": cmps, "_series": series, "_level_grams": grams}
 
 
 def _level_gram(res: Residuals, shared: list[str]):
@@ -389,14 +391,6 @@ class SeriesFit:
     shared_names: list = field(default_factory=list)  #: the shared levels of that solution, in order
 
 
-def _search_sample(res: Residuals, n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
-    idx, _, w = res.flat_profiled()
-    r = res.flat()[1]
-    step = max(1, int(math.ceil(idx.size / max(n, 1))))
-    sub = np.arange(0, idx.size, step)
-    return idx[sub], r[sub], w[sub], idx.size / max(sub.size, 1)
-
-
 def _values(v, res):
     return lambda i: v.values(i, res.data_adu.shape)
 
@@ -413,8 +407,8 @@ def joint_linear(name: str, sig: LinearSignature, frames: list[Residuals], share
     nsearch = max(MIN_SEARCH_PIXELS, LINEAR_SEARCH_PIXELS // len(frames))
     samples = []
     for r in frames:
-        idx, rr, w, scale = _search_sample(r, nsearch)
-        samples.append(SampleGrams(r, idx, rr, w, shared_levels=shared, scale=scale))
+        ctx = search_sample(r, nsearch)
+        samples.append(SampleGrams(r, ctx["idx"], ctx["r"], ctx["w"], shared_levels=shared, scale=ctx["scale"]))
 
     def evaluate(vs):
         grams = []
@@ -476,7 +470,7 @@ def joint_linear(name: str, sig: LinearSignature, frames: list[Residuals], share
         return frame_gram(r, idx, r.flat()[1], w, shared=f if mode == "shared" else None,
                           own=f if mode == "frame" else None, shared_levels=shared)
 
-    grams = _over_frames(final_gram, list(zip(vs, frames)))
+    grams = [final_gram(v, r) for v, r in zip(vs, frames)]
     sol = solve_joint(grams)
     coefs = [sol.shared] * len(frames) if mode == "shared" else sol.own
     if sig.of_light:  # a multiplicative effect's coefficients carry the light level (see LinearSignature)
@@ -491,7 +485,7 @@ def joint_linear(name: str, sig: LinearSignature, frames: list[Residuals], share
         fi.state["coef"] = np.asarray(c, float)  # with the variant: what rebuilds the mean change (fit_delta)
         return fi
 
-    fits: list[Fit | None] = _over_frames(finish, list(zip(vs, frames, coefs, ps, sol.per_frame_delta)))
+    fits: list[Fit | None] = [finish(*a) for a in zip(vs, frames, coefs, ps, sol.per_frame_delta)]
     # the shot noise of the added charge (with_shot_noise), frame by frame
     corr = sum(fi.delta_m2lnl - d for fi, d in zip(fits, sol.per_frame_delta) if fi is not None)
     first = next(f for f in fits if f is not None)
@@ -518,12 +512,6 @@ def _aligned(lists: list[list], frames: list[Residuals]) -> list[list] | None:
         not v for v in lists) else []
     return [v if v else [Variant([np.zeros(1, np.float32)] * k, lambda c: None, label="(none)")
                          for k in counts] for v in lists]
-
-
-def _over_frames(fn, args: list[tuple]) -> list:
-    """``[fn(*a) for a in args]``: one frame after the other (threads over frames were measured no faster on
-    2 cores: the work is numpy's, much of it already in BLAS threads)."""
-    return [fn(*a) for a in args]
 
 
 def fit_delta(fit: Fit, res: Residuals) -> np.ndarray | None:
@@ -573,7 +561,7 @@ def per_frame(name: str, sig, frames: list[Residuals], params_model=None) -> Ser
                 f = None
         return f if f is not None and np.isfinite(f.delta_m2lnl) else None
 
-    fits = _over_frames(one, [(r,) for r in frames])
+    fits = [one(r) for r in frames]
     got = [f for f in fits if f is not None]
     if not got:
         return None
@@ -591,10 +579,11 @@ def _mode(cls) -> str:
 
 
 def series_candidates(frames: list[Residuals], labels: list[str], present: set[str], shared: list[str],
-                      truths: list, progress=None, chi2_base: float | None = None
+                      truths: list, progress=None, chi2_base: float | None = None, level_grams: list | None = None
                       ) -> tuple[list[Candidate], list[dict], dict]:
     """Every absent effect with a signature, fitted to the series and judged as in one frame. Returns
-    (candidates best first, problems, {effect: SeriesFit})."""
+    (candidates best first, problems, {effect: SeriesFit}). ``level_grams``: the frames' levels-only normal
+    equations when the comparison has them (:func:`run_series_compare`), else built here."""
     out, problems, fits = [], [], {}
     for name, cls in sorted(registry().items()):
         if name in present or cls.signature is None:
@@ -636,7 +625,7 @@ def series_candidates(frames: list[Residuals], labels: list[str], present: set[s
         cand.scaling = cls.scaling or "frame"  # type: ignore[attr-defined]
         _drop_maps(sf)
         out.append(cand)
-    _excess_shares(frames, out, fits, shared)
+    _excess_shares(frames, out, fits, level_grams or [_level_gram(r, shared) for r in frames])
     _heldout(frames, out, fits, progress)
     return rank(out), problems, fits
 
@@ -663,12 +652,12 @@ def _consistency(sf: SeriesFit, labels: list[str]) -> str:
     return ""
 
 
-def _excess_shares(frames: list[Residuals], cands: list[Candidate], fits: dict, shared: list[str]) -> None:
+def _excess_shares(frames: list[Residuals], cands: list[Candidate], fits: dict, grams: list) -> None:
     """The excess-share rule of the single frame (:func:`.candidates.excess_shares`), frame by frame: in every
     frame whose excess chi2 (levels alone, the shared ones at their joint values) is large (EXCESS_SIGMA),
     the share of it the candidate removes; a candidate keeps the largest (an effect of the darks need not
-    remove a share of the flats' excess). None when no frame has a large excess."""
-    grams = [_level_gram(r, shared) for r in frames]
+    remove a share of the flats' excess). None when no frame has a large excess. ``grams``: the frames'
+    levels-only normal equations."""
     _, c_lv = levels_chi2(grams)
     excess = []
     for r, g in zip(frames, grams):
@@ -726,7 +715,7 @@ def run_series_diagnose(series: Series, workers: int | None = None, progress=Non
     truths = [c["_model"].setup.truth for c in cmps]
     chi2_base = cmp["baseline"]["chi2_per_dof_levels"] * cmp["baseline"]["n_compared"]
     cands, problems, fits = series_candidates(frames, labels, present, cmp["shared_levels"], truths, progress,
-                                              chi2_base)
+                                              chi2_base, cmp["_level_grams"])
     morphs = [describe(r) for r in frames]
     for m in morphs:
         m.pop("empirical", None)
@@ -944,11 +933,3 @@ def series_ledger(series: Series, diagnosis: dict, new_series: Path | None, best
 def public_json(diagnosis: dict) -> dict:
     """The diagnosis without its in-memory parts (arrays, residuals)."""
     return jsonable({k: v for k, v in diagnosis.items() if not k.startswith("_")})
-
-
-def frames_of(cmp: dict) -> list[Residuals]:
-    return [c["_residuals"] for c in cmp["_compares"]]
-
-
-def replace_frames(series: Series, frames: list[SeriesFrame]) -> Series:
-    return replace(series, frames=frames)
