@@ -7,6 +7,8 @@ interrupt while numpy, astropy or Mitsuba load is the same one line as an interr
   unwind, every :class:`scenes.app.outputs.Outputs` removes its temporary files, and the command line prints
   ``newtsim: interrupted`` and exits ``128 + signal`` (130 for SIGINT, 143 for SIGTERM: the shell's
   convention, which schedulers and ``timeout`` read).
+* A signal swallowed on its way up (raised inside a finaliser, where Python can only print it, or caught by
+  a library) is remembered: the outputs are not committed and the command ends as interrupted.
 * A second signal while the first is still unwinding (a library that swallowed it, a slow clean-up) is
   respected at once: the registered clean-ups run (removing temporary files only; they never touch a
   committed output) and the process ends with ``os._exit``.
@@ -25,6 +27,7 @@ EXIT_INTERRUPTED = 130  #: 128 + SIGINT
 
 _cleanups: dict[int, object] = {}
 _count = 0
+_first = 0  # the first signal's number (0: none yet)
 _installed = False
 _reported = False
 
@@ -60,8 +63,9 @@ def discard_all() -> None:
 
 
 def _handler(signum, frame):
-    global _count
+    global _count, _first
     _count += 1
+    _first = _first or int(signum)
     if _count >= 2:  # the second signal: clean up and go, whatever the first one is still doing
         discard_all()
         try:
@@ -72,6 +76,21 @@ def _handler(signum, frame):
     raise Interrupted(signum)
 
 
+def raise_if_pending() -> None:
+    """Raise :class:`Interrupted` if a signal came and was swallowed on its way up (raised inside a
+    finaliser, or caught by a library): the outputs are then not committed."""
+    if _first:
+        raise Interrupted(_first)
+
+
+def _unraisable(info) -> None:
+    """An interrupt raised inside a finaliser cannot propagate: it is remembered (``raise_if_pending``),
+    not printed as a traceback."""
+    if isinstance(info.exc_value, KeyboardInterrupt):
+        return
+    sys.__unraisablehook__(info)
+
+
 def reported() -> None:
     """The command has printed its interrupt line (a second signal then prints nothing more)."""
     global _reported
@@ -80,11 +99,12 @@ def reported() -> None:
 
 def install() -> None:
     """SIGINT and SIGTERM -> :class:`Interrupted` (main thread only; a no-op elsewhere)."""
-    global _installed, _count
-    _count = 0
+    global _installed, _count, _first
+    _count, _first = 0, 0
     try:
         signal.signal(signal.SIGINT, _handler)
         signal.signal(signal.SIGTERM, _handler)
+        sys.unraisablehook = _unraisable
         _installed = True
     except ValueError:  # not the main thread
         pass

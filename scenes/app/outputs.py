@@ -285,6 +285,7 @@ class Outputs:
             return
         try:
             with interrupts.blocked():
+                interrupts.raise_if_pending()
                 plan = self._plan()
                 new_dirs = [Path(f) for f in self._folders if not Path(f).exists()]
                 for d in new_dirs:

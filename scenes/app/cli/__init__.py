@@ -12,6 +12,7 @@ The optics commands import Mitsuba only when they run, so ``newtsim render`` wor
 
 from __future__ import annotations
 
+import atexit
 import sys
 
 # before anything heavy: SIGINT/SIGTERM while numpy, astropy or Mitsuba load is one line, not a traceback
@@ -87,11 +88,17 @@ def main(argv=None):
         click.echo(_usage_line(exc), err=True)
         sys.exit(exc.exit_code if exc.exit_code else EXIT_USER_ERROR)
     code = code if isinstance(code, int) else 0
-    if code in (128 + 2, 128 + 15):  # interrupted and cleaned up
-        if argv[:1] == ["batch"]:  # Dask's worker processes need the interpreter's exit handlers
+    if argv[:1] == ["batch"]:  # Dask's worker processes need the interpreter's shutdown (threads, exit handlers)
+        if code in (128 + 2, 128 + 15):
             _interrupts.exit_on_signal(code)
-        else:  # nothing left to do: leave now (a second signal during the shutdown would kill it with -SIGINT)
-            _interrupts.exit_now(code)
+        sys.exit(code)
+    if _interrupts.installed():
+        # The outputs are committed (or discarded): leave now. The interpreter's shutdown would put the
+        # default SIGINT action back for its last moments, and a Ctrl-C landing there would kill the process
+        # silently with -SIGINT instead of this exit status.
+        _interrupts.exit_on_signal(code)
+        atexit._run_exitfuncs()
+        _interrupts.exit_now(code)
     sys.exit(code)
 
 
