@@ -360,8 +360,9 @@ def describe(res: Residuals, delta_adu: np.ndarray | None = None) -> dict:
         varies = -dgrad > 25 and float(np.ptp(fitv)) > 0.5 * max(level - 1.0, 1e-9)
         geom = ["noise", "gradient"] if varies else ["noise"]
         extra = max(float(np.median(r * r) / 0.4549 - np.median(1 / w)), 0.0)
-        kind = "multiplicative" if np.corrcoef(light.ravel()[idx][:200000], (r * r * w)[:200000])[0, 1] > 0.3 \
-            and np.ptp(light) > 0 else "additive"
+        lsub, zsub = light.ravel()[idx][:200000], (r * r * w)[:200000]
+        kind = "multiplicative" if np.ptp(lsub) > 0 and np.ptp(zsub) > 0 \
+            and np.corrcoef(lsub, zsub)[0, 1] > 0.3 else "additive"
         out.update(kind=kind, geometry=geom, scale_px=float(min(shape)), amplitude=round(math.sqrt(extra) * gain, 4),
                    unit="e- rms", explanation=_words(kind, geom, f"extra pixel-to-pixel noise of "
                                                      f"{math.sqrt(extra) * gain:.3g} e- rms"

@@ -21,8 +21,8 @@ and adds:
 For every case: the first significant and plausible candidate (``plausible``, ``implausible_because``,
 ``heldout_delta`` and the top-level ``residual_morphology`` are read with ``.get()``: absent keys mean
 "plausible" and "no morphology"), the error before and after one ``--apply`` of that candidate
-(:func:`scenes.app.compare.apply.apply_candidate` with the measured frame, as the CLI does; when nothing is
-significant but ``residual_morphology`` offers a candidate-like ``apply`` entry, that one), and the seconds.
+(:func:`scenes.app.compare.run.apply_best` with the measured frame, as ``diagnose --apply`` does: the first
+significant candidate, or when nothing is significant but the residual is, its empirical map), and the seconds.
 
 Summary metrics (``OUT_DIR/unseen.md``, ``unseen.json``, ``unseen.png``, also printed):
 
@@ -1166,7 +1166,7 @@ def diagnose_case(case: UnseenCase, model_toml: Path, measured: Path, support, w
     """Diagnose ``measured`` against ``model_toml``, apply the first significant plausible candidate (or the
     morphology's empirical map) with the measured frame, compare again."""
     from scenes.app.compare import run_compare, run_diagnose
-    from scenes.app.compare.apply import apply_candidate
+    from scenes.app.compare.run import apply_best
     from scenes.scene import load_scene
 
     t0 = time.perf_counter()
@@ -1179,10 +1179,6 @@ def diagnose_case(case: UnseenCase, model_toml: Path, measured: Path, support, w
     named = _named_effects()
     wrong_named = [c for c in cands if c.get("significant") and c.get("plausible", True)
                    and c["effect"] in named and c["effect"] not in case.accept]
-    target = best
-    if target is None and isinstance(morph, dict) and isinstance(morph.get("apply"), dict) \
-            and morph["apply"].get("effect"):
-        target = morph["apply"]
     metric = "misfit" if (case.effect or (best or {}).get("effect")) in STATISTICAL else "chi2_minus_1"
     row = {"case": case.name, "group": case.group, "label": case.label, "base": case.base,
            "strength": case.strength if case.make else "-", "description": case.description,
@@ -1197,7 +1193,7 @@ def diagnose_case(case: UnseenCase, model_toml: Path, measured: Path, support, w
            "implausible": [(c["effect"], c.get("implausible_because")) for c in cands
                            if c.get("plausible") is False][:8],
            "ranking": [(c["effect"], round(float(c["delta_bic"]), 1), c.get("significant"), c.get("plausible"),
-                        c.get("heldout_delta")) for c in cands[:6]],
+                        c.get("heldout_delta"), c.get("explains_where_it_acts")) for c in cands[:6]],
            "significant": out.get("significant", []),
            "residual_morphology": {k: v for k, v in morph.items() if not str(k).startswith("_")}
            if isinstance(morph, dict) else None,
@@ -1220,8 +1216,9 @@ def diagnose_case(case: UnseenCase, model_toml: Path, measured: Path, support, w
     else:
         row["confidently_wrong"] = best is not None
         row["clean"] = first_any is None
-    if target is not None:
-        new = apply_candidate(load_scene(str(model_toml)), target, workdir / f"{case.name}.applied.toml", measured)
+    # what `diagnose --apply` does: the first significant candidate, or the residual's empirical map
+    new, target = apply_best(load_scene(str(model_toml)), out, workdir / f"{case.name}.applied.toml", measured)
+    if new is not None:
         row["applied"] = target.get("effect")
         row["after"] = error_of(run_compare(load_scene(str(new)), measured, workers=workers), support)
         b, a = row["before"][metric], row["after"][metric]
