@@ -38,6 +38,9 @@ from .signatures import Residuals, frame_at
 #: the residual is structured when the block chi2 (or the pixel chi2 for added noise) exceeds its degrees of
 #: freedom by this many standard deviations
 SIGNIFICANT_SIGMA = 8.0
+#: a periodogram peak this many times the median power is significant on its own (white noise: P(bin > c x
+#: median) = 2^-c; over the ~1.3e5 frequencies of a 512 x 512 cut, c = 30 is a false alarm of ~1e-4 per frame)
+PERIODIC_CONTRAST = 30.0
 #: a family is part of the geometry when it takes at least this share of the structured chi2
 GEOMETRY_SHARE = 0.25
 #: blocks across the shorter side of the frame for the binned maps
@@ -344,6 +347,14 @@ def describe(res: Residuals, delta_adu: np.ndarray | None = None) -> dict:
             out["significant"] = True
             out["significance_sigma"] = round(max(out["significance_sigma"], feats["peak_sigma"]), 2)
             out.update(_compact_only(res, feats, rmap, light))
+            return out
+        # one spatial frequency far above the rest: a pick-up or fringe pattern too weak to move the chi2
+        zhp = zp - gaussian_filter(zp, b, mode="nearest")
+        period, contrast, _ = _peak(zhp)
+        if contrast >= PERIODIC_CONTRAST:
+            out["significant"] = True
+            out["significance_sigma"] = round(max(out["significance_sigma"], _peak_sigma(contrast, zhp)), 2)
+            out.update(_periodic_only(res, period, contrast, zhp, wmap))
         return out
     out["significant"] = True
     if block_sigma < SIGNIFICANT_SIGMA:  # extra scatter, no mean pattern: where is it?
@@ -589,6 +600,43 @@ def _compact_only(res: Residuals, feats: dict, rmap: np.ndarray, light: np.ndarr
     return {"kind": kind, "kind_certain": certain, "geometry": geometry,
             "scale_px": round(float(feats[f"{main[:-1]}_radius_px"]), 2), "amplitude": round(amp, 4), "unit": unit,
             "shares": shares, "explanation": _words(kind, geometry, desc) + extra}
+
+
+def _peak_sigma(contrast: float, z: np.ndarray) -> float:
+    """The significance [Gaussian sigma] of a periodogram peak ``contrast`` times the median power, among the
+    frequencies of the (at most 512 x 512) cut :func:`_peak` searches: a bin of white noise's periodogram is
+    exponential, P(> c median) = 2^-c, times the number of bins searched (the look-elsewhere effect)."""
+    from scipy.stats import norm
+
+    side = min(512, *z.shape)
+    log10_p = math.log10(side * (side // 2 + 1)) - contrast * math.log10(2.0)
+    return float(norm.isf(10.0 ** log10_p)) if log10_p > -300 else 37.0
+
+
+def _periodic_only(res: Residuals, period: float, contrast: float, zhp: np.ndarray, wmap: np.ndarray) -> dict:
+    """The description when only a periodogram peak stands out: geometry ``periodic``; kind ``multiplicative``
+    on a flat screen's frame (a prior, ``kind_certain`` false: fringes), else ``additive`` (pick-up); the
+    amplitude of the sinusoid the peak holds (``A = 2 |F| / N`` for N pixels) [e-] at the frame's typical
+    noise."""
+    side = min(512, *zhp.shape)
+    y0, x0 = (zhp.shape[0] - side) // 2, (zhp.shape[1] - side) // 2
+    cut = np.nan_to_num(zhp[y0:y0 + side, x0:x0 + side])
+    f = np.abs(np.fft.rfft2(cut - cut.mean()))
+    fy, fx = np.fft.fftfreq(side)[:, None], np.fft.rfftfreq(side)[None, :]
+    f = np.where(np.hypot(fy, fx) > 6.0 / side, f, 0.0)
+    ky, kx = np.unravel_index(int(np.argmax(f)), f.shape)
+    amp_sigma = 2.0 * float(f[ky, kx]) / (side * side)
+    sig_adu = float(np.median(1.0 / np.sqrt(wmap[wmap > 0]))) if np.any(wmap > 0) else 0.0
+    amp = amp_sigma * sig_adu * res.gain
+    angle = float(np.degrees(np.arctan2(float(fy[ky, 0]), float(fx[0, kx]))))  # of the wave vector (x, y)
+    flat = res.light_source == "flat"
+    kind = "multiplicative" if flat else "additive"
+    desc = (f"a sinusoid of {amp:.3g} e- amplitude, period {period:.3g} px, wave vector at {angle:.0f} deg (a single "
+            f"spatial frequency {contrast:.0f} x the median power)")
+    extra = " (additive and multiplicative cannot be told apart on this uniform light)" if flat else ""
+    return {"kind": kind, "kind_certain": not flat, "geometry": ["periodic"], "scale_px": round(period, 2),
+            "amplitude": round(amp, 4), "unit": "e-", "shares": {"periodic": 1.0},
+            "explanation": _words(kind, ["periodic"], desc) + extra}
 
 
 def _upsample(blocks: np.ndarray, b: int, shape: tuple[int, int]) -> np.ndarray:

@@ -1096,12 +1096,10 @@ def variance_sample(res: Residuals) -> dict:
     return res._flat["variance_sample"]
 
 
-def neighbour_correlation(res: Residuals) -> tuple[float, float]:
-    """(correlation, its significance in sigma) of the level-profiled, locally-whitened residual (the
-    residual minus its Gaussian local mean of :data:`WHITE_SCALE` px, in model sigmas) between horizontally
-    and vertically adjacent fitted pixels. Pixel-to-pixel noise gives ~0 (slightly negative from the local
-    mean); a pattern a few pixels wide gives a clearly positive value. Cached."""
-    if "neighbour_correlation" not in res._flat:
+def _whitened_map(res: Residuals) -> tuple[np.ndarray, np.ndarray]:
+    """(z, fitted): the level-profiled residual in model sigmas minus its Gaussian local mean of
+    :data:`WHITE_SCALE` px (normalised convolution over the fitted pixels), 0 off them; cached."""
+    if "whitened_map" not in res._flat:
         from scipy.ndimage import gaussian_filter
 
         idx, r, w = res.flat_profiled()
@@ -1112,17 +1110,65 @@ def neighbour_correlation(res: Residuals) -> tuple[float, float]:
         m.ravel()[idx] = 1.0
         num = gaussian_filter(z, WHITE_SCALE, mode="nearest")
         den = gaussian_filter(m, WHITE_SCALE, mode="nearest")
-        zw = np.where(m > 0, z - num / np.maximum(den, 1e-6), 0.0)
+        res._flat["whitened_map"] = (np.where(m > 0, z - num / np.maximum(den, 1e-6), 0.0).astype(np.float32), m > 0)
+    return res._flat["whitened_map"]
+
+
+def _neighbour_pairs(zw: np.ndarray, fitted: np.ndarray, first: np.ndarray):
+    """(a, b) of every horizontally or vertically adjacent pair of fitted pixels whose first pixel is in
+    ``first`` (both orders, no wrap-around)."""
+    for axis in (0, 1):
+        for lo, hi in ((slice(None, -1), slice(1, None)), (slice(1, None), slice(None, -1))):
+            sa = (lo, slice(None)) if axis == 0 else (slice(None), lo)
+            sb = (hi, slice(None)) if axis == 0 else (slice(None), hi)
+            sel = first[sa] & fitted[sb]
+            yield zw[sa][sel], zw[sb][sel]
+
+
+def neighbour_correlation(res: Residuals) -> tuple[float, float]:
+    """(correlation, its significance in sigma) of the level-profiled, locally-whitened residual (the
+    residual minus its Gaussian local mean of :data:`WHITE_SCALE` px, in model sigmas) between horizontally
+    and vertically adjacent fitted pixels. Pixel-to-pixel noise gives ~0 (slightly negative from the local
+    mean); a pattern a few pixels wide gives a clearly positive value. Cached."""
+    if "neighbour_correlation" not in res._flat:
+        zw, m = _whitened_map(res)
         pairs = 0.0
         n = 0
         for a, b, ma, mb in ((zw[:, :-1], zw[:, 1:], m[:, :-1], m[:, 1:]), (zw[:-1], zw[1:], m[:-1], m[1:])):
-            both = (ma > 0) & (mb > 0)
+            both = ma & mb
             pairs += float(np.sum(a[both] * b[both]))
             n += int(both.sum())
         var = float(np.sum(zw * zw) / max(np.count_nonzero(m), 1))
         rho = pairs / max(n, 1) / max(var, 1e-30)
         res._flat["neighbour_correlation"] = (rho, rho * np.sqrt(max(n, 1)))
     return res._flat["neighbour_correlation"]
+
+
+#: the tail of the whitened residual (|z| above this many sigma): the pixels that carry an extra scatter
+TAIL_SIGMA = 3.0
+
+
+def tail_neighbour_correlation(res: Residuals) -> tuple[float, float, int]:
+    """(correlation, significance in sigma, tail pixels): the correlation of the pixels in the tail of the
+    whitened residual (|z| > TAIL_SIGMA, clipped at 30) with their four neighbours. Independent pixel noise,
+    however heavy its tail (kTC, a DSNU, a PRNU), gives 0 +- 1 / sqrt(pairs): a neighbour does not know its
+    pixel is an outlier. A structure a few pixels wide (light moved into rings, hot pixels in pairs, a blur
+    that varies across the field) gives outliers whose neighbours share their sign, even where it covers too
+    few pixels to move :func:`neighbour_correlation`. Cached."""
+    if "tail_neighbour_correlation" not in res._flat:
+        zw, m = _whitened_map(res)
+        zc = np.clip(zw, -30.0, 30.0)
+        tail = m & (np.abs(zc) > TAIL_SIGMA)
+        sxy = sxx = syy = 0.0
+        n = 0
+        for a, b in _neighbour_pairs(zc, m, tail):
+            sxy += float(np.dot(a, b))
+            sxx += float(np.dot(a, a))
+            syy += float(np.dot(b, b))
+            n += a.size
+        rho = sxy / np.sqrt(sxx * syy) if sxx > 0 and syy > 0 else 0.0
+        res._flat["tail_neighbour_correlation"] = (rho, rho * np.sqrt(max(n, 1)), int(tail.sum()))
+    return res._flat["tail_neighbour_correlation"]
 
 
 def smooth_component(res: Residuals, template: np.ndarray) -> tuple[float, float, int]:
@@ -1199,20 +1245,78 @@ class VarianceSignature(Signature):
     #: added scatter is pixel-to-pixel: a neighbour correlation of the whitened residual above this (and
     #: significant) is a structure of a few pixels (rings, fringes, blurred sources), not a non-uniformity
     MAX_NEIGHBOUR_CORRELATION = 0.1
+    #: ... and the outlying pixels' correlation with their neighbours (:func:`tail_neighbour_correlation`)
+    MAX_TAIL_CORRELATION = 0.15
 
     def plausible(self, fit: Fit, res: Residuals) -> str:
         if self.check is not None:
             why = self.check(fit, res)
             if why:
                 return why
-        why = self.uniformity(fit, res)
+        why = self.uniformity(fit, res) or self.zero_mean(fit, res)
         if why:
             return why
         rho, z = neighbour_correlation(res)
         if rho > self.MAX_NEIGHBOUR_CORRELATION and z > 5:
             return (f"the extra scatter is correlated between neighbouring pixels (correlation {rho:.2f}, {z:.0f} "
                     "sigma): a structure a few pixels wide, not a pixel-to-pixel non-uniformity or noise")
+        rho, z, n = tail_neighbour_correlation(res)
+        if rho > self.MAX_TAIL_CORRELATION and z > 5:
+            return (f"the pixels that carry the extra scatter have neighbours that share their sign (correlation "
+                    f"{rho:.2f} over {n} outlying pixels, {z:.0f} sigma; independent noise gives 0): a structure a few "
+                    "pixels wide (light moved into rings, pixels in pairs or clusters, smeared sources), not "
+                    "pixel-to-pixel scatter")
         return ""
+
+    #: added scatter is zero-mean: where the template puts it above its median, the residual's mean (in bins of
+    #: the prediction) may carry at most this share of the excess chi2 there
+    MAX_MEAN_SHARE = 0.25
+    #: ... when those bins' means are significant at this many standard deviations of their chi2
+    MEAN_SIGMA = 8.0
+
+    def zero_mean(self, fit: Fit, res: Residuals) -> str:
+        """A noise or a pixel-to-pixel non-uniformity scatters the pixels about the model: its mean is zero.
+        The extra variance the fit predicts per pixel (``q = theta t w``, in units of the model's variance) is
+        binned in factors of 4 above twice its median (only where the template is not uniform: a uniform
+        template's mean is a level); in each bin the locally-whitened residual's mean is measured. When those
+        means are significant and carry more than MAX_MEAN_SHARE of the excess chi2 of the binned pixels, the
+        pixels are off one way (compressed star cores, light moved out of them): a mean change the model lacks,
+        which this scatter only absorbs."""
+        vs = variance_sample(res)
+        theta = fit.state.get("theta")
+        if not theta or theta <= 0 or not vs["idx"].size:
+            return ""
+        q = theta * _at(self.template(res), res.data_adu.shape, vs["idx"]) * vs["w"]
+        med = float(np.median(q))
+        if med <= 0 or not np.any(q > 2 * med):
+            return ""
+        edges = 2 * med * 4.0 ** np.arange(0, 12)
+        which = np.searchsorted(edges, q, side="right") - 1  # -1: below twice the median
+        z = np.clip(vs["r_white"] * np.sqrt(vs["w"]), -10.0, 10.0)
+        chi2_means = mean_part = excess = 0.0
+        n_bins = 0
+        worst = (0.0, 0.0)
+        for k in range(edges.size):
+            zb = z[which == k]
+            if zb.size < 10:
+                continue
+            m, v = float(zb.mean()), max(float(zb.var()), 1.0)
+            chi2_means += zb.size * m * m / v
+            mean_part += zb.size * m * m
+            excess += float(np.sum(zb * zb)) - zb.size
+            n_bins += 1
+            if zb.size * m * m > worst[0]:
+                worst = (zb.size * m * m, m)
+        if not n_bins or excess <= 0 or chi2_means < n_bins + self.MEAN_SIGMA * np.sqrt(2 * n_bins):
+            return ""
+        share = mean_part / excess
+        if share <= self.MAX_MEAN_SHARE:
+            return ""
+        m = worst[1]
+        return (f"where this scatter would be largest the pixels sit {'below' if m < 0 else 'above'} the model on "
+                f"average ({abs(m):.2g} sigma in the worst bin of its prediction; the means carry "
+                f"{100 * min(share, 1.0):.0f} % of the excess there): a mean change the model lacks (a response, "
+                "light moved or added), not zero-mean scatter")
 
     #: the excess variance of a cell may exceed the template's prediction by this factor over the median cell
     MAX_CELL_RATIO = 4.0

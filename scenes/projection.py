@@ -47,6 +47,7 @@ FOCAL_PLANE_Y_SIGN = -1.0
 REVERSE_GRID = 48  # points per axis of the reverse fit (Algorithm 1)
 REVERSE_WARN_PX = 0.01  # largest acceptable reverse residual [pixel]
 RADIAL_K_MAX = 1e-4  # bound of radial_k_per_px2 [px^-2] (that of the detector's distortion effect)
+DECENTERING_MAX = 1e-3  # bound of decentering_p1/p2_per_px [px^-1] (that of the detector's distortion effect)
 RADIAL_ORDER = 7  # least SIP order a radial term is fitted with (terms r^3, r^5, r^7 of 1 / (1 + k r^2))
 RADIAL_MIN_FACTOR = 0.5  # 1 + k r^2 must stay above this over the fitted area (no fold-over)
 _COEF = re.compile(r"^(a|b)_(\d)_(\d)$")
@@ -216,20 +217,29 @@ def sip_from_table(table: dict, *, file: str | None = None, allow_coefficients: 
 
     Keys: ``order`` (1..9, required when coefficients are given), ``reverse_order`` (optional, 1..9,
     >= order), coefficients ``a_p_q`` / ``b_p_q`` (unbinned sensor pixels about the optical axis,
-    1 <= p + q <= order) and ``radial_k_per_px2``: a radial distortion ``r' = r (1 + k r^2)`` about the optical
-    axis [sensor px^-2] composed with the rest (:func:`with_radial`; with it, ``distortion = 'sip'`` needs no
-    coefficient). Errors name ``telescope.sip.KEY``. Returns ``{"order", "reverse_order", "a", "b",
-    "radial_k"}``.
+    1 <= p + q <= order), ``radial_k_per_px2``: a radial distortion ``r' = r (1 + k r^2)`` about the optical
+    axis [sensor px^-2], and ``decentering_p1_per_px`` / ``decentering_p2_per_px``: Brown's (1966) decentering
+    terms [sensor px^-1], composed with the rest (:func:`with_radial`; with them, ``distortion = 'sip'`` needs
+    no coefficient). Errors name ``telescope.sip.KEY``. Returns ``{"order", "reverse_order", "a", "b",
+    "radial_k", "decentering"}``.
     """
 
     table = dict(table or {})
-    out = {"order": None, "reverse_order": None, "a": {}, "b": {}, "radial_k": 0.0}
+    out = {"order": None, "reverse_order": None, "a": {}, "b": {}, "radial_k": 0.0, "decentering": (0.0, 0.0)}
     if "radial_k_per_px2" in table:
         v = table.pop("radial_k_per_px2")
         if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or abs(v) > RADIAL_K_MAX:
             raise SceneError(f"invalid value {v!r}", key="telescope.sip.radial_k_per_px2", file=file,
                              expected=f"a finite number [px^-2] in [-{RADIAL_K_MAX:g}, {RADIAL_K_MAX:g}]")
         out["radial_k"] = float(v)
+    dec = []
+    for key in ("decentering_p1_per_px", "decentering_p2_per_px"):
+        v = table.pop(key, 0.0)
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or abs(v) > DECENTERING_MAX:
+            raise SceneError(f"invalid value {v!r}", key=f"telescope.sip.{key}", file=file,
+                             expected=f"a finite number [px^-1] in [-{DECENTERING_MAX:g}, {DECENTERING_MAX:g}]")
+        dec.append(float(v))
+    out["decentering"] = (dec[0], dec[1])
     for key in ("order", "reverse_order"):
         if key in table:
             v = table.pop(key)
@@ -241,8 +251,8 @@ def sip_from_table(table: dict, *, file: str | None = None, allow_coefficients: 
         m = _COEF.match(key)
         if not m:
             raise SceneError("unknown key", key=f"telescope.sip.{key}", file=file,
-                             expected="order, reverse_order, radial_k_per_px2 or coefficients a_p_q / b_p_q "
-                             "(e.g. a_3_0)")
+                             expected="order, reverse_order, radial_k_per_px2, decentering_p1_per_px, "
+                             "decentering_p2_per_px or coefficients a_p_q / b_p_q (e.g. a_3_0)")
         if not allow_coefficients:
             raise SceneError("coefficients given with distortion = 'optics'", key=f"telescope.sip.{key}",
                              file=file, expected="distortion = 'sip' for coefficients from the scene, or only "
@@ -256,7 +266,8 @@ def sip_from_table(table: dict, *, file: str | None = None, allow_coefficients: 
                              expected="terms with 1 <= p + q <= order (CRPIX absorbs a constant)")
         out[m.group(1)][(p, q)] = float(v)
     degree = max([p + q for p, q in list(out["a"]) + list(out["b"])], default=0)
-    if allow_coefficients and not (out["radial_k"] and not out["a"] and not out["b"]):
+    field_terms = bool(out["radial_k"] or any(out["decentering"]))
+    if allow_coefficients and not (field_terms and not out["a"] and not out["b"]):
         if out["order"] is None:
             raise SceneError("missing", key="telescope.sip.order", file=file,
                              expected=f"the polynomial order (>= {max(degree, 1)})")
@@ -307,8 +318,11 @@ def sip_from_optics(fit: dict, sensor, *, reverse_order: int | None = None, pari
 
 
 def with_radial(sip: Sip | None, k_per_px2: float, x_range, y_range, n: int = REVERSE_GRID, *,
-                file: str | None = None) -> Sip:
-    """``sip`` (None: no distortion) composed with a radial distortion ``r' = r (1 + k r^2)`` about the axis.
+                file: str | None = None, decentering: tuple[float, float] = (0.0, 0.0)) -> Sip:
+    """``sip`` (None: no distortion) composed with a radial distortion ``r' = r (1 + k r^2)`` about the axis
+    and Brown's decentering terms ``decentering = (p1, p2)`` [px^-1] (content moved by ``dx = p1 (r^2 + 2 x^2)
+    + 2 p2 x y``, ``dy = p2 (r^2 + 2 y^2) + 2 p1 x y``; their first-order inverse is subtracted from ``p'`` as
+    :func:`detector.effects.image_plane.radial_distortion` does).
 
     The radial term moves the image content at radius ``r`` from the optical axis to ``r (1 + k r^2)``
     [sensor px] (k > 0 pincushion), after the distortion ``sip`` describes: the recorded pixel offset ``p``
@@ -333,6 +347,11 @@ def with_radial(sip: Sip | None, k_per_px2: float, x_range, y_range, n: int = RE
                          key="telescope.sip.radial_k_per_px2", file=file, expected=f"|k| r^2 below {1 - RADIAL_MIN_FACTOR:g} "
                          f"over the frame (|k| < {(1 - RADIAL_MIN_FACTOR) / r ** 2:.3g} px^-2 here)")
     xp, yp = x / f, y / f
+    p1, p2 = decentering
+    if p1 or p2:
+        r2 = x * x + y * y
+        xp = xp - (p1 * (r2 + 2 * x * x) + 2 * p2 * x * y)
+        yp = yp - (p2 * (r2 + 2 * y * y) + 2 * p1 * x * y)
     if sip is not None:
         X, Y = sip.forward(xp, yp)
         order, rev, source, info = max(sip.order, RADIAL_ORDER), sip.reverse_order, sip.source, dict(sip.info)
@@ -347,6 +366,8 @@ def with_radial(sip: Sip | None, k_per_px2: float, x_range, y_range, n: int = RE
     a = {t: float(c / scale ** (t[0] + t[1])) for t, c in zip(terms, sol[:, 0])}
     b = {t: float(c / scale ** (t[0] + t[1])) for t, c in zip(terms, sol[:, 1])}
     res = np.hypot(x + eval_poly(a, x, y) - X, y + eval_poly(b, x, y) - Y)
+    if p1 or p2:
+        info.update(decentering_p1_per_px=float(p1), decentering_p2_per_px=float(p2))
     info.update(radial_k_per_px2=float(k_per_px2), radial_fit_rms_px=float(np.sqrt(np.mean(res ** 2))),
                 radial_fit_max_px=float(res.max()))
     if rev is not None and rev < order:

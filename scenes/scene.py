@@ -399,7 +399,9 @@ def resolve_effect_keys(scene: Scene, sensor: SensorConfig) -> None:
       ``[psf] jitter_rms_arcsec`` then reads 0.
     * ``[effects.distortion] k_per_px2 = k`` (radial distortion ``r' = r (1 + k r^2)`` about the optical axis)
       becomes ``[telescope.sip] radial_k_per_px2`` (added to a value already there: two small radial
-      distortions compose to first order as the sum of their k), which the frame's SIP then carries
+      distortions compose to first order as the sum of their k), and its decentering terms ``p1_per_px``,
+      ``p2_per_px`` become ``decentering_p1_per_px``, ``decentering_p2_per_px`` (summed likewise), which the
+      frame's SIP then carries
       (:func:`scenes.projection.with_radial`): the sources are drawn where it puts them and the WCS says so.
       ``distortion = "none"`` becomes ``"sip"``. The ``[effects.distortion]`` table is removed.
 
@@ -433,17 +435,21 @@ def resolve_effect_keys(scene: Scene, sensor: SensorConfig) -> None:
     if "distortion" in scene.effects:
         p = validate(effects["distortion"].Params, scene.effects["distortion"], prefix="effects.distortion", file=file)
         del scene.effects["distortion"]
-        k = float(p.k_per_px2)
+        k, p1, p2 = float(p.k_per_px2), float(p.p1_per_px), float(p.p2_per_px)
         tel = scene.telescope
-        if k != 0:
+        terms = {"radial_k_per_px2": k, "decentering_p1_per_px": p1, "decentering_p2_per_px": p2}
+        if any(terms.values()):
             sip = dict(tel.sip or {})
-            sip["radial_k_per_px2"] = float(sip.get("radial_k_per_px2", 0.0)) + k
+            for key, v in terms.items():
+                if v:
+                    sip[key] = float(sip.get(key, 0.0)) + v
             tel.sip = sip
             if tel.distortion == "none":
                 tel.distortion = "sip"
-        scene._notes.append(f"[effects.distortion] k_per_px2 = {k:g} became [telescope.sip] radial_k_per_px2 "
-                            f"(distortion = '{tel.distortion}'): the frame's SIP carries it" if k != 0 else
-                            "[effects.distortion] k_per_px2 = 0 (the identity) was dropped")
+        given = ", ".join(f"{key} = {v:g}" for key, v in terms.items() if v)
+        scene._notes.append(f"[effects.distortion] became [telescope.sip] {given} (distortion = '{tel.distortion}'): "
+                            "the frame's SIP carries it" if given else
+                            "[effects.distortion] at the identity (k = p1 = p2 = 0) was dropped")
 
 
 def _resolve_design(scene: Scene, base: Path | None) -> None:

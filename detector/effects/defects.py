@@ -171,7 +171,51 @@ class ColumnSignature(Signature):
         if evenness < self.MIN_EVENNESS:
             return (f"the outlier columns' excess sits in a few stretches of their rows (typical stretch "
                     f"{100 * evenness:.0f} % of the strongest): a local structure crossing them, not defective columns")
+        short, run = self.short_run_share(d, res.var_adu2[:, cols])
+        if short > self.MAX_SHORT_RUN_SHARE:
+            return (f"the outlier columns' excess is carried by short groups of outlying pixels ({100 * short:.0f} % of "
+                    f"their net excess in runs under {self.MIN_RUN} rows; median run {run:.0f} rows): defective pixels or clusters "
+                    "crossing those columns, not defective columns")
         return ""
+
+    #: a defective column's outlying pixels come in long runs along it (a trap to the serial register, a whole
+    #: column): runs shorter than this many rows are pixel defects or clusters that happen to cross it
+    MIN_RUN = 8
+    #: ... which may carry at most this share of the outlier columns' net excess
+    MAX_SHORT_RUN_SHARE = 0.5
+
+    @classmethod
+    def short_run_share(cls, d: np.ndarray, var: np.ndarray, sigma: float = 5.0, grow: float = 2.0
+                        ) -> tuple[float, float]:
+        """(share, median run length): of the columns' net excess (``d`` [ADU] per row x column, summed along
+        each column in the sign of its sum), the share carried by runs of fewer than MIN_RUN consecutive rows
+        of outlying pixels (a run holds a pixel beyond ``sigma`` standard deviations in that sign and goes on
+        while its pixels stay beyond ``grow``: hysteresis, so a column a few sigma off is not cut into pieces
+        by its noise); and the median length of the outlying runs [rows]. A defective column spreads its excess along its length (whether or not its
+        pixels stand out one by one); clusters of defective pixels put all of it in a few short runs.
+        (0, 0) without an excess."""
+        d = np.where(np.isfinite(d), d, 0.0)
+        z = d / np.sqrt(np.maximum(var, 1e-12))
+        net = short = 0.0
+        lengths = []
+        for j in range(d.shape[1]):
+            sign = 1.0 if d[:, j].sum() >= 0 else -1.0
+            e = sign * float(d[:, j].sum())
+            col = sign * z[:, j] > grow  # hysteresis: a run starts at an outlier and goes on above `grow`
+            seed = sign * z[:, j] > sigma
+            edges = np.flatnonzero(np.diff(np.concatenate([[0], col.astype(np.int8), [0]])))
+            s_short = 0.0
+            for a_, b_ in zip(edges[::2], edges[1::2]):
+                if not seed[a_:b_].any():
+                    continue
+                lengths.append(b_ - a_)
+                if b_ - a_ < cls.MIN_RUN:
+                    s_short += sign * float(d[a_:b_, j].sum())
+            net += max(e, s_short)
+            short += s_short
+        if net <= 0 or not lengths:
+            return 0.0, 0.0
+        return short / net, float(np.median(lengths))
 
     @staticmethod
     def _gain(z: np.ndarray) -> tuple[float, int, np.ndarray]:

@@ -16,7 +16,8 @@ from the model image's derivatives:
 * shift by ``(dx, dy)``: ``I(x - dx, y - dy) ~ I - dx dI/dx - dy dI/dy``;
 * uniform drift ``d`` during the exposure: convolution with a line segment (a box of length ``|d|``), whose
   covariance is ``d d^T / 12``, so to first order a blur of that (rank-one) covariance;
-* radial distortion ``r' = r (1 + k r^2)``: a shift field ``k r^2 (x - x_c, y - y_c)``;
+* radial distortion ``r' = r (1 + k r^2)``: a shift field ``k r^2 (x - x_c, y - y_c)``, plus Brown's (1966)
+  decentering terms in ``p1``, ``p2``;
 * ghost: ``alpha`` times the image reflected through the optical axis and defocused into a disc (a
   double reflection between two surfaces of a refractive corrector; Gross, *Handbook of Optical Systems*
   vol. 5, 2012, ch. 40 "ghost images"), which is linear in ``alpha``.
@@ -153,16 +154,26 @@ def drift_smear(image: np.ndarray, dx_px: float, dy_px: float, spectra: dict | N
 
 
 def radial_distortion(image: np.ndarray, ys: np.ndarray, xs: np.ndarray, yc: float, xc: float, k_per_px2: float,
-                      step: float = 1.0) -> np.ndarray:
-    """Image whose content at radius r from (xc, yc) moves to r (1 + k r^2) [px] (k > 0: pincushion).
+                      step: float = 1.0, p1_per_px: float = 0.0, p2_per_px: float = 0.0) -> np.ndarray:
+    """Image whose content at radius r from (xc, yc) moves to r (1 + k r^2) [px] (k > 0: pincushion), plus
+    the decentering (tangential) distortion of Brown (1966, Photogramm. Eng. 32, 444, eq. 13; the
+    Brown-Conrady model), with (x, y) measured from the centre:
+    ``dx = p1 (r^2 + 2 x^2) + 2 p2 x y``, ``dy = p2 (r^2 + 2 y^2) + 2 p1 x y`` [px] (``p1``, ``p2`` [px^-1]):
+    what a lens element decentred or tilted off the axis adds to the radial distortion.
 
     ``ys``, ``xs`` are the sensor coordinates of the image's pixel centres, ``step`` their spacing (the
     binning of an output image)."""
     yy, xx = np.meshgrid(ys - yc, xs - xc, indexing="ij")
-    f = 1.0 + k_per_px2 * (xx * xx + yy * yy)
-    # inverse mapping to first order: the output pixel at r' samples the input at r' / (1 + k r'^2)
-    src_y = ((yy / f + yc) - ys[0]) / step
-    src_x = ((xx / f + xc) - xs[0]) / step
+    r2 = xx * xx + yy * yy
+    f = 1.0 + k_per_px2 * r2
+    # inverse mapping to first order: the output pixel at r' samples the input at r' / (1 + k r'^2), less the
+    # decentering displacement there
+    src_y, src_x = yy / f, xx / f
+    if p1_per_px or p2_per_px:
+        src_x = src_x - (p1_per_px * (r2 + 2 * xx * xx) + 2 * p2_per_px * xx * yy)
+        src_y = src_y - (p2_per_px * (r2 + 2 * yy * yy) + 2 * p1_per_px * xx * yy)
+    src_y = ((src_y + yc) - ys[0]) / step
+    src_x = ((src_x + xc) - xs[0]) / step
     return ndimage.map_coordinates(image, [src_y, src_x], order=1, mode="nearest").astype(image.dtype)
 
 
@@ -216,14 +227,39 @@ class TransformSignature(Signature):
 
     kind = "transform"
 
-    def __init__(self, start, transform, to_params, steps, explain, pattern="", n_iter: int = 6):
+    def __init__(self, start, transform, to_params, steps, explain, pattern="", n_iter: int = 6, check=None,
+                 nested: list[tuple[int, ...]] | None = None):
         self.start, self.transform, self.to_params, self.steps = start, transform, to_params, np.asarray(steps, float)
-        self.explain, self.pattern, self.n_iter = explain, pattern, n_iter
+        self.explain, self.pattern, self.n_iter, self.check = explain, pattern, n_iter, check
+        self.nested = nested
         self._spectra = {"spectra", "workers"} <= set(inspect.signature(transform).parameters)
 
     def fit(self, res, name):
+        """The fit of all parameters; with ``nested`` (subsets of the parameters, the others held at 0), the
+        subset whose fit has the lowest delta BIC (a simpler form is kept unless the extra terms pay for
+        their parameters)."""
         if not _has_structure(res):
             return None
+        if not self.nested:
+            return self._fit(res, name, self.start, self.transform, self.to_params, self.steps)
+        best = None
+        n_all = self.steps.size
+        for sub in self.nested:
+            sub = np.asarray(sub, int)
+
+            def embed(th, sub=sub):
+                full = np.zeros(n_all)
+                full[sub] = th
+                return full
+
+            fit = self._fit(res, name, lambda r, sub=sub: _take(self.start(r, sub), sub),
+                            lambda r, photo, th, embed=embed, **kw: self.transform(r, photo, embed(th), **kw),
+                            lambda th, r, embed=embed: self.to_params(embed(th), r), self.steps[sub])
+            if fit is not None and (best is None or fit.delta_bic < best.delta_bic):
+                best = fit
+        return best
+
+    def _fit(self, res, name, start, transform, to_params, steps):
         # Gauss-Newton on the search subsample of the fitted pixels, with the global levels refitted at every
         # step (detector.signatures.fit_linear / profiled_chi2); the result is evaluated on every fitted pixel
         ctx = search_sample(res)
@@ -232,7 +268,7 @@ class TransformSignature(Signature):
         photo = np.asarray(res.photo_field, np.float64)
         cap = res.sensor.full_well_e * res.pixel_sum / res.gain
         clipped = np.minimum(photo, cap)
-        theta = self.start(res)
+        theta = start(res)
         if theta is None:
             return None
 
@@ -240,11 +276,11 @@ class TransformSignature(Signature):
         kw = {"spectra": spectra, "workers": FIT_FFT_WORKERS} if self._spectra else {}
 
         def image(th):
-            return np.minimum(self.transform(res, photo, th, **kw), cap)
+            return np.minimum(transform(res, photo, th, **kw), cap)
 
         def on_sample(th):
             """The transformed, clipped image at the search sample's pixels only (what the steps use)."""
-            return np.minimum(self.transform(res, photo, th, **kw).ravel()[sidx], cap)
+            return np.minimum(transform(res, photo, th, **kw).ravel()[sidx], cap)
 
         clipped_s = clipped.ravel()[sidx]
 
@@ -254,7 +290,7 @@ class TransformSignature(Signature):
         best = chi2_of(theta)
         for _ in range(self.n_iter):
             base = on_sample(theta)
-            jac = np.stack([(on_sample(theta + h * e) - base) / h for h, e in zip(self.steps, np.eye(theta.size))])
+            jac = np.stack([(on_sample(theta + h * e) - base) / h for h, e in zip(steps, np.eye(theta.size))])
             # fit_linear asks for the templates at (chunks of) the sample's pixels: their positions in it
             step, _ = fit_linear(res, lambda i, jac=jac: jac[:, np.searchsorted(sidx, i)], sidx,
                                  sr - (base - clipped_s), sw)
@@ -266,9 +302,9 @@ class TransformSignature(Signature):
                     theta, best, improved = trial, c, True
                     break
                 lam /= 2
-            if not improved or np.all(np.abs(lam * step) < 1e-3 * self.steps):
+            if not improved or np.all(np.abs(lam * step) < 1e-3 * steps):
                 break
-        params = self.to_params(theta, res)
+        params = to_params(theta, res)
         if params is None:
             return None
         idx, _, w = res.flat_profiled()
@@ -276,6 +312,14 @@ class TransformSignature(Signature):
         delta = (image(theta) - clipped).astype(np.float32)
         d = profiled_chi2(res, idx, r - delta.ravel()[idx], w) - res.chi2_profiled()
         return Fit(name, params, d, theta.size, res.n_fit, self.explain(params, res), delta_adu=delta)
+
+
+def _take(theta, sub):
+    """``theta[sub]`` (a start that already returns the subset's values is passed through); None stays None."""
+    if theta is None:
+        return None
+    theta = np.asarray(theta, float)
+    return theta if theta.size == len(sub) else theta[sub]
 
 
 def _derivatives(res) -> dict:
@@ -450,27 +494,104 @@ def _drift_words(p, res) -> str:
             "Gaussian smear): the pointing drifted during the exposure (tracking-rate error, wind push)")
 
 
-# distortion: theta = k [sensor px^-2]
-def _distortion_start(res):
-    d, b = _derivatives(res), res.sensor.binning
+# distortion: theta = (k [sensor px^-2], p1, p2 [sensor px^-1])
+def _distortion_fields(res) -> list[tuple[np.ndarray, np.ndarray]]:
+    """The displacement fields (dx, dy) [sensor px] of unit k, p1 and p2 at the output pixels."""
     yc, xc = _sensor_centre(res)
     yy, xx = np.meshgrid(res.ys - yc, res.xs - xc, indexing="ij")
-    t = -(d["x"] * xx + d["y"] * yy) * (xx * xx + yy * yy) / b
+    r2 = xx * xx + yy * yy
+    return [(xx * r2, yy * r2), (r2 + 2 * xx * xx, 2 * xx * yy), (2 * xx * yy, r2 + 2 * yy * yy)]
+
+
+def _distortion_start(res, terms=(0, 1, 2)):
+    """First order: the image moved by the displacement field, ``-(dI/dx dx + dI/dy dy)``, for each of the
+    ``terms`` (0: k, 1: p1, 2: p2)."""
+    d, b = _derivatives(res), res.sensor.binning
+    fields = _distortion_fields(res)
+    temps = [-(d["x"] * fields[t][0] + d["y"] * fields[t][1]) / b for t in terms]
     ctx = search_sample(res)
-    c, _ = fit_linear(res, lambda i: t.ravel()[i][None, :], ctx["idx"], ctx["r"], ctx["w"])
-    return np.array([float(c[0])])
+    c, _ = fit_linear(res, lambda i: np.stack([t.ravel()[i] for t in temps]), ctx["idx"], ctx["r"], ctx["w"])
+    return np.asarray(c, float)
 
 
 def _distortion_transform(res, photo, th):
     yc, xc = _sensor_centre(res)
-    return radial_distortion(photo, res.ys, res.xs, yc, xc, float(th[0]), step=res.sensor.binning)
+    return radial_distortion(photo, res.ys, res.xs, yc, xc, float(th[0]), step=res.sensor.binning,
+                             p1_per_px=float(th[1]), p2_per_px=float(th[2]))
 
 
 def _distortion_params(th, res):
     yc, xc = _sensor_centre(res)
     rmax2 = max((res.ys - yc) ** 2) + max((res.xs - xc) ** 2)
-    k = float(th[0])
-    return {"k_per_px2": k} if abs(k) * rmax2 < 0.05 and k != 0 else None
+    k, p1, p2 = (float(v) for v in th)
+    # a displacement of at most 5 % of the field radius (and the parameters' bounds)
+    if abs(k) * rmax2 >= 0.05 or 3 * max(abs(p1), abs(p2)) * np.sqrt(rmax2) >= 0.05 or (k == 0 and p1 == 0 and p2 == 0):
+        return None
+    return {"k_per_px2": k, "p1_per_px": p1, "p2_per_px": p2}
+
+
+def _distortion_words(p, res) -> str:
+    yc, xc = _sensor_centre(res)
+    rmax = float(np.sqrt(max((res.ys - yc) ** 2) + max((res.xs - xc) ** 2)))
+    radial = abs(p["k_per_px2"]) * rmax ** 3
+    decent = 3 * max(abs(p["p1_per_px"]), abs(p["p2_per_px"])) * rmax ** 2
+    parts = []
+    if radial >= 0.25 * decent:
+        parts.append(f"radially {'outward' if p['k_per_px2'] > 0 else 'inward'} by up to {radial:.2g} px, growing as "
+                     "the cube of the field radius")
+    if decent >= 0.25 * radial:
+        parts.append(f"by a decentering (tangential) term of up to {decent:.2g} px, growing as the square of the "
+                     "radius (a decentred or tilted element)")
+    return "sources displaced " + " and ".join(parts) + ": distortion missing from the WCS"
+
+
+#: a rigid offset moves every source alike: the regions' own extra shifts may reach this share of it (rms)
+MAX_OFFSET_VARIATION = 0.5
+
+
+def _offset_check(fit, res) -> str:
+    """A pointing offset moves the whole image rigidly. After the fitted shift, the extra shift of each of
+    3 x 3 regions (linearised: the model image's derivatives per region, fitted with the global levels) must
+    be insignificant, or small beside the common one: a displacement that varies across the field (rms of
+    the regions' extra shifts above MAX_OFFSET_VARIATION of the offset, at more than 8 sigma) is a distortion,
+    a rotation or a plate-scale change the WCS lacks, not a pointing offset."""
+    if fit.delta_adu is None:
+        return ""
+    d = _derivatives(res)
+    ctx = search_sample(res)
+    idx, w = ctx["idx"], ctx["w"]
+    r = ctx["r"] - np.asarray(fit.delta_adu, np.float64).ravel()[idx]
+    ny, nx = res.data_adu.shape
+    y, x = np.divmod(idx, nx)
+    cell = np.minimum(y * 3 // ny, 2) * 3 + np.minimum(x * 3 // nx, 2)
+    gx, gy = d["x"].ravel()[idx], d["y"].ravel()[idx]
+    info = np.array([float(np.sum(w[cell == c] * (gx[cell == c] ** 2 + gy[cell == c] ** 2))) for c in range(9)])
+    if np.count_nonzero(info > 0.05 * info.max()) < 4:
+        return ""  # too few regions with sources to see a field dependence
+
+    def values(i):
+        pos = np.searchsorted(idx, i)
+        out = np.zeros((18, i.size))
+        for c in range(9):
+            on = cell[pos] == c
+            out[2 * c, on] = -gx[pos][on]
+            out[2 * c + 1, on] = -gy[pos][on]
+        return out
+
+    coef, dchi2 = fit_linear(res, values, idx, r, w)
+    gain = -dchi2  # the chi2 the regions' own shifts remove
+    if gain < 18 + 8 * np.sqrt(36):
+        return ""
+    b = res.sensor.binning
+    shifts = coef.reshape(9, 2) * b  # sensor px
+    use = info > 0.05 * info.max()
+    rms = float(np.sqrt(np.sum(info[use, None] * shifts[use] ** 2) / np.sum(info[use])))
+    offset = float(np.hypot(fit.params["dx_px"], fit.params["dy_px"]))
+    if rms <= MAX_OFFSET_VARIATION * offset:
+        return ""
+    return (f"the sources' displacement varies across the field: the regions' own shifts differ from the common "
+            f"{offset:.2g} px by {rms:.2g} px rms (chi2 falls by {gain:.0f} for 18 parameters): a distortion, rotation or "
+            "plate-scale change the WCS lacks, not a rigid pointing offset")
 
 
 def _ghost_variants(res):
@@ -591,7 +712,7 @@ class PointingOffset(Effect):
     Params = OffsetParams
     signature = TransformSignature(
         _offset_start, lambda res, photo, th: shift(photo, float(th[0]), float(th[1])), _offset_params,
-        [0.01, 0.01], pattern="dipoles on every source, all in one direction",
+        [0.01, 0.01], pattern="dipoles on every source, all in one direction", check=_offset_check,
         explain=lambda p, res: f"every source displaced by ({p['dx_px']:+.3g}, {p['dy_px']:+.3g}) px: pointing offset")
 
     def apply(self, stage: Stage, tile: Tile, data: np.ndarray) -> None:
@@ -627,26 +748,32 @@ class PointingDrift(Effect):
 
 class DistortionParams(EffectParams):
     k_per_px2: float = Field(0.0, ge=-1e-4, le=1e-4, description="radial distortion r' = r (1 + k r^2) [px^-2]")
+    p1_per_px: float = Field(0.0, ge=-1e-3, le=1e-3, description="decentering distortion, Brown (1966): dx = p1 "
+                             "(r^2 + 2 x^2) + 2 p2 x y, dy = p2 (r^2 + 2 y^2) + 2 p1 x y [px^-1]")
+    p2_per_px: float = Field(0.0, ge=-1e-3, le=1e-3, description="decentering distortion, second term (see "
+                             "p1_per_px) [px^-1]")
 
 
 @register_effect
 class Distortion(Effect):
-    """Radial (barrel k < 0, pincushion k > 0) distortion about the optical axis the WCS does not describe."""
+    """Field distortion about the optical axis the WCS does not describe: radial (barrel k < 0, pincushion
+    k > 0) and decentering (a decentred or tilted element; Brown 1966, the Brown-Conrady model)."""
 
     name = "distortion"
     scaling = "signal"
-    identity = {"k_per_px2": 0.0}
+    identity = {"k_per_px2": 0.0, "p1_per_px": 0.0, "p2_per_px": 0.0}
     stages = (Stage.FIELD,)
     Params = DistortionParams
     signature = TransformSignature(
-        _distortion_start, _distortion_transform, _distortion_params, [1e-10],
-        pattern="source dipoles growing as r^3 towards the corners",
-        explain=lambda p, res: (f"sources displaced radially, {'outward' if p['k_per_px2'] > 0 else 'inward'}, "
-                                "growing as the cube of the field radius: distortion missing from the WCS"))
+        _distortion_start, _distortion_transform, _distortion_params, [1e-10, 1e-8, 1e-8], nested=[(0,), (0, 1, 2)],
+        pattern="source dipoles growing towards the corners (as r^3 radially, as r^2 for a decentred element)",
+        explain=_distortion_words)
 
     def apply(self, stage: Stage, tile: Tile, data: np.ndarray) -> None:
         ys, xs, yc, xc = _photo_sensor_coords(tile)
-        _store(data, radial_distortion(data, ys, xs, yc, xc, self.params.k_per_px2))
+        p = self.params
+        _store(data, radial_distortion(data, ys, xs, yc, xc, p.k_per_px2, p1_per_px=p.p1_per_px,
+                                       p2_per_px=p.p2_per_px))
 
 
 class GhostParams(EffectParams):

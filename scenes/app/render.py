@@ -65,8 +65,8 @@ def resolve_distortion(scene: Scene, sensor, design) -> Sip | None:
 
     ``"optics"`` asks the optics for the design's SIP fit over the full sensor
     (``optics.distortion.cached_sip``, cached on disk by the design's hash). ``[telescope.sip]
-    radial_k_per_px2`` (what ``[effects.distortion]`` becomes, :func:`scenes.scene.resolve_effect_keys`) is
-    composed with either (:func:`scenes.projection.with_radial`, fitted over the read-out window).
+    radial_k_per_px2`` and ``decentering_p1/p2_per_px`` (what ``[effects.distortion]`` becomes,
+    :func:`scenes.scene.resolve_effect_keys`) are composed with either (:func:`scenes.projection.with_radial`, fitted over the read-out window).
     """
     tel = scene.telescope
     if tel.distortion == "none":
@@ -82,11 +82,12 @@ def resolve_distortion(scene: Scene, sensor, design) -> Sip | None:
         except (OpticsError, ImportError, ValueError, KeyError) as exc:
             raise SceneError(f"cannot get the SIP distortion of design '{design.name}': {exc}",
                              key="telescope.distortion", file=scene.source) from None
-    if t["radial_k"]:
+    if t["radial_k"] or any(t["decentering"]):
         (h, w), (cx, cy) = sensor.shape, axis_crpix(sensor, binned=False)
         margin = RADIAL_FIT_MARGIN_PX
         sip = with_radial(sip, t["radial_k"], (-0.5 - cx + 1 - margin, w - 0.5 - cx + 1 + margin),
-                          (-0.5 - cy + 1 - margin, h - 0.5 - cy + 1 + margin), file=scene.source)
+                          (-0.5 - cy + 1 - margin, h - 0.5 - cy + 1 + margin), file=scene.source,
+                          decentering=t["decentering"])
         if t["reverse_order"] is not None:
             sip = Sip(sip.order, sip.a, sip.b, max(t["reverse_order"], sip.order), sip.source, sip.info)
     return sip

@@ -111,36 +111,75 @@ def test_distortion_effect_becomes_the_scene_sip(tmp_path):
     assert zero.telescope.distortion == "none" and "distortion" not in zero.effects  # the identity
 
 
-def test_radial_sources_move_by_the_formula_and_the_wcs_says_so(tmp_path):
-    k = 1e-8
+def _distorted_pair(tmp_path, table: str):
+    """A star field off the axis rendered without and with ``[effects.distortion]`` ``table``: (the scene's
+    sensor, the axis (xc, yc) in output px, the undistorted TRUTH rows of the stars in both, the distorted
+    frame's TRUTH rows of the same stars, the distorted frame's primary header)."""
     base = star_field_toml(160).replace("[detector]", "[detector]\nx0 = 2600\ny0 = 1700", 1)
     (tmp_path / "n.toml").write_text(base)
-    (tmp_path / "k.toml").write_text(base + f"[effects.distortion]\nk_per_px2 = {k}\n")
+    (tmp_path / "d.toml").write_text(base + "[effects.distortion]\n" + table)
     out = {}
-    for name in ("n", "k"):
-        sc = load_scene(str(tmp_path / f"{name}.toml"))
-        render(sc, tmp_path / f"{name}.fits", seed=1, noiseless=True, progress=False)
+    for name in ("n", "d"):
+        render(load_scene(str(tmp_path / f"{name}.toml")), tmp_path / f"{name}.fits", seed=1, noiseless=True,
+               progress=False)
         out[name] = fits.open(tmp_path / f"{name}.fits")
     s = load_scene(str(tmp_path / "n.toml")).sensor()
     xc, yc = (s.sensor_width_px - 1) / 2 - s.roi_x0, (s.sensor_height_px - 1) / 2 - s.roi_y0
-    tn, tk = out["n"]["TRUTH"].data, out["k"]["TRUTH"].data
-    by_id = {int(i): j for j, i in enumerate(tk["source_id"])}
-    stars = np.isin(tn["kind"], ["star", "synthetic"]) & np.isin(tn["source_id"], tk["source_id"])
+    tn, td = out["n"]["TRUTH"].data, out["d"]["TRUTH"].data
+    by_id = {int(i): j for j, i in enumerate(td["source_id"])}
+    stars = np.isin(tn["kind"], ["star", "synthetic"]) & np.isin(tn["source_id"], td["source_id"])
     assert stars.sum() >= 3
-    j = [by_id[int(i)] for i in tn["source_id"][stars]]
+    return s, (xc, yc), tn[stars], td[[by_id[int(i)] for i in tn["source_id"][stars]]], out["d"][0].header
+
+
+def test_radial_sources_move_by_the_formula_and_the_wcs_says_so(tmp_path):
+    k = 1e-8
+    _, (xc, yc), tn, tk, h = _distorted_pair(tmp_path, f"k_per_px2 = {k}\n")
     # the distortion effect's mapping (detector.effects.image_plane.radial_distortion): the recorded pixel at
     # p (from the axis) holds the undistorted image at p / (1 + k |p|^2), i.e. r' = r (1 + k r^2) to first order
-    dx, dy = tk["x"][j] - xc, tk["y"][j] - yc
+    dx, dy = tk["x"] - xc, tk["y"] - yc
     f = 1 + k * (dx ** 2 + dy ** 2)
-    assert np.max(np.hypot(tk["x"][j] - tn["x"][stars], tk["y"][j] - tn["y"][stars])) > 3.0  # it moved them
-    np.testing.assert_allclose(tn["x"][stars], xc + dx / f, atol=0.01)
-    np.testing.assert_allclose(tn["y"][stars], yc + dy / f, atol=0.01)
-    h = out["k"][0].header
+    assert np.max(np.hypot(tk["x"] - tn["x"], tk["y"] - tn["y"])) > 3.0  # it moved them
+    np.testing.assert_allclose(tn["x"], xc + dx / f, atol=0.01)
+    np.testing.assert_allclose(tn["y"], yc + dy / f, atol=0.01)
     assert h["SIPSRC"] == "scene" and "A_ORDER" in h
     w = WCS(h)
-    px, py = w.all_world2pix(tk["ra_deg"][j], tk["dec_deg"][j], 0)
-    np.testing.assert_allclose(px, tk["x"][j], atol=0.02)
-    np.testing.assert_allclose(py, tk["y"][j], atol=0.02)
+    px, py = w.all_world2pix(tk["ra_deg"], tk["dec_deg"], 0)
+    np.testing.assert_allclose(px, tk["x"], atol=0.02)
+    np.testing.assert_allclose(py, tk["y"], atol=0.02)
+
+
+def test_decentering_sources_move_by_browns_formula_as_the_resampler_does(tmp_path):
+    """``[effects.distortion] p1_per_px, p2_per_px`` (Brown 1966 decentering): the sources sit where
+    :func:`detector.effects.image_plane.radial_distortion` (what the diagnosis fits) moves them: the recorded
+    pixel p (from the axis) holds the undistorted image at p - D(p), D = (p1 (r^2 + 2x^2) + 2 p2 x y,
+    p2 (r^2 + 2y^2) + 2 p1 x y); and the WCS says so."""
+    from detector.effects.image_plane import radial_distortion
+
+    p1, p2 = 2e-6, -1e-6
+    sc = load_scene(str(_scene(tmp_path, "p", f"[effects.distortion]\np1_per_px = {p1}\np2_per_px = {p2}\n")))
+    assert sc.telescope.sip == {"decentering_p1_per_px": p1, "decentering_p2_per_px": p2}
+    s, (xc, yc), tn, tp, h = _distorted_pair(tmp_path, f"p1_per_px = {p1}\np2_per_px = {p2}\n")
+    x, y = tp["x"] - xc, tp["y"] - yc
+    r2 = x * x + y * y
+    assert np.max(np.hypot(tp["x"] - tn["x"], tp["y"] - tn["y"])) > 1.0  # it moved them
+    np.testing.assert_allclose(tn["x"], xc + x - (p1 * (r2 + 2 * x * x) + 2 * p2 * x * y), atol=0.01)
+    np.testing.assert_allclose(tn["y"], yc + y - (p2 * (r2 + 2 * y * y) + 2 * p1 * x * y), atol=0.01)
+    # the resampler the diagnosis fits with moves a point source by the same amount
+    ys = np.arange(s.roi_y0, s.roi_y0 + s.height, dtype=float)
+    xs = np.arange(s.roi_x0, s.roi_x0 + s.width, dtype=float)
+    gy, gx = np.mgrid[: s.height, : s.width]
+    for k in range(3):
+        img = np.zeros((s.height, s.width), np.float32)
+        iy, ix = int(round(tn["y"][k])), int(round(tn["x"][k]))
+        img[iy, ix] = 1.0
+        moved = radial_distortion(img, ys, xs, (s.sensor_height_px - 1) / 2, (s.sensor_width_px - 1) / 2, 0.0,
+                                  p1_per_px=p1, p2_per_px=p2)
+        cx, cy = float((moved * gx).sum() / moved.sum()), float((moved * gy).sum() / moved.sum())
+        np.testing.assert_allclose([cx - ix, cy - iy], [tp["x"][k] - tn["x"][k], tp["y"][k] - tn["y"][k]], atol=0.02)
+    px, py = WCS(h).all_world2pix(tp["ra_deg"], tp["dec_deg"], 0)
+    np.testing.assert_allclose(px, tp["x"], atol=0.02)
+    np.testing.assert_allclose(py, tp["y"], atol=0.02)
 
 
 def test_with_radial_composes_with_a_sip():

@@ -1,0 +1,162 @@
+"""Structure tests a candidate must pass before it is named (issue 10: a name is a claim about physics).
+
+Each rule is checked on synthetic residuals whose answer is known independently: noise of any law is
+zero-mean and its outliers have independent neighbours; a compressive response is not; a rigid shift moves
+every region alike while a decentering distortion does not; a defective column spreads its excess along its
+length while pixel clusters do not.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from detector.effects import registry
+from detector.effects.defects import ColumnSignature
+from detector.effects.image_plane import _offset_check, radial_distortion, shift
+from detector.sensor import make_sensor
+from detector.signatures import Residuals, SpikeStats, tail_neighbour_correlation
+
+
+def _res(data, model, var, photo, sensor, ys=None, xs=None) -> Residuals:
+    h, w = data.shape
+    return Residuals(data.astype(np.float32), model.astype(np.float32), var.astype(np.float32),
+                     np.ones((h, w), bool), photo.astype(np.float32), np.zeros((h, w), np.float32),
+                     np.arange(h, dtype=float) if ys is None else ys, np.arange(w, dtype=float) if xs is None else xs,
+                     sensor, 10.0, SpikeStats(0, 0, 0, 0, 0), SpikeStats(0, 0, 0, 0, 0))
+
+
+def _stars(shape, n, rng, sigma_px=1.5, peak=(2e3, 4e4)) -> np.ndarray:
+    """Gaussian stars [ADU] at random positions on a zero background."""
+    img = np.zeros(shape)
+    yy, xx = np.mgrid[: shape[0], : shape[1]]
+    for y0, x0, a in zip(rng.uniform(8, shape[0] - 8, n), rng.uniform(8, shape[1] - 8, n),
+                         np.exp(rng.uniform(*np.log(peak), n))):
+        sl = (slice(max(int(y0) - 8, 0), int(y0) + 9), slice(max(int(x0) - 8, 0), int(x0) + 9))
+        img[sl] += a * np.exp(-((yy[sl] - y0) ** 2 + (xx[sl] - x0) ** 2) / (2 * sigma_px ** 2))
+    return img
+
+
+# ------------------------------------------------------------------------------------ noise is noise
+@pytest.mark.parametrize("law", ["normal", "laplace", "student"])
+def test_outliers_of_independent_noise_have_independent_neighbours(law):
+    """Whatever its tail, independent pixel noise gives a tail-neighbour correlation of 0 +- a few / sqrt(n)."""
+    rng = np.random.default_rng(3)
+    shape = (256, 256)
+    noise = {"normal": rng.normal(0, 1, shape), "laplace": rng.laplace(0, 1 / np.sqrt(2), shape),
+             "student": rng.standard_t(3, shape) / np.sqrt(3)}[law] * 10.0
+    s = make_sensor("ml11002", {"width": 256, "height": 256})
+    model = np.full(shape, 1000.0)
+    res = _res(model + noise, model, np.full(shape, 100.0), np.zeros(shape), s)
+    rho, z, n = tail_neighbour_correlation(res)
+    assert n > 100 and abs(z) < 4, (rho, z, n)
+
+
+def test_outliers_in_pairs_share_their_sign_with_a_neighbour():
+    rng = np.random.default_rng(4)
+    shape = (256, 256)
+    data = 1000.0 + rng.normal(0, 10, shape)
+    ys, xs = rng.integers(0, 255, 300), rng.integers(0, 256, 300)
+    data[ys, xs] += 200.0
+    data[ys + 1, xs] += 200.0  # vertical pairs (hot pixels in pairs, a structure two pixels tall)
+    s = make_sensor("ml11002", {"width": 256, "height": 256})
+    res = _res(data, np.full(shape, 1000.0), np.full(shape, 100.0), np.zeros(shape), s)
+    rho, z, _ = tail_neighbour_correlation(res)
+    assert rho > 0.3 and z > 5
+
+
+# ------------------------------------------------------------------------------------ zero mean
+def _prnu_case(compress: float, seed: int = 5):
+    """A star field with a white PRNU of 2 % (data) and optionally a compressive response
+    ``S (1 - compress S / S_max)`` the model lacks."""
+    rng = np.random.default_rng(seed)
+    shape = (256, 256)
+    photo = _stars(shape, 120, rng) + 50.0
+    s = make_sensor("ml11002", {"width": 256, "height": 256, "bias_adu": 0})
+    truth = photo * (1 + 0.02 * rng.standard_normal(shape))
+    truth = truth * (1 - compress * photo / photo.max())
+    var = photo / s.gain_e_per_adu + 4.0
+    data = truth + rng.normal(0, np.sqrt(var))
+    return _res(data, photo, var, photo, s)
+
+
+def test_a_real_prnu_is_zero_mean_and_plausible():
+    res = _prnu_case(0.0)
+    sig = registry()["prnu"].signature
+    fit = sig.fit(res, "prnu")
+    assert fit is not None and fit.delta_bic < -100
+    assert sig.zero_mean(fit, res) == ""
+    assert fit.params["sigma"] == pytest.approx(0.02, rel=0.25)
+
+
+def test_compressed_star_cores_are_not_a_prnu():
+    """Cores read low: the scatter the PRNU fit wants is a mean deficit, which the zero-mean rule names."""
+    res = _prnu_case(0.08)
+    sig = registry()["prnu"].signature
+    fit = sig.fit(res, "prnu")
+    assert fit is not None
+    why = sig.zero_mean(fit, res)
+    assert "below the model" in why
+
+
+# ------------------------------------------------------------------------------------ rigid or not
+def _star_frame(transform, seed=6):
+    """A 256 x 256 window at the centre of the ML11002 with stars moved by ``transform(model, ys, xs, yc, xc)``."""
+    rng = np.random.default_rng(seed)
+    s = make_sensor("ml11002", {"width": 256, "height": 256})
+    h, w = 256, 256
+    y0, x0 = (s.sensor_height_px - h) // 2, (s.sensor_width_px - w) // 2
+    ys, xs = np.arange(y0, y0 + h, dtype=float), np.arange(x0, x0 + w, dtype=float)
+    yc, xc = (s.sensor_height_px - 1) / 2, (s.sensor_width_px - 1) / 2
+    photo = _stars((h, w), 250, rng) + 20.0
+    var = photo / s.gain_e_per_adu + 9.0
+    moved = transform(photo.astype(np.float32), ys, xs, yc, xc).astype(np.float64)
+    data = moved + rng.normal(0, np.sqrt(var))
+    return _res(data, photo, var, photo, s, ys, xs)
+
+
+def test_a_rigid_shift_is_a_pointing_offset():
+    res = _star_frame(lambda p, ys, xs, yc, xc: shift(p, 0.6, -0.4))
+    sig = registry()["pointing_offset"].signature
+    fit = sig.fit(res, "pointing_offset")
+    assert fit.params["dx_px"] == pytest.approx(0.6, abs=0.05) and fit.params["dy_px"] == pytest.approx(-0.4, abs=0.05)
+    assert _offset_check(fit, res) == ""
+
+
+def test_a_decentering_distortion_is_not_a_pointing_offset_and_is_fitted_as_one():
+    p1, p2 = 2e-5, -1e-5  # up to ~2 px at the window's corners
+    res = _star_frame(lambda p, ys, xs, yc, xc: radial_distortion(p, ys, xs, yc, xc, 0.0, p1_per_px=p1,
+                                                                   p2_per_px=p2))
+    off = registry()["pointing_offset"].signature.fit(res, "pointing_offset")
+    assert "varies across the field" in _offset_check(off, res)
+    dist = registry()["distortion"].signature.fit(res, "distortion")
+    assert dist.params["p1_per_px"] == pytest.approx(p1, rel=0.1)
+    assert dist.params["p2_per_px"] == pytest.approx(p2, rel=0.1)
+    assert dist.delta_bic < off.delta_bic
+
+
+def test_a_radial_distortion_keeps_the_simpler_form():
+    """Nested forms: a pure radial distortion is fitted with k alone (the decentering terms stay 0)."""
+    k = 2e-8
+    res = _star_frame(lambda p, ys, xs, yc, xc: radial_distortion(p, ys, xs, yc, xc, k))
+    fit = registry()["distortion"].signature.fit(res, "distortion")
+    assert fit.params["k_per_px2"] == pytest.approx(k, rel=0.1)
+    assert fit.params["p1_per_px"] == 0.0 and fit.params["p2_per_px"] == 0.0 and fit.k == 1
+
+
+# ------------------------------------------------------------------------------------ columns
+def test_column_excess_in_short_runs_is_clusters_not_a_column():
+    rng = np.random.default_rng(7)
+    var = np.full((512, 6), 100.0)
+    d = rng.normal(0, 10, (512, 6))
+    clusters = d.copy()
+    for j in range(6):
+        for y in rng.integers(0, 500, 2):
+            clusters[y:y + 3, j] -= 3000.0  # 3 x 3 dead clusters crossing the column
+    share, run = ColumnSignature.short_run_share(clusters, var)
+    assert share > 0.9 and run == 3
+    hot = d + np.linspace(0, 90, 512)[:, None]  # a leak growing along the column: most pixels below 5 sigma
+    assert ColumnSignature.short_run_share(hot, var)[0] < 0.2
+    whole = d - 60.0  # a dead column: every pixel 6 sigma low, one run
+    share, run = ColumnSignature.short_run_share(whole, var)
+    assert share < 0.05 and run > 100
