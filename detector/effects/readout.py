@@ -23,12 +23,12 @@ from scipy.ndimage import binary_dilation
 from ..signatures import (
     Fit,
     LinearSignature,
-    fit_linear,
-    search_sample,
     Signature,
     VarianceSignature,
     Variant,
+    fit_linear,
     ml_variance_scale,
+    search_sample,
 )
 from .base import Effect, EffectParams, Stage, Tile, register_effect
 
@@ -379,11 +379,12 @@ def crosstalk_params(c: float, n: int, mirrored: bool, delay: int = 0, tail: flo
 
 
 def crosstalk_variant(res, n: int, mirrored: bool, delay: int = 0, tail: float = 0.0,
-                      layout: CrosstalkLayout | None = None) -> CrosstalkVariant:
+                      layout: CrosstalkLayout | None = None, sig: np.ndarray | None = None) -> CrosstalkVariant:
     """The template of one crosstalk form: its map built by the plugin's own :func:`channel_crosstalk` (with
-    ``alpha = 1``) when the winner needs it, its values at pixels gathered from the layout's lags."""
-    sig = crosstalk_signal(res) if layout is None else layout.sig
-    lay = layout
+    ``alpha = 1``) when the winner needs it, its values at pixels gathered from the lags of ``layout`` (or of a
+    layout built for the call and dropped: a search over many forms keeps no frame-sized array per form)."""
+    if sig is None:
+        sig = crosstalk_signal(res) if layout is None else layout.sig
     kern = crosstalk_kernel(delay, tail)
     cache: dict = {}
 
@@ -396,11 +397,9 @@ def crosstalk_variant(res, n: int, mirrored: bool, delay: int = 0, tail: float =
         return cache["t"]
 
     def at(idx):
-        nonlocal lay
         if "t" in cache:  # the map exists: read it (the same numbers the final fit and the apply use)
             return cache["t"][0].ravel()[idx].astype(np.float64)[None, :]
-        if lay is None:
-            lay = CrosstalkLayout(sig, n, mirrored)
+        lay = layout if layout is not None else CrosstalkLayout(sig, n, mirrored)
         return (kern @ lay.taps(idx, kern.size))[None, :]
 
     label = f"{n} channels{' mirrored' if mirrored else ''}"
@@ -423,7 +422,7 @@ def _crosstalk_variants(res):
     searches layouts and kernels together on a single frame)."""
     sig = crosstalk_signal(res)
     for n, mirrored in _crosstalk_layouts(res):
-        yield crosstalk_variant(res, n, mirrored, layout=CrosstalkLayout(sig, n, mirrored))
+        yield crosstalk_variant(res, n, mirrored, sig=sig)
 
 
 def _crosstalk_kernels(v, res):
@@ -508,7 +507,7 @@ class CrosstalkSignature(LinearSignature):
             best = search(lay, profiled_normal(res, lay.taps(idx, lags), idx, r, w), kernels, best)
         if best is None:
             return None
-        _, n, mirrored, d, t, lay, nab = best
+        _, n, mirrored, d, t, _lay, nab = best
         if t:  # the tail between its grid neighbours (the smallest tried: down to half of it)
             i = CROSSTALK_TAILS.index(t)
             lo = CROSSTALK_TAILS[i - 1] if i > 1 else t / 2
@@ -521,8 +520,8 @@ class CrosstalkSignature(LinearSignature):
             opt = optimize.minimize_scalar(m2l, bounds=(lo, hi), method="bounded", options={"xatol": 1e-3})
             if m2l(float(opt.x)) < m2l(t):
                 t = round(float(opt.x), 3)
-        v = crosstalk_variant(res, n, mirrored, d, t, layout=lay)
-        v.maps()  # the winner's map: the plugin's own function
+        v = crosstalk_variant(res, n, mirrored, d, t, sig=sig)
+        v.maps()  # the winner's map: the plugin's own function (its values are read from it from now on)
         values = (lambda i: v.values(i, res.data_adu.shape))
         if ctx["full"]:
             c, dm2 = fit_linear(res, values, idx, r, w)

@@ -35,8 +35,7 @@ def test_kernel_is_a_normalised_delayed_exponential():
 def _echo_by_hand(shape, n, mirrored, src, alpha, kern):
     """The echo of point sources ``src`` [(row, col, value)], written pixel by pixel from the definition: the
     victim pixel read ``m`` places after the source's read-out position gets ``alpha kern[m] value``."""
-    h, w = shape
-    wc = w // n
+    wc = shape[1] // n
     out = np.zeros(shape)
     for y, x, val in src:
         j0 = x // wc
