@@ -7,9 +7,14 @@ References
 * EMVA Standard 1288 Release 4.0, sec. 4.3 / 8.3: row and column (spatial) noise.
 * A. C. Moore et al., SPIE 5499 (2004); LSST Camera crosstalk papers (e.g. Snyder et al., JATIS 2021):
   electronic crosstalk between read-out channels as a linear coupling coefficient.
+* L. M. Freyhammer et al., Exp. Astron. 12, 147 (2001), "On cross-talk among the amplifiers of CCDs":
+  crosstalk of either sign, delayed behind the aggressor's pixel by the read-out electronics (the causal
+  kernel of :func:`crosstalk_kernel`); G. M. Bernstein et al., PASP 129, 114502 (2017) (DECam).
 """
 
 from __future__ import annotations
+
+from dataclasses import dataclass, replace
 
 import numpy as np
 from pydantic import Field
@@ -21,7 +26,9 @@ from ..signatures import (
     Signature,
     VarianceSignature,
     Variant,
+    fit_linear,
     ml_variance_scale,
+    search_sample,
 )
 from .base import Effect, EffectParams, Stage, Tile, register_effect
 
@@ -48,12 +55,55 @@ def bias_shape_adu(ys: np.ndarray, xs: np.ndarray, height: int, width: int, gx: 
     return np.broadcast_to(out, (ys.size, xs.size)).astype(np.float32)
 
 
-def channel_crosstalk(data: np.ndarray, n_channels: int, alpha: float, mirrored: bool) -> None:
+#: span of an exponential crosstalk tail [e-folding lengths]: lags beyond it carry < e^-5 = 0.7 % of the echo
+TAIL_SPAN = 5.0
+
+
+def crosstalk_kernel(delay_px: int = 0, tail_px: float = 0.0) -> np.ndarray:
+    """Causal impulse response [1 per read-out pixel] of inter-channel crosstalk along the read-out order,
+    normalised to a sum of 1 (so that ``alpha`` stays the integrated coupling).
+
+    The victim's amplifier sees the aggressor's signal through a shared supply, reference or clock line with
+    a settling time: the echo arrives ``delay_px`` read-out pixels after the aggressor's pixel and, with
+    ``tail_px > 0``, decays as ``exp(-m / tail_px)`` over the following lags ``m`` (a single-pole RC
+    response), truncated after :data:`TAIL_SPAN` e-folding lengths. ``delay_px = 0, tail_px = 0`` is the
+    instantaneous coupling (a delta at lag 0). Delayed and negative (undershoot) crosstalk between CCD
+    amplifiers: Freyhammer et al. 2001, Exp. Astron. 12, 147; coefficients of either sign in large mosaics:
+    Bernstein et al. 2017, PASP 129, 114502 (DECam); Snyder et al. 2021, JATIS 7, 048002 (LSST).
+    Returns weights for lags ``0 .. len - 1`` [read-out pixels]."""
+    d = int(delay_px)
+    if d < 0 or tail_px < 0:
+        raise ValueError("crosstalk delay and tail must be >= 0")
+    if tail_px <= 0:
+        k = np.zeros(d + 1)
+        k[d] = 1.0
+        return k
+    m = np.arange(int(np.ceil(TAIL_SPAN * tail_px)) + 1, dtype=np.float64)
+    w = np.exp(-m / tail_px)
+    return np.concatenate([np.zeros(d), w / w.sum()])
+
+
+def causal_filter(x: np.ndarray, kernel: np.ndarray) -> np.ndarray:
+    """``sum_m kernel[m] x[..., p - m]`` along the last axis (zero before the first pixel): the echo of a
+    signal read in the order of the last axis through the impulse response ``kernel`` [same units as x]."""
+    out = np.zeros_like(x)
+    n = x.shape[-1]
+    for m, k in enumerate(np.asarray(kernel, np.float64)):
+        if k and m < n:
+            out[..., m:] += x.dtype.type(k) * x[..., : n - m]
+    return out
+
+
+def channel_crosstalk(data: np.ndarray, n_channels: int, alpha: float, mirrored: bool, delay_px: int = 0,
+                      tail_px: float = 0.0) -> None:
     """In place: every channel (vertical stripe) receives ``alpha`` times the signal of every other channel.
 
     Channels are ``n_channels`` equal stripes of columns; with ``mirrored`` every second channel is read
     from the other side, so the coupled image appears mirrored (as on multi-amplifier CCDs). Works on the
-    bias-free signal [ADU]; ``alpha`` [1] is the victim/source coupling.
+    bias-free signal [ADU]; ``alpha`` [1] is the victim/source coupling (negative: an undershoot). With
+    ``delay_px`` [read-out pixels] or ``tail_px`` [read-out pixels] the echo is the aggressor's signal
+    through the causal kernel :func:`crosstalk_kernel` along each row in read-out order (the channels are
+    read in step; the echo does not cross to the next row).
     """
     rows, cols = data.shape
     wc = cols // n_channels
@@ -64,6 +114,8 @@ def channel_crosstalk(data: np.ndarray, n_channels: int, alpha: float, mirrored:
     oriented = view.copy()
     if mirrored:
         oriented[:, 1::2] = oriented[:, 1::2, ::-1]
+    if delay_px or tail_px:
+        oriented = causal_filter(oriented, crosstalk_kernel(delay_px, tail_px))
     total = oriented.sum(axis=1)  # (rows, wc): every channel in read-out order
     for j in range(n_channels):
         others = total - oriented[:, j]
@@ -201,22 +253,6 @@ def _bias_words(p, res) -> str:
     return "an additive offset independent of the signal, " + ", ".join(parts) + ": bias structure"
 
 
-def _crosstalk_variants(res):
-    s = res.sensor
-    sig = (res.model_adu - (s.bias_adu - 0.5) * res.adu_sum).astype(np.float32)
-    for n in (2, 4, 8, 16):
-        for mirrored in (True, False):
-            t = sig.copy()
-            channel_crosstalk(t, n, 1.0, mirrored)
-            t -= sig
-
-            def to_params(c, n=n, mirrored=mirrored):
-                return ({"n_channels": n, "alpha": round(float(c[0]), 7), "mirrored": mirrored}
-                        if abs(c[0]) <= 0.1 and c[0] != 0 else None)
-
-            yield Variant([t], to_params, f"{n} channels{' mirrored' if mirrored else ''}")
-
-
 _ROW_SIGNATURE = RowOffsetSignature()
 _KTC_SIGNATURE = VarianceSignature(
     lambda res: np.ones(1), _ktc_params,
@@ -228,28 +264,317 @@ _BIAS_SIGNATURE = LinearSignature(_bias_variants, _bias_words, pattern="additive
 #: the largest electronic crosstalk coefficient a camera shows [1]: measured coefficients are 1e-5 .. 1e-3
 #: (LSST sensors, Snyder et al. 2021, JATIS 7, 048002; DECam, Bernstein et al. 2017, PASP 129, 114502)
 CROSSTALK_MAX = 0.01
+#: the largest |coefficient| the fit returns at all (the plugin's bound) [1]
+CROSSTALK_FIT_MAX = 0.1
+#: the channel counts the crosstalk search tries: the read-out window split into this many equal stripes
+#: [channels] (every count up to 8, and 16: multi-output CCDs and CMOS read 2, 4, 8 or 16 ports; odd
+#: counts cost nothing to try)
+CROSSTALK_CHANNELS = (2, 3, 4, 5, 6, 7, 8, 16)
+#: narrowest channel the search tries [output pixels]
+CROSSTALK_MIN_WIDTH = 16
+#: delays of the echo [read-out pixels] and e-folding lengths of its exponential tail [read-out pixels] the
+#: search tries (the tail refined continuously between the grid's neighbours); a fit at the largest of either
+#: is flagged (the echo may come later or last longer than the family reaches)
+CROSSTALK_DELAYS = (0, 1, 2, 3)
+CROSSTALK_TAILS = (0.0, 0.25, 0.5, 1.0, 2.0)
+#: layouts (the best by their delays alone) whose every kernel (delays and tails) is tried [layouts]
+CROSSTALK_TOP_LAYOUTS = 2
+
+
+def crosstalk_signal(res) -> np.ndarray:
+    """The model's bias-free signal [ADU] that the channels couple (what :class:`Crosstalk` acts on)."""
+    return (res.model_adu - (res.sensor.bias_adu - 0.5) * res.adu_sum).astype(np.float32)
+
+
+class CrosstalkLayout:
+    """The model's signal ``sig`` [ADU] read as ``n`` channels (equal stripes of columns, every second one read
+    from the other side when ``mirrored``): the sum of all channels in read-out order, and the crosstalk
+    templates at lag ``m`` [read-out pixels] gathered at flat pixel indices: at a pixel of channel ``j`` read
+    at position ``p``, ``sum_{i != j} sig_i(p - m)`` (0 for ``p < m``). A kernel's template is
+    ``kernel @ taps`` (the same as :func:`channel_crosstalk` with ``alpha = 1``, minus ``sig``)."""
+
+    def __init__(self, sig: np.ndarray, n: int, mirrored: bool):
+        self.sig, self.n, self.mirrored = sig, int(n), bool(mirrored)
+        h, w = sig.shape
+        self.width, self.wc = w, w // self.n
+        view = sig[:, : self.wc * self.n].reshape(h, self.n, self.wc)
+        if mirrored:
+            self.total = view[:, 0::2].sum(axis=1) + view[:, 1::2, ::-1].sum(axis=1)
+        else:
+            self.total = view.sum(axis=1)
+        self._padded: dict[int, np.ndarray] = {}
+
+    def _others(self, lags: int) -> np.ndarray:
+        """``sum_{i != j} sig_i`` of every channel ``j`` in read-out order, ``lags`` zeros before each row's
+        first pixel: (rows, n, lags + wc), float32 (one fancy index per lag then reads a lag's template)."""
+        if lags not in self._padded:
+            h = self.sig.shape[0]
+            own = self.sig[:, : self.wc * self.n].reshape(h, self.n, self.wc).copy()
+            if self.mirrored:
+                own[:, 1::2] = own[:, 1::2, ::-1]
+            out = np.zeros((h, self.n, lags + self.wc), np.float32)
+            out[:, :, lags:] = self.total[:, None, :] - own
+            self._padded = {lags: out}
+        return self._padded[lags]
+
+    def taps(self, idx: np.ndarray, lags: int) -> np.ndarray:
+        """The echo templates of lags ``0 .. lags - 1`` at flat pixel indices ``idx``: (lags, pixels), float64."""
+        lags = max(int(lags), 1)
+        others = self._others(lags).ravel()
+        y, x = np.divmod(np.asarray(idx, np.int64), self.width)
+        wc, row = self.wc, self.n * (lags + self.wc)
+        valid = x < wc * self.n
+        j = np.minimum(x // wc, self.n - 1)
+        q = x - j * wc
+        p = np.where((j % 2 == 1) & self.mirrored, wc - 1 - q, q)
+        # where lag 0 of each pixel sits in ``others``; lag m is m places before it (the zeros: p < m)
+        # (a pixel beyond the last whole channel reads the first row's leading zeros: no coupling there)
+        base = np.where(valid, y * row + j * (lags + wc) + lags + p, lags - 1)
+        out = np.empty((lags, idx.size))
+        for m in range(lags):
+            out[m] = others[base - m]
+        return out
+
+
+def profiled_normal(res, t: np.ndarray, idx: np.ndarray, r: np.ndarray, w: np.ndarray):
+    """The normal equations ``(A, b)`` of templates ``t`` (templates, pixels) at flat pixels ``idx`` with the
+    global levels profiled out (Frisch-Waugh-Lovell, as :func:`detector.signatures.fit_linear`):
+    ``A = T'WT - T'WN (N'WN)^-1 N'WT``, ``b = T'Wr - T'WN (N'WN)^-1 N'Wr``. Any combination ``K @ t`` then
+    fits with coefficient ``K'b / K'AK`` and delta chi2 ``-(K'b)^2 / K'AK``."""
+    n = res.level_values(idx)
+    tw = t * w
+    a, b = tw @ t.T, tw @ r
+    raw = np.diag(a).copy()
+    if n.size:
+        nw = n * w
+        nn = nw @ n.T
+        tn = tw @ n.T
+        a = a - tn @ np.linalg.solve(nn, tn.T)
+        b = b - tn @ np.linalg.solve(nn, nw @ r)
+    return a, b, raw
+
+
+@dataclass
+class CrosstalkVariant(Variant):
+    """A crosstalk template of one layout and kernel (its form, for the refinement and the parameters)."""
+
+    n: int = 2
+    mirrored: bool = False
+    delay: int = 0
+    tail: float = 0.0
+
+
+def crosstalk_params(c: float, n: int, mirrored: bool, delay: int = 0, tail: float = 0.0) -> dict | None:
+    """The plugin's parameters of a fitted coefficient ``c`` (None outside the plugin's bounds); the delay and
+    the tail only when the echo has them (the instantaneous form keeps the plugin's original keys)."""
+    c = float(np.ravel(c)[0])
+    if not (abs(c) <= CROSSTALK_FIT_MAX and c != 0):
+        return None
+    p = {"n_channels": int(n), "alpha": round(c, 7), "mirrored": bool(mirrored)}
+    if delay:
+        p["delay_px"] = int(delay)
+    if tail:
+        p["tail_px"] = round(float(tail), 3)
+    return p
+
+
+def crosstalk_variant(res, n: int, mirrored: bool, delay: int = 0, tail: float = 0.0,
+                      layout: CrosstalkLayout | None = None, sig: np.ndarray | None = None) -> CrosstalkVariant:
+    """The template of one crosstalk form: its map built by the plugin's own :func:`channel_crosstalk` (with
+    ``alpha = 1``) when the winner needs it, its values at pixels gathered from the lags of ``layout`` (or of a
+    layout built for the call and dropped: a search over many forms keeps no frame-sized array per form)."""
+    if sig is None:
+        sig = crosstalk_signal(res) if layout is None else layout.sig
+    kern = crosstalk_kernel(delay, tail)
+    cache: dict = {}
+
+    def maps():
+        if "t" not in cache:
+            t = sig.copy()
+            channel_crosstalk(t, n, 1.0, mirrored, delay, tail)
+            t -= sig
+            cache["t"] = [t]
+        return cache["t"]
+
+    def at(idx):
+        if "t" in cache:  # the map exists: read it (the same numbers the final fit and the apply use)
+            return cache["t"][0].ravel()[idx].astype(np.float64)[None, :]
+        lay = layout if layout is not None else CrosstalkLayout(sig, n, mirrored)
+        return (kern @ lay.taps(idx, kern.size))[None, :]
+
+    label = f"{n} channels{' mirrored' if mirrored else ''}"
+    if delay:
+        label += f", echo delayed {delay} px"
+    if tail:
+        label += f", tail {tail:.2g} px"
+    return CrosstalkVariant(maps, lambda c: crosstalk_params(c, n, mirrored, delay, tail), label, at,
+                            n=n, mirrored=mirrored, delay=delay, tail=tail)
+
+
+def _crosstalk_layouts(res):
+    """The channel layouts the search tries (count, mirrored), narrowest channels excluded."""
+    w = res.data_adu.shape[1]
+    return [(n, m) for n in CROSSTALK_CHANNELS if w // n >= CROSSTALK_MIN_WIDTH for m in (True, False)]
+
+
+def _crosstalk_variants(res):
+    """The instantaneous form of every layout (the series' first pass; :meth:`CrosstalkSignature.fit`
+    searches layouts and kernels together on a single frame)."""
+    sig = crosstalk_signal(res)
+    for n, mirrored in _crosstalk_layouts(res):
+        yield crosstalk_variant(res, n, mirrored, sig=sig)
+
+
+def _crosstalk_kernels(v, res):
+    """Every delay and tail of the best layout (the series' refinement)."""
+    lay = CrosstalkLayout(crosstalk_signal(res), v.n, v.mirrored)
+    for d in CROSSTALK_DELAYS:
+        for t in CROSSTALK_TAILS:
+            if d or t:
+                yield crosstalk_variant(res, v.n, v.mirrored, d, t, layout=lay)
+
+
+def crosstalk_k(delay: int, tail: float) -> int:
+    """Parameters a crosstalk form adds to its coefficient and its layout choice: one for a delay, one for a
+    tail (the instantaneous form is the nested model without them)."""
+    return int(bool(delay)) + int(bool(tail))
+
+
+class CrosstalkSignature(LinearSignature):
+    """Crosstalk between read-out channels: every channel receives ``alpha`` times the other channels' signal
+    in read-out order through a causal kernel (:func:`crosstalk_kernel`: a delay of 0 .. 3 read-out pixels and
+    an optional exponential tail), ``alpha`` of either sign.
+
+    The single-frame fit searches every layout (:data:`CROSSTALK_CHANNELS`, mirrored or not) and kernel
+    (:data:`CROSSTALK_DELAYS` x :data:`CROSSTALK_TAILS`) at once: the templates of lags ``0 .. L`` are
+    gathered once per layout on the search sample and their level-profiled normal equations
+    (:func:`profiled_normal`) give every kernel's fit as ``K'b / K'AK``; the tail of the best is refined
+    continuously; the winner's map is the plugin's own :func:`channel_crosstalk` and it is refitted as any
+    linear variant. Parameters counted in the BIC: ``alpha``, the layout (one choice), and one more each for
+    a delay and a tail when the form has them (:func:`crosstalk_k`); the search compares forms by that
+    penalised delta BIC, so the instantaneous form of the plugin wins unless a delay or a tail pays for itself.
+    """
+
+    def fit(self, res, name):
+        from scipy import optimize
+
+        ctx = search_sample(res)
+        idx, r, w = ctx["idx"], ctx["r"], ctx["w"]
+        if not idx.size:
+            return None
+        sig = crosstalk_signal(res)
+        ln_n = float(np.log(max(res.n_fit, 2)))
+        lags = max(CROSSTALK_DELAYS) + crosstalk_kernel(0, max(CROSSTALK_TAILS)).size
+
+        def padded(kern, size):
+            out = np.zeros(size)
+            out[: min(kern.size, size)] = kern[:size]
+            return out
+
+        kernels = [(d, t, crosstalk_kernel(d, t)) for d in CROSSTALK_DELAYS for t in CROSSTALK_TAILS]
+
+        def gain(a, b, raw, kern):
+            den = float(kern @ a @ kern)
+            if den <= 1e-9 * max(float(kern * kern @ raw), 1e-300):
+                return None
+            num = float(kern @ b)
+            return num / den, -num * num / den * ctx["scale"]
+
+        def search(lay, nab, kerns, best):
+            for d, t, kern in kerns:
+                g = gain(*nab, padded(kern, nab[1].size))
+                if g is None or crosstalk_params(g[0], lay.n, lay.mirrored, d, t) is None:
+                    continue
+                score = g[1] + crosstalk_k(d, t) * ln_n
+                if best is None or score < best[0]:
+                    best = (score, lay.n, lay.mirrored, d, t, lay, nab)
+            return best
+
+        # every layout with the delays alone (lags 0 .. max delay), then every kernel for the best layouts: the
+        # layout decides where the echoes land, the kernel only how they spread along a row
+        short = max(CROSSTALK_DELAYS) + 1
+        screen = []
+        for n, mirrored in _crosstalk_layouts(res):
+            lay = CrosstalkLayout(sig, n, mirrored)
+            nab = profiled_normal(res, lay.taps(idx, short), idx, r, w)
+            found = search(lay, nab, [k for k in kernels if not k[1]], None)
+            if found is not None:
+                screen.append(found)
+        screen.sort(key=lambda f: f[0])
+        best = screen[0] if screen else None
+        for found in screen[:CROSSTALK_TOP_LAYOUTS]:
+            lay = found[5]
+            best = search(lay, profiled_normal(res, lay.taps(idx, lags), idx, r, w), kernels, best)
+        if best is None:
+            return None
+        _, n, mirrored, d, t, _lay, nab = best
+        if t:  # the tail between its grid neighbours (the smallest tried: down to half of it)
+            i = CROSSTALK_TAILS.index(t)
+            lo = CROSSTALK_TAILS[i - 1] if i > 1 else t / 2
+            hi = CROSSTALK_TAILS[min(i + 1, len(CROSSTALK_TAILS) - 1)]
+
+            def m2l(x):
+                g = gain(*nab, padded(crosstalk_kernel(d, x), lags))
+                return g[1] if g is not None else 0.0
+
+            opt = optimize.minimize_scalar(m2l, bounds=(lo, hi), method="bounded", options={"xatol": 1e-3})
+            if m2l(float(opt.x)) < m2l(t):
+                t = round(float(opt.x), 3)
+        v = crosstalk_variant(res, n, mirrored, d, t, sig=sig)
+        v.maps()  # the winner's map: the plugin's own function (its values are read from it from now on)
+        values = (lambda i: v.values(i, res.data_adu.shape))
+        if ctx["full"]:
+            c, dm2 = fit_linear(res, values, idx, r, w)
+        else:
+            fidx, _, fw = res.flat_profiled()
+            c, dm2 = fit_linear(res, values, fidx, res.flat()[1], fw)
+        params = v.to_params(c)
+        if params is None:
+            return None
+        return self._finish(res, name, v, c, dm2, params)
+
+    def _finish(self, res, name, v, c, d, params):
+        fit = super()._finish(res, name, v, c, d, params)
+        return replace(fit, k=fit.k + crosstalk_k(getattr(v, "delay", 0), getattr(v, "tail", 0.0)))
 
 
 def _crosstalk_check(fit, res) -> str:
     """Crosstalk copies compact bright sources into the other channels, by a coefficient of at most ~1e-3:
     a coefficient of per cents is a structure of the light itself taken for copies; and on a flat-screen
     frame every channel's copy of the uniform light is uniform, a step between channels (a gain), not a copy
-    of a source."""
-    a = abs(fit.params["alpha"])
+    of a source. A delay or a tail at the largest the search tries means the echo's form lies beyond the
+    family (or the pattern is not an echo): flagged, as a parameter at its bound."""
+    p = fit.params
+    a = abs(p["alpha"])
     if a > CROSSTALK_MAX:
         return (f"a coupling of {a:.3g} is {a / 1e-3:.0f} times the largest crosstalk measured in cameras "
                 f"(~1e-3): a pattern of the light taken for copies of sources")
     if res.light_source == "flat":
         return ("on a flat-screen frame the copies of the uniform light are uniform per channel: a step between "
                 "channels (gains), not crosstalk of sources")
+    if p.get("delay_px", 0) >= max(CROSSTALK_DELAYS):
+        return (f"the echo's fitted delay of {p['delay_px']} read-out pixels sits at the largest the search tries: "
+                "the form cannot follow the data further (a later echo, or not an echo of the sources)")
+    if p.get("tail_px", 0.0) >= max(CROSSTALK_TAILS) * (1 - 1e-3):
+        return (f"the echo's fitted tail of {p['tail_px']:.3g} read-out pixels sits at the largest the search tries: "
+                "a smear longer than a settling tail (not an echo of the sources)")
     return ""
 
 
-_CROSSTALK_SIGNATURE = LinearSignature(
-    _crosstalk_variants,
-    lambda p, res: (f"faint copies of bright sources in the other {p['n_channels'] - 1} read-out channels, "
-                    f"{p['alpha']:.2g} of the source: crosstalk"),
-    pattern="ghost copies of bright sources in other channels", check=_crosstalk_check)
+def _crosstalk_words(p, res) -> str:
+    form = ""
+    if p.get("delay_px") or p.get("tail_px"):
+        parts = ([f"delayed by {p['delay_px']} read-out px"] if p.get("delay_px") else []) + \
+                ([f"with a {p['tail_px']:.2g} px tail"] if p.get("tail_px") else [])
+        form = ", " + " ".join(parts)
+    sign = " (an undershoot)" if p["alpha"] < 0 else ""
+    return (f"faint copies of bright sources in the other {p['n_channels'] - 1} read-out channels, "
+            f"{p['alpha']:.2g} of the source{sign}{form}: crosstalk")
+
+
+_CROSSTALK_SIGNATURE = CrosstalkSignature(
+    _crosstalk_variants, _crosstalk_words, pattern="ghost copies of bright sources in other channels",
+    refine=_crosstalk_kernels, check=_crosstalk_check)
 
 
 # --- adapters ----------------------------------------------------------------------------------------------
@@ -355,6 +680,10 @@ class CrosstalkParams(EffectParams):
     n_channels: int = Field(4, ge=2, le=64, description="read-out channels (vertical stripes) across the sensor [channels]")
     alpha: float = Field(1e-3, ge=-0.1, le=0.1, description="coupling coefficient victim/source [1]")
     mirrored: bool = Field(True, description="every second channel read from the other side")
+    delay_px: int = Field(0, ge=0, le=64, description="delay of the echo after the aggressor's pixel, in read-out "
+                          "order [read-out pixels]")
+    tail_px: float = Field(0.0, ge=0, le=64, description="e-folding length of the echo's exponential tail "
+                           "(0: none) [read-out pixels]")
 
 
 @register_effect
@@ -364,7 +693,10 @@ class Crosstalk(Effect):
 
     Linear coupling model of multi-channel read-out (LSST crosstalk, Snyder et al. JATIS 7, 2021; Moore et
     al. SPIE 5499). Channels are stripes of the read-out window; parts of channels outside a region of
-    interest do not couple.
+    interest do not couple. ``alpha`` may be negative (an undershoot); with ``delay_px`` / ``tail_px`` the
+    echo follows the aggressor's pixel through a causal kernel in read-out order (:func:`crosstalk_kernel`:
+    the victim amplifier's settling through the shared supply or clock; Freyhammer et al. 2001, Exp. Astron.
+    12, 147). The defaults (0, 0) are the instantaneous coupling, unchanged.
     """
 
     name = "crosstalk"
@@ -375,4 +707,5 @@ class Crosstalk(Effect):
     signature = _CROSSTALK_SIGNATURE
 
     def apply(self, stage: Stage, tile: Tile, data: np.ndarray) -> None:
-        channel_crosstalk(data, self.params.n_channels, self.params.alpha, self.params.mirrored)
+        p = self.params
+        channel_crosstalk(data, p.n_channels, p.alpha, p.mirrored, p.delay_px, p.tail_px)
