@@ -13,7 +13,7 @@ from typing import Literal
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
-from ..signatures import LinearSignature, Variant
+from ..signatures import LinearSignature, Variant, fit_linear, search_sample
 from .base import Effect, EffectParams, Stage, Tile, register_effect
 
 # --- pure functions ---------------------------------------------------------------------------------------
@@ -89,17 +89,103 @@ def _glow_variant(res, where: str, scale: float) -> Variant:
     return Variant(maps, to_params, f"{where}|{scale}", at=at)
 
 
+def _gauss_variant(res, x_frac: float, y_frac: float, sigma_px: float) -> Variant:
+    """One bivariate-normal glow source (thesis Annex V, isotropic) centred at (x_frac, y_frac) of the sensor
+    (outside it when beyond [0, 1]) with std ``sigma_px`` [sensor px]."""
+    s = res.sensor
+    unit = float(res.exptime_s * res.pixel_sum / res.gain)
+    w = res.data_adu.shape[1]
+    x0, y0 = x_frac * (s.sensor_width_px - 1), y_frac * (s.sensor_height_px - 1)
+
+    def at(idx):
+        y, x = np.divmod(idx, w)
+        q = ((res.xs[x] - x0) ** 2 + (res.ys[y] - y0) ** 2) / (sigma_px * sigma_px)
+        return (unit * np.exp(-0.5 * q))[None, :]
+
+    def maps():
+        t = np.zeros(res.data_adu.shape, np.float32)
+        bivariate_normal_rate(res.ys, res.xs, x0, y0, 1.0, sigma_px, sigma_px, 0.0, t)
+        return [t * np.float32(unit)]
+
+    # a glow source sits on the sensor or within its own width of the edge (else it is a field-wide gradient)
+    outside = float(np.hypot(max(-x0, x0 - (s.sensor_width_px - 1), 0.0), max(-y0, y0 - (s.sensor_height_px - 1), 0.0)))
+
+    def to_params(c):
+        if outside > sigma_px:
+            return None
+        return ({"model": "gaussian", "sources": [{"x_frac": round(float(x_frac), 5), "y_frac": round(float(y_frac), 5),
+                                                   "amplitude_e_per_s": round(float(c[0]), 6),
+                                                   "sigma_x_px": round(float(sigma_px), 1),
+                                                   "sigma_y_px": round(float(sigma_px), 1), "rho": 0.0}]}
+                if 0 < c[0] <= 1e6 and -1 <= x_frac <= 2 and -1 <= y_frac <= 2 else None)
+
+    return Variant(maps, to_params, f"g|{x_frac:.6g}|{y_frac:.6g}|{sigma_px:.6g}", at=at)
+
+
+def _window(res) -> tuple[float, float, float, float]:
+    """(x0, x1, y0, y1): the frame's extent in sensor pixels."""
+    return float(res.xs[0]), float(res.xs[-1]), float(res.ys[0]), float(res.ys[-1])
+
+
+#: glow sources tried: a 5 x 5 grid over the frame and half a frame beyond it on every side, with stds of these
+#: fractions of the frame's diagonal (a localised glow seen from inside the window or reaching into it)
+_GAUSS_GRID = (-0.5, 0.0, 0.5, 1.0, 1.5)
+_GAUSS_SIGMAS = (0.08, 0.15, 0.3, 0.55, 1.0)
+
+
 def _glow_variants(res):
     side = max(res.sensor.sensor_width_px, res.sensor.sensor_height_px)
     for where in _EDGES:
         for frac in _SCALES:
             yield _glow_variant(res, where, frac * side)
+    s = res.sensor
+    x0, x1, y0, y1 = _window(res)
+    diag = float(np.hypot(x1 - x0, y1 - y0)) + 1.0
+    for fy in _GAUSS_GRID:
+        for fx in _GAUSS_GRID:
+            xc, yc = x0 + fx * (x1 - x0), y0 + fy * (y1 - y0)
+            for f in _GAUSS_SIGMAS:
+                sigma = f * diag
+                if sigma <= GLOW_MAX_SCALE * side:
+                    yield _gauss_variant(res, xc / max(s.sensor_width_px - 1, 1), yc / max(s.sensor_height_px - 1, 1),
+                                         sigma)
 
 
 def _glow_refine(best: Variant, res):
+    if best.label.startswith("g|"):
+        # the source's centre and width, continuously (Nelder-Mead on the search sample's delta chi2, the
+        # amplitude and the levels solved linearly at every step)
+        from scipy.optimize import minimize
+
+        _, xf, yf, sigma = best.label.split("|")
+        ctx = search_sample(res)
+
+        def cost(p):
+            v = _gauss_variant(res, p[0], p[1], float(np.exp(p[2])))
+            c, d = fit_linear(res, lambda i: v.values(i, res.data_adu.shape), ctx["idx"], ctx["r"], ctx["w"])
+            return d if v.to_params(c) is not None else 0.0
+
+        s = res.sensor
+        x0, x1, y0, y1 = _window(res)
+        start = np.array([float(xf), float(yf), np.log(float(sigma))])
+        simplex = np.array([start, start + [0.1 * (x1 - x0) / max(s.sensor_width_px - 1, 1), 0, 0],
+                            start + [0, 0.1 * (y1 - y0) / max(s.sensor_height_px - 1, 1), 0], start + [0, 0, 0.2]])
+        opt = minimize(cost, start, method="Nelder-Mead",
+                       options={"initial_simplex": simplex, "maxfev": 80, "xatol": 1e-4, "fatol": 0.5})
+        yield _gauss_variant(res, float(opt.x[0]), float(opt.x[1]), float(np.exp(opt.x[2])))
+        return
     where, scale = best.label.split("|")
     for f in np.geomspace(0.6, 1.6, 9):
         yield _glow_variant(res, where, float(scale) * f)
+
+
+def _rebuild(label: str, res) -> Variant:
+    """The variant of a label ("edge|scale" or "g|x_frac|y_frac|sigma"), on any frame (a series refines on one
+    frame, fits on all)."""
+    parts = label.split("|")
+    if parts[0] == "g":
+        return _gauss_variant(res, float(parts[1]), float(parts[2]), float(parts[3]))
+    return _glow_variant(res, parts[0], float(parts[1]))
 
 
 #: an amplifier glow is localised: its e-folding distance is at most this fraction of the sensor's longer side
@@ -112,6 +198,20 @@ def _glow_check(fit, res) -> str:
     and it reaches the read-out window from that edge (Janesick 2001, Scientific CCDs, sect. 5.9; the IMX411
     glows within a few hundred pixels of its amplifiers)."""
     p, s = fit.params, res.sensor
+    if p.get("model") == "gaussian":
+        g = p["sources"][0]
+        peak_e = g["amplitude_e_per_s"] * res.exptime_s
+        if peak_e > s.full_well_e:
+            return (f"{peak_e:.3g} e- at the glow's centre, more than the full well ({s.full_well_e:.3g} e-): no glow is "
+                    "that bright; a smooth light across the field taken for a glow")
+        # the source must sit on the sensor or near its edge: a centre far outside it is a gradient
+        gx, gy = g["x_frac"] * (s.sensor_width_px - 1), g["y_frac"] * (s.sensor_height_px - 1)
+        out_x = max(-gx, gx - (s.sensor_width_px - 1), 0.0)
+        out_y = max(-gy, gy - (s.sensor_height_px - 1), 0.0)
+        if np.hypot(out_x, out_y) > g["sigma_x_px"]:
+            return (f"the glow's centre lies {np.hypot(out_x, out_y):.0f} px outside the sensor, beyond its own width "
+                    f"({g['sigma_x_px']:.0f} px): a gradient across the field, not a localised glow")
+        return ""
     edge_e = p["amplitude_e_per_s"] * res.exptime_s
     if edge_e > s.full_well_e:
         return (f"{edge_e:.3g} e- at the edge, more than the full well ({s.full_well_e:.3g} e-): no glow is that "
@@ -123,13 +223,24 @@ def _glow_check(fit, res) -> str:
     return ""
 
 
+def _glow_words(p, res) -> str:
+    if p.get("model") == "gaussian":
+        g = p["sources"][0]
+        s = res.sensor
+        return (f"additive glow from a source at ({g['x_frac'] * (s.sensor_width_px - 1):.0f}, "
+                f"{g['y_frac'] * (s.sensor_height_px - 1):.0f}) sensor px, {g['amplitude_e_per_s'] * res.exptime_s:.3g} "
+                f"e- at its centre, std {g['sigma_x_px']:.0f} px (the thesis' bivariate-normal glow, Annex V), growing "
+                "with exposure: amplifier glow")
+    return (f"additive glow rising towards the {p['edge']} edge, {p['amplitude_e_per_s'] * res.exptime_s:.3g} "
+            f"e- at the edge (e-folding {p['scale_px']:.0f} px), growing with exposure: amplifier glow")
+
+
+#: the search chooses a form (an edge law or a Gaussian source), where (an edge, or a centre: 2) and a scale
 _GLOW_SIGNATURE = LinearSignature(
-    _glow_variants,
-    lambda p, res: (f"additive glow rising towards the {p['edge']} edge, {p['amplitude_e_per_s'] * res.exptime_s:.3g} "
-                    f"e- at the edge (e-folding {p['scale_px']:.0f} px), growing with exposure: amplifier glow"),
-    pattern="additive glow decaying away from an edge or corner", extra_k=2, refine=_glow_refine, check=_glow_check)
-#: the variant of a label ("edge|scale"), on any frame (a series refines on one frame, fits on all)
-_GLOW_SIGNATURE.rebuild = lambda label, res: _glow_variant(res, label.split("|")[0], float(label.split("|")[1]))
+    _glow_variants, _glow_words,
+    pattern="additive glow decaying away from an edge, a corner or a source point", extra_k=3, refine=_glow_refine,
+    check=_glow_check)
+_GLOW_SIGNATURE.rebuild = _rebuild
 
 
 # --- adapter -----------------------------------------------------------------------------------------------
