@@ -309,19 +309,23 @@ def scan_geometry(rw: np.ndarray, w: np.ndarray, src: np.ndarray, step: float, p
         rwb, wb = _bin_sum(rw, q), _bin_sum(w, q)
         sb = _bin_sum(src.astype(np.float64), q) / (q * q)
         hb, wbw = rwb.shape
-        shape = (scipy.fft.next_fast_len(2 * hb, real=True), scipy.fft.next_fast_len(2 * wbw, real=True))
+        # the padded grid holds the correlation's lags and the probe's spill beyond the frame without aliasing
+        spill = int(np.ceil(r_out / q + 3 * psf_rms / q)) + 2
+        shape = (scipy.fft.next_fast_len(2 * hb + 2 * spill, real=True),
+                 scipy.fft.next_fast_len(2 * wbw + 2 * spill, real=True))
         fy = np.fft.fftfreq(shape[0])[:, None]
         fx = np.fft.rfftfreq(shape[1])[None, :]
         hk = kernel_transfer("disc", r_out / q, 0.0, fx, fy)
         f_s = scipy.fft.rfft2(sb, s=shape, workers=workers)
-        # G = K * S on the padded grid (its light beyond the frame kept: it is a template, not data)
-        g = scipy.fft.irfft2(f_s * hk, s=shape, workers=workers)[:hb, :wbw]
-        g = np.maximum(g, 0)
-        f_g = scipy.fft.rfft2(g, s=shape, workers=workers)
-        f_g2 = scipy.fft.rfft2(g * g, s=shape, workers=workers)
+        # G = K * S, periodic on the padded grid: the probe's light beyond the frame's edges is kept (it wraps
+        # to the far end of the grid, where no lag reads anything else), so a shifted or mirrored G is the
+        # probe around the moved sources, as the ghost is
+        g = np.maximum(scipy.fft.irfft2(f_s * hk, s=shape, workers=workers), 0)
+        f_g = scipy.fft.rfft2(g, workers=workers)
+        f_g2 = scipy.fft.rfft2(g * g, workers=workers)
         f_rw = scipy.fft.rfft2(rwb, s=shape, workers=workers)
         f_w = scipy.fft.rfft2(wb, s=shape, workers=workers)
-        full = float(np.sum(wb * g * g))
+        full = float(np.sum(wb * g[:hb, :wbw] ** 2))
         if full <= 0:
             continue
         rms = max(1.0, math.hypot(r_out / math.sqrt(2), psf_rms) / q)  # coherence radius of z [scan px]
@@ -378,24 +382,26 @@ def scan_geometry(rw: np.ndarray, w: np.ndarray, src: np.ndarray, step: float, p
     return dict(best, threshold=thr, trials=float(trials), found=bool(best["z"] >= thr), scans=scans, peaks=peaks)
 
 
-def refine_lag(rw: np.ndarray, w: np.ndarray, g: np.ndarray, mode: str, lag: tuple[int, int], reach: int
-               ) -> tuple[tuple[int, int], float, float]:
+def refine_lag(rw: np.ndarray, w: np.ndarray, g_ext: np.ndarray, pad: int, mode: str, lag: tuple[int, int],
+               reach: int) -> tuple[tuple[int, int], float, float]:
     """The integer lag within ``reach`` of ``lag`` that maximises ``num / sqrt(den)`` on the full grid, by
-    direct sums over the overlapping slices: (lag, num, den)."""
+    direct sums over the overlapping slices: (lag, num, den). ``g_ext`` is the probe template ``K * S`` on the
+    frame padded by ``pad`` px on every side (the probe's light beyond the edges kept)."""
     h, wd = rw.shape
-    gf = g[::-1, ::-1] if mode == "mirror" else g
-    best = (lag, 0.0, 0.0)
-    best_z = -np.inf
+    he, we = g_ext.shape
+    # shift: T(y) = g_ext(y - d + pad); mirror: T(y) = g_ext(u - y + pad) = gf(y - (u + pad + 1 - he)), gf flipped:
+    # both are a plain shift s of an array a, T(y) = a(y - s)
+    a = g_ext[::-1, ::-1] if mode == "mirror" else g_ext
+    best, best_z = (lag, 0.0, 0.0), -np.inf
     for dy in range(lag[0] - reach, lag[0] + reach + 1):
         for dx in range(lag[1] - reach, lag[1] + reach + 1):
-            # mirror: T(x) = G(u - x) = Gf(x - (u - (n - 1))) with Gf the flipped G: a shift of Gf
-            sy = dy - (h - 1) if mode == "mirror" else dy
-            sx = dx - (wd - 1) if mode == "mirror" else dx
-            y0, y1 = max(0, sy), min(h, h + sy)
-            x0, x1 = max(0, sx), min(wd, wd + sx)
+            sy = dy + pad + 1 - he if mode == "mirror" else dy - pad
+            sx = dx + pad + 1 - we if mode == "mirror" else dx - pad
+            y0, y1 = max(0, sy), min(h, sy + he)
+            x0, x1 = max(0, sx), min(wd, sx + we)
             if y1 <= y0 or x1 <= x0:
                 continue
-            t = gf[y0 - sy:y1 - sy, x0 - sx:x1 - sx]
+            t = a[y0 - sy:y1 - sy, x0 - sx:x1 - sx]
             num = float(np.sum(rw[y0:y1, x0:x1] * t))
             den = float(np.sum(w[y0:y1, x0:x1] * t * t))
             if den > 0 and num / np.sqrt(den) > best_z:
@@ -579,8 +585,10 @@ class GhostSignature(LinearSignature):
         """Profile and alpha fitted at one scan peak (refined on the full grid when the scan was binned)."""
         mode, lag = peak["mode"], peak["lag"]
         if peak["q"] > 1:
-            g = signal.oaconvolve(src, disc_kernel(peak["probe_px"] / step), mode="same")
-            lag, _, _ = refine_lag(rw_s, w_s, g, mode, lag, peak["q"])
+            k = disc_kernel(peak["probe_px"] / step)
+            pad = k.shape[0] // 2
+            g = signal.oaconvolve(np.pad(src, pad), k, mode="same")
+            lag, _, _ = refine_lag(rw_s, w_s, g, pad, mode, lag, peak["q"])
         geometry = _geometry_params(res, mode, lag)
         yc, xc = _sensor_centre(res)
         smap = map_sources(src, res.ys, res.xs, mode, yc + geometry["centre_dy_px"], xc + geometry["centre_dx_px"],
