@@ -226,6 +226,8 @@ SCAN_GLOBAL_P = 1e-3
 SCAN_MIN_OVERLAP = 0.1
 #: a model source pixel brighter than this many noise sigmas is a source core, masked in the scan
 CORE_SIGMA = 3.0
+#: the other map family's peak is fitted as well when its z is at least this share of the best one's
+SECOND_FAMILY_Z = 0.9
 
 
 def source_image(res: Residuals) -> np.ndarray:
@@ -392,21 +394,33 @@ def refine_lag(rw: np.ndarray, w: np.ndarray, g_ext: np.ndarray, pad: int, mode:
     # shift: T(y) = g_ext(y - d + pad); mirror: T(y) = g_ext(u - y + pad) = gf(y - (u + pad + 1 - he)), gf flipped:
     # both are a plain shift s of an array a, T(y) = a(y - s)
     a = g_ext[::-1, ::-1] if mode == "mirror" else g_ext
-    best, best_z = (lag, 0.0, 0.0), -np.inf
-    for dy in range(lag[0] - reach, lag[0] + reach + 1):
-        for dx in range(lag[1] - reach, lag[1] + reach + 1):
+    seen: dict = {}
+
+    def score(dy, dx):
+        if (dy, dx) not in seen:
             sy = dy + pad + 1 - he if mode == "mirror" else dy - pad
             sx = dx + pad + 1 - we if mode == "mirror" else dx - pad
             y0, y1 = max(0, sy), min(h, sy + he)
             x0, x1 = max(0, sx), min(wd, sx + we)
-            if y1 <= y0 or x1 <= x0:
-                continue
-            t = a[y0 - sy:y1 - sy, x0 - sx:x1 - sx]
-            num = float(np.sum(rw[y0:y1, x0:x1] * t))
-            den = float(np.sum(w[y0:y1, x0:x1] * t * t))
-            if den > 0 and num / np.sqrt(den) > best_z:
-                best_z, best = num / np.sqrt(den), ((dy, dx), num, den)
-    return best
+            num = den = 0.0
+            if y1 > y0 and x1 > x0:
+                t = a[y0 - sy:y1 - sy, x0 - sx:x1 - sx]
+                num = float(np.sum(rw[y0:y1, x0:x1] * t))
+                den = float(np.sum(w[y0:y1, x0:x1] * t * t))
+            seen[(dy, dx)] = (num / np.sqrt(den) if den > 0 else -np.inf, num, den)
+        return seen[(dy, dx)]
+
+    # hill-climb on the 3x3 neighbourhood (the matched filter's surface is smooth on the probe's scale)
+    cur = tuple(lag)
+    for _ in range(4 * reach + 4):
+        nbrs = [(cur[0] + i, cur[1] + j) for i in (-1, 0, 1) for j in (-1, 0, 1)
+                if abs(cur[0] + i - lag[0]) <= reach and abs(cur[1] + j - lag[1]) <= reach]
+        nxt = max(nbrs, key=lambda d: score(*d)[0])
+        if nxt == cur:
+            break
+        cur = nxt
+    z, num, den = score(*cur)
+    return cur, num, den
 
 
 # --- the signature ---------------------------------------------------------------------------------------------
@@ -450,7 +464,7 @@ class _Convolver:
         self.shape0 = image.shape
         self.pad = pad
         self.shape = tuple(scipy.fft.next_fast_len(n + 2 * pad, real=True) for n in image.shape)
-        big = np.zeros(self.shape, np.float64)
+        big = np.zeros(self.shape, np.float32)  # single precision: the templates are float32 anyway
         big[pad:pad + image.shape[0], pad:pad + image.shape[1]] = image
         self.workers = workers
         self.spec = scipy.fft.rfft2(big, workers=workers)
@@ -458,7 +472,7 @@ class _Convolver:
         self.fx = np.fft.rfftfreq(self.shape[1])[None, :]
 
     def __call__(self, profile: str, radius_out_px: float, inner_ratio: float) -> np.ndarray:
-        h = kernel_transfer(profile, radius_out_px, inner_ratio, self.fx, self.fy)
+        h = kernel_transfer(profile, radius_out_px, inner_ratio, self.fx, self.fy).astype(np.float32)
         out = scipy.fft.irfft2(self.spec * h, s=self.shape, workers=self.workers)
         p = self.pad
         return np.maximum(out[p:p + self.shape0[0], p:p + self.shape0[1]], 0).astype(np.float32)
@@ -473,7 +487,6 @@ def _free_variants(res: Residuals, geometry: dict, stage: str, around: dict | No
     """Variants of the free form at a found geometry: "radius" (discs over GHOST_RADII_PX), then "form"
     (annuli and Gaussians about the best disc's radius ``around``)."""
     step = _step(res)
-    conv = geometry["_conv"]
     if stage == "radius":
         shapes = [("disc", r, 0.0) for r in GHOST_RADII_PX]
     else:
@@ -483,23 +496,30 @@ def _free_variants(res: Residuals, geometry: dict, stage: str, around: dict | No
     for profile, radius, inner in shapes:
         if radius / step < 0.5 or radius > 2000:
             continue
-        cache: dict = {}
+        yield _variant(geometry, profile, radius, inner, step)
 
-        def maps(profile=profile, radius=radius, inner=inner, cache=cache):
-            if "t" not in cache:
-                cache["t"] = [conv(profile, radius / step, inner)]
-            return cache["t"]
 
-        def to_params(c, profile=profile, radius=radius, inner=inner):
-            if not 0 < c[0] <= 0.1:
-                return None
-            p = {"alpha": float(c[0]), "radius_px": round(float(radius), 3), "profile": profile,
-                 "inner_ratio": float(inner)}
-            p.update({k: v for k, v in geometry.items() if not k.startswith("_")})
-            return p
+def _variant(geometry: dict, profile: str, radius: float, inner: float, step: float) -> Variant:
+    """The free form's variant of one profile (``radius`` [sensor px]) at one geometry (its template built
+    once, when first asked for)."""
+    conv = geometry["_conv"]
+    cache: dict = {}
 
-        label = f"{geometry['mode']} {profile} {radius:.3g} px" + (f" inner {inner:g}" if inner else "")
-        yield Variant(maps, to_params, label)
+    def maps():
+        if "t" not in cache:
+            cache["t"] = [conv(profile, radius / step, inner)]
+        return cache["t"]
+
+    def to_params(c):
+        if not 0 < c[0] <= 0.1:
+            return None
+        p = {"alpha": float(c[0]), "radius_px": round(float(radius), 3), "profile": profile,
+             "inner_ratio": float(inner)}
+        p.update({k: v for k, v in geometry.items() if not k.startswith("_")})
+        return p
+
+    label = f"{geometry['mode']} {profile} {radius:.3g} px" + (f" inner {inner:g}" if inner else "")
+    return Variant(maps, to_params, label)
 
 
 def _ghost_words(p: dict, res) -> str:
@@ -565,7 +585,9 @@ class GhostSignature(LinearSignature):
             return None
         fits = []
         for peak in scan["peaks"]:
-            if peak["z"] < scan["threshold"]:
+            # the other map family too when the scan can hardly tell them apart (one bright source's copy
+            # reached by a mirror and by a shift alike): the sources' check decides
+            if peak["z"] < max(scan["threshold"], SECOND_FAMILY_Z * scan["peaks"][0]["z"]):
                 continue
             fit = self._fit_at(res, name, src, rw_s, w_s, peak, step)
             if fit is None:
@@ -602,6 +624,21 @@ class GhostSignature(LinearSignature):
         if best is None:
             return None
         best = self._best(res, ctx, [best[0], *_free_variants(res, geometry, "form", best[3])]) or best
+        # the geometry again with the fitted profile as the matched filter (the probe was only a disc), and the
+        # winning profile refitted there when it moved
+        p0 = best[3]
+        k = ghost_kernel(p0["profile"], p0["radius_px"] / step, p0["inner_ratio"])
+        pad = k.shape[0] // 2
+        lag2, _, _ = refine_lag(rw_s, w_s, signal.oaconvolve(np.pad(src, pad), k, mode="same"), pad, mode, lag, 2)
+        if tuple(lag2) != tuple(lag):
+            geometry2 = _geometry_params(res, mode, lag2)
+            smap2 = map_sources(src, res.ys, res.xs, mode, yc + geometry2["centre_dy_px"],
+                                xc + geometry2["centre_dx_px"], geometry2["shift_dy_px"], geometry2["shift_dx_px"])
+            geometry2["_conv"] = _Convolver(smap2, geometry["_conv"].pad, FIT_FFT_WORKERS)
+            again = _variant(geometry2, p0["profile"], p0["radius_px"], p0["inner_ratio"], step)
+            moved = self._best(res, ctx, [again])
+            if moved is not None and moved[1] < best[1]:
+                best = moved
         v, d, c, params = best
         idx, _, wf = res.flat_profiled()
         if not ctx["full"]:
