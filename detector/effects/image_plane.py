@@ -19,7 +19,8 @@ from the model image's derivatives:
 * radial distortion ``r' = r (1 + k r^2)``: a shift field ``k r^2 (x - x_c, y - y_c)``;
 * ghost: ``alpha`` times the image reflected through the optical axis and defocused into a disc (a
   double reflection between two surfaces of a refractive corrector; Gross, *Handbook of Optical Systems*
-  vol. 5, 2012, ch. 40 "ghost images"), which is linear in ``alpha``.
+  vol. 5, 2012, ch. 40 "ghost images"), which is linear in ``alpha``. The ``ghost`` effect itself (its other
+  maps and profiles, and the search of its geometry) is in :mod:`detector.effects.ghosts`.
 
 Coordinates are sensor pixels; the optical axis is at the sensor centre.
 """
