@@ -9,7 +9,8 @@ Each module holds pure physics functions and their registered adapters:
 * ``blooming``: ``blooming``
 * ``cosmic_rays``: ``cosmic_rays``
 * ``optical``: ``vignetting``
-* ``image_plane``: ``psf_blur``, ``jitter``, ``pointing_drift``, ``pointing_offset``, ``distortion``, ``ghost``
+* ``image_plane``: ``psf_blur``, ``jitter``, ``pointing_drift``, ``pointing_offset``, ``distortion``
+* ``ghosts``: ``ghost`` (mirrored or shifted, disc / annulus / Gaussian; its geometry found by a Fourier scan)
 * ``maps``: ``bias_map``, ``flat_map`` (measured master bias / flat FITS files)
 * ``colour``: ``cfa``
 * ``sky``: ``sky_gradient``
@@ -23,3 +24,4 @@ Each module holds pure physics functions and their registered adapters:
 from .base import Effect, EffectParams, Stage, Tile, build_effects, register_effect, registry  # isort: skip
 from . import blooming, colour, cosmic_rays, coupling, cti, defects, glow, image_plane  # noqa: F401,I001  (registration)
 from . import maps, optical, persistence, pixel_response, readout, rts, sky, thermal  # noqa: F401  (registration)
+from . import ghosts  # noqa: F401,E402  (registration: ghost)

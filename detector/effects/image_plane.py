@@ -20,7 +20,8 @@ from the model image's derivatives:
   decentering terms in ``p1``, ``p2``;
 * ghost: ``alpha`` times the image reflected through the optical axis and defocused into a disc (a
   double reflection between two surfaces of a refractive corrector; Gross, *Handbook of Optical Systems*
-  vol. 5, 2012, ch. 40 "ghost images"), which is linear in ``alpha``.
+  vol. 5, 2012, ch. 40 "ghost images"), which is linear in ``alpha``. The ``ghost`` effect itself (its other
+  maps and profiles, and the search of its geometry) is in :mod:`detector.effects.ghosts`.
 
 Coordinates are sensor pixels; the optical axis is at the sensor centre.
 """
@@ -776,26 +777,4 @@ class Distortion(Effect):
                                        p2_per_px=p.p2_per_px))
 
 
-class GhostParams(EffectParams):
-    alpha: float = Field(1e-3, ge=0, le=0.1, description="ghost energy / source energy [1]")
-    radius_px: float = Field(10.0, gt=0, le=2000, description="radius of the defocused ghost disc [sensor px]")
-
-
-@register_effect
-class Ghost(Effect):
-    """A defocused ghost of every source, reflected through the optical axis (double reflection in the
-    corrector): ``alpha`` of the flux spread over a disc of ``radius_px``, added to the image."""
-
-    name = "ghost"
-    scaling = "signal"
-    identity = {"alpha": 0.0}
-    stages = (Stage.FIELD,)
-    Params = GhostParams
-    signature = LinearSignature(
-        _ghost_variants, extra_k=1, pattern="faint discs opposite bright sources across the optical axis",
-        explain=lambda p, res: (f"faint discs of {p['radius_px']:.3g} px opposite the sources across the axis, "
-                                f"{p['alpha']:.2g} of their flux: ghost reflections"))
-
-    def apply(self, stage: Stage, tile: Tile, data: np.ndarray) -> None:
-        ys, xs, yc, xc = _photo_sensor_coords(tile)
-        _store(data, data + np.float32(self.params.alpha) * ghost_image(data, ys, xs, yc, xc, self.params.radius_px))
+# the ghost effect (its params, adapter and free-geometry signature) lives in detector/effects/ghosts.py

@@ -29,9 +29,11 @@ FAST = ("vig_gauss_window", "sky_quadratic", "rows_telegraph", "dust_donuts", "r
 #: after in docs/diagnose_validation.md)
 FAILS_TODAY: set[str] = {"bias_drift_readout", "bias_sawtooth_full", "bloom_soft_bright", "cfa_quad_bayer",
     "dead_clusters", "diffraction_ring", "dist_tangential", "drift_accelerating", "drift_arc_imx", "dsnu_uniform",
-    "dust_donuts", "dust_donuts_full", "elong_coma", "fringes", "ghost_gauss_offaxis_imx", "ghost_shifted_annulus",
+    "dust_donuts", "dust_donuts_full", "elong_coma", "fringes", "ghost_gauss_offaxis_imx",
     "glow_lorentz_opposite", "herringbone", "nl_gamma_imx", "persistence", "prnu_columns", "readnoise_gradient",
     "rows_pickup_imx", "satellite_glint", "xtalk_2ch_undershoot_imx", "xtalk_3ch_delayed",
+    # ghost_gauss_offaxis_imx: below what one frame can show: the true ghost's whole expected chi2 is ~19, so
+    # even its exact form (k = 1) gives delta BIC ~ -3 (the free geometry's scan peak z 4.7 < 5.5 threshold)
     # a dark-current gradient on one dark: the bias ramp fits as well (named as its twin); a dark series tells
     # them apart (docs/series.md)
     "dark_thermal_full", "dark_thermal_weak"}
