@@ -347,6 +347,7 @@ def describe(res: Residuals, delta_adu: np.ndarray | None = None) -> dict:
             out["significant"] = True
             out["significance_sigma"] = round(max(out["significance_sigma"], feats["peak_sigma"]), 2)
             out.update(_compact_only(res, feats, rmap, light))
+            out["empirical"] = _feature_map(feats, rmap, wmap, light, out["kind"])
             return out
         # one spatial frequency far above the rest: a pick-up or fringe pattern too weak to move the chi2
         zhp = zp - gaussian_filter(zp, b, mode="nearest")
@@ -355,6 +356,7 @@ def describe(res: Residuals, delta_adu: np.ndarray | None = None) -> dict:
             out["significant"] = True
             out["significance_sigma"] = round(max(out["significance_sigma"], _peak_sigma(contrast, zhp)), 2)
             out.update(_periodic_only(res, period, contrast, zhp, wmap))
+            out["empirical"] = _periodic_map(rmap, wmap, light, out["kind"])
         return out
     out["significant"] = True
     if block_sigma < SIGNIFICANT_SIGMA:  # extra scatter, no mean pattern: where is it?
@@ -544,7 +546,80 @@ def describe(res: Residuals, delta_adu: np.ndarray | None = None) -> dict:
         sm = gaussian_filter(vals * wts, 1.0, mode="nearest") / np.maximum(gaussian_filter(wts, 1.0, mode="nearest"),
                                                                          1e-9)
         out["empirical"] = {"kind": ek, "map": _upsample(sm, b, shape)}
+    elif main in ("rows", "columns") and kind in ("additive", "multiplicative", "mixed"):
+        out["empirical"] = _line_map(rmap, wmap, light, kind, axis=1 if main == "rows" else 0)
+    elif main == "periodic" and kind in ("additive", "multiplicative", "mixed"):
+        out["empirical"] = _periodic_map(rmap, wmap, light, kind)
+    if out["empirical"] is None and kind in ("additive", "multiplicative", "mixed") and n_feat:
+        out["empirical"] = _feature_map(feats, rmap, wmap, light, kind)
     return out
+
+
+def _relative(kind: str, amap: np.ndarray, light: np.ndarray) -> dict:
+    """``{"kind", "map"}`` of an empirical map [ADU per output pixel]: relative to the light for a
+    multiplicative pattern where there is light, else additive [ADU]."""
+    if kind == "multiplicative" and np.any(light > 0):
+        rel = amap / np.maximum(light, 1e-9 * max(float(np.max(light)), 1e-30))
+        return {"kind": "multiplicative", "map": np.where(light > 0, rel, 0.0).astype(np.float32)}
+    return {"kind": "additive", "map": amap.astype(np.float32)}
+
+
+def _line_map(rmap: np.ndarray, wmap: np.ndarray, light: np.ndarray, kind: str, axis: int) -> dict:
+    """The empirical map of a row (``axis`` 1) or column (``axis`` 0) pattern: each line's weighted mean
+    residual [ADU], broadcast along it (relative to the line's mean light when multiplicative)."""
+    sw = wmap.sum(axis=axis)
+    means = np.where(sw > 0, (rmap * wmap).sum(axis=axis) / np.where(sw > 0, sw, 1.0), 0.0)
+    amap = np.broadcast_to(means[:, None] if axis == 1 else means[None, :], rmap.shape)
+    return _relative(kind, np.asarray(amap, np.float64), light)
+
+
+#: the empirical map of a periodic pattern keeps the Fourier components within this radius [frequency bins] of
+#: the strongest peaks (and their mirror images): the pattern and a slow change of its phase (a bow)
+PERIODIC_KEEP_BINS = 3
+#: ... of at most this many peaks (fringes or pick-up with harmonics)
+PERIODIC_PEAKS = 3
+
+
+def _periodic_map(rmap: np.ndarray, wmap: np.ndarray, light: np.ndarray, kind: str) -> dict:
+    """The empirical map of a periodic pattern: the residual [ADU] band-passed around its strongest spatial
+    frequencies (a smooth part, below 6 cycles across the frame, left out), on the whole frame."""
+    r = np.where(wmap > 0, rmap, 0.0)
+    f = np.fft.rfft2(r - r[wmap > 0].mean() if np.any(wmap > 0) else r)
+    p = np.abs(f) ** 2
+    fy = np.fft.fftfreq(r.shape[0])[:, None]
+    fx = np.fft.rfftfreq(r.shape[1])[None, :]
+    low = np.hypot(fy * r.shape[0], fx * r.shape[1]) < 6.0
+    p = np.where(low, 0.0, p)
+    keep = np.zeros(p.shape, bool)
+    iy, ix = np.mgrid[: p.shape[0], : p.shape[1]]
+    for _ in range(PERIODIC_PEAKS):
+        ky, kx = np.unravel_index(int(np.argmax(np.where(keep, 0.0, p))), p.shape)
+        if p[ky, kx] <= 0:
+            break
+        dy = np.minimum(np.abs(iy - ky), r.shape[0] - np.abs(iy - ky))
+        near = (dy <= PERIODIC_KEEP_BINS) & (np.abs(ix - kx) <= PERIODIC_KEEP_BINS)
+        if kx <= PERIODIC_KEEP_BINS:  # its mirror image across the rfft's axis
+            my = (-ky) % r.shape[0]
+            dym = np.minimum(np.abs(iy - my), r.shape[0] - np.abs(iy - my))
+            near |= (dym <= PERIODIC_KEEP_BINS) & (ix <= PERIODIC_KEEP_BINS - kx)
+        keep |= near
+    amap = np.fft.irfft2(np.where(keep & ~low, f, 0.0), s=r.shape)
+    return _relative(kind, amap, light)
+
+
+def _feature_map(feats: dict, rmap: np.ndarray, wmap: np.ndarray, light: np.ndarray, kind: str) -> dict | None:
+    """The empirical map of compact features (rings, blobs): the residual [ADU] smoothed at the features' scale
+    (normalised convolution over the fitted pixels) inside their footprints grown by that scale, 0 elsewhere."""
+    foot = feats["footprint"]["rings"] | feats["footprint"]["blobs"] | feats["footprint"]["srings"]
+    if not foot.any():
+        return None
+    scale = max([feats.get(f"scale_{f}", 1.0) for f in ("rings", "blobs", "srings") if feats[f"n_{f}"]] or [1.0])
+    grown = ndi.binary_dilation(foot, iterations=max(round(2 * scale), 1))
+    ok = (wmap > 0).astype(np.float64)
+    sig = max(0.25 * scale, 0.5)
+    sm = gaussian_filter(np.where(ok > 0, rmap, 0.0), sig, mode="nearest") / np.maximum(
+        gaussian_filter(ok, sig, mode="nearest"), 1e-6)
+    return _relative(kind, np.where(grown, sm, 0.0), light)
 
 
 def _feature_words(feats: dict, geometry: list[str], on_sources: bool = False) -> str:
