@@ -347,7 +347,8 @@ def describe(res: Residuals, delta_adu: np.ndarray | None = None) -> dict:
             out["significant"] = True
             out["significance_sigma"] = round(max(out["significance_sigma"], feats["peak_sigma"]), 2)
             out.update(_compact_only(res, feats, rmap, light))
-            out["empirical"] = _feature_map(feats, rmap, wmap, light, out["kind"])
+            out["empirical"] = _feature_map(feats, rmap, wmap, light,
+                                            "additive" if out["kind"] == "redistributed" else out["kind"])
             return out
         # one spatial frequency far above the rest: a pick-up or fringe pattern too weak to move the chi2
         zhp = zp - gaussian_filter(zp, b, mode="nearest")
@@ -550,8 +551,9 @@ def describe(res: Residuals, delta_adu: np.ndarray | None = None) -> dict:
         out["empirical"] = _line_map(rmap, wmap, light, kind, axis=1 if main == "rows" else 0)
     elif main == "periodic" and kind in ("additive", "multiplicative", "mixed"):
         out["empirical"] = _periodic_map(rmap, wmap, light, kind)
-    if out["empirical"] is None and kind in ("additive", "multiplicative", "mixed") and n_feat:
-        out["empirical"] = _feature_map(feats, rmap, wmap, light, kind)
+    if out["empirical"] is None and n_feat:
+        # light moved around the sources (rings on them) is mapped as what it adds and takes where it is
+        out["empirical"] = _feature_map(feats, rmap, wmap, light, "additive" if kind == "redistributed" else kind)
     return out
 
 

@@ -6,7 +6,9 @@ A Bayer mosaic (Bayer 1976, US patent 3,971,065) puts a red, green or blue filte
 
     S'(y, x) = R[y mod 2, x mod 2] S(y, x),
 
-with (y, x) *sensor* coordinates, so the pattern stays put under a read-out window with an odd origin.
+with (y, x) *sensor* coordinates, so the pattern stays put under a read-out window with an odd origin. The
+high-resolution mosaics put each filter over h x h pixels (h = 2: Sony Quad Bayer, Samsung Tetracell; 3:
+Nonacell; 4: Tetra2pixel), period 2h: the cell of pixel (y, x) is ``((y // h) mod 2, (x // h) mod 2)``.
 The response acts on the light only (sources, sky, flat screen: stage RESPONSE), not on dark charge or bias.
 
 A binned pixel of ``b x b`` sensor pixels starting at (y0, x0) collects ``sum_pq n_p(y0) m_q(x0) R[p, q] / b^2``
@@ -32,20 +34,28 @@ from .base import Effect, EffectParams, Stage, Tile, register_effect
 # --- pure functions ---------------------------------------------------------------------------------------
 
 
-def parity_fractions(starts: np.ndarray, b: int = 1) -> np.ndarray:
-    """Fractions of the ``b`` consecutive sensor rows (or columns) beginning at each of ``starts`` whose index
-    is even (row 0 of the result) and odd (row 1), shape (2, len(starts)) [1]."""
-    s = np.asarray(starts).astype(np.int64) % 2
-    even = (b + 1 - s) // 2  # even integers in [start, start + b)
+def parity_fractions(starts: np.ndarray, b: int = 1, period: int = 2) -> np.ndarray:
+    """Fractions of the ``b`` consecutive sensor rows (or columns) beginning at each of ``starts`` that lie in
+    the mosaic's even cell (row 0 of the result) and odd cell (row 1), shape (2, len(starts)) [1]. A cell is
+    ``period / 2`` pixels wide: 1 for a Bayer mosaic (period 2), 2 for a quad Bayer (period 4)."""
+    s = np.asarray(starts).astype(np.int64)
+    h = period // 2
+
+    def even_below(n):  # integers i in [0, n) with (i // h) even (n >= 0 after the shift below)
+        return h * (n // (2 * h)) + np.minimum(n % (2 * h), h)
+
+    shift = 2 * h * (1 + np.abs(s).max(initial=0) // (2 * h))  # a whole number of periods: the parity is kept
+    even = even_below(s + shift + b) - even_below(s + shift)
     return np.stack([even, b - even]).astype(np.float64) / b
 
 
-def cfa_response(y0s: np.ndarray, x0s: np.ndarray, response, b: int = 1) -> np.ndarray:
+def cfa_response(y0s: np.ndarray, x0s: np.ndarray, response, b: int = 1, period: int = 2) -> np.ndarray:
     """Mean relative response [1] of the ``b x b`` blocks of sensor pixels beginning at rows ``y0s`` and
     columns ``x0s`` (the pixel itself for ``b = 1``), for cell responses ``response = [r00, r01, r10, r11]``
-    indexed by (row parity, column parity); shape (len(y0s), len(x0s))."""
+    indexed by (row cell parity, column cell parity); cells of ``period / 2`` pixels; shape
+    (len(y0s), len(x0s))."""
     r = np.asarray(response, np.float64).reshape(2, 2)
-    return np.einsum("pi,pq,qj->ij", parity_fractions(y0s, b), r, parity_fractions(x0s, b))
+    return np.einsum("pi,pq,qj->ij", parity_fractions(y0s, b, period), r, parity_fractions(x0s, b, period))
 
 
 def bayer_label(response) -> str:
@@ -60,12 +70,13 @@ def bayer_label(response) -> str:
 
 # --- diagnosis: the photo-signal times each cell's indicator (relative responses of mean 1) ---------------------
 
-def _cell_fractions(res) -> np.ndarray | None:
+def _cell_fractions(res, period: int = 2) -> np.ndarray | None:
     """Per output pixel, the fraction of its sensor pixels in each of the four cells, shape (4, H, W); None
-    when every output pixel holds the four cells equally (even binning: the pattern averages out)."""
+    when every output pixel holds the four cells equally (binning by a multiple of the period: the pattern
+    averages out)."""
     b = res.sensor.binning
-    fy = parity_fractions(np.rint(res.ys - (b - 1) / 2.0), b)
-    fx = parity_fractions(np.rint(res.xs - (b - 1) / 2.0), b)
+    fy = parity_fractions(np.rint(res.ys - (b - 1) / 2.0), b, period)
+    fx = parity_fractions(np.rint(res.xs - (b - 1) / 2.0), b, period)
     if np.allclose(fy, 0.5) and np.allclose(fx, 0.5):
         return None
     return np.stack([fy[p][:, None] * fx[q][None, :] for p in (0, 1) for q in (0, 1)])
@@ -101,8 +112,23 @@ class CFASignature(Signature):
     kind = "linear"
     pattern = "the light modulated with a period of 2 pixels along rows and columns"
 
+    #: the mosaics tried: a Bayer (period 2), and each filter over 2 x 2 (period 4: Sony Quad Bayer, Samsung
+    #: Tetracell), 3 x 3 (period 6: Samsung Nonacell) or 4 x 4 pixels (period 8: Samsung Tetra2pixel); the
+    #: choice counts one parameter in the BIC
+    PERIODS = (2, 4, 6, 8)
+
     def fit(self, res, name):
-        f = _cell_fractions(res)
+        best = None
+        for period in self.PERIODS:
+            fit = self._fit_period(res, name, period)
+            if fit is not None:
+                fit.k += 1 if len(self.PERIODS) > 1 else 0
+                if best is None or fit.delta_bic < best.delta_bic:
+                    best = fit
+        return best
+
+    def _fit_period(self, res, name, period):
+        f = _cell_fractions(res, period)
         if f is None or not np.any(res.photo_adu > 0):
             return None
         ok = _unsaturated(res)
@@ -135,12 +161,12 @@ class CFASignature(Signature):
         photo = res.photo_adu.ravel()[idx[keep]].astype(np.float64)
         wk = w[keep] * photo
         level = float(np.dot(wk, photo + (c_levels @ levels)[keep]) / np.dot(wk, photo))
-        params = _cfa_params(np.asarray(c) / level) if level > 0 else None
+        params = _cfa_params(np.asarray(c) / level, period) if level > 0 else None
         if params is None:
             return None
         delta = (res.photo_adu.astype(np.float64) * np.tensordot(c, rel, axes=1)).astype(np.float32)
         return Fit(name, params, d * scale, len(c), int(keep.sum() * scale), _cfa_words(params, res),
-                   delta_adu=delta, note="2x2 cells")
+                   delta_adu=delta, note=f"2x2 cells of {period // 2} x {period // 2} pixels")
 
 
     def score(self, fit, res):
@@ -166,17 +192,23 @@ class CFASignature(Signature):
         return float(np.dot(r1[keep] ** 2 - r0[keep] ** 2, w[keep]))
 
 
-def _cfa_params(c) -> dict | None:
+def _cfa_params(c, period: int = 2) -> dict | None:
     resp = np.append(1.0 + np.asarray(c, float), 1.0 - float(np.sum(c)))
     if not np.all((resp > 0) & (resp <= 4)):
         return None
     resp = [round(float(x), 5) for x in resp]
-    return {"pattern": bayer_label(resp), "response": resp}
+    out = {"pattern": bayer_label(resp), "response": resp}
+    if period != 2:
+        out["period"] = int(period)
+    return out
 
 
 def _cfa_words(p, res) -> str:
-    return ("2x2 periodic response of the light, cells " + "/".join(f"{x:.3g}" for x in p["response"])
-            + f" (row, column parity 00/01/10/11; mean 1): a colour filter array (Bayer {p['pattern']})")
+    period = p.get("period", 2)
+    h = period // 2
+    kind = f"Bayer {p['pattern']}" if period == 2 else f"{p['pattern']} cells, each filter over {h} x {h} pixels"
+    return (f"{period}-pixel periodic response of the light, cells " + "/".join(f"{x:.3g}" for x in p["response"])
+            + f" (row, column cell parity 00/01/10/11; mean 1): a colour filter array ({kind})")
 
 
 # --- adapter -------------------------------------------------------------------------------------------------
@@ -190,6 +222,11 @@ class CFAParams(EffectParams):
         [0.57, 1.06, 1.06, 0.79], min_length=4, max_length=4,
         description="relative response of the cells [r00, r01, r10, r11], indexed by (row parity, column "
                     "parity) of the sensor pixel, each in (0, 4] [1]", json_schema_extra={"unit": "1"})
+
+    period: Literal[2, 4, 6, 8] = Field(
+        2, description="mosaic period [pixels]: 2 for a Bayer mosaic; 4, 6, 8 for each filter over 2 x 2 (Sony Quad "
+                       "Bayer, Samsung Tetracell), 3 x 3 (Nonacell) or 4 x 4 pixels (Tetra2pixel)",
+        json_schema_extra={"unit": "pixel"})
 
     @field_validator("response")
     @classmethod
@@ -219,4 +256,4 @@ class ColourFilterArray(Effect):
         ys, xs = tile.pixel_centres()
         b = tile.bin
         data *= cfa_response(np.rint(ys - (b - 1) / 2.0), np.rint(xs - (b - 1) / 2.0), self.params.response,
-                             b).astype(np.float32)
+                             b, self.params.period).astype(np.float32)

@@ -84,3 +84,19 @@ def test_sky_gradient_column_means_follow_the_analytic_ramp_and_darks_have_none(
     # a dark frame (no light) has no sky
     dark = det.expose(0.0, t, 9, noiseless=True)
     assert np.all(dark == 0.0)
+
+
+def test_quad_bayer_cells_are_two_pixels_wide_and_bin_like_the_pixels():
+    """Period 4 (each filter over 2 x 2 pixels): pixel (y, x) has cell ((y // 2) % 2, (x // 2) % 2); a binned
+    pixel's response is the mean of its sensor pixels' (computed here pixel by pixel)."""
+    resp = [0.62, 1.0, 0.98, 0.75]
+    ys, xs = np.arange(-3, 13), np.arange(5, 21)
+    one = cfa_response(ys, xs, resp, 1, period=4)
+    r = np.asarray(resp).reshape(2, 2)
+    assert np.allclose(one, r[(ys[:, None] // 2) % 2, (xs[None, :] // 2) % 2])
+    for b in (2, 3, 4):
+        y0s, x0s = np.arange(-3, 9, b), np.arange(1, 13, b)
+        direct = np.array([[np.mean([r[(y // 2) % 2, (x // 2) % 2] for y in range(y0, y0 + b)
+                                     for x in range(x0, x0 + b)]) for x0 in x0s] for y0 in y0s])
+        assert np.allclose(cfa_response(y0s, x0s, resp, b, period=4), direct)
+    assert np.allclose(cfa_response(np.arange(0, 16, 4), np.arange(0, 16, 4), resp, 4, period=4), np.mean(resp))

@@ -207,3 +207,24 @@ def test_no_glow_gives_no_significant_glow():
     res = _dark_with_glow({"model": "gaussian", "sources": [{"amplitude_e_per_s": 0.0}]}, seed=9)
     fit = registry()["amp_glow"].signature.fit(res, "amp_glow")
     assert fit is None or fit.delta_bic > -10
+
+
+# ------------------------------------------------------------------------------------ mosaics
+@pytest.mark.parametrize("period", [2, 4, 8])
+def test_the_mosaic_period_is_found(period):
+    """A Bayer (period 2) or quad-Bayer (period 4) response on a flat is fitted with its own period and cells."""
+    from detector.effects.colour import cfa_response
+
+    rng = np.random.default_rng(10 + period)
+    s = make_sensor("ml11002", {"width": 128, "height": 128, "bias_adu": 0})
+    shape = (128, 128)
+    ys, xs = np.arange(128.0), np.arange(128.0)
+    resp = [0.62, 1.0, 0.98, 0.75]
+    photo = np.full(shape, 5000.0)
+    truth = photo * cfa_response(ys, xs, resp, 1, period=period)
+    var = photo / s.gain_e_per_adu + 4.0
+    res = _res(truth + rng.normal(0, np.sqrt(var)), photo, var, photo, s)
+    fit = registry()["cfa"].signature.fit(res, "cfa")
+    assert fit.params.get("period", 2) == period
+    mean = np.mean(resp)
+    assert np.allclose(fit.params["response"], np.asarray(resp) / mean, atol=0.01)

@@ -286,8 +286,9 @@ class SoftBleed(RealWorld):
 
 
 class QuadBayer(RealWorld):
-    """A quad-Bayer colour filter array: 2x2 pixels under each dye, a 4x4 period (not the plugin's 2x2 cells),
-    responses ``response`` (4 values, cell order by row then column)."""
+    """A high-resolution colour filter array: ``2 cell x 2 cell`` pixels under each dye (``cell = 2``: 4 x 4
+    pixels, a period of 8, as Samsung's Tetra2pixel; not the plugin's Bayer 2x2 cells), responses ``response``
+    (4 values, cell order by row then column)."""
 
     name = "uw_quad_cfa"
     stages = (Stage.RESPONSE,)
@@ -993,7 +994,7 @@ _CASE_LIST = [
     _c("blooming", "bloom_soft_bright", "stars_bright", "soft bleed above 0.95 FW: exponential profile of 4 px along "
        "the column, 70 % upwards", lambda s: [SoftBleed(s, threshold=0.95, length_px=4.0, up_share=0.7)], "weak"),
     # cfa
-    _c("cfa", "cfa_quad_bayer", "flat", "quad-Bayer CFA (4x4 period), responses 0.62 / 1.0 / 0.98 / 0.75",
+    _c("cfa", "cfa_quad_bayer", "flat", "mosaic CFA with 4x4 pixels under each dye (period 8), responses 0.62 / 1.0 / 0.98 / 0.75",
        lambda s: [QuadBayer(s, cell=2, response=[0.62, 1.0, 0.98, 0.75], column_drift=0.0)]),
     _c("cfa", "cfa_weak_imx", "flat_imx", "weak RGGB CFA 0.985 / 1.0 / 1.0 / 0.99 with a 1 % drift across the window",
        lambda s: [QuadBayer(s, cell=1, response=[0.985, 1.0, 1.0, 0.99], column_drift=0.01)], "weak"),
