@@ -254,11 +254,34 @@ def _bias_words(p, res) -> str:
 
 
 _ROW_SIGNATURE = RowOffsetSignature()
+#: reset (kTC) noise is part of every read, bias frames included, so of the read noise the camera's model
+#: carries: an extra white noise this many times that read noise on a frame with light is the light's own scatter
+KTC_MAX_READ_RATIO = 3.0
+
+
+def _ktc_check(fit, res) -> str:
+    """Reset noise adds the same white noise to every read, so the camera's measured read noise (its bias
+    frames) already holds most of it (Janesick 2001, Scientific CCDs, sect. 3.3: kTC noise is the reset
+    component of the read noise). On a lit frame, an extra white noise far above that read noise is the
+    light's own pixel-to-pixel scatter (a PRNU, which a uniform light cannot tell from it)."""
+    if not np.any(res.photo_adu > 0) or res.sensor.read_noise_e <= 0:
+        return ""
+    theta = float(fit.state.get("theta", 0.0))
+    s = res.sensor
+    reads = 1.0 if s.kind == "ccd" else float(s.binning ** 2)
+    sigma_e = float(np.sqrt(max(theta, 0.0) * res.gain ** 2 * (reads if s.binning_mode == "average" else 1.0 / reads)))
+    if sigma_e > KTC_MAX_READ_RATIO * s.read_noise_e:
+        return (f"an extra white noise of {sigma_e:.3g} e- rms per read, {sigma_e / s.read_noise_e:.0f} x the camera's "
+                f"read noise ({s.read_noise_e:.3g} e-): a reset noise that large would dominate its bias frames; on a "
+                "lit frame it is the light's own scatter (PRNU), which a uniform light cannot tell from it")
+    return ""
+
+
 _KTC_SIGNATURE = VarianceSignature(
     lambda res: np.ones(1), _ktc_params,
     lambda p, res: (f"white scatter independent of signal and exposure, as from a {p['capacitance_ff']:.3g} fF "
                     "sense node: kTC reset noise (or a read noise above the data sheet)"),
-    pattern="extra variance constant over the frame")
+    pattern="extra variance constant over the frame", check=_ktc_check)
 _BIAS_SIGNATURE = LinearSignature(_bias_variants, _bias_words, pattern="additive ramps/bowl, independent of signal",
                                   extra_k=0)
 #: the largest electronic crosstalk coefficient a camera shows [1]: measured coefficients are 1e-5 .. 1e-3

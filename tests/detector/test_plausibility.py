@@ -228,3 +228,21 @@ def test_the_mosaic_period_is_found(period):
     assert fit.params.get("period", 2) == period
     mean = np.mean(resp)
     assert np.allclose(fit.params["response"], np.asarray(resp) / mean, atol=0.01)
+
+
+def test_a_white_noise_far_above_the_read_noise_on_a_lit_frame_is_not_reset_noise():
+    """On a uniform flat a PRNU and an extra white noise are one variance; reset noise is part of the read noise
+    the camera's bias frames measure, so 40x that read noise is the light's scatter (the PRNU is kept)."""
+    rng = np.random.default_rng(12)
+    s = make_sensor("imx411", {"width": 256, "height": 256, "bias_adu": 0})
+    shape = (256, 256)
+    photo = np.full(shape, 30000.0 / s.gain_e_per_adu)
+    var = photo / s.gain_e_per_adu + (s.read_noise_e / s.gain_e_per_adu) ** 2
+    data = photo * (1 + 0.002 * rng.standard_normal(shape)) + rng.normal(0, np.sqrt(var))
+    res = _res(data, photo, var, photo, s)
+    ktc = registry()["reset_noise"].signature
+    fit = ktc.fit(res, "reset_noise")
+    assert fit is not None and fit.delta_bic < -100
+    assert "read noise" in ktc.plausible(fit, res)
+    prnu = registry()["prnu"].signature
+    assert prnu.plausible(prnu.fit(res, "prnu"), res) == ""
