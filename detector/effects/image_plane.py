@@ -155,7 +155,8 @@ def drift_smear(image: np.ndarray, dx_px: float, dy_px: float, spectra: dict | N
 
 
 def radial_distortion(image: np.ndarray, ys: np.ndarray, xs: np.ndarray, yc: float, xc: float, k_per_px2: float,
-                      step: float = 1.0, p1_per_px: float = 0.0, p2_per_px: float = 0.0) -> np.ndarray:
+                      step: float = 1.0, p1_per_px: float = 0.0, p2_per_px: float = 0.0,
+                      at: np.ndarray | None = None) -> np.ndarray:
     """Image whose content at radius r from (xc, yc) moves to r (1 + k r^2) [px] (k > 0: pincushion), plus
     the decentering (tangential) distortion of Brown (1966, Photogramm. Eng. 32, 444, eq. 13; the
     Brown-Conrady model), with (x, y) measured from the centre:
@@ -163,8 +164,13 @@ def radial_distortion(image: np.ndarray, ys: np.ndarray, xs: np.ndarray, yc: flo
     what a lens element decentred or tilted off the axis adds to the radial distortion.
 
     ``ys``, ``xs`` are the sensor coordinates of the image's pixel centres, ``step`` their spacing (the
-    binning of an output image)."""
-    yy, xx = np.meshgrid(ys - yc, xs - xc, indexing="ij")
+    binning of an output image). With ``at`` (flat indices of output pixels) only those are computed (a 1-D
+    array of their values)."""
+    if at is None:
+        yy, xx = np.meshgrid(ys - yc, xs - xc, indexing="ij")
+    else:
+        iy, ix = np.divmod(np.asarray(at), image.shape[1])
+        yy, xx = ys[iy] - yc, xs[ix] - xc
     r2 = xx * xx + yy * yy
     f = 1.0 + k_per_px2 * r2
     # inverse mapping to first order: the output pixel at r' samples the input at r' / (1 + k r'^2), less the
@@ -234,6 +240,9 @@ class TransformSignature(Signature):
         self.explain, self.pattern, self.n_iter, self.check = explain, pattern, n_iter, check
         self.nested = nested
         self._spectra = {"spectra", "workers"} <= set(inspect.signature(transform).parameters)
+        #: a transform that takes ``at`` (flat pixel indices) evaluates only those pixels: the search steps then
+        #: cost the sample's size, not the frame's
+        self._at = "at" in inspect.signature(transform).parameters
 
     def fit(self, res, name):
         """The fit of all parameters; with ``nested`` (subsets of the parameters, the others held at 0), the
@@ -281,6 +290,8 @@ class TransformSignature(Signature):
 
         def on_sample(th):
             """The transformed, clipped image at the search sample's pixels only (what the steps use)."""
+            if self._at:
+                return np.minimum(transform(res, photo, th, at=sidx, **kw), cap)
             return np.minimum(transform(res, photo, th, **kw).ravel()[sidx], cap)
 
         clipped_s = clipped.ravel()[sidx]
@@ -515,10 +526,10 @@ def _distortion_start(res, terms=(0, 1, 2)):
     return np.asarray(c, float)
 
 
-def _distortion_transform(res, photo, th):
+def _distortion_transform(res, photo, th, at=None):
     yc, xc = _sensor_centre(res)
     return radial_distortion(photo, res.ys, res.xs, yc, xc, float(th[0]), step=res.sensor.binning,
-                             p1_per_px=float(th[1]), p2_per_px=float(th[2]))
+                             p1_per_px=float(th[1]), p2_per_px=float(th[2]), at=at)
 
 
 def _distortion_params(th, res):

@@ -246,3 +246,13 @@ def test_a_white_noise_far_above_the_read_noise_on_a_lit_frame_is_not_reset_nois
     assert "read noise" in ktc.plausible(fit, res)
     prnu = registry()["prnu"].signature
     assert prnu.plausible(prnu.fit(res, "prnu"), res) == ""
+
+
+def test_the_distortion_at_sample_pixels_is_the_full_frame_there():
+    rng = np.random.default_rng(13)
+    img = rng.uniform(0, 100, (64, 80)).astype(np.float32)
+    ys, xs = np.arange(100.0, 164.0), np.arange(300.0, 380.0)
+    full = radial_distortion(img, ys, xs, 500.0, 600.0, 3e-7, p1_per_px=2e-4, p2_per_px=-1e-4)
+    idx = np.sort(rng.choice(img.size, 500, replace=False))
+    at = radial_distortion(img, ys, xs, 500.0, 600.0, 3e-7, p1_per_px=2e-4, p2_per_px=-1e-4, at=idx)
+    assert np.array_equal(at, full.ravel()[idx])
