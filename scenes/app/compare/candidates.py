@@ -248,7 +248,7 @@ def candidates(res: Residuals, present: set[str], progress=None, truth=None) -> 
     excess_shares(res, out)
     support_shares(res, out)
     score_heldout(res, out, progress=progress)
-    return rank(out), problems
+    return rank(out, res.light_source), problems
 
 
 def implausibility(cls, fit: Fit, res: Residuals) -> str:
@@ -362,16 +362,27 @@ def score_heldout(res: Residuals, cands: list[Candidate], progress=None) -> None
     res._flat.pop("heldout_folds", None)  # the folds every candidate shared (detector.signatures._folds)
 
 
-def rank(cands: list[Candidate]) -> list[Candidate]:
+def _of_light(c: Candidate) -> bool:
+    """The candidate multiplies the light (a response: vignetting, PRNU, a mosaic, a flat map)."""
+    sig = registry()[c.fit.effect].signature if c.fit.effect in registry() else None
+    return bool(getattr(sig, "of_light", False)) or type(sig).__name__ == "CFASignature" or c.fit.effect in (
+        "prnu", "flat_map", "dead_pixels")
+
+
+def rank(cands: list[Candidate], light_source: str = "") -> list[Candidate]:
     """Best first: the significant candidates by their held-out score (delta BIC where there is none), then
     the others that are plausible and not rejected, then the implausible and the rejected, each by delta
-    BIC."""
+    BIC. Twins (as good on held-out pixels) go by delta BIC (fewer parameters for the same fit first); on a
+    flat-screen frame (``light_source`` "flat"), whose uniform light cannot tell a response from added charge,
+    a response comes first: a flat's pattern is far more often the optics' or the pixels' response
+    (vignetting, dust, a mosaic) than a light the screen lets through or a glow as bright as its light."""
     out = sorted(cands, key=lambda c: (0 if c.significant else 1 if c.plausible and not c.rejected else 2,
                                        c.score if c.significant else c.fit.delta_bic))
     sig = [c for c in out if c.significant]
     twins = indistinguishable(sig)
-    if twins:  # as good on held-out pixels: the one delta BIC prefers (fewer parameters for the same fit) first
-        group = sorted([sig[0], *twins], key=lambda c: c.fit.delta_bic)
+    if twins:
+        flat = light_source == "flat"
+        group = sorted([sig[0], *twins], key=lambda c: (flat and not _of_light(c), c.fit.delta_bic))
         rest = [c for c in out if c not in group]
         out = group + rest
     return out

@@ -1029,7 +1029,7 @@ def run_diagnose_large(scene, measured: str | Path, workers: int | None = None, 
     for box, parts, row in cmp.pop("_tracks", []):
         res_t, truth_t = track_residuals(box, parts, row, cmp["_model"].setup)
         ct += source_candidates(res_t, truth_t, scene)
-    cands = rank(cb + cs + ct)
+    cands = rank(cb + cs + ct, res_b.light_source)
     scale = {id(c): "binned" for c in cb} | {id(c): "sample" for c in cs} | {id(c): "cut-out" for c in ct}
     if progress is not None:
         progress("residual morphology")

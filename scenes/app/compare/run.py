@@ -91,7 +91,7 @@ def _run_diagnose(scene, measured: str | Path, workers: int | None = None, progr
     optical, optical_problems = optics_candidates(cmp["_residuals"], truth, scene, progress=progress,
                                                   model=cmp["_model"])
     field_pattern_check(cands, optical)  # a uniform blur/jitter that varies over the field as the optics predicts
-    cands = rank(cands + source_candidates(cmp["_residuals"], truth, scene) + optical)
+    cands = rank(cands + source_candidates(cmp["_residuals"], truth, scene) + optical, cmp["_residuals"].light_source)
     problems = problems + optical_problems
     if progress is not None:
         progress("residual morphology")

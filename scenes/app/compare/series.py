@@ -627,7 +627,7 @@ def series_candidates(frames: list[Residuals], labels: list[str], present: set[s
         out.append(cand)
     _excess_shares(frames, out, fits, level_grams or [_level_gram(r, shared) for r in frames])
     _heldout(frames, out, fits, progress)
-    return rank(out), problems, fits
+    return rank(out, "flat" if all(r.light_source == "flat" for r in frames) else ""), problems, fits
 
 
 #: a hardware (shared) effect fitted frame by frame whose first numeric parameter differs by more than this
