@@ -381,6 +381,16 @@ def describe(res: Residuals, delta_adu: np.ndarray | None = None) -> dict:
                    unit="e- rms", explanation=_words(kind, geom, f"extra pixel-to-pixel noise of "
                                                      f"{math.sqrt(extra) * gain:.3g} e- rms"
                                                      + (" varying across the frame" if "gradient" in geom else "")))
+        if kind == "additive":
+            # the empirical map: the extra variance [ADU^2] of each block (its mean z^2 beyond 1, times its
+            # pixels' model variance), smoothed over a block, or the frame's own where it does not vary
+            vmod = np.where(wmap > 0, 1.0 / np.where(wmap > 0, wmap, 1.0), np.nan)
+            vm = np.nanmean(vmod[: ny * b, : nx * b].reshape(ny, b, nx, b), axis=(1, 3))
+            ex = np.where(okv, (vb - 1.0) * vm, 0.0) if varies else np.where(okv, extra, 0.0)
+            wts = okv.astype(float)
+            sm = gaussian_filter(ex * wts, 1.0, mode="nearest") / np.maximum(gaussian_filter(wts, 1.0, mode="nearest"),
+                                                                           1e-9)
+            out["empirical"] = {"kind": "noise", "map": np.maximum(_upsample(sm, b, shape), 0.0)}
         return out
 
     # --- kind: additive A(x, y), multiplicative M(x, y) L, or both (block level) --------------------------------

@@ -28,6 +28,11 @@ frame of non-zero exposure (stuck or saturated-from-the-start defects; Janesick 
 map's ``temperature_c`` and the sensor's, the rates scale as ``2^((T - T_map) / doubling_c)`` (the dark
 current doubles every ~6-7 C in silicon CCDs near -10 C; Widenhorn et al. 2002, Proc. SPIE 4669, 193).
 
+``noise_map`` (READ stage, new every frame): each read draws an extra Gaussian whose standard deviation
+[e-] is the map's (a measured per-pixel temporal noise beyond the sensor's ``read_noise_e``; a CCD's binned
+read gets the quadratic mean over its pixels). ``newtsim diagnose --apply`` writes one when the residual is
+extra noise that no catalogue effect explains (a read noise that grows across the frame).
+
 Uncertainty. A map measured from a few frames carries their noise. ``flat_map`` and ``dark_map`` accept
 ``sigma_hdu``, an HDU of the same file holding each pixel's standard error (flat: in units of the map;
 dark: e-/s); the model of the mean frame (:meth:`detector.Detector.moments`) then adds that error to each
@@ -305,6 +310,47 @@ class DarkMap(_MapEffect):
         if self._sigma is None or stage is not Stage.DARK:
             return 0.0
         return (self.sigma_on_tile(tile) * np.float32(tile.exptime_s)) ** 2
+
+
+class NoiseMapParams(MapParams):
+    pass
+
+
+@register_effect
+class NoiseMap(_MapEffect):
+    """A measured map of extra read noise: each read draws an extra Gaussian of the map's sigma [e-] (READ
+    stage, new every frame). The per-pixel temporal noise of a CMOS (EMVA 1288 R4, sect. 8.2: the spatial
+    distribution of the temporal noise; its noisy-pixel tail) or a read noise that changes across a CCD's
+    output (a gradient from the amplifier), measured as the standard deviation of each pixel over a stack of
+    bias frames minus the sensor's ``read_noise_e`` in quadrature. A CCD that bins in charge reads each binned
+    pixel once: it gets the quadratic mean of the map over its b x b sensor pixels; a CMOS reads every pixel."""
+
+    name = "noise_map"
+    scaling = "none"
+    no_identity = "a measured map: its zero is a map of zeros (tests/detector/test_plausibility.py)"
+    stages = (Stage.READ,)
+    Params = NoiseMapParams
+    stochastic = True
+    signature = None
+
+    def setup(self) -> None:
+        (full, key), p = self.load(), self.params
+        if np.any(full < 0):
+            raise DetectorError(f"negative values (minimum {float(full.min()):.3g})", key=key, file=str(p.path),
+                                expected="a map of standard deviations >= 0 [e-]")
+        self._map = window_of(full, self.sensor, p.path, key).astype(np.float32)  # [e-] per read
+
+    def variance_on_tile(self, tile: Tile) -> np.ndarray:
+        """The extra read variance [e-^2] of the tile's current pixels (one read per binned CCD pixel)."""
+        return block_mean(self.on_tile(tile).astype(np.float64) ** 2, tile.bin).astype(np.float32)
+
+    def variance_e2(self, stage: Stage, tile: Tile, mean_e: np.ndarray) -> float | np.ndarray:
+        return self.variance_on_tile(tile)
+
+    def apply(self, stage: Stage, tile: Tile, data: np.ndarray) -> None:
+        n = tile.rng(self.name).standard_normal(data.shape, dtype=np.float32)
+        n *= np.sqrt(self.variance_on_tile(tile))
+        data += n
 
 
 # --- the dark-rate population law (no map) -------------------------------------------------------------------

@@ -162,3 +162,27 @@ def test_registered_documented_and_constant_maps_are_the_identity(tmp_path):
     out = Detector(s, build_effects({"bias_map": {"path": const}, "flat_map": {"path": const}}, s)).expose(
         200.0, 10.0, frame_seed=5)
     assert out.tobytes() == ref.tobytes()
+
+
+@pytest.mark.parametrize("preset, binning", [("ml11002", 1), ("ml11002", 2), ("imx411", 2)])
+def test_noise_map_adds_its_variance_per_read(tmp_path, preset, binning):
+    """``noise_map``: the difference of two bias frames has variance 2 (sigma_map^2 + read^2) / g^2 per pixel
+    (a CCD's binned read: the quadratic mean of the map over its pixels; a CMOS sums b^2 reads), as the model
+    of the mean frame says; the map is a gradient from 0 to 8 e- across the columns."""
+    s = sensor(preset, read_noise_e=2.0, bias_adu=500, binning=binning)
+    x = np.linspace(0.0, 8.0, 200)[None, :].repeat(160, axis=0)
+    f = write(tmp_path / "noise.fits", x.astype(np.float32))
+    det = Detector(s, build_effects({"noise_map": {"path": f}}, s))
+    _, var, _ = det.moments(0.0, 0.0)
+    win = x[20:68, 30:94]
+    b = binning
+    blocks = (win ** 2).reshape(48 // b, b, 64 // b, b)
+    g = s.gain_e_per_adu
+    if s.kind == "ccd":
+        expect = (blocks.mean(axis=(1, 3)) + 4.0) / g ** 2
+    else:
+        expect = (blocks.sum(axis=(1, 3)) + 4.0 * b * b) / g ** 2
+    assert np.allclose(var, expect + np.asarray(var)[0, 0] - expect[0, 0], rtol=0.02)  # quantisation: a constant
+    diffs = [det.expose(0.0, 0.0, 10 + k).astype(np.float64) - det.expose(0.0, 0.0, 50 + k) for k in range(40)]
+    measured = np.var(np.stack(diffs), axis=0).mean(axis=0) / 2  # per column, 40 x rows samples
+    np.testing.assert_allclose(measured, np.asarray(var).mean(axis=0), rtol=0.15)

@@ -163,13 +163,15 @@ def bias_per_output_adu(sensor) -> float:
 
 
 #: the effect an empirical map is applied through, by the kind of the residual (and the frame type)
-EMPIRICAL_EFFECTS = {"multiplicative": "flat_map", "additive": "dark_map", "additive_bias": "bias_map"}
+EMPIRICAL_EFFECTS = {"multiplicative": "flat_map", "additive": "dark_map", "additive_bias": "bias_map",
+                     "noise": "noise_map"}
 
 
 def apply_empirical(scene, empirical: dict, morphology: dict, path: str | Path, measured: str | Path | None = None,
                     public=None) -> tuple[Path, dict] | None:
     """Write ``scene`` with the residual's own smooth pattern added as a measured map, when no catalogue
-    effect explains it (the verdict says so): a multiplicative pattern as a ``flat_map`` (relative response),
+    effect explains it (the verdict says so): extra noise as a ``noise_map`` (the sigma of a read [e-]), a
+    multiplicative pattern as a ``flat_map`` (relative response),
     an additive one as a ``dark_map`` (charge that grows with the exposure and carries its shot noise: light
     the model lacks) or, on a bias frame, a ``bias_map`` [ADU]. The map (unbinned read-out window, FITS) is
     written beside the new scene as ``NAME_empirical.fits``. Returns (scene path, the applied entry) or None
@@ -190,6 +192,13 @@ def apply_empirical(scene, empirical: dict, morphology: dict, path: str | Path, 
     per_sensor_px = float(b * b) if sensor.binning_mode == "sum" else 1.0  # output value = sum of b^2 pixels
     if kind == "multiplicative":  # the map is the relative change of the light
         data, params, unit = 1.0 + full, {}, "relative response"
+    elif kind == "noise":  # the map is the extra variance of an output pixel [ADU^2]: the sigma of one read [e-]
+        if sensor.kind == "ccd":
+            reads = 1.0  # one read of the binned charge
+        else:  # b^2 reads summed (or averaged) digitally
+            reads = 1.0 / per_sensor_px if sensor.binning_mode == "sum" else float(b * b)
+        data = np.sqrt(np.maximum(full, 0.0) * reads) * gain
+        params, unit = {}, "e- rms per read"
     elif kind == "additive_bias":
         reads = per_sensor_px if sensor.kind != "ccd" else 1.0  # a CMOS sums b^2 digitised reads
         data, params, unit = full / reads, {}, "ADU"
