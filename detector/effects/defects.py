@@ -171,7 +171,7 @@ class ColumnSignature(Signature):
         if evenness < self.MIN_EVENNESS:
             return (f"the outlier columns' excess sits in a few stretches of their rows (typical stretch "
                     f"{100 * evenness:.0f} % of the strongest): a local structure crossing them, not defective columns")
-        short, run = self.short_run_share(d, res.var_adu2[:, cols])
+        short, run = self.short_run_share(d, res.var_adu2[:, cols], clip=5.0)
         if short > self.MAX_SHORT_RUN_SHARE:
             return (f"the outlier columns' excess is carried by short groups of outlying pixels ({100 * short:.0f} % of "
                     f"their net excess in runs under {self.MIN_RUN} rows; median run {run:.0f} rows): defective pixels or clusters "
@@ -185,8 +185,8 @@ class ColumnSignature(Signature):
     MAX_SHORT_RUN_SHARE = 0.5
 
     @classmethod
-    def short_run_share(cls, d: np.ndarray, var: np.ndarray, sigma: float = 5.0, grow: float = 2.0
-                        ) -> tuple[float, float]:
+    def short_run_share(cls, d: np.ndarray, var: np.ndarray, sigma: float = 5.0, grow: float = 2.0,
+                        clip: float | None = None) -> tuple[float, float]:
         """(share, median run length): of the columns' net excess (``d`` [ADU] per row x column, summed along
         each column in the sign of its sum), the share carried by runs of fewer than MIN_RUN consecutive rows
         of outlying pixels (a run holds a pixel beyond ``sigma`` standard deviations in that sign and goes on
@@ -195,7 +195,10 @@ class ColumnSignature(Signature):
         pixels stand out one by one); clusters of defective pixels put all of it in a few short runs.
         (0, 0) without an excess."""
         d = np.where(np.isfinite(d), d, 0.0)
-        z = d / np.sqrt(np.maximum(var, 1e-12))
+        sd = np.sqrt(np.maximum(var, 1e-12))
+        z = d / sd
+        if clip is not None:  # each pixel's excess counted up to `clip` sigma: a hot pixel is not a column's worth
+            d = np.clip(d, -clip * sd, clip * sd)
         net = short = 0.0
         lengths = []
         for j in range(d.shape[1]):

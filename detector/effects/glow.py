@@ -198,6 +198,9 @@ def _glow_check(fit, res) -> str:
     and it reaches the read-out window from that edge (Janesick 2001, Scientific CCDs, sect. 5.9; the IMX411
     glows within a few hundred pixels of its amplifiers)."""
     p, s = fit.params, res.sensor
+    if res.light_source == "flat":
+        return ("a glow on a flat-screen frame cannot be told from the flat's own response (added charge and a "
+                "response are one on a uniform light): a glow is dark charge, which the darks measure")
     if p.get("model") == "gaussian":
         g = p["sources"][0]
         peak_e = g["amplitude_e_per_s"] * res.exptime_s

@@ -256,3 +256,13 @@ def test_the_distortion_at_sample_pixels_is_the_full_frame_there():
     idx = np.sort(rng.choice(img.size, 500, replace=False))
     at = radial_distortion(img, ys, xs, 500.0, 600.0, 3e-7, p1_per_px=2e-4, p2_per_px=-1e-4, at=idx)
     assert np.array_equal(at, full.ravel()[idx])
+
+
+def test_a_faint_hot_column_with_hot_pixels_in_it_is_a_column():
+    """Clipped at 5 sigma, two bright hot pixels do not outweigh a column 2 sigma hot over its length."""
+    rng = np.random.default_rng(14)
+    var = np.full((1000, 4), 100.0)
+    d = rng.normal(0, 10, (1000, 4)) + 20.0
+    d[[100, 600], :] += 50000.0
+    assert ColumnSignature.short_run_share(d, var)[0] > 0.5  # unclipped, the hot pixels dominate
+    assert ColumnSignature.short_run_share(d, var, clip=5.0)[0] < 0.1
