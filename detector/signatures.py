@@ -1148,8 +1148,9 @@ def neighbour_correlation(res: Residuals) -> tuple[float, float]:
 TAIL_SIGMA = 3.0
 
 
-def tail_neighbour_correlation(res: Residuals) -> tuple[float, float, int]:
-    """(correlation, significance in sigma, tail pixels): the correlation of the pixels in the tail of the
+def tail_neighbour_correlation(res: Residuals) -> tuple[float, float, int, float]:
+    """(correlation, significance in sigma, tail pixels, the tail's share of the excess chi2 of the whitened
+    residual): the correlation of the pixels in the tail of the
     whitened residual (|z| > TAIL_SIGMA, clipped at 30) with their four neighbours. Independent pixel noise,
     however heavy its tail (kTC, a DSNU, a PRNU), gives 0 +- 1 / sqrt(pairs): a neighbour does not know its
     pixel is an outlier. A structure a few pixels wide (light moved into rings, hot pixels in pairs, a blur
@@ -1167,7 +1168,10 @@ def tail_neighbour_correlation(res: Residuals) -> tuple[float, float, int]:
             syy += float(np.dot(b, b))
             n += a.size
         rho = sxy / np.sqrt(sxx * syy) if sxx > 0 and syy > 0 else 0.0
-        res._flat["tail_neighbour_correlation"] = (rho, rho * np.sqrt(max(n, 1)), int(tail.sum()))
+        z2 = zc[m] ** 2
+        excess = float(np.sum(z2 - 1.0))
+        share = float(np.sum(zc[tail] ** 2 - 1.0)) / excess if excess > 0 else 0.0
+        res._flat["tail_neighbour_correlation"] = (rho, rho * np.sqrt(max(n, 1)), int(tail.sum()), share)
     return res._flat["tail_neighbour_correlation"]
 
 
@@ -1260,8 +1264,10 @@ class VarianceSignature(Signature):
         if rho > self.MAX_NEIGHBOUR_CORRELATION and z > 5:
             return (f"the extra scatter is correlated between neighbouring pixels (correlation {rho:.2f}, {z:.0f} "
                     "sigma): a structure a few pixels wide, not a pixel-to-pixel non-uniformity or noise")
-        rho, z, n = tail_neighbour_correlation(res)
-        if rho > self.MAX_TAIL_CORRELATION and z > 5:
+        rho, z, n, share = tail_neighbour_correlation(res)
+        # (only when the tail carries most of the extra scatter: a white PRNU over the whole flat is not judged by
+        # the dust rings that make its outliers)
+        if rho > self.MAX_TAIL_CORRELATION and z > 5 and share > 0.5:
             return (f"the pixels that carry the extra scatter have neighbours that share their sign (correlation "
                     f"{rho:.2f} over {n} outlying pixels, {z:.0f} sigma; independent noise gives 0): a structure a few "
                     "pixels wide (light moved into rings, pixels in pairs or clusters, smeared sources), not "
