@@ -110,8 +110,12 @@ def _gauss_variant(res, x_frac: float, y_frac: float, sigma_px: float) -> Varian
     # a glow source sits on the sensor or within its own width of the edge (else it is a field-wide gradient)
     outside = float(np.hypot(max(-x0, x0 - (s.sensor_width_px - 1), 0.0), max(-y0, y0 - (s.sensor_height_px - 1), 0.0)))
 
+    # a glow is extended: no narrower than the shortest e-folding length the edge law tries (and 16 px); a
+    # narrower bump is a source the model lacks
+    narrowest = max(_SCALES[0] * max(s.sensor_width_px, s.sensor_height_px), 16.0)
+
     def to_params(c):
-        if outside > sigma_px:
+        if outside > sigma_px or sigma_px < narrowest:
             return None
         return ({"model": "gaussian", "sources": [{"x_frac": round(float(x_frac), 5), "y_frac": round(float(y_frac), 5),
                                                    "amplitude_e_per_s": round(float(c[0]), 6),
