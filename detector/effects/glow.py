@@ -107,15 +107,19 @@ def _gauss_variant(res, x_frac: float, y_frac: float, sigma_px: float) -> Varian
         bivariate_normal_rate(res.ys, res.xs, x0, y0, 1.0, sigma_px, sigma_px, 0.0, t)
         return [t * np.float32(unit)]
 
-    # a glow source sits on the sensor or within its own width of the edge (else it is a field-wide gradient)
+    # a glow source sits at the sensor's edge, where the read-out amplifiers are (thesis sect. on amp-glow: "often
+    # located at the edges of the image"): within twice its width inside the edge (the glow reaches the edge at
+    # e^-2 of its peak at least), or outside it by at most its width (else it is a field-wide gradient). A bump
+    # deep inside the sensor is a light leak, a hot spot or a source the model lacks, not an amplifier's glow
     outside = float(np.hypot(max(-x0, x0 - (s.sensor_width_px - 1), 0.0), max(-y0, y0 - (s.sensor_height_px - 1), 0.0)))
+    inside = max(min(x0, s.sensor_width_px - 1 - x0, y0, s.sensor_height_px - 1 - y0), 0.0)
 
     # a glow is extended: no narrower than the shortest e-folding length the edge law tries (and 16 px); a
     # narrower bump is a source the model lacks
     narrowest = max(_SCALES[0] * max(s.sensor_width_px, s.sensor_height_px), 16.0)
 
     def to_params(c):
-        if outside > sigma_px or sigma_px < narrowest:
+        if outside > sigma_px or inside > 2.0 * sigma_px or sigma_px < narrowest:
             return None
         return ({"model": "gaussian", "sources": [{"x_frac": round(float(x_frac), 5), "y_frac": round(float(y_frac), 5),
                                                    "amplitude_e_per_s": round(float(c[0]), 6),
