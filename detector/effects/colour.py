@@ -238,8 +238,9 @@ class CFAParams(EffectParams):
 
 @register_effect
 class ColourFilterArray(Effect):
-    """Bayer colour filter array: the light of sensor pixel (y, x) times the response of its 2 x 2 cell,
-    ``R[y mod 2, x mod 2]`` (grey per cell; see the module docstring for the colour approximation).
+    """Colour filter array: the light of sensor pixel (y, x) times the response of its cell,
+    ``R[(y // h) mod 2, (x // h) mod 2]`` with ``h = period / 2`` (1: Bayer; 2, 3, 4: each filter over h x h
+    pixels), grey per cell; see the module docstring for the colour approximation.
 
     Default responses: the sky of a raw PANOPTES Canon frame, G 185 / B 131 / R 93 ADU above bias per cell
     (docs/compare_realdata_sky.md), i.e. R 0.57, G 1.06, B 0.79 of a common level (RGGB).
