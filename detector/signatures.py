@@ -1134,12 +1134,12 @@ def neighbour_correlation(res: Residuals) -> tuple[float, float]:
         zw, m = _whitened_map(res)
         pairs = 0.0
         n = 0
-        for a, b, ma, mb in ((zw[:, :-1], zw[:, 1:], m[:, :-1], m[:, 1:]), (zw[:-1], zw[1:], m[:-1], m[1:])):
-            both = ma & mb
-            pairs += float(np.sum(a[both] * b[both]))
-            n += int(both.sum())
+        for a, b in _neighbour_pairs(zw, m, m):  # every adjacent pair twice (both orders): the same mean
+            pairs += float(np.sum(a * b))
+            n += a.size
+        n //= 2
         var = float(np.sum(zw * zw) / max(np.count_nonzero(m), 1))
-        rho = pairs / max(n, 1) / max(var, 1e-30)
+        rho = pairs / 2 / max(n, 1) / max(var, 1e-30)
         res._flat["neighbour_correlation"] = (rho, rho * np.sqrt(max(n, 1)))
     return res._flat["neighbour_correlation"]
 

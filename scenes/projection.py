@@ -39,6 +39,8 @@ import numpy as np
 from astropy.wcs import WCS
 from astropy.wcs import Sip as _AstropySip
 
+from detector.effects.image_plane import decentering_shift
+
 from .errors import SceneError
 
 SIP_MAX_ORDER = 9
@@ -349,9 +351,8 @@ def with_radial(sip: Sip | None, k_per_px2: float, x_range, y_range, n: int = RE
     xp, yp = x / f, y / f
     p1, p2 = decentering
     if p1 or p2:
-        r2 = x * x + y * y
-        xp = xp - (p1 * (r2 + 2 * x * x) + 2 * p2 * x * y)
-        yp = yp - (p2 * (r2 + 2 * y * y) + 2 * p1 * x * y)
+        dx, dy = decentering_shift(x, y, p1, p2)
+        xp, yp = xp - dx, yp - dy
     if sip is not None:
         X, Y = sip.forward(xp, yp)
         order, rev, source, info = max(sip.order, RADIAL_ORDER), sip.reverse_order, sip.source, dict(sip.info)

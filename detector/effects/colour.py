@@ -118,19 +118,25 @@ class CFASignature(Signature):
     PERIODS = (2, 4, 6, 8)
 
     def fit(self, res, name):
+        if not np.any(res.photo_adu > 0):
+            return None
+        sample = self._sample(res)
+        if sample is None:
+            return None
         best = None
         for period in self.PERIODS:
-            fit = self._fit_period(res, name, period)
+            fit = self._fit_period(res, name, period, sample)
             if fit is not None:
-                fit.k += 1 if len(self.PERIODS) > 1 else 0
+                fit.k += 1  # the period chosen
                 if best is None or fit.delta_bic < best.delta_bic:
                     best = fit
         return best
 
-    def _fit_period(self, res, name, period):
-        f = _cell_fractions(res, period)
-        if f is None or not np.any(res.photo_adu > 0):
-            return None
+    @staticmethod
+    def _sample(res) -> dict | None:
+        """The pixels every mosaic period is fitted on (the same for all): every unsaturated light pixel of
+        ``res.train`` (a random subsample of at most CFA_FIT_PIXELS), their residual, weight, photo-signal
+        and global-level templates."""
         ok = _unsaturated(res)
         idx = np.flatnonzero(ok if res.train is None else ok & res.train)
         if idx.size < 100:
@@ -139,15 +145,20 @@ class CFASignature(Signature):
         if idx.size > CFA_FIT_PIXELS:
             scale = idx.size / CFA_FIT_PIXELS
             idx = np.sort(np.random.default_rng(0).choice(idx, CFA_FIT_PIXELS, replace=False))
-        shape = res.data_adu.shape
-        y, x = np.divmod(idx, shape[1])
-        rel = f[:3] - f[3]
-        r = (res.data_adu.ravel()[idx] - res.model_adu.ravel()[idx]).astype(np.float64)
-        w = 1.0 / res.var_adu2.ravel()[idx].astype(np.float64)
-        temps = res.photo_adu.ravel()[idx].astype(np.float64) * rel[:, y, x]
         levels = res.level_values(idx)  # the global levels this frame fits (no bias offset on a light frame)
-        if not levels.size:
-            levels = np.zeros((1, idx.size))
+        return {"idx": idx, "scale": scale, "yx": np.divmod(idx, res.data_adu.shape[1]),
+                "r": (res.data_adu.ravel()[idx] - res.model_adu.ravel()[idx]).astype(np.float64),
+                "w": 1.0 / res.var_adu2.ravel()[idx].astype(np.float64),
+                "photo": res.photo_adu.ravel()[idx].astype(np.float64),
+                "levels": levels if levels.size else np.zeros((1, idx.size))}
+
+    def _fit_period(self, res, name, period, sample):
+        f = _cell_fractions(res, period)
+        if f is None:
+            return None
+        idx, scale, (y, x), r, w, levels = (sample[k] for k in ("idx", "scale", "yx", "r", "w", "levels"))
+        rel = f[:3] - f[3]
+        temps = sample["photo"] * rel[:, y, x]
         keep = np.ones(idx.size, bool)
         for _ in range(3):
             c, d, _ = lstsq_delta(r[keep], w[keep], temps[:, keep], levels[:, keep])
@@ -158,7 +169,7 @@ class CFASignature(Signature):
                 break
             keep = new
         # the light level L of the joint fit: the cells' responses are 1 + c_k / L (the data are L P (1 + delta_k))
-        photo = res.photo_adu.ravel()[idx[keep]].astype(np.float64)
+        photo = sample["photo"][keep]
         wk = w[keep] * photo
         level = float(np.dot(wk, photo + (c_levels @ levels)[keep]) / np.dot(wk, photo))
         params = _cfa_params(np.asarray(c) / level, period) if level > 0 else None

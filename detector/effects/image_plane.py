@@ -38,10 +38,10 @@ from scipy import ndimage, signal
 
 from ..signatures import (
     Fit,
-    LinearSignature,
     Signature,
     Variant,
     fit_linear,
+    frame_at,
     profiled_chi2,
     search_sample,
 )
@@ -154,6 +154,13 @@ def drift_smear(image: np.ndarray, dx_px: float, dy_px: float, spectra: dict | N
     return fourier_filter(image, pad, lambda fx, fy: np.sinc(fx * dx_px + fy * dy_px), spectra, workers)
 
 
+def decentering_shift(x, y, p1_per_px: float, p2_per_px: float):
+    """Brown's (1966, Photogramm. Eng. 32, 444, eq. 13) decentering displacement (dx, dy) [px] at (x, y) [px]
+    from the optical axis: ``dx = p1 (r^2 + 2 x^2) + 2 p2 x y``, ``dy = p2 (r^2 + 2 y^2) + 2 p1 x y``."""
+    r2 = x * x + y * y
+    return p1_per_px * (r2 + 2 * x * x) + 2 * p2_per_px * x * y, p2_per_px * (r2 + 2 * y * y) + 2 * p1_per_px * x * y
+
+
 def radial_distortion(image: np.ndarray, ys: np.ndarray, xs: np.ndarray, yc: float, xc: float, k_per_px2: float,
                       step: float = 1.0, p1_per_px: float = 0.0, p2_per_px: float = 0.0,
                       at: np.ndarray | None = None) -> np.ndarray:
@@ -177,8 +184,8 @@ def radial_distortion(image: np.ndarray, ys: np.ndarray, xs: np.ndarray, yc: flo
     # decentering displacement there
     src_y, src_x = yy / f, xx / f
     if p1_per_px or p2_per_px:
-        src_x = src_x - (p1_per_px * (r2 + 2 * xx * xx) + 2 * p2_per_px * xx * yy)
-        src_y = src_y - (p2_per_px * (r2 + 2 * yy * yy) + 2 * p1_per_px * xx * yy)
+        dx, dy = decentering_shift(xx, yy, p1_per_px, p2_per_px)
+        src_x, src_y = src_x - dx, src_y - dy
     src_y = ((src_y + yc) - ys[0]) / step
     src_x = ((src_x + xc) - xs[0]) / step
     return ndimage.map_coordinates(image, [src_y, src_x], order=1, mode="nearest").astype(image.dtype)
@@ -507,22 +514,20 @@ def _drift_words(p, res) -> str:
 
 
 # distortion: theta = (k [sensor px^-2], p1, p2 [sensor px^-1])
-def _distortion_fields(res) -> list[tuple[np.ndarray, np.ndarray]]:
-    """The displacement fields (dx, dy) [sensor px] of unit k, p1 and p2 at the output pixels."""
-    yc, xc = _sensor_centre(res)
-    yy, xx = np.meshgrid(res.ys - yc, res.xs - xc, indexing="ij")
-    r2 = xx * xx + yy * yy
-    return [(xx * r2, yy * r2), (r2 + 2 * xx * xx, 2 * xx * yy), (2 * xx * yy, r2 + 2 * yy * yy)]
-
-
 def _distortion_start(res, terms=(0, 1, 2)):
-    """First order: the image moved by the displacement field, ``-(dI/dx dx + dI/dy dy)``, for each of the
-    ``terms`` (0: k, 1: p1, 2: p2)."""
+    """First order: the image moved by the displacement field of unit k, p1 or p2 (``terms`` 0, 1, 2),
+    ``-(dI/dx dx + dI/dy dy)``, fitted at the search sample's pixels."""
     d, b = _derivatives(res), res.sensor.binning
-    fields = _distortion_fields(res)
-    temps = [-(d["x"] * fields[t][0] + d["y"] * fields[t][1]) / b for t in terms]
     ctx = search_sample(res)
-    c, _ = fit_linear(res, lambda i: np.stack([t.ravel()[i] for t in temps]), ctx["idx"], ctx["r"], ctx["w"])
+    sidx = ctx["idx"]
+    iy, ix = np.divmod(sidx, res.data_adu.shape[1])
+    yc, xc = _sensor_centre(res)
+    x, y = res.xs[ix] - xc, res.ys[iy] - yc
+    fields = [(x * (x * x + y * y), y * (x * x + y * y)), decentering_shift(x, y, 1.0, 0.0),
+              decentering_shift(x, y, 0.0, 1.0)]
+    gx, gy = d["x"].ravel()[sidx], d["y"].ravel()[sidx]
+    temps = np.stack([-(gx * fields[t][0] + gy * fields[t][1]) / b for t in terms])
+    c, _ = fit_linear(res, lambda i: temps[:, np.searchsorted(sidx, i)], sidx, ctx["r"], ctx["w"])
     return np.asarray(c, float)
 
 
@@ -572,23 +577,22 @@ def _offset_check(fit, res) -> str:
     d = _derivatives(res)
     ctx = search_sample(res)
     idx, w = ctx["idx"], ctx["w"]
-    r = ctx["r"] - np.asarray(fit.delta_adu, np.float64).ravel()[idx]
+    r = ctx["r"] - frame_at(fit.delta_adu, idx)
     ny, nx = res.data_adu.shape
     y, x = np.divmod(idx, nx)
     cell = np.minimum(y * 3 // ny, 2) * 3 + np.minimum(x * 3 // nx, 2)
     gx, gy = d["x"].ravel()[idx], d["y"].ravel()[idx]
-    info = np.array([float(np.sum(w[cell == c] * (gx[cell == c] ** 2 + gy[cell == c] ** 2))) for c in range(9)])
-    if np.count_nonzero(info > 0.05 * info.max()) < 4:
+    info = np.bincount(cell, w * (gx * gx + gy * gy), minlength=9)
+    use = info > 0.05 * info.max()
+    if np.count_nonzero(use) < 4:
         return ""  # too few regions with sources to see a field dependence
+    # each region's shift templates (the model's derivatives there, zero elsewhere) at the sample's pixels
+    temps = np.zeros((18, idx.size))
+    at = np.arange(idx.size)
+    temps[2 * cell, at], temps[2 * cell + 1, at] = -gx, -gy
 
     def values(i):
-        pos = np.searchsorted(idx, i)
-        out = np.zeros((18, i.size))
-        for c in range(9):
-            on = cell[pos] == c
-            out[2 * c, on] = -gx[pos][on]
-            out[2 * c + 1, on] = -gy[pos][on]
-        return out
+        return temps[:, np.searchsorted(idx, i)]
 
     coef, dchi2 = fit_linear(res, values, idx, r, w)
     gain = -dchi2  # the chi2 the regions' own shifts remove
@@ -596,7 +600,6 @@ def _offset_check(fit, res) -> str:
         return ""
     b = res.sensor.binning
     shifts = coef.reshape(9, 2) * b  # sensor px
-    use = info > 0.05 * info.max()
     rms = float(np.sqrt(np.sum(info[use, None] * shifts[use] ** 2) / np.sum(info[use])))
     offset = float(np.hypot(fit.params["dx_px"], fit.params["dy_px"]))
     if rms <= MAX_OFFSET_VARIATION * offset:

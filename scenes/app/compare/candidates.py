@@ -15,6 +15,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from detector import registry
+from detector.effects.base import Stage
 from detector.morphology import block_chi2
 from detector.signatures import Fit, Residuals, frame_at, heldout_delta
 
@@ -363,10 +364,10 @@ def score_heldout(res: Residuals, cands: list[Candidate], progress=None) -> None
 
 
 def _of_light(c: Candidate) -> bool:
-    """The candidate multiplies the light (a response: vignetting, PRNU, a mosaic, a flat map)."""
-    sig = registry()[c.fit.effect].signature if c.fit.effect in registry() else None
-    return bool(getattr(sig, "of_light", False)) or type(sig).__name__ == "CFASignature" or c.fit.effect in (
-        "prnu", "flat_map", "dead_pixels")
+    """The candidate multiplies the light only: its effect acts at the RESPONSE stage and nowhere else
+    (vignetting, PRNU, a mosaic, dead pixels, a flat map; not column defects, which add dark charge too)."""
+    cls = registry().get(c.fit.effect)
+    return cls is not None and set(cls.stages) == {Stage.RESPONSE}
 
 
 def rank(cands: list[Candidate], light_source: str = "") -> list[Candidate]:
