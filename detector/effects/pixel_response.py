@@ -63,6 +63,23 @@ def quadratic_nonlinearity(signal_e: np.ndarray, beta: float, full_well_e: float
         signal_e *= f
 
 
+#: signal [fraction of the full well] where a power-law response equals the linear one (its reference)
+POWER_LAW_REFERENCE = 0.5
+
+
+def power_law_nonlinearity(signal_e: np.ndarray, gamma: float, reference_e: float) -> None:
+    """In place: ``S' = S (S / S_ref)^(gamma - 1)``, a power-law (gamma) response that equals the linear one
+    at ``S_ref`` [e-] and departs from it logarithmically on both sides (``S' / S - 1 ~ (gamma - 1)
+    ln(S / S_ref)``): the response of a sensor read through a compressive (or expansive) transfer, e.g. a
+    logarithmic or partially logarithmic CMOS pixel (Janesick 2007 ch. 11: non-linearity measured over the
+    whole signal range; EMVA 1288 sec. 8.2 reports its deviation from a straight line). Where the signal is
+    zero or negative the pixel is left as it is."""
+    if gamma != 1.0:
+        x = np.maximum(signal_e, np.float32(1e-3)) / np.float32(reference_e)
+        f = np.power(x, np.float32(gamma - 1.0), dtype=np.float32)
+        np.multiply(signal_e, f, out=signal_e, where=signal_e > 0)
+
+
 def region_index(ys: np.ndarray, xs: np.ndarray, nx: int, ny: int, height: int, width: int
                  ) -> tuple[np.ndarray, np.ndarray]:
     """Amplifier region (row index, column index) of sensor coordinates on an ``ny x nx`` grid."""
@@ -181,13 +198,37 @@ def _gain_words(p, res) -> str:
 
 
 def _nonlin_variants(res):
+    """Two one-parameter response curves, the better one kept: the quadratic deficit (a response falling
+    linearly with the signal: most of the change near full well) and the power law (a deviation growing with
+    ln S: as much per decade of faint as of bright signal). Their derivatives at zero strength are the
+    templates [ADU per unit coefficient]: ``-S^2 / FW / g`` and ``S ln(S / S_ref) / g``."""
     fw = res.sensor.full_well_e * res.pixel_sum
-    t = -(res.charge_e.astype(np.float64) ** 2) / fw / res.gain
+    q = res.charge_e.astype(np.float64)
+    t = -(q ** 2) / fw / res.gain
 
     def to_params(c):
         return {"beta": round(float(c[0]), 6)} if -0.5 <= c[0] <= 0.5 and c[0] != 0 else None
 
-    yield Variant([t.astype(np.float32)], to_params)
+    yield Variant([t.astype(np.float32)], to_params, label="quadratic")
+    ref = POWER_LAW_REFERENCE * fw
+    pos = q > 0
+    t = np.zeros_like(q)
+    t[pos] = q[pos] * np.log(q[pos] / ref) / res.gain
+
+    def to_power(c):
+        return {"beta": 0.0, "gamma": round(1.0 + float(c[0]), 6)} if 0 < abs(c[0]) <= 0.5 else None
+
+    yield Variant([t.astype(np.float32)], to_power, label="power law")
+
+
+def _nonlin_words(p, res) -> str:
+    if p.get("gamma", 1.0) != 1.0:
+        g = p["gamma"]
+        return (f"response following a power law of the signal, gamma {g:.4g} ({'compressive' if g < 1 else 'expansive'}"
+                f": {100 * abs(g - 1) * np.log(10):.2g} % per decade of signal, equal to the linear one at "
+                f"{POWER_LAW_REFERENCE:g} of the full well): nonlinearity")
+    return (f"response {'deficit' if p['beta'] > 0 else 'excess'} growing as the square of the signal, "
+            f"{100 * abs(p['beta']):.2g} % at full well: nonlinearity")
 
 _PRNU_SIGNATURE = VarianceSignature(
     _prnu_template, _prnu_params,
@@ -217,10 +258,8 @@ _DEADPIXELS_SIGNATURE = CountSignature(
 _GAINREGIONS_SIGNATURE = LinearSignature(_gain_variants, _gain_words, pattern="signal steps between sensor regions")
 
 _NONLINEARITY_SIGNATURE = LinearSignature(
-    _nonlin_variants,
-    lambda p, res: (f"response {'deficit' if p['beta'] > 0 else 'excess'} growing as the square of the signal, "
-                    f"{100 * abs(p['beta']):.2g} % at full well: nonlinearity"),
-    pattern="residual proportional to the square of the collected charge", extra_k=0)
+    _nonlin_variants, _nonlin_words,
+    pattern="residual proportional to the square of the collected charge (or to S ln S)", extra_k=0)
 
 
 # --- adapters -----------------------------------------------------------------------------------------------
@@ -374,11 +413,14 @@ class GainRegions(Effect):
 
 class NonlinearityParams(EffectParams):
     beta: float = Field(0.02, ge=-0.5, le=0.5, description="fractional response deficit at full well [1]")
+    gamma: float = Field(1.0, ge=0.5, le=1.5, description="exponent of a power-law response, equal to the linear "
+                         "one at half the full well (1: none) [1]")
 
 
 @register_effect
 class Nonlinearity(Effect):
-    """Quadratic response nonlinearity of the read-out chain: S' = S (1 - beta S / FW).
+    """Response nonlinearity of the read-out chain: S' = S (1 - beta S / FW), then, when ``gamma`` != 1,
+    the power law S'' = S' (S' / S_ref)^(gamma - 1), S_ref half the full well (:func:`power_law_nonlinearity`).
 
     A pixel at full well reads ``beta`` low (beta < 0: super-linear). Applied to the collected charge after
     the full-well clip and before read noise (EMVA 1288 sec. 8.2 linearity error; Janesick 2007 ch. 11).
@@ -386,10 +428,12 @@ class Nonlinearity(Effect):
 
     name = "nonlinearity"
     scaling = "signal"
-    identity = {"beta": 0.0}
+    identity = {"beta": 0.0, "gamma": 1.0}
     stages = (Stage.READ,)
     Params = NonlinearityParams
     signature = _NONLINEARITY_SIGNATURE
 
     def apply(self, stage: Stage, tile: Tile, data: np.ndarray) -> None:
-        quadratic_nonlinearity(data, self.params.beta, self.sensor.full_well_e * tile.bin ** 2)
+        fw = self.sensor.full_well_e * tile.bin ** 2
+        quadratic_nonlinearity(data, self.params.beta, fw)
+        power_law_nonlinearity(data, self.params.gamma, POWER_LAW_REFERENCE * fw)

@@ -218,3 +218,19 @@ def test_vignetting_map_file_is_interpolated_and_errors_name_the_file(tmp_path):
     (tmp_path / "bad.fits").write_text("not a fits file")
     with pytest.raises(DetectorError, match="bad.fits"):
         build_effects({"vignetting": {"map_file": str(tmp_path / "bad.fits")}}, s)
+
+
+def test_nonlinearity_power_law_follows_its_formula():
+    """S' = S (S / S_ref)^(gamma - 1), S_ref = FW / 2: the same at S_ref, (gamma - 1) ln(S / S_ref) away."""
+    from detector.effects.pixel_response import power_law_nonlinearity
+
+    fw = 50000.0
+    s = small(read_noise_e=0.0, dark_current_e_per_s=0.0, gain_e_per_adu=1.0, full_well_e=fw)
+    det = Detector(s, build_effects({"nonlinearity": {"beta": 0.0, "gamma": 0.97}}, s))
+    for S in (2500.0, 25000.0, 45000.0):
+        f = det.expose(S, 1.0, 1).astype(float)
+        expect = 1000 + S * (S / (fw / 2)) ** (0.97 - 1) - 0.5
+        assert abs(f.mean() - expect) < 5 * np.sqrt(S / f.size) + 0.5
+    x = np.array([0.0, -3.0, 25000.0], np.float32)
+    power_law_nonlinearity(x, 0.9, 25000.0)
+    assert x.tolist() == [0.0, -3.0, 25000.0]  # no signal, no change; the reference is a fixed point

@@ -72,3 +72,26 @@ def test_hardware_patterns_enter_as_variance():
     assert np.allclose(mean, s.bias_adu - 0.5 + (signal + 200) / s.gain_e_per_adu, rtol=1e-5)
     frame = det.expose(signal, 10.0, 3).astype(np.float64)
     assert abs(frame.var() / var.mean() - 1) < 0.02  # 262144 pixels: sampling error 0.3 %
+
+
+@pytest.mark.parametrize("eff", [{"gain_regions": {"nx": 2, "ny": 1, "gains": [1.0, 1.25]}},
+                                 {"nonlinearity": {"beta": 0.3}},
+                                 {"nonlinearity": {"beta": 0.0, "gamma": 0.8}}])
+def test_deterministic_responses_scale_the_variance_by_their_slope(eff):
+    """Var f(S) = f'(S)^2 Var S (delta method): a gain region of 1.25 makes the noise 1.56 times larger, a
+    response compressed near full well makes it quieter. Monte-Carlo frames of the chain against the model's
+    variance, column by column (each column one signal level)."""
+    det = _detector("ml11002", eff, dark_current_e_per_s=0.0, read_noise_e=2.0, gain_e_per_adu=1.0)
+    fw = det.sensor.full_well_e
+    ramp = np.linspace(0.05, 0.9, 64, dtype=np.float32)[None, :] * np.ones((64, 1), np.float32) * np.float32(fw)
+    n = 60
+    _, mc_var = _monte_carlo(det, ramp, 1.0, n)
+    _, var, flag = det.moments(ramp, 1.0)
+    plain = _detector("ml11002", None, dark_current_e_per_s=0.0, read_noise_e=2.0, gain_e_per_adu=1.0)
+    _, var0, _ = plain.moments(ramp, 1.0)
+    ok = ~flag.any(0)
+    # per column: 64 pixels x (n - 1) dof, relative error sqrt(2 / (64 (n - 1)))
+    ratio = (mc_var.mean(0) / var.mean(0))[ok]
+    assert np.all(np.abs(ratio - 1) < 5 * np.sqrt(2 / (64 * (n - 1))))
+    # and the effect is real: the unscaled variance is wrong somewhere by more than the test's resolution
+    assert np.max(np.abs(mc_var.mean(0) / var0.mean(0) - 1)[ok]) > 0.15
