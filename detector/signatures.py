@@ -35,6 +35,8 @@ unit parameters, and the fitted parameters are the plugin's own.
 
 from __future__ import annotations
 
+import warnings
+
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field, replace
 
@@ -97,6 +99,8 @@ GROW_PIXELS = 3
 #: a column in which more than this fraction of the pixels are spikes is a candidate defective column: its
 #: spikes count towards its mean, not towards the spike statistics
 DENSE_COLUMN_FRACTION = 0.05
+#: standard error of the median of n normal values, in units of sigma / sqrt(n): sqrt(pi / 2) [1]
+MEDIAN_SE_FACTOR = float(np.sqrt(np.pi / 2))
 #: when more than this fraction of the columns are outliers they are a pattern of the whole frame (a Bayer
 #: mosaic: every other column), not defective columns: counted, but kept in the pixel-by-pixel comparison
 #: (PANOPTES's raw frame flagged 520 of 700 columns and left a quarter of its pixels to compare)
@@ -129,7 +133,16 @@ def spike_stats(data: np.ndarray, model: np.ndarray, var: np.ndarray, usable: np
     col_mean = r.sum(axis=0) / np.maximum(cnt, 1)
     col_err = np.sqrt(np.where(keep, var, 0.0).sum(axis=0)) / np.maximum(cnt, 1)
     local_mean = col_mean - median_filter(col_mean, size=LINE_WINDOW, mode="nearest")
-    zc = np.where(cnt > 0, local_mean / np.maximum(col_err, 1e-12), 0.0)
+    # found from the median of each column's z (its standard error 1.2533 / sqrt(n) for normal pixels): a
+    # defective column is off along its length, while the few pixels of a misfit source (a wider or lopsided
+    # star, not a local spike) would make the column they cross an outlier of its mean. A column dense with
+    # spikes (a line of hot pixels) is found from its mean; the excess of the columns found is the mean's
+    with np.errstate(invalid="ignore"), warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # a column with no pixel to compare: NaN, then 0
+        zmed = np.nan_to_num(np.nanmedian(np.where(keep, z, np.nan), axis=0))
+    local_med = zmed - median_filter(zmed, size=LINE_WINDOW, mode="nearest")
+    z_mean = local_mean / np.maximum(col_err, 1e-12)
+    zc = np.where(cnt > 0, np.where(dense, z_mean, local_med * np.sqrt(cnt) / MEDIAN_SE_FACTOR), 0.0)
     hot_c, cold_c = zc > LINE_SIGMA, zc < -LINE_SIGMA
     lines = hot_c | cold_c
     pos, neg = pos_all & ~lines[None, :], neg_all & ~lines[None, :]

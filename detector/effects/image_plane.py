@@ -354,6 +354,18 @@ def _derivatives(res) -> dict:
     return cached
 
 
+def _third_derivatives(res) -> list[np.ndarray]:
+    """Third derivatives (xxx, xxy, xyy, yyy) of the model's photo-signal image [ADU / output px^3], cached."""
+    cached = res._flat.get("image_plane_third_derivatives")
+    if cached is None:
+        d = _derivatives(res)
+        gxxy, gxxx = np.gradient(d["xx"])
+        gyyy, gyyx = np.gradient(d["yy"])
+        cached = [gxxx, gxxy, gyyx, gyyy]
+        res._flat["image_plane_third_derivatives"] = cached
+    return cached
+
+
 def _has_structure(res) -> bool:
     """Image-plane effects need sources: a flat screen or a dark (even a vignetted one: its gradients are far
     wider than any blur or shift) has nothing to move or blur. Sources are what a 7 x 7 box average does
@@ -566,18 +578,50 @@ def _distortion_words(p, res) -> str:
 MAX_OFFSET_VARIATION = 0.5
 
 
+#: a rigid offset leaves the sources' shape alone: a skew change of their profiles found after the shift may
+#: remove at most this share of the chi2 the shift removes (a one-sided coma tail of 40 % of the light over
+#: 1.5 px: 0.37; true offsets, rotated or scaled fields, a decentering distortion: below 1e-3)
+MAX_SKEW_SHARE = 0.05
+
+
+def _skew_check(fit, res, idx, w, r) -> str:
+    """Is the sources' shape lopsided beyond what the shift explains? The residual after the shift is fitted
+    with the image's second derivatives (a symmetric change: blur, elongation) and then also its third
+    derivatives (the first-order effect of a change of the PSF's third moments, ``-(1/6) k3 : grad^3 I``;
+    a Taylor / Edgeworth expansion of the convolution, e.g. Kendall & Stuart vol. 1 sect. 6.17). A pointing
+    offset changes the first moments only; an asymmetric PSF (coma from a tilted or decentred mirror, a
+    one-sided tail) also moves each source's centroid, so the shift alone fits part of it."""
+    d = _derivatives(res)
+    even = [d["xx"], d["yy"], d["xy"]]
+    odd = _third_derivatives(res)
+    _, d_even = fit_linear(res, lambda i: np.stack([t.ravel()[i] for t in even]), idx, r, w)
+    _, d_both = fit_linear(res, lambda i: np.stack([t.ravel()[i] for t in even + odd]), idx, r, w)
+    gain = d_even - d_both  # chi2 the skew templates remove beyond the symmetric ones
+    shift_gain = -fit.delta_m2lnl / search_sample(res)["scale"]
+    if gain < 4 + 8 * np.sqrt(8) or gain <= MAX_SKEW_SHARE * shift_gain:
+        return ""
+    return (f"the sources are lopsided, not only displaced: after the shift, a skew (third-moment) change of their "
+            f"profiles removes {gain / shift_gain:.2g} as much chi2 as the shift itself: an asymmetric PSF (coma of a "
+            "tilted or decentred mirror, a one-sided tail) moves the centroids as an offset would, but a rigid "
+            "offset does not change the sources' shape")
+
+
 def _offset_check(fit, res) -> str:
     """A pointing offset moves the whole image rigidly. After the fitted shift, the extra shift of each of
     3 x 3 regions (linearised: the model image's derivatives per region, fitted with the global levels) must
     be insignificant, or small beside the common one: a displacement that varies across the field (rms of
     the regions' extra shifts above MAX_OFFSET_VARIATION of the offset, at more than 8 sigma) is a distortion,
-    a rotation or a plate-scale change the WCS lacks, not a pointing offset."""
+    a rotation or a plate-scale change the WCS lacks, not a pointing offset. Nor may the sources' shape have
+    changed asymmetrically (:func:`_skew_check`)."""
     if fit.delta_adu is None:
         return ""
     d = _derivatives(res)
     ctx = search_sample(res)
     idx, w = ctx["idx"], ctx["w"]
     r = ctx["r"] - frame_at(fit.delta_adu, idx)
+    skew = _skew_check(fit, res, idx, w, r)
+    if skew:
+        return skew
     ny, nx = res.data_adu.shape
     y, x = np.divmod(idx, nx)
     cell = np.minimum(y * 3 // ny, 2) * 3 + np.minimum(x * 3 // nx, 2)

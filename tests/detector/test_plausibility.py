@@ -144,6 +144,49 @@ def test_a_radial_distortion_keeps_the_simpler_form():
     assert fit.params["p1_per_px"] == 0.0 and fit.params["p2_per_px"] == 0.0 and fit.k == 1
 
 
+def _lopsided(p, frac=0.4, length_px=1.5, angle_deg=20.0):
+    """Every source with a one-sided exponential tail (``frac`` of its light, mean length ``length_px``
+    along ``angle_deg``): a coma-like PSF, built independently of the diagnosis (sum of shifted copies)."""
+    t = np.linspace(0, 6 * length_px, 49)[1:]
+    wts = np.exp(-t / length_px)
+    wts /= wts.sum()
+    c, s_ = np.cos(np.radians(angle_deg)), np.sin(np.radians(angle_deg))
+    out = (1 - frac) * p.astype(np.float64)
+    for ti, wi in zip(t, wts):
+        out += frac * wi * shift(p, ti * c, ti * s_)
+    return out
+
+
+def test_lopsided_sources_are_not_a_pointing_offset():
+    """A one-sided tail moves every centroid by frac x length (0.6 px here), which a shift fits in part; the
+    skew change of the profiles left after it tells a coma-like PSF from a rigid offset (a pure shift of the
+    same size is not flagged: test_a_rigid_shift_is_a_pointing_offset)."""
+    res = _star_frame(lambda p, ys, xs, yc, xc: _lopsided(p))
+    off = registry()["pointing_offset"].signature.fit(res, "pointing_offset")
+    assert np.hypot(off.params["dx_px"], off.params["dy_px"]) > 0.3  # the shift does fit the centroids
+    assert "lopsided" in _offset_check(off, res)
+    shifted = _star_frame(lambda p, ys, xs, yc, xc: shift(p, 0.56, 0.2))
+    fit = registry()["pointing_offset"].signature.fit(shifted, "pointing_offset")
+    assert _offset_check(fit, shifted) == ""
+
+
+def test_misfit_sources_do_not_make_columns_outliers_but_a_faint_column_is_found():
+    """A column is an outlier by the median of its pixels: the few pixels of a misfit star (a wider PSF) leave
+    their columns normal, while a column 0.5 sigma hot along its 512 rows (9 sigma in its median) is found."""
+    from detector.signatures import spike_stats
+
+    from scipy import ndimage
+
+    rng = np.random.default_rng(3)
+    model = _stars((512, 512), 150, rng, sigma_px=1.2) + 100.0
+    wide = ndimage.gaussian_filter(model - 100.0, 0.8) + 100.0  # the same stars, their PSF 1.44 px rms
+    var = model + 25.0
+    data = wide + rng.normal(0, np.sqrt(var))
+    data[:, 300] += 0.5 * np.sqrt(var[:, 300])
+    stats, _ = spike_stats(data, model, var, np.ones(data.shape, bool), 1.0)
+    assert stats.hot_cols + stats.cold_cols == 1 and stats.col_z[300] > 6
+
+
 # ------------------------------------------------------------------------------------ columns
 def test_column_excess_in_short_runs_is_clusters_not_a_column():
     rng = np.random.default_rng(7)
