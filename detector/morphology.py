@@ -119,19 +119,80 @@ def _radial(y, w, yy, xx, ny, nx):
     return best
 
 
-def _peak(z: np.ndarray) -> tuple[float, float, float]:
-    """(period [px], peak power over the median power, the share of the power in the peak) of the strongest
-    spatial frequency of a map, the lowest frequencies (smooth fields) excluded."""
+def _cut(z: np.ndarray) -> tuple[slice, slice] | None:
+    """The central (at most 512 x 512) square of a map that the periodogram looks at; None below 16 x 16."""
     side = min(512, *z.shape)
-    y0, x0 = (z.shape[0] - side) // 2, (z.shape[1] - side) // 2
-    cut = np.nan_to_num(z[y0:y0 + side, x0:x0 + side])
     if side < 16:
-        return 0.0, 0.0, 0.0
-    p = np.abs(np.fft.rfft2(cut - cut.mean())) ** 2
+        return None
+    y0, x0 = (z.shape[0] - side) // 2, (z.shape[1] - side) // 2
+    return slice(y0, y0 + side), slice(x0, x0 + side)
+
+
+def row_power_factor(w: np.ndarray, row_var_adu2: float, whitened: bool = True) -> float:
+    """The expected periodogram power of the zero horizontal frequency (``fx = 0``: patterns constant along
+    the rows) over that of every other frequency, for noise whose pixels of one row share an offset (row
+    noise: covariance ``c = row_var_adu2`` [ADU^2] between any two pixels of a row, none between rows; the
+    pixels' own variances ``1 / w`` include it).
+
+    ``w`` [1/ADU^2] are the pixels' weights (inverse total variances, zero off the fitted pixels). In the
+    whitened map ``z = r sqrt(w)`` a pixel is ``sqrt(w) (e + a_y)``, its own noise ``e`` (variance
+    ``1/w - c``) plus its row's offset ``a_y`` (variance ``c``). A frequency with ``fx != 0`` sums the offsets
+    of a row to nothing and sees ``sum (1 - c w)``; at ``fx = 0`` a row's sum ``S_y = sum_x z`` has variance
+    ``n_y + c [(sum_x sqrt w)^2 - sum_x w]``. The periodogram's mean power is the sum of these variances
+    (rows independent, Wiener-Khinchin), so
+
+        g = (sum_y n_y + c sum_y [(sum_x sqrt w)^2 - sum_x w]) / (sum_y n_y - c sum w)
+
+    (``(sum 1/w + c sum_y n_y (n_y - 1)) / (sum 1/w - c sum_y n_y)`` for the residual in ADU, not whitened).
+    With ``n_x`` pixels per row and correlation ``rho = c w``: ``g ~ (1 + (n_x - 1) rho) / (1 - rho)``, 79 on
+    the 512-wide cut of the 8 x 8-binned full IMX411 frame with 1 e- row noise (rho = 0.13)."""
+    c = float(row_var_adu2)
+    ok = w > 0
+    n = ok.sum(axis=1).astype(np.float64)
+    if c <= 0 or n.sum() == 0:
+        return 1.0
+    wg = np.where(ok, w, 0.0)
+    if whitened:
+        sq = np.sqrt(wg)
+        num = float(n.sum()) + c * float(np.sum(sq.sum(axis=1) ** 2 - wg.sum(axis=1)))
+        den = float(n.sum()) - c * float(wg.sum())
+    else:
+        white = float(np.sum(1.0 / w[ok]))
+        num = white + c * float(np.sum(n * (n - 1.0)))
+        den = white - c * float(n.sum())
+    return num / max(den, 1e-3 * num)
+
+
+def _cut_row_factor(wmap: np.ndarray, row_var_adu2: float) -> float:
+    """:func:`row_power_factor` of the cut :func:`_peak` looks at (whitened map)."""
+    sl = _cut(wmap)
+    return 1.0 if sl is None else row_power_factor(wmap[sl], row_var_adu2)
+
+
+def _spectrum(z: np.ndarray, row_factor: float = 1.0):
+    """The periodogram of the central cut of ``z`` divided by its expected shape under the null (the ``fx = 0``
+    column by ``row_factor``, :func:`row_power_factor`), the lowest frequencies (smooth fields) zeroed:
+    (power, |F| likewise scaled, fy, fx, side)."""
+    sl = _cut(z)
+    cut = np.nan_to_num(z[sl])
+    side = cut.shape[0]
+    fft = np.abs(np.fft.rfft2(cut - cut.mean()))
     fy = np.fft.fftfreq(side)[:, None]
     fx = np.fft.rfftfreq(side)[None, :]
+    fft = np.where(np.hypot(fy, fx) > 6.0 / side, fft, 0.0)
+    fft[:, 0] /= math.sqrt(max(row_factor, 1.0))
+    return fft * fft, fft, fy, fx, side
+
+
+def _peak(z: np.ndarray, row_factor: float = 1.0) -> tuple[float, float, float]:
+    """(period [px], peak power over the median power, the share of the power in the peak) of the strongest
+    spatial frequency of a map, the lowest frequencies (smooth fields) excluded. ``row_factor``: the expected
+    power of the ``fx = 0`` column over the rest under the null (:func:`row_power_factor`: row noise puts its
+    power there, a line along ``fy`` whose strongest bin is no period of anything)."""
+    if _cut(z) is None:
+        return 0.0, 0.0, 0.0
+    p, _, fy, fx, side = _spectrum(z, row_factor)
     f = np.hypot(fy, fx)
-    p = np.where(f > 6.0 / side, p, 0.0)
     k = int(np.argmax(p))
     med = float(np.median(p[p > 0])) if np.any(p > 0) else 0.0
     ky, kx = np.unravel_index(k, p.shape)
@@ -350,16 +411,15 @@ def describe(res: Residuals, delta_adu: np.ndarray | None = None) -> dict:
             out["empirical"] = _feature_map(feats, rmap, wmap, light,
                                             "additive" if out["kind"] == "redistributed" else out["kind"])
             return out
-        # one spatial frequency far above the rest: a pick-up or fringe pattern too weak to move the chi2 (on
-        # frames up to FEATURE_MAX_PIXELS, as the compact features: the binned frame of a full-frame comparison
-        # showed a strong line on a null frame, not understood yet)
-        zhp = zp - gaussian_filter(zp, b, mode="nearest") if zp.size <= FEATURE_MAX_PIXELS else None
-        period, contrast, _ = _peak(zhp) if zhp is not None else (0.0, 0.0, 0.0)
+        # one spatial frequency far above the rest: a pick-up or fringe pattern too weak to move the chi2. The
+        # fx = 0 column is measured against the power the model's row noise puts there (row_power_factor)
+        zhp = zp - gaussian_filter(zp, b, mode="nearest")
+        period, contrast, _ = _peak(zhp, _cut_row_factor(wmap, row_var))
         if contrast >= PERIODIC_CONTRAST:
             out["significant"] = True
             out["significance_sigma"] = round(max(out["significance_sigma"], _peak_sigma(contrast, zhp)), 2)
             out.update(_periodic_only(res, period, contrast, zhp, wmap))
-            out["empirical"] = _periodic_map(rmap, wmap, light, out["kind"])
+            out["empirical"] = _periodic_map(rmap, wmap, light, out["kind"], row_var)
         return out
     out["significant"] = True
     if block_sigma < SIGNIFICANT_SIGMA:  # extra scatter, no mean pattern: where is it?
@@ -470,7 +530,7 @@ def describe(res: Residuals, delta_adu: np.ndarray | None = None) -> dict:
     zmap = np.where(wmap > 0, rmap * np.sqrt(wmap), 0.0)
     zmap = zmap - gaussian_filter(zmap, b, mode="nearest")
     if max(shares.get("rows", 0.0), shares.get("columns", 0.0)) < GEOMETRY_SHARE:
-        period, contrast, peak_share = _peak(zmap)
+        period, contrast, peak_share = _peak(zmap, _cut_row_factor(wmap, row_var))
     else:
         period, contrast, peak_share = 0.0, 0.0, 0.0
     # a periodic pattern puts a large share of the (high-passed) power into one frequency, far above the rest
@@ -562,7 +622,7 @@ def describe(res: Residuals, delta_adu: np.ndarray | None = None) -> dict:
     elif main in ("rows", "columns") and kind in ("additive", "multiplicative", "mixed"):
         out["empirical"] = _line_map(rmap, wmap, light, kind, axis=1 if main == "rows" else 0)
     elif main == "periodic" and kind in ("additive", "multiplicative", "mixed"):
-        out["empirical"] = _periodic_map(rmap, wmap, light, kind)
+        out["empirical"] = _periodic_map(rmap, wmap, light, kind, row_var)
     if out["empirical"] is None and n_feat:
         # light moved around the sources (rings on them) is mapped as what it adds and takes where it is
         out["empirical"] = _feature_map(feats, rmap, wmap, light, "additive" if kind == "redistributed" else kind)
@@ -594,12 +654,14 @@ PERIODIC_KEEP_BINS = 3
 PERIODIC_PEAKS = 3
 
 
-def _periodic_map(rmap: np.ndarray, wmap: np.ndarray, light: np.ndarray, kind: str) -> dict:
+def _periodic_map(rmap: np.ndarray, wmap: np.ndarray, light: np.ndarray, kind: str, row_var: float = 0.0) -> dict:
     """The empirical map of a periodic pattern: the residual [ADU] band-passed around its strongest spatial
-    frequencies (a smooth part, below 6 cycles across the frame, left out), on the whole frame."""
+    frequencies (a smooth part, below 6 cycles across the frame, left out), on the whole frame; the ``fx = 0``
+    column weighed against the power row noise (``row_var`` [ADU^2]) puts there (:func:`row_power_factor`)."""
     r = np.where(wmap > 0, rmap, 0.0)
     f = np.fft.rfft2(r - r[wmap > 0].mean() if np.any(wmap > 0) else r)
     p = np.abs(f) ** 2
+    p[:, 0] /= row_power_factor(wmap, row_var, whitened=False)
     fy = np.fft.fftfreq(r.shape[0])[:, None]
     fx = np.fft.rfftfreq(r.shape[1])[None, :]
     low = np.hypot(fy * r.shape[0], fx * r.shape[1]) < 6.0
@@ -707,13 +769,11 @@ def _periodic_only(res: Residuals, period: float, contrast: float, zhp: np.ndarr
     on a flat screen's frame (a prior, ``kind_certain`` false: fringes), else ``additive`` (pick-up); the
     amplitude of the sinusoid the peak holds (``A = 2 |F| / N`` for N pixels) [e-] at the frame's typical
     noise."""
-    side = min(512, *zhp.shape)
-    y0, x0 = (zhp.shape[0] - side) // 2, (zhp.shape[1] - side) // 2
-    cut = np.nan_to_num(zhp[y0:y0 + side, x0:x0 + side])
-    f = np.abs(np.fft.rfft2(cut - cut.mean()))
-    fy, fx = np.fft.fftfreq(side)[:, None], np.fft.rfftfreq(side)[None, :]
-    f = np.where(np.hypot(fy, fx) > 6.0 / side, f, 0.0)
+    g = _cut_row_factor(wmap, res.row_var_adu2)
+    _, f, fy, fx, side = _spectrum(zhp, g)
     ky, kx = np.unravel_index(int(np.argmax(f)), f.shape)
+    if kx == 0:  # the sinusoid's amplitude itself, not its ratio to the null
+        f[:, 0] *= math.sqrt(max(g, 1.0))
     amp_sigma = 2.0 * float(f[ky, kx]) / (side * side)
     sig_adu = float(np.median(1.0 / np.sqrt(wmap[wmap > 0]))) if np.any(wmap > 0) else 0.0
     amp = amp_sigma * sig_adu * res.gain

@@ -902,7 +902,8 @@ def run_compare_large(scene, measured: str | Path, workers: int | None = None, p
         "profiles": prof, "distribution": dist, "outliers": counts,
         "stars": stamp_photometry(stamp_mosaic(P.stars, P.stamps, STAMP_HALF, setup), shape),
         "streaks": streak_results(P.streak_objects, P.streak_sums, shape),
-        "power_peaks": spectrum_peaks(zmap(res_s)),
+        "power_peaks": spectrum_peaks(zmap(res_s), weights=np.where(res_s.fit, 1.0 / res_s.var_adu2, 0.0),
+                                      row_var_adu2=res_s.row_var_adu2),
     })
     result["misfit"] = misfit(chi2_full * col_n, col_n, counts, {"rows": rows_excess, "columns": cols_excess})
     result["binned"] = {"chi2_per_dof": float(res_b.chi2() / max(res_b.n_fit, 1)), "n_compared": res_b.n_fit,

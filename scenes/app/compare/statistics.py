@@ -128,7 +128,8 @@ def source_mask(res: Residuals) -> np.ndarray:
     return (res.model_adu - background_adu(res)) > np.sqrt(res.var_adu2)
 
 
-def spectrum_peaks(z: np.ndarray, side: int = PEAK_SIDE, n_peaks: int = 5) -> dict:
+def spectrum_peaks(z: np.ndarray, side: int = PEAK_SIDE, n_peaks: int = 5, weights: np.ndarray | None = None,
+                   row_var_adu2: float = 0.0) -> dict:
     """The strongest periodic patterns of z at full resolution, pixel-scale ones included (a Bayer mosaic
     at the Nyquist frequency (0.5, 0.5), which the block-averaged spectrum cannot show).
 
@@ -136,8 +137,15 @@ def spectrum_peaks(z: np.ndarray, side: int = PEAK_SIDE, n_peaks: int = 5) -> di
     its 3 x 3 local maxima ranked by power over the median power. White noise: the strongest of ~1e5
     frequencies is ~15-25 x the median. Returns ``side`` and ``peaks``: ``[{"fx", "fy" [cycles/pixel],
     "power_ratio"}]``, best first (fx >= 0; fy >= 0 where fx is 0 or 0.5, which rfft2 holds twice).
+
+    With the pixels' ``weights`` [1/ADU^2] (0 where z is 0) and the model's row covariance ``row_var_adu2``
+    [ADU^2] (row noise), the ``fx = 0`` column is divided by the power the row offsets put there
+    (:func:`detector.morphology.row_power_factor`): its ratios are then to the null too, and the row noise
+    the model has is no peak.
     """
     from scipy import ndimage
+
+    from detector.morphology import row_power_factor
 
     h, w = z.shape
     y0, x0 = max(0, (h - side) // 2), max(0, (w - side) // 2)
@@ -145,6 +153,8 @@ def spectrum_peaks(z: np.ndarray, side: int = PEAK_SIDE, n_peaks: int = 5) -> di
     p = np.abs(np.fft.rfft2(cut - cut.mean())) ** 2 / max(cut.size, 1)
     fy, fx = np.fft.fftfreq(cut.shape[0]), np.fft.rfftfreq(cut.shape[1])
     med = float(np.median(p))
+    if weights is not None and row_var_adu2 > 0:
+        p[:, 0] /= row_power_factor(np.asarray(weights[y0:y0 + side, x0:x0 + side], np.float64), row_var_adu2)
     p[0, 0] = 0.0
     p[np.ix_((fy < 0) & (fy > -0.5), (fx == 0) | (fx == 0.5))] = 0.0  # mirror images within those columns
     local = p == ndimage.maximum_filter(p, size=3, mode="wrap")
@@ -361,7 +371,9 @@ def compare(res: Residuals, truth=None, realisation: np.ndarray | None = None) -
         "outliers": counts, "stars": star_photometry(res, truth), "streaks": streak_profiles(res, truth),
         "z_map": zsmall, "z_map_block": k,
     }
-    out["power_peaks"] = spectrum_peaks(np.where(source_mask(res), 0.0, z))
+    used = res.fit & ~source_mask(res)
+    out["power_peaks"] = spectrum_peaks(np.where(used, z, 0.0), weights=np.where(used, 1.0 / res.var_adu2, 0.0),
+                                        row_var_adu2=res.row_var_adu2)
     out.update(level_fit(res))
     out["misfit"] = misfit(chi2, n, counts, {"rows": rows_excess, "columns": cols_excess})
     out["worst_regions"] = sorted(out["regions"], key=lambda r: -out["regions"][r]["chi2_per_dof"])[:3]
