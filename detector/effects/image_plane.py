@@ -15,7 +15,8 @@ from the model image's derivatives:
   (heat equation: convolution with a Gaussian of variance s^2 is diffusion for a time s^2 / 2);
 * shift by ``(dx, dy)``: ``I(x - dx, y - dy) ~ I - dx dI/dx - dy dI/dy``;
 * uniform drift ``d`` during the exposure: convolution with a line segment (a box of length ``|d|``), whose
-  covariance is ``d d^T / 12``, so to first order a blur of that (rank-one) covariance;
+  covariance is ``d d^T / 12``, so to first order a blur of that (rank-one) covariance (the straight drift's
+  start; an accelerating or bowed path, :func:`drift_path_px`, is then fitted from the straight one);
 * radial distortion ``r' = r (1 + k r^2)``: a shift field ``k r^2 (x - x_c, y - y_c)``, plus Brown's (1966)
   decentering terms in ``p1``, ``p2``;
 * ghost: ``alpha`` times the image reflected through the optical axis and defocused into a disc (a
@@ -185,7 +186,7 @@ def drift_path_transfer(dx_px: float, dy_px: float, accel: float = 0.0, sagitta_
 
     A source that moves along ``p(t)`` while the shutter is open records the time density of the path: the
     kernel is ``k(x) = integral over t of delta(x - p(t)) dt`` (the motion-blur point-spread function,
-    Potmesil & Chakravarty 1983, Computer Graphics 17(3) 389, doi:10.1145/800059.801169, eq. 5-7), whose
+    Potmesil & Chakravarty 1983, Computer Graphics 17(3) 389, doi:10.1145/800059.801169), whose
     Fourier transform is the time mean of the path's phase factors (the shift theorem, Bracewell, *The
     Fourier Transform and its Applications*, 3rd ed. 2000, ch. 6)::
 
@@ -659,7 +660,7 @@ def _drift_words(p, res) -> str:
     if dwell:
         # accel > 0: at rest at t = -1/2, the -d end; the end's direction from the trail's middle
         end = ang + (180.0 if accel > 0 else 0.0)
-        end = (end + 180.0) % 360.0 - 180.0
+        end = end % 360.0 - (360.0 if end % 360.0 > 180.0 else 0.0)  # in (-180, 180]
         parts.append(f"dwelling at its {end:.0f} deg end (speed {1 + abs(accel):.2g} : {1 - abs(accel):.2g} "
                      "from end to end: an accelerating drift, as a periodic mount error makes)")
     if bowed:
