@@ -165,8 +165,9 @@ def drift_path_px(t: np.ndarray, dx_px: float, dy_px: float, accel: float = 0.0,
     ``8 sagitta n_hat``, so ``sagitta > 0`` turns counter-clockwise (towards ``+n_hat``) all along. The
     path's ends (``t = +-1/2``) both lie ``4 sagitta (1/4 - 1/12) = 2/3 sagitta`` across and mid-exposure
     ``-1/3 sagitta``: a parabola whose vertex stands ``|sagitta|`` from the chord joining its ends (on the
-    ``-n_hat`` side for ``sagitta > 0``), for any ``accel`` (the chord is parallel to ``d``). ``(d, accel, sagitta)`` and ``(-d, -accel, -sagitta)`` are the same
-    path run backwards (``t -> -t``): the same trail. ``d = 0`` has no direction: no motion.
+    ``-n_hat`` side for ``sagitta > 0``), for any ``accel`` (the chord is parallel to ``d``).
+    ``(d, accel, sagitta)`` and ``(-d, -accel, -sagitta)`` are the same path run backwards (``t -> -t``):
+    the same trail. ``d = 0`` has no direction: no motion.
     """
     t = np.asarray(t, float)
     length = float(np.hypot(dx_px, dy_px))

@@ -206,3 +206,28 @@ def test_the_path_is_fitted_only_when_the_straight_drift_is_a_candidate(tmp_path
     monkeypatch.setattr(ip, "drift_smear", counting)
     assert registry()["pointing_drift"].signature.fit(res, "pointing_drift") is None
     assert calls and all(a == 0 and s == 0 for a, s in calls)
+
+
+def test_the_fitted_path_round_trips_through_the_scene(tmp_path):
+    """diagnose --apply writes the candidate's params into [effects.pointing_drift]; the scene read back
+    holds the path and renders it: its noiseless frame is the model's smeared along the same path."""
+    from astropy.io import fits
+    from helpers import star_field_toml
+
+    from scenes.app.compare.apply import apply_candidate
+    from scenes.app.render import render
+    from scenes.scene import load_scene
+
+    (tmp_path / "model.toml").write_text(star_field_toml(128))
+    model = load_scene(str(tmp_path / "model.toml"))
+    params = {"dx_px": 4.2, "dy_px": -1.3, "accel": -0.7, "sagitta_px": 0.45}
+    apply_candidate(model, {"effect": "pointing_drift", "params": params, "explanation": "a path"},
+                    tmp_path / "round2.toml")
+    scene = load_scene(str(tmp_path / "round2.toml"))
+    assert scene.effects["pointing_drift"] == params
+    render(model, tmp_path / "m.fits", seed=2, noiseless=True, progress=False)
+    render(scene, tmp_path / "r.fits", seed=2, noiseless=True, progress=False)
+    m, r = (fits.getdata(tmp_path / f).astype(np.float64) for f in ("m.fits", "r.fits"))
+    # the noiseless frame holds the mean dark charge beside the light: a constant the smear keeps
+    want = np.maximum(ip.drift_smear(m, 4.2, -1.3, -0.7, 0.45), 0)
+    assert np.max(np.abs(r - want)) < 1e-3 * m.max()
