@@ -140,7 +140,7 @@ def test_the_adapter_applies_the_path_in_the_chain():
     det = Detector(s, build_effects({"pointing_drift": params}, s))
     whole = det.field_signal(img, 1.0, 1, det.frame_state(1.0, 1))
     assert np.allclose(whole, np.maximum(ip.drift_smear(img, 6.0, -2.0, 0.8, 0.7), 0), atol=1e-6 * img.max())
-    f, cx, cy, c = _moments(whole.astype(np.float64))
+    _, cx, cy, _ = _moments(whole.astype(np.float64))
     assert np.isclose(cx, 40.0, atol=0.01) and np.isclose(cy, 70.0, atol=0.01)
 
 
