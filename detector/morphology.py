@@ -264,7 +264,7 @@ def compact_features(z: np.ndarray, ok: np.ndarray, on_source: np.ndarray | None
         foot = {f: np.zeros(z.shape, bool) for f in fams}
         radii = {f: [] for f in fams}
         peak = {f: 0.0 for f in fams}
-        blobs = []
+        blobs, rings = [], []
         for sign in (1.0, -1.0):
             lab, n = ndi.label(sign * bm > FEATURE_DETECT * sig)
             if n == 0:
@@ -288,7 +288,8 @@ def compact_features(z: np.ndarray, ok: np.ndarray, on_source: np.ndarray | None
                 src = bool(on_source is not None and on_source[y0:y1, x0:x1][filled].any())
                 rad = math.sqrt(filled.sum() / math.pi)
                 if ring:
-                    fam = "srings" if src else "rings"
+                    rings.append(("srings" if src else "rings", y0, y1, x0, x1, filled, rad, float(pk / sig)))
+                    continue
                 else:
                     # a blob near a source (within its own radius or 3 s: a source's ring cut by a mask, a
                     # source's halo) belongs to the sources; one cut by the frame's border cannot be told
@@ -299,17 +300,29 @@ def compact_features(z: np.ndarray, ok: np.ndarray, on_source: np.ndarray | None
                     if src or edge or filled.sum() > 0.02 * z.size:
                         continue
                     blobs.append((y0, y1, x0, x1, filled, rad, float(pk / sig)))
-                    continue
-                foot[fam][y0:y1, x0:x1] |= filled
-                radii[fam].append(rad)
-                peak[fam] = max(peak[fam], float(pk / sig))
-        per_scale.append((s, q, total, foot, radii, peak, blobs))
-    # a blob inside or on a ring (found at any scale) is that ring's own band-passed echo (the difference of
-    # Gaussians turns a ring's interior into a blob of the other sign, a coarse scale blurs it into a disc)
+        per_scale.append((s, q, total, foot, radii, peak, blobs, rings))
+    # a feature and its band-passed echo: the difference of Gaussians turns a ring's interior into a blob of
+    # the other sign (a coarse scale blurs the ring into a disc), and a blob's surround into a ring of the
+    # other sign. The stronger of the two is the feature: a ring holding a stronger blob (at any scale) is
+    # that blob's echo; a blob inside or on a ring it does not outshine is the ring's
+    every_blob = [b for *_, blobs, _ in per_scale for b in blobs]
+
+    def outshone(ring) -> bool:
+        _, y0, y1, x0, x1, filled, _, pk = ring
+        return any(bp > pk and _overlap((y0, y1, x0, x1, filled), (by0, by1, bx0, bx1, bf))
+                   for by0, by1, bx0, bx1, bf, _, bp in every_blob)
+
     rings_any = np.zeros(z.shape, bool)
-    for _, _, _, foot, _, _, _ in per_scale:
-        rings_any |= foot["rings"] | foot["srings"]
-    for s, q, total, foot, radii, peak, blobs in per_scale:
+    for s, q, total, foot, radii, peak, blobs, rings in per_scale:
+        for ring in rings:
+            if outshone(ring):
+                continue
+            fam, y0, y1, x0, x1, filled, rad, pk = ring
+            foot[fam][y0:y1, x0:x1] |= filled
+            radii[fam].append(rad)
+            peak[fam] = max(peak[fam], pk)
+            rings_any |= foot[fam]
+    for s, q, total, foot, radii, peak, blobs, _ in per_scale:
         for y0, y1, x0, x1, filled, rad, pk in blobs:
             if rings_any[y0:y1, x0:x1][filled].any():
                 continue
@@ -324,6 +337,14 @@ def compact_features(z: np.ndarray, ok: np.ndarray, on_source: np.ndarray | None
                 best["footprint"][fam] = foot[fam]
                 best["peak_sigma"] = max(best["peak_sigma"], peak[fam])
     return best
+
+
+def _overlap(a, b) -> bool:
+    """Do two footprints ``(y0, y1, x0, x1, mask)`` (a mask over its own box) share a pixel?"""
+    y0, y1, x0, x1 = max(a[0], b[0]), min(a[1], b[1]), max(a[2], b[2]), min(a[3], b[3])
+    if y0 >= y1 or x0 >= x1:
+        return False
+    return bool((a[4][y0 - a[0]:y1 - a[0], x0 - a[2]:x1 - a[2]] & b[4][y0 - b[0]:y1 - b[0], x0 - b[2]:x1 - b[2]]).any())
 
 
 def block_chi2(res: Residuals, delta_adu: np.ndarray | None = None) -> tuple[float, int]:

@@ -572,16 +572,19 @@ def pixel_score(fit: Fit, res: Residuals) -> float | None:
     if not idx.size:
         return 0.0
     w = res.levels()["w"]
+    c_row = float(res.row_var_adu2)
+    rows = idx // res.data_adu.shape[1] if c_row > 0 else None  # row noise: the rows' covariance (above)
     r0 = res.project(r)
-    m2l0 = float(np.dot(r0 * r0, w))
+    m2l0 = gls_quadratic(r0, w, rows, c_row)
     r1 = r if fit.delta_adu is None else r - frame_at(fit.delta_adu, idx)
     r1 = res.project(r1)
     v = 1.0 / w
     if fit.extra_var_adu2 is None:
-        return float(np.dot(r1 * r1, w)) - m2l0
+        return gls_quadratic(r1, w, rows, c_row) - m2l0
     e = frame_at(np.broadcast_to(fit.extra_var_adu2, res.data_adu.shape), idx)
     ve = np.maximum(v + e, 0.1 * v)
-    return float(np.sum(np.log(ve / v) + r1 * r1 / ve)) - m2l0
+    return (float(np.sum(np.log(ve / v))) + gls_quadratic(r1, 1.0 / ve, rows, c_row) - m2l0
+            + row_log_det(1.0 / ve, rows, c_row) - row_log_det(w, rows, c_row))
 
 
 #: side of the blocks of the held-out checkerboard [output pixels]; smaller on small frames (>= 8 blocks a side)
@@ -724,6 +727,50 @@ def weighted_lstsq(templates: list[np.ndarray], idx: np.ndarray, r: np.ndarray, 
 CHUNK_PIXELS = 500_000
 
 
+# --- row noise in the likelihood ------------------------------------------------------------------------------
+#
+# Row noise gives every pixel of a row one shared offset (variance c = ``Residuals.row_var_adu2``): the
+# pixels' covariance is ``V = D + c 1 1'`` row by row, not the diagonal ``D``. A template with a row-mean
+# component (a gradient along the columns, rows alternating in a mosaic, regions split across the rows)
+# fitted with the diagonal weights takes the row offsets for signal: a 1024-pixel row's offset, 0.13 of a
+# pixel's variance, is 130 times the white noise of its mean. By Woodbury's identity (Press et al.,
+# Numerical Recipes 3rd ed., sect. 2.7.3) ``x' V^-1 y = x' W y - sum_i g_i U_i(x) U_i(y)``, with
+# ``U_i(x) = sum_(j in row i) w_j x_j`` and ``g_i = 1 / (1/c + sum_(j in row i) w_j)``: the generalised least
+# squares is the weighted one minus a correction from the rows' weighted sums, on any subset of a row's
+# pixels. The likelihood's log-determinant gains ``ln(1 + c S_i)`` per row (``S_i`` its weight sum).
+
+def row_sums(rows: np.ndarray, n_rows: int, w: np.ndarray, x: np.ndarray) -> np.ndarray:
+    """``U_i(x) = sum_(j in row i) w_j x_j`` for every row ``i`` (x: (pixels,) or (templates, pixels))."""
+    if x.ndim == 1:
+        return np.bincount(rows, w * x, minlength=n_rows)
+    return np.stack([np.bincount(rows, w * xi, minlength=n_rows) for xi in x]) if len(x) else \
+        np.zeros((0, n_rows))
+
+
+def row_gain(row_var_adu2: float, weight_sums: np.ndarray) -> np.ndarray:
+    """``g_i = c / (1 + c S_i)`` [ADU^2] of every row: the Woodbury correction's weight (0 without row noise)."""
+    c = float(row_var_adu2)
+    return c / (1.0 + c * weight_sums)
+
+
+def gls_quadratic(r: np.ndarray, w: np.ndarray, rows: np.ndarray | None, row_var_adu2: float) -> float:
+    """``r' V^-1 r`` for pixels of weights ``w`` in rows ``rows`` sharing a row offset of variance
+    ``row_var_adu2`` (the weighted sum of squares when there is none)."""
+    q = float(np.dot(r * r, w))
+    if rows is None or row_var_adu2 <= 0 or not r.size:
+        return q
+    n_rows = int(rows.max()) + 1
+    u = row_sums(rows, n_rows, w, r)
+    return q - float(np.dot(row_gain(row_var_adu2, np.bincount(rows, w, minlength=n_rows)), u * u))
+
+
+def row_log_det(w: np.ndarray, rows: np.ndarray | None, row_var_adu2: float) -> float:
+    """``sum_i ln(1 + c S_i)``: the rows' part of ``ln det V`` (0 without row noise)."""
+    if rows is None or row_var_adu2 <= 0 or not w.size:
+        return 0.0
+    return float(np.sum(np.log1p(row_var_adu2 * np.bincount(rows, w))))
+
+
 def fit_linear(res: Residuals, values: Callable[[np.ndarray], np.ndarray], idx: np.ndarray, r: np.ndarray,
                w: np.ndarray) -> tuple[np.ndarray, float]:
     """Weighted least squares of the residual ``r`` at flat pixels ``idx`` on the templates ``values(idx)``
@@ -732,6 +779,9 @@ def fit_linear(res: Residuals, values: Callable[[np.ndarray], np.ndarray], idx: 
     of them (Frisch-Waugh-Lovell: ``A = T'WT - T'WN (N'WN)^-1 N'WT``), so no template is ever held on
     more than CHUNK_PIXELS pixels."""
     tt = tn = tr = nn = nr = None
+    c_row = float(res.row_var_adu2)
+    n_rows, width = res.data_adu.shape
+    sums = None  # with row noise: the rows' weight sums and weighted sums of templates, levels and residual
     # the levels' own normal equations on the search sample, which every variant of a search shares
     shared = res._flat.setdefault("level_normal", {}) if idx is res._flat.get("search", {}).get("idx") else None
     for a in range(0, idx.size, CHUNK_PIXELS):
@@ -742,7 +792,12 @@ def fit_linear(res: Residuals, values: Callable[[np.ndarray], np.ndarray], idx: 
         hit = shared.get(a) if shared is not None else None
         if hit is None or hit[0] is not w or hit[1] is not r:
             nw = n * w[sl]
-            hit = (w, r, _gram(nw, n), nw @ r[sl])
+            level_rows = None
+            if c_row > 0:
+                rows = idx[sl] // width
+                level_rows = (np.bincount(rows, w[sl], minlength=n_rows), row_sums(rows, n_rows, w[sl], n),
+                              row_sums(rows, n_rows, w[sl], r[sl]))
+            hit = (w, r, _gram(nw, n), nw @ r[sl], level_rows)
             if shared is not None:
                 shared[a] = hit
         parts = (_gram(tw, t), _gram(tw, n), tw @ r[sl], hit[2], hit[3])
@@ -751,9 +806,19 @@ def fit_linear(res: Residuals, values: Callable[[np.ndarray], np.ndarray], idx: 
         else:
             for acc, p in zip((tt, tn, tr, nn, nr), parts):
                 acc += p
+        if c_row > 0:
+            ut = row_sums(idx[sl] // width, n_rows, w[sl], t)
+            chunk = (hit[4][0], ut, hit[4][1], hit[4][2])
+            sums = [np.array(x) for x in chunk] if sums is None else [acc + x for acc, x in zip(sums, chunk)]
     if tt is None:
         return np.zeros(0), 0.0
     raw = np.diag(tt).copy()
+    if sums is not None:  # generalised least squares with the rows' shared offsets (Woodbury, above)
+        g = row_gain(c_row, sums[0])
+        ut, un, ur = sums[1], sums[2], sums[3]
+        utg, ung = ut * g, un * g
+        tt, tn, tr = tt - utg @ ut.T, tn - utg @ un.T, tr - utg @ ur
+        nn, nr = nn - ung @ un.T, nr - ung @ ur
     if nn.size:
         k = np.linalg.solve(nn, tn.T)  # (levels, templates)
         a_ = tt - tn @ k
@@ -1057,14 +1122,25 @@ def cosine_basis(shape: tuple[int, int], idx: np.ndarray, order: int = SMOOTH_OR
     return np.asarray(rows)
 
 
-def lstsq_delta(r: np.ndarray, w: np.ndarray, temps: np.ndarray, nuisance: np.ndarray | None = None
-                ) -> tuple[np.ndarray, float, np.ndarray]:
+def lstsq_delta(r: np.ndarray, w: np.ndarray, temps: np.ndarray, nuisance: np.ndarray | None = None,
+                rows: np.ndarray | None = None, row_var_adu2: float = 0.0) -> tuple[np.ndarray, float, np.ndarray]:
     """Weighted least squares of ``r`` on ``temps`` (rows) jointly with ``nuisance`` templates (rows):
-    (coefficients of ``temps``, delta chi2 they bring beyond the nuisance, the fitted ``temps`` part)."""
+    (coefficients of ``temps``, delta chi2 they bring beyond the nuisance, the fitted ``temps`` part). With
+    the pixels' ``rows`` and a row noise ``row_var_adu2``, the generalised least squares (Woodbury, above)."""
+    corr = rows is not None and row_var_adu2 > 0 and r.size
+    if corr:
+        n_rows = int(rows.max()) + 1
+        g = row_gain(row_var_adu2, np.bincount(rows, w, minlength=n_rows))
+        ur = row_sums(rows, n_rows, w, r)
+
     def solve(x):
         xw = x * w
         a = _gram(xw, x)
         b = xw @ r
+        if corr:
+            ux = row_sums(rows, n_rows, w, x)
+            a = a - (ux * g) @ ux.T
+            b = b - (ux * g) @ ur
         sc = np.sqrt(np.maximum(np.diag(a), 1e-300))
         c = np.linalg.lstsq(a / np.outer(sc, sc), b / sc, rcond=1e-10)[0] / sc
         return c, float(b @ c)

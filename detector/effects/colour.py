@@ -28,7 +28,7 @@ from typing import Literal
 import numpy as np
 from pydantic import Field, field_validator
 
-from ..signatures import Fit, Signature, lstsq_delta
+from ..signatures import Fit, Signature, gls_quadratic, lstsq_delta
 from .base import Effect, EffectParams, Stage, Tile, register_effect
 
 # --- pure functions ---------------------------------------------------------------------------------------
@@ -160,10 +160,11 @@ class CFASignature(Signature):
         rel = f[:3] - f[3]
         temps = sample["photo"] * rel[:, y, x]
         keep = np.ones(idx.size, bool)
+        row_var = float(res.row_var_adu2)  # row noise: generalised least squares over each row's pixels
         for _ in range(3):
-            c, d, _ = lstsq_delta(r[keep], w[keep], temps[:, keep], levels[:, keep])
+            c, d, _ = lstsq_delta(r[keep], w[keep], temps[:, keep], levels[:, keep], y[keep], row_var)
             rest = r - c @ temps
-            c_levels, _, _ = lstsq_delta(rest[keep], w[keep], levels[:, keep])  # the levels of that joint fit
+            c_levels, _, _ = lstsq_delta(rest[keep], w[keep], levels[:, keep], None, y[keep], row_var)  # its levels
             new = np.abs(rest - c_levels @ levels) * np.sqrt(w) < CFA_CLIP_SIGMA
             if np.array_equal(new, keep):
                 break
@@ -194,13 +195,16 @@ class CFASignature(Signature):
         if not levels.size:
             levels = np.zeros((1, idx.size))
 
+        rows, row_var = idx // res.data_adu.shape[1], float(res.row_var_adu2)
+
         def profiled(y):
-            c, _, _ = lstsq_delta(y, w, levels)
+            c, _, _ = lstsq_delta(y, w, levels, None, rows, row_var)
             return y - c @ levels
 
         r0, r1 = profiled(r), profiled(r - delta)
         keep = (np.abs(r0) * np.sqrt(w) < CFA_CLIP_SIGMA) | (np.abs(r1) * np.sqrt(w) < CFA_CLIP_SIGMA)
-        return float(np.dot(r1[keep] ** 2 - r0[keep] ** 2, w[keep]))
+        return (gls_quadratic(r1[keep], w[keep], rows[keep], row_var)
+                - gls_quadratic(r0[keep], w[keep], rows[keep], row_var))
 
 
 def _cfa_params(c, period: int = 2) -> dict | None:

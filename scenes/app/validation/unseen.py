@@ -633,11 +633,19 @@ class ShapedBlur(RealWorld):
 
 
 def _smear(data, offsets):
-    """The mean of the image shifted by each (dy, dx) [px] (a motion during the exposure)."""
-    acc = np.zeros(data.shape, np.float64)
-    for dy, dx in offsets:
-        acc += ndimage.shift(data, (dy, dx), order=1, mode="nearest")
-    return (acc / len(offsets)).astype(np.float32)
+    """The mean of the image shifted by each (dy, dx) [px] (a motion during the exposure): exact sub-pixel
+    shifts (phase ramps in Fourier space, the edges extended first), so the smear is the path's alone; a
+    bilinear shift would add its own blur of up to 0.125 px^2 per axis (t (1 - t) for a fraction t)."""
+    off = np.asarray(offsets, np.float64)
+    pad = int(np.ceil(np.abs(off).max())) + 4
+    big = np.pad(np.asarray(data, np.float64), pad, mode="edge")
+    fy = np.fft.fftfreq(big.shape[0])[:, None]
+    fx = np.fft.rfftfreq(big.shape[1])[None, :]
+    kernel = np.zeros((fy.size, fx.size), np.complex128)
+    for dy, dx in off:
+        kernel += np.exp(-2j * np.pi * (fy * dy + fx * dx))
+    out = np.fft.irfft2(np.fft.rfft2(big) * kernel / len(off), s=big.shape)
+    return out[pad:-pad, pad:-pad].astype(np.float32)
 
 
 class MotionPath(RealWorld):
