@@ -35,7 +35,7 @@ import os
 import numpy as np
 import scipy.fft
 from pydantic import Field
-from scipy import ndimage, signal
+from scipy import ndimage, signal, special
 
 from ..signatures import (
     Fit,
@@ -247,6 +247,21 @@ def drift_smear(image: np.ndarray, dx_px: float, dy_px: float, accel: float = 0.
     ctype = np.complex128 if image.dtype == np.float64 else np.complex64  # fourier_filter's working precision
     transfer, pad = drift_path_transfer(dx_px, dy_px, accel, sagitta_px, ctype)
     return fourier_filter(image, pad, transfer, spectra, workers)
+
+
+def vibration_smear(image: np.ndarray, ax_px: float, ay_px: float, spectra: dict | None = None,
+                    workers: int | None = None) -> np.ndarray:
+    """The image smeared by a sinusoidal vibration of amplitude vector ``a = (ax, ay)`` [px] during the
+    exposure (many periods, or a whole number of them): each source spread over the segment ``-a .. +a``
+    with the arcsine density ``1 / (pi sqrt(A^2 - s^2))`` (the image dwells at the turning points), whose
+    transfer function is ``J0(2 pi f . a)`` (Wulich & Kopeika 1987, Opt. Eng. 26, 529; Hadar, Fisher &
+    Kopeika 1992, Opt. Eng. 31, 581: the high-frequency vibration MTF). Flux conserving; the covariance
+    added is ``a a^T / 2`` (the arcsine law's variance A^2 / 2)."""
+    if ax_px == 0 and ay_px == 0:
+        return image.copy()
+    pad = int(np.ceil(max(abs(ax_px), abs(ay_px)))) + 2
+    return fourier_filter(image, pad, lambda fx, fy: special.j0(2 * np.pi * (fx * ax_px + fy * ay_px)), spectra,
+                          workers)
 
 
 def decentering_shift(x, y, p1_per_px: float, p2_per_px: float):
@@ -538,9 +553,19 @@ def _blur_params(th, res):
 #: sigma_major / sigma_minor below which a fitted smear counts as isotropic (then it is psf_blur)
 JITTER_MIN_ELONGATION = 1.1
 
-def _jitter_start(res):
+#: smallest vibration amplitude [output px] proposed: an oscillation over less than 1.5 px peak to peak is a
+#: blur any small PSF change makes (as for DRIFT_MIN_LENGTH)
+VIBRATION_MIN_AMPLITUDE = 0.75
+
+
+def _jitter_start(res, terms=(0, 1, 2)):
+    """theta = (c_xx, c_yy, c_xy [output px^2], a_x, a_y [output px]): the Gaussian smear's covariance from
+    the linearised fit; a vibration's amplitude along the major axis from it (arcsine variance A^2 / 2)."""
     c = _linear_start(res, ["xx", "yy", "xy"], [0.5, 0.5, 1.0])
-    return np.array([max(c[0], 0.05), max(c[1], 0.05), c[2]])
+    cov = np.array([max(c[0], 0.05), max(c[1], 0.05), c[2]])
+    w, ang = _jitter_axes(cov)
+    amp = float(np.sqrt(2 * max(w[1], 0.05)))
+    return np.concatenate([cov, amp * np.array([np.cos(np.radians(ang)), np.sin(np.radians(ang))])])
 
 
 def _jitter_axes(th):
@@ -549,19 +574,46 @@ def _jitter_axes(th):
 
 
 def _jitter_transform(res, photo, th, spectra=None, workers=None):
-    w, ang = _jitter_axes(th)
-    w = np.clip(w, 0.0, _max_var(res))
-    return blur(photo, float(np.sqrt(w[1])), float(np.sqrt(w[0])), ang, spectra=spectra, workers=workers)
+    th = np.asarray(th, float)
+    out = photo
+    if np.any(th[:3]):
+        w, ang = _jitter_axes(th)
+        w = np.clip(w, 0.0, _max_var(res))
+        out = blur(out, float(np.sqrt(w[1])), float(np.sqrt(w[0])), ang, spectra=spectra, workers=workers)
+        spectra = None  # the cached spectrum is the unsmeared image's
+    if th.size > 3 and np.any(th[3:5]):
+        a = np.clip(th[3:5], -400, 400)
+        out = vibration_smear(out, float(a[0]), float(a[1]), spectra=spectra, workers=workers)
+    # negatives clipped as the adapter does (_store): the arcsine's horns ring around undersampled (and far
+    # saturated) sources, and a fit that keeps what the rendering clips finds a wrong amplitude and direction
+    return np.maximum(out, 0)
 
 
 def _jitter_params(th, res):
+    th = np.asarray(th, float)
+    b = res.sensor.binning
+    if th.size > 3 and np.any(th[3:5]):  # the vibration form (nested: fitted alone, the Gaussian at 0)
+        amp = float(np.hypot(th[3], th[4]))
+        if not VIBRATION_MIN_AMPLITUDE <= amp <= 50 / b:
+            return None
+        ang = float(np.degrees(np.arctan2(th[4], th[3]))) % 180.0
+        return {"sigma_major_px": 0.0, "sigma_minor_px": 0.0, "angle_deg": round(ang, 2),
+                "vibration_px": round(amp * b, 4)}
     w, ang = _jitter_axes(th)
     # an isotropic smear is psf_blur (nested in this model): jitter must be elongated to be a candidate
     if w[0] <= 0 or w[1] >= 100 or w[1] < JITTER_MIN_ELONGATION ** 2 * w[0]:
         return None
-    b = res.sensor.binning
     return {"sigma_major_px": round(float(np.sqrt(w[1])) * b, 4), "sigma_minor_px": round(float(np.sqrt(w[0])) * b, 4),
             "angle_deg": round(ang, 2)}
+
+
+def _jitter_words(p, res) -> str:
+    if p.get("vibration_px", 0.0):
+        return (f"sources smeared back and forth along {p['angle_deg']:.0f} deg, {p['vibration_px']:.3g} px either "
+                "way, brightest at both ends (an arcsine profile): a sinusoidal vibration of the pointing (a "
+                "drive or wind resonance), not a one-way drift")
+    return (f"sources smeared along {p['angle_deg']:.0f} deg, {p['sigma_major_px']:.3g} x {p['sigma_minor_px']:.3g} "
+            "px rms: pointing jitter")
 
 
 # elongation: theta = (c_xx, c_yy, c_xy) [output px^2], one eigenvalue negative
@@ -653,8 +705,8 @@ def _drift_params(th, res):
     length = float(np.hypot(dx, dy))
     if not DRIFT_MIN_LENGTH <= length <= 200 or max(abs(dx), abs(dy)) * b > 1000:  # DriftParams' bounds
         return None
-    if abs(sag) > 200 or abs(sag) * b > 1000:
-        return None
+    if abs(sag) > 0.5 * length or abs(sag) * b > 1000:
+        return None  # a bow beyond a half circle turns back on itself: an oscillation (jitter), not a drift
     return {"dx_px": round(dx * b, 4), "dy_px": round(dy * b, 4), "accel": round(accel + 0.0, 4),
             "sagitta_px": round(sag * b + 0.0, 4)}
 
@@ -858,26 +910,33 @@ class JitterParams(EffectParams):
     sigma_major_px: float = Field(0.5, ge=0, le=50, description="rms pointing jitter along its major axis [px]")
     sigma_minor_px: float = Field(0.2, ge=0, le=50, description="rms pointing jitter across [px]")
     angle_deg: float = Field(0.0, ge=-180, le=180, description="major axis, counter-clockwise from +x [deg]")
+    vibration_px: float = Field(0.0, ge=0, le=50, description="amplitude of a sinusoidal vibration along angle_deg "
+                                "(0: none) [px]", json_schema_extra={"unit": "pixel"})
 
 
 @register_effect
 class Jitter(Effect):
-    """Pointing jitter during the exposure: an elongated Gaussian blur (mount vibration, wind, tracking)."""
+    """Pointing jitter during the exposure: an elongated Gaussian blur (random motion: mount vibration, wind,
+    tracking), and/or a sinusoidal vibration of amplitude ``vibration_px`` along ``angle_deg`` (a resonance:
+    the arcsine smear of :func:`vibration_smear`). The diagnosis fits the two forms apart (nested) and keeps
+    the better."""
 
     name = "jitter"
     scaling = "frame"
-    identity = {"sigma_major_px": 0.0, "sigma_minor_px": 0.0}
+    identity = {"sigma_major_px": 0.0, "sigma_minor_px": 0.0, "vibration_px": 0.0}
     stages = (Stage.FIELD,)
     Params = JitterParams
     signature = TransformSignature(
-        _jitter_start, _jitter_transform, _jitter_params, [0.02, 0.02, 0.02],
-        pattern="sources elongated along one direction",
-        explain=lambda p, res: (f"sources smeared along {p['angle_deg']:.0f} deg, {p['sigma_major_px']:.3g} x "
-                                f"{p['sigma_minor_px']:.3g} px rms: pointing jitter"))
+        _jitter_start, _jitter_transform, _jitter_params, [0.02, 0.02, 0.02, 0.02, 0.02],
+        nested=[(0, 1, 2), (3, 4)], pattern="sources elongated along one direction", explain=_jitter_words)
 
     def apply(self, stage: Stage, tile: Tile, data: np.ndarray) -> None:
         p = self.params
-        _store(data, blur(data, p.sigma_major_px, p.sigma_minor_px, p.angle_deg))
+        out = blur(data, p.sigma_major_px, p.sigma_minor_px, p.angle_deg)
+        if p.vibration_px:
+            a = np.radians(p.angle_deg)
+            out = vibration_smear(out, p.vibration_px * np.cos(a), p.vibration_px * np.sin(a))
+        _store(data, out)
 
 
 class ElongationParams(EffectParams):
