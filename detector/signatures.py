@@ -1221,16 +1221,24 @@ def neighbour_correlation(res: Residuals) -> tuple[float, float]:
     mean); a pattern a few pixels wide gives a clearly positive value. Cached."""
     if "neighbour_correlation" not in res._flat:
         zw, m = _whitened_map(res)
-        pairs = 0.0
-        n = 0
-        for a, b in _neighbour_pairs(zw, m, m):  # every adjacent pair twice (both orders): the same mean
-            pairs += float(np.sum(a * b))
-            n += a.size
-        n //= 2
-        var = float(np.sum(zw * zw) / max(np.count_nonzero(m), 1))
-        rho = pairs / 2 / max(n, 1) / max(var, 1e-30)
+        pairs, counts = [0.0, 0.0], [0, 0]
+        for i, (a, b) in enumerate(_neighbour_pairs(zw, m, m)):  # every adjacent pair twice (both orders)
+            pairs[i // 2] += float(np.sum(a * b))  # the first two along the columns (vertical pairs)
+            counts[i // 2] += a.size
+        var = max(float(np.sum(zw * zw) / max(np.count_nonzero(m), 1)), 1e-30)
+        n = (counts[0] + counts[1]) // 2
+        rho = (pairs[0] + pairs[1]) / 2 / max(n, 1) / var
         res._flat["neighbour_correlation"] = (rho, rho * np.sqrt(max(n, 1)))
+        res._flat["neighbour_axes"] = tuple(p_ / max(c_, 1) / var for p_, c_ in zip(pairs, counts)) + \
+            tuple(c_ // 2 for c_ in counts)
     return res._flat["neighbour_correlation"]
+
+
+def neighbour_axes(res: Residuals) -> tuple[float, float, int, int]:
+    """(vertical, horizontal correlation, vertical, horizontal pairs) of :func:`neighbour_correlation`: a
+    pattern of whole columns (rows) correlates vertically (horizontally) adjacent pixels only."""
+    neighbour_correlation(res)
+    return res._flat["neighbour_axes"]
 
 
 #: the tail of the whitened residual (|z| above this many sigma): the pixels that carry an extra scatter
@@ -1299,9 +1307,13 @@ class VarianceSignature(Signature):
     def __init__(self, template: Callable[[Residuals], np.ndarray], to_params: Callable[..., dict | None],
                  explain: Callable[[dict, Residuals], str], pattern: str = "", laws: dict | None = None,
                  smooth: Callable[[Residuals], np.ndarray] | None = None,
-                 check: Callable[[Fit, Residuals], str] | None = None):
+                 check: Callable[[Fit, Residuals], str] | None = None, lines: bool = False):
         self.template, self.to_params, self.explain, self.pattern = template, to_params, explain, pattern
         self.laws, self.smooth, self.check = laws, smooth, check
+        #: a fixed pattern may have row and column components besides the pixels' own (EMVA 1288 Release
+        #: 4.0, sect. 8.2: the spatial variance split into row, column and pixel variances): scatter correlated
+        #: along one axis only is such a pattern, not a structure a few pixels wide
+        self.lines = lines
 
     def fit(self, res: Residuals, name: str) -> Fit | None:
         vs = variance_sample(res)
@@ -1341,6 +1353,15 @@ class VarianceSignature(Signature):
     #: ... and the outlying pixels' correlation with their neighbours (:func:`tail_neighbour_correlation`)
     MAX_TAIL_CORRELATION = 0.15
 
+    #: a pattern of lines: across them, neighbours correlate by at most this much (and 3 / sqrt(pairs))
+    MAX_ACROSS_LINES = 0.02
+
+    def _along_lines(self, res: Residuals) -> bool:
+        """The scatter's neighbour correlation runs along one axis only (whole columns or rows)."""
+        rv, rh, nv, nh = neighbour_axes(res)
+        across, n = (rh, nh) if rv > rh else (rv, nv)
+        return max(rv, rh) > self.MAX_NEIGHBOUR_CORRELATION and across < max(self.MAX_ACROSS_LINES, 3 / np.sqrt(max(n, 1)))
+
     def plausible(self, fit: Fit, res: Residuals) -> str:
         if self.check is not None:
             why = self.check(fit, res)
@@ -1350,7 +1371,7 @@ class VarianceSignature(Signature):
         if why:
             return why
         rho, z = neighbour_correlation(res)
-        if rho > self.MAX_NEIGHBOUR_CORRELATION and z > 5:
+        if rho > self.MAX_NEIGHBOUR_CORRELATION and z > 5 and not (self.lines and self._along_lines(res)):
             return (f"the extra scatter is correlated between neighbouring pixels (correlation {rho:.2f}, {z:.0f} "
                     "sigma): a structure a few pixels wide, not a pixel-to-pixel non-uniformity or noise")
         rho, z, n, share = tail_neighbour_correlation(res)

@@ -237,7 +237,7 @@ _PRNU_SIGNATURE = VarianceSignature(
                        "the white prnu model does not carry)" if "smooth_rms" in p else "")
                     + ": photo-response non-uniformity (PRNU)"),
     pattern="extra variance growing as the square of the photo-signal (and its large-scale pattern)",
-    smooth=lambda res: res.photo_adu)
+    smooth=lambda res: res.photo_adu, lines=True)
 
 _DSNU_SIGNATURE = VarianceSignature(
     _dsnu_template, _dsnu_params,
@@ -247,7 +247,7 @@ _DSNU_SIGNATURE = VarianceSignature(
                        else "") + ": dark-signal non-uniformity (DSNU)"),
     pattern="extra variance growing as the square of the dark signal, skewed",
     laws={"lognormal": _dsnu_lognormal_k3, "normal": None},
-    smooth=lambda res: (res.dark_e / np.float32(res.gain)).astype(np.float32))
+    smooth=lambda res: (res.dark_e / np.float32(res.gain)).astype(np.float32), lines=True)
 
 _DEADPIXELS_SIGNATURE = CountSignature(
     _dead_counts,

@@ -89,6 +89,33 @@ def test_a_real_prnu_is_zero_mean_and_plausible():
     assert fit.params["sigma"] == pytest.approx(0.02, rel=0.25)
 
 
+@pytest.mark.parametrize("pattern,plausible", [("columns", True), ("rows", True), ("blobs", False)])
+def test_a_prnu_may_have_column_and_row_components_but_not_blobs(pattern, plausible):
+    """EMVA 1288 splits a fixed pattern into row, column and pixel variances: a flat whose response varies by
+    whole columns (or rows) correlates neighbours along one axis only and is a PRNU; the same variance in
+    blobs a few pixels wide correlates them both ways and is a structure, not a non-uniformity."""
+    from scipy import ndimage
+
+    rng = np.random.default_rng(9)
+    shape = (256, 256)
+    s = make_sensor("ml11002", {"width": 256, "height": 256, "bias_adu": 0})
+    photo = np.full(shape, 4000.0)
+    if pattern == "columns":
+        resp = 1 + 0.01 * rng.standard_normal((1, shape[1])) + np.zeros(shape)
+    elif pattern == "rows":
+        resp = 1 + 0.01 * rng.standard_normal((shape[0], 1)) + np.zeros(shape)
+    else:
+        resp = 1 + ndimage.gaussian_filter(rng.standard_normal(shape), 1.5) * 0.01 / 0.19
+    var = photo / s.gain_e_per_adu + 4.0
+    data = photo * resp + rng.normal(0, np.sqrt(var))
+    res = _res(data, photo, var, photo, s)
+    sig = registry()["prnu"].signature
+    fit = sig.fit(res, "prnu")
+    assert fit is not None and fit.delta_bic < -100
+    why = sig.plausible(fit, res)
+    assert (why == "") == plausible, why
+
+
 def test_compressed_star_cores_are_not_a_prnu():
     """Cores read low: the scatter the PRNU fit wants is a mean deficit, which the zero-mean rule names."""
     res = _prnu_case(0.08)
