@@ -430,7 +430,7 @@ def describe(res: Residuals, delta_adu: np.ndarray | None = None) -> dict:
             out["significance_sigma"] = round(max(out["significance_sigma"], feats["peak_sigma"]), 2)
             out.update(_compact_only(res, feats, rmap, light))
             out["empirical"] = _feature_map(feats, rmap, wmap, light,
-                                            "additive" if out["kind"] == "redistributed" else out["kind"])
+                                            "additive" if out["kind"] == "redistributed" else out["kind"], res)
             return out
         # one spatial frequency far above the rest: a pick-up or fringe pattern too weak to move the chi2. The
         # fx = 0 column is measured against the power the model's row noise puts there (row_power_factor)
@@ -646,7 +646,8 @@ def describe(res: Residuals, delta_adu: np.ndarray | None = None) -> dict:
         out["empirical"] = _periodic_map(rmap, wmap, light, kind, row_var)
     if out["empirical"] is None and n_feat:
         # light moved around the sources (rings on them) is mapped as what it adds and takes where it is
-        out["empirical"] = _feature_map(feats, rmap, wmap, light, "additive" if kind == "redistributed" else kind)
+        out["empirical"] = _feature_map(feats, rmap, wmap, light, "additive" if kind == "redistributed" else kind,
+                                        res)
     return out
 
 
@@ -704,9 +705,13 @@ def _periodic_map(rmap: np.ndarray, wmap: np.ndarray, light: np.ndarray, kind: s
     return _relative(kind, amap, light)
 
 
-def _feature_map(feats: dict, rmap: np.ndarray, wmap: np.ndarray, light: np.ndarray, kind: str) -> dict | None:
+def _feature_map(feats: dict, rmap: np.ndarray, wmap: np.ndarray, light: np.ndarray, kind: str,
+                 res: Residuals | None = None) -> dict | None:
     """The empirical map of compact features (rings, blobs): the residual [ADU] smoothed at the features' scale
-    (normalised convolution over the fitted pixels) inside their footprints grown by that scale, 0 elsewhere."""
+    (normalised convolution over the fitted pixels) inside their footprints grown by that scale, 0 elsewhere.
+    With ``res``, the footprints' pixels the comparison left to statistics (the spikes a glint's or a latent
+    image's core makes) take their own residual, unless saturated: the feature is mapped where it is
+    brightest, not interpolated from its wings."""
     foot = feats["footprint"]["rings"] | feats["footprint"]["blobs"] | feats["footprint"]["srings"]
     if not foot.any():
         return None
@@ -716,6 +721,13 @@ def _feature_map(feats: dict, rmap: np.ndarray, wmap: np.ndarray, light: np.ndar
     sig = max(0.25 * scale, 0.5)
     sm = gaussian_filter(np.where(ok > 0, rmap, 0.0), sig, mode="nearest") / np.maximum(
         gaussian_filter(ok, sig, mode="nearest"), 1e-6)
+    if res is not None:
+        s = res.sensor
+        level, _ = res.level_maps()
+        raw = res.data_adu.astype(np.float64) - res.model_adu - level
+        cap_adu = min(float(s.adc_max_adu), s.bias_adu + s.full_well_e * res.pixel_sum / res.gain)
+        core = grown & (ok == 0) & np.isfinite(raw) & (res.data_adu < 0.95 * cap_adu) & (res.model_adu < 0.95 * cap_adu)
+        sm = np.where(core, raw, sm)
     return _relative(kind, np.where(grown, sm, 0.0), light)
 
 
