@@ -565,6 +565,8 @@ def _jitter_start(res, terms=(0, 1, 2)):
     cov = np.array([max(c[0], 0.05), max(c[1], 0.05), c[2]])
     w, ang = _jitter_axes(cov)
     amp = float(np.sqrt(2 * max(w[1], 0.05)))
+    if tuple(terms) == (3, 4) and (amp < 0.5 * VIBRATION_MIN_AMPLITUDE or w[1] < JITTER_MIN_ELONGATION ** 2 * w[0]):
+        return None  # no elongated smear of a vibration's size to start from: the vibration form is not fitted
     return np.concatenate([cov, amp * np.array([np.cos(np.radians(ang)), np.sin(np.radians(ang))])])
 
 
