@@ -868,14 +868,19 @@ def fit_variant(res: Residuals, v: Variant, idx: np.ndarray, r: np.ndarray, w: n
                 ) -> tuple[np.ndarray, float]:
     """:func:`fit_linear` of a variant's templates on ``r`` less its fixed part (:attr:`Variant.fixed`); delta
     chi2 counted from ``r`` itself: the fixed part's own change of the (level-profiled) chi2, ``A - 2b``
-    (``A = f'Pf``, ``b = f'Pr``), is the difference of the fits of ``f`` to ``r`` and to ``r - f``
-    (``-b^2/A`` and ``-(b - A)^2/A``), the same generalised least squares as the templates'."""
+    (``A = f'Pf``, ``b = f'Pr``), from the fit of ``f`` to ``r`` (coefficient ``b/A``, delta ``-b^2/A``) or,
+    when that is degenerate, the difference of the fits of ``f`` to ``r`` and to ``r - f`` (``-b^2/A`` and
+    ``-(b - A)^2/A``): the same generalised least squares as the templates'."""
     values = (lambda i: v.values(i, res.data_adu.shape))
     if v.fixed is None:
         return fit_linear(res, values, idx, r, w)
     rf = v.target(idx, r)
     c, d = fit_linear(res, values, idx, rf, w)
-    _, d_r = fit_linear(res, v.fixed, idx, r, w)
+    c_r, d_r = fit_linear(res, v.fixed, idx, r, w)
+    c_r = float(c_r[0]) if c_r.size else 0.0
+    if abs(c_r) > 1e-6 and d_r < 0:  # b = -d_r / c_r, A = b / c_r: one fit gives both
+        b = -d_r / c_r
+        return c, d + (b / c_r - 2.0 * b)
     _, d_rf = fit_linear(res, v.fixed, idx, rf, w)
     return c, d + (d_r - d_rf)
 
@@ -995,14 +1000,13 @@ class LinearSignature(Signature):
         v, d, c, params = best
         idx, _, w = res.flat_profiled()
         values = (lambda i: v.values(i, res.data_adu.shape))
-        r_all = v.target(idx, res.flat()[1])
         if not ctx["full"]:  # the winner on every fitted pixel (else keep the subsample's, scaled)
             c_all, d_all = fit_variant(res, v, idx, res.flat()[1], w)
             p_all = v.to_params(c_all)
             if p_all is not None:
                 c, d, params = c_all, d_all, p_all
         if self.of_light:
-            light = joint_levels(res, values, idx, r_all, w, c).get("light_scale", 0.0)
+            light = joint_levels(res, values, idx, v.target(idx, res.flat()[1]), w, c).get("light_scale", 0.0)
             params = v.to_params(np.asarray(c) / (1.0 + light)) if light > -0.5 else None
             if params is None:
                 return None
@@ -1030,13 +1034,12 @@ class LinearSignature(Signature):
         if not idx.size:
             return None
         values = (lambda i: v.values(i, res.data_adu.shape))
-        r_all = v.target(idx, res.flat()[1])
         c, d = fit_variant(res, v, idx, res.flat()[1], w)
         params = v.to_params(c)
         if params is None:
             return None
         if self.of_light:
-            light = joint_levels(res, values, idx, r_all, w, c).get("light_scale", 0.0)
+            light = joint_levels(res, values, idx, v.target(idx, res.flat()[1]), w, c).get("light_scale", 0.0)
             if light <= -0.5 or v.to_params(np.asarray(c) / (1.0 + light)) is None:
                 return None
         return self._finish(res, name, v, c, d, params)

@@ -114,10 +114,14 @@ def _variants(res):
     width = res.data_adu.shape[1]
     u64, v64 = u.astype(np.float64), v.astype(np.float64)
 
-    def model(t, idx):  # (value, Jacobian (2, pixels)) [ADU], [ADU/K] at flat pixels idx
+    def model(t, idx, jacobian=True):  # (value, Jacobian (2, pixels)) [ADU], [ADU/K] at flat pixels idx
         uu, vv = u64[idx % width], v64[idx // width]
-        e = np.exp(kappa * (t[0] * uu + t[1] * vv))
-        return amp * (e - 1.0), np.stack([amp * kappa * uu * e, amp * kappa * vv * e])
+        x = kappa * (t[0] * uu + t[1] * vv)
+        e = np.exp(x)
+        if not jacobian:
+            return amp * (e - 1.0), x, e
+        ak = amp * kappa
+        return amp * (e - 1.0), np.stack([ak * uu * e, ak * vv * e])
 
     ctx = search_sample(res)
     idx, r, w = ctx["idx"], ctx["r"], ctx["w"]
@@ -125,14 +129,14 @@ def _variants(res):
     t = np.clip(np.asarray(g, np.float64) / (d0 * kappa), -GN_MAX_K, GN_MAX_K)
     if not np.all(np.isfinite(t)):
         return
-    chi = profiled_chi2(res, idx, r - model(t, idx)[0], w)
+    chi = profiled_chi2(res, idx, r - model(t, idx, False)[0], w)
     for _ in range(GN_ITERATIONS):
-        m0 = model(t, idx)[0]
+        m0 = model(t, idx, False)[0]
         step, _ = fit_linear(res, lambda i, t=t: model(t, i)[1], idx, r - m0, w)
         accepted = False
         for _half in range(6):  # step halving: the exponential is convex along the gradient
             t_new = np.clip(t + step, -GN_MAX_K, GN_MAX_K)
-            chi_new = profiled_chi2(res, idx, r - model(t_new, idx)[0], w)
+            chi_new = profiled_chi2(res, idx, r - model(t_new, idx, False)[0], w)
             if chi_new <= chi:
                 accepted = True
                 break
@@ -147,9 +151,9 @@ def _variants(res):
     def templates(idx):
         return model(t_star, idx)[1]
 
-    def fixed(idx):
-        m, jac = model(t_star, idx)
-        return m - t_star @ jac
+    def fixed(idx):  # m(t*) - J t* = amp (e - 1 - x e), x = kappa T*
+        _, x, e = model(t_star, idx, jacobian=False)
+        return amp * (e - 1.0 - x * e)
 
     def to_params_exp(c):
         if res.exptime_s <= 0 or not np.all(np.isfinite(c)) or np.max(np.abs(c)) > GN_MAX_K:

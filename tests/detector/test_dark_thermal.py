@@ -140,3 +140,23 @@ def test_bias_ramp_and_bowl_is_not_taken_for_a_temperature_gradient():
     assert bias_fit.delta_bic < -100
     assert dark is None or why != "" or bias_fit.delta_bic < dark.delta_bic - 10, (bias_fit.delta_bic,
                                                                                  dark.delta_bic, why)
+
+
+def test_a_variant_with_a_fixed_part_counts_its_chi2_from_the_residual_itself():
+    """fit_variant's delta chi2 of a variant with a fixed part against the level-profiled chi2 computed
+    directly: chi2(r - f - J c) - chi2(r)."""
+    from detector.signatures import Variant, fit_variant, profiled_chi2
+
+    rng = np.random.default_rng(5)
+    s = make_sensor("ml11002", {"binning": 8})
+    h, w = s.output_shape
+    res = _dark_residuals(seed=3)
+    idx, r, wt = res.flat_profiled()[0], res.flat()[1], res.flat_profiled()[2]
+    tmpl = [rng.normal(0, 1, (h, w)).astype(np.float32), np.linspace(-1, 1, w, dtype=np.float32)[None, :]]
+    fmap = (5.0 * np.outer(np.linspace(-1, 1, h), np.ones(w)) ** 2).astype(np.float32)
+    v = Variant(tmpl, lambda c: {}, fixed=lambda i: fmap.ravel()[i].astype(np.float64))
+    c, d = fit_variant(res, v, idx, r, wt)
+    direct = profiled_chi2(res, idx, r - fmap.ravel()[idx] - c @ v.values(idx, (h, w)), wt) - profiled_chi2(
+        res, idx, r, wt)
+    assert d == pytest.approx(direct, rel=1e-6, abs=1e-3)
+    np.testing.assert_allclose(v.fixed_map((h, w)), fmap)
