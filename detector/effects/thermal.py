@@ -86,6 +86,36 @@ GN_TOL_K = 1e-3
 GN_MAX_K = 60.0
 
 
+def _gauss_newton(res, model, linear: Variant, slope_per_k: float) -> np.ndarray:
+    """Temperatures (tx, ty) [K] minimising the level-profiled chi2 of ``r - m(t)`` on the search sample:
+    Gauss-Newton from the linear ramp's fit (``t0 = g / slope_per_k``, ``slope_per_k = D0 ln2 / T_2``), step
+    halving while the chi2 does not fall, at most GN_ITERATIONS steps; zeros when the start is not finite."""
+    ctx = search_sample(res)
+    idx, r, w = ctx["idx"], ctx["r"], ctx["w"]
+    g, _ = fit_linear(res, lambda i: linear.values(i, res.data_adu.shape), idx, r, w)
+    t = np.clip(np.asarray(g, np.float64) / slope_per_k, -GN_MAX_K, GN_MAX_K)
+    if not np.all(np.isfinite(t)):
+        return np.zeros(2)
+    chi = profiled_chi2(res, idx, r - model(t, idx, False)[0], w)
+    for _ in range(GN_ITERATIONS):
+        m0 = model(t, idx, False)[0]
+        step, _ = fit_linear(res, lambda i, t=t: model(t, i)[1], idx, r - m0, w)
+        accepted = False
+        for _half in range(6):  # step halving: the exponential is convex along the gradient
+            t_new = np.clip(t + step, -GN_MAX_K, GN_MAX_K)
+            chi_new = profiled_chi2(res, idx, r - model(t_new, idx, False)[0], w)
+            if chi_new <= chi:
+                accepted = True
+                break
+            step = step / 2
+        if not accepted:
+            break
+        t, chi = t_new, chi_new
+        if np.max(np.abs(step)) < GN_TOL_K:
+            break
+    return t
+
+
 def _variants(res):
     """The linear ramp, then the exponential law fitted by Gauss-Newton on the search sample, started from the
     ramp (``t0 = g T_2 / (D0 ln 2)``) and offered as its linearisation about the converged temperatures
@@ -123,36 +153,20 @@ def _variants(res):
         ak = amp * kappa
         return amp * (e - 1.0), np.stack([ak * uu * e, ak * vv * e])
 
-    ctx = search_sample(res)
-    idx, r, w = ctx["idx"], ctx["r"], ctx["w"]
-    g, _ = fit_linear(res, lambda i: linear.values(i, res.data_adu.shape), idx, r, w)
-    t = np.clip(np.asarray(g, np.float64) / (d0 * kappa), -GN_MAX_K, GN_MAX_K)
-    if not np.all(np.isfinite(t)):
-        return
-    chi = profiled_chi2(res, idx, r - model(t, idx, False)[0], w)
-    for _ in range(GN_ITERATIONS):
-        m0 = model(t, idx, False)[0]
-        step, _ = fit_linear(res, lambda i, t=t: model(t, i)[1], idx, r - m0, w)
-        accepted = False
-        for _half in range(6):  # step halving: the exponential is convex along the gradient
-            t_new = np.clip(t + step, -GN_MAX_K, GN_MAX_K)
-            chi_new = profiled_chi2(res, idx, r - model(t_new, idx, False)[0], w)
-            if chi_new <= chi:
-                accepted = True
-                break
-            step = step / 2
-        if not accepted:
-            break
-        t, chi = t_new, chi_new
-        if np.max(np.abs(step)) < GN_TOL_K:
-            break
-    t_star = t.copy()
+    state: dict = {}
+
+    def solve() -> np.ndarray:
+        """The converged temperatures t* [K] (computed once, when the variant is first evaluated: a series,
+        which fits linear forms only, never pays for it)."""
+        if "t" not in state:
+            state["t"] = _gauss_newton(res, model, linear, d0 * kappa)
+        return state["t"]
 
     def templates(idx):
-        return model(t_star, idx)[1]
+        return model(solve(), idx)[1]
 
     def fixed(idx):  # m(t*) - J t* = amp (e - 1 - x e), x = kappa T*
-        _, x, e = model(t_star, idx, jacobian=False)
+        _, x, e = model(solve(), idx, jacobian=False)
         return amp * (e - 1.0 - x * e)
 
     def to_params_exp(c):
@@ -162,6 +176,7 @@ def _variants(res):
                 "temperature_x_k": round(float(c[0]), 4), "temperature_y_k": round(float(c[1]), 4)}
 
     def maps():  # the Jacobian on the whole frame (float32, broadcast)
+        t_star = solve()
         e = np.exp2(((t_star[0] * u64)[None, :] + (t_star[1] * v64)[:, None]) / t2).astype(np.float32)
         a = np.float32(amp * kappa)
         return [a * u[None, :] * e, a * v[:, None] * e]
