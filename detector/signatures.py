@@ -661,12 +661,35 @@ class Variant:
     callable returning it (built only for the variant that wins); ``at(idx)``, when given, evaluates the
     templates directly at flat pixel indices (shape (templates, pixels)), so a search over many variants
     never builds their full maps.
+
+    ``fixed``, when given, is a part of the mean change with no free coefficient (coefficient 1) [ADU], as a
+    function of flat pixel indices: a non-linear model linearised about a point ``p*`` is the variant of
+    templates ``J`` (its Jacobian at ``p*``) and fixed part ``m(p*) - J p*``, whose coefficients are the
+    parameters themselves (one Gauss-Newton step from ``p*``; at a converged ``p*`` they are ``p*`` and the
+    fit's mean change is the model ``m(p*)`` exactly). Fitted on one frame (a series fits linear forms only).
     """
 
     templates: list[np.ndarray] | Callable[[], list[np.ndarray]]
     to_params: Callable[[np.ndarray], dict | None]  #: None when the coefficients are outside the bounds
     label: str = ""
     at: Callable[[np.ndarray], np.ndarray] | None = None
+    fixed: Callable[[np.ndarray], np.ndarray] | None = None
+
+    def target(self, idx: np.ndarray, r: np.ndarray) -> np.ndarray:
+        """The residual ``r`` at flat pixels ``idx`` less the fixed part (what the templates fit)."""
+        return r if self.fixed is None else r - np.asarray(self.fixed(idx), np.float64)
+
+    def fixed_map(self, shape: tuple[int, int]) -> np.ndarray | None:
+        """The fixed part on the whole frame [ADU] (None without one)."""
+        if self.fixed is None:
+            return None
+        out = np.empty(shape, np.float32)
+        rows = max(1, CHUNK_PIXELS // max(shape[1], 1))
+        for y0 in range(0, shape[0], rows):  # in bands of rows: no full-frame float64 copy
+            y1 = min(shape[0], y0 + rows)
+            out[y0:y1] = np.asarray(self.fixed(np.arange(y0 * shape[1], y1 * shape[1])), np.float32
+                                    ).reshape(y1 - y0, shape[1])
+        return out
 
     def maps(self) -> list[np.ndarray]:
         return self.templates() if callable(self.templates) else self.templates
@@ -841,6 +864,27 @@ def fit_linear(res: Residuals, values: Callable[[np.ndarray], np.ndarray], idx: 
     return c, float(-(b_ @ c))
 
 
+def fit_variant(res: Residuals, v: Variant, idx: np.ndarray, r: np.ndarray, w: np.ndarray
+                ) -> tuple[np.ndarray, float]:
+    """:func:`fit_linear` of a variant's templates on ``r`` less its fixed part (:attr:`Variant.fixed`); delta
+    chi2 counted from ``r`` itself: the fixed part's own change of the (level-profiled) chi2, ``A - 2b``
+    (``A = f'Pf``, ``b = f'Pr``), from the fit of ``f`` to ``r`` (coefficient ``b/A``, delta ``-b^2/A``) or,
+    when that is degenerate, the difference of the fits of ``f`` to ``r`` and to ``r - f`` (``-b^2/A`` and
+    ``-(b - A)^2/A``): the same generalised least squares as the templates'."""
+    values = (lambda i: v.values(i, res.data_adu.shape))
+    if v.fixed is None:
+        return fit_linear(res, values, idx, r, w)
+    rf = v.target(idx, r)
+    c, d = fit_linear(res, values, idx, rf, w)
+    c_r, d_r = fit_linear(res, v.fixed, idx, r, w)
+    c_r = float(c_r[0]) if c_r.size else 0.0
+    if abs(c_r) > 1e-6 and d_r < 0:  # b = -d_r / c_r, A = b / c_r: one fit gives both
+        b = -d_r / c_r
+        return c, d + (b / c_r - 2.0 * b)
+    _, d_rf = fit_linear(res, v.fixed, idx, rf, w)
+    return c, d + (d_r - d_rf)
+
+
 def joint_levels(res: Residuals, values: Callable[[np.ndarray], np.ndarray], idx: np.ndarray, r: np.ndarray,
                  w: np.ndarray, c: np.ndarray) -> dict[str, float]:
     """The global levels fitted jointly with templates of coefficients ``c`` (the levels' part of the
@@ -957,12 +1001,12 @@ class LinearSignature(Signature):
         idx, _, w = res.flat_profiled()
         values = (lambda i: v.values(i, res.data_adu.shape))
         if not ctx["full"]:  # the winner on every fitted pixel (else keep the subsample's, scaled)
-            c_all, d_all = fit_linear(res, values, idx, res.flat()[1], w)
+            c_all, d_all = fit_variant(res, v, idx, res.flat()[1], w)
             p_all = v.to_params(c_all)
             if p_all is not None:
                 c, d, params = c_all, d_all, p_all
         if self.of_light:
-            light = joint_levels(res, values, idx, res.flat()[1], w, c).get("light_scale", 0.0)
+            light = joint_levels(res, values, idx, v.target(idx, res.flat()[1]), w, c).get("light_scale", 0.0)
             params = v.to_params(np.asarray(c) / (1.0 + light)) if light > -0.5 else None
             if params is None:
                 return None
@@ -972,6 +1016,9 @@ class LinearSignature(Signature):
         maps = v.maps()
         k = len(maps) + self.extra_k
         delta = sum(ci * np.asarray(t, np.float32) for ci, t in zip(c, maps))
+        fixed = v.fixed_map(res.data_adu.shape)
+        if fixed is not None:
+            delta = delta + fixed
         fit = Fit(name, params, d, k, res.n_fit, self.explain(params, res),
                   delta_adu=np.broadcast_to(delta, res.data_adu.shape), note=v.label, state={"variant": v})
         # a change of the light (added, or a multiplicative loss) is a change of charge: its shot noise changes too
@@ -987,12 +1034,12 @@ class LinearSignature(Signature):
         if not idx.size:
             return None
         values = (lambda i: v.values(i, res.data_adu.shape))
-        c, d = fit_linear(res, values, idx, res.flat()[1], w)
+        c, d = fit_variant(res, v, idx, res.flat()[1], w)
         params = v.to_params(c)
         if params is None:
             return None
         if self.of_light:
-            light = joint_levels(res, values, idx, res.flat()[1], w, c).get("light_scale", 0.0)
+            light = joint_levels(res, values, idx, v.target(idx, res.flat()[1]), w, c).get("light_scale", 0.0)
             if light <= -0.5 or v.to_params(np.asarray(c) / (1.0 + light)) is None:
                 return None
         return self._finish(res, name, v, c, d, params)
@@ -1002,7 +1049,7 @@ class LinearSignature(Signature):
         """The variant fitting best on the search sample (lazily: only the best one is kept)."""
         best = None
         for v in variants:
-            c, d = fit_linear(res, lambda i, v=v: v.values(i, res.data_adu.shape), ctx["idx"], ctx["r"], ctx["w"])
+            c, d = fit_variant(res, v, ctx["idx"], ctx["r"], ctx["w"])
             params = v.to_params(c)
             if params is None:
                 continue

@@ -401,7 +401,8 @@ def joint_linear(name: str, sig: LinearSignature, frames: list[Residuals], share
     frame ("frame"), jointly with the levels; variants searched on a subsample of every frame and the winner
     refitted on every fitted pixel. With ``chi2_base`` (the series' chi2 with the levels alone), a form
     whose search-sample delta BIC is positive is returned as it is, without per-frame fits."""
-    variant_lists = _aligned([list(sig.variants(r)) for r in frames], frames)
+    # linear forms only: a variant with a fixed part is a non-linear model linearised on one frame
+    variant_lists = _aligned([[v for v in sig.variants(r) if v.fixed is None] for r in frames], frames)
     if variant_lists is None:
         return None
     nsearch = max(MIN_SEARCH_PIXELS, LINEAR_SEARCH_PIXELS // len(frames))

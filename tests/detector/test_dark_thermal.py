@@ -1,0 +1,162 @@
+"""The dark-current gradient in its physical form: a linear temperature field across the die with the dark current
+doubling every ``T_2`` (Janesick 2001, Scientific CCDs, eq. 7.4; Widenhorn et al. 2002, J. Appl. Phys. 92, 7434).
+
+Checked against independent results: the doubling interval against its closed form and the literature's ~6 K at
+-20 C; the rendered dark against ``D0 (2^(T / T_2) - 1) t`` evaluated here; and the diagnosis on synthetic
+residuals of a binned ML11002 dark, where the truth is known: a temperature gradient is fitted by the exponential
+form (temperatures within 10 %) and beats a bias's ramps and bowl, and a bias ramp with a bowl is not taken for
+a temperature gradient.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from detector import registry
+from detector.chain import Detector
+from detector.effects import build_effects
+from detector.effects.thermal import doubling_interval_k, gradient_rate, thermal_rate
+from detector.sensor import make_sensor
+from detector.signatures import Residuals, SpikeStats
+
+K_B = 8.617333262e-5  # eV/K
+
+
+def test_doubling_interval_is_the_mid_gap_law_and_the_literature_values():
+    for tc in (-40.0, -20.0, 0.0, 25.0):
+        t = tc + 273.15
+        # independent: D(T) ~ T^3 exp(-Eg / 2kT) differentiated numerically, T_2 = ln 2 / (d ln D / dT)
+        ln_d = lambda x: 3 * np.log(x) - 1.12 / (2 * K_B * x)  # noqa: E731
+        h = 1e-3
+        slope = (ln_d(t + h) - ln_d(t - h)) / (2 * h)
+        assert doubling_interval_k(tc) == pytest.approx(np.log(2) / slope, rel=1e-6)
+    # the literature: ~6 K at -20 C, 6-8 K between 0 C and room temperature (Janesick 2001 sect. 7.2)
+    assert doubling_interval_k(-20.0) == pytest.approx(6.1, abs=0.2)
+    assert 6.5 < doubling_interval_k(0.0) < 7.5 and 7.5 < doubling_interval_k(20.0) < 8.5
+    # colder: doubles faster
+    assert doubling_interval_k(-60.0) < doubling_interval_k(-20.0)
+
+
+def test_thermal_rate_is_the_exponential_of_the_linear_field():
+    ys, xs = np.array([0.0, 50.0, 100.0]), np.array([0.0, 100.0, 200.0])
+    m = thermal_rate(ys, xs, 101, 201, 0.5, 4.0, -2.0, 6.0)
+    assert m[1, 1] == pytest.approx(0.0, abs=1e-7)  # zero at the centre
+    assert m[1, 2] == pytest.approx(0.5 * (2 ** (2.0 / 6.0) - 1), rel=1e-6)  # right edge: +2 K
+    assert m[0, 0] == pytest.approx(0.5 * (2 ** ((-2.0 + 1.0) / 6.0) - 1), rel=1e-6)  # corner: -2 K + 1 K
+    # small gradients: the linearised ramp D0 ln2 dT / T_2 (to second order: relative ln2 dT / 2T_2 ~ 3e-4)
+    small = thermal_rate(ys, xs, 101, 201, 0.5, 0.01, 0.0, 6.0)
+    ramp = gradient_rate(ys, xs, 101, 201, 0.5 * np.log(2) * 0.01 / 6.0, 0.0)
+    np.testing.assert_allclose(small, ramp, rtol=1e-3, atol=1e-9)
+
+
+def test_apply_adds_the_formula_to_a_noiseless_dark():
+    s = make_sensor("ml11002", {"binning": 8})
+    t = 600.0
+    base = Detector(s, []).expose(0.0, t, 1, noiseless=True)
+    p = {"temperature_x_k": 4.0, "temperature_y_k": -2.0, "gradient_x_e_per_s": 0.01, "gradient_y_e_per_s": 0.0}
+    got = Detector(s, build_effects({"dark_gradient": p}, s)).expose(0.0, t, 1, noiseless=True)
+    h, w = s.output_shape
+    b = s.binning
+    ys, xs = np.arange(h * b, dtype=float), np.arange(w * b, dtype=float)
+    t2 = doubling_interval_k(s.temperature_c)
+    tf = 4.0 * (xs / (s.sensor_width_px - 1) - 0.5)[None, :] - 2.0 * (ys / (s.sensor_height_px - 1) - 0.5)[:, None]
+    rate = s.dark_current_e_per_s * (2.0 ** (tf / t2) - 1) + 0.01 * (xs / (s.sensor_width_px - 1) - 0.5)[None, :]
+    expect = (rate * t).reshape(h, b, w, b).sum(axis=(1, 3))  # charge-binned: the b x b pixels' sum
+    np.testing.assert_allclose(got - base, expect, rtol=2e-3, atol=2e-3 * np.abs(expect).max())
+
+
+# ------------------------------------------------------------------------------------ the diagnosis
+def _dark_residuals(extra_e: np.ndarray | None = None, extra_adu: np.ndarray | None = None, seed: int = 1,
+                    t: float = 600.0) -> Residuals:
+    """A binned (8x8) ML11002 dark of ``t`` seconds: model = bias + dark current; data = the model plus an extra
+    dark charge [e-] (with its shot noise) or an extra bias [ADU] (without), Gaussian noise of the model's
+    variance (dark shot noise + read noise once per binned read)."""
+    s = make_sensor("ml11002", {"binning": 8})
+    h, w = s.output_shape
+    b, g = s.binning, s.gain_e_per_adu
+    ys, xs = b * np.arange(h) + (b - 1) / 2.0, b * np.arange(w) + (b - 1) / 2.0
+    dark = np.full((h, w), s.dark_current_e_per_s * t * b * b)
+    charge = dark + (0 if extra_e is None else extra_e)
+    rng = np.random.default_rng(seed)
+    data = s.bias_adu + (charge + rng.normal(0, np.sqrt(charge + s.read_noise_e ** 2))) / g
+    if extra_adu is not None:
+        data = data + extra_adu
+    model = s.bias_adu + dark / g
+    var = (dark + s.read_noise_e ** 2) / g ** 2
+    f32 = np.float32
+    return Residuals(data.astype(f32), model.astype(f32), var.astype(f32), np.ones((h, w), bool),
+                     np.zeros((h, w), f32), dark.astype(f32), ys, xs, s, t, SpikeStats(0, 0, 0, 0, 0),
+                     SpikeStats(0, 0, 0, 0, 0))
+
+
+def _fits(res):
+    reg = registry()
+    out = {}
+    for name in ("dark_gradient", "bias_gradient"):
+        sig = reg[name].signature
+        fit = sig.fit(res, name)
+        out[name] = (fit, sig.plausible(fit, res) if fit is not None else "no fit")
+    return out
+
+
+def test_temperature_gradient_is_fitted_by_the_exponential_form_and_beats_a_bias():
+    s = make_sensor("ml11002", {"binning": 8})
+    h, w = s.output_shape
+    b, t = s.binning, 600.0
+    ys, xs = b * np.arange(h) + (b - 1) / 2.0, b * np.arange(w) + (b - 1) / 2.0
+    # the truth's own doubling interval (the sensor's at -25 C)
+    extra = thermal_rate(ys, xs, s.sensor_height_px, s.sensor_width_px, s.dark_current_e_per_s, 4.0, -2.0,
+                         doubling_interval_k(s.temperature_c)).astype(float) * t * b * b
+    res = _dark_residuals(extra_e=extra)
+    f = _fits(res)
+    dark, why = f["dark_gradient"]
+    assert why == "", why
+    assert dark.params["temperature_x_k"] == pytest.approx(4.0, rel=0.1)
+    assert dark.params["temperature_y_k"] == pytest.approx(-2.0, rel=0.1)
+    assert dark.params["gradient_x_e_per_s"] == 0.0 and dark.k == 2
+    assert "K warmer at the right edge" in dark.explanation and "cooler at the top" in dark.explanation
+    # the fitted mean change is the exponential model at the fitted temperatures (the fixed part included)
+    back = thermal_rate(ys, xs, s.sensor_height_px, s.sensor_width_px, s.dark_current_e_per_s,
+                        dark.params["temperature_x_k"], dark.params["temperature_y_k"],
+                        doubling_interval_k(s.temperature_c)) * t * b * b / s.gain_e_per_adu
+    np.testing.assert_allclose(dark.delta_adu, back, atol=0.02 * np.abs(back).max())
+    bias = f["bias_gradient"][0]
+    assert dark.delta_bic < bias.delta_bic - 10, (dark.delta_bic, bias.delta_bic)
+
+
+def test_bias_ramp_and_bowl_is_not_taken_for_a_temperature_gradient():
+    s = make_sensor("ml11002", {"binning": 8})
+    h, w = s.output_shape
+    u = (np.arange(w) / (w - 1) - 0.5)[None, :]
+    v = (np.arange(h) / (h - 1) - 0.5)[:, None]
+    # of the size of the 4 K gradient above (~600 ADU across the frame: 1920 e- of dark per binned pixel in
+    # 600 s, 0.45 of it across 4 K), with a bowl
+    bias = 400.0 * u - 200.0 * v + 150.0 * (u * u + v * v)
+    res = _dark_residuals(extra_adu=bias, seed=2)
+    f = _fits(res)
+    bias_fit = f["bias_gradient"][0]
+    dark, why = f["dark_gradient"]
+    assert bias_fit.delta_bic < -100
+    assert dark is None or why != "" or bias_fit.delta_bic < dark.delta_bic - 10, (bias_fit.delta_bic,
+                                                                                 dark.delta_bic, why)
+
+
+def test_a_variant_with_a_fixed_part_counts_its_chi2_from_the_residual_itself():
+    """fit_variant's delta chi2 of a variant with a fixed part against the level-profiled chi2 computed
+    directly: chi2(r - f - J c) - chi2(r)."""
+    from detector.signatures import Variant, fit_variant, profiled_chi2
+
+    rng = np.random.default_rng(5)
+    s = make_sensor("ml11002", {"binning": 8})
+    h, w = s.output_shape
+    res = _dark_residuals(seed=3)
+    idx, r, wt = res.flat_profiled()[0], res.flat()[1], res.flat_profiled()[2]
+    tmpl = [rng.normal(0, 1, (h, w)).astype(np.float32), np.linspace(-1, 1, w, dtype=np.float32)[None, :]]
+    fmap = (5.0 * np.outer(np.linspace(-1, 1, h), np.ones(w)) ** 2).astype(np.float32)
+    v = Variant(tmpl, lambda c: {}, fixed=lambda i: fmap.ravel()[i].astype(np.float64))
+    c, d = fit_variant(res, v, idx, r, wt)
+    direct = profiled_chi2(res, idx, r - fmap.ravel()[idx] - c @ v.values(idx, (h, w)), wt) - profiled_chi2(
+        res, idx, r, wt)
+    assert d == pytest.approx(direct, rel=1e-6, abs=1e-3)
+    np.testing.assert_allclose(v.fixed_map((h, w)), fmap)
