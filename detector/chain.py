@@ -255,7 +255,8 @@ class Detector:
         mean lies within 3 sigma of the full well or of the ADC maximum are flagged: there the clipped
         distribution is not Gaussian and the pixel can only be compared statistically. Deterministic
         READ/ADU effects act on the mean and scale the variance by their local slope squared (the delta
-        method, :meth:`_run_propagating`: a gain region or a response non-linearity); the COUPLING effects act on the mean only (brighter-fatter, CTI, IPC: what they do to the noise is diagnosed from the
+        method, :meth:`_run_propagating`: a gain region or a response non-linearity); the COUPLING effects
+        act on the mean only (brighter-fatter, CTI, IPC: what they do to the noise is diagnosed from the
         frame's correlations, not from this per-pixel variance).
         """
         s = self.sensor

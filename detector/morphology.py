@@ -321,7 +321,7 @@ def compact_features(z: np.ndarray, ok: np.ndarray, on_source: np.ndarray | None
             foot[fam][y0:y1, x0:x1] |= filled
             radii[fam].append(rad)
             peak[fam] = max(peak[fam], pk)
-            rings_any |= foot[fam]
+        rings_any |= foot["rings"] | foot["srings"]
     for s, q, total, foot, radii, peak, blobs, _ in per_scale:
         for y0, y1, x0, x1, filled, rad, pk in blobs:
             if rings_any[y0:y1, x0:x1][filled].any():
@@ -726,7 +726,8 @@ def _feature_map(feats: dict, rmap: np.ndarray, wmap: np.ndarray, light: np.ndar
         level, _ = res.level_maps()
         raw = res.data_adu.astype(np.float64) - res.model_adu - level
         cap_adu = min(float(s.adc_max_adu), s.bias_adu + s.full_well_e * res.pixel_sum / res.gain)
-        core = grown & (ok == 0) & np.isfinite(raw) & (res.data_adu < 0.95 * cap_adu) & (res.model_adu < 0.95 * cap_adu)
+        core = (grown & (ok == 0) & np.isfinite(raw) & (res.data_adu < 0.95 * cap_adu)
+                & (res.model_adu < 0.95 * cap_adu))
         sm = np.where(core, raw, sm)
     return _relative(kind, np.where(grown, sm, 0.0), light)
 

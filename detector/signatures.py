@@ -36,7 +36,6 @@ unit parameters, and the fitted parameters are the plugin's own.
 from __future__ import annotations
 
 import warnings
-
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field, replace
 
@@ -776,15 +775,21 @@ def row_gain(row_var_adu2: float, weight_sums: np.ndarray) -> np.ndarray:
     return c / (1.0 + c * weight_sums)
 
 
+def _row_gain_of(rows: np.ndarray, w: np.ndarray, row_var_adu2: float) -> tuple[int, np.ndarray]:
+    """(number of rows, :func:`row_gain` of each) for pixels of weights ``w`` in rows ``rows``."""
+    n_rows = int(rows.max()) + 1
+    return n_rows, row_gain(row_var_adu2, np.bincount(rows, w, minlength=n_rows))
+
+
 def gls_quadratic(r: np.ndarray, w: np.ndarray, rows: np.ndarray | None, row_var_adu2: float) -> float:
     """``r' V^-1 r`` for pixels of weights ``w`` in rows ``rows`` sharing a row offset of variance
     ``row_var_adu2`` (the weighted sum of squares when there is none)."""
     q = float(np.dot(r * r, w))
     if rows is None or row_var_adu2 <= 0 or not r.size:
         return q
-    n_rows = int(rows.max()) + 1
+    n_rows, g = _row_gain_of(rows, w, row_var_adu2)
     u = row_sums(rows, n_rows, w, r)
-    return q - float(np.dot(row_gain(row_var_adu2, np.bincount(rows, w, minlength=n_rows)), u * u))
+    return q - float(np.dot(g, u * u))
 
 
 def row_log_det(w: np.ndarray, rows: np.ndarray | None, row_var_adu2: float) -> float:
@@ -1176,8 +1181,7 @@ def lstsq_delta(r: np.ndarray, w: np.ndarray, temps: np.ndarray, nuisance: np.nd
     the pixels' ``rows`` and a row noise ``row_var_adu2``, the generalised least squares (Woodbury, above)."""
     corr = rows is not None and row_var_adu2 > 0 and r.size
     if corr:
-        n_rows = int(rows.max()) + 1
-        g = row_gain(row_var_adu2, np.bincount(rows, w, minlength=n_rows))
+        n_rows, g = _row_gain_of(rows, w, row_var_adu2)
         ur = row_sums(rows, n_rows, w, r)
 
     def solve(x):
@@ -1407,7 +1411,8 @@ class VarianceSignature(Signature):
         """The scatter's neighbour correlation runs along one axis only (whole columns or rows)."""
         rv, rh, nv, nh = neighbour_axes(res)
         across, n = (rh, nh) if rv > rh else (rv, nv)
-        return max(rv, rh) > self.MAX_NEIGHBOUR_CORRELATION and across < max(self.MAX_ACROSS_LINES, 3 / np.sqrt(max(n, 1)))
+        return (max(rv, rh) > self.MAX_NEIGHBOUR_CORRELATION
+                and across < max(self.MAX_ACROSS_LINES, 3 / np.sqrt(max(n, 1))))
 
     def plausible(self, fit: Fit, res: Residuals) -> str:
         if self.check is not None:

@@ -521,12 +521,15 @@ def _max_var(res) -> float:
 
 
 def _linear_start(res, names: list[str], scale: list[float]) -> np.ndarray:
-    """First-order estimate from the derivative templates (heat-equation / Taylor linearisation)."""
-    d = _derivatives(res)
-    ctx = search_sample(res)
-    c, _ = fit_linear(res, lambda i: np.stack([s_ * d[n].ravel()[i] for n, s_ in zip(names, scale)]), ctx["idx"],
-                      ctx["r"], ctx["w"])
-    return c
+    """First-order estimate from the derivative templates (heat-equation / Taylor linearisation), cached: the
+    second-moment one starts jitter (both its forms), the drift and the elongation."""
+    key = ("linear_start", tuple(names), tuple(scale))
+    if key not in res._flat:
+        d = _derivatives(res)
+        ctx = search_sample(res)
+        res._flat[key], _ = fit_linear(res, lambda i: np.stack([s_ * d[n].ravel()[i] for n, s_ in zip(names, scale)]),
+                                       ctx["idx"], ctx["r"], ctx["w"])
+    return np.array(res._flat[key])
 
 
 def _sensor_centre(res) -> tuple[float, float]:

@@ -12,8 +12,7 @@ import numpy as np
 import pytest
 
 from detector.sensor import make_sensor
-from detector.signatures import Residuals, SpikeStats, fit_linear, gls_quadratic, lstsq_delta, pixel_score
-from detector.signatures import Fit
+from detector.signatures import Fit, Residuals, SpikeStats, fit_linear, gls_quadratic, lstsq_delta, pixel_score
 
 
 def _res(r, var, row_var):

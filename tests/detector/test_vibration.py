@@ -27,7 +27,8 @@ def test_vibration_kernel_equals_a_shift_and_add_along_the_sine(a):
     cxx = (out * (xx - c) ** 2).sum() / f
     cyy = (out * (yy - c) ** 2).sum() / f
     assert f == pytest.approx(1.0, abs=1e-6)
-    assert cxx == pytest.approx(sigma ** 2 + a[0] ** 2 / 2, rel=1e-3) and cyy == pytest.approx(sigma ** 2 + a[1] ** 2 / 2, rel=1e-3)
+    assert cxx == pytest.approx(sigma ** 2 + a[0] ** 2 / 2, rel=1e-3)
+    assert cyy == pytest.approx(sigma ** 2 + a[1] ** 2 / 2, rel=1e-3)
 
 
 def test_the_diagnosis_names_an_oscillation_jitter_and_a_trail_drift(tmp_path):
