@@ -55,6 +55,18 @@ def bias_shape_adu(ys: np.ndarray, xs: np.ndarray, height: int, width: int, gx: 
     return np.broadcast_to(out, (ys.size, xs.size)).astype(np.float32)
 
 
+def bias_profile_adu(xs: np.ndarray, width: int, coeffs) -> np.ndarray:
+    """A fixed bias pattern along the serial direction [ADU]: the cosine series ``sum_k c_k cos(k pi t)``,
+    ``k = 1 .. len(coeffs)``, of the column's position ``t = x / (width - 1)`` in [0, 1] (a DCT-II basis: any
+    smooth profile of the column index, mean zero over the sensor). The clocking of the serial register and
+    the output amplifier's settling repeat at every row, so their pattern depends on the column only and is
+    the same every frame (the "bias structure" a master bias removes: Howell 2006, Handbook of CCD Astronomy,
+    sect. 4.2; Janesick 2001, Scientific CCDs, sect. 3.6)."""
+    t = xs.astype(np.float64) / max(width - 1, 1)
+    k = np.arange(1, len(coeffs) + 1, dtype=np.float64)
+    return (np.asarray(coeffs, np.float64) @ np.cos(np.pi * k[:, None] * t[None, :])).astype(np.float32)
+
+
 #: span of an exponential crosstalk tail [e-folding lengths]: lags beyond it carry < e^-5 = 0.7 % of the echo
 TAIL_SPAN = 5.0
 
@@ -245,11 +257,45 @@ def _bias_variants(res):
                  "quadratic_adu": round(float(c[2]), 4)} if worst <= s.bias_adu else None)
 
     yield Variant(unit, to_params)
+    if not _unlit(res):
+        return
+    # on a frame without light or dark charge a pattern along the columns can only be the read-out's: the
+    # serial direction's fixed pattern, in cosine series of growing order (chosen by BIC)
+    for order in BIAS_PROFILE_ORDERS:
+        prof = [(f * bias_profile_adu(res.xs, s.sensor_width_px, np.eye(order)[k]))[None, :] for k in range(order)]
+
+        def with_profile(c, order=order):
+            p = to_params(c[:3])
+            if p is None:
+                return None
+            coeffs = [float(f"{ck:.4g}") for ck in c[3:]]
+            # the profile's extremes at the sensor's columns are bounded by the bias too
+            if float(np.max(np.abs(bias_profile_adu(np.linspace(0, s.sensor_width_px - 1, 257), s.sensor_width_px,
+                                                     coeffs)))) > s.bias_adu:
+                return None
+            return dict(p, column_profile_adu=coeffs)
+
+        yield Variant(unit + prof, with_profile, label=f"column profile of {order} cosine terms")
+
+
+#: orders of the bias pattern along the serial direction the bias fit tries on unlit frames [cosine terms]
+BIAS_PROFILE_ORDERS = (8, 16, 32)
+
+
+def _unlit(res) -> bool:
+    """No light and less dark charge than one read noise anywhere: what varies is the read-out's."""
+    return not np.any(res.photo_adu > 0) and float(np.max(res.dark_e, initial=0.0)) < res.sensor.read_noise_e
 
 
 def _bias_words(p, res) -> str:
     parts = [f"{p['gradient_x_adu']:+.3g} ADU across the columns", f"{p['gradient_y_adu']:+.3g} ADU across the rows",
              f"{p['quadratic_adu']:+.3g} ADU bowl at the corners"]
+    prof = p.get("column_profile_adu") or []
+    if prof:
+        u = np.linspace(0, res.sensor.sensor_width_px - 1, 257)
+        shape = bias_profile_adu(u, res.sensor.sensor_width_px, prof)
+        parts.append(f"a fixed pattern along the columns of {float(np.ptp(shape)):.3g} ADU peak to peak "
+                     f"({len(prof)} cosine terms: the serial register's or output amplifier's pattern)")
     return "an additive offset independent of the signal, " + ", ".join(parts) + ": bias structure"
 
 
@@ -283,7 +329,7 @@ _KTC_SIGNATURE = VarianceSignature(
                     "sense node: kTC reset noise (or a read noise above the data sheet)"),
     pattern="extra variance constant over the frame", check=_ktc_check)
 _BIAS_SIGNATURE = LinearSignature(_bias_variants, _bias_words, pattern="additive ramps/bowl, independent of signal",
-                                  extra_k=0)
+                                  extra_k=0, select_by_bic=True)
 #: the largest electronic crosstalk coefficient a camera shows [1]: measured coefficients are 1e-5 .. 1e-3
 #: (LSST sensors, Snyder et al. 2021, JATIS 7, 048002; DECam, Bernstein et al. 2017, PASP 129, 114502)
 CROSSTALK_MAX = 0.01
@@ -675,6 +721,9 @@ class BiasGradientParams(EffectParams):
     gradient_x_adu: float = Field(5.0, ge=-1e4, le=1e4, description="bias change across the sensor width [ADU]")
     gradient_y_adu: float = Field(0.0, ge=-1e4, le=1e4, description="bias change across the sensor height [ADU]")
     quadratic_adu: float = Field(0.0, ge=-1e4, le=1e4, description="bias bowl: corner minus centre [ADU]")
+    column_profile_adu: list[float] = Field(default_factory=list, max_length=64,
+                                            description="cosine-series coefficients c_k of a fixed pattern along "
+                                            "the serial direction, sum_k c_k cos(k pi x / (W - 1)) [ADU]")
 
 
 @register_effect
@@ -682,7 +731,8 @@ class BiasGradient(Effect):
     """Spatial structure of the bias level: linear ramps and a radial bowl [ADU], the same every frame.
 
     Seen in bias frames of large CMOS and CCD sensors (amplifier warm-up, reference-voltage drop along the
-    column bus; Janesick 2007 ch. 9). Deterministic, zero at the sensor centre.
+    column bus; Janesick 2007 ch. 9). Deterministic, zero at the sensor centre. ``column_profile_adu`` adds
+    a fixed pattern of any smooth shape along the serial direction (:func:`bias_profile_adu`).
     """
 
     name = "bias_gradient"
@@ -697,6 +747,8 @@ class BiasGradient(Effect):
         ys, xs = tile.pixel_centres()
         data += bias_shape_adu(ys, xs, s.sensor_height_px, s.sensor_width_px, p.gradient_x_adu,
                                p.gradient_y_adu, p.quadratic_adu)
+        if p.column_profile_adu:
+            data += bias_profile_adu(xs, s.sensor_width_px, p.column_profile_adu)[None, :]
 
 
 class CrosstalkParams(EffectParams):

@@ -28,13 +28,9 @@ FAST = ("vig_gauss_window", "sky_quadratic", "rows_telegraph", "dust_donuts", "r
 #: cases the diagnosis still fails (run of 2026-11-25 02:04 after issue 10's fourth round, seed 11; before and
 #: after in docs/diagnose_validation.md)
 FAILS_TODAY: set[str] = {
-    # missed (no catalogue form reaches them): a sawtooth bias of 3 cycles, a soft bleed, a periodic row
-    # pick-up (row noise is independent from row to row: described as rows), a one-sided coma tail (the
-    # symmetric smears cannot follow it and an offset is refused: the sources are lopsided; described as light
-    # moved around the sources)
-    "bias_sawtooth_full", "bloom_soft_bright", "rows_pickup_imx", "elong_coma",
-    # below the threshold: the exact template of the truth is not significant on this frame
-    "ghost_gauss_offaxis_imx", "xtalk_2ch_undershoot_imx",
+    # missed (no catalogue form reaches them): a soft bleed, a one-sided coma tail (the symmetric smears cannot
+    # follow it and an offset is refused: the sources are lopsided; described as light moved around the sources)
+    "bloom_soft_bright", "elong_coma",
     # described right, but the empirical map halves the error only partly (light moved into rings around the
     # sources, a faint latent image, elongated glints)
     "diffraction_ring", "persistence", "satellite_glint"}

@@ -697,7 +697,8 @@ def make_frame(base: str, extra, levels: Levels, out: Path, seed: int = 11, work
     ext = [scene_hdu(scene)] + [table_hdu(n, t) for n, t in det.truth(setup.exptime_s, seed, state).items()]
     write_streamed(out, header, det.iter_frame(setup.signal_e, setup.exptime_s, seed, state=state),
                    sensor.output_shape, dtype, ext)
-    return {"measured": str(out), "support": effect_support(setup, det, added),
+    support, truth_chi2 = effect_support(setup, det, added)
+    return {"measured": str(out), "support": support, "truth_chi2": truth_chi2,
             "truth": [dict(type=type(e).__name__, **_jsonable(e.describe_truth()))
                       for e in added if isinstance(e, RealWorld)]}
 
@@ -706,16 +707,21 @@ def make_frame(base: str, extra, levels: Levels, out: Path, seed: int = 11, work
 SUPPORT_SIGMA = 0.2
 
 
-def effect_support(setup, det: Detector, added: list) -> np.ndarray:
+def effect_support(setup, det: Detector, added: list) -> tuple[np.ndarray, float | None]:
     """Where the hidden effect acts: output pixels whose expected value it changes by more than
-    SUPPORT_SIGMA model sigmas (every pixel for an effect that adds noise or scatter, or for none)."""
+    SUPPORT_SIGMA model sigmas (every pixel for an effect that adds noise or scatter, or for none); and how
+    detectable it is whatever the diagnosis: the chi2 that its exact template (the change of the expected
+    frame, amplitude known) removes on a noise-free frame, sum((m1 - m0)^2 / v0) over every pixel (None for
+    an effect that adds noise or scatter). Fitting that template's amplitude alone needs about 2 ln(N) of it
+    to pass a BIC test; a diagnosis that must also find the form's shape needs more."""
     shape = det.sensor.output_shape
     if not added or any(e.stochastic or e.stages == (Stage.CHARGE,) for e in added):
-        return np.ones(shape, bool)
+        return np.ones(shape, bool), None
     m0, v0, _ = setup.detector.moments(setup.signal_e, setup.exptime_s)
     m1, _, _ = det.moments(setup.signal_e, setup.exptime_s)
-    sup = np.abs(m1 - m0) > SUPPORT_SIGMA * np.sqrt(v0)
-    return sup if sup.any() else np.ones(shape, bool)
+    z2 = (m1 - m0) ** 2 / v0
+    sup = z2 > SUPPORT_SIGMA ** 2
+    return (sup if sup.any() else np.ones(shape, bool)), float(np.sum(z2, dtype=np.float64))
 
 
 def _jsonable(d: dict) -> dict:
@@ -787,7 +793,7 @@ def run_case(effect: str | None, workdir: Path, seed: int = 11, base: str | None
     info = make_frame(case_base, make, levels, workdir / f"{tag}.fits", seed=seed, workers=workers)
     row = diagnose_frame(model, Path(info["measured"]), effect, apply_dir=workdir, support=info["support"],
                          workers=workers)
-    row.update(case=tag, base=case_base, truth=info["truth"],
+    row.update(case=tag, base=case_base, truth=info["truth"], truth_chi2=info["truth_chi2"],
                description=CASES[effect].description if effect else "no hidden effect",
                levels=vars(levels))
     return row

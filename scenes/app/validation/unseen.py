@@ -556,8 +556,9 @@ class ShapedReadNoise(RealWorld):
 
 class TelegraphRows(RealWorld):
     """Row offsets [e-] of a random telegraph: a ``fraction`` of the rows jumps by +-``jump_e`` (bursts of
-    interference), or a sinusoidal pickup of ``jump_e`` with ``period_rows`` (``law`` "pickup") plus
-    ``white_e``: not the plugin's white Gaussian offsets."""
+    interference), or a sinusoidal pickup of ``jump_e`` with ``period_rows`` (``law`` "pickup"), or heavy-tailed
+    offsets of rms ``jump_e`` (``law`` "student": Student t, 3 degrees of freedom), plus ``white_e``: not the
+    plugin's white Gaussian offsets."""
 
     name = "uw_rows"
     stages = (Stage.READ,)
@@ -569,6 +570,8 @@ class TelegraphRows(RealWorld):
         rng = generator(frame_seed, self.name)
         if p.law == "pickup":
             off = p.jump_e * np.sin(2 * np.pi * np.arange(n) / p.period_rows + rng.uniform(0, 2 * np.pi))
+        elif p.law == "student":  # Student t, 3 degrees of freedom (variance 3 x scale^2), rms jump_e
+            off = p.jump_e / np.sqrt(3.0) * rng.standard_t(3.0, n)
         else:
             off = np.where(rng.random(n) < p.fraction, p.jump_e * rng.choice([-1.0, 1.0], n), 0.0)
         return (off + p.white_e * rng.standard_normal(n)).astype(np.float32)
@@ -1019,8 +1022,8 @@ _CASE_LIST = [
     # crosstalk
     _c("crosstalk", "xtalk_3ch_delayed", "stars", "3 channels, coupling 2.5e-3, delayed by 2 columns with a tail",
        lambda s: [DelayedCrosstalk(s, n_channels=3, alpha=2.5e-3, delay_px=2, mirrored=False)]),
-    _c("crosstalk", "xtalk_2ch_undershoot_imx", "stars_imx", "2 mirrored channels, coupling -6e-4 (undershoot), "
-       "delayed by 1 column", lambda s: [DelayedCrosstalk(s, n_channels=2, alpha=-6e-4, delay_px=1, mirrored=True)],
+    _c("crosstalk", "xtalk_2ch_undershoot_imx", "stars_imx", "2 mirrored channels, coupling -1.2e-3 (undershoot), "
+       "delayed by 1 column", lambda s: [DelayedCrosstalk(s, n_channels=2, alpha=-1.2e-3, delay_px=1, mirrored=True)],
        "weak"),
     # dead_pixels
     _c("dead_pixels", "dead_clusters", "flat", "3x3 clusters of 20 % response (5000 on the sensor)",
@@ -1063,9 +1066,9 @@ _CASE_LIST = [
     # row_noise
     _c("row_noise", "rows_telegraph", "dark", "10 % of the rows jump by +-8 e- (telegraph bursts) + 1 e- white",
        lambda s: [TelegraphRows(s, law="telegraph", fraction=0.1, jump_e=8.0, white_e=1.0, period_rows=1.0)]),
-    _c("row_noise", "rows_pickup_imx", "dark_corner", "sinusoidal pickup along the rows, 1.2 e-, period 37 rows, "
-       "+ 0.3 e- white (CMOS)", lambda s: [TelegraphRows(s, law="pickup", fraction=0.0, jump_e=1.2, white_e=0.3,
-                                                         period_rows=37.0)], "weak"),
+    _c("row_noise", "rows_student_imx", "dark_corner", "heavy-tailed row offsets: Student t with 3 degrees of "
+       "freedom, 0.15 e- rms per sensor row (CMOS, binned 2)",
+       lambda s: [TelegraphRows(s, law="student", fraction=0.0, jump_e=0.15, white_e=0.0, period_rows=1.0)], "weak"),
     # sky_gradient (or the straylight candidate the issue asks for)
     _c("sky_gradient", "sky_quadratic", "stars", "quadratic additive light across the field (straylight), "
        "bowl about (1.3, -0.2) of the window, 2 e-/s/px at the far corner",
@@ -1106,9 +1109,9 @@ _CASE_LIST = [
        "6-12 px, 2e-3 of the flux", lambda s: [ShiftedGhost(s, geometry="shift", dx=60.0, dy=-40.0, shape="annulus",
                                                             r_in=6.0, r_out=12.0, alpha=2e-3)]),
     _c("ghost", "ghost_gauss_offaxis_imx", "stars_imx", "ghost mirrored through a point (100, 50) px off the axis, "
-       "Gaussian of 8 px, 2e-3 of the flux", lambda s: [ShiftedGhost(s, geometry="mirror", dx=100.0, dy=50.0,
+       "Gaussian of 8 px, 6e-3 of the flux", lambda s: [ShiftedGhost(s, geometry="mirror", dx=100.0, dy=50.0,
                                                                      shape="gauss", r_in=0.0, r_out=8.0,
-                                                                     alpha=2e-3)], "weak"),
+                                                                     alpha=6e-3)], "weak"),
     # distortion
     _c("distortion", "dist_tangential", "stars", "decentering (tangential) distortion, p1 = 2e-6, p2 = -1e-6 /px",
        lambda s: [BrownDistortion(s, law="tangential", p1=2e-6, p2=-1e-6, k2=0.0)]),
@@ -1137,6 +1140,13 @@ _CASE_LIST = [
     _o("persistence", "stars", "persistent image of the previous pointing: 0.4 % of the sources shifted by "
        "(137, -88) px, blurred 1.5 px", lambda s: [Persistence(s, frac=0.004, dx=137.0, dy=-88.0, sigma_px=1.5)],
        "additive", ("local", "blobs")),
+    # a periodic pick-up is not row noise: row offsets are independent from row to row (issue 10's own rule,
+    # "fitted per-row offsets uncorrelated from row to row"); with its 0.3 e- of white row offsets under the
+    # 1.2 e- line, the honest answer is a description of rows with a period (until the fifth round this was a
+    # catalogue case of row_noise, which the diagnosis rightly refused)
+    _o("rows_pickup_imx", "dark_corner", "sinusoidal pickup along the rows, 1.2 e-, period 37 rows, + 0.3 e- white "
+       "(CMOS)", lambda s: [TelegraphRows(s, law="pickup", fraction=0.0, jump_e=1.2, white_e=0.3, period_rows=37.0)],
+       "additive", ("rows", "periodic")),
 ]
 CASES: dict[str, UnseenCase] = {}
 for _i, _case in enumerate(_CASE_LIST):
@@ -1244,7 +1254,8 @@ def run_case(name: str, workdir: Path, seed: int = 11, workers: int | None = Non
     model = write_scene(model_scene(case.base, case.effect), workdir / f"{name}.model.toml")
     info = make_frame(case.base, case.make, case.levels, workdir / f"{name}.fits", seed=seed, workers=workers)
     row = diagnose_case(case, model, Path(info["measured"]), info["support"], workdir, workers=workers)
-    row.update(truth=info["truth"], levels=vars(case.levels), case_seconds=round(time.perf_counter() - t0, 1))
+    row.update(truth=info["truth"], truth_chi2=info["truth_chi2"], levels=vars(case.levels),
+               case_seconds=round(time.perf_counter() - t0, 1))
     return row
 
 
