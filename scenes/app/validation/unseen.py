@@ -1413,13 +1413,16 @@ def markdown(rows: list[dict], summ: dict, conf: dict) -> str:
              f"| null frames clean | {pct('null_clean')} |", ""]
     if summ["errors"]:
         lines += [f"cases that raised: {', '.join(summ['errors'])}", ""]
-    lines += [("| case | group | base | strength | first (delta BIC) | accepted | wrong? | runner-up | morphology "
-              "(kind / geometry) | expected | error before | after | ratio | s |"),
-              "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+    lines += ["truth chi2: the chi2 the hidden effect's exact template removes from a noise-free frame (how "
+              "detectable the case is whatever the diagnosis; '-' for an effect that adds noise). A one-amplitude "
+              "template needs about 2 ln N (~25) of it to pass a BIC test.", "",
+              ("| case | group | base | strength | truth chi2 | first (delta BIC) | accepted | wrong? | runner-up | "
+               "morphology (kind / geometry) | expected | error before | after | ratio | s |"),
+              "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
         if r.get("first") == "error":
-            lines.append(f"| {r['case']} | {r['group']} | {r['base']} | - | ERROR {r['error'][:80]} | - | - | - | - "
-                         f"| - | - | - | - | - |")
+            lines.append(f"| {r['case']} | {r['group']} | {r['base']} | - | - | ERROR {r['error'][:80]} | - | - | - "
+                         f"| - | - | - | - | - | - |")
             continue
         first = f"{r['first']} ({_f(r['first_delta_bic'])})" if r["first"] != "none" else "none"
         runner = next((f"{e} ({_f(d)})" for e, d, sig, *_ in r["ranking"] if e != r["first"]), "-")
@@ -1427,7 +1430,8 @@ def markdown(rows: list[dict], summ: dict, conf: dict) -> str:
         mtxt = (f"{mo.get('kind')} / {mo.get('geometry')}" + ("" if mo.get("significant") else " (n.s.)")) if mo else "-"
         exp = f"{r['kind']} / {', '.join(r['geometry'])}" if r["group"] == "ooc" else "-"
         m = r["metric"]
-        lines.append(f"| {r['case']} | {r['group']} | {r['base']} | {r['strength']} | {first} | "
+        lines.append(f"| {r['case']} | {r['group']} | {r['base']} | {r['strength']} | {_f(r.get('truth_chi2'))} | "
+                     f"{first} | "
                      f"{', '.join(r['accept']) or '-'} | {'**yes**' if r.get('confidently_wrong') else 'no'} | "
                      f"{runner} | {mtxt} | {exp} | {_f(r['before'][m])} | {_f(r.get('after', {}).get(m))} | "
                      f"{_f(r.get('error_ratio'))} | {_f(r.get('case_seconds'))} |")
