@@ -60,14 +60,19 @@ def doubling_interval_k(temperature_c: float, gap_ev: float = SILICON_GAP_EV) ->
     return float(np.log(2.0) / (3.0 / t + gap_ev / (2.0 * BOLTZMANN_EV_PER_K * t * t)))
 
 
+def thermal_exponent(u, v, tx_k: float, ty_k: float, t2_k: float):
+    """The exponent ``x = ln2 (tx u + ty v) / T_2`` of the dark current's doubling law at sensor fractions
+    ``u``, ``v`` (-0.5 .. 0.5, broadcasting; float64): the dark rate there is ``D0 e^x``."""
+    return (np.log(2.0) / t2_k) * (tx_k * np.asarray(u, np.float64) + ty_k * np.asarray(v, np.float64))
+
+
 def thermal_rate(ys: np.ndarray, xs: np.ndarray, height: int, width: int, dark_e_per_s: float,
                  tx_k: float, ty_k: float, t2_k: float) -> np.ndarray:
     """The dark-rate change [e-/s/pixel] of a linear temperature field on the grid of sensor rows ``ys`` and
     columns ``xs``: ``D0 (2^((tx u + ty v) / T_2) - 1)``, ``tx`` / ``ty`` the temperature difference [K] across
     the sensor width / height, ``D0`` the dark rate at the centre [e-/s], ``T_2`` the doubling interval [K]."""
     u, v = sensor_uv(ys, xs, height, width)
-    t = tx_k * u[None, :].astype(np.float64) + ty_k * v[:, None].astype(np.float64)
-    return (dark_e_per_s * np.expm1(t * (np.log(2.0) / t2_k))).astype(np.float32)
+    return (dark_e_per_s * np.expm1(thermal_exponent(u[None, :], v[:, None], tx_k, ty_k, t2_k))).astype(np.float32)
 
 
 def gradient_rate(ys: np.ndarray, xs: np.ndarray, height: int, width: int, gx: float, gy: float) -> np.ndarray:
@@ -146,7 +151,7 @@ def _variants(res):
 
     def model(t, idx, jacobian=True):  # (value, Jacobian (2, pixels)) [ADU], [ADU/K] at flat pixels idx
         uu, vv = u64[idx % width], v64[idx // width]
-        x = kappa * (t[0] * uu + t[1] * vv)
+        x = thermal_exponent(uu, vv, t[0], t[1], t2)
         e = np.exp(x)
         if not jacobian:
             return amp * (e - 1.0), x, e
@@ -177,7 +182,7 @@ def _variants(res):
 
     def maps():  # the Jacobian on the whole frame (float32, broadcast)
         t_star = solve()
-        e = np.exp2(((t_star[0] * u64)[None, :] + (t_star[1] * v64)[:, None]) / t2).astype(np.float32)
+        e = np.exp(thermal_exponent(u64[None, :], v64[:, None], t_star[0], t_star[1], t2)).astype(np.float32)
         a = np.float32(amp * kappa)
         return [a * u[None, :] * e, a * v[:, None] * e]
 
