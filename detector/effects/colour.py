@@ -133,18 +133,18 @@ class CFASignature(Signature):
         return best
 
     @staticmethod
-    def _sample(res) -> dict | None:
-        """The pixels every mosaic period is fitted on (the same for all): every unsaturated light pixel of
-        ``res.train`` (a random subsample of at most CFA_FIT_PIXELS), their residual, weight, photo-signal
-        and global-level templates."""
+    def _sample(res, limit: int | None = CFA_FIT_PIXELS) -> dict | None:
+        """The pixels a mosaic is fitted or scored on (the same for every period): every unsaturated light pixel
+        of ``res.train`` (a random subsample of at most ``limit``; None: all), their residual, weight,
+        photo-signal, row and global-level templates."""
         ok = _unsaturated(res)
         idx = np.flatnonzero(ok if res.train is None else ok & res.train)
         if idx.size < 100:
             return None
         scale = 1.0
-        if idx.size > CFA_FIT_PIXELS:
-            scale = idx.size / CFA_FIT_PIXELS
-            idx = np.sort(np.random.default_rng(0).choice(idx, CFA_FIT_PIXELS, replace=False))
+        if limit is not None and idx.size > limit:
+            scale = idx.size / limit
+            idx = np.sort(np.random.default_rng(0).choice(idx, limit, replace=False))
         levels = res.level_values(idx)  # the global levels this frame fits (no bias offset on a light frame)
         return {"idx": idx, "scale": scale, "yx": np.divmod(idx, res.data_adu.shape[1]),
                 "r": (res.data_adu.ravel()[idx] - res.model_adu.ravel()[idx]).astype(np.float64),
@@ -180,22 +180,15 @@ class CFASignature(Signature):
         return Fit(name, params, d * scale, len(c), int(keep.sum() * scale), _cfa_words(params, res),
                    delta_adu=delta, note=f"2x2 cells of {period // 2} x {period // 2} pixels")
 
-
     def score(self, fit, res):
         """delta(-2 ln L) on this signature's own pixels (every unsaturated light pixel of ``res.train``, the
         outliers beyond CFA_CLIP_SIGMA of either model clipped), with the global levels refitted."""
-        ok = _unsaturated(res)
-        idx = np.flatnonzero(ok if res.train is None else ok & res.train)
-        if idx.size < 100:
+        sample = self._sample(res, limit=None)
+        if sample is None:
             return None
-        r = (res.data_adu.ravel()[idx] - res.model_adu.ravel()[idx]).astype(np.float64)
-        w = 1.0 / res.var_adu2.ravel()[idx].astype(np.float64)
+        idx, r, w, levels, (rows, _) = (sample[k] for k in ("idx", "r", "w", "levels", "yx"))
         delta = np.asarray(fit.delta_adu, np.float64).ravel()[idx]
-        levels = res.level_values(idx)
-        if not levels.size:
-            levels = np.zeros((1, idx.size))
-
-        rows, row_var = idx // res.data_adu.shape[1], float(res.row_var_adu2)
+        row_var = float(res.row_var_adu2)
 
         def profiled(y):
             c, _, _ = lstsq_delta(y, w, levels, None, rows, row_var)
