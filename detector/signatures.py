@@ -984,9 +984,6 @@ class LinearSignature(Signature):
     check : callable(Fit, Residuals) -> str, optional
         The physical plausibility of a fit (:meth:`Signature.plausible`): "" or the reason it is not this
         effect (a glow brighter than full well at the edge, a vignetting that brightens the corners).
-    select_by_bic : bool
-        Variants differ in their number of templates (a series of growing order): choose among them by BIC,
-        not by chi2 alone (which always prefers the largest).
     """
 
     kind = "linear"
@@ -994,11 +991,9 @@ class LinearSignature(Signature):
     def __init__(self, variants: Callable[[Residuals], Iterable[Variant]], explain: Callable[[dict, Residuals], str],
                  pattern: str = "", extra_k: int = 1,
                  refine: Callable[[Variant, Residuals], Iterable[Variant]] | None = None, of_light: bool = False,
-                 adds_charge: bool = False, check: Callable[[Fit, Residuals], str] | None = None,
-                 select_by_bic: bool = False):
+                 adds_charge: bool = False, check: Callable[[Fit, Residuals], str] | None = None):
         self.variants, self.explain, self.pattern, self.extra_k = variants, explain, pattern, extra_k
         self.refine, self.of_light, self.adds_charge, self.check = refine, of_light, adds_charge, check
-        self.select_by_bic = select_by_bic
 
     def fit(self, res: Residuals, name: str) -> Fit | None:
         ctx = search_sample(res)
@@ -1055,11 +1050,11 @@ class LinearSignature(Signature):
         return self._finish(res, name, v, c, d, params)
 
     def _best(self, res: Residuals, ctx: dict, variants: Iterable[Variant]):
-        """The variant fitting best on the search sample (lazily: only the best one is kept). With
-        ``select_by_bic`` variants of different sizes are compared by BIC (chi2 + templates x ln n, Schwarz
-        1978): more templates always fit at least as well, so a larger variant must pay for what it adds."""
-        best = None
-        penalty = np.log(max(res.n_fit, 2)) if self.select_by_bic else 0.0
+        """The variant fitting best on the search sample (lazily: only the best one is kept). Variants of
+        different sizes (a grid of 2 or 16 regions, a series of growing order) are compared by BIC (chi2 +
+        templates x ln n, Schwarz 1978): more templates always fit at least as well, so a larger variant must
+        pay for what it adds."""
+        best, penalty = None, np.log(max(res.n_fit, 2))
         for v in variants:
             c, d = fit_variant(res, v, ctx["idx"], ctx["r"], ctx["w"])
             params = v.to_params(c)

@@ -329,7 +329,7 @@ _KTC_SIGNATURE = VarianceSignature(
                     "sense node: kTC reset noise (or a read noise above the data sheet)"),
     pattern="extra variance constant over the frame", check=_ktc_check)
 _BIAS_SIGNATURE = LinearSignature(_bias_variants, _bias_words, pattern="additive ramps/bowl, independent of signal",
-                                  extra_k=0, select_by_bic=True)
+                                  extra_k=0)
 #: the largest electronic crosstalk coefficient a camera shows [1]: measured coefficients are 1e-5 .. 1e-3
 #: (LSST sensors, Snyder et al. 2021, JATIS 7, 048002; DECam, Bernstein et al. 2017, PASP 129, 114502)
 CROSSTALK_MAX = 0.01

@@ -903,6 +903,11 @@ def main(argv=None) -> int:
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     effects = [e for e in args.effects.split(",") if e]
+    unknown = [e for e in effects if e not in CASES]
+    if unknown:
+        print(f"hidden_effects: --effects: no case for {', '.join(unknown)} (expected one of: {', '.join(CASES)})",
+              file=sys.stderr)
+        return 2
     nulls = () if args.no_null else tuple(BASES)
     with Progress(TextColumn("{task.description}"), BarColumn(), TextColumn("{task.completed}/{task.total}"),
                   TimeElapsedColumn()) as bar:
