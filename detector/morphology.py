@@ -480,12 +480,12 @@ def describe(res: Residuals, delta_adu: np.ndarray | None = None) -> dict:
     basis = _legendre_basis(ny, nx, SMOOTH_ORDER)[:, ok]
     lmean = float(np.sum(lb[ok] * wb) / np.sum(wb)) if np.any(lb[ok]) else 0.0
     has_light = lmean > 0
-    _, d_add, fit_add = _wls(y, wb, basis)
+    _, d_add, _ = _wls(y, wb, basis)
     kind_certain = True
     if has_light:
         lrel = lb[ok] / lmean
         mtemps = np.vstack([lrel[None, :], basis * lrel])
-        _, d_mul, fit_mul = _wls(y, wb, mtemps)
+        _, d_mul, _ = _wls(y, wb, mtemps)
         _, d_both, _ = _wls(y, wb, np.vstack([basis, mtemps]))
         light_contrast = float(np.sqrt(np.sum(wb * (lrel - 1) ** 2) / np.sum(wb)))
         if light_contrast < 0.05:  # uniform light: A and M L cannot be told apart at large scales
@@ -497,7 +497,8 @@ def describe(res: Residuals, delta_adu: np.ndarray | None = None) -> dict:
                 # only, the block says the data cannot tell them apart (kind_certain false)
                 kind = "multiplicative"
             if kind is None:
-                kind = "additive" if res.exptime_s >= 0 and d_add <= d_mul else "multiplicative"
+                # by BIC: the multiplicative basis has one template more (the light itself)
+                kind = "additive" if d_add <= d_mul + math.log(max(nb, 2)) else "multiplicative"
             else:
                 kind_certain = True
         else:
@@ -509,7 +510,7 @@ def describe(res: Residuals, delta_adu: np.ndarray | None = None) -> dict:
             if kind == "mixed" and min(bic["additive"], bic["multiplicative"]) - bic["mixed"] < 10:
                 kind = "additive" if bic["additive"] <= bic["multiplicative"] else "multiplicative"
     else:
-        kind, d_mul, fit_mul = "additive", 0.0, fit_add
+        kind = "additive"
     # redistributed: the excess sits on the sources and their fluxes add up
     src = _source_share(res, idx, r, w)
     if src is not None and src["share"] > 0.6:
@@ -527,7 +528,6 @@ def describe(res: Residuals, delta_adu: np.ndarray | None = None) -> dict:
     _, d_grad, fit_grad = _wls(yg, wg, basis)
     _, d_plane, _ = _wls(yg, wg, _legendre_basis(ny, nx, 1)[:, ok])
     d_rad, fit_rad, centre = _radial(yg, wg, yy[ok], xx[ok], ny, nx)
-    smooth = min(d_grad, d_rad)
     shares["gradient"] = -d_grad / max(total, 1e-300)
     shares["radial"] = -d_rad / max(total, 1e-300)
     # lines beyond the smooth field (pixel level: one row or column is one line)
@@ -848,22 +848,55 @@ def _source_share(res: Residuals, idx, r, w) -> dict | None:
     return {"share": max(excess_on, 0.0) / excess_all, "flux_kept": abs(s) < 0.15 * sa}
 
 
+#: smoothing scale of the local additive estimate around a source [px] (a few PSF widths: beyond the core)
+KIND_LOCAL_SIGMA_PX = 6.0
+
+
+def _local_estimates(res: Residuals, idx, r, w, on) -> dict:
+    """What the background's residual is at the source pixels ``idx[on]``, from the pixels off the sources
+    [ADU]: the frame's mean, the mean of the pixel's own column, of its own row (a streak or band through the
+    source) and a Gaussian-weighted local mean (KIND_LOCAL_SIGMA_PX): the candidate local offsets ``a``."""
+    shape = res.data_adu.shape
+    rm = np.zeros(shape)
+    wm = np.zeros(shape)
+    off = idx[~on]
+    rm.ravel()[off] = r[~on] * w[~on]
+    wm.ravel()[off] = w[~on]
+    y, x = np.divmod(idx[on], shape[1])
+    out = {"frame": np.full(int(on.sum()), float(rm.sum() / max(wm.sum(), 1e-300)))}
+    for name, axis, at in (("column", 0, x), ("row", 1, y)):
+        num, den = rm.sum(axis=axis), wm.sum(axis=axis)
+        out[name] = np.where(den[at] > 0, num[at] / np.maximum(den[at], 1e-300), 0.0)
+    num = gaussian_filter(rm, KIND_LOCAL_SIGMA_PX, mode="nearest")
+    den = gaussian_filter(wm, KIND_LOCAL_SIGMA_PX, mode="nearest")
+    out["local"] = (num / np.maximum(den, 1e-300)).ravel()[idx[on]]
+    return out
+
+
 def _kind_from_sources(res: Residuals, idx, r, w) -> str | None:
     """On a uniform light: does the residual scale with the sources' light too (multiplicative) or not?
-    None when there are too few sources to tell."""
+    None when there are too few sources to tell.
+
+    The background's residual next to a source, ``a`` (off-source pixels: the frame's, the source's column's
+    or row's, or a local mean, whichever predicts the source pixels best), predicts the source pixels' residual
+    as ``a`` if the pattern is added light or offset, and as ``a (1 + S / B)`` if it multiplies the light (``S``
+    the source's model light, ``B`` the background's): a streak of added light through a star does not scale
+    with the star, a dust shadow on it does."""
     if res.background_adu is None:
         return None
     srcl = (np.asarray(res.model_adu, np.float64) - res.background_adu).ravel()[idx]
     on = srcl * np.sqrt(w) > 5.0
     if on.sum() < 200:
         return None
-    bg = np.asarray(res.background_photo_adu, np.float64).ravel()[idx]
-    off = ~on
-    # the relative residual of the background predicts that of the sources if multiplicative
-    rel_bg = float(np.sum(r[off] * bg[off] * w[off]) / max(np.sum(bg[off] ** 2 * w[off]), 1e-300))
-    pred = rel_bg * srcl[on]
-    c_mul = float(np.sum((r[on] - pred) ** 2 * w[on]))
-    c_add = float(np.sum((r[on] - rel_bg * bg[on]) ** 2 * w[on]))
+    bg = np.maximum(np.asarray(res.background_photo_adu, np.float64).ravel()[idx][on], 1e-9)
+    ro, wo, gain = r[on], w[on], 1.0 + srcl[on] / bg
+    best = None
+    for a in _local_estimates(res, idx, r, w, on).values():
+        c_add = float(np.sum((ro - a) ** 2 * wo))
+        c_mul = float(np.sum((ro - a * gain) ** 2 * wo))
+        if best is None or min(c_add, c_mul) < min(best):
+            best = (c_add, c_mul)
+    c_add, c_mul = best
     if abs(c_mul - c_add) < 25:
         return None
     return "multiplicative" if c_mul < c_add else "additive"

@@ -931,6 +931,20 @@ class Persistence(RealWorld):
         data += np.float32(p.frac) * ndimage.shift(src, (p.dy, p.dx), order=1, mode="constant").astype(np.float32)
 
 
+class ReadoutSmear(RealWorld):
+    """Light collected while the rows are shifted out with the shutter open (a frame-transfer or shutterless
+    read, or a shutter that closes late): every pixel gets ``frac_per_row`` [1] (the row-shift time over the
+    exposure) of the light of every pixel of its column, a streak along the whole column through each bright
+    source (Janesick 2001, Scientific CCDs, sect. 5.4, "smear"). Here the window's own column light only."""
+
+    name = "ooc_smear"
+    stages = (Stage.FIELD,)
+
+    def apply(self, stage, tile, data):
+        col = data.sum(axis=0, dtype=np.float64)
+        data += (self.params.frac_per_row * col).astype(np.float32)[None, :]
+
+
 # --- the cases --------------------------------------------------------------------------------------------------
 
 @dataclass
@@ -1147,6 +1161,10 @@ _CASE_LIST = [
     _o("rows_pickup_imx", "dark_corner", "sinusoidal pickup along the rows, 1.2 e-, period 37 rows, + 0.3 e- white "
        "(CMOS)", lambda s: [TelegraphRows(s, law="pickup", fraction=0.0, jump_e=1.2, white_e=0.3, period_rows=37.0)],
        "additive", ("rows", "periodic")),
+    # added in the sixth round, before any rule was written for it: a streak along the columns of every source
+    _o("readout_smear", "stars", "shutter open during the read-out: every pixel gets 1e-4 of its column's light "
+       "(5 % of each source smeared along its whole column)", lambda s: [ReadoutSmear(s, frac_per_row=1e-4)],
+       "additive", ("columns", "sources")),
 ]
 CASES: dict[str, UnseenCase] = {}
 for _i, _case in enumerate(_CASE_LIST):
