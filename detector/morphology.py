@@ -531,7 +531,7 @@ def describe(res: Residuals, delta_adu: np.ndarray | None = None) -> dict:
     shares["gradient"] = -d_grad / max(total, 1e-300)
     shares["radial"] = -d_rad / max(total, 1e-300)
     # lines beyond the smooth field (pixel level: one row or column is one line)
-    lines = {}
+    lines, line_profiles = {}, {}
     for name, axis in (("rows", 1), ("columns", 0)):
         cnt = (wmap > 0).sum(axis=axis)
         okl = cnt > 2
@@ -543,6 +543,7 @@ def describe(res: Residuals, delta_adu: np.ndarray | None = None) -> dict:
         _, _, lfit = _wls(lm, lw, np.polynomial.legendre.legvander(x, 4)[:, 1:].T)
         rest = lm - lfit - np.sum(lw * (lm - lfit)) / np.sum(lw)
         lines[name] = float(np.sum(lw * rest * rest) - okl.sum())
+        line_profiles[name] = (lm, lw, okl)
     pixel_total = max(pix_chi2 - idx.size, 1e-300)
     for name, ex in lines.items():
         shares[name] = max(ex, 0.0) / pixel_total
@@ -594,10 +595,15 @@ def describe(res: Residuals, delta_adu: np.ndarray | None = None) -> dict:
     # scale and amplitude
     main = geometry[0]
     smooth_fit = fit_grad if d_grad <= d_rad else fit_rad
+    line_period = 0.0
+    if main in ("rows", "columns") and main in line_profiles:
+        line_period = _line_period(*line_profiles[main][:2])
+        if line_period and "periodic" not in geometry:
+            geometry.insert(1, "periodic")
     if main == "periodic":
         scale = period
     elif main in ("rows", "columns"):
-        scale = 1.0
+        scale = line_period or 1.0
     elif main == "radial":  # the rms radius of the pattern about its centre (its departure from its edge value)
         rr2 = (yy[ok] - centre[0]) ** 2 + (xx[ok] - centre[1]) ** 2
         amp_r = np.abs(fit_rad - fit_rad[np.argmax(rr2)])
@@ -615,6 +621,19 @@ def describe(res: Residuals, delta_adu: np.ndarray | None = None) -> dict:
     if main in ("rings", "blobs") or (main == "sources" and rings_on_src):
         fam = "srings" if main == "sources" else main
         amp, unit, desc = _feature_amplitude(res, feats, fam, rmap, light, kind == "multiplicative" and has_light)
+    elif main in ("rows", "columns") and main in line_profiles:
+        # the lines' own scatter beyond their noise (what a smooth fit of the blocks does not see) [ADU rms]
+        lm, lw, okl = line_profiles[main]
+        mu = float(np.sum(lw * lm) / np.sum(lw))
+        rms = math.sqrt(max(float(np.sum(lw * (lm - mu) ** 2) / np.sum(lw)) - okl.sum() / float(np.sum(lw)), 0.0))
+        if kind == "multiplicative" and has_light:
+            amp, unit = rms / max(lmean, 1e-300) * 100, "%"
+            desc = f"{amp:.3g} % rms of the light from one {main[:-1]} to the next"
+        else:
+            amp, unit = rms * gain, "e-"
+            desc = f"{amp:.4g} e- ({rms:.4g} ADU) rms from one {main[:-1]} to the next"
+        if line_period:
+            desc += f", period {line_period:.3g} {main}"
     elif kind == "multiplicative" and has_light:
         amp, unit = float(np.ptp(smooth_fit)) * 100, "%"
         desc = f"{amp:.3g} % peak-to-peak of the light"
@@ -649,6 +668,42 @@ def describe(res: Residuals, delta_adu: np.ndarray | None = None) -> dict:
         out["empirical"] = _feature_map(feats, rmap, wmap, light, "additive" if kind == "redistributed" else kind,
                                         res)
     return out
+
+
+#: a line profile is periodic when one frequency holds this share of its power beyond the noise ...
+LINE_PERIOD_SHARE = 0.3
+#: ... and stands this many times above the noise's mean power (a chi2 with 2 dof: e^-30 per frequency)
+LINE_PERIOD_POWER = 30.0
+#: ... and this many times above the median power of its neighbouring frequencies on either side (a line, not
+#: a red continuum) ...
+LINE_PERIOD_CONTRAST = 10.0
+#: ... with at least this many cycles across the frame (fewer: a smooth curve, as the periodic maps take it)
+LINE_PERIOD_MIN_CYCLES = 6
+
+
+def _line_period(lm: np.ndarray, lw: np.ndarray) -> float:
+    """The period [lines] of a row or column profile ``lm`` (weights ``lw`` [1/ADU^2]) when one frequency of at
+    least LINE_PERIOD_MIN_CYCLES cycles holds LINE_PERIOD_SHARE of its power beyond the noise, stands
+    LINE_PERIOD_POWER times above the noise's own power and LINE_PERIOD_CONTRAST times above its neighbours
+    on both sides (a pick-up, a flicker through a rolling shutter, a periodic banding); 0 otherwise."""
+    n = lm.size
+    if n < 16:
+        return 0.0
+    z = (lm - np.sum(lw * lm) / np.sum(lw)) * np.sqrt(lw)  # whitened: white noise has power 1 per bin
+    p = np.abs(np.fft.rfft(z)) ** 2 / n * 2
+    p[:LINE_PERIOD_MIN_CYCLES] = 0.0
+    k = int(np.argmax(p))
+    excess = float(np.sum(np.maximum(p - 1.0, 0.0)))
+    if p[k] < LINE_PERIOD_POWER or excess <= 0 or (p[k] - 1.0) < LINE_PERIOD_SHARE * excess:
+        return 0.0
+    # a line, not a red continuum (a drift, a random walk: their power falls smoothly with frequency)
+    sides = [p[max(LINE_PERIOD_MIN_CYCLES, k - 10): k - 1], p[k + 2: k + 11]]
+    if any(sd.size and p[k] < LINE_PERIOD_CONTRAST * float(np.median(sd)) for sd in sides):
+        return 0.0
+    if 0 < k < p.size - 1 and min(p[k - 1], p[k + 1]) > 0:  # the peak between bins (a parabola in log power)
+        a, b, c = np.log(p[k - 1]), np.log(p[k]), np.log(p[k + 1])
+        k = k + 0.5 * (a - c) / (a - 2 * b + c) if (a - 2 * b + c) < 0 else k
+    return round(n / k, 2)
 
 
 def _relative(kind: str, amap: np.ndarray, light: np.ndarray) -> dict:

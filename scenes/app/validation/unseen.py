@@ -945,6 +945,20 @@ class ReadoutSmear(RealWorld):
         data += (self.params.frac_per_row * col).astype(np.float32)[None, :]
 
 
+class Flicker(RealWorld):
+    """A flickering lamp read by a rolling shutter: the light of each row is ``1 + amp sin(2 pi y / period_rows
+    + phase)`` (a 100 Hz mains flicker and the row time of the read set the period; Sony IMX rolling shutters
+    read a row every few microseconds): a multiplicative pattern of rows, periodic (not a gain region)."""
+
+    name = "ooc_flicker"
+    stages = (Stage.FIELD,)
+
+    def apply(self, stage, tile, data):
+        p = self.params
+        _, y, _, _ = _win(tile)
+        data *= (1.0 + p.amp * np.sin(2 * np.pi * y / p.period_rows + 0.7)).astype(np.float32)[:, None]
+
+
 # --- the cases --------------------------------------------------------------------------------------------------
 
 @dataclass
@@ -1165,6 +1179,9 @@ _CASE_LIST = [
     _o("readout_smear", "stars", "shutter open during the read-out: every pixel gets 1e-4 of its column's light "
        "(5 % of each source smeared along its whole column)", lambda s: [ReadoutSmear(s, frac_per_row=1e-4)],
        "additive", ("columns", "sources")),
+    _o("flicker_rows_imx", "flat_imx", "flickering flat lamp read by the rolling shutter: 0.5 % modulation of the "
+       "light, period 61 rows", lambda s: [Flicker(s, amp=0.005, period_rows=61.0)], "multiplicative",
+       ("rows", "periodic")),
 ]
 CASES: dict[str, UnseenCase] = {}
 for _i, _case in enumerate(_CASE_LIST):
