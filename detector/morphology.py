@@ -57,7 +57,7 @@ FAMILIES = {
     ("additive", "gradient"): "straylight or scattered light, a sky or bias gradient, amplifier glow",
     ("additive", "radial"): "glow or straylight centred on a point, a defocused ghost",
     ("additive", "rows"): "row (banding) noise, a bias drifting during the read-out",
-    ("additive", "columns"): "column offsets, hot columns, a bias pattern of the read-out",
+    ("additive", "columns"): "column offsets, hot columns, a bias pattern of the read-out, a read-out smear",
     ("additive", "periodic"): "electronic pick-up (a pattern noise), fringing of a sky line",
     ("additive", "local"): "glints, ghosts, hot spots, light leaks",
     ("additive", "blobs"): "satellite glints, a persistent (latent) image, hot spots, ghosts of bright sources",
@@ -595,11 +595,15 @@ def describe(res: Residuals, delta_adu: np.ndarray | None = None) -> dict:
     # scale and amplitude
     main = geometry[0]
     smooth_fit = fit_grad if d_grad <= d_rad else fit_rad
-    line_period = 0.0
+    line_period, through = 0.0, None
     if main in ("rows", "columns") and main in line_profiles:
         line_period = _line_period(*line_profiles[main][:2])
         if line_period and "periodic" not in geometry:
             geometry.insert(1, "periodic")
+        through = _lines_through_sources(res, *line_profiles[main], axis=1 if main == "rows" else 0,
+                                         excess=lines.get(main, 0.0))
+        if through is not None and "sources" not in geometry:
+            geometry.insert(1, "sources")
     if main == "periodic":
         scale = period
     elif main in ("rows", "columns"):
@@ -634,6 +638,10 @@ def describe(res: Residuals, delta_adu: np.ndarray | None = None) -> dict:
             desc = f"{amp:.4g} e- ({rms:.4g} ADU) rms from one {main[:-1]} to the next"
         if line_period:
             desc += f", period {line_period:.3g} {main}"
+        if through is not None:
+            desc += (f", following the sources: each pixel holds {through:.3g} of its {main[:-1]}'s source light "
+                     f"(light smeared along the {main} through the sources: a read-out smear, row-shift time over "
+                     "exposure, or a bleed)")
     elif kind == "multiplicative" and has_light:
         amp, unit = float(np.ptp(smooth_fit)) * 100, "%"
         desc = f"{amp:.3g} % peak-to-peak of the light"
@@ -668,6 +676,32 @@ def describe(res: Residuals, delta_adu: np.ndarray | None = None) -> dict:
         out["empirical"] = _feature_map(feats, rmap, wmap, light, "additive" if kind == "redistributed" else kind,
                                         res)
     return out
+
+
+#: a line pattern follows the sources when their light per line explains this share of the lines' excess
+LINE_SOURCE_SHARE = 0.5
+
+
+def _lines_through_sources(res: Residuals, lm, lw, okl, axis: int, excess: float) -> float | None:
+    """The fraction [1 per pixel] of each line's source light that the line's mean residual holds, when the
+    sources' light per line (``axis`` 1: rows, 0: columns) explains LINE_SOURCE_SHARE of the lines' excess
+    chi2 and the slope is significant (delta chi2 > 25): a streak through each source along its line (a
+    read-out smear, Janesick 2001 sect. 5.4; a bleed). None otherwise."""
+    if res.background_adu is None or excess <= 0:
+        return None
+    # the sources' light before the full-well clip (a saturated star smears all of its light), on every pixel
+    src = np.clip(np.asarray(res.photo_field, np.float64) - res.background_photo_adu, 0.0, None)
+    s_line = src.sum(axis=axis)[okl]
+    s_line = s_line - float(np.sum(lw * s_line) / np.sum(lw))  # a straight line with its intercept
+    den = float(np.sum(lw * s_line * s_line))
+    if den <= 0:
+        return None
+    mu = float(np.sum(lw * lm) / np.sum(lw))
+    slope = float(np.sum(lw * (lm - mu) * s_line) / den)
+    gain = slope * slope * den
+    if gain < 25 or gain < LINE_SOURCE_SHARE * excess or slope <= 0:
+        return None
+    return slope
 
 
 #: a line profile is periodic when one frequency holds this share of its power beyond the noise ...
