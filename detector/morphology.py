@@ -457,13 +457,16 @@ def describe(res: Residuals, delta_adu: np.ndarray | None = None) -> dict:
         varies = -dgrad > 25 and float(np.ptp(fitv)) > 0.5 * max(level - 1.0, 1e-9)
         geom = ["noise", "gradient"] if varies else ["noise"]
         extra = max(float(np.median(r * r) / 0.4549 - np.median(1 / w)), 0.0)
+        if varies:  # where the noise is largest (the plane's highest block), not the frame's median
+            extra = max(extra, (float(np.max(fitv)) - 1.0) * float(np.median(1 / w)))
         lsub, zsub = light.ravel()[idx][:200000], (r * r * w)[:200000]
         kind = "multiplicative" if np.ptp(lsub) > 0 and np.ptp(zsub) > 0 \
             and np.corrcoef(lsub, zsub)[0, 1] > 0.3 else "additive"
         out.update(kind=kind, geometry=geom, scale_px=float(min(shape)), amplitude=round(math.sqrt(extra) * gain, 4),
                    unit="e- rms", explanation=_words(kind, geom, f"extra pixel-to-pixel noise of "
                                                      f"{math.sqrt(extra) * gain:.3g} e- rms"
-                                                     + (" varying across the frame" if "gradient" in geom else "")))
+                                                     + (" where it is largest, varying across the frame"
+                                                        if "gradient" in geom else "")))
         if kind == "additive":
             # the empirical map: the extra variance [ADU^2] of each block (its mean z^2 beyond 1, times its
             # pixels' model variance), smoothed over a block, or the frame's own where it does not vary
