@@ -959,6 +959,39 @@ class Flicker(RealWorld):
         data *= (1.0 + p.amp * np.sin(2 * np.pi * y / p.period_rows + 0.7)).astype(np.float32)[:, None]
 
 
+class SatelliteTrail(RealWorld):
+    """A satellite crossing the field during the exposure, absent from the model: a straight trail of
+    ``e_per_px`` [e- per pixel of its length] with a Gaussian cross-section of ``sigma_px``, from window
+    fractions (u0, v0) to (u1, v1) (additive, local, a line)."""
+
+    name = "ooc_trail"
+    stages = (Stage.FIELD,)
+
+    def apply(self, stage, tile, data):
+        p = self.params
+        h, w = data.shape
+        yy, xx = np.mgrid[0:h, 0:w].astype(np.float64)
+        x0, y0, x1, y1 = p.u0 * w, p.v0 * h, p.u1 * w, p.v1 * h
+        dx, dy = x1 - x0, y1 - y0
+        length = np.hypot(dx, dy)
+        t = np.clip(((xx - x0) * dx + (yy - y0) * dy) / length ** 2, 0.0, 1.0)
+        d = np.hypot(xx - (x0 + t * dx), yy - (y0 + t * dy))
+        prof = np.exp(-0.5 * (d / p.sigma_px) ** 2) / (np.sqrt(2 * np.pi) * p.sigma_px)
+        data += (p.e_per_px * prof).astype(np.float32)
+
+
+class BiasJump(RealWorld):
+    """The bias level jumps by ``step_adu`` [ADU] after a fraction ``at`` of the rows are read (a reference
+    voltage that settles to a new value mid-frame): additive, rows."""
+
+    name = "ooc_bias_jump"
+    stages = (Stage.ADU,)
+
+    def apply(self, stage, tile, data):
+        _, v = HE["_uv"](tile)
+        data += np.where(v >= self.params.at, np.float32(self.params.step_adu), np.float32(0))[:, None]
+
+
 # --- the cases --------------------------------------------------------------------------------------------------
 
 @dataclass
@@ -1182,6 +1215,11 @@ _CASE_LIST = [
     _o("flicker_rows_imx", "flat_imx", "flickering flat lamp read by the rolling shutter: 0.5 % modulation of the "
        "light, period 61 rows", lambda s: [Flicker(s, amp=0.005, period_rows=61.0)], "multiplicative",
        ("rows", "periodic")),
+    _o("satellite_trail", "stars", "an unmodelled satellite trail across the window, 400 e- per pixel of its "
+       "length, 1.2 px wide", lambda s: [SatelliteTrail(s, u0=0.05, v0=0.2, u1=0.9, v1=0.75, e_per_px=400.0,
+                                                        sigma_px=1.2)], "additive", ("local",)),
+    _o("bias_jump", "bias_full", "the bias level jumps by 1.5 ADU after 40 % of the rows are read",
+       lambda s: [BiasJump(s, step_adu=1.5, at=0.4)], "additive", ("rows",)),
 ]
 CASES: dict[str, UnseenCase] = {}
 for _i, _case in enumerate(_CASE_LIST):
