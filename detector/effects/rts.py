@@ -115,7 +115,9 @@ def _rts_counts(res):
     visible = 0.5 * erfc((log(thr_e) - log(max(amp, 1e-3))) / (p.amplitude_sigma_ln * sqrt(2)))
     per_px = _mean_flip_probability(p.tau_min_s, p.tau_max_s, p.cds_interval_s) * max(visible, 0.05)
     n_dark = max(int((res.photo_adu <= 0).sum()), 1) if (res.photo_adu <= 0).any() else res.data_adu.size
-    frac = min((neg_d - neg_m) / (per_px * n_dark), 0.1)
+    # a binned output pixel holds binning^2 sensor pixels, each of which may carry a trap: the fraction is per
+    # sensor pixel (an RTS step of one of them is still an isolated spike of the output pixel)
+    frac = min((neg_d - neg_m) / (per_px * n_dark * res.sensor.binning ** 2), 0.1)
     return ({"fraction": float(f"{frac:.3g}"), "amplitude_e": round(amp, 2)}, neg_d + pos_d,
             neg_m + m.single_pos, 2)
 

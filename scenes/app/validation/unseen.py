@@ -16,7 +16,7 @@ and adds:
   description: each records the expected ``kind`` ("additive", "multiplicative", "redistributed",
   "mixed") and ``geometry`` (words of "radial", "gradient", "rows", "columns", "periodic", "sources",
   "local", "rings", "blobs") that the diagnosis's ``residual_morphology`` block must match;
-* **null frames**: every base scene (the six of ``hidden_effects.py`` and six more) with nothing hidden.
+* **null frames**: every base scene (the seven of ``hidden_effects.py`` and eight more) with nothing hidden.
 
 For every case: the first significant and plausible candidate (``plausible``, ``implausible_because``,
 ``heldout_delta`` and the top-level ``residual_morphology`` are read with ``.get()``: absent keys mean
@@ -102,6 +102,17 @@ NEW_BASES: dict[str, dict] = {
     "stars_bright": {"detector": {"preset": "ml11002", "width": 512, "height": 512},
                      "exposure": {"time_s": 30.0, "frame": "light", "tracking": "sidereal"},
                      "sky": {"background_mag_arcsec2": 18.0, "stars": True, "star_mag_limit": 15.0}, **_STAR_SKY},
+    # a 10 s frame of the sky alone (no stars) on a 4096x4096 corner of the CMOS binned 8x8: light over a large
+    # field (straylight), the sum of 64 read-out values below 16 bits
+    # a 10 s star field on a 512x512 window at the centre of the CMOS under a sharp PSF (1.2 arcsec FWHM, ~2.5 px):
+    # undersampled stars show pixel-scale couplings (IPC) that a 3 arcsec PSF (6 px) smooths away
+    "stars_imx_sharp": {"detector": {"preset": "imx411", "width": 512, "height": 512},
+                        "exposure": {"time_s": 10.0, "frame": "light", "tracking": "sidereal"},
+                        "sky": {"background_mag_arcsec2": 19.72, "stars": True, "star_mag_limit": 15.0},
+                        "pointing": _STAR_SKY["pointing"], "psf": {"model": "gaussian", "fwhm_arcsec": 1.2}},
+    "sky_imx_bin": {"detector": {"preset": "imx411", "width": 4096, "height": 4096, "x0": 0, "y0": 0, "binning": 8},
+                    "exposure": {"time_s": 10.0, "frame": "light"},
+                    "sky": {"background_mag_arcsec2": 19.72, "stars": False}, **_STAR_SKY},
 }
 HE["BASES"].update(NEW_BASES)
 BASES = HE["BASES"]
@@ -783,6 +794,301 @@ class BrownDistortion(RealWorld):
         data[...] = np.maximum(_remap(data, yy - dy, xx - dx), 0)  # to first order: the inverse map
 
 
+# --- catalogue effects in other forms: pixel coupling, CTI, RTS, straylight ---------------------------------------
+
+def _bf_moved(q, k, c, q_nl_e=None):
+    """Brighter-fatter charge moved by boundaries shifting with the potential ``k (x) q`` (any odd kernel,
+    centred), the flux across a boundary ``c (Q_i + Q_n)/4 (phi_i - phi_n)`` (the plugin's half flux of the
+    growing boundary); with ``q_nl_e`` the coupling grows with the pair's charge, ``c (1 + (Q_i + Q_n) / (2
+    q_nl))``. Charge conserved (what leaves a pixel enters its neighbour)."""
+    phi = ndimage.correlate(q, k.astype(np.float32), mode="nearest")
+    out = q.copy()
+    for ax in (0, 1):
+        a = np.swapaxes(q, 0, ax)
+        ph = np.swapaxes(phi, 0, ax)
+        pair = a[:-1] + a[1:]
+        f = pair * (ph[:-1] - ph[1:]) * np.float32(0.25 * c)
+        if q_nl_e:
+            f *= 1 + pair / np.float32(2 * q_nl_e)
+        o = np.swapaxes(out, 0, ax)
+        o[:-1] -= f
+        o[1:] += f
+    return out
+
+
+def _lap10(k):
+    """The discrete Laplacian of a centred kernel at the nearest neighbour along a row: a_10 per unit c."""
+    h = k.shape[0] // 2
+    return k[h, h] + k[h, h + 2] + k[h - 1, h + 1] + k[h + 1, h + 1] - 4 * k[h, h + 1]
+
+
+class GaussianNonlinearBF(RealWorld):
+    """Brighter-fatter with a 7x7 Gaussian potential (sigma ``sigma_px``) whose coupling grows with the charge,
+    ``c (1 + Q_pair / (2 q_nl))`` (``q_nl_frac`` x full well): the area coefficients change with the signal,
+    the "b" terms of Astier et al. 2019 (A&A 629, A36, arXiv:1905.08677); the plugin: a 3x3 exp(-r / s)
+    kernel, linear in the charge. ``a10_per_e``: the nearest-neighbour area coefficient at low signal. The
+    Gaussian must be convex at one pixel (sigma below ~0.75 px) for a repulsion (c > 0) to give the positive
+    a_10 flats show; a wider one would make a positive a_10 an attraction (brighter-narrower)."""
+
+    name = "uw_bf_gauss_nl"
+    stages = (Stage.COUPLING,)
+    halo_rows = 4
+    coupling_order = 0
+
+    def couple(self, tile, charge_e, pad_top, pad_bottom, mean_only=False):
+        p = self.params
+        t = np.arange(-3, 4)
+        k = np.exp(-(t[:, None] ** 2 + t[None, :] ** 2) / (2 * p.sigma_px ** 2))
+        k /= k[3, 3]
+        if _lap10(k) <= 0:
+            raise ValueError(f"sigma_px = {p.sigma_px}: the potential is not convex at one pixel (no repulsion "
+                             "gives a positive a_10)")
+        return _bf_moved(np.asarray(charge_e, np.float32), k, p.a10_per_e / _lap10(k),
+                         p.q_nl_frac * self.sensor.full_well_e)
+
+
+class CoulombBF(RealWorld):
+    """Brighter-fatter with a long-range Coulomb potential ``1 / sqrt(r^2 + r0^2)`` over 9x9 pixels (the field
+    of the collected charge falls as a power law: Coulton et al. 2018, AJ 155, 258, arXiv:1711.06273, derive
+    the kernel from electrostatics), not the plugin's 3x3 exponential; ``a10_per_e`` sets its strength."""
+
+    name = "uw_bf_coulomb"
+    stages = (Stage.COUPLING,)
+    halo_rows = 6
+    coupling_order = 0
+
+    def couple(self, tile, charge_e, pad_top, pad_bottom, mean_only=False):
+        p = self.params
+        t = np.arange(-4, 5)
+        k = 1 / np.sqrt(t[:, None] ** 2 + t[None, :] ** 2 + p.r0_px ** 2)
+        k /= k[4, 4]
+        return _bf_moved(np.asarray(charge_e, np.float32), k, p.a10_per_e / _lap10(k))
+
+
+class AsymmetricIPC(RealWorld):
+    """Inter-pixel capacitance with a non-centrosymmetric 3x3 kernel (``left``, ``right``, ``up``, ``down``
+    differ; ``diag`` on the diagonals), as measured on hybrid CMOS arrays (Kannawadi et al. 2016, PASP 128,
+    095001); the plugin: one coupling for the four nearest neighbours. The kernel conserves the signal."""
+
+    name = "uw_ipc_asym"
+    stages = (Stage.COUPLING,)
+    halo_rows = 1
+    coupling_order = 2
+
+    def couple(self, tile, charge_e, pad_top, pad_bottom, mean_only=False):
+        p = self.params
+        # correlate: out[i, j] = sum k[a, b] q[i + a - 1, j + b - 1], so the pixel to the right (j + 1) reads
+        # k[1, 0] of q[i, j] ("right": the coupling towards +x) and the one above (i + 1, "up": +y) reads k[0, 1]
+        k = np.array([[p.diag, p.up, p.diag], [p.right, 0.0, p.left], [p.diag, p.down, p.diag]], np.float32)
+        k[1, 1] = 1.0 - k.sum()
+        return ndimage.correlate(np.asarray(charge_e, np.float32), k, mode="nearest")
+
+
+class SignalDependentIPC(RealWorld):
+    """Inter-pixel capacitance that changes with the signal: each pixel couples ``alpha(Q) = a0 + (a1 - a0) Q /
+    FW`` of its charge into each nearest neighbour (the coupling capacitance changes as the node's depletion
+    changes: Donlon et al. 2018, arXiv:1805.09413, 0.68-1.45 % over an H2RG's full well); the plugin: one
+    coupling at every signal. Charge seen, not moved; the total conserved."""
+
+    name = "uw_ipc_signal"
+    stages = (Stage.COUPLING,)
+    halo_rows = 1
+    coupling_order = 2
+
+    def couple(self, tile, charge_e, pad_top, pad_bottom, mean_only=False):
+        p = self.params
+        q = np.asarray(charge_e, np.float32)
+        a = np.float32(p.a0) + np.float32((p.a1 - p.a0) / self.sensor.full_well_e) * np.maximum(q, 0)
+        share = a * q
+        pad = np.pad(share, 1, mode="edge")
+        return q - 4 * share + pad[:-2, 1:-1] + pad[2:, 1:-1] + pad[1:-1, :-2] + pad[1:-1, 2:]
+
+
+def _cti_columns(img, rho_cols, decay, beta, well_e, first, capture=1.0):
+    """Parallel CTI of one trap species whose density differs per column (``rho_cols`` [traps/px], one per
+    column), release per transfer ``1 - decay``, well fill ``(n / w)^beta``, capture of a fraction ``capture``
+    of the free traps within reach per transfer (1: instant, CDM03; Short et al. 2013, MNRAS 430, 3078);
+    the read-out towards row 0 (:func:`detector.effects.cti.cti_transfer` with one species)."""
+    img = np.array(img, np.float64)
+    trapped = np.zeros(img.shape[1])
+    for j in range(img.shape[0]):
+        n = img[j]
+        rel = trapped * (1.0 - decay)
+        trapped -= rel
+        n += rel
+        target = rho_cols * (j + first) * np.power(np.maximum(n, 0.0) / well_e, beta)
+        cap = np.minimum(np.maximum(target - trapped, 0.0) * capture, n)
+        trapped += cap
+        n -= cap
+    return img
+
+
+class ColumnCTI(RealWorld):
+    """CTI whose trap density differs from column to column: ``density`` [traps/px] x a lognormal factor per
+    column (``col_sigma_ln``, the hardware) x a linear trend across the sensor (``trend``: the damage is a local
+    property of the silicon; Massey et al. 2014, MNRAS 439, 887, arXiv:1401.1151, measure the trap density
+    map of HST ACS), one species releasing in ``release_transfers``, well-fill power ``beta`` (the plugin: the
+    same density in every column, release 0.74 / 7.7 / 37 transfers, beta 0.478)."""
+
+    name = "uw_cti_columns"
+    stages = (Stage.COUPLING,)
+    halo_rows = None
+    coupling_order = 1
+
+    def couple(self, tile, charge_e, pad_top, pad_bottom, mean_only=False):
+        p, s = self.params, self.sensor
+        colf = np.exp(p.col_sigma_ln * np.random.default_rng(s.hardware_seed + 17).standard_normal(s.sensor_width_px)
+                      - p.col_sigma_ln ** 2 / 2)
+        _ys, xs = tile.pixel_centres()
+        xi = np.clip(np.floor(xs).astype(int), 0, s.sensor_width_px - 1)
+        rho = p.density * colf[xi] * (1 + p.trend * (xs / (s.sensor_width_px - 1) - 0.5))
+        return _cti_columns(charge_e, rho, np.exp(-1.0 / p.release_transfers), p.beta, s.full_well_e,
+                            tile.y0 - pad_top + 1).astype(np.float32)
+
+
+class LinearSlowCaptureCTI(RealWorld):
+    """The classical constant-fraction CTI (a packet loses the same fraction at every signal: well-fill power
+    ``beta`` = 1; Janesick 2001, Scientific Charge-Coupled Devices, SPIE PM83, ch. 5) with a finite capture
+    (``capture`` of the free traps in reach per transfer; CDM03's capture probability, Short et al. 2013, MNRAS
+    430, 3078) and one species releasing in ``release_transfers`` (the plugin: instant capture, beta 0.478)."""
+
+    name = "uw_cti_linear"
+    stages = (Stage.COUPLING,)
+    halo_rows = None
+    coupling_order = 1
+
+    def couple(self, tile, charge_e, pad_top, pad_bottom, mean_only=False):
+        p, s = self.params, self.sensor
+        rho = np.full(np.shape(charge_e)[1], p.density)
+        return _cti_columns(charge_e, rho, np.exp(-1.0 / p.release_transfers), 1.0, s.full_well_e,
+                            tile.y0 - pad_top + 1, capture=p.capture).astype(np.float32)
+
+
+def _rts_pixels(sensor, name, fraction):
+    """Sensor rows and columns of the RTS pixels in the read-out window (a fixed draw of the whole measured chip,
+    window independent) and the generator that draws their properties next."""
+    rng = generator(sensor.hardware_seed, name)
+    n = sensor.sensor_width_px * sensor.sensor_height_px
+    flat = np.unique(rng.integers(0, n, rng.binomial(n, fraction)))
+    rows, cols = flat // sensor.sensor_width_px, flat % sensor.sensor_width_px
+    w, h = sensor.roi_shape
+    keep = (rows >= sensor.roi_y0) & (rows < sensor.roi_y0 + h) & (cols >= sensor.roi_x0) & (cols < sensor.roi_x0 + w)
+    return rows[keep], cols[keep], rng
+
+
+def _add_at_pixels(tile, data, rows, cols, values):
+    sel = (rows >= tile.y0) & (rows < tile.y1) & (cols >= tile.x0) & (cols < tile.x1)
+    if sel.any():
+        b = tile.bin
+        np.add.at(data, ((rows[sel] - tile.y0) // b, (cols[sel] - tile.x0) // b), values[sel].astype(np.float32))
+
+
+class TwoTrapRTS(RealWorld):
+    """RTS pixels with two independent traps each (a multi-level signal: the sum of two telegraphs; Kirton &
+    Uren 1989, Adv. Phys. 38, 367), gamma-distributed amplitudes (shape 2, means ``mean1_e`` and ``mean2_e``),
+    log-normal mean dwell times (median ``tau_med_s``, ``tau_sigma_ln``: traps at one depth, not McWhorter's
+    log-uniform spread), read by CDS ``cds_s`` apart (the plugin: one trap, log-normal amplitude, log-uniform
+    10 us - 100 ms, 5 us)."""
+
+    name = "uw_rts_twotrap"
+    stages = (Stage.READ,)
+    stochastic = True
+
+    def setup(self):
+        p = self.params
+        self.rows, self.cols, rng = _rts_pixels(self.sensor, self.name, p.fraction)
+        n = self.rows.size
+        self.amp = np.stack([rng.gamma(2.0, p.mean1_e / 2, n), rng.gamma(2.0, p.mean2_e / 2, n)])
+        self.tau = p.tau_med_s * np.exp(p.tau_sigma_ln * rng.standard_normal((2, 2, n)))
+
+    def apply(self, stage, tile, data):
+        from detector.effects.rts import rts_offsets
+
+        rng = tile.rng(self.name)
+        off = sum(rts_offsets(rng, self.amp[k], self.tau[k, 0], self.tau[k, 1], 3, self.params.cds_s) for k in (0, 1))
+        _add_at_pixels(tile, data, self.rows, self.cols, off)
+
+
+class ThreeStateRTS(RealWorld):
+    """RTS pixels whose trap has three states (empty, captured, a metastable configuration: the "anomalous"
+    RTS of Kirton & Uren 1989, Adv. Phys. 38, 367) with output levels 0, A, ``mid`` A, visited in the cycle
+    0 -> 1 -> 2 -> 0 with exponential dwell times of means log-uniform in [``tau_lo_s``, ``tau_hi_s``],
+    amplitude A uniform in [``amp_lo_e``, ``amp_hi_e``], read by CDS ``cds_s`` apart (the plugin: two states)."""
+
+    name = "uw_rts_threestate"
+    stages = (Stage.READ,)
+    stochastic = True
+
+    def setup(self):
+        from scipy.linalg import expm
+
+        p = self.params
+        self.rows, self.cols, rng = _rts_pixels(self.sensor, self.name, p.fraction)
+        n = self.rows.size
+        self.amp = rng.uniform(p.amp_lo_e, p.amp_hi_e, n)
+        tau = np.exp(rng.uniform(np.log(p.tau_lo_s), np.log(p.tau_hi_s), (n, 3)))
+        self.pi = tau / tau.sum(axis=1, keepdims=True)  # stationary law of a cycle: pi_i ~ tau_i
+        self.trans = np.empty((n, 3, 3))
+        for i in range(n):
+            q = np.zeros((3, 3))
+            for s in range(3):
+                q[s, s], q[s, (s + 1) % 3] = -1 / tau[i, s], 1 / tau[i, s]
+            self.trans[i] = expm(q * p.cds_s)
+
+    def apply(self, stage, tile, data):
+        rng = tile.rng(self.name)
+        n = self.rows.size
+        s0 = (rng.random(n)[:, None] > np.cumsum(self.pi, axis=1)).sum(axis=1).clip(0, 2)
+        s1 = (rng.random(n)[:, None] > np.cumsum(self.trans[np.arange(n), s0], axis=1)).sum(axis=1).clip(0, 2)
+        level = np.array([0.0, 1.0, self.params.mid])
+        _add_at_pixels(tile, data, self.rows, self.cols, self.amp * (level[s1] - level[s0]))
+
+
+class HarveyHalo(RealWorld):
+    """Straylight of a bright source just outside the field: the halo of light its image scatters off the
+    mirror, falling as the Harvey law of a polished surface, ``L (1 + (d / d0)^2)^(-s/2)`` [e-/s/px] of the
+    distance ``d`` to the source at window fractions (``pu``, ``pv``) (Harvey 1976; Breault 1995, Handbook of
+    Optics I, ch. 38), scaled to ``near_e_per_s`` at the window corner nearest to it; additive light, growing
+    with the exposure (the plugin: a second-order polynomial about the sensor centre)."""
+
+    name = "uw_straylight_halo"
+    stages = (Stage.FIELD,)
+
+    def apply(self, stage, tile, data):
+        if not data.any():
+            return
+        p = self.params
+        x, y, w, h = _win(tile)
+        sx, sy = p.pu * w, p.pv * h
+
+        def law(d2):
+            return (1 + d2 / p.d0_px ** 2) ** (-p.index / 2)
+
+        near = min((cx - sx) ** 2 + (cy - sy) ** 2 for cx in (0, w - 1) for cy in (0, h - 1))
+        rate = p.near_e_per_s / law(near) * law((x[None, :] - sx) ** 2 + (y[:, None] - sy) ** 2)
+        data += (rate * tile.exptime_s).astype(np.float32)
+
+
+class BaffleArc(RealWorld):
+    """Straylight from a glint on a baffle edge lit by an off-axis source: a broad arc of light, a ring of
+    radius ``radius_frac`` (window diagonals) about a centre at window fractions (``cu``, ``cv``) outside the
+    field, Gaussian across (``width_frac`` of the diagonal), ``peak_e_per_s`` on its crest (Breault 1995,
+    Handbook of Optics I, ch. 38: baffle-edge diffraction and glints); additive light, growing with exposure."""
+
+    name = "uw_straylight_arc"
+    stages = (Stage.FIELD,)
+
+    def apply(self, stage, tile, data):
+        if not data.any():
+            return
+        p = self.params
+        x, y, w, h = _win(tile)
+        diag = np.hypot(w, h)
+        r = np.hypot(x[None, :] - p.cu * w, y[:, None] - p.cv * h) / diag
+        rate = p.peak_e_per_s * np.exp(-0.5 * ((r - p.radius_frac) / p.width_frac) ** 2)
+        data += (rate * tile.exptime_s).astype(np.float32)
+
+
 # --- effects that no plugin models ------------------------------------------------------------------------------
 
 class DustDonuts(RealWorld):
@@ -1218,8 +1524,49 @@ _CASE_LIST = [
     _o("satellite_trail", "stars", "an unmodelled satellite trail across the window, 400 e- per pixel of its "
        "length, 1.2 px wide", lambda s: [SatelliteTrail(s, u0=0.05, v0=0.2, u1=0.9, v1=0.75, e_per_px=400.0,
                                                         sigma_px=1.2)], "additive", ("local",)),
-    _o("bias_jump", "bias_full", "the bias level jumps by 1.5 ADU after 40 % of the rows are read",
-       lambda s: [BiasJump(s, step_adu=1.5, at=0.4)], "additive", ("rows",)),
+    # a bias that steps once, the same in every column: a spatial structure of the bias level (the hidden-effect
+    # suite's bias_gradient has an amplifier step too), not out of the catalogue (added as a probe, then
+    # classed; one frame cannot tell a fixed step from one that moves from frame to frame)
+    _c("bias_gradient", "bias_jump", "bias_full", "the bias level steps by 1.5 ADU after 40 % of the rows are read",
+       lambda s: [BiasJump(s, step_adu=1.5, at=0.4)]),
+    # --- catalogue effects added later (appended: the levels of the cases above keep their index) ---
+    # brighter_fatter
+    _c("brighter_fatter", "bf_gauss_nonlinear", "stars", "brighter-fatter with a 7x7 Gaussian potential (sigma "
+       "0.6 px), a_10 = 1e-6 /e- growing with the charge (x2 at half the full well)",
+       lambda s: [GaussianNonlinearBF(s, a10_per_e=1e-6, sigma_px=0.6, q_nl_frac=0.5)]),
+    _c("brighter_fatter", "bf_coulomb_imx", "stars_imx", "brighter-fatter with a 9x9 Coulomb potential "
+       "1/sqrt(r^2 + 0.25), a_10 = 2e-7 /e- (CMOS)", lambda s: [CoulombBF(s, a10_per_e=2e-7, r0_px=0.5)], "weak"),
+    # cti (a CCD only: no charge transfer in a CMOS pixel)
+    _c("cti", "cti_columns", "stars", "CTI of one species (release 3 transfers, beta 0.35), 0.08 traps/px x a "
+       "lognormal factor per column (sigma_ln 0.5) x a +-40 % trend across the sensor",
+       lambda s: [ColumnCTI(s, density=0.08, col_sigma_ln=0.5, trend=0.8, release_transfers=3.0, beta=0.35)]),
+    _c("cti", "cti_linear_slow", "stars", "constant-fraction CTI (beta 1), 0.3 traps/px, half the free traps "
+       "captured per transfer, release 12 transfers", lambda s: [LinearSlowCaptureCTI(
+           s, density=0.3, capture=0.5, release_transfers=12.0)], "weak"),
+    # ipc
+    _c("ipc", "ipc_asymmetric_imx", "stars_imx_sharp", "non-centrosymmetric IPC: 1.2 % to the right, 0.4 % to the "
+       "left, 0.9 % up, 0.5 % down, 0.1 % diagonals (CMOS)", lambda s: [AsymmetricIPC(
+           s, left=0.004, right=0.012, up=0.009, down=0.005, diag=0.001)]),
+    _c("ipc", "ipc_signal_imx", "stars_imx_sharp", "signal-dependent IPC: 0.15 % at zero signal to 0.5 % at the full "
+       "well (CMOS)", lambda s: [SignalDependentIPC(s, a0=0.0015, a1=0.005)], "weak"),
+    # rts_noise (a CMOS thing: one source follower per pixel)
+    _c("rts_noise", "rts_twotrap_imxbin", "dark_corner", "0.3 % of the pixels with two traps each (gamma "
+       "amplitudes, means 60 and 25 e-), log-normal dwell times about 15 us, CDS 4 us (CMOS binned 2)",
+       lambda s: [TwoTrapRTS(s, fraction=0.003, mean1_e=60.0, mean2_e=25.0, tau_med_s=1.5e-5, tau_sigma_ln=1.0,
+                             cds_s=4e-6)]),
+    _c("rts_noise", "rts_threestate_imx", "dark_cmos", "0.2 % of the pixels with a three-state trap (levels 0, A, "
+       "0.45 A; A uniform 15-40 e-), dwell times 3-40 us, CDS 4 us", lambda s: [ThreeStateRTS(
+           s, fraction=0.002, amp_lo_e=15.0, amp_hi_e=40.0, mid=0.45, tau_lo_s=3e-6, tau_hi_s=4e-5, cds_s=4e-6)],
+       "weak"),
+    # straylight (a plane of it is also a sky gradient: both names are right)
+    _c("straylight", "stray_harvey_halo", "stars", "Harvey-law halo (d0 60 px, index 2.2) of a source beyond "
+       "the window's lower right corner at (1.25, 1.35), 3 e-/s/px at that corner",
+       lambda s: [HarveyHalo(s, pu=1.25, pv=1.35, d0_px=60.0, index=2.2, near_e_per_s=3.0)],
+       accept=("straylight", "sky_gradient")),
+    _c("straylight", "stray_baffle_arc_imxbin", "sky_imx_bin", "a broad arc of baffle glint across a binned CMOS "
+       "sky frame: ring of radius 1.1 diagonals about (-0.5, 1.3), width 0.2, 0.03 e-/s/px on its crest (0.15 % of the sky)",
+       lambda s: [BaffleArc(s, cu=-0.5, cv=1.3, radius_frac=1.1, width_frac=0.2, peak_e_per_s=0.03)], "weak",
+       accept=("straylight", "sky_gradient")),
 ]
 CASES: dict[str, UnseenCase] = {}
 for _i, _case in enumerate(_CASE_LIST):
