@@ -437,6 +437,10 @@ GHOST_MIN_RMS_PSF = 2.0
 GHOST_SOURCE_CHI2 = 9.0
 GHOST_MIN_SOURCES = 3
 GHOST_CONFIRMED_SHARE = 0.6
+#: about the copy that carries the most of the claim, the fitted ghost must take this share of the residual's
+#: excess chi2 there (what remains looks like noise): a trail or a glint that a copy lands on keeps most of
+#: its excess outside the ghost's round profile (0.28 for a satellite trail; 0.98 for a real ghost)
+GHOST_STAMP_SHARE = 0.5
 #: bright sources the map is checked on
 GHOST_CHECK_SOURCES = 40
 #: parameters the free form chooses beside alpha: the offset (2), the radius, the profile's form, the family
@@ -679,8 +683,10 @@ class GhostSignature(LinearSignature):
         largest predicted ghost out: the others together (``sum num / sum den``) must show the ghost too, at
         least ``max(alpha - 2 sigma, 0.3 alpha)``; when they predict less than GHOST_SOURCE_CHI2 together, a
         free map rests on one source (its ghost can be put on any blob) and is not a ghost geometry the data
-        can tell; the plugin's fixed map is then accepted. (2) Of the sources each predicted detectable on
-        its own, at least GHOST_CONFIRMED_SHARE show it (``>= 0.3 alpha`` or within 2 sigma of alpha)."""
+        can tell; the plugin's fixed map is then accepted. (2) About the strongest copy, the ghost takes at least
+        GHOST_STAMP_SHARE of the residual's excess chi2 (what is left there looks like noise). (3) Of the
+        sources each predicted detectable on its own, at least GHOST_CONFIRMED_SHARE show it (``>= 0.3 alpha``
+        or within 2 sigma of alpha)."""
         p = fit.params
         alpha = float(p["alpha"])
         if fit.delta_adu is None or alpha <= 0:
@@ -692,7 +698,7 @@ class GhostSignature(LinearSignature):
         extent = p["radius_px"] * (2.5 if p.get("profile", "disc") == "gauss" else 1.0)
         reach = int(np.ceil((extent + 2 * fit.state.get("psf_rms_px", step)) / step)) + 1
         h, wd = template.shape
-        nums, dens = [], []
+        nums, dens, stamps = [], [], []
         for y, x, _ in bright_sources(src, GHOST_CHECK_SOURCES):
             sy, sx = res.ys[y], res.xs[x]
             if mode == "shift":
@@ -709,6 +715,10 @@ class GhostSignature(LinearSignature):
             if den > 0:
                 nums.append(num)
                 dens.append(den)
+                ws = w[sl]
+                # the stamp's excess chi2 (sum w r^2 - n, with rw = w r) and what the ghost takes of it
+                stamps.append((float(np.sum(np.where(ws > 0, rw[sl] ** 2 / np.where(ws > 0, ws, 1.0), 0.0)))
+                               - int(np.count_nonzero(ws)), 2 * alpha * num - alpha * alpha * den))
         free = bool(fit.state.get("free"))
         if not dens:
             return "no bright source's ghost falls on the frame where this map puts it" if free else ""
@@ -728,6 +738,11 @@ class GhostSignature(LinearSignature):
             if a_rest < max(alpha - 2 * s_rest, 0.3 * alpha):
                 return (f"carried by one source: the other bright sources show {a_rest:.2g} +- {s_rest:.1g} of their "
                         f"flux where the map puts their ghost, not the fitted {alpha:.2g}")
+        excess, taken = stamps[top]
+        if alpha * alpha * dens[top] >= GHOST_SOURCE_CHI2 and excess > 25 and taken < GHOST_STAMP_SHARE * excess:
+            return (f"the structure under the strongest copy is not the ghost's profile: the fitted ghost takes "
+                    f"{100 * max(taken, 0.0) / excess:.0f} % of the excess chi2 about it ({excess:.3g}); the rest "
+                    "stays (a trail, a glint or a line that a copy of a source lands on)")
         single = alpha * alpha * dens >= GHOST_SOURCE_CHI2
         if single.sum() >= GHOST_MIN_SOURCES:
             a_i = nums[single] / dens[single]
