@@ -1298,6 +1298,41 @@ class BiasJump(RealWorld):
         data += np.where(v >= self.params.at, np.float32(self.params.step_adu), np.float32(0))[:, None]
 
 
+class TreeRings(RealWorld):
+    """Tree rings: the dopant concentration of the silicon boule varies in rings about its axis, far off the
+    sensor, so the response has concentric arcs of ``amp`` [1] with a period ``period_px`` [sensor px] about
+    sensor fractions (cu, cv) (LSST sensors: Park et al. 2017, JINST 12 C05015): multiplicative."""
+
+    name = "ooc_tree_rings"
+    stages = (Stage.RESPONSE,)
+
+    def apply(self, stage, tile, data):
+        p, s = self.params, tile.sensor
+        ys, xs = tile.pixel_centres()
+        r = np.hypot((xs[None, :] - p.cu * s.sensor_width_px), (ys[:, None] - p.cv * s.sensor_height_px))
+        data *= (1.0 + p.amp * np.sin(2 * np.pi * r / p.period_px)).astype(np.float32)
+
+
+class AmplifierUndershoot(RealWorld):
+    """The output amplifier's undershoot after a bright pixel: each pixel loses ``alpha`` [1] of the signal read
+    ``1 .. 3 x tail_px`` pixels before it in its row (exponential, e-folding ``tail_px``; the read-out goes along
+    increasing x), a dark trail after every bright source along its row (a self-crosstalk of the channel)."""
+
+    name = "ooc_undershoot"
+    stages = (Stage.ADU,)
+
+    def apply(self, stage, tile, data):
+        p = self.params
+        n = int(np.ceil(3 * p.tail_px))
+        k = np.exp(-np.arange(1, n + 1) / p.tail_px)
+        k /= k.sum()
+        sig = np.maximum(data - np.float32(np.median(data)), 0).astype(np.float64)
+        out = np.zeros_like(sig)
+        for j, kj in enumerate(k, start=1):
+            out[:, j:] += kj * sig[:, :-j]
+        data -= (p.alpha * out).astype(np.float32)
+
+
 # --- the cases --------------------------------------------------------------------------------------------------
 
 @dataclass
@@ -1529,6 +1564,12 @@ _CASE_LIST = [
     # classed; one frame cannot tell a fixed step from one that moves from frame to frame)
     _c("bias_gradient", "bias_jump", "bias_full", "the bias level steps by 1.5 ADU after 40 % of the rows are read",
        lambda s: [BiasJump(s, step_adu=1.5, at=0.4)]),
+    _o("tree_rings", "flat_full", "tree rings of the silicon: 0.4 % arcs with a period of 120 px about a point far "
+       "off the sensor (-0.4, 1.3)", lambda s: [TreeRings(s, amp=0.004, period_px=120.0, cu=-0.4, cv=1.3)],
+       "multiplicative", ("rings", "periodic", "radial")),
+    _o("amp_undershoot", "stars", "the amplifier's undershoot: each pixel loses 1 % of the signal read in the 2-6 "
+       "pixels before it in its row", lambda s: [AmplifierUndershoot(s, alpha=0.01, tail_px=2.0)],
+       "additive", ("sources", "rows")),
     # --- catalogue effects added later (appended: the levels of the cases above keep their index) ---
     # brighter_fatter
     _c("brighter_fatter", "bf_gauss_nonlinear", "stars", "brighter-fatter with a 7x7 Gaussian potential (sigma "
