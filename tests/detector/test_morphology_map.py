@@ -12,8 +12,7 @@ import math
 import numpy as np
 from scipy import ndimage as ndi
 
-from detector.morphology import (MAP_GROW_SIGMA, _seed_sigma, _significant_features, _source_profile_map,
-                                 matched_snr)
+from detector.morphology import MAP_GROW_SIGMA, _seed_sigma, _significant_features, _source_profile_map, matched_snr
 
 N = 192
 SIG_ADU = 5.0
@@ -96,7 +95,7 @@ def test_significant_features_finds_a_blob_of_known_snr_and_leaves_the_sources()
     w = np.full(r.shape, 1.0 / SIG_ADU ** 2)
     found = _significant_features(r, w, None, (1.0, 2.0))
     assert found[60, 130]
-    lab, n = ndi.label(found)
+    _, n = ndi.label(found)
     assert n == 1
     # the footprint reaches where the blob's matched S/N (9 exp(-d^2 / 4 s^2)) falls to ~MAP_GROW_SIGMA
     d_edge = 2 * s * math.sqrt(math.log(target / MAP_GROW_SIGMA))
