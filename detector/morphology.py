@@ -751,12 +751,13 @@ def matched_snr(rmap: np.ndarray, wmap: np.ndarray, s: float, exclude: np.ndarra
 
 def _significant_features(rmap: np.ndarray, wmap: np.ndarray, exclude: np.ndarray | None,
                           scales=FEATURE_SCALES) -> np.ndarray:
-    """Where compact features significant on their own are (bool map): at each scale ``s`` the matched-filter
+    """Where compact features significant on their own are, and at which scale: a map of the finest scale
+    ``s`` [px] at which each pixel's feature is significant (0 off the features). At each scale ``s`` the matched-filter
     S/N (:func:`matched_snr`) seeds a feature above :func:`_seed_sigma` (a false alarm of MAP_FALSE_ALARM per
     frame) and the feature is grown to where its S/N of the same sign falls below MAP_GROW_SIGMA; features
-    within 3 ``s`` of ``exclude`` (the sources' cores: a misfit source is another family) are left out.
-    ``scales``: those of the features the morphology found and the finer ones (features of their size)."""
-    out = np.zeros(rmap.shape, bool)
+    within 3 ``s`` of ``exclude`` (the sources' cores: a misfit source is another family) are left out;
+    the scales are those of the morphology's own search (:func:`compact_features`)."""
+    out = np.zeros(rmap.shape, np.float64)
     n_ok = int((wmap > 0).sum())
     for s in scales:
         if 24 * s > min(rmap.shape) or n_ok < 256:
@@ -774,7 +775,8 @@ def _significant_features(rmap: np.ndarray, wmap: np.ndarray, exclude: np.ndarra
             if near is not None:
                 seeded &= ~(ndi.maximum(near.astype(np.int8), lab, idx) > 0)
             if seeded.any():
-                out |= np.isin(lab, idx[seeded])
+                new = np.isin(lab, idx[seeded]) & (out == 0)
+                out[new] = s
     return out
 
 
@@ -819,7 +821,8 @@ def _feature_map(feats: dict, rmap: np.ndarray, wmap: np.ndarray, light: np.ndar
       :func:`compact_features` found, and every feature whose matched-filter S/N seeds above a false alarm of
       MAP_FALSE_ALARM per frame and scale, grown to where it falls below MAP_GROW_SIGMA sigma
       (:func:`_significant_features`; off the sources' cores when they are known). There the map is the
-      residual smoothed at the features' scale (normalised convolution over the fitted pixels); the pixels the
+      residual smoothed at half the scale at which each feature is significant (normalised convolution over
+      the fitted pixels: a feature found only at a coarse scale is not mapped with its noise); the pixels the
       comparison left to statistics (the spikes a glint's or a latent image's core makes) take their own
       residual, unless saturated: the feature is mapped where it is brightest, not interpolated from its wings.
     """
@@ -839,17 +842,28 @@ def _feature_map(feats: dict, rmap: np.ndarray, wmap: np.ndarray, light: np.ndar
             amap, _ = _source_profile_map(rmap, wmap, np.where(np.isfinite(srcmap), srcmap, 0.0), r_max)
             foot = feats["footprint"]["rings"] | feats["footprint"]["blobs"]
     rest = np.where(ok > 0, rmap - amap, 0.0)
-    grown = ndi.binary_dilation(foot, iterations=max(round(2 * scale), 1)) if foot.any() else foot
-    free = [feats[f"scale_{f}"] for f in ("rings", "blobs") if feats[f"n_{f}"]]
-    if free:  # features of the size of the free ones found, and finer
-        grown = grown | _significant_features(rest, wmap, on_source, [s for s in FEATURE_SCALES if s <= max(free)])
+    # the scale [px] each mapped pixel is smoothed at: half the finest matched-filter scale at which its feature
+    # is significant (a Gaussian feature of that scale is broadened by 12 %, its noise averaged over ~pi s^2 / 4
+    # pixels), half the found features' scale in their grown footprints
+    at = _significant_features(rest, wmap, on_source)
+    if foot.any():
+        fp = ndi.binary_dilation(foot, iterations=max(round(2 * scale), 1))
+        at = np.where(fp & ((at == 0) | (at > scale)), scale, at)
     if on_source is not None and rings_on_src:
-        grown &= ~ndi.binary_dilation(on_source, iterations=max(round(2 * scale), 1))
+        at[ndi.binary_dilation(on_source, iterations=max(round(2 * scale), 1))] = 0.0
+    grown = at > 0
     if grown.any():
         # a feature's interior (the core the comparison left to statistics) and the spike pixels at its edge
-        grown = ndi.binary_fill_holes(ndi.binary_dilation(grown))
-        sig = max(0.5 * scale, 0.5)
-        sm = gaussian_filter(rest, sig, mode="nearest") / np.maximum(gaussian_filter(ok, sig, mode="nearest"), 1e-6)
+        filled = ndi.binary_fill_holes(ndi.binary_dilation(grown))
+        at = np.where(filled & ~grown, ndi.maximum_filter(at, size=3), at)
+        at = np.where(filled & (at == 0), scale, at)  # an interior farther than 1 px from a feature's pixels
+        grown = filled
+        sm = np.zeros(rmap.shape, np.float64)
+        for sc in np.unique(at[grown]):
+            sig = max(0.5 * float(sc), 0.5)
+            here = grown & (at == sc)
+            sm[here] = (gaussian_filter(rest, sig, mode="nearest")
+                        / np.maximum(gaussian_filter(ok, sig, mode="nearest"), 1e-6))[here]
         if res is not None:
             s = res.sensor
             level, _ = res.level_maps()
