@@ -797,31 +797,177 @@ def _periodic_map(rmap: np.ndarray, wmap: np.ndarray, light: np.ndarray, kind: s
     return _relative(kind, amap, light)
 
 
+#: false alarms per frame and smoothing scale of the matched filter that decides which compact features the
+#: empirical map carries (:func:`_significant_features`): a seed is a peak the noise reaches this rarely
+MAP_FALSE_ALARM = 1e-3
+#: a seeded feature is grown down to where its matched-filter S/N falls to this many sigma (below it the
+#: feature is not told from the noise)
+MAP_GROW_SIGMA = 2.0
+#: the per-source profile of the empirical map extends at most this far [output px]
+PROFILE_MAX_PX = 32
+
+
+def _seed_sigma(n_pix: int, s: float) -> float:
+    """The matched-filter S/N [sigma] that white noise exceeds ``MAP_FALSE_ALARM`` times per frame among the
+    ``n_pix / (4 pi s^2)`` independent positions of a Gaussian of ``s`` px (two-sided: bright and dark
+    features): the look-elsewhere-corrected seed threshold of :func:`_significant_features`."""
+    from scipy.stats import norm
+
+    n_indep = max(n_pix / (4.0 * math.pi * s * s), 1.0)
+    return float(norm.isf(0.5 * MAP_FALSE_ALARM / n_indep))
+
+
+def matched_snr(rmap: np.ndarray, wmap: np.ndarray, s: float, exclude: np.ndarray | None = None) -> np.ndarray:
+    """The S/N of a Gaussian feature of ``s`` px centred on each pixel: ``sum g r w / sqrt(sum g^2 w)``
+    (the weighted least-squares amplitude over its error; ``r`` the residual [ADU], ``w`` its inverse
+    variance, 0 off the fitted pixels), its smooth part (a Gaussian of 6 ``s``) removed and divided by its
+    robust standard deviation (1.4826 MAD over the fitted pixels off ``exclude``: correlated noise included).
+    Pixels where less than half the filter's weight has data are 0."""
+    # off the frame there is no data (w = 0): zero padding, so that the border's pixels are not counted twice
+    g1 = gaussian_filter(rmap * wmap, s, mode="constant") * (2.0 * math.pi * s * s)
+    g2 = gaussian_filter(wmap, s / math.sqrt(2.0), mode="constant") * (math.pi * s * s)
+    ok = wmap > 0
+    typical = float(np.median(g2[ok])) if ok.any() else 0.0
+    good = g2 > 0.5 * typical
+    snr = np.where(good, g1 / np.sqrt(np.where(good, g2, 1.0)), 0.0)
+    gw = good.astype(np.float64)
+    snr = snr - np.where(good, gaussian_filter(snr, 6.0 * s, mode="constant")
+                         / np.maximum(gaussian_filter(gw, 6.0 * s, mode="constant"), 1e-6), 0.0)
+    sel = ok & good & (~exclude if exclude is not None else True)
+    if sel.sum() < 64:
+        return np.zeros_like(snr)
+    v = snr[sel]
+    sig = 1.4826 * float(np.median(np.abs(v - np.median(v))))
+    return np.where(good, snr / sig, 0.0) if sig > 0 else np.zeros_like(snr)
+
+
+def _significant_features(rmap: np.ndarray, wmap: np.ndarray, exclude: np.ndarray | None,
+                          scales=FEATURE_SCALES) -> np.ndarray:
+    """Where compact features significant on their own are, and at which scale: a map of the finest scale
+    ``s`` [px] at which each pixel's feature is significant (0 off the features). At each scale ``s`` the matched-filter
+    S/N (:func:`matched_snr`) seeds a feature above :func:`_seed_sigma` (a false alarm of MAP_FALSE_ALARM per
+    frame) and the feature is grown to where its S/N of the same sign falls below MAP_GROW_SIGMA; features
+    within 3 ``s`` of ``exclude`` (the sources' cores: a misfit source is another family) are left out;
+    the scales are those of the morphology's own search (:func:`compact_features`)."""
+    out = np.zeros(rmap.shape, np.float64)
+    n_ok = int((wmap > 0).sum())
+    for s in scales:
+        if 24 * s > min(rmap.shape) or n_ok < 256:
+            break
+        # a blob within 3 s of a source's core belongs to the source (as in compact_features)
+        near = ndi.binary_dilation(exclude, iterations=max(round(3 * s), 1)) if exclude is not None else None
+        snr = matched_snr(rmap, wmap, s, near)
+        t = _seed_sigma(n_ok, s)
+        for sign in (1.0, -1.0):
+            lab, n = ndi.label(sign * snr > MAP_GROW_SIGMA)
+            if n == 0:
+                continue
+            idx = np.arange(1, n + 1)
+            seeded = ndi.maximum(sign * snr, lab, idx) > t
+            if near is not None:
+                seeded &= ~(ndi.maximum(near.astype(np.int8), lab, idx) > 0)
+            if seeded.any():
+                new = np.isin(lab, idx[seeded]) & (out == 0)
+                out[new] = s
+    return out
+
+
+def _source_profile_map(rmap: np.ndarray, wmap: np.ndarray, srcmap: np.ndarray, r_max: float
+                        ) -> tuple[np.ndarray, np.ndarray]:
+    """The per-source profile of a residual that follows the sources' light: ``S * K``, ``S`` the model's
+    source light [ADU] and ``K = sum_k c_k A_k`` a radial kernel, ``A_k`` the 1 px wide annulus of radius ``k``
+    (``k = 0``: the pixel itself) out to ``r_max`` (at most PROFILE_MAX_PX), the ``c_k`` by weighted least
+    squares of the residual on the templates ``S * A_k`` over the fitted pixels: the mean residual profile
+    around the stars per unit of their light, scaled by each star's flux (a ring, a halo, light taken from the
+    cores). Returns (the map [ADU], the profile ``c_k`` [1 per annulus pixel])."""
+    from scipy.signal import fftconvolve
+
+    n = int(min(max(math.ceil(r_max), 2), PROFILE_MAX_PX))
+    t = np.arange(-n, n + 1)
+    rr = np.hypot(t[:, None], t[None, :])
+    ann = [(np.abs(rr - k) < 0.5) if k else (rr < 0.5) for k in range(n + 1)]
+    ok = wmap > 0
+    x = np.empty((n + 1, int(ok.sum())), np.float32)  # the templates on the fitted pixels only
+    for k, a in enumerate(ann):
+        x[k] = fftconvolve(srcmap, a.astype(np.float64), mode="same")[ok]
+    w = wmap[ok]
+    g = (x * w) @ x.T.astype(np.float64)
+    c = np.zeros(n + 1)
+    keep = np.diag(g) > 0
+    if keep.any():
+        c[keep] = np.linalg.lstsq(g[np.ix_(keep, keep)], ((x[keep] * w) @ rmap[ok]).astype(np.float64),
+                                  rcond=None)[0]
+    kernel = sum(ck * a for ck, a in zip(c, ann))
+    return fftconvolve(srcmap, kernel, mode="same"), c
+
+
 def _feature_map(feats: dict, rmap: np.ndarray, wmap: np.ndarray, light: np.ndarray, kind: str,
                  res: Residuals | None = None) -> dict | None:
-    """The empirical map of compact features (rings, blobs): the residual [ADU] smoothed at the features' scale
-    (normalised convolution over the fitted pixels) inside their footprints grown by that scale, 0 elsewhere.
-    With ``res``, the footprints' pixels the comparison left to statistics (the spikes a glint's or a latent
-    image's core makes) take their own residual, unless saturated: the feature is mapped where it is
-    brightest, not interpolated from its wings."""
+    """The empirical map of compact features (rings, blobs): a measurement of the residual where it is told
+    from the noise, 0 elsewhere [ADU, or relative to the light when multiplicative].
+
+    * Rings about the sources (``srings``: light moved around every source) are mapped as the per-source
+      profile (:func:`_source_profile_map`, out to twice the rings' radius and their scale): the mean residual
+      profile around the stars scaled by each star's light, which holds the faint stars' rings too.
+    * Every other compact feature is mapped where it is significant on its own: the footprints
+      :func:`compact_features` found, and every feature whose matched-filter S/N seeds above a false alarm of
+      MAP_FALSE_ALARM per frame and scale, grown to where it falls below MAP_GROW_SIGMA sigma
+      (:func:`_significant_features`; off the sources' cores when they are known). There the map is the
+      residual smoothed at half the scale at which each feature is significant (normalised convolution over
+      the fitted pixels: a feature found only at a coarse scale is not mapped with its noise); the pixels the
+      comparison left to statistics (the spikes a glint's or a latent image's core makes) take their own
+      residual, unless saturated: the feature is mapped where it is brightest, not interpolated from its wings.
+    """
     foot = feats["footprint"]["rings"] | feats["footprint"]["blobs"] | feats["footprint"]["srings"]
     if not foot.any():
         return None
     scale = max([feats.get(f"scale_{f}", 1.0) for f in ("rings", "blobs", "srings") if feats[f"n_{f}"]] or [1.0])
-    grown = ndi.binary_dilation(foot, iterations=max(round(2 * scale), 1))
     ok = (wmap > 0).astype(np.float64)
-    sig = max(0.25 * scale, 0.5)
-    sm = gaussian_filter(np.where(ok > 0, rmap, 0.0), sig, mode="nearest") / np.maximum(
-        gaussian_filter(ok, sig, mode="nearest"), 1e-6)
-    if res is not None:
-        s = res.sensor
-        level, _ = res.level_maps()
-        raw = res.data_adu.astype(np.float64) - res.model_adu - level
-        cap_adu = min(float(s.adc_max_adu), s.bias_adu + s.full_well_e * res.pixel_sum / res.gain)
-        core = (grown & (ok == 0) & np.isfinite(raw) & (res.data_adu < 0.95 * cap_adu)
-                & (res.model_adu < 0.95 * cap_adu))
-        sm = np.where(core, raw, sm)
-    return _relative(kind, np.where(grown, sm, 0.0), light)
+    amap = np.zeros(rmap.shape, np.float64)
+    on_source = None
+    rings_on_src = feats["n_srings"] >= 2 and feats["n_srings"] >= 2 * feats["n_rings"]
+    if res is not None and res.background_adu is not None:
+        srcmap = np.asarray(res.model_adu, np.float64) - res.background_adu
+        on_source = srcmap > 5.0 * np.sqrt(np.maximum(np.asarray(res.var_adu2, np.float64), 1e-12))
+        if rings_on_src:
+            r_max = 2.0 * feats["sring_radius_px"] + 2.0 * feats["scale_srings"]
+            amap, _ = _source_profile_map(rmap, wmap, np.where(np.isfinite(srcmap), srcmap, 0.0), r_max)
+            foot = feats["footprint"]["rings"] | feats["footprint"]["blobs"]
+    rest = np.where(ok > 0, rmap - amap, 0.0)
+    # the scale [px] each mapped pixel is smoothed at: half the finest matched-filter scale at which its feature
+    # is significant (a Gaussian feature of that scale is broadened by 12 %, its noise averaged over ~pi s^2 / 4
+    # pixels), half the found features' scale in their grown footprints
+    at = _significant_features(rest, wmap, on_source)
+    if foot.any():
+        fp = ndi.binary_dilation(foot, iterations=max(round(2 * scale), 1))
+        at = np.where(fp & ((at == 0) | (at > scale)), scale, at)
+    if on_source is not None and rings_on_src:
+        at[ndi.binary_dilation(on_source, iterations=max(round(2 * scale), 1))] = 0.0
+    grown = at > 0
+    if grown.any():
+        # a feature's interior (the core the comparison left to statistics) and the spike pixels at its edge
+        filled = ndi.binary_fill_holes(ndi.binary_dilation(grown))
+        at = np.where(filled & ~grown, ndi.maximum_filter(at, size=3), at)
+        at = np.where(filled & (at == 0), scale, at)  # an interior farther than 1 px from a feature's pixels
+        grown = filled
+        sm = np.zeros(rmap.shape, np.float64)
+        for sc in np.unique(at[grown]):
+            sig = max(0.5 * float(sc), 0.5)
+            here = grown & (at == sc)
+            sm[here] = (gaussian_filter(rest, sig, mode="nearest")
+                        / np.maximum(gaussian_filter(ok, sig, mode="nearest"), 1e-6))[here]
+        if res is not None:
+            s = res.sensor
+            level, _ = res.level_maps()
+            raw = res.data_adu.astype(np.float64) - res.model_adu - level - amap
+            cap_adu = min(float(s.adc_max_adu), s.bias_adu + s.full_well_e * res.pixel_sum / res.gain)
+            core = (grown & (ok == 0) & np.isfinite(raw) & (res.data_adu < 0.95 * cap_adu)
+                    & (res.model_adu < 0.95 * cap_adu))
+            sm = np.where(core, raw, sm)
+        amap = amap + np.where(grown, sm, 0.0)
+    if not np.any(amap):
+        return None
+    return _relative(kind, amap, light)
 
 
 def _feature_words(feats: dict, geometry: list[str], on_sources: bool = False) -> str:
