@@ -71,7 +71,8 @@ FAMILIES = {
     ("multiplicative", "radial"): "vignetting, a filter's or corrector's radial transmission",
     ("multiplicative", "rows"): "a row-wise response pattern (a rolling-shutter flicker)",
     ("multiplicative", "columns"): "a column-wise response pattern (column gains)",
-    ("multiplicative", "periodic"): "fringing (thin-film interference), a colour filter mosaic",
+    ("multiplicative", "periodic"): "fringing (thin-film interference), tree rings of the silicon, a colour filter "
+                                    "mosaic",
     ("multiplicative", "local"): "dust shadows (donuts) on a window or filter",
     ("multiplicative", "sources"): "a photometric (zero-point) or non-linearity error of the sources",
     ("multiplicative", "noise"): "pixel response non-uniformity (PRNU) above the model",
@@ -625,9 +626,22 @@ def describe(res: Residuals, delta_adu: np.ndarray | None = None) -> dict:
         scale = float(b * math.sqrt(max(strong.sum(), 1)))
     else:
         scale = float(b * max(ny, nx))
+    periodic_map = None
+    if main == "periodic" and kind in ("additive", "multiplicative", "mixed"):
+        periodic_map = _periodic_map(rmap, wmap, light, kind, row_var)
     if main in ("rings", "blobs") or (main == "sources" and rings_on_src):
         fam = "srings" if main == "sources" else main
         amp, unit, desc = _feature_amplitude(res, feats, fam, rmap, light, kind == "multiplicative" and has_light)
+    elif periodic_map is not None:
+        # the band-passed pattern itself: a sinusoid of amplitude sqrt(2) x its rms
+        pm = periodic_map["map"][wmap > 0] if np.any(wmap > 0) else periodic_map["map"]
+        a = math.sqrt(2.0) * float(np.sqrt(np.mean(np.square(pm, dtype=np.float64))))
+        if periodic_map["kind"] == "multiplicative":
+            amp, unit = a * 100, "%"
+            desc = f"a wave of {amp:.3g} % of the light in amplitude"
+        else:
+            amp, unit = a * gain, "e-"
+            desc = f"a wave of {amp:.3g} e- ({a:.3g} ADU) in amplitude"
     elif main in ("rows", "columns") and main in line_profiles:
         # the lines' own scatter beyond their noise (what a smooth fit of the blocks does not see) [ADU rms]
         lm, lw, okl = line_profiles[main]
@@ -672,8 +686,8 @@ def describe(res: Residuals, delta_adu: np.ndarray | None = None) -> dict:
         out["empirical"] = {"kind": ek, "map": _upsample(sm, b, shape)}
     elif main in ("rows", "columns") and kind in ("additive", "multiplicative", "mixed"):
         out["empirical"] = _line_map(rmap, wmap, light, kind, axis=1 if main == "rows" else 0)
-    elif main == "periodic" and kind in ("additive", "multiplicative", "mixed"):
-        out["empirical"] = _periodic_map(rmap, wmap, light, kind, row_var)
+    elif periodic_map is not None:
+        out["empirical"] = periodic_map
     if out["empirical"] is None and n_feat:
         # light moved around the sources (rings on them) is mapped as what it adds and takes where it is
         out["empirical"] = _feature_map(feats, rmap, wmap, light, "additive" if kind == "redistributed" else kind,

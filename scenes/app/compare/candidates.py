@@ -40,9 +40,10 @@ HELDOUT_CANDIDATES = 8
 MIN_EXPLAINED = 0.5
 #: large-scale structure is significant when the block chi2 exceeds its dof by this many standard deviations
 STRUCTURE_SIGMA = 8.0
-#: where the frame's excess chi2 is this many standard deviations above its dof, a pixel candidate must
-#: remove at least MIN_EXCESS_SHARE of it to be named: a trace of a big pattern is not the missing effect
-EXCESS_SIGMA, MIN_EXCESS_SHARE = 50.0, 0.02
+#: where the frame's excess chi2 is this many standard deviations above its dof (significant), a pixel candidate
+#: must remove at least MIN_EXCESS_SHARE of it to be named: a trace of a big pattern is not the missing effect
+#: (an amplifier undershoot trailing every star was named a non-linearity that removed 1 % of the excess)
+EXCESS_SIGMA, MIN_EXCESS_SHARE = 5.0, 0.02
 
 
 #: a candidate that changes the mean must remove at least this share of the excess chi2 over the pixels it acts
