@@ -65,7 +65,8 @@ FAMILIES = {
     ("multiplicative", "rings"): "dust shadows (donuts: out-of-focus images of the pupil) on a window or filter",
     ("multiplicative", "blobs"): "dust or stains on a window, filter or the sensor's cover glass",
     ("redistributed", "rings"): "a diffraction or ghost ring around the sources (light moved out of the cores)",
-    ("additive", "sources"): "sources the model lacks (faint stars, a missing object) or misplaced sources",
+    ("additive", "sources"): "sources the model lacks (faint stars, a missing object) or misplaced sources, an "
+                             "amplifier's undershoot or overshoot trailing them",
     ("additive", "noise"): "read noise or kTC noise above the model, a noise gradient",
     ("multiplicative", "gradient"): "a flat-field error, vignetting off the model's centre",
     ("multiplicative", "radial"): "vignetting, a filter's or corrector's radial transmission",
@@ -442,6 +443,16 @@ def describe(res: Residuals, delta_adu: np.ndarray | None = None) -> dict:
             out["significance_sigma"] = round(max(out["significance_sigma"], _peak_sigma(contrast, zhp)), 2)
             out.update(_periodic_only(res, period, contrast, zhp, wmap))
             out["empirical"] = _periodic_map(rmap, wmap, light, out["kind"], row_var)
+            return out
+        # light locked to the sources in a shape no ring or blob has (a trail, a one-sided halo): the residual
+        # stacked about them, as a kernel of their light
+        if zp.size <= FEATURE_MAX_PIXELS:
+            ker = source_kernel(res, rmap, wmap)
+            if ker is not None and ker["sigma"] >= SIGNIFICANT_SIGMA:
+                out["significant"] = True
+                out["significance_sigma"] = round(max(out["significance_sigma"], ker["sigma"]), 2)
+                out.update(_kernel_words(ker, gain))
+                out["empirical"] = {"kind": "additive", "map": ker["map"]}
         return out
     out["significant"] = True
     if block_sigma < SIGNIFICANT_SIGMA:  # extra scatter, no mean pattern: where is it?
@@ -1152,6 +1163,104 @@ def _kind_from_sources(res: Residuals, idx, r, w) -> str | None:
     if abs(c_mul - c_add) < 25:
         return None
     return "multiplicative" if c_mul < c_add else "additive"
+
+
+#: half size of the kernel stacked about the sources [output px] (a trail or halo a few PSF widths long) ...
+SOURCE_KERNEL_HALF = 6
+#: ... fitted on at most this many pixels next to the sources (a regular subsample beyond) [pixels]
+SOURCE_KERNEL_PIXELS = 60_000
+#: a source pixel: its model light this many sigma above the noise
+SOURCE_KERNEL_CORE_SIGMA = 5.0
+
+
+#: angular harmonics of the kernel's annuli: 0 (a ring, a halo), 1 (one-sided: a trail, a coma), 2 (an
+#: elongation along an axis)
+SOURCE_KERNEL_HARMONICS = 2
+
+
+def _kernel_basis(h: int) -> list[np.ndarray]:
+    """The kernel's basis on offsets ``|dy|, |dx| <= h``: the source's own pixel, then for every 1 px annulus
+    (radius 1 .. h) the harmonics ``cos m theta``, ``sin m theta`` for m = 0 .. SOURCE_KERNEL_HARMONICS."""
+    dy, dx = np.mgrid[-h: h + 1, -h: h + 1].astype(np.float64)
+    r = np.hypot(dy, dx)
+    th = np.arctan2(dy, dx)
+    ring = np.rint(r)
+    out = [(r == 0).astype(np.float64)]
+    for i in range(1, h + 1):
+        on = (ring == i).astype(np.float64)
+        out.append(on)
+        for m in range(1, SOURCE_KERNEL_HARMONICS + 1):
+            out += [on * np.cos(m * th), on * np.sin(m * th)]
+    return out
+
+
+def source_kernel(res: Residuals, rmap: np.ndarray, wmap: np.ndarray) -> dict | None:
+    """The residual about the sources as a kernel of their light: ``r(p) = sum_o K(o) S(p - o)`` over offsets
+    ``|o| <= SOURCE_KERNEL_HALF`` (``S`` the sources' model light before the full-well clip [ADU]), ``K`` in
+    1 px annuli times angular harmonics 0 .. 2 (:func:`_kernel_basis`: smooth enough to be read, any shape a
+    trail, a one-sided halo, a ring or an elongation has), fitted by weighted least squares on the fitted
+    pixels next to the sources: the stacked residual profile of the sources per unit of their light. Its
+    chi2 gain against its k parameters gives ``sigma`` = (delta chi2 - k) / sqrt(2 k); ``map`` is ``S``
+    convolved with ``K`` [ADU]. None without sources."""
+    from scipy.signal import fftconvolve
+
+    if res.background_adu is None:
+        return None
+    shape = rmap.shape
+    src = np.clip(np.asarray(res.photo_field, np.float64) - res.background_photo_adu, 0.0, None)
+    sd = np.sqrt(np.maximum(np.asarray(res.var_adu2, np.float64), 1e-12))
+    core = src > SOURCE_KERNEL_CORE_SIGMA * sd
+    h = SOURCE_KERNEL_HALF
+    basis = _kernel_basis(h)
+    k = len(basis)
+    if core.sum() < 20:
+        return None
+    near = ndi.binary_dilation(core, structure=np.ones((3, 3), bool), iterations=h) & (wmap > 0)
+    pix = np.flatnonzero(near)
+    if pix.size < 10 * k:
+        return None
+    if pix.size > SOURCE_KERNEL_PIXELS:
+        pix = pix[:: math.ceil(pix.size / SOURCE_KERNEL_PIXELS)]
+    x = np.stack([fftconvolve(src, bk, mode="same").ravel()[pix] for bk in basis], axis=1)
+    wv, rv = wmap.ravel()[pix], rmap.ravel()[pix]
+    sw = np.sqrt(wv)
+    coef, *_ = np.linalg.lstsq(x * sw[:, None], rv * sw, rcond=1e-10)
+    dchi2 = float(np.sum(wv * rv * rv) - np.sum(wv * (rv - x @ coef) ** 2))
+    kern = np.tensordot(coef, np.stack(basis), axes=1)
+    kmap = fftconvolve(src, kern, mode="same").astype(np.float32)
+    return {"kernel": kern, "dchi2": dchi2, "k": k, "sigma": (dchi2 - k) / math.sqrt(2 * k), "map": kmap}
+
+
+def _kernel_words(ker: dict, gain: float) -> dict:
+    """The description of a kernel about the sources (:func:`source_kernel`): its net share of the sources'
+    light (flux kept: redistributed; else added or taken: additive), where its mass lies (a one-sided trail
+    toward an angle, along the rows or the columns) and its size."""
+    kern = ker["kernel"]
+    h = kern.shape[0] // 2
+    dy, dx = np.mgrid[-h: h + 1, -h: h + 1].astype(np.float64)
+    c = kern.copy()
+    c[h, h] = 0.0  # the source's own pixel is its flux scale (a photometric error), not a shape
+    net, mass = float(c.sum()), float(np.abs(c).sum())
+    if mass <= 0:
+        return {}
+    kind = "redistributed" if abs(kern.sum()) < 0.25 * mass else "additive"
+    mx, my = float(np.sum(np.abs(c) * dx) / mass), float(np.sum(np.abs(c) * dy) / mass)
+    vx, vy = float(np.sum(np.abs(c) * dx * dx) / mass), float(np.sum(np.abs(c) * dy * dy) / mass)
+    geometry = ["sources"]
+    if vx > 3 * vy:
+        geometry.append("rows")
+    elif vy > 3 * vx:
+        geometry.append("columns")
+    shift = math.hypot(mx, my)
+    where = (f", its mass {shift:.2g} px to one side (toward {math.degrees(math.atan2(my, mx)):.0f} deg: a one-sided "
+             "trail)") if shift > 1.0 else ""
+    sense = "moved about them (flux kept)" if kind == "redistributed" else ("added next to them" if net > 0 else
+                                                                          "taken from next to them")
+    desc = (f"{100 * mass:.3g} % of the sources' light {sense} within {h} px, rms distance "
+            f"{math.sqrt(vx + vy):.2g} px{where}, stacked over every source ({ker['sigma']:.0f} sigma)")
+    return {"kind": kind, "kind_certain": True, "geometry": geometry, "scale_px": round(math.sqrt(vx + vy), 2),
+            "amplitude": round(100 * (mass if kind == "redistributed" else net), 4), "unit": "% of the sources' light",
+            "shares": {"sources": 1.0}, "explanation": _words(kind, geometry, desc)}
 
 
 def _words(kind: str, geometry: list[str], desc: str) -> str:
