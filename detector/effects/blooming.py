@@ -80,7 +80,7 @@ def soft_bleed_columns(image_e: np.ndarray, threshold_e: float, length_px: float
         out[k:] += up_fraction * w[k - 1] * ex[:-k]
         out[:-k] += (1 - up_fraction) * w[k - 1] * ex[k:]
     image_e[:, cols] += out.astype(image_e.dtype)
-    return float(ex.sum() + out.sum())
+    return float(-out.sum())  # the spill's charge that found no pixel of the image
 
 
 #: spill thresholds (fractions of the full well) and upward shares tried by the diagnosis
