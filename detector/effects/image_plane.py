@@ -264,6 +264,63 @@ def vibration_smear(image: np.ndarray, ax_px: float, ay_px: float, spectra: dict
                           workers)
 
 
+def one_sided_tail_transfer(tail_px: float, tail_frac: float, angle_deg: float):
+    """The transfer function ``H(fx, fy)`` [1] (``f`` in cycles/px) of a PSF with a one-sided tail, and the pad
+    [px] a filter with it needs.
+
+    The kernel keeps ``1 - tail_frac`` of each source's light where it is and moves ``tail_frac`` into an
+    exponential tail of e-folding length ``tail_px`` [px] along the unit vector ``u`` at ``angle_deg``
+    (counter-clockwise from +x), starting at the source: ``k(x) = (1 - f) delta(x) + f delta_perp(x)
+    exp(-s / L) / L`` for ``s = x . u >= 0``. Its Fourier transform (Bracewell, *The Fourier Transform and
+    its Applications*, 3rd ed. 2000, table of transforms: ``exp(-s/L) H(s) / L <-> 1 / (1 + 2 pi i L f)``)::
+
+        H(f) = 1 - f_tail + f_tail / (1 + 2 pi i L f . u)
+
+    The tail's cumulants along ``u`` (those of the mixture of a point and an exponential of mean L):
+    ``k1 = f L``, ``k2 = f L^2 (2 - f)``, ``k3 = 2 f L^3 (3 - 3 f + f^2)``; across ``u`` none. Cumulants of a
+    convolution add, so a source's profile gains exactly these (its first moment moves by ``f L``)."""
+    f, length = float(tail_frac), float(tail_px)
+    ux, uy = np.cos(np.radians(angle_deg)), np.sin(np.radians(angle_deg))
+    pad = int(np.ceil(8 * length)) + 2  # exp(-8): 3e-4 of the tail beyond the pad
+
+    def transfer(fx, fy):
+        return (1.0 - f) + f / (1.0 + 2j * np.pi * length * (fx * ux + fy * uy))
+
+    return transfer, pad
+
+
+def one_sided_tail(image: np.ndarray, tail_px: float, tail_frac: float, angle_deg: float,
+                   spectra: dict | None = None, workers: int | None = None) -> np.ndarray:
+    """The image whose every source has ``tail_frac`` [1] of its light in a one-sided exponential tail of
+    e-folding length ``tail_px`` [px] along ``angle_deg`` [deg] (:func:`one_sided_tail_transfer`), applied in
+    Fourier space (flux conserving; edges extended with their own values).
+
+    A lopsided PSF, whose third moment a symmetric blur or elongation cannot make: the coma of an off-axis
+    field point of a paraboloid or of a decentred or tilted mirror (third-order coma: every pupil zone of
+    radius rho images as a circle of radius ``A rho^2`` centred ``2 A rho^2`` from the Gaussian image point,
+    equal light for equal steps of ``rho^2``, so the patch's light falls monotonically from its apex at the
+    Gaussian image point along the tail, ``3 A`` long, ``A = theta f / (16 N^2)`` for a paraboloid with the
+    stop at the mirror; Schroeder, *Astronomical Optics*, 2nd ed. 2000, 6.2; Bely, *The Design and
+    Construction of Large Optical Telescopes*, Springer 2003, on the coma a decentred secondary or primary
+    adds over the whole field), or a one-sided tail of the pointing (a tracking jump, a wind gust, then the
+    return). The exponential is the simplest monotonic one-sided profile with the apex at the source: its ``tail_px`` and ``tail_frac`` are effective values
+    (geometric coma of a uniform pupil has the along-tail mean ``A`` and variance ``A^2 / 2``).
+    ``spectra``, ``workers``: see :func:`fourier_filter`."""
+    if tail_frac == 0 or tail_px <= 0:
+        return image.copy()
+    ctype = np.complex128 if image.dtype == np.float64 else np.complex64
+    transfer, pad = one_sided_tail_transfer(tail_px, tail_frac, angle_deg)
+    return fourier_filter(image, pad, lambda fx, fy: transfer(fx, fy).astype(ctype, copy=False), spectra, workers)
+
+
+def tail_cumulants(tail_px: float, tail_frac: float) -> tuple[float, float, float]:
+    """The first three cumulants (k1 [px], k2 [px^2], k3 [px^3]) along its direction of the one-sided tail
+    kernel of :func:`one_sided_tail_transfer` (a point of weight ``1 - f`` and an exponential of mean ``L``
+    and weight ``f``: raw moments ``f L``, ``2 f L^2``, ``6 f L^3``)."""
+    f, length = float(tail_frac), float(tail_px)
+    return f * length, f * length ** 2 * (2 - f), 2 * f * length ** 3 * (3 - 3 * f + f * f)
+
+
 def decentering_shift(x, y, p1_per_px: float, p2_per_px: float):
     """Brown's (1966, Photogramm. Eng. 32, 444, eq. 13) decentering displacement (dx, dy) [px] at (x, y) [px]
     from the optical axis: ``dx = p1 (r^2 + 2 x^2) + 2 p2 x y``, ``dy = p2 (r^2 + 2 y^2) + 2 p1 x y``."""
@@ -629,11 +686,22 @@ ELONGATION_MIN_NEGATIVE = 0.1
 ELONGATION_MAX_GAIN = 50.0
 
 
-def _elongation_start(res):
+def _elongation_start(res, terms=(0, 1, 2)):
+    """theta = (c_xx, c_yy, c_xy [output px^2], a_x, a_y [output px], f [1]): the symmetric form from the
+    linearised second moments, the lopsided (tail) form from the linearised cumulants (:func:`_tail_start`)."""
+    if tuple(terms) == (3, 4, 5):
+        return _tail_start(res)
     return _linear_start(res, ["xx", "yy", "xy"], [0.5, 0.5, 1.0])
 
 
 def _elongation_transform(res, photo, th, spectra=None, workers=None):
+    th = np.asarray(th, float)
+    if th.size > 3 and np.any(th[3:6]):  # the lopsided form (nested: fitted alone, the covariance at 0)
+        length = float(np.clip(np.hypot(th[3], th[4]), 0.0, TAIL_MAX_FIT_PX))
+        frac = float(np.clip(th[5], 0.0, 1.0))
+        ang = float(np.degrees(np.arctan2(th[4], th[3])))
+        # negatives clipped as the adapter does (_store): the line kernel rings faintly around sharp sources
+        return np.maximum(one_sided_tail(photo, length, frac, ang, spectra=spectra, workers=workers), 0)
     cov = np.array([[th[0], th[2]], [th[2], th[1]]])
     w, v = np.linalg.eigh(cov)
     cov = v @ np.diag(np.clip(w, -_max_var(res), _max_var(res))) @ v.T
@@ -641,6 +709,9 @@ def _elongation_transform(res, photo, th, spectra=None, workers=None):
 
 
 def _elongation_params(th, res):
+    th = np.asarray(th, float)
+    if th.size > 3 and np.any(th[3:6]):
+        return _tail_params(th[3:6], res)
     w, _ = _jitter_axes(th)
     if w[1] <= 0 or w[0] >= 0 or -w[0] < ELONGATION_MIN_NEGATIVE * max(w[1], -w[0]) or max(w[1], -w[0]) >= 100:
         return None  # a pure blur (or a pure narrowing: a PSF too wide everywhere) is not an elongation
@@ -652,10 +723,118 @@ def _elongation_params(th, res):
 
 
 def _elongation_words(p, res) -> str:
+    if p.get("tail_frac", 0.0):
+        return (f"sources lopsided: {100 * p['tail_frac']:.2g} % of their light in a one-sided tail of "
+                f"{p['tail_px']:.3g} px towards {p['tail_angle_deg']:.0f} deg, their cores in place: an asymmetric "
+                "PSF (coma of an off-axis point or of a decentred or tilted mirror, a one-sided tracking "
+                "tail), which the scene's symmetric PSF lacks")
     w, ang = _jitter_axes(np.array([p["dcxx_px2"], p["dcyy_px2"], p["dcxy_px2"]]))
     return (f"sources wider than the model along {ang:.0f} deg (+{w[1]:.3g} px^2) and narrower across "
             f"({w[0]:.3g} px^2): an elongated PSF (astigmatism, tilt, wind shake), which the scene's round PSF "
             "lacks")
+
+
+# the lopsided form of the elongation: theta = (a_x, a_y [output px], f [1]), the tail L u = a, its share f
+#: longest tail [output px] a fit may try (a runaway step would pad the frame by 8 L)
+TAIL_MAX_FIT_PX = 50.0
+#: shortest tail [sensor px] proposed: a shorter one is a sub-pixel shift and blur of the core
+TAIL_MIN_PX = 0.2
+#: share of the light in the tail above which a tail is not plausible: the source would be more tail than core,
+#: which no coma short of a grossly misaligned mirror makes (and there the scene's PSF itself is wrong)
+TAIL_MAX_FRAC = 0.6
+#: tail length [in PSF FWHM] above which a tail is not plausible: a coma flare or a tracking tail several PSF
+#: widths long is a trail (pointing_drift) or a PSF the scene's optics must model, not a correction of it
+TAIL_MAX_FWHM = 3.0
+#: share of the light the linearised start assumes when the cumulants cannot tell it
+TAIL_START_FRAC = 0.3
+
+
+def _cumulant_start(res) -> np.ndarray:
+    """The linearised change of the sources' first three cumulants, cached: the residual fitted with
+    ``-k1 . grad I + 1/2 k2 : grad^2 I - 1/6 k3 : grad^3 I`` (the Edgeworth / Gram-Charlier expansion of a
+    convolution with a kernel of cumulants k_n; Kendall & Stuart vol. 1 sect. 6.17). Returns (k_x, k_y,
+    k_xx, k_yy, k_xy, k_xxx, k_xxy, k_xyy, k_yyy) [output px^n]."""
+    key = "cumulant_start"
+    if key not in res._flat:
+        d = _derivatives(res)
+        odd = _third_derivatives(res)
+        temps = [d["x"], d["y"], d["xx"], d["yy"], d["xy"]] + list(odd)
+        scale = [-1.0, -1.0, 0.5, 0.5, 1.0, -1 / 6, -1 / 2, -1 / 2, -1 / 6]
+        ctx = search_sample(res)
+        res._flat[key], _ = fit_linear(res, lambda i: np.stack([s_ * t.ravel()[i] for t, s_ in zip(temps, scale)]),
+                                       ctx["idx"], ctx["r"], ctx["w"])
+    return np.array(res._flat[key], float)
+
+
+def _tail_start(res):
+    """(a_x, a_y, f) of the tail whose cumulants match the linearised ones (:func:`tail_cumulants`): its
+    direction is that of the third cumulant (for a kernel along ``u``, ``k3 u u u``, whose spin-1 part
+    ``(k_xxx + k_xyy) + i (k_xxy + k_yyy)`` is ``k3 e^{i angle}``), L and f from ``k3 / k1 = 2 L^2 (3 - 3 f
+    + f^2)`` and ``k1 = f L`` along it (or from k2 when the centroid did not move forwards: a pointing offset
+    besides the tail). None when the sources are not lopsided (a tail shorter than TAIL_MIN_PX)."""
+    k = _cumulant_start(res)
+    z = complex(k[5] + k[7], k[6] + k[8])
+    k3, ang = abs(z), float(np.angle(z))
+    if k3 <= 0:
+        return None
+    c, s_ = np.cos(ang), np.sin(ang)
+    k1 = k[0] * c + k[1] * s_
+    k2 = k[2] * c * c + k[3] * s_ * s_ + 2 * k[4] * c * s_
+    f = TAIL_START_FRAC
+    length = float(np.cbrt(k3 / (2 * f * (3 - 3 * f + f * f))))
+    for _ in range(20):
+        g = 3 - 3 * f + f * f
+        if k1 > 0:
+            length = float(np.sqrt(k3 / (2 * k1 * g)))
+            f = k1 / length
+        elif k2 > 0:
+            length = float(k3 * (2 - f) / (2 * k2 * g))
+            f = 1 - float(np.sqrt(max(1 - k2 / length ** 2, 0.0)))
+        f = float(np.clip(f, 0.05, 0.8))
+    length = float(np.clip(length, 0.0, TAIL_MAX_FIT_PX / 2))
+    if length * res.sensor.binning < TAIL_MIN_PX:
+        return None
+    return np.array([length * c, length * s_, f])
+
+
+def _tail_params(th, res):
+    b = res.sensor.binning
+    length, frac = float(np.hypot(th[0], th[1])), float(th[2])
+    if not 0.01 <= frac <= 1.0 or not TAIL_MIN_PX <= length * b <= 50 or length > TAIL_MAX_FIT_PX:
+        return None  # ElongationParams' bounds: no tail, or one the fit ran away with
+    ang = float(np.degrees(np.arctan2(th[1], th[0])))
+    return {"dcxx_px2": 0.0, "dcyy_px2": 0.0, "dcxy_px2": 0.0, "tail_px": round(length * b, 4),
+            "tail_frac": round(frac, 4), "tail_angle_deg": round(ang, 2)}
+
+
+def psf_fwhm_px(res) -> float:
+    """The model's PSF FWHM [output px], from its photo-signal's derivatives: for a Gaussian of rms sigma,
+    ``sum |grad I|^2 / sum (lap I)^2 = sigma^2 / 2`` (Parseval: ``int 4 pi^2 k^2 |G|^2 / int 16 pi^4 k^4
+    |G|^2`` with ``|G|^2 = exp(-4 pi^2 sigma^2 k^2)``), summed over the frame (the brightest sources weigh
+    most; a smooth background adds almost nothing). Pixel differences underestimate the derivatives of an
+    undersampled source, so this errs wide: a plausibility bound, not a measurement."""
+    d = _derivatives(res)
+    g2 = float(np.sum(d["x"] ** 2 + d["y"] ** 2))
+    l2 = float(np.sum((d["xx"] + d["yy"]) ** 2))
+    if l2 <= 0:
+        return float("inf")
+    return 2 * np.sqrt(2 * np.log(2)) * float(np.sqrt(2 * g2 / l2))
+
+
+def _elongation_check(fit, res) -> str:
+    """The lopsided form must be a tail a PSF can have: at most TAIL_MAX_FRAC of the light, at most
+    TAIL_MAX_FWHM PSF widths long."""
+    p = fit.params
+    if not p.get("tail_frac", 0.0):
+        return ""
+    if p["tail_frac"] > TAIL_MAX_FRAC:
+        return (f"{100 * p['tail_frac']:.2g} % of the sources' light in the tail: a source that is more tail than "
+                "core is not a PSF with coma; a trail (pointing_drift) or a wholly different PSF")
+    fwhm = psf_fwhm_px(res) * res.sensor.binning
+    if p["tail_px"] > TAIL_MAX_FWHM * fwhm:
+        return (f"a tail of {p['tail_px']:.3g} px, {p['tail_px'] / fwhm:.2g} times the PSF's FWHM ({fwhm:.3g} px): "
+                "a flare that long is a trail (pointing_drift) or a PSF the optics must model, not a coma tail")
+    return ""
 
 
 # offset: theta = (dx, dy) [output px]
@@ -951,6 +1130,12 @@ class ElongationParams(EffectParams):
                             json_schema_extra={"unit": "pixel^2"})
     dcxy_px2: float = Field(0.0, ge=-25, le=25, description="change of the cross moment xy [sensor px^2]",
                             json_schema_extra={"unit": "pixel^2"})
+    tail_px: float = Field(0.0, ge=0, le=50, description="e-folding length of a one-sided exponential tail of "
+                           "the PSF (the lopsided form: coma) [sensor px]", json_schema_extra={"unit": "pixel"})
+    tail_frac: float = Field(0.0, ge=0, le=1, description="share of each source's light in the tail (0: none) [1]",
+                             json_schema_extra={"unit": "1"})
+    tail_angle_deg: float = Field(0.0, ge=-180, le=180, description="direction of the tail, counter-clockwise from "
+                                  "+x [deg]", json_schema_extra={"unit": "deg"})
 
 
 @register_effect
@@ -960,22 +1145,37 @@ class PSFElongation(Effect):
     one. Applied as the Gaussian filter of covariance ``dC`` (``H = exp(-2 pi^2 f^T dC f)``, the narrowing
     axis a capped deconvolution), so the second moments of every source become ``C_psf + dC`` (moments of
     a convolution add; for a Gaussian PSF the result is exact, for a Moffat its core). ``dC`` must leave
-    ``C_psf + dC`` positive: a narrowing larger than the PSF's own variance has no meaning."""
+    ``C_psf + dC`` positive: a narrowing larger than the PSF's own variance has no meaning.
+
+    Its lopsided form: ``tail_frac`` of every source's light in a one-sided exponential tail of ``tail_px``
+    along ``tail_angle_deg``, the core in place (:func:`one_sided_tail`: coma, a one-sided tracking tail),
+    which changes the sources' third moments, as no symmetric kernel can. The diagnosis fits the two forms
+    apart (nested: the symmetric one from the linearised second moments, the lopsided one from the
+    linearised first and third cumulants) and keeps the better; the applied effect is the covariance
+    filter followed by the tail."""
 
     name = "psf_elongation"
     scaling = "frame"
-    identity = {"dcxx_px2": 0.0, "dcyy_px2": 0.0, "dcxy_px2": 0.0}
+    identity = {"dcxx_px2": 0.0, "dcyy_px2": 0.0, "dcxy_px2": 0.0, "tail_frac": 0.0}
     stages = (Stage.FIELD,)
     Params = ElongationParams
     signature = TransformSignature(
-        _elongation_start, _elongation_transform, _elongation_params, [0.02, 0.02, 0.02],
-        pattern="sources wider than the model along one axis and narrower across (a quadrupole residual)",
+        _elongation_start, _elongation_transform, _elongation_params, [0.02, 0.02, 0.02, 0.02, 0.02, 0.01],
+        nested=[(0, 1, 2), (3, 4, 5)], check=_elongation_check,
+        pattern="sources wider than the model along one axis and narrower across (a quadrupole residual), or "
+                "lopsided: a one-sided tail (a skew residual)",
         explain=_elongation_words)
 
     def apply(self, stage: Stage, tile: Tile, data: np.ndarray) -> None:
         p = self.params
-        cov = np.array([[p.dcxx_px2, p.dcxy_px2], [p.dcxy_px2, p.dcyy_px2]])
-        _store(data, gaussian_filter_cov(data, cov, max_gain=ELONGATION_MAX_GAIN))
+        out = data
+        if p.dcxx_px2 or p.dcyy_px2 or p.dcxy_px2:
+            cov = np.array([[p.dcxx_px2, p.dcxy_px2], [p.dcxy_px2, p.dcyy_px2]])
+            out = gaussian_filter_cov(out, cov, max_gain=ELONGATION_MAX_GAIN)
+        if p.tail_frac and p.tail_px:
+            out = one_sided_tail(out, p.tail_px, p.tail_frac, p.tail_angle_deg)
+        if out is not data:
+            _store(data, out)
 
 
 class OffsetParams(EffectParams):

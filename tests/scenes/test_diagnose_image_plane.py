@@ -19,6 +19,10 @@ CASES = {
     # a 6-px trail at 30 deg: a box, told from the Gaussian smear of jitter (which must not take it, and
     # whose own case above must not be taken by the drift: every case asserts its effect ranks first)
     "pointing_drift": ({"dx_px": 5.2, "dy_px": 3.0}, {"dx_px": (5.2, 0.2), "dy_px": (3.0, 0.2)}),
+    # a lopsided PSF (coma: 40 % of the light in a 1.5 px one-sided tail along 20 deg): the elongation's tail
+    # form, which the offset (its centroid moves by f L = 0.6 px) and the symmetric smears must not take
+    "psf_elongation": ({"tail_px": 1.5, "tail_frac": 0.4, "tail_angle_deg": 20.0},
+                       {"tail_px": (1.5, 0.15), "tail_frac": (0.4, 0.05), "tail_angle_deg": (20.0, 3.0)}),
 }
 
 
