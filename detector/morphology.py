@@ -1206,7 +1206,6 @@ def source_kernel(res: Residuals, rmap: np.ndarray, wmap: np.ndarray) -> dict | 
 
     if res.background_adu is None:
         return None
-    shape = rmap.shape
     src = np.clip(np.asarray(res.photo_field, np.float64) - res.background_photo_adu, 0.0, None)
     sd = np.sqrt(np.maximum(np.asarray(res.var_adu2, np.float64), 1e-12))
     core = src > SOURCE_KERNEL_CORE_SIGMA * sd
@@ -1233,32 +1232,47 @@ def source_kernel(res: Residuals, rmap: np.ndarray, wmap: np.ndarray) -> dict | 
 
 def _kernel_words(ker: dict, gain: float) -> dict:
     """The description of a kernel about the sources (:func:`source_kernel`): its net share of the sources'
-    light (flux kept: redistributed; else added or taken: additive), where its mass lies (a one-sided trail
-    toward an angle, along the rows or the columns) and its size."""
+    light (flux kept: redistributed; else added or taken: additive), its one-sided part (the signed first
+    moment of the light it moves: a trail toward an angle), its axis (the non-radial part's extent along the
+    rows or the columns) and its size. The source's own pixel (a photometric scale) is not a shape."""
     kern = ker["kernel"]
     h = kern.shape[0] // 2
     dy, dx = np.mgrid[-h: h + 1, -h: h + 1].astype(np.float64)
+    rr = np.rint(np.hypot(dy, dx))
     c = kern.copy()
-    c[h, h] = 0.0  # the source's own pixel is its flux scale (a photometric error), not a shape
-    net, mass = float(c.sum()), float(np.abs(c).sum())
+    c[h, h] = 0.0
+    mass = float(np.abs(c).sum())
     if mass <= 0:
         return {}
-    kind = "redistributed" if abs(kern.sum()) < 0.25 * mass else "additive"
-    mx, my = float(np.sum(np.abs(c) * dx) / mass), float(np.sum(np.abs(c) * dy) / mass)
-    vx, vy = float(np.sum(np.abs(c) * dx * dx) / mass), float(np.sum(np.abs(c) * dy * dy) / mass)
+    net = float(kern.sum())
+    kind = "redistributed" if abs(net) < 0.25 * mass else "additive"
+    # the non-radial part: each annulus less its mean (a ring or halo is radial)
+    ring_mean = np.zeros_like(c)
+    for i in range(1, h + 1):
+        on = rr == i
+        ring_mean[on] = c[on].mean()
+    nr = np.abs(c - ring_mean)
+    vx, vy = float(np.sum(nr * dx * dx)), float(np.sum(nr * dy * dy))
     geometry = ["sources"]
-    if vx > 3 * vy:
+    if vx > 2 * vy:
         geometry.append("rows")
-    elif vy > 3 * vx:
+    elif vy > 2 * vx:
         geometry.append("columns")
-    shift = math.hypot(mx, my)
-    where = (f", its mass {shift:.2g} px to one side (toward {math.degrees(math.atan2(my, mx)):.0f} deg: a one-sided "
-             "trail)") if shift > 1.0 else ""
+    # the signed first moment [px per unit of moved light]: toward where light is added, away from where taken
+    mx, my = float(np.sum(c * dx) / mass), float(np.sum(c * dy) / mass)
+    one_sided = math.hypot(mx, my)
+    where = ""
+    if one_sided > 0.5:
+        ang = math.degrees(math.atan2(my, mx))
+        where = (f"; one-sided: light gained toward {ang:.0f} deg and lost on the opposite side (a trail, a coma, "
+                 "an amplifier's overshoot or undershoot along the read-out)")
+    size = float(np.sqrt(np.sum(np.abs(c) * (dx * dx + dy * dy)) / mass))
     sense = "moved about them (flux kept)" if kind == "redistributed" else ("added next to them" if net > 0 else
                                                                           "taken from next to them")
-    desc = (f"{100 * mass:.3g} % of the sources' light {sense} within {h} px, rms distance "
-            f"{math.sqrt(vx + vy):.2g} px{where}, stacked over every source ({ker['sigma']:.0f} sigma)")
-    return {"kind": kind, "kind_certain": True, "geometry": geometry, "scale_px": round(math.sqrt(vx + vy), 2),
+    axis = {"rows": ", along the rows", "columns": ", along the columns"}.get(geometry[-1], "")
+    desc = (f"{100 * mass:.3g} % of the sources' light {sense} within {h} px{axis}, rms distance {size:.2g} px"
+            f"{where}; stacked over every source ({ker['sigma']:.0f} sigma)")
+    return {"kind": kind, "kind_certain": True, "geometry": geometry, "scale_px": round(size, 2),
             "amplitude": round(100 * (mass if kind == "redistributed" else net), 4), "unit": "% of the sources' light",
             "shares": {"sources": 1.0}, "explanation": _words(kind, geometry, desc)}
 

@@ -293,7 +293,8 @@ class SoftBleed(RealWorld):
         n = int(6 * p.length_px) + 1
         k = np.exp(-np.arange(1, n + 1) / p.length_px)
         kern = np.concatenate([(1 - p.up_share) * k[::-1] / k.sum(), [0.0], p.up_share * k / k.sum()])
-        data += ndimage.convolve1d(excess, kern[::-1].astype(np.float32), axis=0, mode="constant")
+        # a convolution: the charge of row i reaches row i + d with weight kern[centre + d] (up: higher rows)
+        data += ndimage.convolve1d(excess, kern.astype(np.float32), axis=0, mode="constant")
 
 
 class QuadBayer(RealWorld):
