@@ -695,6 +695,12 @@ def describe(res: Residuals, delta_adu: np.ndarray | None = None) -> dict:
         sm = gaussian_filter(vals * wts, 1.0, mode="nearest") / np.maximum(gaussian_filter(wts, 1.0, mode="nearest"),
                                                                          1e-9)
         out["empirical"] = {"kind": ek, "map": _upsample(sm, b, shape)}
+        if main == "local" and zp.size <= FEATURE_MAX_PIXELS:
+            # a local pattern thinner than a block (a trail, glints): the features' own map when it explains more
+            fmap = _feature_map(feats, rmap, wmap, light, "additive" if kind == "redistributed" else kind, res)
+            if fmap is not None and _map_gain(fmap, rmap, wmap, light) > _map_gain(out["empirical"], rmap, wmap,
+                                                                                      light):
+                out["empirical"] = fmap
     elif main in ("rows", "columns") and kind in ("additive", "multiplicative", "mixed"):
         out["empirical"] = _line_map(rmap, wmap, light, kind, axis=1 if main == "rows" else 0)
     elif periodic_map is not None:
@@ -766,6 +772,16 @@ def _line_period(lm: np.ndarray, lw: np.ndarray) -> float:
         a, b, c = np.log(p[k - 1]), np.log(p[k]), np.log(p[k + 1])
         k = k + 0.5 * (a - c) / (a - 2 * b + c) if (a - 2 * b + c) < 0 else k
     return round(n / k, 2)
+
+
+def _map_gain(emp: dict, rmap: np.ndarray, wmap: np.ndarray, light: np.ndarray) -> float:
+    """The chi2 an empirical map (``{"kind", "map"}``) removes from the residual ``rmap`` (weights ``wmap``)."""
+    m = np.asarray(emp["map"], np.float64)
+    if emp.get("kind") == "multiplicative":
+        m = m * light
+    elif emp.get("kind") not in ("additive", None):
+        return 0.0
+    return float(np.sum(wmap * (rmap * rmap - (rmap - m) ** 2)))
 
 
 def _relative(kind: str, amap: np.ndarray, light: np.ndarray) -> dict:
@@ -866,13 +882,19 @@ def matched_snr(rmap: np.ndarray, wmap: np.ndarray, s: float, exclude: np.ndarra
     return np.where(good, snr / sig, 0.0) if sig > 0 else np.zeros_like(snr)
 
 
+#: a feature whose extent (its bounding box's diagonal) is this many times its scale is long (a trail)
+MAP_LONG_SPAN = 12.0
+
+
 def _significant_features(rmap: np.ndarray, wmap: np.ndarray, exclude: np.ndarray | None,
                           scales=FEATURE_SCALES) -> np.ndarray:
     """Where compact features significant on their own are, and at which scale: a map of the finest scale
     ``s`` [px] at which each pixel's feature is significant (0 off the features). At each scale ``s`` the matched-filter
     S/N (:func:`matched_snr`) seeds a feature above :func:`_seed_sigma` (a false alarm of MAP_FALSE_ALARM per
-    frame) and the feature is grown to where its S/N of the same sign falls below MAP_GROW_SIGMA; features
-    within 3 ``s`` of ``exclude`` (the sources' cores: a misfit source is another family) are left out;
+    frame) and the feature is grown to where its S/N of the same sign falls below MAP_GROW_SIGMA; pixels
+    within 3 ``s`` of ``exclude`` (the sources' cores: a misfit source is another family) neither seed nor
+    are mapped, and a compact feature that reaches them is the source's (one longer than MAP_LONG_SPAN x
+    ``s``, a trail passing a star, keeps its other pixels);
     the scales are those of the morphology's own search (:func:`compact_features`)."""
     out = np.zeros(rmap.shape, np.float64)
     n_ok = int((wmap > 0).sum())
@@ -888,11 +910,21 @@ def _significant_features(rmap: np.ndarray, wmap: np.ndarray, exclude: np.ndarra
             if n == 0:
                 continue
             idx = np.arange(1, n + 1)
-            seeded = ndi.maximum(sign * snr, lab, idx) > t
+            # seeded away from the sources' cores; a long feature (a trail) that passes near a source keeps
+            # its other pixels: only those near the sources are left to them
+            far = sign * snr if near is None else np.where(near, -np.inf, sign * snr)
+            seeded = ndi.maximum(far, lab, idx) > t
             if near is not None:
-                seeded &= ~(ndi.maximum(near.astype(np.int8), lab, idx) > 0)
+                # a compact feature by a source belongs to the source; one far longer than its scale (a trail
+                # passing a star) keeps its pixels away from the sources
+                touches = ndi.maximum(near.astype(np.int8), lab, idx) > 0
+                span = np.array([math.hypot(sl[0].stop - sl[0].start, sl[1].stop - sl[1].start)
+                                 for sl in ndi.find_objects(lab)])
+                seeded &= ~touches | (span > MAP_LONG_SPAN * s)
             if seeded.any():
                 new = np.isin(lab, idx[seeded]) & (out == 0)
+                if near is not None:
+                    new &= ~near
                 out[new] = s
     return out
 
@@ -935,7 +967,8 @@ def _feature_map(feats: dict, rmap: np.ndarray, wmap: np.ndarray, light: np.ndar
       profile (:func:`_source_profile_map`, out to twice the rings' radius and their scale): the mean residual
       profile around the stars scaled by each star's light, which holds the faint stars' rings too.
     * Every other compact feature is mapped where it is significant on its own: the footprints
-      :func:`compact_features` found, and every feature whose matched-filter S/N seeds above a false alarm of
+      :func:`compact_features` found (none: a line, a trail, is no blob), and every feature whose matched-filter
+      S/N seeds above a false alarm of
       MAP_FALSE_ALARM per frame and scale, grown to where it falls below MAP_GROW_SIGMA sigma
       (:func:`_significant_features`; off the sources' cores when they are known). There the map is the
       residual smoothed at half the scale at which each feature is significant (normalised convolution over
@@ -944,8 +977,6 @@ def _feature_map(feats: dict, rmap: np.ndarray, wmap: np.ndarray, light: np.ndar
       residual, unless saturated: the feature is mapped where it is brightest, not interpolated from its wings.
     """
     foot = feats["footprint"]["rings"] | feats["footprint"]["blobs"] | feats["footprint"]["srings"]
-    if not foot.any():
-        return None
     scale = max([feats.get(f"scale_{f}", 1.0) for f in ("rings", "blobs", "srings") if feats[f"n_{f}"]] or [1.0])
     ok = (wmap > 0).astype(np.float64)
     amap = np.zeros(rmap.shape, np.float64)

@@ -103,3 +103,20 @@ def test_significant_features_finds_a_blob_of_known_snr_and_leaves_the_sources()
     core = np.zeros(r.shape, bool)
     core[60, 125] = True  # a source's core 5 px away (< 3 s)
     assert not (_significant_features(r, w, core, (1.0, 2.0)) > 0).any()
+
+
+def test_a_trail_passing_a_source_keeps_its_pixels_away_from_it():
+    """A straight trail (S/N ~ 9 per matched filter) across the frame that passes 3 px from a source's core is
+    mapped along its length; only the pixels by the source are left to it."""
+    yy, xx = np.mgrid[0:N, 0:N]
+    d = np.abs((yy - 40) - 0.5 * (xx - 20)) / math.hypot(1.0, 0.5)  # distance to the line y = 40 + (x - 20) / 2
+    trail = 6.0 * SIG_ADU * np.exp(-0.5 * (d / 1.2) ** 2)
+    r = np.random.default_rng(8).normal(0.0, SIG_ADU, (N, N)) + trail
+    w = np.full(r.shape, 1.0 / SIG_ADU ** 2)
+    core = np.zeros(r.shape, bool)
+    core[40 + 50 + 3, 120] = True  # by the trail at x = 120 (the line is at y = 90 there)
+    found = _significant_features(r, w, core, (1.0, 2.0)) > 0
+    on_line = d < 1.0
+    far = ~ndi.binary_dilation(core, iterations=6)
+    assert found[on_line & far].mean() > 0.8
+    assert not found[ndi.binary_dilation(core, iterations=3)].any()  # within 3 s of the core at s = 1

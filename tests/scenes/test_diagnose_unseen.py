@@ -7,7 +7,7 @@ effect that no plugin models must get no significant plausible catalogue name, a
 geometry; a frame with nothing hidden must give no significant candidate.
 
 The unmarked tests run a fast subset (three catalogue forms, two effects in no plugin, one null frame:
-about 1-2 min on 2 cores); the whole set (85 cases, ~35 min on 2 cores) is ``slow``. Cases that today's
+about 1-2 min on 2 cores); the whole set (92 cases, ~12 min on 2 cores) is ``slow``. Cases that today's
 diagnosis fails are ``xfail(strict=False)`` ("issue 10 in progress"): the baseline in
 docs/diagnose_validation.md, section "Unseen forms and out-of-catalogue effects (issue 10)".
 """
@@ -25,15 +25,13 @@ CASES = NS["CASES"]
 #: one null frame
 FAST = ("vig_gauss_window", "sky_quadratic", "rows_telegraph", "dust_donuts", "readnoise_gradient", "null_dark")
 
-#: cases the diagnosis still fails (run of 2026-11-25 02:04 after issue 10's fourth round, seed 11; before and
-#: after in docs/diagnose_validation.md)
+#: cases the diagnosis still fails (run of 2026-11-25 after issue 10's sixth round, seed 11; before and after in
+#: docs/diagnose_validation.md)
 FAILS_TODAY: set[str] = {
-    # missed (no catalogue form reaches them): a soft bleed, a one-sided coma tail (the symmetric smears cannot
-    # follow it and an offset is refused: the sources are lopsided; described as light moved around the sources)
-    "bloom_soft_bright", "elong_coma",
-    # described right, but the empirical map halves the error only partly (light moved into rings around the
-    # sources, a faint latent image, elongated glints)
-    "diffraction_ring", "persistence", "satellite_glint"}
+    # a probe added in the sixth round: an amplifier's undershoot trailing every star along its row is found
+    # (light locked to the sources, 221 sigma) but described as flux moved about them, not taken; its kernel
+    # map removes a third of the excess, not half
+    "amp_undershoot"}
 
 ISSUE = "issue 10 in progress"
 

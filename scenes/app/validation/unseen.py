@@ -12,7 +12,9 @@ and adds:
   IMX411 CMOS), on full sensors (binned) and on windows;
 * **effects in no plugin** (``ooc``: out of catalogue): dust donuts, a diffraction ring around the stars,
   a read-noise gradient, a bias drifting during the read-out, satellite glints, fringes, an electronic
-  pickup pattern, a persistent image of a previous pointing. Their right answer is not a name but an honest
+  pickup pattern, a persistent image of a previous pointing, a periodic row pick-up; and, added in the sixth
+  round as probes before any rule was written for them, a read-out smear, a rolling-shutter flicker, a
+  satellite trail, tree rings and an amplifier undershoot. Their right answer is not a name but an honest
   description: each records the expected ``kind`` ("additive", "multiplicative", "redistributed",
   "mixed") and ``geometry`` (words of "radial", "gradient", "rows", "columns", "periodic", "sources",
   "local", "rings", "blobs") that the diagnosis's ``residual_morphology`` block must match;
