@@ -1227,17 +1227,31 @@ def _kernel_basis(h: int) -> list[np.ndarray]:
 
 def source_kernel(res: Residuals, rmap: np.ndarray, wmap: np.ndarray) -> dict | None:
     """The residual about the sources as a kernel of their light: ``r(p) = sum_o K(o) S(p - o)`` over offsets
-    ``|o| <= SOURCE_KERNEL_HALF`` (``S`` the sources' model light before the full-well clip [ADU]), ``K`` in
+    ``|o| <= SOURCE_KERNEL_HALF`` (``S`` the sources' model light before the full-well clip, or the signal the
+    model records, clipped, whichever the residual follows better [ADU]), ``K`` in
     1 px annuli times angular harmonics 0 .. 2 (:func:`_kernel_basis`: smooth enough to be read, any shape a
     trail, a one-sided halo, a ring or an elongation has), fitted by weighted least squares on the fitted
     pixels next to the sources: the stacked residual profile of the sources per unit of their light. Its
     chi2 gain against its k parameters gives ``sigma`` = (delta chi2 - k) / sqrt(2 k); ``map`` is ``S``
-    convolved with ``K`` [ADU]. None without sources."""
-    from scipy.signal import fftconvolve
-
+    convolved with ``K`` [ADU]; ``of`` which ``S``. None without sources."""
     if res.background_adu is None:
         return None
-    src = np.clip(np.asarray(res.photo_field, np.float64) - res.background_photo_adu, 0.0, None)
+    # the light the optics spread (before the full-well clip) or the signal the read-out recorded (an
+    # amplifier's echo follows what it read): whichever the residual follows better
+    light = np.clip(np.asarray(res.photo_field, np.float64) - res.background_photo_adu, 0.0, None)
+    recorded = np.clip(np.asarray(res.model_adu, np.float64) - res.background_adu, 0.0, None)
+    fits = []
+    for tag, src in (("light", light), ("recorded signal", recorded)):
+        f = _kernel_fit(res, rmap, wmap, src)
+        if f is not None:
+            fits.append(dict(f, of=tag))
+    return max(fits, key=lambda f: f["dchi2"]) if fits else None
+
+
+def _kernel_fit(res: Residuals, rmap: np.ndarray, wmap: np.ndarray, src: np.ndarray) -> dict | None:
+    """:func:`source_kernel` for one source image ``src`` [ADU]."""
+    from scipy.signal import fftconvolve
+
     sd = np.sqrt(np.maximum(np.asarray(res.var_adu2, np.float64), 1e-12))
     core = src > SOURCE_KERNEL_CORE_SIGMA * sd
     h = SOURCE_KERNEL_HALF
@@ -1302,7 +1316,7 @@ def _kernel_words(ker: dict, gain: float) -> dict:
                                                                           "taken from next to them")
     axis = {"rows": ", along the rows", "columns": ", along the columns"}.get(geometry[-1], "")
     desc = (f"{100 * mass:.3g} % of the sources' light {sense} within {h} px{axis}, rms distance {size:.2g} px"
-            f"{where}; stacked over every source ({ker['sigma']:.0f} sigma)")
+            f"{where}; stacked over every source, following their {ker.get('of', 'light')} ({ker['sigma']:.0f} sigma)")
     return {"kind": kind, "kind_certain": True, "geometry": geometry, "scale_px": round(size, 2),
             "amplitude": round(100 * (mass if kind == "redistributed" else net), 4), "unit": "% of the sources' light",
             "shares": {"sources": 1.0}, "explanation": _words(kind, geometry, desc)}

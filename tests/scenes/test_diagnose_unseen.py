@@ -29,8 +29,8 @@ FAST = ("vig_gauss_window", "sky_quadratic", "rows_telegraph", "dust_donuts", "r
 #: docs/diagnose_validation.md)
 FAILS_TODAY: set[str] = {
     # a probe added in the sixth round: an amplifier's undershoot trailing every star along its row is found
-    # (light locked to the sources, 221 sigma) but described as flux moved about them, not taken; its kernel
-    # map removes a third of the excess, not half
+    # (light locked to the sources, one-sided, its map halves the error) but described as flux moved about
+    # them, not taken: the kernel's few angular terms cannot hold a one-pixel-wide trail without a ring
     "amp_undershoot"}
 
 ISSUE = "issue 10 in progress"
