@@ -292,3 +292,39 @@ def test_rts_fraction_is_per_sensor_pixel_on_a_binned_frame():
 
     f1, f2 = fraction(1), fraction(2)
     assert 0 < f1 < 0.1 and abs(f2 / f1 - 0.25) < 0.01
+
+
+# --- the sixth round's probes: each form against its law ------------------------------------------------------
+
+def test_probe_forms_follow_their_laws():
+    """Read-out smear: every pixel gains frac x its column's light; flicker: rows modulated by 1 + a sin; tree
+    rings: a response of mean ~1 and amplitude a; undershoot: a source loses alpha of its light to its right, none
+    to its left; satellite trail: e_per_px per pixel of its length; bias step: step_adu above the row fraction."""
+    import numpy as np
+
+    from tests.helpers import small_sensor
+
+    s = small_sensor(width=64, height=48)
+    tile = _tile(s)
+    img = np.full(tile.shape, 100.0, np.float32)
+    img[20:24, 30] += 5000.0
+    smear = img.copy()
+    NS["ReadoutSmear"](s, frac_per_row=1e-3).apply(None, tile, smear)
+    assert np.allclose(smear - img, 1e-3 * img.sum(axis=0)[None, :], rtol=1e-5)
+    flick = np.ones(tile.shape, np.float32)
+    NS["Flicker"](s, amp=0.01, period_rows=12.0).apply(None, tile, flick)
+    assert abs(float(np.ptp(flick[:, 0])) / 2 - 0.01) < 1e-3 and np.ptp(flick, axis=1).max() < 1e-6
+    rings = np.ones(tile.shape, np.float32)
+    NS["TreeRings"](s, amp=0.004, period_px=10.0, cu=-0.4, cv=1.3).apply(None, tile, rings)
+    assert abs(float(rings.mean()) - 1) < 1e-3 and abs(float(np.ptp(rings)) / 2 - 0.004) < 3e-4
+    star = np.full(tile.shape, 50.0, np.float32)
+    star[24, 20] += 1e4
+    under = star.copy()
+    NS["AmplifierUndershoot"](s, alpha=0.01, tail_px=2.0).apply(None, tile, under)
+    assert abs(float((star - under)[24, 21:].sum()) - 100.0) < 1e-2 and not (star - under)[24, :21].any()
+    trail = np.zeros((200, 200), np.float32)
+    NS["SatelliteTrail"](s, u0=0.0, v0=0.5, u1=1.0, v1=0.5, e_per_px=400.0, sigma_px=1.2).apply(None, tile, trail)
+    assert abs(float(trail[:, 100].sum()) - 400.0) < 1.0
+    bias = np.zeros(tile.shape, np.float32)
+    NS["BiasJump"](s, step_adu=1.5, at=0.4).apply(None, tile, bias)
+    assert set(np.unique(bias).tolist()) <= {0.0, 1.5} and bias[-1, 0] == 1.5
