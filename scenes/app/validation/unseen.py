@@ -1877,9 +1877,9 @@ def markdown(rows: list[dict], summ: dict, conf: dict) -> str:
              f"| null frames clean | {pct('null_clean')} |", ""]
     if summ["errors"]:
         lines += [f"cases that raised: {', '.join(summ['errors'])}", ""]
-    lines += ["truth chi2: the chi2 the hidden effect's exact template removes from a noise-free frame (how "
-              "detectable the case is whatever the diagnosis; '-' for an effect that adds noise). A one-amplitude "
-              "template needs about 2 ln N (~25) of it to pass a BIC test.", "",
+    lines += [("truth chi2: the chi2 the hidden effect's exact template removes from a noise-free frame (how "
+               "detectable the case is whatever the diagnosis; '-' for an effect that adds noise). A one-amplitude "
+               "template needs about 2 ln N (~25) of it to pass a BIC test."), "",
               ("| case | group | base | strength | truth chi2 | first (delta BIC) | accepted | wrong? | runner-up | "
                "morphology (kind / geometry) | expected | error before | after | ratio | s |"),
               "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
