@@ -1317,9 +1317,15 @@ def _kernel_words(ker: dict, gain: float) -> dict:
     axis = {"rows": ", along the rows", "columns": ", along the columns"}.get(geometry[-1], "")
     desc = (f"{100 * mass:.3g} % of the sources' light {sense} within {h} px{axis}, rms distance {size:.2g} px"
             f"{where}; stacked over every source, following their {ker.get('of', 'light')} ({ker['sigma']:.0f} sigma)")
-    return {"kind": kind, "kind_certain": True, "geometry": geometry, "scale_px": round(size, 2),
+    # flux kept is what the level-profiled residual shows, but a loss in proportion to the sources' light is
+    # partly taken by the refitted light level (the sources' flux scale and the frame's light level are nearly
+    # one parameter on a star field): "kept" is not certain
+    certain = kind != "redistributed"
+    doubt = "" if certain else (" (whether the sources' flux is kept or partly taken cannot be told: the refitted "
+                                "light level takes a loss in proportion to their light)")
+    return {"kind": kind, "kind_certain": certain, "geometry": geometry, "scale_px": round(size, 2),
             "amplitude": round(100 * (mass if kind == "redistributed" else net), 4), "unit": "% of the sources' light",
-            "shares": {"sources": 1.0}, "explanation": _words(kind, geometry, desc)}
+            "shares": {"sources": 1.0}, "explanation": _words(kind, geometry, desc) + doubt}
 
 
 def _words(kind: str, geometry: list[str], desc: str) -> str:
