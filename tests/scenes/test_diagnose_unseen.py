@@ -33,7 +33,7 @@ FAILS_TODAY: set[str] = {
     # them, not taken: the kernel's few angular terms cannot hold a one-pixel-wide trail without a ring
     "amp_undershoot"}
 
-ISSUE = "issue 10 in progress"
+ISSUE = "a known limit of the diagnosis (FAILS_TODAY, docs/diagnose_validation.md)"
 
 _CACHE: dict = {}
 
