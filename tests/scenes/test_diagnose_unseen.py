@@ -8,7 +8,7 @@ geometry; a frame with nothing hidden must give no significant candidate.
 
 The unmarked tests run a fast subset (three catalogue forms, two effects in no plugin, one null frame:
 about 1-2 min on 2 cores); the whole set (92 cases, ~12 min on 2 cores) is ``slow``. Cases that today's
-diagnosis fails are ``xfail(strict=False)`` ("issue 10 in progress"): the baseline in
+diagnosis fails are ``xfail(strict=False)`` (a known limit): the baseline in
 docs/diagnose_validation.md, section "Unseen forms and out-of-catalogue effects (issue 10)".
 """
 
