@@ -451,7 +451,7 @@ def describe(res: Residuals, delta_adu: np.ndarray | None = None) -> dict:
             if ker is not None and ker["sigma"] >= SIGNIFICANT_SIGMA:
                 out["significant"] = True
                 out["significance_sigma"] = round(max(out["significance_sigma"], ker["sigma"]), 2)
-                out.update(_kernel_words(ker, gain))
+                out.update(_kernel_words(ker))
                 out["empirical"] = {"kind": "additive", "map": ker["map"]}
         return out
     out["significant"] = True
@@ -712,6 +712,12 @@ def describe(res: Residuals, delta_adu: np.ndarray | None = None) -> dict:
     return out
 
 
+def _source_light(res: Residuals) -> np.ndarray:
+    """The sources' model light before the full-well clip [ADU per output pixel]: the light field less the
+    background's, at least 0."""
+    return np.clip(np.asarray(res.photo_field, np.float64) - res.background_photo_adu, 0.0, None)
+
+
 #: a line pattern follows the sources when their light per line explains this share of the lines' excess
 LINE_SOURCE_SHARE = 0.5
 
@@ -724,8 +730,7 @@ def _lines_through_sources(res: Residuals, lm, lw, okl, axis: int, excess: float
     if res.background_adu is None or excess <= 0:
         return None
     # the sources' light before the full-well clip (a saturated star smears all of its light), on every pixel
-    src = np.clip(np.asarray(res.photo_field, np.float64) - res.background_photo_adu, 0.0, None)
-    s_line = src.sum(axis=axis)[okl]
+    s_line = _source_light(res).sum(axis=axis)[okl]
     s_line = s_line - float(np.sum(lw * s_line) / np.sum(lw))  # a straight line with its intercept
     den = float(np.sum(lw * s_line * s_line))
     if den <= 0:
@@ -940,13 +945,11 @@ def _source_profile_map(rmap: np.ndarray, wmap: np.ndarray, srcmap: np.ndarray, 
     from scipy.signal import fftconvolve
 
     n = int(min(max(math.ceil(r_max), 2), PROFILE_MAX_PX))
-    t = np.arange(-n, n + 1)
-    rr = np.hypot(t[:, None], t[None, :])
-    ann = [(np.abs(rr - k) < 0.5) if k else (rr < 0.5) for k in range(n + 1)]
+    ann = _kernel_basis(n, harmonics=0)
     ok = wmap > 0
     x = np.empty((n + 1, int(ok.sum())), np.float32)  # the templates on the fitted pixels only
     for k, a in enumerate(ann):
-        x[k] = fftconvolve(srcmap, a.astype(np.float64), mode="same")[ok]
+        x[k] = fftconvolve(srcmap, a, mode="same")[ok]
     w = wmap[ok]
     g = (x * w) @ x.T.astype(np.float64)
     c = np.zeros(n + 1)
@@ -1209,9 +1212,10 @@ SOURCE_KERNEL_CORE_SIGMA = 5.0
 SOURCE_KERNEL_HARMONICS = 2
 
 
-def _kernel_basis(h: int) -> list[np.ndarray]:
+def _kernel_basis(h: int, harmonics: int = SOURCE_KERNEL_HARMONICS) -> list[np.ndarray]:
     """The kernel's basis on offsets ``|dy|, |dx| <= h``: the source's own pixel, then for every 1 px annulus
-    (radius 1 .. h) the harmonics ``cos m theta``, ``sin m theta`` for m = 0 .. SOURCE_KERNEL_HARMONICS."""
+    (radius 1 .. h) the harmonics ``cos m theta``, ``sin m theta`` for m = 0 .. ``harmonics`` (0: the radial
+    annuli alone)."""
     dy, dx = np.mgrid[-h: h + 1, -h: h + 1].astype(np.float64)
     r = np.hypot(dy, dx)
     th = np.arctan2(dy, dx)
@@ -1220,7 +1224,7 @@ def _kernel_basis(h: int) -> list[np.ndarray]:
     for i in range(1, h + 1):
         on = (ring == i).astype(np.float64)
         out.append(on)
-        for m in range(1, SOURCE_KERNEL_HARMONICS + 1):
+        for m in range(1, harmonics + 1):
             out += [on * np.cos(m * th), on * np.sin(m * th)]
     return out
 
@@ -1238,7 +1242,7 @@ def source_kernel(res: Residuals, rmap: np.ndarray, wmap: np.ndarray) -> dict | 
         return None
     # the light the optics spread (before the full-well clip) or the signal the read-out recorded (an
     # amplifier's echo follows what it read): whichever the residual follows better
-    light = np.clip(np.asarray(res.photo_field, np.float64) - res.background_photo_adu, 0.0, None)
+    light = _source_light(res)
     recorded = np.clip(np.asarray(res.model_adu, np.float64) - res.background_adu, 0.0, None)
     fits = []
     for tag, src in (("light", light), ("recorded signal", recorded)):
@@ -1275,7 +1279,7 @@ def _kernel_fit(res: Residuals, rmap: np.ndarray, wmap: np.ndarray, src: np.ndar
     return {"kernel": kern, "dchi2": dchi2, "k": k, "sigma": (dchi2 - k) / math.sqrt(2 * k), "map": kmap}
 
 
-def _kernel_words(ker: dict, gain: float) -> dict:
+def _kernel_words(ker: dict) -> dict:
     """The description of a kernel about the sources (:func:`source_kernel`): its net share of the sources'
     light (flux kept: redistributed; else added or taken: additive), its one-sided part (the signed first
     moment of the light it moves: a trail toward an angle), its axis (the non-radial part's extent along the

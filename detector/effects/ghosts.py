@@ -698,7 +698,7 @@ class GhostSignature(LinearSignature):
         extent = p["radius_px"] * (2.5 if p.get("profile", "disc") == "gauss" else 1.0)
         reach = int(np.ceil((extent + 2 * fit.state.get("psf_rms_px", step)) / step)) + 1
         h, wd = template.shape
-        nums, dens, stamps = [], [], []
+        nums, dens, stamps = [], [], []  # stamps: each ghost's slice of the frame
         for y, x, _ in bright_sources(src, GHOST_CHECK_SOURCES):
             sy, sx = res.ys[y], res.xs[x]
             if mode == "shift":
@@ -715,10 +715,7 @@ class GhostSignature(LinearSignature):
             if den > 0:
                 nums.append(num)
                 dens.append(den)
-                ws = w[sl]
-                # the stamp's excess chi2 (sum w r^2 - n, with rw = w r) and what the ghost takes of it
-                stamps.append((float(np.sum(np.where(ws > 0, rw[sl] ** 2 / np.where(ws > 0, ws, 1.0), 0.0)))
-                               - int(np.count_nonzero(ws)), 2 * alpha * num - alpha * alpha * den))
+                stamps.append(sl)
         free = bool(fit.state.get("free"))
         if not dens:
             return "no bright source's ghost falls on the frame where this map puts it" if free else ""
@@ -738,7 +735,11 @@ class GhostSignature(LinearSignature):
             if a_rest < max(alpha - 2 * s_rest, 0.3 * alpha):
                 return (f"carried by one source: the other bright sources show {a_rest:.2g} +- {s_rest:.1g} of their "
                         f"flux where the map puts their ghost, not the fitted {alpha:.2g}")
-        excess, taken = stamps[top]
+        # the strongest copy's stamp: its excess chi2 (sum w r^2 - n, with rw = w r) and what the ghost takes of it
+        ws = w[stamps[top]]
+        excess = float(np.sum(np.where(ws > 0, rw[stamps[top]] ** 2 / np.where(ws > 0, ws, 1.0), 0.0))) \
+            - int(np.count_nonzero(ws))
+        taken = 2 * alpha * nums[top] - alpha * alpha * dens[top]
         if alpha * alpha * dens[top] >= GHOST_SOURCE_CHI2 and excess > 25 and taken < GHOST_STAMP_SHARE * excess:
             return (f"the structure under the strongest copy is not the ghost's profile: the fitted ghost takes "
                     f"{100 * max(taken, 0.0) / excess:.0f} % of the excess chi2 about it ({excess:.3g}); the rest "

@@ -261,10 +261,11 @@ def _bias_variants(res):
         return
     # on a frame without light or dark charge a pattern along the columns can only be the read-out's: the
     # serial direction's fixed pattern, in cosine series of growing order (chosen by BIC)
+    top = max(BIAS_PROFILE_ORDERS)
+    rows = [(f * bias_profile_adu(res.xs, s.sensor_width_px, np.eye(top)[k]))[None, :] for k in range(top)]
     for order in BIAS_PROFILE_ORDERS:
-        prof = [(f * bias_profile_adu(res.xs, s.sensor_width_px, np.eye(order)[k]))[None, :] for k in range(order)]
 
-        def with_profile(c, order=order):
+        def with_profile(c):
             p = to_params(c[:3])
             if p is None:
                 return None
@@ -275,7 +276,7 @@ def _bias_variants(res):
                 return None
             return dict(p, column_profile_adu=coeffs)
 
-        yield Variant(unit + prof, with_profile, label=f"column profile of {order} cosine terms")
+        yield Variant(unit + rows[:order], with_profile, label=f"column profile of {order} cosine terms")
 
 
 #: orders of the bias pattern along the serial direction the bias fit tries on unlit frames [cosine terms]

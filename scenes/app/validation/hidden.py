@@ -545,6 +545,18 @@ class PowerLawBrighterFatter(RealWorld):
         return _flux_kernel(np.asarray(charge_e, np.float32), k, c)
 
 
+def couple_3x3(charge_e, kernel) -> np.ndarray:
+    """Inter-pixel coupling [e-] by a 3x3 kernel of the fractions each pixel's charge is seen in its neighbours
+    (``out[i, j] = sum k[a, b] q[i + a - 1, j + b - 1]``), its centre set to 1 less their sum (the total is
+    conserved), edges extended."""
+    from scipy.ndimage import correlate
+
+    k = np.array(kernel, np.float32)
+    k[1, 1] = 0.0
+    k[1, 1] = 1.0 - k.sum()
+    return correlate(np.asarray(charge_e, np.float32), k, mode="nearest")
+
+
 class AnisotropicIPC(RealWorld):
     """Inter-pixel capacitance stronger along rows (1.3 %) than columns (0.9 %), with 0.1 % diagonals (the
     plugin: the same coupling in both directions)."""
@@ -554,12 +566,8 @@ class AnisotropicIPC(RealWorld):
     coupling_order = 2
 
     def couple(self, tile, charge_e, pad_top, pad_bottom, mean_only=False):
-        from scipy.ndimage import correlate
-
         p = self.params
-        k = np.array([[p.diag, p.ay, p.diag], [p.ax, 0.0, p.ax], [p.diag, p.ay, p.diag]], np.float32)
-        k[1, 1] = 1.0 - k.sum()
-        return correlate(np.asarray(charge_e, np.float32), k, mode="nearest")
+        return couple_3x3(charge_e, [[p.diag, p.ay, p.diag], [p.ax, 0.0, p.ax], [p.diag, p.ay, p.diag]])
 
 
 class ExponentialRTS(RealWorld):

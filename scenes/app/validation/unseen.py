@@ -882,9 +882,7 @@ class AsymmetricIPC(RealWorld):
         p = self.params
         # correlate: out[i, j] = sum k[a, b] q[i + a - 1, j + b - 1], so the pixel to the right (j + 1) reads
         # k[1, 0] of q[i, j] ("right": the coupling towards +x) and the one above (i + 1, "up": +y) reads k[0, 1]
-        k = np.array([[p.diag, p.up, p.diag], [p.right, 0.0, p.left], [p.diag, p.down, p.diag]], np.float32)
-        k[1, 1] = 1.0 - k.sum()
-        return ndimage.correlate(np.asarray(charge_e, np.float32), k, mode="nearest")
+        return HE["couple_3x3"](charge_e, [[p.diag, p.up, p.diag], [p.right, 0.0, p.left], [p.diag, p.down, p.diag]])
 
 
 class SignalDependentIPC(RealWorld):
@@ -1608,7 +1606,8 @@ _CASE_LIST = [
        lambda s: [HarveyHalo(s, pu=1.25, pv=1.35, d0_px=60.0, index=2.2, near_e_per_s=3.0)],
        accept=("straylight", "sky_gradient")),
     _c("straylight", "stray_baffle_arc_imxbin", "sky_imx_bin", "a broad arc of baffle glint across a binned CMOS "
-       "sky frame: ring of radius 1.1 diagonals about (-0.5, 1.3), width 0.2, 0.03 e-/s/px on its crest (0.15 % of the sky)",
+       "sky frame: ring of radius 1.1 diagonals about (-0.5, 1.3), width 0.2, 0.03 e-/s/px on its crest (0.15 % "
+       "of the sky)",
        lambda s: [BaffleArc(s, cu=-0.5, cv=1.3, radius_frac=1.1, width_frac=0.2, peak_e_per_s=0.03)], "weak",
        accept=("straylight", "sky_gradient")),
 ]
