@@ -118,6 +118,9 @@ class SkyCfg(_Table):
     star_seed: int = Field(0, ge=0, description="seed of the synthetic faint-star population")
     catalog: str = "builtin"
     flat_e_per_s: float | None = Field(None, ge=0, description="uniform illumination (flat screen) [e-/pixel/s]")
+    source_flux_scale: float = Field(1.0, gt=0, le=1e3, description="factor on every source's flux (stars and "
+                                     "objects) [1]: the photometric zero point's error, the atmosphere's "
+                                     "transparency; what `diagnose` refits as the sources' zero point")
 
 
 class PsfCfg(_Table):

@@ -218,7 +218,7 @@ def _stars(scene: Scene, fr: _Frame, base_dir: Path | None) -> tuple[Samples | T
     if len(stars.ra_deg) == 0:
         return Samples.empty(), [], counts
     rate = np.atleast_1d(star_electron_rate(stars.mag_g, stars.teff_k, fr.wavelength_nm, fr.qe, fr.area_m2,
-                                            optics_throughput=fr.mirror))
+                                            optics_throughput=fr.mirror)) * float(sky.source_flux_scale)
     total = rate * fr.exptime_s
     w = fr.psf.radius_px(total)
     kinds = np.where(stars.source == "synthetic", "synthetic", "star")
@@ -297,7 +297,7 @@ def _objects(scene: Scene, fr: _Frame, base_dir: Path | None, observer) -> tuple
                                           throughput=thr)
         if obj.brightness.kind == "photons":  # photons at the aperture: no band applied by photon_rate
             rate = rate * _photons_efficiency(fr)
-        rate = np.asarray(rate, dtype=float)  # e-/s at the track samples
+        rate = np.asarray(rate, dtype=float) * float(scene.sky.source_flux_scale)  # e-/s at the track samples
         mean_total = float(np.mean(rate)) * fr.exptime_s
         # the track in the t = 0 frame: the field test and the pixel path
         u0 = fr.boresight.to_initial_frame(track.unit_vector(track.t_s), track.t_s)

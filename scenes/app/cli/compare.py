@@ -14,6 +14,7 @@ from rich.progress import Progress
 
 from scenes.app.compare import run_compare
 from scenes.app.compare.ledger import ledger_path, plot_ledger, update_ledger
+from scenes.app.compare.policy import DEFAULT_POLICY, load_policy
 from scenes.app.compare.report import write_report
 from scenes.app.compare.run import apply_best, run_diagnose
 from scenes.app.compare.series import (
@@ -137,13 +138,18 @@ def _sampling_note(sampling: dict | None) -> None:
               help="with --apply: add this effect instead of the best one when it is significant (repeatable)")
 @click.option("--set", "sets", multiple=True, metavar="KEY=VALUE", help="override a scene key (every frame of a series)")
 @click.option("--workers", type=click.IntRange(min=1), default=None, help="threads (default: CPUs, at most 4)")
-def diagnose(scene, measured, series, json_out, apply_to, report, prefer, sets, workers):
-    """Rank the effects SCENE lacks by how much of the MEASURED frame they explain (delta BIC). With --series,
-    the frames of a series file together: hardware effects shared, levels per frame."""
+@click.option("--policy", "policy_file", default=None, type=click.Path(dir_okay=False),
+              help="a TOML/JSON table overriding the judge's thresholds (docs/diagnosis_policy.md)")
+def diagnose(scene, measured, series, json_out, apply_to, report, prefer, sets, workers, policy_file):
+    """Rank what SCENE gets wrong about the MEASURED frame: first the scene's own numbers (zero point, sky,
+    PSF width, bias, dark), then the effects it lacks, by how much they explain (delta BIC, held-out pixels,
+    against a description of the residual). With --series, the frames of a series file together: hardware
+    effects shared, levels per frame."""
     _positional(scene, measured, series)
+    policy = load_policy(policy_file)
     if series is not None:
-        return _diagnose_series(series, json_out, apply_to, report, prefer, sets, workers)
-    with Outputs(inputs=[scene, measured]) as outs:
+        return _diagnose_series(series, json_out, apply_to, report, prefer, sets, workers, policy)
+    with Outputs(inputs=[scene, measured] + ([policy_file] if policy_file else [])) as outs:
         json_path = json_target(outs, json_out)
         report_path = outs.file(report, "--report") if report else None
         apply_path = outs.file(apply_to, "--apply") if apply_to else None
@@ -155,7 +161,8 @@ def diagnose(scene, measured, series, json_out, apply_to, report, prefer, sets, 
         sc = load(scene, sets, outs)
         with Progress(transient=True) as bar:
             task = bar.add_task("fitting candidate effects", total=None)
-            out = run_diagnose(sc, measured, workers=workers, progress=lambda name: bar.update(task, description=name))
+            out = run_diagnose(sc, measured, workers=workers, progress=lambda name: bar.update(task, description=name),
+                               policy=policy)
         # the map of an empirical apply goes beside the named scene, staged with the other outputs
         applied, best = apply_best(sc, out, apply_path, measured, tuple(prefer),
                                    reserve=lambda p: outs.file(Path(apply_to).with_name(p.name), "--apply (its map)"),
@@ -185,11 +192,12 @@ def diagnose(scene, measured, series, json_out, apply_to, report, prefer, sets, 
     if out["applied"]:
         a = out["applied"]
         what = (f"objects[{a['params']['object']}].light_curve" if a["effect"] == "light_curve"
+                else "new values of " + ", ".join(a["params"]) if a["effect"] == "parameters"
                 else f"[effects.{a['effect']}]")
         click.echo(f"wrote {a['scene']} (+{what}); ledger {out['ledger']['path']}", err=True)
 
 
-def _diagnose_series(series, json_out, apply_to, report, prefer, sets, workers) -> None:
+def _diagnose_series(series, json_out, apply_to, report, prefer, sets, workers, policy=DEFAULT_POLICY) -> None:
     ser, files = _series_inputs(series, sets)
     with Outputs(inputs=files) as outs:
         json_path = json_target(outs, json_out)
@@ -205,7 +213,8 @@ def _diagnose_series(series, json_out, apply_to, report, prefer, sets, workers) 
         outs.file(lj.with_suffix(".png"), "ledger")
         with Progress(transient=True) as bar:
             task = bar.add_task("series", total=None)
-            out = run_series_diagnose(ser, workers=workers, progress=lambda t: bar.update(task, description=t))
+            out = run_series_diagnose(ser, workers=workers, progress=lambda t: bar.update(task, description=t),
+                                      policy=policy)
         applied, new_series, best = apply_series(ser, out, apply_path, tuple(prefer), workers=workers)
         out["applied"] = ({"effect": best["effect"], "params": best["params"], "scene": apply_to,
                            "series": outs.public(str(new_series))} if applied else None)

@@ -31,7 +31,12 @@ def apply_candidate(scene, cand: dict, path: str | Path, measured: str | Path | 
     ``[sky] background_mag_arcsec2``, ``[detector] bias_adu``); each change is noted in the file's header
     comment. A multiplicative effect such as vignetting would otherwise lower the whole model."""
     data = scene.model_dump(mode="json", exclude_none=True, exclude_unset=True)
-    if cand["effect"] == "light_curve":  # a source's property: into its [[objects]] table
+    if cand.get("kind") == "parameter":  # numbers of the scene: written in place
+        from .parameters import apply_parameters
+
+        changed = apply_parameters(data, cand.get("parameters") or [cand])
+        added = "new values of " + ", ".join(c.split(" ")[0] for c in changed)
+    elif cand["effect"] == "light_curve":  # a source's property: into its [[objects]] table
         data["objects"][cand["params"]["object"]]["light_curve"] = cand["params"]["light_curve"]
         added = f"objects[{cand['params']['object']}].light_curve"
     elif cand["effect"] in OPTICS_CANDIDATES:  # the telescope's alignment: a new design file beside the scene
@@ -212,9 +217,16 @@ def apply_empirical(scene, empirical: dict, morphology: dict, path: str | Path, 
     hdu.header["COMMENT"] = "empirical map of a residual no catalogue effect explains (newtsim diagnose --apply)"
     hdu.writeto(map_path, overwrite=True)
     where = str(map_path.resolve())
-    params = {"path": public(where) if public is not None else where, **params}  # the path once committed
-    cand = {"effect": effect, "params": params,
-            "explanation": "an empirical map of the residual (" + morphology["explanation"] + "); no catalogue "
-            "effect explains it"}
-    return apply_candidate(scene, cand, p, measured), cand
+    explanation = ("an empirical map of the residual (" + morphology["explanation"] + "); no catalogue effect "
+                   "explains it")
+    # the levels are refitted with the map where it is now (staged); the scene names it where it will be
+    written = apply_candidate(scene, {"effect": effect, "params": {"path": where, **params},
+                                      "explanation": explanation}, p, measured)
+    final = public(where) if public is not None else where
+    if final != where:
+        text = written.read_text()
+        written.write_text(text.replace(tomli_w.dumps({"p": where}).split("=", 1)[1].strip(),
+                                        tomli_w.dumps({"p": final}).split("=", 1)[1].strip()))
+    cand = {"effect": effect, "params": {"path": final, **params}, "explanation": explanation}
+    return written, cand
 

@@ -10,110 +10,26 @@ significance threshold is ``delta_BIC < -10`` ("very strong" evidence, Kass & Ra
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, replace
+from dataclasses import replace
 
 import numpy as np
 
 from detector import registry
-from detector.effects.base import Stage
 from detector.morphology import block_chi2
 from detector.signatures import Fit, Residuals, frame_at, heldout_delta
 
+from .floors import floor_reason
+from .judge import Candidate, indistinguishable, rank, verdict
+from .policy import DEFAULT_POLICY, DiagnosisPolicy
 from .sources import light_curve_candidates
 from .statistics import star_photometry
 
-#: a candidate with delta BIC at or above this is not significant (DESIGN.md contract)
-SIGNIFICANT_DELTA_BIC = -10.0
-#: chi2/dof after (levels refitted) below which a candidate that only adds variance is rejected: it explains
-#: a structured residual by making the model's noise so large that everything fits (a correct noise model
-#: leaves chi2/dof ~ 1, within a few sqrt(2/n))
-OVERFIT_CHI2_PER_DOF = 0.5
+__all__ = ["Candidate", "candidates", "indistinguishable", "rank", "verdict"]
 
-
-#: a candidate must improve the pixels its fit did not see by at least this much (delta -2 ln L, summed
-#: over the two folds of :func:`detector.signatures.heldout_delta`) to be significant
-SIGNIFICANT_HELDOUT = -10.0
-#: candidates (plausible, not rejected, delta BIC below the threshold) scored on held-out pixels, best first
-HELDOUT_CANDIDATES = 8
-#: where the frame has a significant large-scale structure, a candidate that changes the mean must remove at
-#: least this share of it to be named: one that takes a corner of a pattern it does not share is not it
-MIN_EXPLAINED = 0.5
-#: large-scale structure is significant when the block chi2 exceeds its dof by this many standard deviations
-STRUCTURE_SIGMA = 8.0
-#: where the frame's excess chi2 is this many standard deviations above its dof (significant), a pixel candidate
-#: must remove at least MIN_EXCESS_SHARE of it to be named: a trace of a big pattern is not the missing effect
-#: (an amplifier undershoot trailing every star was named a non-linearity that removed 1 % of the excess)
-EXCESS_SIGMA, MIN_EXCESS_SHARE = 5.0, 0.02
-
-
-#: a candidate that changes the mean must remove at least this share of the excess chi2 over the pixels it acts
-#: on (where that excess is significant): an effect that leaves most of what is wrong where it acts is not
-#: what is wrong there (a shift that takes the centroid of a one-sided tail, a bowl under a few dust shadows)
-MIN_SUPPORT_SHARE = 0.5
-#: the pixels a candidate acts on: the largest of its weighted squared changes, which carry this share of them
-SUPPORT_MASS = 0.9
-#: the excess over those pixels is significant at this many standard deviations of its chi2
-SUPPORT_SIGMA = 8.0
-
-
-@dataclass
-class Candidate:
-    """One effect fitted to the residuals, with what the ranking asks of it.
-
-    ``rejected``: the fit only hides a residual (noise that makes everything fit, a blur that spoils the
-    stars' photometry); ``implausible``: the fitted pattern is not physically this effect (its signature's
-    structure test, a parameter at its bound); ``heldout``: delta(-2 ln L) on pixels the fit did not see
-    (None: not scored: compared by counts, or not a contender). A significant candidate passes all three.
-    """
-
-    fit: Fit
-    chi2_per_dof: float
-    seconds: float
-    rejected: str = ""  #: why a candidate with a large delta BIC is not physical ("" if it is)
-    implausible: str = ""  #: why the fitted pattern is not this effect ("" if it may be)
-    heldout: float | None = None
-    #: share of the frame's large-scale structure (block chi2 beyond its dof) the candidate's mean change
-    #: removes; None when there is no such structure or the candidate changes no mean
-    explains: float | None = None
-
-    @property
-    def plausible(self) -> bool:
-        return not self.implausible
-
-    @property
-    def contender(self) -> bool:
-        """Significant by delta BIC and neither rejected nor implausible: worth a held-out score."""
-        return self.fit.delta_bic < SIGNIFICANT_DELTA_BIC and not self.rejected and not self.implausible
-
-    #: share of the frame's whole excess chi2 (levels refitted) the candidate removes, where that excess is
-    #: large; None otherwise (or for candidates compared by counts)
-    excess_share: float | None = None
-
-    #: share of the excess chi2 over the pixels the candidate acts on that it removes (None: not measured)
-    support_share: float | None = None
-
-    @property
-    def significant(self) -> bool:
-        return (self.contender and (self.heldout is None or self.heldout < SIGNIFICANT_HELDOUT)
-                and (self.explains is None or self.explains >= MIN_EXPLAINED)
-                and (self.excess_share is None or self.excess_share >= MIN_EXCESS_SHARE)
-                and (self.support_share is None or self.support_share >= MIN_SUPPORT_SHARE))
-
-    @property
-    def score(self) -> float:
-        """What the ranking sorts by: the held-out delta when there is one, else delta BIC."""
-        return self.heldout if self.heldout is not None else self.fit.delta_bic
-
-    def to_json(self) -> dict:
-        f = self.fit
-        return {"effect": f.effect, "params": f.params, "chi2_per_dof": self.chi2_per_dof,
-                "delta_bic": f.delta_bic, "delta_m2lnl": f.delta_m2lnl, "k": f.k, "explanation": f.explanation,
-                "kind": type(registry()[f.effect].signature).__name__ if f.effect in registry() else "",
-                "significant": self.significant, "rejected": self.rejected, "plausible": self.plausible,
-                "implausible_because": self.implausible, "heldout_delta": self.heldout,
-                "explains_structure": self.explains, "explains_excess": self.excess_share,
-                "explains_where_it_acts": self.support_share, "variant": f.note,
-                "seconds": self.seconds}
+#: a candidate with delta BIC at or above this is not significant (DESIGN.md contract; the policy's default)
+SIGNIFICANT_DELTA_BIC = DEFAULT_POLICY.significant_delta_bic
+#: kept for readers of the old name: the policy's overfit threshold
+OVERFIT_CHI2_PER_DOF = DEFAULT_POLICY.overfit_chi2_per_dof
 
 
 def at_bound(cls, params: dict) -> str:
@@ -138,11 +54,6 @@ def at_bound(cls, params: dict) -> str:
     return ""
 
 
-#: a noise-only candidate may claim at most this many times the variance the data show beyond the model's
-#: (robustly, from the median squared residual) and never less than this fraction of the model's variance
-NOISE_EXCESS_FACTOR, NOISE_FLOOR_FRACTION = 3.0, 0.05
-
-
 def robust_excess_var(res: Residuals) -> tuple[float, float]:
     """(the data's variance beyond the model's, the model's) [ADU^2], medians over the fitted pixels with
     the levels refitted: ``median(r^2) / 0.4549 - median(v)`` (0.4549 = median of chi2 with 1 dof), which
@@ -154,19 +65,20 @@ def robust_excess_var(res: Residuals) -> tuple[float, float]:
     return res._flat["robust_excess"]
 
 
-def overfit(fit: Fit, chi2_per_dof: float, res: Residuals | None = None) -> str:
+def overfit(fit: Fit, chi2_per_dof: float, res: Residuals | None = None,
+            policy: DiagnosisPolicy = DEFAULT_POLICY) -> str:
     """Why a candidate that only adds variance is not the missing effect ("" when it may be): it brings
     chi2/dof far below 1, or it claims far more variance than the bulk of the pixels shows (a structured
     residual, e.g. misplaced stars, taken for noise)."""
     if fit.delta_adu is not None or fit.extra_var_adu2 is None:
         return ""
-    if chi2_per_dof < OVERFIT_CHI2_PER_DOF:
-        return (f"adds so much noise that chi2/dof falls to {chi2_per_dof:.3g} (< {OVERFIT_CHI2_PER_DOF}): it "
+    if chi2_per_dof < policy.overfit_chi2_per_dof:
+        return (f"adds so much noise that chi2/dof falls to {chi2_per_dof:.3g} (< {policy.overfit_chi2_per_dof}): it "
                 "absorbs a structured residual, it does not explain it")
     if res is not None:
         excess, v = robust_excess_var(res)
         claimed = float(np.median(np.asarray(fit.extra_var_adu2, np.float64)))
-        if claimed > NOISE_EXCESS_FACTOR * max(excess, NOISE_FLOOR_FRACTION * v):
+        if claimed > policy.noise_excess_factor * max(excess, policy.noise_floor_fraction * v):
             return (f"claims {claimed:.3g} ADU^2 of noise where the bulk of the pixels shows {max(excess, 0):.3g} "
                     f"beyond the model's {v:.3g}: a structured residual taken for noise")
     return ""
@@ -186,14 +98,7 @@ def chi2_after(res: Residuals, fit: Fit) -> float:
     return float(np.dot(r * r, w) / max(idx.size, 1))
 
 
-#: a candidate that moves light around the sources may worsen the bright stars' aperture photometry by at
-#: most this much in median |ln(data / model flux)| (and must leave it below STARS_OK_LN)
-STARS_WORSE_LN, STARS_OK_LN = 0.1, 0.2
-#: bright stars needed for that test
-STARS_MIN = 10
-
-
-def stars_check(res: Residuals, fit: Fit, truth) -> str:
+def stars_check(res: Residuals, fit: Fit, truth, policy: DiagnosisPolicy = DEFAULT_POLICY) -> str:
     """Why a candidate that reshapes sources (an image-plane transform) is not physical ("" when it may be):
     with it in the model, the catalogue stars the model already measures right (aperture photometry over
     the model's background, :func:`scenes.app.compare.statistics.star_photometry`) are measured wrong. A blur that
@@ -205,22 +110,23 @@ def stars_check(res: Residuals, fit: Fit, truth) -> str:
     if "stars_before" not in res._flat:  # the same for every candidate of this comparison
         res._flat["stars_before"] = star_photometry(res, truth, max_stars=300)
     before = res._flat["stars_before"]
-    if before.get("n", 0) < STARS_MIN:
+    if before.get("n", 0) < policy.stars_min:
         return ""
     moved = replace(res, model_adu=(res.model_adu + fit.delta_adu).astype(np.float32), _flat={})
     after = star_photometry(moved, truth, max_stars=300)
-    if after.get("n", 0) < STARS_MIN:
+    if after.get("n", 0) < policy.stars_min:
         return ""
     b = float(np.nanmedian(np.abs(np.log(np.clip(before["flux_ratio"], 1e-6, None)))))
     a = float(np.nanmedian(np.abs(np.log(np.clip(after["flux_ratio"], 1e-6, None)))))
-    if a > b + STARS_WORSE_LN and a > STARS_OK_LN:
+    if a > b + policy.stars_worse_ln and a > policy.stars_ok_ln:
         return (f"makes the bright stars' photometry wrong: median data/model flux {before['median_flux_ratio']:.3g} "
                 f"-> {after['median_flux_ratio']:.3g} over {after['n']} stars; the light it moves belongs to sources "
                 "the model lacks (blends, unresolved stars), not to a wider PSF")
     return ""
 
 
-def candidates(res: Residuals, present: set[str], progress=None, truth=None) -> tuple[list[Candidate], list[dict]]:
+def candidates(res: Residuals, present: set[str], progress=None, truth=None,
+               policy: DiagnosisPolicy = DEFAULT_POLICY) -> tuple[list[Candidate], list[dict]]:
     """Fit every absent effect with a signature. Returns (candidates best first, problems). With the model's
     TRUTH table, image-plane candidates must keep the catalogue stars' photometry (:func:`stars_check`)."""
     out, problems = [], []
@@ -242,15 +148,33 @@ def candidates(res: Residuals, present: set[str], progress=None, truth=None) -> 
         if fit is None or not np.isfinite(fit.delta_m2lnl):
             continue
         chi2 = chi2_after(res, fit)
-        why = overfit(fit, chi2, res)
-        if not why and getattr(cls.signature, "kind", "") == "transform":
-            why = stars_check(res, fit, truth)
-        out.append(Candidate(fit, chi2, seconds, why, implausibility(cls, fit, res)))
-    structure_shares(res, out)
-    excess_shares(res, out)
-    support_shares(res, out)
-    score_heldout(res, out, progress=progress)
+        c = Candidate(fit, chi2, seconds, policy=policy)
+        why = overfit(fit, chi2, res, policy)
+        if why:
+            c.reject("overfit", why)
+        elif getattr(cls.signature, "kind", "") == "transform":
+            why = stars_check(res, fit, truth, policy)
+            if why:
+                c.reject("stars", why)
+        why = implausibility(cls, fit, res)
+        if why:
+            c.refuse("bound" if "sits at its bound" in why else "implausible", why)
+        why = floor_reason(name, fit.params, res.sensor, policy)
+        if why:
+            c.refuse("floor", why)
+        out.append(c)
+    judge_evidence(res, out, policy, progress)
     return rank(out, res.light_source), problems
+
+
+def judge_evidence(res: Residuals, cands: list[Candidate], policy: DiagnosisPolicy = DEFAULT_POLICY,
+                   progress=None) -> None:
+    """The evidence the judge weighs for every candidate of one frame: the shares of what is wrong it
+    removes and its held-out score. The same for every path that has the frame's residuals."""
+    structure_shares(res, cands, policy)
+    excess_shares(res, cands, policy)
+    support_shares(res, cands, policy)
+    score_heldout(res, cands, progress=progress, policy=policy)
 
 
 def implausibility(cls, fit: Fit, res: Residuals) -> str:
@@ -263,22 +187,23 @@ def implausibility(cls, fit: Fit, res: Residuals) -> str:
     return why or at_bound(cls, fit.params)
 
 
-def excess_shares(res: Residuals, cands: list[Candidate]) -> None:
+def excess_shares(res: Residuals, cands: list[Candidate], policy: DiagnosisPolicy = DEFAULT_POLICY) -> None:
     """For every pixel candidate (a mean change or an added variance), the share of the frame's excess chi2
-    (levels refitted) it removes, where that excess is large (EXCESS_SIGMA)."""
+    (levels refitted) it removes, where that excess is large (the policy's ``excess_sigma``)."""
     n = res.n_fit
     excess = res.chi2_profiled() - n
-    if n == 0 or excess / np.sqrt(2 * n) < EXCESS_SIGMA:
+    if n == 0 or excess / np.sqrt(2 * n) < policy.excess_sigma:
         return
     for c in cands:
         if (c.fit.delta_adu is not None or c.fit.extra_var_adu2 is not None) and np.isfinite(c.chi2_per_dof):
             c.excess_share = round(float((excess + n - c.chi2_per_dof * n) / excess), 4)
 
 
-def support_share(res: Residuals, fit: Fit) -> float | None:
+def support_share(res: Residuals, fit: Fit, policy: DiagnosisPolicy = DEFAULT_POLICY) -> float | None:
     """The share of the excess chi2 (levels refitted) over the pixels ``fit`` acts on that it removes: those
-    whose weighted squared mean change ``delta^2 w`` is among the largest, carrying SUPPORT_MASS of its sum.
-    None when the fit changes no mean or the excess there is not significant (SUPPORT_SIGMA)."""
+    whose weighted squared mean change ``delta^2 w`` is among the largest, carrying the policy's
+    ``support_mass`` of its sum. None when the fit changes no mean or the excess there is not significant
+    (``support_sigma``)."""
     if fit.delta_adu is None:
         return None
     idx, r0, w = res.flat_profiled()
@@ -292,13 +217,13 @@ def support_share(res: Residuals, fit: Fit) -> float | None:
         return None
     sub = np.sort(q[:: max(1, idx.size // 200_000)])[::-1]
     cum = np.cumsum(sub)
-    thr = float(sub[min(int(np.searchsorted(cum, SUPPORT_MASS * cum[-1])), sub.size - 1)])
+    thr = float(sub[min(int(np.searchsorted(cum, policy.support_mass * cum[-1])), sub.size - 1)])
     on = q >= thr
     n_on = int(on.sum())
     if n_on < 16:
         return None
     before = float(np.dot(r0[on] ** 2, w[on])) - n_on
-    if before < SUPPORT_SIGMA * np.sqrt(2 * n_on):
+    if before < policy.support_sigma * np.sqrt(2 * n_on):
         return None
     r1 = res.project(res.flat()[1] - d)
     w1 = w
@@ -309,22 +234,22 @@ def support_share(res: Residuals, fit: Fit) -> float | None:
     return round(float((before - after) / before), 4)
 
 
-def support_shares(res: Residuals, cands: list[Candidate]) -> None:
+def support_shares(res: Residuals, cands: list[Candidate], policy: DiagnosisPolicy = DEFAULT_POLICY) -> None:
     """:func:`support_share` of every contender (significant by delta BIC, plausible, not rejected)."""
     for c in cands:
         if c.contender and c.fit.delta_adu is not None:
-            c.support_share = support_share(res, c.fit)
+            c.support_share = support_share(res, c.fit, policy)
 
 
-def structure_shares(res: Residuals, cands: list[Candidate]) -> None:
+def structure_shares(res: Residuals, cands: list[Candidate], policy: DiagnosisPolicy = DEFAULT_POLICY) -> None:
     """For every candidate with a mean change, the share of the frame's significant large-scale structure
     (block chi2 beyond its dof, :func:`detector.morphology.block_chi2`) that it removes."""
     chi2, n = block_chi2(res)
-    if n == 0 or (chi2 - n) / np.sqrt(2 * n) < STRUCTURE_SIGMA:
+    if n == 0 or (chi2 - n) / np.sqrt(2 * n) < policy.structure_sigma:
         return
     idx, _, w = res.flat_profiled()
     for c in cands:
-        if c.fit.delta_adu is not None and c.fit.delta_bic < SIGNIFICANT_DELTA_BIC:
+        if c.fit.delta_adu is not None and c.fit.delta_bic < policy.significant_delta_bic:
             if large_scale_share(res, c.fit.delta_adu, idx, w) < 0.5:
                 continue  # a pattern of a few pixels (a CFA, a blur, a shift): not judged by the block means
             after, _ = block_chi2(res, c.fit.delta_adu)
@@ -346,10 +271,12 @@ def large_scale_share(res: Residuals, delta: np.ndarray, idx: np.ndarray, w: np.
     return big / total
 
 
-def score_heldout(res: Residuals, cands: list[Candidate], progress=None) -> None:
-    """The held-out delta of the contenders (at most HELDOUT_CANDIDATES, best delta BIC first)."""
+def score_heldout(res: Residuals, cands: list[Candidate], progress=None,
+                  policy: DiagnosisPolicy = DEFAULT_POLICY) -> None:
+    """The held-out delta of the contenders (at most the policy's ``heldout_candidates``, best delta BIC
+    first)."""
     reg = registry()
-    for c in sorted((c for c in cands if c.contender), key=lambda c: c.fit.delta_bic)[:HELDOUT_CANDIDATES]:
+    for c in sorted((c for c in cands if c.contender), key=lambda c: c.fit.delta_bic)[:policy.heldout_candidates]:
         sig = reg[c.fit.effect].signature if c.fit.effect in reg else None
         if sig is None or not hasattr(sig, "score"):
             continue
@@ -357,94 +284,20 @@ def score_heldout(res: Residuals, cands: list[Candidate], progress=None) -> None
         try:
             c.heldout = heldout_delta(sig, res, c.fit.effect, c.fit)
         except Exception as exc:  # noqa: BLE001
-            c.implausible = f"cannot be scored on held-out pixels ({type(exc).__name__}: {exc})"
+            c.refuse("error", f"cannot be scored on held-out pixels ({type(exc).__name__}: {exc})")
         c.seconds += time.perf_counter() - t0
         if progress is not None:
             progress(f"{c.fit.effect} (held out)")
     res._flat.pop("heldout_folds", None)  # the folds every candidate shared (detector.signatures._folds)
 
 
-def _of_light(c: Candidate) -> bool:
-    """The candidate multiplies the light only: its effect acts at the RESPONSE stage and nowhere else
-    (vignetting, PRNU, a mosaic, dead pixels, a flat map; not column defects, which add dark charge too)."""
-    cls = registry().get(c.fit.effect)
-    return cls is not None and set(cls.stages) == {Stage.RESPONSE}
-
-
-def rank(cands: list[Candidate], light_source: str = "") -> list[Candidate]:
-    """Best first: the significant candidates by their held-out score (delta BIC where there is none), then
-    the others that are plausible and not rejected, then the implausible and the rejected, each by delta
-    BIC. Twins (as good on held-out pixels) go by delta BIC (fewer parameters for the same fit first); on a
-    flat-screen frame (``light_source`` "flat"), whose uniform light cannot tell a response from added charge,
-    a response comes first: a flat's pattern is far more often the optics' or the pixels' response
-    (vignetting, dust, a mosaic) than a light the screen lets through or a glow as bright as its light."""
-    out = sorted(cands, key=lambda c: (0 if c.significant else 1 if c.plausible and not c.rejected else 2,
-                                       c.score if c.significant else c.fit.delta_bic))
-    sig = [c for c in out if c.significant]
-    twins = indistinguishable(sig)
-    if twins:
-        flat = light_source == "flat"
-        group = sorted([sig[0], *twins], key=lambda c: (flat and not _of_light(c), c.fit.delta_bic))
-        rest = [c for c in out if c not in group]
-        out = group + rest
-    return out
-
-
-def source_candidates(res: Residuals, truth, scene) -> list[Candidate]:
+def source_candidates(res: Residuals, truth, scene, policy: DiagnosisPolicy = DEFAULT_POLICY) -> list[Candidate]:
     """Candidates of the scene's sources (an object's light curve, :mod:`.sources`), as :class:`Candidate`;
     ``seconds`` is each one's fit and chi2."""
     out = []
     t0 = time.perf_counter()
     for fit in light_curve_candidates(res, truth, scene):
         chi2 = chi2_after(res, fit)
-        out.append(Candidate(fit, chi2, time.perf_counter() - t0))
+        out.append(Candidate(fit, chi2, time.perf_counter() - t0, policy=policy))
         t0 = time.perf_counter()
     return out
-
-
-#: a significant candidate whose score is within this fraction of the best one's (both held-out scores,
-#: of a different effect) cannot be told apart from it on this frame
-TWIN_FRACTION = 0.02
-
-
-def indistinguishable(sig: list[Candidate]) -> list[Candidate]:
-    """The significant candidates after the first whose held-out score is as good as the first's (within
-    TWIN_FRACTION, and within the scores' own scatter ~ sqrt(2 |score|)): a multiplicative fall-off and an
-    additive light on a uniform flat, kTC noise and a symmetric DSNU on one dark."""
-    if len(sig) < 2 or sig[0].heldout is None:
-        return []
-    best = sig[0].heldout
-    tol = max(TWIN_FRACTION * abs(best), 2 * np.sqrt(2 * abs(best)))
-    return [c for c in sig[1:] if c.heldout is not None and c.heldout - best <= tol]
-
-
-def verdict(cands: list[Candidate], morphology: dict | None = None) -> str:
-    """One sentence for the report: the most likely missing effect (significant, plausible, better on
-    held-out pixels), or that no catalogue effect explains the residual and what the residual looks like."""
-    sig = [c for c in cands if c.significant]
-    if sig:
-        best = sig[0]
-        held = f", held-out {best.heldout:.4g}" if best.heldout is not None else ""
-        twins = indistinguishable(sig)
-        also = (f"; the data cannot tell it apart from {', '.join(c.fit.effect for c in twins)} (their held-out "
-                "scores are as good)") if twins else ""
-        return (f"most likely missing: {best.fit.effect} (delta BIC {best.fit.delta_bic:.4g}{held}): "
-                f"{best.fit.explanation}{also}")
-    named = [c for c in cands if c.fit.delta_bic < SIGNIFICANT_DELTA_BIC]
-    why = ""
-    if named:
-        c = named[0]
-        reason = c.rejected or c.implausible or (
-            f"it removes only {100 * c.explains:.0f} % of the large-scale structure" if c.explains is not None
-            and c.explains < MIN_EXPLAINED else
-            f"it removes only {100 * c.excess_share:.2g} % of the excess chi2" if c.excess_share is not None
-            and c.excess_share < MIN_EXCESS_SHARE else
-            f"it removes only {100 * c.support_share:.2g} % of the excess chi2 where it acts: what is wrong there is "
-            "something else, or more" if c.support_share is not None and c.support_share < MIN_SUPPORT_SHARE
-            else f"it does not improve the pixels it was not fitted on (held-out "
-            f"{c.heldout:.3g})" if c.heldout is not None else "")
-        why = f" ({c.fit.effect} fits but is not credible: {reason})" if reason else ""
-    if morphology and morphology.get("significant"):
-        return ("no catalogue effect explains the residual" + why + "; what is missing looks like "
-                + morphology["explanation"])
-    return "no missing effect was found: no candidate improves the fit significantly (delta BIC < -10)" + why

@@ -72,8 +72,12 @@ from detector.signatures import (
 from detector.stats import mad_std
 from scenes.app.render import Setup, prepare
 
-from .candidates import candidates, rank, source_candidates, verdict
+from .candidates import candidates, source_candidates
+from .catch_all import compare_with_catch_all
+from .judge import judge_json, rank, verdict
 from .model import REALISATION_SEED, _wcs_offset, background_signal, row_offset_var_adu2, saturation_adu
+from .parameters import explained_away, level_candidates
+from .policy import DEFAULT_POLICY, DiagnosisPolicy
 from .statistics import compare, misfit, outlier_counts, spectrum_peaks, star_photometry, summary, track_band, zmap
 
 #: output pixels above which compare / diagnose take the banded, bounded-memory path
@@ -958,11 +962,6 @@ class _ModelView:
         return self.setup.detector.sensor
 
 
-#: a smooth candidate fitted on the binned frame must not worsen the full-resolution band sample by more than
-#: this (delta -2 ln L of its mean change and shot noise there, :func:`sample_score`)
-SAMPLE_WORSE = 10.0
-
-
 def upsample_to_sample(a, res_b: Residuals, res_s: Residuals, per_pixel: float) -> np.ndarray | float:
     """A binned-frame map (or scalar) at the band sample's pixels, bilinear in the super-pixel centres, divided
     by ``per_pixel`` (``k^2`` for a sum over super-pixels: the value of one output pixel)."""
@@ -1006,36 +1005,42 @@ def _scale_of(name: str, cls) -> str:
     return "binned" if name in SMOOTH_EFFECTS or getattr(sig, "scale", "") == "smooth" else "sample"
 
 
-def run_diagnose_large(scene, measured: str | Path, workers: int | None = None, progress=None, **kw) -> dict:
+def run_diagnose_large(scene, measured: str | Path, workers: int | None = None, progress=None,
+                       policy: DiagnosisPolicy = DEFAULT_POLICY, **kw) -> dict:
     """:func:`scenes.app.compare.run.run_diagnose` of a large frame: smooth effects on the binned frame,
-    pixel-scale ones on the band sample, ranked together."""
+    pixel-scale ones on the band sample, ranked together by the same judge (:mod:`.judge`); the scene's
+    levels as parameter candidates from the binned frame."""
     cmp = run_compare_large(scene, measured, workers=workers, progress=progress, **kw)
     t0 = time.perf_counter()
     res_b, res_s = cmp["_residuals"], cmp["_sample"]
     present = set(scene.effects)
     reg = {n: c for n, c in registry().items() if c.signature is not None}
     smooth = {n for n, c in reg.items() if _scale_of(n, c) == "binned"}
-    cb, pb = candidates(res_b, present | (set(reg) - smooth), progress=progress, truth=None)
-    cs, ps = candidates(res_s, present | smooth, progress=progress, truth=cmp["_truth_sample"])
+    cb, pb = candidates(res_b, present | (set(reg) - smooth), progress=progress, truth=None, policy=policy)
+    cs, ps = candidates(res_s, present | smooth, progress=progress, truth=cmp["_truth_sample"], policy=policy)
     sample_deltas = {}
     for c in cb:
         c.fit.note = (c.fit.note + " " if c.fit.note else "") + f"[binned {cmp['sampling']['binning_k']}x]"
         if c.contender:
             d = sample_score(c.fit, res_b, res_s)
             sample_deltas[id(c)] = d
-            if d is not None and d > SAMPLE_WORSE:
-                c.implausible = (f"worsens the full-resolution band sample (delta -2 ln L {d:.4g}): the pixels deny "
+            if d is not None and d > policy.sample_worse:
+                c.refuse("sample", f"worsens the full-resolution band sample (delta -2 ln L {d:.4g}): the pixels deny "
                                  "its mean change or the shot noise it implies")
     ct = []
     for box, parts, row in cmp.pop("_tracks", []):
         res_t, truth_t = track_residuals(box, parts, row, cmp["_model"].setup)
-        ct += source_candidates(res_t, truth_t, scene)
-    cands = rank(cb + cs + ct, res_b.light_source)
-    scale = {id(c): "binned" for c in cb} | {id(c): "sample" for c in cs} | {id(c): "cut-out" for c in ct}
+        ct += source_candidates(res_t, truth_t, scene, policy)
+    params = level_candidates(res_b, scene, policy)
     if progress is not None:
         progress("residual morphology")
     morph = describe(res_b)
-    best = next((c for c in cands if c.significant), None)
+    catch_all = compare_with_catch_all(res_b, cb, morph)
+    explained_away(params, rank(cb, res_b.light_source), res_b, scene)
+    cands = rank(params + cb + cs + ct, res_b.light_source)
+    scale = ({id(c): "binned" for c in cb} | {id(c): "sample" for c in cs} | {id(c): "cut-out" for c in ct}
+             | {id(c): "binned" for c in params})
+    best = next((c for c in cands if c.significant and c.kind == "effect"), None)
     remaining = None
     if best is not None and best.fit.delta_adu is not None and np.shape(best.fit.delta_adu) == res_b.data_adu.shape:
         remaining = describe(res_b, best.fit.delta_adu)
@@ -1052,14 +1057,15 @@ def run_diagnose_large(scene, measured: str | Path, workers: int | None = None, 
             j["sample_delta"] = sample_deltas[id(c)]
         cjson.append(j)
     out = {"baseline": cmp["summary"], "candidates": cjson, "problems": pb + ps, "verdict": verdict(cands, morph),
-           "residual_morphology": morph, "seconds": time.perf_counter() - t0, "_compare": cmp,
+           "residual_morphology": morph, "seconds": time.perf_counter() - t0, "catch_all_heldout": catch_all,
+           "_compare": cmp,
            "sampling": {**cmp["sampling"], "candidates": {"binned": sorted(smooth - present),
                                                           "sample": sorted(set(reg) - smooth - present)},
                         "residual_morphology": f"on the binned frame ({k} x {k}); scale_px in output pixels"}}
     cmp["_empirical"] = None
     if remaining is not None:
         out["remaining_morphology"] = remaining
-    out["significant"] = [c["effect"] for c in out["candidates"] if c["significant"]]
+    out.update(judge_json(cands, policy))
     return out
 
 

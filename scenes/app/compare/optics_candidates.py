@@ -355,7 +355,6 @@ def optics_candidates(res: Residuals, truth, scene, *, mi=None, families=None, p
     when they cannot be fitted (no Mitsuba, too few stars). With the comparison's ``model``
     (:class:`.model.ModelFrame`) and a scene whose PSF is the optics' grid, the best families are scored on the
     pixels (module notes, "Pixels"); without it, by the moments alone."""
-    from detector.signatures import pixel_score
 
     from .candidates import Candidate, chi2_after, excess_shares, structure_shares
 

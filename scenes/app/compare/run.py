@@ -23,10 +23,14 @@ from scenes.scene import load_scene
 
 from . import fullframe
 from .apply import apply_candidate, apply_empirical
-from .candidates import SIGNIFICANT_DELTA_BIC, candidates, indistinguishable, rank, source_candidates, verdict
+from .candidates import SIGNIFICANT_DELTA_BIC, candidates, source_candidates
+from .catch_all import compare_with_catch_all
+from .judge import judge_json, rank, verdict
 from .ledger import best_candidate, plot_ledger, round_row, update_ledger
 from .model import ModelFrame, build_model, read_measurement, residuals
 from .optics_candidates import field_pattern_check, optics_candidates
+from .parameters import explained_away, parameter_candidates
+from .policy import DEFAULT_POLICY, DiagnosisPolicy
 from .report import write_report
 from .statistics import compare, summary
 
@@ -71,44 +75,63 @@ def _run_compare(scene, measured: str | Path, workers: int | None = None) -> dic
 
 
 def run_diagnose(scene, measured: str | Path, workers: int | None = None, progress=None, *,
-                 large_px: int | None = None) -> dict:
+                 large_px: int | None = None, policy: DiagnosisPolicy = DEFAULT_POLICY) -> dict:
     """compare + every absent effect fitted and ranked: ``{"baseline", "candidates", "verdict", ...}``.
 
-    Large frames (``large_px``, see :func:`run_compare`) take :func:`.fullframe.run_diagnose_large`."""
+    Large frames (``large_px``, see :func:`run_compare`) take :func:`.fullframe.run_diagnose_large`. Every
+    threshold of the judge comes from ``policy`` (:mod:`.policy`), recorded in the result."""
     try:
         if fullframe.is_large(scene, large_px):
-            return fullframe.run_diagnose_large(scene, measured, workers=workers, progress=progress)
-        return _run_diagnose(scene, measured, workers, progress)
+            return fullframe.run_diagnose_large(scene, measured, workers=workers, progress=progress, policy=policy)
+        return _run_diagnose(scene, measured, workers, progress, policy)
     except MemoryError as exc:
         raise fullframe.out_of_memory(measured, exc) from None
 
 
-def _run_diagnose(scene, measured: str | Path, workers: int | None = None, progress=None) -> dict:
+def _run_diagnose(scene, measured: str | Path, workers: int | None = None, progress=None,
+                  policy: DiagnosisPolicy = DEFAULT_POLICY) -> dict:
     cmp = _run_compare(scene, measured, workers=workers)
     t0 = time.perf_counter()
     truth = cmp["_model"].setup.truth
-    cands, problems = candidates(cmp["_residuals"], set(scene.effects), progress=progress, truth=truth)
-    optical, optical_problems = optics_candidates(cmp["_residuals"], truth, scene, progress=progress,
-                                                  model=cmp["_model"])
+    res = cmp["_residuals"]
+    cands, problems = candidates(res, set(scene.effects), progress=progress, truth=truth, policy=policy)
+    optical, optical_problems = optics_candidates(res, truth, scene, progress=progress, model=cmp["_model"])
+    for c in optical:
+        c.policy = policy
     field_pattern_check(cands, optical)  # a uniform blur/jitter that varies over the field as the optics predicts
-    cands = rank(cands + source_candidates(cmp["_residuals"], truth, scene) + optical, cmp["_residuals"].light_source)
+    if progress is not None:
+        progress("the scene's parameters")
+    params = parameter_candidates(res, scene, cmp["_model"], truth, policy, problems)
     problems = problems + optical_problems
     if progress is not None:
         progress("residual morphology")
-    res = cmp["_residuals"]
     morph = describe(res)
-    best = next((c for c in cands if c.significant), None)
-    remaining = describe(res, best.fit.delta_adu) if best is not None and best.fit.delta_adu is not None else None
-    empirical = morph.pop("empirical")
-    out = {"baseline": cmp["summary"], "candidates": [c.to_json() for c in cands], "problems": problems,
-           "verdict": verdict(cands, morph), "residual_morphology": morph, "seconds": time.perf_counter() - t0,
-           "_compare": cmp}
-    cmp["_empirical"] = empirical  # the smooth fit of the residual's pattern (an array: not for the JSON)
-    if remaining is not None:
+    effects = cands + source_candidates(res, truth, scene, policy) + optical
+    if progress is not None:
+        progress("the catch-all (held out)")
+    catch_all = compare_with_catch_all(res, effects, morph)
+    explained_away(params, rank(effects, res.light_source), res, scene)
+    cands = rank(params + effects, res.light_source)
+    out = finish_diagnosis(cmp, cands, problems, morph, policy, t0, catch_all)
+    best = next((c for c in cands if c.significant and c.kind == "effect"), None)
+    if best is not None and best.fit.delta_adu is not None:
+        remaining = describe(res, best.fit.delta_adu)
         remaining.pop("empirical")
         out["remaining_morphology"] = remaining
-    out["significant"] = [c["effect"] for c in out["candidates"] if c["significant"]]
-    out["indistinguishable"] = [c.fit.effect for c in indistinguishable([c for c in cands if c.significant])]
+    return out
+
+
+def finish_diagnosis(cmp: dict, cands: list, problems: list, morph: dict, policy: DiagnosisPolicy, t0: float,
+                     catch_all: float | None = None) -> dict:
+    """The diagnosis JSON every path writes (single frame, large frame; the series adds its own keys): the
+    baseline, the candidates as the judge ranked them, the verdict, the morphology (its empirical map kept
+    aside for ``--apply``), the policy and gate registry (:func:`.judge.judge_json`)."""
+    empirical = morph.pop("empirical", None)
+    out = {"baseline": cmp["summary"], "candidates": [c.to_json() for c in cands], "problems": problems,
+           "verdict": verdict(cands, morph), "residual_morphology": morph, "seconds": time.perf_counter() - t0,
+           "catch_all_heldout": catch_all, "_compare": cmp}
+    cmp["_empirical"] = empirical  # the smooth fit of the residual's pattern (an array: not for the JSON)
+    out.update(judge_json(cands, policy))
     return out
 
 
@@ -122,6 +145,14 @@ def apply_best(scene, diagnosis: dict, apply_to: str | Path | None, measured: st
     best = best_candidate(diagnosis, prefer)
     if apply_to is None:
         return None, best
+    if best is not None and best.get("kind") == "parameter":
+        # a number of the scene is wrong: every significant parameter is written at once (they were fitted
+        # together), the effects wait for the next round
+        params = [c for c in diagnosis["candidates"] if c["significant"] and c.get("kind") == "parameter"]
+        best = {"effect": "parameters", "kind": "parameter", "params": {c["key"]: c["value"] for c in params},
+                "parameters": params, "delta_bic": min(c["delta_bic"] for c in params),
+                "explanation": "; ".join(c["explanation"] for c in params)}
+        return apply_candidate(scene, best, apply_to, measured), best
     if best is not None:
         return apply_candidate(scene, best, apply_to, measured), best
     empirical = diagnosis["_compare"].get("_empirical")

@@ -71,19 +71,11 @@ from scenes.scene import load_scene, read_toml
 
 from . import fullframe
 from .apply import LEVEL_SCALE_TOL, apply_candidate
-from .candidates import (
-    EXCESS_SIGMA,
-    HELDOUT_CANDIDATES,
-    Candidate,
-    chi2_after,
-    implausibility,
-    indistinguishable,
-    overfit,
-    rank,
-    stars_check,
-    verdict,
-)
+from .candidates import chi2_after, implausibility, large_scale_share, overfit, stars_check, support_share
+from .floors import floor_reason
+from .judge import Candidate, judge_json, rank, verdict
 from .ledger import plot_ledger, update_ledger
+from .policy import DEFAULT_POLICY, DiagnosisPolicy
 from .run import _run_compare
 
 #: the scopes of the global levels (Residuals.LEVELS) by default: "series" for a flat-screen frame's light
@@ -589,9 +581,11 @@ def _mode(cls) -> str:
 
 
 def series_candidates(frames: list[Residuals], labels: list[str], present: set[str], shared: list[str],
-                      truths: list, progress=None, chi2_base: float | None = None, level_grams: list | None = None
-                      ) -> tuple[list[Candidate], list[dict], dict]:
-    """Every absent effect with a signature, fitted to the series and judged as in one frame. Returns
+                      truths: list, progress=None, chi2_base: float | None = None, level_grams: list | None = None,
+                      policy: DiagnosisPolicy = DEFAULT_POLICY) -> tuple[list[Candidate], list[dict], dict]:
+    """Every absent effect with a signature, fitted to the series and judged by the same judge as one frame
+    (:mod:`.judge`, the same policy): the structure, excess and support shares frame by frame (a candidate
+    keeps the largest over the frames where it acts), the held-out score over the frames. Returns
     (candidates best first, problems, {effect: SeriesFit}). ``level_grams``: the frames' levels-only normal
     equations when the comparison has them (:func:`run_series_compare`), else built here."""
     out, problems, fits = [], [], {}
@@ -622,30 +616,60 @@ def series_candidates(frames: list[Residuals], labels: list[str], present: set[s
             if f is None or sf.per_frame_delta[i] >= -1.0:  # judged where it changes something
                 continue
             if not why:
-                w = overfit(f, chi2_after(r, f), r) or (stars_check(r, f, truth)
-                                                        if cls.signature.kind == "transform" else "")
+                w = overfit(f, chi2_after(r, f), r, policy) or (stars_check(r, f, truth, policy)
+                                                                if cls.signature.kind == "transform" else "")
                 why = f"frame {lab}: {w}" if w else ""
             if not implaus:
                 w = implausibility(cls, f, r)
                 implaus = f"frame {lab}: {w}" if w else ""
+        consistency = ""
         if not implaus and sf.mode == "frame" and _mode(cls) == "shared":
-            implaus = _consistency(sf, labels)
+            consistency = _consistency(sf, labels, policy)
         n_all = sum(r.n_fit for r in frames)
-        cand = Candidate(sf.fit, sf.chi2_after / max(n_all, 1), time.perf_counter() - t0, why, implaus)
+        cand = Candidate(sf.fit, sf.chi2_after / max(n_all, 1), time.perf_counter() - t0, why, implaus,
+                         policy=policy)
+        if consistency:
+            cand.refuse("consistency", consistency)
+        floor = next((w for w in (floor_reason(name, f.params, r.sensor, policy)
+                                  for r, f in zip(frames, sf.frames) if f is not None) if w), "")
+        if floor:
+            cand.refuse("floor", floor)
         cand.scaling = cls.scaling or "frame"  # type: ignore[attr-defined]
+        if cand.contender:
+            _frame_shares(cand, sf, frames, policy)
         _drop_maps(sf)
         out.append(cand)
-    _excess_shares(frames, out, fits, level_grams or [_level_gram(r, shared) for r in frames])
-    _heldout(frames, out, fits, progress)
+    _excess_shares(frames, out, fits, level_grams or [_level_gram(r, shared) for r in frames], policy)
+    _heldout(frames, out, fits, progress, policy)
     return rank(out, "flat" if all(r.light_source == "flat" for r in frames) else ""), problems, fits
 
 
-#: a hardware (shared) effect fitted frame by frame whose first numeric parameter differs by more than this
-#: factor between frames where it is significant is not one piece of hardware
-CONSISTENCY_FACTOR = 3.0
+def _frame_shares(cand: Candidate, sf: SeriesFit, frames: list[Residuals], policy: DiagnosisPolicy) -> None:
+    """The single frame's structure and support shares (:func:`.candidates.structure_shares`,
+    :func:`.candidates.support_share`) in every frame where the candidate changes the mean; the candidate
+    keeps the largest (an effect of the darks need not explain the flats' structure)."""
+    from detector.morphology import block_chi2
+
+    explains, support = [], []
+    for r, f, d in zip(frames, sf.frames, sf.per_frame_delta):
+        if f is None or f.delta_adu is None or d >= -1.0:
+            continue
+        s = support_share(r, f, policy)
+        if s is not None:
+            support.append(s)
+        chi2, n = block_chi2(r)
+        if n and (chi2 - n) / math.sqrt(2 * n) >= policy.structure_sigma:
+            idx, _, w = r.flat_profiled()
+            if large_scale_share(r, f.delta_adu, idx, w) >= 0.5:
+                after, _ = block_chi2(r, f.delta_adu)
+                explains.append(float(np.clip((chi2 - after) / (chi2 - n), -1.0, 1.0)))
+    if explains:
+        cand.explains = round(max(explains), 4)
+    if support:
+        cand.support_share = round(max(support), 4)
 
 
-def _consistency(sf: SeriesFit, labels: list[str]) -> str:
+def _consistency(sf: SeriesFit, labels: list[str], policy: DiagnosisPolicy = DEFAULT_POLICY) -> str:
     vals = []
     for lab, f, d in zip(labels, sf.frames, sf.per_frame_delta):
         if f is None or d > -10:
@@ -656,15 +680,16 @@ def _consistency(sf: SeriesFit, labels: list[str]) -> str:
     if len(vals) < 2:
         return ""
     lo, hi = min(vals), max(vals)
-    if hi[0] > CONSISTENCY_FACTOR * lo[0]:
+    if hi[0] > policy.consistency_factor * lo[0]:
         return (f"a hardware effect, but its fitted strength differs {hi[0] / lo[0]:.3g}x between frames {lo[1]} "
                 f"({lo[0]:.3g}) and {hi[1]} ({hi[0]:.3g}): not one property of the camera")
     return ""
 
 
-def _excess_shares(frames: list[Residuals], cands: list[Candidate], fits: dict, grams: list) -> None:
+def _excess_shares(frames: list[Residuals], cands: list[Candidate], fits: dict, grams: list,
+                   policy: DiagnosisPolicy = DEFAULT_POLICY) -> None:
     """The excess-share rule of the single frame (:func:`.candidates.excess_shares`), frame by frame: in every
-    frame whose excess chi2 (levels alone, the shared ones at their joint values) is large (EXCESS_SIGMA),
+    frame whose excess chi2 (levels alone, the shared ones at their joint values) is large (``excess_sigma``),
     the share of it the candidate removes; a candidate keeps the largest (an effect of the darks need not
     remove a share of the flats' excess). None when no frame has a large excess. ``grams``: the frames'
     levels-only normal equations."""
@@ -672,7 +697,7 @@ def _excess_shares(frames: list[Residuals], cands: list[Candidate], fits: dict, 
     excess = []
     for r, g in zip(frames, grams):
         e = fixed_score(g, g.cols("ls"), c_lv, g.cols("lf")) - r.n_fit
-        excess.append(e if r.n_fit and e / math.sqrt(2 * r.n_fit) >= EXCESS_SIGMA else None)
+        excess.append(e if r.n_fit and e / math.sqrt(2 * r.n_fit) >= policy.excess_sigma else None)
     if all(e is None for e in excess):
         return
     for c in cands:
@@ -682,12 +707,13 @@ def _excess_shares(frames: list[Residuals], cands: list[Candidate], fits: dict, 
             c.excess_share = round(float(max(shares)), 4)
 
 
-def _heldout(frames: list[Residuals], cands: list[Candidate], fits: dict, progress=None) -> None:
+def _heldout(frames: list[Residuals], cands: list[Candidate], fits: dict, progress=None,
+             policy: DiagnosisPolicy = DEFAULT_POLICY) -> None:
     """Held-out scores of the contenders: a shared linear effect's leave-one-frame-out score (fitted on the
     other frames, scored on each left-out frame), the others' block cross-validation in every frame
     (:func:`detector.signatures.heldout_delta`), summed."""
     reg = registry()
-    for c in sorted((c for c in cands if c.contender), key=lambda c: c.fit.delta_bic)[:HELDOUT_CANDIDATES]:
+    for c in sorted((c for c in cands if c.contender), key=lambda c: c.fit.delta_bic)[:policy.heldout_candidates]:
         sf = fits[c.fit.effect]
         t0 = time.perf_counter()
         try:
@@ -706,13 +732,14 @@ def _heldout(frames: list[Residuals], cands: list[Candidate], fits: dict, progre
                     total, scored = total + h, True
                 c.heldout = total if scored else None
         except Exception as exc:  # noqa: BLE001
-            c.implausible = f"cannot be scored on held-out frames ({type(exc).__name__}: {exc})"
+            c.refuse("error", f"cannot be scored on held-out frames ({type(exc).__name__}: {exc})")
         c.seconds += time.perf_counter() - t0
         if progress is not None:
             progress(f"{c.fit.effect} (held out)")
 
 
-def run_series_diagnose(series: Series, workers: int | None = None, progress=None) -> dict:
+def run_series_diagnose(series: Series, workers: int | None = None, progress=None,
+                        policy: DiagnosisPolicy = DEFAULT_POLICY) -> dict:
     """compare + every absent effect fitted to the series and ranked (the single-frame JSON keys for the
     series as a whole, ``frames`` with each frame's own figures, ``separation``: what told the winner from
     its nearest rival)."""
@@ -725,7 +752,7 @@ def run_series_diagnose(series: Series, workers: int | None = None, progress=Non
     truths = [c["_model"].setup.truth for c in cmps]
     chi2_base = cmp["baseline"]["chi2_per_dof_levels"] * cmp["baseline"]["n_compared"]
     cands, problems, fits = series_candidates(frames, labels, present, cmp["shared_levels"], truths, progress,
-                                              chi2_base, cmp["_level_grams"])
+                                              chi2_base, cmp["_level_grams"], policy)
     morphs = [describe(r) for r in frames]
     for m in morphs:
         m.pop("empirical", None)
@@ -737,9 +764,7 @@ def run_series_diagnose(series: Series, workers: int | None = None, progress=Non
            "series": str(series.path), "_compare": cmp, "_fits": fits, "_candidates": cands}
     for fr, m in zip(out["frames"], morphs):
         fr["residual_morphology"] = m
-    sig = [c for c in cands if c.significant]
-    out["significant"] = [c.fit.effect for c in sig]
-    out["indistinguishable"] = [c.fit.effect for c in indistinguishable(sig)]
+    out.update(judge_json(cands, policy))
     out["separation"] = separation(frames, labels, cands, fits, series)
     out["seconds"] = time.perf_counter() - t0
     return out

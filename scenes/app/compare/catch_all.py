@@ -1,0 +1,72 @@
+"""The catch-all: the residual's own empirical map as the alternative every name must beat.
+
+:func:`detector.morphology.describe` describes a significant residual and builds its empirical map (a smooth
+field, line profiles, a periodic pattern, compact features, a kernel about the sources, extra noise). Here
+that map is a candidate like any other: fitted on one fold of the held-out checkerboard and scored on the
+other (:func:`detector.signatures.heldout_delta`), so a physical candidate's held-out score can be set
+against the description's on the same folds. A name that predicts the unseen pixels worse than a
+description of the residual (beyond the policy's ``min_catch_all_share``) is not named: the verdict is the
+description.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from detector.morphology import describe
+from detector.signatures import Fit, Residuals, Signature, heldout_delta, pixel_score
+
+
+def empirical_fit(res: Residuals, morph: dict | None = None) -> Fit | None:
+    """The empirical map of ``res``'s residual as a :class:`Fit` (mean change [ADU] or added variance
+    [ADU^2]); None when the residual is not significant or has no map."""
+    m = describe(res) if morph is None else morph
+    emp = m.get("empirical")
+    if not m.get("significant") or not emp or emp.get("map") is None:
+        return None
+    shape = res.data_adu.shape
+    mp = np.broadcast_to(np.asarray(emp["map"], np.float32), shape)
+    if emp["kind"] == "noise":
+        return Fit("catch_all", {}, 0.0, 1, res.n_fit, m.get("explanation", ""), extra_var_adu2=mp)
+    if emp["kind"] == "multiplicative":
+        delta = (mp * res.photo_adu).astype(np.float32)
+    else:
+        delta = np.asarray(mp, np.float32)
+    return Fit("catch_all", {}, 0.0, 1, res.n_fit, m.get("explanation", ""), delta_adu=delta)
+
+
+class CatchAll(Signature):
+    """The description as a signature: fit = the empirical map of the fold's residual; score = the pixels'
+    Gaussian delta -2 ln L (:func:`detector.signatures.pixel_score`)."""
+
+    kind = "description"
+
+    def fit(self, res: Residuals, name: str) -> Fit | None:
+        return empirical_fit(res)
+
+    def score(self, fit: Fit, res: Residuals) -> float | None:
+        return pixel_score(fit, res)
+
+
+def catch_all_heldout(res: Residuals) -> float | None:
+    """The catch-all's held-out delta -2 ln L on the checkerboard folds every candidate is scored on (0 when
+    neither fold's residual is significant: the description predicts nothing)."""
+    h = heldout_delta(CatchAll(), res, "catch_all")
+    return None if h is None else float(h)
+
+
+def compare_with_catch_all(res: Residuals, cands: list, morph: dict) -> float | None:
+    """Set ``catch_all_delta`` (its held-out score minus the catch-all's) on every candidate with a held-out
+    score, when the frame's residual is significant; returns the catch-all's score (None: not computed)."""
+    if not morph.get("significant"):
+        return None
+    scored = [c for c in cands if c.heldout is not None and c.kind == "effect"]
+    if not scored:
+        return None
+    ca = catch_all_heldout(res)
+    if ca is None:
+        return None
+    for c in scored:
+        c.catch_all_delta = round(float(c.heldout - ca), 4)
+        c.catch_all_heldout = ca
+    return ca

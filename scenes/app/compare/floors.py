@@ -1,0 +1,79 @@
+"""Physical effect-size floors: sizes at which a fitted effect is not a finding, whatever its delta BIC.
+
+A likelihood ratio can be enormous for an effect no camera has: a non-linearity of 0.02 % at full well
+(what a textbook linear camera's rounding makes of a flat series), a third of a sensor's columns "hot" by
+0.0003 e-/s, cosmic rays at a hundred times the physical rate. Each check returns one line when the fitted
+size is beyond what physics allows (gate ``floor``), from the policy's fields
+(:class:`~.policy.DiagnosisPolicy`: ``min_nonlinearity_at_full_well``, ``max_defect_fraction``,
+``max_cosmic_rate_factor``). An effect without a rule here has no floor.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+from detector.cosmics import ENVIRONMENTS
+
+from .policy import DEFAULT_POLICY, DiagnosisPolicy
+
+
+def _num(params: dict, key: str, default: float = 0.0) -> float:
+    v = params.get(key, default)
+    return float(v) if isinstance(v, (int, float)) and not isinstance(v, bool) else default
+
+
+def nonlinearity_floor(params: dict, sensor, policy: DiagnosisPolicy) -> str:
+    """The response's relative deficit at full well: ``beta`` plus the power law's ``|1 - 2^(gamma-1)|`` (the
+    law equals the linear response at half the full well)."""
+    deficit = abs(_num(params, "beta")) + abs(1.0 - 2.0 ** (_num(params, "gamma", 1.0) - 1.0))
+    if deficit < policy.min_nonlinearity_at_full_well:
+        return (f"a non-linearity of {100 * deficit:.3g} % at full well is below the "
+                f"{100 * policy.min_nonlinearity_at_full_well:g} % any photon-transfer curve resolves")
+    return ""
+
+
+def _defects(count: float, total: float, what: str, policy: DiagnosisPolicy) -> str:
+    if total > 0 and count > policy.max_defect_fraction * total:
+        return (f"{count:.0f} {what} are {100 * count / total:.3g} % of the sensor's; no camera has more than "
+                f"{100 * policy.max_defect_fraction:g} %: a pattern of many small deviations, not defects")
+    return ""
+
+
+def hot_pixels_floor(params: dict, sensor, policy: DiagnosisPolicy) -> str:
+    return _defects(_num(params, "count"), sensor.sensor_width_px * sensor.sensor_height_px, "hot pixels", policy)
+
+
+def dead_pixels_floor(params: dict, sensor, policy: DiagnosisPolicy) -> str:
+    return _defects(_num(params, "count"), sensor.sensor_width_px * sensor.sensor_height_px, "dead pixels", policy)
+
+
+def column_defects_floor(params: dict, sensor, policy: DiagnosisPolicy) -> str:
+    n = _num(params, "hot_columns") + _num(params, "dead_columns")
+    return _defects(n, sensor.sensor_width_px, "defective columns", policy)
+
+
+def cosmic_rays_floor(params: dict, sensor, policy: DiagnosisPolicy) -> str:
+    """The fitted particle flux against the flux of the environment the fit names (ground by default)."""
+    flux = _num(params, "flux_per_cm2_s", -1.0)
+    env = ENVIRONMENTS.get(str(params.get("environment", "ground")), ENVIRONMENTS["ground"])
+    if flux > policy.max_cosmic_rate_factor * env.flux_per_cm2_s:
+        return (f"{flux:.3g} particles /cm^2/s is {flux / env.flux_per_cm2_s:.3g}x the physical flux of the "
+                f"environment ({env.flux_per_cm2_s:.3g}); more than {policy.max_cosmic_rate_factor:g}x is not "
+                "cosmic rays")
+    return ""
+
+
+#: effect name -> its floor check
+FLOORS: dict[str, Callable[[dict, object, DiagnosisPolicy], str]] = {
+    "nonlinearity": nonlinearity_floor,
+    "hot_pixels": hot_pixels_floor,
+    "dead_pixels": dead_pixels_floor,
+    "column_defects": column_defects_floor,
+    "cosmic_rays": cosmic_rays_floor,
+}
+
+
+def floor_reason(effect: str, params: dict, sensor, policy: DiagnosisPolicy = DEFAULT_POLICY) -> str:
+    """"" or why the fitted size of ``effect`` is not a finding (gate ``floor``)."""
+    check = FLOORS.get(effect)
+    return check(params, sensor, policy) if check is not None else ""

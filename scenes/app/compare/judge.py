@@ -1,0 +1,264 @@
+"""The judge: which candidate, if any, the diagnosis names. One judge for single frames, large frames and series.
+
+Candidates come from three kinds of evidence, all :class:`Candidate` objects:
+
+* ``parameter``: a number of the scene is wrong (the sources' zero point, the sky, the PSF's width, the bias,
+  the dark current; :mod:`.parameters`): asked first, "is a number of the scene wrong?" before "is an
+  effect missing?";
+* ``effect``: a catalogue effect (or a user's plugin) fitted through its signature (:mod:`.candidates`,
+  :mod:`.optics_candidates`, :mod:`.sources`);
+* ``description``: the residual's own empirical map (:mod:`detector.morphology`), the catch-all a name must
+  beat on held-out pixels.
+
+Every threshold is a field of the :class:`~.policy.DiagnosisPolicy` the candidate carries; every reason a
+candidate is not named is a gate code of :data:`GATES` (as photutils keeps its flags) with its one-line
+reason. A candidate is *significant* when it fails no gate; the verdict names the best significant one, or
+says that nothing is missing, or describes what no candidate explains.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from detector import registry
+from detector.effects.base import Stage
+from detector.signatures import Fit
+
+from .policy import DEFAULT_POLICY, DiagnosisPolicy
+
+#: every reason the judge may refuse a name: code -> what it means (the JSON's ``gates``)
+GATES: dict[str, str] = {
+    "bic": "its delta BIC is not below the policy's significance (significant_delta_bic)",
+    "overfit": "it only hides a residual: noise that makes everything fit, or far more noise than the pixels show",
+    "stars": "with it the bright stars' photometry is wrong: the light it moves belongs to something else",
+    "implausible": "the fitted pattern is not physically this effect (its own structure test)",
+    "bound": "a fitted parameter sits at its bound: the form cannot follow the data",
+    "floor": "its size is beyond what physics allows for this effect (below the smallest finding, or more "
+             "than any camera has)",
+    "heldout": "it does not improve the pixels its fit did not see (significant_heldout)",
+    "structure": "it removes too little of the frame's large-scale structure (min_explained)",
+    "excess": "it removes too little of the frame's excess chi2 (min_excess_share)",
+    "support": "it removes too little of the excess where it acts (min_support_share)",
+    "catch_all": "the residual's empirical map predicts the held-out pixels better: a description, not this name",
+    "dark": "its pixels are not hot in the user's dark frame",
+    "consistency": "series: one piece of hardware, but its strength differs between frames",
+    "sample": "large frame: it worsens the full-resolution band sample",
+    "tolerance": "a parameter within the policy's tolerance of the scene's value: not a finding",
+    "error": "its evidence could not be computed",
+}
+
+
+@dataclass
+class Candidate:
+    """One candidate fitted to the residuals, with what the judge asks of it.
+
+    ``rejected``: the fit only hides a residual; ``implausible``: the fitted pattern is not physically this
+    effect; ``heldout``: delta(-2 ln L) on pixels the fit did not see (None: not scored); ``explains``,
+    ``excess_share``, ``support_share``: the shares of what is wrong that it removes (None: not measured);
+    ``catch_all_delta``: its held-out score minus the catch-all's (None: not compared). ``codes`` holds the
+    gate codes of ``rejected`` / ``implausible`` (set with :meth:`reject` and :meth:`refuse`).
+    """
+
+    fit: Fit
+    chi2_per_dof: float
+    seconds: float
+    rejected: str = ""  #: why a candidate with a large delta BIC is not physical ("" if it is)
+    implausible: str = ""  #: why the fitted pattern is not this effect ("" if it may be)
+    heldout: float | None = None
+    explains: float | None = None
+    excess_share: float | None = None
+    support_share: float | None = None
+    catch_all_delta: float | None = None
+    catch_all_heldout: float | None = None  #: the catch-all's held-out score on the same folds
+    kind: str = "effect"  #: "effect", "parameter" or "description"
+    key: str | None = None  #: a parameter's scene key (``psf.fwhm_arcsec``)
+    value: float | None = None  #: a parameter's new value
+    policy: DiagnosisPolicy = DEFAULT_POLICY
+    codes: dict = field(default_factory=dict)  #: gate code -> reason, for the gates set by the evidence
+
+    def __post_init__(self):
+        if self.rejected and "overfit" not in self.codes and "stars" not in self.codes:
+            self.codes.setdefault("overfit", self.rejected)
+        if self.implausible:
+            self.codes.setdefault(_implausible_code(self.implausible), self.implausible)
+
+    def reject(self, code: str, why: str) -> None:
+        """Refuse the candidate as a fit that only hides a residual (``code`` of :data:`GATES`)."""
+        assert code in GATES, code
+        if not self.rejected:
+            self.rejected = why
+        self.codes.setdefault(code, why)
+
+    def refuse(self, code: str, why: str) -> None:
+        """Refuse the candidate as not physically this effect (``code`` of :data:`GATES`)."""
+        assert code in GATES, code
+        if not self.implausible:
+            self.implausible = why
+        self.codes.setdefault(code, why)
+
+    @property
+    def plausible(self) -> bool:
+        return not self.implausible
+
+    @property
+    def contender(self) -> bool:
+        """Significant by delta BIC and neither rejected nor implausible: worth a held-out score."""
+        return (self.fit.delta_bic < self.policy.significant_delta_bic and not self.rejected
+                and not self.implausible)
+
+    @property
+    def gates(self) -> list[str]:
+        """The codes of every gate the candidate fails (empty: it is significant)."""
+        return [code for code, _ in gate_reasons(self)]
+
+    @property
+    def significant(self) -> bool:
+        return not gate_reasons(self)
+
+    @property
+    def score(self) -> float:
+        """What the ranking sorts by: the held-out delta when there is one, else delta BIC."""
+        return self.heldout if self.heldout is not None else self.fit.delta_bic
+
+    def to_json(self) -> dict:
+        f = self.fit
+        reg = registry()
+        reasons = gate_reasons(self)
+        out = {"effect": f.effect, "params": f.params, "chi2_per_dof": self.chi2_per_dof,
+               "delta_bic": f.delta_bic, "delta_m2lnl": f.delta_m2lnl, "k": f.k, "explanation": f.explanation,
+               "kind": self.kind,
+               "signature": type(reg[f.effect].signature).__name__ if f.effect in reg else "",
+               "significant": not reasons, "gates": [c for c, _ in reasons],
+               "gate_reasons": {c: why for c, why in reasons},
+               "rejected": self.rejected, "plausible": self.plausible,
+               "implausible_because": self.implausible, "heldout_delta": self.heldout,
+               "catch_all_delta": self.catch_all_delta,
+               "explains_structure": self.explains, "explains_excess": self.excess_share,
+               "explains_where_it_acts": self.support_share, "variant": f.note,
+               "seconds": self.seconds}
+        if self.kind == "parameter":
+            out["key"], out["value"] = self.key, self.value
+        return out
+
+
+def _implausible_code(why: str) -> str:
+    return "bound" if "sits at its bound" in why else "implausible"
+
+
+def gate_reasons(c: Candidate) -> list[tuple[str, str]]:
+    """Every gate ``c`` fails, as (code, one-line reason), in the order the judge asks them."""
+    p = c.policy
+    out = list(c.codes.items())
+    said = {why for _, why in out}
+    if c.rejected and c.rejected not in said:  # set directly by an older caller: still a gate
+        out.append(("overfit", c.rejected))
+    if c.implausible and c.implausible not in said:
+        out.append((_implausible_code(c.implausible), c.implausible))
+    if c.fit.delta_bic >= p.significant_delta_bic and "tolerance" not in c.codes:
+        out.insert(0, ("bic", f"delta BIC {c.fit.delta_bic:.4g} is not below {p.significant_delta_bic:g}"))
+    if out:
+        return out
+    if c.heldout is not None and c.heldout >= p.significant_heldout:
+        out.append(("heldout", f"held-out delta {c.heldout:.4g} is not below {p.significant_heldout:g}: it does "
+                    "not improve the pixels it was not fitted on"))
+    if c.explains is not None and c.explains < p.min_explained:
+        out.append(("structure", f"it removes only {100 * c.explains:.0f} % of the large-scale structure"))
+    if c.excess_share is not None and c.excess_share < p.min_excess_share:
+        out.append(("excess", f"it removes only {100 * c.excess_share:.2g} % of the excess chi2"))
+    if c.support_share is not None and c.support_share < p.min_support_share:
+        out.append(("support", f"it removes only {100 * c.support_share:.2g} % of the excess chi2 where it acts: "
+                    "what is wrong there is something else, or more"))
+    ca = c.catch_all_heldout
+    if ca is not None and ca < 0 and c.heldout is not None and c.heldout > p.min_catch_all_share * ca:
+        out.append(("catch_all", f"on the same held-out pixels it predicts {100 * c.heldout / ca:.0f} % of what the "
+                    f"residual's empirical map predicts (held-out {c.heldout:.4g} vs {ca:.4g}; at least "
+                    f"{100 * p.min_catch_all_share:.0f} % needed): a description, not this name"))
+    return out
+
+
+def _of_light(c: Candidate) -> bool:
+    """The candidate multiplies the light only: its effect acts at the RESPONSE stage and nowhere else
+    (vignetting, PRNU, a mosaic, dead pixels, a flat map; not column defects, which add dark charge too)."""
+    cls = registry().get(c.fit.effect)
+    return cls is not None and set(cls.stages) == {Stage.RESPONSE}
+
+
+def rank(cands: list[Candidate], light_source: str = "") -> list[Candidate]:
+    """Best first: significant parameters of the scene (a number of the scene that is wrong comes before an
+    effect that is missing), then the significant effects by their held-out score (delta BIC where there is
+    none), then the others that are plausible and not rejected, then the implausible and the rejected, each
+    by delta BIC. Twins (as good on held-out pixels) go by delta BIC (fewer parameters for the same fit
+    first); on a flat-screen frame (``light_source`` "flat"), whose uniform light cannot tell a response from
+    added charge, a response comes first."""
+    def key(c):
+        sig = c.significant
+        tier = (0 if c.kind == "parameter" else 1) if sig else 2 if c.plausible and not c.rejected else 3
+        return tier, c.score if sig else c.fit.delta_bic
+
+    out = sorted(cands, key=key)
+    sig = [c for c in out if c.significant and c.kind != "parameter"]
+    twins = indistinguishable(sig)
+    if twins:
+        flat = light_source == "flat"
+        group = sorted([sig[0], *twins], key=lambda c: (flat and not _of_light(c), c.fit.delta_bic))
+        params = [c for c in out if c.significant and c.kind == "parameter"]
+        rest = [c for c in out if c not in group and c not in params]
+        out = params + group + rest
+    return out
+
+
+def indistinguishable(sig: list[Candidate]) -> list[Candidate]:
+    """The significant candidates after the first whose held-out score is as good as the first's (within the
+    policy's twin fraction, and within the scores' own scatter ~ sqrt(2 |score|))."""
+    if len(sig) < 2 or sig[0].heldout is None:
+        return []
+    best = sig[0].heldout
+    tol = max(sig[0].policy.twin_fraction * abs(best), 2 * np.sqrt(2 * abs(best)))
+    return [c for c in sig[1:] if c.heldout is not None and c.heldout - best <= tol]
+
+
+def verdict(cands: list[Candidate], morphology: dict | None = None) -> str:
+    """One sentence for the report: the scene's wrong numbers and the most likely missing effect (significant,
+    better on held-out pixels than the catch-all), or that nothing is missing, or what the residual looks
+    like when no candidate explains it."""
+    sig = [c for c in cands if c.significant]
+    params = [c for c in sig if c.kind == "parameter"]
+    effects = [c for c in sig if c.kind != "parameter"]
+    head = ""
+    if params:
+        head = "the scene's numbers are off: " + "; ".join(f"{c.key} -> {c.value:.5g} ({c.fit.explanation})"
+                                                          for c in params)
+    if effects:
+        best = effects[0]
+        held = f", held-out {best.heldout:.4g}" if best.heldout is not None else ""
+        twins = indistinguishable(effects)
+        also = (f"; the data cannot tell it apart from {', '.join(c.fit.effect for c in twins)} (their held-out "
+                "scores are as good)") if twins else ""
+        text = (f"most likely missing: {best.fit.effect} (delta BIC {best.fit.delta_bic:.4g}{held}): "
+                f"{best.fit.explanation}{also}")
+        return f"{head}; then {text}" if head else text
+    if head:
+        return head
+    policy = cands[0].policy if cands else DEFAULT_POLICY
+    named = [c for c in cands if c.fit.delta_bic < policy.significant_delta_bic and c.kind != "parameter"]
+    why = ""
+    if named:
+        c = named[0]
+        reasons = gate_reasons(c)
+        why = f" ({c.fit.effect} fits but is not credible: {reasons[0][1]} [{reasons[0][0]}])" if reasons else ""
+    if morphology and morphology.get("significant"):
+        return ("no catalogue effect explains the residual" + why + "; what is missing looks like "
+                + morphology["explanation"])
+    return ("no missing effect was found: no candidate improves the fit significantly (delta BIC < "
+            f"{policy.significant_delta_bic:g})" + why)
+
+
+def judge_json(cands: list[Candidate], policy: DiagnosisPolicy) -> dict:
+    """The judge's part of every ``diagnose --json`` (single, large, series): the policy, the gate registry,
+    the significant names and the twins."""
+    sig = [c for c in cands if c.significant]
+    return {"policy": policy.to_json(), "gate_codes": GATES,
+            "significant": [c.fit.effect for c in sig],
+            "indistinguishable": [c.fit.effect for c in indistinguishable([c for c in sig if c.kind != "parameter"])]}

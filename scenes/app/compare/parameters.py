@@ -1,0 +1,323 @@
+"""Is a number of the scene wrong? Parameter candidates: the scene's own keys, refitted on the measured frame.
+
+Before "an effect is missing" the judge asks whether a number the scene states is off. The comparison
+already refits the global levels a model only knows to a few per cent (:meth:`Residuals.levels
+<detector.signatures.Residuals.levels>`: the whole light, the background's light, a bias offset, the dark
+level); a level far from its scene value is not a nuisance to absorb silently but a finding, reported as a
+candidate of kind ``parameter`` that names the scene key it changes and its new value, and written by
+``--apply``:
+
+* the sources' zero point ``sky.source_flux_scale`` (the whole light's level: the sources scale with it,
+  the background with it and its own level), the sky ``sky.background_mag_arcsec2``, a flat screen's
+  ``sky.flat_e_per_s``;
+* the bias ``detector.bias_adu`` and the dark current ``detector.dark_current_e_per_s``;
+* the PSF's width ``psf.fwhm_arcsec`` (narrower as well as wider) and a Moffat PSF's ``psf.beta``: the
+  scene re-rendered at a few values and the best value interpolated (:func:`psf_candidates`).
+
+The evidence of a level is its likelihood-ratio statistic: the chi2 the frame loses when that level is held
+at the scene's value, the others refitted, ``coef^2 / var(coef)`` (weighted least squares); its delta BIC
+charges one parameter. A parameter is a finding only beyond the policy's physical tolerance (gate
+``tolerance``): a lamp or a transparency known to a few per cent is not an error of the scene.
+"""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+
+from detector.signatures import Fit, Residuals, pixel_score
+
+from .judge import Candidate
+from .policy import DEFAULT_POLICY, DiagnosisPolicy
+
+#: fractional steps of the PSF's width tried first (the best is then interpolated and refined once)
+PSF_STEPS = (0.8, 0.9, 1.1, 1.25)
+
+
+def _bias_per_output_adu(sensor) -> float:
+    b2 = sensor.binning ** 2
+    if sensor.binning_mode == "sum":
+        return float(b2) if sensor.kind != "ccd" else 1.0
+    return 1.0 if sensor.kind != "ccd" else 1.0 / b2
+
+
+def level_statistics(res: Residuals) -> dict[str, tuple[float, float]]:
+    """{level name: (coefficient, its chi2 statistic coef^2 / var(coef))} of the fitted global levels."""
+    lv = res.levels()
+    if not lv["keep"]:
+        return {}
+    idx = res.flat()[0]
+    n = res.level_values(idx)
+    g = (n * lv["w"]) @ n.T
+    try:
+        cov = np.linalg.inv(g)
+    except np.linalg.LinAlgError:
+        return {}
+    return {name: (float(c), float(c * c / cov[i, i]) if cov[i, i] > 0 else 0.0)
+            for i, (name, c) in enumerate(zip(lv["names"], lv["coef"]))}
+
+
+def _param_candidate(res: Residuals, name: str, key: str, value: float, stat: float, explanation: str,
+                     within: str, policy: DiagnosisPolicy, seconds: float, level: str = "") -> Candidate:
+    n = max(res.n_fit, 2)
+    fit = Fit(name, {"key": key, "value": value}, -stat, 1, n, explanation, state={"level": level})
+    chi2 = float(res.chi2_profiled() / max(res.n_fit, 1))
+    c = Candidate(fit, chi2, seconds, kind="parameter", key=key, value=value, policy=policy)
+    if within:
+        c.codes["tolerance"] = within
+    return c
+
+
+def level_candidates(res: Residuals, scene, policy: DiagnosisPolicy = DEFAULT_POLICY) -> list[Candidate]:
+    """The global levels as parameter candidates (module docstring): one per level the frame measures."""
+    t0 = time.perf_counter()
+    stats = level_statistics(res)
+    if not stats:
+        return []
+    sensor = scene.sensor()
+    out = []
+    tol = policy.parameter_scale_tolerance
+    has_sources = bool(np.any(res.model_adu - (res.background_adu if res.background_adu is not None
+                                                  else res.model_adu) > 0))
+    light = stats.get("light_scale")
+    bg = stats.get("background_scale")
+
+    def scale_words(f: float) -> str:
+        return f"x {f:.4g}" + ("" if abs(f - 1) <= tol else f" (beyond the {100 * tol:g} % the scene may be off)")
+
+    def within_scale(f: float, what: str) -> str:
+        return "" if abs(f - 1) > tol else f"{what} x {f:.4g} is within the {100 * tol:g} % a scene may be off"
+
+    if light is not None and scene.exposure.frame == "light":
+        c, stat = light
+        f = 1.0 + c
+        if scene.sky.flat_e_per_s:
+            v = float(scene.sky.flat_e_per_s) * f
+            out.append(_param_candidate(
+                res, "flat_level", "sky.flat_e_per_s", round(v, 6), stat,
+                f"the flat screen's light is {scale_words(f)} the scene's: {scene.sky.flat_e_per_s:.5g} -> "
+                f"{v:.5g} e-/pixel/s", within_scale(f, "the flat level"), policy, 0.0, "light_scale"))
+        elif has_sources and f > 0:
+            v = float(scene.sky.source_flux_scale) * f
+            out.append(_param_candidate(
+                res, "zero_point", "sky.source_flux_scale", round(v, 6), stat,
+                f"the sources are {scale_words(f)} as bright as the scene's (the photometric zero point, "
+                f"{-2.5 * np.log10(f):+.3f} mag)", within_scale(f, "the sources' flux"), policy, 0.0, "light_scale"))
+        elif not has_sources and scene.sky.background_mag_arcsec2 is not None and f > 0:
+            bg, light = (c, stat), None  # no source: the whole light is the sky
+    if bg is not None and scene.exposure.frame == "light" and scene.sky.background_mag_arcsec2 is not None \
+            and not scene.sky.flat_e_per_s:
+        c, stat = bg
+        f = 1.0 + c + (light[0] if light is not None else 0.0)  # the background follows the whole light too
+        if f > 0.02:
+            mag = float(scene.sky.background_mag_arcsec2)
+            v = mag - 2.5 * float(np.log10(f))
+            out.append(_param_candidate(
+                res, "sky_level", "sky.background_mag_arcsec2", round(v, 5), stat,
+                f"the sky is {scale_words(f)} the scene's: {mag:.4g} -> {v:.4g} mag/arcsec^2",
+                within_scale(f, "the sky"), policy, 0.0,
+                "background_scale" if light is not None else "light_scale"))
+    if "offset_adu" in stats:
+        c, stat = stats["offset_adu"]
+        d = c / _bias_per_output_adu(sensor)
+        v = max(float(sensor.bias_adu) + d, 0.0)
+        within = "" if abs(d) > policy.parameter_bias_tolerance_adu else \
+            f"the bias is off by {d:+.3g} ADU, within the {policy.parameter_bias_tolerance_adu:g} ADU a bias drifts"
+        out.append(_param_candidate(res, "bias_level", "detector.bias_adu", round(v, 3), stat,
+                                    f"the bias is {d:+.4g} ADU from the scene's: {sensor.bias_adu:.5g} -> {v:.5g} ADU",
+                                    within, policy, 0.0, "offset_adu"))
+    if "dark_scale" in stats:
+        c, stat = stats["dark_scale"]
+        f = 1.0 + c
+        if f > 0:
+            v = float(sensor.dark_current_e_per_s) * f
+            out.append(_param_candidate(
+                res, "dark_level", "detector.dark_current_e_per_s", float(f"{v:.6g}"), stat,
+                f"the dark current is {scale_words(f)} the scene's: {sensor.dark_current_e_per_s:.4g} -> "
+                f"{v:.4g} e-/s", within_scale(f, "the dark current"), policy, 0.0, "dark_scale"))
+    for c in out:
+        c.seconds = (time.perf_counter() - t0) / len(out)
+    return out
+
+
+# --- the PSF ----------------------------------------------------------------------------------------------------
+
+def scene_with(scene, values: dict):
+    """A copy of ``scene`` with dotted keys set (``{"psf.fwhm_arcsec": 2.1}``), validated as a scene file is."""
+    from scenes.scene import Scene, check_scene, validate
+
+    data = scene.model_dump(mode="json", exclude_none=True, exclude_unset=True)
+    for dotted, v in values.items():
+        node = data
+        *path, last = dotted.split(".")
+        for k in path:
+            node = node.setdefault(k, {})
+        node[last] = v
+    data["source"] = scene.source
+    new = validate(Scene, data, file=str(scene.source))
+    check_scene(new)
+    return new
+
+
+def _psf_delta(scene, res: Residuals, model, key: str, value: float) -> tuple[float, Fit] | None:
+    """delta(-2 ln L) of the scene with ``key`` = ``value`` against the scene's model, on the comparison's
+    fitted pixels with the levels refitted (:func:`detector.signatures.pixel_score`)."""
+    from .model import build_model
+
+    other = build_model(scene_with(scene, {key: value}), realisation=False)
+    delta = (other.mean_adu.astype(np.float64) - model.mean_adu).astype(np.float32)
+    extra = (other.var_adu2.astype(np.float64) - model.var_adu2).astype(np.float32)
+    fit = Fit("psf", {}, 0.0, 1, res.n_fit, "", delta_adu=delta, extra_var_adu2=extra)
+    s = pixel_score(fit, res)
+    return (None if s is None else float(s)), fit
+
+
+def psf_candidates(res: Residuals, scene, model, policy: DiagnosisPolicy = DEFAULT_POLICY,
+                   truth=None) -> list[Candidate]:
+    """The PSF's FWHM (and a Moffat's beta) refitted by re-rendering the scene at a few values: the delta
+    -2 ln L at each, a parabola through the best three, one more render at its minimum. Only for a light
+    frame with stars and an analytic PSF (``gaussian`` or ``moffat``) with enough bright stars."""
+    if scene.exposure.frame != "light" or not scene.sky.stars or scene.psf.model not in ("gaussian", "moffat"):
+        return []
+    if truth is None or len(truth) == 0:
+        return []
+    t0 = time.perf_counter()
+    # enough bright sources to tell a width: peaks above 10 sigma of the model
+    src = res.model_adu - (res.background_adu if res.background_adu is not None else res.model_adu)
+    if int(np.sum(src > 10 * np.sqrt(np.maximum(res.var_adu2, 1e-6)))) < 9 * policy.psf_min_stars:
+        return []
+    out = []
+    params = [("psf_width", "psf.fwhm_arcsec", float(scene.psf.fwhm_arcsec), policy.psf_width_tolerance,
+               "the PSF's FWHM")]
+    if scene.psf.model == "moffat":
+        params.append(("psf_profile", "psf.beta", float(scene.psf.beta), policy.psf_width_tolerance,
+                       "the Moffat PSF's beta (its wings)"))
+    for name, key, v0, tol, what in params:
+        xs, ys = [1.0], [0.0]
+        for s in PSF_STEPS:
+            d, _ = _psf_delta(scene, res, model, key, v0 * s)
+            if d is None:
+                break
+            xs.append(s)
+            ys.append(d)
+        if len(xs) < 3:
+            continue
+        order = np.argsort(xs)
+        x, y = np.asarray(xs)[order], np.asarray(ys)[order]
+        i = int(np.argmin(y))
+        if 0 < i < x.size - 1:
+            a, b, c = np.polyfit(np.log(x[i - 1:i + 2]), y[i - 1:i + 2], 2)
+            best = float(np.exp(-b / (2 * a))) if a > 0 else float(x[i])
+            best = float(np.clip(best, x[i - 1], x[i + 1]))
+        else:
+            best = float(x[i])  # at the edge of the steps: take it (the next round goes further)
+        d, fit = _psf_delta(scene, res, model, key, v0 * best)
+        if d is None or d > y[i]:
+            best = float(x[i])
+            d, fit = _psf_delta(scene, res, model, key, v0 * best)
+        value = round(v0 * best, 4)
+        within = "" if abs(best - 1) > tol else f"{what} x {best:.4g} is within the {100 * tol:g} % of the scene's"
+        n = max(res.n_fit, 2)
+        fit = Fit(name, {"key": key, "value": value}, d, 1, n,
+                  f"{what} is x {best:.4g} the scene's ({'narrower' if best < 1 else 'wider'}): {v0:.4g} -> "
+                  f"{value:.4g}", delta_adu=fit.delta_adu, extra_var_adu2=fit.extra_var_adu2)
+        cand = Candidate(fit, float((res.chi2_profiled() + d) / max(res.n_fit, 1)), 0.0, kind="parameter",
+                         key=key, value=value, policy=policy)
+        if within:
+            cand.codes["tolerance"] = within
+        out.append(cand)
+    for c in out:
+        c.seconds = (time.perf_counter() - t0) / len(out)
+    return out
+
+
+def parameter_candidates(res: Residuals, scene, model=None, truth=None,
+                         policy: DiagnosisPolicy = DEFAULT_POLICY, problems: list | None = None) -> list[Candidate]:
+    """Every parameter candidate of one frame: the levels, and the PSF when the model can be re-rendered."""
+    out = level_candidates(res, scene, policy)
+    if model is not None:
+        try:
+            out += psf_candidates(res, scene, model, policy, truth)
+        except Exception as exc:  # noqa: BLE001  (a failed re-render is reported, the diagnosis goes on)
+            if problems is not None:
+                problems.append({"effect": "psf_width", "error": f"{type(exc).__name__}: {exc}"})
+    return out
+
+
+def levels_with(res: Residuals, delta_adu) -> dict[str, float]:
+    """The global levels refitted once ``delta_adu`` (a candidate's mean change [ADU]) is in the model."""
+    from detector.signatures import frame_at
+
+    lv = res.levels()
+    if not lv["keep"]:
+        return {}
+    idx, r, _ = res.flat()
+    n = res.level_values(idx)
+    w = lv["w"]
+    rr = r - frame_at(delta_adu, idx)
+    g = (n * w) @ n.T
+    try:
+        coef = np.linalg.solve(g, (n * w) @ rr)
+    except np.linalg.LinAlgError:
+        return {}
+    return dict(zip(lv["names"], (float(c) for c in coef)))
+
+
+def _level_shift(c: Candidate, coefs: dict[str, float], res: Residuals, scene) -> float | None:
+    """A level candidate's deviation from the scene's value once another candidate is in the model: the
+    relative change of a scale, or the bias change in ADU per read (None: not a level candidate)."""
+    level = c.fit.state.get("level")
+    if not level or level not in coefs:
+        return None
+    if level == "offset_adu":
+        return coefs[level] / _bias_per_output_adu(scene.sensor())
+    if c.fit.effect == "sky_level" and level == "background_scale":
+        return coefs[level] + coefs.get("light_scale", 0.0)
+    return coefs[level]
+
+
+def explained_away(params: list[Candidate], effects: list[Candidate], res: Residuals, scene) -> None:
+    """Gate (``tolerance``) the parameter candidates another candidate explains: a level that falls within
+    the policy's tolerance once the best significant effect (or the PSF's change) is in the model is that
+    candidate's doing, not a wrong number of the scene (vignetting lowers a flat's mean; a narrower PSF
+    makes the stars' peaks look brighter); a PSF width that a significant effect fits better (a blur, an
+    inter-pixel coupling) is that effect. The candidates explained are changed in place."""
+    movers = [c for c in params if c.significant and c.fit.state.get("level") is None
+              and c.fit.delta_adu is not None]
+    best = next((c for c in effects if c.significant and c.fit.delta_adu is not None), None)
+    for p in movers:
+        if best is not None and best.fit.delta_m2lnl <= p.fit.delta_m2lnl:
+            p.codes["tolerance"] = (f"{best.fit.effect} fits the frame better (delta -2 ln L "
+                                    f"{best.fit.delta_m2lnl:.4g} vs {p.fit.delta_m2lnl:.4g}): the sources' shape "
+                                    "is its doing")
+    explainers = [c for c in movers if c.significant] + ([best] if best is not None else [])
+    for e in explainers:
+        coefs = levels_with(res, e.fit.delta_adu)
+        for p in params:
+            if not p.significant:
+                continue
+            shift = _level_shift(p, coefs, res, scene)
+            if shift is None:
+                continue
+            tol = (p.policy.parameter_bias_tolerance_adu if p.fit.state["level"] == "offset_adu"
+                   else p.policy.parameter_scale_tolerance)
+            if abs(shift) <= tol:
+                p.codes["tolerance"] = (f"with {e.key or e.fit.effect} in the model this level is "
+                                        f"{'%+.3g ADU' % shift if p.fit.state['level'] == 'offset_adu' else 'x %.4g' % (1 + shift)}"
+                                        ": its change is that candidate's doing")
+
+
+def apply_parameters(data: dict, cands: list[dict]) -> list[str]:
+    """Write the significant parameter candidates (JSON dicts with ``key`` and ``value``) into the scene
+    ``data``; returns one note per change."""
+    notes = []
+    for c in cands:
+        node = data
+        *path, last = c["key"].split(".")
+        for k in path:
+            node = node.setdefault(k, {})
+        old = node.get(last)
+        node[last] = c["value"]
+        notes.append(f"{c['key']} {old if old is not None else '(default)'} -> {c['value']}: {c['explanation']}")
+    return notes

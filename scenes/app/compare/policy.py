@@ -1,0 +1,233 @@
+"""The diagnosis policy: every threshold the judge uses, as one named, documented field.
+
+A name is a claim about physics, and the judge (:mod:`.judge`) makes it only when the evidence passes the
+thresholds held here. Each field says what it thresholds, its unit and *why it has its value*: the DESIGN
+contract, a calibration (the false-alarm rate of the whole chain on null frames made by an independent
+textbook camera chain, docs/null_calibration.md), or physics (what no real camera does). None was set by
+looking at one case.
+
+``newtsim diagnose --policy FILE`` reads a TOML or JSON table of overrides (``[policy]`` or top level):
+unknown keys and values of the wrong type are refused with the file, the key and what was expected.
+Every ``diagnose --json`` records the policy it used (``policy``, :meth:`DiagnosisPolicy.to_json`);
+docs/diagnosis_policy.md is generated from this module (:func:`markdown_table`;
+``python -m scenes.app.compare.policy`` rewrites it and a test checks that it is up to date).
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+from dataclasses import MISSING, asdict, dataclass, field, fields, replace
+from pathlib import Path
+
+from detector.errors import DetectorError
+
+#: why a field has its value: the DESIGN contract, the null calibration, or physics
+BASES = ("contract", "calibration", "physics", "statistics")
+
+
+def _f(default, unit: str, basis: str, doc: str):
+    assert basis in BASES, basis
+    return field(default=default, metadata={"unit": unit, "basis": basis, "doc": doc})
+
+
+@dataclass(frozen=True)
+class DiagnosisPolicy:
+    """Every threshold of the diagnosis's judge (see the module docstring). Frozen: a policy is a value."""
+
+    # -- what "significant" means: one meaning for single frames, large frames and series ------------------------
+    significant_delta_bic: float = _f(
+        -10.0, "delta BIC", "contract",
+        "a candidate is significant only below this delta BIC (DESIGN.md; 'very strong' evidence, Kass & Raftery "
+        "1995, JASA 90, 773)")
+    significant_heldout: float = _f(
+        -10.0, "delta -2 ln L", "calibration",
+        "a candidate must improve the pixels its fit did not see (summed over the two folds) by at least this "
+        "much; the same scale as delta BIC, checked on the null set")
+    heldout_candidates: int = _f(
+        8, "candidates", "statistics",
+        "contenders (best delta BIC first) scored on held-out pixels: the cost of the cross-validation")
+    twin_fraction: float = _f(
+        0.02, "1", "statistics",
+        "a second significant candidate whose held-out score is within this fraction of the best's (and within "
+        "2 sqrt(2|score|), the score's own scatter) cannot be told apart from it")
+
+    # -- a name must take what is wrong, not a corner of it ---------------------------------------------------------
+    structure_sigma: float = _f(
+        8.0, "sigma", "calibration",
+        "the frame's large-scale structure (block chi2 beyond its dof) is significant above this many standard "
+        "deviations of its chi2")
+    min_explained: float = _f(
+        0.5, "1", "physics",
+        "where that structure is significant, a candidate changing the mean must remove at least this share "
+        "of it: the missing effect explains most of what is wrong, not a corner of it")
+    excess_sigma: float = _f(
+        5.0, "sigma", "statistics",
+        "the frame's whole excess chi2 (levels refitted) is significant above this many standard deviations")
+    min_excess_share: float = _f(
+        0.02, "1", "physics",
+        "where that excess is significant, a pixel candidate must remove at least this share of it")
+    min_support_share: float = _f(
+        0.5, "1", "physics",
+        "a candidate that changes the mean must remove at least this share of the excess chi2 over the pixels "
+        "it acts on (where that excess is significant)")
+    support_mass: float = _f(
+        0.9, "1", "statistics",
+        "the pixels a candidate acts on: its largest weighted squared changes, carrying this share of their sum")
+    support_sigma: float = _f(
+        8.0, "sigma", "statistics",
+        "the excess over those pixels is significant above this many standard deviations of its chi2")
+
+    # -- a fit that only hides a residual -------------------------------------------------------------------------
+    overfit_chi2_per_dof: float = _f(
+        0.5, "chi2/dof", "statistics",
+        "a noise-only candidate that brings chi2/dof below this absorbs a structured residual (a right noise "
+        "model leaves ~1 within a few sqrt(2/n))")
+    noise_excess_factor: float = _f(
+        3.0, "1", "statistics",
+        "a noise-only candidate may claim at most this many times the variance the bulk of the pixels shows "
+        "beyond the model's (median squared residual)")
+    noise_floor_fraction: float = _f(
+        0.05, "1", "statistics",
+        "... and never less than this fraction of the model's own variance")
+    stars_worse_ln: float = _f(
+        0.1, "|ln flux ratio|", "physics",
+        "a candidate reshaping the sources may worsen the bright stars' median |ln(data/model flux)| by at "
+        "most this much ...")
+    stars_ok_ln: float = _f(
+        0.2, "|ln flux ratio|", "physics", "... and must leave it below this")
+    stars_min: int = _f(10, "stars", "statistics", "bright stars needed for that photometry test")
+    sample_worse: float = _f(
+        10.0, "delta -2 ln L", "contract",
+        "large frames: a candidate fitted on the binned frame must not worsen the full-resolution band sample "
+        "by more than this (the delta BIC scale)")
+    consistency_factor: float = _f(
+        3.0, "1", "physics",
+        "series: one piece of hardware fitted frame by frame may not differ in strength by more than this "
+        "factor between frames")
+
+    # -- a name must beat a description ---------------------------------------------------------------------------
+    min_catch_all_share: float = _f(
+        0.5, "1", "physics",
+        "a physical candidate is named only when, on the same held-out folds, it predicts at least this share "
+        "of what the residual's empirical map (the catch-all description) predicts: the missing effect "
+        "explains most of what is wrong, as min_explained asks of the large-scale structure")
+
+    # -- is a number of the scene wrong? (parameter candidates) ----------------------------------------------------
+    parameter_scale_tolerance: float = _f(
+        0.1, "1", "physics",
+        "a refitted scale of the scene (the sources' zero point, the sky, the dark current) is a finding when "
+        "it differs from 1 by more than this: a model knows its lamp, transparency and temperature to a few "
+        "per cent (the validation's measured cameras differ by 1.5-3 %), a zero point 10 % off is an error of "
+        "the scene")
+    parameter_bias_tolerance_adu: float = _f(
+        2.0, "ADU", "physics",
+        "a refitted bias offset is a finding beyond this many ADU per read: a bias drifts by a fraction of an "
+        "ADU to an ADU between frames (and a rounding convention is 0.5 ADU)")
+    psf_width_tolerance: float = _f(
+        0.05, "1", "physics",
+        "a refitted PSF FWHM is a finding when it differs from the scene's by more than this fraction "
+        "(seeing varies by more within a night; 5 % is what the stars measure well)")
+    psf_min_stars: int = _f(
+        5, "stars", "statistics", "stars with a peak above 10 sigma needed to fit the PSF's width")
+    noise_scale_tolerance: float = _f(
+        0.1, "1", "physics",
+        "a gain or read noise refitted from the residual's variance is a finding beyond this relative change")
+
+    # -- physical effect-size floors ------------------------------------------------------------------------------
+    min_nonlinearity_at_full_well: float = _f(
+        0.001, "1", "physics",
+        "a non-linearity smaller than this at full well (0.1 %) is not a finding: photon-transfer curves of "
+        "scientific CCD/CMOS measure 0.1-1 % at best (Janesick 2007, Photon Transfer, ch. 5)")
+    max_cosmic_rate_factor: float = _f(
+        20.0, "1", "physics",
+        "cosmic rays at more than this many times the physical rate of the scene's environment are not cosmic "
+        "rays (sea-level muon flux ~1 /cm^2/min; in orbit ~5 /cm^2/s)")
+    max_defect_fraction: float = _f(
+        0.01, "1", "physics",
+        "hot or dead pixels (or columns) on more than this fraction of the sensor are not defects: no camera "
+        "sold has them (EMVA 1288 data sheets: 1e-5 to 1e-3)")
+    hot_in_dark_fraction: float = _f(
+        0.5, "1", "physics",
+        "when the scene has the user's dark, a hot-pixel candidate needs at least this share of its pixels hot "
+        "in that dark (a hot pixel is hot in every frame)")
+
+    def to_json(self) -> dict:
+        """The values, by name (every ``diagnose --json`` records them under ``policy``)."""
+        return asdict(self)
+
+    def with_overrides(self, table: dict, file: str = "<policy>") -> DiagnosisPolicy:
+        """A copy with ``table``'s values; an unknown key or a value of the wrong type is a one-line error."""
+        known = {f.name: f for f in fields(self)}
+        changes = {}
+        for key, value in table.items():
+            if key not in known:
+                close = sorted(known, key=lambda k: -_similarity(k, key))[:3]
+                raise DetectorError(f"unknown policy field {key!r}", file=file, key=key,
+                                    expected="one of the DiagnosisPolicy fields (docs/diagnosis_policy.md), e.g. "
+                                    + ", ".join(close))
+            want = type(known[key].default)
+            if isinstance(value, bool) or not isinstance(value, (int, float)) or (want is int and
+                                                                                  not float(value).is_integer()):
+                raise DetectorError(f"policy field {key} = {value!r} is not a number", file=file, key=key,
+                                    expected=f"a {'whole number' if want is int else 'number'} "
+                                    f"[{known[key].metadata['unit']}]")
+            changes[key] = want(value)
+        return replace(self, **changes)
+
+
+def _similarity(a: str, b: str) -> int:
+    return len(set(a.split("_")) & set(b.split("_")))
+
+
+#: the policy the judge uses unless told otherwise
+DEFAULT_POLICY = DiagnosisPolicy()
+
+
+def load_policy(path: str | Path | None) -> DiagnosisPolicy:
+    """The default policy with the overrides of a TOML or JSON file (``[policy]`` table or top level)."""
+    if path is None:
+        return DEFAULT_POLICY
+    p = Path(path)
+    if not p.is_file():
+        raise DetectorError("policy file not found", file=str(p), expected="a TOML or JSON table of policy fields")
+    try:
+        if p.suffix.lower() == ".json":
+            table = json.loads(p.read_text())
+        else:
+            import tomllib
+            table = tomllib.loads(p.read_text())
+    except (ValueError, UnicodeDecodeError) as exc:
+        raise DetectorError(f"cannot read the policy ({exc})", file=str(p), expected="TOML or JSON") from None
+    if not isinstance(table, dict):
+        raise DetectorError("the policy is not a table", file=str(p), expected="a table of policy fields")
+    if isinstance(table.get("policy"), dict):
+        table = table["policy"]
+    return DEFAULT_POLICY.with_overrides(table, file=str(p))
+
+
+def markdown_table(policy: DiagnosisPolicy = DEFAULT_POLICY) -> str:
+    """docs/diagnosis_policy.md: every field, its value, unit, basis and meaning."""
+    lines = ["# The diagnosis policy", "",
+             "Generated from `scenes/app/compare/policy.py` (`python -m scenes.app.compare.policy`); do not edit.",
+             "Every threshold the judge uses, its unit and the basis of its value: the DESIGN `contract`, a",
+             "`calibration` on null frames of the independent textbook chain (docs/null_calibration.md),",
+             "`physics` (what no real camera does) or `statistics` (a property of the test itself).",
+             "`newtsim diagnose --policy FILE` overrides any of them; `diagnose --json` records the policy used.",
+             "", "| field | value | unit | basis | meaning |", "|---|---|---|---|---|"]
+    for f in fields(policy):
+        v = getattr(policy, f.name)
+        lines.append(f"| `{f.name}` | {v:g} | {f.metadata['unit']} | {f.metadata['basis']} | "
+                     f"{f.metadata['doc']} |")
+    lines.append("")
+    lines.append(f"{len(fields(policy))} fields.")
+    return "\n".join(lines) + "\n"
+
+
+DOC_PATH = Path(__file__).resolve().parents[3] / "docs" / "diagnosis_policy.md"
+
+assert all(f.default is not MISSING for f in fields(DiagnosisPolicy))
+
+if __name__ == "__main__":  # pragma: no cover - the docs generator
+    DOC_PATH.write_text(markdown_table())
+    sys.stdout.write(f"wrote {DOC_PATH}\n")
