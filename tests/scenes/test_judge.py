@@ -1,0 +1,205 @@
+"""The one judge of the diagnosis (issue 23): its policy, its gates, the scene's parameters first, the floors,
+and the three paths (single frame, large frame, series) sharing it.
+
+The frames with a wrong number of the scene are made by the independent textbook camera chain
+(../shared/tools/textbook_chain.py: Poisson, read noise, gain, bias, rounding; it shares no code with
+newtsim) from ``newtsim render --noiseless`` of the scene with that number changed; the diagnosis runs
+against the scene with the number it states.
+"""
+
+from __future__ import annotations
+
+import json
+import runpy
+from pathlib import Path
+
+import numpy as np
+import pytest
+from astropy.io import fits
+from helpers import star_field_toml, write_scene
+
+from detector import DetectorError
+from detector.signatures import Fit
+from scenes.app.compare import fullframe, judge, run, series
+from scenes.app.compare.floors import FLOORS, floor_reason
+from scenes.app.compare.judge import GATES, Candidate, gate_reasons, rank, verdict
+from scenes.app.compare.policy import DEFAULT_POLICY, DOC_PATH, DiagnosisPolicy, load_policy, markdown_table
+from scenes.app.render import render
+from scenes.scene import load_scene
+
+TEXTBOOK = Path(__file__).resolve().parents[3] / "shared" / "tools" / "textbook_chain.py"
+
+
+def textbook_frame(scene_path: Path, out: Path, seed: int, sets: list[str] | None = None) -> Path:
+    """A measured frame from the textbook chain: the scene's (with ``sets``) noiseless render, drawn."""
+    if not TEXTBOOK.is_file():
+        pytest.skip(f"the independent textbook chain is absent ({TEXTBOOK})")
+    chain = runpy.run_path(str(TEXTBOOK))
+    mu = out.with_name(out.stem + "_mu.fits")
+    render(load_scene(str(scene_path), sets or []), mu, seed=seed, noiseless=True, progress=False)
+    with fits.open(mu) as hl:
+        hdu = next(h for h in hl if h.data is not None and h.data.ndim == 2)
+        data = chain["measure"](hdu.data, hdu.header, seed)
+        hdr = hdu.header.copy()
+    for k in ("BSCALE", "BZERO", "BUNIT", "NOISELES"):
+        hdr.remove(k, ignore_missing=True)
+    fits.PrimaryHDU(data, header=hdr).writeto(out, overwrite=True)
+    return out
+
+
+# --- the policy ---------------------------------------------------------------------------------------------
+
+def test_policy_fields_documented_and_docs_current():
+    table = markdown_table()
+    for name, value in DEFAULT_POLICY.to_json().items():
+        assert f"`{name}`" in table and isinstance(value, (int, float))
+    assert DOC_PATH.read_text() == table, "docs/diagnosis_policy.md is stale: python -m scenes.app.compare.policy"
+    assert DEFAULT_POLICY.significant_delta_bic == -10.0  # the DESIGN contract
+
+
+def test_policy_file_overrides_and_errors(tmp_path):
+    p = tmp_path / "p.toml"
+    p.write_text("[policy]\nsignificant_delta_bic = -25\nheldout_candidates = 4\n")
+    pol = load_policy(p)
+    assert pol.significant_delta_bic == -25.0 and pol.heldout_candidates == 4
+    assert pol.min_explained == DEFAULT_POLICY.min_explained
+    (tmp_path / "bad.toml").write_text("significant_bic = -25\n")
+    with pytest.raises(DetectorError) as e:
+        load_policy(tmp_path / "bad.toml")
+    assert "bad.toml" in str(e.value) and "significant_bic" in str(e.value) and "significant_delta_bic" in str(e.value)
+    (tmp_path / "bad2.json").write_text(json.dumps({"heldout_candidates": 2.5}))
+    with pytest.raises(DetectorError, match="whole number"):
+        load_policy(tmp_path / "bad2.json")
+
+
+# --- the gates ----------------------------------------------------------------------------------------------
+
+def _cand(name="x", d=-100.0, heldout=None, **kw) -> Candidate:
+    return Candidate(Fit(name, {}, d, 1, 10_000, "why"), 1.0, 0.0, heldout=heldout, **kw)
+
+
+def test_gates_name_every_refusal_and_follow_the_policy():
+    assert _cand(d=-100).gates == []
+    assert _cand(d=-5).gates == ["bic"]
+    strict = DiagnosisPolicy(significant_delta_bic=-200.0)
+    assert _cand(d=-100, policy=strict).gates == ["bic"]
+    c = _cand(heldout=-50.0, explains=0.2)
+    assert c.gates == ["structure"] and not c.significant
+    c = _cand(heldout=+3.0)
+    assert c.gates == ["heldout"]
+    c = _cand(heldout=-30.0, catch_all_heldout=-100.0)  # predicts 30 % of what the description does
+    assert c.gates == ["catch_all"]
+    c = _cand(heldout=-80.0, catch_all_heldout=-100.0)
+    assert c.gates == []
+    c = _cand()
+    c.refuse("floor", "too small")
+    c.reject("overfit", "hides")
+    assert set(c.gates) == {"floor", "overfit"} and all(g in GATES for g in c.gates)
+    j = c.to_json()
+    assert j["kind"] == "effect" and j["gates"] == c.gates and "catch_all_delta" in j and not j["significant"]
+
+
+def test_parameters_rank_before_effects_and_carry_key_and_value():
+    eff = _cand("vignetting", d=-1e4, heldout=-9e3)
+    par = Candidate(Fit("zero_point", {}, -50.0, 1, 10_000, "the sources are x 1.6"), 1.0, 0.0, kind="parameter",
+                    key="sky.source_flux_scale", value=1.6)
+    out = rank([eff, par])
+    assert out[0] is par and out[1] is eff
+    j = par.to_json()
+    assert j["kind"] == "parameter" and j["key"] == "sky.source_flux_scale" and j["value"] == 1.6
+    assert "sky.source_flux_scale -> 1.6" in verdict(out) and "vignetting" in verdict(out)
+    par.codes["tolerance"] = "within"
+    assert not par.significant and par.gates == ["tolerance"]
+    assert verdict(rank([eff, par])).startswith("most likely missing: vignetting")
+
+
+def test_three_paths_share_one_judge():
+    """The single-frame, large-frame and series paths rank, judge and describe with the same functions, so
+    the same evidence gets the same verdict whichever path made it."""
+    for mod in (run, fullframe, series):
+        assert mod.rank is judge.rank and mod.verdict is judge.verdict and mod.judge_json is judge.judge_json
+    cands = [_cand("a", d=-300, heldout=-200), _cand("b", d=-400, heldout=-5.0), _cand("c", d=-2)]
+    ranked = rank(cands)
+    assert [c.fit.effect for c in ranked] == ["a", "b", "c"]
+    out = judge.judge_json(ranked, DEFAULT_POLICY)
+    assert out["significant"] == ["a"] and out["policy"]["significant_heldout"] == -10.0
+    assert set(out["gate_codes"]) == set(GATES)
+    assert gate_reasons(ranked[1])[0][0] == "heldout"
+
+
+# --- the physical floors ------------------------------------------------------------------------------------
+
+def test_floors(tmp_path):
+    sensor = load_scene(str(write_scene(tmp_path / "s.toml", detector={"preset": "imx411", "width": 256,
+                                                                        "height": 256}))).sensor()
+    assert set(FLOORS) >= {"nonlinearity", "hot_pixels", "dead_pixels", "column_defects", "cosmic_rays"}
+    assert "at full well" in floor_reason("nonlinearity", {"beta": 2.4e-4}, sensor)  # the flat series' 0.024 %
+    assert floor_reason("nonlinearity", {"beta": 0.01}, sensor) == ""
+    assert "columns" in floor_reason("column_defects", {"hot_columns": 1802, "dead_columns": 2966}, sensor)
+    assert floor_reason("column_defects", {"hot_columns": 3, "dead_columns": 1}, sensor) == ""
+    assert "not cosmic rays" in floor_reason("cosmic_rays", {"flux_per_cm2_s": 100 / 60}, sensor)
+    assert floor_reason("cosmic_rays", {"flux_per_cm2_s": 2 / 60}, sensor) == ""
+    assert floor_reason("hot_pixels", {"count": 0.05 * 14192 * 10640}, sensor) != ""
+    assert floor_reason("vignetting", {"a2": 0.3}, sensor) == ""
+
+
+# --- the scene's numbers, on textbook frames -------------------------------------------------------------------
+
+@pytest.fixture(scope="module")
+def star_scene(tmp_path_factory) -> Path:
+    d = tmp_path_factory.mktemp("judge_stars")
+    p = d / "stars.toml"
+    p.write_text(star_field_toml(384))
+    return p
+
+
+def _first(out: dict) -> dict:
+    return next(c for c in out["candidates"] if c["significant"])
+
+
+def test_zero_point_named_first_with_its_value(star_scene):
+    meas = textbook_frame(star_scene, star_scene.with_name("zp.fits"), 5, ["sky.source_flux_scale=1.6"])
+    out = run.run_diagnose(load_scene(str(star_scene)), meas)
+    first = _first(out)
+    assert first["kind"] == "parameter" and first["key"] == "sky.source_flux_scale"
+    assert first["value"] == pytest.approx(1.6, rel=0.05)
+    assert out["policy"] == DEFAULT_POLICY.to_json()
+    # the sky, which the frame has right, is not named
+    assert "sky_level" not in out["significant"]
+
+
+def test_narrower_psf_named_first_with_its_value(star_scene):
+    sc = load_scene(str(star_scene))
+    fwhm = sc.psf.fwhm_arcsec
+    meas = textbook_frame(star_scene, star_scene.with_name("psf.fits"), 6, [f"psf.fwhm_arcsec={0.8 * fwhm}"])
+    out = run.run_diagnose(sc, meas)
+    first = _first(out)
+    assert first["kind"] == "parameter" and first["key"] == "psf.fwhm_arcsec"
+    assert first["value"] == pytest.approx(0.8 * fwhm, rel=0.05)
+    # the stars' peaks look brighter under a narrower PSF: that is the PSF's doing, not the zero point's
+    assert "zero_point" not in out["significant"]
+
+
+def test_apply_writes_the_parameters(star_scene, tmp_path):
+    sc = load_scene(str(star_scene))
+    meas = textbook_frame(star_scene, star_scene.with_name("zp2.fits"), 8, ["sky.source_flux_scale=1.5"])
+    out = run.run_diagnose(sc, meas)
+    new, best = run.apply_best(sc, out, tmp_path / "round2.toml", meas)
+    assert best["kind"] == "parameter"
+    again = load_scene(str(new))
+    assert again.sky.source_flux_scale == pytest.approx(1.5, rel=0.05)
+    after = run.run_diagnose(again, meas)
+    assert after["baseline"]["chi2_per_dof"] < 0.5 * out["baseline"]["chi2_per_dof"]
+    assert not any(c["kind"] == "parameter" for c in after["candidates"] if c["significant"])
+
+
+def test_textbook_imx411_long_dark_is_clean(tmp_path):
+    """Every IMX411 300 s dark of the textbook chain was named column_defects (issue 23): a third of the
+    sensor's columns by 0.0003 e-/s is beyond the physical floor."""
+    p = write_scene(tmp_path / "dark.toml", detector={"preset": "imx411", "width": 256, "height": 256},
+                    exposure={"time_s": 300.0, "frame": "dark"})
+    meas = textbook_frame(p, tmp_path / "dark.fits", 11)
+    out = run.run_diagnose(load_scene(str(p)), meas)
+    assert out["significant"] == [], out["verdict"]
+    assert not out["residual_morphology"]["significant"]
+    assert np.isfinite(out["baseline"]["chi2_per_dof"])
