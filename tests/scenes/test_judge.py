@@ -203,3 +203,31 @@ def test_textbook_imx411_long_dark_is_clean(tmp_path):
     assert out["significant"] == [], out["verdict"]
     assert not out["residual_morphology"]["significant"]
     assert np.isfinite(out["baseline"]["chi2_per_dof"])
+
+
+def test_hot_pixels_must_be_hot_in_the_users_dark(tmp_path):
+    """With the user's dark in the scene, bright isolated pixels the dark does not have are not hot pixels."""
+    from types import SimpleNamespace
+
+    from scenes.app.compare.floors import hot_in_dark
+
+    dark = np.full((64, 64), 0.02, np.float32)
+    hot = [(5, 7), (20, 30), (40, 2), (60, 60)]
+    for y, x in hot:
+        dark[y, x] = 50.0
+    fits.PrimaryHDU(dark).writeto(tmp_path / "dark.fits")
+    p = write_scene(tmp_path / "s.toml", detector={"preset": "ml11002", "width": 64, "height": 64},
+                    effects={"dark_map": {"path": "dark.fits"}})
+    sc = load_scene(str(p))
+
+    def res_with(points):
+        idx = np.array([y * 64 + x for y, x in points])
+        return SimpleNamespace(data_spikes=SimpleNamespace(single_pos_index=idx), sensor=sc.sensor(),
+                               data_adu=np.zeros((64, 64), np.float32))
+
+    assert hot_in_dark(res_with(hot), sc) == ""
+    why = hot_in_dark(res_with([(1, 1), (2, 50), (33, 33), (5, 7)]), sc)
+    assert "25 %" in why and "dark.fits" in why
+    no_dark = load_scene(str(write_scene(tmp_path / "n.toml", detector={"preset": "ml11002", "width": 64,
+                                                                         "height": 64})))
+    assert hot_in_dark(res_with([(1, 1)]), no_dark) == ""

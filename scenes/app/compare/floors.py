@@ -12,6 +12,8 @@ from __future__ import annotations
 
 from collections.abc import Callable
 
+import numpy as np
+
 from detector.cosmics import ENVIRONMENTS
 
 from .policy import DEFAULT_POLICY, DiagnosisPolicy
@@ -77,3 +79,40 @@ def floor_reason(effect: str, params: dict, sensor, policy: DiagnosisPolicy = DE
     """"" or why the fitted size of ``effect`` is not a finding (gate ``floor``)."""
     check = FLOORS.get(effect)
     return check(params, sensor, policy) if check is not None else ""
+
+
+#: candidates whose evidence is pixels brighter than the model that stay put: hot in every frame
+HOT_EFFECTS = ("hot_pixels", "dark_rate_tail")
+#: a pixel is hot in the user's dark when its rate is this many robust sigmas above the map's median
+HOT_IN_DARK_SIGMA = 5.0
+
+
+def hot_in_dark(res, scene, policy: DiagnosisPolicy = DEFAULT_POLICY) -> str:
+    """"" or why hot pixels are not the finding when the scene holds the user's own dark (``[effects.dark_map]``):
+    the frame's isolated bright pixels must be hot in that dark (its rate beyond HOT_IN_DARK_SIGMA robust
+    sigmas of the map) for at least the policy's ``hot_in_dark_fraction`` of them; a hot pixel is hot in every
+    frame, so bright pixels the dark does not have are something else (cosmic rays, a star the catalogue lacks)."""
+    from detector.effects.maps import read_map, window_of
+    from scenes.scene import resolve_path, scene_dir
+
+    table = scene.effects.get("dark_map")
+    idx = np.asarray(res.data_spikes.single_pos_index)
+    if table is None or idx.size == 0:
+        return ""
+    path = resolve_path(str(table["path"]), scene_dir(scene))
+    dark = window_of(read_map(path, table.get("hdu"), "effects.dark_map.path"), res.sensor, str(path),
+                     "effects.dark_map.path")
+    med = float(np.median(dark))
+    sig = 1.4826 * float(np.median(np.abs(dark - med))) or 1e-12
+    b = res.sensor.binning
+    w = res.data_adu.shape[1]
+    ys, xs = idx // w, idx % w
+    hot = np.zeros(idx.size, bool)
+    for i, (y, x) in enumerate(zip(ys, xs)):
+        block = dark[y * b:(y + 1) * b, x * b:(x + 1) * b]
+        hot[i] = block.size > 0 and float(block.max()) > med + HOT_IN_DARK_SIGMA * sig
+    share = float(hot.mean())
+    if share < policy.hot_in_dark_fraction:
+        return (f"only {100 * share:.0f} % of the frame's {idx.size} isolated bright pixels are hot in the scene's own "
+                f"dark ({path.name}); a hot pixel is hot in every frame")
+    return ""

@@ -25,6 +25,7 @@ from . import fullframe
 from .apply import apply_candidate, apply_empirical
 from .candidates import SIGNIFICANT_DELTA_BIC, candidates, source_candidates
 from .catch_all import compare_with_catch_all
+from .floors import HOT_EFFECTS, hot_in_dark
 from .judge import judge_json, rank, verdict
 from .ledger import best_candidate, plot_ledger, round_row, update_ledger
 from .model import ModelFrame, build_model, read_measurement, residuals
@@ -106,6 +107,11 @@ def _run_diagnose(scene, measured: str | Path, workers: int | None = None, progr
     if progress is not None:
         progress("residual morphology")
     morph = describe(res)
+    for c in cands:
+        if c.fit.effect in HOT_EFFECTS and c.contender:
+            why = hot_in_dark(res, scene, policy)
+            if why:
+                c.refuse("dark", why)
     effects = cands + source_candidates(res, truth, scene, policy) + optical
     if progress is not None:
         progress("the catch-all (held out)")
