@@ -32,11 +32,11 @@ obstructions such as the spider are not modelled, as in newtsim's ``obstruct="no
 import json
 import math
 import platform
-import tomllib
 from pathlib import Path
 
 import batoid
 import numpy as np
+import tomllib
 
 ROOT = Path(__file__).resolve().parents[4]
 OUT = Path(__file__).with_name("rays.json")

@@ -47,12 +47,12 @@ import json
 import math
 import platform
 import time
-import tomllib
 from pathlib import Path
 
 import astropy.units as u
 import numpy as np
 import poppy
+import tomllib
 
 ROOT = Path(__file__).resolve().parents[4]
 HERE = Path(__file__).parent
