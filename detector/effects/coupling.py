@@ -20,10 +20,20 @@ curve bends down). ``K`` here is a 3x3 kernel ``exp(-r / lambda)`` (``lambda`` =
 whose Laplacian gives positive ``a_ij`` out to two pixels; its strength ``c`` is set by the nearest-neighbour
 coefficient ``a10_per_e`` (what a flat pair measures: ``Cov_10 / mu^2``).
 
-Defaults: thick deep-depleted CCDs show ``a_10 ~ 2-4e-7 /e-`` (LSST e2v/ITL sensors, Astier et al. 2019).
-No measurement exists for the IMX411 (3.76 um pinned photodiodes, a thin epitaxial layer) or the ML11002
-(KAI-11002 interline photodiodes): the default ``a_10 = 1e-7 /e-`` is a defensible guess (a 0.8 %
-nearest-neighbour correlation at the IMX411's 80 ke- full well); measure it with flat pairs.
+Default: the GalSim-matched value ``a_10 = 2.7e-7 /e-`` with ``kernel_scale_px = 0.5``. At it, a star's
+size grows with its flux as fast as in GalSim's ``SiliconSensor('lsst_itl_50_8')``: an LSST ITL CCD (10 um
+pixels, 100 um thick), whose pixel boundaries come from Lage's Poisson_CCD solver calibrated on measured
+ITL spots and flats (Lage et al. 2017, JINST 12, C03091). The comparison is a Gaussian star of sigma
+1.5 px, peaks 1e3-2e5 e-, the unweighted second-moment sigma against the flux: within 1 % (the reference and
+the script that drew it: ``tests/data/peers/galsim/``; the test: ``tests/detector/test_peer_galsim_bf.py``).
+Why this value: no measurement exists for the IMX411 (3.76 um pinned photodiodes, a thin epitaxial layer)
+or the ML11002 (KAI-11002 interline photodiodes), so the default is that of a measured sensor, through the
+model the field uses for it; it lies in the ``a_10 ~ 2-4e-7 /e-`` that flats of thick deep-depleted CCDs
+show (LSST e2v/ITL sensors, Astier et al. 2019) and gives a 2.2 % nearest-neighbour correlation at 80 ke-.
+The 3x3 kernel reaches the 8 neighbours only, while GalSim's boundaries feel charge several pixels away,
+so compact stars grow faster than in GalSim (1.25x for sigma 1.0 px). For a real camera, measure
+``a_10`` with flat pairs (``Cov_10 / mu^2``). The default was a guessed 1e-7 /e- before, 0.37-0.47x
+GalSim's slope.
 
 **Inter-pixel capacitance** (Moore et al. 2004, Opt. Eng. 45, 076402; Kannawadi et al. 2016, PASP 128,
 095001): the voltage of a pixel's sense node couples capacitively into its neighbours, so each pixel *reads*
@@ -164,7 +174,8 @@ _IPC_SIGNATURE = LinearSignature(
 
 
 class BrighterFatterParams(EffectParams):
-    a10_per_e: float = Field(1e-7, ge=0, le=1e-4,
+    # GalSim-matched (LSST ITL, module docstring): the size-flux slope of GalSim's SiliconSensor
+    a10_per_e: float = Field(2.7e-7, ge=0, le=1e-4,
                              description="nearest-neighbour area coefficient, Cov_10 / mu^2 of a flat [1/e-]")
     kernel_scale_px: float = Field(0.5, gt=0.1, le=5, description="scale of the exp(-r/scale) potential [px]")
 
