@@ -231,3 +231,34 @@ def test_hot_pixels_must_be_hot_in_the_users_dark(tmp_path):
     no_dark = load_scene(str(write_scene(tmp_path / "n.toml", detector={"preset": "ml11002", "width": 64,
                                                                          "height": 64})))
     assert hot_in_dark(res_with([(1, 1)]), no_dark) == ""
+
+
+def test_empirical_apply_into_another_folder(tmp_path):
+    """``diagnose --apply OUT`` with OUT in another folder than the working directory, when the answer is an
+    empirical map (a residual no catalogue effect explains: a compact blob of light on a dark): the map is
+    written beside OUT and the scene names it where it is (it crashed with 'calibration map file not found')."""
+    import subprocess
+    import sys
+
+    p = write_scene(tmp_path / "dark.toml", detector={"preset": "ml11002", "width": 192, "height": 192},
+                    exposure={"time_s": 60.0, "frame": "dark"})
+    meas = textbook_frame(p, tmp_path / "dark.fits", 3)
+    with fits.open(meas) as hl:
+        data, hdr = hl[0].data.astype(np.float64), hl[0].header
+    yy, xx = np.mgrid[0:192, 0:192]
+    data += 40.0 * np.exp(-((yy - 70) ** 2 + (xx - 120) ** 2) / (2 * 9.0 ** 2))  # a glow no plugin has
+    fits.PrimaryHDU(np.rint(data).astype(np.uint16), header=hdr).writeto(meas, overwrite=True)
+    out_dir = tmp_path / "rounds"
+    out_dir.mkdir()
+    work = tmp_path / "elsewhere"
+    work.mkdir()
+    r = subprocess.run([sys.executable, "-m", "scenes.app.cli", "diagnose", str(p), str(meas), "--apply",
+                        str(out_dir / "round2.toml"), "--json", str(out_dir / "d.json")], cwd=work,
+                       capture_output=True, text=True, timeout=600)
+    assert r.returncode == 0, r.stderr
+    d = json.loads((out_dir / "d.json").read_text())
+    assert d["applied"] is not None, d["verdict"]
+    new = load_scene(str(out_dir / "round2.toml"))
+    maps = [t["path"] for t in new.effects.values() if isinstance(t, dict) and "path" in t]
+    assert maps and all(Path(m).is_file() and Path(m).parent == out_dir.resolve() for m in maps)
+    assert not list(work.iterdir())  # nothing written where the command ran
