@@ -228,6 +228,9 @@ class Residuals:
     #: where the frame's light comes from: "flat" (a screen, which blocks the sky), "sky", "none" (dark, bias),
     #: or "" when unknown; sky-light candidates are not plausible on a flat-screen frame
     light_source: str = ""
+    #: pixels the outlier statistics may look at (not saturated, not flagged, finite): ``fit`` plus the
+    #: statistically compared spikes; None when unknown (then ``fit``)
+    usable: np.ndarray | None = None
 
     @property
     def photo_field(self) -> np.ndarray:

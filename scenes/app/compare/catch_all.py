@@ -70,3 +70,34 @@ def compare_with_catch_all(res: Residuals, cands: list, morph: dict) -> float | 
         c.catch_all_delta = round(float(c.heldout - ca), 4)
         c.catch_all_heldout = ca
     return ca
+
+
+def outliers_after_catch_all(res: Residuals, cands: list, morph: dict, empirical: dict | None) -> None:
+    """Judge the outlier-count candidates (hot and dead pixels, columns, cosmic rays) on what remains once the
+    catch-all has taken the structured residual: the outlier statistics recomputed against the model plus
+    the residual's empirical map; a count candidate that is no longer significant there was counting the
+    pattern's pixels (a ghost's or a PRNU's low-frequency part's, a periodic pattern's), not defects (gate
+    ``catch_all``)."""
+    from dataclasses import replace
+
+    from detector import registry
+    from detector.signatures import CountSignature, spike_stats
+
+    counts = [c for c in cands if c.contender and isinstance(getattr(registry().get(c.fit.effect), "signature",
+                                                                        None), CountSignature)]
+    if not counts or not morph.get("significant") or not empirical or empirical.get("map") is None:
+        return
+    fit = empirical_fit(res, {**morph, "empirical": empirical})
+    if fit is None or fit.delta_adu is None:
+        return
+    model = (res.model_adu + fit.delta_adu).astype(np.float32)
+    usable = res.usable if res.usable is not None else res.fit
+    spikes, _ = spike_stats(res.data_adu, model, res.var_adu2, usable, res.gain)
+    after = replace(res, model_adu=model, data_spikes=spikes, _flat={})
+    for c in counts:
+        sig = registry()[c.fit.effect].signature
+        again = sig.fit(after, c.fit.effect)
+        if again is None or again.delta_bic >= c.policy.significant_delta_bic:
+            c.refuse("catch_all", "once the residual's described pattern (" + morph.get("explanation", "")[:120]
+                     + ") is in the model, the outliers are as many as the model expects: it counted the "
+                     "pattern's pixels, not defects")

@@ -227,7 +227,8 @@ def residuals(data: np.ndarray, model: ModelFrame) -> Residuals:
     return Residuals(data, model.mean_adu, model.var_adu2, usable & ~statistical, model.photo_adu, model.dark_e,
                      ys, xs, s, model.setup.exptime_s, spikes, model.spikes or SpikeStats(0, 0, 0, 0, 0),
                      photo_field_adu=model.photo_field_adu, background_adu=model.background_adu,
-                     row_var_adu2=model.row_var_adu2, light_source=light_source(model.setup.scene))
+                     row_var_adu2=model.row_var_adu2, light_source=light_source(model.setup.scene),
+                     usable=usable)
 
 
 def light_source(scene) -> str:

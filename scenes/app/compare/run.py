@@ -24,7 +24,7 @@ from scenes.scene import load_scene
 from . import fullframe
 from .apply import apply_candidate, apply_empirical
 from .candidates import SIGNIFICANT_DELTA_BIC, candidates, source_candidates
-from .catch_all import compare_with_catch_all
+from .catch_all import compare_with_catch_all, outliers_after_catch_all
 from .floors import HOT_EFFECTS, hot_in_dark
 from .judge import judge_json, rank, verdict
 from .ledger import best_candidate, plot_ledger, round_row, update_ledger
@@ -116,6 +116,7 @@ def _run_diagnose(scene, measured: str | Path, workers: int | None = None, progr
     if progress is not None:
         progress("the catch-all (held out)")
     catch_all = compare_with_catch_all(res, effects, morph)
+    outliers_after_catch_all(res, effects, morph, morph.get("empirical"))
     explained_away(params, rank(effects, res.light_source), res, scene)
     cands = rank(params + effects, res.light_source)
     out = finish_diagnosis(cmp, cands, problems, morph, policy, t0, catch_all)
