@@ -119,3 +119,52 @@ def test_cli_score_csv_against_coco(tmp_path):
     assert "data:image/png;base64," in (tmp_path / "r.html").read_text()
     bad = CliRunner().invoke(cli, ["score", str(tmp_path / "d.csv"), str(tmp_path / "d.csv")])
     assert bad.exit_code == 2
+
+
+def test_label_fits_scores_as_its_coco_file(tmp_path):
+    """A frame written with --labels coco,fits: scoring against the FITS (TRUTH + LABELS + LABELCAT) gives
+    the COCO file's numbers; without LABELCAT the matches are the same (SNR unknown); without LABELS: exit 2."""
+    from astropy.io import fits
+    from helpers import write_scene
+
+    from scenes.app.render import render
+    from scenes.scene import load_scene
+
+    objs = [{"ra_deg": 120.0, "dec_deg": -29.0 + dd, "rate_ra_deg_s": 0.0008, "rate_dec_deg_s": -0.0005,
+             "photons": p} for p, dd in ((3000, -0.006), (800, 0.0), (20000, 0.006))]  # ~9 px streaks, 11 px apart
+    sc = load_scene(str(write_scene(tmp_path / "s.toml", {
+        "detector": {"preset": "ml11002", "width": 128, "height": 128}, "exposure": {"time_s": 5.0, "frame": "light"},
+        "sky": {"stars": False, "background_mag_arcsec2": 20.0}, "psf": {"model": "gaussian", "fwhm_arcsec": 3.0},
+        "pointing": {"ra_deg": 120.0, "dec_deg": -29.0, "epoch": "2023-02-01T22:00:00"}, "objects": objs})))
+    f, coco = tmp_path / "f.fits", tmp_path / "f.coco.json"
+    render(sc, f, seed=2, progress=False, workers=1, labels=["coco", "fits"], label_paths={"coco": coco})
+    t = fits.getdata(f, "TRUTH")
+    # detections: streaks 0 and 2 with ends 0.3 px off (swapped order for 2), a false alarm; streak 1 missed
+    rows = ["x0,y0,x1,y1,score", f"{t['x0'][0] + 0.3},{t['y0'][0]},{t['x1'][0] + 0.3},{t['y1'][0]},0.9",
+            f"{t['x1'][2]},{t['y1'][2] + 0.3},{t['x0'][2]},{t['y0'][2] + 0.3},0.8", "10,10,20,20,0.5"]
+    dets = tmp_path / "d.csv"
+    dets.write_text("\n".join(rows) + "\n")
+    runner = CliRunner()
+
+    def run(labels, *extra):
+        r = runner.invoke(cli, ["score", str(dets), str(labels), "--json", "-", *extra])
+        assert r.exit_code == 0, r.output
+        return json.loads(r.stdout if hasattr(r, "stdout") else r.output)
+
+    a, b = run(coco), run(f)
+    for k in ("labels", "matched", "completeness", "purity", "false_alarms", "endpoint_rmse_px", "bins", "snr50"):
+        assert a[k] == b[k], k
+    assert (b["labels"], b["matched"], b["false_alarms"]) == (3, 2, 1)
+    assert b["endpoint_rmse_px"] == pytest.approx(0.3, abs=1e-6)
+    m = run(f, "--match", "mask")  # the LABELS pixels of each row: a detection at the label mask matches
+    assert m["labels"] == 3
+    # a LABELS image written by other code (no LABELCAT): the same matches, the SNR unknown
+    with fits.open(f) as h:
+        fits.HDUList([h[0], h["TRUTH"], h["LABELS"]]).writeto(tmp_path / "g.fits")
+    c = run(tmp_path / "g.fits")
+    assert (c["labels"], c["matched"], c["endpoint_rmse_px"]) == (3, 2, b["endpoint_rmse_px"])
+    assert c["snr50"]["value"] is None
+    with fits.open(f) as h:
+        fits.HDUList([h[0], h["TRUTH"]]).writeto(tmp_path / "n.fits")
+    r = runner.invoke(cli, ["score", str(dets), str(tmp_path / "n.fits")])
+    assert r.exit_code == 2 and "no LABELS extension" in r.output

@@ -190,6 +190,35 @@ def labels_hdu(sources, labels: list[Label], shape, mask_fraction_sigma: float) 
     return hdu
 
 
+#: the label fields of the ``LABELCAT`` table (one row per label; ``bbox`` as four columns; no mask: the
+#: ``LABELS`` image holds the dominant source of each pixel)
+LABELCAT_COLUMNS = ("row", "kind", "name", "source_id", "x", "y", "x0", "y0", "x1", "y1", "t0_s", "t1_s", "ra_deg",
+                    "dec_deg", "ra0_deg", "dec0_deg", "ra1_deg", "dec1_deg", "bbox_x", "bbox_y", "bbox_w", "bbox_h",
+                    "mask_pixels", "mask_flux_fraction", "flux_e", "flux_truth_e", "snr", "snr_peak", "mag",
+                    "length_px", "rate_px_s", "rate_arcsec_s", "edge")
+
+
+def labels_table_hdu(labels: list[Label]) -> fits.BinTableHDU:
+    """The ``LABELCAT`` extension: every label's fields (what the COCO annotations carry but the mask), so
+    a frame with ``TRUTH``, ``LABELS`` and ``LABELCAT`` is a complete labels file (``newtsim score``)."""
+    from astropy.table import Table
+
+    cols = {k: [] for k in LABELCAT_COLUMNS}
+    for lab in labels:
+        for k in LABELCAT_COLUMNS:
+            if k.startswith("bbox_"):
+                cols[k].append(int(lab.bbox["xywh".index(k[-1])]))
+            else:
+                cols[k].append(getattr(lab, k))
+    t = Table({k: np.asarray(v, dtype={"row": np.int32, "source_id": np.int64, "bbox_x": np.int32, "bbox_y": np.int32,
+                                       "bbox_w": np.int32, "bbox_h": np.int32, "mask_pixels": np.int64,
+                                       "edge": bool, "kind": "S9", "name": "S32"}.get(k, np.float64))
+               for k, v in cols.items()})
+    hdu = fits.BinTableHDU(t, name="LABELCAT")
+    hdu.header["COMMENT"] = "one row per label (docs/detection_bench.md); row = the TRUTH row, the LABELS value"
+    return hdu
+
+
 def write_json(obj, path) -> None:
     with open(path, "w") as f:
         json.dump(obj, f, indent=1, allow_nan=False, default=_default)

@@ -319,9 +319,12 @@ def _coco_item(a: dict, image: str, with_mask: bool) -> Item:
 
 
 def load_labels(path, kinds=("object",), with_mask: bool = False) -> tuple[list[Item], dict]:
-    """Labels from a COCO file written by ``--labels coco`` (or a dataset's); only ``kinds`` (default the
-    objects; ``None``: all). Returns (items, image -> (rows, cols))."""
+    """Labels from a COCO file written by ``--labels coco`` (or a dataset's), or from a label FITS (a frame
+    with ``TRUTH`` and ``LABELS``: :func:`load_labels_fits`); only ``kinds`` (default the objects; ``None``:
+    all). Returns (items, image -> (rows, cols))."""
     path = Path(path)
+    if path.suffix.lower() in (".fits", ".fit", ".fts") or path.name.lower().endswith((".fits.gz", ".fits.fz")):
+        return load_labels_fits(path, kinds, with_mask)
     try:
         doc = json.loads(path.read_text())
         imgs = {im["id"]: im for im in doc["images"]}
@@ -331,6 +334,87 @@ def load_labels(path, kinds=("object",), with_mask: bool = False) -> tuple[list[
     items = [_coco_item(a, imgs[a["image_id"]]["file_name"], with_mask) for a in anns
              if kinds is None or a.get("kind", "object") in kinds]
     return items, {im["file_name"]: (im["height"], im["width"]) for im in imgs.values()}
+
+
+def load_labels_fits(path, kinds=("object",), with_mask: bool = False) -> tuple[list[Item], dict]:
+    """Labels from a frame written with ``--labels fits``: its ``TRUTH`` table, its ``LABELS`` image (the
+    TRUTH row of each pixel's dominant source) and, when present, its ``LABELCAT`` table (every label field).
+
+    With ``LABELCAT`` the labels are exactly those of the COCO file (SNR, rate, length, ...); the mask of a
+    label is the pixels of the ``LABELS`` image holding its row (where two masks overlap, the pixel goes to
+    the dominant source only: mask IoUs of overlapping sources differ slightly from the COCO masks). Without
+    it (a ``LABELS`` image written by other code), the labels are the TRUTH rows with pixels in the image
+    or a centre on the frame, with TRUTH's endpoints, centre, magnitude and times; SNR and angular rate
+    unknown (no SNR bins, no SNR50), the length from the endpoints. The image is named by the file's name.
+    """
+    from astropy.io import fits
+    from scipy import ndimage
+
+    path = Path(path)
+    try:
+        with fits.open(path) as h:
+            names = [x.name for x in h]
+            missing = [e for e in ("TRUTH", "LABELS") if e not in names]
+            if missing:
+                raise ScoreError(f"{path}: no {' and no '.join(missing)} extension; expected a frame written with "
+                                 "--labels fits (TRUTH + LABELS) or the .coco.json of --labels coco")
+            img = np.asarray(h["LABELS"].data)
+            truth = np.asarray(h["TRUTH"].data)
+            cat = np.asarray(h["LABELCAT"].data) if "LABELCAT" in names else None
+    except ScoreError:
+        raise
+    except (OSError, ValueError, KeyError, TypeError) as exc:
+        raise ScoreError(f"{path}: cannot read the label FITS ({exc}); expected a frame written with "
+                         "--labels fits") from None
+    if img.ndim != 2:
+        raise ScoreError(f"{path}: LABELS is not a 2-D image; expected the integer image of --labels fits")
+    shape = tuple(int(n) for n in img.shape)
+    image = path.name
+    slices = ndimage.find_objects(img.astype(np.int64) + 1)  # value r -> slices[r] (NO_SOURCE = -1 -> background)
+
+    def mask_of(r: int):
+        sl = slices[r] if 0 <= r < len(slices) else None
+        if sl is None:
+            return None, (0, 0)
+        return img[sl] == r, (sl[1].start, sl[0].start)
+
+    def text(v):
+        return v.decode().strip() if isinstance(v, bytes) else str(v).strip()
+
+    items = []
+    if cat is not None:
+        for rec in cat:
+            props = {k: (text(rec[k]) if k in ("kind", "name") else
+                         (bool(rec[k]) if k == "edge" else
+                          (int(rec[k]) if k in ("row", "source_id", "mask_pixels") else float(rec[k]))))
+                     for k in cat.dtype.names if not k.startswith("bbox_")}
+            props = {k: (None if isinstance(v, float) and not math.isfinite(v) else v) for k, v in props.items()}
+            if kinds is not None and props.get("kind", "object") not in kinds:
+                continue
+            props["bbox"] = [int(rec[k]) for k in ("bbox_x", "bbox_y", "bbox_w", "bbox_h")]
+            m, xy = mask_of(int(rec["row"])) if with_mask else (None, (0, 0))
+            items.append(Item(image, float(rec["x0"]), float(rec["y0"]), float(rec["x1"]), float(rec["y1"]), 1.0,
+                              m, xy, props))
+        return items, {image: shape}
+    for r, t in enumerate(truth):
+        kind = text(t["kind"])
+        if kinds is not None and kind not in kinds:
+            continue
+        sl = slices[r] if r < len(slices) else None
+        x, y = float(t["x"]), float(t["y"])
+        on = np.isfinite(x) and np.isfinite(y) and -0.5 <= x < shape[1] - 0.5 and -0.5 <= y < shape[0] - 0.5
+        if sl is None and not on:
+            continue
+        x0, y0, x1, y1 = (float(t[k]) for k in ("x0", "y0", "x1", "y1"))
+        if not all(np.isfinite(v) for v in (x0, y0, x1, y1)):
+            x0 = x1 = x
+            y0 = y1 = y
+        props = {"row": r, "kind": kind, "name": text(t["name"]), "x": x, "y": y, "mag": _f(t["mag"]),
+                 "t0_s": _f(t["t0_s"]), "t1_s": _f(t["t1_s"]), "length_px": math.hypot(x1 - x0, y1 - y0),
+                 "snr": None, "rate_arcsec_s": None}
+        m, xy = mask_of(r) if with_mask else (None, (0, 0))
+        items.append(Item(image, x0, y0, x1, y1, 1.0, m, xy, props))
+    return items, {image: shape}
 
 
 def load_detections(path, label_images: dict, with_mask: bool = False) -> list[Item]:

@@ -21,7 +21,8 @@ from .common import Outputs, write_json
 @click.option("--json", "json_out", default=None, help="write the metrics and every figure's data here ('-': stdout)")
 def score(detections, labels, mode, gate_px, min_iou, kinds, html_out, json_out):
     """Score DETECTIONS (COCO results JSON, CSV/ECSV of endpoints or centres, or a mask FITS) against
-    LABELS (the .coco.json of --labels coco). See docs/detection_bench.md."""
+    LABELS (the .coco.json of --labels coco, a dataset.coco.json, or a frame written with --labels fits:
+    TRUTH + LABELS extensions). See docs/detection_bench.md."""
     from scenes.app.bench.score import ScoreError, html_report, score_files
 
     kind_list = None if kinds.strip().lower() == "all" else tuple(k.strip() for k in kinds.split(",") if k.strip())
