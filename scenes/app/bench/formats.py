@@ -201,20 +201,17 @@ LABELCAT_COLUMNS = ("row", "kind", "name", "source_id", "x", "y", "x0", "y0", "x
 def labels_table_hdu(labels: list[Label]) -> fits.BinTableHDU:
     """The ``LABELCAT`` extension: every label's fields (what the COCO annotations carry but the mask), so
     a frame with ``TRUTH``, ``LABELS`` and ``LABELCAT`` is a complete labels file (``newtsim score``)."""
-    from astropy.table import Table
-
-    cols = {k: [] for k in LABELCAT_COLUMNS}
-    for lab in labels:
-        for k in LABELCAT_COLUMNS:
-            if k.startswith("bbox_"):
-                cols[k].append(int(lab.bbox["xywh".index(k[-1])]))
-            else:
-                cols[k].append(getattr(lab, k))
-    t = Table({k: np.asarray(v, dtype={"row": np.int32, "source_id": np.int64, "bbox_x": np.int32, "bbox_y": np.int32,
-                                       "bbox_w": np.int32, "bbox_h": np.int32, "mask_pixels": np.int64,
-                                       "edge": bool, "kind": "S9", "name": "S32"}.get(k, np.float64))
-               for k, v in cols.items()})
-    hdu = fits.BinTableHDU(t, name="LABELCAT")
+    types = {"row": "i4", "source_id": "i8", "mask_pixels": "i8", "edge": "?", "kind": "S9", "name": "S32",
+             "bbox_x": "i4", "bbox_y": "i4", "bbox_w": "i4", "bbox_h": "i4"}
+    arr = np.zeros(len(labels), dtype=[(k, types.get(k, "f8")) for k in LABELCAT_COLUMNS])
+    for k in LABELCAT_COLUMNS:
+        if k.startswith("bbox_"):
+            arr[k] = [int(lab.bbox["xywh".index(k[-1])]) for lab in labels]
+        elif k in ("kind", "name"):
+            arr[k] = [str(getattr(lab, k)).encode("ascii", "replace")[:int(types[k][1:])] for lab in labels]
+        else:
+            arr[k] = [getattr(lab, k) for lab in labels]
+    hdu = fits.BinTableHDU(arr, name="LABELCAT")
     hdu.header["COMMENT"] = "one row per label (docs/detection_bench.md); row = the TRUTH row, the LABELS value"
     return hdu
 
