@@ -93,6 +93,28 @@ def test_snr50_logistic_and_bootstrap():
     assert r["snr50"]["value"] == pytest.approx(s50, rel=1e-6)
 
 
+def test_logistic_newton_equals_direct_likelihood_maximum_and_degenerate_cases():
+    """The Newton/IRLS fit is the likelihood's maximum: equal to a derivative-free (Nelder-Mead) maximisation
+    of the same likelihood to 1e-5; separated data give the gap's middle and w = 0; completeness falling
+    with SNR (b <= 0) gives NaN rather than a number."""
+    from scipy.optimize import minimize
+
+    rng = np.random.default_rng(7)
+    snr = rng.uniform(1, 30, 300)
+    hit = rng.random(300) < 1 / (1 + np.exp(-(snr - 9.0) / 2.5))
+
+    def nll(p):
+        z = (snr - p[0]) / math.exp(p[1])
+        return float(np.sum(np.logaddexp(0, -z) * hit + np.logaddexp(0, z) * (1 - hit)))
+
+    ref = minimize(nll, [10.0, 0.0], method="Nelder-Mead", options={"xatol": 1e-9, "fatol": 1e-12, "maxiter": 20000})
+    s50, w = logistic_fit(snr, hit)
+    assert s50 == pytest.approx(ref.x[0], rel=1e-5) and w == pytest.approx(math.exp(ref.x[1]), rel=1e-5)
+    assert logistic_fit([1.0, 2.0, 5.0, 6.0], [False, False, True, True]) == (3.5, 0.0)
+    assert math.isnan(logistic_fit(snr, snr < 10)[0])  # falls with SNR
+    assert math.isnan(logistic_fit([1.0, 2.0, 3.0], [True, True, True])[0])
+
+
 def test_ap_all_points():
     ap, rec, prec = average_precision(np.array([0.9, 0.8, 0.7]), np.array([True, False, True]), 2)
     assert ap == pytest.approx(0.5 * 1 + 0.5 * (2 / 3))

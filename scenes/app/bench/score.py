@@ -17,8 +17,8 @@ Metrics: completeness = matched labels / labels and purity = true detections / d
 bins of the labels' SNR, angular rate, magnitude and length (purity in a bin counts the detections whose own
 value falls in it: their matched label's, or for a false alarm the detection's own column when given, e.g.
 the length of its endpoints), each with its Wilson score interval (Wilson 1927, JASA 22, 209; 68 %); the SNR
-of 50 % completeness from a maximum-likelihood logistic fit p(SNR) = 1 / (1 + exp(-(SNR - SNR50) / w)) with
-a bootstrap error (labels resampled with replacement); endpoint and centre RMSE of the matches; false alarms
+of 50 % completeness from a maximum-likelihood logistic fit p(SNR) = 1 / (1 + exp(-(SNR - SNR50) / w))
+(Newton / IRLS, :func:`logistic_fit`) with a bootstrap error (labels resampled with replacement); endpoint and centre RMSE of the matches; false alarms
 per megapixel and per frame; the precision-recall curve over the detection score and its average precision
 (the area under the monotone precision envelope, all points, as in COCO/VOC 2010+).
 """
@@ -33,7 +33,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
-from scipy.optimize import linear_sum_assignment, minimize
+from scipy.optimize import linear_sum_assignment
 
 MATCH_MODES = ("endpoints", "mask", "centre")
 GATE_PX = 3.0
@@ -143,21 +143,58 @@ def wilson(k: int, n: int, z: float = WILSON_Z) -> tuple[float, float]:
 
 
 def logistic_fit(snr: np.ndarray, hit: np.ndarray) -> tuple[float, float]:
-    """Maximum-likelihood (SNR50, width) of p = 1 / (1 + exp(-(snr - SNR50) / w)); NaN when undetermined."""
-    snr, hit = np.asarray(snr, float), np.asarray(hit, float)
+    """Maximum-likelihood (SNR50, width) of p = 1 / (1 + exp(-(snr - SNR50) / w)); NaN when undetermined.
+
+    Newton's method (iteratively reweighted least squares; McCullagh & Nelder 1989, sec. 4.4) on the linear
+    predictor ``a + b u`` with ``u = (snr - mean) / std``: gradient ``X^T (y - p)``, Hessian ``X^T W X``
+    with ``W = p (1 - p)``, the step halved while the log-likelihood does not increase (it is concave, so
+    this converges to the unique maximum). SNR50 = mean - a std / b, w = std / b. Undetermined (NaN): fewer
+    than 3 finite SNRs, all or none detected, or b <= 0 (completeness not rising with SNR). Completely
+    separated data (every miss below every hit) have no finite maximum (w -> 0): SNR50 is then the middle
+    of the gap and w = 0.
+    """
+    snr, hit = np.asarray(snr, float), np.asarray(hit, bool)
     ok = np.isfinite(snr)
     snr, hit = snr[ok], hit[ok]
     if snr.size < 3 or hit.all() or not hit.any():
         return math.nan, math.nan
+    lo_hit, hi_miss = float(snr[hit].min()), float(snr[~hit].max())
+    if hi_miss < lo_hit:
+        return 0.5 * (hi_miss + lo_hit), 0.0
+    m, sd = float(snr.mean()), float(snr.std())
+    if not sd > 0:
+        return math.nan, math.nan
+    u = (snr - m) / sd
+    y = hit.astype(float)
 
-    def nll(p):
-        s50, lw = p
-        z = (snr - s50) / math.exp(lw)
-        return float(np.sum(np.logaddexp(0, -z) * hit + np.logaddexp(0, z) * (1 - hit)))
+    def loglik(a, b):
+        z = a + b * u
+        return -float(np.sum(np.logaddexp(0.0, np.where(hit, -z, z))))
 
-    x0 = [float(np.median(snr)), math.log(max(np.std(snr) / 4, 1e-3))]
-    r = minimize(nll, x0, method="Nelder-Mead", options={"xatol": 1e-6, "fatol": 1e-9, "maxiter": 4000})
-    return float(r.x[0]), float(math.exp(r.x[1]))
+    a, b = math.log(y.mean() / (1 - y.mean())), 0.0
+    ll = loglik(a, b)
+    for _ in range(100):
+        p = 0.5 * (1.0 + np.tanh(0.5 * (a + b * u)))  # the logistic function without overflow
+        r, w = y - p, p * (1.0 - p)
+        g0, g1 = float(r.sum()), float(r @ u)
+        wu = w * u
+        h00, h01, h11 = float(w.sum()), float(wu.sum()), float(wu @ u)
+        det = h00 * h11 - h01 * h01  # the 2 x 2 Newton system solved in closed form
+        if not det > 0:
+            return math.nan, math.nan
+        da, db = (h11 * g0 - h01 * g1) / det, (h00 * g1 - h01 * g0) / det
+        t = 1.0
+        while t > 1e-6:
+            ll_new = loglik(a + t * da, b + t * db)
+            if ll_new >= ll - 1e-12 * abs(ll):
+                break
+            t *= 0.5
+        a, b, ll = a + t * da, b + t * db, ll_new
+        if abs(t * da) + abs(t * db) < 1e-10 * (1.0 + abs(a) + abs(b)):
+            break
+    if not b > 0:
+        return math.nan, math.nan
+    return m - a * sd / b, sd / b
 
 
 def average_precision(scores: np.ndarray, tp: np.ndarray, n_truth: int) -> tuple[float, np.ndarray, np.ndarray]:
