@@ -34,6 +34,7 @@ try:
     from .optics import optics as optics_group
     from .render import effects as effects_command
     from .render import render as render_command
+    from .score import score as score_command
 except KeyboardInterrupt as _exc:
     _interrupts.exit_interrupted(_exc)
 
@@ -51,6 +52,7 @@ def cli():
     compare       model vs measured frame: chi2, residuals per region/row/column/source, HTML report
     diagnose      which physical effect the model lacks, ranked by delta BIC; --apply adds it
     optics        vignetting | psf | pst: ray tracing of the telescope (Mitsuba 3, llvm)
+    score         detections vs labels: completeness, purity, SNR of 50 %, PR curve (HTML, JSON)
     """
 
 
@@ -62,6 +64,7 @@ cli.add_command(diagnose_command, name="diagnose")
 cli.add_command(optics_group, name="optics")
 cli.add_command(batch_command, name="batch")
 cli.add_command(demo_command, name="demo")
+cli.add_command(score_command, name="score")
 
 
 def _usage_line(exc: click.ClickException) -> str:
