@@ -79,26 +79,27 @@ class _Watermarks:
     fractional volumes ``[top[s + 1], top[s]]`` with the trapped charge ``cum[s] - cum[s - 1]`` of each
     species spread evenly over it (``cum``: cumulative from the first slot). A packet that reaches ``v``
     overwrites every level below ``v``, so the levels below it are the most recently filled: the stack's
-    end. Slots 0 and 1 are empty sentinels above every volume; the slot after the last holds ``top = 0``.
-    Charge is stored divided by ``gain`` (one factor per species, common to all pools), so release, which
-    empties the same fraction of every level, is one multiplication of ``gain``. Arrays are flat, slot-major
-    (index ``slot * n_pools + pool``) so that every operation is on contiguous 1-D arrays.
+    end. Slots 0 and 1 are empty sentinels above every volume; slots after the last are stale; the last
+    slot's ``cum`` is ``total`` (kept only there). Charge is stored divided by ``gain`` (one factor
+    per species, common to all pools), so release, which empties the same fraction of every level, is one
+    multiplication of ``gain``. Arrays are flat and slot-major (``top``: ``slot * n + pool``, ``cum``:
+    ``(slot * k + species) * n + pool``) so that one fancy index reads or writes a slot of every pool.
     """
 
     def __init__(self, n_pools: int, density_per_px, decay, capacity: int):
+        self.k = len(density_per_px)
         self.rho = np.asarray(density_per_px, np.float64)
         self.decay = np.asarray(decay, np.float64)
-        self.k = self.rho.size
         self.n = int(n_pools)
         self.capacity = max(int(capacity), 6)
         top = np.zeros((self.capacity + 1, self.n))
         top[0], top[1] = 3.0, 2.0
         self.top = top.reshape(-1)
         self.cum = np.zeros((self.capacity + 1) * self.k * self.n)
-        self.size = np.full(self.n, 2, np.intp)
+        self.last = np.arange(self.n) + self.n  # flat index (into top) of each pool's last slot
         self.total = np.zeros((self.k, self.n))
         self.gain = np.ones(self.k)
-        self.pool = np.arange(self.n)
+        self.species = (np.arange(self.k) * self.n)[:, None] + np.arange(self.n)[None, :]
 
     def trapped_e(self) -> np.ndarray:
         """Charge held per pool [e-] (all species)."""
@@ -110,59 +111,54 @@ class _Watermarks:
         (released - captured) [e-]."""
         b = n_e.shape[0]
         nn, kn = self.n, self.k * self.n
-        top, cum, size, total, gain = self.top, self.cum, self.size[:b], self.total[:, :b], self.gain
-        coef = gain * (1.0 - self.decay)
-        released = total[0] * coef[0]
-        for k in range(1, self.k):
-            released += total[k] * coef[k]
+        top, cum, gain = self.top, self.cum, self.gain
+        last, total = self.last[:b], self.total[:, :b]
+        released = (gain * (1.0 - self.decay)) @ total
         gain *= self.decay
         n_free = n_e + released
-        v = np.clip((n_free - notch_e) / (well_e - notch_e), 1e-300, 1.0) ** beta
-        # pop the watermarks wholly within the packet's reach (the stack's end)
-        pool = self.pool[:b]
-        it = (size - 1) * nn + pool  # the last watermark
-        sel = np.flatnonzero(top[it] <= v)
+        v = (n_free - notch_e) * (1.0 / (well_e - notch_e))
+        np.clip(v, 1e-300, 1.0, out=v)
+        v **= beta
+        # pop the watermarks wholly within the packet's reach (the stack's end): ``it`` ends on the one the
+        # packet reaches into (a sentinel if it is above all)
+        it = last.copy()
+        t_it = top[it]
+        low = np.zeros(b)
+        popped = np.flatnonzero(t_it <= v)
+        sel = popped
         while sel.size:
+            low[sel] = t_it[sel]
             it[sel] -= nn
-            sel = sel[top[it[sel]] <= v[sel]]
-        p = it // nn  # the watermark the packet reaches into (a sentinel if above all)
-        low = top[it + nn]
-        frac = (v - low) / (top[it] - low)
-        ic = p * kn + pool
-        mv = v * multiplicity
-        want, cur = [], []
-        captured = np.zeros(b)
-        for k in range(self.k):
-            c_p = cum[ic + k * nn]
-            part = (c_p - cum[ic + (k * nn - kn)]) * frac
-            w = mv * (self.rho[k] / gain[k]) - (total[k] - c_p + part)
-            np.maximum(w, 0.0, out=w)
-            captured += w * gain[k]
-            want.append(w)
-            cur.append(c_p - part)
-        short = captured > np.maximum(n_free, 0.0)  # not enough electrons: all levels fill part-way (ArCTIc)
+            t_sel = top[it[sel]]
+            t_it[sel] = t_sel
+            sel = sel[t_sel <= v[sel]]
+        frac = (v - low) / (t_it - low)
+        ic = (it // nn * kn)[None, :] + self.species[:, :b]
+        c_p = cum[ic]
+        if popped.size < b:  # the last slot's cum is ``total``
+            c_p = np.where(it == last, total, c_p)
+        ic -= kn
+        c_p -= (c_p - cum[ic]) * frac  # the part of the watermark below the packet, overwritten
+        ic += kn
+        want = np.multiply.outer(self.rho / gain, v * multiplicity)
+        want -= total
+        want += c_p
+        np.maximum(want, 0.0, out=want)
+        captured = gain @ want
+        short = captured > n_free  # not enough electrons: all levels fill part-way (ArCTIc)
         if short.any():
             f = np.where(short, np.maximum(n_free, 0.0) / np.where(short, captured, 1.0), 1.0)
             captured *= f
-            for w in want:
-                w *= f
-        for k in range(self.k):
-            cum[ic + k * nn] = cur[k]
-            total[k] += want[k]
-            cum[ic + (k * nn + kn)] = total[k]
-        top[it + nn] = v
-        new_size = p + 2
-        stale = size - new_size  # popped watermarks beyond the first: cleared
-        sel = np.flatnonzero(stale > 0)
-        for j in range(2, int(stale[sel].max(initial=0)) + 2):
-            sel = sel[stale[sel] >= j - 1]
-            top[(new_size[sel] + j - 2) * nn + sel] = 0.0
-        top[new_size * nn + pool] = 0.0
-        size[:] = new_size
-        if new_size.max() >= self.capacity:
-            self._merge(np.flatnonzero(new_size >= self.capacity))
+            want *= f
+        cum[ic] = c_p
+        total += want
+        it += nn
+        top[it] = v
+        last[:] = it
+        if it.max() >= (self.capacity - 1) * nn:
+            self._merge(np.flatnonzero(it >= (self.capacity - 1) * nn))
         if gain.min() < 1e-100:
-            self.cum.reshape(-1, self.k, self.n)[...] *= gain[None, :, None]
+            self.cum.reshape(-1, self.k, nn)[...] *= gain[None, :, None]
             self.total *= gain[:, None]
             gain[:] = 1.0
         return released - captured
@@ -173,6 +169,7 @@ class _Watermarks:
         s_cap, nn = self.capacity, self.n
         top = self.top.reshape(s_cap + 1, nn)
         cum = self.cum.reshape(s_cap + 1, self.k, nn)
+        cum[s_cap - 1, :, idx] = self.total[:, idx].T  # the last slot's cum, into the array for the shift
         t = top[:, idx]
         span = t[2:s_cap - 1] - t[4:s_cap + 1]  # pair (s, s + 1), s = 2 .. capacity - 2
         s = 2 + np.argmin(span, axis=0)
@@ -181,7 +178,7 @@ class _Watermarks:
         top[s_cap, idx] = 0.0
         c = cum[:, :, idx]
         cum[:s_cap, :, idx] = np.take_along_axis(c, (j + (j >= s))[:, None, :], axis=0)
-        self.size[idx] = s_cap - 1
+        self.last[idx] -= nn
 
 
 def cti_transfer(image_e: np.ndarray, density_per_px, release_time_s, transfer_s: float, beta: float,

@@ -92,15 +92,16 @@ def test_express_pools_approach_arctic_as_express_grows(refs):
     assert worst[1] < 0.5 * worst[0] and worst[1] < 0.03, worst
 
 
-@pytest.mark.parametrize("express", [0, 1, 3])
-def test_charge_is_conserved(express):
-    """What the image loses is in the traps at the end of the read-out (the overscan's charge)."""
+@pytest.mark.parametrize("express, levels", [(0, None), (1, None), (3, None), (1, 3), (0, 3)])
+def test_charge_is_conserved(express, levels):
+    """What the image loses is in the traps at the end of the read-out (the overscan's charge); also when
+    the volume levels kept per pool are few and adjacent ones are merged."""
     rng = np.random.default_rng(5)
     img = rng.poisson(40.0, (90, 7)).astype(np.float64)
     img[30, 2] += 30000.0
     img[60, 5] += 800.0
     out, trapped = cti_transfer(img, [0.3, 0.8], [1.5, 12.0], 1.0, 0.5, 80000.0, first_transfers=20,
-                                return_trapped=True, express=express)
+                                return_trapped=True, express=express, max_watermarks=levels)
     assert np.allclose(out.sum(axis=0) + trapped, img.sum(axis=0), rtol=1e-12, atol=1e-9)
     assert np.all(trapped > 0) and out[30, 2] < img[30, 2] and out[31:40, 2].sum() > img[31:40, 2].sum()
 
