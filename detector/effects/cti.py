@@ -83,7 +83,8 @@ class _Watermarks:
     slot's ``cum`` is ``total`` (kept only there). Charge is stored divided by ``gain`` (one factor
     per species, common to all pools), so release, which empties the same fraction of every level, is one
     multiplication of ``gain``. Arrays are flat and slot-major (``top``: ``slot * n + pool``, ``cum``:
-    ``(slot * k + species) * n + pool``) so that one fancy index reads or writes a slot of every pool.
+    ``(slot * n + pool) * k + species``) so that one fancy index reads or writes a slot of every pool and
+    species, the species of a pool side by side.
     """
 
     def __init__(self, n_pools: int, density_per_px, decay, capacity: int):
@@ -99,7 +100,7 @@ class _Watermarks:
         self.last = np.arange(self.n) + self.n  # flat index (into top) of each pool's last slot
         self.total = np.zeros((self.k, self.n))
         self.gain = np.ones(self.k)
-        self.species = (np.arange(self.k) * self.n)[:, None] + np.arange(self.n)[None, :]
+        self.species = np.arange(self.k)[:, None]
 
     def trapped_e(self) -> np.ndarray:
         """Charge held per pool [e-] (all species)."""
@@ -133,7 +134,7 @@ class _Watermarks:
             t_it[sel] = t_sel
             sel = sel[t_sel <= v[sel]]
         frac = (v - low) / (t_it - low)
-        ic = (it // nn * kn)[None, :] + self.species[:, :b]
+        ic = it[None, :] * self.k + self.species
         c_p = cum[ic]
         if popped.size < b:  # the last slot's cum is ``total``
             c_p = np.where(it == last, total, c_p)
@@ -158,7 +159,7 @@ class _Watermarks:
         if it.max() >= (self.capacity - 1) * nn:
             self._merge(np.flatnonzero(it >= (self.capacity - 1) * nn))
         if gain.min() < 1e-100:
-            self.cum.reshape(-1, self.k, nn)[...] *= gain[None, :, None]
+            self.cum.reshape(-1, self.k)[...] *= gain[None, :]
             self.total *= gain[:, None]
             gain[:] = 1.0
         return released - captured
@@ -168,16 +169,16 @@ class _Watermarks:
         volume (their charge is kept and spread over both)."""
         s_cap, nn = self.capacity, self.n
         top = self.top.reshape(s_cap + 1, nn)
-        cum = self.cum.reshape(s_cap + 1, self.k, nn)
-        cum[s_cap - 1, :, idx] = self.total[:, idx].T  # the last slot's cum, into the array for the shift
+        cum = self.cum.reshape(s_cap + 1, nn, self.k)
+        cum[s_cap - 1, idx, :] = self.total[:, idx].T  # the last slot's cum, into the array for the shift
         t = top[:, idx]
         span = t[2:s_cap - 1] - t[4:s_cap + 1]  # pair (s, s + 1), s = 2 .. capacity - 2
         s = 2 + np.argmin(span, axis=0)
         j = np.arange(s_cap)[:, None]
         top[:s_cap, idx] = np.take_along_axis(t, j + (j >= s + 1), axis=0)
         top[s_cap, idx] = 0.0
-        c = cum[:, :, idx]
-        cum[:s_cap, :, idx] = np.take_along_axis(c, (j + (j >= s))[:, None, :], axis=0)
+        c = cum[:, idx, :]
+        cum[:s_cap, idx, :] = np.take_along_axis(c, (j + (j >= s))[:, :, None], axis=0)
         self.last[idx] -= nn
 
 
