@@ -6,6 +6,7 @@ Agreement asked for (issue 25): within 2 % on every case, for the charge a sourc
 to 20 px and the tail beyond. A trail pixel that crosses zero on a background is held to 2 % of the first
 trail pixel instead of its own value."""
 
+import hashlib
 import json
 from pathlib import Path
 
@@ -18,6 +19,8 @@ REFS = Path(__file__).resolve().parents[1] / "data" / "peers" / "arctic" / "arct
 CASES = {"parallel_points": (True, False), "serial_points": (False, True), "parallel_stars": (True, False),
          "serial_stars": (False, True), "both_stars": (True, True)}
 POINT_ROW = 100  # the packets' row in the point cases (make_arctic_refs.point_columns)
+#: the references never change silently: a new file from make_arctic_refs.py needs a new hash here
+REFS_SHA256 = "0d9def84dd6563ed1022a5c955cb8d9d816e7f7eff0e83debfb1fef72eabd0f7"
 
 
 @pytest.fixture(scope="module")
@@ -52,6 +55,7 @@ def _point_errors(d_new, d_ref):
 
 def test_references_are_arctic_express_0_with_the_stated_parameters(refs):
     data, meta = refs
+    assert hashlib.sha256(REFS.read_bytes()).hexdigest() == REFS_SHA256
     assert meta["express"] == 0 and meta["empty_traps_for_first_transfers"] and meta["prune_frequency"] == 0
     assert meta["density_per_px"] == [0.6, 1.6, 1.4] and meta["release_timescale_transfers"] == [0.74, 7.7, 37.0]
     assert meta["arcticpy_version"] and set(CASES) == {k[:-3] for k in data if k.endswith("_in")}

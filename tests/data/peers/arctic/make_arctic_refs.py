@@ -24,8 +24,8 @@ import json
 from importlib.metadata import version
 from pathlib import Path
 
-import numpy as np
 import arcticpy as ac
+import numpy as np
 
 DENSITY_PER_PX = [0.6, 1.6, 1.4]
 RELEASE_TRANSFERS = [0.74, 7.70, 37.0]
