@@ -117,16 +117,17 @@ class _Watermarks:
         released = (gain * (1.0 - self.decay)) @ total
         gain *= self.decay
         n_free = n_e + released
-        v = (n_free - notch_e) * (1.0 / (well_e - notch_e))
+        v = (n_free - notch_e) * (1.0 / (well_e - notch_e)) if notch_e else n_free * (1.0 / well_e)
         np.clip(v, 1e-300, 1.0, out=v)
         v **= beta
         # pop the watermarks wholly within the packet's reach (the stack's end): ``it`` ends on the one the
-        # packet reaches into (a sentinel if it is above all)
-        it = last.copy()
+        # packet reaches into (a sentinel if it is above all), ``low`` is the top of the last one popped
+        t_it = top[last]
+        popped = t_it <= v
+        low = t_it * popped
+        it = last - popped * nn
         t_it = top[it]
-        low = np.zeros(b)
-        popped = np.flatnonzero(t_it <= v)
-        sel = popped
+        sel = np.flatnonzero(t_it <= v)
         while sel.size:
             low[sel] = t_it[sel]
             it[sel] -= nn
@@ -136,8 +137,7 @@ class _Watermarks:
         frac = (v - low) / (t_it - low)
         ic = it[None, :] * self.k + self.species
         c_p = cum[ic]
-        if popped.size < b:  # the last slot's cum is ``total``
-            c_p = np.where(it == last, total, c_p)
+        np.copyto(c_p, total, where=~popped)  # the last slot's cum is ``total``
         ic -= kn
         c_p -= (c_p - cum[ic]) * frac  # the part of the watermark below the packet, overwritten
         ic += kn
