@@ -57,6 +57,8 @@ from .base import Effect, EffectParams, Stage, Tile, register_effect
 #: HST ACS species (Massey et al. 2014): release times in parallel transfers and relative densities
 ACS_RELEASE_TRANSFERS = (0.74, 7.70, 37.0)
 ACS_RELATIVE_DENSITY = (0.17, 0.45, 0.38)
+#: largest number of per-pixel trap pools (express=0) the adapter accepts (~1 GB of watermarks)
+EXACT_MAX_POOLS = 1_000_000
 #: ML11002 parallel dwell: one row read serially at 8 MHz (4008 pixels) [s]
 ML11002_PARALLEL_TRANSFER_S = 4008 / 8e6
 
@@ -411,6 +413,13 @@ class CTI(Effect):
             raise DetectorError("density_per_px and release_time_s differ in length", key="effects.cti",
                                 expected="one release time per species")
         self.density, self.tau = dens, taus
+        if p.express == 0:  # every pixel's traps: (rows + y0) x cols pools per parallel transfer
+            (h, w), y0, x0 = self.sensor.shape, self.sensor.roi_y0, self.sensor.roi_x0
+            pools = max((h + y0) * w, (w + x0) * h if any(p.serial_density_per_px) else 0)
+            if pools > EXACT_MAX_POOLS:
+                raise DetectorError(f"express=0 on a {h} x {w} window at ({y0}, {x0}): {pools} trap pools",
+                                    key="effects.cti.express",
+                                    expected=f"express >= 1, or a window with (rows + y0) x cols <= {EXACT_MAX_POOLS}")
 
     def density_from_dose(self) -> float:
         """Total parallel trap density [traps/pixel] from the dose model (module docstring)."""

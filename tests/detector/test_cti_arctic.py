@@ -143,3 +143,30 @@ def test_cloud_volume_is_arctic_fill_law():
     v = cloud_volume_fraction(np.array([-5.0, 0.0, 10.0, 1000.0, 84700.0, 1e6]), 84700.0, 0.478, notch_e=10.0)
     assert v[0] == v[1] == v[2] == 0.0 and v[4] == v[5] == 1.0
     assert np.isclose(v[3], ((1000.0 - 10.0) / (84700.0 - 10.0)) ** 0.478)
+
+
+def test_exact_mode_on_a_large_window_is_one_clear_error():
+    """express=0 follows (rows + y0) x cols trap pools: a full frame is refused with the key and the way out."""
+    from detector import build_effects, make_sensor
+    from detector.errors import DetectorError
+
+    with pytest.raises(DetectorError, match="express"):
+        build_effects({"cti": {"express": 0}}, make_sensor("ml11002", {}))
+    small = make_sensor("ml11002", {"width": 40, "height": 30, "x0": 100, "y0": 10})
+    assert build_effects({"cti": {"express": 0}}, small)
+
+
+@pytest.mark.parametrize("express", [0, 2])
+def test_the_chain_applies_the_function_with_the_window_offset(express):
+    """Detector.moments couples the mean charge: the window's rows cross y0 + j + 1 pixels."""
+    from detector import Detector, build_effects, make_sensor
+
+    s = make_sensor("ml11002", {"width": 20, "height": 40, "x0": 300, "y0": 25, "dark_current_e_per_s": 0.0})
+    sig = np.full(s.shape, 80.0, np.float32)
+    sig[12, 5] = 20000.0
+    eff = {"cti": {"density_per_px": [0.4, 0.2], "release_time_s": [1e-3, 6e-3], "express": express}}
+    mean = Detector(s, build_effects(eff, s)).moments(sig, 1.0)[0]
+    expect = cti_transfer(sig, [0.4, 0.2], [1e-3, 6e-3], 5.01e-4, 0.478, s.full_well_e,
+                          first_transfers=s.roi_y0 + 1, express=express)
+    assert np.allclose(mean, expect / s.gain_e_per_adu + s.bias_adu - 0.5, atol=0.05)
+    assert mean[13:20, 5].sum() > mean[5:12, 5].sum() + 5  # the trail, away from the register
