@@ -234,7 +234,8 @@ def cti_transfer(image_e: np.ndarray, density_per_px, release_time_s, transfer_s
         stack is full, the two adjacent levels that span the smallest volume are merged (charge kept).
     """
     rho = np.asarray(density_per_px, np.float64)
-    decay = np.exp(-float(transfer_s) / np.asarray(release_time_s, np.float64))
+    # kept above 1e-30 so that the stored charge's scale (``_Watermarks.gain``) stays finite
+    decay = np.maximum(np.exp(-float(transfer_s) / np.asarray(release_time_s, np.float64)), 1e-30)
     img = np.array(image_e, dtype=np.float64, order="C")
     ny, nx = img.shape
     off = int(first_transfers) - 1

@@ -170,3 +170,15 @@ def test_the_chain_applies_the_function_with_the_window_offset(express):
                           first_transfers=s.roi_y0 + 1, express=express)
     assert np.allclose(mean, expect / s.gain_e_per_adu + s.bias_adu - 0.5, atol=0.05)
     assert mean[13:20, 5].sum() > mean[5:12, 5].sum() + 5  # the trail, away from the register
+
+
+def test_species_faster_than_a_transfer_release_everything_and_stay_finite():
+    """A species with tau << t_d gives back at the next transfer all it took: the next pixel gets most of the
+    loss (the rest it passes on, recaptured and released again)."""
+    col = np.zeros((50, 2))
+    col[10] = [5000.0, 50.0]
+    for express in (0, 1):
+        out, trapped = cti_transfer(col, [0.5], [1e-6], 1.0, 0.5, 1e5, express=express, return_trapped=True)
+        assert np.all(np.isfinite(out)) and np.allclose(out.sum(axis=0) + trapped, col.sum(axis=0))
+        loss = col[10] - out[10]
+        assert np.all(loss > 0) and np.all(out[11] > 0.5 * loss) and np.all(out[14:].sum(axis=0) < 0.1 * loss)
