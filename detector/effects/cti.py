@@ -1,8 +1,9 @@
 """Charge-transfer inefficiency (CTI) of a CCD: trap species that capture charge from the packets moving
 through them and release it later, into the packets that follow (a trail behind every source).
 
-Model: ArCTIc's well-fill model (Massey et al. 2014, MNRAS 439, 887, arXiv:1401.1151, sec. 4; ArCTIc, the
-algorithm for CTI correction, Massey et al. 2023, github.com/jkeger/arctic) with instant capture:
+Model: ArCTIc's well-fill model (Massey et al. 2014, MNRAS 439, 887, arXiv:1401.1151; ArCTIc, the Algorithm
+for Charge Transfer Inefficiency correction, github.com/jkeger/arctic, its README and src/trap_managers.cpp)
+with instant capture:
 
 * a packet of ``n`` electrons fills the fractional volume ``V(n) = ((n - d) / (w - d))^beta`` of a pixel
   (``w`` the full well, ``d`` the notch, ``beta`` the well-fill power); species ``k`` has ``rho_k`` traps per
@@ -67,8 +68,9 @@ def cloud_volume_fraction(n_e, well_e: float, beta: float, notch_e: float = 0.0)
     """Fractional volume of the pixel that a packet of ``n_e`` electrons reaches [1] (ArCTIc's well fill).
 
     ``V(n) = clip((n - d) / (w - d), 0, 1)^beta`` for ``n > d`` and 0 otherwise, with ``w`` the full well
-    [e-], ``d`` the notch depth [e-] and ``beta`` the well-fill power (Massey et al. 2014, MNRAS 439, 887,
-    eq. 22; ArCTIc's ``CCDPhase.cloud_fractional_volume_from_electrons`` with a notch >= 0).
+    [e-], ``d`` the notch depth [e-] and ``beta`` the well-fill power (the volume-driven well filling of
+    Massey et al. 2014, MNRAS 439, 887; ArCTIc's ``CCDPhase.cloud_fractional_volume_from_electrons`` with a
+    notch >= 0 and no first-electron fill, src/ccd.cpp).
     """
     x = (np.asarray(n_e, np.float64) - notch_e) / (well_e - notch_e)
     return np.power(np.clip(x, 0.0, 1.0), beta)
@@ -189,9 +191,10 @@ def cti_transfer(image_e: np.ndarray, density_per_px, release_time_s, transfer_s
                  notch_e: float = 0.0, max_watermarks: int | None = None):
     """Apply CTI along axis 0 (the read-out moves charge towards row 0); a new float64 array [e-].
 
-    ArCTIc's well-fill model (Massey et al. 2014, MNRAS 439, 887, arXiv:1401.1151, sec. 4; ArCTIc, Massey et
-    al. 2023): a packet of ``n`` e- fills the fractional volume ``V(n) = ((n - d) / (w - d))^beta`` of a pixel
-    (:func:`cloud_volume_fraction`); species ``k`` has ``rho_k`` traps per pixel spread evenly in volume.
+    ArCTIc's well-fill model (Massey et al. 2014, MNRAS 439, 887, arXiv:1401.1151; ArCTIc,
+    github.com/jkeger/arctic): a packet of ``n`` e- fills the fractional volume
+    ``V(n) = ((n - d) / (w - d))^beta`` of a pixel (:func:`cloud_volume_fraction`); species ``k`` has
+    ``rho_k`` traps per pixel spread evenly in volume.
     At every dwell ``t_d`` in a pixel:
 
         release  : every filled trap empties with probability 1 - exp(-t_d / tau_k); into the packet
@@ -199,7 +202,13 @@ def cti_transfer(image_e: np.ndarray, density_per_px, release_time_s, transfer_s
                    if that is more than n_free, every level fills the same fraction of the way.
 
     Occupancy is tracked per volume level (watermarks), so a small packet after a large one refills only
-    the levels it reaches, which have emptied since. Every pixel's traps are empty before its first
+    the levels it reaches, which have emptied since. With ``express = E >= 1`` a group of pixels
+    ``[a, b)`` is one pool: the packet of row ``j`` (absolute pixel ``r_j``) meets ``m_j = clip(r_j + 1 - a,
+    0, b - a)`` of its pixels, and with ``T_k(h)`` the pool's trapped charge per unit volume at level ``h``
+
+        captured_k = m_j rho_k V(n_free) - integral_0^V(n_free) T_k(h) dh,   then T_k(h < V) = m_j rho_k
+
+    (a level holds the traps of the pixels that the packet which last filled it had crossed). Every pixel's traps are empty before its first
     transfer. The packet in row ``j`` crosses ``j + first_transfers`` pixels; what the image loses is still
     in the traps at the end (``return_trapped``): charge is conserved.
 
