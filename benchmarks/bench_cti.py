@@ -92,15 +92,18 @@ def main() -> None:
     # whole exposure through the detector chain, cti on (defaults: 0.1 traps/px, HST ACS species)
     signal = (charge / 1.0).astype(np.float32)
     det = Detector(sensor, build_effects({"cti": {}}, sensor), workers=1)
+    def best_frame(d):
+        runs = [timed(d.expose, signal, 1.0, 3) for _ in range(a.repeat)]
+        return min(r[1] for r in runs), min(r[2] for r in runs)
+
     keep = cti_mod.cti_transfer
     try:
         cti_mod.cti_transfer = previous_cti_transfer
-        _, fr_old_cpu, fr_old_wall = timed(det.expose, signal, 1.0, 3)
+        fr_old_cpu, fr_old_wall = best_frame(det)
     finally:
         cti_mod.cti_transfer = keep
-    _, fr_new_cpu, fr_new_wall = timed(det.expose, signal, 1.0, 3)
-    plain = Detector(sensor, [], workers=1)
-    _, fr_plain_cpu, fr_plain_wall = timed(plain.expose, signal, 1.0, 3)
+    fr_new_cpu, fr_new_wall = best_frame(det)
+    fr_plain_cpu, fr_plain_wall = best_frame(Detector(sensor, [], workers=1))
 
     result = {
         "benchmark": "cti",

@@ -141,7 +141,9 @@ class _Watermarks:
         frac = (v - low) / (t_it - low)
         ic = it[None, :] * self.k + self.species
         c_p = cum[ic]
-        np.copyto(c_p, total, where=~popped)  # the last slot's cum is ``total``
+        c_p -= total  # the last slot's cum is ``total``: kept where nothing is popped
+        c_p *= popped
+        c_p += total
         ic -= kn
         c_p -= (c_p - cum[ic]) * frac  # the part of the watermark below the packet, overwritten
         ic += kn
