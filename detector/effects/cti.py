@@ -126,18 +126,15 @@ class _Watermarks:
         v **= beta
         # pop the watermarks wholly within the packet's reach (the stack's end): ``it`` ends on the one the
         # packet reaches into (a sentinel if it is above all), ``low`` is the top of the last one popped
-        t_it = top[last]
-        popped = t_it <= v
-        low = t_it * popped
+        popped = top[last] <= v
         it = last - popped * nn
-        t_it = top[it]
-        sel = np.flatnonzero(t_it <= v)
+        sel = np.flatnonzero(top[it] <= v)
         while sel.size:
-            low[sel] = t_it[sel]
-            it[sel] -= nn
-            t_sel = top[it[sel]]
-            t_it[sel] = t_sel
-            sel = sel[t_sel <= v[sel]]
+            i_sel = it[sel] - nn
+            it[sel] = i_sel
+            sel = sel[top[i_sel] <= v[sel]]
+        t_it = top[it]
+        low = top[it + nn] * popped  # popped slots keep their tops until overwritten
         frac = (v - low) / (t_it - low)
         ic = it[None, :] * self.k + self.species
         c_p = cum[ic]
