@@ -58,8 +58,8 @@ from .base import Effect, EffectParams, Stage, Tile, register_effect
 #: HST ACS species (Massey et al. 2014): release times in parallel transfers and relative densities
 ACS_RELEASE_TRANSFERS = (0.74, 7.70, 37.0)
 ACS_RELATIVE_DENSITY = (0.17, 0.45, 0.38)
-#: largest number of per-pixel trap pools (express=0) the adapter accepts (~1 GB of watermarks)
-EXACT_MAX_POOLS = 1_000_000
+#: largest number of per-pixel trap pools (express=0) the adapter accepts (<= 1 GB of watermarks)
+EXACT_MAX_POOLS = 400_000
 #: ML11002 parallel dwell: one row read serially at 8 MHz (4008 pixels) [s]
 ML11002_PARALLEL_TRANSFER_S = 4008 / 8e6
 
@@ -238,8 +238,8 @@ def cti_transfer(image_e: np.ndarray, density_per_px, release_time_s, transfer_s
     notch_e : float [e-]
         Well-notch depth ``d``.
     max_watermarks : int or None
-        Volume levels kept per pool (default: exact for up to ~200 rows, 40 for larger images); when a
-        stack is full, the two adjacent levels that span the smallest volume are merged (charge kept).
+        Volume levels kept per pool (default: 40; with ``express=0`` all, up to 64); when a stack is full,
+        the two adjacent levels that span the smallest volume are merged (charge kept).
     """
     rho = np.asarray(density_per_px, np.float64)
     # kept above 1e-30 so that the stored charge's scale (``_Watermarks.gain``) stays finite
@@ -248,7 +248,7 @@ def cti_transfer(image_e: np.ndarray, density_per_px, release_time_s, transfer_s
     ny, nx = img.shape
     off = int(first_transfers) - 1
     if max_watermarks is None:
-        max_watermarks = ny + 4 if ny <= 200 else 40
+        max_watermarks = min(ny + off + 4, 64) if express == 0 else 40
     cap = int(max_watermarks) + 3
     if express == 0:
         # every pixel its own pool; the window's offset pixels see the image's packets too
