@@ -1,26 +1,29 @@
 """Charge-transfer inefficiency (CTI) of a CCD: trap species that capture charge from the packets moving
 through them and release it later, into the packets that follow (a trail behind every source).
 
-Model: the Charge Distortion Model CDM03 (Short et al. 2013, MNRAS 430, 3078, eqs. 2-6; the algorithm
-Pyxel and the Gaia/Euclid pipelines use) with instant capture and the volume-driven well fill of ArCTIc
-(Massey et al. 2014, MNRAS 439, 887, eq. 22):
+Model: ArCTIc's well-fill model (Massey et al. 2014, MNRAS 439, 887, arXiv:1401.1151; ArCTIc, the Algorithm
+for Charge Transfer Inefficiency correction, github.com/jkeger/arctic, its README and src/trap_managers.cpp)
+with instant capture:
 
-* a packet of ``n`` electrons reaches ``rho_k (n / w)^beta`` traps of species ``k`` per pixel (``w`` the
-  well depth, ``beta`` the well-fill power); empty traps within its reach capture at once;
+* a packet of ``n`` electrons fills the fractional volume ``V(n) = ((n - d) / (w - d))^beta`` of a pixel
+  (``w`` the full well, ``d`` the notch, ``beta`` the well-fill power); species ``k`` has ``rho_k`` traps per
+  pixel spread evenly in volume; the empty traps below ``V(n)`` capture at once;
 * a filled trap releases with probability ``1 - exp(-t_d / tau_k)`` per transfer dwell ``t_d``, into the
   packet in its pixel at that time;
-* a packet at row ``j`` crosses ``j + 1`` pixels on its way to the serial register; all pixels it crosses
-  are represented by one trap pool of ``(j + 1) rho_k`` traps whose occupancy is carried from one packet to
-  the next (CDM03's "representative pixel": exact when every pixel below a packet has seen the same packets,
-  e.g. a uniform sky; the test compares it with a trap-by-trap simulation of a column).
+* the occupancy is tracked per volume level (ArCTIc's "watermarks"): a small packet after a large one refills
+  only the levels it reaches, which have emptied since, and leaves the higher ones to keep releasing;
+* every pixel's traps are empty before its first transfer; a packet at row ``j`` crosses ``j + 1`` pixels.
 
-Traps start empty at the first row of the read-out window and are filled by whatever passes: a sky
-background fills them, so a star on a bright sky loses less (the trail depends on the signal and the
-background). Charge is conserved: what the image loses is still in the traps at the end of the read-out
-(it goes into the overscan). Each row is one vectorised step over all columns (and species): a full
-ML11002 frame (4008 x 2672) takes well under a second.
+``express`` sets the cost: 0 follows every pixel's traps on their own (identical to ArCTic with express 0,
+to 1e-12 on tests/data/peers/arctic); ``E >= 1`` follows ``E`` groups of pixels along the column, each as one
+pool in which a volume level holds the traps of the pixels that the packet which last filled it had
+crossed: exact to first order in the CTI (the loss of a packet and its trail, with the packet's own
+depletion along the column neglected inside a group), the error falling as ``1 / E``. Each row is one
+vectorised step over all columns. Charge is conserved in both: what the image loses is still in the traps
+at the end of the read-out (it goes into the overscan).
 
-Serial CTI is the same model along the rows (the serial register at column 0, ``x + 1`` transfers).
+Serial CTI is the same model along the rows (the serial register at column 0, ``x + 1`` transfers), after
+the parallel transfer (as ArCTIc).
 
 Dose model: trap densities grow linearly with the displacement damage, i.e. with the 10-MeV-equivalent
 proton fluence ``Phi_10`` (NIEL scaling; Srour, Marshall & Marshall 2003, IEEE TNS 50, 653; Massey et al.
@@ -55,13 +58,158 @@ from .base import Effect, EffectParams, Stage, Tile, register_effect
 #: HST ACS species (Massey et al. 2014): release times in parallel transfers and relative densities
 ACS_RELEASE_TRANSFERS = (0.74, 7.70, 37.0)
 ACS_RELATIVE_DENSITY = (0.17, 0.45, 0.38)
+#: largest number of per-pixel trap pools (express=0) the adapter accepts (<= 1 GB of watermarks)
+EXACT_MAX_POOLS = 400_000
 #: ML11002 parallel dwell: one row read serially at 8 MHz (4008 pixels) [s]
 ML11002_PARALLEL_TRANSFER_S = 4008 / 8e6
 
 
+def cloud_volume_fraction(n_e, well_e: float, beta: float, notch_e: float = 0.0) -> np.ndarray:
+    """Fractional volume of the pixel that a packet of ``n_e`` electrons reaches [1] (ArCTIc's well fill).
+
+    ``V(n) = clip((n - d) / (w - d), 0, 1)^beta`` for ``n > d`` and 0 otherwise, with ``w`` the full well
+    [e-], ``d`` the notch depth [e-] and ``beta`` the well-fill power (the volume-driven well filling of
+    Massey et al. 2014, MNRAS 439, 887; ArCTIc's ``CCDPhase.cloud_fractional_volume_from_electrons`` with a
+    notch >= 0 and no first-electron fill, src/ccd.cpp).
+    """
+    x = (np.asarray(n_e, np.float64) - notch_e) / (well_e - notch_e)
+    return np.power(np.clip(x, 0.0, 1.0), beta)
+
+
+class _Watermarks:
+    """Trap occupancy per volume level for a batch of independent trap pools (ArCTIc's watermarks).
+
+    Each pool holds a stack of watermarks ordered by volume, highest (oldest) first: slot ``s`` covers the
+    fractional volumes ``[top[s + 1], top[s]]`` with the trapped charge ``cum[s] - cum[s - 1]`` of each
+    species spread evenly over it (``cum``: cumulative from the first slot). A packet that reaches ``v``
+    overwrites every level below ``v``, so the levels below it are the most recently filled: the stack's
+    end. Slots 0 and 1 are empty sentinels above every volume; slots after the last are stale; the last
+    slot's ``cum`` is ``total`` (kept only there). Charge is stored divided by ``gain`` (one factor
+    per species, common to all pools), so release, which empties the same fraction of every level, is one
+    multiplication of ``gain``. Arrays are flat and slot-major (``top``: ``slot * n + pool``, ``cum``:
+    ``(slot * n + pool) * k + species``) so that one fancy index reads or writes a slot of every pool and
+    species, the species of a pool side by side.
+    """
+
+    def __init__(self, n_pools: int, density_per_px, decay, capacity: int):
+        self.k = len(density_per_px)
+        self.rho = np.asarray(density_per_px, np.float64)
+        self.decay = np.asarray(decay, np.float64)
+        self.n = int(n_pools)
+        self.capacity = max(int(capacity), 6)
+        top = np.zeros((self.capacity + 1, self.n))
+        top[0], top[1] = 3.0, 2.0
+        self.top = top.reshape(-1)
+        self.cum = np.zeros((self.capacity + 1) * self.k * self.n)
+        self.last = np.arange(self.n) + self.n  # flat index (into top) of each pool's last slot
+        self.total = np.zeros((self.k, self.n))
+        self.gain = np.ones(self.k)
+        self.species = np.arange(self.k)[:, None]
+
+    def trapped_e(self) -> np.ndarray:
+        """Charge held per pool [e-] (all species)."""
+        return self.gain @ self.total
+
+    def step(self, n_e: np.ndarray, multiplicity, well_e, beta, notch_e) -> np.ndarray:
+        """One dwell of the first ``len(n_e)`` pools with one packet each: release, then instant capture by
+        ``multiplicity * rho_k`` traps per unit volume below the packet's reach. Returns the packets' change
+        (released - captured) [e-]."""
+        b = n_e.shape[0]
+        nn, kn = self.n, self.k * self.n
+        top, cum, gain = self.top, self.cum, self.gain
+        last, total = self.last[:b], self.total[:, :b]
+        released = (gain * (1.0 - self.decay)) @ total
+        gain *= self.decay
+        n_free = n_e + released
+        v = (n_free - notch_e) * (1.0 / (well_e - notch_e)) if notch_e else n_free * (1.0 / well_e)
+        np.clip(v, 1e-300, 1.0, out=v)
+        v **= beta
+        # pop the watermarks wholly within the packet's reach (the stack's end): ``it`` ends on the one the
+        # packet reaches into (a sentinel if it is above all), ``low`` is the top of the last one popped
+        popped = top[last] <= v
+        it = last - popped * nn
+        sel = np.flatnonzero(top[it] <= v)
+        while sel.size:
+            i_sel = it[sel] - nn
+            it[sel] = i_sel
+            sel = sel[top[i_sel] <= v[sel]]
+        t_it = top[it]
+        low = top[it + nn] * popped  # popped slots keep their tops until overwritten
+        frac = (v - low) / (t_it - low)
+        ic = it[None, :] * self.k + self.species
+        c_p = cum[ic]
+        c_p -= total  # the last slot's cum is ``total``: kept where nothing is popped
+        c_p *= popped
+        c_p += total
+        ic -= kn
+        c_p -= (c_p - cum[ic]) * frac  # the part of the watermark below the packet, overwritten
+        ic += kn
+        want = np.multiply.outer(self.rho / gain, v * multiplicity)
+        want -= total
+        want += c_p
+        np.maximum(want, 0.0, out=want)
+        captured = gain @ want
+        short = captured > n_free  # not enough electrons: all levels fill part-way (ArCTIc)
+        if short.any():
+            f = np.where(short, np.maximum(n_free, 0.0) / np.where(short, captured, 1.0), 1.0)
+            captured *= f
+            want *= f
+        cum[ic] = c_p
+        total += want
+        it += nn
+        top[it] = v
+        last[:] = it
+        if it.max() >= (self.capacity - 1) * nn:
+            self._merge(np.flatnonzero(it >= (self.capacity - 1) * nn))
+        if gain.min() < 1e-100:
+            self.cum.reshape(-1, self.k)[...] *= gain[None, :]
+            self.total *= gain[:, None]
+            gain[:] = 1.0
+        return released - captured
+
+    def _merge(self, idx):
+        """Make room in full stacks: merge the two adjacent watermarks that together span the smallest
+        volume (their charge is kept and spread over both)."""
+        s_cap, nn = self.capacity, self.n
+        top = self.top.reshape(s_cap + 1, nn)
+        cum = self.cum.reshape(s_cap + 1, nn, self.k)
+        cum[s_cap - 1, idx, :] = self.total[:, idx].T  # the last slot's cum, into the array for the shift
+        t = top[:, idx]
+        span = t[2:s_cap - 1] - t[4:s_cap + 1]  # pair (s, s + 1), s = 2 .. capacity - 2
+        s = 2 + np.argmin(span, axis=0)
+        j = np.arange(s_cap)[:, None]
+        top[:s_cap, idx] = np.take_along_axis(t, j + (j >= s + 1), axis=0)
+        top[s_cap, idx] = 0.0
+        c = cum[:, idx, :]
+        cum[:s_cap, idx, :] = np.take_along_axis(c, (j + (j >= s))[:, :, None], axis=0)
+        self.last[idx] -= nn
+
+
 def cti_transfer(image_e: np.ndarray, density_per_px, release_time_s, transfer_s: float, beta: float,
-                 well_e: float, first_transfers: int = 1, return_trapped: bool = False):
+                 well_e: float, first_transfers: int = 1, return_trapped: bool = False, express: int = 1,
+                 notch_e: float = 0.0, max_watermarks: int | None = None):
     """Apply CTI along axis 0 (the read-out moves charge towards row 0); a new float64 array [e-].
+
+    ArCTIc's well-fill model (Massey et al. 2014, MNRAS 439, 887, arXiv:1401.1151; ArCTIc,
+    github.com/jkeger/arctic): a packet of ``n`` e- fills the fractional volume
+    ``V(n) = ((n - d) / (w - d))^beta`` of a pixel (:func:`cloud_volume_fraction`); species ``k`` has
+    ``rho_k`` traps per pixel spread evenly in volume.
+    At every dwell ``t_d`` in a pixel:
+
+        release  : every filled trap empties with probability 1 - exp(-t_d / tau_k); into the packet
+        capture  : every empty trap below V(n_free) fills at once (instant capture), n_free = n + released;
+                   if that is more than n_free, every level fills the same fraction of the way.
+
+    Occupancy is tracked per volume level (watermarks), so a small packet after a large one refills only
+    the levels it reaches, which have emptied since. With ``express = E >= 1`` a group of pixels
+    ``[a, b)`` is one pool: the packet of row ``j`` (absolute pixel ``r_j``) meets ``m_j = clip(r_j + 1 - a,
+    0, b - a)`` of its pixels, and with ``T_k(h)`` the pool's trapped charge per unit volume at level ``h``
+
+        captured_k = m_j rho_k V(n_free) - integral_0^V(n_free) T_k(h) dh,   then T_k(h < V) = m_j rho_k
+
+    (a level holds the traps of the pixels that the packet which last filled it had crossed). Every pixel's traps are empty before its first
+    transfer. The packet in row ``j`` crosses ``j + first_transfers`` pixels; what the image loses is still
+    in the traps at the end (``return_trapped``): charge is conserved.
 
     Parameters
     ----------
@@ -74,41 +222,59 @@ def cti_transfer(image_e: np.ndarray, density_per_px, release_time_s, transfer_s
     transfer_s : float [s]
         Dwell time per transfer.
     beta : float [1]
-        Well-fill power: a packet of n e- reaches ``rho (n / well_e)^beta`` traps (Massey et al. 2014).
+        Well-fill power.
     well_e : float [e-]
-        Well depth of the volume-driven fill.
+        Full-well depth of the fill law.
     first_transfers : int
         Transfers of the packet in row 0 (its absolute row + 1 for a window).
     return_trapped : bool
         Also return the charge [e-] left in the traps per column (what goes into the overscan).
-
-    Algorithm (per row ``j``, all columns and species at once; Short et al. 2013 with instant capture)::
-
-        released_k = trapped_k (1 - exp(-t_d / tau_k));  n += sum_k released_k
-        target_k   = rho_k (j + first_transfers) (n / w)^beta
-        captured_k = max(target_k - trapped_k, 0), scaled down together if their sum exceeds n
+    express : int
+        0: every pixel's traps are followed on their own (exact: ArCTIc with express = 0 and empty traps for
+        the first transfers; cost ~ rows^2). ``E >= 1``: the pixels are split into ``E`` groups along the
+        column, each followed as one pool in which a volume level holds the traps of the pixels that the
+        packet which last filled it had crossed (exact to first order in the CTI); the groups act from the
+        farthest to the nearest, so each sees the packets as the farther ones left them. Cost ~ E rows.
+    notch_e : float [e-]
+        Well-notch depth ``d``.
+    max_watermarks : int or None
+        Volume levels kept per pool (default: 40; with ``express=0`` all, up to 64); when a stack is full,
+        the two adjacent levels that span the smallest volume are merged (charge kept).
     """
-    rho = np.asarray(density_per_px, np.float64)[:, None]
-    decay = np.exp(-float(transfer_s) / np.asarray(release_time_s, np.float64))[:, None]
-    img = np.array(image_e, dtype=np.float64)
+    rho = np.asarray(density_per_px, np.float64)
+    # kept above 1e-30 so that the stored charge's scale (``_Watermarks.gain``) stays finite
+    decay = np.maximum(np.exp(-float(transfer_s) / np.asarray(release_time_s, np.float64)), 1e-30)
+    img = np.array(image_e, dtype=np.float64, order="C")
     ny, nx = img.shape
-    trapped = np.zeros((rho.shape[0], nx))
-    inv_w = 1.0 / float(well_e)
-    for j in range(ny):
-        n = img[j]
-        rel = trapped * (1.0 - decay)
-        trapped -= rel
-        n += rel.sum(axis=0)
-        target = (rho * (j + first_transfers)) * np.power(np.maximum(n, 0.0) * inv_w, beta)[None, :]
-        cap = np.maximum(target - trapped, 0.0)
-        tot = cap.sum(axis=0)
-        over = tot > n
-        if over.any():
-            cap[:, over] *= (n[over] / tot[over])[None, :]
-            tot = cap.sum(axis=0)
-        trapped += cap
-        n -= tot
-    return (img, trapped.sum(axis=0)) if return_trapped else img
+    off = int(first_transfers) - 1
+    if max_watermarks is None:
+        max_watermarks = min(ny + off + 4, 64) if express == 0 else 40
+    cap = int(max_watermarks) + 3
+    if express == 0:
+        # every pixel its own pool; the window's offset pixels see the image's packets too
+        col = np.concatenate([np.zeros((off, nx)), img]) if off > 0 else img
+        n_pix = col.shape[0]
+        wm = _Watermarks(n_pix * nx, rho, decay, cap)
+        trapped = np.zeros(nx)
+        for t in range(n_pix):  # transfer t + 1: pixel p holds the packet of row p + t
+            q = col[t:].reshape(-1)
+            q += wm.step(q.copy(), 1.0, well_e, beta, notch_e)
+            last = n_pix - t - 1  # this pixel has seen its last packet: what it holds goes to the overscan
+            trapped += wm.trapped_e()[last * nx:(last + 1) * nx]
+        out = col[off:] if off > 0 else col
+        return (out, trapped) if return_trapped else out
+    n_groups = max(1, min(int(express), ny + off))
+    edges = np.linspace(0, ny + off, n_groups + 1).round().astype(int)
+    rows = np.arange(ny) + off  # absolute pixel of each row
+    trapped = np.zeros(nx)
+    for a, b in zip(edges[-2::-1], edges[:0:-1]):  # farthest group first
+        mult = np.clip(rows + 1 - a, 0, b - a).astype(np.float64)
+        j0 = max(0, a - off)
+        wm = _Watermarks(nx, rho, decay, cap)
+        for j in range(j0, ny):
+            img[j] += wm.step(img[j], mult[j], well_e, beta, notch_e)
+        trapped += wm.trapped_e()
+    return (img, trapped) if return_trapped else img
 
 
 def niel_ratio(energy_mev) -> np.ndarray:
@@ -167,6 +333,9 @@ class CTIParams(EffectParams):
                                                description="serial-register trap densities [traps/pixel]")
     serial_release_time_s: list[float] = Field(default_factory=list, description="serial release times [s]")
     serial_transfer_s: float = Field(1.25e-7, gt=0, le=1e-3, description="dwell per serial transfer [s]")
+    notch_e: float = Field(0.0, ge=0, description="well-notch depth d of the fill law V = ((n-d)/(w-d))^beta [e-]")
+    express: int = Field(1, ge=0, le=64, description="0: every pixel's traps followed (exact, slow); E >= 1: E "
+                                                     "groups of pixels per column, each one pool (error ~ 1/E)")
     days_in_orbit: float = Field(0.0, ge=0, le=1e5, description="dose model: days in a low Earth orbit [d]")
     saa_fraction: float = Field(0.05, ge=0, le=1, description="dose model: time fraction in the SAA [1]")
     shielding_mm_al: float = Field(5.0, ge=0, le=200, description="dose model: aluminium shielding [mm]")
@@ -219,10 +388,11 @@ _CTI_SIGNATURE = LinearSignature(
 @register_effect
 class CTI(Effect):
     """Charge-transfer inefficiency of a CCD: trap species capture charge from passing packets and release it
-    into later ones (trails away from the register). A packet of n e- reaches rho_k (n/w)^beta traps per
-    pixel, a filled trap releases with probability 1 - exp(-t_d/tau_k) per transfer (CDM03, Short et al.
-    2013 MNRAS 430 3078; ArCTIc well fill, Massey et al. 2014 MNRAS 439 887). Parallel and serial; densities
-    given or from a proton-dose model (days_in_orbit). CCD only. Details: detector/effects/cti.py."""
+    into later ones (trails away from the register). A packet of n e- fills the volume ((n-d)/(w-d))^beta of
+    a pixel and the empty traps there capture at once; a filled trap releases with probability
+    1 - exp(-t_d/tau_k) per transfer; occupancy tracked per volume level (ArCTIc's well-fill model, Massey et
+    al. 2014 MNRAS 439 887). Parallel and serial; densities given or from a proton-dose model
+    (days_in_orbit); express as ArCTIc's. CCD only. Details: detector/effects/cti.py."""
 
     name = "cti"
     scaling = "signal"
@@ -252,6 +422,13 @@ class CTI(Effect):
             raise DetectorError("density_per_px and release_time_s differ in length", key="effects.cti",
                                 expected="one release time per species")
         self.density, self.tau = dens, taus
+        if p.express == 0:  # every pixel's traps: (rows + y0) x cols pools per parallel transfer
+            (h, w), y0, x0 = self.sensor.shape, self.sensor.roi_y0, self.sensor.roi_x0
+            pools = max((h + y0) * w, (w + x0) * h if any(p.serial_density_per_px) else 0)
+            if pools > EXACT_MAX_POOLS:
+                raise DetectorError(f"express=0 on a {h} x {w} window at ({y0}, {x0}): {pools} trap pools",
+                                    key="effects.cti.express",
+                                    expected=f"express >= 1, or a window with (rows + y0) x cols <= {EXACT_MAX_POOLS}")
 
     def density_from_dose(self) -> float:
         """Total parallel trap density [traps/pixel] from the dose model (module docstring)."""
@@ -265,8 +442,8 @@ class CTI(Effect):
         out = charge_e
         if any(self.density):
             out = cti_transfer(out, self.density, self.tau, p.parallel_transfer_s, p.beta, well,
-                               first_transfers=tile.y0 - pad_top + 1)
+                               first_transfers=tile.y0 - pad_top + 1, express=p.express, notch_e=p.notch_e)
         if any(p.serial_density_per_px):
             out = cti_transfer(out.T, p.serial_density_per_px, p.serial_release_time_s, p.serial_transfer_s,
-                               p.beta, well, first_transfers=tile.x0 + 1).T
+                               p.beta, well, first_transfers=tile.x0 + 1, express=p.express, notch_e=p.notch_e).T
         return np.asarray(out, np.float32)
