@@ -139,7 +139,7 @@ def test_floors(tmp_path):
     assert floor_reason("column_defects", {"hot_columns": 3, "dead_columns": 1}, sensor) == ""
     assert "not cosmic rays" in floor_reason("cosmic_rays", {"flux_per_cm2_s": 100 / 60}, sensor)
     assert floor_reason("cosmic_rays", {"flux_per_cm2_s": 2 / 60}, sensor) == ""
-    assert floor_reason("hot_pixels", {"count": 0.05 * 14192 * 10640}, sensor) != ""
+    assert floor_reason("hot_pixels", {"count": 0.1 * 14192 * 10640}, sensor) != ""
     assert floor_reason("vignetting", {"a2": 0.3}, sensor) == ""
 
 

@@ -75,6 +75,9 @@ class Candidate:
     kind: str = "effect"  #: "effect", "parameter" or "description"
     key: str | None = None  #: a parameter's scene key (``psf.fwhm_arcsec``)
     value: float | None = None  #: a parameter's new value
+    #: a parameter the frame cannot tell apart from another scene number (a bias offset from a uniform dark
+    #: charge on one dark frame): named after the significant effects, with the other key here
+    ambiguous: str = ""
     policy: DiagnosisPolicy = DEFAULT_POLICY
     codes: dict = field(default_factory=dict)  #: gate code -> reason, for the gates set by the evidence
 
@@ -140,6 +143,8 @@ class Candidate:
                "seconds": self.seconds}
         if self.kind == "parameter":
             out["key"], out["value"] = self.key, self.value
+            if self.ambiguous:
+                out["cannot_tell_from"] = self.ambiguous
         return out
 
 
@@ -194,7 +199,8 @@ def rank(cands: list[Candidate], light_source: str = "") -> list[Candidate]:
     added charge, a response comes first."""
     def key(c):
         sig = c.significant
-        tier = (0 if c.kind == "parameter" else 1) if sig else 2 if c.plausible and not c.rejected else 3
+        tier = ((0 if not c.ambiguous else 1.5) if c.kind == "parameter" else 1) if sig else \
+            2 if c.plausible and not c.rejected else 3
         return tier, c.score if sig else c.fit.delta_bic
 
     out = sorted(cands, key=key)
@@ -203,7 +209,7 @@ def rank(cands: list[Candidate], light_source: str = "") -> list[Candidate]:
     if twins:
         flat = light_source == "flat"
         group = sorted([sig[0], *twins], key=lambda c: (flat and not _of_light(c), c.fit.delta_bic))
-        params = [c for c in out if c.significant and c.kind == "parameter"]
+        params = [c for c in out if c.significant and c.kind == "parameter" and not c.ambiguous]
         rest = [c for c in out if c not in group and c not in params]
         out = params + group + rest
     return out
@@ -228,8 +234,9 @@ def verdict(cands: list[Candidate], morphology: dict | None = None) -> str:
     effects = [c for c in sig if c.kind != "parameter"]
     head = ""
     if params:
-        head = "the scene's numbers are off: " + "; ".join(f"{c.key} -> {c.value:.5g} ({c.fit.explanation})"
-                                                          for c in params)
+        head = "the scene's numbers are off: " + "; ".join(
+            f"{c.key} -> {c.value:.5g} ({c.fit.explanation}"
+            + (f"; the frame cannot tell it apart from {c.ambiguous}" if c.ambiguous else "") + ")" for c in params)
     if effects:
         best = effects[0]
         held = f", held-out {best.heldout:.4g}" if best.heldout is not None else ""

@@ -136,6 +136,18 @@ def level_candidates(res: Residuals, scene, policy: DiagnosisPolicy = DEFAULT_PO
                 res, "dark_level", "detector.dark_current_e_per_s", float(f"{v:.6g}"), stat,
                 f"the dark current is {scale_words(f)} the scene's: {sensor.dark_current_e_per_s:.4g} -> "
                 f"{v:.4g} e-/s", within_scale(f, "the dark current"), policy, 0.0, "dark_scale"))
+    # a level the frame cannot measure apart from another (its template was dropped as degenerate): one dark
+    # frame cannot tell a bias offset from a uniform dark charge
+    lv = res.levels()
+    allowed = {res.LEVELS[i] for i in range(len(res.LEVELS)) if i not in res.levels_not_fitted()}
+    dropped = allowed - set(lv["names"])
+    twin = {"offset_adu": ("dark_scale", "detector.dark_current_e_per_s"),
+            "dark_scale": ("offset_adu", "detector.bias_adu")}
+    for c in out:
+        level = c.fit.state.get("level")
+        if level in twin and twin[level][0] in dropped and scene.exposure.time_s > 0 and level != "dark_scale" \
+                or level in twin and level == "dark_scale" and "offset_adu" in dropped:
+            c.ambiguous = twin[level][1]
     for c in out:
         c.seconds = (time.perf_counter() - t0) / len(out)
     return out
@@ -292,17 +304,19 @@ def explained_away(params: list[Candidate], effects: list[Candidate], res: Resid
                                     f"{best.fit.delta_m2lnl:.4g} vs {p.fit.delta_m2lnl:.4g}): the sources' shape "
                                     "is its doing")
     explainers = [c for c in movers if c.significant] + ([best] if best is not None else [])
+    own = {name: c for name, (c, _) in level_statistics(res).items()}
     for e in explainers:
         coefs = levels_with(res, e.fit.delta_adu)
         for p in params:
             if not p.significant:
                 continue
             shift = _level_shift(p, coefs, res, scene)
-            if shift is None:
+            before = _level_shift(p, own, res, scene)
+            if shift is None or before is None:
                 continue
             tol = (p.policy.parameter_bias_tolerance_adu if p.fit.state["level"] == "offset_adu"
                    else p.policy.parameter_scale_tolerance)
-            if abs(shift) <= tol:
+            if abs(shift) <= tol or abs(shift) < (1 - p.policy.parameter_explained_share) * abs(before):
                 p.codes["tolerance"] = (f"with {e.key or e.fit.effect} in the model this level is "
                                         f"{'%+.3g ADU' % shift if p.fit.state['level'] == 'offset_adu' else 'x %.4g' % (1 + shift)}"
                                         ": its change is that candidate's doing")

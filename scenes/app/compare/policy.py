@@ -144,9 +144,15 @@ class DiagnosisPolicy:
         "cosmic rays at more than this many times the physical rate of the scene's environment are not cosmic "
         "rays (sea-level muon flux ~1 /cm^2/min; in orbit ~5 /cm^2/s)")
     max_defect_fraction: float = _f(
-        0.01, "1", "physics",
-        "hot or dead pixels (or columns) on more than this fraction of the sensor are not defects: no camera "
-        "sold has them (EMVA 1288 data sheets: 1e-5 to 1e-3)")
+        0.05, "1", "physics",
+        "hot or dead pixels (or columns) on more than this fraction of the sensor are not defects: camera data "
+        "sheets (EMVA 1288) give 1e-5 to 1e-3 of the pixels and a grade-2 CCD a few tens of its thousands of "
+        "columns; the count is extrapolated from the frame to the sensor, so the floor leaves a margin")
+    parameter_explained_share: float = _f(
+        0.5, "1", "physics",
+        "a level candidate whose deviation shrinks by more than this share once the best significant effect is "
+        "in the model is that effect's doing (its form differs from the plugin's, so some remains): the "
+        "effect is named first and the next round refits the number")
     hot_in_dark_fraction: float = _f(
         0.5, "1", "physics",
         "when the scene has the user's dark, a hot-pixel candidate needs at least this share of its pixels hot "
