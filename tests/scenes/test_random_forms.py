@@ -130,12 +130,38 @@ def test_halves_are_deterministic_and_split_both_suites():
 
 
 def test_drawn_effect_changes_the_expected_frame(tmp_path):
-    """One frame rendered: a drawn vignetting on a flat changes the expected frame (truth chi2 > 0)."""
+    """One frame rendered: a drawn vignetting on a small flat changes the expected frame (truth chi2 > 0)."""
     case = next(c for c in R.draw_cases(11, len(R.FAMILIES)) if c.family == "vignetting")
     case = R.RandomCase("vignetting", case.case_seed, R.Draw(
-        "flat_full", [("ResponseField", {"spec": R.normalise({"form": "radial", "cu": 0.4, "cv": 0.6, "q": 0.7,
+        "flat_s", [("ResponseField", {"spec": R.normalise({"form": "radial", "cu": 0.4, "cv": 0.6, "q": 0.7,
                                                               "theta": 0.5, "law": "gauss", "s": 0.6}),
                                          "amp": 0.02})], "test", 1.0, accept=("vignetting",)))
     info = R.HE["make_frame"](case.draw.base, case.make, case.levels, tmp_path / "m.fits", seed=3, workers=1)
     assert info["truth_chi2"] > 100 and info["support"].any()
     assert math.isfinite(info["truth_chi2"])
+
+
+def test_summary_counts_and_confusions():
+    """The report's figures: named first over catalogue cases, confidently wrong over every effect case (a first
+    name flagged as not told apart from an accepted one is ambiguous, not wrong), the right kind for the
+    out-of-catalogue cases, the most frequent confusion with an example case to rerun."""
+    def row(case, group, first, named, wrong, **kw):
+        return {"case": case, "family": case.split("-")[0], "camera": "ml11002", "strength_t": 0.7, "group": group,
+                "label": kw.pop("label", case.split("-")[0]), "first": first, "named_first": named,
+                "confidently_wrong": wrong, "accept": kw.pop("accept", [case.split("-")[0]]), "truth_chi2": 50.0,
+                "before": {}, "error_ratio": 0.3, **kw}
+
+    rows = [row("vignetting-1", "catalogue", "vignetting", True, False),
+            row("vignetting-2", "catalogue", "straylight", False, True),
+            row("vignetting-3", "catalogue", "straylight", False, True),
+            row("ipc-4", "catalogue", "psf_blur", False, False, cannot_tell_apart=["psf_blur", "ipc"]),
+            row("periodic-5", "ooc", "none", None, False, label="ooc:periodic", accept=[], morphology_match=True),
+            row("periodic-6", "ooc", "reset_noise", None, True, label="ooc:periodic", accept=[],
+                wrong_names=[("reset_noise", 40.0)], morphology_match=False)]
+    s = R.summary(rows)["overall"]
+    assert (s["named_first"]["n"], s["named_first"]["of"]) == (1, 4)
+    assert (s["confidently_wrong"]["n"], s["confidently_wrong"]["of"]) == (3, 6)
+    assert (s["ambiguous_right"]["n"], s["described_right_kind"]["n"], s["described_right_kind"]["of"]) == (1, 1, 2)
+    conf = R.summary(rows)["confusions"]
+    assert conf[0] == {"hidden": "vignetting", "first": "straylight", "count": 2, "example": "vignetting-2"}
+    assert {"hidden": "ipc", "first": "psf_blur (ambiguous)", "count": 1, "example": "ipc-4"} in conf
