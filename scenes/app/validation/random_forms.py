@@ -1439,8 +1439,12 @@ def main(argv=None) -> int:
     out.mkdir(parents=True, exist_ok=True)
     if args.summarise:
         rows = [json.loads(p.read_text()) for p in sorted((out / "rows").glob("*.json"))]
-        meta = json.loads((out / "random_forms.json").read_text())["meta"] if (out / "random_forms.json").exists() \
-            else {"seed": "?", "n": len(rows), "date": "?", "commit": _commit()}
+        if (out / "random_forms.json").exists():
+            meta = json.loads((out / "random_forms.json").read_text())["meta"]
+        elif (out / "seeds.jsonl").exists():  # a run still going (or stopped): its seed from the ledger
+            meta = json.loads((out / "seeds.jsonl").read_text().splitlines()[-1])
+        else:
+            meta = {"seed": "?", "date": "?", "commit": _commit()}
         meta["n"] = len(rows)
         report(rows, out, meta)
         print((out / "random_forms.md").read_text().split("## By camera")[0])
