@@ -155,12 +155,14 @@ def test_summary_counts_and_confusions():
             row("vignetting-2", "catalogue", "straylight", False, True),
             row("vignetting-3", "catalogue", "straylight", False, True),
             row("ipc-4", "catalogue", "psf_blur", False, False, cannot_tell_apart=["psf_blur", "ipc"]),
+            row("dsnu-7", "catalogue", "none", False, False),
             row("periodic-5", "ooc", "none", None, False, label="ooc:periodic", accept=[], morphology_match=True),
             row("periodic-6", "ooc", "reset_noise", None, True, label="ooc:periodic", accept=[],
                 wrong_names=[("reset_noise", 40.0)], morphology_match=False)]
     s = R.summary(rows)["overall"]
-    assert (s["named_first"]["n"], s["named_first"]["of"]) == (1, 4)
-    assert (s["confidently_wrong"]["n"], s["confidently_wrong"]["of"]) == (3, 6)
+    assert (s["named_first"]["n"], s["named_first"]["of"]) == (1, 5)
+    assert (s["confidently_wrong"]["n"], s["confidently_wrong"]["of"]) == (3, 7)
+    assert s["missed"]["n"] == 1 and R.summary(rows)["missed"][0]["example"] == "dsnu-7"
     assert (s["ambiguous_right"]["n"], s["described_right_kind"]["n"], s["described_right_kind"]["of"]) == (1, 1, 2)
     conf = R.summary(rows)["confusions"]
     assert conf[0] == {"hidden": "vignetting", "first": "straylight", "count": 2, "example": "vignetting-2"}

@@ -1324,21 +1324,31 @@ def summary(rows: list[dict]) -> dict:
         for r in rows:
             groups.setdefault(fn(r), []).append(r)
         out[f"by_{key}"] = {g: _figures(v) for g, v in sorted(groups.items())}
-    conf, examples = Counter(), {}
+    conf, examples, missed = Counter(), {}, {}
     for r in rows:
         if r.get("first") == "error":
             continue
+        if r.get("group") == "catalogue" and r.get("first") == "none":
+            missed.setdefault(r["label"], []).append(r)
+            continue
         if r.get("group") == "catalogue" and not r.get("named_first"):
-            pair = (r["label"], r["first"] + (" (ambiguous)" if r["first"] != "none" and not r.get("confidently_wrong")
-                                               else ""))
+            pair = (r["label"], r["first"] + ("" if r.get("confidently_wrong") else " (ambiguous)"))
         elif r.get("group") == "ooc" and r.get("confidently_wrong"):
             pair = (r["label"], ",".join(e for e, _ in r.get("wrong_names", [])) or r["first"])
+        elif r.get("group") == "ooc" and not r.get("morphology_match"):
+            mo = r.get("residual_morphology") or {}
+            pair = (r["label"], "description: " + (f"{mo.get('kind')} / {mo.get('geometry')}" if mo.get("significant")
+                                                   else "nothing significant"))
         else:
             continue
         conf[pair] += 1
         examples.setdefault(pair, r["case"])
     out["confusions"] = [{"hidden": h, "first": f, "count": n, "example": examples[(h, f)]}
                          for (h, f), n in conf.most_common()]
+    # the misses, with the most detectable one as the example (a miss of a case no template could find is no news)
+    out["missed"] = [{"hidden": h, "count": len(v), "example": max(v, key=lambda r: r.get("truth_chi2") or 0)["case"],
+                      "example_truth_chi2": max(v, key=lambda r: r.get("truth_chi2") or 0).get("truth_chi2")}
+                     for h, v in sorted(missed.items(), key=lambda kv: -len(kv[1]))]
     out["seconds"] = round(sum(r.get("case_seconds", 0) or 0 for r in rows), 1)
     return out
 
@@ -1370,10 +1380,15 @@ def markdown(rows: list[dict], summ: dict, meta: dict) -> str:
             lines.append(f"| {g} | {_pct(f['named_first'])} | {_pct(f['confidently_wrong'])} | {_pct(f['missed'])} | "
                          f"{_pct(f['described_right_kind'])} | {_pct(f['error_halved'])} |")
         lines.append("")
-    lines += ["## Confusions (hidden -> first significant plausible name), most frequent first", "",
+    lines += ["## Confusions (hidden -> first significant plausible name, or the description of an out-of-catalogue "
+              "form that did not match), most frequent first", "",
               "Rerun one with `python examples/diagnose/random_forms.py OUT --case FAMILY-CASE_SEED`.", "",
               "| hidden | first | count | example case |", "|---|---|---|---|"]
     lines += [f"| {c['hidden']} | {c['first']} | {c['count']} | `{c['example']}` |" for c in summ["confusions"]]
+    lines += ["", "## Missed (a catalogue case with nothing significant), the most detectable one as the example", "",
+              "| hidden | count | example case | its truth chi2 |", "|---|---|---|---|"]
+    lines += [f"| {m['hidden']} | {m['count']} | `{m['example']}` | {U._f(m['example_truth_chi2'])} |"  # noqa: SLF001
+              for m in summ["missed"]]
     lines += ["", "## Cases", "", "| case | base | t | truth chi2 | description | first (delta BIC) | accepted / expected | "
               "wrong? | morphology | ratio |", "|---|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
