@@ -905,6 +905,9 @@ def main(argv=None) -> int:
     ap.add_argument("--no-null", action="store_true", help="skip the null cases")
     ap.add_argument("--keep", action="store_true", help="keep the frames and scenes in OUT/work")
     ap.add_argument("--seed", type=int, default=11)
+    ap.add_argument("--half", choices=("all", "tuning", "heldback"), default="all",
+                    help="run the cases of one half of the suite only (scenes/app/validation/halves.py: the tuning "
+                         "half may be looked at while changing the diagnosis, the held-back half is only reported)")
     args = ap.parse_args(argv)
     from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 
@@ -917,6 +920,11 @@ def main(argv=None) -> int:
               file=sys.stderr)
         return 2
     nulls = () if args.no_null else tuple(BASES)
+    if args.half != "all":
+        from .halves import half_of
+
+        effects = [e for e in effects if half_of(e) == args.half]
+        nulls = tuple(b for b in nulls if half_of(f"null_{b}") == args.half)
     with Progress(TextColumn("{task.description}"), BarColumn(), TextColumn("{task.completed}/{task.total}"),
                   TimeElapsedColumn()) as bar:
         task = bar.add_task("diagnose", total=len(effects) + len(nulls))
@@ -930,7 +938,8 @@ def main(argv=None) -> int:
                           seed=args.seed)
         bar.update(task, completed=state["n"])
     conf = confusion(rows)
-    md = markdown(rows, conf)
+    conf["half"] = args.half
+    md = (f"Half of the suite: {args.half}\n\n" if args.half != "all" else "") + markdown(rows, conf)
     (out / "confusion.md").write_text(md)
     (out / "confusion.json").write_text(json.dumps({"confusion": conf, "cases": rows}, indent=1, default=float) + "\n")
     heat_map(conf, out / "confusion.png")

@@ -1909,14 +1909,20 @@ def main(argv=None) -> int:
     ap.add_argument("--seed", type=int, default=11)
     ap.add_argument("--keep", action="store_true", help="keep the frames and scenes in OUT/work")
     ap.add_argument("--list", action="store_true", help="list the cases and exit")
+    ap.add_argument("--half", choices=("all", "tuning", "heldback"), default="all",
+                    help="only the cases of one half of the suite (scenes/app/validation/halves.py: the tuning half "
+                         "may be looked at while changing the diagnosis, the held-back half is only reported)")
     ap.add_argument("--summarise", action="store_true", help="no new runs: rebuild the reports from the rows "
                     "stored in OUT/rows/*.json (e.g. after re-running some cases into the same OUT)")
     args = ap.parse_args(argv)
+    from .halves import half_of, select
+
     if args.list:
         for n, c in CASES.items():
-            print(f"{n:28s} {c.group:9s} {c.base:13s} {c.strength if c.make else '-':6s} {c.description}")
+            print(f"{n:28s} {c.group:9s} {c.base:13s} {c.strength if c.make else '-':6s} {half_of(n):8s} "
+                  f"{c.description}")
         return 0
-    names = [n for n in args.cases.split(",") if n] or list(CASES)
+    names = select([n for n in args.cases.split(",") if n] or list(CASES), args.half)
     bad = [n for n in names if n not in CASES]
     if bad:
         print(f"unseen_effects.py: --cases: unknown case(s) {', '.join(bad)} (see --list)", file=sys.stderr)
@@ -1926,7 +1932,7 @@ def main(argv=None) -> int:
     if args.summarise:
         rows = [json.loads((out / "rows" / f"{n}.json").read_text()) for n in names
                 if (out / "rows" / f"{n}.json").exists()]
-        return report(rows, out, wall=None)
+        return report(rows, out, wall=None, half=args.half)
     t0 = time.perf_counter()
     done = {"n": 0}
 
@@ -1940,15 +1946,17 @@ def main(argv=None) -> int:
 
     rows = run_cases(names, workdir=out / "work" if args.keep else None, seed=args.seed, workers=args.workers,
                      progress=progress)
-    return report(rows, out, wall=round(time.perf_counter() - t0, 1))
+    return report(rows, out, wall=round(time.perf_counter() - t0, 1), half=args.half)
 
 
-def report(rows: list[dict], out: Path, wall: float | None) -> int:
-    """Write OUT/unseen.md, unseen.json, unseen.png from the rows and print the table."""
+def report(rows: list[dict], out: Path, wall: float | None, half: str = "all") -> int:
+    """Write OUT/unseen.md, unseen.json, unseen.png from the rows and print the table (``half``: which half of
+    the suite the rows are, scenes/app/validation/halves.py)."""
     summ = summary(rows)
     summ["wall_seconds"] = wall
+    summ["half"] = half
     conf = confusion(rows)
-    md = markdown(rows, summ, conf)
+    md = (f"Half of the suite: {half}\n\n" if half != "all" else "") + markdown(rows, summ, conf)
     (out / "unseen.md").write_text(md)
     (out / "unseen.json").write_text(json.dumps({"summary": summ, "confusion": conf, "cases": rows}, indent=1,
                                                 default=float) + "\n")

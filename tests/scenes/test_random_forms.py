@@ -1,0 +1,169 @@
+"""The random-forms generator of hidden effects (issue 23; scenes/app/validation/random_forms.py) and the split of
+the fixed suites into a tuning and a held-back half (scenes/app/validation/halves.py).
+
+Fast: the draws are reproducible from (family, case seed) alone, cover every family and both cameras, name only
+catalogue effects (or a morphology), and the drawn forms have the physics they claim (a field normalised to its
+amplitude, a compression of the drawn size at full well, CTI trails that conserve the charge in the direction
+drawn, a periodic pattern of the drawn period, Wilson intervals that cover). One measured frame is rendered to
+check that a drawn effect changes the expected frame (its truth chi2 is positive). The statistical run itself
+(>= 200 cases on a fresh seed) is ``examples/diagnose/random_forms.py``, not a test.
+"""
+
+import json
+import math
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+from scenes.app.validation import halves
+from scenes.app.validation import random_forms as R
+
+
+def test_draws_reproducible_and_complete():
+    a = R.draw_cases(20261129, 2 * len(R.FAMILIES))
+    b = R.draw_cases(20261129, 2 * len(R.FAMILIES))
+    assert [c.record() for c in a] == [c.record() for c in b]
+    # every family twice (cycled), both cameras, JSON-serialisable records
+    assert {c.family for c in a} == set(R.FAMILIES)
+    assert {c.camera for c in a} == {"ml11002", "imx411"}
+    json.dumps([c.record() for c in a])
+    # a case is rebuilt from (family, case seed) alone
+    c = a[7]
+    assert R.draw_case(c.family, c.case_seed).record() == c.record()
+    # another master seed, other cases
+    assert [c.case_seed for c in R.draw_cases(20261130, 5)] != [c.case_seed for c in a[:5]]
+
+
+def test_expected_answers_are_catalogue_names_or_a_morphology():
+    import detector
+
+    names = set(detector.registry()) | {"straylight"}
+    for c in R.draw_cases(7, 3 * len(R.FAMILIES)):
+        d = c.draw
+        assert 0.0 <= d.strength <= 1.0
+        assert d.base in R.BASES
+        if c.effect is None:  # out of the catalogue: a description of the right kind and geometry
+            assert not d.accept and d.kind in ("additive", "multiplicative") and "periodic" in d.geometry
+        else:
+            assert c.effect in d.accept and set(d.accept) <= names, (c.name, d.accept)
+        for cls, _prm in d.effects:
+            assert cls in R.CLASSES
+
+
+def test_smooth_field_normalised_and_vignetting_depth():
+    rng = np.random.default_rng(3)
+    g = np.linspace(0, 1, 65)
+    for make in (R._radial_spec, R._poly_spec, R._waves_spec, R._point_spec, R._edge_spec, R._plane_spec):
+        spec = R.normalise(make(rng))
+        f = R.field_shape(spec, g, g)
+        assert f.min() == pytest.approx(0.0, abs=1e-12) and f.max() == pytest.approx(1.0, abs=1e-12)
+    # a radial fall-off is least at its centre: the relative illumination 1 - depth g is 1 there, 1 - depth at most
+    spec = R.normalise({"form": "radial", "cu": 0.5, "cv": 0.5, "q": 0.8, "theta": 0.3, "law": "power", "p": 2.0})
+    f = 1 - 0.07 * R.field_shape(spec, g, g)
+    assert f[32, 32] == pytest.approx(1.0) and f.min() == pytest.approx(0.93)
+
+
+@pytest.mark.parametrize("law", ["knee", "gamma", "poly", "tanh"])
+def test_nonlinearity_compression_at_full_well(law):
+    rng = np.random.default_rng(5)
+    prm = R.nl_params(law, 0.031, rng)
+    assert R.nl_response(law, np.array([1.0]), prm)[0] == pytest.approx(1 - 0.031, rel=1e-9)
+    x = np.linspace(0.01, 1, 200)
+    y = R.nl_response(law, x, prm)
+    assert np.all(np.diff(y) > 0)  # monotonic: a response, not a fold
+
+
+def _cti(direction):
+    sensor = SimpleNamespace(full_well_e=50000.0)
+    tile = SimpleNamespace(x0=100, y0=1000)
+    eff = R.RandomCTI.__new__(R.RandomCTI)
+    eff.sensor = sensor
+    eff.params = SimpleNamespace(direction=direction, release_transfers=[1.0, 3.0, 10.0], densities=[0.1, 0.1, 0.1],
+                                 beta=0.6, capture=1.0)
+    q = np.zeros((64, 64), np.float32)
+    q[20, 20] = 20000.0
+    return eff.couple(tile, q, 0, 0)
+
+
+@pytest.mark.parametrize("direction,axis", [("parallel", 0), ("serial", 1)])
+def test_cti_trails_in_the_drawn_direction_and_conserve_charge(direction, axis):
+    out = _cti(direction)
+    # the charge lost from the star is released behind it (higher row or column index: read out later)
+    assert out[20, 20] < 20000.0
+    behind = out[21:, 20].sum() if axis == 0 else out[20, 21:].sum()
+    across = out[20, 21:].sum() if axis == 0 else out[21:, 20].sum()
+    assert behind > 0.5 * (20000.0 - out[20, 20]) and across == 0.0
+    # charge conserved up to what is still trapped (well under the loss)
+    assert out.sum() <= 20000.0 + 1e-3 and out.sum() > 20000.0 - 0.5 * (20000.0 - out[20, 20])
+
+
+def test_periodic_pattern_has_the_drawn_period():
+    p = SimpleNamespace(waveform="sine", angle=0.0, period_px=12.5, phase=0.4, window=[512, 512], cu=0.0, cv=0.0)
+    x = np.arange(500.0)
+    w = R.periodic_wave(p, x, np.arange(4.0))
+    spec = np.abs(np.fft.rfft(w[0]))
+    assert np.fft.rfftfreq(500)[np.argmax(spec)] == pytest.approx(1 / 12.5, abs=1 / 500)
+    assert np.allclose(w[0], w[3])  # angle 0: the same in every row (a pattern of columns)
+
+
+def test_wilson_interval_covers():
+    lo, hi = R.wilson(180, 200)
+    assert lo < 0.9 < hi and hi - lo < 0.1
+    assert R.wilson(0, 200)[0] == 0.0 and R.wilson(0, 200)[1] == pytest.approx(0.0188, abs=1e-3)
+
+
+def test_fresh_seeds_differ():
+    assert len({R.fresh_seed() for _ in range(20)}) == 20
+
+
+def test_halves_are_deterministic_and_split_both_suites():
+    from scenes.app.validation import hidden, unseen
+
+    for names in (list(hidden.CASES), list(unseen.CASES)):
+        tun, held = halves.select(names, "tuning"), halves.select(names, "heldback")
+        assert sorted(tun + held) == sorted(names) and not set(tun) & set(held)
+        assert 0.25 < len(tun) / len(names) < 0.75
+    assert halves.half_of("vig_gauss_window") == halves.half_of("vig_gauss_window")
+    with pytest.raises(ValueError):
+        halves.select(["a"], "both")
+
+
+def test_drawn_effect_changes_the_expected_frame(tmp_path):
+    """One frame rendered: a drawn vignetting on a small flat changes the expected frame (truth chi2 > 0)."""
+    case = next(c for c in R.draw_cases(11, len(R.FAMILIES)) if c.family == "vignetting")
+    case = R.RandomCase("vignetting", case.case_seed, R.Draw(
+        "flat_s", [("ResponseField", {"spec": R.normalise({"form": "radial", "cu": 0.4, "cv": 0.6, "q": 0.7,
+                                                              "theta": 0.5, "law": "gauss", "s": 0.6}),
+                                         "amp": 0.02})], "test", 1.0, accept=("vignetting",)))
+    info = R.HE["make_frame"](case.draw.base, case.make, case.levels, tmp_path / "m.fits", seed=3, workers=1)
+    assert info["truth_chi2"] > 100 and info["support"].any()
+    assert math.isfinite(info["truth_chi2"])
+
+
+def test_summary_counts_and_confusions():
+    """The report's figures: named first over catalogue cases, confidently wrong over every effect case (a first
+    name flagged as not told apart from an accepted one is ambiguous, not wrong), the right kind for the
+    out-of-catalogue cases, the most frequent confusion with an example case to rerun."""
+    def row(case, group, first, named, wrong, **kw):
+        return {"case": case, "family": case.split("-")[0], "camera": "ml11002", "strength_t": 0.7, "group": group,
+                "label": kw.pop("label", case.split("-")[0]), "first": first, "named_first": named,
+                "confidently_wrong": wrong, "accept": kw.pop("accept", [case.split("-")[0]]), "truth_chi2": 50.0,
+                "before": {}, "error_ratio": 0.3, **kw}
+
+    rows = [row("vignetting-1", "catalogue", "vignetting", True, False),
+            row("vignetting-2", "catalogue", "straylight", False, True),
+            row("vignetting-3", "catalogue", "straylight", False, True),
+            row("ipc-4", "catalogue", "psf_blur", False, False, cannot_tell_apart=["psf_blur", "ipc"]),
+            row("dsnu-7", "catalogue", "none", False, False),
+            row("periodic-5", "ooc", "none", None, False, label="ooc:periodic", accept=[], morphology_match=True),
+            row("periodic-6", "ooc", "reset_noise", None, True, label="ooc:periodic", accept=[],
+                wrong_names=[("reset_noise", 40.0)], morphology_match=False)]
+    s = R.summary(rows)["overall"]
+    assert (s["named_first"]["n"], s["named_first"]["of"]) == (1, 5)
+    assert (s["confidently_wrong"]["n"], s["confidently_wrong"]["of"]) == (3, 7)
+    assert s["missed"]["n"] == 1 and R.summary(rows)["missed"][0]["example"] == "dsnu-7"
+    assert (s["ambiguous_right"]["n"], s["described_right_kind"]["n"], s["described_right_kind"]["of"]) == (1, 1, 2)
+    conf = R.summary(rows)["confusions"]
+    assert conf[0] == {"hidden": "vignetting", "first": "straylight", "count": 2, "example": "vignetting-2"}
+    assert {"hidden": "ipc", "first": "psf_blur (ambiguous)", "count": 1, "example": "ipc-4"} in conf
