@@ -23,14 +23,14 @@ def check_within(value, expected, sigma, n=5.0):
 
 
 def test_mean_and_variance_match_the_linear_camera_model():
-    """E[ADU] = B + (S + D t)/g - 1/2 (ADC truncation); Var = (S + D t + sr^2)/g^2 + 1/12 (EMVA 1288 eq. 4)."""
+    """E[ADU] = B + (S + D t)/g (the ADC rounds: mid-tread); Var = (S + D t + sr^2)/g^2 + 1/12 (EMVA 1288 eq. 4)."""
     s = sensor()
     g, S, t = 2.0, 300.0, 10.0
     f = Detector(s).expose(S, t, frame_seed=11)
     mean, var = moments(f)
     mu_e = S + 0.5 * t
     n = f.size
-    exp_mean = 1000 + mu_e / g - 0.5
+    exp_mean = 1000 + mu_e / g
     exp_var = (mu_e + 25.0) / g ** 2 + 1 / 12
     check_within(mean, exp_mean, np.sqrt(exp_var / n))
     check_within(var, exp_var, exp_var * np.sqrt(2 / n))
@@ -44,7 +44,7 @@ def test_photon_transfer_gives_back_gain_and_read_noise():
     for i, S in enumerate([200.0, 1000.0, 3000.0, 8000.0]):
         a = det.expose(S, 1.0, frame_seed=100 + i).astype(np.float64)
         b = det.expose(S, 1.0, frame_seed=200 + i).astype(np.float64)
-        mus.append(0.5 * (a.mean() + b.mean()) - 1000 + 0.5)
+        mus.append(0.5 * (a.mean() + b.mean()) - 1000)
         vars_.append(np.var(a - b) / 2 - 1 / 12)  # pair difference removes any fixed pattern
     slope, intercept = np.polyfit(mus, vars_, 1)
     assert abs(1 / slope - 1.5) / 1.5 < 0.01
@@ -55,7 +55,7 @@ def test_full_well_clips_before_read_noise_and_adc_saturates():
     s = sensor(full_well_e=20000.0, dark_current_e_per_s=0.0, read_noise_e=8.0, gain_e_per_adu=1.0)
     f = Detector(s).expose(50000.0, 1.0, frame_seed=1).astype(np.float64)
     # every pixel sits at the full well, and read noise still spreads it: clipping came first
-    assert abs(f.mean() - (1000 + 20000 - 0.5)) < 0.1
+    assert abs(f.mean() - (1000 + 20000)) < 0.1
     assert abs(f.std() - np.sqrt(64 + 1 / 12)) < 0.2
     s2 = sensor(full_well_e=200000.0, gain_e_per_adu=1.0, dark_current_e_per_s=0.0)
     f2 = Detector(s2).expose(150000.0, 1.0, frame_seed=1)
@@ -105,7 +105,7 @@ def test_ccd_charge_binning_reads_noise_once_cmos_digital_binning_four_times():
     avg = make_sensor("imx411", {"width": 960, "height": 960, "binning": 2, "binning_mode": "average",
                                  "gain_e_per_adu": g, "dark_current_e_per_s": 0.0})
     f = Detector(avg).expose(S, 1.0, frame_seed=3).astype(float)
-    assert abs(f.mean() - (500 + S - 0.5 - 0.375)) < 0.2  # mean of four truncated values, floored again
+    assert abs(f.mean() - (500 + S)) < 0.2  # four rounded values averaged, rounded again: unbiased
 
 
 def test_rolling_shutter_row_times():
