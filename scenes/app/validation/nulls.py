@@ -66,6 +66,10 @@ POINTING = {"ra_deg": 120.95115, "dec_deg": -29.25022, "epoch": "2023-02-01T22:0
 POINTING_JITTER_DEG = 0.5
 #: sky brightness [mag / arcsec^2]: a dark site, and a bright (moonlit, urban) sky
 SKY_MAG = {"dark": 21.0, "bright": 17.5}
+#: the bright sky's rate [e-/s per unbinned pixel] (render's SKYRATE at SKY_MAG["bright"]), and the share of
+#: an output pixel's range it may fill
+SKY_RATE_BRIGHT = {"ml11002": 500.0, "imx411": 155.0}
+BRIGHT_SKY_FILL = 0.3
 #: window sides [sensor pixels] (the smallest that keep every statistic representative)
 WINDOWS = (256, 256, 256, 384, 512)
 #: binned full sensors: (camera, binning, mode), the coarser first (visited twice as often: the finer
@@ -123,7 +127,9 @@ def single_case(index: int, rng: np.random.Generator) -> dict:
         scene["sky"] = {"stars": False, "flat_e_per_s": round(level / t, 3)}
     else:
         sky = frame.split("_")[1]
-        t = 30.0 if binning == 1 else 10.0
+        # the bright sky at most BRIGHT_SKY_FILL of the charge an output pixel can hold (a binned CCD pixel
+        # sums b^2 of them); the dark sky in the same time
+        t = round(min(30.0, BRIGHT_SKY_FILL * _charge_cap_e(camera, binning, mode) / SKY_RATE_BRIGHT[camera]), 3)
         scene["exposure"] = {"time_s": t, "frame": "light", "tracking": "sidereal"}
         scene["pointing"] = {"ra_deg": round(POINTING["ra_deg"] + float(rng.uniform(-1, 1)) * POINTING_JITTER_DEG, 5),
                              "dec_deg": round(POINTING["dec_deg"] + float(rng.uniform(-1, 1)) * POINTING_JITTER_DEG, 5),
@@ -206,8 +212,7 @@ def _render_null(scene_dict: dict, folder: Path, name: str, seed: int, sets: tup
 
     folder.mkdir(parents=True, exist_ok=True)
     sp = folder / f"{name}.toml"
-    if not sp.exists():
-        sp.write_text(tomli_w.dumps(scene_dict))
+    sp.write_text(tomli_w.dumps(scene_dict))
     exp = folder / f"{name}_expected.fits"
     render(load_scene(str(sp), list(sets)), exp, seed=seed, noiseless=True, progress=False, workers=1)
     meas = folder / f"{name}_measured.fits"
