@@ -369,6 +369,10 @@ def passes_gates(c: dict) -> bool:
     return True
 
 
+#: signatures judged by counts or column statistics (no held-out score): their delta BIC is all there is
+COUNT_KINDS = ("CountSignature", "ColumnSignature")
+
+
 def extremes(rec: dict) -> dict:
     """Per record: the most negative delta BIC and held-out delta among all candidates and among those that
     pass the gates (:func:`passes_gates`), and the morphology's significance."""
@@ -377,11 +381,12 @@ def extremes(rec: dict) -> dict:
 
     def lo(cs, key):
         v = [c[key] for c in cs if c.get(key) is not None and np.isfinite(c[key])]
-        return float(min(v)) if v else 0.0
+        return float(min(v)) if v else float("nan")  # nothing to compare: not a value of the distribution
 
+    counts = [c for c in gated if c.get("kind") in COUNT_KINDS]
     return {"min_dbic_all": lo(cands, "delta_bic"), "min_dbic_gated": lo(gated, "delta_bic"),
-            "min_heldout_gated": lo(gated, "heldout_delta"),
-            "min_heldout_counts_dbic": lo([c for c in gated if c.get("heldout_delta") is None], "delta_bic"),
+            "min_dm2lnl_gated": lo(gated, "delta_m2lnl"), "min_heldout_gated": lo(gated, "heldout_delta"),
+            "min_dbic_counts_gated": lo(counts, "delta_bic"),
             "morph_sigma": float((rec.get("morphology") or {}).get("significance_sigma") or 0.0)}
 
 
@@ -407,13 +412,20 @@ def summarise(records: list[dict]) -> dict:
     ex = [extremes(r) for r in ok]
     qs = (0.5, 0.9, 0.95, 0.99, 1.0)
     dist = {}
-    for key in ("min_dbic_all", "min_dbic_gated", "min_heldout_gated", "min_heldout_counts_dbic"):
-        v = np.array([e[key] for e in ex]) if ex else np.zeros(1)
-        dist[key] = {f"q{int(q * 100)}": float(np.quantile(v, 1 - q)) for q in qs}  # lower tail: most negative
+    for key in ("min_dbic_all", "min_dbic_gated", "min_dm2lnl_gated", "min_dbic_counts_gated", "min_heldout_gated"):
+        v = np.array([e[key] for e in ex]) if ex else np.zeros(0)
+        v = v[np.isfinite(v)]
+        dist[key] = {f"q{int(q * 100)}": float(np.quantile(v, 1 - q)) if v.size else float("nan") for q in qs}
+        dist[key]["n"] = int(v.size)  # lower tail: most negative
     v = np.array([e["morph_sigma"] for e in ex]) if ex else np.zeros(1)
     dist["morph_sigma"] = {f"q{int(q * 100)}": float(np.quantile(v, q)) for q in qs}
+    dist["morph_sigma"]["n"] = int(v.size)
     out["distribution"] = dist
     out["thresholds"] = thresholds(ex)
+    # the closest calls: the gated candidates with the lowest delta BIC over all null frames
+    calls = [(c["delta_bic"], r["id"], r["class"], c["effect"]) for r in ok for c in r.get("candidates") or []
+             if passes_gates(c) and c.get("delta_bic") is not None and c["delta_bic"] < 0]
+    out["closest"] = sorted(calls)[:8]
     return out
 
 
@@ -428,7 +440,8 @@ def thresholds(ex: list[dict], rate: float = 0.01, margin: float = 2.0) -> dict:
     out = {}
     for key in ("min_dbic_gated", "min_heldout_gated"):
         v = np.array([e[key] for e in ex])
-        out[key] = float(min(np.quantile(v, q), 0.0))
+        v = v[np.isfinite(v)]
+        out[key] = float(min(np.quantile(v, q), 0.0)) if v.size else float("nan")
     out["morph_sigma"] = float(np.quantile(np.array([e["morph_sigma"] for e in ex]), 1 - q))
     out["rate"], out["margin"], out["n"] = rate, margin, len(ex)
     return out
@@ -449,9 +462,13 @@ def markdown(summary: dict, title: str = "") -> str:
                      + (", ".join(f"{k} {c}" for k, c in v["names"].most_common()) or "-") + f" | {v['morph']} |")
     lines += ["", "Null distribution of the per-frame extremes (lower tail for delta BIC and held-out delta: "
               "the value that qN % of the frames stay above):", "",
-              "| statistic | q50 | q90 | q95 | q99 | worst |", "|---|---|---|---|---|---|"]
+              "| statistic | frames | q50 | q90 | q95 | q99 | worst |", "|---|---|---|---|---|---|---|"]
     for key, d in summary["distribution"].items():
-        lines.append(f"| {key} | " + " | ".join(f"{d[k]:.4g}" for k in ("q50", "q90", "q95", "q99", "q100")) + " |")
+        lines.append(f"| {key} | {d['n']} | " + " | ".join(f"{d[k]:.4g}" for k in ("q50", "q90", "q95", "q99", "q100"))
+                     + " |")
+    if summary.get("closest"):
+        lines += ["", "Closest calls (gated candidates with delta BIC < 0): " + "; ".join(
+            f"{e} {d:.3g} ({i}, {c})" for d, i, c, e in summary["closest"]) + "."]
     t = summary.get("thresholds") or {}
     if t:
         lines += ["", f"Thresholds at the {100 * (1 - t['rate'] / t['margin']):.1f} % null quantile (rate "
