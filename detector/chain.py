@@ -15,7 +15,8 @@ Order, and why:
 5. charge-domain binning for a CCD (charge is summed in the serial register before the amplifier);
 6. READ effects (nonlinearity, kTC reset noise, row noise), then Gaussian read noise (eq. 33);
 7. conversion to ADU by the gain (e-/ADU), ADU effects, plus the bias (eq. 34);
-8. ADC: truncation to an integer and saturation at ``2**bit_depth - 1`` (and at 0);
+8. ADC: rounding to the nearest integer (an ideal mid-tread quantiser, IEEE Std 1241-2010 sect. 4.1: the
+   code transitions lie half a step either side of each code) and saturation at ``2**bit_depth - 1`` (and 0);
 9. DIGITAL effects (stuck pixels), then digital binning for a CMOS (sum or average after the ADC).
 
 Every random draw takes a generator from :meth:`Tile.rng` (frame seed) or :meth:`Tile.hardware_map`
@@ -57,10 +58,54 @@ def read_noise(rng: np.random.Generator, signal_e: np.ndarray, sigma_e: float) -
 
 
 def adc(signal_adu: np.ndarray, bit_depth: int, dtype) -> np.ndarray:
-    """Analogue-to-digital conversion: truncate to an integer and saturate to [0, 2**bit_depth - 1]."""
-    np.floor(signal_adu, out=signal_adu)
+    """Analogue-to-digital conversion: round to the nearest integer and saturate to [0, 2**bit_depth - 1].
+
+    The ideal ADC's code transition levels lie half a step either side of every code (IEEE Std 1241-2010,
+    "Standard for terminology and test methods for analog-to-digital converters", sect. 4.1): a mid-tread
+    quantiser, whose error has zero mean and variance q^2/12 when the input's spread covers the step
+    (Widrow & Kollar 2008, Quantization Noise, ch. 4); :func:`rounded_moments` otherwise."""
+    np.rint(signal_adu, out=signal_adu)
     np.clip(signal_adu, 0, 2 ** bit_depth - 1, out=signal_adu)
     return signal_adu.astype(dtype, copy=False)
+
+
+#: input standard deviation [ADU] above which the rounding's moments are Sheppard's (mean kept, + 1/12 ADU^2):
+#: the exact moments differ from them by terms in exp(-2 pi^2 sigma^2) (Widrow & Kollar 2008, eqs. 4.12,
+#: 5.23), below 1e-19 at this sigma
+SHEPPARD_SIGMA_ADU = 1.5
+
+
+def rounded_moments(mean: np.ndarray, var: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Mean and variance [ADU, ADU^2] of ``rint(X)`` for ``X ~ N(mean, var)`` (the ADC's output).
+
+    Where the input's spread is narrow (sigma < :data:`SHEPPARD_SIGMA_ADU`: a low-noise read-out, or the
+    average of b x b digitised pixels, whose noise is divided by b) the quantiser's output is not its input
+    plus an independent uniform error: its mean follows the nearest code and its variance depends on where
+    the mean falls between codes (Widrow & Kollar 2008, ch. 5). The moments are then summed over the codes
+    ``n`` within 7 sigma: ``P(n) = Phi((n + 1/2 - mean) / sigma) - Phi((n - 1/2 - mean) / sigma)``. Elsewhere
+    Sheppard's: ``(mean, var + 1/12)``."""
+    from scipy.special import ndtr
+
+    mean = np.asarray(mean, np.float32)
+    var = np.asarray(var, np.float32)
+    out_m, out_v = mean.copy(), (var + np.float32(1 / 12)).astype(np.float32)
+    narrow = var < np.float32(SHEPPARD_SIGMA_ADU ** 2)
+    if not narrow.any():
+        return out_m, out_v
+    mu = mean[narrow].astype(np.float64)
+    sd = np.sqrt(np.maximum(var[narrow].astype(np.float64), 1e-12))
+    m0 = np.rint(mu)
+    d = mu - m0  # in [-1/2, 1/2]
+    k_max = int(np.ceil(7 * float(sd.max()))) + 1
+    e1 = np.zeros_like(mu)
+    e2 = np.zeros_like(mu)
+    for j in range(-k_max, k_max + 1):
+        p = ndtr((j + 0.5 - d) / sd) - ndtr((j - 0.5 - d) / sd)
+        e1 += j * p
+        e2 += j * j * p
+    out_m[narrow] = (m0 + e1).astype(np.float32)
+    out_v[narrow] = np.maximum(e2 - e1 * e1, 0.0).astype(np.float32)
+    return out_m, out_v
 
 
 def bin_sum(a: np.ndarray, b: int) -> np.ndarray:
@@ -237,7 +282,7 @@ class Detector:
             if s.binning_mode == "sum":
                 np.minimum(adu, s.adc_max_adu, out=adu)
         if b > 1 and s.binning_mode == "average":
-            adu = np.floor(adu / (b * b))
+            adu = np.rint(adu / (b * b))  # the average's output word, rounded as the ADC rounds
         return adu.astype(dtype)
 
     def moments_tile(self, signal: Signal, tile: Tile, _split: bool = False
@@ -247,8 +292,10 @@ class Detector:
         The same chain as :meth:`process_tile` with every random draw replaced by its moments: Poisson
         variance = mean (eq. 31); the full-well clip on the mean; read noise and the variance of
         stochastic READ effects (row noise, kTC) added in e-^2 (eq. 33); division by the gain (variance by
-        its square); the ADC's truncation lowers the mean by 1/2 ADU and adds 1/12 ADU^2 of quantisation
-        variance (Widrow & Kollar 2008, ch. 4); binning sums means and variances. Effects that draw from the
+        its square); the ADC rounds (:func:`adc`): the mean is kept and 1/12 ADU^2 of quantisation variance added
+        (Widrow & Kollar 2008, ch. 4), or, where the input's spread is under a few ADU, the exact moments of
+        the rounded Gaussian (:func:`rounded_moments`); binning sums means and variances, and the average of a
+        CMOS's digital binning is rounded again (its moments by :func:`rounded_moments` too). Effects that draw from the
         frame seed (``stochastic``) or whose hardware realisation a real camera does not share (``pattern``)
         are left out of the mean and add their ``variance_e2`` (cosmic rays and defects are compared by
         their statistics). Pixels whose
@@ -293,8 +340,8 @@ class Detector:
         mean *= g
         var *= g * g
         self._run_propagating(Stage.ADU, tile, mean, var)
-        mean += np.float32(s.bias_adu - 0.5)
-        var += np.float32(1.0 / 12.0)
+        mean += np.float32(s.bias_adu)
+        mean, var = rounded_moments(mean, var)
         top = np.float32(s.adc_max_adu)
         flag |= mean + 3 * np.sqrt(var) >= top
         np.clip(mean, 0, top, out=mean)
@@ -303,7 +350,7 @@ class Detector:
             mean, var, flag = bin_sum(mean, b), bin_sum(var, b), bin_sum(flag.astype(np.float32), b) > 0
             tile.bin = b
         if b > 1 and s.binning_mode == "average":
-            mean, var = mean / np.float32(b * b) - np.float32(0.5), var / np.float32(b ** 4) + np.float32(1 / 12)
+            mean, var = rounded_moments(mean / np.float32(b * b), var / np.float32(b ** 4))
         return mean, var, flag
 
     def moments(self, signal: Signal, exptime_s: float, frame_seed: int = 0

@@ -1495,8 +1495,8 @@ def emit_scene_dict(result: dict, preset_hint: str | None = None) -> dict:
     overrides what was measured: frame size (``sensor_width_px``/``height`` and ``width``/``height``), pixel
     pitch (header ``XPIXSZ``), gain, bias, read noise, dark current, temperature, bit depth, and a full well no
     lower than the ADC range (``(saturation - bias) x gain``; the full well itself is not measurable from
-    these frames). For integer frames the bias is the clipped mean + 1/2 ADU and the read noise has the
-    quantisation variance (1/12 ADU^2) removed, because newtsim's ADC truncates and quantises again.
+    these frames). For integer frames the bias is the clipped mean (newtsim's ADC rounds: no offset) and the read
+    noise has the quantisation variance (1/12 ADU^2) removed, because newtsim's ADC quantises again.
     ``[exposure]`` is a dark at the longest exposure. ``[effects.hot_pixels]`` carries the count of hot and
     stuck pixels, the preferred time-to-double law and the stuck pixels' median level; ``[effects.dsnu]`` the
     dark-current non-uniformity (only when significant at 3 sigma).
@@ -1517,9 +1517,10 @@ def emit_scene_dict(result: dict, preset_hint: str | None = None) -> dict:
     fr, g, b, d, hp = result["frame"], result["gain"], result["bias"], result["dark"], result["hot_pixels"]
     gain = float(g["adopted_e_per_adu"])
     integer = bool(fr.get("integer_data", True))
-    # newtsim's ADC truncates (floor): a frame of bias B reads B - 1/2 on average, and the quantisation adds
-    # 1/12 ADU^2 to the read variance; undo both so that a simulated frame reads what was measured
-    bias_adu = float(b["level_mean_adu"]) + (0.5 if integer else 0.0)
+    # newtsim's ADC rounds (a mid-tread quantiser, detector.chain.adc): a frame of bias B reads B on average,
+    # and the quantisation adds 1/12 ADU^2 to the read variance; undo that so a simulated frame reads what was
+    # measured
+    bias_adu = float(b["level_mean_adu"])
     read_adu2 = float(b["read_noise_adu"]) ** 2 - (1.0 / 12.0 if integer else 0.0)
     read_e = math.sqrt(max(read_adu2, 0.0)) * gain
     det: dict = {"preset": preset}
@@ -2250,7 +2251,7 @@ def write_twin(out_toml, result: dict, maps: dict, info: dict, preset_hint: str 
     if mean_e is None:
         mean_e = float(np.mean(np.asarray(maps["dark_rate_e_per_s"])))
     integer = bool(result["frame"].get("integer_data", True))
-    scene["detector"]["bias_adu"] = round(float(bmed) + (0.5 if integer else 0.0), 3)
+    scene["detector"]["bias_adu"] = round(float(bmed), 3)  # the ADC rounds: no offset (detector.chain.adc)
     scene["detector"]["dark_current_e_per_s"] = round(float(mean_e), 6)
     return scene
 

@@ -353,7 +353,7 @@ CROSSTALK_TOP_LAYOUTS = 2
 
 def crosstalk_signal(res) -> np.ndarray:
     """The model's bias-free signal [ADU] that the channels couple (what :class:`Crosstalk` acts on)."""
-    return (res.model_adu - (res.sensor.bias_adu - 0.5) * res.adu_sum).astype(np.float32)
+    return (res.model_adu - res.sensor.bias_adu * res.adu_sum).astype(np.float32)
 
 
 class CrosstalkLayout:

@@ -100,8 +100,8 @@ def test_synthetic_read_noise_and_bias(synth):
     # temporal read noise in ADU plus the ADC's quantisation noise (uniform, variance 1/12 ADU^2)
     expected = math.sqrt((READ_E / GAIN) ** 2 + 1 / 12)
     assert abs(b["read_noise_adu"] - expected) < 4 * b["read_noise_se_adu"]
-    # the ADC truncates: the mean of floor(B + noise) is B - 1/2
-    assert abs(b["level_mean_adu"] - (BIAS - 0.5)) < 0.05
+    # the ADC rounds (mid-tread): the mean of rint(B + noise) is B
+    assert abs(b["level_mean_adu"] - BIAS) < 0.05
     assert b["fixed_pattern_std_adu"] < 0.5  # no fixed pattern simulated
     # Gaussian read noise: no normality test rejects at the 0.1 % level
     for test in ("shapiro_wilk", "jarque_bera", "kolmogorov_smirnov"):

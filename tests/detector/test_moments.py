@@ -69,7 +69,7 @@ def test_hardware_patterns_enter_as_variance():
     s = det.sensor
     expected_var = (signal + 200 + (0.03 * signal) ** 2 + (0.5 * 200) ** 2 + s.read_noise_e ** 2) / s.gain_e_per_adu ** 2
     assert np.allclose(var, expected_var + 1 / 12, rtol=1e-4)
-    assert np.allclose(mean, s.bias_adu - 0.5 + (signal + 200) / s.gain_e_per_adu, rtol=1e-5)
+    assert np.allclose(mean, s.bias_adu + (signal + 200) / s.gain_e_per_adu, rtol=1e-5)
     frame = det.expose(signal, 10.0, 3).astype(np.float64)
     assert abs(frame.var() / var.mean() - 1) < 0.02  # 262144 pixels: sampling error 0.3 %
 

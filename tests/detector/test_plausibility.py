@@ -336,3 +336,23 @@ def test_a_faint_hot_column_with_hot_pixels_in_it_is_a_column():
     d[[100, 600], :] += 50000.0
     assert ColumnSignature.short_run_share(d, var)[0] > 0.5  # unclipped, the hot pixels dominate
     assert ColumnSignature.short_run_share(d, var, clip=5.0)[0] < 0.1
+
+
+def test_outlier_columns_of_integer_data_between_two_codes():
+    """A frame of integer ADU whose noise (2.9 ADU) spans few codes and whose level falls half-way between two
+    (a 300 s IMX411 dark): no column is an outlier (the columns' medians would jump between 500 and 501,
+    18 of their standard errors apart), the columns' statistics are unit normal; a column 0.5 sigma high along
+    its length is found."""
+    from detector.signatures import LINE_SIGMA, spike_stats
+
+    rng = np.random.default_rng(8)
+    sd = 2.9
+    data = np.rint(500.5 + sd * rng.standard_normal((512, 512)))
+    model = np.full(data.shape, 500.5)
+    var = np.full(data.shape, sd ** 2 + 1 / 12)
+    stats, _ = spike_stats(data, model, var, np.ones(data.shape, bool), 1.0)
+    assert stats.hot_cols == 0 and stats.cold_cols == 0
+    assert 0.85 < np.nanstd(stats.col_z) < 1.15
+    data[:, 200] = np.rint(500.5 + 0.5 * sd + sd * rng.standard_normal(512))
+    stats, _ = spike_stats(data, model, var, np.ones(data.shape, bool), 1.0)
+    assert stats.col_z[200] > LINE_SIGMA and stats.hot_cols == 1

@@ -346,6 +346,6 @@ def test_model_of_the_mean_frame_couples_the_mean_charge():
     eff = {"cti": {"density_per_px": [0.3], "release_time_s": [1.5e-3]}}
     mean, var, _ = Detector(s, build_effects(eff, s)).moments(sig, 1.0)
     expect = cti_transfer(sig, [0.3], [1.5e-3], 5.01e-4, 0.478, s.full_well_e, first_transfers=s.roi_y0 + 1)
-    expect_adu = expect / s.gain_e_per_adu + s.bias_adu - 0.5
+    expect_adu = expect / s.gain_e_per_adu + s.bias_adu
     assert np.allclose(mean, expect_adu, atol=0.05)
     assert mean[151:160, 60].sum() > mean[141:150, 60].sum() + 5  # the trail, above the star

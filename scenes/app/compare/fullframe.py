@@ -542,7 +542,7 @@ def run_pass(setup: Setup, reader: BandReader, k: int, sample_bands: int = SAMPL
         mean0 = moments(0.0, tile)[0]
         bg = moments(bg_signal, tile)[0] if has_sources else mean
         photo = mean - mean0
-        dark = np.maximum(mean0 - np.float32((s.bias_adu - 0.5) * adu_sum), 0) * gain
+        dark = np.maximum(mean0 - np.float32(s.bias_adu * adu_sum), 0) * gain  # the ADC rounds: no offset
         del mean0
         data = reader.rows(r0, r1)
         finite = np.isfinite(data)

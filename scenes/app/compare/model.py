@@ -71,7 +71,7 @@ def build_model(scene: Scene, workers: int | None = None, realisation: bool = Tr
     mean0, _, _ = det.moments(0.0, t)
     adu_sum = (s.binning ** 2 if s.binning_mode == "sum" else 1) if s.kind != "ccd" else 1
     photo = mean - mean0
-    dark_e = np.maximum(mean0 - np.float32((s.bias_adu - 0.5) * adu_sum), 0) * np.float32(s.gain_e_per_adu)
+    dark_e = np.maximum(mean0 - np.float32(s.bias_adu * adu_sum), 0) * np.float32(s.gain_e_per_adu)
     unclipped = det.expose(setup.signal_e, t, 0, noiseless=True) - det.expose(0.0, t, 0, noiseless=True)
     bg = background_signal(setup.signal_e)
     background = mean if bg is setup.signal_e else det.moments(bg, t)[0]
