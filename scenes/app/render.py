@@ -58,6 +58,9 @@ class Setup:
     source_cards: dict | None = None
     distortion: Sip | None = None
     straylight: object = None
+    per_source: list | None = None  # each TRUTH row's samples alone (scenes.image.build.SourceModel.per_source)
+    psf: object = None  # the sources' pixel-integrated PSF
+    effect_tables: dict | None = None  # the scene's [effects] tables as resolved for the chain
 
 
 def resolve_distortion(scene: Scene, sensor, design) -> Sip | None:
@@ -161,6 +164,7 @@ def prepare(scene: Scene, workers: int | None = None, psf=None) -> Setup:
     background = (sky_rate + flat_rate) * exptime
     signal: object = background
     truth, cards = np.zeros(0, dtype=TRUTH_DTYPE), {}
+    per_source, src_psf = [], None
     distortion = resolve_distortion(scene, sensor, design)
     stray = None
     if exp.frame == "light" and traced and scene.sky.flat_e_per_s is None:
@@ -170,6 +174,7 @@ def prepare(scene: Scene, workers: int | None = None, psf=None) -> Setup:
         model = build_sources(scene, sensor, design, scale, exptime, background_e=background, psf=psf,
                               distortion=distortion, extra=stray)
         truth = model.truth
+        per_source, src_psf = model.per_source, model.psf
         cards = {**model.cards, **cards}
         warnings += model.warnings
         if model.signal.n_samples or stray is not None:
@@ -177,7 +182,7 @@ def prepare(scene: Scene, workers: int | None = None, psf=None) -> Setup:
     elif stray is not None:
         signal = SourceSignal(Samples.empty(), None, background, sensor.roi_y0, sensor.roi_x0, extra=stray)
     return Setup(scene, Detector(sensor, effects, workers=workers), exptime, signal, scale, sky_rate, warnings,
-                 truth, cards, distortion, stray)
+                 truth, cards, distortion, stray, per_source, src_psf, tables)
 
 
 def header_cards(setup: Setup, seed: int, noiseless: bool) -> fits.Header:
@@ -267,7 +272,8 @@ def truth_hdu(truth: np.ndarray, setup: Setup) -> fits.BinTableHDU:
 
 
 def render(scene: Scene, out: str | Path, *, seed: int | None = None, noiseless: bool = False,
-           expected: bool = False, progress: bool = True, workers: int | None = None, psf=None) -> dict:
+           expected: bool = False, progress: bool = True, workers: int | None = None, psf=None,
+           labels: list[str] | None = None, label_paths: dict | None = None, label_meta: dict | None = None) -> dict:
     """Render ``scene`` to the FITS file ``out``; return a summary (path, seed, shape, warnings).
 
     Parameters
@@ -276,6 +282,9 @@ def render(scene: Scene, out: str | Path, *, seed: int | None = None, noiseless:
     noiseless : write the expected electrons (float32) instead of ADU
     expected : also write the expected electrons as extension ``EXPECTED``
     psf : a pixel-integrated PSF replacing the scene's ``[psf]`` (hook of :mod:`scenes.image.psf`)
+    labels : label formats (``scenes.app.bench.formats.FORMATS``): "fits" adds the ``LABELS`` extension,
+        the others are written to ``label_paths[format]`` (docs/detection_bench.md); ``label_meta``: extra
+        image keys of the COCO/SatNet files (seed, split, scene)
     """
     setup = prepare(scene, workers, psf=psf)
     det = setup.detector
@@ -287,6 +296,16 @@ def render(scene: Scene, out: str | Path, *, seed: int | None = None, noiseless:
     ext = [scene_hdu(scene), truth_hdu(truth, setup)]
     state = det.frame_state(setup.exptime_s, seed)  # per-frame draws (cosmic rays), shared by truth and image
     ext += [table_hdu(name, t) for name, t in det.truth(setup.exptime_s, seed, state).items()]
+    frame_lab = None
+    if labels:
+        from scenes.app.bench.formats import labels_hdu
+        from scenes.app.bench.frame import frame_labels, write_label_files
+
+        frame_lab = frame_labels(setup)
+        if "fits" in labels:
+            ext.append(labels_hdu(frame_lab.sources, frame_lab.labels, frame_lab.shape, frame_lab.mask_fraction_sigma))
+        write_label_files(frame_lab, {f: p for f, p in (label_paths or {}).items() if f in labels}, Path(out).name,
+                          dict(label_meta or {}, seed=seed))
     if expected and not noiseless:
         img = det.expose(setup.signal_e, setup.exptime_s, seed, noiseless=True, state=state)
         ext.append(fits.ImageHDU(img, name="EXPECTED"))
@@ -297,7 +316,8 @@ def render(scene: Scene, out: str | Path, *, seed: int | None = None, noiseless:
     cards = setup.source_cards or {}
     return {"path": str(path), "seed": seed, "shape": list(s.output_shape), "exptime_s": setup.exptime_s,
             "sky_e_per_s": setup.sky_e_per_s, "warnings": setup.warnings,
-            "sources": {"stars": cards.get("NSTARS", (0,))[0], "objects": cards.get("NOBJECTS", (0,))[0]}}
+            "sources": {"stars": cards.get("NSTARS", (0,))[0], "objects": cards.get("NOBJECTS", (0,))[0]},
+            **({"labels": len(frame_lab.labels)} if frame_lab is not None else {})}
 
 
 def _with_progress(bands, total: int, label: str):

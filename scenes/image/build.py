@@ -81,6 +81,10 @@ class SourceModel:
     counts: dict = field(default_factory=dict)
     cards: dict = field(default_factory=dict)
     warnings: list = field(default_factory=list)
+    #: the samples of each TRUTH row's source alone, in TRUTH order (:class:`Samples` or :class:`Trails`, or
+    #: a callable returning one, built when asked): what the labels render source by source
+    per_source: list = field(default_factory=list)
+    psf: object = None
 
 
 @dataclass
@@ -216,7 +220,7 @@ def _stars(scene: Scene, fr: _Frame, base_dir: Path | None) -> tuple[Samples | T
     synthetic = stars.source == "synthetic"
     counts = {"catalog": int(np.sum(~synthetic)), "synthetic": int(np.sum(synthetic))}
     if len(stars.ra_deg) == 0:
-        return Samples.empty(), [], counts
+        return Samples.empty(), [], counts, []
     rate = np.atleast_1d(star_electron_rate(stars.mag_g, stars.teff_k, fr.wavelength_nm, fr.qe, fr.area_m2,
                                             optics_throughput=fr.mirror))
     total = rate * fr.exptime_s
@@ -232,7 +236,9 @@ def _stars(scene: Scene, fr: _Frame, base_dir: Path | None) -> tuple[Samples | T
         rows = [{"ra_deg": stars.ra_deg[ins], "dec_deg": stars.dec_deg[ins], "x": X, "y": Y, "x0": X, "y0": Y,
                  "x1": X, "y1": Y, "flux_e": total[ins], "kind": kinds[ins], "mag": stars.mag_g[ins],
                  "source_id": stars.source_id[ins], "name": np.full(int(ins.sum()), "")}]
-        return samples, rows, counts
+        one = np.flatnonzero(ins)
+        per = [Samples(x[i:i + 1], y[i:i + 1], total[i:i + 1], -inf[:1], inf[:1], np.asarray(w)[i:i + 1]) for i in one]
+        return samples, rows, counts, per
     # trailed stars: paths in the t = 0 frame, sampled in time
 
     u = radec_to_unit(stars.ra_deg, stars.dec_deg)
@@ -267,7 +273,14 @@ def _stars(scene: Scene, fr: _Frame, base_dir: Path | None) -> tuple[Samples | T
     per_seg = np.maximum(1, np.floor(SEGMENT_STAMPS * (2 * w[idx] + 1) / max(vmax * dt, 1e-9))).astype(np.int64)
     key = np.arange(idx.size)[None, :] + idx.size * (np.arange(ts.size)[:, None] // per_seg[None, :])
     kt = keep.T  # star-major: each star's samples contiguous, so the grouping by segment gathers locally
-    trails = Trails.from_samples(X.T[kt], Y.T[kt], E.T[kt], tl.T[kt], th.T[kt], ww.T[kt], key.T[kt])
+    cols = [a.T[kt] for a in (X, Y, E, tl, th, ww, key)]
+    trails = Trails.from_samples(*cols)
+    ends = np.r_[0, np.cumsum(kt.sum(axis=1))]  # star k's samples: ends[k]:ends[k + 1] (star-major order)
+
+    def one_star(k, cols=cols, ends=ends):
+        return lambda: Trails.from_samples(*(c[ends[k]:ends[k + 1]] for c in cols))
+
+    per = [one_star(k) for k in np.flatnonzero(seen)]
     j = idx[seen]
     xa, ya = paths.each_of(j, t_a[seen])
     xb, yb = paths.each_of(j, t_b[seen])
@@ -276,7 +289,7 @@ def _stars(scene: Scene, fr: _Frame, base_dir: Path | None) -> tuple[Samples | T
     rows = [{"ra_deg": stars.ra_deg[j], "dec_deg": stars.dec_deg[j], "x": XM, "y": YM, "x0": X0, "y0": Y0,
              "x1": X1, "y1": Y1, "flux_e": flux[seen], "kind": kinds[j], "mag": stars.mag_g[j],
              "source_id": stars.source_id[j], "name": np.full(j.size, "")}]
-    return trails, rows, counts
+    return trails, rows, counts, per
 
 
 # ----------------------------------------------------------------------------------------------- objects
@@ -286,8 +299,8 @@ def _photons_efficiency(fr: _Frame) -> float:
     return solar_photon_irradiance(lam, fr.qe * fr.mirror) / solar_photon_irradiance(lam, np.ones_like(lam))
 
 
-def _objects(scene: Scene, fr: _Frame, base_dir: Path | None, observer) -> tuple[Trails, list]:
-    parts, rows = [], []
+def _objects(scene: Scene, fr: _Frame, base_dir: Path | None, observer) -> tuple[Trails, list, list]:
+    parts, rows, per = [], [], []
     file = scene.source
     h, wd = fr.shape
     thr = fr.qe * fr.mirror  # photons -> photo-electrons
@@ -344,6 +357,7 @@ def _objects(scene: Scene, fr: _Frame, base_dir: Path | None, observer) -> tuple
         key = np.arange(ts.size) // per_seg
         parts.append(Trails.from_samples(x[keep], y[keep], e[keep], t_lo[keep], t_hi[keep], np.full(int(keep.sum()), w),
                                          key[keep]))
+        per.append(parts[-1])
         if not seen:  # only the PSF wings reach the window
             t_a, t_b = t_start, t_stop
         tm = 0.5 * (t_a + t_b)
@@ -358,7 +372,7 @@ def _objects(scene: Scene, fr: _Frame, base_dir: Path | None, observer) -> tuple
                      "x1": X[2:3], "y1": Y[2:3], "flux_e": np.array([flux]), "kind": np.array(["object"]),
                      "mag": np.array([mag]), "source_id": np.array([i]), "name": np.array([obj.name or obj.key]),
                      "t0_s": np.array([t_a]), "t1_s": np.array([t_b])})
-    return Trails.concat(parts), rows
+    return Trails.concat(parts), rows, per
 
 
 def _near_interval(derot, fr: _Frame, w: int) -> tuple[float, float]:
@@ -433,7 +447,7 @@ def build_sources(scene: Scene, sensor, design, pixel_scale_arcsec: float, expti
     fr = _Frame(wcs, bore, sensor.shape, sensor.binning, sensor.row_time_s, float(exptime_s), pixel_scale_arcsec, psf,
                 lam, qe, design.mirror_throughput, design.collecting_area_m2, linear, shift)
     base_dir = Path(scene.source).parent if scene.source and scene.source != "<built-in>" else None
-    parts, trails, rows = [], [], []
+    parts, trails, rows, per = [], [], [], []
     counts = {"catalog": 0, "synthetic": 0, "objects": 0}
     light = exp.frame == "light" and scene.sky.flat_e_per_s is None
     if light and (scene.objects or scene.sky.stars):
@@ -442,14 +456,16 @@ def build_sources(scene: Scene, sensor, design, pixel_scale_arcsec: float, expti
             check_pointing_visible(bore.ra_deg, bore.dec_deg, scene.pointing.epoch, exptime_s, observer,
                                    file=scene.source)
         if scene.objects:
-            t, r = _objects(scene, fr, base_dir, observer)
+            t, r, p = _objects(scene, fr, base_dir, observer)
             trails.append(t)
             rows += r
+            per += p
             counts["objects"] = len(scene.objects)
         if scene.sky.stars and exptime_s > 0:
-            s, r, c = _stars(scene, fr, base_dir)
+            s, r, c, p = _stars(scene, fr, base_dir)
             (trails if isinstance(s, Trails) else parts).append(s)
             rows += r
+            per += p
             counts.update(c)
     samples = Samples.concat(parts)
     truth = _truth_table(rows)
@@ -480,4 +496,4 @@ def build_sources(scene: Scene, sensor, design, pixel_scale_arcsec: float, expti
         cards["STARLIM"] = (scene.sky.star_mag_limit, "[mag] faintest Gaia G rendered")
         cards["STARSEED"] = (scene.sky.star_seed, "seed of the synthetic faint stars")
         cards["CATALOG"] = (Path(scene.sky.catalog).name[:60], "star catalogue")
-    return SourceModel(signal, truth, counts, cards)
+    return SourceModel(signal, truth, counts, cards, per_source=per, psf=psf)

@@ -23,7 +23,10 @@ from .common import Outputs, json_target, load, warn, write_json
 @click.option("--expected", is_flag=True, help="add the expected electrons as extension EXPECTED")
 @click.option("--workers", type=click.IntRange(min=1), default=None, help="threads (default: CPUs, at most 4)")
 @click.option("--json", "json_out", default=None, help="write a JSON summary here ('-' for stdout)")
-def render(scene, output, seed, noiseless, sets, png, expected, workers, json_out):
+@click.option("--labels", "labels", default=None, metavar="FORMAT[,FORMAT]",
+              help="per-source labels: coco, satnet, yolo (OUTPUT.coco.json, .satnet.json, .yolo.txt), fits (a "
+                   "LABELS extension); docs/detection_bench.md")
+def render(scene, output, seed, noiseless, sets, png, expected, workers, json_out, labels):
     """Render SCENE (a TOML file or a built-in name such as 'default') to a FITS frame.
 
     The FITS file, its PNG and the JSON are written together when the frame is complete (or not at all).
@@ -32,8 +35,11 @@ def render(scene, output, seed, noiseless, sets, png, expected, workers, json_ou
         fits_path = outs.file(output, "-o")
         png_path = outs.file(Path(output).with_suffix(".png"), "-o (its .png quick-look)") if png else None
         json_path = json_target(outs, json_out)
+        fmts = label_formats(labels)
+        label_paths = {f: outs.file(label_path(output, f), f"--labels {f}") for f in fmts if f != "fits"}
         sc = load(scene, sets, outs)
-        summary = do_render(sc, fits_path, seed=seed, noiseless=noiseless, expected=expected, workers=workers)
+        summary = do_render(sc, fits_path, seed=seed, noiseless=noiseless, expected=expected, workers=workers,
+                            labels=fmts, label_paths=label_paths, label_meta={"scene": str(scene)})
         summary["path"] = output
         if png:
             write_png(fits_path, png_path)
@@ -46,6 +52,23 @@ def render(scene, output, seed, noiseless, sets, png, expected, workers, json_ou
     elif not json_out:
         click.echo(f"wrote {summary['path']} ({summary['shape'][1]}x{summary['shape'][0]}, seed {summary['seed']})"
                    + (f" and {summary['png']}" if png else ""), err=True)
+
+
+def label_formats(text):
+    """--labels text -> formats, or a usage error naming the option."""
+    from scenes.app.bench.formats import parse_formats
+
+    try:
+        return parse_formats(text)
+    except ValueError as exc:
+        raise click.BadParameter(str(exc), param_hint="--labels") from None
+
+
+def label_path(output, fmt: str) -> Path:
+    """OUTPUT.fits -> OUTPUT.coco.json, OUTPUT.satnet.json, OUTPUT.yolo.txt."""
+    ext = {"coco": ".coco.json", "satnet": ".satnet.json", "yolo": ".yolo.txt"}[fmt]
+    p = Path(output)
+    return p.with_name(p.stem + ext)
 
 
 @click.command()

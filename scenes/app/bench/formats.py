@@ -1,0 +1,205 @@
+"""Label files: COCO instances (RLE masks), SatNet-style JSON, YOLO oriented boxes, the FITS ``LABELS`` image.
+
+Every format carries the label rule (:func:`scenes.app.bench.labels.label_rule`). Coordinates follow the
+labels' convention (0-based pixel centres; ``bbox`` in whole pixels from the first column/row, which is
+COCO's pixel-edge convention).
+
+- **COCO** (``coco``): one file for a frame or a dataset: ``images`` (id, file_name, width, height, seed,
+  split), ``categories`` (1 ``object``, 2 ``star``: catalogue and model stars), ``annotations`` with
+  ``bbox``, ``area`` (mask pixels), ``iscrowd = 0``, ``segmentation`` as compressed RLE (pycocotools'
+  column-major run lengths over the whole image, built from the bbox mask without a frame-sized array) and
+  every label field (endpoints, times, RA/Dec, flux, SNR, rate, ...). Loads in ``pycocotools.coco.COCO``.
+- **SatNet** (``satnet``): the per-image JSON that SatSim writes for the SatNet data sets, one entry per
+  frame in a list: ``{"data": {"file": {"filename", "dirname"}, "sensor": {"height", "width", ...},
+  "objects": [{"class_name", "class_id", "type", "x_min", "y_min", "x_max", "y_max", "x_center",
+  "y_center", "x_start", "y_start", "x_end", "y_end", "magnitude", "snr", ...}]}}``; positions are
+  fractions of the image width/height measured from the top-left corner (pixel edges), as in SatSim.
+- **YOLO** (``yolo``): the oriented-box text format of Ultralytics (``class x1 y1 x2 y2 x3 y3 x4 y4``,
+  normalised to the image). A streak's box is the rectangle along its path with corners ``p0 + h n,
+  p1 + h n, p1 - h n, p0 - h n`` (n the unit normal, h the mask's half-width): the midpoints of the two
+  short edges are exactly the endpoints (:func:`yolo_endpoints`). A point source: an axis-aligned square.
+  Classes: 0 object, 1 star.
+- **FITS** (``fits``): extension ``LABELS`` of the frame, an integer image holding the TRUTH row of each
+  pixel's dominant source (:func:`scenes.app.bench.labels.dominant_source_image`), -1 elsewhere.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+from astropy.io import fits
+
+from .labels import NO_SOURCE, Label, dominant_source_image, label_rule
+
+FORMATS = ("coco", "satnet", "yolo", "fits")
+CATEGORIES = [{"id": 1, "name": "object", "supercategory": "source"},
+              {"id": 2, "name": "star", "supercategory": "source"}]
+
+
+def parse_formats(text: str | None) -> list[str]:
+    """``"coco,fits"`` -> ["coco", "fits"]; ValueError naming the unknown one."""
+    if not text:
+        return []
+    out = [f.strip().lower() for f in text.split(",") if f.strip()]
+    bad = [f for f in out if f not in FORMATS]
+    if bad:
+        raise ValueError(f"unknown label format {bad[0]!r}: expected one or more of {', '.join(FORMATS)}")
+    return list(dict.fromkeys(out))
+
+
+def category_id(kind: str) -> int:
+    return 2 if kind in ("star", "synthetic") else 1
+
+
+# ------------------------------------------------------------------------------------------------ COCO
+def rle_of(label: Label, shape: tuple[int, int]) -> dict:
+    """Compressed COCO RLE of a label's mask on an image of ``shape`` (no frame-sized array)."""
+    from pycocotools import mask as cmask
+
+    h_img, w_img = shape
+    x, y, w, h = label.bbox
+    m = label.mask if label.mask_pixels else np.zeros((h, w), dtype=bool)
+    cc, rr = np.nonzero(m.T)  # column-major order: column, then row
+    idx = (x + cc).astype(np.int64) * h_img + (y + rr)
+    counts = []
+    if idx.size:
+        brk = np.flatnonzero(np.diff(idx) != 1)
+        starts = np.r_[idx[0], idx[brk + 1]]
+        ends = np.r_[idx[brk], idx[-1]] + 1
+        prev = 0
+        for a, b in zip(starts.tolist(), ends.tolist()):
+            counts += [a - prev, b - a]
+            prev = b
+        counts.append(h_img * w_img - prev)
+    else:
+        counts = [h_img * w_img]
+    rle = cmask.frPyObjects({"size": [h_img, w_img], "counts": counts}, h_img, w_img)
+    return {"size": [int(h_img), int(w_img)], "counts": rle["counts"].decode("ascii")}
+
+
+def coco_annotation(label: Label, image_id: int, ann_id: int, shape) -> dict:
+    rec = label.record()
+    rec.update({"id": ann_id, "image_id": image_id, "category_id": category_id(label.kind),
+                "bbox": [float(v) for v in label.bbox], "area": float(label.mask_pixels), "iscrowd": 0,
+                "segmentation": rle_of(label, shape)})
+    return rec
+
+
+def coco_document(frames: list[dict], mask_fraction_sigma: float) -> dict:
+    """A COCO instances document. ``frames``: dicts with ``file_name``, ``shape``, ``labels`` and any
+    extra image keys (``seed``, ``split``, ``scene``)."""
+    images, anns = [], []
+    for i, fr in enumerate(frames, start=1):
+        h, w = fr["shape"]
+        img = {"id": i, "file_name": fr["file_name"], "width": int(w), "height": int(h)}
+        img.update({k: v for k, v in fr.items() if k not in ("file_name", "shape", "labels")})
+        images.append(img)
+        for lab in fr["labels"]:
+            anns.append(coco_annotation(lab, i, len(anns) + 1, (h, w)))
+    return {"info": {"description": "newtsim labels", "label_rule": label_rule(mask_fraction_sigma)},
+            "images": images, "annotations": anns, "categories": CATEGORIES}
+
+
+# ---------------------------------------------------------------------------------------------- SatNet
+def satnet_frame(labels: list[Label], shape, file_name: str, sensor: dict | None = None) -> dict:
+    """One frame in SatSim's SatNet annotation layout (fractions of the image from the top-left edge)."""
+    h, w = shape
+    objs = []
+    for lab in labels:
+        x, y, bw, bh = lab.bbox
+        objs.append({
+            "class_name": "Satellite" if category_id(lab.kind) == 1 else "Star",
+            "class_id": category_id(lab.kind),
+            "type": "line" if lab.length_px > 0 else "point",
+            "x_min": x / w, "y_min": y / h, "x_max": (x + bw) / w, "y_max": (y + bh) / h,
+            "x_center": (lab.x + 0.5) / w, "y_center": (lab.y + 0.5) / h,
+            "x_start": (lab.x0 + 0.5) / w, "y_start": (lab.y0 + 0.5) / h,
+            "x_end": (lab.x1 + 0.5) / w, "y_end": (lab.y1 + 0.5) / h,
+            "bbox_width": bw / w, "bbox_height": bh / h,
+            "magnitude": _num(lab.mag), "snr": _num(lab.snr), "pe_per_sec": _num(lab.flux_e / max(lab.t1_s - lab.t0_s,
+                                                                                                    1e-30)
+                                                                               if lab.t1_s > lab.t0_s else math.nan),
+            "source": "newtsim", "truth_row": lab.row, **{k: v for k, v in lab.record().items() if k not in ("bbox",)},
+        })
+    return {"data": {"file": {"filename": file_name, "dirname": ""},
+                     "sensor": {"height": int(h), "width": int(w), **(sensor or {})},
+                     "objects": objs}}
+
+
+def _num(v):
+    return None if v is None or not math.isfinite(float(v)) else float(v)
+
+
+# ------------------------------------------------------------------------------------------------ YOLO
+def half_width_px(label: Label) -> float:
+    """Half-width of the mask across the label's axis [px] (at least half a pixel)."""
+    if not label.mask_pixels:
+        return 0.5
+    x, y, w, h = label.bbox
+    rr, cc = np.nonzero(label.mask)
+    px, py = cc + x - label.x0, rr + y - label.y0
+    d = np.array([label.x1 - label.x0, label.y1 - label.y0])
+    n = float(np.hypot(*d))
+    if n == 0:
+        return float(max(np.abs(px).max(), np.abs(py).max()) + 0.5)
+    ux, uy = d / n
+    return float(np.abs(-uy * px + ux * py).max() + 0.5)
+
+
+def yolo_corners(label: Label) -> np.ndarray:
+    """(4, 2) corners [px, centres convention] of the oriented box (see the module notes)."""
+    hw = half_width_px(label)
+    p0, p1 = np.array([label.x0, label.y0]), np.array([label.x1, label.y1])
+    d = p1 - p0
+    n = float(np.hypot(*d))
+    if n == 0:
+        return np.array([p0 + [-hw, -hw], p0 + [hw, -hw], p0 + [hw, hw], p0 + [-hw, hw]])
+    u = d / n
+    nrm = np.array([-u[1], u[0]]) * hw
+    return np.array([p0 + nrm, p1 + nrm, p1 - nrm, p0 - nrm])
+
+
+def yolo_endpoints(corners: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The endpoints back from an oriented box: the midpoints of edges 4-1 and 2-3."""
+    c = np.asarray(corners, dtype=float).reshape(4, 2)
+    return 0.5 * (c[0] + c[3]), 0.5 * (c[1] + c[2])
+
+
+def yolo_lines(labels: list[Label], shape) -> str:
+    """Ultralytics OBB lines: ``class x1 y1 ... x4 y4`` normalised (pixel-edge coordinates / size)."""
+    h, w = shape
+    out = []
+    for lab in labels:
+        c = yolo_corners(lab) + 0.5
+        vals = " ".join(f"{cx / w:.7f} {cy / h:.7f}" for cx, cy in c)
+        out.append(f"{category_id(lab.kind) - 1} {vals}")
+    return "\n".join(out) + ("\n" if out else "")
+
+
+# ------------------------------------------------------------------------------------------------ FITS
+def labels_hdu(sources, labels: list[Label], shape, mask_fraction_sigma: float) -> fits.ImageHDU:
+    """The ``LABELS`` extension (tile-compressed integer image, lossless)."""
+    img = dominant_source_image(sources, labels, shape)
+    hdu = fits.CompImageHDU(img, name="LABELS", compression_type="RICE_1")
+    hdu.header["NOSOURCE"] = (NO_SOURCE, "value of a pixel in no source's mask")
+    hdu.header["MASKSIG"] = (mask_fraction_sigma, "mask: s > MASKSIG x local noise sigma")
+    hdu.header["COMMENT"] = "TRUTH row of the pixel's dominant source (largest expected signal among the"
+    hdu.header["COMMENT"] = "masks holding the pixel); see docs/detection_bench.md"
+    return hdu
+
+
+def write_json(obj, path) -> None:
+    with open(path, "w") as f:
+        json.dump(obj, f, indent=1, allow_nan=False, default=_default)
+
+
+def _default(v):
+    if isinstance(v, np.integer):
+        return int(v)
+    if isinstance(v, np.floating):
+        return _num(v)
+    if isinstance(v, np.ndarray):
+        return v.tolist()
+    raise TypeError(f"not JSON: {type(v)}")

@@ -1,0 +1,165 @@
+"""The labels of a rendered frame: each TRUTH row's source rendered alone on its own stamp.
+
+The render keeps, for every TRUTH row, the samples of that source (``Setup.per_source``: a static star's one
+sample, an object's or a trailed star's chain of samples); each is rendered here on the bounding box of its
+own stamps with the render's PSF and rolling-shutter windows (:func:`scenes.image.signal.render_samples`,
+:func:`scenes.image.signal.render_trails`), so the labels cost one more pass over the sources, not a second
+frame, and hold no frame-sized float array. The stamp is multiplied by the vignetting's relative
+illumination when the scene has ``[effects.vignetting]`` (the chain multiplies all the light by it) and
+binned as the frame is; the pixel response non-uniformity (~1 %) is not applied. The noise model
+(:meth:`NoiseModel.for_sensor`) takes the uniform background (sky or flat) and the straylight, vignetted
+and binned alike, plus the sensor's dark current, read noise and quantisation.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from detector.config import validate
+from detector.effects.optical import VignettingParams, relative_illumination
+from scenes.image import frame_wcs
+from scenes.image.signal import Samples, SourceSignal, Trails, render_samples, render_trails
+
+from .labels import MASK_FRACTION_SIGMA, Label, NoiseModel, SourceStamp, labels_from_sources
+
+__all__ = ["FrameLabels", "frame_labels", "source_stamps"]
+
+
+def _bin(a: np.ndarray, b: int) -> np.ndarray:
+    if b == 1:
+        return a
+    h, w = a.shape
+    return a.reshape(h // b, b, w // b, b).sum(axis=(1, 3))
+
+
+def _illumination(setup):
+    vig = (setup.effect_tables or {}).get("vignetting")
+    if vig is None:
+        return None
+    params = validate(VignettingParams, vig, prefix="effects.vignetting", file=setup.scene.source)
+    return relative_illumination(params, setup.detector.sensor)
+
+
+def _box_of(part, b: int, shape: tuple[int, int]):
+    """Unbinned window box (r0, r1, c0, c1) of a source's stamps, aligned to the binning, on the window."""
+    if isinstance(part, Trails):
+        r0, r1 = int(part.ylo.min()), int(part.yhi.max()) + 1
+        c0, c1 = int(part.xlo.min()), int(part.xhi.max()) + 1
+    else:
+        w = int(part.w.max())
+        r0, r1 = int(np.rint(part.y.min())) - w, int(np.rint(part.y.max())) + w + 1
+        c0, c1 = int(np.rint(part.x.min())) - w, int(np.rint(part.x.max())) + w + 1
+    h, wd = shape
+    r0, c0 = max(0, (r0 // b) * b), max(0, (c0 // b) * b)
+    r1, c1 = min(h, -(-r1 // b) * b), min(wd, -(-c1 // b) * b)
+    return r0, r1, c0, c1
+
+
+def render_source(part, psf, r0: int, r1: int, c0: int, c1: int, row_time_s: float, exptime_s: float) -> np.ndarray:
+    """Expected electrons of one source alone on window rows r0:r1, cols c0:c1 (unbinned, float64)."""
+    if isinstance(part, Trails):
+        if hasattr(psf, "factors"):
+            acc = np.zeros((r1 - r0, c1 - c0))
+            render_trails(part, psf, acc, r0, c0, row_time_s, exptime_s)
+            return acc
+        part = part.as_samples()
+    return render_samples(part, psf, r0, r1, c0, c1, row_time_s, exptime_s)
+
+
+def source_stamps(setup) -> list[SourceStamp]:
+    """One :class:`SourceStamp` per TRUTH row of a prepared render (``scenes.app.render.prepare``), in
+    written-frame pixels (binned) and electrons (summed over a binned pixel, vignetted)."""
+    s = setup.detector.sensor
+    b = int(s.binning)
+    truth = setup.truth
+    ri = _illumination(setup)
+    out = []
+    for row, part in enumerate(setup.per_source or []):
+        if callable(part):
+            part = part()
+        if part is None or (isinstance(part, (Samples, Trails)) and part.x.size == 0):
+            continue
+        r0, r1, c0, c1 = _box_of(part, b, s.shape)
+        if r1 <= r0 or c1 <= c0:
+            continue
+        st = render_source(part, setup.psf, r0, r1, c0, c1, s.row_time_s, setup.exptime_s)
+        if ri is not None:
+            st *= ri(s.roi_y0 + np.arange(r0, r1, dtype=float), s.roi_x0 + np.arange(c0, c1, dtype=float))
+        st = _bin(st, b).astype(np.float32)
+        t = truth[row]
+        kind = t["kind"].decode() if isinstance(t["kind"], bytes) else str(t["kind"])
+        name = t["name"].decode() if isinstance(t["name"], bytes) else str(t["name"])
+        static = kind != "object" and not (np.isfinite(t["t0_s"]) and np.isfinite(t["t1_s"]))
+        out.append(SourceStamp(st, r0 // b, c0 // b, row, kind, float(t["x"]), float(t["y"]), float(t["x0"]),
+                               float(t["y0"]), float(t["x1"]), float(t["y1"]),
+                               0.0 if static else float(t["t0_s"]), setup.exptime_s if static else float(t["t1_s"]),
+                               float(t["flux_e"]), float(t["mag"]), name, int(t["source_id"])))
+    return out
+
+
+def noise_model(setup) -> NoiseModel:
+    """The render's noise model (:meth:`NoiseModel.for_sensor`) with its background on output pixels."""
+    s = setup.detector.sensor
+    b = int(s.binning)
+    sig = setup.signal_e
+    flat = float(sig.background_e) if isinstance(sig, SourceSignal) else float(sig)
+    stray = setup.straylight
+    ri = _illumination(setup)
+    if stray is None and ri is None:
+        return NoiseModel.for_sensor(s, setup.exptime_s, flat * b * b)
+
+    def background(y0, y1, x0, x1):
+        ys, xs = s.roi_y0 + y0 * b, s.roi_x0 + x0 * b
+        h, w = (y1 - y0) * b, (x1 - x0) * b
+        a = np.full((h, w), flat)
+        if stray is not None:
+            a = a + np.asarray(stray(ys, ys + h, xs, xs + w), dtype=float)
+        if ri is not None:
+            a = a * ri(ys + np.arange(h, dtype=float), xs + np.arange(w, dtype=float))
+        return _bin(a, b)
+
+    return NoiseModel.for_sensor(s, setup.exptime_s, background)
+
+
+class FrameLabels:
+    """A frame's labels with what the formats need: shape, WCS, the rule, the stamps (label image)."""
+
+    def __init__(self, labels: list[Label], sources: list[SourceStamp], shape, wcs, noise: NoiseModel,
+                 mask_fraction_sigma: float):
+        self.labels, self.sources, self.shape, self.wcs = labels, sources, tuple(shape), wcs
+        self.noise, self.mask_fraction_sigma = noise, mask_fraction_sigma
+
+
+def frame_labels(setup, mask_fraction_sigma: float = MASK_FRACTION_SIGMA) -> FrameLabels:
+    """The labels of every TRUTH row of a prepared render."""
+    s = setup.detector.sensor
+    wcs = frame_wcs(setup.scene, s, setup.pixel_scale_arcsec, distortion=setup.distortion)
+    sources = source_stamps(setup)
+    noise = noise_model(setup)
+    labels = labels_from_sources(sources, noise, s.output_shape, wcs, mask_fraction_sigma=mask_fraction_sigma)
+    return FrameLabels(labels, sources, s.output_shape, wcs, noise, mask_fraction_sigma)
+
+
+def pixel_scale(wcs) -> float:
+    """Mean pixel scale [arcsec/px] of a celestial WCS."""
+    from astropy.wcs.utils import proj_plane_pixel_scales
+
+    return float(np.mean(proj_plane_pixel_scales(wcs.celestial))) * 3600.0 if wcs is not None else math.nan
+
+
+def write_label_files(fl: FrameLabels, paths: dict, file_name: str, meta: dict | None = None) -> None:
+    """Write one frame's labels in the formats of ``paths`` (format -> path; "fits" is an extension)."""
+    from .formats import coco_document, satnet_frame, write_json, yolo_lines
+
+    meta = dict(meta or {})
+    for fmt, path in paths.items():
+        if fmt == "coco":
+            write_json(coco_document([{"file_name": file_name, "shape": fl.shape, "labels": fl.labels, **meta}],
+                                     fl.mask_fraction_sigma), path)
+        elif fmt == "satnet":
+            write_json(satnet_frame(fl.labels, fl.shape, file_name, meta), path)
+        elif fmt == "yolo":
+            with open(path, "w") as f:
+                f.write(yolo_lines(fl.labels, fl.shape))
