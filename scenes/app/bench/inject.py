@@ -54,9 +54,9 @@ from detector.errors import DetectorError
 from scenes.objects.frames import east_north, radec_to_unit, unit_to_radec
 from scenes.objects.lightcurve import LightCurve, light_curve_from_table
 
-__all__ = ["BAYER_PATTERNS", "Frame", "InjectError", "Injected", "Obj", "background", "cfa_weights",
-           "expected_stamp", "inject", "inject_file", "measure_psf", "objects_from_toml", "random_objects",
-           "read_frame", "snr_of"]
+__all__ = ["BAYER_PATTERNS", "Frame", "InjectError", "Injected", "Obj", "Result", "background", "cfa_weights",
+           "expected_stamp", "inject", "inject_file", "injected_hdu", "measure_psf", "objects_from_toml",
+           "random_objects", "read_frame", "snr_of", "source_stamps"]
 
 BAYER_PATTERNS = ("RGGB", "GRBG", "GBRG", "BGGR")
 #: header gains outside this range are not e-/ADU (a camera's gain *setting*, e.g. the Seestar's GAIN = 80)
@@ -98,6 +98,7 @@ class Frame:
     pixel_scale_arcsec: float | None
     sources: dict = field(default_factory=dict)  # value -> "header KEY" | "given" | "measured" | "assumed" | "type"
     warnings: list = field(default_factory=list)
+    raw: np.ndarray | None = None  # the HDU's values as astropy hands them (the bits kept outside the footprints)
 
     @property
     def name(self) -> str:
@@ -233,7 +234,7 @@ def read_frame(path, hdu=None, *, gain=None, saturation=None, exptime=None, pixe
             hdul.close()
             raise InjectError(f"{bayer!r}", key="--bayer", expected="RGGB, GRBG, GBRG, BGGR or none")
         sources["bayer"] = "given"
-    frame = Frame(str(path), index, data, dtype, header, w, pattern, t, g, sat, scale, sources, notes)
+    frame = Frame(str(path), index, data, dtype, header, w, pattern, t, g, sat, scale, sources, notes, raw)
     return hdul, frame
 
 
@@ -549,17 +550,19 @@ def _visible_ends(x, y, shape):
 
 @dataclass
 class Injected:
-    """One injected object: its label values and its expected-electron stamp on the frame."""
+    """One injected object: what was drawn (the whole path, the flux) and its expected-electron stamp on the
+    frame (the labels come from it: :func:`scenes.app.bench.labels.labels_from_sources`)."""
 
     obj: Obj
     row0: int
     col0: int
     stamp_e: np.ndarray  # expected electrons on the frame (the part of the footprint inside it)
-    label: dict
+    truth: dict  # the whole path (x0, y0 at t0_s; x1, y1 at t1_s), flux_e over the exposure, clipped
+    visible: tuple  # (x0, y0, x1, y1, t0_s, t1_s) of the part of the path on the frame (NaN: none)
 
 
-def _draw(obj: Obj, frame: Frame, fwhm_px: float, weights_cfa, var0_e2: np.ndarray):
-    """The object's expected electrons on the frame and its label; the flux set from the SNR if asked."""
+def _draw(obj: Obj, frame: Frame, fwhm_px: float, weights_cfa, var0_e2: np.ndarray) -> Injected | None:
+    """The object's expected electrons on the frame; its flux set from its target SNR if asked."""
     h, w = frame.shape
     x, y, wgt = _samples(obj, frame.exptime_s, fwhm_px * FWHM_TO_SIGMA)
     row0, col0, unit = expected_stamp(x, y, wgt, fwhm_px)
@@ -576,48 +579,41 @@ def _draw(obj: Obj, frame: Frame, fwhm_px: float, weights_cfa, var0_e2: np.ndarr
     if obj.flux_e is not None:
         flux = obj.flux_e
     else:
-        target = obj.snr
-
         def gap(logf):
-            return snr_of(math.exp(logf) * vis, var)[0] - target
+            return snr_of(math.exp(logf) * vis, var)[0] - obj.snr
 
         lo, hi = -10.0, 60.0
         flux = math.exp(brentq(gap, lo, hi, xtol=1e-10)) if gap(lo) < 0 < gap(hi) else 0.0
-    stamp = flux * vis
-    snr, peak = snr_of(stamp, var)
-    ends = _visible_ends(x, y, frame.shape)
     xa, ya = obj.path(np.array([0.0, frame.exptime_s]))
-    ends_full = (float(xa[0]), float(ya[0]), float(xa[1]), float(ya[1]))
-    length = math.hypot(ends_full[2] - ends_full[0], ends_full[3] - ends_full[1])
-    above = np.argwhere(stamp > 0)
-    label = {
-        "name": obj.name, "kind": obj.kind,
-        "x0": ends_full[0], "y0": ends_full[1], "x1": ends_full[2], "y1": ends_full[3],
-        "t0_s": 0.0, "t1_s": frame.exptime_s,
-        "flux_e": float(flux * unit.sum()), "flux_visible_e": float(stamp.sum()),
-        "flux_adu": float(stamp.sum() / frame.gain_e_per_adu),
-        "snr": snr, "peak_snr": peak, "length_px": length,
-        "rate_arcsec_s": (length * frame.pixel_scale_arcsec / frame.exptime_s
-                          if frame.pixel_scale_arcsec else float("nan")),
-        "clipped": bool(ends is None or (row0 < 0 or col0 < 0 or row0 + unit.shape[0] > h
-                                         or col0 + unit.shape[1] > w)),
-        "bbox": [int(c0 + above[:, 1].min()), int(r0 + above[:, 0].min()),
-                 int(above[:, 1].max() - above[:, 1].min() + 1), int(above[:, 0].max() - above[:, 0].min() + 1)]
-        if len(above) else [c0, r0, 0, 0],
-        "light_curve": obj.light_curve.to_table() if obj.light_curve is not None else None,
-    }
+    ends = _visible_ends(x, y, frame.shape)
     if ends is not None:
         (vx0, vy0, vx1, vy1), k0, k1 = ends
         edges = np.linspace(0.0, frame.exptime_s, len(x) + 1)
-        label.update(vx0=vx0, vy0=vy0, vx1=vx1, vy1=vy1, vt0_s=float(edges[k0]), vt1_s=float(edges[k1 + 1]))
+        visible = (vx0, vy0, vx1, vy1, float(edges[k0]), float(edges[k1 + 1]))
     else:  # only the PSF's wings reach the frame
-        label.update(vx0=float("nan"), vy0=float("nan"), vx1=float("nan"), vy1=float("nan"),
-                     vt0_s=float("nan"), vt1_s=float("nan"))
-    if frame.wcs is not None:
-        ra, dec = frame.wcs.all_pix2world(np.array([ends_full[0], ends_full[2]]),
-                                          np.array([ends_full[1], ends_full[3]]), 0)
-        label.update(ra0_deg=float(ra[0]), dec0_deg=float(dec[0]), ra1_deg=float(ra[1]), dec1_deg=float(dec[1]))
-    return Injected(obj, r0, c0, stamp, label)
+        visible = (math.nan,) * 6
+    clipped = bool(ends is None or row0 < 0 or col0 < 0 or row0 + unit.shape[0] > h or col0 + unit.shape[1] > w)
+    truth = {"name": obj.name, "kind": obj.kind, "x0": float(xa[0]), "y0": float(ya[0]), "x1": float(xa[1]),
+             "y1": float(ya[1]), "t0_s": 0.0, "t1_s": frame.exptime_s, "flux_e": float(flux * unit.sum()),
+             "clipped": clipped,
+             "light_curve": obj.light_curve.to_table() if obj.light_curve is not None else None}
+    return Injected(obj, r0, c0, flux * vis, truth, visible)
+
+
+def source_stamps(done: list[Injected]):
+    """The injected objects as :class:`scenes.app.bench.labels.SourceStamp` (row = the INJECTED table's
+    row; endpoints and times those of the visible part of the path)."""
+    from .labels import SourceStamp
+
+    out = []
+    for row, d in enumerate(done):
+        vx0, vy0, vx1, vy1, t0, t1 = d.visible
+        static = d.obj.kind == "point"
+        xc, yc = (0.5 * (vx0 + vx1), 0.5 * (vy0 + vy1)) if np.isfinite(vx0) else (math.nan, math.nan)
+        out.append(SourceStamp(d.stamp_e, d.row0, d.col0, row, "injected", xc, yc, vx0, vy0, vx1, vy1,
+                               0.0 if static else t0, d.truth["t1_s"] if static else t1, d.truth["flux_e"],
+                               math.nan, d.obj.name, row))
+    return out
 
 
 # -------------------------------------------------------------------------------------------------- inject
@@ -628,35 +624,52 @@ def _psf_fwhm_px(psf, frame: Frame, bkg, rms) -> tuple[float, str]:
     text = str(psf).strip().lower()
     try:
         if text.endswith("px"):
-            return float(text[:-2]), "given [px]"
+            value = float(text[:-2])
+            ok = value > 0
+            if ok:
+                return value, "given [px]"
         value = float(text.removesuffix("arcsec").removesuffix('"'))
+        if not value > 0:
+            raise ValueError
     except ValueError:
-        raise InjectError(f"{psf!r}", key="--psf", expected="measured, a FWHM in arcsec (2.5) or in pixels (3.2px)") from None
+        raise InjectError(f"{psf!r}", key="--psf",
+                          expected="measured, a FWHM > 0 in arcsec (2.5) or in pixels (3.2px)") from None
     if frame.pixel_scale_arcsec is None:
         raise InjectError("--psf in arcsec needs the pixel scale, and the frame has no WCS", file=frame.name,
                           key="--psf", expected="a FWHM in pixels (--psf 3.2px), or --pixel-scale ARCSEC")
     return value / frame.pixel_scale_arcsec, "given [arcsec]"
 
 
-def inject(frame: Frame, objects: list[Obj], *, psf=None, seed: int | None = None, bkg_rms=None):
-    """Inject ``objects`` into ``frame``: the new pixel values of the image HDU (its own dtype), the injected
-    objects (stamps and labels) and a summary. ``bkg_rms``: (background, rms) [ADU] if already measured."""
-    ss = np.random.SeedSequence(seed)
-    rng_noise = np.random.default_rng(ss.spawn(1)[0])
+@dataclass
+class Result:
+    """An injection: the image HDU's new pixels (its own dtype), the injected objects, their labels."""
+
+    pixels: np.ndarray
+    injected: list
+    labels: object  # scenes.app.bench.frame.FrameLabels
+    summary: dict
+    background_adu: np.ndarray
+    rms_adu: np.ndarray
+
+
+def inject(frame: Frame, objects: list[Obj], *, psf=None, seed: int | None = None, bkg_rms=None) -> Result:
+    """Inject ``objects`` into ``frame`` (the module notes). ``bkg_rms``: (background, rms) [ADU] if
+    already measured."""
+    from .frame import FrameLabels
+    from .labels import MASK_FRACTION_SIGMA, NoiseModel, labels_from_sources
+
+    rng_noise = np.random.default_rng(np.random.SeedSequence(seed).spawn(1)[0])
     bkg, rms = bkg_rms if bkg_rms is not None else background(frame.data, frame.bayer)
     fwhm_px, psf_source = _psf_fwhm_px(psf, frame, bkg, rms)
     weights, colour = (None, "monochrome")
     if frame.bayer is not None:
         weights, colour = cfa_weights(frame, bkg, fwhm_px)
     g = frame.gain_e_per_adu
-    var0 = (rms * g) ** 2
+    sigma_e = rms * g
     done, dropped = [], []
     for obj in objects:
-        d = _draw(obj, frame, fwhm_px, weights, var0)
-        if d is None:
-            dropped.append(obj.name)
-        else:
-            done.append(d)
+        d = _draw(obj, frame, fwhm_px, weights, sigma_e ** 2)
+        (dropped if d is None else done).append(obj.name if d is None else d)
     h, w = frame.shape
     expected = np.zeros((h, w))
     for d in done:
@@ -666,81 +679,107 @@ def inject(frame: Frame, objects: list[Obj], *, psf=None, seed: int | None = Non
     old = frame.data[foot]
     new = old + counts_e / g
     if frame.dtype.kind in "iu":
-        new = np.rint(new)
-        new = np.maximum(new, float(np.iinfo(frame.dtype).min))
+        new = np.maximum(np.rint(new), float(np.iinfo(frame.dtype).min))
     new = np.minimum(new, frame.saturation_adu)
     frozen = ~np.isfinite(old) | (old >= frame.saturation_adu)
     new[frozen] = old[frozen]
     out = frame.data.copy()
     out[foot] = new
     out = out.astype(frame.dtype)
-    changed_outside = 0  # by construction: only footprint pixels were written
+    if frame.dtype.kind == "f":  # outside the footprints the input's own bits (no round trip through float64)
+        out[~foot] = np.asarray(frame.raw if frame.raw is not None else frame.data)[~foot]
+    sources = source_stamps(done)
+    noise = NoiseModel.measured(sigma_e)
+    labels = labels_from_sources(sources, noise, frame.shape, frame.wcs)
+    fl = FrameLabels(labels, sources, frame.shape, frame.wcs, noise, MASK_FRACTION_SIGMA)
+    by_row = {lab.row: lab for lab in labels}
+    objects_out = []
+    for row, d in enumerate(done):
+        lab = by_row.get(row)
+        rec = dict(d.truth)
+        rec.update({f"visible_{k}": v for k, v in zip(("x0", "y0", "x1", "y1", "t0_s", "t1_s"), d.visible)})
+        if lab is not None:
+            rec.update(snr=lab.snr, snr_peak=lab.snr_peak, flux_visible_e=lab.flux_e, bbox=list(lab.bbox),
+                       mask_pixels=lab.mask_pixels, rate_arcsec_s=lab.rate_arcsec_s, length_px=lab.length_px)
+        objects_out.append(rec)
     summary = {
         "frame": frame.path, "hdu": frame.hdu, "shape": list(frame.shape), "dtype": str(frame.dtype),
         "gain_e_per_adu": g, "exptime_s": frame.exptime_s, "saturation_adu": frame.saturation_adu,
         "pixel_scale_arcsec": frame.pixel_scale_arcsec, "fwhm_px": fwhm_px, "psf": psf_source,
-        "bayer": frame.bayer, "colour": colour, "cfa_weights": None if weights is None else list(map(float, weights)),
+        "bayer": frame.bayer, "colour": colour, "cfa_weights": None if weights is None else [float(v) for v in weights],
         "background_rms_adu_median": float(np.nanmedian(rms)), "sources": dict(frame.sources),
-        "footprint_px": int(foot.sum()), "saturated_px": int(np.sum(new >= frame.saturation_adu)),
-        "objects": [d.label for d in done], "off_frame": dropped, "changed_outside_footprint": changed_outside,
+        "footprint_px": int(foot.sum()), "saturated_px": int(np.sum(new[~frozen] >= frame.saturation_adu)),
+        "objects": objects_out, "off_frame": dropped,
         "warnings": list(frame.warnings) + [f"{n}: entirely off the frame, not injected" for n in dropped],
         "seed": seed,
     }
-    return out, done, summary, (bkg, rms)
+    return Result(out, done, fl, summary, bkg, rms)
 
 
-TRUTH_COLUMNS = [("name", "S32"), ("kind", "S9"), ("x0", "f8"), ("y0", "f8"), ("x1", "f8"), ("y1", "f8"),
-                 ("vx0", "f8"), ("vy0", "f8"), ("vx1", "f8"), ("vy1", "f8"), ("t0_s", "f8"), ("t1_s", "f8"),
-                 ("vt0_s", "f8"), ("vt1_s", "f8"), ("ra0_deg", "f8"), ("dec0_deg", "f8"), ("ra1_deg", "f8"),
-                 ("dec1_deg", "f8"), ("flux_e", "f8"), ("flux_visible_e", "f8"), ("flux_adu", "f8"), ("snr", "f8"),
-                 ("peak_snr", "f8"), ("length_px", "f8"), ("rate_arcsec_s", "f8"), ("clipped", "?"),
-                 ("bbox", "i8", (4,))]
+INJECTED_COLUMNS = [("name", "S32"), ("kind", "S9"), ("x0", "f8"), ("y0", "f8"), ("x1", "f8"), ("y1", "f8"),
+                    ("t0_s", "f8"), ("t1_s", "f8"), ("flux_e", "f8"), ("visible_x0", "f8"), ("visible_y0", "f8"),
+                    ("visible_x1", "f8"), ("visible_y1", "f8"), ("visible_t0_s", "f8"), ("visible_t1_s", "f8"),
+                    ("flux_visible_e", "f8"), ("snr", "f8"), ("snr_peak", "f8"), ("clipped", "?"),
+                    ("bbox", "i8", (4,))]
 
 
-def truth_hdu(done: list[Injected], summary: dict) -> fits.BinTableHDU:
-    """The ``INJECTED`` table: one row per injected object (the label values of the module notes)."""
-    rows = np.zeros(len(done), dtype=TRUTH_COLUMNS)
-    for i, d in enumerate(done):
+def injected_hdu(res: Result) -> fits.BinTableHDU:
+    """The ``INJECTED`` table: one row per injected object (what was drawn, and its label's visible part,
+    flux and SNR); the row is the value of the ``LABELS`` image and the ``row`` of the label files."""
+    objs = res.summary["objects"]
+    rows = np.zeros(len(objs), dtype=INJECTED_COLUMNS)
+    for i, rec in enumerate(objs):
         for name in rows.dtype.names:
-            v = d.label.get(name, float("nan"))
+            v = rec.get(name, -1 if name == "bbox" else math.nan)
             rows[name][i] = str(v).encode("ascii", "replace")[:32] if rows.dtype[name].kind == "S" else v
     hdu = fits.BinTableHDU(rows, name="INJECTED")
-    hd = hdu.header
-    hd["INJHDU"] = (summary["hdu"], "HDU the objects were injected into")
-    hd["INJGAIN"] = (summary["gain_e_per_adu"], "gain used [e-/ADU]")
-    hd["INJFWHM"] = (summary["fwhm_px"], "PSF FWHM used [px]")
-    hd["INJSEED"] = (-1 if summary["seed"] is None else summary["seed"], "seed of the shot noise")
-    hd["INJSAT"] = (summary["saturation_adu"] if math.isfinite(summary["saturation_adu"]) else -1.0,
+    hd, s = hdu.header, res.summary
+    hd["INJHDU"] = (s["hdu"], "HDU the objects were injected into")
+    hd["INJGAIN"] = (s["gain_e_per_adu"], "gain used [e-/ADU]")
+    hd["INJFWHM"] = (s["fwhm_px"], "PSF FWHM used [px]")
+    hd["INJEXPT"] = (s["exptime_s"], "exposure time used [s]")
+    hd["INJSEED"] = (-1 if s["seed"] is None else s["seed"], "seed of the shot noise and random objects")
+    hd["INJSAT"] = (s["saturation_adu"] if math.isfinite(s["saturation_adu"]) else -1.0,
                     "saturation level [ADU] (-1: none)")
-    hd["COMMENT"] = "pixels 0-based, pixel centres at integers; x0..y1 whole path, vx0..vy1 its visible part"
-    hd["COMMENT"] = "snr: matched-filter SNR against the frame's background rms (photutils Background2D)"
+    hd["COMMENT"] = "0-based pixel centres; x0..y1 the whole path, visible_* its part on the frame"
+    hd["COMMENT"] = "snr: matched filter against the frame's background rms (photutils Background2D)"
     return hdu
 
 
-def inject_file(frame_path, out_path, objects, *, hdu=None, psf=None, gain=None, saturation=None, exptime=None,
-                pixel_scale=None, bayer=None, seed=None, random=None, labels_hook=None):
-    """Read ``frame_path``, inject, write ``out_path`` (every HDU of the input, the image HDU's pixels in the
-    footprints changed, an ``INJECTED`` table appended). ``objects``: an objects TOML path or None with
-    ``random = (n, (snr_lo, snr_hi), (rate_lo, rate_hi))``. Returns the summary."""
+def inject_file(frame_path, out_path, objects=None, *, random=None, hdu=None, psf=None, gain=None,
+                saturation=None, exptime=None, pixel_scale=None, bayer=None, seed=None, labels=(),
+                label_paths=None) -> dict:
+    """Read ``frame_path``, inject, write ``out_path``: every HDU of the input (the image HDU's pixels changed
+    in the footprints only), then an ``INJECTED`` table (and a ``LABELS`` image with ``labels`` holding
+    "fits"); the other label formats to ``label_paths[format]``. ``objects``: an objects TOML, or None with
+    ``random = (n, (snr_lo, snr_hi), (rate_lo, rate_hi) [arcsec/s])``. Returns the summary."""
+    from detector.rng import fresh_seed
+
+    from .formats import labels_hdu
+    from .frame import write_label_files
+
+    seed = fresh_seed() if seed is None else int(seed)
     hdul, frame = read_frame(frame_path, hdu, gain=gain, saturation=saturation, exptime=exptime,
                              pixel_scale=pixel_scale, bayer=bayer)
     with hdul:
         if frame.wcs is None and frame.pixel_scale_arcsec is None:
             raise InjectError("no celestial WCS in the image HDU", file=frame.name,
                               expected="a frame with a WCS (TAN, TAN-SIP, TPV, CD or PC+CDELT), or --pixel-scale "
-                                       "ARCSEC with objects in pixels")
+                                       "ARCSEC (objects then in pixels, rates through that scale)")
         if objects is not None:
             objs = objects_from_toml(objects, frame)
         else:
             n, snr_range, rate_range = random
             rng_obj = np.random.default_rng(np.random.SeedSequence(seed).spawn(2)[1])
             objs = random_objects(n, snr_range, rate_range, frame, rng_obj)
-        out, done, summary, bkg_rms = inject(frame, objs, psf=psf, seed=seed)
-        target = hdul[frame.hdu]
-        target.data = out
-        hdul.append(truth_hdu(done, summary))
-        if labels_hook is not None:
-            labels_hook(frame, done, summary, bkg_rms)
+        res = inject(frame, objs, psf=psf, seed=seed)
+        hdul[frame.hdu].data = res.pixels
+        hdul.append(injected_hdu(res))
+        if "fits" in labels:
+            fl = res.labels
+            hdul.append(labels_hdu(fl.sources, fl.labels, fl.shape, fl.mask_fraction_sigma))
         hdul.writeto(out_path, output_verify="silentfix", checksum=False)
-    summary["output"] = str(out_path)
-    return summary
+        write_label_files(res.labels, {f: p for f, p in (label_paths or {}).items() if f in labels},
+                          Path(out_path).name, {"seed": seed, "frame": str(frame_path), "hdu": frame.hdu})
+    res.summary["output"] = str(out_path)
+    return res.summary

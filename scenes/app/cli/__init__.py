@@ -5,6 +5,7 @@
 * :mod:`.compare`       ``compare``, ``diagnose``
 * :mod:`.batch`         ``batch``
 * :mod:`.optics`        ``optics vignetting | psf | pst | layout``
+* :mod:`.inject`        ``inject``, ``detect``
 * :mod:`.common`        error handling, JSON output, scene loading, progress bars
 
 The optics commands import Mitsuba only when they run, so ``newtsim render`` works without it.
@@ -31,6 +32,7 @@ try:
     from .compare import compare as compare_command
     from .compare import diagnose as diagnose_command
     from .demo import demo as demo_command
+    from .inject import inject as inject_command
     from .optics import optics as optics_group
     from .render import effects as effects_command
     from .render import render as render_command
@@ -51,6 +53,7 @@ def cli():
     compare       model vs measured frame: chi2, residuals per region/row/column/source, HTML report
     diagnose      which physical effect the model lacks, ranked by delta BIC; --apply adds it
     optics        vignetting | psf | pst: ray tracing of the telescope (Mitsuba 3, llvm)
+    inject        synthetic streaks and points drawn into a measured frame (+ labels)
     """
 
 
@@ -62,6 +65,7 @@ cli.add_command(diagnose_command, name="diagnose")
 cli.add_command(optics_group, name="optics")
 cli.add_command(batch_command, name="batch")
 cli.add_command(demo_command, name="demo")
+cli.add_command(inject_command, name="inject")
 
 
 def _usage_line(exc: click.ClickException) -> str:
