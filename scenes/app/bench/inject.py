@@ -55,7 +55,7 @@ from scenes.objects.frames import east_north, radec_to_unit, unit_to_radec
 from scenes.objects.lightcurve import LightCurve, light_curve_from_table
 
 __all__ = ["BAYER_PATTERNS", "Frame", "InjectError", "Injected", "Obj", "Result", "background", "cfa_weights",
-           "expected_stamp", "inject", "inject_file", "injected_hdu", "measure_psf", "objects_from_toml",
+           "expected_stamp", "inject", "inject_file", "injected_hdu", "linear_path", "measure_psf", "objects_from_toml",
            "random_objects", "read_frame", "snr_of", "source_stamps"]
 
 BAYER_PATTERNS = ("RGGB", "GRBG", "GBRG", "BGGR")
@@ -378,7 +378,8 @@ class Obj:
     ends_sky: tuple | None = None  # ((ra0, dec0), (ra1, dec1)) [deg] when given on the sky
 
 
-def _linear(x0, y0, x1, y1, t_s):
+def linear_path(x0, y0, x1, y1, t_s):
+    """A path from (x0, y0) at t = 0 to (x1, y1) at t = t_s, at constant speed [px]."""
     def path(t):
         u = np.asarray(t, dtype=float) / t_s
         return x0 + (x1 - x0) * u, y0 + (y1 - y0) * u
@@ -439,9 +440,9 @@ def objects_from_toml(path, frame: Frame) -> list[Obj]:
 
         ends_sky = None
         if all(k in r for k in ("x0", "y0", "x1", "y1")):
-            kind, p = "streak", _linear(num("x0"), num("y0"), num("x1"), num("y1"), T)
+            kind, p = "streak", linear_path(num("x0"), num("y0"), num("x1"), num("y1"), T)
         elif "x" in r and "y" in r:
-            kind, p = "point", _linear(num("x"), num("y"), num("x"), num("y"), T)
+            kind, p = "point", linear_path(num("x"), num("y"), num("x"), num("y"), T)
         elif "ra_deg" in r and "dec_deg" in r:
             if frame.wcs is None:
                 raise InjectError("an object given on the sky needs the frame's WCS, and it has none",
@@ -483,7 +484,7 @@ def random_objects(n: int, snr_range, rate_range_arcsec_s, frame: Frame, rng: np
         length = rate * frame.exptime_s / frame.pixel_scale_arcsec if rate > 0 else 0.0
         dx, dy = 0.5 * length * math.cos(theta), 0.5 * length * math.sin(theta)
         kind = "streak" if length > 0 else "point"
-        out.append(Obj(f"inj{i}", kind, _linear(xc - dx, yc - dy, xc + dx, yc + dy, frame.exptime_s), None, snr))
+        out.append(Obj(f"inj{i}", kind, linear_path(xc - dx, yc - dy, xc + dx, yc + dy, frame.exptime_s), None, snr))
     return out
 
 
