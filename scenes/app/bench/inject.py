@@ -56,13 +56,14 @@ from scenes.objects.lightcurve import LightCurve, light_curve_from_table
 
 __all__ = ["BAYER_PATTERNS", "Frame", "InjectError", "Injected", "Obj", "Result", "background", "cfa_weights",
            "expected_stamp", "inject", "inject_file", "injected_hdu", "linear_path", "measure_psf", "objects_from_toml",
-           "random_objects", "read_frame", "snr_of", "source_stamps"]
+           "random_objects", "read_frame", "snr_of", "source_stamps", "unlit_edges"]
 
 BAYER_PATTERNS = ("RGGB", "GRBG", "GBRG", "BGGR")
 #: header gains outside this range are not e-/ADU (a camera's gain *setting*, e.g. the Seestar's GAIN = 80)
 PLAUSIBLE_GAIN = (0.05, 30.0)
 #: the PSF footprint reaches this many FWHM from the path (a Gaussian at 3 FWHM is 7 sigma: 1e-11 of its peak)
 FOOTPRINT_FWHM = 3.0
+UNLIT_SIGMA = 10.0  # an edge block this many pixel-noise sigma below the frame's level is not lit (overscan)
 STEP_PX = 0.25  # longest step between two samples of a path [px]
 MIN_STARS = 5  # stars needed to measure the PSF
 #: narrower fits are not stars: a point source lit within one pixel fits a Gaussian of FWHM 0.6-0.95 px (hot
@@ -243,26 +244,83 @@ def _box(shape) -> int:
     return int(np.clip(min(shape) // 4, 8, 64))
 
 
-def _background_plane(data: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def unlit_edges(data: np.ndarray) -> np.ndarray:
+    """Pixels that cannot receive light: blocks of columns (rows) at the frame's edges whose median lies more
+    than UNLIT_SIGMA pixel-noise sigma below the rest of the frame's median (a raw frame's prescan and
+    overscan at the bias level: the HSC and DECam cutouts of ../shared/realdata), at most a quarter of the
+    frame per side. The pixel noise is the robust sigma of the differences of neighbouring pixels / sqrt 2 (a
+    gradient or stars do not inflate it). A frame with no light at all (a bias) has no such block."""
+    out = np.zeros(data.shape, dtype=bool)
+    finite = np.isfinite(data)
+    if finite.sum() < 16:
+        return out
+    d = np.diff(np.where(finite, data, np.nanmedian(data)), axis=1)
+    noise = 1.4826 * float(np.median(np.abs(d - np.median(d)))) / math.sqrt(2.0)
+    if not noise > 0:
+        return out
+    for axis in (0, 1):  # axis 0: column medians (blocks of columns), 1: row medians
+        med = np.nanmedian(np.where(finite, data, np.nan), axis=axis)
+        n = med.size
+        level = float(np.nanmedian(med))
+        dark = med < level - UNLIT_SIGMA * noise
+        for side in (np.arange(n), np.arange(n)[::-1]):
+            k = 0
+            while k < n // 4 and dark[side[k]]:
+                k += 1
+            if k:
+                idx = side[:k]
+                if axis == 0:
+                    out[:, idx] = True
+                else:
+                    out[idx, :] = True
+    return out
+
+
+def _background2d(data, bad, **kw):
     from photutils.background import Background2D
 
-    finite = np.isfinite(data)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        b = Background2D(np.where(finite, data, 0.0), _box(data.shape), mask=~finite, filter_size=(3, 3))
-    return np.asarray(b.background, dtype=np.float64), np.asarray(b.background_rms, dtype=np.float64)
+        try:
+            return Background2D(data, _box(data.shape), mask=bad, filter_size=(3, 3), **kw)
+        except ValueError:  # too much masked for the boxes: boxes with up to 90 % of their pixels masked
+            return Background2D(data, _box(data.shape), mask=bad, filter_size=(3, 3), exclude_percentile=90.0,
+                                **kw)
 
 
-def background(data: np.ndarray, bayer: str | None = None) -> tuple[np.ndarray, np.ndarray]:
+def _background_plane(data: np.ndarray, mask: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Background2D's background, and the pixel noise: Background2D's robust (MAD) rms of the differences of
+    neighbouring pixels over sqrt 2. A gradient, a broad trail or a read-out ramp inside a box is structure,
+    not noise: on the DECam cutout of ../shared/realdata the box rms of data - background is 140-250 ADU,
+    the pixel noise 27-31 ADU (sky 8200 e- at 4 e-/ADU: 23 ADU of shot noise). Neighbour-correlated noise
+    (a resampled frame) would be underestimated by this estimator."""
+    from photutils.background import MADStdBackgroundRMS
+
+    bad = ~np.isfinite(data) if mask is None else (~np.isfinite(data) | mask)
+    clean = np.where(np.isfinite(data), data, 0.0)
+    b = np.asarray(_background2d(clean, bad).background, dtype=np.float64)
+    diff = np.empty_like(clean)
+    diff[:, :-1] = (clean[:, 1:] - clean[:, :-1]) / math.sqrt(2.0)
+    diff[:, -1] = diff[:, -2] if clean.shape[1] > 1 else 0.0
+    dbad = bad.copy()
+    dbad[:, :-1] |= bad[:, 1:]
+    rms = np.asarray(_background2d(diff, dbad, bkg_rms_estimator=MADStdBackgroundRMS()).background_rms,
+                     dtype=np.float64)
+    return b, rms
+
+
+def background(data: np.ndarray, bayer: str | None = None, mask: np.ndarray | None = None):
     """The frame's background and background rms [ADU] per pixel (photutils ``Background2D``, sigma-clipped
-    boxes of a quarter of the frame's side, 8 to 64 px); a Bayer frame per CFA plane (the four colours have
-    their own levels and noise)."""
+    boxes of a quarter of the frame's side, 8 to 64 px; the rms the pixel noise of :func:`_background_plane`),
+    the unlit edges (:func:`unlit_edges`) and ``mask``
+    left out; a Bayer frame per CFA plane (the four colours have their own levels and noise)."""
+    m = unlit_edges(data) if mask is None else (unlit_edges(data) | mask)
     if bayer is None:
-        return _background_plane(data)
+        return _background_plane(data, m)
     bkg, rms = np.empty_like(data), np.empty_like(data)
     for dy in (0, 1):
         for dx in (0, 1):
-            b, r = _background_plane(data[dy::2, dx::2])
+            b, r = _background_plane(data[dy::2, dx::2], m[dy::2, dx::2])
             bkg[dy::2, dx::2], rms[dy::2, dx::2] = b, r
     return bkg, rms
 
@@ -562,7 +620,8 @@ class Injected:
     visible: tuple  # (x0, y0, x1, y1, t0_s, t1_s) of the part of the path on the frame (NaN: none)
 
 
-def _draw(obj: Obj, frame: Frame, fwhm_px: float, weights_cfa, var0_e2: np.ndarray) -> Injected | None:
+def _draw(obj: Obj, frame: Frame, fwhm_px: float, weights_cfa, var0_e2: np.ndarray,
+          unlit: np.ndarray | None = None) -> Injected | None:
     """The object's expected electrons on the frame; its flux set from its target SNR if asked."""
     h, w = frame.shape
     x, y, wgt = _samples(obj, frame.exptime_s, fwhm_px * FWHM_TO_SIGMA)
@@ -576,6 +635,8 @@ def _draw(obj: Obj, frame: Frame, fwhm_px: float, weights_cfa, var0_e2: np.ndarr
     if r1 <= r0 or c1 <= c0:
         return None
     vis = unit[r0 - row0:r1 - row0, c0 - col0:c1 - col0]
+    if unlit is not None:  # the prescan/overscan receives no light
+        vis = np.where(unlit[r0:r1, c0:c1], 0.0, vis)
     var = var0_e2[r0:r1, c0:c1]
     if obj.flux_e is not None:
         flux = obj.flux_e
@@ -667,9 +728,11 @@ def inject(frame: Frame, objects: list[Obj], *, psf=None, seed: int | None = Non
         weights, colour = cfa_weights(frame, bkg, fwhm_px)
     g = frame.gain_e_per_adu
     sigma_e = rms * g
+    unlit = unlit_edges(frame.data)
+    unlit = unlit if unlit.any() else None
     done, dropped = [], []
     for obj in objects:
-        d = _draw(obj, frame, fwhm_px, weights, sigma_e ** 2)
+        d = _draw(obj, frame, fwhm_px, weights, sigma_e ** 2, unlit)
         (dropped if d is None else done).append(obj.name if d is None else d)
     h, w = frame.shape
     expected = np.zeros((h, w))
@@ -709,7 +772,7 @@ def inject(frame: Frame, objects: list[Obj], *, psf=None, seed: int | None = Non
         "pixel_scale_arcsec": frame.pixel_scale_arcsec, "fwhm_px": fwhm_px, "psf": psf_source,
         "bayer": frame.bayer, "colour": colour, "cfa_weights": None if weights is None else [float(v) for v in weights],
         "background_rms_adu_median": float(np.nanmedian(rms)), "sources": dict(frame.sources),
-        "footprint_px": int(foot.sum()), "saturated_px": int(np.sum(new[~frozen] >= frame.saturation_adu)),
+        "footprint_px": int(foot.sum()), "unlit_px": 0 if unlit is None else int(unlit.sum()), "saturated_px": int(np.sum(new[~frozen] >= frame.saturation_adu)),
         "objects": objects_out, "off_frame": dropped,
         "warnings": list(frame.warnings) + [f"{n}: entirely off the frame, not injected" for n in dropped],
         "seed": seed,
