@@ -17,6 +17,13 @@ complete). The client keeps ``manifest.json`` (per frame: overrides, seed, statu
 sha256) up to date as frames finish; a re-run skips the frames whose file and manifest entry match.
 A frame that fails (a bad override, a scene that cannot render) is reported in the manifest and the
 summary; the others go on.
+
+With labels (``[batch] labels`` or ``--labels FORMAT[,FORMAT]``) the batch writes a dataset
+(docs/detection_bench.md): each frame's label files next to it (``frame_IIII.coco.json``, ``.satnet.json``,
+``.yolo.txt``, as ``render --labels`` writes them; ``fits`` adds the ``LABELS`` extension), one annotation
+file per format for the whole dataset (``dataset.coco.json`` with image id = frame index + 1,
+``dataset.satnet.json``) rebuilt from the frames done at the end of every run, and each frame's split
+(train/val/test, :func:`frame_split`: from its seed) in the manifest and in ``train.txt``/``val.txt``/``test.txt``.
 """
 
 from __future__ import annotations
@@ -52,13 +59,16 @@ from scenes.image.motion import Boresight
 from scenes.objects.frames import east_north, radec_to_unit, unit_to_radec
 from scenes.scene import BUILTIN_SCENES, Scene, SceneError, _Table, load_scene
 
-__all__ = ["Batch", "FrameSpec", "frame_seed", "frame_sets", "load_batch", "plan", "render_frame", "run_batch",
+__all__ = ["SPLITS", "Batch", "FrameSpec", "frame_seed", "frame_split", "frame_sets", "load_batch", "plan", "render_frame", "run_batch",
            "sequence_overrides", "toml_inline"]
 
 MAX_FRAMES = 1_000_000
 MANIFEST = "manifest.json"
 MANIFEST_VERSION = 1
 _SAVE_EVERY_S = 1.0  # the manifest is rewritten at most this often while frames finish (and at the end)
+SPLITS = ("train", "val", "test")
+SPLIT_FRACTIONS = (0.8, 0.1, 0.1)  # default [batch] split: train, val, test
+DATASET_FILES = {"coco": "dataset.coco.json", "satnet": "dataset.satnet.json"}
 _DOTTED = re.compile(r"^[A-Za-z0-9_-]+(\.[A-Za-z0-9_-]+)*$")
 
 
@@ -72,6 +82,10 @@ class BatchCfg(_Table):
     noiseless: bool = False
     expected: bool = False
     png: bool = False
+    labels: list[str] = Field(default_factory=list,
+                              description="label formats (coco, satnet, yolo, fits): the batch writes a dataset")
+    split: list[float] = Field(default_factory=lambda: list(SPLIT_FRACTIONS), min_length=3, max_length=3,
+                               description="fractions of frames in train, val, test (>= 0, sum 1)")
 
 
 class SweepCfg(_Table):
@@ -127,6 +141,8 @@ class FrameSpec:
     expected: bool = False
     png: bool = False
     scene_sha256: str = ""
+    labels: tuple[str, ...] = ()  # label formats (scenes.app.bench.formats.FORMATS)
+    split: str = ""  # train, val or test (frame_split of the seed)
 
     @property
     def spec_sha256(self) -> str:
@@ -134,6 +150,9 @@ class FrameSpec:
         d = asdict(self)
         for k in ("index", "file", "scene"):
             d.pop(k)
+        if not self.labels:  # a frame without labels does not depend on them (nor on its split)
+            d.pop("labels")
+            d.pop("split")
         return hashlib.sha256(json.dumps(d, sort_keys=True, default=str).encode()).hexdigest()
 
 
@@ -161,6 +180,32 @@ def frame_seed(root: int, index: int) -> int:
     """
     ss = np.random.SeedSequence(int(root), spawn_key=(int(index),))
     return int(ss.generate_state(1, np.uint64)[0] >> np.uint64(1))
+
+
+def frame_split(seed: int, fractions=SPLIT_FRACTIONS) -> str:
+    """The split of the frame with ``seed``: ``u = first 8 bytes of sha256(str(seed)) / 2^64``, uniform in
+    [0, 1); ``train`` if u < f_train, ``val`` if u < f_train + f_val, else ``test``.
+
+    A function of the seed alone: a frame keeps its split when the batch grows or is re-run, and the
+    fractions are met in expectation (binomial scatter for a finite batch).
+    """
+    u = int.from_bytes(hashlib.sha256(str(int(seed)).encode()).digest()[:8], "big") / 2.0 ** 64
+    f_train, f_val = float(fractions[0]), float(fractions[1])
+    return "train" if u < f_train else ("val" if u < f_train + f_val else "test")
+
+
+def _check_labels(formats, fractions, file: str, key: str) -> tuple[str, ...]:
+    from scenes.app.bench.formats import FORMATS, parse_formats
+
+    try:
+        fmts = tuple(parse_formats(",".join(formats) if isinstance(formats, (list, tuple)) else formats))
+    except ValueError as exc:
+        raise SceneError(str(exc).partition(":")[0], key=key, file=file,
+                         expected=f"one or more of {', '.join(FORMATS)}") from None
+    if any(not (math.isfinite(f) and f >= 0) for f in fractions) or abs(sum(fractions) - 1.0) > 1e-9:
+        raise SceneError(f"{list(fractions)} are not fractions summing to 1", key="batch.split", file=file,
+                         expected="three fractions >= 0 (train, val, test) summing to 1")
+    return fmts
 
 
 def toml_inline(value: Any) -> str:
@@ -226,11 +271,11 @@ def _check_sweeps(sweeps: list[SweepCfg], file: str) -> None:
 
 
 def load_batch(path: str | os.PathLike, sets: list[str] | tuple[str, ...] = (),
-               output_dir: str | os.PathLike | None = None) -> Batch:
+               output_dir: str | os.PathLike | None = None, labels: str | list[str] | None = None) -> Batch:
     """Read and validate a batch file; check its base scene; list its frames.
 
     ``sets`` are ``--set`` overrides of the base scene (after the file's ``[overrides]``); ``output_dir``
-    replaces ``[batch] output_dir``. Raises :class:`SceneError` naming the file, the key and what was
+    replaces ``[batch] output_dir``; ``labels`` (``"coco,yolo"``) replaces ``[batch] labels``. Raises :class:`SceneError` naming the file, the key and what was
     expected.
     """
     p = Path(path)
@@ -251,6 +296,8 @@ def load_batch(path: str | os.PathLike, sets: list[str] | tuple[str, ...] = (),
                          expected="a scene TOML path relative to the batch file, or a built-in scene")
     base_sets = _flatten(cfg.overrides) + list(sets)
     _check_sweeps(cfg.sweep, file)
+    fmts = _check_labels(cfg.batch.labels if labels is None else labels, cfg.batch.split, file,
+                         "batch.labels" if labels is None else "--labels")
     try:  # the base scene must be valid; a bad sweep value fails only its own frames
         load_scene(scene, base_sets)
     except DetectorError as exc:
@@ -272,10 +319,11 @@ def load_batch(path: str | os.PathLike, sets: list[str] | tuple[str, ...] = (),
         for k in range(steps):
             for d in range(draws):
                 i = (i_point * steps + k) * draws + d
+                seed = frame_seed(cfg.batch.seed, i)
                 batch.frames.append(FrameSpec(
                     i, str(out / f"frame_{i:0{width}d}.fits"), scene, point_sets, overrides, k, cadence, d,
-                    frame_seed(cfg.batch.seed, i), cfg.batch.noiseless, cfg.batch.expected, cfg.batch.png,
-                    batch.scene_sha256))
+                    seed, cfg.batch.noiseless, cfg.batch.expected, cfg.batch.png, batch.scene_sha256, fmts,
+                    frame_split(seed, cfg.batch.split)))
     return batch
 
 
@@ -353,6 +401,7 @@ def render_command(spec: FrameSpec, sets: list[str]) -> str:
     """The ``newtsim render`` command that writes the same bytes as the batch."""
     args = ["newtsim", "render", spec.scene, "-o", spec.file, "--seed", str(spec.seed), "--no-png"]
     args += ["--noiseless"] * spec.noiseless + ["--expected"] * spec.expected
+    args += ["--labels", ",".join(spec.labels)] if spec.labels else []
     for s in sets:
         args += ["--set", s]
     return shlex.join(args)
@@ -367,6 +416,13 @@ def _sha256(path: str | Path) -> str:
     return h.hexdigest()
 
 
+def label_files(spec: FrameSpec) -> dict[str, Path]:
+    """A frame's label files (format -> path), named as ``render --labels`` names them."""
+    ext = {"coco": ".coco.json", "satnet": ".satnet.json", "yolo": ".yolo.txt"}
+    p = Path(spec.file)
+    return {f: p.with_name(p.stem + ext[f]) for f in spec.labels if f in ext}
+
+
 def render_frame(spec: FrameSpec) -> dict:
     """Render one frame (the Dask task). Never raises: a failure is returned as ``status = "failed"``.
 
@@ -378,14 +434,24 @@ def render_frame(spec: FrameSpec) -> dict:
 
     t0 = time.perf_counter()
     res: dict[str, Any] = {"index": spec.index, "status": "failed", "host": socket.gethostname(), "pid": os.getpid()}
+    tmps: dict[str, Path] = {}
     try:
         Path(spec.file).unlink(missing_ok=True)
         sets = frame_sets(spec)
         res["set"] = sets
         res["command"] = render_command(spec, sets)
         scene = load_scene(spec.scene, sets)
+        finals = label_files(spec)
+        for f in finals.values():
+            f.unlink(missing_ok=True)
+        tmps = {fmt: f.with_name(f".{f.name}.{os.getpid()}.{uuid.uuid4().hex[:6]}.part") for fmt, f in finals.items()}
+        meta = {"scene": spec.scene, "index": spec.index, "split": spec.split}
         summary = render(scene, spec.file, seed=spec.seed, noiseless=spec.noiseless, expected=spec.expected,
-                         progress=False, workers=1)
+                         progress=False, workers=1, labels=list(spec.labels), label_paths=tmps, label_meta=meta)
+        for fmt, tmp in tmps.items():
+            os.replace(tmp, finals[fmt])
+        if spec.labels:
+            res["labels"] = {"count": summary.get("labels", 0), "files": {k: v.name for k, v in finals.items()}}
         if spec.png:
             png = Path(spec.file).with_suffix(".png")
             tmp = png.with_name(f".{png.stem}.{os.getpid()}.tmp.png")
@@ -398,14 +464,18 @@ def render_frame(spec: FrameSpec) -> dict:
     except Exception as exc:  # noqa: BLE001 -- an unexpected failure is still one frame's: kept with its traceback
         res["error"] = f"{type(exc).__name__}: {exc}"
         res["traceback"] = traceback.format_exc()
+    finally:
+        for tmp in tmps.values():
+            tmp.unlink(missing_ok=True)
     res["wall_s"] = round(time.perf_counter() - t0, 4)
     return res
 
 
 # ------------------------------------------------------------------------------------------ manifest
 def _entry(spec: FrameSpec, status: str = "pending") -> dict:
-    return {"index": spec.index, "file": Path(spec.file).name, "overrides": spec.overrides, "step": spec.step,
-            "draw": spec.draw, "seed": spec.seed, "status": status, "spec_sha256": spec.spec_sha256}
+    return {"index": spec.index, "file": Path(spec.file).name, "scene": spec.scene, "overrides": spec.overrides,
+            "step": spec.step, "draw": spec.draw, "seed": spec.seed, "split": spec.split, "status": status,
+            "spec_sha256": spec.spec_sha256}
 
 
 def _read_manifest(path: Path) -> dict[int, dict]:
@@ -421,7 +491,7 @@ def _is_done(spec: FrameSpec, entry: dict | None) -> bool:
     if not entry or entry.get("status") != "done" or entry.get("spec_sha256") != spec.spec_sha256:
         return False
     p = Path(spec.file)
-    return p.is_file() and p.stat().st_size == entry.get("bytes")
+    return p.is_file() and p.stat().st_size == entry.get("bytes") and all(f.is_file() for f in label_files(spec).values())
 
 
 def plan(batch: Batch, force: bool = False) -> tuple[list[FrameSpec], dict[int, dict]]:
@@ -443,12 +513,70 @@ def _write_manifest(batch: Batch, entries: dict[int, dict]) -> None:
             "scene": batch.scene, "scene_sha256": batch.scene_sha256, "root_seed": b.seed,
             "output_dir": str(batch.output_dir), "noiseless": b.noiseless, "expected": b.expected,
             "frames_total": len(batch.frames),
+            "split": {"fractions": dict(zip(SPLITS, b.split)),
+                      "rule": "u = int(sha256(str(seed))[:8 bytes], big-endian) / 2^64: train if u < f_train, "
+                              "val if u < f_train + f_val, else test"},
+            "labels": _labels_info(batch),
             "counts": {s: sum(e["status"] == s for e in entries.values()) for s in ("done", "failed", "pending")},
             "updated": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
             "frames": [entries[i] for i in sorted(entries)]}
     tmp = batch.manifest_path.with_name(f".{MANIFEST}.{os.getpid()}.part")
     tmp.write_text(json.dumps(jsonable(data), indent=1, allow_nan=False, default=str) + "\n")
     os.replace(tmp, batch.manifest_path)
+
+
+def _labels_info(batch: Batch) -> dict | None:
+    fmts = batch.frames[0].labels if batch.frames else ()
+    if not fmts:
+        return None
+    from scenes.app.bench.labels import MASK_FRACTION_SIGMA, label_rule
+
+    return {"formats": list(fmts), "dataset_files": {f: DATASET_FILES[f] for f in fmts if f in DATASET_FILES},
+            "split_lists": [f"{s}.txt" for s in SPLITS], "label_rule": label_rule(MASK_FRACTION_SIGMA)}
+
+
+def _write_atomic(path: Path, text: str) -> None:
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.part")
+    tmp.write_text(text)
+    os.replace(tmp, path)
+
+
+def write_dataset(batch: Batch, entries: dict[int, dict]) -> dict[str, str]:
+    """The dataset files of a labelled batch from the label files of its frames that are done.
+
+    ``dataset.coco.json``: every frame's COCO image with id = frame index + 1 (stable when the batch grows)
+    and its annotations renumbered 1..N; ``dataset.satnet.json``: the list of the frames' SatNet entries;
+    ``train.txt``, ``val.txt``, ``test.txt``: the frame files of each split. Returns format -> path.
+    """
+    fmts = batch.frames[0].labels if batch.frames else ()
+    if not fmts:
+        return {}
+    done = [s for s in batch.frames if entries.get(s.index, {}).get("status") == "done"]
+    out = {}
+    if "coco" in fmts:
+        images, anns, info, cats = [], [], None, []
+        for spec in done:
+            doc = json.loads(label_files(spec)["coco"].read_text())
+            info, cats = info or doc["info"], cats or doc["categories"]
+            for img in doc["images"]:
+                old = img["id"]
+                img = {**img, "id": spec.index + 1}
+                images.append(img)
+                for a in doc["annotations"]:
+                    if a["image_id"] == old:
+                        anns.append({**a, "image_id": img["id"], "id": len(anns) + 1})
+        doc = {"info": {**(info or {"description": "newtsim labels"}), "frames": len(images)},
+               "images": images, "annotations": anns, "categories": cats}
+        out["coco"] = batch.output_dir / DATASET_FILES["coco"]
+        _write_atomic(out["coco"], json.dumps(doc, indent=1, allow_nan=False))
+    if "satnet" in fmts:
+        frames = [json.loads(label_files(spec)["satnet"].read_text()) for spec in done]
+        out["satnet"] = batch.output_dir / DATASET_FILES["satnet"]
+        _write_atomic(out["satnet"], json.dumps(frames, indent=1, allow_nan=False))
+    for split in SPLITS:
+        _write_atomic(batch.output_dir / f"{split}.txt",
+                      "".join(f"{Path(s.file).name}\n" for s in done if s.split == split))
+    return {k: str(v) for k, v in out.items()}
 
 
 def _remove_stale_parts(folder: Path) -> int:
@@ -458,6 +586,8 @@ def _remove_stale_parts(folder: Path) -> int:
         p.unlink(missing_ok=True)
         n += 1
     for p in folder.glob(".frame_*.tmp.png"):
+        p.unlink(missing_ok=True)
+    for p in folder.glob(".dataset.*.part"):
         p.unlink(missing_ok=True)
     return n
 
@@ -563,6 +693,8 @@ def run_batch(batch: Batch, *, scheduler: str | None = None, workers: int | None
                 client.close()
                 if cluster is not None:
                     cluster.close()
+    if batch.frames and batch.frames[0].labels:
+        summary["dataset"] = write_dataset(batch, entries)
     summary["wall_s"] = round(time.perf_counter() - t0, 3)
     return summary
 

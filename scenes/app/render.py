@@ -298,12 +298,13 @@ def render(scene: Scene, out: str | Path, *, seed: int | None = None, noiseless:
     ext += [table_hdu(name, t) for name, t in det.truth(setup.exptime_s, seed, state).items()]
     frame_lab = None
     if labels:
-        from scenes.app.bench.formats import labels_hdu
+        from scenes.app.bench.formats import labels_hdu, labels_table_hdu
         from scenes.app.bench.frame import frame_labels, write_label_files
 
         frame_lab = frame_labels(setup)
         if "fits" in labels:
             ext.append(labels_hdu(frame_lab.sources, frame_lab.labels, frame_lab.shape, frame_lab.mask_fraction_sigma))
+            ext.append(labels_table_hdu(frame_lab.labels))
         write_label_files(frame_lab, {f: p for f, p in (label_paths or {}).items() if f in labels}, Path(out).name,
                           dict(label_meta or {}, seed=seed))
     if expected and not noiseless:

@@ -171,8 +171,8 @@ def test_inject_file_keeps_other_hdus_and_labels_snr(tmp_path):
     with fits.open(path) as a, fits.open(out) as b:
         assert a[0].header["BITPIX"] == b[0].header["BITPIX"] and a[0].header.get("BZERO") == b[0].header.get("BZERO")
         assert np.array_equal(a["OTHER"].data, b["OTHER"].data) and a["OTHER"].header == b["OTHER"].header
-        assert [h.name for h in b][2:] == ["INJECTED", "LABELS"]
-        snr = b["INJECTED"].data["snr"]
+        assert [h.name for h in b][2:] == ["TRUTH", "LABELS", "LABELCAT"]
+        snr = b["TRUTH"].data["snr"]
     assert len(s["objects"]) == 8 and np.all((snr > 15.0 - 1e-6) & (snr < 40.0 + 1e-6))
     # the same seed writes the same bytes
     out2 = tmp_path / "out2.fits"

@@ -19,9 +19,10 @@ It is a baseline, not the best detector: it shows the loop (render or inject -> 
    are the visible ends of the trail); its score is the integrated SNR of the band, sum(z) / sqrt(n), and a
    streak is kept when it exceeds ``MIN_SNR``.
 
-Output (``write_detections``): a COCO results JSON (``image_id``, ``category_id`` 1, ``bbox``, ``score`` and the
-endpoints ``x0, y0, x1, y1``), or an ECSV table with one row per detection (``file``, ``kind``, ``x0, y0, x1,
-y1``, ``x, y``, ``score``, ``length_px``). Coordinates: 0-based pixel centres, as the labels.
+Output (``write_detections``): a COCO results JSON (``image_id``, ``file_name``, ``category_id`` 1, ``bbox``,
+``score`` and the endpoints ``x0, y0, x1, y1``), or an ECSV table with one row per detection (``file_name``,
+``hdu``, ``kind``, ``x0, y0, x1, y1``, ``x, y``, ``score``, ``length_px``). Coordinates: 0-based pixel
+centres, as the labels; both read by ``newtsim score``.
 """
 
 from __future__ import annotations
@@ -34,6 +35,7 @@ from pathlib import Path
 
 import numpy as np
 from scipy import ndimage
+from scipy.special import erf
 
 __all__ = ["Detection", "detect_file", "detect_image", "write_detections"]
 
@@ -46,8 +48,9 @@ MIN_SNR = 7.0  # integrated SNR of a kept streak (band of +-1 FWHM about its lin
 MERGE_ANGLE_DEG = 4.0
 WING_RATIO = 0.25
 NEAR_UNLIT_PX = 10
-STAR_FILL = 0.35  # a long round segment filling less of its bounding box than this is not a star
+STAR_ROUNDNESS = 0.5  # a peak whose ring one FWHM out varies less than this (min / max) is a star
 DEFAULT_FWHM_PX = 2.5
+FWHM_TO_SIGMA = 1.0 / 2.3548200450309493
 
 
 @dataclass
@@ -194,7 +197,92 @@ def _refine(z: np.ndarray, zs: np.ndarray, p0, p1, fwhm: float):
     sel = (t >= t0) & (t <= t1) & fin
     # integrated SNR with the median bin for the mean: a line through one bright star scores low
     snr = float(np.median(prof[i0:i1 + 1][good[i0:i1 + 1]]) * math.sqrt(max(int(sel.sum()), 1)))
-    return q0, q1, snr, max(width, _halo(z, q0, q1, width))
+    return q0, q1, snr, width
+
+
+def _final(z: np.ndarray, q0, q1, width: float, fwhm: float):
+    """A kept candidate's ends and width from the trail fit (:func:`_fit_trail`), clipped to the frame, and
+    its halo: (q0, q1, width, halo) or None when the fitted trail is off the frame."""
+    fit = _fit_trail(z, q0, q1, width * FWHM_TO_SIGMA, fwhm * FWHM_TO_SIGMA)
+    if fit is not None:
+        q0, q1, sigma, _ = fit
+        width = max(fwhm, sigma / FWHM_TO_SIGMA)
+    vis = _clip_to_frame(q0, q1, z.shape)
+    if vis is None:
+        return None
+    q0, q1 = vis
+    return q0, q1, width, max(width, _halo(z, q0, q1, width))
+
+
+def _trail_model(params, xx, yy):
+    """A straight trail of peak A (significance units) from (x0, y0) to (x1, y1) through a circular Gaussian
+    PSF of sigma s: A exp(-d^2 / 2 s^2) [erf(t / sqrt2 s) - erf((t - L) / sqrt2 s)] / 2 (t along, d across)."""
+    x0, y0, x1, y1, amp, sig = params
+    L = math.hypot(x1 - x0, y1 - y0) or 1e-9
+    ux, uy = (x1 - x0) / L, (y1 - y0) / L
+    t = (xx - x0) * ux + (yy - y0) * uy
+    d = -(xx - x0) * uy + (yy - y0) * ux
+    r = math.sqrt(2.0) * sig
+    return amp * np.exp(-0.5 * (d / sig) ** 2) * 0.5 * (erf(t / r) - erf((t - L) / r))
+
+
+def _fit_trail(z: np.ndarray, q0, q1, sigma: float, psf_sigma: float):
+    """Least-squares fit of :func:`_trail_model` to z about the segment (unit noise): the matched-filter
+    estimate of the ends, the width and the amplitude. Returns (q0, q1, sigma, SNR = A sqrt(sum g^2)) or
+    None when the fit fails."""
+    from scipy.optimize import least_squares
+
+    reach = max(4.0 * sigma, 3.0)
+    rr, cc, _ = _line_band(z.shape, q0, q1, reach, reach + 5.0)
+    v = z[rr, cc]
+    fin = np.isfinite(v)
+    rr, cc, v = rr[fin], cc[fin], v[fin]
+    if v.size < 10:
+        return None
+    xx, yy = cc.astype(float), rr.astype(float)
+    L = math.hypot(q1[0] - q0[0], q1[1] - q0[1])
+    g0 = _trail_model((q0[0], q0[1], q1[0], q1[1], 1.0, sigma), xx, yy)
+    amp0 = float(np.sum(g0 * v) / max(np.sum(g0 * g0), 1e-12))
+    if not amp0 > 0:
+        return None
+    start = np.array([q0[0], q0[1], q1[0], q1[1], amp0, sigma])
+    lo = [-np.inf, -np.inf, -np.inf, -np.inf, 0.0, 0.5 * psf_sigma]
+    hi = [np.inf, np.inf, np.inf, np.inf, np.inf, max(3.0 * sigma, 2.0 * psf_sigma)]
+    start[5] = min(max(start[5], lo[5] * 1.01), hi[5] * 0.99)
+    try:
+        res = least_squares(lambda p: _trail_model(p, xx, yy) - v, start, bounds=(lo, hi), max_nfev=60,
+                            x_scale=[1.0, 1.0, 1.0, 1.0, max(amp0, 1e-3), max(sigma, 0.5)])
+    except (ValueError, FloatingPointError):
+        return None
+    x0, y0, x1, y1, amp, sig = res.x
+    if not (np.all(np.isfinite(res.x)) and amp > 0):
+        return None
+    # a fit that wandered far from the candidate's line is not a refinement of it
+    if math.hypot(0.5 * (x0 + x1) - 0.5 * (q0[0] + q1[0]), 0.5 * (y0 + y1) - 0.5 * (q0[1] + q1[1])) > 0.5 * L + 3 * sigma:
+        return None
+    g = _trail_model((x0, y0, x1, y1, 1.0, sig), xx, yy)
+    return (x0, y0), (x1, y1), float(sig), float(amp * math.sqrt(np.sum(g * g)))
+
+
+def _clip_to_frame(q0, q1, shape):
+    """The part of segment q0-q1 inside the frame [-0.5, w - 0.5] x [-0.5, h - 0.5] (Liang-Barsky), or None."""
+    h, w = shape
+    (x0, y0), (x1, y1) = q0, q1
+    dx, dy = x1 - x0, y1 - y0
+    a, b = 0.0, 1.0
+    for p, q in ((-dx, x0 + 0.5), (dx, w - 0.5 - x0), (-dy, y0 + 0.5), (dy, h - 0.5 - y0)):
+        if p == 0:
+            if q < 0:
+                return None
+            continue
+        r = q / p
+        if p < 0:
+            a = max(a, r)
+        else:
+            b = min(b, r)
+    if a > b:
+        return None
+    return (x0 + a * dx, y0 + a * dy), (x0 + b * dx, y0 + b * dy)
 
 
 def _halo(z: np.ndarray, q0, q1, width: float) -> float:
@@ -293,12 +381,43 @@ def _segments(zf: np.ndarray, fwhm: float):
         if elong >= MIN_ELONGATION and long_enough:
             lines.append(((xc + t.min() * ux, yc + t.min() * uy), (xc + t.max() * ux, yc + t.max() * uy)))
         else:
-            # a star fills its box (a disc: pi/4); a sparse large segment is a trail joined to something else
-            # (the DECam cutout's trail and read-out ramp: 18 % of its box), left to the line finder
-            fill = xx.size / float(m.size)
-            if not long_enough or fill >= STAR_FILL:
-                compact[yy, xx] = True
-    return lines, compact
+            compact[yy, xx] = True
+    return lines, _star_mask(zf, compact, fwhm)
+
+
+def _star_mask(zf: np.ndarray, compact: np.ndarray, fwhm: float) -> np.ndarray:
+    """Discs over the stars of the non-elongated segments: each local maximum of the filtered image there
+    that is round (the filtered image one FWHM away from the peak, in 8 directions: smallest / largest >
+    STAR_ROUNDNESS; along a trail the two directions of the track stay high), of radius where a Gaussian of
+    the PSF's width falls from the peak to SEG_SIGMA, plus one FWHM. A trail touching a star keeps its other
+    pixels (a whole segment masked would take the trail with the star)."""
+    from scipy.ndimage import map_coordinates
+
+    out = np.zeros(zf.shape, dtype=bool)
+    if not compact.any():
+        return out
+    size = int(2 * math.ceil(fwhm) + 1)
+    peak = (zf == ndimage.maximum_filter(zf, size=size)) & compact & (zf > SEG_SIGMA)
+    py, px = np.nonzero(peak)
+    if py.size == 0:
+        return out
+    ang = np.linspace(0.0, 2.0 * math.pi, 8, endpoint=False)
+    sx = px[:, None] + fwhm * np.cos(ang)[None, :]
+    sy = py[:, None] + fwhm * np.sin(ang)[None, :]
+    ring = map_coordinates(zf, [sy.ravel(), sx.ravel()], order=1, mode="nearest").reshape(sx.shape)
+    ring = np.maximum(ring, 1e-6)
+    round_ = ring.min(axis=1) / ring.max(axis=1) > STAR_ROUNDNESS
+    sigma = fwhm * FWHM_TO_SIGMA
+    h, w = zf.shape
+    for y, x, ok in zip(py, px, round_):
+        if not ok:
+            continue
+        r = sigma * math.sqrt(2.0 * math.log(max(zf[y, x] / SEG_SIGMA, 1.0))) + fwhm
+        ri = int(math.ceil(r))
+        y0, y1, x0, x1 = max(0, y - ri), min(h, y + ri + 1), max(0, x - ri), min(w, x + ri + 1)
+        yy, xx = np.ogrid[y0:y1, x0:x1]
+        out[y0:y1, x0:x1] |= (yy - y) ** 2 + (xx - x) ** 2 <= r * r
+    return out
 
 
 def _hough(zf: np.ndarray, compact: np.ndarray, fwhm: float, rng: np.random.Generator):
@@ -357,7 +476,7 @@ def detect_image(data: np.ndarray, *, fwhm_px: float | None = None, bayer: str |
     lines += _hough(zf, compact, fwhm, np.random.default_rng(seed))
     # verify each candidate along its line, without the stars' pixels (no data there: a line through a
     # bright star is not a trail); the best first, a candidate mostly inside a kept trail dropped
-    stars = ndimage.binary_dilation(compact, iterations=int(math.ceil(fwhm))) if compact.any() else compact
+    stars = compact
     z_line = np.where(stars, np.nan, z)
     zs_line = np.where(stars, 0.0, zs)
     found = []
@@ -382,7 +501,11 @@ def detect_image(data: np.ndarray, *, fwhm_px: float | None = None, bayer: str |
         ys = np.clip(np.rint(np.linspace(q0[1], q1[1], n)).astype(int), 0, z.shape[0] - 1)
         if taken[ys, xs].mean() > 0.5:
             continue
-        kept.append((snr, q0, q1, width))
+        fin = _final(z_line, q0, q1, width, fwhm)
+        if fin is None:
+            continue
+        q0, q1, width, halo = fin
+        kept.append((snr, q0, q1, halo))
         rr, cc, _ = _line_band(z.shape, q0, q1, 1.5 * width + fwhm, width)
         taken[rr, cc] = True
     out = [Detection("streak", q0[0], q0[1], q1[0], q1[1], snr) for snr, q0, q1, _ in kept]
@@ -455,8 +578,8 @@ def write_detections(dets: list[Detection], path, *, image_ids: dict | None = No
     from astropy.table import Table
 
     cols = ["file", "hdu", "kind", "x0", "y0", "x1", "y1", "score"]
-    t = Table(rows=[[getattr(d, c) for c in cols] for d in dets] if dets else None, names=cols,
-              dtype=[str, int, str, float, float, float, float, float])
+    t = Table(rows=[[getattr(d, c) for c in cols] for d in dets] if dets else None,
+              names=["file_name"] + cols[1:], dtype=[str, int, str, float, float, float, float, float])
     t["x"] = [d.x for d in dets]
     t["y"] = [d.y for d in dets]
     t["length_px"] = [d.length_px for d in dets]

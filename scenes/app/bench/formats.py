@@ -182,11 +182,39 @@ def yolo_lines(labels: list[Label], shape) -> str:
 def labels_hdu(sources, labels: list[Label], shape, mask_fraction_sigma: float) -> fits.ImageHDU:
     """The ``LABELS`` extension (tile-compressed integer image, lossless)."""
     img = dominant_source_image(sources, labels, shape)
-    hdu = fits.CompImageHDU(img, name="LABELS", compression_type="RICE_1")
+    # tiles of 16 full rows: 1/16 of the per-tile work of astropy's default row tiles (3x faster, smaller)
+    hdu = fits.CompImageHDU(img, name="LABELS", compression_type="RICE_1",
+                            tile_shape=(min(16, img.shape[0]), img.shape[1]))
     hdu.header["NOSOURCE"] = (NO_SOURCE, "value of a pixel in no source's mask")
     hdu.header["MASKSIG"] = (mask_fraction_sigma, "mask: s > MASKSIG x local noise sigma")
     hdu.header["COMMENT"] = "TRUTH row of the pixel's dominant source (largest expected signal among the"
     hdu.header["COMMENT"] = "masks holding the pixel); see docs/detection_bench.md"
+    return hdu
+
+
+#: the label fields of the ``LABELCAT`` table (one row per label; ``bbox`` as four columns; no mask: the
+#: ``LABELS`` image holds the dominant source of each pixel)
+LABELCAT_COLUMNS = ("row", "kind", "name", "source_id", "x", "y", "x0", "y0", "x1", "y1", "t0_s", "t1_s", "ra_deg",
+                    "dec_deg", "ra0_deg", "dec0_deg", "ra1_deg", "dec1_deg", "bbox_x", "bbox_y", "bbox_w", "bbox_h",
+                    "mask_pixels", "mask_flux_fraction", "flux_e", "flux_truth_e", "snr", "snr_peak", "mag",
+                    "length_px", "rate_px_s", "rate_arcsec_s", "edge")
+
+
+def labels_table_hdu(labels: list[Label]) -> fits.BinTableHDU:
+    """The ``LABELCAT`` extension: every label's fields (what the COCO annotations carry but the mask), so
+    a frame with ``TRUTH``, ``LABELS`` and ``LABELCAT`` is a complete labels file (``newtsim score``)."""
+    types = {"row": "i4", "source_id": "i8", "mask_pixels": "i8", "edge": "?", "kind": "S9", "name": "S32",
+             "bbox_x": "i4", "bbox_y": "i4", "bbox_w": "i4", "bbox_h": "i4"}
+    arr = np.zeros(len(labels), dtype=[(k, types.get(k, "f8")) for k in LABELCAT_COLUMNS])
+    for k in LABELCAT_COLUMNS:
+        if k.startswith("bbox_"):
+            arr[k] = [int(lab.bbox["xywh".index(k[-1])]) for lab in labels]
+        elif k in ("kind", "name"):
+            arr[k] = [str(getattr(lab, k)).encode("ascii", "replace")[:int(types[k][1:])] for lab in labels]
+        else:
+            arr[k] = [getattr(lab, k) for lab in labels]
+    hdu = fits.BinTableHDU(arr, name="LABELCAT")
+    hdu.header["COMMENT"] = "one row per label (docs/detection_bench.md); row = the TRUTH row, the LABELS value"
     return hdu
 
 

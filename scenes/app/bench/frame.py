@@ -133,12 +133,20 @@ class FrameLabels:
 
 
 def frame_labels(setup, mask_fraction_sigma: float = MASK_FRACTION_SIGMA) -> FrameLabels:
-    """The labels of every TRUTH row of a prepared render."""
+    """The labels of every TRUTH row of a prepared render.
+
+    The stamps are rendered with BLAS on one thread: their matrix products are small (a streak's samples
+    x its box, ~400 x 100), where a multi-threaded BLAS spends more in waking and synchronising its
+    threads than in the product (x20-70 slower on a loaded 2-core machine: benchmarks/bench_labels.py).
+    """
+    from threadpoolctl import threadpool_limits
+
     s = setup.detector.sensor
     wcs = frame_wcs(setup.scene, s, setup.pixel_scale_arcsec, distortion=setup.distortion)
-    sources = source_stamps(setup)
-    noise = noise_model(setup)
-    labels = labels_from_sources(sources, noise, s.output_shape, wcs, mask_fraction_sigma=mask_fraction_sigma)
+    with threadpool_limits(limits=1, user_api="blas"):
+        sources = source_stamps(setup)
+        noise = noise_model(setup)
+        labels = labels_from_sources(sources, noise, s.output_shape, wcs, mask_fraction_sigma=mask_fraction_sigma)
     return FrameLabels(labels, sources, s.output_shape, wcs, noise, mask_fraction_sigma)
 
 

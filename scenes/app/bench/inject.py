@@ -780,24 +780,35 @@ def inject(frame: Frame, objects: list[Obj], *, psf=None, seed: int | None = Non
     return Result(out, done, fl, summary, bkg, rms)
 
 
-INJECTED_COLUMNS = [("name", "S32"), ("kind", "S9"), ("x0", "f8"), ("y0", "f8"), ("x1", "f8"), ("y1", "f8"),
-                    ("t0_s", "f8"), ("t1_s", "f8"), ("flux_e", "f8"), ("visible_x0", "f8"), ("visible_y0", "f8"),
-                    ("visible_x1", "f8"), ("visible_y1", "f8"), ("visible_t0_s", "f8"), ("visible_t1_s", "f8"),
-                    ("flux_visible_e", "f8"), ("snr", "f8"), ("snr_peak", "f8"), ("clipped", "?"),
-                    ("bbox", "i8", (4,))]
+#: the injected objects' table: the render's TRUTH columns (scenes.image.build.TRUTH_DTYPE; the whole path,
+#: kind "injected") and what the injection adds (the visible part of the path, the SNR, the clipping)
+EXTRA_COLUMNS = [("visible_x0", "f8"), ("visible_y0", "f8"), ("visible_x1", "f8"), ("visible_y1", "f8"),
+                 ("visible_t0_s", "f8"), ("visible_t1_s", "f8"), ("flux_visible_e", "f8"), ("snr", "f8"),
+                 ("snr_peak", "f8"), ("clipped", "?")]
 
 
-def injected_hdu(res: Result) -> fits.BinTableHDU:
-    """The ``INJECTED`` table: one row per injected object (what was drawn, and its label's visible part,
-    flux and SNR); the row is the value of the ``LABELS`` image and the ``row`` of the label files."""
+def injected_hdu(res: Result, name: str = "TRUTH") -> fits.BinTableHDU:
+    """The injected objects' table (``TRUTH`` when the frame has none, so that the frame with ``--labels
+    fits`` is a labels file for ``newtsim score``; else ``INJECTED``): one row per injected object, its row
+    the value of the ``LABELS`` image and the ``row`` of the label files."""
+    from scenes.image.build import TRUTH_DTYPE
+
     objs = res.summary["objects"]
-    rows = np.zeros(len(objs), dtype=INJECTED_COLUMNS)
+    rows = np.zeros(len(objs), dtype=list(TRUTH_DTYPE) + EXTRA_COLUMNS)
     for i, rec in enumerate(objs):
-        for name in rows.dtype.names:
-            v = rec.get(name, -1 if name == "bbox" else math.nan)
-            rows[name][i] = str(v).encode("ascii", "replace")[:32] if rows.dtype[name].kind == "S" else v
-    hdu = fits.BinTableHDU(rows, name="INJECTED")
+        vals = dict(rec, kind="injected", source_id=i, mag=math.nan,
+                    x=0.5 * (rec["x0"] + rec["x1"]), y=0.5 * (rec["y0"] + rec["y1"]))
+        if res.labels.wcs is not None:
+            ra, dec = res.labels.wcs.all_pix2world([vals["x"]], [vals["y"]], 0)
+            vals.update(ra_deg=float(ra[0]), dec_deg=float(dec[0]))
+        else:
+            vals.update(ra_deg=math.nan, dec_deg=math.nan)
+        for col in rows.dtype.names:
+            v = vals.get(col, math.nan)
+            rows[col][i] = str(v).encode("ascii", "replace")[:32] if rows.dtype[col].kind == "S" else v
+    hdu = fits.BinTableHDU(rows, name=name)
     hd, s = hdu.header, res.summary
+    hd["INJECTED"] = (True, "rows are objects injected by newtsim inject")
     hd["INJHDU"] = (s["hdu"], "HDU the objects were injected into")
     hd["INJGAIN"] = (s["gain_e_per_adu"], "gain used [e-/ADU]")
     hd["INJFWHM"] = (s["fwhm_px"], "PSF FWHM used [px]")
@@ -819,7 +830,7 @@ def inject_file(frame_path, out_path, objects=None, *, random=None, hdu=None, ps
     ``random = (n, (snr_lo, snr_hi), (rate_lo, rate_hi) [arcsec/s])``. Returns the summary."""
     from detector.rng import fresh_seed
 
-    from .formats import labels_hdu
+    from .formats import labels_hdu, labels_table_hdu
     from .frame import write_label_files
 
     seed = fresh_seed() if seed is None else int(seed)
@@ -838,10 +849,16 @@ def inject_file(frame_path, out_path, objects=None, *, random=None, hdu=None, ps
             objs = random_objects(n, snr_range, rate_range, frame, rng_obj)
         res = inject(frame, objs, psf=psf, seed=seed)
         hdul[frame.hdu].data = res.pixels
-        hdul.append(injected_hdu(res))
-        if "fits" in labels:
+        names = {h.name for h in hdul}
+        clash = names & {"TRUTH", "LABELS", "LABELCAT"}
+        hdul.append(injected_hdu(res, "INJECTED" if clash else "TRUTH"))
+        if "fits" in labels and not clash:
             fl = res.labels
             hdul.append(labels_hdu(fl.sources, fl.labels, fl.shape, fl.mask_fraction_sigma))
+            hdul.append(labels_table_hdu(fl.labels))
+        elif "fits" in labels:
+            res.summary["warnings"].append(f"{frame_path} already has {', '.join(sorted(clash))}: the injected "
+                                           "objects are in INJECTED, their labels in the other --labels formats only")
         hdul.writeto(out_path, output_verify="silentfix", checksum=False)
         write_label_files(res.labels, {f: p for f, p in (label_paths or {}).items() if f in labels},
                           Path(out_path).name, {"seed": seed, "frame": str(frame_path), "hdu": frame.hdu})

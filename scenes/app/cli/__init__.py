@@ -32,10 +32,12 @@ try:
     from .compare import compare as compare_command
     from .compare import diagnose as diagnose_command
     from .demo import demo as demo_command
+    from .inject import detect as detect_command
     from .inject import inject as inject_command
     from .optics import optics as optics_group
     from .render import effects as effects_command
     from .render import render as render_command
+    from .score import score as score_command
 except KeyboardInterrupt as _exc:
     _interrupts.exit_interrupted(_exc)
 
@@ -54,6 +56,8 @@ def cli():
     diagnose      which physical effect the model lacks, ranked by delta BIC; --apply adds it
     optics        vignetting | psf | pst: ray tracing of the telescope (Mitsuba 3, llvm)
     inject        synthetic streaks and points drawn into a measured frame (+ labels)
+    detect        the baseline streak detector: a frame -> detections (COCO results JSON or ECSV)
+    score         detections vs labels: completeness, purity, SNR of 50 %, PR curve (HTML, JSON)
     """
 
 
@@ -66,6 +70,8 @@ cli.add_command(optics_group, name="optics")
 cli.add_command(batch_command, name="batch")
 cli.add_command(demo_command, name="demo")
 cli.add_command(inject_command, name="inject")
+cli.add_command(detect_command, name="detect")
+cli.add_command(score_command, name="score")
 
 
 def _usage_line(exc: click.ClickException) -> str:

@@ -28,7 +28,8 @@ def _dry_run(batch, force: bool) -> dict:
     frames = []
     for spec in batch.frames:
         row = {"index": spec.index, "file": Path(spec.file).name, "overrides": spec.overrides, "step": spec.step,
-               "draw": spec.draw, "seed": spec.seed, "action": "render" if spec.index in todo else "skip"}
+               "draw": spec.draw, "seed": spec.seed, "split": spec.split,
+               "action": "render" if spec.index in todo else "skip"}
         if spec.index in todo:
             try:
                 load_scene(spec.scene, frame_sets(spec))
@@ -82,18 +83,23 @@ def _overrides_text(overrides: dict) -> str:
 @click.option("--force", is_flag=True, help="re-render frames that are already done")
 @click.option("--dry-run", is_flag=True, help="list the frames (and check their scenes) without rendering")
 @click.option("--json", "json_out", default=None, help="write the summary (or the plan) as JSON ('-' for stdout)")
+@click.option("--labels", "labels", default=None, metavar="FORMAT[,FORMAT]",
+              help="write a labelled dataset: coco, satnet, yolo, fits (replaces [batch] labels); "
+                   "docs/detection_bench.md")
 @click.pass_context
-def batch(ctx, batch_file, scheduler, workers, output_dir, sets, force, dry_run, json_out):
+def batch(ctx, batch_file, scheduler, workers, output_dir, sets, force, dry_run, json_out, labels):
     """Render the frames of BATCH.toml (sweeps x sequence x Monte-Carlo draws) on Dask, resumably.
 
     Frames go to OUTPUT_DIR/frame_IIII.fits with OUTPUT_DIR/manifest.json; a re-run skips the frames
     that are done. Each frame equals `newtsim render SCENE --seed S --set ...` with the seed and
-    overrides of its manifest entry.
+    overrides of its manifest entry. With --labels, each frame's label files, one annotation file per
+    format for the dataset (dataset.coco.json, dataset.satnet.json), and each frame's split (train/val/test
+    from its seed) in the manifest and train.txt, val.txt, test.txt.
     """
     if scheduler and workers:
         raise DetectorError("--workers sets the size of the local cluster", key="--workers",
                             expected="no --workers with --scheduler (the scheduler's workers are used)")
-    b = load_batch(batch_file, list(sets), output_dir)
+    b = load_batch(batch_file, list(sets), output_dir, labels)
     _check_output_dir(b.output_dir)
     if dry_run:
         with Outputs(inputs=[batch_file]) as outs:
@@ -133,5 +139,7 @@ def batch(ctx, batch_file, scheduler, workers, output_dir, sets, force, dry_run,
         write_json(summary, None)
     click.echo(f"batch: {summary['frames']} frames: {summary['rendered']} rendered, {summary['skipped']} already "
                f"done, {summary['failed']} failed in {summary['wall_s']:.1f} s -> {summary['manifest']}", err=True)
+    for fmt, path in summary.get("dataset", {}).items():
+        click.echo(f"batch: dataset {fmt} labels -> {path}", err=True)
     if summary["failed"]:
         ctx.exit(EXIT_FRAMES_FAILED)

@@ -73,3 +73,45 @@ def inject(frame, output, objects, n_random, snr_range, rate_range, psf, gain, s
         click.echo(f"wrote {output}: {len(summary['objects'])} objects into HDU {summary['hdu']} "
                    f"(FWHM {summary['fwhm_px']:.2f} px {summary['psf'].split(' (')[0]}, gain "
                    f"{summary['gain_e_per_adu']:g} e-/ADU from {summary['sources']['gain']})", err=True)
+
+
+@click.command()
+@click.argument("frames", nargs=-1, required=True, type=click.Path(exists=True, dir_okay=False))
+@click.option("-o", "--output", required=True, type=click.Path(dir_okay=False),
+              help="detections: .json (COCO results) or .ecsv/.csv (one row per detection)")
+@click.option("--psf", default="measured", show_default=True,
+              help="measured (the frame's stars; 2.5 px without stars), a FWHM in arcsec or in pixels (3px)")
+@click.option("--hdu", default=None, help="image HDU (index or EXTNAME; default: the first image with a WCS)")
+@click.option("--min-snr", type=click.FloatRange(min=0), default=None,
+              help="smallest integrated SNR of a kept streak (default 7)")
+@click.option("--points", is_flag=True, help="also report compact sources (stars and slow objects) as points")
+@click.option("--labels", "labels_file", default=None, type=click.Path(exists=True, dir_okay=False),
+              help="a COCO labels file: take the image ids from it (by file name)")
+@click.option("--json", "json_out", default=None, help="write a JSON summary here ('-' for stdout)")
+def detect(frames, output, psf, hdu, min_snr, points, labels_file, json_out):
+    """The baseline streak detector on FRAMES (photutils background and segmentation, scikit-image
+    probabilistic Hough; endpoints at the visible ends of each trail). docs/detection_bench.md."""
+    import json
+
+    from scenes.app.bench.detect import MIN_SNR, detect_file, write_detections
+
+    with Outputs(inputs=list(frames) + ([labels_file] if labels_file else [])) as outs:
+        out_path = outs.file(output, "-o")
+        json_path = json_target(outs, json_out)
+        ids = None
+        if labels_file:
+            doc = json.loads(open(labels_file).read())
+            ids = {im["file_name"]: im["id"] for im in doc.get("images", [])}
+        dets, per_frame = [], []
+        for f in frames:
+            d, s = detect_file(f, hdu=hdu, psf=psf, min_snr=MIN_SNR if min_snr is None else min_snr, points=points)
+            dets += d
+            per_frame.append(s)
+        write_detections(dets, out_path, image_ids=ids)
+        summary = {"output": output, "frames": per_frame, "detections": len(dets)}
+        if json_path is not None:
+            write_json(summary, json_path)
+    if json_out == "-":
+        write_json(summary, None)
+    elif not json_out:
+        click.echo(f"wrote {output}: {len(dets)} detections in {len(frames)} frame(s)", err=True)
