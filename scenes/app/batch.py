@@ -59,8 +59,20 @@ from scenes.image.motion import Boresight
 from scenes.objects.frames import east_north, radec_to_unit, unit_to_radec
 from scenes.scene import BUILTIN_SCENES, Scene, SceneError, _Table, load_scene
 
-__all__ = ["SPLITS", "Batch", "FrameSpec", "frame_seed", "frame_split", "frame_sets", "load_batch", "plan", "render_frame", "run_batch",
-           "sequence_overrides", "toml_inline"]
+__all__ = [
+    "SPLITS",
+    "Batch",
+    "FrameSpec",
+    "frame_seed",
+    "frame_sets",
+    "frame_split",
+    "load_batch",
+    "plan",
+    "render_frame",
+    "run_batch",
+    "sequence_overrides",
+    "toml_inline",
+]
 
 MAX_FRAMES = 1_000_000
 MANIFEST = "manifest.json"

@@ -102,7 +102,7 @@ def test_labelled_batch_writes_a_dataset_coco_loads_and_resumes(tmp_path):
         sat = json.loads((out / "dataset.satnet.json").read_text())
         assert [f["data"]["file"]["filename"] for f in sat] == [e["file"] for e in m["frames"]]
         lists = {k: (out / f"{k}.txt").read_text().split() for k in SPLITS}
-        assert sorted(sum(lists.values(), [])) == [e["file"] for e in m["frames"]]
+        assert sorted(f for k in SPLITS for f in lists[k]) == [e["file"] for e in m["frames"]]
         # resume: nothing redone; a frame whose label file is missing is redone, the dataset rebuilt the same
         before = (out / "dataset.coco.json").read_bytes()
         assert run_batch(load_batch(p, labels="coco,satnet,yolo,fits"), client=client, progress=False)["rendered"] == 0
