@@ -49,6 +49,8 @@ MERGE_ANGLE_DEG = 4.0
 WING_RATIO = 0.25
 NEAR_UNLIT_PX = 10
 STAR_ROUNDNESS = 0.5  # a peak whose ring one FWHM out varies less than this (min / max) is a star
+SATURATED_PX = 5  # + 4 FWHM: the reach of a saturated star's bleed and halo masked for the line finder
+BRIGHT_STAR_SIGMA = 200.0  # a peak of a round segment above this (filtered image) is a star in any case
 DEFAULT_FWHM_PX = 2.5
 FWHM_TO_SIGMA = 1.0 / 2.3548200450309493
 
@@ -203,8 +205,10 @@ def _refine(z: np.ndarray, zs: np.ndarray, p0, p1, fwhm: float):
 def _final(z: np.ndarray, q0, q1, width: float, fwhm: float):
     """A kept candidate's ends and width from the trail fit (:func:`_fit_trail`), clipped to the frame, and
     its halo: (q0, q1, width, halo) or None when the fitted trail is off the frame."""
-    fit = _fit_trail(z, q0, q1, width * FWHM_TO_SIGMA, fwhm * FWHM_TO_SIGMA)
-    if fit is not None:
+    for _ in range(2):  # the second fit on the band about the first one's trail
+        fit = _fit_trail(z, q0, q1, width * FWHM_TO_SIGMA, fwhm * FWHM_TO_SIGMA)
+        if fit is None:
+            break
         q0, q1, sigma, _ = fit
         width = max(fwhm, sigma / FWHM_TO_SIGMA)
     vis = _clip_to_frame(q0, q1, z.shape)
@@ -233,14 +237,14 @@ def _fit_trail(z: np.ndarray, q0, q1, sigma: float, psf_sigma: float):
     from scipy.optimize import least_squares
 
     reach = max(4.0 * sigma, 3.0)
-    rr, cc, _ = _line_band(z.shape, q0, q1, reach, reach + 5.0)
+    L = math.hypot(q1[0] - q0[0], q1[1] - q0[1])
+    rr, cc, _ = _line_band(z.shape, q0, q1, reach, max(reach + 5.0, 0.25 * L))
     v = z[rr, cc]
     fin = np.isfinite(v)
     rr, cc, v = rr[fin], cc[fin], v[fin]
     if v.size < 10:
         return None
     xx, yy = cc.astype(float), rr.astype(float)
-    L = math.hypot(q1[0] - q0[0], q1[1] - q0[1])
     g0 = _trail_model((q0[0], q0[1], q1[0], q1[1], 1.0, sigma), xx, yy)
     amp0 = float(np.sum(g0 * v) / max(np.sum(g0 * g0), 1e-12))
     if not amp0 > 0:
@@ -389,35 +393,60 @@ def _star_mask(zf: np.ndarray, compact: np.ndarray, fwhm: float) -> np.ndarray:
     """Discs over the stars of the non-elongated segments: each local maximum of the filtered image there
     that is round (the filtered image one FWHM away from the peak, in 8 directions: smallest / largest >
     STAR_ROUNDNESS; along a trail the two directions of the track stay high), of radius where a Gaussian of
-    the PSF's width falls from the peak to SEG_SIGMA, plus one FWHM. A trail touching a star keeps its other
+    the PSF's width falls from the peak to HOUGH_SIGMA, plus two FWHM. A trail touching a star keeps its other
     pixels (a whole segment masked would take the trail with the star)."""
     from scipy.ndimage import map_coordinates
 
     out = np.zeros(zf.shape, dtype=bool)
-    if not compact.any():
-        return out
     size = int(2 * math.ceil(fwhm) + 1)
-    peak = (zf == ndimage.maximum_filter(zf, size=size)) & compact & (zf > SEG_SIGMA)
+    # the peaks of every segment: two stars close together make an elongated segment, and their peaks are
+    # round as any star's; a trail's peaks are not (bright along the track only)
+    peak = (zf == ndimage.maximum_filter(zf, size=size)) & (zf > SEG_SIGMA)
     py, px = np.nonzero(peak)
     if py.size == 0:
         return out
     ang = np.linspace(0.0, 2.0 * math.pi, 8, endpoint=False)
-    sx = px[:, None] + fwhm * np.cos(ang)[None, :]
-    sy = py[:, None] + fwhm * np.sin(ang)[None, :]
-    ring = map_coordinates(zf, [sy.ravel(), sx.ravel()], order=1, mode="nearest").reshape(sx.shape)
-    ring = np.maximum(ring, 1e-6)
-    round_ = ring.min(axis=1) / ring.max(axis=1) > STAR_ROUNDNESS
-    sigma = fwhm * FWHM_TO_SIGMA
+    # the ring about each peak's centroid (3 x 3 moments): about the peak pixel, a compact star off the pixel's
+    # centre by half a pixel looks lopsided
+    pad = np.pad(zf, 1, mode="edge")
+    win = np.stack([pad[py + 1 + dy, px + 1 + dx] for dy in (-1, 0, 1) for dx in (-1, 0, 1)], axis=1)
+    win = np.maximum(win - win.min(axis=1, keepdims=True), 0.0) + 1e-12
+    offs = np.array([(dy, dx) for dy in (-1, 0, 1) for dx in (-1, 0, 1)], float)
+    cy = py + (win * offs[:, 0]).sum(axis=1) / win.sum(axis=1)
+    cx = px + (win * offs[:, 1]).sum(axis=1) / win.sum(axis=1)
+
+    def ring(radius):
+        sx = cx[:, None] + radius * np.cos(ang)[None, :]
+        sy = cy[:, None] + radius * np.sin(ang)[None, :]
+        v = map_coordinates(zf, [sy.ravel(), sx.ravel()], order=1, mode="nearest").reshape(sx.shape)
+        return np.maximum(v, 1e-6)
+
+    near, far = ring(fwhm), ring(3.0 * fwhm)
+    # round one FWHM out and, three FWHM out, not bright in two opposite directions only (a trail wider than
+    # the PSF stays bright along its track there: both ways, while across it fades; a star's neighbour is one
+    # way); a very bright peak of a round segment is a star whatever its bleed or spikes
+    both = np.minimum(far[:, :4], far[:, 4:])  # the two opposite directions of each of the 4 axes
+    track = (both.max(axis=1) > HOUGH_SIGMA) & (far.min(axis=1) < STAR_ROUNDNESS * both.max(axis=1))
+    round_ = (near.min(axis=1) / near.max(axis=1) > STAR_ROUNDNESS) & ~track
+    round_ |= (zf[py, px] > BRIGHT_STAR_SIGMA) & compact[py, px]
+    sigma = math.sqrt(2.0) * fwhm * FWHM_TO_SIGMA  # a star in the filtered image: the PSF smoothed by itself
     h, w = zf.shape
     for y, x, ok in zip(py, px, round_):
         if not ok:
             continue
-        r = sigma * math.sqrt(2.0 * math.log(max(zf[y, x] / SEG_SIGMA, 1.0))) + fwhm
+        r = sigma * math.sqrt(2.0 * math.log(max(zf[y, x] / HOUGH_SIGMA, 1.0))) + 2.0 * fwhm
         ri = int(math.ceil(r))
         y0, y1, x0, x1 = max(0, y - ri), min(h, y + ri + 1), max(0, x - ri), min(w, x + ri + 1)
         yy, xx = np.ogrid[y0:y1, x0:x1]
         out[y0:y1, x0:x1] |= (yy - y) ** 2 + (xx - x) ** 2 <= r * r
     return out
+
+
+def _mostly_in(mask: np.ndarray, p0, p1) -> bool:
+    n = max(2, int(math.hypot(p1[0] - p0[0], p1[1] - p0[1])))
+    xs = np.clip(np.rint(np.linspace(p0[0], p1[0], n)).astype(int), 0, mask.shape[1] - 1)
+    ys = np.clip(np.rint(np.linspace(p0[1], p1[1], n)).astype(int), 0, mask.shape[0] - 1)
+    return mask[ys, xs].mean() > 0.5
 
 
 def _hough(zf: np.ndarray, compact: np.ndarray, fwhm: float, rng: np.random.Generator):
@@ -447,9 +476,11 @@ def _same_line(a, b, distance_px: float) -> bool:
 
 
 def detect_image(data: np.ndarray, *, fwhm_px: float | None = None, bayer: str | None = None,
-                 min_snr: float = MIN_SNR, points: bool = False, seed: int = 0, background=None) -> list[Detection]:
+                 min_snr: float = MIN_SNR, points: bool = False, seed: int = 0, background=None,
+                 saturation_adu: float = math.inf) -> list[Detection]:
     """The streaks (and with ``points`` the compact sources) of an image; the module notes. ``background``:
-    (background, rms) [ADU] if already measured."""
+    (background, rms) [ADU] if already measured; pixels at ``saturation_adu`` and SATURATED_PX about them
+    are a saturated star's (bleed, spikes, halo): no data for the line finder."""
     from .inject import background as measure_background
     from .inject import unlit_edges
 
@@ -473,6 +504,10 @@ def detect_image(data: np.ndarray, *, fwhm_px: float | None = None, bayer: str |
     if lit.any() and lit.mean() < 0.5:
         z, zs, zf = significance(measure_background(data, bayer, mask=lit))
     lines, compact = _segments(zf, fwhm)
+    sat = np.isfinite(data) & (data >= saturation_adu)
+    if sat.any():
+        compact = compact | ndimage.binary_dilation(sat, iterations=int(SATURATED_PX + 4 * fwhm))
+        lines = [ln for ln in lines if not _mostly_in(compact, *ln)]
     lines += _hough(zf, compact, fwhm, np.random.default_rng(seed))
     # verify each candidate along its line, without the stars' pixels (no data there: a line through a
     # bright star is not a trail); the best first, a candidate mostly inside a kept trail dropped
@@ -493,18 +528,26 @@ def detect_image(data: np.ndarray, *, fwhm_px: float | None = None, bayer: str |
     found.sort(key=lambda f: -f[0])
     taken = np.zeros(z.shape, dtype=bool)
     kept = []
-    for snr, q0, q1, width in found:
+    def covered(q0, q1, snr) -> bool:
+        """Mostly inside a kept trail's band, or in the halo of a much brighter kept trail."""
         if _in_wings(q0, q1, [k for k in kept if snr < WING_RATIO * k[0]], fwhm):
-            continue
+            return True
         n = max(2, int(math.hypot(q1[0] - q0[0], q1[1] - q0[1])))
         xs = np.clip(np.rint(np.linspace(q0[0], q1[0], n)).astype(int), 0, z.shape[1] - 1)
         ys = np.clip(np.rint(np.linspace(q0[1], q1[1], n)).astype(int), 0, z.shape[0] - 1)
-        if taken[ys, xs].mean() > 0.5:
+        return taken[ys, xs].mean() > 0.5
+
+    for snr, q0, q1, width in found:
+        if covered(q0, q1, snr):
             continue
         fin = _final(z_line, q0, q1, width, fwhm)
         if fin is None:
             continue
         q0, q1, width, halo = fin
+        if math.hypot(q1[0] - q0[0], q1[1] - q0[1]) < max(MIN_LENGTH_PX, MIN_LENGTH_FWHM * fwhm):
+            continue
+        if covered(q0, q1, snr):  # the fit moved it onto a kept trail
+            continue
         kept.append((snr, q0, q1, halo))
         rr, cc, _ = _line_band(z.shape, q0, q1, 1.5 * width + fwhm, width)
         taken[rr, cc] = True
@@ -554,7 +597,7 @@ def detect_file(path, *, hdu=None, psf=None, min_snr: float = MIN_SNR, points: b
             if not fwhm > 0:
                 raise InjectError(f"{psf!r}", key="--psf", expected="a FWHM in px (3px), or arcsec with a WCS")
         dets = detect_image(frame.data, fwhm_px=fwhm, bayer=frame.bayer, min_snr=min_snr, points=points,
-                            seed=seed, background=bkg_rms)
+                            seed=seed, background=bkg_rms, saturation_adu=frame.saturation_adu)
     for d in dets:
         d.file, d.hdu = Path(path).name, frame.hdu
     return dets, {"file": str(path), "hdu": frame.hdu, "fwhm_px": fwhm, "fwhm": how, "detections": len(dets),
