@@ -99,13 +99,22 @@ def detect(folder: Path, workers: int = 1) -> Path:
     ids = {im["file_name"]: im["id"] for im in doc["images"]}
     files = [str(folder / f) for f in ids]
     t0 = time.perf_counter()
-    if workers > 1:
-        from concurrent.futures import ProcessPoolExecutor
+    partial = folder / "detections.partial.jsonl"  # one line per frame as it is done (a long run's progress)
+    found = []
+    with open(partial, "w") as log:
+        if workers > 1:
+            from concurrent.futures import ProcessPoolExecutor
 
-        with ProcessPoolExecutor(workers) as ex:
-            found = list(ex.map(_detect_one, files, chunksize=8))
-    else:
-        found = [_detect_one(f) for f in files]
+            with ProcessPoolExecutor(workers) as ex:
+                for dets in ex.map(_detect_one, files, chunksize=4):
+                    found.append(dets)
+                    log.write(json.dumps(dets) + "\n")
+                    log.flush()
+        else:
+            for f in files:
+                found.append(_detect_one(f))
+                log.write(json.dumps(found[-1]) + "\n")
+                log.flush()
     dt = time.perf_counter() - t0
     rows = []
     for dets in found:
