@@ -19,6 +19,7 @@ sqrt(length) measured on one frame; the labels hold the exact SNR).
 from __future__ import annotations
 
 import argparse
+import itertools
 import json
 import math
 import sys
@@ -151,7 +152,7 @@ def report(folder: Path, gate_px: float = 3.0, n_boot: int = 200, seed: int = 0)
     rate = np.array([it.props.get("rate_arcsec_s") or np.nan for it in labels], float)
     rng = np.random.default_rng(seed)
     rows = []
-    for lo, hi in zip(RATE_BINS[:-1], RATE_BINS[1:]):
+    for lo, hi in itertools.pairwise(RATE_BINS):
         sel = np.flatnonzero((rate >= lo) & (rate < hi) & np.isfinite(snr))
         s50, width = logistic_fit(snr[sel], hit[sel])
         boot = []

@@ -103,8 +103,8 @@ def _line_band(shape, p0, p1, half_width: float, extend: float):
     xs = [x0 - extend * ux, x1 + extend * ux]
     ys = [y0 - extend * uy, y1 + extend * uy]
     pad = half_width + 1
-    c0, c1 = max(0, int(math.floor(min(xs) - pad))), min(shape[1], int(math.ceil(max(xs) + pad)) + 1)
-    r0, r1 = max(0, int(math.floor(min(ys) - pad))), min(shape[0], int(math.ceil(max(ys) + pad)) + 1)
+    c0, c1 = max(0, math.floor(min(xs) - pad)), min(shape[1], math.ceil(max(xs) + pad) + 1)
+    r0, r1 = max(0, math.floor(min(ys) - pad)), min(shape[0], math.ceil(max(ys) + pad) + 1)
     if c1 <= c0 or r1 <= r0:
         return np.zeros(0, int), np.zeros(0, int), np.zeros(0)
     rr, cc = np.mgrid[r0:r1, c0:c1]
@@ -163,18 +163,18 @@ def _refine(z: np.ndarray, zs: np.ndarray, p0, p1, fwhm: float):
     s = np.bincount(idx[fin], weights=vals_all[fin], minlength=idx.max() + 1)
     good = n > 0
     prof = np.where(good, s / np.maximum(n, 1), 0.0)
-    k = max(1, int(round(0.5 * fwhm)))
+    k = max(1, round(0.5 * fwhm))
     kernel = np.ones(2 * k + 1)
     smooth = np.convolve(prof * good, kernel, "same") / np.maximum(np.convolve(good.astype(float), kernel, "same"), 1)
-    a, b = max(int(math.floor(-lo)), 0), min(int(math.ceil(L - lo)), len(smooth) - 1)
+    a, b = max(math.floor(-lo), 0), min(math.ceil(L - lo), len(smooth) - 1)
     if b <= a:
         return None
     plateau = float(np.median(smooth[a:b + 1]))
     if plateau <= 0:
         return None
     above = smooth >= 0.5 * plateau
-    mid = int(round(0.5 * (a + b)))
-    gap = int(math.ceil(2 * fwhm))
+    mid = round(0.5 * (a + b))
+    gap = math.ceil(2 * fwhm)
     if not above[mid]:
         cand = np.flatnonzero(above[a:b + 1])
         if cand.size == 0:
@@ -318,7 +318,7 @@ def _artefact(q0, q1, width: float, ramp_zone: np.ndarray) -> bool:
     off = min(ang, 90.0 - ang)
     if off < 0.5 and width < 3.0:
         return True
-    xm, ym = int(round(0.5 * (q0[0] + q1[0]))), int(round(0.5 * (q0[1] + q1[1])))
+    xm, ym = round(0.5 * (q0[0] + q1[0])), round(0.5 * (q0[1] + q1[1]))
     h, w = ramp_zone.shape
     return off < RAMP_DEG and bool(ramp_zone[min(max(ym, 0), h - 1), min(max(xm, 0), w - 1)])
 
@@ -354,7 +354,7 @@ def _segments(zf: np.ndarray, fwhm: float):
     """Segments of the filtered image above SEG_SIGMA: (streak candidates as (p0, p1), compact masks)."""
     from photutils.segmentation import detect_sources
 
-    npix = max(5, int(math.ceil(0.5 * fwhm * fwhm)))
+    npix = max(5, math.ceil(0.5 * fwhm * fwhm))
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         seg = detect_sources(zf, SEG_SIGMA, npix)
@@ -435,7 +435,7 @@ def _star_mask(zf: np.ndarray, compact: np.ndarray, fwhm: float) -> np.ndarray:
         if not ok:
             continue
         r = sigma * math.sqrt(2.0 * math.log(max(zf[y, x] / HOUGH_SIGMA, 1.0))) + 2.0 * fwhm
-        ri = int(math.ceil(r))
+        ri = math.ceil(r)
         y0, y1, x0, x1 = max(0, y - ri), min(h, y + ri + 1), max(0, x - ri), min(w, x + ri + 1)
         yy, xx = np.ogrid[y0:y1, x0:x1]
         out[y0:y1, x0:x1] |= (yy - y) ** 2 + (xx - x) ** 2 <= r * r
@@ -452,10 +452,10 @@ def _mostly_in(mask: np.ndarray, p0, p1) -> bool:
 def _hough(zf: np.ndarray, compact: np.ndarray, fwhm: float, rng: np.random.Generator):
     from skimage.transform import probabilistic_hough_line
 
-    binary = (zf > HOUGH_SIGMA) & ~ndimage.binary_dilation(compact, iterations=int(math.ceil(fwhm)))
+    binary = (zf > HOUGH_SIGMA) & ~ndimage.binary_dilation(compact, iterations=math.ceil(fwhm))
     length = int(max(MIN_LENGTH_PX, MIN_LENGTH_FWHM * fwhm, 0.06 * min(zf.shape)))
     theta = np.linspace(-np.pi / 2, np.pi / 2, 360, endpoint=False)
-    segs = probabilistic_hough_line(binary, threshold=10, line_length=length, line_gap=int(math.ceil(2 * fwhm)),
+    segs = probabilistic_hough_line(binary, threshold=10, line_length=length, line_gap=math.ceil(2 * fwhm),
                                     theta=theta, rng=rng)
     return [((float(a[0]), float(a[1])), (float(b[0]), float(b[1]))) for a, b in segs]
 
@@ -500,7 +500,7 @@ def detect_image(data: np.ndarray, *, fwhm_px: float | None = None, bayer: str |
 
     z, zs, zf = significance(background if background is not None else measure_background(data, bayer))
     # second pass: the background again without the light found (a bright trail lifts the first one)
-    lit = ndimage.binary_dilation(zf > SEG_SIGMA, iterations=int(math.ceil(2 * fwhm)))
+    lit = ndimage.binary_dilation(zf > SEG_SIGMA, iterations=math.ceil(2 * fwhm))
     if lit.any() and lit.mean() < 0.5:
         z, zs, zf = significance(measure_background(data, bayer, mask=lit))
     lines, compact = _segments(zf, fwhm)
@@ -553,7 +553,7 @@ def detect_image(data: np.ndarray, *, fwhm_px: float | None = None, bayer: str |
         taken[rr, cc] = True
     out = [Detection("streak", q0[0], q0[1], q1[0], q1[1], snr) for snr, q0, q1, _ in kept]
     if points:
-        lab, n = ndimage.label(compact)
+        lab, _n = ndimage.label(compact)
         for i, sl in enumerate(ndimage.find_objects(lab)):
             m = lab[sl] == i + 1
             yy, xx = np.nonzero(m)

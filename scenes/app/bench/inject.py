@@ -39,12 +39,12 @@ part and the visible flux.
 from __future__ import annotations
 
 import math
-import tomllib
 import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+import tomllib
 from astropy.io import fits
 from astropy.wcs import WCS, FITSFixedWarning
 from scipy.optimize import brentq
@@ -120,7 +120,7 @@ def _wcs_of(header, hdul) -> WCS | None:
         warnings.simplefilter("ignore", FITSFixedWarning)
         try:
             w = WCS(header, fobj=hdul)
-        except Exception:  # a malformed WCS is no WCS (the error below says what to give)
+        except Exception:  # noqa: BLE001  (astropy raises many types for a malformed WCS: it is no WCS, and the error below says what to give)
             return None
     return w.celestial if w.has_celestial else None
 
@@ -382,7 +382,7 @@ def measure_psf(frame: Frame, bkg: np.ndarray, rms: np.ndarray) -> tuple[float, 
             warnings.simplefilter("ignore")
             try:
                 f = np.asarray(fit_fwhm(np.nan_to_num(img), xypos=xy, fit_shape=2 * half + 1), dtype=float)
-            except Exception:
+            except Exception:  # noqa: BLE001  (a fit photutils cannot do is a star not measured)
                 f = np.zeros(0)
         f = f[np.isfinite(f) & (f * factor > MIN_FWHM_PX) & (f < 40.0)]
         n = len(f)
@@ -570,7 +570,7 @@ def expected_stamp(x: np.ndarray, y: np.ndarray, weight: np.ndarray, fwhm_px: fl
     FOOTPRINT_FWHM FWHM and renormalised to its weight. Returns (row0, col0, stamp) in frame pixels; the
     stamp may reach beyond the frame."""
     sigma = fwhm_px * FWHM_TO_SIGMA
-    r = int(math.ceil(FOOTPRINT_FWHM * fwhm_px))
+    r = math.ceil(FOOTPRINT_FWHM * fwhm_px)
     ix, iy = np.rint(x).astype(np.int64), np.rint(y).astype(np.int64)
     col0, row0 = int(ix.min()) - r, int(iy.min()) - r
     ncol, nrow = int(ix.max()) + r + 1 - col0, int(iy.max()) + r + 1 - row0

@@ -100,7 +100,8 @@ def detect(frames, output, psf, hdu, min_snr, points, labels_file, json_out):
         json_path = json_target(outs, json_out)
         ids = None
         if labels_file:
-            doc = json.loads(open(labels_file).read())
+            with open(labels_file) as fh:
+                doc = json.load(fh)
             ids = {im["file_name"]: im["id"] for im in doc.get("images", [])}
         dets, per_frame = [], []
         for f in frames:
