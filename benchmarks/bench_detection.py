@@ -48,7 +48,7 @@ def _reference(path: str) -> int:
         z = (data - b.background) / b.background_rms
         zs = ndimage.gaussian_filter(z, 3.094 / 2.3548)
         seg = detect_sources(zs / np.std(zs), 3.0, 5)
-    return 0 if seg is None else int(seg.nlabels)
+    return 0 if seg is None else int(seg.max_label)
 
 
 def main(argv=None) -> int:
