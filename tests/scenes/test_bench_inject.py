@@ -266,3 +266,31 @@ def test_real_decam_streak_ccd(realdata):
 @pytest.mark.parametrize("rel", [r for r in REAL if r not in DEFAULT_RUN])
 def test_real_frames_all(realdata, rel):
     _check_real(realdata, rel)
+
+
+def test_cli_inject_and_detect(tmp_path):
+    """The commands: a frame without a WCS is one stderr line naming the file and what to give, exit 2;
+    an injection and a detection write their files."""
+    import subprocess
+    import sys
+
+    def run(*args):
+        return subprocess.run([sys.executable, "-m", "scenes.app.cli", *map(str, args)], capture_output=True,
+                              text=True, cwd=tmp_path)
+
+    no_wcs = _constructed(tmp_path, with_wcs=False, name="nowcs.fits")
+    r = run("inject", no_wcs, "-o", tmp_path / "o.fits", "--random", "2", "--snr", "10:20", "--rate", "1:2")
+    assert r.returncode == 2 and len(r.stderr.strip().splitlines()) == 1
+    assert "nowcs.fits[0]: no celestial WCS" in r.stderr and "--pixel-scale" in r.stderr
+    assert not (tmp_path / "o.fits").exists()
+    path = _constructed(tmp_path)
+    r = run("inject", path, "-o", tmp_path / "inj.fits", "--random", "3", "--snr", "40:60", "--rate", "1:3",
+            "--seed", "2", "--labels", "coco,fits")
+    assert r.returncode == 0, r.stderr
+    r = run("detect", tmp_path / "inj.fits", "-o", tmp_path / "det.ecsv")
+    assert r.returncode == 0, r.stderr
+    r = run("score", tmp_path / "det.ecsv", tmp_path / "inj.fits", "--kinds", "injected", "--json", tmp_path / "s.json")
+    assert r.returncode == 0, r.stderr
+    import json
+
+    assert json.loads((tmp_path / "s.json").read_text())["labels"] == 3
