@@ -155,6 +155,7 @@ def test_trailblazer_vatt_faint_streak(realdata):
     assert _angle(d) == pytest.approx(30.0, abs=1.5) and _spans(d, (200, 200))
 
 
+@pytest.mark.slow
 def test_trailblazer_lco_three_streaks(realdata):
     """LCO 0.4 m: the three parallel streaks at 150.8-151.2 deg, each edge to edge."""
     streaks = [d for d in _load(realdata, "cutout_bi327715.fits") if abs(_angle(d) - 151.0) < 1.0]
