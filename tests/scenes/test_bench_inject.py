@@ -118,6 +118,8 @@ def check_frame(frame, *, psf="measured"):
     assert edge["visible_x0"] >= -0.5 and edge["visible_x1"] <= 0.1 * shape[1] + 0.5
     for row, d in enumerate(first.injected):
         assert labels[row].flux_e == pytest.approx(float(d.stamp_e.sum()), rel=1e-6)
+    first.summary["check"] = {"flux_ratio": (sums / truth).tolist(), "variance_ratio": num / den,
+                              "pixel_draws": den, "draws": draws}
     return first
 
 
