@@ -9,7 +9,8 @@ import pytest
 
 from detector.effects import base as effects_base
 
-REALDATA = Path(__file__).resolve().parents[1].parent / "shared" / "realdata"
+#: ../shared/realdata next to the project; NEWTSIM_REALDATA names another place (a git worktree elsewhere)
+REALDATA = Path(os.environ.get("NEWTSIM_REALDATA") or Path(__file__).resolve().parents[1].parent / "shared" / "realdata")
 sys.path.append(str(Path(__file__).parent))  # tests/helpers.py (after the packages: tests/detector is no package)
 
 

@@ -3,7 +3,8 @@
 ``labels`` computes each source's label from its noiseless stamp and the frame's noise model
 (:func:`scenes.app.bench.labels.labels_from_sources`); ``frame`` gets the stamps of a render;
 ``formats`` writes COCO, SatNet-style JSON, YOLO-OBB and the FITS ``LABELS`` image; ``score`` matches
-detections to labels and measures completeness and purity (docs/detection_bench.md).
+detections to labels and measures completeness and purity; ``inject`` draws objects into a measured frame;
+``detect`` is the baseline detector (docs/detection_bench.md).
 """
 
 from .labels import (

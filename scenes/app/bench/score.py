@@ -561,7 +561,9 @@ def figures_png(result: dict) -> dict[str, bytes]:
     comp = np.array([np.nan if v is None else v for v in c["completeness"]], float)
     ci = np.array([[np.nan if v is None else v for v in iv] for iv in c["interval"]], float).reshape(-1, 2)
     if mid.size:
-        ax.errorbar(mid, comp, yerr=[comp - ci[:, 0], ci[:, 1] - comp], fmt="o", label="completeness (Wilson 68 %)")
+        # a bin at 0 or 100 % has its point on the interval's edge: rounding can make that length -1e-17
+        yerr = np.clip(np.nan_to_num([comp - ci[:, 0], ci[:, 1] - comp]), 0.0, None)
+        ax.errorbar(mid, comp, yerr=yerr, fmt="o", label="completeness (Wilson 68 %)")
         lg = c["logistic"]
         if lg["snr50"] is not None:
             s = np.geomspace(max(lo.min(), 1e-3), hi.max(), 200)

@@ -5,6 +5,7 @@
 * :mod:`.compare`       ``compare``, ``diagnose``
 * :mod:`.batch`         ``batch``
 * :mod:`.optics`        ``optics vignetting | psf | pst | layout``
+* :mod:`.inject`        ``inject``, ``detect``
 * :mod:`.common`        error handling, JSON output, scene loading, progress bars
 
 The optics commands import Mitsuba only when they run, so ``newtsim render`` works without it.
@@ -31,6 +32,8 @@ try:
     from .compare import compare as compare_command
     from .compare import diagnose as diagnose_command
     from .demo import demo as demo_command
+    from .inject import detect as detect_command
+    from .inject import inject as inject_command
     from .optics import optics as optics_group
     from .render import effects as effects_command
     from .render import render as render_command
@@ -52,6 +55,8 @@ def cli():
     compare       model vs measured frame: chi2, residuals per region/row/column/source, HTML report
     diagnose      which physical effect the model lacks, ranked by delta BIC; --apply adds it
     optics        vignetting | psf | pst: ray tracing of the telescope (Mitsuba 3, llvm)
+    inject        synthetic streaks and points drawn into a measured frame (+ labels)
+    detect        the baseline streak detector: a frame -> detections (COCO results JSON or ECSV)
     score         detections vs labels: completeness, purity, SNR of 50 %, PR curve (HTML, JSON)
     """
 
@@ -64,6 +69,8 @@ cli.add_command(diagnose_command, name="diagnose")
 cli.add_command(optics_group, name="optics")
 cli.add_command(batch_command, name="batch")
 cli.add_command(demo_command, name="demo")
+cli.add_command(inject_command, name="inject")
+cli.add_command(detect_command, name="detect")
 cli.add_command(score_command, name="score")
 
 
