@@ -262,3 +262,16 @@ def test_empirical_apply_into_another_folder(tmp_path):
     maps = [t["path"] for t in new.effects.values() if isinstance(t, dict) and "path" in t]
     assert maps and all(Path(m).is_file() and Path(m).parent == out_dir.resolve() for m in maps)
     assert not list(work.iterdir())  # nothing written where the command ran
+
+
+def test_large_frame_path_names_the_same_parameter(star_scene):
+    """The bounded-memory path of large frames (forced here on a small one) hands its evidence to the same
+    judge: the same zero point, the same policy, the same keys."""
+    sc = load_scene(str(star_scene))
+    meas = textbook_frame(star_scene, star_scene.with_name("zp_large.fits"), 9, ["sky.source_flux_scale=1.6"])
+    out = run.run_diagnose(sc, meas, large_px=10_000)
+    assert "sampling" in out  # the large-frame path
+    first = _first(out)
+    assert first["kind"] == "parameter" and first["key"] == "sky.source_flux_scale"
+    assert first["value"] == pytest.approx(1.6, rel=0.05)
+    assert out["policy"] == DEFAULT_POLICY.to_json() and set(out["gate_codes"]) == set(GATES)
