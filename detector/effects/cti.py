@@ -335,7 +335,7 @@ class CTIParams(EffectParams):
     serial_transfer_s: float = Field(1.25e-7, gt=0, le=1e-3, description="dwell per serial transfer [s]")
     notch_e: float = Field(0.0, ge=0, description="well-notch depth d of the fill law V = ((n-d)/(w-d))^beta [e-]")
     express: int = Field(1, ge=0, le=64, description="0: every pixel's traps followed (exact, slow); E >= 1: E "
-                                                     "groups of pixels per column, each one pool (error ~ 1/E)")
+                                                     "groups of pixels per column, each one pool (error ~ 1/E) [groups per column]")
     days_in_orbit: float = Field(0.0, ge=0, le=1e5, description="dose model: days in a low Earth orbit [d]")
     saa_fraction: float = Field(0.05, ge=0, le=1, description="dose model: time fraction in the SAA [1]")
     shielding_mm_al: float = Field(5.0, ge=0, le=200, description="dose model: aluminium shielding [mm]")
