@@ -31,6 +31,7 @@ try:
     from .compare import compare as compare_command
     from .compare import diagnose as diagnose_command
     from .demo import demo as demo_command
+    from .init import init as init_command
     from .optics import optics as optics_group
     from .render import effects as effects_command
     from .render import render as render_command
@@ -62,6 +63,7 @@ cli.add_command(diagnose_command, name="diagnose")
 cli.add_command(optics_group, name="optics")
 cli.add_command(batch_command, name="batch")
 cli.add_command(demo_command, name="demo")
+cli.add_command(init_command, name="init")
 
 
 def _usage_line(exc: click.ClickException) -> str:

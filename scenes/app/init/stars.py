@@ -1,0 +1,209 @@
+"""The frame's stars with photutils: background, detection, the PSF (FWHM, Moffat beta, ellipticity and their
+variation over the field) and PSF-fit photometry.
+
+* Background and its noise: ``photutils.background.Background2D`` (sigma-clipped medians in boxes, median
+  filtered), sources masked.
+* Detection: ``photutils.segmentation.detect_sources`` on the background-subtracted frame convolved with a
+  Gaussian of the PSF's size, threshold ``nsigma`` x the background noise (Bertin & Arnouts 1996).
+* PSF: elliptical Moffat fits (Moffat 1969; Trujillo et al. 2001, FWHM = 2 alpha sqrt(2^(1/beta) - 1)) of
+  isolated, unsaturated stars, sampled on 3 x 3 sub-pixels (the scene integrates its PSF over pixels); the
+  medians, and the FWHM as a quadratic function of the position (its variation over the field).
+* Photometry: every star fitted with that PSF (flux, centre and local background free, saturated pixels
+  left out), so the catalogue's fluxes are the total fluxes of the scene's own PSF (no aperture correction).
+"""
+
+from __future__ import annotations
+
+import math
+import warnings
+
+import numpy as np
+
+
+def moffat_alpha(fwhm_px: float, beta: float) -> float:
+    return fwhm_px / (2.0 * math.sqrt(2.0 ** (1.0 / beta) - 1.0))
+
+
+def _sub(n: int = 3) -> np.ndarray:
+    return (np.arange(n) + 0.5) / n - 0.5
+
+
+def moffat_pixels(dx, dy, ax, ay, theta, beta, sub: int = 3) -> np.ndarray:
+    """Pixel-averaged elliptical Moffat of unit total flux at offsets (dx, dy) [px] from its centre."""
+    c, s = math.cos(theta), math.sin(theta)
+    out = 0.0
+    for ox in _sub(sub):
+        for oy in _sub(sub):
+            x, y = dx + ox, dy + oy
+            u, v = x * c + y * s, -x * s + y * c
+            out = out + (1 + (u / ax) ** 2 + (v / ay) ** 2) ** (-beta)
+    return out / sub ** 2 * (beta - 1) / (math.pi * ax * ay)
+
+
+def background(data: np.ndarray, mask: np.ndarray | None = None, box: int | None = None):
+    """(background map, noise map) [ADU] by photutils' Background2D."""
+    from astropy.stats import SigmaClip
+    from photutils.background import Background2D, MedianBackground
+
+    h, w = data.shape
+    box = box or int(max(16, min(128, min(h, w) // 8)))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        bkg = Background2D(data, (min(box, h), min(box, w)), mask=mask, filter_size=(3, 3),
+                           sigma_clip=SigmaClip(sigma=3.0), bkg_estimator=MedianBackground())
+    return np.asarray(bkg.background, float), np.asarray(bkg.background_rms, float)
+
+
+def detect(data: np.ndarray, bkg: np.ndarray, rms: np.ndarray, fwhm_px: float = 3.0, nsigma: float = 5.0,
+           npix: int = 5, mask: np.ndarray | None = None):
+    """Segmentation of the background-subtracted frame (photutils), its SourceCatalog table as arrays."""
+    from astropy.convolution import Gaussian2DKernel, convolve
+    from photutils.segmentation import SourceCatalog, detect_sources
+
+    sub = data - bkg
+    sig = max(fwhm_px, 1.0) / 2.3548
+    kern = Gaussian2DKernel(sig, x_size=int(4 * sig) * 2 + 3)
+    kern.normalize()
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        conv = convolve(np.where(mask, 0.0, sub) if mask is not None else sub, kern, normalize_kernel=False)
+        noise = rms * math.sqrt(float(np.sum(kern.array ** 2)))
+        seg = detect_sources(conv, nsigma * noise, n_pixels=npix, mask=mask)
+    if seg is None:
+        return None, {}
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        cat = SourceCatalog(sub, seg, convolved_data=conv, mask=mask)
+        t = cat.to_table(columns=["label", "x_centroid", "y_centroid", "segment_flux", "max_value", "area",
+                                  "fwhm", "elongation", "bbox_xmin", "bbox_xmax", "bbox_ymin", "bbox_ymax"])
+    cols = {k: np.asarray(t[k].value if hasattr(t[k], "value") else t[k], float) for k in t.colnames}
+    return seg, cols
+
+
+def fit_psf_stars(data, bkg, seg, cols, saturation: float, max_stars: int = 60, radius: int | None = None,
+                  min_snr: float = 30.0, rms: np.ndarray | None = None) -> dict:
+    """Elliptical Moffat fits of isolated, unsaturated, bright stars: medians of FWHM (quadratic mean of the
+    axes), beta, ellipticity, position angle; per star rows; FWHM over the field (quadratic fit)."""
+    from scipy import optimize
+
+    h, w = data.shape
+    fw0 = float(np.nanmedian(cols["fwhm"])) if len(cols.get("fwhm", [])) else 3.0
+    R = radius or int(np.clip(round(3 * fw0), 5, 25))
+    order = np.argsort(-cols["max_value"])
+    rows, sharp = [], 0
+    lab = seg.data
+    for i in order:
+        x, y = cols["x_centroid"][i], cols["y_centroid"][i]
+        if not np.isfinite(x) or not np.isfinite(y):
+            continue
+        xi, yi = int(round(x)), int(round(y))
+        if xi < R or yi < R or xi >= w - R or yi >= h - R:
+            continue
+        sl = (slice(yi - R, yi + R + 1), slice(xi - R, xi + R + 1))
+        st = data[sl]
+        if not np.all(np.isfinite(st)) or st.max() >= saturation:
+            continue
+        other = (lab[sl] > 0) & (lab[sl] != int(cols["label"][i]))
+        if other.any():
+            continue
+        b = bkg[sl]
+        z = st - b
+        noise = float(np.median(rms[sl])) if rms is not None else 1.0
+        if cols["max_value"][i] < min_snr * noise:
+            continue
+        yy, xx = np.mgrid[sl]
+        peak = float(z.max())
+
+        def model(p):
+            f, x0, y0, ax, ay, th, beta, c = p
+            return f * moffat_pixels(xx - x0, yy - y0, ax, ay, th, beta) + c
+
+        a0 = moffat_alpha(max(fw0, 1.5), 3.0)
+        p0 = [max(float(z.sum()), peak), x, y, a0, a0, 0.0, 3.0, 0.0]
+        lo = [0, x - 2, y - 2, 0.2, 0.2, -math.pi, 1.1, -10 * noise - abs(peak)]
+        hi = [1e12, x + 2, y + 2, 50, 50, math.pi, 20, 10 * noise + abs(peak)]
+        try:
+            r = optimize.least_squares(lambda p: ((model(p) - z) / math.sqrt(noise ** 2 + max(peak, 1) * 0.0 + 1e-9)).ravel(),
+                                       p0, bounds=(lo, hi), max_nfev=400)
+        except ValueError:
+            continue
+        f, x0, y0, ax, ay, th, beta, c = r.x
+        k = 2 * math.sqrt(2 ** (1 / beta) - 1)
+        fa, fb = ax * k, ay * k
+        if min(fa, fb) < 1.0:
+            sharp += 1
+            continue
+        major, minor = max(fa, fb), min(fa, fb)
+        pa = math.degrees(th if fa >= fb else th + math.pi / 2) % 180.0
+        rows.append((x0, y0, math.sqrt((fa ** 2 + fb ** 2) / 2), major, minor, pa, beta, f))
+        if len(rows) >= max_stars:
+            break
+    if len(rows) < 3:
+        return {"n": len(rows), "ok": False}
+    a = np.array(rows)
+    out = {"n": len(rows), "ok": True, "fwhm_px": float(np.median(a[:, 2])), "beta": float(np.median(a[:, 6])),
+           "fwhm_major_px": float(np.median(a[:, 3])), "fwhm_minor_px": float(np.median(a[:, 4])),
+           "ellipticity": float(np.median(1 - a[:, 4] / a[:, 3])), "single_pixel_events": sharp,
+           "fwhm_spread_px": float(np.std(a[:, 2])), "rows": a}
+    ang = np.radians(2 * a[:, 5])
+    out["pa_major_deg"] = float(np.degrees(np.arctan2(np.median(np.sin(ang)), np.median(np.cos(ang)))) / 2 % 180)
+    # variation over the field: FWHM = c0 + c1 x + c2 y + c3 r^2 (x, y in units of the half-size)
+    if len(rows) >= 8:
+        xn, yn = (a[:, 0] - (w - 1) / 2) / (w / 2), (a[:, 1] - (h - 1) / 2) / (h / 2)
+        M = np.stack([np.ones_like(xn), xn, yn, xn ** 2 + yn ** 2], axis=1)
+        c, *_ = np.linalg.lstsq(M, a[:, 2], rcond=None)
+        out["field"] = {"fwhm_centre_px": float(c[0]), "per_half_width_x_px": float(c[1]),
+                        "per_half_height_y_px": float(c[2]), "at_corner_minus_centre_px": float(2 * c[3]),
+                        "rms_about_fit_px": float(np.std(a[:, 2] - M @ c))}
+    return out
+
+
+def photometry(data, bkg, cols, fwhm_px: float, beta: float, saturation: float, rms: np.ndarray,
+               keep: np.ndarray | None = None, max_sources: int = 5000) -> dict:
+    """PSF-fit fluxes [ADU] (total flux of the scene's circular Moffat), centres, local background, S/N."""
+    from scipy import optimize
+
+    h, w = data.shape
+    ax = moffat_alpha(fwhm_px, beta)
+    R = int(np.clip(round(2.5 * fwhm_px), 4, 30))
+    idx = np.flatnonzero(keep if keep is not None else np.ones(len(cols["x_centroid"]), bool))
+    idx = idx[np.argsort(-cols["segment_flux"][idx])][:max_sources]
+    out = {k: [] for k in ("i", "x", "y", "flux_adu", "flux_err_adu", "bkg_adu", "chi2_dof", "saturated")}
+    for i in idx:
+        x, y = cols["x_centroid"][i], cols["y_centroid"][i]
+        if not (np.isfinite(x) and np.isfinite(y)):
+            continue
+        xi, yi = int(round(x)), int(round(y))
+        y0s, y1s, x0s, x1s = max(0, yi - R), min(h, yi + R + 1), max(0, xi - R), min(w, xi + R + 1)
+        st = data[y0s:y1s, x0s:x1s]
+        z = st - bkg[y0s:y1s, x0s:x1s]
+        ok = np.isfinite(st) & (st < saturation)
+        if ok.sum() < 9:
+            continue
+        yy, xx = np.mgrid[y0s:y1s, x0s:x1s]
+        n2 = float(np.median(rms[y0s:y1s, x0s:x1s])) ** 2
+
+        def resid(p):
+            f, cx, cy, c = p
+            m = f * moffat_pixels(xx - cx, yy - cy, ax, ax, 0.0, beta) + c
+            var = n2 + np.clip(m, 0, None) * 0.0 + np.clip(z, 0, None) * 0.02 + 1e-9
+            return ((m - z) / np.sqrt(var))[ok]
+
+        f0 = max(float(cols["segment_flux"][i]), 1.0)
+        try:
+            r = optimize.least_squares(resid, [f0, x, y, 0.0], bounds=([0, x - 2.5, y - 2.5, -np.inf],
+                                                                       [np.inf, x + 2.5, y + 2.5, np.inf]), max_nfev=200)
+        except ValueError:
+            continue
+        f, cx, cy, c = r.x
+        prof = moffat_pixels(xx - cx, yy - cy, ax, ax, 0.0, beta)[ok]
+        err = math.sqrt(n2 / max(float(np.sum(prof ** 2)), 1e-12) + f * 0.0)
+        out["i"].append(int(i))
+        out["x"].append(float(cx))
+        out["y"].append(float(cy))
+        out["flux_adu"].append(float(f))
+        out["flux_err_adu"].append(err)
+        out["bkg_adu"].append(float(c))
+        out["chi2_dof"].append(float(np.sum(r.fun ** 2) / max(ok.sum() - 4, 1)))
+        out["saturated"].append(bool((~ok & np.isfinite(st)).any()))
+    return {k: np.asarray(v) for k, v in out.items()}
