@@ -16,6 +16,50 @@ import numpy as np
 
 from detector.errors import DetectorError
 
+_NUMERIC = re.compile(r"^(CRVAL|CRPIX|CDELT|CROTA|CD\d_|PC\d_|PV\d_|A_|B_|AP_|BP_|EQUINOX|EPOCH|LONPOLE|LATPOLE|"
+                      r"A_ORDER|B_ORDER|AP_ORDER|BP_ORDER|CD\d|PC\d)")
+
+
+def clean_header(header):
+    """A copy of ``header`` with numbers written as strings turned into numbers (WCS keywords), and
+    ``-SIP`` added to a TAN CTYPE when the header carries SIP polynomials (``A_ORDER``): astropy then reads
+    the polynomials without its multi-line notice about inconsistent SIP information."""
+    h = header.copy()
+    for card in list(h.keys()):
+        if _NUMERIC.match(card) and isinstance(h[card], str):
+            v = _number(h[card])
+            if v is not None:
+                h[card] = v
+    if "A_ORDER" in h:
+        for k in ("CTYPE1", "CTYPE2"):
+            c = str(h.get(k, ""))
+            if c.endswith("-TAN"):
+                h[k] = c + "-SIP"
+    return h
+
+
+
+def _number(v):
+    try:
+        f = float(str(v).strip().replace("D", "E"))
+    except ValueError:
+        return None
+    return f if np.isfinite(f) else None
+
+
+def measured_wcs(header):
+    """The celestial ``astropy.wcs.WCS`` of a measured header (:func:`clean_header`), warnings silenced; None
+    when it has no usable WCS."""
+    from astropy.wcs import WCS
+
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            return WCS(clean_header(header), relax=True).celestial
+    except Exception:  # noqa: BLE001  (a broken WCS is reported as absent)
+        return None
+
+
 _SECTION = re.compile(r"^\s*\[\s*(\d+)\s*:\s*(\d+)\s*,\s*(\d+)\s*:\s*(\d+)\s*\]\s*$")
 
 

@@ -19,7 +19,7 @@ from detector.errors import DetectorError
 from detector.signatures import Residuals, SpikeStats, spike_stats
 from scenes.app.render import Setup, prepare
 from scenes.image.signal import Samples, SourceSignal, Trails
-from scenes.measured import read_measured
+from scenes.measured import measured_wcs, read_measured
 from scenes.projection import axis_crpix
 from scenes.scene import Scene
 
@@ -193,13 +193,11 @@ def _wcs_offset(header, model: ModelFrame) -> float | None:
         return None
     import warnings
 
-    from astropy.wcs import WCS
-
     p = model.setup.scene.pointing
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
-            x, y = WCS(header).all_world2pix([[p.ra_deg, p.dec_deg]], 0)[0]
+            x, y = measured_wcs(header).all_world2pix([[p.ra_deg, p.dec_deg]], 0)[0]
     except Exception:  # noqa: BLE001  (a broken WCS is reported as absent, not fatal)
         return None
     ax, ay = axis_crpix(model.sensor)  # 1-based

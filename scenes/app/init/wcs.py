@@ -11,34 +11,13 @@ header's mapping pixel -> sky is sampled over the frame and re-expressed in the 
 from __future__ import annotations
 
 import math
-import re
 import warnings
 
 import numpy as np
 
-from .header import number
+from scenes.measured import clean_header
 
-_NUMERIC = re.compile(r"^(CRVAL|CRPIX|CDELT|CROTA|CD\d_|PC\d_|PV\d_|A_|B_|AP_|BP_|EQUINOX|EPOCH|LONPOLE|LATPOLE|"
-                      r"A_ORDER|B_ORDER|AP_ORDER|BP_ORDER|CD\d|PC\d)")
-
-
-def clean_header(header):
-    """A copy of ``header`` with numbers written as strings turned into numbers (WCS keywords), and
-    ``-SIP`` added to a TAN CTYPE when the header carries SIP polynomials (``A_ORDER``): astropy then reads
-    the polynomials without its multi-line notice about inconsistent SIP information."""
-    h = header.copy()
-    for card in list(h.keys()):
-        if _NUMERIC.match(card) and isinstance(h[card], str):
-            v = number(h[card])
-            if v is not None:
-                h[card] = v
-    if "A_ORDER" in h:
-        for k in ("CTYPE1", "CTYPE2"):
-            c = str(h.get(k, ""))
-            if c.endswith("-TAN"):
-                h[k] = c + "-SIP"
-    return h
-
+from .header import number  # noqa: F401
 
 def has_wcs(header) -> bool:
     return all(k in header for k in ("CTYPE1", "CTYPE2", "CRVAL1", "CRVAL2")) or "CD1_1" in header and "CRVAL1" in header
