@@ -42,8 +42,9 @@ What is measured, and how
   of itself (so large-scale vignetting is not PRNU), with the temporal noise subtracted in quadrature.
   Vignetting: median of corner boxes over the centre box of the smoothed flat.
 
-Gain adopted for e- values: the header's ``EGAIN`` (or ``GAIN`` when it looks like e-/ADU), else the photon
-transfer gain, else 1.0 with a warning.
+Gain adopted for e- values: the photon-transfer gain of a flat pair (a header value that differs beyond 3 standard
+errors is flagged), else the header's ``EGAIN`` (or ``GAIN`` when it looks like e-/ADU), else
+1.0 with a warning.
 
 Public API: :func:`characterize` (files in, dict out), :func:`emit_scene_dict` (dict in, scene tables out),
 :func:`detector.calplots.write_plots` (dict in, PNG files out); the pure functions (:func:`clipped_stats`,
@@ -1326,10 +1327,17 @@ def _characterize(bias, darks, flats, holdout_exposures, hot_sigma, count_thresh
             warns += w
         g_hdr, g_key, g_file = header_gain(bias + darks + flats)
         pt_gain = flat_res["photon_transfer"]["gain_e_per_adu"] if flat_res else math.nan
-        if g_hdr is not None:
-            gain, source = g_hdr, f"header {g_key} ({g_file})"
-        elif flat_res and math.isfinite(pt_gain) and pt_gain > 0:
+        pt_se = flat_res["photon_transfer"]["gain_se"] if flat_res else math.nan
+        if flat_res and math.isfinite(pt_gain) and pt_gain > 0:
+            # the camera's own photon transfer (Janesick 2007, eq. 4.7) over a header's nominal value; a header
+            # value beyond 3 standard errors of it is said, never hidden
             gain, source = pt_gain, "photon transfer (flat pair)"
+            if g_hdr is not None and math.isfinite(pt_se) and abs(pt_gain - g_hdr) > 3 * pt_se:
+                warns.append(f"header {g_key} = {g_hdr:g} e-/ADU ({g_file}) differs from the photon-transfer gain "
+                             f"{pt_gain:.4g} +- {pt_se:.2g} e-/ADU by {abs(pt_gain - g_hdr) / pt_se:.1f} standard "
+                             "errors: the measured gain is adopted")
+        elif g_hdr is not None:
+            gain, source = g_hdr, f"header {g_key} ({g_file})"
         else:
             gain, source = 1.0, "default 1.0"
             warns.append("no gain in the headers (EGAIN/GAIN) and no flat pair: gain set to 1.0 e-/ADU, so every "

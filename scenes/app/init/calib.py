@@ -236,3 +236,53 @@ def _shape_error(path, role, got, want):
 
 def suppress():
     return warnings.catch_warnings()
+
+
+def characterize_subset(bias=(), dark=(), flat=()) -> dict:
+    """What any subset of bias, dark and flat frames measures (:func:`camera_from_calibration` on the frames'
+    own size, the first one's header for the gain), with ``not_measured``: one line per quantity the missing
+    frames leave unmeasured. The full analysis (:func:`detector.characterize.characterize`) needs bias frames
+    and darks at two exposure times or more."""
+    from .header import header_gain
+
+    first = (list(bias) + list(dark) + list(flat))[0]
+    data, header = read_hdu(first, None, role="calibration", key="--bias/--dark/--flat", dtype=np.float64)
+    hg = header_gain(header)
+    cam = camera_from_calibration(bias, dark, flat, shape=data.shape, header_gain=hg.value)
+    gain_v = cam.get("gain_e_per_adu") if "gain_se" in cam else (hg if hg.value else cam.get("gain_e_per_adu"))
+    out = {"frame": {"width": int(data.shape[1]), "height": int(data.shape[0]), "n_bias": len(bias),
+                     "n_dark": len(dark), "n_flat": len(flat)},
+           "header_gain": hg.to_json(), "warnings": list(cam["notes"])}
+    for k in ("bias_adu", "read_noise_adu", "dark_rate_adu_s", "gain_e_per_adu"):
+        if k in cam:
+            out[k] = cam[k].to_json()
+    if gain_v is not None and gain_v.value:
+        out["gain"] = {"adopted_e_per_adu": float(gain_v.value), "source": gain_v.source + (f" ({gain_v.card})" if gain_v.card else ""),
+                       "photon_transfer_se": cam.get("gain_se")}
+        if "read_noise_adu" in cam:
+            out["read_noise_e"] = float(cam["read_noise_adu"].value) * float(gain_v.value)
+        if "dark_rate_adu_s" in cam:
+            out["dark_current_e_per_s"] = float(cam["dark_rate_adu_s"].value) * float(gain_v.value)
+    lines = []
+    if not bias:
+        lines.append("no bias frame: no master bias, bias structure or read noise from a bias pair"
+                     + (" (bias level from the darks' intercept)" if len({_exptime(p) for p in dark}) >= 2 else ""))
+    elif len(bias) < 2:
+        lines.append("one bias frame: the read noise includes the fixed pattern (two bias frames separate them)")
+    if not dark:
+        lines.append("no dark frame: no dark current, no hot pixels")
+    elif len({_exptime(p) for p in dark}) < 2:
+        lines.append("darks at one exposure time: no dark-rate fit, no hot-pixel growth (darks at two times or more)")
+    if not flat:
+        lines.append("no flat frame: no photon-transfer gain, no PRNU or vignetting")
+    elif len(flat) < 2:
+        lines.append("one flat: no photon-transfer gain from a pair (the single-flat estimate includes the PRNU)")
+    if gain_v is None or not gain_v.value:
+        lines.append("no gain (no flat pair, no EGAIN/GAIN card): values stay in ADU")
+    out["not_measured"] = lines
+    return out
+
+
+def _exptime(path):
+    _, h = read_hdu(path, None, role="dark", dtype=np.float32)
+    return number_or(h.get("EXPTIME", h.get("EXPOSURE")), None)
