@@ -123,7 +123,7 @@ def read_header(header, data: np.ndarray | None = None) -> dict[str, Value]:
     out["gain_e_per_adu"] = header_gain(header)
     out["binning"] = binning(header)
     get("exptime_s", ("EXPTIME", "EXPOSURE", "ITIME", "EXP_TIME", "TELAPSE"), check=lambda v: v >= 0)
-    get("temperature_c", ("CCD-TEMP", "CCD_TEMP", "CCDTEMP", "DET-TEMP", "SENSOR-TEMP", "TEMPERAT", "SET-TEMP"),
+    get("temperature_c", ("CCD-TEMP", "CCD_TEMP", "CCDTEMP", "DET-TEMP", "SENSOR-TEMP", "CAMTEMP", "TEMPERAT", "SET-TEMP"),
         check=lambda v: -200 < v < 150)
     get("pixel_pitch_um", ("XPIXSZ", "PIXSIZE1", "PIXSIZE", "PIXSZ", "XPIXELSZ", "PIXELSIZE"), check=lambda v: 0.5 < v < 100)
     # MaxIm DL / ASCOM: XPIXSZ includes the binning; PIXSIZE1 (N.I.N.A.) too
@@ -153,6 +153,10 @@ def read_header(header, data: np.ndarray | None = None) -> dict[str, Value]:
                             else Value([0, 0], "assumed"))
     pat, c = first(header, ("BAYERPAT", "COLORTYP", "CFA-PAT", "BAYER"), convert=lambda v: str(v).strip().upper() or None)
     out["bayer"] = (Value(pat, "header", c) if pat in ("RGGB", "BGGR", "GRBG", "GBRG") else Value(None, "assumed"))
+    if out["bayer"].value is None:  # a DSLR's raw frame (gphoto2 / PANOPTES): white balance given per RGGB cell
+        card = next((k for k in ("WBRGGB", "MEASRGGB") if k in header), None)
+        if card:
+            out["bayer"] = Value("RGGB", "header", card, note=f"{card}: white balance of RGGB cells (a raw DSLR frame)")
     typ, c = first(header, ("IMAGETYP", "IMAGETYPE", "OBSTYPE", "FRAMETYP", "FRAME"), convert=lambda v: str(v).strip().lower() or None)
     kind = "light"
     if typ:
@@ -226,7 +230,7 @@ def _date_obs(header) -> Value:
 def _site(header) -> Value:
     lat, clat = first(header, ("SITELAT", "LAT-OBS", "OBSGEO-B", "LATITUDE", "OBSLAT"), convert=sexagesimal)
     lon, clon = first(header, ("SITELONG", "LONG-OBS", "OBSGEO-L", "LONGITUD", "OBSLONG", "LONGITUDE"), convert=sexagesimal)
-    h, ch = first(header, ("SITEELEV", "ALT-OBS", "OBSGEO-H", "ELEVATIO", "OBSELEV"))
+    h, ch = first(header, ("SITEELEV", "ALT-OBS", "ELEV-OBS", "OBSGEO-H", "ELEVATIO", "OBSELEV"))
     if lat is None and all(k in header for k in ("OBSGEO-X", "OBSGEO-Y", "OBSGEO-Z")):
         import astropy.units as u
         from astropy.coordinates import EarthLocation
