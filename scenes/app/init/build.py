@@ -193,7 +193,9 @@ def init_scene(frame: str, scene_name: str = "scene", *, bias=(), dark=(), flat=
     log("stars and PSF")
     bad = ~np.isfinite(data) | (data >= sat)
     bkg, rms = starmod.background(data, mask=bad)
-    seg, cols = starmod.detect(data, bkg, rms, fwhm_px=3.0, nsigma=5.0, mask=~np.isfinite(data))
+    seg, cols = None, {}
+    if frame_type == "light":  # a dark, bias or flat frame has no stars (its outliers are hot pixels)
+        seg, cols = starmod.detect(data, bkg, rms, fwhm_px=3.0, nsigma=5.0, mask=~np.isfinite(data))
     psf = {"ok": False, "n": 0}
     if seg is not None and len(cols.get("label", [])):
         seg, cols = starmod.detect(data, bkg, rms, fwhm_px=float(np.clip(np.nanmedian(cols["fwhm"]), 1.5, 20)),
