@@ -19,7 +19,7 @@ from scenes.app.init import init_scene, scene_text, write_file
 from .common import Outputs, json_target, write_json
 
 #: the files a scene written by init may name, beside it (suffixes of the scene's stem)
-SIDE_FILES = ("_stars.csv", "_mask.fits", "_flat.fits", "_optics.toml")
+SIDE_FILES = ("_stars.csv", "_mask.fits", "_flat.fits", "_dark.fits", "_optics.toml")
 
 
 def _hdu(value):

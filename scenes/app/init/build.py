@@ -289,8 +289,14 @@ def init_scene(frame: str, scene_name: str = "scene", *, bias=(), dark=(), flat=
     effects: dict = {}
     if cam.get("flat") is not None:
         files[f"{scene_name}_flat.fits"] = ("fits", cam["flat"])
-        effects["flat_map"] = {"path": f"{scene_name}_flat.fits"}
-        sources["effects.flat_map"] = "measured: the normalised (first) flat"
+        effects["flat_map"] = {"path": f"{scene_name}_flat.fits", "sigma_hdu": 1}
+        sources["effects.flat_map"] = "measured: the normalised (first) flat, its standard error in HDU 1"
+    if cam.get("dark_rate_map") is not None and frame_type != "bias":
+        rate, se = cam["dark_rate_map"]
+        files[f"{scene_name}_dark.fits"] = ("fits", [rate * gain, se * gain])
+        effects["dark_map"] = {"path": f"{scene_name}_dark.fits", "sigma_hdu": 1}
+        sources["effects.dark_map"] = ("measured: per-pixel slope of bias and darks against time [e-/s] (adopted gain), "
+                                       "its standard error in HDU 1")
     if hv["bayer"].value and frame_type == "light":
         resp = _cfa_response(data - bias, ~mask & (np.abs(data - bkg) < 3 * rms))
         effects["cfa"] = {"pattern": hv["bayer"].value, "response": [round(r, 5) for r in resp]}

@@ -161,8 +161,8 @@ def camera_from_calibration(bias=(), dark=(), flat=(), *, trim: str | None = Non
             if rates:
                 out["dark_rate_adu_s"] = Value(max(float(np.median(rates)), 0.0), "measured",
                                                note=f"median (dark - bias) / t over {len(rates)} dark(s)")
-                d, t, _ = max(darks, key=lambda x: x[1] or 0)
-                out["dark_rate_map"] = ((d - out["bias_map"]) / t).astype(np.float32) if "bias_map" in out and t else None
+                rn = out["read_noise_adu"].value if "read_noise_adu" in out else robust_std(biases[0])
+                out["dark_rate_map"] = dark_rate_map([(b, 0.0) for b in biases] + [(d, t) for d, t, _ in darks if t], rn)
         if "read_noise_adu" not in out:
             same = {}
             for d, t, _ in darks:
@@ -207,7 +207,10 @@ def camera_from_calibration(bias=(), dark=(), flat=(), *, trim: str | None = Non
                                               "high-passed flat (pixel response non-uniformity included: a lower bound "
                                               "on the gain)")
             norm = f1 / np.mean(f1)
-            out["flat"] = norm.astype(np.float32)
+            # each pixel's standard error (in units of the map): Poisson and read noise of the one flat
+            k_adopt = float(out["gain_e_per_adu"].value)
+            sig = np.sqrt(np.clip(f1, 1.0, None) / k_adopt + rn ** 2) / np.mean(f1)
+            out["flat"] = [norm.astype(np.float32), sig.astype(np.float32)]
             out["flat_level_adu"] = s
             if header_gain is not None and "gain_se" in out:
                 k, se = out["gain_e_per_adu"].value, out["gain_se"]
@@ -218,6 +221,19 @@ def camera_from_calibration(bias=(), dark=(), flat=(), *, trim: str | None = Non
         out["missing"].append("flat: no flat frame - gain from the header or the sky noise, no flat-field map "
                               "(vignetting and pixel response left to the diagnosis)")
     return out
+
+
+def dark_rate_map(frames, read_noise_adu: float) -> list[np.ndarray]:
+    """Per-pixel dark rate [ADU/s] and its standard error: the least-squares slope of each pixel's value against
+    exposure time over bias (t = 0) and dark frames, se = sigma_read / sqrt(sum (t - mean t)^2) (a straight-line
+    fit with the read noise as the per-frame error; the dark shot noise of a hot pixel is left out)."""
+    t = np.array([tt for _, tt in frames], float)
+    tm = t.mean()
+    sxx = float(np.sum((t - tm) ** 2))
+    num = sum((tt - tm) * d for d, tt in frames)
+    slope = num / sxx
+    se = np.full(slope.shape, read_noise_adu / math.sqrt(sxx), np.float32)
+    return [slope.astype(np.float32), se]
 
 
 def number_or(v, default):

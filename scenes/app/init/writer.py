@@ -40,7 +40,9 @@ def write_file(kind: str, payload, path: Path) -> None:
     elif kind == "fits":
         from astropy.io import fits
 
-        fits.PrimaryHDU(np.asarray(payload)).writeto(path, overwrite=True)
+        arrays = payload if isinstance(payload, (list, tuple)) else [payload]
+        hdus = [fits.PrimaryHDU(np.asarray(arrays[0]))] + [fits.ImageHDU(np.asarray(a)) for a in arrays[1:]]
+        fits.HDUList(hdus).writeto(path, overwrite=True)
     elif kind == "json":
         path.write_text(json.dumps(payload, indent=1, default=str))
     else:
