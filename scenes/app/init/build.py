@@ -25,6 +25,8 @@ from .wcs import has_wcs, scene_geometry
 
 #: read noise assumed when nothing measures it [e-]: a CCD / a CMOS of the classes seen
 ASSUMED_READ_NOISE_E = {"ccd": 10.0, "cmos": 3.0}
+#: a median Moffat beta at or above this is a Gaussian (the fits' upper bound is 20)
+GAUSSIAN_BETA = 15.0
 _CMOS_WORDS = ("zwo", "qhy", "canon", "nikon", "sony", "cmos", "imx", "seestar", "asi", "eos", "dslr", "touptek", "playerone")
 
 
@@ -145,6 +147,11 @@ def init_scene(frame: str, scene_name: str = "scene", *, bias=(), dark=(), flat=
     depth_v = hv["bit_depth"]
     sat = float(sat_v.value)
     full_well = max((sat - bias) * gain, 1.0)
+    fw_hdr = hv["full_well_e"]
+    if fw_hdr.value and (sat_v.source != "measured" or fw_hdr.value < full_well):
+        full_well = float(fw_hdr.value)
+        sat = min(sat, bias + full_well / gain)
+        sat_v = _v(sat, "header", fw_hdr.card, "full well from the header")
     temp_v = _pick(hv["temperature_c"], default=_v(20.0, "assumed"))
     binning = int(hv["binning"].value or 1)
     # ---- geometry
@@ -191,7 +198,9 @@ def init_scene(frame: str, scene_name: str = "scene", *, bias=(), dark=(), flat=
         optics_info = {"design": design}
     # ---- background, stars, PSF
     log("stars and PSF")
-    bad = ~np.isfinite(data) | (data >= sat)
+    # saturated as compare sees it: the clipped level less 5 read-noise sigma (scenes.app.compare.model.saturation_adu)
+    sat_cut = sat - 5.0 * float(rn_e_v.value) / gain
+    bad = ~np.isfinite(data) | (data >= sat_cut)
     bkg, rms = starmod.background(data, mask=bad)
     seg, cols = None, {}
     if frame_type == "light":  # a dark, bias or flat frame has no stars (its outliers are hot pixels)
@@ -200,9 +209,11 @@ def init_scene(frame: str, scene_name: str = "scene", *, bias=(), dark=(), flat=
     if seg is not None and len(cols.get("label", [])):
         seg, cols = starmod.detect(data, bkg, rms, fwhm_px=float(np.clip(np.nanmedian(cols["fwhm"]), 1.5, 20)),
                                    nsigma=5.0, mask=~np.isfinite(data))
-        psf = starmod.fit_psf_stars(data, bkg, seg, cols, sat, rms=rms)
+        psf = starmod.fit_psf_stars(data, bkg, seg, cols, sat_cut, rms=rms)
     if psf.get("ok"):
         fwhm_px, beta = psf["fwhm_px"], float(np.clip(psf["beta"], 1.2, 50))
+        if psf["beta"] >= GAUSSIAN_BETA:  # the Moffat's beta -> infinity limit: a Gaussian core without wings
+            beta = math.inf
         psf_src = _v(fwhm_px, "measured", note=f"median of elliptical Moffat fits of {psf['n']} stars")
     else:
         fwhm_px, beta = 3.0, 4.765
@@ -210,13 +221,13 @@ def init_scene(frame: str, scene_name: str = "scene", *, bias=(), dark=(), flat=
     phot = None
     if seg is not None and frame_type == "light":
         sharp = cols["fwhm"] < 0.5 * fwhm_px
-        phot = starmod.photometry(data, bkg, cols, fwhm_px, beta, sat, rms, keep=~sharp)
+        phot = starmod.photometry(data, bkg, cols, fwhm_px, min(beta, 1000.0), sat_cut, rms, keep=~sharp)
     # ---- mask
     mask = np.zeros((h, w), bool)
     minfo = {"extended": [], "bleeds": [], "masked_fraction": 0.0}
     if frame_type == "light":
         sxyf = (phot["x"], phot["y"], phot["flux_adu"]) if phot is not None and phot["x"].size else None
-        mask, minfo = maskmod.extended_and_bleeds(data, bkg, rms, fwhm_px, sat, sxyf)
+        mask, minfo = maskmod.extended_and_bleeds(data, bkg, rms, fwhm_px, sat_cut, sxyf)
     # ---- sky
     sky_adu = float(np.median(bkg[~mask])) if (~mask).any() else float(np.median(bkg))
     sky_e_s = max((sky_adu - bias) * gain / max(t, 1e-9) - float(dark_e_v.value), 0.0)
@@ -234,7 +245,7 @@ def init_scene(frame: str, scene_name: str = "scene", *, bias=(), dark=(), flat=
                  ("bias_adu", bias_v), ("read_noise_e", rn_e_v), ("dark_current_e_per_s", dark_e_v),
                  ("temperature_c", temp_v), ("binning", hv["binning"])):
         src(f"detector.{k}", v)
-    src("detector.full_well_e", _v(full_well, sat_v.source, sat_v.card, f"(saturation {sat:.0f} - bias) x gain; " + (sat_v.note or "")))
+    src("detector.full_well_e", _v(full_well, sat_v.source, sat_v.card, (f"(saturation {sat:.0f} - bias) x gain; " if sat_v.card != "FULLWELL" else "") + (sat_v.note or "")))
     sources["detector.sensor_width_px"] = "measured (the frame's size" + (f", trimmed to {trim})" if trim else ")")
     sources["detector.preset"] = f"assumed: a generic {kind.upper()} for the QE curve (the zero point calibrates the band)"
     win = hv["window_origin"]
@@ -245,12 +256,16 @@ def init_scene(frame: str, scene_name: str = "scene", *, bias=(), dark=(), flat=
         "detector": det,
         "pointing": {}, "exposure": {"time_s": t, "frame": "light" if frame_type in ("light", "flat") else frame_type,
                                       "tracking": "sidereal", "seed": 1},
-        "sky": {}, "psf": {"model": "moffat", "fwhm_arcsec": round(fwhm_px * scale * binning, 4), "beta": round(beta, 3)},
+        "sky": {}, "psf": ({"model": "moffat", "fwhm_arcsec": round(fwhm_px * scale * binning, 4), "beta": round(beta, 3)}
+                           if math.isfinite(beta) else {"model": "gaussian", "fwhm_arcsec": round(fwhm_px * scale * binning, 4)}),
     }
     src("telescope.pixel_scale_arcsec", scale_v)
     src("exposure.time_s", exptime)
     src("psf.fwhm_arcsec", psf_src)
-    src("psf.beta", _v(beta, psf_src.source))
+    if math.isfinite(beta):
+        src("psf.beta", _v(beta, psf_src.source))
+    else:
+        sources["psf.model"] = f"measured: the Moffat fits' beta reaches {GAUSSIAN_BETA:g} (no wings): a Gaussian"
     if geom is not None:
         scene["telescope"]["parity"] = int(geom["parity"])
         if geom["sip"]:

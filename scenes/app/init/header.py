@@ -135,7 +135,8 @@ def read_header(header, data: np.ndarray | None = None) -> dict[str, Value]:
     get("aperture_mm", ("APTDIA", "APERTURE", "DIAMETER"), check=lambda v: v > 0)
     get("read_noise_e", ("RDNOISE", "READNOIS", "RON"), check=lambda v: 0 < v < 1000)
     get("saturate_adu", ("SATURATE", "SATLEVEL", "DATAMAX"), check=lambda v: v > 0)
-    get("bias_adu", ("PEDESTAL", "BLKLEVEL", "OFFSET_ADU"), check=lambda v: True)
+    get("full_well_e", ("FULLWELL", "FULLWEL", "WELLDPTH"), check=lambda v: v > 0)
+    get("bias_adu", ("PEDESTAL", "BLKLEVEL", "OFFSET_ADU", "BIAS"), check=lambda v: v >= 0 or True)
     if out["bias_adu"].card == "PEDESTAL" and out["bias_adu"].value is not None:  # MaxIm: PEDESTAL is negative
         out["bias_adu"] = Value(abs(out["bias_adu"].value), "header", "PEDESTAL")
     # observation time: DATE-OBS (ISO, or DD/MM/YY with TIME-OBS), MJD-OBS, JD
@@ -185,8 +186,14 @@ def data_levels(header, data: np.ndarray) -> dict[str, Value]:
     else:
         depth = Value(16, "assumed", note=f"floating-point data (BITPIX {bitpix})")
     n_top = int(np.count_nonzero(finite >= top)) if finite.size else 0
+    # a clipped full well seen through the read noise: a pile of pixels within 0.3 % below the maximum
+    near = finite[finite >= top - 0.003 * abs(top)] if finite.size else finite
+    fw = number(header.get("FULLWELL"))
     if n_top >= 5 and top > 0:
         sat = Value(top, "measured", note=f"{n_top} pixels at the maximum {top:.0f} ADU")
+    elif near.size >= 8 and top > 0 and (fw is None):
+        sat = Value(float(np.median(near)), "measured", note=f"{near.size} pixels within 0.3 % of the maximum "
+                    f"{top:.0f} ADU (a clipped full well under the read noise)")
     else:
         v, c = first(header, ("SATURATE", "SATLEVEL"))
         sat = Value(v, "header", c) if v else Value(float(2 ** depth.value - 1), "assumed",
