@@ -82,6 +82,14 @@ def init_scene(frame: str, scene_name: str = "scene", *, bias=(), dark=(), flat=
     kind_v = _v(kind, "assumed", note="from the instrument's name / the colour filter array" if kind == "cmos" else
                 "no sign of a CMOS in the header: a CCD")
     frame_type = hv["frame_type"].value
+    name = Path(str(frame)).name.lower()
+    if frame_type == "light":  # cameras that write every frame as a "Light Frame": the file name decides
+        for word, kind_ in (("flat", "flat"), ("dark", "dark"), ("bias", "bias"), ("zero", "bias")):
+            if word in name:
+                notes.append(f"the file name says {kind_!r} ({hv['frame_type'].card or 'no IMAGETYP'} = "
+                             f"{header.get(hv['frame_type'].card or 'IMAGETYP', 'absent')!r}): taken as a {kind_} frame")
+                frame_type = kind_
+                break
     exptime = _pick(hv["exptime_s"], default=_v(1.0, "assumed", note="no EXPTIME"))
     t = float(exptime.value)
     # bias level
@@ -119,11 +127,11 @@ def init_scene(frame: str, scene_name: str = "scene", *, bias=(), dark=(), flat=
         rn_e = rn_hdr.value or ASSUMED_READ_NOISE_E[kind]
         var = max(noise ** 2 - (1.0 / 12.0 if np.allclose(data[finite][:1000], np.round(data[finite][:1000])) else 0), 1e-9)
         s = max(med - bias, 1e-3)
-        if rn_adu is not None:  # var = S/g + rn_adu^2
-            g = s / max(var - rn_adu.value ** 2, 1e-3 * var)
+        if rn_adu is not None and rn_adu.value ** 2 < 0.8 * var:  # var = S/g + rn_adu^2
+            g = s / (var - rn_adu.value ** 2)
         else:  # var g^2 - S g - RN^2 = 0
             g = (s + math.sqrt(s * s + 4 * var * rn_e ** 2)) / (2 * var)
-        gain_v = _v(float(g), "measured", note="sky noise: var = S/g + (RN/g)^2 (Poisson sky and read noise)")
+        gain_v = _v(float(np.clip(g, 0.01, 999.0)), "measured", note="sky noise: var = S/g + (RN/g)^2 (Poisson sky and read noise)")
         if frame_type != "light":
             gain_v = _v(float(g), "measured", note=f"noise of the {frame_type} frame (Poisson + read noise)")
     gain = float(gain_v.value)
@@ -434,6 +442,10 @@ def _catalogue(catalog, scene, band, phot, cols, fwhm_px, mask, shape, gain, t, 
         notes.append("no star found: stars = false")
         return {"n": 0}
     snr = phot["flux_adu"] / np.maximum(phot["flux_err_adu"], 1e-9)
+    if not np.any(snr > 5):
+        scene["sky"]["stars"] = False
+        notes.append("no star above 5 sigma: stars = false")
+        return {"n": 0}
     xi = np.clip(np.round(phot["x"]).astype(int), 0, w - 1)
     yi = np.clip(np.round(phot["y"]).astype(int), 0, h - 1)
     ok = (snr > 5) & ~mask[yi, xi] & (phot["flux_adu"] > 0)

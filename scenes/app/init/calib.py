@@ -55,7 +55,7 @@ def find_overscan(data: np.ndarray, header=None, min_cols: int = 4, max_frac: fl
             block = data[brows, bcols]
             if block.size:
                 return {"trim": section_text(trows, tcols), "bias_section": section_text(brows, bcols),
-                        "level_adu": float(np.median(block)), "noise_adu": robust_std(block - np.median(block, axis=1, keepdims=True)),
+                        "level_adu": float(np.median(block)), "noise_adu": _block_noise(block),
                         "source": "header", "card": f"BIASSEC/{trim_card or 'derived'}"}
         except ValueError:
             pass
@@ -88,11 +88,17 @@ def find_overscan(data: np.ndarray, header=None, min_cols: int = 4, max_frac: fl
                     brows, bcols = (full, bs) if axis == 1 else (bs, full)
                     block = data[brows, bcols]
                     cand = {"trim": section_text(trows, tcols), "bias_section": section_text(brows, bcols),
-                            "level_adu": float(np.median(block)), "noise_adu": robust_std(block - np.median(block)),
+                            "level_adu": float(np.median(block)), "noise_adu": _block_noise(block),
                             "source": "measured", "card": None, "n": k}
                     if best is None or k > best["n"]:
                         best = cand
     return best
+
+
+def _block_noise(block: np.ndarray) -> float:
+    """Read noise [ADU] of an overscan block: robust std after each column's median is removed (the column
+    offsets of a prescan are a fixed pattern, not noise)."""
+    return robust_std(block - np.median(block, axis=0, keepdims=True))
 
 
 def _read(path, role):

@@ -92,6 +92,10 @@ def header_gain(header) -> Value:
             return Value(v, "header", "GAIN")
         if v is not None:
             return Value(None, "assumed", "GAIN", note=f"GAIN = {v:g} read as a camera setting, not e-/ADU")
+    amps = [number(header.get(f"GAIN{a}")) for a in "ABCD"]
+    amps = [v for v in amps if v is not None and 0 < v < 1000]
+    if amps:  # a multi-amplifier CCD (DECam, Mosaic): GAINA, GAINB ...
+        return Value(float(np.mean(amps)), "header", "GAINA/GAINB", note=f"mean of the amplifiers' gains {amps}")
     return Value(None, "assumed")
 
 
@@ -133,8 +137,8 @@ def read_header(header, data: np.ndarray | None = None) -> dict[str, Value]:
                                       note=f"{pv.card} = {pv.value:g} um includes the {out['binning'].value}x binning")
     get("focal_length_mm", ("FOCALLEN", "FOCAL", "FOCLEN"), check=lambda v: v > 0)
     get("aperture_mm", ("APTDIA", "APERTURE", "DIAMETER"), check=lambda v: v > 0)
-    get("read_noise_e", ("RDNOISE", "READNOIS", "RON"), check=lambda v: 0 < v < 1000)
-    get("saturate_adu", ("SATURATE", "SATLEVEL", "DATAMAX"), check=lambda v: v > 0)
+    get("read_noise_e", ("RDNOISE", "READNOIS", "RON", "RDNOISEA"), check=lambda v: 0 < v < 1000)
+    get("saturate_adu", ("SATURATE", "SATLEVEL", "DATAMAX", "SATURATA"), check=lambda v: v > 0)
     get("full_well_e", ("FULLWELL", "FULLWEL", "WELLDPTH"), check=lambda v: v > 0)
     get("bias_adu", ("PEDESTAL", "BLKLEVEL", "OFFSET_ADU", "BIAS"), check=lambda v: v >= 0 or True)
     if out["bias_adu"].card == "PEDESTAL" and out["bias_adu"].value is not None:  # MaxIm: PEDESTAL is negative
