@@ -442,13 +442,13 @@ def _catalogue(catalog, scene, band, phot, cols, fwhm_px, mask, shape, gain, t, 
         notes.append("no star found: stars = false")
         return {"n": 0}
     snr = phot["flux_adu"] / np.maximum(phot["flux_err_adu"], 1e-9)
-    if not np.any(snr > 5):
-        scene["sky"]["stars"] = False
-        notes.append("no star above 5 sigma: stars = false")
-        return {"n": 0}
     xi = np.clip(np.round(phot["x"]).astype(int), 0, w - 1)
     yi = np.clip(np.round(phot["y"]).astype(int), 0, h - 1)
     ok = (snr > 5) & ~mask[yi, xi] & (phot["flux_adu"] > 0)
+    if not ok.any():
+        scene["sky"]["stars"] = False
+        notes.append("no star above 5 sigma outside the mask: stars = false")
+        return {"n": 0}
     rate0 = float(band.star_e_s(0.0)[0])
     if catalog == "frame":
         x, y, f = phot["x"][ok], phot["y"][ok], phot["flux_adu"][ok]
