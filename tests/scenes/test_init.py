@@ -283,3 +283,27 @@ def test_init_reproduces_a_rendered_star_field(tmp_path):
                                                             or 1.934, rel=0.01)
     out = run_compare(sc, tmp_path / "frame.fits", workers=1)["summary"]
     assert out["chi2_per_dof"] < 1.3  # the frame's own catalogue, its measured PSF and sky
+
+
+def test_init_with_a_user_star_table(tmp_path):
+    """``--catalog PATH``: the table's stars matched in the frame set the band's zero point."""
+    from scenes.app.compare import run_compare
+    from scenes.app.render import render
+    from scenes.scene import load_scene
+    from tests.helpers import star_field_toml
+
+    (tmp_path / "truth.toml").write_text(star_field_toml(256))
+    render(load_scene(str(tmp_path / "truth.toml")), tmp_path / "frame.fits", seed=4)
+    t = fits.open(tmp_path / "frame.fits")["TRUTH"].data
+    star = np.isin(np.char.strip(np.asarray(t["kind"]).astype(str)), ("star", "synthetic"))
+    lines = ["ra,dec,phot_g_mean_mag"] + [f"{a:.8f},{d:.8f},{m:.4f}" for a, d, m in zip(t["ra_deg"][star], t["dec_deg"][star], t["mag"][star])]
+    (tmp_path / "gaia_extract.csv").write_text("\n".join(lines) + "\n")
+    assert _cli("init", str(tmp_path / "frame.fits"), "-o", str(tmp_path / "s.toml"), "--catalog",
+                str(tmp_path / "gaia_extract.csv"), "--json", str(tmp_path / "s.json")) == 0
+    import json
+
+    info = json.loads((tmp_path / "s.json").read_text())["catalogue"]
+    assert info["n_matched"] >= 8 and info["band_scale_spread"] < 0.15  # one scale for every star (colours aside)
+    out = run_compare(load_scene(str(tmp_path / "s.toml")), tmp_path / "frame.fits", workers=1)["summary"]
+    rows = [r for r in out["star_table"] if "ratio" in r]
+    assert abs(np.median([r["ratio"] for r in rows]) - 1) < 0.1

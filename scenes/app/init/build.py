@@ -342,13 +342,34 @@ def init_scene(frame: str, scene_name: str = "scene", *, bias=(), dark=(), flat=
         if frame_type == "bias":
             scene["exposure"]["time_s"] = 0.0
     else:
-        scene["sky"] = {"background_mag_arcsec2": round(band.sky_mag(sky_e_s), 4), "stars": True, "star_seed": 0}
+        scene["sky"] = {"background_mag_arcsec2": None, "stars": True, "star_seed": 0}
         sources["sky.background_mag_arcsec2"] = (f"measured: background {sky_adu:.2f} ADU (photutils Background2D) above "
                                                  f"the bias, through the scene's band")
     cat_info = {}
     if scene["sky"].get("stars"):
         cat_info = _catalogue(catalog, scene, band, phot, cols, fwhm_px, mask, data.shape, gain, t, geom, header,
                               files, scene_name, sources, notes)
+    scale = cat_info.get("band_scale")
+    if scale:  # real magnitudes: the matched stars' zero point goes into the aperture (when assumed) or the QE
+        if design is None and not (f_number or ap_v.value):
+            n_new = max(optics_info["f_number"] / math.sqrt(scale), 0.7)
+            f_mm = optics_info["focal_length_mm"]
+            fp = files[design_name][1]["focal_plane"]
+            files[design_name] = ("toml", design_dict(f_mm, n_new, obstruction, sensor_mm=(fp["width_mm"], fp["height_mm"]),
+                                                      name=f"{scene_name}_optics"))
+            optics_info.update(f_number=n_new, aperture_mm=f_mm / n_new, aperture_source="measured: zero point")
+            sources["telescope.design"] = (f"measured: the clear aperture {f_mm / n_new:.1f} mm that gives the zero point "
+                                           f"of {cat_info['n_matched']} matched catalogue stars (focal length {f_mm:.0f} mm)")
+        else:
+            scene["detector"]["qe_wavelength_nm"] = band.wl
+            peak = max(band.qe) * scale
+            scene["detector"]["qe"] = [round(q * scale / max(peak / 0.95, 1.0), 6) for q in band.qe]
+            if peak > 0.95:
+                notes.append(f"zero point needs a band peak {peak:.2f} > 0.95: QE capped, the rest left to the diagnosis")
+            sources["detector.qe"] = f"measured: the preset's curve x {scale:.3g} from {cat_info['n_matched']} matched stars"
+        band = _Band(scene, design_name, files)
+    if "background_mag_arcsec2" in scene["sky"]:
+        scene["sky"]["background_mag_arcsec2"] = round(band.sky_mag(sky_e_s), 4)
     scene["sky"] = {k: v for k, v in scene["sky"].items() if v is not None}
     summary = {
         "frame": str(frame), "shape": [h, w], "raw_shape": list(raw.shape), "frame_type": frame_type,
@@ -412,7 +433,8 @@ class _Band:
         else:
             self.design = load_design(design_name)
         p = PRESETS[scene["detector"]["preset"]]
-        self.wl, self.qe = list(p["qe_wavelength_nm"]), list(p["qe"])
+        self.wl = list(scene["detector"].get("qe_wavelength_nm", p["qe_wavelength_nm"]))
+        self.qe = list(scene["detector"].get("qe", p["qe"]))
         self.scene = scene
 
     def star_e_s(self, mag_g):
@@ -492,12 +514,6 @@ def _catalogue(catalog, scene, band, phot, cols, fwhm_px, mask, shape, gain, t, 
     if len(ratios) >= 3:
         scale = float(np.median(ratios))
         info.update(band_scale=scale, band_scale_spread=float(np.std(np.log(ratios))))
-        scene["detector"]["qe_wavelength_nm"] = band.wl
-        peak = max(band.qe) * scale
-        scene["detector"]["qe"] = [round(q * scale / max(peak / 0.95, 1.0), 6) for q in band.qe]
-        if peak > 0.95:
-            notes.append(f"zero point needs a band peak {peak:.2f} > 0.95: QE capped, the rest left to the diagnosis")
-        sources["detector.qe"] = f"measured: the preset's curve x {scale:.3g} from {len(ratios)} matched catalogue stars"
     else:
         notes.append(f"{len(ratios)} catalogue stars matched in the frame: the band's zero point is the preset's (assumed)")
     scene["sky"].update(catalog=catalog if catalog in ("builtin", "gaia") else str(Path(catalog).resolve()),
