@@ -307,3 +307,41 @@ def test_init_with_a_user_star_table(tmp_path):
     out = run_compare(load_scene(str(tmp_path / "s.toml")), tmp_path / "frame.fits", workers=1)["summary"]
     rows = [r for r in out["star_table"] if "ratio" in r]
     assert abs(np.median([r["ratio"] for r in rows]) - 1) < 0.1
+
+
+def test_init_with_gaia_archive_cached(tmp_path, monkeypatch):
+    """``--catalog gaia``: the archive is asked once (here a small local table stands in for it, through the
+    module's fetch function), the result cached and read back by the next init."""
+    from astropy.table import Table
+
+    import scenes.sky.archive as archive
+    from scenes.app.render import render
+    from scenes.scene import load_scene
+    from tests.helpers import star_field_toml
+
+    (tmp_path / "truth.toml").write_text(star_field_toml(256))
+    render(load_scene(str(tmp_path / "truth.toml")), tmp_path / "frame.fits", seed=4)
+    t = fits.open(tmp_path / "frame.fits")["TRUTH"].data
+    star = np.isin(np.char.strip(np.asarray(t["kind"]).astype(str)), ("star", "synthetic"))
+    n = int(star.sum())
+    local = Table({"source_id": np.arange(1, n + 1), "ra": t["ra_deg"][star], "dec": t["dec_deg"][star],
+                   "pmra": np.full(n, np.nan), "pmdec": np.full(n, np.nan), "ref_epoch": np.full(n, 2016.0),
+                   "phot_g_mean_mag": t["mag"][star], "bp_rp": np.full(n, 0.8)})
+    calls = []
+
+    def fake_fetch(ra_deg, dec_deg, radius_deg, mag_limit, path):
+        calls.append(path)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        local.write(path, format="fits")
+        return local
+
+    monkeypatch.setattr(archive, "fetch_gaia", fake_fetch)
+    monkeypatch.setenv("NEWTSIM_CACHE_DIR", str(tmp_path / "cache"))
+    for k in range(2):
+        assert _cli("init", str(tmp_path / "frame.fits"), "-o", str(tmp_path / f"s{k}.toml"), "--catalog", "gaia",
+                    "--json", str(tmp_path / f"s{k}.json")) == 0
+    import json
+
+    assert len(calls) == 1 and calls[0].is_file()  # the second init read the cache
+    info = json.loads((tmp_path / "s1.json").read_text())["catalogue"]
+    assert info["n_matched"] >= 8
