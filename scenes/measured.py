@@ -167,3 +167,12 @@ def with_mask(scene, mask_path: str | None):
     scene.mask = MaskCfg(file=[*files, p], hdu=None if old is None else old.hdu)
     check_scene(scene)
     return scene
+
+
+def scene_mask(scene, shape: tuple[int, int]) -> np.ndarray | None:
+    """The union of the scene's ``[mask]`` files over a frame of ``shape`` (None without a mask)."""
+    mcfg = getattr(scene, "mask", None)
+    if mcfg is None:
+        return None
+    files = [mcfg.file] if isinstance(mcfg.file, str) else mcfg.file
+    return np.logical_or.reduce([read_mask(f, shape, mcfg.hdu) for f in files])

@@ -247,6 +247,9 @@ def test_mask_honoured_by_compare(tmp_path):
     assert plain["chi2_per_dof"] > 3
     assert masked["chi2_per_dof"] == pytest.approx(1.0, abs=0.1) and masked["n_compared"] <= 256 * 256 - mask.sum()
     assert cli["chi2_per_dof"] == pytest.approx(masked["chi2_per_dof"])
+    # the bounded-memory path of large frames reads the same mask
+    large = run_compare(load_scene(str(tmp_path / "masked.toml")), tmp_path / "gal.fits", workers=1, large_px=1000)
+    assert large["summary"]["chi2_per_dof"] == pytest.approx(1.0, abs=0.15)
 
 
 # --- a real frame, init -> compare -------------------------------------------------------------------------------
