@@ -158,7 +158,7 @@ def test_wcs_tpv():
 
 # --- raw frames: overscan ------------------------------------------------------------------------------------
 def _raw(rng, cards=True):
-    img = rng.normal(1500, 5, (60, 90))
+    img = rng.normal(1500, 20, (60, 90))  # light: shot noise above the read noise
     img[:, 80:] = rng.normal(1000, 5, (60, 10))  # overscan at the bias level
     h = _header(BIASSEC="[81:90,1:60]", TRIMSEC="[1:80,1:60]") if cards else fits.Header()
     return img, h

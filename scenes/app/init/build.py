@@ -75,7 +75,9 @@ def init_scene(frame: str, scene_name: str = "scene", *, bias=(), dark=(), flat=
                      f"{ov['noise_adu']:.2f} ADU; compared pixels {trim}")
     # ---- camera from the calibration frames
     hgain = hv["gain_e_per_adu"]
-    cam = calib.camera_from_calibration(bias, dark, flat, trim=trim, shape=(h, w), header_gain=hgain.value)
+    # a flat frame and a flat given: the two make the photon-transfer pair (the map comes from the other one)
+    pair = [*flat, frame] if (hv["frame_type"].value == "flat" or "flat" in Path(str(frame)).name.lower()) and flat else flat
+    cam = calib.camera_from_calibration(bias, dark, pair, trim=trim, shape=(h, w), header_gain=hgain.value)
     notes += cam["notes"]
     kind_words = " ".join(str(hv[k].value or "") for k in ("instrument", "telescope")).lower()
     kind = "cmos" if (hv["bayer"].value or any(word in kind_words for word in _CMOS_WORDS)) else "ccd"

@@ -78,7 +78,12 @@ def find_overscan(data: np.ndarray, header=None, min_cols: int = 4, max_frac: fl
                 # keep the flattest part (leave 1 transition column on the data side)
                 vals = prof[block_idx]
                 flat = np.abs(vals - np.median(vals)) < max(5 * robust_std(vals), 3.0)
-                if flat.sum() >= min_cols - 1:
+                # no light: the strip's noise is the read noise alone (well below the image's, which holds the
+                # shot noise) and its level far below the image's on that scale (a vignetted edge is neither)
+                strip = data[:, block_idx] if axis == 1 else data[block_idx, :]
+                snoise = _block_noise(strip if axis == 1 else strip.T)
+                quiet = snoise < 0.5 * noise and level - float(np.median(vals)) > 10 * snoise
+                if flat.sum() >= min_cols - 1 and quiet:
                     if side == "low":
                         ds, bs = slice(k + 1 if k + 1 < n else k, n), slice(0, k)
                     else:
