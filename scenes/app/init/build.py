@@ -25,6 +25,8 @@ from .wcs import has_wcs, scene_geometry
 
 #: read noise assumed when nothing measures it [e-]: a CCD / a CMOS of the classes seen
 ASSUMED_READ_NOISE_E = {"ccd": 10.0, "cmos": 3.0}
+#: ellipticity (1 - minor/major) above which the measured PSF's elongation goes into the scene
+ELONGATED = 0.05
 #: a median Moffat beta at or above this is a Gaussian (the fits' upper bound is 20)
 GAUSSIAN_BETA = 15.0
 _CMOS_WORDS = ("zwo", "qhy", "canon", "nikon", "sony", "cmos", "imx", "seestar", "asi", "eos", "dslr", "touptek", "playerone")
@@ -322,6 +324,18 @@ def init_scene(frame: str, scene_name: str = "scene", *, bias=(), dark=(), flat=
         effects["dark_map"] = {"path": f"{scene_name}_dark.fits", "sigma_hdu": 1}
         sources["effects.dark_map"] = ("measured: per-pixel slope of bias and darks against time [e-/s] (adopted gain), "
                                        "its standard error in HDU 1")
+    if psf.get("ok") and psf["n"] >= 5 and psf["ellipticity"] > ELONGATED:
+        # the measured elliptical PSF as the round one plus a second-moment change dC (Gaussian-equivalent
+        # variances of the major and minor axes about the quadratic-mean FWHM, rotated to the major axis)
+        k = 2.3548 ** 2
+        d1 = (psf["fwhm_major_px"] ** 2 - fwhm_px ** 2) / k * binning ** 2
+        d2 = (psf["fwhm_minor_px"] ** 2 - fwhm_px ** 2) / k * binning ** 2
+        c_, s_ = math.cos(math.radians(psf["pa_major_deg"])), math.sin(math.radians(psf["pa_major_deg"]))
+        effects["psf_elongation"] = {"dcxx_px2": round(d1 * c_ * c_ + d2 * s_ * s_, 5),
+                                     "dcyy_px2": round(d1 * s_ * s_ + d2 * c_ * c_, 5),
+                                     "dcxy_px2": round((d1 - d2) * s_ * c_, 5)}
+        sources["effects.psf_elongation"] = (f"measured: FWHM {psf['fwhm_major_px']:.2f} x {psf['fwhm_minor_px']:.2f} px, "
+                                             f"major axis at {psf['pa_major_deg']:.0f} deg from +x (median of {psf['n']} stars)")
     if hv["bayer"].value and frame_type == "light":
         resp = _cfa_response(data - bias, ~mask & (np.abs(data - bkg) < 3 * rms))
         effects["cfa"] = {"pattern": hv["bayer"].value, "response": [round(r, 5) for r in resp]}
