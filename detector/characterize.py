@@ -65,10 +65,10 @@ from __future__ import annotations
 
 import math
 import warnings
+from collections.abc import Iterable, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Iterable, Sequence
 
 import numpy as np
 from astropy.io import fits
@@ -663,7 +663,7 @@ class _OutlierGather:
 
     def result(self) -> dict:
         n = len(self.sel)
-        cat = lambda p, shape, dt: np.concatenate(p) if p else np.zeros(shape, dt)  # noqa: E731
+        cat = lambda p, shape, dt: np.concatenate(p) if p else np.zeros(shape, dt)
         return {"idx": cat(self.idx, 0, np.int64), "Y": cat(self.Y, (0, n), np.float32),
                 "sat": cat(self.sat, (0, n), bool), "master": cat(self.m, 0, np.float32),
                 "cand": cat(self.cand, 0, np.int64), "cand_x": cat(self.cand_x, (0, n), np.float32),
@@ -1632,7 +1632,7 @@ def bias_structure(master, read_noise_adu: float, n_bias: int, nsigma: float = 5
     h, w = shape
     is_arr = isinstance(master, np.ndarray)
     B = B or _Bands(shape, band_pixels=h * w)
-    m_rows = lambda a, b: np.asarray(src.rows(a, b), dtype=np.float64)  # noqa: E731
+    m_rows = lambda a, b: np.asarray(src.rows(a, b), dtype=np.float64)
     if sample is None:
         sample = subsample(m_rows(0, h))
     noise = read_noise_adu / math.sqrt(max(n_bias, 1))
@@ -1829,7 +1829,7 @@ def dark_rate_map(ts: np.ndarray, darks, bias_map, offset_adu: float, read_noise
         info["map_mean_adu_per_s"] = total32 / (h * w)
         info["n_bulk"] = n_bulk
         info["n_outliers"] = h * w - n_bulk
-        cat = lambda p, dt: np.concatenate(p).astype(dt) if p else np.zeros(0, dt)  # noqa: E731
+        cat = lambda p, dt: np.concatenate(p).astype(dt) if p else np.zeros(0, dt)
         if is_arr:
             info["n_stuck"] = int(stuck_arr.sum())
             return out_r, out_se, stuck_arr, info
@@ -1945,7 +1945,7 @@ def fit_rate_laws(excess: np.ndarray, floor: float, bias_level_adu: float) -> di
     lf = math.log(floor)
     alpha = n / float(np.sum(lr - lf))
     ll_p = float(n * math.log(alpha) + n * alpha * lf - (alpha + 1) * lr.sum())
-    cdf_p = lambda x: 1 - (np.asarray(x) / floor) ** (-alpha)  # noqa: E731
+    cdf_p = lambda x: 1 - (np.asarray(x) / floor) ** (-alpha)
     out["pareto"] = {"alpha": alpha, "alpha_se": alpha / math.sqrt(n), "loglik": ll_p, "aic": 2 - 2 * ll_p,
                      "ks": float(stats.kstest(r, cdf_p).statistic)}
 
@@ -1961,7 +1961,7 @@ def fit_rate_laws(excess: np.ndarray, floor: float, bias_level_adu: float) -> di
                             options={"xatol": 1e-6, "fatol": 1e-6, "maxiter": 4000})
     mu, s = float(res.x[0]), math.exp(float(res.x[1]))
     p0 = stats.norm.cdf((lf - mu) / s)
-    cdf_l = lambda x: (stats.norm.cdf((np.log(x) - mu) / s) - p0) / max(1 - p0, 1e-300)  # noqa: E731
+    cdf_l = lambda x: (stats.norm.cdf((np.log(x) - mu) / s) - p0) / max(1 - p0, 1e-300)
     out["lognormal"] = {"log_mu": mu, "log_sigma": s, "loglik": -float(res.fun), "aic": 4 + 2 * float(res.fun),
                         "ks": float(stats.kstest(r, cdf_l).statistic)}
     t2 = bias_level_adu / r
@@ -1984,7 +1984,7 @@ def fit_rate_laws(excess: np.ndarray, floor: float, bias_level_adu: float) -> di
                             options={"xatol": 1e-6, "fatol": 1e-6, "maxiter": 4000})
     k, lam = math.exp(float(res.x[0])), math.exp(float(res.x[1]))
     Fm = -math.expm1(-(tmax / lam) ** k)
-    cdf_w = lambda x: 1 - (-np.expm1(-((bias_level_adu / np.asarray(x)) / lam) ** k)) / Fm  # noqa: E731
+    cdf_w = lambda x: 1 - (-np.expm1(-((bias_level_adu / np.asarray(x)) / lam) ** k)) / Fm
     out["weibull_t2"] = {"shape": k, "scale_s": lam, "loglik": -float(res.fun), "aic": 4 + 2 * float(res.fun),
                          "ks": float(stats.kstest(r, cdf_w).statistic)}
     laws = ("pareto", "lognormal", "weibull_t2")

@@ -8,7 +8,6 @@ import math
 import numpy as np
 import pytest
 from astropy.io import fits
-from astropy.wcs import WCS
 
 from scenes.app.init.build import _scene_wcs
 from scenes.app.init.calib import camera_from_calibration, characterize_subset, find_overscan
@@ -317,9 +316,9 @@ def test_init_with_gaia_archive_cached(tmp_path, monkeypatch):
     module's fetch function), the result cached and read back by the next init."""
     from astropy.table import Table
 
-    import scenes.sky.archive as archive
     from scenes.app.render import render
     from scenes.scene import load_scene
+    from scenes.sky import archive
     from tests.helpers import star_field_toml
 
     (tmp_path / "truth.toml").write_text(star_field_toml(256))

@@ -34,7 +34,7 @@ def star_table(res, truth, radius_px: float = 4.0, max_rows: int = 500, usable=N
     kind = np.char.strip(np.asarray(truth["kind"]).astype(str))
     st = truth[np.isin(kind, ("star", "synthetic"))]  # catalogue stars and the model's faint population
     h, w = res.data_adu.shape
-    rad = int(math.ceil(radius_px))
+    rad = math.ceil(radius_px)
     inside = (st["x"] > rad) & (st["x"] < w - 1 - rad) & (st["y"] > rad) & (st["y"] < h - 1 - rad)
     st = st[inside]
     st = st[np.argsort(-st["flux_e"])][:max_rows]

@@ -18,7 +18,9 @@ import numpy as np
 from detector.errors import DetectorError
 from scenes.measured import parse_section, read_hdu
 
-from . import calib, mask as maskmod, stars as starmod
+from . import calib
+from . import mask as maskmod
+from . import stars as starmod
 from .header import Value, read_header
 from .optics import airy_fwhm_arcsec, design_dict
 from .wcs import has_wcs, scene_geometry
@@ -125,8 +127,6 @@ def init_scene(frame: str, scene_name: str = "scene", *, bias=(), dark=(), flat=
         else:
             bias_v = _v(0.0, "assumed", note="no bias frame, no overscan, no gain: the level is taken as all signal")
     bias = float(bias_v.value)
-    if rn_adu is not None:
-        rn_e_v = None
     if gain_v is None:
         rn_e = rn_hdr.value or ASSUMED_READ_NOISE_E[kind]
         var = max(noise ** 2 - (1.0 / 12.0 if np.allclose(data[finite][:1000], np.round(data[finite][:1000])) else 0), 1e-9)
@@ -173,7 +173,7 @@ def init_scene(frame: str, scene_name: str = "scene", *, bias=(), dark=(), flat=
         if trim:  # the WCS refers to the raw frame's pixels: re-centre on the trimmed data
             rows, cols = parse_section(trim)
             geom = _trimmed_geometry(header, raw.shape, rows, cols, binning)
-    fl_v = _v(focal_length_mm, "header" if False else "assumed") if focal_length_mm else hv["focal_length_mm"]
+    fl_v = hv["focal_length_mm"]
     if focal_length_mm:
         fl_v = _v(float(focal_length_mm), "assumed", "--focal-length-mm", "given on the command line")
     ap_v = hv["aperture_mm"]
@@ -194,7 +194,7 @@ def init_scene(frame: str, scene_name: str = "scene", *, bias=(), dark=(), flat=
         scale_v = _v(2.0, "assumed", note="no WCS and no focal length: 2 arcsec/px")
     scale = float(scale_v.value)
     # ---- optics
-    design_name = design
+    design_name = str(Path(design).resolve()) if design is not None and Path(design).is_file() else design
     if design is None:
         f_mm = float(fl_v.value) if fl_v.value else 206.264806 * pitch / scale
         n = float(f_number) if f_number else (f_mm / float(ap_v.value) if ap_v.value else 5.0)

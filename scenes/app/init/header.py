@@ -75,7 +75,7 @@ def sexagesimal(v) -> float | None:
 
 #: GAIN cards of some cameras are a setting (ZWO / QHY "gain 80"), not e-/ADU: GAIN is read as e-/ADU only when
 #: its comment says so or it is a small non-integer
-_E_PER_ADU = re.compile(r"e-?\s*/\s*(adu|dn|count)|electrons?\s*(per|/)\s*(adu|dn|count)", re.I)
+_E_PER_ADU = re.compile(r"e-?\s*/\s*(adu|dn|count)|electrons?\s*(per|/)\s*(adu|dn|count)", re.IGNORECASE)
 
 
 def header_gain(header) -> Value:
@@ -154,7 +154,7 @@ def read_header(header, data: np.ndarray | None = None) -> dict[str, Value]:
     if x0 is None and "LTV1" in header:
         x0, cx = -number(header["LTV1"]), "LTV1"
         y0, cy = -(number(header.get("LTV2")) or 0.0), "LTV2"
-    out["window_origin"] = (Value([int(round(x0)), int(round(y0 or 0))], "header", f"{cx}/{cy}") if x0 is not None
+    out["window_origin"] = (Value([round(x0), round(y0 or 0)], "header", f"{cx}/{cy}") if x0 is not None
                             else Value([0, 0], "assumed"))
     pat, c = first(header, ("BAYERPAT", "COLORTYP", "CFA-PAT", "BAYER"), convert=lambda v: str(v).strip().upper() or None)
     out["bayer"] = (Value(pat, "header", c) if pat in ("RGGB", "BGGR", "GRBG", "GBRG") else Value(None, "assumed"))
@@ -184,7 +184,7 @@ def data_levels(header, data: np.ndarray) -> dict[str, Value]:
     integer = bool(finite.size) and bool(np.all(finite[: 100000] == np.round(finite[: 100000])))
     bitpix = int(header.get("BITPIX", 16))
     if integer and top > 0:
-        bits = max(8, int(math.ceil(math.log2(top + 1))))
+        bits = max(8, math.ceil(math.log2(top + 1)))
         bits = min(bits, 16 if abs(bitpix) <= 16 or bitpix == -32 else 32)
         depth = Value(bits, "measured", note=f"maximum value {top:.0f} ADU (BITPIX {bitpix})")
     else:

@@ -42,13 +42,13 @@ def extended_and_bleeds(data, bkg, rms, fwhm_px: float, saturation: float, star_
             seg_flux = float(cols["segment_flux"][i])
             if seg_flux > flux_excess * max(star_flux, 0.0):
                 m = lab == label
-                mask |= ndimage.binary_dilation(m, iterations=max(1, int(round(fwhm_px))))
+                mask |= ndimage.binary_dilation(m, iterations=max(1, round(fwhm_px)))
                 info["extended"].append({"x": float(cols["x_centroid"][i]), "y": float(cols["y_centroid"][i]),
                                          "area_px": int(cols["area"][i]), "segment_flux_adu": seg_flux,
                                          "stars_flux_adu": star_flux})
     sat = np.isfinite(data) & (data >= saturation)
     if sat.any():
-        lab, n = ndimage.label(sat)
+        lab, _ = ndimage.label(sat)
         for k, sl in enumerate(ndimage.find_objects(lab), start=1):
             hh, ww = sl[0].stop - sl[0].start, sl[1].stop - sl[1].start
             if max(hh, ww) >= bleed_ratio * max(min(hh, ww), 1) and max(hh, ww) >= 6:

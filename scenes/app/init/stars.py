@@ -96,7 +96,7 @@ def fit_psf_stars(data, bkg, seg, cols, saturation: float, max_stars: int = 30, 
         x, y = cols["x_centroid"][i], cols["y_centroid"][i]
         if not np.isfinite(x) or not np.isfinite(y):
             continue
-        xi, yi = int(round(x)), int(round(y))
+        xi, yi = round(x), round(y)
         if xi < R or yi < R or xi >= w - R or yi >= h - R:
             continue
         sl = (slice(yi - R, yi + R + 1), slice(xi - R, xi + R + 1))
@@ -114,7 +114,7 @@ def fit_psf_stars(data, bkg, seg, cols, saturation: float, max_stars: int = 30, 
         yy, xx = np.mgrid[sl]
         peak = float(z.max())
 
-        def model(p):
+        def model(p, xx=xx, yy=yy):
             f, x0, y0, ax, ay, th, beta, c = p
             return f * moffat_pixels(xx - x0, yy - y0, ax, ay, th, beta) + c
 
@@ -123,7 +123,8 @@ def fit_psf_stars(data, bkg, seg, cols, saturation: float, max_stars: int = 30, 
         lo = [0, x - 2, y - 2, 0.2, 0.2, -math.pi, 1.1, -10 * noise - abs(peak)]
         hi = [1e12, x + 2, y + 2, 50, 50, math.pi, 20, 10 * noise + abs(peak)]
         try:
-            r = optimize.least_squares(lambda p: ((model(p) - z) / math.sqrt(noise ** 2 + max(peak, 1) * 0.0 + 1e-9)).ravel(),
+            sigma = math.sqrt(noise ** 2 + 1e-9)
+            r = optimize.least_squares(lambda p, z=z, s=sigma: ((model(p) - z) / s).ravel(),
                                        p0, bounds=(lo, hi), max_nfev=120, x_scale="jac")
         except ValueError:
             continue
@@ -182,7 +183,6 @@ def photometry(data, bkg, cols, fwhm_px: float, beta: float, saturation: float, 
 
     Every star at once: weighted Gauss-Newton on (flux, x, y, background) with the analytic derivatives of the
     pixel-averaged Moffat, saturated and non-finite pixels weighted 0; steps limited to 1 px."""
-    h, w = data.shape
     ax = moffat_alpha(fwhm_px, beta)
     R = int(np.clip(round(2.5 * fwhm_px), 4, 30))
     idx = np.flatnonzero(keep if keep is not None else np.ones(len(cols["x_centroid"]), bool))

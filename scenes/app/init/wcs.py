@@ -19,6 +19,7 @@ from scenes.measured import clean_header
 
 from .header import number  # noqa: F401
 
+
 def has_wcs(header) -> bool:
     return all(k in header for k in ("CTYPE1", "CTYPE2", "CRVAL1", "CRVAL2")) or "CD1_1" in header and "CRVAL1" in header
 

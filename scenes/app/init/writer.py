@@ -15,9 +15,7 @@ def scene_text(scene: dict, sources: dict, header_lines=()) -> str:
     out, table = [], ""
     for line in text.splitlines():
         s = line.strip()
-        if s.startswith("[") and not s.startswith("[["):
-            table = s.strip("[]").strip()
-        elif s.startswith("[["):
+        if s.startswith("[") and not s.startswith("[[") or s.startswith("[["):
             table = s.strip("[]").strip()
         elif " = " in line and not line.startswith(" "):
             key = line.split(" = ", 1)[0].strip()
