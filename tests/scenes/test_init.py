@@ -347,3 +347,22 @@ def test_init_with_gaia_archive_cached(tmp_path, monkeypatch):
     assert len(calls) == 1 and calls[0].is_file()  # the second init read the cache
     info = json.loads((tmp_path / "s1.json").read_text())["catalogue"]
     assert info["n_matched"] >= 8
+
+
+def test_characterize_command_takes_any_subset(calib_frames, capsys, tmp_path):
+    """``newtsim characterize --flat F1 F2`` (no bias, no dark): the photon-transfer gain, and one line per
+    quantity the missing frames leave unmeasured."""
+    paths, truth = calib_frames
+    out = tmp_path / "c.json"
+    assert _cli("characterize", "--flat", paths["flat"][0], "--flat", paths["flat"][1], "--json", str(out)) == 0
+    err = capsys.readouterr().err
+    assert "not measured: no bias frame" in err and "not measured: no dark frame" in err
+    import json
+
+    res = json.loads(out.read_text())
+    assert res["gain"]["source"] == "header (EGAIN)"  # no bias or dark: the flats' level above the bias is unknown
+    assert _cli("characterize", "--dark", paths["dark"][0], "--dark", paths["dark"][1], "--flat", paths["flat"][0],
+                "--flat", paths["flat"][1], "--json", str(out)) == 0
+    res = json.loads(out.read_text())
+    assert res["gain"]["adopted_e_per_adu"] == pytest.approx(truth["gain"], rel=0.05)  # photon transfer, not EGAIN 2.4
+    assert any("differs from the header" in w for w in res["warnings"])

@@ -272,9 +272,13 @@ def characterize_subset(bias=(), dark=(), flat=()) -> dict:
     and darks at two exposure times or more."""
     from .header import header_gain
 
-    first = (list(bias) + list(dark) + list(flat))[0]
-    data, header = read_hdu(first, None, role="calibration", key="--bias/--dark/--flat", dtype=np.float64)
+    allp = list(bias) + list(dark) + list(flat)
+    data, header = read_hdu(allp[0], None, role="calibration", key="--bias/--dark/--flat", dtype=np.float64)
     hg = header_gain(header)
+    for p in allp[1:]:  # the first header with a gain card
+        if hg.value:
+            break
+        hg = header_gain(read_hdu(p, None, role="calibration", dtype=np.float32)[1])
     cam = camera_from_calibration(bias, dark, flat, shape=data.shape, header_gain=hg.value)
     gain_v = cam.get("gain_e_per_adu") if "gain_se" in cam else (hg if hg.value else cam.get("gain_e_per_adu"))
     out = {"frame": {"width": int(data.shape[1]), "height": int(data.shape[0]), "n_bias": len(bias),
