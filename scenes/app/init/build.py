@@ -177,6 +177,10 @@ def init_scene(frame: str, scene_name: str = "scene", *, bias=(), dark=(), flat=
     if focal_length_mm:
         fl_v = _v(float(focal_length_mm), "assumed", "--focal-length-mm", "given on the command line")
     ap_v = hv["aperture_mm"]
+    if ap_v.value and fl_v.value and not 0.7 <= float(fl_v.value) / float(ap_v.value) <= 40:
+        notes.append(f"{ap_v.card} = {ap_v.value:g} mm with a {fl_v.value:g} mm focal length is f/"
+                     f"{float(fl_v.value) / float(ap_v.value):.3g}: not an aperture, ignored")
+        ap_v = _v(None, "assumed")
     if f_number and fl_v.value:
         ap_v = _v(float(fl_v.value) / float(f_number), "assumed", "--f-number", "given on the command line")
     pitch_v = hv["pixel_pitch_um"]

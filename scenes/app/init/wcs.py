@@ -96,13 +96,17 @@ def scene_geometry(header, shape: tuple[int, int], binning: int = 1, sip_order: 
     if shift >= min_shift_px:
         b = float(binning)
         sip = {"order": order}
+        r_max = math.hypot(w, h) / 2
         for (p, q), a_, b_ in zip(terms, ca, cb):
             k = b ** (p + q - 1)  # output (binned) pixels -> unbinned sensor pixels: A_pq / b^(p+q-1)
-            if abs(a_) > 0:
+            # a term that moves no pixel of the frame by 1e-4 px is left out (fit noise of a pure TAN)
+            if abs(a_) * r_max ** (p + q) > 1e-4:
                 sip[f"a_{p}_{q}"] = float(f"{a_ / k:.10g}")
-            if abs(b_) > 0:
+            if abs(b_) * r_max ** (p + q) > 1e-4:
                 sip[f"b_{p}_{q}"] = float(f"{b_ / k:.10g}")
-        sip["reverse_order"] = min(order + 2, 9)
+        used = [int(key.split("_")[1]) + int(key.split("_")[2]) for key in sip if key[:2] in ("a_", "b_")]
+        sip["order"] = max(used, default=1)
+        sip["reverse_order"] = min(sip["order"] + 2, 9)
     return {"ra_deg": ra_c % 360.0, "dec_deg": dec_c, "roll_deg": roll, "scale_arcsec": scale, "parity": parity,
             "sip": sip, "max_distortion_px": shift, "fit_rms_px": fit_rms, "ctype": ctype, "form": form,
             "matrix": matrix, "crpix": [float(v) for v in wcs.wcs.crpix]}
