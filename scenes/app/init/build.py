@@ -145,9 +145,6 @@ def init_scene(frame: str, scene_name: str = "scene", *, bias=(), dark=(), flat=
         rn_e_v = rn_hdr
     else:
         rn_e_v = _v(ASSUMED_READ_NOISE_E[kind], "assumed", note=f"typical of a {kind.upper()}")
-    if hgain.value and gain_v.source == "measured" and "gain_se" in cam and abs(gain - hgain.value) > 3 * cam["gain_se"]:
-        notes.append(f"gain: header {hgain.card} = {hgain.value:g} e-/ADU, photon transfer {gain:.3g} +- "
-                     f"{cam['gain_se']:.2g}: the measured one is adopted")
     if hgain.note:
         notes.append(hgain.note)
     dark_v = cam.get("dark_rate_adu_s")
@@ -202,7 +199,7 @@ def init_scene(frame: str, scene_name: str = "scene", *, bias=(), dark=(), flat=
     if design is None:
         f_mm = float(fl_v.value) if fl_v.value else 206.264806 * pitch / scale
         n = float(f_number) if f_number else (f_mm / float(ap_v.value) if ap_v.value else 5.0)
-        if not (f_number or ap_v.value):
+        if not (f_number or ap_v.value) and frame_type == "light":
             notes.append("no aperture: f/5 assumed for the design (the zero point absorbs the collecting area)")
         table = design_dict(f_mm, n, obstruction, sensor_mm=(w * binning * pitch / 1000, h * binning * pitch / 1000),
                             name=f"{scene_name}_optics")
@@ -300,7 +297,8 @@ def init_scene(frame: str, scene_name: str = "scene", *, bias=(), dark=(), flat=
                              "roll_deg": 0.0}
         sources["pointing.ra_deg"] = "header (RA/OBJCTRA)" if ra is not None else "assumed: no WCS and no RA card"
         sources["pointing.roll_deg"] = "assumed: no WCS (north up)"
-        notes.append("no WCS in the header: the frame's own catalogue only (positions through the scene's assumed WCS)")
+        if frame_type == "light":
+            notes.append("no WCS in the header: the frame's own catalogue only (positions through the scene's assumed WCS)")
         if catalog != "frame" and frame_type == "light":
             raise DetectorError("the frame has no WCS", key="--catalog", file=str(frame),
                                 expected="--catalog frame (the frame's own stars) for a frame without a WCS")
