@@ -145,6 +145,11 @@ def init_scene(frame: str, scene_name: str = "scene", *, bias=(), dark=(), flat=
         rn_e_v = rn_hdr
     else:
         rn_e_v = _v(ASSUMED_READ_NOISE_E[kind], "assumed", note=f"typical of a {kind.upper()}")
+    if rn_e_v.source != "measured" and noise * gain < float(rn_e_v.value):
+        # the frame's whole noise is below the read noise said or assumed: the read noise cannot be that large
+        notes.append(f"read noise {rn_e_v.value:g} e- ({rn_e_v.source}{' ' + rn_e_v.card if rn_e_v.card else ''}) is "
+                     f"above the frame's own noise {noise * gain:.3g} e-: the frame's noise is adopted")
+        rn_e_v = _v(noise * gain, "measured", note=f"the frame's robust noise (below the {rn_e_v.source} value {rn_e_v.value:g})")
     if hgain.note:
         notes.append(hgain.note)
     dark_v = cam.get("dark_rate_adu_s")
