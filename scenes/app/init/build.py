@@ -113,7 +113,11 @@ def init_scene(frame: str, scene_name: str = "scene", *, bias=(), dark=(), flat=
     # the frame's level and noise (sources masked coarsely) for what the rest does not give
     finite = np.isfinite(data)
     med = float(np.median(data[finite]))
-    noise = calib.robust_std(data[finite][:: max(1, data.size // 2_000_000)])
+    # the noise of a pixel about the smooth background (photutils Background2D: a gradient or the vignetting is
+    # not noise; the stars are outliers of the robust std)
+    bkg0, _ = starmod.background(data, mask=~finite | (data >= float(hv["saturation_adu"].value)))
+    res0 = (data - bkg0)[finite]
+    noise = calib.robust_std(res0[:: max(1, res0.size // 2_000_000)])
     if bias_v is None:
         low = float(np.percentile(data[finite], 0.1))
         if low <= 0.05 * med or med < 5 * noise:
