@@ -42,8 +42,9 @@ What is measured, and how
   of itself (so large-scale vignetting is not PRNU), with the temporal noise subtracted in quadrature.
   Vignetting: median of corner boxes over the centre box of the smoothed flat.
 
-Gain adopted for e- values: the header's ``EGAIN`` (or ``GAIN`` when it looks like e-/ADU), else the photon
-transfer gain, else 1.0 with a warning.
+Gain adopted for e- values: the photon-transfer gain of a flat pair (a header value that differs beyond 3 standard
+errors is flagged), else the header's ``EGAIN`` (or ``GAIN`` when it looks like e-/ADU), else
+1.0 with a warning.
 
 Public API: :func:`characterize` (files in, dict out), :func:`emit_scene_dict` (dict in, scene tables out),
 :func:`detector.calplots.write_plots` (dict in, PNG files out); the pure functions (:func:`clipped_stats`,
@@ -64,10 +65,10 @@ from __future__ import annotations
 
 import math
 import warnings
+from collections.abc import Iterable, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Iterable, Sequence
 
 import numpy as np
 from astropy.io import fits
@@ -662,7 +663,7 @@ class _OutlierGather:
 
     def result(self) -> dict:
         n = len(self.sel)
-        cat = lambda p, shape, dt: np.concatenate(p) if p else np.zeros(shape, dt)  # noqa: E731
+        cat = lambda p, shape, dt: np.concatenate(p) if p else np.zeros(shape, dt)
         return {"idx": cat(self.idx, 0, np.int64), "Y": cat(self.Y, (0, n), np.float32),
                 "sat": cat(self.sat, (0, n), bool), "master": cat(self.m, 0, np.float32),
                 "cand": cat(self.cand, 0, np.int64), "cand_x": cat(self.cand_x, (0, n), np.float32),
@@ -1326,10 +1327,17 @@ def _characterize(bias, darks, flats, holdout_exposures, hot_sigma, count_thresh
             warns += w
         g_hdr, g_key, g_file = header_gain(bias + darks + flats)
         pt_gain = flat_res["photon_transfer"]["gain_e_per_adu"] if flat_res else math.nan
-        if g_hdr is not None:
-            gain, source = g_hdr, f"header {g_key} ({g_file})"
-        elif flat_res and math.isfinite(pt_gain) and pt_gain > 0:
+        pt_se = flat_res["photon_transfer"]["gain_se"] if flat_res else math.nan
+        if flat_res and math.isfinite(pt_gain) and pt_gain > 0:
+            # the camera's own photon transfer (Janesick 2007, eq. 4.7) over a header's nominal value; a header
+            # value beyond 3 standard errors of it is said, never hidden
             gain, source = pt_gain, "photon transfer (flat pair)"
+            if g_hdr is not None and math.isfinite(pt_se) and abs(pt_gain - g_hdr) > 3 * pt_se:
+                warns.append(f"header {g_key} = {g_hdr:g} e-/ADU ({g_file}) differs from the photon-transfer gain "
+                             f"{pt_gain:.4g} +- {pt_se:.2g} e-/ADU by {abs(pt_gain - g_hdr) / pt_se:.1f} standard "
+                             "errors: the measured gain is adopted")
+        elif g_hdr is not None:
+            gain, source = g_hdr, f"header {g_key} ({g_file})"
         else:
             gain, source = 1.0, "default 1.0"
             warns.append("no gain in the headers (EGAIN/GAIN) and no flat pair: gain set to 1.0 e-/ADU, so every "
@@ -1625,7 +1633,7 @@ def bias_structure(master, read_noise_adu: float, n_bias: int, nsigma: float = 5
     h, w = shape
     is_arr = isinstance(master, np.ndarray)
     B = B or _Bands(shape, band_pixels=h * w)
-    m_rows = lambda a, b: np.asarray(src.rows(a, b), dtype=np.float64)  # noqa: E731
+    m_rows = lambda a, b: np.asarray(src.rows(a, b), dtype=np.float64)
     if sample is None:
         sample = subsample(m_rows(0, h))
     noise = read_noise_adu / math.sqrt(max(n_bias, 1))
@@ -1822,7 +1830,7 @@ def dark_rate_map(ts: np.ndarray, darks, bias_map, offset_adu: float, read_noise
         info["map_mean_adu_per_s"] = total32 / (h * w)
         info["n_bulk"] = n_bulk
         info["n_outliers"] = h * w - n_bulk
-        cat = lambda p, dt: np.concatenate(p).astype(dt) if p else np.zeros(0, dt)  # noqa: E731
+        cat = lambda p, dt: np.concatenate(p).astype(dt) if p else np.zeros(0, dt)
         if is_arr:
             info["n_stuck"] = int(stuck_arr.sum())
             return out_r, out_se, stuck_arr, info
@@ -1938,7 +1946,7 @@ def fit_rate_laws(excess: np.ndarray, floor: float, bias_level_adu: float) -> di
     lf = math.log(floor)
     alpha = n / float(np.sum(lr - lf))
     ll_p = float(n * math.log(alpha) + n * alpha * lf - (alpha + 1) * lr.sum())
-    cdf_p = lambda x: 1 - (np.asarray(x) / floor) ** (-alpha)  # noqa: E731
+    cdf_p = lambda x: 1 - (np.asarray(x) / floor) ** (-alpha)
     out["pareto"] = {"alpha": alpha, "alpha_se": alpha / math.sqrt(n), "loglik": ll_p, "aic": 2 - 2 * ll_p,
                      "ks": float(stats.kstest(r, cdf_p).statistic)}
 
@@ -1954,7 +1962,7 @@ def fit_rate_laws(excess: np.ndarray, floor: float, bias_level_adu: float) -> di
                             options={"xatol": 1e-6, "fatol": 1e-6, "maxiter": 4000})
     mu, s = float(res.x[0]), math.exp(float(res.x[1]))
     p0 = stats.norm.cdf((lf - mu) / s)
-    cdf_l = lambda x: (stats.norm.cdf((np.log(x) - mu) / s) - p0) / max(1 - p0, 1e-300)  # noqa: E731
+    cdf_l = lambda x: (stats.norm.cdf((np.log(x) - mu) / s) - p0) / max(1 - p0, 1e-300)
     out["lognormal"] = {"log_mu": mu, "log_sigma": s, "loglik": -float(res.fun), "aic": 4 + 2 * float(res.fun),
                         "ks": float(stats.kstest(r, cdf_l).statistic)}
     t2 = bias_level_adu / r
@@ -1977,7 +1985,7 @@ def fit_rate_laws(excess: np.ndarray, floor: float, bias_level_adu: float) -> di
                             options={"xatol": 1e-6, "fatol": 1e-6, "maxiter": 4000})
     k, lam = math.exp(float(res.x[0])), math.exp(float(res.x[1]))
     Fm = -math.expm1(-(tmax / lam) ** k)
-    cdf_w = lambda x: 1 - (-np.expm1(-((bias_level_adu / np.asarray(x)) / lam) ** k)) / Fm  # noqa: E731
+    cdf_w = lambda x: 1 - (-np.expm1(-((bias_level_adu / np.asarray(x)) / lam) ** k)) / Fm
     out["weibull_t2"] = {"shape": k, "scale_s": lam, "loglik": -float(res.fun), "aic": 4 + 2 * float(res.fun),
                          "ks": float(stats.kstest(r, cdf_w).statistic)}
     laws = ("pareto", "lognormal", "weibull_t2")

@@ -148,6 +148,37 @@ class PsfCfg(_Table):
         return value
 
 
+class MaskCfg(_Table):
+    """``[mask]``: pixels of the measured frame that no comparison uses (extended sources: galaxies, nebulae;
+    saturation bleeds; a satellite streak the scene does not model). ``file``: a FITS image of the measured
+    frame's size (after ``[measured] trim``), non-zero = masked, relative to the scene file; ``hdu``: its
+    image HDU (default: the first image). Compare and diagnose set those pixels to NaN when they read the
+    measured frame (docs/reliability.md: NaN pixels are left out of the fit and every statistic)."""
+
+    file: str | list[str] = Field(description="FITS mask (non-zero = masked), or several (their union) [path]")
+    hdu: int | str | None = Field(None, description="HDU index or EXTNAME of the mask (default: the first image)")
+
+
+class MeasuredCfg(_Table):
+    """``[measured]``: how the measured frame compared with this scene is read. ``hdu``: the image HDU of a
+    multi-extension file (index or EXTNAME; default the first image); ``trim``: the FITS section (1-based,
+    inclusive, ``"[x1:x2,y1:y2]"``, as ``TRIMSEC``/``DATASEC``) of the light-sensitive pixels of a raw frame
+    with prescan / overscan columns: only those pixels are compared."""
+
+    hdu: int | str | None = Field(None, description="HDU index or EXTNAME of the measured image")
+    trim: str | None = Field(None, description="FITS section [x1:x2,y1:y2] of the pixels compared (1-based)")
+
+    @field_validator("trim")
+    @classmethod
+    def _section(cls, value):
+        if value is None:
+            return value
+        from .measured import parse_section
+
+        parse_section(value)  # ValueError names what is expected
+        return value
+
+
 @dataclass(frozen=True)
 class SceneParts:
     """The typed parts of a validated scene, built once when it is loaded (:attr:`Scene.parts`).
@@ -186,6 +217,8 @@ class Scene(_Table):
     observer: dict[str, Any] | None = None
     objects: list[dict[str, Any]] = Field(default_factory=list)
     effects: dict[str, dict[str, Any]] = Field(default_factory=dict)
+    mask: MaskCfg | None = None
+    measured: MeasuredCfg | None = None
     source: str = Field("<built-in>", exclude=True)
     _parts: SceneParts | None = PrivateAttr(None)
     _parts_key: str | None = PrivateAttr(None)
@@ -362,6 +395,15 @@ def check_scene(scene: Scene) -> None:
             raise SceneError(f"star catalogue {str(p)!r} not found", key="sky.catalog", file=file,
                              expected="'builtin', 'gaia' or a CSV/ECSV/FITS file (relative to the scene file)")
         scene.sky.catalog = str(p)
+    if scene.mask is not None:
+        paths = []
+        for v in [scene.mask.file] if isinstance(scene.mask.file, str) else scene.mask.file:
+            p = resolve_path(v, base)
+            if not p.is_file():
+                raise SceneError(f"mask file {str(p)!r} not found", key="mask.file", file=file,
+                                 expected="a FITS image, non-zero = masked (relative to the scene file)")
+            paths.append(str(p))
+        scene.mask.file = paths[0] if isinstance(scene.mask.file, str) else paths
     _resolve_design(scene, base)
     observer = observer_from_table(scene.observer, file=file, base_dir=base)
     if isinstance(scene.observer, dict) and isinstance(scene.observer.get("tle_file"), str):

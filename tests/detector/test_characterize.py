@@ -288,8 +288,13 @@ def test_sbig_hot_pixels(sbig):
 def test_sbig_flats(sbig):
     res, *_ = sbig
     g, f = res["gain"], res["flat"]
-    assert g["source"].startswith("header EGAIN") and g["adopted_e_per_adu"] == 2.06
-    assert g["photon_transfer_e_per_adu"] == pytest.approx(2.06, rel=0.10)
+    # the camera's own photon transfer is adopted (1.93 e-/ADU), and the header's EGAIN = 2.06, more than 3
+    # standard errors away, is flagged rather than hidden
+    assert g["source"] == "photon transfer (flat pair)" and g["header_e_per_adu"] == 2.06
+    assert g["adopted_e_per_adu"] == g["photon_transfer_e_per_adu"] == pytest.approx(2.06, rel=0.10)
+    if abs(g["photon_transfer_e_per_adu"] - 2.06) > 3 * g["photon_transfer_se"]:
+        assert any("differs from the photon-transfer gain" in w for w in res["warnings"])
+    assert res["bias"]["read_noise_e"] == pytest.approx(res["bias"]["read_noise_adu"] * g["adopted_e_per_adu"])
     assert f["median_raw_adu"][0] == pytest.approx(19690, abs=50)  # PROVENANCE
     assert f["vignetting"]["corner_over_centre_mean"] == pytest.approx(0.94, abs=0.02)  # PROVENANCE
     assert 0.0 < f["prnu_rel"] < 0.02

@@ -34,6 +34,7 @@ try:
     from .demo import demo as demo_command
     from .inject import detect as detect_command
     from .inject import inject as inject_command
+    from .init import init as init_command
     from .optics import optics as optics_group
     from .render import effects as effects_command
     from .render import render as render_command
@@ -72,6 +73,7 @@ cli.add_command(demo_command, name="demo")
 cli.add_command(inject_command, name="inject")
 cli.add_command(detect_command, name="detect")
 cli.add_command(score_command, name="score")
+cli.add_command(init_command, name="init")
 
 
 def _usage_line(exc: click.ClickException) -> str:

@@ -16,8 +16,8 @@ from .common import Outputs, json_target, progress_bar, write_json
 
 
 @click.command()
-@click.option("--bias", "bias", multiple=True, required=True, type=click.Path(), help="bias frames (two or more)")
-@click.option("--dark", "dark", multiple=True, required=True, type=click.Path(), help="dark frames, several exposures")
+@click.option("--bias", "bias", multiple=True, type=click.Path(), help="bias frames (two or more)")
+@click.option("--dark", "dark", multiple=True, type=click.Path(), help="dark frames, several exposures")
 @click.option("--flat", "flat", multiple=True, type=click.Path(), help="a pair of flats (photon transfer)")
 @click.option("--json", "json_out", default=None, help="write the numbers as JSON here ('-' for stdout)")
 @click.option("--emit-scene", "emit_scene", default=None,
@@ -32,6 +32,11 @@ def characterize(bias, dark, flat, json_out, emit_scene, population, plots, sigm
     Accepts shell-style multiple files after one option: --bias b1.fits b2.fits --dark d1.fits ...
     The JSON, the scene and its maps and the plots are written together at the end (or not at all).
     """
+    if not (bias or dark or flat):
+        raise DetectorError("no calibration frame given", key="--bias/--dark/--flat",
+                            expected="any of bias, dark and flat frames")
+    if not _full_set(bias, dark):
+        return _subset(bias, dark, flat, json_out, emit_scene, plots)
     with Outputs(inputs=[*bias, *dark, *flat]) as outs:
         json_path = json_target(outs, json_out)
         plots_dir = outs.folder(plots, "--plots") if plots else None
@@ -59,6 +64,36 @@ def characterize(bias, dark, flat, json_out, emit_scene, population, plots, sigm
     else:
         click.echo(f"wrote {json_out}" + (f", {emit_scene}" if emit_scene else "")
                    + (f", plots in {plots}" if plots else ""), err=True)
+
+
+def _full_set(bias, dark) -> bool:
+    """Bias frames and darks at two exposure times or more: the full analysis."""
+    if not bias or not dark:
+        return False
+    from scenes.app.init.calib import _exptime
+
+    return len({_exptime(p) for p in dark}) >= 2
+
+
+def _subset(bias, dark, flat, json_out, emit_scene, plots) -> None:
+    """Any other subset: what it measures, and one line for each thing it cannot."""
+    from scenes.app.init.calib import characterize_subset
+
+    if emit_scene or plots:
+        raise DetectorError("--emit-scene / --plots need the full analysis", key="--emit-scene/--plots",
+                            expected="bias frames and darks at two exposure times or more (or `newtsim init` "
+                            "for a scene from a light frame and any calibration frames)")
+    with Outputs(inputs=[*bias, *dark, *flat]) as outs:
+        json_path = json_target(outs, json_out)
+        result = characterize_subset(bias, dark, flat)
+        if json_path is not None:
+            write_json(result, json_path)
+    if json_out in (None, "-"):
+        write_json(result, None)
+    for line in result["not_measured"]:
+        click.echo(f"not measured: {line}", err=True)
+    for line in result["warnings"]:
+        click.echo(f"warning: {line}", err=True)
 
 
 def _run_bounded(fn, bias):

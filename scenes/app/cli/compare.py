@@ -26,6 +26,7 @@ from scenes.app.compare.series import (
     series_ledger,
 )
 from scenes.app.compare.series_report import write_series_report
+from scenes.measured import with_mask
 
 from .common import Outputs, json_target, load, scene_files, warn, write_json
 
@@ -64,8 +65,10 @@ _SERIES_HELP = ("a series file (scene = ..., [[frames]] file = ..., set = {...})
 @click.option("--json", "json_out", default=None, help="write the comparison JSON here ('-' for stdout)")
 @click.option("--report", "report", default=None, type=click.Path(dir_okay=False), help="write an HTML report")
 @click.option("--set", "sets", multiple=True, metavar="KEY=VALUE", help="override a scene key (every frame of a series)")
+@click.option("--mask", "mask", default=None, type=click.Path(dir_okay=False),
+              help="a FITS mask of the measured frame (non-zero = left out), added to the scene's [mask]")
 @click.option("--workers", type=click.IntRange(min=1), default=None, help="threads (default: CPUs, at most 4)")
-def compare(scene, measured, series, json_out, report, sets, workers):
+def compare(scene, measured, series, json_out, report, sets, workers, mask):
     """Model of SCENE vs the MEASURED frame: chi2/dof, residuals per region, row/column, source; report.
     With --series, every frame of a series file against its model, side by side."""
     _positional(scene, measured, series)
@@ -74,7 +77,9 @@ def compare(scene, measured, series, json_out, report, sets, workers):
     with Outputs(inputs=[scene, measured]) as outs:
         json_path = json_target(outs, json_out)
         report_path = outs.file(report, "--report") if report else None
-        sc = load(scene, sets, outs)
+        sc = with_mask(load(scene, sets, outs), mask)
+        if mask:
+            outs.also_inputs([mask])
         result = run_compare(sc, measured, workers=workers)
         s = result["summary"]
         if report_path is not None:
@@ -137,10 +142,12 @@ def _sampling_note(sampling: dict | None) -> None:
 @click.option("--prefer", "prefer", multiple=True, metavar="EFFECT",
               help="with --apply: add this effect instead of the best one when it is significant (repeatable)")
 @click.option("--set", "sets", multiple=True, metavar="KEY=VALUE", help="override a scene key (every frame of a series)")
+@click.option("--mask", "mask", default=None, type=click.Path(dir_okay=False),
+              help="a FITS mask of the measured frame (non-zero = left out), added to the scene's [mask]")
 @click.option("--workers", type=click.IntRange(min=1), default=None, help="threads (default: CPUs, at most 4)")
 @click.option("--policy", "policy_file", default=None, type=click.Path(dir_okay=False),
               help="a TOML/JSON table overriding the judge's thresholds (docs/diagnosis_policy.md)")
-def diagnose(scene, measured, series, json_out, apply_to, report, prefer, sets, workers, policy_file):
+def diagnose(scene, measured, series, json_out, apply_to, report, prefer, sets, workers, mask, policy_file):
     """Rank what SCENE gets wrong about the MEASURED frame: first the scene's own numbers (zero point, sky,
     PSF width, bias, dark), then the effects it lacks, by how much they explain (delta BIC, held-out pixels,
     against a description of the residual). With --series, the frames of a series file together: hardware
@@ -158,7 +165,9 @@ def diagnose(scene, measured, series, json_out, apply_to, report, prefer, sets, 
         for base, option in ([(apply_to, "--apply (its ledger)")] if apply_to else []) + [(scene, "ledger")]:
             lj = ledger_path(base)
             ledgers[base] = (outs.file(lj, option), outs.file(lj.with_suffix(".png"), option))
-        sc = load(scene, sets, outs)
+        sc = with_mask(load(scene, sets, outs), mask)
+        if mask:
+            outs.also_inputs([mask])
         with Progress(transient=True) as bar:
             task = bar.add_task("fitting candidate effects", total=None)
             out = run_diagnose(sc, measured, workers=workers, progress=lambda name: bar.update(task, description=name),

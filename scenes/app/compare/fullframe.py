@@ -71,6 +71,7 @@ from detector.signatures import (
 )
 from detector.stats import mad_std
 from scenes.app.render import Setup, prepare
+from scenes.measured import scene_mask
 
 from .candidates import candidates, source_candidates
 from .catch_all import compare_with_catch_all
@@ -167,8 +168,18 @@ class BandReader:
                 raise DetectorError("measured file is truncated", file=str(p), expected="a complete FITS file")
         self._hdu = hdu
 
+    #: the scene's ``[mask]`` over the frame (True = left out: read as NaN), set by :func:`run_compare_large`
+    mask: np.ndarray | None = None
+
     def rows(self, r0: int, r1: int) -> np.ndarray:
-        """Output rows ``r0:r1`` of the measured frame as float32 ADU (NaN where the file has no value)."""
+        """Output rows ``r0:r1`` of the measured frame as float32 ADU (NaN where the file has no value or the
+        scene's mask is set)."""
+        a = self._rows(r0, r1)
+        if self.mask is not None:
+            a[self.mask[r0:r1]] = np.nan
+        return a
+
+    def _rows(self, r0: int, r1: int) -> np.ndarray:
         if self._raw is not None:
             a = np.asarray(self._raw[r0:r1], np.float32)
             if self._scale != 1.0:
@@ -852,7 +863,13 @@ def run_compare_large(scene, measured: str | Path, workers: int | None = None, p
     s = setup.detector.sensor
     shape = s.output_shape
     k = k or choose_binning(shape)
+    meas = getattr(scene, "measured", None)
+    if meas is not None and (meas.trim or meas.hdu is not None):
+        raise DetectorError("[measured] trim / hdu with a frame this large", key="measured", file=str(measured),
+                            expected=f"a frame of at most {LARGE_FRAME_PX} pixels, or the light-sensitive HDU / "
+                            "section written to its own FITS file")
     reader = BandReader(measured, shape, s.binning)
+    reader.mask = scene_mask(scene, shape)
     try:
         P = run_pass(setup, reader, k, sample_bands, sample_rows, progress=progress)
         header = reader.header

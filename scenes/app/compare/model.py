@@ -16,10 +16,10 @@ from pathlib import Path
 import numpy as np
 
 from detector.errors import DetectorError
-from detector.fits_io import read_image
 from detector.signatures import Residuals, SpikeStats, spike_stats
 from scenes.app.render import Setup, prepare
 from scenes.image.signal import Samples, SourceSignal, Trails
+from scenes.measured import measured_wcs, read_measured
 from scenes.projection import axis_crpix
 from scenes.scene import Scene
 
@@ -117,9 +117,9 @@ def read_measurement(path: str | Path, model: ModelFrame) -> tuple[np.ndarray, d
     :func:`residuals` removes from the fit and every statistic. A frame with more than
     :data:`MAX_NONFINITE_FRACTION` of them is refused (one line naming the file).
     """
-    data, header = read_image(path, key="MEASURED", role="measured", dtype=np.float32)
+    data, header, read_notes = read_measured(path, model.setup.scene, dtype=np.float32)
     s = model.sensor
-    notes: dict = {"warnings": []}
+    notes: dict = {"warnings": [], "masked_pixels": read_notes["masked_pixels"]}
     if data.shape != s.output_shape:
         raise DetectorError(f"measured frame is {data.shape[1]}x{data.shape[0]} pixels", key="detector",
                             file=str(path), expected=f"{s.output_shape[1]}x{s.output_shape[0]} as the scene's "
@@ -130,14 +130,17 @@ def read_measurement(path: str | Path, model: ModelFrame) -> tuple[np.ndarray, d
                                 file=str(path), expected=f"{s.binning} as the scene")
     bad = ~np.isfinite(data)
     n_bad = int(bad.sum())
-    if n_bad > MAX_NONFINITE_FRACTION * data.size:
+    if n_bad - read_notes["masked_pixels"] > MAX_NONFINITE_FRACTION * data.size:
         raise DetectorError(f"{100 * n_bad / data.size:.0f} % of the measured pixels are NaN or infinite",
                             key="MEASURED", file=str(path), expected="a frame with at most "
                             f"{100 * MAX_NONFINITE_FRACTION:.0f} % non-finite pixels")
     notes["nonfinite_pixels"] = n_bad
     model.extra["nonfinite"] = bad if n_bad else None
     model.extra["nonfinite_pixels"] = n_bad
-    if n_bad:
+    if read_notes["masked_pixels"]:
+        notes["warnings"].append(f"{read_notes['masked_pixels']} measured pixels masked by [mask] "
+                                 f"({100 * read_notes['masked_pixels'] / data.size:.3g} %)")
+    if n_bad > read_notes["masked_pixels"]:
         notes["warnings"].append(f"{n_bad} measured pixels ({100 * n_bad / data.size:.3g} %) are NaN or infinite: "
                                  "masked (left out of the fit and every statistic)")
         data = np.where(bad, model.mean_adu, data).astype(np.float32)
@@ -190,13 +193,11 @@ def _wcs_offset(header, model: ModelFrame) -> float | None:
         return None
     import warnings
 
-    from astropy.wcs import WCS
-
     p = model.setup.scene.pointing
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
-            x, y = WCS(header).all_world2pix([[p.ra_deg, p.dec_deg]], 0)[0]
+            x, y = measured_wcs(header).all_world2pix([[p.ra_deg, p.dec_deg]], 0)[0]
     except Exception:  # noqa: BLE001  (a broken WCS is reported as absent, not fatal)
         return None
     ax, ay = axis_crpix(model.sensor)  # 1-based

@@ -33,6 +33,7 @@ from .optics_candidates import field_pattern_check, optics_candidates
 from .parameters import explained_away, parameter_candidates
 from .policy import DEFAULT_POLICY, DiagnosisPolicy
 from .report import write_report
+from .star_table import star_table
 from .statistics import compare, summary
 
 __all__ = ["SIGNIFICANT_DELTA_BIC", "ModelFrame", "best_candidate", "build_model", "diagnose_round", "run_compare",
@@ -71,6 +72,7 @@ def _run_compare(scene, measured: str | Path, workers: int | None = None) -> dic
                              model.setup.warnings, wcs_offset_px=notes["wcs_offset_px"],
                              nonfinite_pixels=notes.get("nonfinite_pixels", 0),
                              seconds={"model": t1 - t0, "compare": time.perf_counter() - t1})
+    result["summary"]["star_table"] = star_table(res, model.setup.truth, usable=res.fit)
     result["_residuals"], result["_model"] = res, model
     return result
 

@@ -1,0 +1,579 @@
+"""``newtsim init``: a scene from a measured frame, its calibration frames and its header.
+
+Order of work: the header's conventions (:mod:`.header`), the raw frame's overscan (:mod:`.calib`), the camera
+from the calibration frames (:mod:`.calib`), the WCS (:mod:`.wcs`), the background, the stars and their PSF
+(:mod:`.stars`), the mask (:mod:`.mask`), the optics (:mod:`.optics`), the catalogue, then the scene and the
+files it names (:mod:`.writer`). Every value carries its source (measured | header | assumed).
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from detector.errors import DetectorError
+from scenes.measured import parse_section, read_hdu
+
+from . import calib
+from . import mask as maskmod
+from . import stars as starmod
+from .header import Value, read_header
+from .optics import airy_fwhm_arcsec, design_dict
+from .wcs import has_wcs, scene_geometry
+
+#: read noise assumed when nothing measures it [e-]: a CCD / a CMOS of the classes seen
+ASSUMED_READ_NOISE_E = {"ccd": 10.0, "cmos": 3.0}
+#: ellipticity (1 - minor/major) above which the measured PSF's elongation goes into the scene
+ELONGATED = 0.05
+#: a median Moffat beta at or above this is a Gaussian (the fits' upper bound is 20)
+GAUSSIAN_BETA = 15.0
+_CMOS_WORDS = ("zwo", "qhy", "canon", "nikon", "sony", "cmos", "imx", "seestar", "asi", "eos", "dslr", "touptek", "playerone")
+
+
+@dataclass
+class InitResult:
+    scene: dict
+    sources: dict  # dotted scene key -> "source (card / note)"
+    summary: dict
+    files: dict = field(default_factory=dict)  # file name (beside the scene) -> ("csv"|"fits"|"toml", payload)
+
+
+def _v(value, source, card=None, note=None) -> Value:
+    return Value(value, source, card, note)
+
+
+def _pick(*cands: Value, default: Value) -> Value:
+    for c in cands:
+        if c is not None and c.value is not None:
+            return c
+    return default
+
+
+def init_scene(frame: str, scene_name: str = "scene", *, bias=(), dark=(), flat=(), catalog: str = "frame",
+               design: str | None = None, focal_length_mm: float | None = None, f_number: float | None = None,
+               obstruction: float = 0.0, hdu=None, log=lambda s: None) -> InitResult:
+    """Measure ``frame`` and set up its scene. ``scene_name``: the stem of the files written beside the scene."""
+    t0 = time.perf_counter()
+    n_cal = {"bias_frames": len(bias), "dark_frames": len(dark), "flat_frames": len(flat)}
+    raw, header = read_hdu(frame, hdu, role="measured", key="FRAME", dtype=np.float64)
+    hv = read_header(header, raw)
+    sources: dict[str, str] = {}
+    notes: list[str] = []
+    files: dict = {}
+
+    def src(key: str, v: Value) -> None:
+        text = v.source + (f" ({v.card})" if v.card else "") + (f": {v.note}" if v.note else "")
+        sources[key] = text
+
+    # ---- raw frame: overscan
+    ov = calib.find_overscan(raw, header)
+    trim = ov["trim"] if ov else None
+    data = raw[parse_section(trim)] if trim else raw
+    h, w = data.shape
+    if ov:
+        notes.append(f"overscan {ov['bias_section']} ({ov['source']}): level {ov['level_adu']:.1f} ADU, noise "
+                     f"{ov['noise_adu']:.2f} ADU; compared pixels {trim}")
+    # ---- camera from the calibration frames
+    hgain = hv["gain_e_per_adu"]
+    # a flat frame and a flat given: the two make the photon-transfer pair (the map comes from the other one)
+    pair = [*flat, frame] if (hv["frame_type"].value == "flat" or "flat" in Path(str(frame)).name.lower()) and flat else flat
+    cam = calib.camera_from_calibration(bias, dark, pair, trim=trim, shape=(h, w), header_gain=hgain.value)
+    notes += cam["notes"]
+    kind_words = " ".join(str(hv[k].value or "") for k in ("instrument", "telescope")).lower()
+    kind = "cmos" if (hv["bayer"].value or any(word in kind_words for word in _CMOS_WORDS)) else "ccd"
+    kind_v = _v(kind, "assumed", note="from the instrument's name / the colour filter array" if kind == "cmos" else
+                "no sign of a CMOS in the header: a CCD")
+    frame_type = hv["frame_type"].value
+    name = Path(str(frame)).name.lower()
+    if frame_type == "light":  # cameras that write every frame as a "Light Frame": the file name decides
+        for word, kind_ in (("flat", "flat"), ("dark", "dark"), ("bias", "bias"), ("zero", "bias")):
+            if word in name:
+                notes.append(f"the file name says {kind_!r} ({hv['frame_type'].card or 'no IMAGETYP'} = "
+                             f"{header.get(hv['frame_type'].card or 'IMAGETYP', 'absent')!r}): taken as a {kind_} frame")
+                frame_type = kind_
+                break
+    exptime = _pick(hv["exptime_s"], default=_v(1.0, "assumed", note="no EXPTIME"))
+    t = float(exptime.value)
+    # bias level
+    bias_v = _pick(cam.get("bias_adu"), _v(ov["level_adu"], "measured", "overscan", ov["bias_section"]) if ov else None,
+                   hv["bias_adu"], default=None)
+    # gain
+    g_meas = cam.get("gain_e_per_adu")
+    if g_meas is not None and "gain_se" in cam:
+        gain_v = g_meas
+    else:
+        gain_v = _pick(hgain if hgain.value else None, g_meas, default=None)
+    # read noise
+    rn_adu = _pick(cam.get("read_noise_adu"), _v(ov["noise_adu"], "measured", "overscan") if ov else None, default=None)
+    rn_hdr = hv["read_noise_e"]
+    # the frame's level and noise (sources masked coarsely) for what the rest does not give
+    finite = np.isfinite(data)
+    med = float(np.median(data[finite]))
+    # the noise of a pixel about the smooth background (photutils Background2D: a gradient or the vignetting is
+    # not noise; the stars are outliers of the robust std)
+    bkg0, _ = starmod.background(data, mask=~finite | (data >= float(hv["saturation_adu"].value)))
+    res0 = (data - bkg0)[finite]
+    noise = calib.robust_std(res0[:: max(1, res0.size // 2_000_000)])
+    if bias_v is None:
+        low = float(np.percentile(data[finite], 0.1))
+        if low <= 0.05 * med or med < 5 * noise:
+            bias_v = _v(0.0, "assumed", note="the data reach zero: bias-subtracted (or black level removed in the camera)")
+        elif gain_v is not None and gain_v.value:
+            rn_e = rn_hdr.value or ASSUMED_READ_NOISE_E[kind]
+            g = float(gain_v.value)
+            b = med - g * (noise ** 2 - (rn_e / g) ** 2)
+            bias_v = _v(float(np.clip(b, 0, med)), "measured",
+                        note="level minus gain x (variance - read noise^2): var = (S - B)/g + (RN/g)^2")
+        else:
+            bias_v = _v(0.0, "assumed", note="no bias frame, no overscan, no gain: the level is taken as all signal")
+    bias = float(bias_v.value)
+    if gain_v is None:
+        rn_e = rn_hdr.value or ASSUMED_READ_NOISE_E[kind]
+        var = max(noise ** 2 - (1.0 / 12.0 if np.allclose(data[finite][:1000], np.round(data[finite][:1000])) else 0), 1e-9)
+        s = max(med - bias, 1e-3)
+        if rn_adu is not None and rn_adu.value ** 2 < 0.8 * var:  # var = S/g + rn_adu^2
+            g = s / (var - rn_adu.value ** 2)
+        else:  # var g^2 - S g - RN^2 = 0
+            g = (s + math.sqrt(s * s + 4 * var * rn_e ** 2)) / (2 * var)
+        gain_v = _v(float(np.clip(g, 0.01, 999.0)), "measured", note="sky noise: var = S/g + (RN/g)^2 (Poisson sky and read noise)")
+        if frame_type != "light":
+            gain_v = _v(float(g), "measured", note=f"noise of the {frame_type} frame (Poisson + read noise)")
+    gain = float(gain_v.value)
+    if rn_adu is not None:
+        rn_e_v = _v(rn_adu.value * gain, rn_adu.source, rn_adu.card, (rn_adu.note or "") + " x adopted gain")
+    elif rn_hdr.value:
+        rn_e_v = rn_hdr
+    else:
+        rn_e_v = _v(ASSUMED_READ_NOISE_E[kind], "assumed", note=f"typical of a {kind.upper()}")
+    if rn_e_v.source != "measured" and noise * gain < float(rn_e_v.value):
+        # the frame's whole noise is below the read noise said or assumed: the read noise cannot be that large
+        notes.append(f"read noise {rn_e_v.value:g} e- ({rn_e_v.source}{' ' + rn_e_v.card if rn_e_v.card else ''}) is "
+                     f"above the frame's own noise {noise * gain:.3g} e-: the frame's noise is adopted")
+        rn_e_v = _v(noise * gain, "measured", note=f"the frame's robust noise (below the {rn_e_v.source} value {rn_e_v.value:g})")
+    if hgain.note:
+        notes.append(hgain.note)
+    dark_v = cam.get("dark_rate_adu_s")
+    dark_e_v = (_v(dark_v.value * gain, dark_v.source, dark_v.card, dark_v.note) if dark_v is not None
+                else _v(0.0, "assumed", note="no dark frame"))
+    if frame_type == "dark" and dark_v is None:
+        dark_e_v = _v(max(med - bias, 0.0) * gain / max(t, 1e-9), "measured", note="the dark frame's median above the bias / t")
+    sat_v = hv["saturation_adu"]
+    depth_v = hv["bit_depth"]
+    sat = float(sat_v.value)
+    full_well = max((sat - bias) * gain, 1.0)
+    fw_hdr = hv["full_well_e"]
+    if fw_hdr.value and (sat_v.source != "measured" or fw_hdr.value < full_well):
+        full_well = float(fw_hdr.value)
+        sat = min(sat, bias + full_well / gain)
+        sat_v = _v(sat, "header", fw_hdr.card, "full well from the header")
+    temp_v = _pick(hv["temperature_c"], default=_v(20.0, "assumed"))
+    binning = int(hv["binning"].value or 1)
+    # ---- geometry
+    geom = None
+    if has_wcs(header):
+        geom = scene_geometry(header, (h, w), binning=binning)
+        if trim:  # the WCS refers to the raw frame's pixels: re-centre on the trimmed data
+            rows, cols = parse_section(trim)
+            geom = _trimmed_geometry(header, raw.shape, rows, cols, binning)
+    fl_v = hv["focal_length_mm"]
+    if focal_length_mm:
+        fl_v = _v(float(focal_length_mm), "assumed", "--focal-length-mm", "given on the command line")
+    ap_v = hv["aperture_mm"]
+    if ap_v.value and fl_v.value and not 0.7 <= float(fl_v.value) / float(ap_v.value) <= 40:
+        notes.append(f"{ap_v.card} = {ap_v.value:g} mm with a {fl_v.value:g} mm focal length is f/"
+                     f"{float(fl_v.value) / float(ap_v.value):.3g}: not an aperture, ignored")
+        ap_v = _v(None, "assumed")
+    if f_number and fl_v.value:
+        ap_v = _v(float(fl_v.value) / float(f_number), "assumed", "--f-number", "given on the command line")
+    pitch_v = hv["pixel_pitch_um"]
+    if pitch_v.value is None and geom is not None and fl_v.value:
+        pitch_v = _v(geom["scale_arcsec"] / binning * float(fl_v.value) / 206.264806, "measured",
+                     note="plate scale x focal length")
+    if pitch_v.value is None:
+        pitch_v = _v(5.0, "assumed", note="no XPIXSZ: 5 um (only the collecting area / design uses it)")
+    pitch = float(pitch_v.value)
+    if geom is not None:
+        scale_v = _v(geom["scale_arcsec"] / binning, "header", "WCS", f"{geom['form']} ({geom['matrix']})")
+    elif fl_v.value:
+        scale_v = _v(206.264806 * pitch / float(fl_v.value), "measured", note="pixel pitch / focal length")
+    else:
+        scale_v = _v(2.0, "assumed", note="no WCS and no focal length: 2 arcsec/px")
+    scale = float(scale_v.value)
+    # ---- optics
+    design_name = str(Path(design).resolve()) if design is not None and Path(design).is_file() else design
+    if design is None:
+        f_mm = float(fl_v.value) if fl_v.value else 206.264806 * pitch / scale
+        n = float(f_number) if f_number else (f_mm / float(ap_v.value) if ap_v.value else 5.0)
+        if not (f_number or ap_v.value) and frame_type == "light":
+            notes.append("no aperture: f/5 assumed for the design (the zero point absorbs the collecting area)")
+        table = design_dict(f_mm, n, obstruction, sensor_mm=(w * binning * pitch / 1000, h * binning * pitch / 1000),
+                            name=f"{scene_name}_optics")
+        design_name = f"{scene_name}_optics.toml"
+        files[design_name] = ("toml", table)
+        optics_info = {"focal_length_mm": f_mm, "f_number": n, "aperture_mm": f_mm / n, "obstruction": obstruction,
+                       "airy_fwhm_arcsec_550nm": airy_fwhm_arcsec(f_mm / n)}
+    else:
+        optics_info = {"design": design}
+    # ---- background, stars, PSF
+    log("stars and PSF")
+    # saturated as compare sees it: the clipped level less 5 read-noise sigma (scenes.app.compare.model.saturation_adu)
+    sat_cut = sat - 5.0 * float(rn_e_v.value) / gain
+    bad = ~np.isfinite(data) | (data >= sat_cut)
+    bkg, rms = starmod.background(data, mask=bad)
+    seg, cols = None, {}
+    if frame_type == "light":  # a dark, bias or flat frame has no stars (its outliers are hot pixels)
+        seg, cols = starmod.detect(data, bkg, rms, fwhm_px=3.0, nsigma=5.0, mask=~np.isfinite(data))
+    psf = {"ok": False, "n": 0}
+    if seg is not None and len(cols.get("label", [])):
+        seg, cols = starmod.detect(data, bkg, rms, fwhm_px=float(np.clip(np.nanmedian(cols["fwhm"]), 1.5, 20)),
+                                   nsigma=5.0, mask=~np.isfinite(data))
+        psf = starmod.fit_psf_stars(data, bkg, seg, cols, sat_cut, rms=rms)
+    if psf.get("ok"):
+        fwhm_px, beta = psf["fwhm_px"], float(np.clip(psf["beta"], 1.2, 50))
+        if psf["beta"] >= GAUSSIAN_BETA:  # the Moffat's beta -> infinity limit: a Gaussian core without wings
+            beta = math.inf
+        psf_src = _v(fwhm_px, "measured", note=f"median of elliptical Moffat fits of {psf['n']} stars")
+    else:
+        fwhm_px, beta = 3.0, 4.765
+        psf_src = _v(fwhm_px, "assumed", note="no isolated star to fit")
+    phot = None
+    if seg is not None and frame_type == "light":
+        sharp = cols["fwhm"] < 0.5 * fwhm_px
+        phot = starmod.photometry(data, bkg, cols, fwhm_px, min(beta, 1000.0), sat_cut, rms, keep=~sharp)
+    # ---- mask
+    mask = np.zeros((h, w), bool)
+    minfo = {"extended": [], "bleeds": [], "masked_fraction": 0.0}
+    if frame_type == "light":
+        sxyf = (phot["x"], phot["y"], phot["flux_adu"]) if phot is not None and phot["x"].size else None
+        mask, minfo = maskmod.extended_and_bleeds(data, bkg, rms, fwhm_px, sat_cut, sxyf)
+    # ---- sky
+    sky_adu = float(np.median(bkg[~mask])) if (~mask).any() else float(np.median(bkg))
+    sky_e_s = max((sky_adu - bias) * gain / max(t, 1e-9) - float(dark_e_v.value), 0.0)
+    # ---- the scene
+    preset = "ml11002" if kind == "ccd" else "imx411"
+    det = {"preset": preset, "name": str(hv["instrument"].value or "camera")[:60], "kind": kind,
+           "shutter": "global", "line_time_s": 0.0, "pixel_pitch_um": round(pitch, 4),
+           "sensor_width_px": w * binning, "sensor_height_px": h * binning,
+           "bit_depth": int(depth_v.value), "gain_e_per_adu": round(gain, 5), "bias_adu": round(bias, 3),
+           "read_noise_e": round(float(rn_e_v.value), 4), "dark_current_e_per_s": round(float(dark_e_v.value), 6),
+           "full_well_e": round(full_well, 1), "temperature_c": round(float(temp_v.value), 3)}
+    if binning > 1:
+        det["binning"] = binning
+    for k, v in (("kind", kind_v), ("pixel_pitch_um", pitch_v), ("bit_depth", depth_v), ("gain_e_per_adu", gain_v),
+                 ("bias_adu", bias_v), ("read_noise_e", rn_e_v), ("dark_current_e_per_s", dark_e_v),
+                 ("temperature_c", temp_v), ("binning", hv["binning"])):
+        src(f"detector.{k}", v)
+    src("detector.full_well_e", _v(full_well, sat_v.source, sat_v.card, (f"(saturation {sat:.0f} - bias) x gain; " if sat_v.card != "FULLWELL" else "") + (sat_v.note or "")))
+    sources["detector.sensor_width_px"] = "measured (the frame's size" + (f", trimmed to {trim})" if trim else ")")
+    sources["detector.preset"] = f"assumed: a generic {kind.upper()} for the QE curve (the zero point calibrates the band)"
+    win = hv["window_origin"]
+    if win.source == "header" and any(win.value):
+        notes.append(f"window origin {win.value} ({win.card}): the scene's sensor is the frame (optical axis at its centre)")
+    scene: dict = {
+        "telescope": {"design": design_name, "pixel_scale_arcsec": round(scale, 7)},
+        "detector": det,
+        "pointing": {}, "exposure": {"time_s": t, "frame": "light" if frame_type in ("light", "flat") else frame_type,
+                                      "tracking": "sidereal", "seed": 1},
+        "sky": {}, "psf": ({"model": "moffat", "fwhm_arcsec": round(fwhm_px * scale * binning, 4), "beta": round(beta, 3)}
+                           if math.isfinite(beta) else {"model": "gaussian", "fwhm_arcsec": round(fwhm_px * scale * binning, 4)}),
+    }
+    src("telescope.pixel_scale_arcsec", scale_v)
+    src("exposure.time_s", exptime)
+    src("psf.fwhm_arcsec", psf_src)
+    if math.isfinite(beta):
+        src("psf.beta", _v(beta, psf_src.source))
+    else:
+        sources["psf.model"] = f"measured: the Moffat fits' beta reaches {GAUSSIAN_BETA:g} (no wings): a Gaussian"
+    if geom is not None:
+        scene["telescope"]["parity"] = int(geom["parity"])
+        if geom["sip"]:
+            scene["telescope"]["distortion"] = "sip"
+            scene["telescope"]["sip"] = geom["sip"]
+            sources["telescope.distortion"] = f"header (WCS {geom['form']}): max {geom['max_distortion_px']:.2f} px from TAN"
+        scene["pointing"] = {"ra_deg": round(geom["ra_deg"], 8), "dec_deg": round(geom["dec_deg"], 8),
+                             "roll_deg": round(geom["roll_deg"], 6)}
+        for k in ("ra_deg", "dec_deg", "roll_deg"):
+            sources[f"pointing.{k}"] = f"header (WCS {geom['form']}, {geom['matrix']}): the frame centre"
+        sources["telescope.parity"] = "header (WCS): sign of det CD"
+    else:
+        ra = _first_angle(header, ("RA", "OBJCTRA", "RA_OBJ", "TELRA"), hours_if_str=True)
+        dec = _first_angle(header, ("DEC", "OBJCTDEC", "DEC_OBJ", "TELDEC"))
+        scene["pointing"] = {"ra_deg": round(ra if ra is not None else 0.0, 8) % 360, "dec_deg": round(dec if dec is not None else 0.0, 8),
+                             "roll_deg": 0.0}
+        sources["pointing.ra_deg"] = "header (RA/OBJCTRA)" if ra is not None else "assumed: no WCS and no RA card"
+        sources["pointing.roll_deg"] = "assumed: no WCS (north up)"
+        if frame_type == "light":
+            notes.append("no WCS in the header: the frame's own catalogue only (positions through the scene's assumed WCS)")
+        if catalog != "frame" and frame_type == "light":
+            raise DetectorError("the frame has no WCS", key="--catalog", file=str(frame),
+                                expected="--catalog frame (the frame's own stars) for a frame without a WCS")
+    scene["pointing"]["epoch"] = hv["date_obs"].value
+    src("pointing.epoch", hv["date_obs"])
+    if hv["site"].value:
+        s = hv["site"].value
+        scene["observer"] = {"lat_deg": round(s["lat_deg"], 6), "lon_deg": round(s["lon_deg"], 6),
+                             "alt_m": round(float(s["height_m"]), 1)}
+        src("observer.lat_deg", hv["site"])
+    if ov:
+        scene["measured"] = {"trim": trim}
+        sources["measured.trim"] = f"{ov['source']} ({ov.get('card') or 'flat, dark edge columns'}): overscan {ov['bias_section']}"
+    if hdu is not None:
+        scene.setdefault("measured", {})["hdu"] = hdu
+    # effects from calibration maps
+    effects: dict = {}
+    if cam.get("flat") is not None:
+        files[f"{scene_name}_flat.fits"] = ("fits", cam["flat"])
+        effects["flat_map"] = {"path": f"{scene_name}_flat.fits", "sigma_hdu": 1}
+        sources["effects.flat_map"] = "measured: the normalised (first) flat, its standard error in HDU 1"
+    if cam.get("dark_rate_map") is not None and frame_type != "bias":
+        rate, se = cam["dark_rate_map"]
+        files[f"{scene_name}_dark.fits"] = ("fits", [rate * gain, se * gain])
+        effects["dark_map"] = {"path": f"{scene_name}_dark.fits", "sigma_hdu": 1}
+        sources["effects.dark_map"] = ("measured: per-pixel slope of bias and darks against time [e-/s] (adopted gain), "
+                                       "its standard error in HDU 1")
+    if psf.get("ok") and psf["n"] >= 5 and psf["ellipticity"] > ELONGATED:
+        # the measured elliptical PSF as the round one plus a second-moment change dC (Gaussian-equivalent
+        # variances of the major and minor axes about the quadratic-mean FWHM, rotated to the major axis)
+        k = 2.3548 ** 2
+        d1 = (psf["fwhm_major_px"] ** 2 - fwhm_px ** 2) / k * binning ** 2
+        d2 = (psf["fwhm_minor_px"] ** 2 - fwhm_px ** 2) / k * binning ** 2
+        c_, s_ = math.cos(math.radians(psf["pa_major_deg"])), math.sin(math.radians(psf["pa_major_deg"]))
+        effects["psf_elongation"] = {"dcxx_px2": round(d1 * c_ * c_ + d2 * s_ * s_, 5),
+                                     "dcyy_px2": round(d1 * s_ * s_ + d2 * c_ * c_, 5),
+                                     "dcxy_px2": round((d1 - d2) * s_ * c_, 5)}
+        sources["effects.psf_elongation"] = (f"measured: FWHM {psf['fwhm_major_px']:.2f} x {psf['fwhm_minor_px']:.2f} px, "
+                                             f"major axis at {psf['pa_major_deg']:.0f} deg from +x (median of {psf['n']} stars)")
+    if hv["bayer"].value and frame_type == "light":
+        resp = _cfa_response(data - bias, ~mask & (np.abs(data - bkg) < 3 * rms))
+        effects["cfa"] = {"pattern": hv["bayer"].value, "response": [round(r, 5) for r in resp]}
+        sources["effects.cfa"] = f"header ({hv['bayer'].card}) pattern; response measured from the sky level of each cell"
+    if effects:
+        scene["effects"] = effects
+    if mask.any():
+        files[f"{scene_name}_mask.fits"] = ("fits", mask.astype(np.uint8))
+        scene["mask"] = {"file": f"{scene_name}_mask.fits"}
+        sources["mask.file"] = (f"measured: {len(minfo['extended'])} extended source(s), {len(minfo['bleeds'])} bleed(s), "
+                                f"{100 * minfo['masked_fraction']:.2g} % of the pixels")
+    # ---- sky and catalogue, through the scene's band
+    band = _Band(scene, design_name, files)
+    if frame_type == "flat":
+        rate = max((med - bias) * gain / t - float(dark_e_v.value), 0.0)
+        scene["sky"] = {"background_mag_arcsec2": None, "stars": False, "flat_e_per_s": round(rate, 4)}
+        sources["sky.flat_e_per_s"] = "measured: the flat's median above the bias x gain / t - dark"
+    elif frame_type in ("dark", "bias"):
+        scene["sky"] = {"background_mag_arcsec2": None, "stars": False}
+        if frame_type == "bias":
+            scene["exposure"]["time_s"] = 0.0
+    else:
+        scene["sky"] = {"background_mag_arcsec2": None, "stars": True, "star_seed": 0}
+        sources["sky.background_mag_arcsec2"] = (f"measured: background {sky_adu:.2f} ADU (photutils Background2D) above "
+                                                 f"the bias, through the scene's band")
+    cat_info = {}
+    if scene["sky"].get("stars"):
+        cat_info = _catalogue(catalog, scene, band, phot, cols, fwhm_px, mask, data.shape, gain, t, geom, header,
+                              files, scene_name, sources, notes)
+    scale = cat_info.get("band_scale")
+    if scale:  # real magnitudes: the matched stars' zero point goes into the aperture (when assumed) or the QE
+        if design is None and not (f_number or ap_v.value):
+            n_new = max(optics_info["f_number"] / math.sqrt(scale), 0.7)
+            f_mm = optics_info["focal_length_mm"]
+            fp = files[design_name][1]["focal_plane"]
+            files[design_name] = ("toml", design_dict(f_mm, n_new, obstruction, sensor_mm=(fp["width_mm"], fp["height_mm"]),
+                                                      name=f"{scene_name}_optics"))
+            optics_info.update(f_number=n_new, aperture_mm=f_mm / n_new, aperture_source="measured: zero point")
+            sources["telescope.design"] = (f"measured: the clear aperture {f_mm / n_new:.1f} mm that gives the zero point "
+                                           f"of {cat_info['n_matched']} matched catalogue stars (focal length {f_mm:.0f} mm)")
+        else:
+            scene["detector"]["qe_wavelength_nm"] = band.wl
+            peak = max(band.qe) * scale
+            scene["detector"]["qe"] = [round(q * scale / max(peak / 0.95, 1.0), 6) for q in band.qe]
+            if peak > 0.95:
+                notes.append(f"zero point needs a band peak {peak:.2f} > 0.95: QE capped, the rest left to the diagnosis")
+            sources["detector.qe"] = f"measured: the preset's curve x {scale:.3g} from {cat_info['n_matched']} matched stars"
+        band = _Band(scene, design_name, files)
+    if "background_mag_arcsec2" in scene["sky"]:
+        scene["sky"]["background_mag_arcsec2"] = round(band.sky_mag(sky_e_s), 4)
+    scene["sky"] = {k: v for k, v in scene["sky"].items() if v is not None}
+    summary = {
+        "frame": str(frame), "shape": [h, w], "raw_shape": list(raw.shape), "frame_type": frame_type,
+        "values": {k: sources[k] for k in sorted(sources)},
+        "header": {k: v.to_json() for k, v in hv.items()},
+        "calibration": {"missing": cam["missing"], **n_cal},
+        "overscan": ov, "wcs": {k: v for k, v in (geom or {}).items() if k != "sip"} or None,
+        "psf": {k: v for k, v in psf.items() if k != "rows"}, "optics": optics_info,
+        "sky": {"background_adu": sky_adu, "e_per_s_per_px": sky_e_s, "noise_adu": float(np.median(rms))},
+        "mask": minfo, "catalogue": cat_info, "notes": notes, "seconds": time.perf_counter() - t0,
+    }
+    return InitResult(scene, sources, summary, files)
+
+
+def _cfa_response(img: np.ndarray, ok: np.ndarray) -> list[float]:
+    """Relative response of the four cells (row parity, column parity) from their median sky levels."""
+    lv = []
+    for r in (0, 1):
+        for c in (0, 1):
+            v = img[r::2, c::2][ok[r::2, c::2]]
+            lv.append(max(float(np.median(v)), 1e-6) if v.size else 1.0)
+    m = float(np.mean(lv))
+    return [float(np.clip(x / m, 0.05, 4.0)) for x in lv]
+
+
+def _first_angle(header, cards, hours_if_str: bool = False) -> float | None:
+    from .header import number, sexagesimal
+
+    for c in cards:
+        if c in header:
+            v = header[c]
+            f = number(v)
+            if f is not None:
+                return f
+            s = sexagesimal(v)
+            if s is not None:
+                return s * 15.0 if hours_if_str else s
+    return None
+
+
+def _trimmed_geometry(header, raw_shape, rows, cols, binning):
+    """The WCS of the trimmed frame: CRPIX moved by the trimmed columns and rows."""
+    from .wcs import clean_header
+
+    hh = clean_header(header)
+    if "CRPIX1" in hh:
+        hh["CRPIX1"] = float(hh["CRPIX1"]) - cols.start
+        hh["CRPIX2"] = float(hh["CRPIX2"]) - rows.start
+    return scene_geometry(hh, (rows.stop - rows.start, cols.stop - cols.start), binning=binning)
+
+
+class _Band:
+    """The scene's band (QE x design) for star and sky rates: a star of G = 0 at Teff 5000 K, and the sky."""
+
+    def __init__(self, scene: dict, design_name: str, files: dict):
+        from detector.presets import PRESETS
+        from optics.design import Design, load_design
+
+        if design_name in files:
+            self.design = Design.model_validate(files[design_name][1])
+        else:
+            self.design = load_design(design_name)
+        p = PRESETS[scene["detector"]["preset"]]
+        self.wl = list(scene["detector"].get("qe_wavelength_nm", p["qe_wavelength_nm"]))
+        self.qe = list(scene["detector"].get("qe", p["qe"]))
+        self.scene = scene
+
+    def star_e_s(self, mag_g):
+        from scenes.catalog import star_electron_rate
+
+        m = np.atleast_1d(np.asarray(mag_g, float))
+        return np.asarray(star_electron_rate(m, np.full(m.size, 5000.0), self.wl, self.qe,
+                                             self.design.collecting_area_m2,
+                                             optics_throughput=self.design.mirror_throughput), float)
+
+    def sky_mag(self, sky_e_s: float) -> float:
+        from scenes.photometry import sky_electron_rate_per_pixel
+
+        b = self.scene["detector"].get("binning", 1)
+        zero = sky_electron_rate_per_pixel(0.0, self.scene["telescope"]["pixel_scale_arcsec"], self.design.collecting_area_m2,
+                                           self.design.mirror_throughput, self.wl, self.qe) * b * b
+        return float(np.clip(-2.5 * math.log10(max(sky_e_s, 1e-9) / zero), 5.0, 35.0))
+
+
+def _catalogue(catalog, scene, band, phot, cols, fwhm_px, mask, shape, gain, t, geom, header, files, scene_name,
+               sources, notes) -> dict:
+    """The scene's catalogue: the frame's own stars (a CSV beside the scene), a user table, gaia or builtin (with
+    the zero point from the stars matched in the frame)."""
+    h, w = shape
+    if phot is None or phot["x"].size == 0:
+        scene["sky"]["stars"] = False
+        notes.append("no star found: stars = false")
+        return {"n": 0}
+    snr = phot["flux_adu"] / np.maximum(phot["flux_err_adu"], 1e-9)
+    xi = np.clip(np.round(phot["x"]).astype(int), 0, w - 1)
+    yi = np.clip(np.round(phot["y"]).astype(int), 0, h - 1)
+    ok = (snr > 5) & ~mask[yi, xi] & (phot["flux_adu"] > 0)
+    if not ok.any():
+        scene["sky"]["stars"] = False
+        notes.append("no star above 5 sigma outside the mask: stars = false")
+        return {"n": 0}
+    rate0 = float(band.star_e_s(0.0)[0])
+    if catalog == "frame":
+        x, y, f = phot["x"][ok], phot["y"][ok], phot["flux_adu"][ok]
+        g = -2.5 * np.log10(f * gain / (rate0 * t))
+        ra, dec = _scene_world(scene, band, files, x, y)
+        lines = ["ra_deg,dec_deg,mag_g,teff_k,source_id,x_px,y_px,flux_adu"]
+        lines += [f"{a:.9f},{d:.9f},{m:.5f},5000,{i + 1},{xx:.3f},{yy:.3f},{ff:.2f}"
+                  for i, (a, d, m, xx, yy, ff) in enumerate(zip(ra, dec, g, x, y, f))]
+        name = f"{scene_name}_stars.csv"
+        files[name] = ("csv", "\n".join(lines) + "\n")
+        scene["sky"].update(catalog=name, star_mag_limit=round(float(min(25.0, g.max() + 0.5)), 3))
+        zp = 2.5 * math.log10(rate0 * t / gain)
+        sources["sky.catalog"] = (f"measured: {x.size} stars found and PSF-fitted in the frame (photutils); "
+                                  f"G = {zp:.4f} - 2.5 log10(flux_adu) (the scene's band at 5000 K)")
+        return {"kind": "frame", "n": int(x.size), "g_min": float(g.min()), "g_max": float(g.max()),
+                "zero_point_mag_at_1_adu": zp, "file": name}
+    # a catalogue with real magnitudes: match and calibrate the band's scale
+    from scenes.catalog import stars_in_field
+
+    if geom is None:
+        raise DetectorError("the frame has no WCS", key="--catalog", expected="--catalog frame")
+    radius = 0.5 * math.hypot(h, w) * scene["telescope"]["pixel_scale_arcsec"] * scene["detector"].get("binning", 1) / 3600 * 1.05
+    cat_arg = catalog
+    st = stars_in_field(geom["ra_deg"], geom["dec_deg"], radius_deg=radius, mag_limit=21.0 if catalog == "gaia" else 25.0,
+                        epoch=scene["pointing"]["epoch"], catalog=cat_arg, seed=0, fill_faint=False) \
+        if catalog not in ("builtin",) else stars_in_field(geom["ra_deg"], geom["dec_deg"], radius_deg=radius,
+                                                             mag_limit=10.0, epoch=scene["pointing"]["epoch"], catalog="builtin", seed=0)
+    real = st.source != "synthetic"
+    x, y = _scene_pixels(scene, band, files, st.ra_deg[real], st.dec_deg[real])
+    mags = st.mag_g[real]
+    px, py, pf = phot["x"][ok], phot["y"][ok], phot["flux_adu"][ok]
+    ratios = []
+    for xx, yy, m in zip(x, y, mags):
+        if not (0 <= xx < w and 0 <= yy < h):
+            continue
+        d = np.hypot(px - xx, py - yy)
+        j = int(np.argmin(d)) if d.size else -1
+        if j >= 0 and d[j] < max(2.0, fwhm_px):
+            ratios.append(pf[j] * gain / t / float(band.star_e_s(m)[0]))
+    info = {"kind": catalog, "n_catalogue": int(real.sum()), "n_matched": len(ratios)}
+    if len(ratios) >= 3:
+        scale = float(np.median(ratios))
+        info.update(band_scale=scale, band_scale_spread=float(np.std(np.log(ratios))))
+    else:
+        notes.append(f"{len(ratios)} catalogue stars matched in the frame: the band's zero point is the preset's (assumed)")
+    scene["sky"].update(catalog=catalog if catalog in ("builtin", "gaia") else str(Path(catalog).resolve()),
+                        star_mag_limit=round(float(min(25.0, -2.5 * math.log10(max(np.percentile(pf, 2), 1e-3) * gain / (rate0 * t)) + 0.5)), 2))
+    sources["sky.catalog"] = f"given (--catalog {catalog})"
+    return info
+
+
+def _scene_wcs(scene, band, files):
+    """The WCS the scene gives its frame (the scene's own convention), without writing the scene."""
+    from scenes.projection import Sip, sip_from_table, tan_wcs
+
+    b = scene["detector"].get("binning", 1)
+    tel = scene["telescope"]
+    sip = None
+    if tel.get("distortion") == "sip":
+        t = sip_from_table(tel["sip"])
+        sip = Sip(t["order"], t["a"], t["b"], t["reverse_order"]).binned(b)
+    p = scene["pointing"]
+    h, w = scene["detector"]["sensor_height_px"] // b, scene["detector"]["sensor_width_px"] // b
+    return tan_wcs(p["ra_deg"], p["dec_deg"], p["roll_deg"], tel["pixel_scale_arcsec"] * b, (h, w), sip=sip,
+                   parity=tel.get("parity", -1))
+
+
+def _scene_world(scene, band, files, x, y):
+    w = _scene_wcs(scene, band, files)
+    return w.all_pix2world(x, y, 0)
+
+
+def _scene_pixels(scene, band, files, ra, dec):
+    import warnings
+
+    w = _scene_wcs(scene, band, files)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        return w.all_world2pix(ra, dec, 0, quiet=True)

@@ -1,0 +1,368 @@
+"""``newtsim init``: header conventions, WCS forms, overscan, missing calibration frames, the mask honoured
+by compare, and one real frame from init to compare (skipped without ../shared/realdata)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from astropy.io import fits
+
+from scenes.app.init.build import _scene_wcs
+from scenes.app.init.calib import camera_from_calibration, characterize_subset, find_overscan
+from scenes.app.init.header import read_header
+from scenes.app.init.wcs import header_wcs, scene_geometry
+from tests.helpers import SMALL_SKY_TOML
+
+
+def _cli(*args) -> int:
+    """``newtsim ARGS`` in this process; its exit status."""
+    from scenes.app.cli import main
+
+    try:
+        main(list(args))
+    except SystemExit as exc:
+        return int(exc.code or 0)
+    return 0
+
+
+def _header(**cards) -> fits.Header:
+    h = fits.Header()
+    for k, v in cards.items():
+        h[k.replace("__", "-")] = v
+    return h
+
+
+# --- header conventions ------------------------------------------------------------------------------------
+def test_gain_cards():
+    assert read_header(_header(EGAIN=2.06))["gain_e_per_adu"].value == 2.06
+    h = fits.Header()
+    h["GAIN"] = (1.5, "electrons per ADU")
+    assert read_header(h)["gain_e_per_adu"].value == 1.5
+    g = read_header(_header(GAIN=80))["gain_e_per_adu"]  # a ZWO gain setting, not e-/ADU
+    assert g.value is None and "setting" in g.note
+    assert read_header(_header(EGAIN="2.06"))["gain_e_per_adu"].value == 2.06  # written as a string
+
+
+def test_binning_pixel_size_temperature_filter_window():
+    v = read_header(_header(XBINNING=2, YBINNING=2, XPIXSZ=18.0, CCD__TEMP=-10.5, FILTER="R  ", XORGSUBF=100,
+                            YORGSUBF=40))
+    assert v["binning"].value == 2 and v["binning"].card == "XBINNING"
+    assert v["pixel_pitch_um"].value == 9.0  # MaxIm's XPIXSZ includes the binning
+    assert v["temperature_c"].value == -10.5 and v["filter"].value == "R"
+    assert v["window_origin"].value == [100, 40]
+    assert read_header(_header(CCDSUM="3 3"))["binning"].value == 3
+    assert read_header(_header(LTV1=-1536.0, LTV2=-768.0))["window_origin"].value == [1536, 768]
+
+
+def test_dates():
+    assert read_header(_header(DATE__OBS="2016-09-09T08:14:34.5"))["date_obs"].value == "2016-09-09T08:14:34"
+    assert read_header(_header(DATE__OBS="26/07/102", TIME__OBS="19:35:36"))["date_obs"].value == "2002-07-26T19:35:36"
+    assert read_header(_header(MJD__OBS=57640.5))["date_obs"].value == "2016-09-09T12:00:00"
+    assert read_header(_header())["date_obs"].source == "assumed"
+
+
+def test_site_cards():
+    s = read_header(_header(SITELAT="+19 32 09.7", SITELONG="-155 34 34"))["site"].value
+    assert s["lat_deg"] == pytest.approx(19 + 32 / 60 + 9.7 / 3600) and s["lon_deg"] == pytest.approx(-(155 + 34 / 60 + 34 / 3600))
+    s = read_header(_header(OBSGEO__B=-30.0, OBSGEO__L=70.5, OBSGEO__H=2200.0))["site"].value
+    assert (s["lat_deg"], s["lon_deg"], s["height_m"]) == (-30.0, 70.5, 2200.0)
+    import astropy.units as u
+    from astropy.coordinates import EarthLocation
+
+    loc = EarthLocation.from_geodetic(-70.8 * u.deg, -30.2 * u.deg, 2700 * u.m)
+    x, y, z = (float(c.to_value(u.m)) for c in loc.to_geocentric())
+    s = read_header(_header(OBSGEO__X=x, OBSGEO__Y=y, OBSGEO__Z=z))["site"].value
+    assert s["lat_deg"] == pytest.approx(-30.2, abs=1e-6) and s["lon_deg"] == pytest.approx(-70.8, abs=1e-6)
+
+
+def test_bit_depth_and_saturation_seen_in_the_data():
+    rng = np.random.default_rng(1)
+    data = rng.normal(1000, 10, (64, 64)).round()
+    data[10:18, 20] = 4095.0  # a clipped 12-bit ADC (a pile of 8 pixels)
+    v = read_header(_header(BITPIX=16), data)
+    assert v["bit_depth"].value == 12 and v["saturation_adu"].value == 4095.0 and v["saturation_adu"].source == "measured"
+
+
+# --- WCS forms -----------------------------------------------------------------------------------------------
+SHAPE = (120, 160)
+
+
+def _tan(**extra) -> fits.Header:
+    s = 2.0 / 3600
+    r = math.radians(25.0)
+    h = _header(CTYPE1="RA---TAN", CTYPE2="DEC--TAN", CRVAL1=150.0, CRVAL2=2.0, CRPIX1=70.0, CRPIX2=55.0,
+                CD1_1=-s * math.cos(r), CD1_2=s * math.sin(r), CD2_1=s * math.sin(r), CD2_2=s * math.cos(r))
+    for k, v in extra.items():
+        h[k] = v
+    return h
+
+
+def _check_reproduced(header, tol_px=0.02):
+    """The scene's own WCS (pointing, roll, scale, parity, SIP) puts the header's sky on the same pixels."""
+    g = scene_geometry(header, SHAPE)
+    scene = {"telescope": {"pixel_scale_arcsec": g["scale_arcsec"], "parity": g["parity"]},
+             "detector": {"sensor_width_px": SHAPE[1], "sensor_height_px": SHAPE[0]},
+             "pointing": {"ra_deg": g["ra_deg"], "dec_deg": g["dec_deg"], "roll_deg": g["roll_deg"]}}
+    if g["sip"]:
+        scene["telescope"].update(distortion="sip", sip=g["sip"])
+    ws, wh = _scene_wcs(scene, None, {}), header_wcs(header)
+    yy, xx = np.mgrid[0:SHAPE[0]:10, 0:SHAPE[1]:10]
+    ra, dec = wh.all_pix2world(xx.ravel(), yy.ravel(), 0)
+    x, y = ws.all_world2pix(ra, dec, 0)
+    assert np.max(np.hypot(x - xx.ravel(), y - yy.ravel())) < tol_px
+    return g
+
+
+def test_wcs_tan_cd():
+    g = _check_reproduced(_tan())
+    assert g["scale_arcsec"] == pytest.approx(2.0, rel=1e-4) and g["parity"] == -1 and g["sip"] is None
+    assert g["roll_deg"] == pytest.approx(25.0, abs=0.05)
+
+
+def test_wcs_pc_cdelt_and_strings():
+    h = _tan()
+    cd = np.array([[h["CD1_1"], h["CD1_2"]], [h["CD2_1"], h["CD2_2"]]])
+    for k in ("CD1_1", "CD1_2", "CD2_1", "CD2_2"):
+        del h[k]
+    h["CDELT1"], h["CDELT2"] = str(cd[0, 0] / math.cos(math.radians(25))), str(cd[1, 1] / math.cos(math.radians(25)))
+    h["PC1_1"], h["PC1_2"] = math.cos(math.radians(25)), -math.sin(math.radians(25))
+    h["PC2_1"], h["PC2_2"] = math.sin(math.radians(25)), math.cos(math.radians(25))
+    h["CRVAL1"], h["CRPIX1"] = "150.0", "70.0"  # values written as strings
+    g = _check_reproduced(h)
+    assert g["matrix"] == "PC+CDELT" and g["scale_arcsec"] == pytest.approx(2.0, rel=1e-4)
+
+
+def test_wcs_parity_plus_one():
+    h = _tan()
+    h["CD1_1"], h["CD1_2"] = -h["CD1_1"], -h["CD1_2"]  # east-west mirror
+    assert _check_reproduced(h)["parity"] == 1
+
+
+@pytest.mark.parametrize("suffix", ["-SIP", ""])
+def test_wcs_tan_sip(suffix, capsys):
+    h = _tan(CTYPE1="RA---TAN" + suffix, CTYPE2="DEC--TAN" + suffix, A_ORDER=2, B_ORDER=2, A_2_0=2e-5, A_0_2=-1e-5,
+             B_1_1=1.5e-5, B_2_0=5e-6)
+    g = _check_reproduced(h)
+    assert g["sip"] is not None and g["form"] == "TAN-SIP" and g["max_distortion_px"] > 0.1
+    assert "Inconsistent SIP" not in capsys.readouterr().err  # no astropy notice for a CTYPE without -SIP
+
+
+def test_wcs_tpv():
+    h = _tan(CTYPE1="RA---TPV", CTYPE2="DEC--TPV", PV1_1=1.0, PV2_1=1.0, PV1_4=0.5, PV2_4=-0.4)  # x^2 terms [deg^-1]: about 2 px at the corners
+    g = _check_reproduced(h, tol_px=0.05)
+    assert g["form"] == "TPV" and g["sip"] is not None
+
+
+# --- raw frames: overscan ------------------------------------------------------------------------------------
+def _raw(rng, cards=True):
+    img = rng.normal(1500, 20, (60, 90))  # light: shot noise above the read noise
+    img[:, 80:] = rng.normal(1000, 5, (60, 10))  # overscan at the bias level
+    h = _header(BIASSEC="[81:90,1:60]", TRIMSEC="[1:80,1:60]") if cards else fits.Header()
+    return img, h
+
+
+def test_overscan_from_cards_and_from_the_data():
+    rng = np.random.default_rng(3)
+    for cards in (True, False):
+        img, h = _raw(rng, cards)
+        ov = find_overscan(img, h)
+        assert ov["source"] == ("header" if cards else "measured")
+        assert ov["level_adu"] == pytest.approx(1000, abs=1) and ov["noise_adu"] == pytest.approx(5, rel=0.15)
+        assert ov["trim"] in ("[1:80,1:60]", "[1:79,1:60]")
+    flat = rng.normal(1000, 5, (60, 90))
+    assert find_overscan(flat, fits.Header()) is None  # no dark edge: nothing trimmed
+
+
+# --- calibration subsets -----------------------------------------------------------------------------------
+@pytest.fixture(scope="module")
+def calib_frames(tmp_path_factory):
+    d = tmp_path_factory.mktemp("cal")
+    rng = np.random.default_rng(5)
+    bias_level, rn, gain, rate = 1000.0, 5.0, 2.0, 3.0  # ADU, ADU, e-/ADU, ADU/s
+    paths = {}
+    for i in range(2):
+        paths.setdefault("bias", []).append(_fits(d / f"b{i}.fits", rng.normal(bias_level, rn, (80, 80)), 0.0))
+    for i, t in enumerate((10.0, 30.0)):
+        paths.setdefault("dark", []).append(_fits(d / f"d{i}.fits", rng.normal(bias_level + rate * t, rn, (80, 80)), t))
+    for i in range(2):
+        e = rng.poisson(20000 * gain, (80, 80)) / gain
+        paths.setdefault("flat", []).append(_fits(d / f"f{i}.fits", e + rng.normal(bias_level, rn, (80, 80)), 5.0, EGAIN=2.4))
+    return paths, {"bias": bias_level, "rn": rn, "gain": gain, "rate": rate}
+
+
+def _fits(path, data, t, **cards):
+    h = fits.Header()
+    h["EXPTIME"] = t
+    for k, v in cards.items():
+        h[k] = v
+    fits.PrimaryHDU(data.astype(np.float32), h).writeto(path)
+    return str(path)
+
+
+@pytest.mark.parametrize("given", [("bias",), ("dark",), ("flat",), ("bias", "dark"), ("dark", "flat"),
+                                   ("bias", "flat"), ("bias", "dark", "flat")])
+def test_missing_calibration_frames(calib_frames, given):
+    paths, truth = calib_frames
+    kw = {k: paths[k] if k in given else [] for k in ("bias", "dark", "flat")}
+    cam = camera_from_calibration(**kw, header_gain=2.4)
+    missing = " ".join(cam["missing"])
+    for k in ("bias", "dark", "flat"):
+        assert (f"no {k} frame" in missing) == (k not in given)
+    if "bias" in given or "dark" in given:  # two dark times give the bias as their intercept
+        assert cam["bias_adu"].value == pytest.approx(truth["bias"], abs=1.0)
+    if "dark" in given:
+        assert cam["dark_rate_adu_s"].value == pytest.approx(truth["rate"], abs=0.05)
+    if "flat" in given and ("bias" in given or "dark" in given):
+        # photon transfer of the pair (Janesick 2007, eq. 4.7), not the header's EGAIN = 2.4
+        assert cam["gain_e_per_adu"].value == pytest.approx(truth["gain"], rel=0.05)
+        assert any("differs from the header" in n for n in cam["notes"])
+    sub = characterize_subset(**kw)
+    assert len(sub["not_measured"]) >= 3 - len(given)
+
+
+# --- the mask, honoured by compare -----------------------------------------------------------------------------
+def test_mask_honoured_by_compare(tmp_path):
+    from scenes.app.compare import run_compare
+    from scenes.app.render import render
+    from scenes.measured import with_mask
+    from scenes.scene import load_scene
+
+    (tmp_path / "sky.toml").write_text(SMALL_SKY_TOML)
+    render(load_scene(str(tmp_path / "sky.toml")), tmp_path / "sky.fits", seed=7)
+    with fits.open(tmp_path / "sky.fits") as hdul:
+        data, header = hdul[0].data.astype(np.float32), hdul[0].header
+    yy, xx = np.mgrid[0:256, 0:256]
+    galaxy = 400.0 * np.exp(-((xx - 128) ** 2 + (yy - 100) ** 2) / (2 * 20.0 ** 2))  # an extended source
+    fits.PrimaryHDU(data + galaxy, header).writeto(tmp_path / "gal.fits")
+    mask = (galaxy > 1.0).astype(np.uint8)
+    fits.PrimaryHDU(mask).writeto(tmp_path / "mask.fits")
+    plain = run_compare(load_scene(str(tmp_path / "sky.toml")), tmp_path / "gal.fits", workers=1)["summary"]
+    (tmp_path / "masked.toml").write_text(SMALL_SKY_TOML + '\n[mask]\nfile = "mask.fits"\n')
+    masked = run_compare(load_scene(str(tmp_path / "masked.toml")), tmp_path / "gal.fits", workers=1)["summary"]
+    cli = run_compare(with_mask(load_scene(str(tmp_path / "sky.toml")), str(tmp_path / "mask.fits")),
+                      tmp_path / "gal.fits", workers=1)["summary"]
+    assert plain["chi2_per_dof"] > 3
+    assert masked["chi2_per_dof"] == pytest.approx(1.0, abs=0.1) and masked["n_compared"] <= 256 * 256 - mask.sum()
+    assert cli["chi2_per_dof"] == pytest.approx(masked["chi2_per_dof"])
+    # the bounded-memory path of large frames reads the same mask
+    large = run_compare(load_scene(str(tmp_path / "masked.toml")), tmp_path / "gal.fits", workers=1, large_px=1000)
+    assert large["summary"]["chi2_per_dof"] == pytest.approx(1.0, abs=0.15)
+
+
+# --- a real frame, init -> compare -------------------------------------------------------------------------------
+def test_realdata_astride_init_compare(realdata, tmp_path):
+    frame = realdata / "streak" / "astride_long.fits"
+    assert _cli("init", str(frame), "-o", str(tmp_path / "a.toml"), "--json", str(tmp_path / "a.json")) == 0
+    import json
+
+    from scenes.app.compare import run_compare
+    from scenes.scene import load_scene
+
+    s = json.loads((tmp_path / "a.json").read_text())
+    assert s["values"]["pointing.ra_deg"].startswith("header") and s["catalogue"]["n"] > 50
+    out = run_compare(load_scene(str(tmp_path / "a.toml")), frame, workers=2)["summary"]
+    assert out["chi2_per_dof"] < 3.0  # the frame's own catalogue, straight from init
+    rows = [r for r in out["star_table"] if "ratio" in r]
+    assert len(rows) > 50 and abs(np.median([r["ratio"] for r in rows]) - 1) < 0.05
+
+
+# --- a rendered frame: init reads newtsim's own header and reproduces the frame -----------------------------------
+def test_init_reproduces_a_rendered_star_field(tmp_path):
+    from scenes.app.compare import run_compare
+    from scenes.app.render import render
+    from scenes.scene import load_scene
+    from tests.helpers import star_field_toml
+
+    (tmp_path / "truth.toml").write_text(star_field_toml(256))
+    render(load_scene(str(tmp_path / "truth.toml")), tmp_path / "frame.fits", seed=3)
+    assert _cli("init", str(tmp_path / "frame.fits"), "-o", str(tmp_path / "s.toml")) == 0
+    sc = load_scene(str(tmp_path / "s.toml"))
+    d = sc.detector
+    assert d["gain_e_per_adu"] == 1.4 and d["bias_adu"] == 1000.0 and d["read_noise_e"] == 11.0  # the header's
+    assert sc.telescope.pixel_scale_arcsec == pytest.approx(load_scene(str(tmp_path / "truth.toml")).telescope.pixel_scale_arcsec
+                                                            or 1.934, rel=0.01)
+    out = run_compare(sc, tmp_path / "frame.fits", workers=1)["summary"]
+    assert out["chi2_per_dof"] < 1.3  # the frame's own catalogue, its measured PSF and sky
+
+
+def test_init_with_a_user_star_table(tmp_path):
+    """``--catalog PATH``: the table's stars matched in the frame set the band's zero point."""
+    from scenes.app.compare import run_compare
+    from scenes.app.render import render
+    from scenes.scene import load_scene
+    from tests.helpers import star_field_toml
+
+    (tmp_path / "truth.toml").write_text(star_field_toml(256))
+    render(load_scene(str(tmp_path / "truth.toml")), tmp_path / "frame.fits", seed=4)
+    t = fits.open(tmp_path / "frame.fits")["TRUTH"].data
+    star = np.isin(np.char.strip(np.asarray(t["kind"]).astype(str)), ("star", "synthetic"))
+    lines = ["ra,dec,phot_g_mean_mag"] + [f"{a:.8f},{d:.8f},{m:.4f}" for a, d, m in zip(t["ra_deg"][star], t["dec_deg"][star], t["mag"][star])]
+    (tmp_path / "gaia_extract.csv").write_text("\n".join(lines) + "\n")
+    assert _cli("init", str(tmp_path / "frame.fits"), "-o", str(tmp_path / "s.toml"), "--catalog",
+                str(tmp_path / "gaia_extract.csv"), "--json", str(tmp_path / "s.json")) == 0
+    import json
+
+    info = json.loads((tmp_path / "s.json").read_text())["catalogue"]
+    assert info["n_matched"] >= 8 and info["band_scale_spread"] < 0.15  # one scale for every star (colours aside)
+    out = run_compare(load_scene(str(tmp_path / "s.toml")), tmp_path / "frame.fits", workers=1)["summary"]
+    rows = [r for r in out["star_table"] if "ratio" in r]
+    assert abs(np.median([r["ratio"] for r in rows]) - 1) < 0.1
+
+
+def test_init_with_gaia_archive_cached(tmp_path, monkeypatch):
+    """``--catalog gaia``: the archive is asked once (here a small local table stands in for it, through the
+    module's fetch function), the result cached and read back by the next init."""
+    from astropy.table import Table
+
+    from scenes.app.render import render
+    from scenes.scene import load_scene
+    from scenes.sky import archive
+    from tests.helpers import star_field_toml
+
+    (tmp_path / "truth.toml").write_text(star_field_toml(256))
+    render(load_scene(str(tmp_path / "truth.toml")), tmp_path / "frame.fits", seed=4)
+    t = fits.open(tmp_path / "frame.fits")["TRUTH"].data
+    star = np.isin(np.char.strip(np.asarray(t["kind"]).astype(str)), ("star", "synthetic"))
+    n = int(star.sum())
+    local = Table({"source_id": np.arange(1, n + 1), "ra": t["ra_deg"][star], "dec": t["dec_deg"][star],
+                   "pmra": np.full(n, np.nan), "pmdec": np.full(n, np.nan), "ref_epoch": np.full(n, 2016.0),
+                   "phot_g_mean_mag": t["mag"][star], "bp_rp": np.full(n, 0.8)})
+    calls = []
+
+    def fake_fetch(ra_deg, dec_deg, radius_deg, mag_limit, path):
+        calls.append(path)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        local.write(path, format="fits")
+        return local
+
+    monkeypatch.setattr(archive, "fetch_gaia", fake_fetch)
+    monkeypatch.setenv("NEWTSIM_CACHE_DIR", str(tmp_path / "cache"))
+    for k in range(2):
+        assert _cli("init", str(tmp_path / "frame.fits"), "-o", str(tmp_path / f"s{k}.toml"), "--catalog", "gaia",
+                    "--json", str(tmp_path / f"s{k}.json")) == 0
+    import json
+
+    assert len(calls) == 1 and calls[0].is_file()  # the second init read the cache
+    info = json.loads((tmp_path / "s1.json").read_text())["catalogue"]
+    assert info["n_matched"] >= 8
+
+
+def test_characterize_command_takes_any_subset(calib_frames, capsys, tmp_path):
+    """``newtsim characterize --flat F1 F2`` (no bias, no dark): the photon-transfer gain, and one line per
+    quantity the missing frames leave unmeasured."""
+    paths, truth = calib_frames
+    out = tmp_path / "c.json"
+    assert _cli("characterize", "--flat", paths["flat"][0], "--flat", paths["flat"][1], "--json", str(out)) == 0
+    err = capsys.readouterr().err
+    assert "not measured: no bias frame" in err and "not measured: no dark frame" in err
+    import json
+
+    res = json.loads(out.read_text())
+    assert res["gain"]["source"] == "header (EGAIN)"  # no bias or dark: the flats' level above the bias is unknown
+    assert _cli("characterize", "--dark", paths["dark"][0], "--dark", paths["dark"][1], "--flat", paths["flat"][0],
+                "--flat", paths["flat"][1], "--json", str(out)) == 0
+    res = json.loads(out.read_text())
+    assert res["gain"]["adopted_e_per_adu"] == pytest.approx(truth["gain"], rel=0.05)  # photon transfer, not EGAIN 2.4
+    assert any("differs from the header" in w for w in res["warnings"])
