@@ -172,14 +172,37 @@ def scene_with(scene, values: dict):
     return new
 
 
+#: frames with more output pixels than this re-render the PSF's values on a central window of this size only
+#: (the width is one number of the whole frame; the window's stars measure it and keep the cost bounded)
+PSF_WINDOW_PX = 1024
+
+
+def _psf_window(scene, res: Residuals) -> tuple[dict, tuple[slice, slice]]:
+    """The scene keys of a central window of at most PSF_WINDOW_PX output pixels a side, and its slices."""
+    h, w = res.data_adu.shape
+    if h <= PSF_WINDOW_PX and w <= PSF_WINDOW_PX:
+        return {}, (slice(0, h), slice(0, w))
+    s = scene.sensor()
+    b = s.binning
+    nh, nw = min(h, PSF_WINDOW_PX), min(w, PSF_WINDOW_PX)
+    oy, ox = (h - nh) // 2, (w - nw) // 2
+    keys = {"detector.width": nw * b, "detector.height": nh * b, "detector.x0": s.roi_x0 + ox * b,
+            "detector.y0": s.roi_y0 + oy * b}
+    return keys, (slice(oy, oy + nh), slice(ox, ox + nw))
+
+
 def _psf_delta(scene, res: Residuals, model, key: str, value: float) -> tuple[float, Fit] | None:
     """delta(-2 ln L) of the scene with ``key`` = ``value`` against the scene's model, on the comparison's
-    fitted pixels with the levels refitted (:func:`detector.signatures.pixel_score`)."""
+    fitted pixels with the levels refitted (:func:`detector.signatures.pixel_score`); on a large frame, on
+    a central window (:func:`_psf_window`: the change is zero elsewhere)."""
     from .model import build_model
 
-    other = build_model(scene_with(scene, {key: value}), realisation=False)
-    delta = (other.mean_adu.astype(np.float64) - model.mean_adu).astype(np.float32)
-    extra = (other.var_adu2.astype(np.float64) - model.var_adu2).astype(np.float32)
+    window, (sy, sx) = _psf_window(scene, res)
+    other = build_model(scene_with(scene, {key: value, **window}), realisation=False)
+    delta = np.zeros(res.data_adu.shape, np.float32)
+    extra = np.zeros(res.data_adu.shape, np.float32)
+    delta[sy, sx] = other.mean_adu.astype(np.float64) - model.mean_adu[sy, sx]
+    extra[sy, sx] = other.var_adu2.astype(np.float64) - model.var_adu2[sy, sx]
     fit = Fit("psf", {}, 0.0, 1, res.n_fit, "", delta_adu=delta, extra_var_adu2=extra)
     s = pixel_score(fit, res)
     return (None if s is None else float(s)), fit
