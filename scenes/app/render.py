@@ -297,7 +297,10 @@ def render(scene: Scene, out: str | Path, *, seed: int | None = None, noiseless:
     cards = setup.source_cards or {}
     return {"path": str(path), "seed": seed, "shape": list(s.output_shape), "exptime_s": setup.exptime_s,
             "sky_e_per_s": setup.sky_e_per_s, "warnings": setup.warnings,
-            "sources": {"stars": cards.get("NSTARS", (0,))[0], "objects": cards.get("NOBJECTS", (0,))[0]}}
+            "sources": {"stars": cards.get("NSTARS", (0,))[0], "objects": cards.get("NOBJECTS", (0,))[0],
+                        # of the stars on the frame: catalogue (Gaia/Hipparcos) stars and faint-star model stars
+                        "catalogue_stars": int(np.sum(truth["kind"] == b"star")),
+                        "model_stars": int(np.sum(truth["kind"] == b"synthetic"))}}
 
 
 def _with_progress(bands, total: int, label: str):
