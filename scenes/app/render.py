@@ -148,7 +148,7 @@ def prepare(scene: Scene, workers: int | None = None, psf=None) -> Setup:
     scale = scene.telescope.pixel_scale_arcsec or design.pixel_scale_arcsec(sensor.pixel_pitch_um)
     exp = scene.exposure
     exptime = 0.0 if exp.frame == "bias" else exp.time_s
-    warnings = []
+    warnings = [w for w in [sensor.summed_bias_saturates()] if w]
     sky_rate = 0.0
     flat_rate = 0.0
     if exp.frame == "light":
