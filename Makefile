@@ -22,11 +22,14 @@ install: $(STAMP)
 demo: install
 	$(VENV)/bin/newtsim demo -o out
 
+# the suite on TEST_WORKERS processes (pytest-xdist), a test file per process at a time (its module fixtures shared)
+TEST_WORKERS ?= 2
+
 test: install
-	$(PY) -m pytest -q
+	$(PY) -m pytest -q -n $(TEST_WORKERS) --dist loadfile
 
 test-slow: install
-	NEWTSIM_SLOW=1 $(PY) -m pytest -q
+	NEWTSIM_SLOW=1 $(PY) -m pytest -q -n $(TEST_WORKERS) --dist loadfile
 
 # every benchmark with its reference in the same run: benchmarks/history/<date>_<commit>.json (ratios, peak memory,
 # machine, commit, date) and one line appended to benchmarks/history/history.jsonl (commit it with the landing)
