@@ -22,14 +22,15 @@ install: $(STAMP)
 demo: install
 	$(VENV)/bin/newtsim demo -o out
 
-# the suite on TEST_WORKERS processes (pytest-xdist), a test file per process at a time (its module fixtures shared)
+# the suite on TEST_WORKERS processes (pytest-xdist): a test file stays on one process (its module fixtures made
+# once), except the validation cases shared on disk (tests/conftest.py SHARED_ROW_MODULES)
 TEST_WORKERS ?= 2
 
 test: install
-	$(PY) -m pytest -q -n $(TEST_WORKERS) --dist loadfile
+	$(PY) -m pytest -q -n $(TEST_WORKERS) --dist loadgroup
 
 test-slow: install
-	NEWTSIM_SLOW=1 $(PY) -m pytest -q -n $(TEST_WORKERS) --dist loadfile
+	NEWTSIM_SLOW=1 $(PY) -m pytest -q -n $(TEST_WORKERS) --dist loadgroup
 
 # every benchmark with its reference in the same run: benchmarks/history/<date>_<commit>.json (ratios, peak memory,
 # machine, commit, date) and one line appended to benchmarks/history/history.jsonl (commit it with the landing)

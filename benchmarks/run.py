@@ -20,7 +20,8 @@ default :data:`MARGIN` = 15 %). Why 15 %: three runs on the shared 2-core machin
 done twice (``NEWTSIM_BENCH_SLOW="detector.chain:shot_noise*2"``, a 2x slower stage, benchmarks/stages.py
 :func:`plant`) gave 3.05 (+24 %); docs/performance.md has the runs. The variable plants the slowdown in the
 benchmark's newtsim process, so the check can be seen to fail with it and pass without it
-(tests/test_bench_check.py checks the plant itself).
+(tests/test_bench_check.py checks the plant itself). A ratio over the margin is measured once more and the check
+fails only when the second measurement is over it too.
 """
 
 from __future__ import annotations
@@ -295,6 +296,13 @@ def main(argv=None) -> int:
             print(f"[bench] no stored quick figures in {a.history}: nothing to compare", file=sys.stderr)
             return 2
         bad = check(rec.get("quick", {}), stored, a.margin)
+        if bad:  # a second measurement must confirm it: a loaded machine's one bad minute does not fail CI
+            print(f"[bench] over the margin: {bad[0]}; measuring again to confirm", file=sys.stderr, flush=True)
+            with tempfile.TemporaryDirectory() as tmp:
+                again = {n: run_one(n, True, tmp) for n in rec.get("quick", {})}
+            rec["quick_confirmation"] = again
+            confirmed = {b.split(":")[0] for b in check(again, stored, a.margin)}
+            bad = [b for b in bad if b.split(":")[0] in confirmed]
         for b in bad:
             print(f"[bench] REGRESSION {b}", file=sys.stderr)
         print(f"[bench] quick check: {'FAILED' if bad else 'passed'} (margin {a.margin:.0%} over the stored ratios)",

@@ -11,8 +11,8 @@ import pytest
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
-import run as bench  # noqa: E402  (benchmarks/run.py)
-import stages  # noqa: E402  (benchmarks/stages.py)
+import run as bench  # benchmarks/run.py
+import stages  # benchmarks/stages.py
 
 
 def test_every_benchmark_in_the_folder_is_run_by_make_bench():
@@ -54,8 +54,7 @@ def test_the_ratios_of_a_benchmark_json():
 def test_a_planted_slowdown_does_the_stage_twice(monkeypatch):
     """NEWTSIM_BENCH_SLOW="detector.chain:shot_noise*2": every tile draws its shot noise twice (double the
     stage's work: what the quick check must catch); the frame keeps its shape."""
-    import detector.chain as chain
-    from detector import Detector, make_sensor
+    from detector import Detector, chain, make_sensor
 
     monkeypatch.setattr(chain, "shot_noise", chain.shot_noise)  # restored after the test
     calls = []
