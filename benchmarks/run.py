@@ -12,8 +12,9 @@ peak resident memory [GiB]. Absolute seconds are kept beside them for the record
 
 The quick check. The quick subset runs the detector chain with every effect on a 480-row band of the full-width
 IMX411 and the plain-numpy reference chain on the same band, alternated 11 times in one process
-(bench_detector_fullframe.py --repeat); the ratio checked is the chain's least CPU time (all threads) over the
-reference's least (:data:`CHECKED`); wall-clock ratios are recorded, not checked. It is compared with the last
+(bench_detector_fullframe.py --repeat); the ratio checked is the chain's least user CPU time (all threads) over
+the reference's least (:data:`CHECKED`; system time, which other jobs' I/O moves, and wall-clock ratios are
+recorded, not checked). It is compared with the last
 stored quick figure in history.jsonl: the check fails when ``ratio > stored x (1 + margin)`` (``--margin``,
 default :data:`MARGIN` = 15 %). Why 15 %: three runs on the shared 2-core machine at a load average of ~20 gave
 2.440, 2.446 and 2.462 (0.9 % apart; the wall ratios of the same runs 1.68-2.02), while the shot-noise draw
