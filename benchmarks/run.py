@@ -288,13 +288,6 @@ def main(argv=None) -> int:
         print("[bench] quick subset ...", file=sys.stderr, flush=True)
         with tempfile.TemporaryDirectory() as tmp:
             rec["quick"] = {n: run_one(n, True, tmp) for n, b in BENCHES.items() if b[2] is not None}
-    text = json.dumps(rec, indent=1)
-    print(text)
-    if not a.quick or a.out:
-        out = Path(a.out) if a.out else HISTORY / f"{now:%Y%m%dT%H%M%SZ}_{rec['commit']}.json"
-        out.parent.mkdir(parents=True, exist_ok=True)
-        out.write_text(text + "\n")
-        print(f"[bench] wrote {out}", file=sys.stderr)
     status = 0
     if a.check:
         stored = stored_quick(Path(a.history))
@@ -314,6 +307,13 @@ def main(argv=None) -> int:
         print(f"[bench] quick check: {'FAILED' if bad else 'passed'} (margin {a.margin:.0%} over the stored ratios)",
               file=sys.stderr)
         status = 1 if bad else 0
+    text = json.dumps(rec, indent=1)
+    print(text)
+    if not a.quick or a.out:
+        out = Path(a.out) if a.out else HISTORY / f"{now:%Y%m%dT%H%M%SZ}_{rec['commit']}.json"
+        out.parent.mkdir(parents=True, exist_ok=True)
+        out.write_text(text + "\n")
+        print(f"[bench] wrote {out}", file=sys.stderr)
     if a.record and status == 0:
         Path(a.history).parent.mkdir(parents=True, exist_ok=True)
         with open(a.history, "a") as f:
