@@ -27,9 +27,9 @@ from scenes.scene import load_scene
 from scenes.app.render import render
 out, scene_path, sets = sys.argv[1], sys.argv[2], json.loads(sys.argv[3])
 scene = load_scene(scene_path, sets)
-t0 = time.perf_counter()
+t0, c0 = time.perf_counter(), time.process_time()
 render(scene, out, progress=False)
-print(time.perf_counter() - t0)
+print(time.perf_counter() - t0, time.process_time() - c0)
 '''
 
 

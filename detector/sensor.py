@@ -95,6 +95,19 @@ class SensorConfig(BaseModel):
     def adc_max_adu(self) -> int:
         return 2 ** self.bit_depth - 1
 
+    def summed_bias_saturates(self) -> str | None:
+        """Why every pixel of the digital frame saturates, or None. A CMOS bins after the ADC: in "sum" mode
+        an output pixel adds the bias of ``binning**2`` pixels, and when that sum alone reaches the ADC's
+        maximum (the IMX411 at 16 x 16: 256 x 500 = 128,000 ADU > 65,535) nothing of the signal is left."""
+        b = self.binning
+        if self.kind != "cmos" or b == 1 or self.binning_mode != "sum" or b * b * self.bias_adu < self.adc_max_adu:
+            return None
+        top = int((self.adc_max_adu / self.bias_adu) ** 0.5) if self.bias_adu > 0 else b
+        return (f"binning {b}x{b} in 'sum' mode adds the bias of {b * b} pixels ({b * b} x {self.bias_adu:g} = "
+                f"{b * b * self.bias_adu:,.0f} ADU), above the {self.bit_depth}-bit maximum {self.adc_max_adu:,} ADU: "
+                f"every pixel of the frame saturates; use detector.binning_mode = 'average', a binning of at most "
+                f"{top}, or a lower bias_adu")
+
     @property
     def row_time_s(self) -> float:
         """Delay between the exposure starts of consecutive read-out rows (0 for a global shutter)."""

@@ -51,7 +51,7 @@ def cached_json(product: str, design, settings: dict, compute, use_cache: bool =
     if use_cache:
         try:
             path.parent.mkdir(parents=True, exist_ok=True)
-            tmp = path.with_suffix(".tmp")
+            tmp = path.with_name(f"{path.stem}.tmp{os.getpid()}.json")  # one per process: no two writers share it
             tmp.write_text(json.dumps(result))
             tmp.replace(path)
         except OSError:

@@ -39,9 +39,21 @@ def _restore_registry():
     effects_base._REGISTRY.update(saved)
 
 
+#: modules whose validation cases are computed once per run across the pytest-xdist workers
+#: (helpers.shared_row): their tests are spread over the workers one by one
+SHARED_ROW_MODULES = ("test_diagnose_hidden.py", "test_diagnose_unseen.py")
+
+
 def pytest_collection_modifyitems(config, items):
     """Tests marked ``slow`` (long statistical runs, full-size frames, optimisations) run only when asked:
-    ``pytest -m slow`` or NEWTSIM_SLOW=1 (``make test-slow``); the default run stays well under 30 minutes."""
+    ``pytest -m slow`` or NEWTSIM_SLOW=1 (``make test-slow``); the default run stays well under 30 minutes.
+
+    Under pytest-xdist (``make test``: ``-n 2 --dist loadgroup``) the tests of a module stay on one worker (its
+    module-scoped renders are made once), except the modules of SHARED_ROW_MODULES, whose cases are shared
+    between the workers on disk and so are spread over them."""
+    for item in items:
+        if item.path.name not in SHARED_ROW_MODULES:
+            item.add_marker(pytest.mark.xdist_group(item.path.name))
     expr = config.getoption("markexpr", "") or ""
     if "slow" in expr.replace("not slow", "") or os.environ.get("NEWTSIM_SLOW"):
         return

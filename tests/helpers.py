@@ -137,3 +137,40 @@ def isolated_stars(path, fwhm_px: float, min_flux_e: float = 2e3, radius_fwhm: f
                      ("tx", xi), ("ty", yi), ("sum", s), ("flux", f)):
             out[k].append(v)
     return {k: np.array(v) for k, v in out.items()}
+
+
+def shared_row(cache: dict, key, tmp_path_factory, compute):
+    """``compute(workdir)`` of a validation case, once per test session, also across pytest-xdist workers.
+
+    In one process the row is kept in ``cache``. Under pytest-xdist the workers of a run share a folder
+    (beside their base temporary folders, named by the run's id): the first worker to need a key computes it
+    under a lock and pickles the row there; the others wait for the lock and read it. So the cases of one
+    module can be spread over the workers (``conftest.py``: SHARED_ROW_MODULES) and a test that needs them
+    all (a confusion matrix) computes none twice."""
+    import fcntl
+    import os
+    import pickle
+
+    if key in cache:
+        return cache[key]
+    name = "_".join(map(str, key)) if isinstance(key, tuple) else str(key)
+    run = os.environ.get("PYTEST_XDIST_TESTRUNUID")
+    if not run:
+        cache[key] = compute(tmp_path_factory.mktemp(name))
+        return cache[key]
+    shared = tmp_path_factory.getbasetemp().parent / f"shared-rows-{run}"
+    shared.mkdir(exist_ok=True)
+    with open(shared / f"{name}.lock", "w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        try:
+            done = shared / f"{name}.pickle"
+            if done.is_file():
+                cache[key] = pickle.loads(done.read_bytes())
+            else:
+                cache[key] = compute(tmp_path_factory.mktemp(name))
+                tmp = done.with_suffix(f".tmp{os.getpid()}")
+                tmp.write_bytes(pickle.dumps(cache[key]))
+                tmp.replace(done)
+        finally:
+            fcntl.flock(lock, fcntl.LOCK_UN)
+    return cache[key]

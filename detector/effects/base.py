@@ -17,6 +17,7 @@ code or through the ``newtsim.effects`` entry-point group of their own package.
 from __future__ import annotations
 
 import enum
+import re
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import ClassVar
@@ -192,9 +193,38 @@ class Effect:
 
     @classmethod
     def describe(cls) -> dict:
-        """Name, stages, docstring and parameter schema (units, defaults, bounds) for docs and the CLI."""
+        """Name, stages, docstring and parameter schema (units, defaults, bounds) for docs and the CLI.
+
+        Every numeric parameter carries a machine-readable ``unit`` (:func:`param_unit`): the one its field
+        declares (``json_schema_extra``), else the bracketed unit of its description, else its name's suffix."""
+        schema = cls.Params.model_json_schema()
+        for key, prop in schema.get("properties", {}).items():
+            if "unit" not in prop and _is_numeric(prop):
+                prop["unit"] = param_unit(key, prop.get("description") or "")
         return {"name": cls.name, "stages": [s.name for s in cls.stages],
-                "doc": (cls.__doc__ or "").strip(), "params": cls.Params.model_json_schema()}
+                "doc": (cls.__doc__ or "").strip(), "params": schema}
+
+
+def _is_numeric(prop: dict) -> bool:
+    kinds = [prop] + prop.get("anyOf", []) + prop.get("oneOf", [])
+    return any(k.get("type") in ("number", "integer")
+               or (k.get("type") == "array" and k.get("items", {}).get("type") in ("number", "integer"))
+               for k in kinds)
+
+
+#: units read from a parameter name's suffix when its description has no bracketed unit
+_SUFFIX_UNITS = (("_e_per_s", "e-/s"), ("_per_px", "1/pixel"), ("_adu", "ADU"), ("_px", "pixel"), ("_s", "s"),
+                 ("_k", "K"), ("_e", "e-"), ("_deg", "deg"), ("_mm", "mm"))
+
+
+def param_unit(name: str, description: str) -> str:
+    """The unit of a numeric parameter: the last bracketed unit of its description (``"... [e-/s]"``; a
+    bracket holding a comma is an interval, not a unit), else its name's suffix (``_s``: s), else "1"
+    (a count, an index or a ratio)."""
+    units = [u.strip() for u in re.findall(r"\[([^\[\]]+)\]", description) if "," not in u]
+    if units:
+        return units[-1]
+    return next((u for suffix, u in _SUFFIX_UNITS if name.endswith(suffix)), "1")
 
 
 _REGISTRY: dict[str, type[Effect]] = {}

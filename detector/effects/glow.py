@@ -37,17 +37,24 @@ def bivariate_normal_rate(ys: np.ndarray, xs: np.ndarray, x0: float, y0: float, 
 
 def edge_rate(ys: np.ndarray, xs: np.ndarray, height: int, width: int, where: str, peak: float, scale_px: float,
               out: np.ndarray) -> None:
-    """Add ``peak exp(-d / L)`` [e-/s] with ``d`` the distance [px] to an edge or corner of the sensor."""
+    """Add ``peak exp(-d / L)`` [e-/s] with ``d`` the distance [px] to an edge or corner of the sensor.
+
+    Evaluated in float64 and added as float32; along an edge the law depends on one coordinate, so it is
+    evaluated once per row or column and broadcast; the operations run in place (the same values as the
+    whole-array expression, without its temporaries)."""
     dx = {"left": xs, "right": (width - 1) - xs}
     dy = {"bottom": ys, "top": (height - 1) - ys}
     parts = where.split("-")
     if len(parts) == 2:  # a corner: "bottom-left" ...
         d = np.hypot(dy[parts[0]][:, None], dx[parts[1]][None, :])
     elif where in dx:
-        d = np.broadcast_to(dx[where][None, :], (ys.size, xs.size))
+        d = np.array(dx[where], dtype=np.float64)[None, :]
     else:
-        d = np.broadcast_to(dy[where][:, None], (ys.size, xs.size))
-    out += (peak * np.exp(-d / scale_px)).astype(np.float32)
+        d = np.array(dy[where], dtype=np.float64)[:, None]
+    np.divide(d, -scale_px, out=d)  # -d / L
+    np.exp(d, out=d)
+    d *= peak
+    np.add(out, d, out=out, dtype=np.float32)  # d rounded to float32, then added (as out += d.astype(float32))
 
 
 # --- diagnosis signature (detector.signatures) --------------------------------------------------------------

@@ -215,13 +215,20 @@ def _fmt_params(params: dict) -> str:
     return ", ".join(f"{k} {v:.3g}" if isinstance(v, float) else f"{k} {v}" for k, v in params.items())
 
 
+def _stars_words(src: dict) -> str:
+    """The stars on the frame, split into catalogue (Gaia) stars and faint-star model stars when known."""
+    if "catalogue_stars" not in src:
+        return f"{src['stars']} stars"
+    return f"{src['stars']} stars ({src['catalogue_stars']} Gaia catalogue, {src['model_stars']} faint-star model)"
+
+
 def summary_lines(frame: dict | None, rnd: dict | None) -> list[str]:
     """The lines the demo prints (and the README quotes)."""
     lines = []
     if frame is not None:
         h, w = frame["shape"]
         lines.append(f"rendered {frame['path']}: {w}x{h} px, {frame['exptime_s']:g} s, "
-                     f"{frame['sources']['stars']} catalogue stars, {frame['sources']['objects']} debris streak; "
+                     f"{_stars_words(frame['sources'])}, {frame['sources']['objects']} debris streak; "
                      f"quick-look {frame['png']}")
     if rnd is not None:
         lines.append(f"hidden in the measured frame: {rnd['hidden']} ({_fmt_params(rnd['hidden_params'])})")

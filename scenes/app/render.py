@@ -151,7 +151,7 @@ def prepare(scene: Scene, workers: int | None = None, psf=None) -> Setup:
     scale = scene.telescope.pixel_scale_arcsec or design.pixel_scale_arcsec(sensor.pixel_pitch_um)
     exp = scene.exposure
     exptime = 0.0 if exp.frame == "bias" else exp.time_s
-    warnings = []
+    warnings = [w for w in [sensor.summed_bias_saturates()] if w]
     sky_rate = 0.0
     flat_rate = 0.0
     if exp.frame == "light":
@@ -317,7 +317,10 @@ def render(scene: Scene, out: str | Path, *, seed: int | None = None, noiseless:
     cards = setup.source_cards or {}
     return {"path": str(path), "seed": seed, "shape": list(s.output_shape), "exptime_s": setup.exptime_s,
             "sky_e_per_s": setup.sky_e_per_s, "warnings": setup.warnings,
-            "sources": {"stars": cards.get("NSTARS", (0,))[0], "objects": cards.get("NOBJECTS", (0,))[0]},
+            "sources": {"stars": cards.get("NSTARS", (0,))[0], "objects": cards.get("NOBJECTS", (0,))[0],
+                        # of the stars on the frame: catalogue (Gaia/Hipparcos) stars and faint-star model stars
+                        "catalogue_stars": int(np.sum(truth["kind"] == b"star")),
+                        "model_stars": int(np.sum(truth["kind"] == b"synthetic"))},
             **({"labels": len(frame_lab.labels)} if frame_lab is not None else {})}
 
 

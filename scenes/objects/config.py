@@ -42,7 +42,6 @@
 
 from __future__ import annotations
 
-import math
 from pathlib import Path
 from typing import Any
 
@@ -52,6 +51,7 @@ from .frames import GroundSite, SpaceObserver
 from .lightcurve import light_curve_from_table
 from .tle import load_tle, parse_tle
 from .track import RateObject, TleObject
+from .validate import number as _num
 
 RATE_KEYS = ("ra_deg", "dec_deg", "rate_ra_deg_s", "rate_dec_deg_s")
 TLE_KEYS = ("tle", "tle_file", "satellite")
@@ -62,21 +62,6 @@ OBJECT_KEYS = RATE_KEYS + TLE_KEYS + BRIGHTNESS_KEYS + ("name", "light_curve", "
 OUTSIDE_CHOICES = ("error", "skip")
 OBSERVER_KEYS = ("name", "lat_deg", "lon_deg", "alt_m", "tle", "tle_file", "satellite")
 MAG_SYSTEMS = ("ab", "solar_v")
-
-
-def _num(table: dict, name: str, prefix: str, file, lo=-math.inf, hi=math.inf, *, lo_open=False,
-         default=None, required=False):
-    if name not in table:
-        if required:
-            raise ObjectError("missing", key=f"{prefix}.{name}", file=file, expected=f"a number in [{lo}, {hi}]")
-        return default
-    v = table[name]
-    ok = isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
-    ok = ok and (v > lo if lo_open else v >= lo) and v <= hi
-    if not ok:
-        interval = f"({lo}, {hi}]" if lo_open else f"[{lo}, {hi}]"
-        raise ObjectError(f"{v!r}", key=f"{prefix}.{name}", file=file, expected=f"a number in {interval}")
-    return float(v)
 
 
 def _unknown(table: dict, allowed, prefix: str, file):

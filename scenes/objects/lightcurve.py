@@ -33,6 +33,7 @@ import numpy as np
 from scipy.special import erf
 
 from .errors import ObjectError
+from .validate import number as _num
 
 KINDS = ("sinusoid", "glint")
 KEYS = {"sinusoid": ("kind", "amplitude", "period_s", "phase"),
@@ -128,8 +129,6 @@ class LightCurve:
 
 def light_curve_from_table(table, prefix: str, *, file=None) -> LightCurve | None:
     """The :class:`LightCurve` of an ``objects[i].light_curve`` table (None when absent); errors name the key."""
-    from .config import _num  # config imports this module
-
     if table is None:
         return None
     if not isinstance(table, dict):

@@ -175,3 +175,16 @@ def test_average_binned_cmos_moments_follow_the_chain():
     check_within(f.var(), float(var.mean()), var.mean() * np.sqrt(2 / n) + 2e-3)
     sheppard = (16 * 3.5 / 1.22) ** 2 / 16 ** 4 + (1 / 12) / 16 ** 2 + 1 / 12
     assert abs(var.mean() - sheppard) > 0.1
+
+
+def test_summed_bias_above_the_adc_range_is_named():
+    """An IMX411 binned 16x16 in "sum" mode: the digital sum of 256 biases (128,000 ADU) exceeds the 16-bit
+    ADC range, so every output pixel saturates; the sensor says why (the render prints it as a warning)."""
+    s = make_sensor("imx411", {"binning": 16, "width": 256, "height": 256})
+    why = s.summed_bias_saturates()
+    assert why and "128,000 ADU" in why and "65,535" in why and "'average'" in why and "at most 11" in why
+    frame = Detector(s).expose(10.0, 1.0, frame_seed=1)
+    assert frame.shape == (16, 16) and (frame == 65535).all()  # what the words explain
+    assert make_sensor("imx411", {"binning": 11, "width": 242, "height": 242}).summed_bias_saturates() is None
+    assert make_sensor("imx411", {"binning": 16, "binning_mode": "average"}).summed_bias_saturates() is None
+    assert make_sensor("ml11002", {"binning": 16, "width": 256, "height": 256}).summed_bias_saturates() is None

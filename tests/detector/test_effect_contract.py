@@ -45,6 +45,29 @@ def test_describe_has_a_doc_units_and_bounds(name):
         assert bounded, f"{name}.{key}: no bound"
 
 
+def test_every_numeric_parameter_has_a_machine_readable_unit():
+    """``newtsim effects NAME`` (describe()): every numeric parameter, arrays of numbers included, has a "unit"
+    key (the one the field declares, else its description's bracketed unit, else its name's suffix)."""
+    for name in NAMES:
+        for key, schema in registry()[name].describe()["params"].get("properties", {}).items():
+            kinds = [schema] + schema.get("anyOf", [])
+            numeric = any(k.get("type") in ("number", "integer") or
+                          k.get("items", {}).get("type") in ("number", "integer") for k in kinds)
+            if not numeric:
+                continue
+            unit = schema.get("unit")
+            assert isinstance(unit, str) and unit, f"{name}.{key}: no unit key"
+            # a unit the field does not declare is read from its description's last bracket
+            desc = (schema.get("description") or "").rstrip()
+            if desc.endswith("]") and "," not in desc[desc.rindex("["):] and "unit" not in _declared(name, key):
+                assert unit == desc[desc.rindex("[") + 1:-1].strip(), f"{name}.{key}: {unit!r} vs {desc!r}"
+
+
+def _declared(name: str, key: str) -> dict:
+    extra = registry()[name].Params.model_fields[key].json_schema_extra
+    return extra if isinstance(extra, dict) else {}
+
+
 @pytest.mark.parametrize("name", [n for n in NAMES if registry()[n].identity is not None])
 def test_same_bytes_on_one_and_two_workers(name):
     s = small_sensor(width=240, height=520)  # more than two row bands

@@ -17,7 +17,7 @@ from detector.sensor import make_sensor
 from detector.signatures import SpikeStats
 from scenes.app.compare import run_compare
 from scenes.app.compare.model import build_model, read_measurement, saturation_adu
-from scenes.app.compare.report import write_report
+from scenes.app.compare.report import section_verdict, write_report
 from scenes.app.compare.statistics import misfit, outlier_counts
 from scenes.app.render import render
 from scenes.scene import load_scene
@@ -192,7 +192,20 @@ def test_a_brighter_sky_is_a_level_not_a_misfit(tmp_path):
     page = write_report(cmp, tmp_path / "r.html").read_text()
     shown = re.search(r"With the global levels refitted: chi2/dof = ([0-9.]+) \(([^)]*)\)", page)
     assert shown and float(shown[1]) == pytest.approx(s["chi2_per_dof_levels"], rel=1e-3)
-    assert "background +10.0 %" in shown[2]
+    # the factor on the model's level and the change it makes [ADU], never a percentage of a level near zero
+    factor = re.search(r"background x ([0-9.]+) \[\+([0-9.]+) ADU at the mean pixel\]", shown[2])
+    assert factor and float(factor[1]) == pytest.approx(1 + s["levels"]["background_scale"], rel=1e-3), shown[2]
+    assert float(factor[2]) > 0 and "%" not in shown[2]
+
+
+def test_a_refitted_level_near_zero_is_a_factor_and_adu_not_a_percentage():
+    """A 0.1 s dark holds ~0.01 ADU of dark signal: a refitted dark level of -106 (a 0.8-ADU change) printed
+    as a percentage read "dark -10692.3 %". The box prints the factor and the change in ADU."""
+    result = {"chi2_per_dof": 1.2, "n_compared": 10_000, "n_statistical": 0, "misfit": 1.0, "chi2_per_dof_levels": 1.0,
+              "levels": {"offset_adu": 0.42, "dark_scale": -106.923}, "levels_adu": {"dark_scale": -0.8}}
+    box = section_verdict(result, None)
+    assert "bias offset +0.42 ADU" in box and "dark x -105.9 [-0.8 ADU at the mean pixel]" in box, box
+    assert "%" not in box.split("With the global levels refitted")[1].split("</p>")[0]
 
 
 # --- the full-resolution residual spectrum -----------------------------------------------------------------------

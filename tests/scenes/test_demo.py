@@ -10,6 +10,7 @@ is ``slow``.
 import json
 import subprocess
 import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -132,6 +133,9 @@ def test_showcase_window_quicklook_has_the_streak_and_a_star(small_round, tmp_pa
             "sky.star_mag_limit=13"]
     summary = showcase_frame(tmp_path, overrides=sets)
     assert summary["sources"]["objects"] == 1 and summary["sources"]["stars"] > 5
+    # the stars on the frame, split into the catalogue's (Gaia) and the faint-star model's
+    src = summary["sources"]
+    assert src["catalogue_stars"] > 0 and src["catalogue_stars"] + src["model_stars"] == src["stars"]
     labels = [i["label"] for i in summary["insets"]]
     assert labels[0].startswith("streak: debris") and labels[1].startswith("star")
     import matplotlib.image as mpimg
@@ -155,3 +159,13 @@ def test_full_demo(tmp_path, mi):
     assert r["named_first"] == r["hidden"]
     assert _error(r["chi2_per_dof_after"]) <= 0.5 * _error(r["chi2_per_dof_before"])
     assert len(res["lines"]) == 4
+
+
+def test_the_frame_line_names_catalogue_and_model_stars_as_the_readme_does():
+    """README's demo output: "11059 stars (235 Gaia catalogue, 10824 faint-star model)", not 11,059 "catalogue
+    stars" (235 are Gaia stars, 10,824 stars of the seeded faint-star model)."""
+    frame = {"path": "out/demo.fits", "shape": [10640, 14192], "exptime_s": 3.0, "png": "out/demo.png",
+             "sources": {"stars": 11059, "objects": 1, "catalogue_stars": 235, "model_stars": 10824}}
+    line = summary_lines(frame, None)[0]
+    readme = (Path(__file__).resolve().parents[2] / "README.md").read_text()
+    assert "11059 stars (235 Gaia catalogue, 10824 faint-star model)" in line and line in readme

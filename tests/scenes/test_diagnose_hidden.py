@@ -13,6 +13,7 @@ whole confusion matrix runs by default too (the diagnosis is the product's heart
 
 
 import pytest
+from helpers import shared_row
 
 from scenes.app.validation import hidden
 
@@ -33,13 +34,11 @@ _CACHE: dict = {}
 
 
 def _row(key, tmp_path_factory):
-    """The diagnosis of one case (an effect, or ("null", base)), computed once per session."""
-    if key not in _CACHE:
-        if isinstance(key, tuple):
-            _CACHE[key] = NS["run_case"](None, tmp_path_factory.mktemp(f"null_{key[1]}"), base=key[1])
-        else:
-            _CACHE[key] = NS["run_case"](key, tmp_path_factory.mktemp(key))
-    return _CACHE[key]
+    """The diagnosis of one case (an effect, or ("null", base)), computed once per session (across the
+    pytest-xdist workers too: helpers.shared_row)."""
+    if isinstance(key, tuple):
+        return shared_row(_CACHE, key, tmp_path_factory, lambda d: NS["run_case"](None, d, base=key[1]))
+    return shared_row(_CACHE, key, tmp_path_factory, lambda d: NS["run_case"](key, d))
 
 
 def _check_identified_and_error_halved(row):

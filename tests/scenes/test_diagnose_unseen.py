@@ -14,6 +14,7 @@ docs/diagnose_validation.md, section "Unseen forms and out-of-catalogue effects 
 
 
 import pytest
+from helpers import shared_row
 
 from scenes.app.validation import unseen
 
@@ -39,9 +40,7 @@ _CACHE: dict = {}
 
 
 def _row(name, tmp_path_factory):
-    if name not in _CACHE:
-        _CACHE[name] = NS["run_case"](name, tmp_path_factory.mktemp(name))
-    return _CACHE[name]
+    return shared_row(_CACHE, name, tmp_path_factory, lambda d: NS["run_case"](name, d))
 
 
 def _check(row):

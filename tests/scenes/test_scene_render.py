@@ -136,3 +136,13 @@ def test_ray_traced_vignetting_darkens_the_corner_by_the_optics_map(tmp_path, mo
     _, _, ri = read_fits(cached[0])
     assert ratio[0, 0] == pytest.approx(ri[0, 0], abs=0.003)      # the map's corner sample is at the sensor corner
     assert ratio[0, 0] < 0.95 and ratio[-1, -1] > ratio[0, 0]      # darker toward the corner
+
+
+def test_a_summed_binning_that_saturates_every_pixel_is_a_warning(tmp_path):
+    """IMX411 binned 16x16 in "sum" mode: the summed bias (256 x 500 ADU) is above the 16-bit range; the render
+    says so (summary warnings, printed by the CLI) instead of writing a saturated frame without a word."""
+    scene = load_scene("examples/scenes/empty_sky_imx411.toml",
+                       ["detector.binning=16", "detector.width=256", "detector.height=256"])
+    info = render(scene, tmp_path / "b16.fits", seed=1, progress=False)
+    assert (fits.getdata(tmp_path / "b16.fits") == 65535).all()
+    assert any("every pixel of the frame saturates" in w and "'average'" in w for w in info["warnings"])

@@ -233,14 +233,26 @@ _LEVEL_WORDS = {"light_scale": "light", "background_scale": "background", "offse
                 "dark_scale": "dark"}
 
 
+def _level_words(name: str, coef: float, delta_adu: float | None) -> str:
+    """One refitted level in words: the bias offset in ADU; a light, background or dark level as the factor
+    on the model's level with the change it makes at the mean pixel [ADU] (a percentage of a level near zero,
+    e.g. the dark signal of a short exposure, says nothing: "x -106 [-0.8 ADU at the mean pixel]" does)."""
+    word = _LEVEL_WORDS.get(name, name)
+    if name == "offset_adu":
+        return f"{word} {coef:+.2f} ADU"
+    text = f"{word} x {1 + coef:.4g}"
+    if delta_adu is not None and math.isfinite(_num(delta_adu)):
+        text += f" [{_num(delta_adu):+.3g} ADU at the mean pixel]"
+    return text
+
+
 def _levels_text(result: dict) -> str:
     """chi2/dof with the global levels refitted, and the fitted levels in words ('' when absent)."""
     chi2 = _num(result.get("chi2_per_dof_levels"))
     if not math.isfinite(chi2):
         return ""
     levels = result.get("levels") or {}
-    parts = [f"{_LEVEL_WORDS.get(k, k)} {_num(v):+.2f} ADU" if k == "offset_adu" else
-             f"{_LEVEL_WORDS.get(k, k)} {100 * _num(v):+.1f} %" for k, v in levels.items()]
+    parts = [_level_words(k, _num(v), (result.get("levels_adu") or {}).get(k)) for k, v in levels.items()]
     return (f"With the global levels refitted: chi2/dof = {_fmt(chi2)}" +
             (f" ({', '.join(parts)})" if parts else "") + ".")
 

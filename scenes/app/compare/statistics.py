@@ -343,11 +343,21 @@ def misfit(chi2: float, dof: int, counts: dict, extra: dict | None = None) -> fl
 def level_fit(res: Residuals) -> dict:
     """chi2/dof with the global levels refitted (:func:`detector.signatures.level_profiled`: light, background,
     bias offset and dark level as nuisance parameters, their shot noise included; dof = pixels - levels) and
-    the fitted levels: relative changes of the light, background and dark signal [1], the offset [ADU]."""
+    the fitted levels: relative changes of the light, background and dark signal [1], the offset [ADU]; and
+    ``levels_adu``: each fitted change at the mean fitted pixel [ADU] (what a relative change means when the
+    model's level is near zero, e.g. the dark signal of a short exposure)."""
     lv = res.levels()
     dof = max(res.n_fit - len(lv["keep"]), 1)
+    idx, shape = res.flat()[0], res.data_adu.shape
+    temps = res.level_templates()
+    delta = {}  # the fitted change at the mean fitted pixel [ADU]: readable where the model's level is ~0
+    for name, c, i in zip(lv["names"], lv["coef"], lv["keep"]):
+        t = np.asarray(temps[i])
+        mean = float(t.ravel()[0]) if t.size == 1 else float(np.mean(np.broadcast_to(t, shape).ravel()[idx]))
+        delta[name] = float(c) * mean
     return {"chi2_per_dof_levels": res.chi2_profiled() / dof,
-            "levels": {name: float(c) for name, c in zip(lv["names"], lv["coef"])}}
+            "levels": {name: float(c) for name, c in zip(lv["names"], lv["coef"])},
+            "levels_adu": delta}
 
 
 def compare(res: Residuals, truth=None, realisation: np.ndarray | None = None) -> dict:
