@@ -137,6 +137,10 @@ def test_floors(tmp_path):
     assert floor_reason("nonlinearity", {"beta": 0.01}, sensor) == ""
     assert "columns" in floor_reason("column_defects", {"hot_columns": 1802, "dead_columns": 2966}, sensor)
     assert floor_reason("column_defects", {"hot_columns": 3, "dead_columns": 1}, sensor) == ""
+    assert "less than one electron" in floor_reason("column_defects", {"hot_columns": 172, "hot_rate_e_per_s": 0.0,
+                                                                       "dead_columns": 0}, sensor, exptime_s=10.0)
+    assert floor_reason("column_defects", {"hot_columns": 8, "hot_rate_e_per_s": 0.08, "dead_columns": 0}, sensor,
+                        exptime_s=300.0) == ""
     assert "not cosmic rays" in floor_reason("cosmic_rays", {"flux_per_cm2_s": 100 / 60}, sensor)
     assert floor_reason("cosmic_rays", {"flux_per_cm2_s": 2 / 60}, sensor) == ""
     assert floor_reason("hot_pixels", {"count": 0.1 * 14192 * 10640}, sensor) != ""

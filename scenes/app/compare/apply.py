@@ -148,7 +148,8 @@ def carry_levels(data: dict, levels: dict[str, float], scene) -> tuple[dict, lis
     c = levels.get("background_scale", 0.0)
     if abs(c) > LEVEL_SCALE_TOL and 1 + c > 0.05:
         mag = scene.sky.background_mag_arcsec2
-        sky["background_mag_arcsec2"] = round(float(mag) - 2.5 * float(np.log10(1 + c)), 5)
+        # within the scene file's range [5, 35] mag/arcsec^2 (a sky fainter than 35 is no sky)
+        sky["background_mag_arcsec2"] = round(min(max(float(mag) - 2.5 * float(np.log10(1 + c)), 5.0), 35.0), 5)
         notes.append(f"the sky level refitted: x {1 + c:.5f} ({mag:.4g} -> {sky['background_mag_arcsec2']:.5g} "
                      "mag/arcsec^2)")
     c = levels.get("offset_adu", 0.0) / bias_per_output_adu(sensor)
@@ -197,6 +198,8 @@ def apply_empirical(scene, empirical: dict, morphology: dict, path: str | Path, 
     per_sensor_px = float(b * b) if sensor.binning_mode == "sum" else 1.0  # output value = sum of b^2 pixels
     if kind == "multiplicative":  # the map is the relative change of the light
         data, params, unit = 1.0 + full, {}, "relative response"
+        if float(np.min(data)) <= 0.0:  # a response cannot be negative: the pattern is not a flat field
+            return None
     elif kind == "noise":  # the map is the extra variance of an output pixel [ADU^2]: the sigma of one read [e-]
         if sensor.kind == "ccd":
             reads = 1.0  # one read of the binned charge

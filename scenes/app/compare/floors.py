@@ -49,9 +49,19 @@ def dead_pixels_floor(params: dict, sensor, policy: DiagnosisPolicy) -> str:
     return _defects(_num(params, "count"), sensor.sensor_width_px * sensor.sensor_height_px, "dead pixels", policy)
 
 
-def column_defects_floor(params: dict, sensor, policy: DiagnosisPolicy) -> str:
+def column_defects_floor(params: dict, sensor, policy: DiagnosisPolicy, exptime_s: float | None = None) -> str:
+    """Too many columns for defects, or hot columns whose excess dark current adds less than one electron per
+    pixel over the exposure (a column 'above its neighbours' by no measurable charge is not a charge trap or
+    a leaky gate: it is a pattern of the light or of the statistics)."""
     n = _num(params, "hot_columns") + _num(params, "dead_columns")
-    return _defects(n, sensor.sensor_width_px, "defective columns", policy)
+    why = _defects(n, sensor.sensor_width_px, "defective columns", policy)
+    if why:
+        return why
+    hot, rate = _num(params, "hot_columns"), _num(params, "hot_rate_e_per_s")
+    if exptime_s and hot > 0 and _num(params, "dead_columns") == 0 and rate * exptime_s < 1.0:
+        return (f"{hot:.0f} hot columns whose excess dark current ({rate:.3g} e-/s) adds {rate * exptime_s:.3g} e- "
+                "per pixel over the exposure: less than one electron is not a column defect")
+    return ""
 
 
 def cosmic_rays_floor(params: dict, sensor, policy: DiagnosisPolicy) -> str:
@@ -75,10 +85,14 @@ FLOORS: dict[str, Callable[[dict, object, DiagnosisPolicy], str]] = {
 }
 
 
-def floor_reason(effect: str, params: dict, sensor, policy: DiagnosisPolicy = DEFAULT_POLICY) -> str:
-    """"" or why the fitted size of ``effect`` is not a finding (gate ``floor``)."""
+def floor_reason(effect: str, params: dict, sensor, policy: DiagnosisPolicy = DEFAULT_POLICY,
+                 exptime_s: float | None = None) -> str:
+    """"" or why the fitted size of ``effect`` is not a finding (gate ``floor``); ``exptime_s`` [s] for the
+    floors that weigh a rate over the exposure."""
     check = FLOORS.get(effect)
-    return check(params, sensor, policy) if check is not None else ""
+    if check is None:
+        return ""
+    return check(params, sensor, policy, exptime_s) if check is column_defects_floor else check(params, sensor, policy)
 
 
 #: candidates whose evidence is pixels brighter than the model that stay put: hot in every frame

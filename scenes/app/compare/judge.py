@@ -78,6 +78,9 @@ class Candidate:
     #: a parameter the frame cannot tell apart from another scene number (a bias offset from a uniform dark
     #: charge on one dark frame): named after the significant effects, with the other key here
     ambiguous: str = ""
+    #: a parameter whose evidence, once the best significant effect is in the model, is smaller than that
+    #: effect's: still a finding, named after the effect (the next round refits it)
+    deferred: str = ""
     policy: DiagnosisPolicy = DEFAULT_POLICY
     codes: dict = field(default_factory=dict)  #: gate code -> reason, for the gates set by the evidence
 
@@ -145,6 +148,8 @@ class Candidate:
             out["key"], out["value"] = self.key, self.value
             if self.ambiguous:
                 out["cannot_tell_from"] = self.ambiguous
+            if self.deferred:
+                out["deferred"] = self.deferred
         return out
 
 
@@ -199,7 +204,7 @@ def rank(cands: list[Candidate], light_source: str = "") -> list[Candidate]:
     added charge, a response comes first."""
     def key(c):
         sig = c.significant
-        tier = ((0 if not c.ambiguous else 1.5) if c.kind == "parameter" else 1) if sig else \
+        tier = ((0 if not (c.ambiguous or c.deferred) else 1.5) if c.kind == "parameter" else 1) if sig else \
             2 if c.plausible and not c.rejected else 3
         return tier, c.score if sig else c.fit.delta_bic
 
@@ -209,7 +214,7 @@ def rank(cands: list[Candidate], light_source: str = "") -> list[Candidate]:
     if twins:
         flat = light_source == "flat"
         group = sorted([sig[0], *twins], key=lambda c: (flat and not _of_light(c), c.fit.delta_bic))
-        params = [c for c in out if c.significant and c.kind == "parameter" and not c.ambiguous]
+        params = [c for c in out if c.significant and c.kind == "parameter" and not (c.ambiguous or c.deferred)]
         rest = [c for c in out if c not in group and c not in params]
         out = params + group + rest
     return out
@@ -230,7 +235,8 @@ def verdict(cands: list[Candidate], morphology: dict | None = None) -> str:
     better on held-out pixels than the catch-all), or that nothing is missing, or what the residual looks
     like when no candidate explains it."""
     sig = [c for c in cands if c.significant]
-    params = [c for c in sig if c.kind == "parameter"]
+    params = [c for c in sig if c.kind == "parameter" and not (c.ambiguous or c.deferred)]
+    later = [c for c in sig if c.kind == "parameter" and (c.ambiguous or c.deferred)]
     effects = [c for c in sig if c.kind != "parameter"]
     head = ""
     if params:
@@ -245,7 +251,16 @@ def verdict(cands: list[Candidate], morphology: dict | None = None) -> str:
                 "scores are as good)") if twins else ""
         text = (f"most likely missing: {best.fit.effect} (delta BIC {best.fit.delta_bic:.4g}{held}): "
                 f"{best.fit.explanation}{also}")
+        if later:
+            text += "; then the scene's " + "; ".join(
+                f"{c.key} -> {c.value:.5g} ({c.ambiguous and 'the frame cannot tell it apart from ' + c.ambiguous or c.deferred})"
+                for c in later)
         return f"{head}; then {text}" if head else text
+    if later:
+        tail = "the scene's numbers are off: " + "; ".join(
+            f"{c.key} -> {c.value:.5g} ({c.fit.explanation}"
+            + (f"; the frame cannot tell it apart from {c.ambiguous}" if c.ambiguous else "") + ")" for c in later)
+        head = f"{head}; {tail}" if head else tail
     if head:
         return head
     policy = cands[0].policy if cands else DEFAULT_POLICY

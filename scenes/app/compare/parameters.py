@@ -127,7 +127,7 @@ def level_candidates(res: Residuals, scene, policy: DiagnosisPolicy = DEFAULT_PO
         out.append(_param_candidate(res, "bias_level", "detector.bias_adu", round(v, 3), stat,
                                     f"the bias is {d:+.4g} ADU from the scene's: {sensor.bias_adu:.5g} -> {v:.5g} ADU",
                                     within, policy, 0.0, "offset_adu"))
-    if "dark_scale" in stats:
+    if "dark_scale" in stats and "dark_map" not in scene.effects:  # a measured dark map holds the dark itself
         c, stat = stats["dark_scale"]
         f = 1.0 + c
         if f > 0:
@@ -254,8 +254,10 @@ def psf_candidates(res: Residuals, scene, model, policy: DiagnosisPolicy = DEFAU
         value = round(v0 * best, 4)
         within = "" if abs(best - 1) > tol else f"{what} x {best:.4g} is within the {100 * tol:g} % of the scene's"
         n = max(res.n_fit, 2)
+        change = (("narrower" if best < 1 else "wider") if key == "psf.fwhm_arcsec" else
+                  ("stronger wings" if best < 1 else "weaker wings"))
         fit = Fit(name, {"key": key, "value": value}, d, 1, n,
-                  f"{what} is x {best:.4g} the scene's ({'narrower' if best < 1 else 'wider'}): {v0:.4g} -> "
+                  f"{what} is x {best:.4g} the scene's ({change}): {v0:.4g} -> "
                   f"{value:.4g}", delta_adu=fit.delta_adu, extra_var_adu2=fit.extra_var_adu2)
         cand = Candidate(fit, float((res.chi2_profiled() + d) / max(res.n_fit, 1)), 0.0, kind="parameter",
                          key=key, value=value, policy=policy)
@@ -328,6 +330,15 @@ def explained_away(params: list[Candidate], effects: list[Candidate], res: Resid
                                     "is its doing")
     explainers = [c for c in movers if c.significant] + ([best] if best is not None else [])
     own = {name: c for name, (c, _) in level_statistics(res).items()}
+    lv = res.levels()
+    lv_names = list(lv["names"])
+    cov_diag = np.zeros(len(lv_names))
+    if lv_names:
+        n = res.level_values(res.flat()[0])
+        try:
+            cov_diag = np.diag(np.linalg.inv((n * lv["w"]) @ n.T))
+        except np.linalg.LinAlgError:
+            pass
     for e in explainers:
         coefs = levels_with(res, e.fit.delta_adu)
         for p in params:
@@ -339,6 +350,15 @@ def explained_away(params: list[Candidate], effects: list[Candidate], res: Resid
                 continue
             tol = (p.policy.parameter_bias_tolerance_adu if p.fit.state["level"] == "offset_adu"
                    else p.policy.parameter_scale_tolerance)
+            if e is best and p.significant and not p.deferred:
+                # the evidence left for the level once the effect is in: smaller than the effect's own, the
+                # effect comes first (a blur lowers the stars' peaks, a glow or a gradient moves a mean level)
+                i = lv_names.index(p.fit.state["level"]) if p.fit.state["level"] in lv_names else None
+                if i is not None and cov_diag[i] > 0:
+                    left = coefs[p.fit.state["level"]] ** 2 / cov_diag[i]
+                    if left < abs(e.fit.delta_m2lnl):
+                        p.deferred = (f"with {e.fit.effect} in the model its evidence (chi2 {left:.4g}) is smaller "
+                                      f"than {e.fit.effect}'s ({abs(e.fit.delta_m2lnl):.4g}): named after it")
             if abs(shift) <= tol or abs(shift) < (1 - p.policy.parameter_explained_share) * abs(before):
                 p.codes["tolerance"] = (f"with {e.key or e.fit.effect} in the model this level is "
                                         f"{'%+.3g ADU' % shift if p.fit.state['level'] == 'offset_adu' else 'x %.4g' % (1 + shift)}"

@@ -142,9 +142,11 @@ class DiagnosisPolicy:
         "a non-linearity smaller than this at full well (0.1 %) is not a finding: photon-transfer curves of "
         "scientific CCD/CMOS measure 0.1-1 % at best (Janesick 2007, Photon Transfer, ch. 5)")
     max_cosmic_rate_factor: float = _f(
-        20.0, "1", "physics",
-        "cosmic rays at more than this many times the physical rate of the scene's environment are not cosmic "
-        "rays (sea-level muon flux ~1 /cm^2/min; in orbit ~5 /cm^2/s)")
+        50.0, "1", "physics",
+        "cosmic rays at more than this many times the physical flux of the scene's environment are not cosmic "
+        "rays (sea-level muons ~1 /cm^2/min, PDG; natural radioactivity of a camera's window and housing adds "
+        "events, a few times the muon rate at most; a rate 100x the physical one is a pattern of bright pixels, "
+        "not particles)")
     max_defect_fraction: float = _f(
         0.05, "1", "physics",
         "hot or dead pixels (or columns) on more than this fraction of the sensor are not defects: camera data "

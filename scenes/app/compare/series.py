@@ -630,7 +630,7 @@ def series_candidates(frames: list[Residuals], labels: list[str], present: set[s
                          policy=policy)
         if consistency:
             cand.refuse("consistency", consistency)
-        floor = next((w for w in (floor_reason(name, f.params, r.sensor, policy)
+        floor = next((w for w in (floor_reason(name, f.params, r.sensor, policy, r.exptime_s)
                                   for r, f in zip(frames, sf.frames) if f is not None) if w), "")
         if floor:
             cand.refuse("floor", floor)
