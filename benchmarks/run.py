@@ -165,6 +165,25 @@ def x_straylight(j):
 
 
 #: name: (script, full arguments, quick arguments or None, quick repeats, extractor)
+def x_labels(j):
+    return {"render_with_labels_over_render": j["ratio"],
+            "score_over_nelder_mead_reference": _ratio(j["score_s"], j["score_reference_nelder_mead_s"])}, \
+        {"newtsim": j.get("peak_rss_gib")}, {"newtsim": j["render_with_labels_s"], "reference": j["render_s"]}
+
+
+def x_cti(j):
+    f = j["full_frame_exposure"]
+    return {"frame_with_cti_over_previous": f["cpu_ratio"],
+            "cti_function_over_previous": j["cti_function"]["cpu_ratio_express1"]}, {}, \
+        {"newtsim": f["well_fill_cti_cpu_s"], "reference": f["previous_cti_cpu_s"]}
+
+
+def x_detection(j):
+    return {"detect_time_over_photutils_alone": _ratio(j["reference_photutils_frames_per_s"],
+                                                       j["detect_frames_per_s"])}, {}, \
+        {"detect_frames_per_s": j["detect_frames_per_s"], "score_frames_per_s": j["score_frames_per_s"]}
+
+
 BENCHES = {
     "detector_fullframe": ("bench_detector_fullframe.py", [], ["--rows", "480", "--repeat", "11"], 1, x_detector),
     "navstar71": ("bench_navstar71.py", [], None, 1, x_navstar),
@@ -180,6 +199,9 @@ BENCHES = {
     "compare_fullframe": ("bench_compare_fullframe.py", [], None, 1, x_compare),
     "characterize": ("bench_characterize.py", [], None, 1, x_characterize),
     "straylight": ("bench_straylight.py", ["--plot", "{tmp}/pst.png"], None, 1, x_straylight),
+    "labels": ("bench_labels.py", [], None, 1, x_labels),
+    "cti": ("bench_cti.py", [], None, 1, x_cti),
+    "detection": ("bench_detection.py", [], None, 1, x_detection),
 }
 
 

@@ -102,6 +102,8 @@ DENSE_COLUMN_FRACTION = 0.05
 #: at most 1.4 of its standard errors / sqrt(n) (the median's 1.0), at 95 % of the plain mean's efficiency
 #: for a column offset (the median's 80 %) (Huber 1964, Ann. Math. Stat. 35, 73)
 COLUMN_CLIP = 1.0
+#: standard deviation of a unit normal clipped at +-COLUMN_CLIP: sqrt(2 Phi(1) - 1 - 2 phi(1) + 2 (1 - Phi(1)))
+CLIPPED_SD = 0.7183
 #: when more than this fraction of the columns are outliers they are a pattern of the whole frame (a Bayer
 #: mosaic: every other column), not defective columns: counted, but kept in the pixel-by-pixel comparison
 #: (PANOPTES's raw frame flagged 520 of 700 columns and left a quarter of its pixels to compare)
@@ -142,13 +144,15 @@ def spike_stats(data: np.ndarray, model: np.ndarray, var: np.ndarray, usable: np
     # level half-way between two codes: its 512-row columns' medians 500 or 501, a third of a sigma apart,
     # 18 of their standard errors), while the clipped mean stays continuous. A column dense with spikes (a
     # line of hot pixels) is found from its mean; the excess of the columns found is the mean's
+    # The clipped mean's standard error is that of a clipped unit normal (CLIPPED_SD / sqrt(n)), not the
+    # column's own scatter: where the residual is a strong smooth pattern (a vignetted flat) every value is
+    # clipped, the own scatter vanishes and every column would be an "outlier"
     zk = np.where(keep, np.clip(z, -COLUMN_CLIP, COLUMN_CLIP), 0.0)
     n_c = np.maximum(cnt, 1)
     zcl = zk.sum(axis=0) / n_c
-    zsd = np.sqrt(np.maximum((zk * zk).sum(axis=0) / n_c - zcl * zcl, 0.0) * n_c / np.maximum(n_c - 1, 1))
     local_cl = zcl - median_filter(zcl, size=LINE_WINDOW, mode="nearest")
     z_mean = local_mean / np.maximum(col_err, 1e-12)
-    zc = np.where(cnt > 1, np.where(dense, z_mean, local_cl * np.sqrt(n_c) / np.maximum(zsd, 1e-6)), 0.0)
+    zc = np.where(cnt > 1, np.where(dense, z_mean, local_cl * np.sqrt(n_c) / CLIPPED_SD), 0.0)
     hot_c, cold_c = zc > LINE_SIGMA, zc < -LINE_SIGMA
     lines = hot_c | cold_c
     pos, neg = pos_all & ~lines[None, :], neg_all & ~lines[None, :]

@@ -230,7 +230,9 @@ def test_sbig_bias_and_read_noise(sbig):
     read_np = d.std() / math.sqrt(2)
     assert 6.4 < read_np < 6.8  # PROVENANCE: pair-difference noise 6.6 ADU
     assert b["read_noise_adu"] == pytest.approx(read_np, rel=0.02)
-    assert b["read_noise_e"] == pytest.approx(read_np * 2.06, rel=0.02)  # EGAIN
+    # in e- with the adopted gain: the flats' photon-transfer gain (1.93 e-/ADU), the header's EGAIN 2.06 is flagged
+    assert b["read_noise_e"] == pytest.approx(read_np * res["gain"]["adopted_e_per_adu"], rel=0.02)
+    assert res["gain"]["adopted_e_per_adu"] == pytest.approx(1.93, abs=0.02)
     assert b["level_median_adu"] == pytest.approx(np.median(b0), abs=1.0)
     assert abs(b["level_median_adu"] - 991) <= 1
     # single-frame std 8.0 ADU > 6.6 ADU: a fixed pattern; mostly columns on this CCD
@@ -246,7 +248,7 @@ def test_sbig_dark_current_and_holdout(sbig):
     d = res["dark"]
     assert d["exposures_s"] == list(DARK_TIMES)
     assert d["dark_current_adu_per_s"] == pytest.approx(0.18, rel=0.2)  # PROVENANCE: about 0.18 ADU/s
-    assert d["dark_current_e_per_s"] == pytest.approx(d["dark_current_adu_per_s"] * 2.06)
+    assert d["dark_current_e_per_s"] == pytest.approx(d["dark_current_adu_per_s"] * res["gain"]["adopted_e_per_adu"])
     # the line's intercept is the bias level (within 2 ADU)
     assert abs(d["intercept_minus_bias_adu"]) < 2.0
     # hold-out: fit 10, 30, 60, 150 s, predict 300 s
@@ -307,9 +309,10 @@ def test_sbig_emitted_scene(sbig):
     det = dict(scene["detector"])
     assert det.pop("preset") == "ml11002"
     assert det["kind"] == "ccd" and det["sensor_width_px"] == det["sensor_height_px"] == 1024
-    assert det["pixel_pitch_um"] == 24.0 and det["gain_e_per_adu"] == 2.06
+    g = res["gain"]["adopted_e_per_adu"]  # the photon-transfer gain of the flats, not the header's 2.06
+    assert det["pixel_pitch_um"] == 24.0 and det["gain_e_per_adu"] == pytest.approx(g, abs=1e-4)
     assert det["bias_adu"] == pytest.approx(991.8, abs=1.0)
-    assert det["dark_current_e_per_s"] == pytest.approx(res["dark"]["dark_current_adu_per_s"] * 2.06, rel=1e-3)
+    assert det["dark_current_e_per_s"] == pytest.approx(res["dark"]["dark_current_adu_per_s"] * g, rel=1e-3)
     s = make_sensor("ml11002", det)  # validates every field
     assert s.shape == (1024, 1024)
     if "hot_pixels" in registry():

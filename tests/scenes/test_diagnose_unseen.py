@@ -40,7 +40,8 @@ _CACHE: dict = {}
 
 
 def _row(name, tmp_path_factory):
-    return shared_row(_CACHE, name, tmp_path_factory, lambda d: NS["run_case"](name, d))
+    # keyed apart from the hidden-effect suite's rows (its null cases share the base names)
+    return shared_row(_CACHE, ("unseen", name), tmp_path_factory, lambda d: NS["run_case"](name, d))
 
 
 def _check(row):
@@ -86,7 +87,9 @@ def test_the_set_is_as_large_as_the_issue_asks():
     vocab = {"radial", "gradient", "rows", "columns", "periodic", "sources", "local", "rings", "blobs"}
     for c in ooc:
         assert c.kind in ("additive", "multiplicative", "redistributed", "mixed") and set(c.geometry) <= vocab
-    assert {c.base for c in CASES.values() if c.group == "null"} == set(NS["BASES"])
+    # every base scene has its null case (the random-forms generator adds quarter-size "_s" copies of the bases
+    # to the same table when it is imported in the same process; they have their own draws)
+    assert {c.base for c in CASES.values() if c.group == "null"} == {b for b in NS["BASES"] if not b.endswith("_s")}
     presets = {NS["BASES"][c.base]["detector"]["preset"] for c in cat}
     assert presets == {"ml11002", "imx411"}
     assert {c.strength for c in cat} == {"strong", "weak"}

@@ -70,6 +70,8 @@ def _full_set(bias, dark) -> bool:
     """Bias frames and darks at two exposure times or more: the full analysis."""
     if not bias or not dark:
         return False
+    if not all(Path(p).is_file() for p in [*bias, *dark]):
+        return True  # the full path checks the outputs first, then names the first missing input
     from scenes.app.init.calib import _exptime
 
     return len({_exptime(p) for p in dark}) >= 2

@@ -358,7 +358,9 @@ def passes_gates(c: dict) -> bool:
     """Whether a candidate passes every gate of the current judge other than the two thresholds the
     calibration sets (delta BIC, held-out delta): not rejected, plausible, and its shares not refused (the
     shares' thresholds as the judge holds them)."""
-    from scenes.app.compare.candidates import MIN_EXCESS_SHARE, MIN_EXPLAINED, MIN_SUPPORT_SHARE
+    from scenes.app.compare.policy import DEFAULT_POLICY as P
+
+    MIN_EXPLAINED, MIN_EXCESS_SHARE, MIN_SUPPORT_SHARE = P.min_explained, P.min_excess_share, P.min_support_share
 
     if c.get("rejected") or not c.get("plausible", True):
         return False
