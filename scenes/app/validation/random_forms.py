@@ -217,7 +217,7 @@ def field_shape(spec: dict, x: np.ndarray, y: np.ndarray) -> np.ndarray:
 
 
 def _window_fractions(tile):
-    x, y, w, h = U._win(tile)  # noqa: SLF001 - a helper of the sibling validation module
+    x, y, w, h = U._win(tile)
     return x / max(w - 1, 1), y / max(h - 1, 1)
 
 
@@ -302,7 +302,7 @@ class PeriodicPattern(RealWorld):
 
     def apply(self, stage, tile, data):
         p = self.params
-        x, y, _w, _h = U._win(tile)  # noqa: SLF001
+        x, y, _w, _h = U._win(tile)
         wave = periodic_wave(p, x, y)
         if self.role == "response":
             data *= (1 + p.amp * wave).astype(np.float32)
@@ -415,9 +415,9 @@ class RandomBF(RealWorld):
     def couple(self, tile, charge_e, pad_top, pad_bottom, mean_only=False):
         p = self.params
         k = bf_kernel(p.law, p.half, p.scale, p.aniso)
-        lap = U._lap10(k)  # noqa: SLF001
+        lap = U._lap10(k)
         q_nl = p.q_nl_frac * self.sensor.full_well_e if p.q_nl_frac else None
-        return U._bf_moved(np.asarray(charge_e, np.float32), k, p.a10_per_e / lap, q_nl)  # noqa: SLF001
+        return U._bf_moved(np.asarray(charge_e, np.float32), k, p.a10_per_e / lap, q_nl)
 
 
 # --- laws -----------------------------------------------------------------------------------------------------------
@@ -547,7 +547,7 @@ class WindowGains(RealWorld):
 
     def apply(self, stage, tile, data):
         p = self.params
-        x, y, w, h = U._win(tile)  # noqa: SLF001
+        x, y, w, h = U._win(tile)
         coord, size = (x, w) if p.axis == "x" else (y, h)
         g = np.full(coord.shape, p.gains[0], float)
         for b, g0, g1 in zip(p.splits, p.gains[:-1], p.gains[1:]):
@@ -576,7 +576,7 @@ class RandomCTI(RealWorld):
         img = img.T.copy() if serial else img
         first = tile.x0 + 1 if serial else tile.y0 - pad_top + 1
         for tau, dens in zip(p.release_transfers, p.densities):
-            img = U._cti_columns(img, np.full(img.shape[1], dens), math.exp(-1 / tau), p.beta,  # noqa: SLF001
+            img = U._cti_columns(img, np.full(img.shape[1], dens), math.exp(-1 / tau), p.beta,
                                  s.full_well_e, first, capture=p.capture)
         return (img.T if serial else img).astype(np.float32)
 
@@ -826,7 +826,7 @@ def fam_dead_pixels(rng):
 def fam_column_defects(rng):
     form = _choice(rng, ["trap", "leak", "weak"])
     n, t1 = _loguniform(rng, 2, 20)
-    n = int(round(n))
+    n = round(n)
     if form == "weak":
         base = _choice(rng, ["flat", "flat_imx"])
         info = base_info(base)
@@ -849,7 +849,7 @@ def fam_cosmic_rays(rng):
     base = _choice(rng, ["dark", "dark_full", "dark_corner", "dark_cmos"])
     n, t = _loguniform(rng, 3, 80)
     lmin = float(rng.uniform(1, 5))
-    prm = {"n": int(round(n)), "lmin": lmin, "lmax": lmin + float(rng.uniform(2, 50)),
+    prm = {"n": round(n), "lmin": lmin, "lmax": lmin + float(rng.uniform(2, 50)),
            "e_per_px": float(np.exp(rng.uniform(np.log(60), np.log(800))))}
     return Draw(base, [("SegmentTracks", prm)], f"{prm['n']} tracks of {prm['lmin']:.0f}-{prm['lmax']:.0f} px, "
                 f"{prm['e_per_px']:.0f} e-/px", t, accept=("cosmic_rays",))
@@ -995,7 +995,7 @@ def fam_brighter_fatter(rng):
                  "power": lambda: rng.uniform(1.0, 4.0), "coulomb": lambda: rng.uniform(0.3, 1.0)}[law]()
         prm = {"law": law, "half": int(rng.integers(2, 5)), "scale": float(scale), "aniso": float(rng.uniform(0.75, 1.35)),
                "a10_per_e": a10, "q_nl_frac": float(rng.uniform(0.3, 1.0)) if rng.random() < 0.3 else 0.0}
-        if U._lap10(bf_kernel(prm["law"], prm["half"], prm["scale"], prm["aniso"])) > 0:  # noqa: SLF001
+        if U._lap10(bf_kernel(prm["law"], prm["half"], prm["scale"], prm["aniso"])) > 0:
             break
     return Draw(base, [("RandomBF", prm)], f"brighter-fatter, {law} potential over {2 * prm['half'] + 1}^2 px, a_10 "
                 f"{a10:.2g} /e-", t, accept=("brighter_fatter",))
@@ -1365,8 +1365,8 @@ def markdown(rows: list[dict], summ: dict, meta: dict) -> str:
              "", "Figures with 95 % Wilson intervals.", "", "| metric | value |", "|---|---|",
              f"| named first (catalogue cases) | {_pct(o['named_first'])} |",
              f"| confidently wrong (catalogue + out-of-catalogue cases) | {_pct(o['confidently_wrong'])} |",
-             f"| wrong first counting the ones flagged as not told apart (catalogue) | "
-             f"{_pct(o['confidently_wrong_strict'])} |",
+             (f"| wrong first counting the ones flagged as not told apart (catalogue) | "
+              f"{_pct(o['confidently_wrong_strict'])} |"),
              f"| first not accepted but flagged as not told apart from an accepted name | {_pct(o['ambiguous_right'])} |",
              f"| catalogue effect missed (nothing significant) | {_pct(o['missed'])} |",
              f"| out of catalogue described with the right kind and geometry | {_pct(o['described_right_kind'])} |",
@@ -1374,23 +1374,23 @@ def markdown(rows: list[dict], summ: dict, meta: dict) -> str:
              f"| cases that raised | {o['errors']} |", ""]
     for key, title in (("by_camera", "camera"), ("by_strength", "strength"), ("by_detectability", "detectability"),
                        ("by_family", "family")):
-        lines += [f"## By {title}", "", f"| {title} | named first | confidently wrong | missed | described (ooc) | "
-                  "error halved |", "|---|---|---|---|---|---|"]
+        lines += [f"## By {title}", "", (f"| {title} | named first | confidently wrong | missed | described (ooc) | "
+                                          "error halved |"), "|---|---|---|---|---|---|"]
         for g, f in summ[key].items():
             lines.append(f"| {g} | {_pct(f['named_first'])} | {_pct(f['confidently_wrong'])} | {_pct(f['missed'])} | "
                          f"{_pct(f['described_right_kind'])} | {_pct(f['error_halved'])} |")
         lines.append("")
-    lines += ["## Confusions (hidden -> first significant plausible name, or the description of an out-of-catalogue "
-              "form that did not match), most frequent first", "",
+    lines += [("## Confusions (hidden -> first significant plausible name, or the description of an out-of-catalogue "
+               "form that did not match), most frequent first"), "",
               "Rerun one with `python examples/diagnose/random_forms.py OUT --case FAMILY-CASE_SEED`.", "",
               "| hidden | first | count | example case |", "|---|---|---|---|"]
     lines += [f"| {c['hidden']} | {c['first']} | {c['count']} | `{c['example']}` |" for c in summ["confusions"]]
     lines += ["", "## Missed (a catalogue case with nothing significant), the most detectable one as the example", "",
               "| hidden | count | example case | its truth chi2 |", "|---|---|---|---|"]
-    lines += [f"| {m['hidden']} | {m['count']} | `{m['example']}` | {U._f(m['example_truth_chi2'])} |"  # noqa: SLF001
+    lines += [f"| {m['hidden']} | {m['count']} | `{m['example']}` | {U._f(m['example_truth_chi2'])} |"
               for m in summ["missed"]]
-    lines += ["", "## Cases", "", "| case | base | t | truth chi2 | description | first (delta BIC) | accepted / expected | "
-              "wrong? | morphology | ratio |", "|---|---|---|---|---|---|---|---|---|---|"]
+    lines += ["", "## Cases", "", ("| case | base | t | truth chi2 | description | first (delta BIC) | accepted / expected | "
+                                   "wrong? | morphology | ratio |"), "|---|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
         if r.get("first") == "error":
             lines.append(f"| {r['case']} | {r['base']} | - | - | {r['description']} | ERROR {r['error'][:80]} | - | - | - | - |")
@@ -1398,10 +1398,10 @@ def markdown(rows: list[dict], summ: dict, meta: dict) -> str:
         mo = r.get("residual_morphology") or {}
         mtxt = f"{mo.get('kind')} / {mo.get('geometry')}" + ("" if mo.get("significant") else " (n.s.)") if mo else "-"
         exp = ", ".join(r["accept"]) if r["accept"] else f"{r['kind']} / {', '.join(r['geometry'])}"
-        first = f"{r['first']} ({U._f(r.get('first_delta_bic'))})" if r["first"] != "none" else "none"  # noqa: SLF001
-        lines.append(f"| {r['case']} | {r['base']} | {r['strength_t']:.2f} | {U._f(r.get('truth_chi2'))} | "  # noqa: SLF001
+        first = f"{r['first']} ({U._f(r.get('first_delta_bic'))})" if r["first"] != "none" else "none"
+        lines.append(f"| {r['case']} | {r['base']} | {r['strength_t']:.2f} | {U._f(r.get('truth_chi2'))} | "
                      f"{r['description']} | {first} | {exp} | {'**yes**' if r.get('confidently_wrong') else 'no'} | "
-                     f"{mtxt} | {U._f(r.get('error_ratio'))} |")  # noqa: SLF001
+                     f"{mtxt} | {U._f(r.get('error_ratio'))} |")
     return "\n".join(lines) + "\n"
 
 
