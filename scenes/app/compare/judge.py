@@ -171,20 +171,20 @@ def gate_reasons(c: Candidate) -> list[tuple[str, str]]:
     if out:
         return out
     if c.heldout is not None and c.heldout >= p.significant_heldout:
-        out.append(("heldout", f"held-out delta {c.heldout:.4g} is not below {p.significant_heldout:g}: it does "
-                    "not improve the pixels it was not fitted on"))
+        out.append(("heldout", (f"held-out delta {c.heldout:.4g} is not below {p.significant_heldout:g}: it does "
+                                "not improve the pixels it was not fitted on")))
     if c.explains is not None and c.explains < p.min_explained:
         out.append(("structure", f"it removes only {100 * c.explains:.0f} % of the large-scale structure"))
     if c.excess_share is not None and c.excess_share < p.min_excess_share:
         out.append(("excess", f"it removes only {100 * c.excess_share:.2g} % of the excess chi2"))
     if c.support_share is not None and c.support_share < p.min_support_share:
-        out.append(("support", f"it removes only {100 * c.support_share:.2g} % of the excess chi2 where it acts: "
-                    "what is wrong there is something else, or more"))
+        out.append(("support", (f"it removes only {100 * c.support_share:.2g} % of the excess chi2 where it acts: "
+                                "what is wrong there is something else, or more")))
     ca = c.catch_all_heldout
     if ca is not None and ca < 0 and c.heldout is not None and c.heldout > p.min_catch_all_share * ca:
-        out.append(("catch_all", f"on the same held-out pixels it predicts {100 * c.heldout / ca:.0f} % of what the "
-                    f"residual's empirical map predicts (held-out {c.heldout:.4g} vs {ca:.4g}; at least "
-                    f"{100 * p.min_catch_all_share:.0f} % needed): a description, not this name"))
+        out.append(("catch_all", (f"on the same held-out pixels it predicts {100 * c.heldout / ca:.0f} % of what the "
+                                  f"residual's empirical map predicts (held-out {c.heldout:.4g} vs {ca:.4g}; at least "
+                                  f"{100 * p.min_catch_all_share:.0f} % needed): a description, not this name")))
     return out
 
 

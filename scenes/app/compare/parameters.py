@@ -360,9 +360,9 @@ def explained_away(params: list[Candidate], effects: list[Candidate], res: Resid
                         p.deferred = (f"with {e.fit.effect} in the model its evidence (chi2 {left:.4g}) is smaller "
                                       f"than {e.fit.effect}'s ({abs(e.fit.delta_m2lnl):.4g}): named after it")
             if abs(shift) <= tol or abs(shift) < (1 - p.policy.parameter_explained_share) * abs(before):
-                p.codes["tolerance"] = (f"with {e.key or e.fit.effect} in the model this level is "
-                                        f"{'%+.3g ADU' % shift if p.fit.state['level'] == 'offset_adu' else 'x %.4g' % (1 + shift)}"
-                                        ": its change is that candidate's doing")
+                now = f"{shift:+.3g} ADU" if p.fit.state["level"] == "offset_adu" else f"x {1 + shift:.4g}"
+                p.codes["tolerance"] = (f"with {e.key or e.fit.effect} in the model this level is {now}: its change "
+                                        "is that candidate's doing")
 
 
 def apply_parameters(data: dict, cands: list[dict]) -> list[str]:
