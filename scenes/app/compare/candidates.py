@@ -241,19 +241,30 @@ def support_shares(res: Residuals, cands: list[Candidate], policy: DiagnosisPoli
             c.support_share = support_share(res, c.fit, policy)
 
 
-def structure_shares(res: Residuals, cands: list[Candidate], policy: DiagnosisPolicy = DEFAULT_POLICY) -> None:
-    """For every candidate with a mean change, the share of the frame's significant large-scale structure
-    (block chi2 beyond its dof, :func:`detector.morphology.block_chi2`) that it removes."""
-    chi2, n = block_chi2(res)
+def structure_share(res: Residuals, delta: np.ndarray, policy: DiagnosisPolicy = DEFAULT_POLICY,
+                    blocks: tuple[float, int] | None = None) -> float | None:
+    """The share of the frame's significant large-scale structure (block chi2 beyond its dof,
+    :func:`detector.morphology.block_chi2`) that the mean change ``delta`` removes; None when the structure is
+    not significant or ``delta`` is a pattern of a few pixels (a CFA, a blur, a shift: not judged by the block
+    means). ``blocks``: the frame's ``block_chi2(res)`` when the caller has it."""
+    chi2, n = block_chi2(res) if blocks is None else blocks
     if n == 0 or (chi2 - n) / np.sqrt(2 * n) < policy.structure_sigma:
-        return
+        return None
     idx, _, w = res.flat_profiled()
+    if large_scale_share(res, delta, idx, w) < 0.5:
+        return None
+    after, _ = block_chi2(res, delta)
+    return round(float(np.clip((chi2 - after) / (chi2 - n), -1.0, 1.0)), 4)
+
+
+def structure_shares(res: Residuals, cands: list[Candidate], policy: DiagnosisPolicy = DEFAULT_POLICY) -> None:
+    """:func:`structure_share` of every candidate with a mean change that is significant by delta BIC."""
+    blocks = block_chi2(res)
     for c in cands:
         if c.fit.delta_adu is not None and c.fit.delta_bic < policy.significant_delta_bic:
-            if large_scale_share(res, c.fit.delta_adu, idx, w) < 0.5:
-                continue  # a pattern of a few pixels (a CFA, a blur, a shift): not judged by the block means
-            after, _ = block_chi2(res, c.fit.delta_adu)
-            c.explains = round(float(np.clip((chi2 - after) / (chi2 - n), -1.0, 1.0)), 4)
+            share = structure_share(res, c.fit.delta_adu, policy, blocks)
+            if share is not None:
+                c.explains = share
 
 
 def large_scale_share(res: Residuals, delta: np.ndarray, idx: np.ndarray, w: np.ndarray) -> float:

@@ -56,8 +56,9 @@ def catch_all_heldout(res: Residuals) -> float | None:
 
 
 def compare_with_catch_all(res: Residuals, cands: list, morph: dict) -> float | None:
-    """Set ``catch_all_delta`` (its held-out score minus the catch-all's) on every candidate with a held-out
-    score, when the frame's residual is significant; returns the catch-all's score (None: not computed)."""
+    """Set the catch-all's held-out score on every effect candidate with a held-out score (its
+    ``catch_all_delta`` follows), when the frame's residual is significant; returns the catch-all's score
+    (None: not computed)."""
     if not morph.get("significant"):
         return None
     scored = [c for c in cands if c.heldout is not None and c.kind == "effect"]
@@ -67,7 +68,6 @@ def compare_with_catch_all(res: Residuals, cands: list, morph: dict) -> float | 
     if ca is None:
         return None
     for c in scored:
-        c.catch_all_delta = round(float(c.heldout - ca), 4)
         c.catch_all_heldout = ca
     return ca
 

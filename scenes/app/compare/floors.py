@@ -24,7 +24,7 @@ def _num(params: dict, key: str, default: float = 0.0) -> float:
     return float(v) if isinstance(v, (int, float)) and not isinstance(v, bool) else default
 
 
-def nonlinearity_floor(params: dict, sensor, policy: DiagnosisPolicy) -> str:
+def nonlinearity_floor(params: dict, sensor, policy: DiagnosisPolicy, exptime_s: float | None = None) -> str:
     """The response's relative deficit at full well: ``beta`` plus the power law's ``|1 - 2^(gamma-1)|`` (the
     law equals the linear response at half the full well)."""
     deficit = abs(_num(params, "beta")) + abs(1.0 - 2.0 ** (_num(params, "gamma", 1.0) - 1.0))
@@ -41,11 +41,11 @@ def _defects(count: float, total: float, what: str, policy: DiagnosisPolicy) -> 
     return ""
 
 
-def hot_pixels_floor(params: dict, sensor, policy: DiagnosisPolicy) -> str:
+def hot_pixels_floor(params: dict, sensor, policy: DiagnosisPolicy, exptime_s: float | None = None) -> str:
     return _defects(_num(params, "count"), sensor.sensor_width_px * sensor.sensor_height_px, "hot pixels", policy)
 
 
-def dead_pixels_floor(params: dict, sensor, policy: DiagnosisPolicy) -> str:
+def dead_pixels_floor(params: dict, sensor, policy: DiagnosisPolicy, exptime_s: float | None = None) -> str:
     return _defects(_num(params, "count"), sensor.sensor_width_px * sensor.sensor_height_px, "dead pixels", policy)
 
 
@@ -64,7 +64,7 @@ def column_defects_floor(params: dict, sensor, policy: DiagnosisPolicy, exptime_
     return ""
 
 
-def cosmic_rays_floor(params: dict, sensor, policy: DiagnosisPolicy) -> str:
+def cosmic_rays_floor(params: dict, sensor, policy: DiagnosisPolicy, exptime_s: float | None = None) -> str:
     """The fitted particle flux against the flux of the environment the fit names (ground by default)."""
     flux = _num(params, "flux_per_cm2_s", -1.0)
     env = ENVIRONMENTS.get(str(params.get("environment", "ground")), ENVIRONMENTS["ground"])
@@ -75,8 +75,8 @@ def cosmic_rays_floor(params: dict, sensor, policy: DiagnosisPolicy) -> str:
     return ""
 
 
-#: effect name -> its floor check
-FLOORS: dict[str, Callable[[dict, object, DiagnosisPolicy], str]] = {
+#: effect name -> its floor check ``(params, sensor, policy, exptime_s [s] or None) -> reason or ""``
+FLOORS: dict[str, Callable[[dict, object, DiagnosisPolicy, float | None], str]] = {
     "nonlinearity": nonlinearity_floor,
     "hot_pixels": hot_pixels_floor,
     "dead_pixels": dead_pixels_floor,
@@ -90,9 +90,7 @@ def floor_reason(effect: str, params: dict, sensor, policy: DiagnosisPolicy = DE
     """"" or why the fitted size of ``effect`` is not a finding (gate ``floor``); ``exptime_s`` [s] for the
     floors that weigh a rate over the exposure."""
     check = FLOORS.get(effect)
-    if check is None:
-        return ""
-    return check(params, sensor, policy, exptime_s) if check is column_defects_floor else check(params, sensor, policy)
+    return check(params, sensor, policy, exptime_s) if check is not None else ""
 
 
 #: candidates whose evidence is pixels brighter than the model that stay put: hot in every frame

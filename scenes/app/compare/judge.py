@@ -70,7 +70,6 @@ class Candidate:
     explains: float | None = None
     excess_share: float | None = None
     support_share: float | None = None
-    catch_all_delta: float | None = None
     catch_all_heldout: float | None = None  #: the catch-all's held-out score on the same folds
     kind: str = "effect"  #: "effect", "parameter" or "description"
     key: str | None = None  #: a parameter's scene key (``psf.fwhm_arcsec``)
@@ -103,6 +102,13 @@ class Candidate:
         if not self.implausible:
             self.implausible = why
         self.codes.setdefault(code, why)
+
+    @property
+    def catch_all_delta(self) -> float | None:
+        """Its held-out score minus the catch-all's on the same folds (None: not compared)."""
+        if self.heldout is None or self.catch_all_heldout is None:
+            return None
+        return round(float(self.heldout - self.catch_all_heldout), 4)
 
     @property
     def plausible(self) -> bool:

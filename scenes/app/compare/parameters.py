@@ -26,8 +26,9 @@ import time
 
 import numpy as np
 
-from detector.signatures import Fit, Residuals, pixel_score
+from detector.signatures import Fit, Residuals, frame_at, pixel_score
 
+from .apply import bias_per_output_adu
 from .judge import Candidate
 from .policy import DEFAULT_POLICY, DiagnosisPolicy
 
@@ -35,27 +36,23 @@ from .policy import DEFAULT_POLICY, DiagnosisPolicy
 PSF_STEPS = (0.8, 0.9, 1.1, 1.25)
 
 
-def _bias_per_output_adu(sensor) -> float:
-    b2 = sensor.binning ** 2
-    if sensor.binning_mode == "sum":
-        return float(b2) if sensor.kind != "ccd" else 1.0
-    return 1.0 if sensor.kind != "ccd" else 1.0 / b2
-
-
-def level_statistics(res: Residuals) -> dict[str, tuple[float, float]]:
-    """{level name: (coefficient, its chi2 statistic coef^2 / var(coef))} of the fitted global levels."""
+def level_fit(res: Residuals, delta_adu=None) -> dict[str, tuple[float, float]]:
+    """{level name: (coefficient, its chi2 statistic coef^2 / var(coef))} of the global levels: as the
+    comparison fitted them, or refitted once ``delta_adu`` (a candidate's mean change [ADU]) is in the model
+    (weighted least squares on the comparison's weights; the same normal matrix either way)."""
     lv = res.levels()
     if not lv["keep"]:
         return {}
-    idx = res.flat()[0]
+    idx, r, _ = res.flat()
     n = res.level_values(idx)
-    g = (n * lv["w"]) @ n.T
+    nw = n * lv["w"]
     try:
-        cov = np.linalg.inv(g)
+        cov = np.linalg.inv(nw @ n.T)
     except np.linalg.LinAlgError:
         return {}
+    coef = lv["coef"] if delta_adu is None else cov @ (nw @ (r - frame_at(delta_adu, idx)))
     return {name: (float(c), float(c * c / cov[i, i]) if cov[i, i] > 0 else 0.0)
-            for i, (name, c) in enumerate(zip(lv["names"], lv["coef"]))}
+            for i, (name, c) in enumerate(zip(lv["names"], coef))}
 
 
 def _param_candidate(res: Residuals, name: str, key: str, value: float, stat: float, explanation: str,
@@ -72,7 +69,7 @@ def _param_candidate(res: Residuals, name: str, key: str, value: float, stat: fl
 def level_candidates(res: Residuals, scene, policy: DiagnosisPolicy = DEFAULT_POLICY) -> list[Candidate]:
     """The global levels as parameter candidates (module docstring): one per level the frame measures."""
     t0 = time.perf_counter()
-    stats = level_statistics(res)
+    stats = level_fit(res)
     if not stats:
         return []
     sensor = scene.sensor()
@@ -120,7 +117,7 @@ def level_candidates(res: Residuals, scene, policy: DiagnosisPolicy = DEFAULT_PO
                 "background_scale" if light is not None else "light_scale"))
     if "offset_adu" in stats:
         c, stat = stats["offset_adu"]
-        d = c / _bias_per_output_adu(sensor)
+        d = c / bias_per_output_adu(sensor)
         v = max(float(sensor.bias_adu) + d, 0.0)
         within = "" if abs(d) > policy.parameter_bias_tolerance_adu else \
             f"the bias is off by {d:+.3g} ADU, within the {policy.parameter_bias_tolerance_adu:g} ADU a bias drifts"
@@ -282,25 +279,6 @@ def parameter_candidates(res: Residuals, scene, model=None, truth=None,
     return out
 
 
-def levels_with(res: Residuals, delta_adu) -> dict[str, float]:
-    """The global levels refitted once ``delta_adu`` (a candidate's mean change [ADU]) is in the model."""
-    from detector.signatures import frame_at
-
-    lv = res.levels()
-    if not lv["keep"]:
-        return {}
-    idx, r, _ = res.flat()
-    n = res.level_values(idx)
-    w = lv["w"]
-    rr = r - frame_at(delta_adu, idx)
-    g = (n * w) @ n.T
-    try:
-        coef = np.linalg.solve(g, (n * w) @ rr)
-    except np.linalg.LinAlgError:
-        return {}
-    return dict(zip(lv["names"], (float(c) for c in coef)))
-
-
 def _level_shift(c: Candidate, coefs: dict[str, float], res: Residuals, scene) -> float | None:
     """A level candidate's deviation from the scene's value once another candidate is in the model: the
     relative change of a scale, or the bias change in ADU per read (None: not a level candidate)."""
@@ -308,7 +286,7 @@ def _level_shift(c: Candidate, coefs: dict[str, float], res: Residuals, scene) -
     if not level or level not in coefs:
         return None
     if level == "offset_adu":
-        return coefs[level] / _bias_per_output_adu(scene.sensor())
+        return coefs[level] / bias_per_output_adu(scene.sensor())
     if c.fit.effect == "sky_level" and level == "background_scale":
         return coefs[level] + coefs.get("light_scale", 0.0)
     return coefs[level]
@@ -329,18 +307,10 @@ def explained_away(params: list[Candidate], effects: list[Candidate], res: Resid
                                     f"{best.fit.delta_m2lnl:.4g} vs {p.fit.delta_m2lnl:.4g}): the sources' shape "
                                     "is its doing")
     explainers = [c for c in movers if c.significant] + ([best] if best is not None else [])
-    own = {name: c for name, (c, _) in level_statistics(res).items()}
-    lv = res.levels()
-    lv_names = list(lv["names"])
-    cov_diag = np.zeros(len(lv_names))
-    if lv_names:
-        n = res.level_values(res.flat()[0])
-        try:
-            cov_diag = np.diag(np.linalg.inv((n * lv["w"]) @ n.T))
-        except np.linalg.LinAlgError:
-            pass
+    own = {name: c for name, (c, _) in level_fit(res).items()}
     for e in explainers:
-        coefs = levels_with(res, e.fit.delta_adu)
+        with_e = level_fit(res, e.fit.delta_adu)
+        coefs = {name: c for name, (c, _) in with_e.items()}
         for p in params:
             if not p.significant:
                 continue
@@ -350,15 +320,13 @@ def explained_away(params: list[Candidate], effects: list[Candidate], res: Resid
                 continue
             tol = (p.policy.parameter_bias_tolerance_adu if p.fit.state["level"] == "offset_adu"
                    else p.policy.parameter_scale_tolerance)
-            if e is best and p.significant and not p.deferred:
+            if e is best and not p.deferred:
                 # the evidence left for the level once the effect is in: smaller than the effect's own, the
                 # effect comes first (a blur lowers the stars' peaks, a glow or a gradient moves a mean level)
-                i = lv_names.index(p.fit.state["level"]) if p.fit.state["level"] in lv_names else None
-                if i is not None and cov_diag[i] > 0:
-                    left = coefs[p.fit.state["level"]] ** 2 / cov_diag[i]
-                    if left < abs(e.fit.delta_m2lnl):
-                        p.deferred = (f"with {e.fit.effect} in the model its evidence (chi2 {left:.4g}) is smaller "
-                                      f"than {e.fit.effect}'s ({abs(e.fit.delta_m2lnl):.4g}): named after it")
+                left = with_e[p.fit.state["level"]][1]
+                if left < abs(e.fit.delta_m2lnl):
+                    p.deferred = (f"with {e.fit.effect} in the model its evidence (chi2 {left:.4g}) is smaller "
+                                  f"than {e.fit.effect}'s ({abs(e.fit.delta_m2lnl):.4g}): named after it")
             if abs(shift) <= tol or abs(shift) < (1 - p.policy.parameter_explained_share) * abs(before):
                 now = f"{shift:+.3g} ADU" if p.fit.state["level"] == "offset_adu" else f"x {1 + shift:.4g}"
                 p.codes["tolerance"] = (f"with {e.key or e.fit.effect} in the model this level is {now}: its change "

@@ -71,7 +71,7 @@ from scenes.scene import load_scene, read_toml
 
 from . import fullframe
 from .apply import LEVEL_SCALE_TOL, apply_candidate
-from .candidates import chi2_after, implausibility, large_scale_share, overfit, stars_check, support_share
+from .candidates import chi2_after, implausibility, overfit, stars_check, structure_share, support_share
 from .floors import floor_reason
 from .judge import Candidate, judge_json, rank, verdict
 from .ledger import plot_ledger, update_ledger
@@ -645,26 +645,19 @@ def series_candidates(frames: list[Residuals], labels: list[str], present: set[s
 
 
 def _frame_shares(cand: Candidate, sf: SeriesFit, frames: list[Residuals], policy: DiagnosisPolicy) -> None:
-    """The single frame's structure and support shares (:func:`.candidates.structure_shares`,
+    """The single frame's structure and support shares (:func:`.candidates.structure_share`,
     :func:`.candidates.support_share`) in every frame where the candidate changes the mean; the candidate
     keeps the largest (an effect of the darks need not explain the flats' structure)."""
-    from detector.morphology import block_chi2
-
     explains, support = [], []
     for r, f, d in zip(frames, sf.frames, sf.per_frame_delta):
         if f is None or f.delta_adu is None or d >= -1.0:
             continue
-        s = support_share(r, f, policy)
-        if s is not None:
-            support.append(s)
-        chi2, n = block_chi2(r)
-        if n and (chi2 - n) / math.sqrt(2 * n) >= policy.structure_sigma:
-            idx, _, w = r.flat_profiled()
-            if large_scale_share(r, f.delta_adu, idx, w) >= 0.5:
-                after, _ = block_chi2(r, f.delta_adu)
-                explains.append(float(np.clip((chi2 - after) / (chi2 - n), -1.0, 1.0)))
+        for share, into in ((support_share(r, f, policy), support), (structure_share(r, f.delta_adu, policy),
+                                                                       explains)):
+            if share is not None:
+                into.append(share)
     if explains:
-        cand.explains = round(max(explains), 4)
+        cand.explains = max(explains)
     if support:
         cand.support_share = round(max(support), 4)
 
