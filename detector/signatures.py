@@ -639,7 +639,11 @@ def heldout_delta(signature: Signature, res: Residuals, name: str, fit: Fit | No
         # a signature that can refit the in-sample fit's form on the fold does so (its amplitudes are
         # cross-validated, its form search is not repeated); the others fit the fold from scratch
         part_fit = signature.refit(fit, part, name) if fit is not None and hasattr(signature, "refit") \
-            else signature.fit(part, name)
+            else None
+        if part_fit is None:
+            # no refit, or the in-sample form's amplitudes leave their physical bounds on half the pixels (two
+            # nearly collinear templates trading large coefficients): the fold is fitted from scratch
+            part_fit = signature.fit(part, name)
         if part_fit is None:
             continue
         s = signature.score(part_fit, held)

@@ -134,6 +134,11 @@ class Effect:
     #: How the effect shows in residuals, for ``newtsim diagnose`` (a :class:`detector.signatures.Signature`),
     #: or None when it cannot be diagnosed from one frame.
     signature: ClassVar[object] = None
+    #: How a smooth field of the effect combines with the light, for the diagnosis: "additive" (charge or ADU
+    #: added whatever the light: sky, straylight, glow, dark and bias patterns), "multiplicative" (a response
+    #: to the light: vignetting, flat maps, gains, a mosaic), "" (neither, or not a smooth field). A residual
+    #: that scales with the light cannot be an additive field (:func:`scenes.app.compare.judge.kind_gate`).
+    field_kind: ClassVar[str] = ""
     #: Parameters at which the effect is the identity (zero strength): the registry-wide contract test
     #: (tests/detector/test_effect_contract.py) renders a frame with them and requires the same bytes as
     #: without the effect. None only with :attr:`no_identity` saying why the effect has no zero strength.

@@ -255,6 +255,7 @@ class ColourFilterArray(Effect):
     """
 
     name = "cfa"
+    field_kind = "multiplicative"
     scaling = "signal"
     identity = {"response": [1.0, 1.0, 1.0, 1.0]}
     stages = (Stage.RESPONSE,)

@@ -283,6 +283,7 @@ class AmpGlow(Effect):
     """
 
     name = "amp_glow"
+    field_kind = "additive"
     scaling = "exposure"
     identity = {"sources": [{"amplitude_e_per_s": 0.0}]}
     stages = (Stage.DARK,)

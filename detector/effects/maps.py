@@ -195,6 +195,7 @@ class BiasMap(_MapEffect):
     """
 
     name = "bias_map"
+    field_kind = "additive"
     scaling = "none"
     no_identity = "a measured map: its zero is a map of zeros (tests/detector/test_maps.py)"
     stages = (Stage.ADU,)
@@ -219,6 +220,7 @@ class FlatMap(_MapEffect):
     """A measured flat field multiplying the light: F / mean(F) per unbinned pixel (RESPONSE stage)."""
 
     name = "flat_map"
+    field_kind = "multiplicative"
     scaling = "signal"
     no_identity = "a measured map: its identity is a map of ones (tests/detector/test_maps.py)"
     stages = (Stage.RESPONSE,)
@@ -258,6 +260,7 @@ class DarkMap(_MapEffect):
     """
 
     name = "dark_map"
+    field_kind = "additive"
     scaling = "exposure"
     no_identity = "a measured map: its zero is a map of zeros (tests/detector/test_camtwin.py)"
     stages = (Stage.DARK, Stage.DIGITAL)

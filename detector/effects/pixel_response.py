@@ -389,6 +389,7 @@ class GainRegions(Effect):
     """
 
     name = "gain_regions"
+    field_kind = "multiplicative"
     scaling = "signal"
     identity = {"sigma": 0.0}
     stages = (Stage.ADU,)

@@ -737,6 +737,7 @@ class BiasGradient(Effect):
     """
 
     name = "bias_gradient"
+    field_kind = "additive"
     scaling = "none"
     identity = {"gradient_x_adu": 0.0, "gradient_y_adu": 0.0, "quadratic_adu": 0.0}
     stages = (Stage.ADU,)

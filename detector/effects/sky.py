@@ -112,6 +112,7 @@ class SkyGradient(Effect):
     """
 
     name = "sky_gradient"
+    field_kind = "additive"
     scaling = "frame"
     identity = {"gx_e_per_s_per_kpx": 0.0, "gy_e_per_s_per_kpx": 0.0}
     stages = (Stage.FIELD,)
@@ -219,6 +220,7 @@ class StraylightField(Effect):
     """
 
     name = "straylight"
+    field_kind = "additive"
     scaling = "frame"
     identity = {"model": "field"}
     stages = (Stage.FIELD,)

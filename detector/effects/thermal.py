@@ -254,6 +254,7 @@ class DarkGradient(Effect):
     exposure time; its shot noise is drawn with the rest of the dark charge."""
 
     name = "dark_gradient"
+    field_kind = "additive"
     scaling = "exposure"
     identity = {"gradient_x_e_per_s": 0.0, "gradient_y_e_per_s": 0.0, "temperature_x_k": 0.0,
                 "temperature_y_k": 0.0}

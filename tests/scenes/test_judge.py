@@ -127,6 +127,27 @@ def test_three_paths_share_one_judge():
     assert gate_reasons(ranked[1])[0][0] == "heldout"
 
 
+def test_a_residual_that_scales_with_the_light_refuses_added_fields():
+    """A multiplicative residual (a certain finding of the morphology) is no added light, charge or bias
+    pattern: those are refused with the ``kind`` gate; a response (vignetting) and the parameters are not; an
+    uncertain or additive morphology refuses nothing (additive is the absence of a finding)."""
+    mult = {"significant": True, "kind": "multiplicative", "kind_certain": True}
+    for m, refused in ((mult, True), ({**mult, "kind_certain": False}, False),
+                       ({**mult, "kind": "additive"}, False), ({**mult, "significant": False}, False)):
+        cands = [_cand(n, d=-1e4, heldout=-9e3) for n in ("straylight", "sky_gradient", "bias_gradient",
+                                                          "dark_gradient", "amp_glow", "vignetting", "prnu")]
+        judge.kind_gate(cands, m)
+        got = {c.fit.effect for c in cands if "kind" in c.gates}
+        assert got == ({"straylight", "sky_gradient", "bias_gradient", "dark_gradient", "amp_glow"} if refused else set())
+    out = rank(cands)
+    assert out[0].fit.effect in ("straylight", "vignetting")
+    c = [_cand("straylight", d=-1e4, heldout=-9e3), _cand("vignetting", d=-9e3, heldout=-5e3)]
+    judge.kind_gate(c, mult)
+    assert rank(c)[0].fit.effect == "vignetting" and "kind" in GATES
+    for mod in (run, fullframe, series):
+        assert mod.kind_gate is judge.kind_gate
+
+
 # --- the physical floors ------------------------------------------------------------------------------------
 
 def test_floors(tmp_path):

@@ -167,3 +167,23 @@ def test_summary_counts_and_confusions():
     conf = R.summary(rows)["confusions"]
     assert conf[0] == {"hidden": "vignetting", "first": "straylight", "count": 2, "example": "vignetting-2"}
     assert {"hidden": "ipc", "first": "psf_blur (ambiguous)", "count": 1, "example": "ipc-4"} in conf
+
+
+@pytest.mark.parametrize("amp, named", [(0.012, True), (-0.012, False)])
+def test_saturating_vignetting_named_and_a_brightening_field_refused(tmp_path, amp, named):
+    """A Lorentzian fall-off (it saturates: a polynomial fitted to it turns over) on a small flat is named
+    vignetting (its observed ring profile never rises: detector.effects.optical.observed_rise_chi2, where the
+    fitted polynomial's own turn-over refused it before); the same field with the light rising away from its
+    centre is not a vignetting."""
+    spec = R.normalise({"form": "radial", "cu": 0.17, "cv": 0.58, "q": 0.81, "theta": 0.5, "law": "lorentz",
+                        "s": 0.3})
+    case = R.RandomCase("vignetting", 5, R.Draw("flat_s", [("ResponseField", {"spec": spec, "amp": amp})], "test",
+                                                1.0, accept=("vignetting",)))
+    row = R.run_case(case, tmp_path, workers=1)
+    vig = next(c for c in row["ranking"] if c[0] == "vignetting") if any(c[0] == "vignetting" for c in row["ranking"]) \
+        else None
+    if named:
+        assert row["first"] == "vignetting"
+    else:
+        assert row["first"] != "vignetting"
+        assert vig is None or not vig[2]

@@ -75,7 +75,7 @@ from scenes.measured import scene_mask
 
 from .candidates import candidates, source_candidates
 from .catch_all import compare_with_catch_all
-from .judge import judge_json, rank, verdict
+from .judge import judge_json, kind_gate, rank, verdict
 from .model import REALISATION_SEED, _wcs_offset, background_signal, row_offset_var_adu2, saturation_adu
 from .parameters import explained_away, level_candidates
 from .policy import DEFAULT_POLICY, DiagnosisPolicy
@@ -1052,6 +1052,7 @@ def run_diagnose_large(scene, measured: str | Path, workers: int | None = None, 
     if progress is not None:
         progress("residual morphology")
     morph = describe(res_b)
+    kind_gate(cb, morph)
     catch_all = compare_with_catch_all(res_b, cb, morph)
     explained_away(params, rank(cb, res_b.light_source), res_b, scene)
     cands = rank(params + cb + cs + ct, res_b.light_source)

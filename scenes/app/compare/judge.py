@@ -43,6 +43,7 @@ GATES: dict[str, str] = {
     "support": "it removes too little of the excess where it acts (min_support_share)",
     "catch_all": "the residual's empirical map predicts the held-out pixels better: a description, not this name",
     "dark": "its pixels are not hot in the user's dark frame",
+    "kind": "it adds a field whatever the light, and the residual scales with the light (multiplicative)",
     "consistency": "series: one piece of hardware, but its strength differs between frames",
     "sample": "large frame: it worsens the full-resolution band sample",
     "tolerance": "a parameter within the policy's tolerance of the scene's value: not a finding",
@@ -192,6 +193,24 @@ def gate_reasons(c: Candidate) -> list[tuple[str, str]]:
                                   f"residual's empirical map predicts (held-out {c.heldout:.4g} vs {ca:.4g}; at least "
                                   f"{100 * p.min_catch_all_share:.0f} % needed): a description, not this name")))
     return out
+
+
+def kind_gate(cands: list[Candidate], morphology: dict | None) -> None:
+    """Refuse (``kind``) every additive field (:attr:`detector.effects.base.Effect.field_kind`) when the
+    residual's morphology found, with certainty, that the residual scales with the light: a multiplicative
+    residual is a positive finding (the structure follows the model's light, the stars in the dim part are
+    dimmer: :func:`detector.morphology.describe`), which no added charge or ADU pattern makes. The converse
+    is not asked: "additive" is what the morphology says when it finds no such scaling, an absence of
+    evidence, not a finding."""
+    m = morphology or {}
+    if not (m.get("significant") and m.get("kind") == "multiplicative" and m.get("kind_certain")):
+        return
+    reg = registry()
+    for c in cands:
+        cls = reg.get(c.fit.effect)
+        if c.kind == "effect" and cls is not None and cls.field_kind == "additive" and c.contender:
+            c.refuse("kind", (f"{c.fit.effect} adds a field whatever the light, but the residual scales with "
+                              "the light (the morphology's multiplicative fit): a response, not added light"))
 
 
 def _of_light(c: Candidate) -> bool:

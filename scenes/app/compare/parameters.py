@@ -145,6 +145,24 @@ def level_candidates(res: Residuals, scene, policy: DiagnosisPolicy = DEFAULT_PO
         if level in twin and twin[level][0] in dropped and scene.exposure.time_s > 0 and level != "dark_scale" \
                 or level in twin and level == "dark_scale" and "offset_adu" in dropped:
             c.ambiguous = twin[level][1]
+    # an ambiguous level is a finding only if every reading of it is: when its twin's reading is within the
+    # twin's tolerance, the frame agrees with the scene's own numbers (a dark 2 % off, read as a bias offset,
+    # is 17 ADU on a binned 300 s dark)
+    dark = res.level_templates()[3]
+    dark_adu = float(np.mean(np.broadcast_to(dark, res.data_adu.shape)[res.fit])) if res.n_fit else 0.0
+    for c in out:
+        level = c.fit.state.get("level")
+        if not c.ambiguous or "tolerance" in c.codes or level not in stats or dark_adu <= 0:
+            continue
+        coef = stats[level][0]
+        if level == "offset_adu" and abs(coef / dark_adu) <= tol:
+            c.codes["tolerance"] = (f"read as a dark current (which this frame cannot tell from a bias offset) it "
+                                    f"is x {1 + coef / dark_adu:.4g}, within the {100 * tol:g} % a scene may be off")
+        elif level == "dark_scale" and abs(coef * dark_adu / bias_per_output_adu(sensor)) \
+                <= policy.parameter_bias_tolerance_adu:
+            c.codes["tolerance"] = (f"read as a bias offset (which this frame cannot tell from a dark current) it is "
+                                    f"{coef * dark_adu / bias_per_output_adu(sensor):+.3g} ADU, within the "
+                                    f"{policy.parameter_bias_tolerance_adu:g} ADU a bias drifts")
     for c in out:
         c.seconds = (time.perf_counter() - t0) / len(out)
     return out
@@ -307,7 +325,8 @@ def explained_away(params: list[Candidate], effects: list[Candidate], res: Resid
                                     f"{best.fit.delta_m2lnl:.4g} vs {p.fit.delta_m2lnl:.4g}): the sources' shape "
                                     "is its doing")
     explainers = [c for c in movers if c.significant] + ([best] if best is not None else [])
-    own = {name: c for name, (c, _) in level_fit(res).items()}
+    own_fit = level_fit(res)
+    own = {name: c for name, (c, _) in own_fit.items()}
     for e in explainers:
         with_e = level_fit(res, e.fit.delta_adu)
         coefs = {name: c for name, (c, _) in with_e.items()}
@@ -321,12 +340,14 @@ def explained_away(params: list[Candidate], effects: list[Candidate], res: Resid
             tol = (p.policy.parameter_bias_tolerance_adu if p.fit.state["level"] == "offset_adu"
                    else p.policy.parameter_scale_tolerance)
             if e is best and not p.deferred:
-                # the evidence left for the level once the effect is in: smaller than the effect's own, the
-                # effect comes first (a blur lowers the stars' peaks, a glow or a gradient moves a mean level)
-                left = with_e[p.fit.state["level"]][1]
+                # the level's evidence, alone or once the effect is in, smaller than the effect's own: the
+                # effect comes first (a blur lowers the stars' peaks, a glow or a gradient moves a mean level;
+                # a pattern that carries a mean of its own trades it with the level, so both are asked)
+                name = p.fit.state["level"]
+                left = min(with_e[name][1], own_fit[name][1]) if name in own_fit else with_e[name][1]
                 if left < abs(e.fit.delta_m2lnl):
-                    p.deferred = (f"with {e.fit.effect} in the model its evidence (chi2 {left:.4g}) is smaller "
-                                  f"than {e.fit.effect}'s ({abs(e.fit.delta_m2lnl):.4g}): named after it")
+                    p.deferred = (f"its evidence (chi2 {left:.4g}, alone or with {e.fit.effect} in the model) is "
+                                  f"smaller than {e.fit.effect}'s ({abs(e.fit.delta_m2lnl):.4g}): named after it")
             if abs(shift) <= tol or abs(shift) < (1 - p.policy.parameter_explained_share) * abs(before):
                 now = f"{shift:+.3g} ADU" if p.fit.state["level"] == "offset_adu" else f"x {1 + shift:.4g}"
                 p.codes["tolerance"] = (f"with {e.key or e.fit.effect} in the model this level is {now}: its change "

@@ -26,7 +26,7 @@ from .apply import apply_candidate, apply_empirical
 from .candidates import SIGNIFICANT_DELTA_BIC, candidates, source_candidates
 from .catch_all import compare_with_catch_all, outliers_after_catch_all
 from .floors import HOT_EFFECTS, hot_in_dark
-from .judge import judge_json, rank, verdict
+from .judge import judge_json, kind_gate, rank, verdict
 from .ledger import best_candidate, plot_ledger, round_row, update_ledger
 from .model import ModelFrame, build_model, read_measurement, residuals
 from .optics_candidates import field_pattern_check, optics_candidates
@@ -115,6 +115,7 @@ def _run_diagnose(scene, measured: str | Path, workers: int | None = None, progr
             if why:
                 c.refuse("dark", why)
     effects = cands + source_candidates(res, truth, scene, policy) + optical
+    kind_gate(effects, morph)
     if progress is not None:
         progress("the catch-all (held out)")
     catch_all = compare_with_catch_all(res, effects, morph)

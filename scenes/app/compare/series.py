@@ -73,7 +73,7 @@ from . import fullframe
 from .apply import LEVEL_SCALE_TOL, apply_candidate
 from .candidates import chi2_after, implausibility, overfit, stars_check, structure_share, support_share
 from .floors import floor_reason
-from .judge import Candidate, judge_json, rank, verdict
+from .judge import Candidate, judge_json, kind_gate, rank, verdict
 from .ledger import plot_ledger, update_ledger
 from .policy import DEFAULT_POLICY, DiagnosisPolicy
 from .run import _run_compare
@@ -751,6 +751,8 @@ def run_series_diagnose(series: Series, workers: int | None = None, progress=Non
         m.pop("empirical", None)
     worst = int(np.argmax([m.get("significance_sigma", 0.0) for m in morphs]))
     morph = {**morphs[worst], "frame": labels[worst]}
+    kind_gate(cands, morph)
+    cands = rank(cands, "flat" if all(r.light_source == "flat" for r in frames) else "")
     out = {"baseline": cmp["baseline"], "candidates": [_cand_json(c, fits, labels) for c in cands],
            "problems": problems, "verdict": verdict(cands, morph), "residual_morphology": morph,
            "frames": cmp["frames"], "shared_levels": cmp["shared_levels"], "calibration": cmp["calibration"],

@@ -721,26 +721,66 @@ def fam_sky_gradient(rng):
     return _light_draw(rng, ["plane"], ("sky_gradient", "straylight"), "sky gradient")
 
 
+#: the temperature spans across the whole sensor a dark gradient is drawn from [K]: from a tenth of a kelvin to
+#: the most a cooled die on one cold plate shows (detector.effects.thermal.MAX_TEMPERATURE_SPAN_K): a dark-rate
+#: pattern beyond that is not a temperature gradient but a glow or a light leak, and is not drawn as one
+DARK_SPAN_K = (0.1, 20.0)
+
+
 def fam_dark_gradient(rng):
-    base = _choice(rng, ["dark", "dark_full", "dark_corner"])
+    """A dark-current pattern a temperature difference across the die makes: its size is physical (the dark
+    rate at the sensor's temperature, doubling every T_2 K, over a drawn span of DARK_SPAN_K across the
+    sensor, of which the window sees its share), its form a plane, an exponential plane or a quadratic."""
+    from detector.effects.thermal import doubling_interval_k
+    from detector.presets import PRESETS
+
+    # not the IMX411 corner window: at its 0.002 e-/s a temperature gradient is below the read noise in any
+    # exposure of the bases (drawn there, every case would be undetectable by construction)
+    base = _choice(rng, ["dark", "dark_full"])
     info = base_info(base)
+    pre = PRESETS[info["camera"]]
     form = _choice(rng, ["plane", "thermal", "poly"])
-    spec = {"plane": lambda: _plane_spec(rng), "poly": lambda: _poly_spec(rng, 2, 2),
-            "thermal": lambda: {"form": "thermal", "angle": float(rng.uniform(0, 2 * np.pi)),
-                                "dk": float(rng.uniform(0.2, 1.5))}}[form]()
+    span_k, t = _loguniform(rng, *DARK_SPAN_K)
+    # the span as the judge measures it, corner to corner (|dT_x| + |dT_y| across the sensor's width and
+    # height), split at a random angle; the window sees the part of it its width and height cover
+    a = float(rng.uniform(0, 2 * np.pi))
+    w_k = span_k * math.cos(a) / (abs(math.cos(a)) + abs(math.sin(a)))
+    h_k = span_k * math.sin(a) / (abs(math.cos(a)) + abs(math.sin(a)))
+    h, w = info["out_shape"]
+    fx = min(1.0, w * info["bin"] / pre["sensor_width_px"])
+    fy = min(1.0, h * info["bin"] / pre["sensor_height_px"])
+    t2 = doubling_interval_k(float(pre.get("temperature_c", -10.0)))
+    gx, gy = w_k * fx / t2, h_k * fy / t2  # doublings across the window's width and height
+    dk = abs(gx) + abs(gy)  # doublings corner to corner of the window
+    spec = {"plane": lambda: {"form": "plane", "angle": math.atan2(gy, gx)}, "poly": lambda: _poly_spec(rng, 2, 2),
+            "thermal": lambda: {"form": "thermal", "angle": math.atan2(gy, gx), "dk": math.hypot(gx, gy)}}[form]()
     spec = normalise(spec)
-    e, t, k = _sigma_amp(rng, info, 0.03, 10.0)
-    amp = _per_s_per_px(info, e)
+    amp = info["dark_rate"] * (2.0 ** dk - 1.0)  # peak-to-peak change of the dark rate in the window [e-/s]
+    k = amp * info["time_s"] * info["bin"] ** 2 / info["noise_e"]
     accept = ("dark_gradient",) if form != "poly" else ("dark_gradient", "amp_glow")
     return Draw(base, [("DarkField", {"spec": spec, "amp": amp})],
-                f"dark rate: {form} field, {amp:.3g} e-/s/px peak to peak ({k:.3g} sigma)", t, accept=accept)
+                f"dark rate: {form} field, {amp:.3g} e-/s/px peak to peak ({span_k:.3g} K across the sensor, "
+                f"{k:.3g} sigma)", t, accept=accept)
 
 
 def fam_amp_glow(rng):
-    base = _choice(rng, ["dark", "dark_full", "dark_corner"])
+    """An amplifier glow: light of the read-out amplifier at the sensor's edge, so drawn only on the base whose
+    window holds a sensor corner with its amplifier (the IMX411 corner window, sensor edges at its right and
+    bottom): a power law of the distance to a point at or just beyond that corner or one of its two edges, or
+    an edge glow along one of them."""
+    base = "dark_corner"
     info = base_info(base)
     form = _choice(rng, ["point", "edge"])
-    spec = normalise(_point_spec(rng, d0=(0.03, 0.3)) if form == "point" else _edge_spec(rng))
+    if form == "point":
+        # the window's right edge (u = 1) and first row (v = 0) are the sensor's edges
+        where = _choice(rng, ["corner", "right", "bottom"])
+        pu = float(rng.uniform(1.0, 1.15)) if where != "bottom" else float(rng.uniform(0.2, 1.0))
+        pv = float(rng.uniform(-0.15, 0.0)) if where != "right" else float(rng.uniform(0.0, 0.8))
+        spec = {"form": "point", "pu": pu, "pv": pv, "d0": float(rng.uniform(0.03, 0.3)),
+                "index": float(rng.uniform(1.0, 3.5))}
+    else:
+        spec = {**_edge_spec(rng), "edge": _choice(rng, ["right", "bottom"])}
+    spec = normalise(spec)
     e, t, k = _sigma_amp(rng, info, 0.1, 30.0)
     amp = _per_s_per_px(info, e)
     return Draw(base, [("DarkField", {"spec": spec, "amp": amp})],

@@ -1643,6 +1643,18 @@ def morphology_match(morph: dict | None, kind: str | None, geometry: tuple) -> b
     return morph.get("kind") == kind and bool(_geometry_words(morph.get("geometry")) & set(geometry))
 
 
+#: the scene's PSF parameters (:mod:`scenes.app.compare.parameters`): a round blur of the PSF is a PSF that
+#: is wider or has other wings than the scene's (a convolution of the PSF with a kernel; Gaussian widths add in
+#: quadrature), so wherever ``psf_blur`` is an accepted name, a refit of the PSF's width or profile is too
+PSF_PARAMETERS = ("psf_width", "psf_profile")
+
+
+def accepted_names(accept) -> tuple:
+    """The names that count as right for a case whose accepted effects are ``accept``."""
+    accept = tuple(accept)
+    return accept + PSF_PARAMETERS if "psf_blur" in accept else accept
+
+
 def diagnose_case(case: UnseenCase, model_toml: Path, measured: Path, support, workdir: Path,
                   workers: int | None = None) -> dict:
     """Diagnose ``measured`` against ``model_toml``, apply the first significant plausible candidate (or the
@@ -1651,6 +1663,7 @@ def diagnose_case(case: UnseenCase, model_toml: Path, measured: Path, support, w
     from scenes.app.compare.run import apply_best
     from scenes.scene import load_scene
 
+    accept = accepted_names(case.accept)
     t0 = time.perf_counter()
     out = run_diagnose(load_scene(str(model_toml)), measured, workers=workers)
     seconds = time.perf_counter() - t0
@@ -1660,11 +1673,11 @@ def diagnose_case(case: UnseenCase, model_toml: Path, measured: Path, support, w
     first_any = next((c for c in cands if c.get("significant")), None)
     named = _named_effects()
     wrong_named = [c for c in cands if c.get("significant") and c.get("plausible", True)
-                   and c["effect"] in named and c["effect"] not in case.accept]
+                   and c["effect"] in named and c["effect"] not in accept]
     metric = "misfit" if (case.effect or (best or {}).get("effect")) in STATISTICAL else "chi2_minus_1"
     row = {"case": case.name, "group": case.group, "label": case.label, "base": case.base,
            "strength": case.strength if case.make else "-", "description": case.description,
-           "accept": list(case.accept), "kind": case.kind, "geometry": list(case.geometry),
+           "accept": list(accept), "kind": case.kind, "geometry": list(case.geometry),
            "first": best["effect"] if best else "none",
            "first_delta_bic": best["delta_bic"] if best else None,
            "first_heldout_delta": best.get("heldout_delta") if best else None,
@@ -1683,7 +1696,7 @@ def diagnose_case(case: UnseenCase, model_toml: Path, measured: Path, support, w
            "cannot_tell_apart": ([best["effect"], *out.get("indistinguishable", [])]
                                  if best is not None and out.get("indistinguishable") else []),
            "before": error_of(out["_compare"], support)}
-    row["named_first"] = row["first"] in case.accept if case.accept else None
+    row["named_first"] = row["first"] in accept if accept else None
     if case.group == "ooc":
         row["confidently_wrong"] = bool(wrong_named)
         row["wrong_names"] = [(c["effect"], round(float(c["delta_bic"]), 1)) for c in wrong_named[:4]]
@@ -1692,9 +1705,9 @@ def diagnose_case(case: UnseenCase, model_toml: Path, measured: Path, support, w
     elif case.group == "catalogue":
         # a first candidate the diagnosis says it cannot tell apart from others (as good on held-out pixels) is a
         # claim about the group: not confidently wrong when an accepted name is in it (counted as "ambiguous")
-        row["confidently_wrong"] = best is not None and best["effect"] not in case.accept and not (
-            set(row["cannot_tell_apart"]) & set(case.accept))
-        row["confidently_wrong_strict"] = best is not None and best["effect"] not in case.accept
+        row["confidently_wrong"] = best is not None and best["effect"] not in accept and not (
+            set(row["cannot_tell_apart"]) & set(accept))
+        row["confidently_wrong_strict"] = best is not None and best["effect"] not in accept
     else:
         row["confidently_wrong"] = best is not None
         row["clean"] = first_any is None
