@@ -20,6 +20,7 @@ import numpy as np
 from detector.config import validate
 from detector.effects.optical import VignettingParams, relative_illumination
 from scenes.image import frame_wcs
+from scenes.image.motion import window_overlap
 from scenes.image.signal import Samples, SourceSignal, Trails, render_samples, render_trails
 
 from .labels import MASK_FRACTION_SIGMA, Label, NoiseModel, SourceStamp, labels_from_sources
@@ -47,6 +48,9 @@ def _box_of(part, b: int, shape: tuple[int, int]):
     if isinstance(part, Trails):
         r0, r1 = int(part.ylo.min()), int(part.yhi.max()) + 1
         c0, c1 = int(part.xlo.min()), int(part.xhi.max()) + 1
+    elif part.x.size == 1:  # a static star (the same numbers as below, without the reductions)
+        w, iy, ix = int(part.w[0]), int(np.rint(part.y[0])), int(np.rint(part.x[0]))
+        r0, r1, c0, c1 = iy - w, iy + w + 1, ix - w, ix + w + 1
     else:
         w = int(part.w.max())
         r0, r1 = int(np.rint(part.y.min())) - w, int(np.rint(part.y.max())) + w + 1
@@ -57,8 +61,46 @@ def _box_of(part, b: int, shape: tuple[int, int]):
     return r0, r1, c0, c1
 
 
+def render_one_sample(part: Samples, psf, r0: int, r1: int, c0: int, c1: int, row_time_s: float,
+                      exptime_s: float) -> np.ndarray:
+    """:func:`render_samples` of a one-sample source (a static star), the same numbers, ~3x faster.
+
+    ``render_samples`` selects, groups and chunks the samples reaching the box and sums each stamp into it
+    with ``np.bincount`` (:func:`scenes.image.signal.deposit`); one sample reaches each pixel of the box once
+    (0 + v = v), so its stamp is added as a slice. The same tests decide whether it reaches the box, the same
+    PSF call gives the fractions, the same products the values.
+    """
+    acc = np.zeros((r1 - r0, c1 - c0))
+    y, e, w = part.y[0], part.e[0], int(part.w[0])
+    if not (r0 - 0.5 - w - 1 <= y <= r1 - 0.5 + w + 1):  # render_samples' searchsorted window
+        return acc
+    iy, ix = int(np.rint(y)), int(np.rint(part.x[0]))
+    if not (iy + w >= r0 and iy - w < r1 and ix + w >= c0 and ix - w < c1 and e > 0):
+        return acc
+    nrow, ncol = acc.shape
+    off = np.arange(-w, w + 1)
+    x1, y1 = part.x[:1], part.y[:1]
+    cols = np.rint(x1).astype(np.int64)[:, None] + off
+    rows = np.rint(y1).astype(np.int64)[:, None] + off
+    frac = psf(x1, y1, cols - x1[:, None], rows - y1[:, None])
+    rw = part.e[:1][:, None] * ((rows >= r0) & (rows < r0 + nrow))
+    timed = np.isfinite(part.t_lo[:1])
+    if row_time_s > 0 and timed.any():
+        f = window_overlap(part.t_lo[:1][:, None], part.t_hi[:1][:, None], rows, row_time_s, exptime_s)
+        rw = np.where(timed[:, None], rw * f, rw)
+    cw = (cols >= c0) & (cols < c0 + ncol)
+    vals = (frac * rw[:, :, None] * cw[:, None, :])[0]
+    i0, i1 = max(0, r0 - (iy - w)), min(2 * w + 1, r0 + nrow - (iy - w))
+    j0, j1 = max(0, c0 - (ix - w)), min(2 * w + 1, c0 + ncol - (ix - w))
+    if i1 > i0 and j1 > j0:
+        acc[iy - w + i0 - r0:iy - w + i1 - r0, ix - w + j0 - c0:ix - w + j1 - c0] += vals[i0:i1, j0:j1]
+    return acc
+
+
 def render_source(part, psf, r0: int, r1: int, c0: int, c1: int, row_time_s: float, exptime_s: float) -> np.ndarray:
     """Expected electrons of one source alone on window rows r0:r1, cols c0:c1 (unbinned, float64)."""
+    if isinstance(part, Samples) and part.x.size == 1:
+        return render_one_sample(part, psf, r0, r1, c0, c1, row_time_s, exptime_s)
     if isinstance(part, Trails):
         if hasattr(psf, "factors"):
             acc = np.zeros((r1 - r0, c1 - c0))
@@ -75,6 +117,8 @@ def source_stamps(setup) -> list[SourceStamp]:
     b = int(s.binning)
     truth = setup.truth
     ri = _illumination(setup)
+    cols = {k: truth[k].tolist() for k in ("kind", "name", "x", "y", "x0", "y0", "x1", "y1", "t0_s", "t1_s", "flux_e",
+                                           "mag", "source_id")} if truth is not None else {}
     out = []
     for row, part in enumerate(setup.per_source or []):
         if callable(part):
@@ -88,7 +132,7 @@ def source_stamps(setup) -> list[SourceStamp]:
         if ri is not None:
             st *= ri(s.roi_y0 + np.arange(r0, r1, dtype=float), s.roi_x0 + np.arange(c0, c1, dtype=float))
         st = _bin(st, b).astype(np.float32)
-        t = truth[row]
+        t = {k: v[row] for k, v in cols.items()}
         kind = t["kind"].decode() if isinstance(t["kind"], bytes) else str(t["kind"])
         name = t["name"].decode() if isinstance(t["name"], bytes) else str(t["name"])
         static = kind != "object" and not (np.isfinite(t["t0_s"]) and np.isfinite(t["t1_s"]))
