@@ -132,14 +132,16 @@ def source_stamps(setup) -> list[SourceStamp]:
         if ri is not None:
             st *= ri(s.roi_y0 + np.arange(r0, r1, dtype=float), s.roi_x0 + np.arange(c0, c1, dtype=float))
         st = _bin(st, b).astype(np.float32)
-        t = {k: v[row] for k, v in cols.items()}
-        kind = t["kind"].decode() if isinstance(t["kind"], bytes) else str(t["kind"])
-        name = t["name"].decode() if isinstance(t["name"], bytes) else str(t["name"])
-        static = kind != "object" and not (np.isfinite(t["t0_s"]) and np.isfinite(t["t1_s"]))
-        out.append(SourceStamp(st, r0 // b, c0 // b, row, kind, float(t["x"]), float(t["y"]), float(t["x0"]),
-                               float(t["y0"]), float(t["x1"]), float(t["y1"]),
-                               0.0 if static else float(t["t0_s"]), setup.exptime_s if static else float(t["t1_s"]),
-                               float(t["flux_e"]), float(t["mag"]), name, int(t["source_id"])))
+        kind, name = cols["kind"][row], cols["name"][row]
+        kind = kind.decode() if isinstance(kind, bytes) else str(kind)
+        name = name.decode() if isinstance(name, bytes) else str(name)
+        t0, t1 = cols["t0_s"][row], cols["t1_s"][row]
+        static = kind != "object" and not (np.isfinite(t0) and np.isfinite(t1))
+        x, y, x0, y0, x1, y1, flux, mag = (float(cols[k][row]) for k in ("x", "y", "x0", "y0", "x1", "y1", "flux_e",
+                                                                          "mag"))
+        out.append(SourceStamp(st, r0 // b, c0 // b, row, kind, x, y, x0, y0, x1, y1, 0.0 if static else float(t0),
+                               setup.exptime_s if static else float(t1), flux, mag, name,
+                               int(cols["source_id"][row])))
     return out
 
 

@@ -328,7 +328,7 @@ def _label(src: SourceStamp, clipped, noise: NoiseModel, shape, frac: float) -> 
     snr_pk = float(np.max(s / np.sqrt(var)))
     m = s > frac * np.sqrt(np.maximum(bvar, 0.0))
     if m.any():
-        rows, cols = np.flatnonzero(m.any(axis=1)), np.flatnonzero(m.any(axis=0))
+        rows, cols = np.nonzero(m.any(axis=1))[0], np.nonzero(m.any(axis=0))[0]
         r0, r1, c0, c1 = int(rows[0]), int(rows[-1]) + 1, int(cols[0]), int(cols[-1]) + 1
         mask = m[r0:r1, c0:c1]
         npix = int(mask.sum())
@@ -345,7 +345,7 @@ def _label(src: SourceStamp, clipped, noise: NoiseModel, shape, frac: float) -> 
         yy, xx = np.mgrid[ya:ya + h, xa:xa + w]
         x, y = float((xx * s).sum() / tot), float((yy * s).sum() / tot)
     x0, y0, x1, y1 = src.x0_px, src.y0_px, src.x1_px, src.y1_px
-    if not all(np.isfinite(v) for v in (x0, y0, x1, y1)):
+    if not (math.isfinite(x0) and math.isfinite(y0) and math.isfinite(x1) and math.isfinite(y1)):
         x0, y0, x1, y1 = x, y, x, y
     length = math.hypot(x1 - x0, y1 - y0)
     dt = src.t1_s - src.t0_s
@@ -404,6 +404,9 @@ def dominant_source_image(sources: Sequence[SourceStamp], labels: Sequence[Label
         src = by_row[lab.row]
         x, y, w, h = lab.bbox
         view = img[y:y + h, x:x + w]
+        if view.max() == NO_SOURCE:  # no other mask here yet (most labels): the pixels are this one's
+            view[lab.mask] = lab.row
+            continue
         free = lab.mask & (view == NO_SOURCE)
         view[free] = lab.row
         taken = lab.mask & (view != NO_SOURCE) & (view != lab.row)
