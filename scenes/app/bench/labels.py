@@ -146,6 +146,16 @@ class NoiseModel:
             var = float(var) if var.ndim == 0 else var
         return cls(0.0, 0.0, 0.0, var, source_shot, {"measured_sigma": True})
 
+    def uniform_background_var_e2(self) -> float | None:
+        """The variance without the source [e-^2] when it is one number on the whole frame (the value of
+        every pixel of :meth:`background_var_e2`, the same sums); None when it varies."""
+        v = self.read_var_e2 + self.quant_var_e2
+        for term in (self.background_e, self.extra_var_e2):
+            if callable(term) or np.ndim(term):
+                return None
+            v = v + float(np.asarray(term, dtype=float))
+        return float(v)
+
     def background_var_e2(self, y0: int, y1: int, x0: int, x1: int) -> np.ndarray:
         """Variance without the source [e-^2] on frame rows y0:y1, cols x0:x1."""
         shape = (y1 - y0, x1 - x0)
@@ -287,11 +297,12 @@ def labels_from_sources(sources: Sequence[SourceStamp], noise: NoiseModel, shape
     list of :class:`Label`, in the order of ``sources`` (a source with no pixel on the frame is left out)
     """
     out = []
+    uniform = noise.uniform_background_var_e2()
     for src in sources:
         clipped = _clip(src, shape)
         if clipped is None:
             continue
-        out.append(_label(src, clipped, noise, shape, mask_fraction_sigma))
+        out.append(_label(src, clipped, noise, shape, mask_fraction_sigma, uniform))
     _sky_positions(out, wcs)
     return out
 
@@ -316,11 +327,12 @@ def _sky_positions(labels: list[Label], wcs) -> None:
             lab.rate_arcsec_s = 0.0 if lab.length_px == 0 else math.nan
 
 
-def _label(src: SourceStamp, clipped, noise: NoiseModel, shape, frac: float) -> Label:
-    """The label of one source, its RA/Dec and angular rate left NaN (:func:`_sky_positions` sets them)."""
+def _label(src: SourceStamp, clipped, noise: NoiseModel, shape, frac: float, uniform: float | None) -> Label:
+    """The label of one source, its RA/Dec and angular rate left NaN (:func:`_sky_positions` sets them).
+    ``uniform``: the background variance when it is one number (a scalar in the same sums)."""
     s, ya, xa = clipped
     h, w = s.shape
-    bvar = noise.background_var_e2(ya, ya + h, xa, xa + w)
+    bvar = noise.background_var_e2(ya, ya + h, xa, xa + w) if uniform is None else uniform
     var = bvar + (np.maximum(s, 0.0) if noise.source_shot else 0.0)
     var = np.maximum(var, 1e-30)
     flux = float(s.sum())
