@@ -14,7 +14,7 @@ from helpers import write_scene
 from scenes.app.bench import MASK_FRACTION_SIGMA, NoiseModel, SourceStamp, dominant_source_image, labels_from_sources
 from scenes.app.bench.formats import (category_id, coco_document, dumps_indent1, rle_of, satnet_frame,
                                       yolo_corners, yolo_endpoints, yolo_lines)
-from scenes.app.bench.frame import frame_labels, render_one_sample
+from scenes.app.bench.frame import frame_labels, gaussian_star_stamps, render_one_sample
 from scenes.app.render import prepare, render
 from scenes.image.psf import GaussianPSF, MoffatPSF
 from scenes.image.signal import Samples, render_samples
@@ -254,3 +254,35 @@ def test_one_sample_stamp_equals_render_samples(psf):
             ref = render_samples(part, psf, *box, row_time_s, 5.0)
             got = render_one_sample(part, psf, *box, row_time_s, 5.0)
             assert got.tobytes() == ref.tobytes(), (x, y, t_hi, row_time_s)
+
+
+def test_gaussian_stars_together_equal_one_by_one():
+    """Static stars with a Gaussian PSF drawn together (gaussian_star_stamps) hold render_samples' numbers bit
+    for bit; those it leaves to be drawn alone (a rolling-shutter window, outside the box, no flux) are not
+    returned."""
+    rng = np.random.default_rng(5)
+    psf = GaussianPSF(2.5)
+    items, alone = [], set()
+    for k in range(300):
+        x, y = rng.uniform(-5, 3000), rng.uniform(-5, 2000)
+        w = int(rng.choice([4, 6, 9]))
+        cx, cy = int(np.rint(x)), int(np.rint(y))
+        box = (max(0, cy - w + int(rng.integers(0, 3))), cy + w + 1 - int(rng.integers(0, 3)),
+               max(0, cx - w + int(rng.integers(0, 3))), cx + w + 1)
+        t_lo, e = -np.inf, rng.uniform(1e3, 1e5)
+        if k % 50 == 1:
+            t_lo = 0.2  # a rolling-shutter window
+        if k % 50 == 2:
+            e = 0.0
+        if k % 50 == 3:
+            box = (box[0] + 40, box[1] + 40, box[2], box[3])  # the star outside its box
+        if t_lo > -np.inf or e == 0 or k % 50 == 3:
+            alone.add(k)
+        part = Samples(np.array([x]), np.array([y]), np.array([e]), np.array([t_lo]), np.array([t_lo + 1.0]),
+                       np.array([w], dtype=np.int64))
+        items.append((k, part, box))
+    got = gaussian_star_stamps(items, psf)
+    assert not alone & set(got) and len(got) >= 250
+    for k, part, box in items:
+        if k in got:
+            assert got[k].tobytes() == render_samples(part, psf, *box).tobytes(), k

@@ -21,6 +21,7 @@ from detector.config import validate
 from detector.effects.optical import VignettingParams, relative_illumination
 from scenes.image import frame_wcs
 from scenes.image.motion import window_overlap
+from scenes.image.psf import GaussianPSF
 from scenes.image.signal import Samples, SourceSignal, Trails, render_samples, render_trails
 
 from .labels import MASK_FRACTION_SIGMA, Label, NoiseModel, SourceStamp, labels_from_sources
@@ -97,6 +98,65 @@ def render_one_sample(part: Samples, psf, r0: int, r1: int, c0: int, c1: int, ro
     return acc
 
 
+#: stamp pixels per batch of :func:`gaussian_star_stamps` (~1 MB arrays: below the size where numpy asks the
+#: kernel for huge pages, whose first touch was 5x slower on the 2-core test machine)
+STAR_BATCH_PIXELS = 1 << 17
+
+
+def gaussian_star_stamps(items, psf: GaussianPSF) -> dict:
+    """:func:`render_one_sample` of many static stars with a Gaussian PSF, the same numbers, computed together.
+
+    ``items``: (key, part, (r0, r1, c0, c1)) of one-sample sources; returns {key: stamp} for those drawn here
+    (the others, to be drawn alone: a rolling-shutter window, a sample outside its box or without flux,
+    pixel offsets not stepping by exactly 1). A Gaussian PSF's fractions are computed row by row
+    (:func:`scenes.image.psf.gaussian_pixel_fractions`), its choice between the stamp and the far-tail form
+    made over the rows of a call from the offsets' steps: rows stepping by exactly 1.0 take the stamp form
+    alone and together, so the batch holds the per-star numbers (tests compare them bit for bit).
+    """
+    groups: dict[int, list] = {}
+    for key, part, (r0, r1, c0, c1) in items:
+        y, e, w = part.y[0], part.e[0], int(part.w[0])
+        if np.isfinite(part.t_lo[0]) or not (r0 - 0.5 - w - 1 <= y <= r1 - 0.5 + w + 1):
+            continue
+        iy, ix = int(np.rint(y)), int(np.rint(part.x[0]))
+        if iy + w >= r0 and iy - w < r1 and ix + w >= c0 and ix - w < c1 and e > 0:
+            groups.setdefault(w, []).append((key, part, r0, r1, c0, c1, iy, ix))
+    out = {}
+    for w, group in groups.items():
+        n = 2 * w + 1
+        off = np.arange(-w, w + 1)
+        step = max(1, STAR_BATCH_PIXELS // (n * n))
+        for k in range(0, len(group), step):
+            g = group[k:k + step]
+            x = np.array([it[1].x[0] for it in g])
+            y = np.array([it[1].y[0] for it in g])
+            e = np.array([it[1].e[0] for it in g])
+            r0, r1, c0, c1, iy, ix = (np.array([it[j] for it in g]) for j in range(2, 8))
+            cols = np.rint(x).astype(np.int64)[:, None] + off
+            rows = np.rint(y).astype(np.int64)[:, None] + off
+            dx, dy = cols - x[:, None], rows - y[:, None]
+            exact = np.nonzero(((dx[:, 1:] - dx[:, :-1]) == 1.0).all(axis=1)
+                               & ((dy[:, 1:] - dy[:, :-1]) == 1.0).all(axis=1))[0]
+            if exact.size == 0:
+                continue
+            if exact.size < len(g):
+                g = [g[i] for i in exact]
+                x, y, e, r0, r1, c0, c1, cols, rows, dx, dy = (a[exact] for a in (x, y, e, r0, r1, c0, c1, cols, rows,
+                                                                                  dx, dy))
+            frac = psf(x, y, dx, dy)
+            rw = e[:, None] * ((rows >= r0[:, None]) & (rows < r1[:, None]))
+            cw = (cols >= c0[:, None]) & (cols < c1[:, None])
+            vals = frac * rw[:, :, None] * cw[:, None, :]
+            for i, (key, _, a0, a1, b0, b1, yi, xi) in enumerate(g):
+                acc = np.zeros((a1 - a0, b1 - b0))
+                i0, i1 = max(0, a0 - (yi - w)), min(n, a1 - (yi - w))
+                j0, j1 = max(0, b0 - (xi - w)), min(n, b1 - (xi - w))
+                if i1 > i0 and j1 > j0:
+                    acc[yi - w + i0 - a0:yi - w + i1 - a0, xi - w + j0 - b0:xi - w + j1 - b0] += vals[i, i0:i1, j0:j1]
+                out[key] = acc
+    return out
+
+
 def render_source(part, psf, r0: int, r1: int, c0: int, c1: int, row_time_s: float, exptime_s: float) -> np.ndarray:
     """Expected electrons of one source alone on window rows r0:r1, cols c0:c1 (unbinned, float64)."""
     if isinstance(part, Samples) and part.x.size == 1:
@@ -120,6 +180,11 @@ def source_stamps(setup) -> list[SourceStamp]:
     cols = {k: truth[k].tolist() for k in ("kind", "name", "x", "y", "x0", "y0", "x1", "y1", "t0_s", "t1_s", "flux_e",
                                            "mag", "source_id")} if truth is not None else {}
     out = []
+    drawn = {}
+    if type(setup.psf) is GaussianPSF:  # static stars together (the same numbers as one by one)
+        one = [(row, p, _box_of(p, b, s.shape)) for row, p in enumerate(setup.per_source or [])
+               if isinstance(p, Samples) and p.x.size == 1]
+        drawn = gaussian_star_stamps([it for it in one if it[2][1] > it[2][0] and it[2][3] > it[2][2]], setup.psf)
     for row, part in enumerate(setup.per_source or []):
         if callable(part):
             part = part()
@@ -128,7 +193,9 @@ def source_stamps(setup) -> list[SourceStamp]:
         r0, r1, c0, c1 = _box_of(part, b, s.shape)
         if r1 <= r0 or c1 <= c0:
             continue
-        st = render_source(part, setup.psf, r0, r1, c0, c1, s.row_time_s, setup.exptime_s)
+        st = drawn.pop(row, None)
+        if st is None:
+            st = render_source(part, setup.psf, r0, r1, c0, c1, s.row_time_s, setup.exptime_s)
         if ri is not None:
             st *= ri(s.roi_y0 + np.arange(r0, r1, dtype=float), s.roi_x0 + np.arange(c0, c1, dtype=float))
         st = _bin(st, b).astype(np.float32)
