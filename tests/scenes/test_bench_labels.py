@@ -12,8 +12,16 @@ from astropy.wcs import WCS
 from helpers import write_scene
 
 from scenes.app.bench import MASK_FRACTION_SIGMA, NoiseModel, SourceStamp, dominant_source_image, labels_from_sources
-from scenes.app.bench.formats import (category_id, coco_document, dumps_indent1, rle_of, satnet_frame,
-                                      yolo_corners, yolo_endpoints, yolo_lines)
+from scenes.app.bench.formats import (
+    category_id,
+    coco_document,
+    dumps_indent1,
+    rle_of,
+    satnet_frame,
+    yolo_corners,
+    yolo_endpoints,
+    yolo_lines,
+)
 from scenes.app.bench.frame import frame_labels, gaussian_star_stamps, render_one_sample
 from scenes.app.render import prepare, render
 from scenes.image.psf import GaussianPSF, MoffatPSF
@@ -217,12 +225,12 @@ def test_label_files_equal_the_standard_encoders():
     same bytes as the standard json module, the label-by-label corners and pycocotools."""
     from pycocotools import mask as cmask
 
-    srcs, labs = constructed_labels()
+    _, labs = constructed_labels()
     assert [lab.mask_pixels == 0 for lab in labs] == [False, False, True, False]
     docs = [coco_document([{"file_name": "f.fits", "shape": (40, 40), "labels": labs, "seed": 7}], 0.1),
             satnet_frame(labs, (40, 40), "f.fits", {"seed": np.int64(7)}),
             {"a": [], "b": {}, "c": (1, 2.5, None, True, False, 'q"\\\u00e9', [], [1, {}], 3), 1: np.float32(0.1),
-             2.5: np.int64(3), None: [np.arange(3), {"z": [[]]}], True: np.float64(1e-5), "n": np.float32("nan")},
+             2.5: np.int64(3), None: [np.arange(3), {"z": [[]]}], False: np.float64(1e-5), "n": np.float32("nan")},
             [], "x", 1.5]
     for doc in docs:
         assert dumps_indent1(doc) == json.dumps(doc, indent=1, allow_nan=False, default=numpy_default)

@@ -286,7 +286,7 @@ _ESC = json.encoder.encode_basestring_ascii  # the standard encoder's string esc
 
 
 def _float(v: float) -> str:
-    if v != v or v in (math.inf, -math.inf):
+    if not math.isfinite(v):
         raise ValueError(f"Out of range float values are not JSON compliant: {v!r}")
     return float.__repr__(v)
 
