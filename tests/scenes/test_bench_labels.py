@@ -12,9 +12,20 @@ from astropy.wcs import WCS
 from helpers import write_scene
 
 from scenes.app.bench import MASK_FRACTION_SIGMA, NoiseModel, SourceStamp, dominant_source_image, labels_from_sources
-from scenes.app.bench.formats import rle_of, yolo_corners, yolo_endpoints
-from scenes.app.bench.frame import frame_labels
+from scenes.app.bench.formats import (
+    category_id,
+    coco_document,
+    dumps_indent1,
+    rle_of,
+    satnet_frame,
+    yolo_corners,
+    yolo_endpoints,
+    yolo_lines,
+)
+from scenes.app.bench.frame import frame_labels, gaussian_star_stamps, render_one_sample
 from scenes.app.render import prepare, render
+from scenes.image.psf import GaussianPSF, MoffatPSF
+from scenes.image.signal import Samples, render_samples
 from scenes.scene import load_scene
 
 RA, DEC, T = 120.0, -29.0, 5.0
@@ -181,3 +192,105 @@ def test_overlap_goes_to_the_brighter_source_and_rle_without_a_frame():
     from pycocotools import mask as cmask
     m = labs[1].full_mask((40, 40))
     assert rle_of(labs[1], (40, 40))["counts"] == cmask.encode(np.asfortranarray(m.astype(np.uint8)))["counts"].decode()
+
+
+def constructed_labels():
+    """Labels of constructed stamps: a streak along a diagonal, a star, a faint source with an empty mask, a
+    mask spanning the image's full height (RLE runs continuing from one column into the next)."""
+    yy, xx = np.mgrid[0:24, 0:24]
+    streak_e = 200 * np.exp(-((xx - yy) ** 2) / 4.0) * ((xx > 3) & (xx < 20))
+    star_e = 300 * np.exp(-((xx - 12) ** 2 + (yy - 12) ** 2) / 6.0)
+    column_e = np.zeros((40, 3))
+    column_e[:, 1:] = 50.0
+    srcs = [SourceStamp(streak_e, 2, 2, 0, "object", 13.5, 13.5, 6.0, 6.0, 21.0, 21.0, 0.0, 5.0, 4000.0, 11.2),
+            SourceStamp(star_e, 10, 14, 1, "star", 26.0, 22.0, t0_s=0.0, t1_s=5.0, flux_e=5000.0, mag=10.5),
+            SourceStamp(np.full((3, 3), 1e-6), 30, 30, 2, "synthetic", 31.0, 31.0),
+            SourceStamp(column_e, 0, 35, 3, "star", 36.0, 19.5)]
+    return srcs, labels_from_sources(srcs, NoiseModel.measured(2.0), (40, 40))
+
+
+def numpy_default(v):
+    """What the label files' JSON makes of numpy values (the standard encoder's ``default``)."""
+    if isinstance(v, np.integer):
+        return int(v)
+    if isinstance(v, np.floating):
+        return float(v) if np.isfinite(v) else None
+    if isinstance(v, np.ndarray):
+        return v.tolist()
+    raise TypeError(type(v))
+
+
+def test_label_files_equal_the_standard_encoders():
+    """The label files' own encoders (indented JSON, YOLO boxes of all labels at once, RLE counts) write the
+    same bytes as the standard json module, the label-by-label corners and pycocotools."""
+    from pycocotools import mask as cmask
+
+    _, labs = constructed_labels()
+    assert [lab.mask_pixels == 0 for lab in labs] == [False, False, True, False]
+    docs = [coco_document([{"file_name": "f.fits", "shape": (40, 40), "labels": labs, "seed": 7}], 0.1),
+            satnet_frame(labs, (40, 40), "f.fits", {"seed": np.int64(7)}),
+            {"a": [], "b": {}, "c": (1, 2.5, None, True, False, 'q"\\\u00e9', [], [1, {}], 3), 1: np.float32(0.1),
+             2.5: np.int64(3), None: [np.arange(3), {"z": [[]]}], False: np.float64(1e-5), "n": np.float32("nan")},
+            [], "x", 1.5]
+    for doc in docs:
+        assert dumps_indent1(doc) == json.dumps(doc, indent=1, allow_nan=False, default=numpy_default)
+    for bad in (math.nan, {"x": [1, -math.inf]}):
+        with pytest.raises(ValueError):
+            dumps_indent1(bad)
+    ref = "".join(f"{category_id(lab.kind) - 1} " + " ".join(f"{cx / 40:.7f} {cy / 40:.7f}"
+                                                             for cx, cy in yolo_corners(lab) + 0.5) + "\n"
+                  for lab in labs)
+    assert yolo_lines(labs, (40, 40)) == ref
+    for lab in labs:
+        m = np.asfortranarray(lab.full_mask((40, 40)).astype(np.uint8))
+        assert rle_of(lab, (40, 40))["counts"] == cmask.encode(m)["counts"].decode()
+
+
+@pytest.mark.parametrize("psf", [GaussianPSF(2.5), MoffatPSF(3.0, 2.5)], ids=["gaussian", "moffat"])
+def test_one_sample_stamp_equals_render_samples(psf):
+    """A static star's stamp drawn alone (render_one_sample) holds render_samples' numbers bit for bit: inside
+    the box, cut by each of its edges, outside it, with a rolling-shutter window, and with no flux."""
+    box = (10, 30, 20, 45)
+    cases = [(30.3, 18.7, np.inf), (21.0, 10.2, np.inf), (44.6, 29.9, np.inf), (18.0, 8.0, np.inf),
+             (31.2, 20.4, 0.3), (80.0, 20.0, np.inf), (31.0, 20.0, np.inf)]
+    for k, (x, y, t_hi) in enumerate(cases):
+        e = 0.0 if k == len(cases) - 1 else 5e4
+        t_lo = 0.1 if np.isfinite(t_hi) else -np.inf
+        part = Samples(np.array([x]), np.array([y]), np.array([e]), np.array([t_lo]), np.array([t_hi]),
+                       np.array([6], dtype=np.int64))
+        for row_time_s in (0.0, 0.01):
+            ref = render_samples(part, psf, *box, row_time_s, 5.0)
+            got = render_one_sample(part, psf, *box, row_time_s, 5.0)
+            assert got.tobytes() == ref.tobytes(), (x, y, t_hi, row_time_s)
+
+
+def test_gaussian_stars_together_equal_one_by_one():
+    """Static stars with a Gaussian PSF drawn together (gaussian_star_stamps) hold render_samples' numbers bit
+    for bit; those it leaves to be drawn alone (a rolling-shutter window, outside the box, no flux) are not
+    returned."""
+    rng = np.random.default_rng(5)
+    psf = GaussianPSF(2.5)
+    items, alone = [], set()
+    for k in range(300):
+        x, y = rng.uniform(-5, 3000), rng.uniform(-5, 2000)
+        w = int(rng.choice([4, 6, 9]))
+        cx, cy = int(np.rint(x)), int(np.rint(y))
+        box = (max(0, cy - w + int(rng.integers(0, 3))), cy + w + 1 - int(rng.integers(0, 3)),
+               max(0, cx - w + int(rng.integers(0, 3))), cx + w + 1)
+        t_lo, e = -np.inf, rng.uniform(1e3, 1e5)
+        if k % 50 == 1:
+            t_lo = 0.2  # a rolling-shutter window
+        if k % 50 == 2:
+            e = 0.0
+        if k % 50 == 3:
+            box = (box[0] + 40, box[1] + 40, box[2], box[3])  # the star outside its box
+        if t_lo > -np.inf or e == 0 or k % 50 == 3:
+            alone.add(k)
+        part = Samples(np.array([x]), np.array([y]), np.array([e]), np.array([t_lo]), np.array([t_lo + 1.0]),
+                       np.array([w], dtype=np.int64))
+        items.append((k, part, box))
+    got = gaussian_star_stamps(items, psf)
+    assert not alone & set(got) and len(got) >= 250
+    for k, part, box in items:
+        if k in got:
+            assert got[k].tobytes() == render_samples(part, psf, *box).tobytes(), k
