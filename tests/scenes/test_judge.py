@@ -168,6 +168,27 @@ def test_floors(tmp_path):
     assert floor_reason("vignetting", {"a2": 0.3}, sensor) == ""
 
 
+def test_a_response_law_needs_a_signal_range():
+    """EMVA 1288 measures linearity from 5 % of saturation: on a dark of 67 e- per pixel (a 133 000 e- well,
+    the real SBIG dark that a gamma of 1.027 once 'fitted') a non-linearity is refused; on a flat at 30 % of the
+    well, or for another effect, nothing is said. Sum binning: the charge per sensor pixel is compared."""
+    from types import SimpleNamespace
+
+    from scenes.app.compare.floors import signal_range_floor
+
+    def res(photo_adu, dark_e, pixel_sum=1):
+        shape = (64, 64)
+        return SimpleNamespace(fit=np.ones(shape, bool), photo_adu=np.full(shape, photo_adu, np.float32),
+                               dark_e=np.full(shape, dark_e, np.float32), gain=1.5, pixel_sum=pixel_sum,
+                               sensor=SimpleNamespace(full_well_e=133_000.0))
+
+    assert "extrapolation" in signal_range_floor("nonlinearity", res(0.0, 67.0))
+    assert signal_range_floor("nonlinearity", res(0.3 * 133_000 / 1.5, 67.0)) == ""
+    assert signal_range_floor("prnu", res(0.0, 67.0)) == ""
+    # binned 4x4 (sum): 16 pixels' charge in one output pixel; 0.3 x 133 000 e- in all is 1.9 % per pixel
+    assert "extrapolation" in signal_range_floor("nonlinearity", res(0.3 * 133_000 / 1.5, 0.0, pixel_sum=16))
+
+
 # --- the scene's numbers, on textbook frames -------------------------------------------------------------------
 
 @pytest.fixture(scope="module")

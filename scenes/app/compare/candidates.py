@@ -18,7 +18,7 @@ from detector import registry
 from detector.morphology import block_chi2
 from detector.signatures import Fit, Residuals, frame_at, heldout_delta
 
-from .floors import floor_reason
+from .floors import floor_reason, signal_range_floor
 from .judge import Candidate, indistinguishable, rank, verdict
 from .policy import DEFAULT_POLICY, DiagnosisPolicy
 from .sources import light_curve_candidates
@@ -159,7 +159,7 @@ def candidates(res: Residuals, present: set[str], progress=None, truth=None,
         why = implausibility(cls, fit, res)
         if why:
             c.refuse("bound" if "sits at its bound" in why else "implausible", why)
-        why = floor_reason(name, fit.params, res.sensor, policy, res.exptime_s)
+        why = floor_reason(name, fit.params, res.sensor, policy, res.exptime_s) or signal_range_floor(name, res, policy)
         if why:
             c.refuse("floor", why)
         out.append(c)

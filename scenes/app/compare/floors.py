@@ -85,6 +85,26 @@ FLOORS: dict[str, Callable[[dict, object, DiagnosisPolicy, float | None], str]] 
 }
 
 
+def signal_range_floor(effect: str, res, policy: DiagnosisPolicy = DEFAULT_POLICY) -> str:
+    """"" or why the frame's signal cannot measure a response law (gate ``floor``): a non-linearity needs a
+    signal reaching the policy's ``min_nonlinearity_signal_fraction`` of the full well (per sensor pixel: the
+    light and the dark charge of an output pixel over the pixels summed into it)."""
+    if effect != "nonlinearity":
+        return ""
+    ok = res.fit
+    if not np.any(ok):
+        return ""
+    charge = (np.broadcast_to(res.photo_adu, ok.shape)[ok] * res.gain
+              + np.broadcast_to(res.dark_e, ok.shape)[ok]) / res.pixel_sum
+    top = float(np.percentile(charge, 99.9))
+    fw = float(res.sensor.full_well_e)
+    if top < policy.min_nonlinearity_signal_fraction * fw:
+        return (f"the frame's signal reaches {top:.3g} e- per pixel, {100 * top / fw:.2g} % of the {fw:.3g} e- full "
+                f"well (less than {100 * policy.min_nonlinearity_signal_fraction:g} %): a response law fitted there "
+                "is an extrapolation the pixels cannot check")
+    return ""
+
+
 def floor_reason(effect: str, params: dict, sensor, policy: DiagnosisPolicy = DEFAULT_POLICY,
                  exptime_s: float | None = None) -> str:
     """"" or why the fitted size of ``effect`` is not a finding (gate ``floor``); ``exptime_s`` [s] for the

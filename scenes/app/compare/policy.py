@@ -144,6 +144,13 @@ class DiagnosisPolicy:
         0.001, "1", "physics",
         "a non-linearity smaller than this at full well (0.1 %) is not a finding: photon-transfer curves of "
         "scientific CCD/CMOS measure 0.1-1 % at best (Janesick 2007, Photon Transfer, ch. 5)")
+    min_nonlinearity_signal_fraction: float = _f(
+        0.05, "1", "physics",
+        "a non-linearity is measured only on a frame whose signal reaches this fraction of the full well (its "
+        "99.9th percentile): EMVA 1288 (release 4.0, sect. 6.9) measures the linearity error from 5 % to 95 % of "
+        "saturation; fitted on a dark's or a faint sky's few per cent, a response law's curvature is an "
+        "extrapolation that the pixels cannot check (a real SBIG dark: gamma 1.027 from 67 e- of a 133 000 e- "
+        "well, which rendered lowered the whole dark by 16 %)")
     max_cosmic_rate_factor: float = _f(
         50.0, "1", "physics",
         "cosmic rays at more than this many times the physical flux of the scene's environment are not cosmic "
