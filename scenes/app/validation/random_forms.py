@@ -145,6 +145,11 @@ def base_info(base: str) -> dict:
                           int(det.get("width", pre["sensor_width_px"])) // b)}
 
 
+def small_info(base: str) -> dict:
+    """:func:`base_info` of the small form of ``base``, the window a drawn case's frame has (:func:`draw_case`)."""
+    return base_info(f"{base}_s")
+
+
 def _loguniform(rng, lo: float, hi: float) -> tuple[float, float]:
     """A value log-uniform in [lo, hi] and its position t in [0, 1] (1: hi)."""
     t = float(rng.uniform())
@@ -737,7 +742,7 @@ def fam_dark_gradient(rng):
     # not the IMX411 corner window: at its 0.002 e-/s a temperature gradient is below the read noise in any
     # exposure of the bases (drawn there, every case would be undetectable by construction)
     base = _choice(rng, ["dark", "dark_full"])
-    info = base_info(base)
+    info = small_info(base)
     pre = PRESETS[info["camera"]]
     form = _choice(rng, ["plane", "thermal", "poly"])
     span_k, t = _loguniform(rng, *DARK_SPAN_K)
@@ -885,14 +890,31 @@ def fam_column_defects(rng):
     return Draw(base, [eff], desc, 0.5 * (t1 + t2), accept=("column_defects",))
 
 
+#: the extra particle flux a cosmic-ray case draws, in units of the model's environment (ground muons): from a
+#: few times (altitude, a radioactive window or housing) to 40x, below the judge's physical ceiling (50x,
+#: ``max_cosmic_rate_factor``); a "rate" beyond is a pattern of bright pixels, not particles
+COSMIC_FACTOR = (3.0, 40.0)
+
+
 def fam_cosmic_rays(rng):
+    """Extra particle tracks at a physical rate: ``factor`` x the ground muon flux over the window's area and
+    the exposure (the count Poisson-drawn, at least one track), straight tracks of random length and deposit."""
+    from detector.cosmics import ENVIRONMENTS
+    from detector.presets import PRESETS
+
     base = _choice(rng, ["dark", "dark_full", "dark_corner", "dark_cmos"])
-    n, t = _loguniform(rng, 3, 80)
+    info = small_info(base)
+    factor, t = _loguniform(rng, *COSMIC_FACTOR)
+    h, w = info["out_shape"]
+    pitch_cm = PRESETS[info["camera"]]["pixel_pitch_um"] * 1e-4
+    area_cm2 = h * w * info["bin"] ** 2 * pitch_cm ** 2
+    mean = factor * ENVIRONMENTS["ground"].flux_per_cm2_s * area_cm2 * info["time_s"]
+    n = max(1, int(rng.poisson(mean)))
     lmin = float(rng.uniform(1, 5))
-    prm = {"n": round(n), "lmin": lmin, "lmax": lmin + float(rng.uniform(2, 50)),
+    prm = {"n": n, "lmin": lmin, "lmax": lmin + float(rng.uniform(2, 50)),
            "e_per_px": float(np.exp(rng.uniform(np.log(60), np.log(800))))}
     return Draw(base, [("SegmentTracks", prm)], f"{prm['n']} tracks of {prm['lmin']:.0f}-{prm['lmax']:.0f} px, "
-                f"{prm['e_per_px']:.0f} e-/px", t, accept=("cosmic_rays",))
+                f"{prm['e_per_px']:.0f} e-/px ({factor:.3g}x the ground flux)", t, accept=("cosmic_rays",))
 
 
 def fam_rts_noise(rng):
@@ -1231,14 +1253,16 @@ def _jsonable(v):
     return v
 
 
-def draw_case(family: str, case_seed: int, small: bool = True) -> RandomCase:
+def draw_case(family: str, case_seed: int) -> RandomCase:
     """The case of ``family`` drawn from ``case_seed`` (every number of the case comes from this seed), on the
-    small form of its base scene (:data:`SMALL`) unless ``small`` is False or the family needs the full size."""
+    small form of its base scene (:data:`SMALL`) unless the family needs the full size (the families that size
+    their effect physically, by the window's area or its share of the sensor, use the small form's numbers:
+    :func:`small_info`)."""
     if family not in FAMILIES:
         raise KeyError(f"family {family!r}: expected one of {', '.join(FAMILIES)}")
     rng = np.random.default_rng([case_seed, 23])
     d = FAMILIES[family][1](rng)
-    if small and family not in FULL_SIZE_FAMILIES:
+    if family not in FULL_SIZE_FAMILIES:
         d.base = f"{d.base}_s"
     sgn = float(_choice(rng, [-1.0, 1.0]))
     levels = Levels(light=sgn * float(rng.uniform(0.010, 0.015)), dark=-sgn * float(rng.uniform(0.02, 0.03)),
