@@ -166,6 +166,9 @@ def test_floors(tmp_path):
     assert floor_reason("cosmic_rays", {"flux_per_cm2_s": 2 / 60}, sensor) == ""
     assert floor_reason("hot_pixels", {"count": 0.1 * 14192 * 10640}, sensor) != ""
     assert floor_reason("vignetting", {"a2": 0.3}, sensor) == ""
+    # the textbook null's kTC of 1.07e-13 fF (4e-6 e-) is no finding; a 1 fF node's 12 e- is
+    assert "read noise" in floor_reason("reset_noise", {"capacitance_ff": 1.0661e-13}, sensor)
+    assert floor_reason("reset_noise", {"capacitance_ff": 1.0}, sensor) == ""
 
 
 def test_a_response_law_needs_a_signal_range():

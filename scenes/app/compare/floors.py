@@ -34,6 +34,21 @@ def nonlinearity_floor(params: dict, sensor, policy: DiagnosisPolicy, exptime_s:
     return ""
 
 
+def reset_noise_floor(params: dict, sensor, policy: DiagnosisPolicy, exptime_s: float | None = None) -> str:
+    """The extra noise per read, sqrt(k T C) / q (thesis eq. 33), against the camera's read noise."""
+    from detector.effects.readout import ktc_noise_e
+
+    c_ff = _num(params, "capacitance_ff")
+    if c_ff <= 0:
+        return ""
+    sigma = ktc_noise_e(sensor.temperature_c + 273.15, c_ff * 1e-15)
+    floor = policy.min_extra_noise_fraction * float(sensor.read_noise_e)
+    if sigma < floor:
+        return (f"an extra noise of {sigma:.3g} e- per read is below {100 * policy.min_extra_noise_fraction:g} % of "
+                f"the {sensor.read_noise_e:.3g} e- read noise: no characterisation of a camera tells it apart")
+    return ""
+
+
 def _defects(count: float, total: float, what: str, policy: DiagnosisPolicy) -> str:
     if total > 0 and count > policy.max_defect_fraction * total:
         return (f"{count:.0f} {what} are {100 * count / total:.3g} % of the sensor's; no camera has more than "
@@ -78,6 +93,7 @@ def cosmic_rays_floor(params: dict, sensor, policy: DiagnosisPolicy, exptime_s: 
 #: effect name -> its floor check ``(params, sensor, policy, exptime_s [s] or None) -> reason or ""``
 FLOORS: dict[str, Callable[[dict, object, DiagnosisPolicy, float | None], str]] = {
     "nonlinearity": nonlinearity_floor,
+    "reset_noise": reset_noise_floor,
     "hot_pixels": hot_pixels_floor,
     "dead_pixels": dead_pixels_floor,
     "column_defects": column_defects_floor,

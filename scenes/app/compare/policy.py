@@ -151,6 +151,12 @@ class DiagnosisPolicy:
         "saturation; fitted on a dark's or a faint sky's few per cent, a response law's curvature is an "
         "extrapolation that the pixels cannot check (a real SBIG dark: gamma 1.027 from 67 e- of a 133 000 e- "
         "well, which rendered lowered the whole dark by 16 %)")
+    min_extra_noise_fraction: float = _f(
+        0.1, "1", "physics",
+        "an extra white read-out noise (kTC, a read noise above the data sheet) smaller than this fraction of the "
+        "camera's read noise (rms, per read) is not a finding: it adds 1 % to the read noise's variance, which a "
+        "camera characterisation measures to a few per cent (EMVA 1288 dark noise); the one false alarm of 315 "
+        "textbook nulls was such a noise, 4e-6 e- (docs/null_calibration.md)")
     max_cosmic_rate_factor: float = _f(
         50.0, "1", "physics",
         "cosmic rays at more than this many times the physical flux of the scene's environment are not cosmic "
