@@ -166,11 +166,51 @@ _BF_SIGNATURE = LinearSignature(
     lambda p, res: (f"bright sources wider than faint ones, charge pushed out of their cores (a_10 = "
                     f"{p['a10_per_e']:.2g} /e-): the brighter-fatter effect"),
     pattern="flux-dependent widening of bright sources", extra_k=1)
+#: how many standard errors the source-free pixels' neighbour correlation may fall short of what a fitted IPC
+#: implies before the IPC is refused (and the least the implied correlation must reach for the test to speak)
+IPC_NOISE_SIGMA = 5.0
+
+
+def ipc_noise_correlation(alpha: float) -> float:
+    """Nearest-neighbour correlation of a flat's shot noise under IPC ``alpha`` (the docstring of :class:`IPC`)."""
+    return 2 * alpha * (1 - 4 * alpha) / ((1 - 4 * alpha) ** 2 + 4 * alpha ** 2)
+
+
+def ipc_check(fit, res) -> str:
+    """IPC couples the collected charge, its shot noise included: where no source falls, the residual's
+    nearest-neighbour correlation must be ``ipc_noise_correlation(alpha)`` times the shot noise's share of the
+    variance (the read noise is added after the coupling). When the data could show that correlation (at least
+    2 x IPC_NOISE_SIGMA standard errors of the estimate) and lack it by more than IPC_NOISE_SIGMA, the 3x3
+    smoothing the fit found is in the image (a blur, a motion), not in the pixels. Unbinned frames only (binning
+    dilutes the correlation to the bin edges)."""
+    if res.sensor.binning != 1:
+        return ""
+    var = np.maximum(res.var_adu2, 1e-12)
+    z = (res.data_adu - res.model_adu) / np.sqrt(var)
+    quiet = res.fit & ((res.photo_adu - res.background_photo_adu) <= 0.1 * np.sqrt(var))
+    pairs = [(z[:, :-1], z[:, 1:], quiet[:, :-1] & quiet[:, 1:]), (z[:-1, :], z[1:, :], quiet[:-1, :] & quiet[1:, :])]
+    a = np.concatenate([p[0][p[2]] for p in pairs]).astype(np.float64)
+    b = np.concatenate([p[1][p[2]] for p in pairs]).astype(np.float64)
+    n = a.size
+    if n < 1000:
+        return ""
+    a, b = a - a.mean(), b - b.mean()
+    rho_obs = float(np.sum(a * b) / np.sqrt(np.sum(a * a) * np.sum(b * b)))
+    shot = float(np.mean((res.charge_e / np.float32(res.gain ** 2))[quiet] / var[quiet]))
+    rho_exp = ipc_noise_correlation(float(fit.params["alpha"])) * min(max(shot, 0.0), 1.0)
+    se = 1.0 / np.sqrt(n)
+    if rho_exp >= 2 * IPC_NOISE_SIGMA * se and rho_exp - rho_obs > IPC_NOISE_SIGMA * se:
+        return (f"the noise where no source falls has a neighbour correlation of {rho_obs:.4f} +- {se:.4f} over {n} "
+                f"pairs; a coupling of {fit.params['alpha']:.3g} would give {rho_exp:.4f} (its shot noise is coupled "
+                "too): the smoothing is in the image (a blur or a motion), not in the pixels")
+    return ""
+
+
 _IPC_SIGNATURE = LinearSignature(
     _ipc_variants,
     lambda p, res: (f"a fixed fraction {p['alpha']:.2g} of every pixel's signal read in its neighbours, "
                     "independent of flux: inter-pixel capacitance"),
-    pattern="a flux-independent 3x3 coupling of every pixel into its neighbours", extra_k=1)
+    pattern="a flux-independent 3x3 coupling of every pixel into its neighbours", extra_k=1, check=ipc_check)
 
 
 class BrighterFatterParams(EffectParams):
