@@ -218,3 +218,21 @@ def test_a_preferred_effect_is_applied_before_the_ranking_best_only_when_signifi
     assert best_candidate(diag, ("prnu", "cfa"))["effect"] == "cfa"  # prnu is not significant
     assert best_candidate(diag, ("ghost",))["effect"] == "jitter"
     assert best_candidate({"candidates": []}, ("cfa",)) is None
+
+
+def test_levels_refitted_on_the_applied_scene_scale_its_values():
+    """``--apply`` of a parameter candidate writes a new sky (and bias) into the scene, then refits the levels on
+    that new scene: the refitted scale multiplies the new value, not the old scene's (a real PANOPTES round wrote
+    19.17 mag/arcsec^2 and the carried level turned it back into 19.03 - 2.5 log10(1.041) = 18.99)."""
+    from scenes.app.compare.apply import carry_levels
+
+    scene = load_scene_from({"detector": {"preset": "ml11002", "width": 64, "height": 64},
+                             "exposure": {"time_s": 10.0, "frame": "light"},
+                             "sky": {"background_mag_arcsec2": 19.03, "stars": False}},
+                            Path(tempfile.mkdtemp()) / "s.toml")
+    data = scene.model_dump(mode="json", exclude_unset=True)
+    data["sky"]["background_mag_arcsec2"] = 19.17  # the named sky level
+    data["detector"]["bias_adu"] = 990.0  # a named bias
+    data, notes = carry_levels(data, {"background_scale": 0.041, "offset_adu": 3.0}, scene)
+    assert data["sky"]["background_mag_arcsec2"] == pytest.approx(19.17 - 2.5 * math.log10(1.041), abs=1e-5)
+    assert data["detector"]["bias_adu"] == pytest.approx(993.0) and len(notes) == 2

@@ -137,8 +137,10 @@ def _level_residuals(sc, measured):
 
 
 def carry_levels(data: dict, levels: dict[str, float], scene) -> tuple[dict, list[str]]:
-    """Write refitted global levels into the keys of the scene ``data`` (a dump of ``scene``) that hold
-    them. Returns (scene data, notes)."""
+    """Write refitted global levels into the keys of the scene ``data`` (a dump of ``scene``, with the applied
+    candidate in it) that hold them. The levels were refitted on ``data`` (:func:`refit_levels`), so they scale
+    the values ``data`` holds (a sky level a parameter candidate has just set), not the old scene's. Returns
+    (scene data, notes)."""
     notes, sensor = [], scene.sensor()
     sky, det = data.setdefault("sky", {}), data.setdefault("detector", {})
     c = levels.get("light_scale", 0.0)
@@ -147,15 +149,16 @@ def carry_levels(data: dict, levels: dict[str, float], scene) -> tuple[dict, lis
         notes.append(f"the flat-screen level refitted: flat_e_per_s x {1 + c:.5f}")
     c = levels.get("background_scale", 0.0)
     if abs(c) > LEVEL_SCALE_TOL and 1 + c > 0.05:
-        mag = scene.sky.background_mag_arcsec2
+        mag = sky.get("background_mag_arcsec2", scene.sky.background_mag_arcsec2)
         # within the scene file's range [5, 35] mag/arcsec^2 (a sky fainter than 35 is no sky)
         sky["background_mag_arcsec2"] = round(min(max(float(mag) - 2.5 * float(np.log10(1 + c)), 5.0), 35.0), 5)
         notes.append(f"the sky level refitted: x {1 + c:.5f} ({mag:.4g} -> {sky['background_mag_arcsec2']:.5g} "
                      "mag/arcsec^2)")
     c = levels.get("offset_adu", 0.0) / bias_per_output_adu(sensor)
     if abs(c) > LEVEL_OFFSET_TOL_ADU:
-        det["bias_adu"] = round(max(float(sensor.bias_adu) + c, 0.0), 3)
-        notes.append(f"the bias level refitted: {sensor.bias_adu:.4g} -> {det['bias_adu']:.6g} ADU")
+        bias = float(det.get("bias_adu", sensor.bias_adu))
+        det["bias_adu"] = round(max(bias + c, 0.0), 3)
+        notes.append(f"the bias level refitted: {bias:.4g} -> {det['bias_adu']:.6g} ADU")
     return data, notes
 
 
