@@ -94,11 +94,20 @@ _CENTRE_GRID = (-0.2, -0.1, 0.0, 0.1, 0.2)
 VIGNETTING_COEF_MAX = 16.0
 
 
+def _offsets_mm(res, cx_mm: float, cy_mm: float) -> tuple[np.ndarray, np.ndarray]:
+    """The read-out window's columns and rows [mm] from a radial model's centre (``cx_mm``, ``cy_mm`` off the
+    sensor's centre): the 1-D ``u`` of ``res.xs`` and ``v`` of ``res.ys``."""
+    s = res.sensor
+    pitch_mm = s.pixel_pitch_um * 1e-3
+    u = (np.asarray(res.xs, np.float64) - (s.sensor_width_px - 1) / 2.0) * pitch_mm - cx_mm
+    v = (np.asarray(res.ys, np.float64) - (s.sensor_height_px - 1) / 2.0) * pitch_mm - cy_mm
+    return u, v
+
+
 def _vignetting_variant(res, cx_mm: float, cy_mm: float, radius_mm: float | None = None):
     s = res.sensor
     pitch_mm = s.pixel_pitch_um * 1e-3
-    u = (res.xs - (s.sensor_width_px - 1) / 2.0) * pitch_mm - cx_mm
-    v = (res.ys - (s.sensor_height_px - 1) / 2.0) * pitch_mm - cy_mm
+    u, v = _offsets_mm(res, cx_mm, cy_mm)
     r_corner = radius_mm or 0.5 * pitch_mm * float(np.hypot(s.sensor_width_px, s.sensor_height_px))
     photo = res.photo_adu
     w = photo.shape[1]
@@ -205,8 +214,7 @@ def _rho2_max(res, p: dict) -> float:
     centre, in units of the model's radius (the sensor's half-diagonal, or ``radius_mm``)."""
     s = res.sensor
     pitch_mm = s.pixel_pitch_um * 1e-3
-    u = (np.array([res.xs.min(), res.xs.max()]) - (s.sensor_width_px - 1) / 2.0) * pitch_mm - p.get("centre_x_mm", 0.0)
-    v = (np.array([res.ys.min(), res.ys.max()]) - (s.sensor_height_px - 1) / 2.0) * pitch_mm - p.get("centre_y_mm", 0.0)
+    u, v = _offsets_mm(res, p.get("centre_x_mm", 0.0), p.get("centre_y_mm", 0.0))
     r_corner = p.get("radius_mm") or 0.5 * pitch_mm * float(np.hypot(s.sensor_width_px, s.sensor_height_px))
     return float((np.max(u * u) + np.max(v * v)) / r_corner ** 2)
 
@@ -240,12 +248,8 @@ def observed_rise_chi2(p: dict, res) -> float:
     ok = (photo > 0) & (w > 0)
     if ok.sum() < 10 * VIGNETTING_RINGS:
         return 0.0
-    s = res.sensor
-    pitch_mm = s.pixel_pitch_um * 1e-3
-    xs, ys = np.asarray(res.xs, np.float64), np.asarray(res.ys, np.float64)
-    u = (xs[idx[ok] % shape[1]] - (s.sensor_width_px - 1) / 2.0) * pitch_mm - p.get("centre_x_mm", 0.0)
-    v = (ys[idx[ok] // shape[1]] - (s.sensor_height_px - 1) / 2.0) * pitch_mm - p.get("centre_y_mm", 0.0)
-    t = u * u + v * v
+    u, v = _offsets_mm(res, p.get("centre_x_mm", 0.0), p.get("centre_y_mm", 0.0))
+    t = u[idx[ok] % shape[1]] ** 2 + v[idx[ok] // shape[1]] ** 2
     q = r[ok] / photo[ok]  # relative residual: the light's change [1]
     wq = w[ok] * photo[ok] ** 2  # its inverse variance
     edges = np.quantile(t, np.linspace(0, 1, VIGNETTING_RINGS + 1))

@@ -155,14 +155,15 @@ def level_candidates(res: Residuals, scene, policy: DiagnosisPolicy = DEFAULT_PO
         if not c.ambiguous or "tolerance" in c.codes or level not in stats or dark_adu <= 0:
             continue
         coef = stats[level][0]
-        if level == "offset_adu" and abs(coef / dark_adu) <= tol:
+        as_dark = coef / dark_adu  # an offset read as a dark level [1]
+        as_bias = coef * dark_adu / bias_per_output_adu(sensor)  # a dark level read as a bias offset [ADU per read]
+        if level == "offset_adu" and abs(as_dark) <= tol:
             c.codes["tolerance"] = (f"read as a dark current (which this frame cannot tell from a bias offset) it "
-                                    f"is x {1 + coef / dark_adu:.4g}, within the {100 * tol:g} % a scene may be off")
-        elif level == "dark_scale" and abs(coef * dark_adu / bias_per_output_adu(sensor)) \
-                <= policy.parameter_bias_tolerance_adu:
+                                    f"is x {1 + as_dark:.4g}, within the {100 * tol:g} % a scene may be off")
+        elif level == "dark_scale" and abs(as_bias) <= policy.parameter_bias_tolerance_adu:
             c.codes["tolerance"] = (f"read as a bias offset (which this frame cannot tell from a dark current) it is "
-                                    f"{coef * dark_adu / bias_per_output_adu(sensor):+.3g} ADU, within the "
-                                    f"{policy.parameter_bias_tolerance_adu:g} ADU a bias drifts")
+                                    f"{as_bias:+.3g} ADU, within the {policy.parameter_bias_tolerance_adu:g} ADU a "
+                                    "bias drifts")
     for c in out:
         c.seconds = (time.perf_counter() - t0) / len(out)
     return out

@@ -644,7 +644,7 @@ def series_candidates(frames: list[Residuals], labels: list[str], present: set[s
         out.append(cand)
     _excess_shares(frames, out, fits, level_grams or [_level_gram(r, shared) for r in frames], policy)
     _heldout(frames, out, fits, progress, policy)
-    return rank(out, "flat" if all(r.light_source == "flat" for r in frames) else ""), problems, fits
+    return rank(out, series_light(frames)), problems, fits
 
 
 def _frame_shares(cand: Candidate, sf: SeriesFit, frames: list[Residuals], policy: DiagnosisPolicy) -> None:
@@ -734,6 +734,11 @@ def _heldout(frames: list[Residuals], cands: list[Candidate], fits: dict, progre
             progress(f"{c.fit.effect} (held out)")
 
 
+def series_light(frames: list[Residuals]) -> str:
+    """The series' light source for the judge's ranking: "flat" when every frame is a flat screen's."""
+    return "flat" if all(r.light_source == "flat" for r in frames) else ""
+
+
 def run_series_diagnose(series: Series, workers: int | None = None, progress=None,
                         policy: DiagnosisPolicy = DEFAULT_POLICY) -> dict:
     """compare + every absent effect fitted to the series and ranked (the single-frame JSON keys for the
@@ -755,7 +760,7 @@ def run_series_diagnose(series: Series, workers: int | None = None, progress=Non
     worst = int(np.argmax([m.get("significance_sigma", 0.0) for m in morphs]))
     morph = {**morphs[worst], "frame": labels[worst]}
     kind_gate(cands, morph)
-    cands = rank(cands, "flat" if all(r.light_source == "flat" for r in frames) else "")
+    cands = rank(cands, series_light(frames))  # the kind gate may have refused the first
     out = {"baseline": cmp["baseline"], "candidates": [_cand_json(c, fits, labels) for c in cands],
            "problems": problems, "verdict": verdict(cands, morph), "residual_morphology": morph,
            "frames": cmp["frames"], "shared_levels": cmp["shared_levels"], "calibration": cmp["calibration"],
