@@ -74,9 +74,23 @@ def init_scene(frame: str, scene_name: str = "scene", *, bias=(), dark=(), flat=
     trim = ov["trim"] if ov else None
     data = raw[parse_section(trim)] if trim else raw
     h, w = data.shape
+    rolloff_mask = np.zeros((h, w), bool)
+    rolloff = None
     if ov:
         notes.append(f"overscan {ov['bias_section']} ({ov['source']}): level {ov['level_adu']:.1f} ADU, noise "
                      f"{ov['noise_adu']:.2f} ADU; compared pixels {trim}")
+        rolloff = calib.edge_rolloff(data, trim, ov["bias_section"], ov["level_adu"])
+        if rolloff:
+            k = rolloff["n"]
+            lines = slice(0, k) if rolloff["side"] == "low" else slice(-k, None)
+            if rolloff["axis"] == "columns":
+                rolloff_mask[:, lines] = True
+            else:
+                rolloff_mask[lines, :] = True
+            ex = rolloff["excess_adu"]
+            notes.append(f"the first {k} {rolloff['axis']} beside the overscan depart from the frame's level "
+                         f"(+{ex[0]:.0f} ADU down to {ex[-1]:+.0f} ADU against {rolloff['reference_adu']:.0f} ADU: an "
+                         "edge roll-off the scene does not model): masked")
     # ---- camera from the calibration frames
     hgain = hv["gain_e_per_adu"]
     # a flat frame and a flat given: the two make the photon-transfer pair (the map comes from the other one)
@@ -222,7 +236,7 @@ def init_scene(frame: str, scene_name: str = "scene", *, bias=(), dark=(), flat=
     log("stars and PSF")
     # saturated as compare sees it: the clipped level less 5 read-noise sigma (scenes.app.compare.model.saturation_adu)
     sat_cut = sat - 5.0 * float(rn_e_v.value) / gain
-    bad = ~np.isfinite(data) | (data >= sat_cut)
+    bad = ~np.isfinite(data) | (data >= sat_cut) | rolloff_mask
     bkg, rms = starmod.background(data, mask=bad)
     seg, cols = None, {}
     if frame_type == "light":  # a dark, bias or flat frame has no stars (its outliers are hot pixels)
@@ -230,7 +244,7 @@ def init_scene(frame: str, scene_name: str = "scene", *, bias=(), dark=(), flat=
     psf = {"ok": False, "n": 0}
     if seg is not None and len(cols.get("label", [])):
         seg, cols = starmod.detect(data, bkg, rms, fwhm_px=float(np.clip(np.nanmedian(cols["fwhm"]), 1.5, 20)),
-                                   nsigma=5.0, mask=~np.isfinite(data))
+                                   nsigma=5.0, mask=~np.isfinite(data), deblend=True)
         psf = starmod.fit_psf_stars(data, bkg, seg, cols, sat_cut, rms=rms)
     if psf.get("ok"):
         fwhm_px, beta = psf["fwhm_px"], float(np.clip(psf["beta"], 1.2, 50))
@@ -250,6 +264,10 @@ def init_scene(frame: str, scene_name: str = "scene", *, bias=(), dark=(), flat=
     if frame_type == "light":
         sxyf = (phot["x"], phot["y"], phot["flux_adu"]) if phot is not None and phot["x"].size else None
         mask, minfo = maskmod.extended_and_bleeds(data, bkg, rms, fwhm_px, sat_cut, sxyf)
+    if rolloff:
+        mask |= rolloff_mask
+        minfo["edge_rolloff"] = rolloff
+        minfo["masked_fraction"] = float(mask.mean())
     # ---- sky
     sky_adu = float(np.median(bkg[~mask])) if (~mask).any() else float(np.median(bkg))
     sky_e_s = max((sky_adu - bias) * gain / max(t, 1e-9) - float(dark_e_v.value), 0.0)
@@ -357,7 +375,8 @@ def init_scene(frame: str, scene_name: str = "scene", *, bias=(), dark=(), flat=
         files[f"{scene_name}_mask.fits"] = ("fits", mask.astype(np.uint8))
         scene["mask"] = {"file": f"{scene_name}_mask.fits"}
         sources["mask.file"] = (f"measured: {len(minfo['extended'])} extended source(s), {len(minfo['bleeds'])} bleed(s), "
-                                f"{100 * minfo['masked_fraction']:.2g} % of the pixels")
+                                + (f"{rolloff['n']} edge {rolloff['axis']} beside the overscan, " if rolloff else "")
+                                + f"{100 * minfo['masked_fraction']:.2g} % of the pixels")
     # ---- sky and catalogue, through the scene's band
     band = _Band(scene, design_name, files)
     if frame_type == "flat":

@@ -317,3 +317,42 @@ def characterize_subset(bias=(), dark=(), flat=()) -> dict:
 def _exptime(path):
     _, h = read_hdu(path, None, role="dark", dtype=np.float32)
     return number_or(h.get("EXPTIME", h.get("EXPOSURE")), None)
+
+
+def edge_rolloff(data: np.ndarray, trim: str, bias_section: str, bias_adu: float, max_cols: int = 64,
+                 min_excess: float = 0.01) -> dict | None:
+    """The columns (or rows) of the trimmed data next to the prescan/overscan whose sky level departs from the
+    frame's: a raw CCD's first columns after the serial prescan (the HSC cutout's: +1015, +510, +307, ... ADU
+    over a 640 ADU sky, decaying over about 15 columns, each with the shot noise of its own level, so charge
+    and not a bias offset: an edge effect the scene has no model of). Walking away from the boundary, a
+    column belongs to the roll-off while its median departs from the reference (the median of the next
+    ``max_cols`` lines) by more than 5 standard errors and more than ``min_excess`` of the level above the
+    bias ``bias_adu`` (the overscan's); the walk stops at the first line that does not. Returns ``{"axis": "columns"|"rows",
+    "side": "low"|"high", "n": lines, "excess_adu": [...], "reference_adu"}`` or None."""
+    brows, bcols = parse_section(bias_section)
+    trows, tcols = parse_section(trim)
+    if bcols.stop <= tcols.start or bcols.start >= tcols.stop:
+        axis, side = 1, "low" if bcols.stop <= tcols.start else "high"
+    elif brows.stop <= trows.start or brows.start >= trows.stop:
+        axis, side = 0, "low" if brows.stop <= trows.start else "high"
+    else:
+        return None
+    img = data if axis == 1 else data.T
+    img = img if side == "low" else img[:, ::-1]
+    n = img.shape[1]
+    if n < 3 * 8:
+        return None
+    prof = np.nanmedian(img, axis=0)
+    far = prof[min(max_cols, n // 3): min(2 * max_cols, n)]
+    ref = float(np.median(far))
+    se = robust_std(np.diff(img[:, min(max_cols, n // 3):min(2 * max_cols, n)], axis=1)) / math.sqrt(2) \
+        * 1.2533 / math.sqrt(max(np.isfinite(img[:, 0]).sum(), 1))
+    thresh = max(5 * se, min_excess * max(ref - bias_adu, 0.0))
+    k = 0
+    while k < min(max_cols, n // 3) and abs(prof[k] - ref) > thresh:
+        k += 1
+    if k == 0:
+        return None
+    return {"axis": "columns" if axis == 1 else "rows", "side": side, "n": k,
+            "excess_adu": [round(float(v - ref), 2) for v in prof[:k]], "reference_adu": ref,
+            "threshold_adu": thresh}
