@@ -244,7 +244,10 @@ def init_scene(frame: str, scene_name: str = "scene", *, bias=(), dark=(), flat=
     psf = {"ok": False, "n": 0}
     if seg is not None and len(cols.get("label", [])):
         seg, cols = starmod.detect(data, bkg, rms, fwhm_px=float(np.clip(np.nanmedian(cols["fwhm"]), 1.5, 20)),
-                                   nsigma=5.0, mask=~np.isfinite(data), deblend=True)
+                                   nsigma=5.0, mask=~np.isfinite(data),
+                                   # not on a colour (Bayer) frame: PANOPTES went from chi2/dof 2.4 to 25 with
+                                   # its segments deblended (not analysed: left whole as before)
+                                   deblend=not hv["bayer"].value)
         psf = starmod.fit_psf_stars(data, bkg, seg, cols, sat_cut, rms=rms)
     if psf.get("ok"):
         fwhm_px, beta = psf["fwhm_px"], float(np.clip(psf["beta"], 1.2, 50))

@@ -61,13 +61,14 @@ def background(data: np.ndarray, mask: np.ndarray | None = None, box: int | None
 
 
 def deblend_segments(conv: np.ndarray, seg, npix: int, star_fwhm_px: float, max_fwhm: float = 2.5,
-                     max_elongation: float = 2.5):
+                     max_elongation: float = 2.5, max_pieces: int = 3):
     """Multi-threshold deblending of the segments (SExtractor's: Bertin & Arnouts 1996, sect. 2.3; photutils'
     ``deblend_sources``, 32 exponential levels, contrast 0.001): two stars closer than the detection's
     footprint are two sources, not one with their mean centre and summed flux (an undersampled star field's
     bright stars swallow their neighbours at the detection threshold). A segment stays whole unless every
     piece is star-like (second-moment FWHM at most ``max_fwhm`` x the stars' and elongation at most
-    ``max_elongation``): a galaxy or a streak is one source (the mask's business), not a row of stars."""
+    ``max_elongation``) and there are at most ``max_pieces``: a galaxy, a nebula or a streak is one source
+    (the mask's business), not a cluster of stars."""
     from photutils.segmentation import SourceCatalog, deblend_sources
 
     areas = np.bincount(seg.data.ravel())
@@ -89,7 +90,7 @@ def deblend_segments(conv: np.ndarray, seg, npix: int, star_fwhm_px: float, max_
     np.add.at(n_kids, pairs[0], 1)
     revert = np.zeros_like(n_kids, bool)
     np.logical_or.at(revert, pairs[0], bad_child[pairs[1]])
-    split = (n_kids > 1) & ~revert
+    split = (n_kids > 1) & (n_kids <= max_pieces) & ~revert
     if not split.any():
         return seg
     out = np.where(split[parent], kid + parent.max(), parent).reshape(seg.data.shape)
