@@ -174,3 +174,14 @@ def shared_row(cache: dict, key, tmp_path_factory, compute):
         finally:
             fcntl.flock(lock, fcntl.LOCK_UN)
     return cache[key]
+
+
+def residuals_of(data, model, var, photo, sensor):
+    """A :class:`detector.signatures.Residuals` of whole arrays [ADU]: every pixel fitted, no dark, no spikes."""
+    from detector.signatures import Residuals, SpikeStats
+
+    h, w = data.shape
+    return Residuals(data.astype(np.float32), model.astype(np.float32), var.astype(np.float32),
+                     np.ones((h, w), bool), photo.astype(np.float32), np.zeros((h, w), np.float32),
+                     np.arange(h, dtype=float), np.arange(w, dtype=float), sensor, 10.0,
+                     SpikeStats(0, 0, 0, 0, 0), SpikeStats(0, 0, 0, 0, 0))

@@ -10,6 +10,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from helpers import residuals_of
 
 from detector.effects.defects import (
     NOMINAL_DOUBLING_LEVEL_ADU,
@@ -112,16 +113,6 @@ def test_hot_pixels_on_bias_subtracted_data_use_a_nominal_doubling_level():
     np.testing.assert_allclose(eff.rate, hot_rate_e_per_s(eff.t2, 500.0, sensor.gain_e_per_adu), rtol=1e-6)
 
 
-def _residuals(data, model, var, photo, sensor):
-    from detector.signatures import Residuals, SpikeStats
-
-    h, w = data.shape
-    return Residuals(data.astype(np.float32), model.astype(np.float32), var.astype(np.float32),
-                     np.ones((h, w), bool), photo.astype(np.float32), np.zeros((h, w), np.float32),
-                     np.arange(h, dtype=float), np.arange(w, dtype=float), sensor, 10.0,
-                     SpikeStats(0, 0, 0, 0, 0), SpikeStats(0, 0, 0, 0, 0))
-
-
 def test_the_shot_noise_of_added_light_tells_a_sky_plane_from_a_bias_plane():
     """The same mean plane d as light (variance v + d/g) or as bias (variance v): with_shot_noise's change of
     -2 ln L is about -n <(dv/v)^2> / 2 on the first and +n <(dv/v)^2> / 2 on the second (second order of
@@ -139,7 +130,7 @@ def test_the_shot_noise_of_added_light_tells_a_sky_plane_from_a_bias_plane():
     expect = 0.5 * h * w * float(np.mean((dv / v) ** 2))
     for extra_var, sign in ((dv, -1), (0.0, +1)):  # light (its own shot noise) or bias (none)
         data = 1000 + photo + plane + rng.normal(0, 1, (h, w)) * np.sqrt(v + extra_var)
-        res = _residuals(data, 1000 + photo, v, photo, sensor)
+        res = residuals_of(data, 1000 + photo, v, photo, sensor)
         fit = Fit("sky_gradient", {}, 0.0, 2, h * w, "", delta_adu=plane.astype(np.float32))
         corr = with_shot_noise(res, fit).delta_m2lnl
         # the sampling spread of the correction: sum of (dv/v) (z^2 - 1) terms, sd ~ sqrt(2 sum (dv/v)^2)
@@ -178,8 +169,8 @@ def test_noise_claimed_beyond_what_the_bulk_of_the_pixels_shows_is_rejected():
     off = rng.random((h, w)) < 0.03  # misplaced stars: as much light too much as too little (dipoles)
     structured[off] += 400.0 * rng.choice([-1.0, 1.0], int(off.sum()))
     claim = Fit("reset_noise", {}, -1e4, 1, h * w, "", extra_var_adu2=0.5 * v)
-    res_noisy = _residuals(noisy, 1000 + photo, np.full((h, w), v), photo, sensor)
-    res_struct = _residuals(structured, 1000 + photo, np.full((h, w), v), photo, sensor)
+    res_noisy = residuals_of(noisy, 1000 + photo, np.full((h, w), v), photo, sensor)
+    res_struct = residuals_of(structured, 1000 + photo, np.full((h, w), v), photo, sensor)
     from scenes.app.compare.candidates import robust_excess_var
 
     assert robust_excess_var(res_noisy)[0] == pytest.approx(0.5 * v, rel=0.1)

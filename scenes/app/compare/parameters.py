@@ -274,7 +274,8 @@ def psf_candidates(res: Residuals, scene, model, policy: DiagnosisPolicy = DEFAU
                   ("stronger wings" if best < 1 else "weaker wings"))
         fit = Fit(name, {"key": key, "value": value}, d, 1, n,
                   f"{what} is x {best:.4g} the scene's ({change}): {v0:.4g} -> "
-                  f"{value:.4g}", delta_adu=fit.delta_adu, extra_var_adu2=fit.extra_var_adu2)
+                  f"{value:.4g}", delta_adu=fit.delta_adu, extra_var_adu2=fit.extra_var_adu2,
+                  state={"scene_value": v0})
         cand = Candidate(fit, float((res.chi2_profiled() + d) / max(res.n_fit, 1)), 0.0, kind="parameter",
                          key=key, value=value, policy=policy)
         if within:
@@ -311,20 +312,82 @@ def _level_shift(c: Candidate, coefs: dict[str, float], res: Residuals, scene) -
     return coefs[level]
 
 
+def conditional_evidence(res: Residuals, other_adu, own_adu) -> tuple[float, float]:
+    """What is left of a candidate's change of the model (``own_adu`` [ADU]) once another candidate's
+    (``other_adu``) is in it: (its amplitude in the joint fit over its amplitude alone, the likelihood-ratio
+    chi2 of its amplitude in the joint fit, ``coef^2 / var(coef)``). Both changes and the residual are
+    taken with the global levels refitted (:meth:`Residuals.project`), by weighted least squares on the
+    comparison's weights: the two changes as templates of free amplitude (their fitted shapes, linearised).
+    A change the other one explains keeps little of its amplitude and evidence; one of another shape keeps
+    both (a PSF too narrow at every flux against a brighter-fatter widening of the bright stars alone)."""
+    idx, r, w = res.flat_profiled()
+    a = res.project(frame_at(own_adu, idx))
+    b = res.project(frame_at(other_adu, idx))
+    aw, bw = a * w, b * w
+    g = np.array([[aw @ a, aw @ b], [aw @ b, bw @ b]])
+    y = np.array([aw @ r, bw @ r])
+    if g[0, 0] <= 0:
+        return 0.0, 0.0
+    alone = y[0] / g[0, 0]
+    try:
+        cov = np.linalg.inv(g)
+    except np.linalg.LinAlgError:
+        return 0.0, 0.0
+    coef = cov @ y
+    if not (cov[0, 0] > 0 and alone != 0):
+        return 0.0, 0.0
+    return float(coef[0] / alone), float(coef[0] ** 2 / cov[0, 0])
+
+
+def joint_psf_steps(movers: list[Candidate], res: Residuals) -> None:
+    """The PSF's width and its Moffat beta, each fitted with the other held at the scene's value, are written
+    together: both widen (or narrow) the sources' wings, so the pair overshoots (a round that widens the core
+    x 1.25 and strengthens the wings x 0.8, the next undoing both). Each step is taken in the proportion the
+    joint fit of the two changes gives it (:func:`conditional_evidence`: its amplitude beside the other's over
+    its amplitude alone), in log space: x s becomes x s^share, share clipped to [0, 1]; a step with nothing
+    left (share <= 0) is the other's doing (gate ``tolerance``). Changed in place."""
+    live = [c for c in movers if c.significant and "scene_value" in c.fit.state]
+    if len(live) != 2:
+        return
+    for c, other in ((live[0], live[1]), (live[1], live[0])):
+        share, _ = conditional_evidence(res, other.fit.delta_adu, c.fit.delta_adu)
+        c.fit.state["joint_share"] = share
+    for c, other in ((live[0], live[1]), (live[1], live[0])):
+        share = c.fit.state.pop("joint_share")
+        if share >= 1:
+            continue
+        v0 = c.fit.state["scene_value"]
+        if share <= 0:
+            c.codes["tolerance"] = (f"beside {other.key}'s change nothing of the change of {c.key} is left (joint "
+                                    f"amplitude x {share:.3g}): the other one's doing")
+            continue
+        value = round(v0 * (c.value / v0) ** share, 4)
+        c.fit.explanation += (f"; taken as {v0:.4g} -> {value:.4g} beside {other.key}'s change (the joint fit "
+                              f"keeps x {share:.3g} of this step)")
+        c.value = value
+        c.fit.params["value"] = value
+
+
 def explained_away(params: list[Candidate], effects: list[Candidate], res: Residuals, scene) -> None:
     """Gate (``tolerance``) the parameter candidates another candidate explains: a level that falls within
     the policy's tolerance once the best significant effect (or the PSF's change) is in the model is that
     candidate's doing, not a wrong number of the scene (vignetting lowers a flat's mean; a narrower PSF
-    makes the stars' peaks look brighter); a PSF width that a significant effect fits better (a blur, an
-    inter-pixel coupling) is that effect. The candidates explained are changed in place."""
+    makes the stars' peaks look brighter); a PSF change that the best significant effect explains (less than
+    half its amplitude, or no significant evidence, left in a joint fit: :func:`conditional_evidence`) is that
+    effect (a blur, an inter-pixel coupling); one that keeps its evidence beside the effect is a number of the
+    scene, named first (the effect is asked again in the next round). The candidates explained are changed in place."""
     movers = [c for c in params if c.significant and c.fit.state.get("level") is None
               and c.fit.delta_adu is not None]
     best = next((c for c in effects if c.significant and c.fit.delta_adu is not None), None)
     for p in movers:
-        if best is not None and best.fit.delta_m2lnl <= p.fit.delta_m2lnl:
-            p.codes["tolerance"] = (f"{best.fit.effect} fits the frame better (delta -2 ln L "
-                                    f"{best.fit.delta_m2lnl:.4g} vs {p.fit.delta_m2lnl:.4g}): the sources' shape "
-                                    "is its doing")
+        if best is None:
+            continue
+        share, left = conditional_evidence(res, best.fit.delta_adu, p.fit.delta_adu)
+        need = -p.policy.significant_delta_bic + np.log(max(res.n_fit, 2))
+        if left < need or share < 1 - p.policy.parameter_explained_share:
+            p.codes["tolerance"] = (f"with {best.fit.effect} in the model the change of {p.key} keeps x {share:.3g} "
+                                    f"of its own amplitude (chi2 {left:.4g}): the sources' shape is its doing")
+    joint_psf_steps(movers, res)
     explainers = [c for c in movers if c.significant] + ([best] if best is not None else [])
     own_fit = level_fit(res)
     own = {name: c for name, (c, _) in own_fit.items()}
