@@ -987,7 +987,10 @@ def fam_cfa(rng):
     resp = [float(1 - dev * v) for v in rng.uniform(0, 1, 4)]
     resp[int(rng.integers(4))] = 1.0
     cell = int(_choice(rng, [1, 1, 2]))
-    prm = {"cell": cell, "response": resp, "column_drift": float(rng.uniform(-0.02, 0.02))}
+    # the responses' drift across the columns (a filter's thickness gradient) is the form's secondary feature:
+    # a fraction of the mosaic's own contrast (a 2 % drift under a 0.1 % mosaic is a response gradient, not a
+    # mosaic: the label would be wrong), as the gain strips' drift is of theirs
+    prm = {"cell": cell, "response": resp, "column_drift": float(rng.uniform(-1, 1) * dev * 0.3)}
     return Draw(base, [("QuadBayer", prm)], f"CFA of {2 * cell}x{2 * cell} cells, responses "
                 f"{'/'.join(f'{r:.3f}' for r in resp)}", t, accept=("cfa",))
 
