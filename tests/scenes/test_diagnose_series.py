@@ -167,3 +167,32 @@ def test_calibration_pairs_measure_gain_and_read_noise_as_characterize_does(tmp_
     (rn,), (pt,) = cal["read_noise"], cal["photon_transfer"]
     assert rn["measured_e"] == pytest.approx(s.read_noise_e, rel=0.05)
     assert pt["measured_gain_e_per_adu"] == pytest.approx(s.gain_e_per_adu, rel=0.05)
+
+
+def test_a_camera_number_the_calibration_frames_contradict_is_named_and_applied(tmp_path):
+    """The scene's own numbers first, on a series too (issue 23): bias pairs and flat pairs of a camera whose gain
+    is 1.25x and read noise 1.5x what the scene states name ``detector.gain_e_per_adu`` and
+    ``detector.read_noise_e`` with the measured values (photon transfer, bias difference), and ``--apply``
+    writes them; the same frames of the scene's own camera name neither."""
+    from scenes.app.compare.series import apply_series
+    from scenes.app.validation.series_cases import SeriesCase, _flat
+    from scenes.scene import load_scene
+
+    model = _flat(160)
+    frames = [{"set": {"exposure.frame": "bias", "exposure.time_s": 0.0}, "truth": {}} for _ in range(2)]
+    frames += [{"set": {"exposure.time_s": 4.0}, "truth": {}} for _ in range(2)]
+    off = write_case(SeriesCase("camera", model, frames, {"detector": {"gain_e_per_adu": 1.75, "read_noise_e": 16.5}}),
+                     tmp_path / "off")
+    d = run_series_diagnose(load_series(off))
+    params = {c["key"]: c for c in d["candidates"] if c.get("kind") == "parameter"}
+    assert params["detector.gain_e_per_adu"]["significant"] and params["detector.read_noise_e"]["significant"]
+    assert params["detector.gain_e_per_adu"]["value"] == pytest.approx(1.75, rel=0.05)
+    assert params["detector.read_noise_e"]["value"] == pytest.approx(16.5, rel=0.05)
+    assert d["candidates"][0].get("kind") == "parameter"
+    scene, nxt, best = apply_series(load_series(off), d, tmp_path / "round2.toml")
+    det = load_scene(str(scene)).sensor()
+    assert det.gain_e_per_adu == pytest.approx(1.75, rel=0.05) and det.read_noise_e == pytest.approx(16.5, rel=0.05)
+    assert load_series(nxt).frames[0].scene.sensor().gain_e_per_adu == pytest.approx(det.gain_e_per_adu)
+    same = write_case(SeriesCase("camera", model, frames), tmp_path / "same")
+    d0 = run_series_diagnose(load_series(same))
+    assert not any(c["significant"] for c in d0["candidates"] if c.get("kind") == "parameter")

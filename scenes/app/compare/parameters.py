@@ -431,3 +431,68 @@ def apply_parameters(data: dict, cands: list[dict]) -> list[str]:
         node[last] = c["value"]
         notes.append(f"{c['key']} {old if old is not None else '(default)'} -> {c['value']}: {c['explanation']}")
     return notes
+
+
+def calibration_candidates(calibration: dict, sensor, n_fit: int, chi2_per_dof: float, scene=None,
+                           policy: DiagnosisPolicy = DEFAULT_POLICY) -> list[Candidate]:
+    """A series' own calibration measurements (:func:`.series.calibration`) as parameter candidates: what a
+    calibration set measures that one frame cannot, each against the scene's number:
+
+    * the gain ``detector.gain_e_per_adu`` by photon transfer of two flats taken alike (Janesick 2007 eq. 4.7;
+      pairs combined by inverse variance);
+    * the read noise ``detector.read_noise_e`` from the difference of two bias frames (its standard error
+      sigma / sqrt(2 (n - 1)) for n pixels of a normal difference), in e- through the measured gain when the
+      flats measure one;
+    * the dark current ``detector.dark_current_e_per_s`` from the darks' median level against exposure time
+      (EMVA 1288 sect. 8.1; the slope's error from the medians' own errors), scaled as the measured slope over
+      the model's (the model's other dark charge, hot pixels and glows, leaves the median alone).
+
+    The evidence of each is ``((measured - scene) / se)^2`` (a Wald statistic, one parameter); a value within
+    the policy's scale tolerance of the scene's is not a finding (gate ``tolerance``). ``chi2_per_dof``: the
+    series' (a number of the camera changes the variance more than the mean: not re-rendered here)."""
+    t0 = time.perf_counter()
+    tol = policy.parameter_scale_tolerance
+    n = max(n_fit, 2)
+    rows: list[tuple[str, str, float, float, float, str, str]] = []
+    pt = [e for e in calibration.get("photon_transfer", [])
+          if np.isfinite(e.get("gain_se", np.nan)) and e["gain_se"] > 0 and np.isfinite(e["measured_gain_e_per_adu"])]
+    if pt:
+        w = np.array([1.0 / e["gain_se"] ** 2 for e in pt])
+        g = float(np.sum(w * [e["measured_gain_e_per_adu"] for e in pt]) / w.sum())
+        frames = ", ".join("/".join(e["frames"]) for e in pt)
+        rows.append(("gain", "detector.gain_e_per_adu", float(sensor.gain_e_per_adu), g, float(1 / np.sqrt(w.sum())),
+                     "e-/ADU", f"the photon transfer of the flats {frames}"))
+    rn = [e for e in calibration.get("read_noise", []) if np.isfinite(e["measured_e"]) and e.get("n_pixels", 0) > 1]
+    if rn:
+        # the pair's noise is measured in ADU: in e- through the gain the flats measured, when they did
+        g_adopted = rows[0][3] if rows else float(sensor.gain_e_per_adu)
+        meas = np.array([e["measured_e"] * g_adopted / float(sensor.gain_e_per_adu) for e in rn])
+        se = meas / np.sqrt(2 * (np.array([e["n_pixels"] for e in rn]) - 1))
+        w = 1 / se ** 2
+        v = float(np.sum(w * meas) / w.sum())
+        frames = ", ".join("/".join(e["frames"]) for e in rn)
+        rows.append(("read_noise", "detector.read_noise_e", float(sensor.read_noise_e), v, float(1 / np.sqrt(w.sum())),
+                     "e-", f"the difference of the bias frames {frames}"))
+    dk = calibration.get("dark_regression")
+    if dk and "dark_map" not in (scene.effects if scene is not None else {}):  # a measured map holds the dark
+        se = dk.get("measured_rate_se_e_per_s", np.nan)
+        mod, meas = dk["model_rate_e_per_s"], dk["measured_rate_e_per_s"]
+        rate = float(sensor.dark_current_e_per_s)
+        if np.isfinite(se) and se > 0 and mod > 0 and rate > 0:
+            f = meas / mod
+            rows.append(("dark_level", "detector.dark_current_e_per_s", rate, rate * f, rate * se / mod, "e-/s",
+                         f"the darks' level against exposure time ({', '.join(dk['frames'])})"))
+    out = []
+    for name, key, v0, v, se, unit, source in rows:
+        stat = ((v - v0) / se) ** 2
+        f = v / v0 if v0 > 0 else np.inf
+        within = "" if abs(f - 1) > tol else (f"the measured {name.replace('_', ' ')} is x {f:.4g} the scene's, "
+                                               f"within the {100 * tol:g} % a scene may be off")
+        fit = Fit(name, {"key": key, "value": float(f"{v:.6g}")}, -stat, 1, n,
+                  f"{source} gives {v:.4g} +- {se:.2g} {unit}: x {f:.4g} the scene's {v0:.4g} {unit}")
+        c = Candidate(fit, float(chi2_per_dof), (time.perf_counter() - t0) / max(len(rows), 1), kind="parameter", key=key,
+                      value=float(f"{v:.6g}"), policy=policy)
+        if within:
+            c.codes["tolerance"] = within
+        out.append(c)
+    return out

@@ -57,6 +57,7 @@ from detector.joint import (
 )
 from detector.jsonable import jsonable
 from detector.morphology import describe
+from detector.stats import mad_std
 from detector.signatures import (
     LINEAR_SEARCH_PIXELS,
     Fit,
@@ -75,6 +76,7 @@ from .candidates import chi2_after, implausibility, overfit, stars_check, struct
 from .floors import floor_reason, signal_range_floor
 from .judge import Candidate, judge_json, kind_gate, rank, verdict
 from .ledger import plot_ledger, update_ledger
+from .parameters import calibration_candidates
 from .policy import DEFAULT_POLICY, DiagnosisPolicy
 from .run import _run_compare
 
@@ -313,8 +315,11 @@ def calibration(series: Series, cmps: list[dict]) -> dict:
             idx = res.flat()[0]
             if not idx.size:
                 continue
-            rows.append((res.exptime_s, float(np.median(res.data_adu.ravel()[idx])),
-                         float(np.median(res.model_adu.ravel()[idx])), fr.label, res.gain))
+            d = res.data_adu.ravel()[idx]
+            # the median's standard error: sqrt(pi / 2) x the pixels' robust scatter / sqrt(n) (a normal sample)
+            se = 1.2533 * mad_std(d) / math.sqrt(d.size)
+            rows.append((res.exptime_s, float(np.median(d)), float(np.median(res.model_adu.ravel()[idx])),
+                         fr.label, res.gain, se))
         ts = np.array([r[0] for r in rows])
         if len(rows) < 2 or np.ptp(ts) == 0:
             continue
@@ -327,6 +332,10 @@ def calibration(series: Series, cmps: list[dict]) -> dict:
         if kind == "dark_regression":
             entry["measured_rate_e_per_s"] = meas["slope"] * g
             entry["model_rate_e_per_s"] = mod["slope"] * g
+            # the slope's standard error from the medians' own errors (weighted least squares: 1 / sum w (t - tw)^2)
+            wts = 1.0 / np.maximum(np.array([r[5] for r in rows]), 1e-12) ** 2
+            tw = float(np.sum(wts * ts) / np.sum(wts))
+            entry["measured_rate_se_e_per_s"] = g / math.sqrt(float(np.sum(wts * (ts - tw) ** 2)))
         else:
             fit_y = meas["intercept"] + meas["slope"] * ts
             sig = np.maximum(np.abs(fit_y - meas["intercept"]), 1e-9)
@@ -355,7 +364,8 @@ def _pairs(series: Series, cmps: list[dict]) -> dict:
         if src == "none" and t == 0:
             pn = pair_noise(a.data_adu, b.data_adu)
             out.setdefault("read_noise", []).append(
-                {"frames": [la, lb], "measured_e": pn["sigma_adu"] * s.gain_e_per_adu, "scene_e": s.read_noise_e})
+                {"frames": [la, lb], "measured_e": pn["sigma_adu"] * s.gain_e_per_adu, "scene_e": s.read_noise_e,
+                 "n_pixels": int(a.data_adu.size)})
         elif src == "flat":
             master = (a.model_adu - a.photo_adu).astype(np.float64)
             pt = photon_transfer(a.data_adu, b.data_adu, master, s.read_noise_e / s.gain_e_per_adu)
@@ -760,7 +770,10 @@ def run_series_diagnose(series: Series, workers: int | None = None, progress=Non
     worst = int(np.argmax([m.get("significance_sigma", 0.0) for m in morphs]))
     morph = {**morphs[worst], "frame": labels[worst]}
     kind_gate(cands, morph)
-    cands = rank(cands, series_light(frames))  # the kind gate may have refused the first
+    base = series.frames[0].scene if series.scene_file is None else load_scene(str(series.scene_file))
+    params = calibration_candidates(cmp["calibration"], frames[0].sensor, sum(r.n_fit for r in frames),
+                                    cmp["baseline"]["chi2_per_dof"], base, policy)
+    cands = rank(params + cands, series_light(frames))  # the kind gate may have refused the first
     out = {"baseline": cmp["baseline"], "candidates": [_cand_json(c, fits, labels) for c in cands],
            "problems": problems, "verdict": verdict(cands, morph), "residual_morphology": morph,
            "frames": cmp["frames"], "shared_levels": cmp["shared_levels"], "calibration": cmp["calibration"],
@@ -789,17 +802,17 @@ def _cand_json(c: Candidate, fits: dict, labels: list[str]) -> dict:
 
 def separation(frames: list[Residuals], labels: list[str], cands: list[Candidate], fits: dict, series: Series
                ) -> dict | None:
-    """What separated the best candidate from its nearest rival (the next plausible, unrejected candidate of
+    """What separated the best effect from its nearest rival (the next plausible, unrejected candidate of
     another effect with delta BIC < -10): frame by frame, each one's share of the improvement and, for a
     shared effect, its pattern fitted to that frame alone (amplitude relative to the joint fit, the shared
     levels held: 1 where the frame agrees). A shared effect of the right scaling keeps 1 in every frame; one
     of the wrong scaling drifts with exposure or signal (a bias ramp fitted to a dark-current gradient grows
     with exposure time, a lamp-level error fitted as a non-linearity shrinks with the signal)."""
-    best = next((c for c in cands if c.significant), None)
+    best = next((c for c in cands if c.significant and c.fit.effect in fits), None)  # effects (not numbers)
     if best is None:
         return None
     rival = next((c for c in cands if c is not best and c.fit.effect != best.fit.effect and c.plausible
-                  and not c.rejected and c.fit.delta_bic < -10), None)
+                  and not c.rejected and c.fit.delta_bic < -10 and c.fit.effect in fits), None)
     pair = [("best", best, fits[best.fit.effect])]
     if rival is not None:
         pair.append(("rival", rival, fits[rival.fit.effect]))
@@ -885,6 +898,11 @@ def apply_series(series: Series, diagnosis: dict, apply_to: str | Path | None, p
     best = next((c for n in prefer for c in sig if c["effect"] == n), sig[0] if sig else None)
     if apply_to is None or best is None:
         return None, None, best
+    if best.get("kind") == "parameter":  # numbers of the camera: every significant one written at once
+        params = [c for c in sig if c.get("kind") == "parameter"]
+        best = {"effect": "parameters", "kind": "parameter", "params": {c["key"]: c["value"] for c in params},
+                "parameters": params, "delta_bic": min(c["delta_bic"] for c in params),
+                "explanation": "; ".join(c["explanation"] for c in params)}
     base = series.frames[0].scene if series.scene_file is None else load_scene(str(series.scene_file))
     per = best["params"].get("per_frame") if isinstance(best["params"], dict) else None
     cand = dict(best)
@@ -924,7 +942,7 @@ def _write_next_series(series: Series, best: dict, per: list | None, scene_path:
                 sets[f"effects.{best['effect']}.{k}"] = v
         if fr.scene_file is not None:
             entry["scene"] = str(fr.scene_file)
-            if per is None:
+            if per is None and best.get("kind") != "parameter":
                 for k, v in best["params"].items():
                     sets[f"effects.{best['effect']}.{k}"] = v
         if sets:
