@@ -189,7 +189,7 @@ def test_a_camera_number_the_calibration_frames_contradict_is_named_and_applied(
     assert params["detector.gain_e_per_adu"]["value"] == pytest.approx(1.75, rel=0.05)
     assert params["detector.read_noise_e"]["value"] == pytest.approx(16.5, rel=0.05)
     assert d["candidates"][0].get("kind") == "parameter"
-    scene, nxt, best = apply_series(load_series(off), d, tmp_path / "round2.toml")
+    scene, nxt, _ = apply_series(load_series(off), d, tmp_path / "round2.toml")
     det = load_scene(str(scene)).sensor()
     assert det.gain_e_per_adu == pytest.approx(1.75, rel=0.05) and det.read_noise_e == pytest.approx(16.5, rel=0.05)
     assert load_series(nxt).frames[0].scene.sensor().gain_e_per_adu == pytest.approx(det.gain_e_per_adu)

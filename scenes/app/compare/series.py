@@ -57,7 +57,6 @@ from detector.joint import (
 )
 from detector.jsonable import jsonable
 from detector.morphology import describe
-from detector.stats import mad_std
 from detector.signatures import (
     LINEAR_SEARCH_PIXELS,
     Fit,
@@ -67,6 +66,7 @@ from detector.signatures import (
     heldout_delta,
     search_sample,
 )
+from detector.stats import mad_std
 from scenes.errors import SceneError
 from scenes.scene import load_scene, read_toml
 
