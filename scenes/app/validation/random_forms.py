@@ -213,7 +213,7 @@ def normalise(spec: dict, n: int = 65) -> dict:
     lo, hi = float(f.min()), float(f.max())
     if not hi > lo:
         raise ValueError(f"flat field {spec}")
-    return {**spec, "lo": lo, "hi": hi}
+    return {**spec, "lo": lo, "hi": hi, "mean": float(np.mean((f - lo) / (hi - lo)))}
 
 
 def field_shape(spec: dict, x: np.ndarray, y: np.ndarray) -> np.ndarray:
@@ -267,13 +267,15 @@ class DarkField(_FieldBase):
 
 
 class BiasField(_FieldBase):
-    """Bias structure ``amp (g - 1/2)`` [ADU per read-out value], peak to peak ``amp``: ADU stage."""
+    """Bias structure ``amp (g - <g>)`` [ADU per read-out value], peak to peak ``amp``, of zero mean over the
+    window: ADU stage. The scene's bias level is what a bias frame's mean measures; a structure is the departure
+    from it (a field of non-zero mean is a bias structure and a wrong bias level, two findings)."""
 
     name = "rf_bias_field"
     stages = (Stage.ADU,)
 
     def apply(self, stage, tile, data):
-        data += (self.params.amp * (self.values(tile) - 0.5)).astype(np.float32)
+        data += (self.params.amp * (self.values(tile) - self.params.spec.get("mean", 0.5))).astype(np.float32)
 
 
 # --- periodic patterns (out of the catalogue) ---------------------------------------------------------------------
