@@ -423,3 +423,96 @@ def test_init_masks_the_edge_rolloff_beside_the_prescan(tmp_path):
     assert roll["axis"] == "columns" and roll["side"] == "low" and abs(roll["n"] - (expected - 1)) <= 2
     out = run_compare(load_scene(str(tmp_path / "s.toml")), tmp_path / "raw.fits", workers=1)["summary"]
     assert out["chi2_per_dof"] < 1.3
+
+
+# --- the noise, the gain and the saturation from the frame ---------------------------------------------------
+def _init_json(tmp_path, name="f.fits"):
+    import json
+
+    assert _cli("init", str(tmp_path / name), "-o", str(tmp_path / "s.toml"), "--json", str(tmp_path / "s.json")) == 0
+    return json.loads((tmp_path / "s.json").read_text())
+
+
+def test_amplifier_gain_cards_and_an_unset_gain():
+    """HSC writes GAIN = 0 (not set) and its amplifiers' gains T_GAIN1..4; DECam GAINA/GAINB: all reported."""
+    g = read_header(_header(GAIN=0.0, T_GAIN1=3.21, T_GAIN2=3.04, T_GAIN3=3.15, T_GAIN4=3.19))["gain_e_per_adu"]
+    assert g.value == pytest.approx(3.1475) and "T_GAIN1" in g.card and "3.21" in g.note and "not set" in g.note
+    g = read_header(_header(GAINA=4.128, GAINB=3.94))["gain_e_per_adu"]
+    assert g.value == pytest.approx(4.034) and g.card == "GAINA/GAINB"
+
+
+def test_saturation_is_the_clip_below_a_few_hot_pixels():
+    """A DSLR's saturated stars all read its white level (PANOPTES: 306 pixels at 13 583 ADU) while three hot
+    pixels read more: the clip is the pile, not the maximum nor the bit depth's top."""
+    rng = np.random.default_rng(3)
+    data = rng.normal(2200, 12, (128, 128)).round()
+    data[40:45, 40:46] = 13583.0  # a clipped star
+    data[90:93, 10:14] = 13583.0
+    data[5, 5], data[7, 100], data[120, 60] = 13639.0, 13650.0, 13863.0  # hot pixels
+    v = read_header(_header(BITPIX=16), data)
+    assert v["saturation_adu"].value == 13583.0 and v["saturation_adu"].source == "measured"
+
+
+def test_gain_from_the_white_sky_noise_not_the_sky_structure(tmp_path):
+    """A raw frame (prescan at the bias, read noise 2 ADU) whose sky (600 ADU, gain 3 e-/ADU) carries a column
+    pattern of 8 ADU rms (the HSC cutout's: it is not pixel noise, and the model has no such pattern). The
+    spread about the background (sqrt(200 + 64 + 4) ADU) gave 2.3 e-/ADU and a model variance 1.3 x the pixel
+    noise; the differences of neighbouring sky pixels along the columns cancel the pattern: 3 e-/ADU."""
+    rng = np.random.default_rng(5)
+    h, w, gain, bias, sky = 240, 200, 3.0, 1000.0, 600.0
+    img = np.empty((h, w))
+    img[:, :8] = bias + rng.normal(0, 2.0, (h, 8))
+    cols = rng.normal(0, 8.0, w - 8)[None, :]
+    img[:, 8:] = bias + cols + rng.poisson(sky * gain, (h, w - 8)) / gain + rng.normal(0, 2.0, (h, w - 8))
+    fits.PrimaryHDU(np.round(img).astype(np.int16), _header(EXPTIME=30.0)).writeto(tmp_path / "f.fits")
+    s = _init_json(tmp_path)
+    n = s["noise"]
+    assert n["white_adu"] == pytest.approx(math.sqrt(sky / gain + 4 + 1 / 12), rel=0.03)
+    assert n["about_background_adu"] > 1.1 * n["white_adu"]
+    import tomllib
+
+    det = tomllib.loads((tmp_path / "s.toml").read_text())["detector"]
+    assert det["gain_e_per_adu"] == pytest.approx(gain, rel=0.05)
+
+
+def test_header_gain_the_noise_contradicts_is_flagged_and_replaced(tmp_path):
+    """A processed frame (bias removed) at 2 e-/ADU whose header says GAIN = 1 e-/ADU (the LCO cutout's case):
+    its sky is quieter than a gain of 1 allows, which no process does to a Poisson noise, so the measured gain is
+    adopted and the disagreement stated; a header gain the noise agrees with is kept."""
+    rng = np.random.default_rng(7)
+    h, w, sky = 160, 160, 470.0
+    for true, hdr, adopted in ((2.0, 1.0, "measured"), (2.0, 2.0, "header")):
+        img = rng.poisson(sky * true, (h, w)) / true + rng.normal(0, 8.0 / true, (h, w))
+        hd = fits.Header()
+        hd["EXPTIME"] = 90.0
+        hd["GAIN"] = (hdr, "[electrons/count] Pixel gain")
+        hd["RDNOISE"] = 8.0
+        hd["PEDESTAL"] = 0.0  # as the LCO frame: the level above zero is all signal
+        fits.PrimaryHDU(img.astype(np.float32), hd).writeto(tmp_path / "f.fits", overwrite=True)
+        s = _init_json(tmp_path)
+        chk = s["noise"]["gain_check"]
+        assert chk["adopted"] == adopted and chk["measured_e_per_adu"] == pytest.approx(true, rel=0.05)
+        if adopted == "measured":
+            assert any("DISAGREES" in note for note in s["notes"])
+            assert "measured" in s["values"]["detector.gain_e_per_adu"]
+
+
+def test_colour_frame_gain_and_black_level_from_its_cells(tmp_path):
+    """A raw colour (RGGB) frame with a DSLR's black level (2048 ADU) and no bias, gain or overscan: the four
+    cells see the sky at 200, 150, 110, 200 ADU above it, so their white variances against their levels are a
+    photon-transfer line (slope 1/K whatever the black level). Before, the black level was taken as 0 and the
+    gain from the checkerboard's spread (K about 0.8 here, the noise's model 15 x too large)."""
+    rng = np.random.default_rng(9)
+    h, w, gain, black, rn_e = 200, 200, 1.0, 2048.0, 3.0
+    lv = np.empty((h, w))
+    lv[0::2, 0::2], lv[0::2, 1::2], lv[1::2, 0::2], lv[1::2, 1::2] = 200.0, 150.0, 110.0, 200.0
+    img = black + rng.poisson(lv * gain) / gain + rng.normal(0, rn_e / gain, (h, w))
+    fits.PrimaryHDU(np.round(img).astype(np.int16), _header(EXPTIME=120.0, BAYERPAT="RGGB")).writeto(tmp_path / "f.fits")
+    s = _init_json(tmp_path)
+    pt = s["noise"]["cfa_photon_transfer"]
+    assert pt["gain_e_per_adu"] == pytest.approx(gain, rel=0.1)
+    import tomllib
+
+    det = tomllib.loads((tmp_path / "s.toml").read_text())["detector"]
+    assert det["gain_e_per_adu"] == pytest.approx(gain, rel=0.1)
+    assert abs(det["bias_adu"] - black) < 20  # 20 ADU: the photon-transfer line's intercept at RN = 3 e-

@@ -128,34 +128,93 @@ def init_scene(frame: str, scene_name: str = "scene", *, bias=(), dark=(), flat=
     finite = np.isfinite(data)
     med = float(np.median(data[finite]))
     # the noise of a pixel about the smooth background (photutils Background2D: a gradient or the vignetting is
-    # not noise; the stars are outliers of the robust std)
-    bkg0, _ = starmod.background(data, mask=~finite | (data >= float(hv["saturation_adu"].value)))
+    # not noise; the stars are outliers of the robust std): it keeps the sky's structure between the pixel and
+    # the background's box (a raw frame's column pattern, a CFA's checkerboard), so the gain of a light frame
+    # comes from the white noise instead (:func:`calib.white_noise`)
+    bkg0, rms0 = starmod.background(data, mask=~finite | (data >= float(hv["saturation_adu"].value)))
     res0 = (data - bkg0)[finite]
-    noise = calib.robust_std(res0[:: max(1, res0.size // 2_000_000)])
+    noise_about = calib.robust_std(res0[:: max(1, res0.size // 2_000_000)])
+    noise = noise_about
+    integer = bool(np.allclose(data[finite][:1000], np.round(data[finite][:1000])))
+    q_adu2 = 1.0 / 12.0 if integer else 0.0  # the quantisation's variance (the model has its own)
+    bayer = bool(hv["bayer"].value)
+    noise_info: dict = {"about_background_adu": noise_about}
+    cfa_pt = None
+    if frame_type == "light":
+        sky_px = calib.sky_pixels(data, bkg0, rms0, bad=rolloff_mask | (data >= float(hv["saturation_adu"].value)))
+        wn = calib.white_noise(data, sky_px, lag=2 if bayer else 1)
+        noise_info.update(white_x_adu=wn["x_adu"], white_y_adu=wn["y_adu"], white_adu=wn["adu"], lag_px=wn["lag"],
+                          sky_pixels=int(sky_px.sum()))
+        if not bayer:  # neighbours correlated (a resampled or smoothed frame): the lag-1 noise below the lag-2 one
+            noise_info["lag2_adu"] = calib.white_noise(data, sky_px, lag=2)["adu"]
+        if math.isfinite(wn["adu"]) and wn["n"] >= 100:
+            noise = wn["adu"]
+        if bayer and not (g_meas is not None and "gain_se" in cam):
+            cfa_pt = calib.cfa_photon_transfer(data, sky_px)
+            noise_info["cfa_photon_transfer"] = cfa_pt
+    noise_info["adopted_adu"] = noise
+    var_w = max(noise ** 2 - q_adu2, 1e-9)
     if bias_v is None:
         low = float(np.percentile(data[finite], 0.1))
         if low <= 0.05 * med or med < 5 * noise:
             bias_v = _v(0.0, "assumed", note="the data reach zero: bias-subtracted (or black level removed in the camera)")
+        elif cfa_pt is not None:
+            # the photon-transfer line of the cells: var = RN^2 + (L - B) / K at the cells' mean level
+            g = cfa_pt["gain_e_per_adu"]
+            rn_e = rn_hdr.value or ASSUMED_READ_NOISE_E[kind]
+            lv, vv = float(np.mean(cfa_pt["levels_adu"])), float(np.mean(cfa_pt["variances_adu2"]))
+            b = lv - g * (vv - q_adu2 - (rn_e / g) ** 2)
+            bias_v = _v(float(np.clip(b, 0, min(cfa_pt["levels_adu"]))), "measured",
+                        note=f"black level from the colour cells' photon transfer (K = {g:.4g} e-/ADU, read noise "
+                        f"{rn_e:g} e-): level - K (variance - RN^2) at the cells' mean level {lv:.1f} ADU")
         elif gain_v is not None and gain_v.value:
             rn_e = rn_hdr.value or ASSUMED_READ_NOISE_E[kind]
             g = float(gain_v.value)
-            b = med - g * (noise ** 2 - (rn_e / g) ** 2)
+            b = med - g * (var_w - (rn_e / g) ** 2)
             bias_v = _v(float(np.clip(b, 0, med)), "measured",
                         note="level minus gain x (variance - read noise^2): var = (S - B)/g + (RN/g)^2")
         else:
             bias_v = _v(0.0, "assumed", note="no bias frame, no overscan, no gain: the level is taken as all signal")
     bias = float(bias_v.value)
+    # the gain the frame's white sky noise gives (Janesick 2007, eq. 4.7 on the sky: K = (S - B) / (var - RN^2))
+    s_adu = max((float(np.median(bkg0[finite])) if frame_type == "light" else med) - bias, 1e-3)
+    g_white = None
+    if frame_type == "light" and bias_v.note != "level minus gain x (variance - read noise^2): var = (S - B)/g + (RN/g)^2":
+        rn_e_guess = rn_hdr.value or ASSUMED_READ_NOISE_E[kind]
+        if rn_adu is not None and rn_adu.value ** 2 < 0.8 * var_w:
+            g_white = s_adu / (var_w - rn_adu.value ** 2)
+        elif rn_adu is None:  # var g^2 - S g - RN^2 = 0 with the read noise in e- (header or assumed)
+            g_white = (s_adu + math.sqrt(s_adu * s_adu + 4 * var_w * rn_e_guess ** 2)) / (2 * var_w)
+        noise_info["gain_white_e_per_adu"] = g_white
+    prnu_sigma = None
+    gain_check = _gain_check(hgain, header, g_white, s_adu, var_w, rn_adu, rn_hdr, cfa_pt, trim is not None)
+    if gain_check is not None:
+        noise_info["gain_check"] = gain_check
+        notes.append(gain_check["note"])
+    if gain_v is not None and "gain_se" not in cam and gain_check is not None:
+        if gain_check["adopted"] == "measured":
+            gain_v = _v(gain_check["measured_e_per_adu"], "measured", note=gain_check["source_note"])
+        elif gain_check.get("prnu_sigma"):
+            prnu_sigma = gain_check["prnu_sigma"]
     if gain_v is None:
-        rn_e = rn_hdr.value or ASSUMED_READ_NOISE_E[kind]
-        var = max(noise ** 2 - (1.0 / 12.0 if np.allclose(data[finite][:1000], np.round(data[finite][:1000])) else 0), 1e-9)
-        s = max(med - bias, 1e-3)
-        if rn_adu is not None and rn_adu.value ** 2 < 0.8 * var:  # var = S/g + rn_adu^2
-            g = s / (var - rn_adu.value ** 2)
-        else:  # var g^2 - S g - RN^2 = 0
-            g = (s + math.sqrt(s * s + 4 * var * rn_e ** 2)) / (2 * var)
-        gain_v = _v(float(np.clip(g, 0.01, 999.0)), "measured", note="sky noise: var = S/g + (RN/g)^2 (Poisson sky and read noise)")
-        if frame_type != "light":
-            gain_v = _v(float(g), "measured", note=f"noise of the {frame_type} frame (Poisson + read noise)")
+        if cfa_pt is not None:
+            gain_v = _v(cfa_pt["gain_e_per_adu"], "measured",
+                        note=f"photon transfer of the four colour cells' white sky noise against their levels "
+                        f"{cfa_pt['levels_adu']} ADU (Janesick 2007, eq. 4.7), standard error {cfa_pt['gain_se']:.2g}")
+        else:
+            rn_e = rn_hdr.value or ASSUMED_READ_NOISE_E[kind]
+            if rn_adu is not None and rn_adu.value ** 2 < 0.8 * var_w:  # var = S/g + rn_adu^2
+                g = s_adu / (var_w - rn_adu.value ** 2)
+            else:  # var g^2 - S g - RN^2 = 0
+                g = (s_adu + math.sqrt(s_adu * s_adu + 4 * var_w * rn_e ** 2)) / (2 * var_w)
+            which = (f"the white sky noise {noise:.3g} ADU (differences of neighbouring sky pixels / sqrt 2, lag "
+                     f"{noise_info.get('lag_px', 1)} px)" if frame_type == "light" else f"the noise {noise:.3g} ADU")
+            gain_v = _v(float(np.clip(g, 0.01, 999.0)), "measured",
+                        note=f"{which}: var = S/g + (RN/g)^2 (Poisson sky and read noise); a raw frame's pixel "
+                        "response pattern adds to it (the gain a lower bound)" if frame_type == "light" else
+                        f"{which}: var = S/g + (RN/g)^2")
+            if frame_type != "light":
+                gain_v = _v(float(g), "measured", note=f"noise of the {frame_type} frame (Poisson + read noise)")
     gain = float(gain_v.value)
     if rn_adu is not None:
         rn_e_v = _v(rn_adu.value * gain, rn_adu.source, rn_adu.card, (rn_adu.note or "") + " x adopted gain")
@@ -236,19 +295,27 @@ def init_scene(frame: str, scene_name: str = "scene", *, bias=(), dark=(), flat=
     log("stars and PSF")
     # saturated as compare sees it: the clipped level less 5 read-noise sigma (scenes.app.compare.model.saturation_adu)
     sat_cut = sat - 5.0 * float(rn_e_v.value) / gain
+    # a colour (Bayer) frame: the stars are measured on the frame divided by its cells' responses (measured on
+    # the sky), so that a star's pixels follow its PSF and not the filter mosaic: on the raw mosaic the cells
+    # of a star differ by their responses (PANOPTES: 0.68 to 1.21 of the mean), which distorts the PSF fits
+    # and makes a bright star's checkerboard look like several stars to the deblending
+    cfa_resp = None
+    sdata, sat_px = data, sat_cut
+    if hv["bayer"].value and frame_type == "light":
+        cfa_resp = _cfa_response(data - bias, sky_px)
+        rmap = np.tile(np.array(cfa_resp).reshape(2, 2), (h // 2 + 1, w // 2 + 1))[:h, :w]
+        sdata = bias + (data - bias) / rmap
+        sat_px = bias + (sat_cut - bias) / rmap  # the clip of each cell, divided alike
     bad = ~np.isfinite(data) | (data >= sat_cut) | rolloff_mask
-    bkg, rms = starmod.background(data, mask=bad)
+    bkg, rms = starmod.background(sdata, mask=bad)
     seg, cols = None, {}
     if frame_type == "light":  # a dark, bias or flat frame has no stars (its outliers are hot pixels)
-        seg, cols = starmod.detect(data, bkg, rms, fwhm_px=3.0, nsigma=5.0, mask=~np.isfinite(data))
+        seg, cols = starmod.detect(sdata, bkg, rms, fwhm_px=3.0, nsigma=5.0, mask=~np.isfinite(data))
     psf = {"ok": False, "n": 0}
     if seg is not None and len(cols.get("label", [])):
-        seg, cols = starmod.detect(data, bkg, rms, fwhm_px=float(np.clip(np.nanmedian(cols["fwhm"]), 1.5, 20)),
-                                   nsigma=5.0, mask=~np.isfinite(data),
-                                   # not on a colour (Bayer) frame: PANOPTES went from chi2/dof 2.4 to 25 with
-                                   # its segments deblended (not analysed: left whole as before)
-                                   deblend=not hv["bayer"].value)
-        psf = starmod.fit_psf_stars(data, bkg, seg, cols, sat_cut, rms=rms)
+        seg, cols = starmod.detect(sdata, bkg, rms, fwhm_px=float(np.clip(np.nanmedian(cols["fwhm"]), 1.5, 20)),
+                                   nsigma=5.0, mask=~np.isfinite(data), deblend=True)
+        psf = starmod.fit_psf_stars(sdata, bkg, seg, cols, sat_px, rms=rms)
     if psf.get("ok"):
         fwhm_px, beta = psf["fwhm_px"], float(np.clip(psf["beta"], 1.2, 50))
         if psf["beta"] >= GAUSSIAN_BETA:  # the Moffat's beta -> infinity limit: a Gaussian core without wings
@@ -260,13 +327,13 @@ def init_scene(frame: str, scene_name: str = "scene", *, bias=(), dark=(), flat=
     phot = None
     if seg is not None and frame_type == "light":
         sharp = cols["fwhm"] < 0.5 * fwhm_px
-        phot = starmod.photometry(data, bkg, cols, fwhm_px, min(beta, 1000.0), sat_cut, rms, keep=~sharp)
+        phot = starmod.photometry(sdata, bkg, cols, fwhm_px, min(beta, 1000.0), sat_px, rms, keep=~sharp)
     # ---- mask
     mask = np.zeros((h, w), bool)
     minfo = {"extended": [], "bleeds": [], "masked_fraction": 0.0}
     if frame_type == "light":
         sxyf = (phot["x"], phot["y"], phot["flux_adu"]) if phot is not None and phot["x"].size else None
-        mask, minfo = maskmod.extended_and_bleeds(data, bkg, rms, fwhm_px, sat_cut, sxyf)
+        mask, minfo = maskmod.extended_and_bleeds(sdata, bkg, rms, fwhm_px, sat_px, sxyf)
     if rolloff:
         mask |= rolloff_mask
         minfo["edge_rolloff"] = rolloff
@@ -346,6 +413,10 @@ def init_scene(frame: str, scene_name: str = "scene", *, bias=(), dark=(), flat=
         scene.setdefault("measured", {})["hdu"] = hdu
     # effects from calibration maps
     effects: dict = {}
+    if prnu_sigma:
+        effects["prnu"] = {"sigma": round(float(prnu_sigma), 5)}
+        sources["effects.prnu"] = ("measured: the sky's white noise above the header gain's Poisson and read noise, "
+                                   "as a pixel response non-uniformity (see notes)")
     if cam.get("flat") is not None:
         files[f"{scene_name}_flat.fits"] = ("fits", cam["flat"])
         effects["flat_map"] = {"path": f"{scene_name}_flat.fits", "sigma_hdu": 1}
@@ -369,7 +440,7 @@ def init_scene(frame: str, scene_name: str = "scene", *, bias=(), dark=(), flat=
         sources["effects.psf_elongation"] = (f"measured: FWHM {psf['fwhm_major_px']:.2f} x {psf['fwhm_minor_px']:.2f} px, "
                                              f"major axis at {psf['pa_major_deg']:.0f} deg from +x (median of {psf['n']} stars)")
     if hv["bayer"].value and frame_type == "light":
-        resp = _cfa_response(data - bias, ~mask & (np.abs(data - bkg) < 3 * rms))
+        resp = cfa_resp
         effects["cfa"] = {"pattern": hv["bayer"].value, "response": [round(r, 5) for r in resp]}
         sources["effects.cfa"] = f"header ({hv['bayer'].card}) pattern; response measured from the sky level of each cell"
     if effects:
@@ -428,9 +499,79 @@ def init_scene(frame: str, scene_name: str = "scene", *, bias=(), dark=(), flat=
         "overscan": ov, "wcs": {k: v for k, v in (geom or {}).items() if k != "sip"} or None,
         "psf": {k: v for k, v in psf.items() if k != "rows"}, "optics": optics_info,
         "sky": {"background_adu": sky_adu, "e_per_s_per_px": sky_e_s, "noise_adu": float(np.median(rms))},
+        "noise": noise_info,
         "mask": minfo, "catalogue": cat_info, "notes": notes, "seconds": time.perf_counter() - t0,
     }
     return InitResult(scene, sources, summary, files)
+
+
+#: a gain measured from the frame within this fraction of the header's (or its amplifiers' range) agrees with it
+GAIN_TOLERANCE = 0.05
+#: the largest pixel response non-uniformity [fraction] a header gain's excess white noise is put down to
+MAX_PRNU = 0.03
+
+
+def _gain_check(hgain: Value, header, g_white, s_adu: float, var_w: float, rn_adu, rn_hdr: Value, cfa_pt,
+                raw: bool) -> dict | None:
+    """The header's gain (and its amplifiers') against the one the frame's own noise gives, and which one the
+    scene adopts (the issue: never hide a disagreement).
+
+    The white sky noise var = (S - B)/K + RN^2 (+ (p S)^2 on a frame whose pixel response pattern p is not
+    flat-fielded out) gives K when p is negligible and a lower bound on K otherwise. So:
+    * within :data:`GAIN_TOLERANCE` of the header's (any amplifier's): they agree, the header's is adopted;
+    * below it (the frame noisier than the header's gain allows): the excess, if it is a pixel response pattern
+      p <= :data:`MAX_PRNU` (0.5-1.5 % is usual for a raw CCD), goes into the scene as ``effects.prnu`` and the
+      header's gain (the camera's calibration) is kept; a larger excess means the header's gain is wrong;
+    * above it (the frame quieter than the header's gain allows): no process lowers a Poisson noise, so the
+      header's gain does not describe these pixels (a processed frame rescaled, a card left at a default):
+      the measured one is adopted;
+    * the photon transfer of a colour frame's cells (a slope, the bias and PRNU aside) is adopted when it
+      disagrees, as a flat pair's would be."""
+    from .header import amplifier_gains
+
+    if not hgain.value:
+        return None
+    g_meas = cfa_pt["gain_e_per_adu"] if cfa_pt is not None else g_white
+    if g_meas is None or not math.isfinite(g_meas) or g_meas <= 0:
+        return None
+    hdr = float(hgain.value)
+    amps = amplifier_gains(header)
+    lo, hi = (min(amps.values()), max(amps.values())) if amps else (hdr, hdr)
+    method = ("photon transfer of the colour cells" if cfa_pt is not None else
+              f"white sky noise {math.sqrt(var_w):.3g} ADU at {s_adu:.1f} ADU above the bias")
+    hdr_text = (f"{hgain.card} = {hdr:.4g} e-/ADU" + (" (amplifiers " + ", ".join(f"{k} = {v:g}" for k, v in amps.items())
+                                                      + ")" if amps else ""))
+    out = {"header_e_per_adu": hdr, "header_card": hgain.card, "amplifiers": amps or None,
+           "measured_e_per_adu": float(g_meas), "method": method, "ratio_measured_to_header": float(g_meas / hdr)}
+    if lo * (1 - GAIN_TOLERANCE) <= g_meas <= hi * (1 + GAIN_TOLERANCE):
+        out.update(adopted="header", note=f"gain: {hdr_text} and {g_meas:.4g} e-/ADU from the {method} agree "
+                   f"(within {100 * GAIN_TOLERANCE:g} %): the header's adopted")
+        return out
+    if g_meas < lo * (1 - GAIN_TOLERANCE) and cfa_pt is None:
+        rn2 = rn_adu.value ** 2 if rn_adu is not None else ((rn_hdr.value or 0.0) / hdr) ** 2
+        excess = var_w - s_adu / hdr - rn2
+        p = math.sqrt(max(excess, 0.0)) / s_adu
+        out["excess_variance_adu2"] = float(excess)
+        if p <= MAX_PRNU:
+            out.update(adopted="header", prnu_sigma=float(p),
+                       note=f"gain: {hdr_text} against {g_meas:.4g} e-/ADU from the {method} "
+                       f"({100 * (g_meas / hdr - 1):+.0f} %: the sky is noisier than the header's gain allows): the "
+                       f"excess {excess:.3g} ADU^2 is a pixel response non-uniformity of {100 * p:.2g} % "
+                       f"({'a raw frame, not flat-fielded' if raw else 'the flat-field pattern left in the frame'}), "
+                       "put in the scene as effects.prnu; the header's gain adopted")
+            return out
+        out.update(adopted="measured", note=f"gain: {hdr_text} DISAGREES with {g_meas:.4g} e-/ADU from the {method} "
+                   f"({100 * (g_meas / hdr - 1):+.0f} %; as a pixel response pattern it would be {100 * p:.2g} %, "
+                   f"above {100 * MAX_PRNU:g} %): the measured gain adopted")
+        out["source_note"] = f"{method}: var = S/g + RN^2 (the header's {hgain.card} = {hdr:.4g} disagrees)"
+        return out
+    why = ("the colour cells' photon transfer (a slope: neither the bias nor a pixel pattern moves it)" if cfa_pt is not None
+           else "the frame is quieter than the header's gain allows (no process lowers a Poisson noise: the header's "
+           "value does not describe these pixels, e.g. a processed frame rescaled)")
+    out.update(adopted="measured", note=f"gain: {hdr_text} DISAGREES with {g_meas:.4g} e-/ADU from the {method} "
+               f"({100 * (g_meas / hdr - 1):+.0f} %): {why}; the measured gain adopted")
+    out["source_note"] = f"{method}: var = S/g + RN^2 (the header's {hgain.card} = {hdr:.4g} disagrees)"
+    return out
 
 
 def _cfa_response(img: np.ndarray, ok: np.ndarray) -> list[float]:

@@ -85,18 +85,38 @@ def header_gain(header) -> Value:
         v = number(header.get(c))
         if v is not None and 0 < v < 1000:
             return Value(v, "header", c)
+    unset = None
     if "GAIN" in header:
         v = number(header["GAIN"])
         comment = header.comments["GAIN"] if hasattr(header, "comments") else ""
         if v is not None and 0 < v < 1000 and (_E_PER_ADU.search(comment or "") or (v < 20 and v != round(v))):
             return Value(v, "header", "GAIN")
-        if v is not None:
+        if v == 0:  # HSC writes GAIN = 0.000 [electron/ADU]: not set (its amplifiers' gains are T_GAIN1..4)
+            unset = "GAIN = 0: not set"
+        elif v is not None:
             return Value(None, "assumed", "GAIN", note=f"GAIN = {v:g} read as a camera setting, not e-/ADU")
-    amps = [number(header.get(f"GAIN{a}")) for a in "ABCD"]
-    amps = [v for v in amps if v is not None and 0 < v < 1000]
-    if amps:  # a multi-amplifier CCD (DECam, Mosaic): GAINA, GAINB ...
-        return Value(float(np.mean(amps)), "header", "GAINA/GAINB", note=f"mean of the amplifiers' gains {amps}")
-    return Value(None, "assumed")
+    amps = amplifier_gains(header)
+    if amps:  # a multi-amplifier CCD (DECam GAINA/GAINB, HSC T_GAIN1..4): the frame may hold any of them
+        vals = list(amps.values())
+        return Value(float(np.mean(vals)), "header", "/".join(amps),
+                     note=(f"{unset}; " if unset else "") + "mean of the amplifiers' gains "
+                     + ", ".join(f"{k} = {v:g}" for k, v in amps.items()))
+    return Value(None, "assumed", note=unset)
+
+
+_AMP_GAIN = re.compile(r"^(T_)?GAIN_?([A-H]|[1-9][0-9]?)$")
+
+
+def amplifier_gains(header) -> dict[str, float]:
+    """Per-amplifier gains [e-/ADU] the header gives: ``GAINA``, ``GAINB`` ... (DECam, Mosaic), ``T_GAIN1`` ...
+    (Subaru HSC), ``GAIN1`` ...; card -> value."""
+    out = {}
+    for k in header.keys():
+        if _AMP_GAIN.match(str(k)):
+            v = number(header[k])
+            if v is not None and 0 < v < 1000:
+                out[str(k)] = float(v)
+    return out
 
 
 def binning(header) -> Value:
@@ -193,8 +213,13 @@ def data_levels(header, data: np.ndarray) -> dict[str, Value]:
     # a clipped full well seen through the read noise: a pile of pixels within 0.3 % below the maximum
     near = finite[finite >= top - 0.003 * abs(top)] if finite.size else finite
     fw = number(header.get("FULLWELL"))
+    pile = _clip_pile(finite, top) if integer and n_top < 5 and top > 0 else None
     if n_top >= 5 and top > 0:
         sat = Value(top, "measured", note=f"{n_top} pixels at the maximum {top:.0f} ADU")
+    elif pile is not None:
+        lv, n_lv, n_above = pile
+        sat = Value(lv, "measured", note=f"{n_lv} pixels at {lv:.0f} ADU, the clip of the saturated stars ({n_above} "
+                    f"isolated pixels above it, up to {top:.0f} ADU: hot pixels read after the clip, not the level)")
     elif near.size >= 8 and top > 0 and (fw is None):
         sat = Value(float(np.median(near)), "measured", note=f"{near.size} pixels within 0.3 % of the maximum "
                     f"{top:.0f} ADU (a clipped full well under the read noise)")
@@ -203,6 +228,24 @@ def data_levels(header, data: np.ndarray) -> dict[str, Value]:
         sat = Value(v, "header", c) if v else Value(float(2 ** depth.value - 1), "assumed",
                                                      note="no pixel pile at the maximum: the bit depth's top")
     return {"bit_depth": depth, "saturation_adu": sat}
+
+
+def _clip_pile(values: np.ndarray, top: float, min_pile: int = 5) -> tuple[float, int, int] | None:
+    """A clipped level below the maximum of integer data: the value of the upper tail (the top 30 % of the
+    range above the median) that holds at least ``min_pile`` pixels and 10 x the count of any other value
+    there, with fewer pixels above it than on it (a DSLR's white level: PANOPTES's saturated stars all read
+    13 583 ADU, three hot pixels 13 639-13 863). Returns (level, pixels on it, pixels above it) or None."""
+    med = float(np.median(values))
+    tail = values[values >= med + 0.7 * (top - med)]
+    if tail.size < min_pile:
+        return None
+    v, c = np.unique(tail, return_counts=True)
+    i = int(np.argmax(c))
+    others = np.delete(c, i)
+    n_above = int(np.count_nonzero(tail > v[i]))
+    if c[i] >= min_pile and (others.size == 0 or c[i] >= 10 * others.max()) and n_above < c[i]:
+        return float(v[i]), int(c[i]), n_above
+    return None
 
 
 def _date_obs(header) -> Value:

@@ -130,7 +130,7 @@ def detect(data: np.ndarray, bkg: np.ndarray, rms: np.ndarray, fwhm_px: float = 
     return seg, cols
 
 
-def fit_psf_stars(data, bkg, seg, cols, saturation: float, max_stars: int = 30, radius: int | None = None,
+def fit_psf_stars(data, bkg, seg, cols, saturation: "float | np.ndarray", max_stars: int = 30, radius: int | None = None,
                   min_snr: float = 30.0, rms: np.ndarray | None = None) -> dict:
     """Elliptical Moffat fits of isolated, unsaturated, bright stars: medians of FWHM (quadratic mean of the
     axes), beta, ellipticity, position angle; per star rows; FWHM over the field (quadratic fit)."""
@@ -153,7 +153,7 @@ def fit_psf_stars(data, bkg, seg, cols, saturation: float, max_stars: int = 30, 
             continue
         sl = (slice(yi - R, yi + R + 1), slice(xi - R, xi + R + 1))
         st = data[sl]
-        if not np.all(np.isfinite(st)) or st.max() >= saturation:
+        if not np.all(np.isfinite(st)) or np.any(st >= (saturation[sl] if np.ndim(saturation) else saturation)):
             continue
         other = (lab[sl] > 0) & (lab[sl] != int(cols["label"][i]))
         if other.any():
@@ -230,7 +230,7 @@ def _moffat_and_grad(dx, dy, alpha: float, beta: float, sub: int = 3):
     return k * p / n, k * gx / n, k * gy / n
 
 
-def photometry(data, bkg, cols, fwhm_px: float, beta: float, saturation: float, rms: np.ndarray,
+def photometry(data, bkg, cols, fwhm_px: float, beta: float, saturation: "float | np.ndarray", rms: np.ndarray,
                keep: np.ndarray | None = None, max_sources: int = 20000, iterations: int = 8) -> dict:
     """PSF-fit fluxes [ADU] (total flux of the scene's circular Moffat), centres, local background, S/N.
 
@@ -255,7 +255,11 @@ def photometry(data, bkg, cols, fwhm_px: float, beta: float, saturation: float, 
     XX = xi[:, None, None] + off[None, None, :] + R + 1
     z = pad[YY, XX]
     raw = padraw[YY, XX]
-    ok = np.isfinite(z) & (raw < saturation)
+    if np.ndim(saturation):  # a clip per pixel (a colour frame divided by its cells' responses)
+        satv = np.pad(np.asarray(saturation, float), R + 1, constant_values=np.inf)[YY, XX]
+    else:
+        satv = saturation
+    ok = np.isfinite(z) & (raw < satv)
     n2 = np.median(padn[YY, XX].reshape(len(idx), -1), axis=1) ** 2
     zc = np.where(ok, z, 0.0)
     wgt = ok / (n2[:, None, None] + 0.02 * np.clip(zc, 0, None) + 1e-12)
