@@ -691,6 +691,9 @@ class Variant:
     label: str = ""
     at: Callable[[np.ndarray], np.ndarray] | None = None
     fixed: Callable[[np.ndarray], np.ndarray] | None = None
+    #: parameters of this variant found from the data before its linear fit (a boundary's position), counted
+    #: in the BIC beside the signature's ``extra_k``
+    extra_k: int = 0
 
     def target(self, idx: np.ndarray, r: np.ndarray) -> np.ndarray:
         """The residual ``r`` at flat pixels ``idx`` less the fixed part (what the templates fit)."""
@@ -1037,7 +1040,7 @@ class LinearSignature(Signature):
 
     def _finish(self, res: Residuals, name: str, v: Variant, c, d: float, params: dict) -> Fit:
         maps = v.maps()
-        k = len(maps) + self.extra_k
+        k = len(maps) + self.extra_k + v.extra_k
         delta = sum(ci * np.asarray(t, np.float32) for ci, t in zip(c, maps))
         fixed = v.fixed_map(res.data_adu.shape)
         if fixed is not None:
@@ -1079,7 +1082,7 @@ class LinearSignature(Signature):
             if params is None:
                 continue
             d *= ctx["scale"]
-            bic = d + np.size(c) * penalty
+            bic = d + (np.size(c) + v.extra_k) * penalty
             if best is None or bic < best[4]:
                 best = (v, d, c, params, bic)
         return None if best is None else best[:4]

@@ -180,6 +180,25 @@ class CFASignature(Signature):
         return Fit(name, params, d * scale, len(c), int(keep.sum() * scale), _cfa_words(params, res),
                    delta_adu=delta, note=f"2x2 cells of {period // 2} x {period // 2} pixels")
 
+    def support_pixels(self, res, fit):
+        """The pixels the mosaic is judged on where it acts (``scenes.app.compare.candidates.support_share``):
+        its own (every unsaturated light pixel, not only those the grey comparison fits one by one), as
+        (index, mean change, residual before and after with the global levels refitted, weights), the
+        outliers beyond CFA_CLIP_SIGMA of both clipped (as :meth:`score`)."""
+        sample = self._sample(res, limit=CFA_FIT_PIXELS)
+        if sample is None or fit.delta_adu is None:
+            return None
+        idx, r, w, levels = (sample[k] for k in ("idx", "r", "w", "levels"))
+        delta = np.asarray(fit.delta_adu, np.float64).ravel()[idx]
+
+        def profiled(y):
+            c, *_ = np.linalg.lstsq(levels.T * np.sqrt(w)[:, None], y * np.sqrt(w), rcond=None)
+            return y - c @ levels
+
+        r0, r1 = profiled(r), profiled(r - delta)
+        keep = (np.abs(r0) * np.sqrt(w) < CFA_CLIP_SIGMA) | (np.abs(r1) * np.sqrt(w) < CFA_CLIP_SIGMA)
+        return idx[keep], delta[keep], r0[keep], r1[keep], w[keep]
+
     def score(self, fit, res):
         """delta(-2 ln L) on this signature's own pixels (every unsaturated light pixel of ``res.train``, the
         outliers beyond CFA_CLIP_SIGMA of either model clipped), with the global levels refitted."""

@@ -80,11 +80,14 @@ def power_law_nonlinearity(signal_e: np.ndarray, gamma: float, reference_e: floa
         np.multiply(signal_e, f, out=signal_e, where=signal_e > 0)
 
 
-def region_index(ys: np.ndarray, xs: np.ndarray, nx: int, ny: int, height: int, width: int
-                 ) -> tuple[np.ndarray, np.ndarray]:
-    """Amplifier region (row index, column index) of sensor coordinates on an ``ny x nx`` grid."""
-    iy = np.minimum((ys * ny // height).astype(int), ny - 1)
-    ix = np.minimum((xs * nx // width).astype(int), nx - 1)
+def region_index(ys: np.ndarray, xs: np.ndarray, nx: int, ny: int, height: int, width: int,
+                 splits_y=None, splits_x=None) -> tuple[np.ndarray, np.ndarray]:
+    """Amplifier region (row index, column index) of sensor coordinates on an ``ny x nx`` grid: equal
+    segments, or those between the boundaries ``splits_y`` / ``splits_x`` [sensor pixels] where given."""
+    iy = (np.searchsorted(np.asarray(splits_y, float), ys, side="right") if splits_y is not None
+          else np.minimum((ys * ny // height).astype(int), ny - 1))
+    ix = (np.searchsorted(np.asarray(splits_x, float), xs, side="right") if splits_x is not None
+          else np.minimum((xs * nx // width).astype(int), nx - 1))
     return iy, ix
 
 
@@ -189,6 +192,99 @@ def _gain_variants(res):
             return {"nx": nx, "ny": ny, "gains": [round(float(x), 6) for x in g]} if (g > 0).all() else None
 
         yield Variant(maps, to_params, f"{nx}x{ny}", at=at)
+    yield from _gain_split_variants(res, sig)
+
+
+#: boundaries found from the data: at most this many along an axis, each at least this share of the frame
+#: from an edge and from another (a segment narrower than that is a column defect or an edge effect)
+MAX_FOUND_SPLITS = 2
+MIN_SEGMENT_SHARE = 0.1
+
+
+def _best_split(rc: np.ndarray, sc: np.ndarray, wc: np.ndarray, fixed: list[int], lo: int) -> int | None:
+    """The boundary (index of the first line after it) that, added to ``fixed``, most lowers the weighted
+    least-squares misfit of a piecewise-constant ratio ``rc / sc`` (line sums of the residual and of the
+    signal, weights ``wc`` = sc^2 / var): binary segmentation (Scott & Knott 1974)."""
+    n = rc.size
+    best, best_gain = None, 0.0
+    for j in range(lo, n - lo + 1):
+        if any(abs(j - f) < lo for f in fixed):
+            continue
+        cuts = sorted([0, n, *fixed, j])
+        gain = 0.0
+        for a, b in zip(cuts[:-1], cuts[1:]):
+            s2, sr = float(np.sum(sc[a:b] ** 2 * wc[a:b])), float(np.sum(sc[a:b] * rc[a:b] * wc[a:b]))
+            gain += sr * sr / s2 if s2 > 0 else 0.0
+        if gain > best_gain:
+            best, best_gain = j, gain
+    return best
+
+
+def _gain_split_variants(res, sig: np.ndarray):
+    """Gain regions whose boundaries are not the sensor's equal segments: a sensor read by amplifiers over
+    unequal parts, or a window that sees one boundary at its own place. The boundaries along each axis are
+    found from the data (binary segmentation of the residual's line sums over the signal's, up to
+    :data:`MAX_FOUND_SPLITS`), each counted as one parameter in the BIC; the gains are then fitted as for the
+    sensor's grid."""
+    idx, r, w = res.flat()
+    if idx.size == 0:
+        return
+    h, wd = res.data_adu.shape
+    y, x = np.divmod(idx, wd)
+    sv = sig.ravel()[idx].astype(np.float64)
+    for axis in ("x", "y"):
+        pos, n = (x, wd) if axis == "x" else (y, h)
+        lo = max(int(np.ceil(MIN_SEGMENT_SHARE * n)), 2)
+        if n < 2 * lo:
+            continue
+        rc = np.bincount(pos, r, n)
+        sc = np.bincount(pos, sv, n)
+        vc = np.bincount(pos, 1.0 / w, n)
+        wc = np.where(vc > 0, 1.0 / np.maximum(vc, 1e-30), 0.0)
+        cuts: list[int] = []
+        for _ in range(MAX_FOUND_SPLITS):
+            j = _best_split(rc, sc, wc, cuts, lo)
+            if j is None:
+                break
+            cuts = sorted([*cuts, j])
+            centres = res.xs if axis == "x" else res.ys
+            bounds = [float(0.5 * (centres[c - 1] + centres[c])) for c in cuts]
+            yield _split_variant(res, sig, axis, bounds)
+
+
+def _split_variant(res, sig: np.ndarray, axis: str, bounds: list[float]) -> Variant:
+    wd = res.data_adu.shape[1]
+    if axis == "x":
+        ix = np.searchsorted(np.asarray(bounds), res.xs, side="right")
+        k = np.broadcast_to(ix[None, :], res.data_adu.shape)
+    else:
+        iy = np.searchsorted(np.asarray(bounds), res.ys, side="right")
+        k = np.broadcast_to(iy[:, None], res.data_adu.shape)
+    present = np.arange(len(bounds) + 1)
+    n_reg = len(bounds) + 1
+
+    def at(idx):
+        yy, xx = np.divmod(idx, wd)
+        kk = k[yy, xx]
+        sv = sig.ravel()[idx].astype(np.float64)
+        return np.stack([np.where(kk == j, sv, 0.0) for j in present])
+
+    def maps():
+        return [np.where(k == j, sig, np.float32(0)) for j in present]
+
+    def to_params(c):
+        g = 1.0 + np.asarray(c, float)
+        npx = np.array([(k == j).sum() for j in present], float)
+        g = g / (np.dot(g, npx) / npx.sum())
+        if not (g > 0).all():
+            return None
+        out = {"nx": n_reg if axis == "x" else 1, "ny": n_reg if axis == "y" else 1,
+               "gains": [round(float(v), 6) for v in g]}
+        out["splits_x" if axis == "x" else "splits_y"] = [round(b, 2) for b in bounds]
+        return out
+
+    return Variant(maps, to_params, f"{len(bounds)} boundary(ies) along {axis} found at "
+                   f"{', '.join(f'{b:.0f}' for b in bounds)} px", at=at, extra_k=len(bounds))
 
 
 def _gain_words(p, res) -> str:
@@ -368,9 +464,17 @@ class GainRegionParams(EffectParams):
     ny: int = Field(1, ge=1, le=64, description="amplifier regions across the rows [regions]")
     sigma: float = Field(0.01, ge=0, le=0.5, description="std of the relative gains when drawn [1]")
     gains: list[float] | None = Field(None, description="explicit relative gains, row-major, ny*nx values [1]")
+    splits_x: list[float] | None = Field(None, description="boundaries between the column regions, ascending, "
+                                         "nx - 1 values (default: nx equal segments) [sensor pixels]")
+    splits_y: list[float] | None = Field(None, description="boundaries between the row regions, ascending, "
+                                         "ny - 1 values (default: ny equal segments) [sensor pixels]")
 
     @model_validator(mode="after")
     def _n(self):
+        for name, n in (("splits_x", self.nx), ("splits_y", self.ny)):
+            v = getattr(self, name)
+            if v is not None and (len(v) != n - 1 or any(b >= a for b, a in zip(v[:-1], v[1:]))):
+                raise ValueError(f"{name} needs {n - 1} ascending boundaries, got {v}")
         if self.gains is not None:
             if len(self.gains) != self.nx * self.ny:
                 raise ValueError(f"gains needs nx*ny = {self.nx * self.ny} values, got {len(self.gains)}")
@@ -381,7 +485,8 @@ class GainRegionParams(EffectParams):
 
 @register_effect
 class GainRegions(Effect):
-    """Amplifier gain regions: the sensor is read by ``ny x nx`` amplifiers whose conversion gains differ.
+    """Amplifier gain regions: the sensor is read by ``ny x nx`` amplifiers whose conversion gains differ (equal
+    segments of the sensor, or those between the boundaries ``splits_x`` / ``splits_y``).
 
     The signal in ADU (bias excluded) of region k is multiplied by g_k, drawn as 1 + sigma N(0,1) from the
     hardware seed or given explicitly. Shows as steps between quadrants/columns in flats (Janesick 2007
@@ -408,7 +513,7 @@ class GainRegions(Effect):
     def apply(self, stage: Stage, tile: Tile, data: np.ndarray) -> None:
         ys, xs = tile.pixel_centres()
         s, p = self.sensor, self.params
-        iy, ix = region_index(ys, xs, p.nx, p.ny, s.sensor_height_px, s.sensor_width_px)
+        iy, ix = region_index(ys, xs, p.nx, p.ny, s.sensor_height_px, s.sensor_width_px, p.splits_y, p.splits_x)
         data *= self.gains[iy[:, None], ix[None, :]].astype(np.float32)
 
 

@@ -234,3 +234,35 @@ def test_nonlinearity_power_law_follows_its_formula():
     x = np.array([0.0, -3.0, 25000.0], np.float32)
     power_law_nonlinearity(x, 0.9, 25000.0)
     assert x.tolist() == [0.0, -3.0, 25000.0]  # no signal, no change; the reference is a fixed point
+
+
+def test_gain_regions_boundary_found_where_the_amplifiers_meet():
+    """A flat read by two amplifiers that meet at sensor column 1300 of a 4008-column sensor (not its middle):
+    the diagnosis finds the boundary from the data (binary segmentation of the residual's column sums) and
+    the two gains' ratio (1.004) within its statistical error; the effect then renders the same step there."""
+    from detector import registry
+    from detector.signatures import Residuals, SpikeStats
+
+    s = small(x0=0, y0=0, width=4008, height=64, binning=8, read_noise_e=5.0, dark_current_e_per_s=0.0,
+              gain_e_per_adu=1.0)
+    h, w = s.output_shape
+    ys, xs = np.arange(h) * 8 + 3.5, np.arange(w) * 8 + 3.5
+    rng = np.random.default_rng(5)
+    photo = np.full((h, w), 64 * 5000.0)
+    gain = np.where(xs < 1300, 1.0, 1.004)[None, :] / (1.004 * (1 - 1300 / 4008) + 1300 / 4008)
+    var = photo + 25.0
+    data = 1000 + photo * gain + rng.normal(0, 1, (h, w)) * np.sqrt(var)
+    res = Residuals(data.astype(np.float32), (1000 + photo).astype(np.float32), var.astype(np.float32),
+                    np.ones((h, w), bool), photo.astype(np.float32), np.zeros((h, w), np.float32), ys, xs, s, 1.0,
+                    SpikeStats(0, 0, 0, 0, 0), SpikeStats(0, 0, 0, 0, 0))
+    fit = registry()["gain_regions"].signature.fit(res, "gain_regions")
+    assert fit.params.get("splits_x") and abs(fit.params["splits_x"][0] - 1300) <= 8
+    g = fit.params["gains"]
+    # the ratio's error: two means of ~n/2 pixels each at 1/sqrt(photo) relative noise
+    se = np.sqrt(4 / (h * w * 64 * 5000.0))
+    assert g[1] / g[0] == pytest.approx(1.004, abs=5 * se)
+    assert fit.k == 2 + 1 + 1  # two gains, the grid chosen, the boundary found
+    det = Detector(s, build_effects({"gain_regions": fit.params}, s))
+    f = det.expose(500.0, 1.0, 1).astype(float) - s.bias_adu  # below the full well (ADU: the gains act there)
+    step = xs > fit.params["splits_x"][0]
+    assert f[:, step].mean() / f[:, ~step].mean() == pytest.approx(g[1] / g[0], rel=1e-3)

@@ -70,3 +70,32 @@ def test_hidden_sky_gradient_is_named_first_not_vignetting(tmp_path, base, gx, g
     # as well on one light frame and loses by its extra parameter (its bowl finds nothing)
     bic = {c["effect"]: c["delta_bic"] for c in cands}
     assert bic.get("vignetting", 0.0) > best["delta_bic"] + 30
+
+
+def test_a_strong_mosaic_is_judged_where_it_acts_on_its_own_pixels():
+    """A 12 % Bayer mosaic on a bright flat under a 3 % column drift: the grey comparison flags the dim cells
+    as outliers, so on the compared pixels alone the drift dominates and the mosaic would "remove only a few
+    per cent of what is wrong where it acts" (5 % here, with one diagonal's cells flagged). Judged on its own pixels (every unsaturated light pixel) it
+    removes most of it (the drift is a tenth of the mosaic's contrast), so the support gate lets it stand."""
+    from helpers import residuals_of
+
+    from detector import make_sensor, registry
+    from scenes.app.compare.candidates import support_share
+    from scenes.app.compare.policy import DEFAULT_POLICY
+
+    h = w = 128
+    s = make_sensor("ml11002", {"width": w, "height": h, "gain_e_per_adu": 1.0, "read_noise_e": 5.0})
+    rng = np.random.default_rng(2)
+    photo = np.full((h, w), 20000.0)
+    yy, xx = np.mgrid[:h, :w]
+    resp = np.array([[0.940, 1.000], [0.996, 0.879]])[yy % 2, xx % 2]
+    drift = 1 + 0.03 * (xx / (w - 1) - 0.5)
+    truth = photo * resp * drift / resp.mean()
+    var = photo + 25.0
+    data = 1000 + truth + rng.normal(0, 1, (h, w)) * np.sqrt(truth + 25.0)
+    res = residuals_of(data, 1000 + photo, var, photo, s)
+    res.fit[yy % 2 == xx % 2] = False  # one diagonal's cells: outliers of the grey comparison's 3x3 medians
+    fit = registry()["cfa"].signature.fit(res, "cfa")
+    assert fit is not None and fit.params["response"][3] / fit.params["response"][0] == pytest.approx(0.879 / 0.94,
+                                                                                                     abs=0.01)
+    assert support_share(res, fit) > DEFAULT_POLICY.min_support_share

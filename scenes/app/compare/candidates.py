@@ -203,19 +203,43 @@ def support_share(res: Residuals, fit: Fit, policy: DiagnosisPolicy = DEFAULT_PO
     """The share of the excess chi2 (levels refitted) over the pixels ``fit`` acts on that it removes: those
     whose weighted squared mean change ``delta^2 w`` is among the largest, carrying the policy's
     ``support_mass`` of its sum. None when the fit changes no mean or the excess there is not significant
-    (``support_sigma``)."""
+    (``support_sigma``). A signature fitted on pixels of its own (``support_pixels``: a colour mosaic of tens
+    of per cent makes every other pixel an outlier of the grey comparison) is asked on those pixels: on the
+    compared ones alone it would be judged where it is weakest."""
     if fit.delta_adu is None:
         return None
+    sig = getattr(registry().get(fit.effect), "signature", None)
+    own = getattr(sig, "support_pixels", None)
+    if own is not None:
+        got = own(res, fit)
+        if got is None:
+            return None
+        idx, d, r0, r1, w = got
+        return _support(d, r0, r1, w, w, policy)
     idx, r0, w = res.flat_profiled()
     if idx.size < 64:
         return None
     d = frame_at(fit.delta_adu, idx) if np.size(fit.delta_adu) > 1 else \
         np.full(idx.size, float(np.asarray(fit.delta_adu).ravel()[0]))
+    r1 = res.project(res.flat()[1] - d)
+    w1 = w
+    if fit.extra_var_adu2 is not None:
+        e = np.broadcast_to(np.asarray(fit.extra_var_adu2, np.float64), res.data_adu.shape).ravel()[idx]
+        w1 = 1.0 / np.maximum(1.0 / w + e, 0.1 / w)
+    return _support(d, r0, r1, w, w1, policy)
+
+
+def _support(d: np.ndarray, r0: np.ndarray, r1: np.ndarray, w: np.ndarray, w1: np.ndarray,
+             policy: DiagnosisPolicy) -> float | None:
+    """:func:`support_share` on given pixels: the mean change ``d``, the residual before and after (levels
+    refitted), their weights."""
+    if d.size < 64:
+        return None
     q = d * d * w
     total = float(q.sum())
     if total <= 0:
         return None
-    sub = np.sort(q[:: max(1, idx.size // 200_000)])[::-1]
+    sub = np.sort(q[:: max(1, d.size // 200_000)])[::-1]
     cum = np.cumsum(sub)
     thr = float(sub[min(int(np.searchsorted(cum, policy.support_mass * cum[-1])), sub.size - 1)])
     on = q >= thr
@@ -225,11 +249,6 @@ def support_share(res: Residuals, fit: Fit, policy: DiagnosisPolicy = DEFAULT_PO
     before = float(np.dot(r0[on] ** 2, w[on])) - n_on
     if before < policy.support_sigma * np.sqrt(2 * n_on):
         return None
-    r1 = res.project(res.flat()[1] - d)
-    w1 = w
-    if fit.extra_var_adu2 is not None:
-        e = np.broadcast_to(np.asarray(fit.extra_var_adu2, np.float64), res.data_adu.shape).ravel()[idx]
-        w1 = 1.0 / np.maximum(1.0 / w + e, 0.1 / w)
     after = float(np.dot(r1[on] ** 2, w1[on])) - n_on
     return round(float((before - after) / before), 4)
 
