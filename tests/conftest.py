@@ -44,6 +44,20 @@ def _restore_registry():
 SHARED_ROW_MODULES = ("test_diagnose_hidden.py", "test_diagnose_unseen.py")
 
 
+def pytest_configure(config):
+    """On a pytest-xdist worker, BLAS runs on one thread: ``make test`` gives each core one worker, and
+    OpenBLAS's own threads on top of it (two per worker on two cores) made the diagnoses' few-row,
+    million-column products several times slower (the machine oversubscribed). The subprocesses the tests
+    start (the command line) inherit the same limit through the environment."""
+    if not os.environ.get("PYTEST_XDIST_WORKER"):
+        return
+    for var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
+        os.environ.setdefault(var, "1")
+    from threadpoolctl import threadpool_limits
+
+    config._newtsim_blas_limit = threadpool_limits(limits=1, user_api="blas")
+
+
 def pytest_collection_modifyitems(config, items):
     """Tests marked ``slow`` (long statistical runs, full-size frames, optimisations) run only when asked:
     ``pytest -m slow`` or NEWTSIM_SLOW=1 (``make test-slow``); the default run stays well under 30 minutes.
