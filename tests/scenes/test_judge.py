@@ -215,7 +215,7 @@ def zero_point_round(star_scene):
 
 
 def test_zero_point_named_first_with_its_value(zero_point_round):
-    meas, out = zero_point_round
+    _, out = zero_point_round
     first = _first(out)
     assert first["kind"] == "parameter" and first["key"] == "sky.source_flux_scale"
     assert first["value"] == pytest.approx(1.6, rel=0.05)
