@@ -26,6 +26,7 @@ position).
 
 from __future__ import annotations
 
+import functools
 from pathlib import Path
 
 import numpy as np
@@ -118,8 +119,11 @@ def hipparcos_path() -> Path | None:
     return Path(catalog_path())
 
 
-def read_hipparcos(path: str | Path, ra_deg: float, dec_deg: float, radius_deg: float) -> dict[str, np.ndarray]:
-    """Hipparcos 2 stars (J1991.25) in a cone: hip, ra_deg, dec_deg, pmra, pmdec [mas/yr], hpmag, b_v."""
+@functools.lru_cache(maxsize=2)
+def _hipparcos_positions(path: str, size: int, mtime_ns: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The lines of ``hip2.dat`` and every star's ra, dec [deg], parsed once per file version (size and
+    modification time in the key): a scene's preparation asks for its cone several times a diagnosis, and
+    parsing the 118,000 lines took most of that. Read-only arrays (the callers index copies out of them)."""
     raw = np.fromfile(path, dtype=np.uint8)
     width = int(np.argmax(raw == 10)) + 1  # line length including the newline
     if width < 160 or raw.size % width:
@@ -127,6 +131,15 @@ def read_hipparcos(path: str | Path, ra_deg: float, dec_deg: float, radius_deg: 
     lines = raw.reshape(-1, width)
     ra = np.degrees(_fixed_width(lines, *_HIP_COLS["ra_rad"]))
     dec = np.degrees(_fixed_width(lines, *_HIP_COLS["dec_rad"]))
+    for a in (lines, ra, dec):
+        a.flags.writeable = False
+    return lines, ra, dec
+
+
+def read_hipparcos(path: str | Path, ra_deg: float, dec_deg: float, radius_deg: float) -> dict[str, np.ndarray]:
+    """Hipparcos 2 stars (J1991.25) in a cone: hip, ra_deg, dec_deg, pmra, pmdec [mas/yr], hpmag, b_v."""
+    st = Path(path).stat()
+    lines, ra, dec = _hipparcos_positions(str(path), st.st_size, st.st_mtime_ns)
     sel = in_cone(ra, dec, ra_deg, dec_deg, radius_deg)
     sub = lines[sel]
     out = {"ra_deg": ra[sel], "dec_deg": dec[sel]}

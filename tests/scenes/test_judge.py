@@ -206,9 +206,16 @@ def _first(out: dict) -> dict:
     return next(c for c in out["candidates"] if c["significant"])
 
 
-def test_zero_point_named_first_with_its_value(star_scene):
+@pytest.fixture(scope="module")
+def zero_point_round(star_scene):
+    """A textbook frame whose sources are 1.6 x the scene's, and its diagnosis (made once: the zero-point test
+    reads it, the apply test applies it)."""
     meas = textbook_frame(star_scene, star_scene.with_name("zp.fits"), 5, ["sky.source_flux_scale=1.6"])
-    out = run.run_diagnose(load_scene(str(star_scene)), meas)
+    return meas, run.run_diagnose(load_scene(str(star_scene)), meas)
+
+
+def test_zero_point_named_first_with_its_value(zero_point_round):
+    _, out = zero_point_round
     first = _first(out)
     assert first["kind"] == "parameter" and first["key"] == "sky.source_flux_scale"
     assert first["value"] == pytest.approx(1.6, rel=0.05)
@@ -283,14 +290,13 @@ def test_conditional_evidence_tells_a_width_from_a_widening_of_the_bright_stars(
     assert abs(same) < 1e-6 or left_same < 1
 
 
-def test_apply_writes_the_parameters(star_scene, tmp_path):
+def test_apply_writes_the_parameters(star_scene, zero_point_round, tmp_path):
     sc = load_scene(str(star_scene))
-    meas = textbook_frame(star_scene, star_scene.with_name("zp2.fits"), 8, ["sky.source_flux_scale=1.5"])
-    out = run.run_diagnose(sc, meas)
+    meas, out = zero_point_round
     new, best = run.apply_best(sc, out, tmp_path / "round2.toml", meas)
     assert best["kind"] == "parameter"
     again = load_scene(str(new))
-    assert again.sky.source_flux_scale == pytest.approx(1.5, rel=0.05)
+    assert again.sky.source_flux_scale == pytest.approx(1.6, rel=0.05)
     after = run.run_diagnose(again, meas)
     assert after["baseline"]["chi2_per_dof"] < 0.5 * out["baseline"]["chi2_per_dof"]
     assert not any(c["kind"] == "parameter" for c in after["candidates"] if c["significant"])
