@@ -11,6 +11,7 @@ References
 
 from __future__ import annotations
 
+from itertools import pairwise
 from typing import Literal
 
 import numpy as np
@@ -212,7 +213,7 @@ def _best_split(rc: np.ndarray, sc: np.ndarray, wc: np.ndarray, fixed: list[int]
             continue
         cuts = sorted([0, n, *fixed, j])
         gain = 0.0
-        for a, b in zip(cuts[:-1], cuts[1:]):
+        for a, b in pairwise(cuts):
             s2, sr = float(np.sum(sc[a:b] ** 2 * wc[a:b])), float(np.sum(sc[a:b] * rc[a:b] * wc[a:b]))
             gain += sr * sr / s2 if s2 > 0 else 0.0
         if gain > best_gain:
@@ -473,7 +474,7 @@ class GainRegionParams(EffectParams):
     def _n(self):
         for name, n in (("splits_x", self.nx), ("splits_y", self.ny)):
             v = getattr(self, name)
-            if v is not None and (len(v) != n - 1 or any(b >= a for b, a in zip(v[:-1], v[1:]))):
+            if v is not None and (len(v) != n - 1 or any(b <= a for a, b in pairwise(v))):
                 raise ValueError(f"{name} needs {n - 1} ascending boundaries, got {v}")
         if self.gains is not None:
             if len(self.gains) != self.nx * self.ny:
