@@ -111,7 +111,7 @@ def amplifier_gains(header) -> dict[str, float]:
     """Per-amplifier gains [e-/ADU] the header gives: ``GAINA``, ``GAINB`` ... (DECam, Mosaic), ``T_GAIN1`` ...
     (Subaru HSC), ``GAIN1`` ...; card -> value."""
     out = {}
-    for k in header.keys():
+    for k in header:
         if _AMP_GAIN.match(str(k)):
             v = number(header[k])
             if v is not None and 0 < v < 1000:

@@ -15,7 +15,7 @@ from __future__ import annotations
 import numpy as np
 
 
-def extended_and_bleeds(data, bkg, rms, fwhm_px: float, saturation: "float | np.ndarray", star_xy_flux=None, *,
+def extended_and_bleeds(data, bkg, rms, fwhm_px: float, saturation: float | np.ndarray, star_xy_flux=None, *,
                         min_psf_areas: float = 40.0, flux_excess: float = 3.0, bleed_ratio: float = 3.0,
                         nsigma: float = 2.0) -> tuple[np.ndarray, dict]:
     """(mask, info): boolean mask of extended sources and bleeds, and what was masked."""

@@ -130,7 +130,7 @@ def detect(data: np.ndarray, bkg: np.ndarray, rms: np.ndarray, fwhm_px: float = 
     return seg, cols
 
 
-def fit_psf_stars(data, bkg, seg, cols, saturation: "float | np.ndarray", max_stars: int = 30, radius: int | None = None,
+def fit_psf_stars(data, bkg, seg, cols, saturation: float | np.ndarray, max_stars: int = 30, radius: int | None = None,
                   min_snr: float = 30.0, rms: np.ndarray | None = None) -> dict:
     """Elliptical Moffat fits of isolated, unsaturated, bright stars: medians of FWHM (quadratic mean of the
     axes), beta, ellipticity, position angle; per star rows; FWHM over the field (quadratic fit)."""
@@ -166,11 +166,12 @@ def fit_psf_stars(data, bkg, seg, cols, saturation: "float | np.ndarray", max_st
         yy, xx = np.mgrid[sl]
         peak = float(z.max())
 
-        def model(p, xx=xx, yy=yy):
+        nsub = subsamples(fw0)
+
+        def model(p, xx=xx, yy=yy, nsub=nsub):
             f, x0, y0, ax, ay, th, beta, c = p
             return f * moffat_pixels(xx - x0, yy - y0, ax, ay, th, beta, sub=nsub) + c
 
-        nsub = subsamples(fw0)
         a0 = moffat_alpha(max(fw0, 1.5), 3.0)
         p0 = [max(float(z.sum()), peak), x, y, a0, a0, 0.0, 3.0, 0.0]
         lo = [0, x - 2, y - 2, 0.2, 0.2, -math.pi, 1.1, -10 * noise - abs(peak)]
@@ -230,7 +231,7 @@ def _moffat_and_grad(dx, dy, alpha: float, beta: float, sub: int = 3):
     return k * p / n, k * gx / n, k * gy / n
 
 
-def photometry(data, bkg, cols, fwhm_px: float, beta: float, saturation: "float | np.ndarray", rms: np.ndarray,
+def photometry(data, bkg, cols, fwhm_px: float, beta: float, saturation: float | np.ndarray, rms: np.ndarray,
                keep: np.ndarray | None = None, max_sources: int = 20000, iterations: int = 8) -> dict:
     """PSF-fit fluxes [ADU] (total flux of the scene's circular Moffat), centres, local background, S/N.
 
