@@ -577,6 +577,7 @@ def test_init_elongated_psf_photometry_follows_the_scene(tmp_path):
     filtered by the elongation's covariance, as the renderer draws it), so the scene reproduces the frame:
     chi2/dof 1.06 (1.22 with the round PSF's fluxes)."""
     import json
+
     import tomllib
 
     from scenes.app.compare import run_compare

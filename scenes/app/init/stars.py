@@ -125,7 +125,8 @@ def detect(data: np.ndarray, bkg: np.ndarray, rms: np.ndarray, fwhm_px: float = 
         warnings.simplefilter("ignore")
         cat = SourceCatalog(sub, seg, convolved_data=conv, mask=mask)
         t = cat.to_table(columns=["label", "x_centroid", "y_centroid", "segment_flux", "max_value", "area",
-                                  "fwhm", "elongation", "bbox_xmin", "bbox_xmax", "bbox_ymin", "bbox_ymax"])
+                                  "fwhm", "elongation", "bbox_xmin", "bbox_xmax", "bbox_ymin", "bbox_ymax",
+                                  "max_value_xindex", "max_value_yindex"])
     cols = {k: np.asarray(t[k].value if hasattr(t[k], "value") else t[k], float) for k in t.colnames}
     return seg, cols
 
@@ -256,7 +257,7 @@ def _psf_and_grad(gx, gy, cx, cy, alpha: float, beta: float, sub: int, cov: np.n
     from detector.effects.image_plane import ELONGATION_MAX_GAIN
 
     ev = np.linalg.eigvalsh(cov)
-    pad = int(math.ceil(4 * math.sqrt(max(float(np.max(np.abs(ev))), 0.0)))) + 1
+    pad = math.ceil(4 * math.sqrt(max(float(np.max(np.abs(ev))), 0.0))) + 1
     H, W = np.shape(gy)[1], np.shape(gx)[2]  # the grids may be broadcast: (n, 1, W) and (n, H, 1)
     ex = gx[:, :1, :1] + np.arange(-pad, W + pad)[None, None, :]
     ey = gy[:, :1, :1] + np.arange(-pad, H + pad)[None, :, None]
@@ -310,6 +311,18 @@ def photometry(data, bkg, cols, fwhm_px: float, beta: float, saturation: "float 
     sub_img = data - bkg
     x0 = cols["x_centroid"][idx].astype(float)
     y0 = cols["y_centroid"][idx].astype(float)
+    if "max_value_xindex" in cols:
+        # the fit starts at the segment's brightest pixel when it lies away from the centroid (a blend that
+        # the deblending kept whole has its centroid between its sources, beyond the fit's reach); a saturated
+        # peak (anywhere on the clipped plateau) keeps the centroid
+        px = np.asarray(cols["max_value_xindex"][idx], float)
+        py = np.asarray(cols["max_value_yindex"][idx], float)
+        okp = np.isfinite(px) & np.isfinite(py)
+        pxi = np.clip(np.where(okp, px, 0), 0, w - 1).astype(int)
+        pyi = np.clip(np.where(okp, py, 0), 0, h - 1).astype(int)
+        away = okp & (np.hypot(px - x0, py - y0) > 1.5) & ~(data[pyi, pxi] >= satmap[pyi, pxi])
+        x0 = np.where(away, px, x0)
+        y0 = np.where(away, py, y0)
     f0 = np.maximum(cols["segment_flux"][idx], 1.0).astype(float)
     first = _fit_stars(sub_img, data, satmap, rms, x0, y0, f0, R, ax, beta, sub, gain, cov_px2, iterations)
     # a saturated star: a saturated pixel within its core (a neighbour's saturated pixels in a window are only
@@ -323,15 +336,28 @@ def photometry(data, bkg, cols, fwhm_px: float, beta: float, saturation: "float 
         lab, _ = ndimage.label(satpix)
         area = np.bincount(lab.ravel())
         core_area = np.zeros(idx.size)
-        k = int(math.ceil(r_core))
+        core_label = np.zeros(idx.size, int)
+        k = math.ceil(r_core)
         for dy in range(-k, k + 1):
             for dx in range(-k, k + 1):
                 if dx * dx + dy * dy > r_core * r_core:
                     continue
                 yy = np.clip(np.round(first["y"]).astype(int) + dy, 0, h - 1)
                 xx = np.clip(np.round(first["x"]).astype(int) + dx, 0, w - 1)
-                core_area = np.maximum(core_area, area[lab[yy, xx]] * (lab[yy, xx] > 0))
+                a_here = area[lab[yy, xx]] * (lab[yy, xx] > 0)
+                core_label = np.where(a_here > core_area, lab[yy, xx], core_label)
+                core_area = np.maximum(core_area, a_here)
         sat = core_area > 0
+        if sat.any():
+            # a saturated star's centre: the centroid of its clipped plateau (a symmetric PSF clips a disc
+            # about its centre), where the detection's centroid of a blend or of a bright star's segment
+            # with its neighbours may lie pixels away
+            labels = np.unique(core_label[sat])
+            com = np.array(ndimage.center_of_mass(satpix, lab, labels)).reshape(-1, 2)
+            where = np.searchsorted(labels, core_label[sat])
+            first["y"][sat], first["x"][sat] = com[where, 0], com[where, 1]
+            x0, y0 = x0.copy(), y0.copy()
+            x0[sat], y0[sat] = com[where, 1], com[where, 0]
     if sat.any():
         # the saturated stars again, in windows that reach beyond their clipped cores into their wings, every
         # other star's fitted model subtracted (each star's own previous model added back to its window)
