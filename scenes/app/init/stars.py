@@ -311,20 +311,27 @@ def photometry(data, bkg, cols, fwhm_px: float, beta: float, saturation: "float 
     sub_img = data - bkg
     x0 = cols["x_centroid"][idx].astype(float)
     y0 = cols["y_centroid"][idx].astype(float)
+    f0 = np.maximum(cols["segment_flux"][idx], 1.0).astype(float)
+    first = _fit_stars(sub_img, data, satmap, rms, x0, y0, f0, R, ax, beta, sub, gain, cov_px2, iterations)
     if "max_value_xindex" in cols:
-        # the fit starts at the segment's brightest pixel when it lies away from the centroid (a blend that
-        # the deblending kept whole has its centroid between its sources, beyond the fit's reach); a saturated
-        # peak (anywhere on the clipped plateau) keeps the centroid
+        # a segment whose brightest pixel lies away from its centroid (a blend the deblending kept whole has
+        # its centroid between its sources, beyond the fit's reach): fitted again from that pixel, the better
+        # fit kept (a cosmic ray or a hot pixel in the segment is the worse one); a saturated peak (anywhere on
+        # the clipped plateau) is not a start
         px = np.asarray(cols["max_value_xindex"][idx], float)
         py = np.asarray(cols["max_value_yindex"][idx], float)
         okp = np.isfinite(px) & np.isfinite(py)
         pxi = np.clip(np.where(okp, px, 0), 0, w - 1).astype(int)
         pyi = np.clip(np.where(okp, py, 0), 0, h - 1).astype(int)
-        away = okp & (np.hypot(px - x0, py - y0) > 1.5) & ~(data[pyi, pxi] >= satmap[pyi, pxi])
-        x0 = np.where(away, px, x0)
-        y0 = np.where(away, py, y0)
-    f0 = np.maximum(cols["segment_flux"][idx], 1.0).astype(float)
-    first = _fit_stars(sub_img, data, satmap, rms, x0, y0, f0, R, ax, beta, sub, gain, cov_px2, iterations)
+        away = np.flatnonzero(okp & (np.hypot(px - x0, py - y0) > 1.5) & ~(data[pyi, pxi] >= satmap[pyi, pxi]))
+        if away.size:
+            alt = _fit_stars(sub_img, data, satmap, rms, px[away], py[away], f0[away], R, ax, beta, sub, gain,
+                             cov_px2, iterations)
+            better = (alt["chi2_dof"] < first["chi2_dof"][away]) & (alt["npx"] >= 9)
+            for key in first:
+                first[key][away[better]] = alt[key][better]
+            x0, y0 = x0.copy(), y0.copy()
+            x0[away[better]], y0[away[better]] = px[away][better], py[away][better]
     # a saturated star: a saturated pixel within its core (a neighbour's saturated pixels in a window are only
     # left out of that window's fit)
     satpix = np.isfinite(data) & (data >= satmap)
