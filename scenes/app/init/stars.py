@@ -8,8 +8,13 @@ variation over the field) and PSF-fit photometry.
 * PSF: elliptical Moffat fits (Moffat 1969; Trujillo et al. 2001, FWHM = 2 alpha sqrt(2^(1/beta) - 1)) of
   isolated, unsaturated stars, sampled on 3 x 3 sub-pixels (the scene integrates its PSF over pixels); the
   medians, and the FWHM as a quadratic function of the position (its variation over the field).
-* Photometry: every star fitted with that PSF (flux, centre and local background free, saturated pixels
-  left out), so the catalogue's fluxes are the total fluxes of the scene's own PSF (no aperture correction).
+* Photometry: every star fitted with the scene's own PSF (the round Moffat, filtered by the elongation's
+  covariance when the scene carries ``[effects.psf_elongation]``; flux, centre and local background free,
+  weighted by the model's variance), so the catalogue's fluxes are the total fluxes of the scene's own stars
+  (no aperture correction). A saturated star is fitted from its unsaturated wings alone (the clipped pixels
+  left out, as photutils' PSF photometry with a mask; Stetson 1987, DAOPHOT), its centre started at its
+  clipped plateau's centroid, its neighbours' models subtracted and the background held at the sky measured
+  with every star's model removed.
 """
 
 from __future__ import annotations
