@@ -324,10 +324,15 @@ def init_scene(frame: str, scene_name: str = "scene", *, bias=(), dark=(), flat=
     else:
         fwhm_px, beta = 3.0, 4.765
         psf_src = _v(fwhm_px, "assumed", note="no isolated star to fit")
+    # the measured elongation goes into the scene ([effects.psf_elongation], below): the photometry fits the
+    # stars with that same PSF, so the catalogue's fluxes are those of the scene's own stars
+    elongated = bool(psf.get("ok") and psf["n"] >= 5 and psf["ellipticity"] > ELONGATED)
+    cov_px2 = starmod.elongation_cov_px2(psf, fwhm_px) if elongated else None
     phot = None
     if seg is not None and frame_type == "light":
         sharp = cols["fwhm"] < 0.5 * fwhm_px
-        phot = starmod.photometry(sdata, bkg, cols, fwhm_px, min(beta, 1000.0), sat_px, rms, keep=~sharp)
+        phot = starmod.photometry(sdata, bkg, cols, fwhm_px, min(beta, 1000.0), sat_px, rms, keep=~sharp,
+                                  gain=gain, cov_px2=cov_px2)
     # ---- mask
     mask = np.zeros((h, w), bool)
     minfo = {"extended": [], "bleeds": [], "masked_fraction": 0.0}
@@ -427,16 +432,13 @@ def init_scene(frame: str, scene_name: str = "scene", *, bias=(), dark=(), flat=
         effects["dark_map"] = {"path": f"{scene_name}_dark.fits", "sigma_hdu": 1}
         sources["effects.dark_map"] = ("measured: per-pixel slope of bias and darks against time [e-/s] (adopted gain), "
                                        "its standard error in HDU 1")
-    if psf.get("ok") and psf["n"] >= 5 and psf["ellipticity"] > ELONGATED:
+    if elongated:
         # the measured elliptical PSF as the round one plus a second-moment change dC (Gaussian-equivalent
-        # variances of the major and minor axes about the quadratic-mean FWHM, rotated to the major axis)
-        k = 2.3548 ** 2
-        d1 = (psf["fwhm_major_px"] ** 2 - fwhm_px ** 2) / k * binning ** 2
-        d2 = (psf["fwhm_minor_px"] ** 2 - fwhm_px ** 2) / k * binning ** 2
-        c_, s_ = math.cos(math.radians(psf["pa_major_deg"])), math.sin(math.radians(psf["pa_major_deg"]))
-        effects["psf_elongation"] = {"dcxx_px2": round(d1 * c_ * c_ + d2 * s_ * s_, 5),
-                                     "dcyy_px2": round(d1 * s_ * s_ + d2 * c_ * c_, 5),
-                                     "dcxy_px2": round((d1 - d2) * s_ * c_, 5)}
+        # variances of the major and minor axes about the quadratic-mean FWHM, rotated to the major axis), in
+        # sensor pixels: the scene's [psf] has no ellipticity key, the renderer's elongation is this effect
+        dc = cov_px2 * binning ** 2
+        effects["psf_elongation"] = {"dcxx_px2": round(float(dc[0, 0]), 5), "dcyy_px2": round(float(dc[1, 1]), 5),
+                                     "dcxy_px2": round(float(dc[0, 1]), 5)}
         sources["effects.psf_elongation"] = (f"measured: FWHM {psf['fwhm_major_px']:.2f} x {psf['fwhm_minor_px']:.2f} px, "
                                              f"major axis at {psf['pa_major_deg']:.0f} deg from +x (median of {psf['n']} stars)")
     if hv["bayer"].value and frame_type == "light":

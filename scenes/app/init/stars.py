@@ -8,8 +8,13 @@ variation over the field) and PSF-fit photometry.
 * PSF: elliptical Moffat fits (Moffat 1969; Trujillo et al. 2001, FWHM = 2 alpha sqrt(2^(1/beta) - 1)) of
   isolated, unsaturated stars, sampled on 3 x 3 sub-pixels (the scene integrates its PSF over pixels); the
   medians, and the FWHM as a quadratic function of the position (its variation over the field).
-* Photometry: every star fitted with that PSF (flux, centre and local background free, saturated pixels
-  left out), so the catalogue's fluxes are the total fluxes of the scene's own PSF (no aperture correction).
+* Photometry: every star fitted with the scene's own PSF (the round Moffat, filtered by the elongation's
+  covariance when the scene carries ``[effects.psf_elongation]``; flux, centre and local background free,
+  weighted by the model's variance), so the catalogue's fluxes are the total fluxes of the scene's own stars
+  (no aperture correction). A saturated star is fitted from its unsaturated wings alone (the clipped pixels
+  left out, as photutils' PSF photometry with a mask; Stetson 1987, DAOPHOT), its centre started at its
+  clipped plateau's centroid, its neighbours' models subtracted and the background held at the sky measured
+  with every star's model removed.
 """
 
 from __future__ import annotations
@@ -125,7 +130,8 @@ def detect(data: np.ndarray, bkg: np.ndarray, rms: np.ndarray, fwhm_px: float = 
         warnings.simplefilter("ignore")
         cat = SourceCatalog(sub, seg, convolved_data=conv, mask=mask)
         t = cat.to_table(columns=["label", "x_centroid", "y_centroid", "segment_flux", "max_value", "area",
-                                  "fwhm", "elongation", "bbox_xmin", "bbox_xmax", "bbox_ymin", "bbox_ymax"])
+                                  "fwhm", "elongation", "bbox_xmin", "bbox_xmax", "bbox_ymin", "bbox_ymax",
+                                  "max_value_xindex", "max_value_yindex"])
     cols = {k: np.asarray(t[k].value if hasattr(t[k], "value") else t[k], float) for k in t.colnames}
     return seg, cols
 
@@ -231,13 +237,73 @@ def _moffat_and_grad(dx, dy, alpha: float, beta: float, sub: int = 3):
     return k * p / n, k * gx / n, k * gy / n
 
 
+def elongation_cov_px2(psf: dict, fwhm_px: float) -> np.ndarray:
+    """The measured elliptical PSF as the round one of FWHM ``fwhm_px`` (the quadratic mean of the axes) plus a
+    second-moment change ``dC`` [output px^2, (x, y)]: the Gaussian-equivalent variances of the major and minor
+    axes (FWHM^2 / (8 ln 2)) about the round one's, rotated to the major axis. What the scene renders as
+    ``[effects.psf_elongation]`` (its ``dcxx, dcyy, dcxy`` are this x binning^2, in sensor pixels)."""
+    k = 8.0 * math.log(2.0)
+    d1 = (psf["fwhm_major_px"] ** 2 - fwhm_px ** 2) / k
+    d2 = (psf["fwhm_minor_px"] ** 2 - fwhm_px ** 2) / k
+    c, s = math.cos(math.radians(psf["pa_major_deg"])), math.sin(math.radians(psf["pa_major_deg"]))
+    return np.array([[d1 * c * c + d2 * s * s, (d1 - d2) * s * c], [(d1 - d2) * s * c, d1 * s * s + d2 * c * c]])
+
+
+def _psf_and_grad(gx, gy, cx, cy, alpha: float, beta: float, sub: int, cov: np.ndarray | None):
+    """The scene's PSF (pixel-averaged circular Moffat, then, when ``cov`` is given, filtered by the Gaussian of
+    covariance ``cov`` as ``[effects.psf_elongation]`` renders it: ``H(f) = min(exp(-2 pi^2 f^T C f), 50)``, a
+    capped deconvolution along a narrowing axis) of unit flux, and its derivatives with respect to the centre, on
+    the stamps of pixel coordinates ``gx, gy`` (n, H, W) centred at ``cx, cy`` (n,).
+
+    The filter acts on each star's stamp extended by the filter's reach (4 sigma of its largest axis), where the
+    Moffat is evaluated exactly, then cropped: the star as the scene draws it (the filter commutes with the
+    shift, so the centre derivatives are the filtered ones)."""
+    if cov is None:
+        return _moffat_and_grad(gx - cx[:, None, None], gy - cy[:, None, None], alpha, beta, sub)
+    from detector.effects.image_plane import ELONGATION_MAX_GAIN
+
+    ev = np.linalg.eigvalsh(cov)
+    pad = math.ceil(4 * math.sqrt(max(float(np.max(np.abs(ev))), 0.0))) + 1
+    H, W = np.shape(gy)[1], np.shape(gx)[2]  # the grids may be broadcast: (n, 1, W) and (n, H, 1)
+    ex = gx[:, :1, :1] + np.arange(-pad, W + pad)[None, None, :]
+    ey = gy[:, :1, :1] + np.arange(-pad, H + pad)[None, :, None]
+    P, dPx, dPy = _moffat_and_grad(ex - cx[:, None, None], ey - cy[:, None, None], alpha, beta, sub)
+    fy = np.fft.fftfreq(H + 2 * pad)[:, None]
+    fx = np.fft.rfftfreq(W + 2 * pad)[None, :]
+    q = cov[0, 0] * fx * fx + 2 * cov[0, 1] * fx * fy + cov[1, 1] * fy * fy
+    tf = np.minimum(np.exp(-2 * np.pi ** 2 * q), ELONGATION_MAX_GAIN)
+    shape = (H + 2 * pad, W + 2 * pad)
+    out = [np.fft.irfft2(np.fft.rfft2(a, axes=(-2, -1)) * tf, s=shape, axes=(-2, -1))[:, pad:pad + H, pad:pad + W]
+           for a in (P, dPx, dPy)]
+    return out[0], out[1], out[2]
+
+
+#: the largest fit window of a saturated star [px, half-size]
+SATURATED_MAX_RADIUS_PX = 40
+
+
 def photometry(data, bkg, cols, fwhm_px: float, beta: float, saturation: float | np.ndarray, rms: np.ndarray,
-               keep: np.ndarray | None = None, max_sources: int = 20000, iterations: int = 8) -> dict:
-    """PSF-fit fluxes [ADU] (total flux of the scene's circular Moffat), centres, local background, S/N.
+               keep: np.ndarray | None = None, max_sources: int = 20000, iterations: int = 8,
+               gain: float | None = None, cov_px2: np.ndarray | None = None) -> dict:
+    """PSF-fit fluxes [ADU] (total flux of the scene's PSF), centres, local background, S/N.
+
+    The PSF is the scene's: the circular Moffat (``fwhm_px``, ``beta``), filtered by the elongation covariance
+    ``cov_px2`` when the scene carries one (:func:`elongation_cov_px2`, :func:`_psf_and_grad`), so the fluxes
+    are those that minimise the compare's chi2 of each star with the scene's own PSF.
 
     Every star at once: weighted Gauss-Newton on (flux, x, y, background) with the analytic derivatives of the
-    pixel-averaged Moffat, saturated and non-finite pixels weighted 0; steps limited to 1 px."""
+    pixel-averaged PSF, steps limited to 1 px. Weights: the model's own variance, the background noise plus the
+    star's Poisson variance ``m / gain`` [ADU^2] at the current model (iteratively reweighted: the weights of
+    the compare's chi2, not of the data's fluctuations); without ``gain``, the background noise alone.
+
+    Saturated stars (a pixel of the window at or above ``saturation``): their flux is fitted from their
+    unsaturated wings with the same PSF, the saturated pixels left out (as photutils' PSF photometry with a
+    mask), in a window grown to the saturated core's radius plus 3 FWHM (at most
+    :data:`SATURATED_MAX_RADIUS_PX`), the other stars' fitted models first subtracted from it, so that the model
+    star, clipped at the same level, reproduces the wings. The aperture sum (clipped core included) is a lower
+    bound of such a flux and is taken when the wing fit falls below it."""
     ax = moffat_alpha(fwhm_px, beta)
+    sub = subsamples(fwhm_px)
     R = int(np.clip(round(2.5 * fwhm_px), 4, 30))
     idx = np.flatnonzero(keep if keep is not None else np.ones(len(cols["x_centroid"]), bool))
     idx = idx[np.isfinite(cols["x_centroid"][idx]) & np.isfinite(cols["y_centroid"][idx])]
@@ -245,56 +311,189 @@ def photometry(data, bkg, cols, fwhm_px: float, beta: float, saturation: float |
     empty = {k: np.zeros(0) for k in ("i", "x", "y", "flux_adu", "flux_err_adu", "bkg_adu", "chi2_dof", "saturated")}
     if idx.size == 0:
         return empty
-    pad = np.pad(data - bkg, R + 1, constant_values=np.nan)
-    padraw = np.pad(data, R + 1, constant_values=np.nan)
+    h, w = data.shape
+    satmap = (np.broadcast_to(np.asarray(saturation, float), data.shape) if np.ndim(saturation)
+              else np.full(data.shape, float(saturation)))
+    sub_img = data - bkg
+    x0 = cols["x_centroid"][idx].astype(float)
+    y0 = cols["y_centroid"][idx].astype(float)
+    f0 = np.maximum(cols["segment_flux"][idx], 1.0).astype(float)
+    first = _fit_stars(sub_img, data, satmap, rms, x0, y0, f0, R, ax, beta, sub, gain, cov_px2, iterations)
+    if "max_value_xindex" in cols:
+        # a segment whose brightest pixel lies away from its centroid (a blend the deblending kept whole has
+        # its centroid between its sources, beyond the fit's reach): fitted again from that pixel, the better
+        # fit kept (a cosmic ray or a hot pixel in the segment is the worse one); a saturated peak (anywhere on
+        # the clipped plateau) is not a start
+        px = np.asarray(cols["max_value_xindex"][idx], float)
+        py = np.asarray(cols["max_value_yindex"][idx], float)
+        okp = np.isfinite(px) & np.isfinite(py)
+        pxi = np.clip(np.where(okp, px, 0), 0, w - 1).astype(int)
+        pyi = np.clip(np.where(okp, py, 0), 0, h - 1).astype(int)
+        away = np.flatnonzero(okp & (np.hypot(px - x0, py - y0) > 1.5) & ~(data[pyi, pxi] >= satmap[pyi, pxi]))
+        if away.size:
+            alt = _fit_stars(sub_img, data, satmap, rms, px[away], py[away], f0[away], R, ax, beta, sub, gain,
+                             cov_px2, iterations)
+            better = (alt["chi2_dof"] < first["chi2_dof"][away]) & (alt["npx"] >= 9)
+            for key in first:
+                first[key][away[better]] = alt[key][better]
+            x0, y0 = x0.copy(), y0.copy()
+            x0[away[better]], y0[away[better]] = px[away][better], py[away][better]
+    # a saturated star: a saturated pixel within its core (a neighbour's saturated pixels in a window are only
+    # left out of that window's fit)
+    satpix = np.isfinite(data) & (data >= satmap)
+    r_core = max(1.5, 0.75 * fwhm_px)
+    sat = np.zeros(idx.size, bool)
+    if satpix.any():
+        from scipy import ndimage
+
+        lab, _ = ndimage.label(satpix)
+        area = np.bincount(lab.ravel())
+        core_area = np.zeros(idx.size)
+        core_label = np.zeros(idx.size, int)
+        k = math.ceil(r_core)
+        for dy in range(-k, k + 1):
+            for dx in range(-k, k + 1):
+                if dx * dx + dy * dy > r_core * r_core:
+                    continue
+                yy = np.clip(np.round(first["y"]).astype(int) + dy, 0, h - 1)
+                xx = np.clip(np.round(first["x"]).astype(int) + dx, 0, w - 1)
+                a_here = area[lab[yy, xx]] * (lab[yy, xx] > 0)
+                core_label = np.where(a_here > core_area, lab[yy, xx], core_label)
+                core_area = np.maximum(core_area, a_here)
+        sat = core_area > 0
+        if sat.any():
+            # a saturated star's centre: the centroid of its clipped plateau (a symmetric PSF clips a disc
+            # about its centre), where the detection's centroid of a blend or of a bright star's segment
+            # with its neighbours may lie pixels away
+            labels = np.unique(core_label[sat])
+            com = np.array(ndimage.center_of_mass(satpix, lab, labels)).reshape(-1, 2)
+            where = np.searchsorted(labels, core_label[sat])
+            first["y"][sat], first["x"][sat] = com[where, 0], com[where, 1]
+            x0, y0 = x0.copy(), y0.copy()
+            x0[sat], y0[sat] = com[where, 1], com[where, 0]
+    if sat.any():
+        # the saturated stars again, in windows that reach beyond their clipped cores into their wings, every
+        # other star's fitted model subtracted (each star's own previous model added back to its window)
+        R_sat = int(np.clip(math.ceil(math.sqrt(float(core_area[sat].max()) / math.pi) + 3.0 * fwhm_px), R,
+                            SATURATED_MAX_RADIUS_PX))
+        # the sky under them: the frame's background again, every star's fitted model subtracted first (the
+        # wings of a saturated star, out to SATURATED_MAX_RADIUS_PX, raise a box median far beyond its core),
+        # the saturated pixels masked; then their fits with the background held at that sky
+        for _ in range(2):
+            others = _render_stars(first, ~sat, (h, w), R, ax, beta, sub, cov_px2)
+            wide = others + _render_stars(first, sat, (h, w), SATURATED_MAX_RADIUS_PX, ax, beta, sub, cov_px2)
+            sky, _ = background(data - wide, mask=satpix | ~np.isfinite(data))
+            total = others + _render_stars(first, sat, (h, w), R_sat, ax, beta, sub, cov_px2)
+            sub_img = data - sky
+            second = _fit_stars(sub_img - total, data, satmap, rms, first["x"][sat], first["y"][sat],
+                                first["flux_adu"][sat], R_sat, ax, beta, sub, gain, cov_px2, 2 * iterations,
+                                x_start=(x0[sat], y0[sat]), own=True, fixed_background=True)
+            for key in ("x", "y", "flux_adu", "flux_err_adu", "bkg_adu", "chi2_dof", "npx", "ap_sum"):
+                first[key][sat] = second[key]
+            first["flux_adu"][sat] = np.maximum(second["flux_adu"], second["ap_sum"])
+        total = (_render_stars(first, ~sat, (h, w), R, ax, beta, sub, cov_px2)
+                 + _render_stars(first, sat, (h, w), R_sat, ax, beta, sub, cov_px2))
+        # the stars within reach of a saturated one, refitted with its (new) model subtracted
+        near = ~sat & (np.min(np.hypot(first["x"][:, None] - first["x"][sat][None, :],
+                                       first["y"][:, None] - first["y"][sat][None, :]), axis=1) < R + R_sat)
+        if near.any():
+            third = _fit_stars(sub_img - total, data, satmap, rms, first["x"][near], first["y"][near],
+                               first["flux_adu"][near], R, ax, beta, sub, gain, cov_px2, iterations,
+                               x_start=(x0[near], y0[near]), own=True)
+            for key in ("x", "y", "flux_adu", "flux_err_adu", "bkg_adu", "chi2_dof", "npx"):
+                first[key][near] = third[key]
+    good = first["npx"] >= 9
+    return {"i": idx[good], "x": first["x"][good], "y": first["y"][good], "flux_adu": first["flux_adu"][good],
+            "flux_err_adu": first["flux_err_adu"][good], "bkg_adu": first["bkg_adu"][good],
+            "chi2_dof": first["chi2_dof"][good], "saturated": sat[good]}
+
+
+def _fit_stars(z_img, raw_img, satmap, rms, x0, y0, f0, R: int, ax: float, beta: float, sub: int, gain, cov,
+               iterations: int, x_start=None, own: bool = False, fixed_background: bool = False) -> dict:
+    """Weighted Gauss-Newton fits of (flux, x, y, background) of every star at once in windows of half-size
+    ``R`` (see :func:`photometry`); non-finite and saturated pixels weight 0. ``own``: ``z_img`` has every
+    star's model subtracted, and each star's own (``f0`` at ``x0, y0``) is added back to its window.
+    ``fixed_background``: the local background held at 0 (``z_img`` is above the sky already): a wing-only fit
+    cannot tell a flat background from the far wings of its star."""
+    pad = np.pad(z_img, R + 1, constant_values=np.nan)
+    padraw = np.pad(raw_img, R + 1, constant_values=np.nan)
     padn = np.pad(rms, R + 1, mode="edge")
-    x0 = cols["x_centroid"][idx]
-    y0 = cols["y_centroid"][idx]
+    padsat = np.pad(satmap, R + 1, constant_values=np.inf)
+    xc0, yc0 = x_start if x_start is not None else (x0, y0)
     xi, yi = np.round(x0).astype(int), np.round(y0).astype(int)
     off = np.arange(-R, R + 1)
     YY = yi[:, None, None] + off[None, :, None] + R + 1
     XX = xi[:, None, None] + off[None, None, :] + R + 1
     z = pad[YY, XX]
-    raw = padraw[YY, XX]
-    if np.ndim(saturation):  # a clip per pixel (a colour frame divided by its cells' responses)
-        satv = np.pad(np.asarray(saturation, float), R + 1, constant_values=np.inf)[YY, XX]
-    else:
-        satv = saturation
-    ok = np.isfinite(z) & (raw < satv)
-    n2 = np.median(padn[YY, XX].reshape(len(idx), -1), axis=1) ** 2
-    zc = np.where(ok, z, 0.0)
-    wgt = ok / (n2[:, None, None] + 0.02 * np.clip(zc, 0, None) + 1e-12)
     gx = (xi[:, None, None] + off[None, None, :]).astype(float)
     gy = (yi[:, None, None] + off[None, :, None]).astype(float)
-    f = np.maximum(cols["segment_flux"][idx], 1.0).astype(float)
-    cx, cy, c = x0.astype(float), y0.astype(float), np.zeros(len(idx))
+    if own:
+        z = z + np.asarray(f0, float)[:, None, None] * _psf_and_grad(gx, gy, np.asarray(x0, float),
+                                                                     np.asarray(y0, float), ax, beta, sub, cov)[0]
+    raw = padraw[YY, XX]
+    ok = np.isfinite(z) & (raw < padsat[YY, XX])
+    n = len(x0)
+    n2 = np.median(padn[YY, XX].reshape(n, -1), axis=1) ** 2
+    zc = np.where(ok, z, 0.0)
+    f = np.asarray(f0, float).copy()
+    cx, cy, c = np.asarray(x0, float).copy(), np.asarray(y0, float).copy(), np.zeros(n)
+
+    def weights(P):
+        star = np.clip(f[:, None, None] * P, 0.0, None)
+        poisson = star / gain if gain else 0.0
+        return ok / (n2[:, None, None] + poisson + 1e-12)
+
     for _ in range(iterations):
-        P, dPx, dPy = _moffat_and_grad(gx - cx[:, None, None], gy - cy[:, None, None], ax, beta, subsamples(fwhm_px))
-        m = f[:, None, None] * P + c[:, None, None]
-        r = zc - m
-        J = np.stack([P, f[:, None, None] * dPx, f[:, None, None] * dPy, np.ones_like(P)], axis=-1)
+        P, dPx, dPy = _psf_and_grad(gx, gy, cx, cy, ax, beta, sub, cov)
+        wgt = weights(P)
+        r = zc - (f[:, None, None] * P + c[:, None, None])
+        J = np.stack([P, f[:, None, None] * dPx, f[:, None, None] * dPy] + ([] if fixed_background else [np.ones_like(P)]),
+                     axis=-1)
         Jw = J * wgt[..., None]
-        A = np.einsum("nyxi,nyxj->nij", Jw, J) + 1e-9 * np.eye(4)
+        A = np.einsum("nyxi,nyxj->nij", Jw, J)
         b = np.einsum("nyxi,nyx->ni", Jw, r)
-        step = np.linalg.solve(A, b[..., None])[..., 0]
+        # the normal equations scaled to a unit diagonal before the small damping (the Poisson weights of a
+        # bright star make them tiny: an absolute damping would shrink its steps)
+        d = np.sqrt(np.maximum(np.einsum("nii->ni", A), 1e-300))
+        As = A / (d[:, :, None] * d[:, None, :]) + 1e-9 * np.eye(J.shape[-1])
+        step = np.linalg.solve(As, (b / d)[..., None])[..., 0] / d
         f = np.maximum(f + step[:, 0], 0.0)
-        cx = cx + np.clip(step[:, 1], -1, 1)
-        cy = cy + np.clip(step[:, 2], -1, 1)
-        c = c + step[:, 3]
-    cx = np.clip(cx, x0 - 2.5, x0 + 2.5)
-    cy = np.clip(cy, y0 - 2.5, y0 + 2.5)
-    P, _, _ = _moffat_and_grad(gx - cx[:, None, None], gy - cy[:, None, None], ax, beta, subsamples(fwhm_px))
+        # the centre held within 2.5 px of the detection's at every step (a clip after the fit would leave a
+        # flux fitted at another place: a star beyond the frame's edge, whose wing alone is in it)
+        cx = np.clip(cx + np.clip(step[:, 1], -1, 1), xc0 - 2.5, xc0 + 2.5)
+        cy = np.clip(cy + np.clip(step[:, 2], -1, 1), yc0 - 2.5, yc0 + 2.5)
+        if not fixed_background:
+            c = c + step[:, 3]
+    P, _, _ = _psf_and_grad(gx, gy, cx, cy, ax, beta, sub, cov)
+    wgt = weights(P)
     res = (zc - f[:, None, None] * P - c[:, None, None]) ** 2 * wgt
-    npx = ok.reshape(len(idx), -1).sum(axis=1)
-    err = np.sqrt(n2 / np.maximum((P ** 2 * ok).reshape(len(idx), -1).sum(axis=1), 1e-12))
-    sat = ((~ok) & np.isfinite(raw)).reshape(len(idx), -1).any(axis=1)
-    # a saturated star: its wings alone under-determine the flux; the aperture sum (clipped core included) is
-    # a lower bound, taken when larger
-    r_ap = max(3.0 * fwhm_px, 4.0)
+    npx = ok.reshape(n, -1).sum(axis=1)
+    err = np.sqrt(1.0 / np.maximum((P ** 2 * wgt).reshape(n, -1).sum(axis=1), 1e-30))
+    sat = ((~ok) & np.isfinite(raw)).reshape(n, -1).any(axis=1)
+    # the aperture sum (clipped core included): a lower bound of a saturated star's flux
+    r_ap = max(3.0 * math.sqrt(2.0 ** (1.0 / beta) - 1.0) * 2.0 * ax, 4.0)
     inap = ((gx - cx[:, None, None]) ** 2 + (gy - cy[:, None, None]) ** 2 <= r_ap ** 2) & np.isfinite(z)
-    ap_sum = (np.where(inap, z, 0.0) - np.where(inap, c[:, None, None], 0.0)).reshape(len(idx), -1).sum(axis=1)
-    f = np.where(sat, np.maximum(f, ap_sum), f)
-    good = npx >= 9
-    return {"i": idx[good], "x": cx[good], "y": cy[good], "flux_adu": f[good], "flux_err_adu": err[good],
-            "bkg_adu": c[good], "chi2_dof": (res.reshape(len(idx), -1).sum(axis=1) / np.maximum(npx - 4, 1))[good],
-            "saturated": sat[good]}
+    ap_sum = (np.where(inap, z, 0.0) - np.where(inap, c[:, None, None], 0.0)).reshape(n, -1).sum(axis=1)
+    return {"x": cx, "y": cy, "flux_adu": f, "flux_err_adu": err, "bkg_adu": c,
+            "chi2_dof": res.reshape(n, -1).sum(axis=1) / np.maximum(npx - 4, 1), "saturated": sat, "npx": npx,
+            "ap_sum": ap_sum}
+
+
+def _render_stars(fit: dict, use: np.ndarray, shape, R: int, ax: float, beta: float, sub: int, cov) -> np.ndarray:
+    """The fitted models (flux x PSF, no background) of the stars ``use`` on an image of ``shape``."""
+    h, w = shape
+    out = np.zeros((h + 2 * R + 2, w + 2 * R + 2))
+    sel = np.flatnonzero(use)
+    if sel.size == 0:
+        return out[R + 1:R + 1 + h, R + 1:R + 1 + w]
+    off = np.arange(-R, R + 1)
+    for chunk in np.array_split(sel, max(1, sel.size // 2000)):
+        xi, yi = np.round(fit["x"][chunk]).astype(int), np.round(fit["y"][chunk]).astype(int)
+        gx = (xi[:, None, None] + off[None, None, :]).astype(float)
+        gy = (yi[:, None, None] + off[None, :, None]).astype(float)
+        P, _, _ = _psf_and_grad(gx, gy, fit["x"][chunk], fit["y"][chunk], ax, beta, sub, cov)
+        YY = np.broadcast_to(yi[:, None, None] + off[None, :, None] + R + 1, P.shape)
+        XX = np.broadcast_to(xi[:, None, None] + off[None, None, :] + R + 1, P.shape)
+        inside = (YY >= 0) & (YY < out.shape[0]) & (XX >= 0) & (XX < out.shape[1])
+        np.add.at(out, (YY[inside], XX[inside]), (fit["flux_adu"][chunk][:, None, None] * P)[inside])
+    return out[R + 1:R + 1 + h, R + 1:R + 1 + w]
