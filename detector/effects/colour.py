@@ -180,30 +180,12 @@ class CFASignature(Signature):
         return Fit(name, params, d * scale, len(c), int(keep.sum() * scale), _cfa_words(params, res),
                    delta_adu=delta, note=f"2x2 cells of {period // 2} x {period // 2} pixels")
 
-    def support_pixels(self, res, fit):
-        """The pixels the mosaic is judged on where it acts (``scenes.app.compare.candidates.support_share``):
-        its own (every unsaturated light pixel, not only those the grey comparison fits one by one), as
-        (index, mean change, residual before and after with the global levels refitted, weights), the
-        outliers beyond CFA_CLIP_SIGMA of both clipped (as :meth:`score`)."""
-        sample = self._sample(res, limit=CFA_FIT_PIXELS)
+    def _before_after(self, res, fit, limit: int | None):
+        """On this signature's own pixels (:meth:`_sample`): (index, mean change, residual before and after the
+        fit, weights, rows), the global levels refitted to each (row noise in the generalised least squares) and
+        the outliers beyond CFA_CLIP_SIGMA of both models clipped; None without pixels or a mean change."""
+        sample = self._sample(res, limit=limit)
         if sample is None or fit.delta_adu is None:
-            return None
-        idx, r, w, levels = (sample[k] for k in ("idx", "r", "w", "levels"))
-        delta = np.asarray(fit.delta_adu, np.float64).ravel()[idx]
-
-        def profiled(y):
-            c, *_ = np.linalg.lstsq(levels.T * np.sqrt(w)[:, None], y * np.sqrt(w), rcond=None)
-            return y - c @ levels
-
-        r0, r1 = profiled(r), profiled(r - delta)
-        keep = (np.abs(r0) * np.sqrt(w) < CFA_CLIP_SIGMA) | (np.abs(r1) * np.sqrt(w) < CFA_CLIP_SIGMA)
-        return idx[keep], delta[keep], r0[keep], r1[keep], w[keep]
-
-    def score(self, fit, res):
-        """delta(-2 ln L) on this signature's own pixels (every unsaturated light pixel of ``res.train``, the
-        outliers beyond CFA_CLIP_SIGMA of either model clipped), with the global levels refitted."""
-        sample = self._sample(res, limit=None)
-        if sample is None:
             return None
         idx, r, w, levels, (rows, _) = (sample[k] for k in ("idx", "r", "w", "levels", "yx"))
         delta = np.asarray(fit.delta_adu, np.float64).ravel()[idx]
@@ -215,8 +197,24 @@ class CFASignature(Signature):
 
         r0, r1 = profiled(r), profiled(r - delta)
         keep = (np.abs(r0) * np.sqrt(w) < CFA_CLIP_SIGMA) | (np.abs(r1) * np.sqrt(w) < CFA_CLIP_SIGMA)
-        return (gls_quadratic(r1[keep], w[keep], rows[keep], row_var)
-                - gls_quadratic(r0[keep], w[keep], rows[keep], row_var))
+        return idx[keep], delta[keep], r0[keep], r1[keep], w[keep], rows[keep]
+
+    def support_pixels(self, res, fit):
+        """The pixels the mosaic is judged on where it acts (``scenes.app.compare.candidates.support_share``):
+        its own (every unsaturated light pixel of a subsample, not only those the grey comparison fits one by
+        one), as (index, mean change, residual before and after, weights) (:meth:`_before_after`)."""
+        got = self._before_after(res, fit, CFA_FIT_PIXELS)
+        return None if got is None else got[:5]
+
+    def score(self, fit, res):
+        """delta(-2 ln L) on this signature's own pixels (every unsaturated light pixel of ``res.train``, the
+        outliers beyond CFA_CLIP_SIGMA of either model clipped), with the global levels refitted."""
+        got = self._before_after(res, fit, None)
+        if got is None:
+            return None
+        _, _, r0, r1, w, rows = got
+        row_var = float(res.row_var_adu2)
+        return gls_quadratic(r1, w, rows, row_var) - gls_quadratic(r0, w, rows, row_var)
 
 
 def _cfa_params(c, period: int = 2) -> dict | None:

@@ -205,20 +205,29 @@ MIN_SEGMENT_SHARE = 0.1
 def _best_split(rc: np.ndarray, sc: np.ndarray, wc: np.ndarray, fixed: list[int], lo: int) -> int | None:
     """The boundary (index of the first line after it) that, added to ``fixed``, most lowers the weighted
     least-squares misfit of a piecewise-constant ratio ``rc / sc`` (line sums of the residual and of the
-    signal, weights ``wc`` = sc^2 / var): binary segmentation (Scott & Knott 1974)."""
+    signal, weights ``wc`` = sc^2 / var): binary segmentation (Scott & Knott 1974). Each segment [a, b)
+    explains ``(sum sc rc wc)^2 / sum sc^2 wc`` of the misfit; a new boundary j changes only the segment that
+    holds it, so every j is scored at once from prefix sums. None when no boundary at least ``lo`` lines from
+    the edges and from ``fixed`` explains anything."""
     n = rc.size
-    best, best_gain = None, 0.0
-    for j in range(lo, n - lo + 1):
-        if any(abs(j - f) < lo for f in fixed):
-            continue
-        cuts = sorted([0, n, *fixed, j])
-        gain = 0.0
-        for a, b in pairwise(cuts):
-            s2, sr = float(np.sum(sc[a:b] ** 2 * wc[a:b])), float(np.sum(sc[a:b] * rc[a:b] * wc[a:b]))
-            gain += sr * sr / s2 if s2 > 0 else 0.0
-        if gain > best_gain:
-            best, best_gain = j, gain
-    return best
+    ss = np.concatenate([[0.0], np.cumsum(sc * sc * wc)])
+    sr = np.concatenate([[0.0], np.cumsum(sc * rc * wc)])
+
+    def explained(a, b):
+        s2, s1 = ss[b] - ss[a], sr[b] - sr[a]
+        return np.where(s2 > 0, s1 * s1 / np.where(s2 > 0, s2, 1.0), 0.0)
+
+    j = np.arange(lo, n - lo + 1)
+    if fixed:
+        j = j[np.min(np.abs(j[:, None] - np.asarray(fixed)[None, :]), axis=1) >= lo]
+    if j.size == 0:
+        return None
+    cuts = np.asarray(sorted([0, n, *fixed]))
+    seg = np.searchsorted(cuts, j, side="right") - 1  # the segment [cuts[seg], cuts[seg + 1]) that holds j
+    a, b = cuts[seg], cuts[seg + 1]
+    gain = explained(a, j) + explained(j, b) - explained(a, b)
+    k = int(np.argmax(gain))
+    return int(j[k]) if gain[k] > 0 else None
 
 
 def _gain_split_variants(res, sig: np.ndarray):
@@ -254,15 +263,11 @@ def _gain_split_variants(res, sig: np.ndarray):
 
 
 def _split_variant(res, sig: np.ndarray, axis: str, bounds: list[float]) -> Variant:
-    wd = res.data_adu.shape[1]
-    if axis == "x":
-        ix = np.searchsorted(np.asarray(bounds), res.xs, side="right")
-        k = np.broadcast_to(ix[None, :], res.data_adu.shape)
-    else:
-        iy = np.searchsorted(np.asarray(bounds), res.ys, side="right")
-        k = np.broadcast_to(iy[:, None], res.data_adu.shape)
-    present = np.arange(len(bounds) + 1)
+    h, wd = res.data_adu.shape
+    line = np.searchsorted(np.asarray(bounds), res.xs if axis == "x" else res.ys, side="right")  # region per line
+    k = np.broadcast_to(line[None, :] if axis == "x" else line[:, None], (h, wd))
     n_reg = len(bounds) + 1
+    present = np.arange(n_reg)
 
     def at(idx):
         yy, xx = np.divmod(idx, wd)
@@ -273,9 +278,10 @@ def _split_variant(res, sig: np.ndarray, axis: str, bounds: list[float]) -> Vari
     def maps():
         return [np.where(k == j, sig, np.float32(0)) for j in present]
 
+    npx = np.bincount(line, minlength=n_reg).astype(float) * (h if axis == "x" else wd)  # pixels per region
+
     def to_params(c):
         g = 1.0 + np.asarray(c, float)
-        npx = np.array([(k == j).sum() for j in present], float)
         g = g / (np.dot(g, npx) / npx.sum())
         if not (g > 0).all():
             return None

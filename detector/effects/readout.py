@@ -180,11 +180,14 @@ class RowOffsetSignature(Signature):
         m, h = power.size, cls.PERIODIC_NEIGHBOURS
         if m < 2 * h + 1:
             return None
-        ratio = np.zeros(m)
-        for k in range(m):
-            nb = np.concatenate([power[max(k - h - 1, 0):max(k - 1, 0)], power[k + 2:k + 2 + h]])
-            level = float(nb.mean()) if nb.size else 0.0
-            ratio[k] = power[k] / level if level > 0 else 0.0
+        # the neighbours of k: [k - h - 1, k - 1) and [k + 2, k + 2 + h), clipped to the spectrum (prefix sums)
+        cs = np.concatenate([[0.0], np.cumsum(power)])
+        k = np.arange(m)
+        lo_a, lo_b = np.maximum(k - h - 1, 0), np.maximum(k - 1, 0)
+        hi_a, hi_b = np.minimum(k + 2, m), np.minimum(k + 2 + h, m)
+        count = (lo_b - lo_a) + (hi_b - hi_a)
+        level = ((cs[lo_b] - cs[lo_a]) + (cs[hi_b] - cs[hi_a])) / np.maximum(count, 1)
+        ratio = np.where(level > 0, power / np.where(level > 0, level, 1.0), 0.0)
         k = int(np.argmax(ratio))
         if m * np.exp(-ratio[k]) >= cls.PERIODIC_FALSE_ALARM:
             return None

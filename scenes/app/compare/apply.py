@@ -20,6 +20,15 @@ from .model import build_model, read_measurement, residuals
 from .optics_candidates import OPTICS_CANDIDATES
 
 
+def parameter_bundle(significant: list[dict]) -> dict:
+    """The applied entry of a round whose best candidate is a number of the scene: every significant parameter
+    candidate (JSON dicts) written at once (they were fitted together), the effects waiting for the next round."""
+    params = [c for c in significant if c.get("kind") == "parameter"]
+    return {"effect": "parameters", "kind": "parameter", "params": {c["key"]: c["value"] for c in params},
+            "parameters": params, "delta_bic": min(c["delta_bic"] for c in params),
+            "explanation": "; ".join(c["explanation"] for c in params)}
+
+
 def apply_candidate(scene, cand: dict, path: str | Path, measured: str | Path | None = None) -> Path:
     """Write ``scene`` with the candidate's effect and fitted parameters added (a new scene TOML).
 

@@ -349,11 +349,10 @@ def joint_psf_steps(movers: list[Candidate], res: Residuals) -> None:
     live = [c for c in movers if c.significant and "scene_value" in c.fit.state]
     if len(live) != 2:
         return
-    for c, other in ((live[0], live[1]), (live[1], live[0])):
-        share, _ = conditional_evidence(res, other.fit.delta_adu, c.fit.delta_adu)
-        c.fit.state["joint_share"] = share
-    for c, other in ((live[0], live[1]), (live[1], live[0])):
-        share = c.fit.state.pop("joint_share")
+    pairs = ((live[0], live[1]), (live[1], live[0]))
+    # both shares from the changes as fitted, before either value is touched
+    shares = [conditional_evidence(res, other.fit.delta_adu, c.fit.delta_adu)[0] for c, other in pairs]
+    for (c, other), share in zip(pairs, shares):
         if share >= 1:
             continue
         v0 = c.fit.state["scene_value"]
@@ -433,6 +432,12 @@ def apply_parameters(data: dict, cands: list[dict]) -> list[str]:
     return notes
 
 
+def _inverse_variance_mean(values, se) -> tuple[float, float]:
+    """The inverse-variance weighted mean of ``values`` with standard errors ``se``, and its standard error."""
+    w = 1.0 / np.asarray(se, float) ** 2
+    return float(np.sum(w * np.asarray(values, float)) / w.sum()), float(1.0 / np.sqrt(w.sum()))
+
+
 def calibration_candidates(calibration: dict, sensor, n_fit: int, chi2_per_dof: float, scene=None,
                            policy: DiagnosisPolicy = DEFAULT_POLICY) -> list[Candidate]:
     """A series' own calibration measurements (:func:`.series.calibration`) as parameter candidates: what a
@@ -455,24 +460,21 @@ def calibration_candidates(calibration: dict, sensor, n_fit: int, chi2_per_dof: 
     tol = policy.parameter_scale_tolerance
     n = max(n_fit, 2)
     rows: list[tuple[str, str, float, float, float, str, str]] = []
+    g_adopted = float(sensor.gain_e_per_adu)
     pt = [e for e in calibration.get("photon_transfer", [])
           if np.isfinite(e.get("gain_se", np.nan)) and e["gain_se"] > 0 and np.isfinite(e["measured_gain_e_per_adu"])]
     if pt:
-        w = np.array([1.0 / e["gain_se"] ** 2 for e in pt])
-        g = float(np.sum(w * [e["measured_gain_e_per_adu"] for e in pt]) / w.sum())
+        g_adopted, se = _inverse_variance_mean([e["measured_gain_e_per_adu"] for e in pt], [e["gain_se"] for e in pt])
         frames = ", ".join("/".join(e["frames"]) for e in pt)
-        rows.append(("gain", "detector.gain_e_per_adu", float(sensor.gain_e_per_adu), g, float(1 / np.sqrt(w.sum())),
+        rows.append(("gain", "detector.gain_e_per_adu", float(sensor.gain_e_per_adu), g_adopted, se,
                      "e-/ADU", f"the photon transfer of the flats {frames}"))
     rn = [e for e in calibration.get("read_noise", []) if np.isfinite(e["measured_e"]) and e.get("n_pixels", 0) > 1]
     if rn:
         # the pair's noise is measured in ADU: in e- through the gain the flats measured, when they did
-        g_adopted = rows[0][3] if rows else float(sensor.gain_e_per_adu)
         meas = np.array([e["measured_e"] * g_adopted / float(sensor.gain_e_per_adu) for e in rn])
-        se = meas / np.sqrt(2 * (np.array([e["n_pixels"] for e in rn]) - 1))
-        w = 1 / se ** 2
-        v = float(np.sum(w * meas) / w.sum())
+        v, se = _inverse_variance_mean(meas, meas / np.sqrt(2 * (np.array([e["n_pixels"] for e in rn]) - 1)))
         frames = ", ".join("/".join(e["frames"]) for e in rn)
-        rows.append(("read_noise", "detector.read_noise_e", float(sensor.read_noise_e), v, float(1 / np.sqrt(w.sum())),
+        rows.append(("read_noise", "detector.read_noise_e", float(sensor.read_noise_e), v, se,
                      "e-", f"the difference of the bias frames {frames}"))
     dk = calibration.get("dark_regression")
     if dk and "dark_map" not in (scene.effects if scene is not None else {}):  # a measured map holds the dark

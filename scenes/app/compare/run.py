@@ -22,7 +22,7 @@ from detector.morphology import describe
 from scenes.scene import load_scene
 
 from . import fullframe
-from .apply import apply_candidate, apply_empirical
+from .apply import apply_candidate, apply_empirical, parameter_bundle
 from .candidates import SIGNIFICANT_DELTA_BIC, candidates, source_candidates
 from .catch_all import compare_with_catch_all, outliers_after_catch_all
 from .floors import HOT_EFFECTS, hot_in_dark
@@ -158,10 +158,7 @@ def apply_best(scene, diagnosis: dict, apply_to: str | Path | None, measured: st
     if best is not None and best.get("kind") == "parameter":
         # a number of the scene is wrong: every significant parameter is written at once (they were fitted
         # together), the effects wait for the next round
-        params = [c for c in diagnosis["candidates"] if c["significant"] and c.get("kind") == "parameter"]
-        best = {"effect": "parameters", "kind": "parameter", "params": {c["key"]: c["value"] for c in params},
-                "parameters": params, "delta_bic": min(c["delta_bic"] for c in params),
-                "explanation": "; ".join(c["explanation"] for c in params)}
+        best = parameter_bundle([c for c in diagnosis["candidates"] if c["significant"]])
         return apply_candidate(scene, best, apply_to, measured), best
     if best is not None:
         return apply_candidate(scene, best, apply_to, measured), best

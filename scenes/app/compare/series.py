@@ -70,7 +70,7 @@ from scenes.errors import SceneError
 from scenes.scene import load_scene, read_toml
 
 from . import fullframe
-from .apply import LEVEL_SCALE_TOL, apply_candidate
+from .apply import LEVEL_SCALE_TOL, apply_candidate, parameter_bundle
 from .candidates import chi2_after, implausibility, overfit, stars_check, structure_share, support_share
 from .floors import floor_reason, signal_range_floor
 from .judge import Candidate, judge_json, kind_gate, rank, verdict
@@ -906,10 +906,7 @@ def apply_series(series: Series, diagnosis: dict, apply_to: str | Path | None, p
     if apply_to is None or best is None:
         return None, None, best
     if best.get("kind") == "parameter":  # numbers of the camera: every significant one written at once
-        params = [c for c in sig if c.get("kind") == "parameter"]
-        best = {"effect": "parameters", "kind": "parameter", "params": {c["key"]: c["value"] for c in params},
-                "parameters": params, "delta_bic": min(c["delta_bic"] for c in params),
-                "explanation": "; ".join(c["explanation"] for c in params)}
+        best = parameter_bundle(sig)
     base = series.frames[0].scene if series.scene_file is None else load_scene(str(series.scene_file))
     per = best["params"].get("per_frame") if isinstance(best["params"], dict) else None
     cand = dict(best)
