@@ -662,10 +662,16 @@ def _jitter_params(th, res):
         return {"sigma_major_px": 0.0, "sigma_minor_px": 0.0, "angle_deg": round(ang, 2),
                 "vibration_px": round(amp * b, 4)}
     w, ang = _jitter_axes(th)
-    # an isotropic smear is psf_blur (nested in this model): jitter must be elongated to be a candidate
-    if w[0] <= 0 or w[1] >= 100 or w[1] < JITTER_MIN_ELONGATION ** 2 * w[0]:
+    # a smear along one line has a minor variance of 0, which the fit's noise puts either side of it: down to
+    # the elongation's own threshold (ELONGATION_MIN_NEGATIVE: beyond it the change is a narrowing across, an
+    # elongation) the minor axis is the line's 0, as the transform renders it (its variances clipped at 0)
+    if w[1] <= 0 or w[1] >= 100 or w[0] < -ELONGATION_MIN_NEGATIVE * w[1]:
         return None
-    return {"sigma_major_px": round(float(np.sqrt(w[1])) * b, 4), "sigma_minor_px": round(float(np.sqrt(w[0])) * b, 4),
+    w0 = max(float(w[0]), 0.0)
+    # an isotropic smear is psf_blur (nested in this model): jitter must be elongated to be a candidate
+    if w[1] < JITTER_MIN_ELONGATION ** 2 * w0:
+        return None
+    return {"sigma_major_px": round(float(np.sqrt(w[1])) * b, 4), "sigma_minor_px": round(float(np.sqrt(w0)) * b, 4),
             "angle_deg": round(ang, 2)}
 
 
@@ -1209,7 +1215,7 @@ class DriftParams(EffectParams):
     accel: float = Field(0.0, ge=-1, le=1, description="along-track acceleration: the path's quadratic coefficient "
                          "along d over |d| (speed |d| (1 + 2 accel t), t in [-1/2, 1/2]); +1 starts at rest (the "
                          "source dwells at the -d/2 end), -1 ends at rest, 0 uniform [1]",
-                         json_schema_extra={"unit": "1"})
+                         json_schema_extra={"unit": "1", "bound_reachable": True})
     sagitta_px: float = Field(0.0, ge=-1e3, le=1e3, description="bow of the trail across its chord [sensor px]; "
                               "> 0: the path turns counter-clockwise (towards d rotated by +90 deg); the path's "
                               "quadratic coefficient across is 4 sagitta", json_schema_extra={"unit": "pixel"})

@@ -40,6 +40,8 @@ def at_bound(cls, params: dict) -> str:
         sch = props.get(key)
         if sch is None or isinstance(value, bool) or not isinstance(value, (int, float)):
             continue
+        if sch.get("bound_reachable"):
+            continue  # a bound that is a physical state (a drift that starts or ends at rest), not a limit of form
         alts = [sch, *sch.get("anyOf", [])]
         if any(a.get("type") == "integer" for a in alts):
             continue  # a count or a grid (amplifiers, channels) is a choice of form: its smallest value is a form too
