@@ -194,11 +194,27 @@ def excess_shares(res: Residuals, cands: list[Candidate], policy: DiagnosisPolic
     (levels refitted) it removes, where that excess is large (the policy's ``excess_sigma``)."""
     n = res.n_fit
     excess = res.chi2_profiled() - n
-    if n == 0 or excess / np.sqrt(2 * n) < policy.excess_sigma:
-        return
+    significant = n > 0 and excess / np.sqrt(2 * n) >= policy.excess_sigma
     for c in cands:
-        if (c.fit.delta_adu is not None or c.fit.extra_var_adu2 is not None) and np.isfinite(c.chi2_per_dof):
+        own = own_pixels(res, c.fit)
+        if own is not None:  # a signature fitted on pixels of its own is asked there (as in support_share)
+            _, _, r0, r1, w = own
+            before, m = float(np.dot(r0 * r0, w)), r0.size
+            if before - m >= policy.excess_sigma * np.sqrt(2 * m):
+                c.excess_share = round((before - float(np.dot(r1 * r1, w))) / (before - m), 4)
+        elif significant and (c.fit.delta_adu is not None or c.fit.extra_var_adu2 is not None) \
+                and np.isfinite(c.chi2_per_dof):
             c.excess_share = round(float((excess + n - c.chi2_per_dof * n) / excess), 4)
+
+
+def own_pixels(res: Residuals, fit: Fit):
+    """(index, mean change, residual before and after, weights) on the pixels a signature fits on its own
+    (``support_pixels``: a colour mosaic of tens of per cent makes every other pixel an outlier of the grey
+    comparison), or None for a signature judged on the compared pixels."""
+    if fit.delta_adu is None:
+        return None
+    own = getattr(getattr(registry().get(fit.effect), "signature", None), "support_pixels", None)
+    return None if own is None else own(res, fit)
 
 
 def support_share(res: Residuals, fit: Fit, policy: DiagnosisPolicy = DEFAULT_POLICY) -> float | None:
@@ -211,9 +227,8 @@ def support_share(res: Residuals, fit: Fit, policy: DiagnosisPolicy = DEFAULT_PO
     if fit.delta_adu is None:
         return None
     sig = getattr(registry().get(fit.effect), "signature", None)
-    own = getattr(sig, "support_pixels", None)
-    if own is not None:
-        got = own(res, fit)
+    if getattr(sig, "support_pixels", None) is not None:
+        got = own_pixels(res, fit)
         if got is None:
             return None
         idx, d, r0, r1, w = got
