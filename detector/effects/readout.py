@@ -67,6 +67,30 @@ def bias_profile_adu(xs: np.ndarray, width: int, coeffs) -> np.ndarray:
     return (np.asarray(coeffs, np.float64) @ np.cos(np.pi * k[:, None] * t[None, :])).astype(np.float32)
 
 
+def bias_field_adu(ys: np.ndarray, xs: np.ndarray, height: int, width: int, coeffs, box=None) -> np.ndarray:
+    """A fixed 2-D bias pattern [ADU] on sensor coordinates: the cosine series
+    ``sum_jk C_jk cos(j pi v) cos(k pi u)`` of the pixel's position in the box ``(x0, y0, x1, y1)`` [sensor px]
+    (default the sensor), ``u = (x - x0) / (x1 - x0)``, ``v = (y - y0) / (y1 - y0)`` in [0, 1], held at the box's
+    edge beyond it (a 2-D DCT-II basis: any smooth field; a window fits the field it sees, not an extrapolation
+    over the sensor), ``C`` (rows j, columns k) the coefficients, ``C_00`` left out (the mean is the bias
+    level's). The read-out's offset drifts during the
+    read of a frame (the output amplifier and the reference warming as the rows are read: a pattern along the
+    rows) while the serial clocking repeats every row (along the columns); together, and with an amplifier
+    whose warm-up spreads into the array, they leave a smooth 2-D structure that is the same in every bias
+    frame, which a master bias removes (Howell 2006, Handbook of CCD Astronomy, sect. 4.2; Janesick 2001,
+    Scientific CCDs, sect. 3.6)."""
+    c = np.array(coeffs, np.float64)
+    if c.size == 0:
+        return np.zeros((ys.size, xs.size), np.float32)
+    c[0, 0] = 0.0
+    x0, y0, x1, y1 = box if box else (0.0, 0.0, width - 1.0, height - 1.0)
+    v = np.clip((ys.astype(np.float64) - y0) / max(y1 - y0, 1.0), 0.0, 1.0)
+    u = np.clip((xs.astype(np.float64) - x0) / max(x1 - x0, 1.0), 0.0, 1.0)
+    cy = np.cos(np.pi * v[:, None] * np.arange(c.shape[0])[None, :])
+    cx = np.cos(np.pi * np.arange(c.shape[1])[:, None] * u[None, :])
+    return (cy @ c @ cx).astype(np.float32)
+
+
 #: span of an exponential crosstalk tail [e-folding lengths]: lags beyond it carry < e^-5 = 0.7 % of the echo
 TAIL_SPAN = 5.0
 
@@ -315,10 +339,43 @@ def _bias_variants(res):
             return dict(p, column_profile_adu=coeffs)
 
         yield Variant(unit + rows[:order], with_profile, label=f"column profile of {order} cosine terms")
+    # ... and a smooth 2-D structure (the read's drift along the rows with the serial pattern, an amplifier's
+    # warm-up spreading into the array), in 2-D cosine series of growing order (chosen by BIC)
+    width = res.data_adu.shape[1]
+    box = [float(res.xs.min()), float(res.ys.min()), float(res.xs.max()), float(res.ys.max())]  # the window's
+    v = (res.ys - box[1]) / max(box[3] - box[1], 1.0)
+    u = (res.xs - box[0]) / max(box[2] - box[0], 1.0)
+    cv = np.cos(np.pi * v[:, None] * np.arange(max(BIAS_FIELD_ORDERS)))
+    cu = np.cos(np.pi * u[:, None] * np.arange(max(BIAS_FIELD_ORDERS)))
+    for order in BIAS_FIELD_ORDERS:
+        terms = [(j, k) for j in range(order) for k in range(order) if j or k]
+
+        def at(idx, terms=terms):
+            y, x = np.divmod(idx, width)
+            return np.stack([float(f) * cv[y, j] * cu[x, k] for j, k in terms])
+
+        def with_field(c, order=order, terms=terms):
+            coef = np.zeros((order, order))
+            for (j, k), ck in zip(terms, c):
+                coef[j, k] = float(f"{ck:.4g}")
+            grid = np.linspace(0, 1, 65)
+            field = bias_field_adu(box[1] + grid * (box[3] - box[1]), box[0] + grid * (box[2] - box[0]),
+                                   s.sensor_height_px, s.sensor_width_px, coef, box)
+            if float(np.max(np.abs(field))) > s.bias_adu:  # the field's extremes are bounded by the bias too
+                return None
+            return {"gradient_x_adu": 0.0, "gradient_y_adu": 0.0, "quadratic_adu": 0.0,
+                    "field_adu": [[float(v) for v in row] for row in coef], "field_box_px": box}
+
+        yield Variant(lambda terms=terms: [(float(f) * cv[:, j, None] * cu[None, :, k]).astype(np.float32)
+                                           for j, k in terms],
+                      with_field, label=f"2-D field of {order} x {order} cosine terms", at=at)
 
 
 #: orders of the bias pattern along the serial direction the bias fit tries on unlit frames [cosine terms]
 BIAS_PROFILE_ORDERS = (8, 16, 32)
+#: orders of the smooth 2-D bias structure the bias fit tries on unlit frames [cosine terms per axis]: 3 (a
+#: bowl, a saddle, ramps), 5 and 8 (up to two and three and a half cycles along each axis: a fixed oblique wave)
+BIAS_FIELD_ORDERS = (3, 5, 8)
 
 
 def _unlit(res) -> bool:
@@ -329,6 +386,16 @@ def _unlit(res) -> bool:
 def _bias_words(p, res) -> str:
     parts = [f"{p['gradient_x_adu']:+.3g} ADU across the columns", f"{p['gradient_y_adu']:+.3g} ADU across the rows",
              f"{p['quadratic_adu']:+.3g} ADU bowl at the corners"]
+    field = p.get("field_adu") or []
+    if field:
+        s = res.sensor
+        x0, y0, x1, y1 = p.get("field_box_px") or (0.0, 0.0, s.sensor_width_px - 1.0, s.sensor_height_px - 1.0)
+        grid = np.linspace(0, 1, 65)
+        shape = bias_field_adu(y0 + grid * (y1 - y0), x0 + grid * (x1 - x0), s.sensor_height_px, s.sensor_width_px,
+                               field, (x0, y0, x1, y1))
+        return (f"an additive offset independent of the signal, a smooth 2-D pattern of {float(np.ptp(shape)):.3g} ADU "
+                f"peak to peak ({len(field)} x {len(field)} cosine terms: the read-out's drift and fixed pattern): "
+                "bias structure")
     prof = p.get("column_profile_adu") or []
     if prof:
         u = np.linspace(0, res.sensor.sensor_width_px - 1, 257)
@@ -763,6 +830,15 @@ class BiasGradientParams(EffectParams):
     column_profile_adu: list[float] = Field(default_factory=list, max_length=64,
                                             description="cosine-series coefficients c_k of a fixed pattern along "
                                             "the serial direction, sum_k c_k cos(k pi x / (W - 1)) [ADU]")
+    field_adu: list[list[float]] = Field(default_factory=list, max_length=16,
+                                         description="2-D cosine-series coefficients C_jk (rows j, columns k; C_00 "
+                                         "ignored) of a smooth fixed pattern, sum_jk C_jk cos(j pi y / (H - 1)) "
+                                         "cos(k pi x / (W - 1)) [ADU] (bias_field_adu)",
+                                         json_schema_extra={"unit": "ADU"})
+    field_box_px: list[float] = Field(default_factory=list, max_length=4,
+                                      description="the box (x0, y0, x1, y1) [sensor px] over which field_adu's cosines "
+                                      "run from 0 to pi (held at its edge beyond it; empty: the sensor)",
+                                      json_schema_extra={"unit": "pixel"})
 
 
 @register_effect
@@ -771,7 +847,8 @@ class BiasGradient(Effect):
 
     Seen in bias frames of large CMOS and CCD sensors (amplifier warm-up, reference-voltage drop along the
     column bus; Janesick 2007 ch. 9). Deterministic, zero at the sensor centre. ``column_profile_adu`` adds
-    a fixed pattern of any smooth shape along the serial direction (:func:`bias_profile_adu`).
+    a fixed pattern of any smooth shape along the serial direction (:func:`bias_profile_adu`), ``field_adu`` a
+    smooth 2-D one (:func:`bias_field_adu`).
     """
 
     name = "bias_gradient"
@@ -789,6 +866,8 @@ class BiasGradient(Effect):
                                p.gradient_y_adu, p.quadratic_adu)
         if p.column_profile_adu:
             data += bias_profile_adu(xs, s.sensor_width_px, p.column_profile_adu)[None, :]
+        if p.field_adu:
+            data += bias_field_adu(ys, xs, s.sensor_height_px, s.sensor_width_px, p.field_adu, p.field_box_px or None)
 
 
 class CrosstalkParams(EffectParams):

@@ -230,3 +230,12 @@ def test_mosaic_judged_on_its_own_pixels_for_its_excess_share(tmp_path):
     assert row["first"] == "cfa"
     truth = np.array(R.draw_case("cfa", 2016398237256064219).draw.effects[0][1]["response"])
     assert row["first_params"]["response"] == pytest.approx(list(truth / truth.mean()), abs=2e-3)
+
+
+def test_an_oblique_bias_wave_named_bias_structure(tmp_path):
+    """A fixed oblique wave of 2.2 cycles, 19.8 ADU peak to peak, on a bias frame of the whole ML11002 (a drawn
+    case, bias_gradient-2553889983260938002): the ramps, the bowl and the column profile took 3 % of it and it
+    was described, not named; the 2-D field (over the window it sees) names it and its --apply leaves nothing."""
+    row = R.run_case(R.draw_case("bias_gradient", 2553889983260938002), tmp_path, workers=1)
+    assert row["first"] == "bias_gradient" and row["first_params"].get("field_adu")
+    assert row["error_ratio"] < 0.05
