@@ -30,7 +30,10 @@ Gaussian model when the jitter is a sizeable part of the PSF.
 Stamps are truncated at a half-width ``R``: at least 4 FWHM, more for bright sources so that the energy
 outside the stamp stays below max(0.5 e-, 1e-9 of the flux) and never above 1e-3 of the flux (Gaussian:
 tail exp(-R^2 / 2 sigma^2); Moffat: (1 + R^2 / alpha^2)^(1 - beta), the energy outside the circle of
-radius R, an upper bound for the square). Half-widths are rounded up to a short geometric ladder so that
+radius R, an upper bound for the square); a Moffat stamp stops sooner where its edge is fainter than
+TAIL_SB_E = 0.01 e- per pixel with at most 1e-3 of the flux beyond (the halo of a wide-winged PSF, which
+no frame shows). Beyond a core of a few alpha the Moffat's pixel integrals take the lower Gauss-Legendre
+order the same error bound allows there (``MoffatPSF.far_rule``). Half-widths are rounded up to a short geometric ladder so that
 sources share stamp sizes (vectorisation). At most ``MAX_RADIUS_PX``.
 
 The hook for other PSFs (e.g. an optics PSF that varies over the field): any object with
@@ -68,6 +71,15 @@ MAX_RADIUS_PX = 512
 TAIL_E = 0.5  # electrons allowed outside a stamp ...
 TAIL_REL_MAX = 1e-3  # ... but never more than this fraction of the source
 TAIL_REL_MIN = 1e-9  # ... and no need to go below this fraction
+#: surface brightness at a Moffat stamp's edge [e- per pixel] below which the light beyond it (at most TAIL_REL_MAX
+#: of the source) is left out even when it exceeds TAIL_E: a hundredth of an electron per pixel, and less beyond,
+#: which no frame shows under its read and shot noise (>= 1 e-). A Moffat of beta 1.8 keeps 0.5 e- of a 1e6 e-
+#: star only beyond 4e4 alpha: every stamp of a wide-winged PSF hit MAX_RADIUS_PX, a million pixels each
+TAIL_SB_E = 0.01
+#: the core of a Moffat stamp is integrated at the full Gauss-Legendre order; beyond it (offsets from the source
+#: of at least this many pixels along either axis) the order the error bound needs there (the integrand's poles
+#: are that much farther from the pixel), down to 2 nodes per axis [pixels]
+_MOFFAT_CORE_MAX_PX = 64
 _LADDER = 1.25  # stamp half-widths: w_min * 1.25^k
 
 
@@ -208,9 +220,27 @@ class MoffatPSF:
     @property
     def order(self) -> int:
         """Gauss-Legendre nodes per pixel axis: rho^(-2n) <= tol, rho = 2 alpha + sqrt(4 alpha^2 + 1)."""
-        a = 2.0 * self.alpha_px
-        rho = a + math.sqrt(a * a + 1.0)
+        return self._order_for(2.0 * self.alpha_px + math.sqrt(4.0 * self.alpha_px ** 2 + 1.0))
+
+    def _order_for(self, rho: float) -> int:
         return int(min(32, max(2, math.ceil(math.log(1.0 / self.tol) / (2.0 * math.log(rho))))))
+
+    @property
+    def far_rule(self) -> tuple[int, int]:
+        """(k, n): pixels offset from the source by at least ``k`` [pixels] along either axis take ``n`` nodes per
+        axis. For such a pixel each 1-D rule's integrand has its poles at least ``D = k - 1/2 - (the largest
+        jitter offset)`` from the pixel's centre along the real axis (the x-integrand's at
+        ``x = +-i sqrt(alpha^2 + y^2)``, the pixel ``|x| >= k``; the y-integrand's at ``+-i sqrt(alpha^2 + x^2)``,
+        imaginary part ``>= |x|``), so the Bernstein ellipse of the pixel (half-width 1/2) reaching them has
+        ``rho >= 2 D + sqrt(4 D^2 - 1)``: the same bound rho^(-2n) <= tol as the core's. ``k`` is the smallest that
+        gives 2 nodes (at most :data:`_MOFFAT_CORE_MAX_PX`); (0, order) when that saves nothing."""
+        jo = float(np.max(np.abs(self._jitter[0]))) if self._jitter[0].size else 0.0
+        n = self.order
+        for k in range(2, _MOFFAT_CORE_MAX_PX + 1):
+            d = k - 0.5 - jo
+            if d > 0.5 and self._order_for(2.0 * d + math.sqrt(4.0 * d * d - 1.0)) <= 2:
+                return (k, 2) if n > 2 else (0, n)
+        return 0, n
 
     @property
     def jitter_nodes(self) -> tuple[np.ndarray, np.ndarray]:
@@ -237,10 +267,23 @@ class MoffatPSF:
         return (self.beta - 1.0) / (math.pi * a2) * (1.0 + np.asarray(r2) / a2) ** (-self.beta)
 
     def __call__(self, x, y, dx, dy) -> np.ndarray:
-        return self._stamp(x, y, dx, dy, self._jitter)
+        k, n_far = self.far_rule
+        dx = np.asarray(dx, dtype=float)
+        dy = np.asarray(dy, dtype=float)
+        if not k:
+            return self._stamp(x, y, dx, dy, self._jitter)
+        cols = np.any(np.abs(dx) < k, axis=0)  # the core: within k of some source along the axis
+        rows = np.any(np.abs(dy) < k, axis=0)
+        if cols.all() and rows.all():
+            return self._stamp(x, y, dx, dy, self._jitter)
+        u, w = np.polynomial.legendre.leggauss(n_far)
+        out = self._stamp(x, y, dx, dy, self._jitter, (0.5 * u, 0.5 * w))
+        if cols.any() and rows.any():
+            out[np.ix_(np.arange(out.shape[0]), rows, cols)] = self._stamp(x, y, dx[:, cols], dy[:, rows], self._jitter)
+        return out
 
-    def _stamp(self, x, y, dx, dy, jitter_rule) -> np.ndarray:
-        u, w = self._nodes
+    def _stamp(self, x, y, dx, dy, jitter_rule, nodes=None) -> np.ndarray:
+        u, w = self._nodes if nodes is None else nodes
         a2 = self.alpha_px ** 2
         norm = (self.beta - 1.0) / (math.pi * a2)
         dx = np.asarray(dx, dtype=float)
@@ -259,11 +302,19 @@ class MoffatPSF:
         return out
 
     def radius_px(self, flux_e) -> np.ndarray:
+        """The stamp half-width: the energy beyond it below max(TAIL_E, TAIL_REL_MIN of the flux) (the module
+        notes) or, if smaller, the radius beyond which at most TAIL_REL_MAX of the flux is left out at a surface
+        brightness below TAIL_SB_E at the edge (a wide-winged PSF's faint halo)."""
         fwhm = math.hypot(self.fwhm_px, GAUSS_FWHM * self.jitter_px)
         w_min = math.ceil(MIN_RADIUS_FWHM * fwhm + 0.5)
-        tail = _tail_fraction(flux_e)
-        r_tail = self.alpha_px * np.sqrt(tail ** (-1.0 / (self.beta - 1.0)) - 1.0) + 3.0 * self.jitter_px
-        return _ladder(np.ceil(r_tail + 0.5), w_min)
+        a, b = self.alpha_px, self.beta
+        flux = np.maximum(np.asarray(flux_e, dtype=float), 1e-300)
+        r_tail = a * np.sqrt(_tail_fraction(flux) ** (-1.0 / (b - 1.0)) - 1.0)
+        r_rel = a * math.sqrt(TAIL_REL_MAX ** (-1.0 / (b - 1.0)) - 1.0)  # (1 + R^2/a^2)^(1 - b) = TAIL_REL_MAX
+        peak = flux * (b - 1.0) / (math.pi * a * a)  # I(R) = peak (1 + R^2/a^2)^(-b) = TAIL_SB_E
+        r_sb = a * np.sqrt(np.maximum((peak / TAIL_SB_E) ** (1.0 / b) - 1.0, 0.0))
+        r = np.minimum(r_tail, np.maximum(r_rel, r_sb)) + 3.0 * self.jitter_px
+        return _ladder(np.ceil(r + 0.5), w_min)
 
     def describe(self) -> dict:
         return {"model": "moffat", "fwhm_px": self.fwhm_px, "beta": self.beta, "alpha_px": self.alpha_px,
