@@ -339,8 +339,12 @@ def _bias_variants(res):
             return dict(p, column_profile_adu=coeffs)
 
         yield Variant(unit + rows[:order], with_profile, label=f"column profile of {order} cosine terms")
-    # ... and a smooth 2-D structure (the read's drift along the rows with the serial pattern, an amplifier's
-    # warm-up spreading into the array), in 2-D cosine series of growing order (chosen by BIC)
+    # ... and on a bias frame (no integration: nothing but the read-out can make a pattern) a smooth 2-D
+    # structure (the read's drift along the rows with the serial pattern, an amplifier's warm-up spreading into
+    # the array), in 2-D cosine series of growing order (chosen by BIC). On an exposed dark a smooth 2-D pattern
+    # may be charge (a glow, a dark-current gradient), which differs from it only by its shot noise
+    if res.exptime_s > 0:
+        return
     width = res.data_adu.shape[1]
     box = [float(res.xs.min()), float(res.ys.min()), float(res.xs.max()), float(res.ys.max())]  # the window's
     v = (res.ys - box[1]) / max(box[3] - box[1], 1.0)
