@@ -59,6 +59,40 @@ MAX_FIT_PIXELS = 1_000_000
 LEVEL_DEGENERACY = 1e-3
 
 
+#: one connected group of outlying pixels of one sign (:func:`outlier_groups`): ``n`` pixels, ``chi2`` the
+#: sum of their squared local residuals [sigma^2], ``peak`` the flat index of the most outlying one, ``peak_share``
+#: the share of the group's summed local residual that pixel holds, ``width_px`` / ``length_px`` the r.m.s.
+#: extents of the group's signal along its minor and major axes [output pixels]; ``edge``: it touches a pixel
+#: the statistics cannot see (saturated, flagged): part of a structure seen only in part (a bleed trail)
+GROUP_DTYPE = np.dtype([("n", "i4"), ("chi2", "f8"), ("peak", "i8"), ("peak_share", "f4"), ("width_px", "f4"),
+                        ("length_px", "f4"), ("edge", "?")])
+#: parameters of one defect of its own (a dead pixel or cluster, a hot pixel): its place (2) and its strength
+DEFECT_K = 3
+#: parameters of one particle track of its own: its two ends (4) and its deposit
+TRACK_K = 5
+#: a track spreads its charge over pixels: its peak pixel holds at most this share of its signal (a hot pixel,
+#: with its neighbours' interpixel coupling of a few per cent, holds more than 0.9; a particle crossing a pixel
+#: diffuses half of its charge into the neighbours at the usual sigma of 0.5 px)
+TRACK_MAX_PEAK_SHARE = 0.9
+#: a track is narrower than a sampled point-spread function: the r.m.s. width of its signal across its major
+#: axis is below this [output pixels] (a PSF sampled at Nyquist, FWHM 2 px, has 0.85)
+TRACK_MAX_WIDTH_PX = 0.85
+
+
+def is_track(groups: np.ndarray) -> np.ndarray:
+    """Which groups of bright pixels (:data:`GROUP_DTYPE`) are shaped like particle tracks: two or more pixels,
+    the charge spread over them (TRACK_MAX_PEAK_SHARE: not a hot pixel), narrower than a point-spread function
+    (TRACK_MAX_WIDTH_PX: not a star or a blob), seen whole (not touching a saturated pixel: a bleed trail's
+    edge); the shape tests of cosmic-ray finders (van Dokkum 2001, PASP 113, 1420: sharper than the PSF)."""
+    return ((groups["n"] >= 2) & (groups["peak_share"] <= TRACK_MAX_PEAK_SHARE)
+            & (groups["width_px"] <= TRACK_MAX_WIDTH_PX) & ~groups["edge"])
+
+
+#: side [pixels] of the mesh whose block medians are the local level of z that the groups stand out from
+#: (the background mesh of SExtractor, Bertin & Arnouts 1996, A&AS 117, 393)
+GROUP_MESH_PX = 16
+
+
 @dataclass
 class SpikeStats:
     """Counts of local outliers of a frame's normalised residuals (data or a model realisation)."""
@@ -79,10 +113,23 @@ class SpikeStats:
     #: every column's mean residual against its running median, in standard errors, and that error [ADU]
     col_z: np.ndarray = field(default_factory=lambda: np.zeros(0))
     col_err_adu: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    #: every connected group of positive and of negative outlying pixels (:func:`outlier_groups`): its size,
+    #: the chi2 it carries, its peak pixel, its shape and how much of its signal the peak holds
+    pos_groups: np.ndarray = field(default_factory=lambda: np.zeros(0, GROUP_DTYPE))
+    neg_groups: np.ndarray = field(default_factory=lambda: np.zeros(0, GROUP_DTYPE))
+    #: pixels the statistics looked at (the n of a group's Schwarz price)
+    n_usable: int = 0
 
     def counts(self) -> dict[str, int]:
+        """The outlier counts; ``strong_neg`` and ``tracks`` are the groups of dark pixels and the tracks that
+        pay for their parameters (:func:`group_gain`: 3 for a defect, TRACK_K for a track), whatever their
+        size: the strong part of the spikes, counted again so that a dead cluster or a track (which the
+        isolated-spike counts miss) weighs in the misfit."""
+        n = max(self.n_usable, 2)
         return {"single_pos": self.single_pos, "cluster_pos": self.cluster_pos, "single_neg": self.single_neg,
-                "hot_cols": self.hot_cols, "cold_cols": self.cold_cols}
+                "hot_cols": self.hot_cols, "cold_cols": self.cold_cols,
+                "strong_neg": group_gain(self.neg_groups, DEFECT_K, n)[1],
+                "tracks": group_gain(self.pos_groups[is_track(self.pos_groups)], TRACK_K, n)[1]}
 
 
 def _median3(z: np.ndarray) -> np.ndarray:
@@ -165,6 +212,7 @@ def spike_stats(data: np.ndarray, model: np.ndarray, var: np.ndarray, usable: np
     nsizes = np.bincount(nlab.ravel(), minlength=nn + 1)[1:] if nn else np.zeros(0, int)
     neg_single_lab = np.nonzero(nsizes == 1)[0] + 1
     neg_index = np.flatnonzero(np.isin(nlab, neg_single_lab)) if neg_single_lab.size else np.zeros(0, np.int64)
+    groups = {sign: outlier_groups(z, seeds, usable, sign) for sign, seeds in ((1, pos), (-1, neg))}
     stats = SpikeStats(
         single_pos=int(single_lab.size), cluster_pos=int(n - single_lab.size), single_neg=int((nsizes == 1).sum()),
         hot_cols=int(hot_c.sum()), cold_cols=int(cold_c.sum()),
@@ -172,7 +220,8 @@ def spike_stats(data: np.ndarray, model: np.ndarray, var: np.ndarray, usable: np
         single_neg_ratio=np.where(model[neg] > 0, data[neg] / np.maximum(model[neg], 1e-6), 1.0),
         cluster_pixels=int(pos.sum() - single_lab.size), col_excess_e=local_mean[hot_c] * gain,
         single_pos_index=np.flatnonzero(single), single_neg_index=neg_index,
-        col_z=np.where(cnt > 0, zc, np.nan), col_err_adu=col_err)
+        col_z=np.where(cnt > 0, zc, np.nan), col_err_adu=col_err, pos_groups=groups[1], neg_groups=groups[-1],
+        n_usable=int(np.count_nonzero(usable)))
     # the pixels can only be compared statistically: the spikes grown by up to GROW_PIXELS into their
     # surroundings above GROW_SIGMA (hysteresis, as cosmic-ray cleaners do: the inside and the halo of a
     # blob are not local outliers of their own 3x3 median, yet belong to it; the growth is bounded so that
@@ -184,6 +233,79 @@ def spike_stats(data: np.ndarray, model: np.ndarray, var: np.ndarray, usable: np
     if lines.mean() <= MAX_LINE_FRACTION:
         statistical[:, lines] = True
     return stats, statistical
+
+
+def outlier_groups(z: np.ndarray, seeds: np.ndarray, usable: np.ndarray, sign: int) -> np.ndarray:
+    """The connected groups of outlying pixels of one ``sign`` (+1, -1) of the normalised residual ``z``, as a
+    :data:`GROUP_DTYPE` table: a defect cluster, a particle track, a hot pixel, whole.
+
+    ``z`` is first made local and standard: the block medians of a GROUP_MESH_PX mesh are subtracted (a light
+    level a per cent off, a vignetting the model lacks move every pixel alike, not a group), and it is divided
+    by its robust scatter when that exceeds 1 (an excess of white variance, a PRNU the model lacks, is not
+    outliers; as the column statistics do). Every ``seed`` (a spike of :func:`spike_stats`) is grown by up to
+    GROW_PIXELS into its neighbours beyond GROW_SIGMA of that local z (hysteresis, as cosmic-ray cleaners do),
+    and the grown seeds are labelled with 8-connectivity. A group's ``chi2`` is the sum of its pixels' squared
+    local z: what an effect placing it exactly would remove."""
+    from scipy import ndimage
+
+    if not seeds.any():
+        return np.zeros(0, GROUP_DTYPE)
+    h, w = z.shape
+    m = GROUP_MESH_PX
+    hb, wb = -(-h // m), -(-w // m)
+    pad = np.full((hb * m, wb * m), np.nan, np.float32)
+    pad[:h, :w] = np.where(usable & ~seeds, z, np.nan)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # a block without a usable pixel: its level is 0
+        level = np.nanmedian(pad.reshape(hb, m, wb, m).transpose(0, 2, 1, 3).reshape(hb, wb, m * m), axis=2)
+    level = np.nan_to_num(level).astype(np.float32)
+    zl = z - np.repeat(np.repeat(level, m, axis=0), m, axis=1)[:h, :w]
+    from detector.stats import mad_std
+
+    sample = zl[usable & ~seeds]
+    scale = max(1.0, mad_std(sample)) if sample.size > 16 else 1.0
+    zs = sign * zl / np.float32(scale)
+    box = np.ones((3, 3), bool)
+    grown = ndimage.binary_dilation(seeds, box, iterations=GROW_PIXELS, mask=usable & (zs > GROW_SIGMA)) | seeds
+    lab, n = ndimage.label(grown, structure=box)
+    if n == 0:
+        return np.zeros(0, GROUP_DTYPE)
+    idx = np.flatnonzero(lab)
+    g = lab.ravel()[idx] - 1
+    v = np.maximum(zs.ravel()[idx].astype(np.float64), 0.0)
+    yy, xx = np.divmod(idx, w)
+    out = np.zeros(n, GROUP_DTYPE)
+    out["n"] = np.bincount(g, minlength=n)
+    out["chi2"] = np.bincount(g, v * v, minlength=n)
+    total = np.maximum(np.bincount(g, v, minlength=n), 1e-12)
+    order = np.lexsort((-v, g))  # by group, most outlying first
+    first = order[np.r_[0, np.flatnonzero(np.diff(g[order])) + 1]]
+    out["peak"] = idx[first]
+    out["peak_share"] = v[first] / total
+    # second moments of the group's signal: the r.m.s. extents along its axes
+    my, mx = np.bincount(g, v * yy, minlength=n) / total, np.bincount(g, v * xx, minlength=n) / total
+    dy, dx = yy - my[g], xx - mx[g]
+    syy = np.bincount(g, v * dy * dy, minlength=n) / total
+    sxx = np.bincount(g, v * dx * dx, minlength=n) / total
+    sxy = np.bincount(g, v * dx * dy, minlength=n) / total
+    half, root = 0.5 * (syy + sxx), np.sqrt(0.25 * (syy - sxx) ** 2 + sxy ** 2)
+    out["width_px"] = np.sqrt(np.maximum(half - root, 0.0))
+    out["length_px"] = np.sqrt(np.maximum(half + root, 0.0))
+    blind = ndimage.binary_dilation(~usable, box)
+    out["edge"] = np.bincount(g, blind.ravel()[idx], minlength=n) > 0
+    return out
+
+
+def group_gain(groups: np.ndarray, k_per_group: int, n_pixels: int) -> tuple[float, int]:
+    """delta(-2 ln L) of an effect that places each of ``groups`` exactly, with ``k_per_group`` parameters of its
+    own (a position and a response; a track's ends and deposit), against the model's noise: a group's chi2
+    beyond its pixels' expectation, less the Schwarz price ``k_per_group ln n_pixels`` of its parameters; a
+    group that does not pay for its parameters is noise and left out. Returns (delta <= 0, groups kept)."""
+    if groups.size == 0:
+        return 0.0, 0
+    g = -(groups["chi2"] - groups["n"]) + k_per_group * np.log(max(n_pixels, 2))
+    keep = g < 0
+    return float(g[keep].sum()), int(keep.sum())
 
 
 @dataclass
@@ -1621,6 +1743,40 @@ class CountSignature(Signature):
         # the model's count is one realisation's (Poisson itself): the two-sample likelihood ratio
         return Fit(name, params, two_sample_count_gain(observed, expected), k, max(int(observed + expected), 2),
                    self.explain(params, res))
+
+
+class GroupSignature(CountSignature):
+    """The effect makes groups of outlying pixels (defect clusters, particle tracks) at unknown places: fitted by
+    the chi2 the groups carry beyond what the model's own realisation makes the same way
+    (:func:`group_gain`), not by their number alone: one dead pixel at 100 sigma is a finding, ten pixels at 5
+    sigma in a million are noise. ``fit_groups(res) -> (params, delta(-2 ln L), observed, expected, k) | None``
+    (observed, expected: the groups that pay for their parameters in the data and in the realisation)."""
+
+    def __init__(self, fit_groups: Callable[[Residuals], tuple | None], explain: Callable[[dict, Residuals], str],
+                 pattern: str = "", check: Callable[[Fit, Residuals], str] | None = None):
+        super().__init__(fit_groups, explain, pattern, check)
+
+    def fit(self, res: Residuals, name: str) -> Fit | None:
+        out = self.fit_counts(res)
+        if out is None:
+            return None
+        params, delta, _observed, _expected, k = out
+        return Fit(name, params, float(delta), k, outlier_pixels(res), self.explain(params, res))
+
+
+def outlier_pixels(res: Residuals) -> int:
+    """Pixels the outlier statistics looked at (``usable``, else ``fit``): the n of their Schwarz price."""
+    return int(np.count_nonzero(res.usable if res.usable is not None else res.fit))
+
+
+def on_source(res: Residuals, index: np.ndarray) -> np.ndarray:
+    """Which of the flat pixel ``index`` the model's sources light more than one sigma above its background:
+    an outlier there is a misfit source (a core, a wing), not a defect or a particle."""
+    index = np.asarray(index, np.int64)
+    if res.background_adu is None or index.size == 0:
+        return np.zeros(index.size, bool)
+    src = res.model_adu.ravel()[index] - res.background_adu.ravel()[index]
+    return src > np.sqrt(res.var_adu2.ravel()[index])
 
 
 def clustered(index: np.ndarray, shape: tuple[int, int], cells: int = 8) -> tuple[float, float]:

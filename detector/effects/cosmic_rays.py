@@ -22,7 +22,7 @@ from pydantic import Field, model_validator
 from .. import cosmics
 from ..errors import DetectorError
 from ..rng import generator
-from ..signatures import CountSignature
+from ..signatures import GroupSignature
 from .base import Effect, EffectParams, Stage, Tile, register_effect
 
 #: Refuse frames expecting more hits than this (memory: ~ 200 bytes per hit); split the exposure instead.
@@ -46,21 +46,64 @@ class CosmicFrame:
     charge_e: np.ndarray
 
 
-def _cosmic_counts(res):
-    d, m = res.data_spikes, res.model_spikes
-    if d.cluster_pos <= m.cluster_pos or res.exptime_s <= 0:
+#: one-sided confidence of the Poisson interval of the track count (Garwood 1936, Biometrika 28, 437): the data
+#: cannot tell the rate from the environment's flux while that flux lies inside it
+TRACK_RATE_CONFIDENCE = 0.999
+
+
+def tracks(res, groups: np.ndarray) -> np.ndarray:
+    """The groups of bright pixels that may be particle tracks (:func:`detector.signatures.is_track`: two or
+    more pixels, the charge spread over them, narrower than a point-spread function), not on the model's
+    sources."""
+    from ..signatures import is_track, on_source
+
+    if groups.size == 0:
+        return groups
+    ok = is_track(groups)
+    ok[ok] &= ~on_source(res, groups["peak"][ok])
+    return groups[ok]
+
+
+def poisson_interval(n: int, confidence: float = TRACK_RATE_CONFIDENCE) -> tuple[float, float]:
+    """The one-sided lower and upper limits of a Poisson mean from ``n`` events at ``confidence`` each
+    (Garwood 1936: chi2 quantiles of 2n and 2n + 2 degrees of freedom)."""
+    from scipy.stats import chi2
+
+    a = 1.0 - confidence
+    lo = 0.5 * float(chi2.ppf(a, 2 * n)) if n > 0 else 0.0
+    return lo, 0.5 * float(chi2.ppf(confidence, 2 * n + 2))
+
+
+def _cosmic_groups(res):
+    """Particle tracks from the chi2 their groups of bright pixels carry beyond the model's realisation
+    (:func:`detector.signatures.group_gain`); the flux from their number over the window's area and the
+    exposure, the environment's own flux when the count cannot tell them apart (a few tracks on a small
+    window are the ground muons, not a rate a hundred times theirs)."""
+    from ..signatures import TRACK_K, group_gain, outlier_pixels
+
+    if res.exptime_s <= 0:
+        return None
+    npx = outlier_pixels(res)
+    d_data, n_data = group_gain(tracks(res, res.data_spikes.pos_groups), TRACK_K, npx)
+    d_model, n_model = group_gain(tracks(res, res.model_spikes.pos_groups), TRACK_K, npx)
+    delta = min(d_data - d_model, 0.0)
+    if delta >= 0 or n_data <= n_model:
         return None
     w, h = res.sensor.roi_shape
-    area_cm2 = w * h * (res.sensor.pixel_pitch_um * 1e-4) ** 2
-    flux = (d.cluster_pos - m.cluster_pos) / (area_cm2 * res.exptime_s)
-    return {"flux_per_cm2_s": round(float(min(flux, 1e5)), 6)}, d.cluster_pos, m.cluster_pos, 1
+    exposure = w * h * (res.sensor.pixel_pitch_um * 1e-4) ** 2 * res.exptime_s  # [cm^2 s]
+    ground = cosmics.ENVIRONMENTS["ground"].flux_per_cm2_s
+    lo, hi = poisson_interval(n_data - n_model)
+    flux = (n_data - n_model) / exposure
+    if lo <= ground * exposure <= hi:
+        flux = ground  # the count is the ground flux's: its own estimate is one Poisson draw
+    return {"flux_per_cm2_s": round(float(min(flux, 1e5)), 6)}, delta, n_data, n_model, 1
 
 
-_COSMIC_SIGNATURE = CountSignature(
-    _cosmic_counts,
-    lambda p, res: (f"short multi-pixel tracks of charge at random places, {p['flux_per_cm2_s']:.3g} per cm2 "
+_COSMIC_SIGNATURE = GroupSignature(
+    _cosmic_groups,
+    lambda p, res: (f"thin groups of bright pixels at random places (tracks), {p['flux_per_cm2_s']:.3g} per cm2 "
                     "per s: cosmic rays (or radioactivity)"),
-    pattern="positive multi-pixel spikes (tracks)")
+    pattern="positive multi-pixel tracks narrower than the PSF")
 
 
 class CosmicRayParams(EffectParams):

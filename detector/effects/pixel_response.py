@@ -18,11 +18,15 @@ import numpy as np
 from pydantic import Field, model_validator
 
 from ..signatures import (
-    CountSignature,
+    DEFECT_K,
+    GroupSignature,
     LinearSignature,
     VarianceSignature,
     Variant,
     frame_fraction,
+    group_gain,
+    on_source,
+    outlier_pixels,
     spread_check,
 )
 from .base import Effect, EffectParams, Stage, Tile, register_effect
@@ -139,23 +143,57 @@ def _lit(res, index: np.ndarray) -> np.ndarray:
     return p > SPIKE_SIGMA * np.sqrt(res.var_adu2.ravel()[index])
 
 
-def _dead_counts(res):
-    d, m = res.data_spikes, res.model_spikes
-    lit_d = _lit(res, d.single_neg_index)
-    obs = int(lit_d.sum()) if d.single_neg_index.size or not d.single_neg else d.single_neg
-    exp = int(_lit(res, m.single_neg_index).sum()) if m.single_neg_index.size or not m.single_neg else m.single_neg
-    if obs <= exp:
+#: the largest group of dark pixels taken for one defect [pixels]: sensors have isolated dead pixels and small
+#: clusters of them (EMVA 1288 release 4.0 sect. 8.4, defect pixels; Janesick 2007 ch. 8, "clusters"); a larger
+#: dark patch (dust, a shadow) is a structure of the light
+MAX_DEAD_CLUSTER_PX = 25
+#: the largest cluster side the plugin draws [pixels]
+MAX_DEAD_CLUSTER_SIDE = 4
+
+
+def _dead_defects(res, groups: np.ndarray) -> np.ndarray:
+    """The groups of dark pixels that may be dead or weak defects: small, seen whole (not touching a saturated
+    or flagged pixel), where light falls (a defect loses its photo-response only), not on the model's sources."""
+    if groups.size == 0:
+        return groups
+    ok = ((groups["n"] <= MAX_DEAD_CLUSTER_PX) & ~groups["edge"] & _lit(res, groups["peak"])
+          & ~on_source(res, groups["peak"]))
+    return groups[ok]
+
+
+def _dead_groups(res):
+    """Dead and weak pixels (isolated or in clusters) from the chi2 their groups of dark pixels carry beyond
+    what the model's realisation makes (:func:`detector.signatures.group_gain`); the response of each from its
+    deficit against the model's photo-signal, the cluster side from the groups' sizes."""
+    npx = outlier_pixels(res)
+    gd = _dead_defects(res, res.data_spikes.neg_groups)
+    gm = _dead_defects(res, res.model_spikes.neg_groups)
+    d_data, n_data = group_gain(gd, DEFECT_K, npx)
+    d_model, n_model = group_gain(gm, DEFECT_K, npx)
+    delta = min(d_data - d_model, 0.0)
+    if delta >= 0 or n_data <= n_model:
         return None
-    idx = d.single_neg_index[lit_d] if d.single_neg_index.size else None
-    if idx is not None and idx.size:
-        # residual response: (data - dark part) / (model photo part), from the model's pieces
-        photo = res.photo_adu.ravel()[idx]
-        ratio = 1.0 + (res.data_adu.ravel()[idx] - res.model_adu.ravel()[idx]) / photo
+    kept = gd[-(gd["chi2"] - gd["n"]) + DEFECT_K * np.log(max(npx, 2)) < 0]
+    idx = kept["peak"]
+    photo = res.photo_adu.ravel()[idx].astype(np.float64)
+    ratio = np.clip(1.0 + (res.data_adu.ravel()[idx] - res.model_adu.ravel()[idx]) / photo, 0.0, 0.99)
+    err = np.sqrt(res.var_adu2.ravel()[idx]) / photo  # one pixel's response error [1]
+    side = int(np.clip(round(float(np.sqrt(np.median(kept["n"])))), 1, MAX_DEAD_CLUSTER_SIDE))
+    params = {"count": round((n_data - n_model) / frame_fraction(res)), "cluster_px": side}
+    if ratio.size >= 3 and np.std(ratio) > 3 * float(np.median(err)):
+        # the responses differ beyond their errors: a range (uniform law) from the lowest to the highest
+        params.update(response=round(float(ratio.min()), 4), response_max=round(max(float(ratio.max()),
+                                                                                    float(ratio.min()) + 1e-3), 4))
     else:
-        ratio = d.single_neg_ratio
-    response = float(np.clip(np.median(ratio), 0.0, 0.99)) if ratio.size else 0.0
-    count = round((obs - exp) / frame_fraction(res))
-    return {"count": count, "response": round(response, 4)}, obs, exp, 2
+        params["response"] = round(float(np.median(ratio)), 4)
+    return params, delta, n_data, n_model, 2 + ("response_max" in params) + (side > 1)
+
+
+def _dead_words(p, res):
+    resp = (f"response {p['response']:.2g}" if "response_max" not in p else
+            f"responses {p['response']:.2g} to {p['response_max']:.2g}")
+    unit = "pixels" if p.get("cluster_px", 1) == 1 else f"clusters of {p['cluster_px']}x{p['cluster_px']} pixels"
+    return f"pixels far below their neighbours ({p['count']} {unit} on the sensor, {resp}): dead or weak pixels"
 
 
 _REGION_GRIDS = ((2, 1), (1, 2), (2, 2), (4, 1), (1, 4), (4, 2), (2, 4), (4, 4), (8, 1), (1, 8))
@@ -352,11 +390,9 @@ _DSNU_SIGNATURE = VarianceSignature(
     laws={"lognormal": _dsnu_lognormal_k3, "normal": None},
     smooth=lambda res: (res.dark_e / np.float32(res.gain)).astype(np.float32), lines=True)
 
-_DEADPIXELS_SIGNATURE = CountSignature(
-    _dead_counts,
-    lambda p, res: (f"isolated pixels far below their neighbours ({p['count']} on the sensor, response "
-                    f"{p['response']:.2g}): dead pixels"),
-    pattern="isolated negative spikes where light falls", check=spread_check("neg"))
+_DEADPIXELS_SIGNATURE = GroupSignature(
+    _dead_groups, _dead_words, pattern="pixels or small clusters far below their neighbours where light falls",
+    check=spread_check("neg"))
 
 _GAINREGIONS_SIGNATURE = LinearSignature(_gain_variants, _gain_words, pattern="signal steps between sensor regions")
 
@@ -429,16 +465,32 @@ class DSNU(Effect):
 
 
 class DeadParams(EffectParams):
-    count: int = Field(100, ge=0, le=10_000_000, description="dead pixels on the full sensor [pixels]")
-    response: float = Field(0.0, ge=0, lt=1, description="residual response of a dead pixel [1]")
+    count: int = Field(100, ge=0, le=10_000_000,
+                       description="dead or weak defects (single pixels or clusters) on the full sensor [defects]")
+    response: float = Field(0.0, ge=0, lt=1, description="residual response of a dead pixel; with response_max, "
+                            "the lower end of the defects' responses [1]")
+    response_max: float | None = Field(None, gt=0, lt=1, description="upper end of the defects' responses, each "
+                                       "drawn uniform in [response, response_max] (None: all at response) [1]")
+    cluster_px: int = Field(1, ge=1, le=MAX_DEAD_CLUSTER_SIDE,
+                            description="side of a defect's square cluster of pixels (1: isolated pixels) [pixels]")
+
+    @model_validator(mode="after")
+    def _range(self):
+        if self.response_max is not None and self.response_max <= self.response:
+            raise ValueError(f"response_max ({self.response_max}) must exceed response ({self.response})")
+        return self
 
 
 @register_effect
 class DeadPixels(Effect):
-    """Dead (or weak) pixels: the photo-response of ``count`` pixels drops to ``response`` (0 = no signal).
+    """Dead (or weak) pixels: the photo-response of ``count`` defects drops to ``response`` (0 = no signal), or
+    to a response drawn uniform in [``response``, ``response_max``] per defect; a defect is one pixel or a
+    ``cluster_px`` x ``cluster_px`` cluster sharing one response (sensors have both: EMVA 1288 release 4.0
+    sect. 8.4 counts defect pixels on flat fields; Janesick 2007 ch. 8, "dead pixels" and their clusters).
 
-    They still carry dark current, bias and read noise, like a real dead photodiode read by a live amplifier
-    (Janesick 2007 ch. 8, "dead pixels"). Positions from the hardware seed; table ``DEADPIX`` in the FITS file.
+    They still carry dark current, bias and read noise, like a real dead photodiode read by a live amplifier.
+    Positions (a cluster's lowest row and column) from the hardware seed; table ``DEADPIX`` in the FITS file,
+    one row per pixel.
     """
 
     name = "dead_pixels"
@@ -450,11 +502,24 @@ class DeadPixels(Effect):
     signature = _DEADPIXELS_SIGNATURE
 
     def setup(self) -> None:
-        self.ys, self.xs, _ = hardware_positions(self.sensor, self.name, self.params.count)
+        p, s = self.params, self.sensor
+        ys, xs, rng = hardware_positions(s, self.name, p.count)
+        resp = (np.full(ys.size, p.response) if p.response_max is None else
+                rng.uniform(p.response, p.response_max, ys.size))
+        c = p.cluster_px
+        dy, dx = (a.ravel() for a in np.mgrid[0:c, 0:c])
+        ys, xs = (ys[:, None] + dy[None, :]).ravel(), (xs[:, None] + dx[None, :]).ravel()
+        resp = np.repeat(resp, c * c)
+        on = (ys < s.sensor_height_px) & (xs < s.sensor_width_px)
+        # one entry per pixel (clusters drawn over one another keep the first defect's response)
+        _, first = np.unique(ys[on].astype(np.int64) * s.sensor_width_px + xs[on], return_index=True)
+        first = np.sort(first)  # in the order drawn
+        self.ys, self.xs = ys[on][first], xs[on][first]
+        self.response = resp[on][first].astype(np.float32)
 
     def apply(self, stage: Stage, tile: Tile, data: np.ndarray) -> None:
-        _, r, c = in_tile(tile, self.ys, self.xs)
-        data[r, c] *= np.float32(self.params.response)
+        sel, r, c = in_tile(tile, self.ys, self.xs)
+        data[r, c] *= self.response[sel]
 
     def truth(self, state=None) -> dict[str, np.ndarray]:
         m = roi_mask(self.sensor, self.ys, self.xs)
@@ -462,7 +527,7 @@ class DeadPixels(Effect):
         t = np.zeros(int(m.sum()), dtype=[("x", "i4"), ("y", "i4"), ("x_sensor", "i4"), ("y_sensor", "i4"),
                                             ("response", "f4")])
         t["x"], t["y"], t["x_sensor"], t["y_sensor"] = x, y, self.xs[m], self.ys[m]
-        t["response"] = self.params.response
+        t["response"] = self.response[m]
         return {"DEADPIX": t}
 
 

@@ -61,7 +61,9 @@ def hot_pixels_floor(params: dict, sensor, policy: DiagnosisPolicy, exptime_s: f
 
 
 def dead_pixels_floor(params: dict, sensor, policy: DiagnosisPolicy, exptime_s: float | None = None) -> str:
-    return _defects(_num(params, "count"), sensor.sensor_width_px * sensor.sensor_height_px, "dead pixels", policy)
+    """The dead pixels on the sensor: its defects times the pixels of a cluster."""
+    return _defects(_num(params, "count") * _num(params, "cluster_px", 1.0) ** 2,
+                    sensor.sensor_width_px * sensor.sensor_height_px, "dead pixels", policy)
 
 
 def column_defects_floor(params: dict, sensor, policy: DiagnosisPolicy, exptime_s: float | None = None) -> str:
@@ -80,13 +82,24 @@ def column_defects_floor(params: dict, sensor, policy: DiagnosisPolicy, exptime_
 
 
 def cosmic_rays_floor(params: dict, sensor, policy: DiagnosisPolicy, exptime_s: float | None = None) -> str:
-    """The fitted particle flux against the flux of the environment the fit names (ground by default)."""
+    """The fitted particle flux against the flux of the environment the fit names (ground by default). With the
+    exposure, the flux is a count of tracks over the window's area and time: refused only when even the lower
+    end of that count's Poisson interval (:func:`detector.effects.cosmic_rays.poisson_interval`) is beyond the
+    policy's factor, since one track on a small window "measures" a flux hundreds of times the physical one
+    while being what the physical flux makes a few times in a thousand frames."""
+    from detector.effects.cosmic_rays import poisson_interval
+
     flux = _num(params, "flux_per_cm2_s", -1.0)
     env = ENVIRONMENTS.get(str(params.get("environment", "ground")), ENVIRONMENTS["ground"])
-    if flux > policy.max_cosmic_rate_factor * env.flux_per_cm2_s:
-        return (f"{flux:.3g} particles /cm^2/s is {flux / env.flux_per_cm2_s:.3g}x the physical flux of the "
-                f"environment ({env.flux_per_cm2_s:.3g}); more than {policy.max_cosmic_rate_factor:g}x is not "
-                "cosmic rays")
+    lowest = flux
+    if exptime_s and exptime_s > 0 and flux > 0:
+        w, h = sensor.roi_shape
+        exposure = w * h * (sensor.pixel_pitch_um * 1e-4) ** 2 * exptime_s  # [cm^2 s]
+        lowest = poisson_interval(round(flux * exposure))[0] / exposure
+    if lowest > policy.max_cosmic_rate_factor * env.flux_per_cm2_s:
+        return (f"{flux:.3g} particles /cm^2/s (at least {lowest:.3g} from the count) is "
+                f"{lowest / env.flux_per_cm2_s:.3g}x the physical flux of the environment ({env.flux_per_cm2_s:.3g}); "
+                f"more than {policy.max_cosmic_rate_factor:g}x is not cosmic rays")
     return ""
 
 

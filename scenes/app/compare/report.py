@@ -462,7 +462,9 @@ _OUTLIER_LABELS = {"single_pos": "isolated positive spikes (hot/warm pixels)",
                    "cluster_pos": "connected positive spikes (cosmic-ray tracks)",
                    "single_neg": "isolated negative spikes (dead pixels)",
                    "hot_cols": "columns above their neighbours (hot columns)",
-                   "cold_cols": "columns below their neighbours (cold columns)"}
+                   "cold_cols": "columns below their neighbours (cold columns)",
+                   "strong_neg": "groups of dark pixels beyond the noise (dead pixels, dead clusters)",
+                   "tracks": "thin groups of bright pixels beyond the noise (particle tracks)"}
 
 
 def section_outliers(result: dict) -> str:

@@ -1,0 +1,152 @@
+"""Dead and weak pixels (isolated or in clusters) on a flat, and one particle track on a dark, are named by the
+outlier statistics from the chi2 their groups of pixels carry, not from their number alone (issue 23: weak pixels
+at 0.6 response, 2x2 dead clusters and a dark's one to four tracks were all missed, "nothing significant"); the
+null frames of the independent textbook chain stay clean.
+
+Physics asserted: a group's evidence is its chi2 beyond its pixels' expectation less the Schwarz price of its own
+parameters (detector.signatures.group_gain); a track is two or more pixels sharing the charge, narrower than a PSF;
+a few tracks on a small window are the ground muon flux (Poisson interval, Garwood 1936), not a rate hundreds of
+times it; the dead-pixel plugin renders the clusters and the response range it is fitted with.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from astropy.io import fits
+from helpers import write_scene
+from test_judge import textbook_frame
+
+from detector import Detector, build_effects, make_sensor
+from detector.cosmics import ENVIRONMENTS
+from detector.signatures import SpikeStats, group_gain, is_track, outlier_groups, spike_stats
+from scenes.app.compare import run
+from scenes.app.compare.floors import cosmic_rays_floor
+from scenes.app.compare.policy import DEFAULT_POLICY
+from scenes.app.render import render
+from scenes.scene import load_scene
+
+SIDE = 128
+FLAT = {"detector": {"preset": "ml11002", "width": SIDE, "height": SIDE, "x0": 1000, "y0": 900},
+        "exposure": {"time_s": 10.0, "frame": "light"}, "sky": {"stars": False, "flat_e_per_s": 1500.0}}
+DARK = {"detector": {"preset": "ml11002", "width": SIDE, "height": SIDE, "x0": 1000, "y0": 900},
+        "exposure": {"time_s": 10.0, "frame": "dark"}, "sky": {"stars": False}}
+
+
+def _first(out: dict) -> dict | None:
+    return next((c for c in out["candidates"] if c["significant"]), None)
+
+
+# --- the statistics on synthetic residuals ---------------------------------------------------------------------
+
+def test_groups_carry_their_chi2_and_shape():
+    rng = np.random.default_rng(1)
+    z = rng.standard_normal((96, 96)).astype(np.float32) + 2.5  # a light level 2.5 sigma off: not a group
+    z[10, 10] = -60.0  # a weak pixel
+    z[40:42, 50:52] = -30.0  # a 2x2 dead cluster
+    z[70, 20:30] = 12.0  # a track along a row
+    z[80, 80] = 200.0  # a hot pixel
+    usable = np.ones(z.shape, bool)
+    neg = outlier_groups(z, z < -10, usable, -1)
+    assert sorted(neg["n"]) == [1, 4]
+    # measured from the local level (the mesh median, 2.5): 62.5^2 and 4 x 32.5^2
+    assert sorted(neg["chi2"]) == pytest.approx([62.5 ** 2, 4 * 32.5 ** 2], rel=0.05)
+    pos = outlier_groups(z, z > 10, usable, 1)
+    track = pos[pos["n"] >= 10]
+    hot = pos[pos["peak"] == 80 * 96 + 80]
+    assert is_track(track).all() and not is_track(hot).any()
+    assert track["length_px"][0] == pytest.approx(np.sqrt(99 / 12), rel=0.1) and track["width_px"][0] < 0.3
+    # a group pays for its parameters (3 ln n), noise does not
+    assert group_gain(neg, 3, z.size)[1] == 2
+    assert group_gain(outlier_groups(rng.standard_normal((96, 96)), np.zeros((96, 96), bool), usable, -1), 3,
+                      z.size) == (0.0, 0)
+
+
+def test_counts_hold_the_strong_groups():
+    rng = np.random.default_rng(2)
+    model = np.full((64, 64), 1000.0, np.float32)
+    var = np.full((64, 64), 100.0, np.float32)
+    data = (model + rng.normal(0, 10, model.shape)).astype(np.float32)
+    data[20:22, 30:32] = 400.0  # a dead cluster: not an isolated negative spike
+    stats, _ = spike_stats(data, model, var, np.ones(data.shape, bool), 1.0)
+    c = stats.counts()
+    assert c["single_neg"] == 0 and c["strong_neg"] == 1 and c["tracks"] == 0
+    assert SpikeStats(0, 0, 0, 0, 0).counts()["strong_neg"] == 0
+
+
+def test_a_few_tracks_are_the_ground_flux_and_many_are_not():
+    s = make_sensor("ml11002", {"width": SIDE, "height": SIDE})
+    area_cm2 = SIDE * SIDE * (s.pixel_pitch_um * 1e-4) ** 2
+    ground = ENVIRONMENTS["ground"].flux_per_cm2_s
+    # one track in 10 s on this window "measures" ~700x the ground flux: one Poisson draw, not a rate
+    assert cosmic_rays_floor({"flux_per_cm2_s": 1 / (area_cm2 * 10)}, s, DEFAULT_POLICY, 10.0) == ""
+    assert cosmic_rays_floor({"flux_per_cm2_s": 200 / (area_cm2 * 10)}, s, DEFAULT_POLICY, 10.0) != ""
+    assert cosmic_rays_floor({"flux_per_cm2_s": 100 * ground}, s, DEFAULT_POLICY, None) != ""
+
+
+def test_dead_pixel_plugin_renders_clusters_and_a_response_range():
+    s = make_sensor("ml11002", {"width": 400, "height": 400, "x0": 0, "y0": 0, "dark_current_e_per_s": 0.0})
+    det = Detector(s, build_effects({"dead_pixels": {"count": 40000, "cluster_px": 2, "response": 0.2,
+                                                     "response_max": 0.6}}, s))
+    t = det.truth(1.0, 0)["DEADPIX"]
+    assert t.size > 0 and 0.2 <= t["response"].min() and t["response"].max() <= 0.6
+    assert np.ptp(t["response"]) > 0.2  # a range, not one value
+    # every defect is a 2x2 block sharing one response: each dead pixel has a neighbour of its response
+    key = {(int(y), int(x)): float(r) for y, x, r in zip(t["y"], t["x"], t["response"])}
+    paired = [any(key.get((y + dy, x + dx)) == r for dy in (-1, 0, 1) for dx in (-1, 0, 1) if dy or dx)
+              for (y, x), r in key.items()]
+    assert np.mean(paired) > 0.99
+    # the photo-electrons of each of its pixels are its response times a live pixel's (no dark current here)
+    clean = Detector(s, build_effects({}, s)).expose(1000.0, 1.0, 0, noiseless=True)
+    img = det.expose(1000.0, 1.0, 0, noiseless=True)
+    y, x = t["y"], t["x"]
+    assert np.allclose(img[y, x] / clean[y, x], t["response"], atol=0.01)
+
+
+# --- the whole diagnosis --------------------------------------------------------------------------------------
+
+@pytest.fixture(scope="module")
+def flat_scene(tmp_path_factory):
+    d = tmp_path_factory.mktemp("outlier_flat")
+    return write_scene(d / "flat.toml", FLAT)
+
+
+def test_weak_and_clustered_dead_pixels_are_named_and_a_null_flat_is_clean(flat_scene, tmp_path):
+    scene = load_scene(str(flat_scene))
+    # the measured frame: the same flat with weak 2x2 clusters of responses 0.3-0.7 (newtsim's own plugin)
+    sick = write_scene(tmp_path / "sick.toml", FLAT, effects={"dead_pixels": {
+        "count": 20000, "cluster_px": 2, "response": 0.3, "response_max": 0.7}})
+    meas = tmp_path / "sick.fits"
+    render(load_scene(str(sick)), meas, seed=5, progress=False)
+    out = run.run_diagnose(scene, meas)
+    first = _first(out)
+    assert first is not None and first["effect"] == "dead_pixels", out["verdict"]
+    p = first["params"]
+    assert p["cluster_px"] == 2 and "response_max" in p, p
+    assert 0.25 <= p["response"] < p["response_max"] <= 0.75, p
+    assert 0.5 < p["count"] / 20000 < 2.0, p
+    # a null flat of the independent chain: nothing
+    null = run.run_diagnose(scene, textbook_frame(flat_scene, tmp_path / "null.fits", 7))
+    assert null["significant"] == [], null["verdict"]
+
+
+def test_one_track_on_a_dark_is_named_at_the_ground_flux_and_a_null_dark_is_clean(tmp_path):
+    p = write_scene(tmp_path / "dark.toml", DARK)
+    scene = load_scene(str(p))
+    null = textbook_frame(p, tmp_path / "null.fits", 3)
+    out0 = run.run_diagnose(scene, null)
+    assert out0["significant"] == [], out0["verdict"]
+    # one particle track, 12 px long at 150 e- per pixel (~10 sigma of the ML11002's read noise), diagonal
+    with fits.open(null) as hl:
+        data = hl[0].data.astype(np.float64)
+        hdr = hl[0].header
+    gain = scene.sensor().gain_e_per_adu
+    for i in range(12):
+        data[40 + i, 60 + i // 2] += 150.0 / gain
+    meas = tmp_path / "track.fits"
+    fits.PrimaryHDU(np.round(data).astype(np.uint16), header=hdr).writeto(meas)
+    out = run.run_diagnose(scene, meas)
+    first = _first(out)
+    assert first is not None and first["effect"] == "cosmic_rays", out["verdict"]
+    # one track on a 128 x 128 window in 10 s is what the ground flux makes: its rate, not 700x it
+    assert first["params"]["flux_per_cm2_s"] == pytest.approx(ENVIRONMENTS["ground"].flux_per_cm2_s, rel=0.01)
