@@ -77,8 +77,9 @@ def poisson_interval(n: int, confidence: float = TRACK_RATE_CONFIDENCE) -> tuple
 def _cosmic_groups(res):
     """Particle tracks from the chi2 their groups of bright pixels carry beyond the model's realisation
     (:func:`detector.signatures.group_gain`); the flux from their number over the window's area and the
-    exposure, the environment's own flux when the count cannot tell them apart (a few tracks on a small
-    window are the ground muons, not a rate a hundred times theirs)."""
+    exposure (its maximum-likelihood estimate: what --apply renders gives this window the tracks it shows; a few
+    tracks on a small window "measure" a rate a hundred times the ground muons', which the floor judges on the
+    count's Poisson interval, not on this estimate)."""
     from ..signatures import TRACK_K, group_gain, outlier_pixels
 
     if res.exptime_s <= 0:
@@ -91,12 +92,8 @@ def _cosmic_groups(res):
         return None
     w, h = res.sensor.roi_shape
     exposure = w * h * (res.sensor.pixel_pitch_um * 1e-4) ** 2 * res.exptime_s  # [cm^2 s]
-    ground = cosmics.ENVIRONMENTS["ground"].flux_per_cm2_s
-    lo, hi = poisson_interval(n_data - n_model)
-    flux = (n_data - n_model) / exposure
-    if lo <= ground * exposure <= hi:
-        flux = ground  # the count is the ground flux's: its own estimate is one Poisson draw
-    return {"flux_per_cm2_s": round(float(min(flux, 1e5)), 6)}, delta, n_data, n_model, 1
+    flux = (n_data - n_model) / exposure  # the rate's estimate; its floor (scenes' cosmic_rays_floor) asks the
+    return {"flux_per_cm2_s": round(float(min(flux, 1e5)), 6)}, delta, n_data, n_model, 1  # count's interval
 
 
 _COSMIC_SIGNATURE = GroupSignature(
