@@ -132,6 +132,10 @@ def output_dtype(bit_depth: int):
     return np.uint16 if bit_depth <= 16 else np.uint32
 
 
+#: the largest finite float32 (a uniform signal above it would be an infinite tile)
+FLOAT32_MAX = float(np.finfo(np.float32).max)
+
+
 # --- the tiled engine -----------------------------------------------------------------------------------
 
 class Detector:
@@ -198,13 +202,16 @@ class Detector:
         if callable(signal):
             a = np.asarray(signal(tile.y0, tile.y1, tile.x0, tile.x1), dtype=np.float32)
         elif np.ndim(signal) == 0:
-            a = np.full(tile.shape, float(signal), dtype=np.float32)
+            level = float(signal)
+            if 0 <= level <= FLOAT32_MAX:  # a valid number (not NaN): its tile needs no per-pixel check
+                return np.full(tile.shape, level, dtype=np.float32)
+            a = np.full(tile.shape, level, dtype=np.float32)
         else:
             a = np.array(signal[r0:r1], dtype=np.float32)  # copy: the tile owns its array
         if a.shape != tile.shape:
             raise DetectorError(f"expected-signal tile has shape {a.shape}", key="signal",
                                 expected=f"{tile.shape} (rows, cols)")
-        if not np.isfinite(a).all() or (a.size and a.min() < 0):
+        if a.size and not (a.min() >= 0 and a.max() < np.inf):  # one test for NaN (fails >=), inf and < 0
             bad = np.argwhere(~np.isfinite(a) | (a < 0))[0]
             raise DetectorError(f"expected signal is {a[tuple(bad)]} at pixel (x={bad[1]}, y={r0 + bad[0]})",
                                 key="signal", expected="finite values >= 0 e-")
@@ -372,7 +379,7 @@ class Detector:
         See :meth:`moments_tile`. Whole output frame in memory (float32, float32, bool).
         """
         state = self.frame_state(exptime_s, frame_seed)
-        if self._by_stage[Stage.FIELD]:
+        if self._needs_field(signal):
             signal = self.field_signal(signal, exptime_s, frame_seed, state)
         shape = self.sensor.output_shape
         mean, var = np.empty(shape, np.float32), np.empty(shape, np.float32)
@@ -408,7 +415,7 @@ class Detector:
             raise DetectorError(f"expected-signal array has shape {np.shape(signal)}", key="signal",
                                 expected=f"{self.sensor.shape} (rows, cols) of the read-out window")
         state = self.frame_state(exptime_s, frame_seed) if state is None else state
-        if self._by_stage[Stage.FIELD]:  # whole-frame effects need the whole image once
+        if self._needs_field(signal):  # whole-frame effects need the whole image once
             signal = self.field_signal(signal, exptime_s, frame_seed, state)
         tiles = self.tiles(exptime_s, frame_seed, state)
         b = self.sensor.binning
@@ -484,6 +491,18 @@ class Detector:
             while done:
                 t, f = done.popleft()
                 yield (t.y0 - y0) // b, (t.y1 - y0) // b, f.result()
+
+    def _needs_field(self, signal: Signal) -> bool:
+        """Whether the FIELD effects need the whole image: not for a uniform signal (a number) that every one
+        of them leaves as it is (:meth:`Effect.leaves_uniform`, e.g. blooming below the full well), which then
+        stays a number (no frame-sized array)."""
+        field = self._by_stage[Stage.FIELD]
+        if not field:
+            return False
+        if callable(signal) or np.ndim(signal) != 0:
+            return True
+        level = float(signal)
+        return not (np.isfinite(level) and level >= 0 and all(e.leaves_uniform(level) for e in field))
 
     def field_signal(self, signal: Signal, exptime_s: float, frame_seed: int, state: dict) -> np.ndarray:
         """The whole expected photo-electron image after the FIELD effects (a new array)."""

@@ -176,6 +176,12 @@ class Effect:
     def apply(self, stage: Stage, tile: Tile, data: np.ndarray) -> None:  # pragma: no cover - abstract
         raise NotImplementedError
 
+    def leaves_uniform(self, level_e: float) -> bool:
+        """FIELD stage: True when :meth:`apply` leaves an image of the uniform level ``level_e`` [e-] exactly as
+        it is (the chain then does not build the whole image for it: a uniform frame stays a number). False
+        unless an effect knows better."""
+        return False
+
     def couple(self, tile: Tile, charge_e: np.ndarray, pad_top: int, pad_bottom: int,
                mean_only: bool = False) -> np.ndarray:
         """COUPLING stage: return the new charge [e-] of ``charge_e`` (the tile's rows with ``pad_top`` /
