@@ -44,9 +44,22 @@ Signal = Union[float, np.ndarray, Callable[[int, int, int, int], np.ndarray]]
 
 # --- pure physics functions ---------------------------------------------------------------------------
 
+#: pixels per block of the Poisson draw (its float64 means and int64 counts stay in the cache)
+SHOT_BLOCK_PIXELS = 1 << 16
+
+
 def shot_noise(rng: np.random.Generator, mean_e: np.ndarray) -> np.ndarray:
-    """Poisson draw of the collected charge [e-] from its mean [e-] (eq. 31), returned as float32."""
-    return rng.poisson(mean_e).astype(np.float32)
+    """Poisson draw of the collected charge [e-] from its mean [e-] (eq. 31), returned as float32.
+
+    Drawn in blocks of rows, in order: the generator fills an array element by element in C order, so the
+    blocks get the same numbers as one call on the whole array (without its two 8-byte temporaries)."""
+    if mean_e.ndim != 2 or mean_e.size <= SHOT_BLOCK_PIXELS:
+        return rng.poisson(mean_e).astype(np.float32)
+    out = np.empty(mean_e.shape, dtype=np.float32)
+    step = max(1, SHOT_BLOCK_PIXELS // max(1, mean_e.shape[1]))
+    for r in range(0, mean_e.shape[0], step):
+        out[r:r + step] = rng.poisson(mean_e[r:r + step])
+    return out
 
 
 def read_noise(rng: np.random.Generator, signal_e: np.ndarray, sigma_e: float) -> None:
@@ -433,6 +446,7 @@ class Detector:
             while pending:
                 t, fut = pending.popleft()
                 arr = fut.result()
+                t.release()  # its hardware maps are no longer needed: memory stays a few tiles'
                 nxt = next(it, None)
                 if nxt is not None:
                     pending.append((nxt, pool.submit(self.process_tile, signal, nxt, noiseless)))
@@ -457,7 +471,9 @@ class Detector:
                 del charges
                 futs = [pool.submit(self.finish_tile, t, coupled[t.y0 - y0:t.y1 - y0].copy()) for t in tiles]
                 for t, f in zip(tiles, futs):
-                    yield (t.y0 - y0) // b, (t.y1 - y0) // b, f.result()
+                    arr = f.result()
+                    t.release()
+                    yield (t.y0 - y0) // b, (t.y1 - y0) // b, arr
                 return
             if any(t.y1 - t.y0 < halo for t in tiles[:-1]):
                 raise DetectorError(f"coupling effects need {halo} rows of neighbours", key="effects",
@@ -487,10 +503,14 @@ class Detector:
                     del charge_i[j], charge[j]
                 while len(done) > self.workers:
                     t, f = done.popleft()
-                    yield (t.y0 - y0) // b, (t.y1 - y0) // b, f.result()
+                    arr = f.result()
+                    t.release()
+                    yield (t.y0 - y0) // b, (t.y1 - y0) // b, arr
             while done:
                 t, f = done.popleft()
-                yield (t.y0 - y0) // b, (t.y1 - y0) // b, f.result()
+                arr = f.result()
+                t.release()
+                yield (t.y0 - y0) // b, (t.y1 - y0) // b, arr
 
     def _needs_field(self, signal: Signal) -> bool:
         """Whether the FIELD effects need the whole image: not for a uniform signal (a number) that every one

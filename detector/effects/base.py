@@ -94,6 +94,10 @@ class Tile:
         ys, _ = self.pixel_centres()
         return (ys - (self.sensor.roi_y0 + (self.bin - 1) / 2.0)) * self.sensor.row_time_s
 
+    def release(self) -> None:
+        """Drop the hardware maps cached for this tile (the chain calls it when the tile is done)."""
+        self._cache.clear()
+
     def hardware_map(self, name: str, draw: Callable[[np.random.Generator, tuple[int, int]], np.ndarray]
                      ) -> np.ndarray:
         """A dense fixed-pattern map for this tile, drawn from the hardware seed.

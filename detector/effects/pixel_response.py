@@ -425,7 +425,9 @@ class DSNU(Effect):
         dark_e = self.sensor.dark_current_e_per_s * tile.exptime_s
         if self.params.sigma and dark_e:
             m = tile.hardware_map(self.name, lambda rng, shape: dsnu_map(rng, shape, self.params.sigma, self.params.law))
-            data += (m - np.float32(1.0)) * np.float32(dark_e)
+            excess = m - np.float32(1.0)  # one temporary: the same values as (m - 1) * dark_e
+            excess *= np.float32(dark_e)
+            data += excess
 
 
 class DeadParams(EffectParams):
