@@ -392,7 +392,7 @@ class Detector:
         See :meth:`moments_tile`. Whole output frame in memory (float32, float32, bool).
         """
         state = self.frame_state(exptime_s, frame_seed)
-        if self._needs_field(signal):
+        if self.needs_field_image(signal):
             signal = self.field_signal(signal, exptime_s, frame_seed, state)
         shape = self.sensor.output_shape
         mean, var = np.empty(shape, np.float32), np.empty(shape, np.float32)
@@ -428,7 +428,7 @@ class Detector:
             raise DetectorError(f"expected-signal array has shape {np.shape(signal)}", key="signal",
                                 expected=f"{self.sensor.shape} (rows, cols) of the read-out window")
         state = self.frame_state(exptime_s, frame_seed) if state is None else state
-        if self._needs_field(signal):  # whole-frame effects need the whole image once
+        if self.needs_field_image(signal):  # whole-frame effects need the whole image once
             signal = self.field_signal(signal, exptime_s, frame_seed, state)
         tiles = self.tiles(exptime_s, frame_seed, state)
         b = self.sensor.binning
@@ -512,7 +512,7 @@ class Detector:
                 t.release()
                 yield (t.y0 - y0) // b, (t.y1 - y0) // b, arr
 
-    def _needs_field(self, signal: Signal) -> bool:
+    def needs_field_image(self, signal: Signal) -> bool:
         """Whether the FIELD effects need the whole image: not for a uniform signal (a number) that every one
         of them leaves as it is (:meth:`Effect.leaves_uniform`, e.g. blooming below the full well), which then
         stays a number (no frame-sized array)."""
