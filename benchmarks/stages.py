@@ -27,7 +27,7 @@ from collections import defaultdict
 from pathlib import Path
 
 #: the detector chain's own stages (module:attribute); the effects' apply/couple/prepare_frame are added
-CHAIN = ["detector.chain:shot_noise", "detector.chain:read_noise", "detector.chain:adc", "detector.chain:bin_sum",
+CHAIN = ["detector.chain:shot_noise", "detector.chain:read_noise", "detector.chain:adc", "detector.chain:bin_sum", "detector.chain:bin_sum_digital",
          "detector.chain:Detector._photo", "detector.chain:Detector.charge_tile",
          "detector.chain:Detector.finish_tile", "detector.chain:Detector.field_signal",
          "detector.chain:Detector.frame_state", "detector.chain:Detector.couple",

@@ -44,9 +44,22 @@ Signal = Union[float, np.ndarray, Callable[[int, int, int, int], np.ndarray]]
 
 # --- pure physics functions ---------------------------------------------------------------------------
 
+#: pixels per block of the Poisson draw (its float64 means and int64 counts stay in the cache)
+SHOT_BLOCK_PIXELS = 1 << 16
+
+
 def shot_noise(rng: np.random.Generator, mean_e: np.ndarray) -> np.ndarray:
-    """Poisson draw of the collected charge [e-] from its mean [e-] (eq. 31), returned as float32."""
-    return rng.poisson(mean_e).astype(np.float32)
+    """Poisson draw of the collected charge [e-] from its mean [e-] (eq. 31), returned as float32.
+
+    Drawn in blocks of rows, in order: the generator fills an array element by element in C order, so the
+    blocks get the same numbers as one call on the whole array (without its two 8-byte temporaries)."""
+    if mean_e.ndim != 2 or mean_e.size <= SHOT_BLOCK_PIXELS:
+        return rng.poisson(mean_e).astype(np.float32)
+    out = np.empty(mean_e.shape, dtype=np.float32)
+    step = max(1, SHOT_BLOCK_PIXELS // max(1, mean_e.shape[1]))
+    for r in range(0, mean_e.shape[0], step):
+        out[r:r + step] = rng.poisson(mean_e[r:r + step])
+    return out
 
 
 def read_noise(rng: np.random.Generator, signal_e: np.ndarray, sigma_e: float) -> None:
@@ -116,8 +129,24 @@ def bin_sum(a: np.ndarray, b: int) -> np.ndarray:
     return a.reshape(r // b, b, c // b, b).sum(axis=(1, 3), dtype=np.float64 if a.dtype.kind in "iu" else a.dtype)
 
 
+def bin_sum_digital(adu: np.ndarray, b: int) -> np.ndarray:
+    """Sum ``b x b`` blocks of digitised values (float64 out), as strided slices added in turn: the same sums as
+    :func:`bin_sum` of ``adu`` in float64 (each of the at most ``b^2`` float32 codes of a block is exact in
+    float64 and so is their sum), without the reshaped reduction's cost (~8x less time for 2 x 2)."""
+    out = adu[0::b, 0::b].astype(np.float64)
+    for i in range(b):
+        for j in range(b):
+            if i or j:
+                out += adu[i::b, j::b]
+    return out
+
+
 def output_dtype(bit_depth: int):
     return np.uint16 if bit_depth <= 16 else np.uint32
+
+
+#: the largest finite float32 (a uniform signal above it would be an infinite tile)
+FLOAT32_MAX = float(np.finfo(np.float32).max)
 
 
 # --- the tiled engine -----------------------------------------------------------------------------------
@@ -186,13 +215,16 @@ class Detector:
         if callable(signal):
             a = np.asarray(signal(tile.y0, tile.y1, tile.x0, tile.x1), dtype=np.float32)
         elif np.ndim(signal) == 0:
-            a = np.full(tile.shape, float(signal), dtype=np.float32)
+            level = float(signal)
+            if 0 <= level <= FLOAT32_MAX:  # a valid number (not NaN): its tile needs no per-pixel check
+                return np.full(tile.shape, level, dtype=np.float32)
+            a = np.full(tile.shape, level, dtype=np.float32)
         else:
             a = np.array(signal[r0:r1], dtype=np.float32)  # copy: the tile owns its array
         if a.shape != tile.shape:
             raise DetectorError(f"expected-signal tile has shape {a.shape}", key="signal",
                                 expected=f"{tile.shape} (rows, cols)")
-        if not np.isfinite(a).all() or (a.size and a.min() < 0):
+        if a.size and not (a.min() >= 0 and a.max() < np.inf):  # one test for NaN (fails >=), inf and < 0
             bad = np.argwhere(~np.isfinite(a) | (a < 0))[0]
             raise DetectorError(f"expected signal is {a[tuple(bad)]} at pixel (x={bad[1]}, y={r0 + bad[0]})",
                                 key="signal", expected="finite values >= 0 e-")
@@ -277,7 +309,7 @@ class Detector:
         adu = adc(charge, s.bit_depth, np.float32)
         self._run(Stage.DIGITAL, tile, adu)
         if b > 1 and tile.bin == 1:  # CMOS: digital binning after the ADC
-            adu = bin_sum(adu.astype(np.float64), b)
+            adu = bin_sum_digital(adu, b)
             tile.bin = b
             if s.binning_mode == "sum":
                 np.minimum(adu, s.adc_max_adu, out=adu)
@@ -360,7 +392,7 @@ class Detector:
         See :meth:`moments_tile`. Whole output frame in memory (float32, float32, bool).
         """
         state = self.frame_state(exptime_s, frame_seed)
-        if self._by_stage[Stage.FIELD]:
+        if self.needs_field_image(signal):
             signal = self.field_signal(signal, exptime_s, frame_seed, state)
         shape = self.sensor.output_shape
         mean, var = np.empty(shape, np.float32), np.empty(shape, np.float32)
@@ -396,7 +428,7 @@ class Detector:
             raise DetectorError(f"expected-signal array has shape {np.shape(signal)}", key="signal",
                                 expected=f"{self.sensor.shape} (rows, cols) of the read-out window")
         state = self.frame_state(exptime_s, frame_seed) if state is None else state
-        if self._by_stage[Stage.FIELD]:  # whole-frame effects need the whole image once
+        if self.needs_field_image(signal):  # whole-frame effects need the whole image once
             signal = self.field_signal(signal, exptime_s, frame_seed, state)
         tiles = self.tiles(exptime_s, frame_seed, state)
         b = self.sensor.binning
@@ -414,6 +446,7 @@ class Detector:
             while pending:
                 t, fut = pending.popleft()
                 arr = fut.result()
+                t.release()  # its hardware maps are no longer needed: memory stays a few tiles'
                 nxt = next(it, None)
                 if nxt is not None:
                     pending.append((nxt, pool.submit(self.process_tile, signal, nxt, noiseless)))
@@ -438,7 +471,9 @@ class Detector:
                 del charges
                 futs = [pool.submit(self.finish_tile, t, coupled[t.y0 - y0:t.y1 - y0].copy()) for t in tiles]
                 for t, f in zip(tiles, futs):
-                    yield (t.y0 - y0) // b, (t.y1 - y0) // b, f.result()
+                    arr = f.result()
+                    t.release()
+                    yield (t.y0 - y0) // b, (t.y1 - y0) // b, arr
                 return
             if any(t.y1 - t.y0 < halo for t in tiles[:-1]):
                 raise DetectorError(f"coupling effects need {halo} rows of neighbours", key="effects",
@@ -468,10 +503,26 @@ class Detector:
                     del charge_i[j], charge[j]
                 while len(done) > self.workers:
                     t, f = done.popleft()
-                    yield (t.y0 - y0) // b, (t.y1 - y0) // b, f.result()
+                    arr = f.result()
+                    t.release()
+                    yield (t.y0 - y0) // b, (t.y1 - y0) // b, arr
             while done:
                 t, f = done.popleft()
-                yield (t.y0 - y0) // b, (t.y1 - y0) // b, f.result()
+                arr = f.result()
+                t.release()
+                yield (t.y0 - y0) // b, (t.y1 - y0) // b, arr
+
+    def needs_field_image(self, signal: Signal) -> bool:
+        """Whether the FIELD effects need the whole image: not for a uniform signal (a number) that every one
+        of them leaves as it is (:meth:`Effect.leaves_uniform`, e.g. blooming below the full well), which then
+        stays a number (no frame-sized array)."""
+        field = self._by_stage[Stage.FIELD]
+        if not field:
+            return False
+        if callable(signal) or np.ndim(signal) != 0:
+            return True
+        level = float(signal)
+        return not (np.isfinite(level) and level >= 0 and all(e.leaves_uniform(level) for e in field))
 
     def field_signal(self, signal: Signal, exptime_s: float, frame_seed: int, state: dict) -> np.ndarray:
         """The whole expected photo-electron image after the FIELD effects (a new array)."""

@@ -94,6 +94,10 @@ class Tile:
         ys, _ = self.pixel_centres()
         return (ys - (self.sensor.roi_y0 + (self.bin - 1) / 2.0)) * self.sensor.row_time_s
 
+    def release(self) -> None:
+        """Drop the hardware maps cached for this tile (the chain calls it when the tile is done)."""
+        self._cache.clear()
+
     def hardware_map(self, name: str, draw: Callable[[np.random.Generator, tuple[int, int]], np.ndarray]
                      ) -> np.ndarray:
         """A dense fixed-pattern map for this tile, drawn from the hardware seed.
@@ -175,6 +179,12 @@ class Effect:
 
     def apply(self, stage: Stage, tile: Tile, data: np.ndarray) -> None:  # pragma: no cover - abstract
         raise NotImplementedError
+
+    def leaves_uniform(self, level_e: float) -> bool:
+        """FIELD stage: True when :meth:`apply` leaves an image of the uniform level ``level_e`` [e-] exactly as
+        it is (the chain then does not build the whole image for it: a uniform frame stays a number). False
+        unless an effect knows better."""
+        return False
 
     def couple(self, tile: Tile, charge_e: np.ndarray, pad_top: int, pad_bottom: int,
                mean_only: bool = False) -> np.ndarray:

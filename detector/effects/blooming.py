@@ -223,6 +223,10 @@ class Blooming(Effect):
     signature = _BLOOMING_SIGNATURE
     Params = BloomingParams
 
+    def leaves_uniform(self, level_e: float) -> bool:
+        """No pixel of a uniform image at or below the threshold spills: the image is left as it is."""
+        return level_e <= (self.params.threshold_e or self.sensor.full_well_e)
+
     def apply(self, stage: Stage, tile: Tile, data: np.ndarray) -> None:
         fw = self.params.threshold_e or self.sensor.full_well_e
         if self.params.length_px > 0:

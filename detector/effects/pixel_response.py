@@ -461,7 +461,9 @@ class DSNU(Effect):
         dark_e = self.sensor.dark_current_e_per_s * tile.exptime_s
         if self.params.sigma and dark_e:
             m = tile.hardware_map(self.name, lambda rng, shape: dsnu_map(rng, shape, self.params.sigma, self.params.law))
-            data += (m - np.float32(1.0)) * np.float32(dark_e)
+            excess = m - np.float32(1.0)  # one temporary: the same values as (m - 1) * dark_e
+            excess *= np.float32(dark_e)
+            data += excess
 
 
 class DeadParams(EffectParams):
@@ -586,7 +588,13 @@ class GainRegions(Effect):
         ys, xs = tile.pixel_centres()
         s, p = self.sensor, self.params
         iy, ix = region_index(ys, xs, p.nx, p.ny, s.sensor_height_px, s.sensor_width_px, p.splits_y, p.splits_x)
-        data *= self.gains[iy[:, None], ix[None, :]].astype(np.float32)
+        # one float32 gain per block of equal (row region, column region): the same products as the gathered map
+        rcut = np.r_[0, np.flatnonzero(iy[1:] != iy[:-1]) + 1, iy.size]
+        ccut = np.r_[0, np.flatnonzero(ix[1:] != ix[:-1]) + 1, ix.size]
+        g32 = self.gains.astype(np.float32)
+        for r0, r1 in pairwise(rcut):
+            for c0, c1 in pairwise(ccut):
+                data[r0:r1, c0:c1] *= g32[iy[r0], ix[c0]]
 
 
 class NonlinearityParams(EffectParams):

@@ -866,7 +866,9 @@ class BiasGradient(Effect):
     def apply(self, stage: Stage, tile: Tile, data: np.ndarray) -> None:
         p, s = self.params, self.sensor
         ys, xs = tile.pixel_centres()
-        data += bias_shape_adu(ys, xs, s.sensor_height_px, s.sensor_width_px, p.gradient_x_adu,
+        # without a row term every row is the same (gx u + 0 v = gx u exactly): one row, broadcast
+        rows = ys[:1] if not (p.gradient_y_adu or p.quadratic_adu) and ys.size else ys
+        data += bias_shape_adu(rows, xs, s.sensor_height_px, s.sensor_width_px, p.gradient_x_adu,
                                p.gradient_y_adu, p.quadratic_adu)
         if p.column_profile_adu:
             data += bias_profile_adu(xs, s.sensor_width_px, p.column_profile_adu)[None, :]

@@ -252,7 +252,7 @@ def _render_segments(tr: Trails, psf, acc: np.ndarray, row0: int, col0: int, ks:
     x, y = tr.x[idx], tr.y[idx]
     cols = np.rint(x).astype(np.int64)[:, None] + off
     rows = np.rint(y).astype(np.int64)[:, None] + off
-    ex, ey = psf.factors(x, y, cols - x[:, None], rows - y[:, None])
+    ex, ey = psf.factors(x, y, cols - x[:, None], rows - y[:, None], stamp=True)  # consecutive pixels
     ey = ey * tr.e[idx, None]
     if row_time_s > 0:
         ey *= window_overlap(tr.t_lo[idx, None], tr.t_hi[idx, None], rows, row_time_s, exptime_s)

@@ -1,0 +1,95 @@
+"""The chain's fast paths give the same numbers as the plain formulas they replace (docs/performance.md:
+same seeds, same bytes), and a frame-sized image is built only where an effect needs it."""
+
+import numpy as np
+
+from detector import Detector, build_effects, make_sensor
+from detector.chain import SHOT_BLOCK_PIXELS, bin_sum, bin_sum_digital, shot_noise
+from detector.effects.base import Stage
+
+
+def test_digital_binning_sums_equal_the_reshaped_float64_sums():
+    """Strided float64 sums of b x b digitised codes (and of non-integer stuck values) equal bin_sum's."""
+    rng = np.random.default_rng(3)
+    for b in (2, 3, 4):
+        a = rng.integers(0, 65536, size=(12 * b, 10 * b)).astype(np.float32)
+        a[::7, ::5] = np.float32(1234.567)  # a stuck value off the integer codes
+        got = bin_sum_digital(a, b)
+        assert got.dtype == np.float64
+        assert np.array_equal(got, bin_sum(a.astype(np.float64), b))
+
+
+def test_blocked_poisson_draw_is_the_single_call_draw():
+    """The generator fills in C order: row blocks drawn in turn are the numbers of one call (eq. 31)."""
+    mean = np.random.default_rng(1).uniform(0.0, 80.0, size=(240, 600)).astype(np.float32)
+    blocked = shot_noise(np.random.default_rng(7), mean)
+    whole = np.random.default_rng(7).poisson(mean).astype(np.float32)
+    assert mean.size > 2 * SHOT_BLOCK_PIXELS  # several blocks
+    assert np.array_equal(blocked, whole)
+
+
+def _imx411_window(**effects):
+    s = make_sensor("imx411", {"width": 1024, "height": 480})
+    return s, Detector(s, build_effects(effects, s), workers=2)
+
+
+def test_gain_regions_multiply_each_block_by_its_float32_gain():
+    s, det = _imx411_window(gain_regions={"nx": 3, "ny": 2, "sigma": 0.05})
+    eff = det.effects[0]
+    t = det.tiles(1.0, 0)[0]
+    data = np.random.default_rng(0).uniform(0, 1000, size=t.shape).astype(np.float32)
+    expected = data * eff.gains[np.ix_(*_region_index(eff, t))].astype(np.float32)
+    eff.apply(Stage.READ, t, data)
+    assert np.array_equal(data, expected)
+
+
+def _region_index(eff, t):
+    from detector.effects.pixel_response import region_index
+
+    ys, xs = t.pixel_centres()
+    p, s = eff.params, eff.sensor
+    return region_index(ys, xs, p.nx, p.ny, s.sensor_height_px, s.sensor_width_px, p.splits_y, p.splits_x)
+
+
+def test_amp_glow_edge_law_in_row_blocks_adds_the_rate_map_times_t():
+    s, det = _imx411_window(amp_glow={"model": "edge", "edge": "bottom-right", "amplitude_e_per_s": 5.0,
+                                      "scale_px": 3000.0})
+    eff = det.effects[0]
+    t = det.tiles(2.0, 0)[0]
+    data = np.full(t.shape, 3.0, np.float32)
+    m = eff.rate_map(t)
+    m *= np.float32(2.0)
+    expected = data + m
+    eff.apply(Stage.DARK, t, data)
+    assert np.array_equal(data, expected)
+    ys, xs = t.pixel_centres()  # A t exp(-d / L), d the distance to the bottom-right corner
+    d = np.hypot(ys[0], s.sensor_width_px - 1 - xs[-1])
+    assert np.isclose(data[0, -1], 3.0 + 2.0 * 5.0 * np.exp(-d / 3000.0), rtol=1e-6)
+    assert data[0, -1] > data[0, 0] > 3.0  # rising towards the corner
+
+
+def test_uniform_signal_below_full_well_needs_no_frame_image_and_gives_the_same_frame():
+    """Blooming leaves a uniform image below its threshold as it is: the chain keeps the number (no
+    frame-sized array) and the frame is the bytes of the whole-image path; above the threshold it spills."""
+    s, det = _imx411_window(blooming={"up_fraction": 0.5}, prnu={"sigma": 0.01})
+    assert not det.needs_field_image(40.0)
+    assert det.needs_field_image(2.0 * s.full_well_e)
+    fast = det.expose(40.0, 1.0, frame_seed=5)
+    state = det.frame_state(1.0, 5)
+    whole = det.field_signal(40.0, 1.0, 5, state)  # the path taken before: the whole image through blooming
+    assert np.array_equal(det.expose(whole, 1.0, frame_seed=5), fast)
+
+
+def test_a_finished_tile_releases_its_hardware_maps():
+    """A tile keeps its drawn map while it is processed (one draw per map) and drops it when released."""
+    s, det = _imx411_window(prnu={"sigma": 0.01})
+    t = det.tiles(1.0, 0)[0]
+
+    def draw(rng, shape):
+        return rng.standard_normal(shape, dtype=np.float32)
+
+    m1 = t.hardware_map("prnu", draw)
+    assert t.hardware_map("prnu", draw) is m1
+    t.release()
+    m2 = t.hardware_map("prnu", draw)
+    assert m2 is not m1 and np.array_equal(m1, m2)  # drawn again from the hardware seed: the same map
