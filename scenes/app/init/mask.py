@@ -190,10 +190,12 @@ def broad_sources(data, bkg, rms, seg, cols, fwhm_px: float, saturation: float |
     broad = sz["ok"] & (sz["size_px"] > SIZE_FACTOR * m) & (excess > SIZE_NSIGMA)
     margin = max(SATURATED_MARGIN_PX, math.ceil(fwhm_px))
     lab = seg.data
-    for i in np.flatnonzero(broad):
-        region = lab == int(cols["label"][i])
-        mask |= ndimage.binary_dilation(region, iterations=margin)
+    areas = np.bincount(lab.ravel())
+    labels = [int(cols["label"][i]) for i in np.flatnonzero(broad)]
+    if labels:
+        mask = ndimage.binary_dilation(np.isin(lab, labels), iterations=margin)
+    for i, label in zip(np.flatnonzero(broad), labels):
         info["sources"].append({"x": float(sz["x"][i]), "y": float(sz["y"][i]), "size_px": float(sz["size_px"][i]),
                                 "size_ratio": float(sz["size_px"][i] / m), "excess_sigma": float(excess[i]),
-                                "snr": float(sz["snr"][i]), "area_px": int(region.sum())})
+                                "snr": float(sz["snr"][i]), "area_px": int(areas[label])})
     return mask, info
