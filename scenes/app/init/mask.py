@@ -67,17 +67,21 @@ def extended_and_bleeds(data, bkg, rms, fwhm_px: float, saturation: float | np.n
     info["saturated_cores"] = []
     if sat.any():
         lab, _ = ndimage.label(sat)
+        g = SATURATED_MARGIN_PX
         for k, sl in enumerate(ndimage.find_objects(lab), start=1):
             hh, ww = sl[0].stop - sl[0].start, sl[1].stop - sl[1].start
             m = lab[sl] == k
-            region = np.zeros_like(mask)
-            region[sl] = m
-            grown = ndimage.binary_dilation(region, structure=np.ones((3, 3), bool), iterations=SATURATED_MARGIN_PX)
+            # the region grown by the margin (a square), within its box widened by the margin
+            y0, x0 = max(sl[0].start - g, 0), max(sl[1].start - g, 0)
+            box = (slice(y0, min(sl[0].stop + g, h)), slice(x0, min(sl[1].stop + g, w)))
+            grown = np.zeros((box[0].stop - y0, box[1].stop - x0), bool)
+            grown[sl[0].start - y0:sl[0].stop - y0, sl[1].start - x0:sl[1].stop - x0] = m
+            grown = ndimage.binary_dilation(grown, structure=np.ones((3, 3), bool), iterations=g)
             if max(hh, ww) >= bleed_ratio * max(min(hh, ww), 1) and max(hh, ww) >= 6:
-                mask |= grown
+                mask[box] |= grown
                 info["bleeds"].append({"x0": int(sl[1].start), "y0": int(sl[0].start), "width": int(ww), "height": int(hh)})
             else:
-                cores |= grown
+                cores[box] |= grown
                 yc, xc = ndimage.center_of_mass(m)
                 info["saturated_cores"].append({"x": float(sl[1].start + xc), "y": float(sl[0].start + yc),
                                                 "saturated_px": int(m.sum())})
