@@ -27,8 +27,8 @@ import numpy as np
 #: margin [px] about saturated pixels (bleeds and cores), every pixel within it by a side or a corner (a square):
 #: blooming spills charge into the adjacent pixel along the transfer direction (Janesick 2001, sect. 5.3) and
 #: the pixels beside a clipped one sit near full well (non-linear); one more pixel for the clipped region's
-#: position within its pixel (on the LCO 0.4 m frame the pixels diagonal to its 3 saturated ones carried
-#: 29 sigma residuals each)
+#: position within its pixel (on the LCO 0.4 m frame the corner pixels of a diamond-shaped margin about its 3
+#: saturated ones kept residuals of 48-75 sigma each)
 SATURATED_MARGIN_PX = 2
 
 def extended_and_bleeds(data, bkg, rms, fwhm_px: float, saturation: float | np.ndarray, star_xy_flux=None, *,
