@@ -85,6 +85,19 @@ def test_bit_depth_and_saturation_seen_in_the_data():
     assert v["bit_depth"].value == 12 and v["saturation_adu"].value == 4095.0 and v["saturation_adu"].source == "measured"
 
 
+def test_saturation_is_the_lower_of_the_header_and_the_data():
+    """Both levels count: a header's SATURATE below the clip seen in the data is where saturation begins (the
+    pixels between are saturated or non-linear: a full well below the ADC's top); one above it is not reached
+    (the data clip first) and the disagreement is said in the note."""
+    rng = np.random.default_rng(1)
+    data = rng.normal(1000, 10, (64, 64)).round()
+    data[10:18, 20] = 4095.0  # a clipped 12-bit ADC (a pile of 8 pixels)
+    low = read_header(_header(BITPIX=16, SATURATE=3800.0), data)["saturation_adu"]
+    assert low.value == 3800.0 and low.source == "header" and low.card == "SATURATE" and "4095" in low.note
+    high = read_header(_header(BITPIX=16, SATURATE=65535.0), data)["saturation_adu"]
+    assert high.value == 4095.0 and high.source == "measured" and "65535" in high.note
+
+
 # --- WCS forms -----------------------------------------------------------------------------------------------
 SHAPE = (120, 160)
 
