@@ -85,6 +85,19 @@ def test_bit_depth_and_saturation_seen_in_the_data():
     assert v["bit_depth"].value == 12 and v["saturation_adu"].value == 4095.0 and v["saturation_adu"].source == "measured"
 
 
+def test_saturation_is_the_lower_of_the_header_and_the_data():
+    """Both levels count: a header's SATURATE below the clip seen in the data is where saturation begins (the
+    pixels between are saturated or non-linear: a full well below the ADC's top); one above it is not reached
+    (the data clip first) and the disagreement is said in the note."""
+    rng = np.random.default_rng(1)
+    data = rng.normal(1000, 10, (64, 64)).round()
+    data[10:18, 20] = 4095.0  # a clipped 12-bit ADC (a pile of 8 pixels)
+    low = read_header(_header(BITPIX=16, SATURATE=3800.0), data)["saturation_adu"]
+    assert low.value == 3800.0 and low.source == "header" and low.card == "SATURATE" and "4095" in low.note
+    high = read_header(_header(BITPIX=16, SATURATE=65535.0), data)["saturation_adu"]
+    assert high.value == 4095.0 and high.source == "measured" and "65535" in high.note
+
+
 # --- WCS forms -----------------------------------------------------------------------------------------------
 SHAPE = (120, 160)
 
@@ -597,3 +610,123 @@ def test_init_elongated_psf_photometry_follows_the_scene(tmp_path):
     rows = [r for r in out["star_table"] if "ratio" in r]
     assert len(rows) > 10 and abs(np.median([r["ratio"] for r in rows]) - 1) < 0.02
     assert out["chi2_per_dof"] < 1.12
+
+
+# --- saturated cores and sources broader than the PSF: masked ------------------------------------------------------
+def _star_field(rng, stars, shape=(128, 128), gain=2.0, sky_adu=400.0, rn_e=8.0, beta=3.5):
+    """A processed (floating-point, unclipped) frame: stars ``(x, y, flux_adu, fwhm_px)`` drawn with the
+    renderer's pixel-integrated Moffat, Poisson and read noise."""
+    from scenes.image.psf import MoffatPSF
+
+    h, w = shape
+    img = np.full(shape, sky_adu)
+    R = 25
+    off = np.arange(-R, R + 1, dtype=float)
+    for x, y, f, fwhm in stars:
+        xi, yi = round(x), round(y)
+        st = f * MoffatPSF(fwhm, beta)(None, None, (xi + off - x)[None, :], (yi + off - y)[None, :])[0]
+        ys, xs = slice(max(yi - R, 0), min(yi + R + 1, h)), slice(max(xi - R, 0), min(xi + R + 1, w))
+        img[ys, xs] += st[ys.start - yi + R:ys.stop - yi + R, xs.start - xi + R:xs.stop - xi + R]
+    return rng.poisson(img * gain) / gain + rng.normal(0, rn_e / gain, shape)
+
+
+def _grid_stars(n_side=5, shape=(128, 128), flux=(3e4, 2e5), fwhm=2.0, rng=None):
+    """Point stars on a jittered grid, fluxes log-uniform in ``flux``."""
+    rng = rng or np.random.default_rng(0)
+    h, w = shape
+    out = []
+    for i in range(n_side):
+        for j in range(n_side):
+            x = (j + 0.5) * w / n_side + rng.uniform(-2, 2)
+            y = (i + 0.5) * h / n_side + rng.uniform(-2, 2)
+            out.append((x, y, float(np.exp(rng.uniform(*np.log(flux)))), fwhm))
+    return out
+
+
+def _init_frame(tmp_path, img, **cards):
+    import json
+
+    header = _header(EXPTIME=60.0, GAIN=2.0, RDNOISE=8.0, **cards)
+    fits.PrimaryHDU(img.astype(np.float32), header).writeto(tmp_path / "f.fits")
+    assert _cli("init", str(tmp_path / "f.fits"), "-o", str(tmp_path / "s.toml"), "--json", str(tmp_path / "s.json")) == 0
+    summary = json.loads((tmp_path / "s.json").read_text())
+    mask = fits.getdata(tmp_path / "s_mask.fits").astype(bool) if (tmp_path / "s_mask.fits").exists() else np.zeros(img.shape, bool)
+    import csv
+
+    with open(tmp_path / "s_stars.csv") as fh:
+        cat = [(float(r["x_px"]), float(r["y_px"])) for r in csv.DictReader(fh)]
+    return summary, mask, np.array(cat)
+
+
+def _nearest(cat, x, y) -> float:
+    return float(np.min(np.hypot(cat[:, 0] - x, cat[:, 1] - y))) if len(cat) else np.inf
+
+
+def test_saturated_core_above_the_header_saturate_is_masked(tmp_path):
+    """A processed frame (floating point, not clipped: the LCO 0.4 m frame's star at (149.8, 130.2) reaches
+    74 983 ADU above its SATURATE = 59000) with a star whose core exceeds the header's saturation level: its
+    saturated pixels and SATURATED_MARGIN_PX about them are masked (before: only elongated bleeds were, and a
+    compact saturated core was left in the comparison with its blooming neighbours), while the star stays in
+    the catalogue (its flux fitted from the wings) and the unsaturated stars' pixels are not masked."""
+    from scenes.app.init.mask import SATURATED_MARGIN_PX
+
+    rng = np.random.default_rng(11)
+    stars = _grid_stars(rng=rng)
+    bright = (64.3, 63.6, 6.0e5, 2.0)  # peak about 1.1e5 ADU above the sky
+    img = _star_field(rng, [s for s in stars if math.hypot(s[0] - 64, s[1] - 64) > 15] + [bright])
+    saturate = 60000.0
+    sat = img >= saturate - 5 * 8.0 / 2.0
+    assert 3 <= sat.sum() <= 30 and img.max() > saturate
+    summary, mask, cat = _init_frame(tmp_path, img, SATURATE=saturate)
+    assert summary["header"]["saturation_adu"]["card"] == "SATURATE"
+    cores = summary["mask"]["saturated_cores"]
+    assert len(cores) == 1 and math.hypot(cores[0]["x"] - 64.3, cores[0]["y"] - 63.6) < 1.0
+    from scipy import ndimage
+
+    assert mask[ndimage.binary_dilation(sat, iterations=SATURATED_MARGIN_PX)].all()
+    assert _nearest(cat, 64.3, 63.6) < 1.0  # the saturated star is still drawn by the scene
+    yy, xx = np.mgrid[:128, :128]
+    for x, y, f, _ in stars:
+        if math.hypot(x - 64, y - 64) > 15:
+            assert not mask[np.hypot(xx - x, yy - y) < 3].any()
+
+
+def test_broad_source_among_point_sources_is_masked_as_extended(tmp_path):
+    """Among 23 point stars (FWHM 2 px), an equal pair 2.6 px apart that the deblending keeps whole (a source
+    1.26 x as broad in its second moments) and a small galaxy-like source (a Moffat of FWHM 3.2 px): both are
+    masked and listed (``mask.broad``), as 5-sigma outliers of the bright stars' sizes and broader than
+    SIZE_FACTOR, and left out of the catalogue; no point star is masked or dropped. Before: the pair was one star at its
+    centroid fitted with the narrow PSF (and the broad source one star), leaving their misfit in the compare."""
+    rng = np.random.default_rng(12)
+    stars = _grid_stars(rng=rng)
+    pair_xy, gal_xy = stars[6][:2], stars[18][:2]
+    field = [s for k, s in enumerate(stars) if k not in (6, 18)]
+    extra = [(pair_xy[0] - 1.3, pair_xy[1], 6e4, 2.0), (pair_xy[0] + 1.3, pair_xy[1], 6e4, 2.0), (*gal_xy, 1.2e5, 3.2)]
+    img = _star_field(rng, field + extra)
+    summary, mask, cat = _init_frame(tmp_path, img, SATURATE=1e6)
+    broad = summary["mask"]["broad"]
+    assert broad["n_reference"] >= 8
+    found = [(b["x"], b["y"]) for b in broad["sources"]]
+    assert len(found) == 2
+    for x, y in (pair_xy, gal_xy):
+        assert min(math.hypot(x - bx, y - by) for bx, by in found) < 1.0
+        assert mask[round(y), round(x)] and _nearest(cat, x, y) > 3.0
+    assert all(b["size_ratio"] > 1.2 and b["excess_sigma"] > 5 for b in broad["sources"])
+    for x, y, _, _ in field:
+        assert not mask[round(y), round(x)] and _nearest(cat, x, y) < 1.0
+
+
+def test_point_stars_with_a_varying_psf_are_not_masked_as_broad(tmp_path):
+    """Point stars whose FWHM varies by 10 % over the field (1.9 to 2.1 px, as a telescope's field curvature
+    does), at S/N up to 500, and a faint source twice as broad (its measured size 1.36 x the stars', +- 0.18)
+    at S/N 8: none is masked as broad (the stars' spread is in the reference population's; the faint source's
+    own size error keeps it within 5 sigma), and the summary reports the reference population tested."""
+    rng = np.random.default_rng(13)
+    stars = [(x, y, f, 1.9 + 0.2 * x / 128) for x, y, f, _ in _grid_stars(rng=rng, flux=(5e3, 2e5))]
+    img = _star_field(rng, stars + [(20.0, 108.0, 1.5e3, 4.0)])
+    summary, mask, cat = _init_frame(tmp_path, img, SATURATE=1e6)
+    broad = summary["mask"]["broad"]
+    assert broad["n_reference"] >= 8 and broad["sources"] == []
+    assert 0.0 < broad["reference_spread_px"] < 0.1 * broad["reference_size_px"]
+    for x, y, _, _ in stars:
+        assert not mask[round(y), round(x)] and _nearest(cat, x, y) < 1.0

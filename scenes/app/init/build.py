@@ -334,15 +334,28 @@ def init_scene(frame: str, scene_name: str = "scene", *, bias=(), dark=(), flat=
         phot = starmod.photometry(sdata, bkg, cols, fwhm_px, min(beta, 1000.0), sat_px, rms, keep=~sharp,
                                   gain=gain, cov_px2=cov_px2)
     # ---- mask
-    mask = np.zeros((h, w), bool)
-    minfo = {"extended": [], "bleeds": [], "masked_fraction": 0.0}
+    # `drop`: what removes the sources under it from the catalogue (extended and broad sources, bleeds, the edge
+    # roll-off); `mask`: that and the saturated cores (the stars whose cores they are stay in the catalogue,
+    # their fluxes fitted from their wings)
+    drop = np.zeros((h, w), bool)
+    cores = np.zeros((h, w), bool)
+    minfo = {"extended": [], "bleeds": [], "saturated_cores": [], "masked_fraction": 0.0}
     if frame_type == "light":
         sxyf = (phot["x"], phot["y"], phot["flux_adu"]) if phot is not None and phot["x"].size else None
-        mask, minfo = maskmod.extended_and_bleeds(sdata, bkg, rms, fwhm_px, sat_px, sxyf)
+        drop, minfo = maskmod.extended_and_bleeds(sdata, bkg, rms, fwhm_px, sat_px, sxyf)
+        cores = minfo.pop("core_mask")
+        if seg is not None and len(cols.get("label", [])):
+            broad, minfo["broad"] = maskmod.broad_sources(sdata, bkg, rms, seg, cols, fwhm_px, sat_px, gain=gain)
+            drop |= broad
+            for b in minfo["broad"]["sources"]:
+                notes.append(f"the source at ({b['x']:.1f}, {b['y']:.1f}) is {b['size_ratio']:.2f} x as broad as the "
+                             f"frame's stars ({b['excess_sigma']:.1f} sigma): not a point source (a galaxy, an "
+                             "unresolved double, a nebulous object): masked")
     if rolloff:
-        mask |= rolloff_mask
+        drop |= rolloff_mask
         minfo["edge_rolloff"] = rolloff
-        minfo["masked_fraction"] = float(mask.mean())
+    mask = drop | cores
+    minfo["masked_fraction"] = float(mask.mean())
     # ---- sky
     sky_adu = float(np.median(bkg[~mask])) if (~mask).any() else float(np.median(bkg))
     sky_e_s = max((sky_adu - bias) * gain / max(t, 1e-9) - float(dark_e_v.value), 0.0)
@@ -450,7 +463,10 @@ def init_scene(frame: str, scene_name: str = "scene", *, bias=(), dark=(), flat=
     if mask.any():
         files[f"{scene_name}_mask.fits"] = ("fits", mask.astype(np.uint8))
         scene["mask"] = {"file": f"{scene_name}_mask.fits"}
-        sources["mask.file"] = (f"measured: {len(minfo['extended'])} extended source(s), {len(minfo['bleeds'])} bleed(s), "
+        n_broad = len(minfo.get("broad", {}).get("sources", []))
+        sources["mask.file"] = (f"measured: {len(minfo['extended'])} extended source(s), "
+                                + (f"{n_broad} source(s) broader than the PSF, " if n_broad else "")
+                                + f"{len(minfo['saturated_cores'])} saturated core(s), {len(minfo['bleeds'])} bleed(s), "
                                 + (f"{rolloff['n']} edge {rolloff['axis']} beside the overscan, " if rolloff else "")
                                 + f"{100 * minfo['masked_fraction']:.2g} % of the pixels")
     # ---- sky and catalogue, through the scene's band
@@ -469,7 +485,7 @@ def init_scene(frame: str, scene_name: str = "scene", *, bias=(), dark=(), flat=
                                                  f"the bias, through the scene's band")
     cat_info = {}
     if scene["sky"].get("stars"):
-        cat_info = _catalogue(catalog, scene, band, phot, cols, fwhm_px, mask, data.shape, gain, t, geom, header,
+        cat_info = _catalogue(catalog, scene, band, phot, cols, fwhm_px, drop, data.shape, gain, t, geom, header,
                               files, scene_name, sources, notes)
     scale = cat_info.get("band_scale")
     if scale:  # real magnitudes: the matched stars' zero point goes into the aperture (when assumed) or the QE

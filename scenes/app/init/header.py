@@ -227,6 +227,17 @@ def data_levels(header, data: np.ndarray) -> dict[str, Value]:
         v, c = first(header, ("SATURATE", "SATLEVEL"))
         sat = Value(v, "header", c) if v else Value(float(2 ** depth.value - 1), "assumed",
                                                      note="no pixel pile at the maximum: the bit depth's top")
+    if sat.source == "measured":
+        # both levels count: the header's (the camera's or the pipeline's own limit, e.g. the full well below
+        # the ADC's top) and the clip seen in the data; the lower one is where saturation begins, and a
+        # disagreement is said, not hidden
+        v, c = first(header, ("SATURATE", "SATLEVEL"))
+        if v and v < sat.value:
+            sat = Value(float(v), "header", c, note=f"{c} = {v:g} ADU, below the clip seen in the data ({sat.value:.0f} "
+                        f"ADU: {sat.note}): the pixels between are saturated or non-linear")
+        elif v and v > sat.value:
+            sat = Value(sat.value, "measured", note=f"{sat.note}; the header's {c} = {v:g} ADU is above it (the data "
+                        "clip first)")
     return {"bit_depth": depth, "saturation_adu": sat}
 
 
