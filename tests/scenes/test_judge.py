@@ -384,3 +384,25 @@ def test_large_frame_path_names_the_same_parameter(star_scene):
     assert first["kind"] == "parameter" and first["key"] == "sky.source_flux_scale"
     assert first["value"] == pytest.approx(1.6, rel=0.05)
     assert out["policy"] == DEFAULT_POLICY.to_json() and set(out["gate_codes"]) == set(GATES)
+
+
+def test_a_psf_change_carries_the_sources_scale_that_goes_with_it(tmp_path):
+    """A Moffat's beta moves each star's light between its core and its wings; the diagnosis scores a beta with
+    the sources' and the sky's levels profiled, so ``--apply`` of it refits both with the new PSF and writes the
+    sources' scale (a real DSLR round wrote beta 1.79 -> 1.43 alone: its next compare was worse, 4.29 -> 4.42,
+    against 3.59 with the levels refitted). Here the frame's stars are 1.25 x the scene's under a beta 0.8 x
+    its own: the applied scene holds that scale (the sky within 1 %), and the compare's own level fit finds
+    nothing more to take."""
+    from scenes.app.compare.apply import apply_candidate
+
+    p = tmp_path / "moffat.toml"
+    p.write_text(star_field_toml(256).replace('model = "gaussian"', 'model = "moffat"\nbeta = 2.5'))
+    sc = load_scene(str(p))
+    meas = textbook_frame(p, tmp_path / "m.fits", 7, ["psf.beta=2.0", "sky.source_flux_scale=1.25"])
+    cand = {"kind": "parameter", "key": "psf.beta", "value": 2.0, "explanation": "beta x 0.8"}
+    again = load_scene(str(apply_candidate(sc, cand, tmp_path / "applied.toml", meas)))
+    assert again.psf.beta == 2.0
+    assert again.sky.source_flux_scale == pytest.approx(1.25, rel=0.02)
+    assert again.sky.background_mag_arcsec2 == pytest.approx(sc.sky.background_mag_arcsec2, abs=0.011)
+    cmp = run.run_compare(again, meas)
+    assert abs(cmp["levels"]["light_scale"]) < 0.01

@@ -58,7 +58,11 @@ def apply_candidate(scene, cand: dict, path: str | Path, measured: str | Path | 
     p = Path(path)
     notes = []
     if measured is not None:
-        data, notes = carry_levels(data, refit_levels(p, data, measured), scene)
+        # a PSF change moves each star's light between its core and its wings: the sources' scale that goes
+        # with it (which the diagnosis profiled when it scored the change) is refitted with the sky
+        psf = cand.get("kind") == "parameter" and any(
+            str(c.get("key", "")).startswith("psf.") for c in (cand.get("parameters") or [cand]))
+        data, notes = carry_levels(data, refit_levels(p, data, measured, with_sources=psf), scene)
     p.write_text(f"# written by newtsim diagnose --apply: added {added}\n"
                  f"# {cand['explanation']}\n" + "".join(f"# and {n}\n" for n in notes) + tomli_w.dumps(data))
     return p
@@ -86,8 +90,12 @@ def write_perturbed_design(scene, params: dict, scene_path: Path) -> Path:
 LEVEL_SCALE_TOL, LEVEL_OFFSET_TOL_ADU = 1e-4, 0.01
 
 
-def refit_levels(path: Path, data: dict, measured) -> dict[str, float]:
+def refit_levels(path: Path, data: dict, measured, with_sources: bool = False) -> dict[str, float]:
     """The global levels the scene ``data`` (written to ``path``) needs to match ``measured``.
+
+    With ``with_sources`` (a light frame with stars whose PSF has just changed), the sources' scale and the sky are
+    refitted together on every fitted pixel: ``source_scale`` (the photo-signal's level) and
+    ``background_scale`` (the sky's, the light level included), as the diagnosis profiled them.
 
     A level is refitted from the frame that measures it, on the pixels where the model's sources add less
     than one sigma to its background (misplaced or mis-sized stars would pull a sky level): the light level
@@ -104,6 +112,15 @@ def refit_levels(path: Path, data: dict, measured) -> dict[str, float]:
         sources = (res.model_adu - res.background_adu).ravel()[idx] * np.sqrt(w)
         keep = sources < 1.0
         idx, r, w = idx[keep], r[keep], w[keep]
+    if with_sources and sc.exposure.frame == "light" and sc.sky.stars and sc.sky.background_mag_arcsec2 is not None:
+        idx, r, w = res.flat()
+        temps = res.level_templates()
+        x = np.stack([_at(temps[i], res.data_adu.shape, idx) for i in (0, 1)])
+        xw = x * w
+        g = xw @ x.T
+        if len(_independent(g, tol=LEVEL_DEGENERACY)) == 2:
+            c = np.linalg.solve(g, xw @ r)
+            return {"source_scale": float(c[0]), "background_scale": float(c[0] + c[1])}
     if not idx.size:
         return {}
     if sc.exposure.frame == "light":
@@ -156,6 +173,12 @@ def carry_levels(data: dict, levels: dict[str, float], scene) -> tuple[dict, lis
     if abs(c) > LEVEL_SCALE_TOL and sky.get("flat_e_per_s") and 1 + c > 0:
         sky["flat_e_per_s"] = round(float(sky["flat_e_per_s"]) * (1 + c), 6)
         notes.append(f"the flat-screen level refitted: flat_e_per_s x {1 + c:.5f}")
+    c = levels.get("source_scale", 0.0)
+    if abs(c) > LEVEL_SCALE_TOL and 1 + c > 0:
+        old = float(sky.get("source_flux_scale", scene.sky.source_flux_scale))
+        sky["source_flux_scale"] = round(old * (1 + c), 6)
+        notes.append(f"the sources' scale refitted with the PSF: source_flux_scale {old:.5g} -> "
+                     f"{sky['source_flux_scale']:.6g}")
     c = levels.get("background_scale", 0.0)
     if abs(c) > LEVEL_SCALE_TOL and 1 + c > 0.05:
         mag = sky.get("background_mag_arcsec2", scene.sky.background_mag_arcsec2)
