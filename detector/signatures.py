@@ -43,6 +43,7 @@ import numpy as np
 from scipy import optimize
 
 from detector.sensor import SensorConfig
+from detector.stats import mad_std
 
 #: |z - median_3x3(z)| above which a pixel is a spike (hot/dead pixel, cosmic-ray hit) [sigma]
 SPIKE_SIGMA = 5.0
@@ -260,8 +261,6 @@ def outlier_groups(z: np.ndarray, seeds: np.ndarray, usable: np.ndarray, sign: i
         level = np.nanmedian(pad.reshape(hb, m, wb, m).transpose(0, 2, 1, 3).reshape(hb, wb, m * m), axis=2)
     level = np.nan_to_num(level).astype(np.float32)
     zl = z - np.repeat(np.repeat(level, m, axis=0), m, axis=1)[:h, :w]
-    from detector.stats import mad_std
-
     sample = zl[usable & ~seeds]
     scale = max(1.0, mad_std(sample)) if sample.size > 16 else 1.0
     zs = sign * zl / np.float32(scale)
@@ -303,9 +302,15 @@ def group_gain(groups: np.ndarray, k_per_group: int, n_pixels: int) -> tuple[flo
     group that does not pay for its parameters is noise and left out. Returns (delta <= 0, groups kept)."""
     if groups.size == 0:
         return 0.0, 0
-    g = -(groups["chi2"] - groups["n"]) + k_per_group * np.log(max(n_pixels, 2))
+    g = group_price(groups, k_per_group, n_pixels)
     keep = g < 0
     return float(g[keep].sum()), int(keep.sum())
+
+
+def group_price(groups: np.ndarray, k_per_group: int, n_pixels: int) -> np.ndarray:
+    """Each group's delta(-2 ln L) of :func:`group_gain`: ``-(chi2 - n) + k_per_group ln n_pixels`` (n_pixels at
+    least 2); a group pays for its parameters (is kept) where it is below 0."""
+    return -(groups["chi2"] - groups["n"]) + k_per_group * np.log(max(n_pixels, 2))
 
 
 @dataclass

@@ -19,7 +19,7 @@ from test_judge import textbook_frame
 
 from detector import Detector, build_effects, make_sensor
 from detector.cosmics import ENVIRONMENTS
-from detector.signatures import SpikeStats, group_gain, is_track, outlier_groups, spike_stats
+from detector.signatures import GROUP_DTYPE, SpikeStats, group_gain, group_price, is_track, outlier_groups, spike_stats
 from scenes.app.compare import run
 from scenes.app.compare.floors import cosmic_rays_floor
 from scenes.app.compare.policy import DEFAULT_POLICY
@@ -60,6 +60,18 @@ def test_groups_carry_their_chi2_and_shape():
     assert group_gain(neg, 3, z.size)[1] == 2
     assert group_gain(outlier_groups(rng.standard_normal((96, 96)), np.zeros((96, 96), bool), usable, -1), 3,
                       z.size) == (0.0, 0)
+
+
+def test_group_price_is_each_groups_share_of_the_gain():
+    """A group's delta(-2 ln L) is -(chi2 - n) + k ln n_pixels (the Schwarz price of its k parameters); the gain
+    sums the groups below 0 and counts them (a pixel at 3 sigma does not pay 3 ln 1e4 = 27.6; one at 6 does)."""
+    g = np.zeros(3, GROUP_DTYPE)
+    g["n"], g["chi2"] = [1, 1, 4], [9.0, 36.0, 4 * 30.0 ** 2]
+    price = group_price(g, 3, 10_000)
+    assert price == pytest.approx([-(9.0 - 1) + 3 * np.log(1e4), -(36.0 - 1) + 3 * np.log(1e4),
+                                   -(3600.0 - 4) + 3 * np.log(1e4)])
+    assert group_gain(g, 3, 10_000) == (pytest.approx(price[1] + price[2]), 2)
+    assert group_price(g, 3, 1)[0] == -(9.0 - 1) + 3 * np.log(2)  # n_pixels at least 2
 
 
 def test_counts_hold_the_strong_groups():
