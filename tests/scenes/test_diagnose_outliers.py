@@ -96,6 +96,24 @@ def test_a_few_tracks_are_the_ground_flux_and_many_are_not():
     assert cosmic_rays_floor({"flux_per_cm2_s": 100 * ground}, s, DEFAULT_POLICY, None) != ""
 
 
+def test_poisson_interval_is_garwoods_and_the_window_area_is_pixels_times_pitch():
+    """Garwood's one-sided limits: n events are as likely as 1 - confidence from the lower limit upwards and from
+    the upper limit downwards (n = 0: upper -ln(1 - c), no lower limit); A = w h pitch^2."""
+    from scipy.stats import poisson
+
+    from detector.effects.cosmic_rays import TRACK_RATE_CONFIDENCE, poisson_interval, window_area_cm2
+
+    a = 1.0 - TRACK_RATE_CONFIDENCE
+    assert poisson_interval(0) == (0.0, pytest.approx(-np.log(a)))
+    for n in (1, 4, 30):
+        lo, hi = poisson_interval(n)
+        assert lo < n < hi
+        assert poisson.sf(n - 1, lo) == pytest.approx(a, rel=1e-6)  # P(N >= n | lo)
+        assert poisson.cdf(n, hi) == pytest.approx(a, rel=1e-6)  # P(N <= n | hi)
+    s = make_sensor("ml11002", {"width": SIDE, "height": 2 * SIDE})
+    assert window_area_cm2(s) == pytest.approx(2 * SIDE * SIDE * (s.pixel_pitch_um * 1e-4) ** 2, rel=1e-15)
+
+
 def test_dead_pixel_plugin_renders_clusters_and_a_response_range():
     s = make_sensor("ml11002", {"width": 400, "height": 400, "x0": 0, "y0": 0, "dark_current_e_per_s": 0.0})
     det = Detector(s, build_effects({"dead_pixels": {"count": 40000, "cluster_px": 2, "response": 0.2,
