@@ -60,6 +60,12 @@ MAX_FIT_PIXELS = 1_000_000
 LEVEL_DEGENERACY = 1e-3
 
 
+#: share of :attr:`Residuals.saturation_ceiling_adu` from which a pixel is taken as saturated or about to be (the
+#: response turns non-linear below the full well): left out of the mosaic's response fit, the saturated sources of
+#: the judge's test of image-plane transforms
+NEAR_SATURATION_SHARE = 0.9
+
+
 #: one connected group of outlying pixels of one sign (:func:`outlier_groups`): ``n`` pixels, ``chi2`` the
 #: sum of their squared local residuals [sigma^2], ``peak`` the flat index of the most outlying one, ``peak_share``
 #: the share of the group's summed local residual that pixel holds, ``width_px`` / ``length_px`` the r.m.s.
@@ -400,6 +406,13 @@ class Residuals:
     def adu_sum(self) -> int:
         """Read-out values summed into one output pixel after the ADU stage (CMOS digital sum binning)."""
         return self.pixel_sum if self.sensor.kind != "ccd" else 1
+
+    @property
+    def saturation_ceiling_adu(self) -> float:
+        """The highest value an output pixel can read [ADU]: the ADC's top (summed over a CMOS's digital bin) or
+        the bias plus a full well of charge in each sensor pixel of the bin, whichever is lower."""
+        s = self.sensor
+        return min(s.adc_max_adu * self.adu_sum, s.bias_adu * self.adu_sum + s.full_well_e * self.pixel_sum / self.gain)
 
     @property
     def charge_e(self) -> np.ndarray:

@@ -16,7 +16,7 @@ import numpy as np
 
 from detector import registry
 from detector.morphology import block_chi2
-from detector.signatures import Fit, Residuals, frame_at, heldout_delta
+from detector.signatures import NEAR_SATURATION_SHARE, Fit, Residuals, frame_at, heldout_delta
 
 from .floors import floor_reason, signal_range_floor
 from .judge import Candidate, indistinguishable, rank, verdict
@@ -142,9 +142,7 @@ def away_from_saturation(res: Residuals, fit: Fit, policy: DiagnosisPolicy = DEF
 
     if fit.delta_adu is None or np.size(fit.delta_adu) < 2:
         return ""
-    s = res.sensor
-    ceiling = min(s.adc_max_adu * res.adu_sum, s.bias_adu * res.adu_sum + s.full_well_e * res.pixel_sum / res.gain)
-    sat = np.isfinite(res.data_adu) & (res.data_adu >= 0.9 * ceiling)
+    sat = np.isfinite(res.data_adu) & (res.data_adu >= NEAR_SATURATION_SHARE * res.saturation_ceiling_adu)
     if not sat.any():
         return ""
     near = ndimage.binary_dilation(sat, np.ones((3, 3), bool), iterations=SATURATED_REACH_PX)
