@@ -109,10 +109,8 @@ class SpikeStats:
     single_neg: int  #: isolated negative spikes: dead pixels
     hot_cols: int  #: columns whose mean lies LINE_SIGMA above the model
     cold_cols: int  #: columns whose mean lies LINE_SIGMA below the model
-    #: excess electrons of the positive single spikes, and data/model ratio of the negative ones
+    #: excess electrons of the positive single spikes
     single_pos_excess_e: np.ndarray = field(default_factory=lambda: np.zeros(0))
-    single_neg_ratio: np.ndarray = field(default_factory=lambda: np.zeros(0))
-    cluster_pixels: int = 0
     col_excess_e: np.ndarray = field(default_factory=lambda: np.zeros(0))  #: per outlier hot column, per pixel
     #: flat indices of the isolated positive and negative spikes (to test where they fall: light, dark)
     single_pos_index: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
@@ -224,8 +222,7 @@ def spike_stats(data: np.ndarray, model: np.ndarray, var: np.ndarray, usable: np
         single_pos=int(single_lab.size), cluster_pos=int(n - single_lab.size), single_neg=int((nsizes == 1).sum()),
         hot_cols=int(hot_c.sum()), cold_cols=int(cold_c.sum()),
         single_pos_excess_e=((data - model)[single] * gain).astype(np.float64),
-        single_neg_ratio=np.where(model[neg] > 0, data[neg] / np.maximum(model[neg], 1e-6), 1.0),
-        cluster_pixels=int(pos.sum() - single_lab.size), col_excess_e=local_mean[hot_c] * gain,
+        col_excess_e=local_mean[hot_c] * gain,
         single_pos_index=np.flatnonzero(single), single_neg_index=neg_index,
         col_z=np.where(cnt > 0, zc, np.nan), col_err_adu=col_err, pos_groups=groups[1], neg_groups=groups[-1],
         n_usable=int(np.count_nonzero(usable)))
