@@ -424,3 +424,16 @@ def test_a_transform_carried_by_the_saturated_sources_is_refused_away_from_them(
         assert (why == "") == change_away, why
         if not change_away:
             assert "1 saturated sources" in why
+
+
+def test_a_reachable_bound_is_not_a_pinned_fit():
+    """A drift from rest has accel = +1, a bound its schema marks ``bound_reachable`` (a physical state of the
+    path): not "at its bound"; a chord at its +-1000 px limit is."""
+    from detector import registry
+    from scenes.app.compare.candidates import at_bound
+
+    cls = registry()["pointing_drift"]
+    assert cls.Params.model_json_schema()["properties"]["accel"].get("bound_reachable") is True
+    assert at_bound(cls, {"dx_px": 5.0, "dy_px": 1.0, "accel": 1.0}) == ""
+    assert at_bound(cls, {"dx_px": 5.0, "dy_px": 1.0, "accel": -1.0}) == ""
+    assert "dx_px" in at_bound(cls, {"dx_px": 1000.0, "dy_px": 1.0, "accel": 0.5})
