@@ -844,8 +844,9 @@ class BiasGradientParams(EffectParams):
                                             "the serial direction, sum_k c_k cos(k pi x / (W - 1)) [ADU]")
     field_adu: list[list[float]] = Field(default_factory=list, max_length=16,
                                          description="2-D cosine-series coefficients C_jk (rows j, columns k; C_00 "
-                                         "ignored) of a smooth fixed pattern, sum_jk C_jk cos(j pi y / (H - 1)) "
-                                         "cos(k pi x / (W - 1)) [ADU] (bias_field_adu)",
+                                         "ignored) of a smooth fixed pattern, sum_jk C_jk cos(j pi v) cos(k pi u), "
+                                         "u, v in [0, 1] across field_box_px (default the sensor: u = x / (W - 1), "
+                                         "v = y / (H - 1)) [ADU] (bias_field_adu)",
                                          json_schema_extra={"unit": "ADU"})
     field_box_px: list[float] = Field(default_factory=list, max_length=4,
                                       description="the box (x0, y0, x1, y1) [sensor px] over which field_adu's cosines "
