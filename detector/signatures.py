@@ -43,6 +43,7 @@ import numpy as np
 from scipy import optimize
 
 from detector.sensor import SensorConfig
+from detector.stats import mad_std
 
 #: |z - median_3x3(z)| above which a pixel is a spike (hot/dead pixel, cosmic-ray hit) [sigma]
 SPIKE_SIGMA = 5.0
@@ -57,6 +58,12 @@ MAX_FIT_PIXELS = 1_000_000
 #: drift (a flat screen under 12 % vignetting: a bias offset has 1 - R^2 = 5e-4 against the light level; a
 #: star field's sky against all its light: 3e-2)
 LEVEL_DEGENERACY = 1e-3
+
+
+#: share of :attr:`Residuals.saturation_ceiling_adu` from which a pixel is taken as saturated or about to be (the
+#: response turns non-linear below the full well): left out of the mosaic's response fit, the saturated sources of
+#: the judge's test of image-plane transforms
+NEAR_SATURATION_SHARE = 0.9
 
 
 #: one connected group of outlying pixels of one sign (:func:`outlier_groups`): ``n`` pixels, ``chi2`` the
@@ -102,10 +109,8 @@ class SpikeStats:
     single_neg: int  #: isolated negative spikes: dead pixels
     hot_cols: int  #: columns whose mean lies LINE_SIGMA above the model
     cold_cols: int  #: columns whose mean lies LINE_SIGMA below the model
-    #: excess electrons of the positive single spikes, and data/model ratio of the negative ones
+    #: excess electrons of the positive single spikes
     single_pos_excess_e: np.ndarray = field(default_factory=lambda: np.zeros(0))
-    single_neg_ratio: np.ndarray = field(default_factory=lambda: np.zeros(0))
-    cluster_pixels: int = 0
     col_excess_e: np.ndarray = field(default_factory=lambda: np.zeros(0))  #: per outlier hot column, per pixel
     #: flat indices of the isolated positive and negative spikes (to test where they fall: light, dark)
     single_pos_index: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
@@ -217,8 +222,7 @@ def spike_stats(data: np.ndarray, model: np.ndarray, var: np.ndarray, usable: np
         single_pos=int(single_lab.size), cluster_pos=int(n - single_lab.size), single_neg=int((nsizes == 1).sum()),
         hot_cols=int(hot_c.sum()), cold_cols=int(cold_c.sum()),
         single_pos_excess_e=((data - model)[single] * gain).astype(np.float64),
-        single_neg_ratio=np.where(model[neg] > 0, data[neg] / np.maximum(model[neg], 1e-6), 1.0),
-        cluster_pixels=int(pos.sum() - single_lab.size), col_excess_e=local_mean[hot_c] * gain,
+        col_excess_e=local_mean[hot_c] * gain,
         single_pos_index=np.flatnonzero(single), single_neg_index=neg_index,
         col_z=np.where(cnt > 0, zc, np.nan), col_err_adu=col_err, pos_groups=groups[1], neg_groups=groups[-1],
         n_usable=int(np.count_nonzero(usable)))
@@ -260,8 +264,6 @@ def outlier_groups(z: np.ndarray, seeds: np.ndarray, usable: np.ndarray, sign: i
         level = np.nanmedian(pad.reshape(hb, m, wb, m).transpose(0, 2, 1, 3).reshape(hb, wb, m * m), axis=2)
     level = np.nan_to_num(level).astype(np.float32)
     zl = z - np.repeat(np.repeat(level, m, axis=0), m, axis=1)[:h, :w]
-    from detector.stats import mad_std
-
     sample = zl[usable & ~seeds]
     scale = max(1.0, mad_std(sample)) if sample.size > 16 else 1.0
     zs = sign * zl / np.float32(scale)
@@ -303,9 +305,15 @@ def group_gain(groups: np.ndarray, k_per_group: int, n_pixels: int) -> tuple[flo
     group that does not pay for its parameters is noise and left out. Returns (delta <= 0, groups kept)."""
     if groups.size == 0:
         return 0.0, 0
-    g = -(groups["chi2"] - groups["n"]) + k_per_group * np.log(max(n_pixels, 2))
+    g = group_price(groups, k_per_group, n_pixels)
     keep = g < 0
     return float(g[keep].sum()), int(keep.sum())
+
+
+def group_price(groups: np.ndarray, k_per_group: int, n_pixels: int) -> np.ndarray:
+    """Each group's delta(-2 ln L) of :func:`group_gain`: ``-(chi2 - n) + k_per_group ln n_pixels`` (n_pixels at
+    least 2); a group pays for its parameters (is kept) where it is below 0."""
+    return -(groups["chi2"] - groups["n"]) + k_per_group * np.log(max(n_pixels, 2))
 
 
 @dataclass
@@ -395,6 +403,13 @@ class Residuals:
     def adu_sum(self) -> int:
         """Read-out values summed into one output pixel after the ADU stage (CMOS digital sum binning)."""
         return self.pixel_sum if self.sensor.kind != "ccd" else 1
+
+    @property
+    def saturation_ceiling_adu(self) -> float:
+        """The highest value an output pixel can read [ADU]: the ADC's top (summed over a CMOS's digital bin) or
+        the bias plus a full well of charge in each sensor pixel of the bin, whichever is lower."""
+        s = self.sensor
+        return min(s.adc_max_adu * self.adu_sum, s.bias_adu * self.adu_sum + s.full_well_e * self.pixel_sum / self.gain)
 
     @property
     def charge_e(self) -> np.ndarray:

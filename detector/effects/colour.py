@@ -28,7 +28,7 @@ from typing import Literal
 import numpy as np
 from pydantic import Field, field_validator
 
-from ..signatures import Fit, Signature, gls_quadratic, lstsq_delta
+from ..signatures import NEAR_SATURATION_SHARE, Fit, Signature, gls_quadratic, lstsq_delta
 from .base import Effect, EffectParams, Stage, Tile, register_effect
 
 # --- pure functions ---------------------------------------------------------------------------------------
@@ -91,10 +91,9 @@ CFA_CLIP_SIGMA = 5.0
 
 def _unsaturated(res) -> np.ndarray:
     """Light pixels well below the ADC ceiling and the full well (data and model), with a finite variance."""
-    s = res.sensor
-    ceiling = min(s.adc_max_adu * res.adu_sum, s.bias_adu * res.adu_sum + s.full_well_e * res.pixel_sum / res.gain)
+    near = NEAR_SATURATION_SHARE * res.saturation_ceiling_adu
     ok = np.isfinite(res.data_adu) & (res.var_adu2 > 0) & (res.photo_adu > 0)
-    return ok & (res.data_adu < 0.9 * ceiling) & (res.model_adu < 0.9 * ceiling)
+    return ok & (res.data_adu < near) & (res.model_adu < near)
 
 
 class CFASignature(Signature):

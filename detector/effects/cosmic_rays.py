@@ -22,7 +22,7 @@ from pydantic import Field, model_validator
 from .. import cosmics
 from ..errors import DetectorError
 from ..rng import generator
-from ..signatures import GroupSignature
+from ..signatures import TRACK_K, GroupSignature, group_gain, is_track, on_source, outlier_pixels
 from .base import Effect, EffectParams, Stage, Tile, register_effect
 
 #: Refuse frames expecting more hits than this (memory: ~ 200 bytes per hit); split the exposure instead.
@@ -51,12 +51,17 @@ class CosmicFrame:
 TRACK_RATE_CONFIDENCE = 0.999
 
 
+def window_area_cm2(sensor) -> float:
+    """Area of the read-out window [cm^2]: its sensor pixels times the pixel pitch squared (the A of the hits
+    F A t)."""
+    w, h = sensor.roi_shape
+    return w * h * (sensor.pixel_pitch_um * 1e-4) ** 2
+
+
 def tracks(res, groups: np.ndarray) -> np.ndarray:
     """The groups of bright pixels that may be particle tracks (:func:`detector.signatures.is_track`: two or
-    more pixels, the charge spread over them, narrower than a point-spread function), not on the model's
-    sources."""
-    from ..signatures import is_track, on_source
-
+    more pixels, the charge spread over them, narrower than a point-spread function, not touching a saturated
+    or flagged pixel), not on the model's sources."""
     if groups.size == 0:
         return groups
     ok = is_track(groups)
@@ -80,8 +85,6 @@ def _cosmic_groups(res):
     exposure (its maximum-likelihood estimate: what --apply renders gives this window the tracks it shows; a few
     tracks on a small window "measure" a rate a hundred times the ground muons', which the floor judges on the
     count's Poisson interval, not on this estimate)."""
-    from ..signatures import TRACK_K, group_gain, outlier_pixels
-
     if res.exptime_s <= 0:
         return None
     npx = outlier_pixels(res)
@@ -90,10 +93,10 @@ def _cosmic_groups(res):
     delta = min(d_data - d_model, 0.0)
     if delta >= 0 or n_data <= n_model:
         return None
-    w, h = res.sensor.roi_shape
-    exposure = w * h * (res.sensor.pixel_pitch_um * 1e-4) ** 2 * res.exptime_s  # [cm^2 s]
-    flux = (n_data - n_model) / exposure  # the rate's estimate; its floor (scenes' cosmic_rays_floor) asks the
-    return {"flux_per_cm2_s": round(float(min(flux, 1e5)), 6)}, delta, n_data, n_model, 1  # count's interval
+    exposure = window_area_cm2(res.sensor) * res.exptime_s  # [cm^2 s]
+    # the rate's estimate; its floor (scenes' cosmic_rays_floor) judges the count's Poisson interval
+    flux = (n_data - n_model) / exposure
+    return {"flux_per_cm2_s": round(float(min(flux, 1e5)), 6)}, delta, n_data, n_model, 1
 
 
 _COSMIC_SIGNATURE = GroupSignature(
@@ -183,8 +186,7 @@ class CosmicRays(Effect):
 
     def expected_hits(self, exptime_s: float) -> float:
         """Mean number of particles hitting the read-out window during ``exptime_s``: F A t [1]."""
-        w, h = self.sensor.roi_shape
-        area_cm2 = w * h * (self.sensor.pixel_pitch_um * 1e-4) ** 2
+        area_cm2 = window_area_cm2(self.sensor)
         return self.flux_per_cm2_s * area_cm2 * max(float(exptime_s), 0.0)
 
     def prepare_frame(self, exptime_s: float, frame_seed: int) -> CosmicFrame:

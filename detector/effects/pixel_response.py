@@ -25,6 +25,7 @@ from ..signatures import (
     Variant,
     frame_fraction,
     group_gain,
+    group_price,
     on_source,
     outlier_pixels,
     spread_check,
@@ -173,7 +174,7 @@ def _dead_groups(res):
     delta = min(d_data - d_model, 0.0)
     if delta >= 0 or n_data <= n_model:
         return None
-    kept = gd[-(gd["chi2"] - gd["n"]) + DEFECT_K * np.log(max(npx, 2)) < 0]
+    kept = gd[group_price(gd, DEFECT_K, npx) < 0]  # the groups group_gain kept
     idx = kept["peak"]
     photo = res.photo_adu.ravel()[idx].astype(np.float64)
     ratio = np.clip(1.0 + (res.data_adu.ravel()[idx] - res.model_adu.ravel()[idx]) / photo, 0.0, 0.99)

@@ -91,6 +91,18 @@ def bias_field_adu(ys: np.ndarray, xs: np.ndarray, height: int, width: int, coef
     return (cy @ c @ cx).astype(np.float32)
 
 
+#: points per axis of the grid over its box on which a fitted 2-D bias field is bounded and described
+BIAS_FIELD_GRID = 65
+
+
+def bias_field_on_box(coeffs, box, height: int, width: int) -> np.ndarray:
+    """:func:`bias_field_adu` [ADU] on a BIAS_FIELD_GRID x BIAS_FIELD_GRID grid spanning its box ``(x0, y0, x1,
+    y1)`` [sensor px] edge to edge: the field's extremes and its peak to peak."""
+    x0, y0, x1, y1 = box
+    grid = np.linspace(0, 1, BIAS_FIELD_GRID)
+    return bias_field_adu(y0 + grid * (y1 - y0), x0 + grid * (x1 - x0), height, width, coeffs, (x0, y0, x1, y1))
+
+
 #: span of an exponential crosstalk tail [e-folding lengths]: lags beyond it carry < e^-5 = 0.7 % of the echo
 TAIL_SPAN = 5.0
 
@@ -362,9 +374,7 @@ def _bias_variants(res):
             coef = np.zeros((order, order))
             for (j, k), ck in zip(terms, c):
                 coef[j, k] = float(f"{ck:.4g}")
-            grid = np.linspace(0, 1, 65)
-            field = bias_field_adu(box[1] + grid * (box[3] - box[1]), box[0] + grid * (box[2] - box[0]),
-                                   s.sensor_height_px, s.sensor_width_px, coef, box)
+            field = bias_field_on_box(coef, box, s.sensor_height_px, s.sensor_width_px)
             if float(np.max(np.abs(field))) > s.bias_adu:  # the field's extremes are bounded by the bias too
                 return None
             return {"gradient_x_adu": 0.0, "gradient_y_adu": 0.0, "quadratic_adu": 0.0,
@@ -393,10 +403,8 @@ def _bias_words(p, res) -> str:
     field = p.get("field_adu") or []
     if field:
         s = res.sensor
-        x0, y0, x1, y1 = p.get("field_box_px") or (0.0, 0.0, s.sensor_width_px - 1.0, s.sensor_height_px - 1.0)
-        grid = np.linspace(0, 1, 65)
-        shape = bias_field_adu(y0 + grid * (y1 - y0), x0 + grid * (x1 - x0), s.sensor_height_px, s.sensor_width_px,
-                               field, (x0, y0, x1, y1))
+        box = p.get("field_box_px") or (0.0, 0.0, s.sensor_width_px - 1.0, s.sensor_height_px - 1.0)
+        shape = bias_field_on_box(field, box, s.sensor_height_px, s.sensor_width_px)
         return (f"an additive offset independent of the signal, a smooth 2-D pattern of {float(np.ptp(shape)):.3g} ADU "
                 f"peak to peak ({len(field)} x {len(field)} cosine terms: the read-out's drift and fixed pattern): "
                 "bias structure")
@@ -836,8 +844,9 @@ class BiasGradientParams(EffectParams):
                                             "the serial direction, sum_k c_k cos(k pi x / (W - 1)) [ADU]")
     field_adu: list[list[float]] = Field(default_factory=list, max_length=16,
                                          description="2-D cosine-series coefficients C_jk (rows j, columns k; C_00 "
-                                         "ignored) of a smooth fixed pattern, sum_jk C_jk cos(j pi y / (H - 1)) "
-                                         "cos(k pi x / (W - 1)) [ADU] (bias_field_adu)",
+                                         "ignored) of a smooth fixed pattern, sum_jk C_jk cos(j pi v) cos(k pi u), "
+                                         "u, v in [0, 1] across field_box_px (default the sensor: u = x / (W - 1), "
+                                         "v = y / (H - 1)) [ADU] (bias_field_adu)",
                                          json_schema_extra={"unit": "ADU"})
     field_box_px: list[float] = Field(default_factory=list, max_length=4,
                                       description="the box (x0, y0, x1, y1) [sensor px] over which field_adu's cosines "

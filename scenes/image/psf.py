@@ -32,9 +32,10 @@ outside the stamp stays below max(0.5 e-, 1e-9 of the flux) and never above 1e-3
 tail exp(-R^2 / 2 sigma^2); Moffat: (1 + R^2 / alpha^2)^(1 - beta), the energy outside the circle of
 radius R, an upper bound for the square); a Moffat stamp stops sooner where its edge is fainter than
 TAIL_SB_E = 0.01 e- per pixel with at most 1e-3 of the flux beyond (the halo of a wide-winged PSF, which
-no frame shows). Beyond a core of a few alpha the Moffat's pixel integrals take the lower Gauss-Legendre
-order the same error bound allows there (``MoffatPSF.far_rule``). Half-widths are rounded up to a short geometric ladder so that
-sources share stamp sizes (vectorisation). At most ``MAX_RADIUS_PX``.
+no frame shows). Beyond a core of k pixels about the source the Moffat's pixel integrals take 2 Gauss-Legendre
+nodes per axis, which the same error bound allows there (``MoffatPSF.far_rule``: k is set by the tolerance and
+the jitter's outer nodes, not by alpha; 15 px at the default 1e-7 without jitter). Half-widths are rounded
+up to a short geometric ladder so that sources share stamp sizes (vectorisation). At most ``MAX_RADIUS_PX``.
 
 The hook for other PSFs (e.g. an optics PSF that varies over the field): any object with
 
@@ -76,9 +77,10 @@ TAIL_REL_MIN = 1e-9  # ... and no need to go below this fraction
 #: which no frame shows under its read and shot noise (>= 1 e-). A Moffat of beta 1.8 keeps 0.5 e- of a 1e6 e-
 #: star only beyond 4e4 alpha: every stamp of a wide-winged PSF hit MAX_RADIUS_PX, a million pixels each
 TAIL_SB_E = 0.01
-#: the core of a Moffat stamp is integrated at the full Gauss-Legendre order; beyond it (offsets from the source
-#: of at least this many pixels along either axis) the order the error bound needs there (the integrand's poles
-#: are that much farther from the pixel), down to 2 nodes per axis [pixels]
+#: the largest core half-width :attr:`MoffatPSF.far_rule` considers [pixels]: within its core a Moffat stamp is
+#: integrated at the full Gauss-Legendre order, beyond it (offsets of at least k pixels along either axis: the
+#: integrand's poles that much farther from the pixel) at 2 nodes per axis; a PSF whose 2-node core would be wider
+#: keeps the full order everywhere (a jitter of 5 px already: its outer Gauss-Hermite nodes lie ~70 px out)
 _MOFFAT_CORE_MAX_PX = 64
 _LADDER = 1.25  # stamp half-widths: w_min * 1.25^k
 

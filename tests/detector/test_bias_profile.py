@@ -162,3 +162,14 @@ def test_white_noise_alone_takes_no_field():
     res = _bias_frame_2d(lambda ys, xs: np.zeros((ys.size, xs.size)), seed=11)
     fit = registry()["bias_gradient"].signature.fit(res, "bias_gradient")
     assert fit is None or fit.delta_bic > -10
+
+
+def test_the_field_on_its_box_spans_the_box_edge_to_edge():
+    """The grid on which a fitted field is bounded by the bias and described: its corners are the box's, where
+    the cosines are at 0 and pi (C_01 cos(k pi u) is +C_01 at x0, -C_01 at x1)."""
+    from detector.effects.readout import BIAS_FIELD_GRID, bias_field_on_box
+
+    coef = [[0.0, 3.0], [0.0, 0.0]]
+    got = bias_field_on_box(coef, (10.0, 20.0, 70.0, 50.0), 60, 90)
+    assert got.shape == (BIAS_FIELD_GRID, BIAS_FIELD_GRID)
+    assert got[0, 0] == pytest.approx(3.0) and got[-1, -1] == pytest.approx(-3.0) and np.ptp(got) == pytest.approx(6.0)

@@ -19,7 +19,7 @@ from test_judge import textbook_frame
 
 from detector import Detector, build_effects, make_sensor
 from detector.cosmics import ENVIRONMENTS
-from detector.signatures import SpikeStats, group_gain, is_track, outlier_groups, spike_stats
+from detector.signatures import GROUP_DTYPE, SpikeStats, group_gain, group_price, is_track, outlier_groups, spike_stats
 from scenes.app.compare import run
 from scenes.app.compare.floors import cosmic_rays_floor
 from scenes.app.compare.policy import DEFAULT_POLICY
@@ -62,6 +62,18 @@ def test_groups_carry_their_chi2_and_shape():
                       z.size) == (0.0, 0)
 
 
+def test_group_price_is_each_groups_share_of_the_gain():
+    """A group's delta(-2 ln L) is -(chi2 - n) + k ln n_pixels (the Schwarz price of its k parameters); the gain
+    sums the groups below 0 and counts them (a pixel at 3 sigma does not pay 3 ln 1e4 = 27.6; one at 6 does)."""
+    g = np.zeros(3, GROUP_DTYPE)
+    g["n"], g["chi2"] = [1, 1, 4], [9.0, 36.0, 4 * 30.0 ** 2]
+    price = group_price(g, 3, 10_000)
+    assert price == pytest.approx([-(9.0 - 1) + 3 * np.log(1e4), -(36.0 - 1) + 3 * np.log(1e4),
+                                   -(3600.0 - 4) + 3 * np.log(1e4)])
+    assert group_gain(g, 3, 10_000) == (pytest.approx(price[1] + price[2]), 2)
+    assert group_price(g, 3, 1)[0] == -(9.0 - 1) + 3 * np.log(2)  # n_pixels at least 2
+
+
 def test_counts_hold_the_strong_groups():
     rng = np.random.default_rng(2)
     model = np.full((64, 64), 1000.0, np.float32)
@@ -82,6 +94,24 @@ def test_a_few_tracks_are_the_ground_flux_and_many_are_not():
     assert cosmic_rays_floor({"flux_per_cm2_s": 1 / (area_cm2 * 10)}, s, DEFAULT_POLICY, 10.0) == ""
     assert cosmic_rays_floor({"flux_per_cm2_s": 200 / (area_cm2 * 10)}, s, DEFAULT_POLICY, 10.0) != ""
     assert cosmic_rays_floor({"flux_per_cm2_s": 100 * ground}, s, DEFAULT_POLICY, None) != ""
+
+
+def test_poisson_interval_is_garwoods_and_the_window_area_is_pixels_times_pitch():
+    """Garwood's one-sided limits: n events are as likely as 1 - confidence from the lower limit upwards and from
+    the upper limit downwards (n = 0: upper -ln(1 - c), no lower limit); A = w h pitch^2."""
+    from scipy.stats import poisson
+
+    from detector.effects.cosmic_rays import TRACK_RATE_CONFIDENCE, poisson_interval, window_area_cm2
+
+    a = 1.0 - TRACK_RATE_CONFIDENCE
+    assert poisson_interval(0) == (0.0, pytest.approx(-np.log(a)))
+    for n in (1, 4, 30):
+        lo, hi = poisson_interval(n)
+        assert lo < n < hi
+        assert poisson.sf(n - 1, lo) == pytest.approx(a, rel=1e-6)  # P(N >= n | lo)
+        assert poisson.cdf(n, hi) == pytest.approx(a, rel=1e-6)  # P(N <= n | hi)
+    s = make_sensor("ml11002", {"width": SIDE, "height": 2 * SIDE})
+    assert window_area_cm2(s) == pytest.approx(2 * SIDE * SIDE * (s.pixel_pitch_um * 1e-4) ** 2, rel=1e-15)
 
 
 def test_dead_pixel_plugin_renders_clusters_and_a_response_range():

@@ -730,3 +730,28 @@ def test_point_stars_with_a_varying_psf_are_not_masked_as_broad(tmp_path):
     assert 0.0 < broad["reference_spread_px"] < 0.1 * broad["reference_size_px"]
     for x, y, _, _ in stars:
         assert not mask[round(y), round(x)] and _nearest(cat, x, y) < 1.0
+
+
+def test_source_sizes_are_second_moment_radii_and_skip_clipped_or_crowded_apertures():
+    """A noiseless Gaussian star of sigma 1.5 px: its second-moment radius sqrt((Mxx + Myy) / 2) is sigma (the
+    aperture of SIZE_APERTURE_FWHM holds it to 6 sigma); the same star with a saturated pixel, or another segment
+    inside its aperture, is not measured (a clipped core's moments are not its PSF's)."""
+    from types import SimpleNamespace
+
+    from scenes.app.init.mask import source_sizes
+
+    sigma, shape = 1.5, (64, 64)
+    yy, xx = np.mgrid[:64, :64]
+    star = 1e4 * np.exp(-((xx - 30.3) ** 2 + (yy - 31.6) ** 2) / (2 * sigma ** 2))
+    seg = np.zeros(shape, int)
+    seg[np.hypot(xx - 30.3, yy - 31.6) < 6] = 1
+    cols = {"x_centroid": [30.3], "y_centroid": [31.6], "label": [1]}
+    bkg, rms = np.zeros(shape), np.full(shape, 1.0)
+    fwhm = 2.3548 * sigma
+    sz = source_sizes(star, bkg, rms, SimpleNamespace(data=seg), cols, fwhm, 1e9, gain=1.0)
+    assert sz["ok"][0] and sz["size_px"][0] == pytest.approx(sigma, rel=1e-3)
+    assert 0 < sz["size_err_px"][0] < 1e-2 and sz["snr"][0] > 100
+    assert not source_sizes(star, bkg, rms, SimpleNamespace(data=seg), cols, fwhm, 0.9e4, gain=1.0)["ok"][0]
+    crowded = seg.copy()
+    crowded[31, 36] = 2  # a neighbour's pixel 5.7 px away, inside the 8.8 px aperture
+    assert not source_sizes(star, bkg, rms, SimpleNamespace(data=crowded), cols, fwhm, 1e9, gain=1.0)["ok"][0]

@@ -406,3 +406,54 @@ def test_a_psf_change_carries_the_sources_scale_that_goes_with_it(tmp_path):
     assert again.sky.background_mag_arcsec2 == pytest.approx(sc.sky.background_mag_arcsec2, abs=0.011)
     cmp = run.run_compare(again, meas)
     assert abs(cmp["levels"]["light_scale"]) < 0.01
+def _saturated_res(change_away: bool):
+    """A 64 x 64 light frame with 3 x 3 saturated pixels at (6, 6), a 50 ADU bump of the residual beside them
+    (at (10, 10): their bleeding) and, when ``change_away``, the same bump at (46, 46), far from them."""
+    from detector import make_sensor
+    from detector.signatures import Residuals, SpikeStats
+
+    s = make_sensor("ml11002", {"width": 64, "height": 64})
+    yy, xx = np.mgrid[:64, :64]
+
+    def bump(y, x):
+        return 50.0 * np.exp(-((yy - y) ** 2 + (xx - x) ** 2) / (2 * 2.0 ** 2))
+
+    model = np.full((64, 64), 1000.0)
+    data = model + bump(10, 10) + (bump(46, 46) if change_away else 0.0)
+    data = data + np.random.default_rng(4).normal(0.0, 10.0, data.shape)
+    data[5:8, 5:8] = 7e4  # above any ceiling of a 16-bit read-out
+    fit = np.ones((64, 64), bool)
+    fit[5:8, 5:8] = False
+    f32, z = (lambda a: np.asarray(a, np.float32)), np.zeros((64, 64), np.float32)
+    res = Residuals(f32(data), f32(model), np.full((64, 64), 100.0, np.float32), fit, f32(model - 100.0), z,
+                    np.arange(64.0), np.arange(64.0), s, 10.0, SpikeStats(0, 0, 0, 0, 0), SpikeStats(0, 0, 0, 0, 0))
+    return res, (bump(10, 10) + bump(46, 46)).astype(np.float32)
+
+
+def test_a_transform_carried_by_the_saturated_sources_is_refused_away_from_them():
+    """A change proposed for every source (two bumps) that the data show only beside the saturated pixels keeps
+    about 0 of its amplitude beyond SATURATED_REACH_PX of them, more than AWAY_SIGMA errors short of the
+    policy's share: refused as their bleeding; the same change seen away from them too is not."""
+    from scenes.app.compare.candidates import away_from_saturation
+
+    for change_away in (False, True):
+        res, delta = _saturated_res(change_away)
+        assert res.data_adu.max() >= 0.9 * res.saturation_ceiling_adu
+        fit = Fit("jitter", {}, -500.0, 2, int(res.fit.sum()), "", delta_adu=delta)
+        why = away_from_saturation(res, fit, DEFAULT_POLICY)
+        assert (why == "") == change_away, why
+        if not change_away:
+            assert "1 saturated sources" in why
+
+
+def test_a_reachable_bound_is_not_a_pinned_fit():
+    """A drift from rest has accel = +1, a bound its schema marks ``bound_reachable`` (a physical state of the
+    path): not "at its bound"; a chord at its +-1000 px limit is."""
+    from detector import registry
+    from scenes.app.compare.candidates import at_bound
+
+    cls = registry()["pointing_drift"]
+    assert cls.Params.model_json_schema()["properties"]["accel"].get("bound_reachable") is True
+    assert at_bound(cls, {"dx_px": 5.0, "dy_px": 1.0, "accel": 1.0}) == ""
+    assert at_bound(cls, {"dx_px": 5.0, "dy_px": 1.0, "accel": -1.0}) == ""
+    assert "dx_px" in at_bound(cls, {"dx_px": 1000.0, "dy_px": 1.0, "accel": 0.5})

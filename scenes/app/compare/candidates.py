@@ -16,7 +16,7 @@ import numpy as np
 
 from detector import registry
 from detector.morphology import block_chi2
-from detector.signatures import Fit, Residuals, frame_at, heldout_delta
+from detector.signatures import NEAR_SATURATION_SHARE, Fit, Residuals, frame_at, heldout_delta
 
 from .floors import floor_reason, signal_range_floor
 from .judge import Candidate, indistinguishable, rank, verdict
@@ -130,27 +130,31 @@ def stars_check(res: Residuals, fit: Fit, truth, policy: DiagnosisPolicy = DEFAU
 #: how far from a saturated pixel [output pixels] the light of its source and its bleed still differ from an
 #: unsaturated star's: a saturated star's wings out to a few FWHM and its bleed's spill beside the trail
 SATURATED_REACH_PX = 10
+#: the fewest compared pixels beyond that reach on which the change is refitted (fewer: not tested)
+AWAY_MIN_PIXELS = 100
+#: standard errors by which the refitted amplitude must fall short of the share (one-sided 0.13 % for a change
+#: that does act on every source)
+AWAY_SIGMA = 3.0
 
 
 def away_from_saturation(res: Residuals, fit: Fit, policy: DiagnosisPolicy = DEFAULT_POLICY) -> str:
     """Why an image-plane transform (a blur, a smear, a drift) is not a change of every source's image ("" when
     it may be): refitted on the pixels away from the saturated sources (SATURATED_REACH_PX), its own change
-    keeps less than the policy's ``parameter_explained_share`` of its amplitude, beyond 3 standard errors. A
+    keeps less than the policy's ``parameter_explained_share`` of its amplitude, beyond AWAY_SIGMA standard errors
+    (tested with at least AWAY_MIN_PIXELS pixels there; saturated: NEAR_SATURATION_SHARE of the ceiling). A
     motion of the image or a wider PSF acts on every source alike; a change carried by the saturated ones is
     their bleeding (blooming) or their non-linear cores, which a smear along the columns imitates."""
     from scipy import ndimage
 
     if fit.delta_adu is None or np.size(fit.delta_adu) < 2:
         return ""
-    s = res.sensor
-    ceiling = min(s.adc_max_adu * res.adu_sum, s.bias_adu * res.adu_sum + s.full_well_e * res.pixel_sum / res.gain)
-    sat = np.isfinite(res.data_adu) & (res.data_adu >= 0.9 * ceiling)
+    sat = np.isfinite(res.data_adu) & (res.data_adu >= NEAR_SATURATION_SHARE * res.saturation_ceiling_adu)
     if not sat.any():
         return ""
     near = ndimage.binary_dilation(sat, np.ones((3, 3), bool), iterations=SATURATED_REACH_PX)
     idx, r, w = res.flat_profiled()
     keep = ~near.ravel()[idx]
-    if keep.sum() < 100:
+    if keep.sum() < AWAY_MIN_PIXELS:
         return ""
     d = res.project(frame_at(fit.delta_adu, idx))[keep]
     info = float(np.dot(d * d, w[keep]))
@@ -158,7 +162,7 @@ def away_from_saturation(res: Residuals, fit: Fit, policy: DiagnosisPolicy = DEF
         return ""
     amp, err = float(np.dot(d * r[keep], w[keep])) / info, 1.0 / np.sqrt(info)
     share = policy.parameter_explained_share
-    if amp < share and share - amp > 3 * err:
+    if amp < share and share - amp > AWAY_SIGMA * err:
         return (f"away from the {int(ndimage.label(sat)[1])} saturated sources (beyond {SATURATED_REACH_PX} px) the "
                 f"same change keeps x {amp:.3g} +- {err:.2g} of its amplitude: the sources' change is carried by the "
                 "saturated ones (their bleeding or cores), not a change of every source's image")

@@ -87,14 +87,13 @@ def cosmic_rays_floor(params: dict, sensor, policy: DiagnosisPolicy, exptime_s: 
     end of that count's Poisson interval (:func:`detector.effects.cosmic_rays.poisson_interval`) is beyond the
     policy's factor, since one track on a small window "measures" a flux hundreds of times the physical one
     while being what the physical flux makes a few times in a thousand frames."""
-    from detector.effects.cosmic_rays import poisson_interval
+    from detector.effects.cosmic_rays import poisson_interval, window_area_cm2
 
     flux = _num(params, "flux_per_cm2_s", -1.0)
     env = ENVIRONMENTS.get(str(params.get("environment", "ground")), ENVIRONMENTS["ground"])
     lowest = flux
     if exptime_s and exptime_s > 0 and flux > 0:
-        w, h = sensor.roi_shape
-        exposure = w * h * (sensor.pixel_pitch_um * 1e-4) ** 2 * exptime_s  # [cm^2 s]
+        exposure = window_area_cm2(sensor) * exptime_s  # [cm^2 s]
         lowest = poisson_interval(round(flux * exposure))[0] / exposure
     if lowest > policy.max_cosmic_rate_factor * env.flux_per_cm2_s:
         return (f"{flux:.3g} particles /cm^2/s (at least {lowest:.3g} from the count) is "

@@ -35,7 +35,10 @@ SATURATED_MARGIN_PX = 2
 def extended_and_bleeds(data, bkg, rms, fwhm_px: float, saturation: float | np.ndarray, star_xy_flux=None, *,
                         min_psf_areas: float = 40.0, flux_excess: float = 3.0, bleed_ratio: float = 3.0,
                         nsigma: float = 2.0) -> tuple[np.ndarray, dict]:
-    """(mask, info): boolean mask of extended sources and bleeds, and what was masked."""
+    """(mask, info): boolean mask of extended sources and bleeds (what removes the sources under it), and what was
+    masked: ``info["extended"]``, ``info["bleeds"]``, ``info["saturated_cores"]`` (every other group of pixels at
+    or above ``saturation``: centre and size), ``info["core_mask"]`` (those cores grown by SATURATED_MARGIN_PX,
+    outside ``mask``: the caller masks them but keeps their stars) and ``info["masked_fraction"]`` (of both)."""
     from scipy import ndimage
 
     from .stars import detect
