@@ -206,6 +206,22 @@ def _peak(z: np.ndarray, row_factor: float = 1.0) -> tuple[float, float, float]:
             float(near / max(p.sum(), 1e-300)))
 
 
+def periodic_line(res) -> tuple[float, float, float]:
+    """(period [px], contrast, share) of the strongest spatial frequency of a frame's whitened residual (the
+    levels refitted, its smooth part at the block scale taken out): the peak's power over the median power
+    (:data:`PERIODIC_CONTRAST` is significant on its own) and its share of the whole (high-passed) power. A
+    white noise spreads its power over every frequency; a pick-up pattern puts it into one."""
+    shape = res.data_adu.shape
+    idx, r, w = res.flat_profiled()
+    zmap = np.zeros(shape, np.float64)
+    wmap = np.zeros(shape, np.float64)
+    zmap.ravel()[idx] = r * np.sqrt(w)
+    wmap.ravel()[idx] = w
+    b = int(max(2, min(shape) // BLOCKS))
+    zmap = zmap - gaussian_filter(zmap, b, mode="nearest")
+    return _peak(zmap, _cut_row_factor(wmap, float(res.row_var_adu2)))
+
+
 def _band(z: np.ndarray, ok: np.ndarray, s: float) -> np.ndarray:
     """The z map band-passed about the scale ``s`` [px]: a difference of Gaussians (s - 6 s) by normalised
     convolution over the fitted pixels (masked pixels neither pull the map to zero nor make edges), zero off them."""

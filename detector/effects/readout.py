@@ -423,11 +423,31 @@ _ROW_SIGNATURE = RowOffsetSignature()
 KTC_MAX_READ_RATIO = 3.0
 
 
+#: the share of the claimed excess variance that one spatial frequency may hold before the excess is a pattern,
+#: not white noise: white noise puts ~1e-4 of its power in the strongest of the ~1e5 frequencies of a 512 x 512
+#: cut; a pick-up wave puts all of its own there (half of it: the policy's share for "the effect's doing")
+KTC_PERIODIC_SHARE = 0.5
+
+
 def _ktc_check(fit, res) -> str:
     """Reset noise adds the same white noise to every read, so the camera's measured read noise (its bias
     frames) already holds most of it (Janesick 2001, Scientific CCDs, sect. 3.3: kTC noise is the reset
     component of the read noise). On a lit frame, an extra white noise far above that read noise is the
-    light's own pixel-to-pixel scatter (a PRNU, which a uniform light cannot tell from it)."""
+    light's own pixel-to-pixel scatter (a PRNU, which a uniform light cannot tell from it). kTC noise is
+    thermal and white: an excess whose power sits in one spatial frequency (significant on its own, the
+    morphology's PERIODIC_CONTRAST, and holding KTC_PERIODIC_SHARE of the excess) is a periodic pattern
+    (electronic pick-up), not reset noise."""
+    from ..morphology import PERIODIC_CONTRAST, periodic_line
+
+    theta0 = float(fit.state.get("theta", 0.0))
+    v = float(np.median(1.0 / np.maximum(res.flat_profiled()[2], 1e-30))) if res.n_fit else 0.0
+    if theta0 > 0 and v > 0:
+        period, contrast, share = periodic_line(res)
+        excess = theta0 / (theta0 + v)  # the claimed excess's share of the pixels' variance
+        if contrast >= PERIODIC_CONTRAST and share >= KTC_PERIODIC_SHARE * excess:
+            return (f"the extra scatter sits in one spatial frequency (period {period:.3g} px, {contrast:.3g} x the "
+                    f"median power, {100 * share:.2g} % of the power against the {100 * excess:.2g} % the excess "
+                    "claims): a periodic pattern (electronic pick-up), not white kTC noise")
     if not np.any(res.photo_adu > 0) or res.sensor.read_noise_e <= 0:
         return ""
     theta = float(fit.state.get("theta", 0.0))

@@ -239,3 +239,15 @@ def test_an_oblique_bias_wave_named_bias_structure(tmp_path):
     row = R.run_case(R.draw_case("bias_gradient", 2553889983260938002), tmp_path, workers=1)
     assert row["first"] == "bias_gradient" and row["first_params"].get("field_adu")
     assert row["error_ratio"] < 0.05
+
+
+@pytest.mark.parametrize("family, case_seed, named", [
+    ("periodic", 236860724608722093, False),  # a sine of 3.8 px, 0.76 sigma, on an IMX411 bias
+    ("reset_noise", 538889544293461907, True),  # extra read-out noise of a two-valued law, 0.47 x the read noise
+])
+def test_reset_noise_is_white(tmp_path, family, case_seed, named):
+    """kTC noise is thermal and white: an excess whose power sits in one spatial frequency is a pick-up
+    pattern (detector.effects.readout.KTC_PERIODIC_SHARE; the sine was named reset_noise), while an extra white
+    read noise of any law is still named."""
+    row = R.run_case(R.draw_case(family, case_seed), tmp_path, workers=1)
+    assert (row["first"] == "reset_noise") == named
