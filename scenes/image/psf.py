@@ -212,6 +212,7 @@ class MoffatPSF:
     tol: float = 1e-7
     _nodes: tuple = field(init=False, repr=False, compare=False)
     _jitter: tuple = field(init=False, repr=False, compare=False)
+    _far: tuple = field(init=False, repr=False, compare=False)  #: (k, the far rule's nodes or None)
 
     def __post_init__(self):
         if not self.beta > 1:
@@ -220,6 +221,9 @@ class MoffatPSF:
         u, w = np.polynomial.legendre.leggauss(n)
         object.__setattr__(self, "_nodes", (0.5 * u, 0.5 * w))
         object.__setattr__(self, "_jitter", self._jitter_rule())
+        k, n_far = self._far_rule()
+        uf, wf = np.polynomial.legendre.leggauss(n_far)
+        object.__setattr__(self, "_far", (k, (0.5 * uf, 0.5 * wf) if k else None))
 
     @property
     def alpha_px(self) -> float:
@@ -236,6 +240,12 @@ class MoffatPSF:
 
     @property
     def far_rule(self) -> tuple[int, int]:
+        """(k, n): pixels offset from the source by at least ``k`` [pixels] along either axis take ``n`` nodes per
+        axis (:meth:`_far_rule`, found once when the PSF is made)."""
+        k, nodes = self._far
+        return (k, nodes[0].size) if k else (0, self.order)
+
+    def _far_rule(self) -> tuple[int, int]:
         """(k, n): pixels offset from the source by at least ``k`` [pixels] along either axis take ``n`` nodes per
         axis. For such a pixel each 1-D rule's integrand has its poles at least ``D = k - 1/2 - (the largest
         jitter offset)`` from the pixel's centre along the real axis (the x-integrand's at
@@ -276,7 +286,7 @@ class MoffatPSF:
         return (self.beta - 1.0) / (math.pi * a2) * (1.0 + np.asarray(r2) / a2) ** (-self.beta)
 
     def __call__(self, x, y, dx, dy) -> np.ndarray:
-        k, n_far = self.far_rule
+        k, far_nodes = self._far
         dx = np.asarray(dx, dtype=float)
         dy = np.asarray(dy, dtype=float)
         if not k:
@@ -285,8 +295,7 @@ class MoffatPSF:
         rows = np.any(np.abs(dy) < k, axis=0)
         if cols.all() and rows.all():
             return self._stamp(x, y, dx, dy, self._jitter)
-        u, w = np.polynomial.legendre.leggauss(n_far)
-        out = self._stamp(x, y, dx, dy, self._jitter, (0.5 * u, 0.5 * w))
+        out = self._stamp(x, y, dx, dy, self._jitter, far_nodes)
         if cols.any() and rows.any():
             out[np.ix_(np.arange(out.shape[0]), rows, cols)] = self._stamp(x, y, dx[:, cols], dy[:, rows], self._jitter)
         return out
