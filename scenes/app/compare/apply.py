@@ -108,19 +108,14 @@ def refit_levels(path: Path, data: dict, measured, with_sources: bool = False) -
     sc = load_scene(str(path))
     res, per_offset = _level_residuals(sc, measured)
     idx, r, w = res.flat()
+    if with_sources and sc.exposure.frame == "light" and sc.sky.stars and sc.sky.background_mag_arcsec2 is not None:
+        keep, c = _solve_levels(res, idx, r, w, [0, 1])  # every fitted pixel: the sources' too
+        if len(keep) == 2:
+            return {"source_scale": float(c[0]), "background_scale": float(c[0] + c[1])}
     if res.background_adu is not None:  # the levels from the background's pixels: a misfit star is not sky
         sources = (res.model_adu - res.background_adu).ravel()[idx] * np.sqrt(w)
         keep = sources < 1.0
         idx, r, w = idx[keep], r[keep], w[keep]
-    if with_sources and sc.exposure.frame == "light" and sc.sky.stars and sc.sky.background_mag_arcsec2 is not None:
-        idx, r, w = res.flat()
-        temps = res.level_templates()
-        x = np.stack([_at(temps[i], res.data_adu.shape, idx) for i in (0, 1)])
-        xw = x * w
-        g = xw @ x.T
-        if len(_independent(g, tol=LEVEL_DEGENERACY)) == 2:
-            c = np.linalg.solve(g, xw @ r)
-            return {"source_scale": float(c[0]), "background_scale": float(c[0] + c[1])}
     if not idx.size:
         return {}
     if sc.exposure.frame == "light":
@@ -135,15 +130,22 @@ def refit_levels(path: Path, data: dict, measured, with_sources: bool = False) -
         # kept as the bias, as Residuals.levels does), and the dark template holds glow, DSNU and bias
         # structure too: scaling the dark current by its fit would be wrong
         wanted = [2]
+    keep, coef = _solve_levels(res, idx, r, w, wanted)
+    return {res.LEVELS[wanted[k]]: float(c) / (per_offset if wanted[k] == 2 else 1.0) for k, c in zip(keep, coef)}
+
+
+def _solve_levels(res, idx, r, w, wanted: list[int]) -> tuple[list[int], np.ndarray]:
+    """Weighted least squares of the residual ``r`` (weights ``w``, at flat pixels ``idx``) on the level templates
+    ``wanted`` (indices of :attr:`Residuals.LEVELS`): (the positions in ``wanted`` kept, degenerate ones dropped
+    in order, and their coefficients)."""
     temps = res.level_templates()
     x = np.stack([_at(temps[i], res.data_adu.shape, idx) for i in wanted])
     xw = x * w
     g = xw @ x.T
     keep = _independent(g, tol=LEVEL_DEGENERACY)
     if not keep:
-        return {}
-    coef = np.linalg.solve(g[np.ix_(keep, keep)], (xw @ r)[keep])
-    return {res.LEVELS[wanted[k]]: float(c) / (per_offset if wanted[k] == 2 else 1.0) for k, c in zip(keep, coef)}
+        return [], np.zeros(0)
+    return keep, np.linalg.solve(g[np.ix_(keep, keep)], (xw @ r)[keep])
 
 
 def _level_residuals(sc, measured):
