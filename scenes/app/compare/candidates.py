@@ -137,21 +137,33 @@ AWAY_MIN_PIXELS = 100
 AWAY_SIGMA = 3.0
 
 
-def away_from_saturation(res: Residuals, fit: Fit, policy: DiagnosisPolicy = DEFAULT_POLICY) -> str:
+def saturated_reach(res: Residuals) -> tuple[np.ndarray, int] | None:
+    """(the pixels within SATURATED_REACH_PX of a saturated one, the number of saturated sources), or None when
+    no pixel is saturated (NEAR_SATURATION_SHARE of the ceiling)."""
+    from scipy import ndimage
+
+    sat = np.isfinite(res.data_adu) & (res.data_adu >= NEAR_SATURATION_SHARE * res.saturation_ceiling_adu)
+    if not sat.any():
+        return None
+    near = ndimage.binary_dilation(sat, np.ones((3, 3), bool), iterations=SATURATED_REACH_PX)
+    return near, int(ndimage.label(sat)[1])
+
+
+def away_from_saturation(res: Residuals, fit: Fit, policy: DiagnosisPolicy = DEFAULT_POLICY,
+                         reach=...) -> str:
     """Why an image-plane transform (a blur, a smear, a drift) is not a change of every source's image ("" when
     it may be): refitted on the pixels away from the saturated sources (SATURATED_REACH_PX), its own change
     keeps less than the policy's ``parameter_explained_share`` of its amplitude, beyond AWAY_SIGMA standard errors
     (tested with at least AWAY_MIN_PIXELS pixels there; saturated: NEAR_SATURATION_SHARE of the ceiling). A
     motion of the image or a wider PSF acts on every source alike; a change carried by the saturated ones is
-    their bleeding (blooming) or their non-linear cores, which a smear along the columns imitates."""
-    from scipy import ndimage
-
+    their bleeding (blooming) or their non-linear cores, which a smear along the columns imitates. ``reach``:
+    :func:`saturated_reach` of ``res``, when the caller has it (the same for every candidate of a frame)."""
     if fit.delta_adu is None or np.size(fit.delta_adu) < 2:
         return ""
-    sat = np.isfinite(res.data_adu) & (res.data_adu >= NEAR_SATURATION_SHARE * res.saturation_ceiling_adu)
-    if not sat.any():
+    reach = saturated_reach(res) if reach is ... else reach
+    if reach is None:
         return ""
-    near = ndimage.binary_dilation(sat, np.ones((3, 3), bool), iterations=SATURATED_REACH_PX)
+    near, n_sat = reach
     idx, r, w = res.flat_profiled()
     keep = ~near.ravel()[idx]
     if keep.sum() < AWAY_MIN_PIXELS:
@@ -163,7 +175,7 @@ def away_from_saturation(res: Residuals, fit: Fit, policy: DiagnosisPolicy = DEF
     amp, err = float(np.dot(d * r[keep], w[keep])) / info, 1.0 / np.sqrt(info)
     share = policy.parameter_explained_share
     if amp < share and share - amp > AWAY_SIGMA * err:
-        return (f"away from the {int(ndimage.label(sat)[1])} saturated sources (beyond {SATURATED_REACH_PX} px) the "
+        return (f"away from the {n_sat} saturated sources (beyond {SATURATED_REACH_PX} px) the "
                 f"same change keeps x {amp:.3g} +- {err:.2g} of its amplitude: the sources' change is carried by the "
                 "saturated ones (their bleeding or cores), not a change of every source's image")
     return ""
@@ -174,6 +186,7 @@ def candidates(res: Residuals, present: set[str], progress=None, truth=None,
     """Fit every absent effect with a signature. Returns (candidates best first, problems). With the model's
     TRUTH table, image-plane candidates must keep the catalogue stars' photometry (:func:`stars_check`)."""
     out, problems = [], []
+    reach = ...  # the saturated sources' reach, found when a transform first asks for it
     for name, cls in sorted(registry().items()):
         if name in present or cls.signature is None:
             continue
@@ -201,7 +214,8 @@ def candidates(res: Residuals, present: set[str], progress=None, truth=None,
             if why:
                 c.reject("stars", why)
             else:
-                why = away_from_saturation(res, fit, policy)
+                reach = saturated_reach(res) if reach is ... else reach
+                why = away_from_saturation(res, fit, policy, reach)
                 if why:
                     c.refuse("implausible", why)
         why = implausibility(cls, fit, res)
