@@ -185,3 +185,15 @@ def residuals_of(data, model, var, photo, sensor):
                      np.ones((h, w), bool), photo.astype(np.float32), np.zeros((h, w), np.float32),
                      np.arange(h, dtype=float), np.arange(w, dtype=float), sensor, 10.0,
                      SpikeStats(0, 0, 0, 0, 0), SpikeStats(0, 0, 0, 0, 0))
+
+
+def gaussian_stars(sigma, fluxes, shape=(120, 160), spacing=36):
+    """Gaussian stars of total ``fluxes`` [ADU] and width ``sigma`` [px] on a grid, four to a row (a float64 image)."""
+    import numpy as np
+
+    img = np.zeros(shape)
+    y, x = np.mgrid[: shape[0], : shape[1]]
+    for i, f in enumerate(fluxes):
+        cy, cx = 20 + spacing * (i // 4), 20 + spacing * (i % 4)
+        img += f * np.exp(-((y - cy) ** 2 + (x - cx) ** 2) / (2 * sigma ** 2)) / (2 * np.pi * sigma ** 2)
+    return img

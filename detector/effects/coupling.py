@@ -161,11 +161,28 @@ def _ipc_variants(res):
         yield Variant([t], to_params, f"diagonal {diag:g} of nearest")
 
 
+def bf_check(fit, res) -> str:
+    """Brighter-fatter widens a star by an amount that grows with its charge: its first-order change is F^2 x a
+    shape, so refitted star by star its amplitude is the same for every flux (power 0 of the flux,
+    :mod:`detector.flux_law`). A change of every star's image alike (a wider PSF, a blur with far wings) is F x a
+    shape: the brighter-fatter template's amplitude then falls as F^-1. When the stars' fluxes tell the two
+    laws apart and the refitted amplitudes follow the second, the widening is not brighter-fatter."""
+    from detector.flux_law import change_slope, flux_law
+
+    slope = change_slope(res, fit.delta_adu)
+    if flux_law(slope, own=0.0, other=-1.0):
+        return (f"the widening does not grow with the stars' flux: refitted star by star its amplitude goes as "
+                f"flux^{slope.power:.2f} +- {slope.error:.2f} over {slope.n} stars (fluxes over a factor "
+                f"{slope.flux_range:.3g}); brighter-fatter's would be flux^0, a change of every star alike flux^-1: "
+                "a PSF change, not charge pushed out by the stars' own charge")
+    return ""
+
+
 _BF_SIGNATURE = LinearSignature(
     _bf_variants,
     lambda p, res: (f"bright sources wider than faint ones, charge pushed out of their cores (a_10 = "
                     f"{p['a10_per_e']:.2g} /e-): the brighter-fatter effect"),
-    pattern="flux-dependent widening of bright sources", extra_k=1)
+    pattern="flux-dependent widening of bright sources", extra_k=1, check=bf_check)
 #: how many standard errors the source-free pixels' neighbour correlation may fall short of what a fitted IPC
 #: implies before the IPC is refused (and the least the implied correlation must reach for the test to speak)
 IPC_NOISE_SIGMA = 5.0

@@ -52,7 +52,7 @@ from .base import Effect, EffectParams, Stage, Tile, register_effect
 
 
 def blur(image: np.ndarray, sigma_major_px: float, sigma_minor_px: float | None = None, angle_deg: float = 0.0,
-         spectra: dict | None = None, workers: int | None = None) -> np.ndarray:
+         spectra: dict | None = None, workers: int | None = None, min_pad: int = 0) -> np.ndarray:
     """The image convolved with a (possibly elongated) Gaussian of principal widths [px] and major-axis angle
     (counter-clockwise from +x), flux conserving; edges are extended with their own values.
 
@@ -66,7 +66,7 @@ def blur(image: np.ndarray, sigma_major_px: float, sigma_minor_px: float | None 
     c, s = np.cos(np.radians(angle_deg)), np.sin(np.radians(angle_deg))
     rot = np.array([[c, -s], [s, c]])
     cov = rot @ np.diag([sigma_major_px ** 2, minor ** 2]) @ rot.T  # (x, y)
-    return gaussian_filter_cov(image, cov, spectra=spectra, workers=workers)
+    return gaussian_filter_cov(image, cov, spectra=spectra, workers=workers, min_pad=min_pad)
 
 
 #: padded spectra a ``spectra`` cache of :func:`fourier_filter` keeps at most (each ~ 16 bytes per pixel)
@@ -115,14 +115,14 @@ def fourier_filter(image: np.ndarray, pad: int, transfer, spectra: dict | None =
 
 
 def gaussian_filter_cov(image: np.ndarray, cov: np.ndarray, max_gain: float = 1.0, spectra: dict | None = None,
-                        workers: int | None = None) -> np.ndarray:
+                        workers: int | None = None, min_pad: int = 0) -> np.ndarray:
     """``image`` convolved with a Gaussian of covariance ``cov`` [px^2, (x, y)]: ``H(f) = exp(-2 pi^2 f^T C f)``.
 
     ``C`` may have a negative eigenvalue (``max_gain > 1``): the image then becomes *narrower* along that
     axis (a deconvolution; the second moments still add: ``C_out = C_in + C``), the gain capped at
     ``max_gain`` at the high frequencies a smooth image does not hold anyway."""
     ev = np.linalg.eigvalsh(cov)
-    pad = int(np.ceil(4 * np.sqrt(max(np.max(np.abs(ev)), 0.0)))) + 1
+    pad = max(int(np.ceil(4 * np.sqrt(max(np.max(np.abs(ev)), 0.0)))) + 1, int(min_pad))
 
     def transfer(fx, fy):
         q = cov[0, 0] * fx * fx + 2 * cov[0, 1] * fx * fy + cov[1, 1] * fy * fy
@@ -594,19 +594,63 @@ def _sensor_centre(res) -> tuple[float, float]:
     return (s.sensor_height_px - 1) / 2.0, (s.sensor_width_px - 1) / 2.0
 
 
-# blur: theta = sigma^2 [output px^2]
-def _blur_start(res):
-    c = _linear_start(res, ["xx", "yy"], [0.5, 0.5])
-    return np.array([max(float(np.mean(c)), 0.05)])
+# blur: theta = (sigma^2 [output px^2], halo fraction [1], halo sigma^2 [output px^2]); two forms (nested): a
+# Gaussian blur of the whole image, or a scattering halo (a share of every source's light in a wide Gaussian
+# about it, the rest left in place: the far wings micro-roughness and dust scatter, Racine 1996 PASP 108 699)
+#: halo widths [output px^2] the halo's start is chosen from (by its linear fit: a share of the light moved)
+HALO_START_VAR = (4.0, 16.0, 64.0)
+#: the largest share of the light a halo may hold (beyond, the source itself is the wide part)
+HALO_MAX_FRACTION = 0.5
+
+
+def _blur_start(res, sub=(0,)):
+    if tuple(sub) == (0,):
+        c = _linear_start(res, ["xx", "yy"], [0.5, 0.5])
+        return np.array([max(float(np.mean(c)), 0.05)])
+    # the halo: its share of the light fitted linearly at each trial width, the best width kept
+    ctx = search_sample(res)
+    photo = np.asarray(res.photo_field, np.float64)
+    best = None
+    for h2 in HALO_START_VAR:
+        t = (blur(photo, float(np.sqrt(h2))) - photo).ravel()
+        coef, d = fit_linear(res, lambda i, t=t: t[i][None, :], ctx["idx"], ctx["r"], ctx["w"])
+        f = float(coef[0])
+        if 0 < f < HALO_MAX_FRACTION and (best is None or d < best[0]):
+            best = (d, f, h2)
+    return None if best is None else np.array([best[1], best[2]])
 
 
 def _blur_transform(res, photo, th, spectra=None, workers=None):
-    return blur(photo, float(np.sqrt(np.clip(th[0], 0.0, _max_var(res)))), spectra=spectra, workers=workers)
+    s2 = float(np.clip(th[0], 0.0, _max_var(res)))
+    out = blur(photo, float(np.sqrt(s2)), spectra=spectra, workers=workers)
+    f = float(th[1]) if len(th) > 1 else 0.0
+    if f:
+        h = float(np.sqrt(np.clip(th[2], 0.0, _max_var(res))))
+        # the halo's pad rounded up to a power of two: the fit's steps in its width reuse one padded spectrum
+        # (the spectra cache holds the photo-signal's: only when the core is not blurred too)
+        pad = 1 << int(np.ceil(np.log2(int(np.ceil(4 * h)) + 1)))
+        wide = blur(out, h, spectra=spectra if s2 == 0 else None, workers=workers, min_pad=pad)
+        out = (1 - f) * out + f * wide
+    return out
 
 
 def _blur_params(th, res):
     s2 = float(th[0])
-    return {"sigma_px": round(float(np.sqrt(s2)) * res.sensor.binning, 4)} if 0 < s2 < 100 else None
+    f, h2 = (float(th[1]), float(th[2])) if len(th) > 1 else (0.0, 0.0)
+    b = res.sensor.binning
+    if f == 0:
+        return {"sigma_px": round(float(np.sqrt(s2)) * b, 4)} if 0 < s2 < 100 else None
+    if not (0 <= s2 < 100 and 0 < f < HALO_MAX_FRACTION and 0 < h2 < _max_var(res)):
+        return None
+    return {"sigma_px": round(float(np.sqrt(s2)) * b, 4), "halo_fraction": round(f, 5),
+            "halo_sigma_px": round(float(np.sqrt(h2)) * b, 4)}
+
+
+def _blur_words(p, res) -> str:
+    if p.get("halo_fraction"):
+        return (f"sources with far wings the model lacks: {100 * p['halo_fraction']:.3g} % of their light in a halo of "
+                f"{p['halo_sigma_px']:.3g} px rms (scattered light: mirror micro-roughness, dust)")
+    return f"sources wider than the model, as by an extra Gaussian of {p['sigma_px']:.3g} px rms: PSF blur (focus, seeing)"
 
 
 # jitter: theta = (c_xx, c_yy, c_xy) [output px^2]
@@ -1075,25 +1119,35 @@ def _ghost_variants(res):
 class BlurParams(EffectParams):
     sigma_px: float = Field(0.5, ge=0, le=50, description="std of the extra Gaussian blur [sensor pixels]",
                             json_schema_extra={"unit": "pixel"})
+    halo_fraction: float = Field(0.0, ge=0, lt=HALO_MAX_FRACTION,
+                                 description="share of the light scattered into a wide Gaussian halo [1]",
+                                 json_schema_extra={"unit": "1"})
+    halo_sigma_px: float = Field(0.0, ge=0, le=200, description="std of the halo [sensor pixels]",
+                                 json_schema_extra={"unit": "pixel"})
 
 
 @register_effect
 class PSFBlur(Effect):
-    """Extra isotropic Gaussian blur of the image (defocus, seeing or optics the PSF model lacks)."""
+    """Extra isotropic Gaussian blur of the image (defocus, seeing or optics the PSF model lacks), and/or a
+    scattering halo: ``halo_fraction`` of the light spread by a Gaussian of ``halo_sigma_px``, the rest in place
+    (``(1 - f) I + f G_h * I``: the aureole of scattered light, Racine 1996 PASP 108 699)."""
 
     name = "psf_blur"
     scaling = "frame"
-    identity = {"sigma_px": 0.0}
+    identity = {"sigma_px": 0.0, "halo_fraction": 0.0}
     stages = (Stage.FIELD,)
     Params = BlurParams
     signature = TransformSignature(
-        _blur_start, _blur_transform, _blur_params, [0.02],
-        pattern="sources wider than the model (a Laplacian-shaped residual)",
-        explain=lambda p, res: f"sources wider than the model, as by an extra Gaussian of {p['sigma_px']:.3g} px "
-                               "rms: PSF blur (focus, seeing)")
+        _blur_start, _blur_transform, _blur_params, [0.02, 0.002, 0.1], nested=[(0,), (1, 2)],
+        pattern="sources wider than the model (a Laplacian-shaped residual), or with far wings",
+        explain=_blur_words)
 
     def apply(self, stage: Stage, tile: Tile, data: np.ndarray) -> None:
-        _store(data, blur(data, self.params.sigma_px))
+        p = self.params
+        out = blur(data, p.sigma_px)
+        if p.halo_fraction:
+            out = (1 - p.halo_fraction) * out + p.halo_fraction * blur(out, p.halo_sigma_px)
+        _store(data, out)
 
 
 class JitterParams(EffectParams):

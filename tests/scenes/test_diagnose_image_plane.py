@@ -110,3 +110,22 @@ def test_a_blur_that_spoils_the_bright_stars_is_rejected(tmp_path):
     assert "bright stars' photometry" in stars_check(res, wide, truth)
     slight = Fit("psf_blur", {}, -1e6, 1, res.n_fit, "", delta_adu=blur(photo, 0.2) - photo)
     assert stars_check(res, slight, truth) == ""
+
+
+def test_a_scattering_halo_is_named_with_its_share_and_width(tmp_path):
+    """Far wings (20 % of every star's light scattered into a 4 px rms halo, the rest in place: psf_blur's halo
+    form, (1 - f) I + f G_h * I) are psf_blur's halo, not a zero point (the cores lose 20 %, the stars keep
+    their light), not a coupling of neighbours or a brighter-fatter; once applied the error falls to the noise."""
+    (tmp_path / "model.toml").write_text(CASE_BASE)
+    (tmp_path / "truth.toml").write_text(CASE_BASE + "[effects.psf_blur]\nsigma_px = 0.0\nhalo_fraction = 0.2\n"
+                                         "halo_sigma_px = 4.0\n")
+    render(load_scene(str(tmp_path / "truth.toml")), tmp_path / "m.fits", seed=3)
+    out = run_diagnose(load_scene(str(tmp_path / "model.toml")), tmp_path / "m.fits")
+    best = out["candidates"][0]
+    assert best["effect"] == "psf_blur" and best["significant"], [(c["effect"], c["delta_bic"]) for c in out["candidates"][:3]]
+    assert best["params"]["halo_fraction"] == pytest.approx(0.2, abs=0.03)
+    assert best["params"]["halo_sigma_px"] == pytest.approx(4.0, rel=0.15)
+    assert "zero_point" not in out["significant"]
+    apply_candidate(load_scene(str(tmp_path / "model.toml")), best, tmp_path / "round2.toml")
+    after = run_compare(load_scene(str(tmp_path / "round2.toml")), tmp_path / "m.fits")["summary"]["chi2_per_dof"]
+    assert after - 1 < 0.05 * (out["baseline"]["chi2_per_dof"] - 1)

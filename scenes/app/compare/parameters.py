@@ -26,6 +26,7 @@ import time
 
 import numpy as np
 
+from detector.flux_law import change_slope, flux_law
 from detector.signatures import Fit, Residuals, frame_at, pixel_score
 
 from .apply import bias_per_output_adu
@@ -53,6 +54,82 @@ def level_fit(res: Residuals, delta_adu=None) -> dict[str, tuple[float, float]]:
     coef = lv["coef"] if delta_adu is None else cov @ (nw @ (r - frame_at(delta_adu, idx)))
     return {name: (float(c), float(c * c / cov[i, i]) if cov[i, i] > 0 else 0.0)
             for i, (name, c) in enumerate(zip(lv["names"], coef))}
+
+
+#: how far beyond a source's footprint (its model light above 3 sigma of the noise) its whole light is summed
+#: [output pixels], the widest first: a blur's far wings hold light tens of pixels out
+ENCLOSED_GROW_PX = (16, 8, 4)
+#: the ring beyond that aperture whose median residual is the local background: from this far out, this wide [px]
+RING_GAP_PX, RING_WIDTH_PX = 2, 6
+#: the fewest fitted pixels of that ring, and the largest share of the frame the apertures may cover (beyond,
+#: the next narrower aperture is taken)
+RING_MIN_PIXELS = 100
+APERTURE_MAX_SHARE = 0.5
+#: standard errors by which the enclosed light's ratio must differ from the zero point's for the test to speak
+ENCLOSED_SIGMA = 5.0
+
+
+def enclosed_ratio(res: Residuals) -> tuple[float, float, int] | None:
+    """(data over model, its standard error, the aperture's growth [px]) of the sources' whole light: summed
+    over every unsaturated source's footprint grown by the widest of ENCLOSED_GROW_PX that fits (its ring has
+    RING_MIN_PIXELS fitted pixels, the apertures cover at most APERTURE_MAX_SHARE of the frame), with the
+    median residual of the ring beyond it as the local background (aperture photometry with a background
+    annulus; the model at the scene's levels). None: no source, or no aperture that fits."""
+    from scipy import ndimage
+
+    from detector.signatures import NEAR_SATURATION_SHARE
+
+    bg = res.background_adu if res.background_adu is not None else res.model_adu - res.photo_adu \
+        + res.background_photo_adu
+    source = res.model_adu - bg
+    noise = np.sqrt(np.maximum(res.var_adu2, 1e-12))
+    core = source > 3.0 * noise
+    saturated = np.isfinite(res.data_adu) & (res.data_adu >= NEAR_SATURATION_SHARE * res.saturation_ceiling_adu)
+    if not core.any():
+        return None
+    box = np.ones((3, 3), bool)
+    for grow in ENCLOSED_GROW_PX:
+        ap = ndimage.binary_dilation(core, box, iterations=grow)
+        if saturated.any():  # every source whose aperture holds a saturated pixel is left out, its ring too
+            lab, n = ndimage.label(ndimage.binary_dilation(ap, box, iterations=RING_GAP_PX + RING_WIDTH_PX), box)
+            bad = np.unique(lab[saturated & (lab > 0)])
+            drop = np.isin(lab, bad[bad > 0])
+        else:
+            drop = np.zeros_like(ap)
+        inner = ndimage.binary_dilation(ap, box, iterations=RING_GAP_PX)
+        ring = ndimage.binary_dilation(inner, box, iterations=RING_WIDTH_PX) & ~inner & res.fit & ~drop
+        use = ap & res.fit & ~drop
+        if ring.sum() < RING_MIN_PIXELS or ap.mean() > APERTURE_MAX_SHARE or not use.any():
+            continue
+        r = (res.data_adu - res.model_adu).astype(np.float64)
+        b = float(np.median(r[ring]))
+        total = float(np.sum(source[use], dtype=np.float64))
+        if total <= 0:
+            return None
+        n_ap = int(use.sum())
+        # the ring median's error: 1.25 x the mean's (Gaussian), per pixel of the ring
+        var_b = (1.2533 ** 2) * float(np.mean(res.var_adu2[ring])) / ring.sum()
+        err = float(np.sqrt(np.sum(res.var_adu2[use], dtype=np.float64) + n_ap ** 2 * var_b)) / total
+        return 1.0 + float(np.sum(r[use] - b)) / total, err, grow
+    return None
+
+
+def light_moved(res: Residuals, f: float, policy: DiagnosisPolicy) -> str:
+    """"" or why a zero point ``f`` (the sources x f, fitted where their light is: their cores) is not a finding:
+    a zero point scales a source's whole light, a wider PSF or a blur with far wings moves it out of the core
+    and keeps it. When the sources' whole light (:func:`enclosed_ratio`) is within the policy's scale tolerance
+    of the scene's and ENCLOSED_SIGMA standard errors from x f, the light is moved, not missing (gate
+    ``tolerance``: the zero point agrees with the scene's)."""
+    got = enclosed_ratio(res)
+    if got is None:
+        return ""
+    ratio, err, grow = got
+    tol = policy.parameter_scale_tolerance
+    if abs(ratio - 1) <= tol and abs(ratio - f) > ENCLOSED_SIGMA * err:
+        return (f"the sources' whole light (within {grow} px of each, local background from a ring beyond) is x "
+                f"{ratio:.4g} +- {err:.2g} the scene's, within the {100 * tol:g} % a scene may be off: the x {f:.4g} "
+                "of their cores is light moved out of them (a PSF change), not a zero point")
+    return ""
 
 
 def _param_candidate(res: Residuals, name: str, key: str, value: float, stat: float, explanation: str,
@@ -97,10 +174,11 @@ def level_candidates(res: Residuals, scene, policy: DiagnosisPolicy = DEFAULT_PO
                 f"{v:.5g} e-/pixel/s", within_scale(f, "the flat level"), policy, 0.0, "light_scale"))
         elif has_sources and f > 0:
             v = float(scene.sky.source_flux_scale) * f
+            within = within_scale(f, "the sources' flux") or light_moved(res, f, policy)
             out.append(_param_candidate(
                 res, "zero_point", "sky.source_flux_scale", round(v, 6), stat,
                 f"the sources are {scale_words(f)} as bright as the scene's (the photometric zero point, "
-                f"{-2.5 * np.log10(f):+.3f} mag)", within_scale(f, "the sources' flux"), policy, 0.0, "light_scale"))
+                f"{-2.5 * np.log10(f):+.3f} mag)", within, policy, 0.0, "light_scale"))
         elif not has_sources and scene.sky.background_mag_arcsec2 is not None and f > 0:
             bg, light = (c, stat), None  # no source: the whole light is the sky
     if bg is not None and scene.exposure.frame == "light" and scene.sky.background_mag_arcsec2 is not None \
@@ -280,10 +358,25 @@ def psf_candidates(res: Residuals, scene, model, policy: DiagnosisPolicy = DEFAU
                          key=key, value=value, policy=policy)
         if within:
             cand.codes["tolerance"] = within
+        elif (best > 1) == (key == "psf.fwhm_arcsec"):  # a widening: is it every star's, or the bright ones'?
+            cand.deferred = grows_with_flux(res, fit)
         out.append(cand)
     for c in out:
         c.seconds = (time.perf_counter() - t0) / len(out)
     return out
+
+
+def grows_with_flux(res: Residuals, fit: Fit) -> str:
+    """"" or why a widening of the PSF is named after the effects: a number of the scene widens every star by
+    the same factor, so its change refitted star by star keeps one amplitude at every flux (power 0,
+    :mod:`detector.flux_law`); a widening that grows as the stars' own flux (power 1) is the charge they collect
+    pushing itself out (brighter-fatter), which a wider PSF only imitates on the bright stars."""
+    slope = change_slope(res, fit.delta_adu)
+    if flux_law(slope, own=0.0, other=1.0):
+        return (f"the widening grows with the stars' flux: refitted star by star it goes as flux^{slope.power:.2f} +- "
+                f"{slope.error:.2f} over {slope.n} stars (fluxes over a factor {slope.flux_range:.3g}), where a PSF "
+                "of the scene widens every star alike (flux^0): named after the effects")
+    return ""
 
 
 def parameter_candidates(res: Residuals, scene, model=None, truth=None,
@@ -367,6 +460,20 @@ def joint_psf_steps(movers: list[Candidate], res: Residuals) -> None:
         c.fit.params["value"] = value
 
 
+#: the scene key of the sky's level
+SKY_KEY = "sky.background_mag_arcsec2"
+
+
+def added_light(c: Candidate) -> bool:
+    """The candidate adds a field of light over the image (an additive effect of the FIELD stage: straylight,
+    a sky gradient), which a brighter sky cannot be told from where the field is uniform."""
+    from detector import registry
+    from detector.effects.base import Stage
+
+    cls = registry().get(c.fit.effect)
+    return c.kind == "effect" and cls is not None and cls.field_kind == "additive" and Stage.FIELD in cls.stages
+
+
 def explained_away(params: list[Candidate], effects: list[Candidate], res: Residuals, scene) -> None:
     """Gate (``tolerance``) the parameter candidates another candidate explains: a level that falls within
     the policy's tolerance once the best significant effect (or the PSF's change) is in the model is that
@@ -386,6 +493,14 @@ def explained_away(params: list[Candidate], effects: list[Candidate], res: Resid
         if left < need or share < 1 - p.policy.parameter_explained_share:
             p.codes["tolerance"] = (f"with {best.fit.effect} in the model the change of {p.key} keeps x {share:.3g} "
                                     f"of its own amplitude (chi2 {left:.4g}): the sources' shape is its doing")
+            continue
+        # both keep their evidence beside the other: the one with more of its own comes first, as a level's
+        # (below): a brighter-fatter of another kernel than the plugin's leaves a widening the PSF's width
+        # takes, but the widening's flux dependence is the effect's alone
+        _, effect_left = conditional_evidence(res, p.fit.delta_adu, best.fit.delta_adu)
+        if left < effect_left:
+            p.deferred = (f"its evidence beside {best.fit.effect} (chi2 {left:.4g}) is smaller than "
+                          f"{best.fit.effect}'s beside it ({effect_left:.4g}): named after it")
     joint_psf_steps(movers, res)
     explainers = [c for c in movers if c.significant] + ([best] if best is not None else [])
     own_fit = level_fit(res)
@@ -415,6 +530,11 @@ def explained_away(params: list[Candidate], effects: list[Candidate], res: Resid
                 now = f"{shift:+.3g} ADU" if p.fit.state["level"] == "offset_adu" else f"x {1 + shift:.4g}"
                 p.codes["tolerance"] = (f"with {e.key or e.fit.effect} in the model this level is {now}: its change "
                                         "is that candidate's doing")
+            elif e is best and p.key == SKY_KEY and shift > 0 and not p.ambiguous and added_light(e):
+                # a smooth added light (straylight, a sky gradient) that the frame shows is light over the whole
+                # field: its uniform part and a brighter sky are the same pixels (the plugin's field is fitted from
+                # its faintest point, a real one need not be)
+                p.ambiguous = f"{e.fit.effect}'s uniform part"
 
 
 def apply_parameters(data: dict, cands: list[dict]) -> list[str]:

@@ -1,0 +1,138 @@
+"""How a change of the sources' images grows with their flux: a PSF's width, or the brighter-fatter effect.
+
+A wider (or narrower) PSF changes every star's image by the same factor: the change of a star of flux F is
+``F x s(x, y)``, linear in F. The brighter-fatter effect widens a star by an amount that grows with its own
+charge (Antilogus et al. 2014, JINST 9 C03048, eq. 4: the pixel boundaries move by ``a_ij x Q``): to first
+order in ``a_10`` its change is ``F^2 x s'(x, y)``. So a candidate's change, refitted with one amplitude per
+source (:func:`source_amplitudes`), has amplitudes that are constant over the sources for the law the
+candidate's template was built with, and that scale as ``F^(+1)`` (a PSF template meeting a brighter-fatter
+widening) or ``F^(-1)`` (a brighter-fatter template meeting a widening of every source alike) for the other.
+:func:`flux_slope` measures that power, ``d ln(amplitude) / d ln(F)``, with its scatter-inflated error, and
+:func:`flux_law` says which of two powers it is nearer to, or that the sources cannot tell them apart.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+#: the least signal-to-noise ratio of a source's own amplitude for the source to enter the slope (below it the
+#: amplitude's logarithm is not defined well enough to fit)
+SOURCE_MIN_SNR = 5.0
+#: the fewest sources the slope is fitted on, and the least ratio of their brightest to their faintest flux:
+#: with fewer, or fluxes within a factor of this, the slope has nothing to measure
+MIN_SOURCES = 4
+MIN_FLUX_RANGE = 3.0
+#: how many standard errors of the slope must separate the two laws for the sources to tell them apart (the
+#: nearer law is then at least this many halves of that gap from the other: a 2-sigma one-sided decision
+#: with a gap of 4 sigma)
+SEPARATION_SIGMA = 4.0
+#: the model's source light above this many standard deviations of a pixel's noise marks a source's footprint
+#: (then grown by FOOTPRINT_GROW_PX to hold its wings)
+FOOTPRINT_SIGMA = 3.0
+FOOTPRINT_GROW_PX = 2
+
+
+@dataclass(frozen=True)
+class Slope:
+    """The power ``d ln(amplitude) / d ln(flux)`` of a change's per-source amplitudes and its error (inflated by
+    the fit's own scatter when that exceeds the amplitudes' errors), over ``n`` sources whose fluxes span a
+    factor ``flux_range``."""
+
+    power: float
+    error: float
+    n: int
+    flux_range: float
+
+
+def source_amplitudes(source_adu: np.ndarray, noise_adu: np.ndarray, usable: np.ndarray, residual_adu: np.ndarray,
+                      change_adu: np.ndarray, excluded: np.ndarray | None = None
+                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(flux [ADU], amplitude, its standard error) of ``change_adu`` refitted on each source's footprint alone:
+    the footprint is where the model's source light ``source_adu`` exceeds FOOTPRINT_SIGMA x ``noise_adu``,
+    grown by FOOTPRINT_GROW_PX and labelled (touching sources are one); the amplitude is the weighted least
+    squares ``sum(w d r) / sum(w d^2)`` over its ``usable`` pixels (w = 1 / noise^2). A footprint touching
+    ``excluded`` (saturated pixels) is left out."""
+    from scipy import ndimage
+
+    noise = np.maximum(np.asarray(noise_adu, np.float64), 1e-12)
+    core = np.asarray(source_adu) > FOOTPRINT_SIGMA * noise
+    if FOOTPRINT_GROW_PX:
+        core = ndimage.binary_dilation(core, np.ones((3, 3), bool), iterations=FOOTPRINT_GROW_PX)
+    labels, n = ndimage.label(core, structure=np.ones((3, 3)))
+    if n == 0:
+        return np.zeros(0), np.zeros(0), np.zeros(0)
+    index = np.arange(1, n + 1)
+    use = core & usable & np.isfinite(residual_adu) & np.isfinite(change_adu)
+    lab = np.where(use, labels, 0)
+    w = 1.0 / noise ** 2
+    d = np.where(use, change_adu, 0.0).astype(np.float64)
+    r = np.where(use, residual_adu, 0.0).astype(np.float64)
+    info = ndimage.sum_labels(w * d * d, lab, index)
+    proj = ndimage.sum_labels(w * d * r, lab, index)
+    flux = ndimage.sum_labels(np.where(core, source_adu, 0.0).astype(np.float64), labels, index)
+    keep = info > 0
+    if excluded is not None and np.any(excluded):
+        touched = ndimage.maximum(np.asarray(excluded, float), labels, index) > 0
+        keep &= ~np.asarray(touched, bool)
+    amp = np.where(keep, proj / np.where(info > 0, info, 1.0), np.nan)
+    err = np.where(keep, 1.0 / np.sqrt(np.where(info > 0, info, 1.0)), np.nan)
+    return flux[keep], amp[keep], err[keep]
+
+
+def flux_slope(flux: np.ndarray, amp: np.ndarray, err: np.ndarray) -> Slope | None:
+    """The weighted straight line ``ln(amp) = a + p ln(flux)`` through the sources whose amplitude is positive
+    and measured to SOURCE_MIN_SNR (error of ln(amp): err / amp); p's error from the normal matrix, times
+    sqrt(chi2 / dof) when the points scatter more than their errors (the model's own misfit per source).
+    None when fewer than MIN_SOURCES sources qualify or their fluxes span less than MIN_FLUX_RANGE."""
+    ok = np.isfinite(amp) & np.isfinite(err) & (err > 0) & (flux > 0) & (amp > SOURCE_MIN_SNR * err)
+    if ok.sum() < MIN_SOURCES:
+        return None
+    f, a, e = flux[ok], amp[ok], err[ok]
+    spread = float(f.max() / f.min())
+    if spread < MIN_FLUX_RANGE:
+        return None
+    x, y, s = np.log(f), np.log(a), e / a
+    w = 1.0 / s ** 2
+    xm = np.sum(w * x) / np.sum(w)
+    sxx = np.sum(w * (x - xm) ** 2)
+    if sxx <= 0:
+        return None
+    p = float(np.sum(w * (x - xm) * y) / sxx)
+    a0 = np.sum(w * (y - p * (x - xm))) / np.sum(w)
+    chi2 = float(np.sum(w * (y - a0 - p * (x - xm)) ** 2))
+    dof = ok.sum() - 2
+    inflate = max(1.0, np.sqrt(chi2 / dof)) if dof > 0 else 1.0
+    return Slope(p, float(inflate / np.sqrt(sxx)), int(ok.sum()), spread)
+
+
+def flux_law(slope: Slope | None, own: float, other: float) -> bool | None:
+    """Which law the sources follow: True when ``slope``'s power is nearer ``other`` than ``own`` (the power the
+    candidate's template assumes), False when nearer ``own``, None when the two laws are not SEPARATION_SIGMA
+    standard errors of the slope apart (the sources cannot tell them) or there is no slope."""
+    if slope is None or not np.isfinite(slope.error) or abs(other - own) < SEPARATION_SIGMA * slope.error:
+        return None
+    return abs(slope.power - other) < abs(slope.power - own)
+
+
+def change_slope(res, change_adu: np.ndarray) -> Slope | None:
+    """:func:`flux_slope` of a candidate's change (``change_adu``, a frame [ADU]) on the sources of the
+    comparison ``res`` (a :class:`detector.signatures.Residuals`): the residual with the global levels refitted,
+    the model's source light, its noise, its fitted pixels; sources with a pixel near saturation
+    (:data:`detector.signatures.NEAR_SATURATION_SHARE` of the ceiling) left out (their cores do not grow)."""
+    from .signatures import NEAR_SATURATION_SHARE
+
+    if change_adu is None or np.ndim(change_adu) != 2:
+        return None
+    bg = res.background_adu if res.background_adu is not None else res.model_adu - res.photo_adu \
+        + res.background_photo_adu
+    source = res.model_adu - bg
+    residual = res.data_adu - res.model_adu - res.level_map()
+    saturated = np.isfinite(res.data_adu) & (res.data_adu >= NEAR_SATURATION_SHARE * res.saturation_ceiling_adu)
+    flux, amp, err = source_amplitudes(source, np.sqrt(np.maximum(res.var_adu2, 0)), res.fit, residual,
+                                       np.broadcast_to(change_adu, res.data_adu.shape), saturated)
+    import os
+    if os.environ.get('NEWTSIM_DEBUG'):
+        print('SLOPE', len(flux), np.round(flux[:12]), np.round(amp[:12],3), np.round(err[:12],4), flux_slope(flux, amp, err))
+    return flux_slope(flux, amp, err)

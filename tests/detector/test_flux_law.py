@@ -1,0 +1,58 @@
+"""How a change of the stars' images grows with their flux (detector.flux_law): a PSF's widening is the same at
+every flux, brighter-fatter's grows with it (Antilogus et al. 2014)."""
+
+import numpy as np
+import pytest
+from helpers import gaussian_stars as _stars
+
+from detector.flux_law import Slope, flux_law, flux_slope, source_amplitudes
+
+
+FLUXES = np.geomspace(2e4, 4e5, 12)
+
+
+def _amplitudes(residual, change, noise=3.0, seed=1):
+    src = _stars(1.5, FLUXES)
+    rng = np.random.default_rng(seed)
+    r = residual + rng.normal(0, noise, residual.shape)
+    return source_amplitudes(src, np.full(src.shape, noise), np.ones(src.shape, bool), r, change)
+
+
+def test_a_wider_psf_keeps_one_amplitude_at_every_flux():
+    change = _stars(1.8, FLUXES) - _stars(1.5, FLUXES)  # the scene's PSF widened by 20 %
+    flux, amp, err = _amplitudes(change, change)
+    assert flux.size == FLUXES.size
+    np.testing.assert_allclose(np.sort(flux) / FLUXES, 1, atol=0.02)  # the footprints hold the stars' light
+    s = flux_slope(flux, amp, err)
+    assert abs(s.power) < 3 * s.error + 0.02
+    assert flux_law(s, own=0.0, other=1.0) is False  # the PSF's own law
+
+
+def test_a_widening_that_grows_with_flux_follows_the_other_law():
+    # the same widening in proportion to each star's flux (brighter-fatter to first order: F^2 x a shape)
+    psf_change = _stars(1.8, FLUXES) - _stars(1.5, FLUXES)
+    truth = np.zeros((120, 160))
+    for i, f in enumerate(FLUXES):
+        solo = np.zeros(FLUXES.size)
+        solo[i] = f
+        truth += (_stars(1.8, solo) - _stars(1.5, solo)) * (f / FLUXES[0])
+    flux, amp, err = _amplitudes(truth, psf_change)
+    s = flux_slope(flux, amp, err)
+    assert s.power == pytest.approx(1.0, abs=0.05)
+    assert flux_law(s, own=0.0, other=1.0) is True
+
+
+def test_too_few_sources_or_too_narrow_a_flux_range_cannot_tell():
+    assert flux_slope(np.array([1e4, 2e4, 5e4]), np.ones(3), np.full(3, 0.01)) is None  # three sources
+    assert flux_slope(np.linspace(1e4, 2e4, 8), np.ones(8), np.full(8, 0.01)) is None  # a factor 2
+    assert flux_law(Slope(0.9, 0.3, 8, 10.0), 0.0, 1.0) is None  # the laws 0 and 1 are 3.3 sigma apart: < 4
+    assert flux_law(Slope(0.9, 0.05, 8, 10.0), 0.0, 1.0) is True
+
+
+def test_a_saturated_source_is_left_out():
+    src = _stars(1.5, FLUXES)
+    sat = np.zeros(src.shape, bool)
+    sat[20, 20] = True  # the first star's peak
+    flux, _, _ = source_amplitudes(src, np.full(src.shape, 3.0), np.ones(src.shape, bool), src * 0, src, sat)
+    assert flux.size == FLUXES.size - 1 and not np.any(np.isclose(flux, FLUXES[0], rtol=0.05))
+
