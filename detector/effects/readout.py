@@ -482,7 +482,7 @@ CROSSTALK_MIN_WIDTH = 16
 #: delays of the echo [read-out pixels] and e-folding lengths of its exponential tail [read-out pixels] the
 #: search tries (the tail refined continuously between the grid's neighbours); a fit at the largest of either
 #: is flagged (the echo may come later or last longer than the family reaches)
-CROSSTALK_DELAYS = (0, 1, 2, 3)
+CROSSTALK_DELAYS = (0, 1, 2, 3, 4, 5, 6, 7)
 CROSSTALK_TAILS = (0.0, 0.25, 0.5, 1.0, 2.0)
 #: layouts (the best by their delays alone) whose every kernel (delays and tails) is tried [layouts]
 CROSSTALK_TOP_LAYOUTS = 2
