@@ -355,34 +355,93 @@ class CTIParams(EffectParams):
         return self
 
 
+#: release times of the single-species trails the diagnosis tries [transfers] (HST ACS's three species, Massey
+#: et al. 2014: a fast, a middle and a slow trap), read out in either register
+CTI_RELEASE_TRANSFERS = ACS_RELEASE_TRANSFERS
+#: well-fill powers the diagnosis tries about its best trail (Massey et al. 2014 measure 0.478 on HST ACS;
+#: the volume a packet fills grows between the square root and the first power of its charge for a buried
+#: channel whose charge cloud spreads in two or three dimensions, Clarke et al. 2012, MNRAS 419, 2464)
+CTI_BETAS = (0.25, 0.478, 0.75, 1.0)
+
+
+def _cti_template(res, q, direction: str, tau_transfers: float, beta: float, unit: float = 0.01):
+    """``(CTI(Q) - Q) / unit`` [ADU per trap per pixel] of the model's charge ``q`` for one species of release
+    time ``tau_transfers`` (in the register's own transfers) read out along ``direction``: "parallel" (towards
+    row 0, the packet of the window's first row after ``y0 + 1`` transfers) or "serial" (towards column 0,
+    after ``x0 + 1``)."""
+    well = res.sensor.full_well_e * res.pixel_sum
+    if direction == "serial":
+        dwell = CTIParams.model_fields["serial_transfer_s"].default
+        first = int(res.xs[0]) + 1 if res.xs.size else 1
+        img = q.T
+    else:
+        dwell = ML11002_PARALLEL_TRANSFER_S
+        first = int(res.ys[0]) + 1 if res.ys.size else 1
+        img = q
+    t = (cti_transfer(img, [unit], [tau_transfers * dwell], dwell, beta, well, first) - img) / unit
+    return (t.T if direction == "serial" else t) / np.float32(res.gain), tau_transfers * dwell
+
+
+def _cti_variant(res, q, direction: str, tr: float, beta: float) -> Variant:
+    t, tau = _cti_template(res, q, direction, tr, beta)
+
+    def to_params(c, tau=tau):
+        if not 0 < c[0] < 100:
+            return None
+        dens, rel = [round(float(c[0]), 5)], [float(f"{tau:.4g}")]
+        out = ({"serial_density_per_px": dens, "serial_release_time_s": rel, "density_per_px": [0.0],
+                "release_time_s": [ACS_RELEASE_TRANSFERS[0] * ML11002_PARALLEL_TRANSFER_S]}
+               if direction == "serial" else {"density_per_px": dens, "release_time_s": rel})
+        if beta != CTIParams.model_fields["beta"].default:
+            out["beta"] = beta
+        return out
+
+    return Variant([t.astype(np.float32)], to_params,
+                   f"{direction}, release {tr:g} transfers" + (f", beta {beta:g}" if beta != 0.478 else ""),
+                   extra_k=int(beta != CTIParams.model_fields["beta"].default))
+
+
 def _cti_variants(res):
     """CTI trails of the model's own charge for one species of unit density: ``CTI(Q) - Q`` is linear in
-    the density to first order; variants over the release time (fractions of the parallel dwell)."""
+    the density to first order; variants over the register (parallel: trails along the columns; serial:
+    along the rows, Massey et al. 2014 and ArCTIc model both) and the release time (:data:`CTI_RELEASE_TRANSFERS`
+    of each register's dwell); the well-fill power is refined about the best (:func:`_cti_betas`)."""
     if res.sensor.kind != "ccd":
         return
-    g = np.float32(res.gain)
     q = res.charge_e.astype(np.float64)
-    well = res.sensor.full_well_e * res.pixel_sum
-    y_first = int(res.ys[0]) + 1 if res.ys.size else 1
-    unit = 0.01
-    for tr in (0.74, 7.7, 37.0):
-        tau = tr * ML11002_PARALLEL_TRANSFER_S
-        t = ((cti_transfer(q, [unit], [tau], ML11002_PARALLEL_TRANSFER_S, 0.478, well, y_first) - q) / unit
-             / g).astype(np.float32)
+    for direction in ("parallel", "serial"):
+        for tr in CTI_RELEASE_TRANSFERS:
+            yield _cti_variant(res, q, direction, tr, 0.478)
 
-        def to_params(c, tau=tau):
-            return ({"density_per_px": [round(float(c[0]), 5)], "release_time_s": [float(f"{tau:.4g}")]}
-                    if 0 < c[0] < 100 else None)
 
-        yield Variant([t], to_params, f"release {tr:g} transfers")
+def _cti_betas(best: Variant, res):
+    """The best trail's register and release time with the other well-fill powers (:data:`CTI_BETAS`): how
+    the trail grows with the packet's charge, ``V(n) = (n / w)^beta``."""
+    label = best.label.split(", ")
+    direction, tr = label[0], float(label[1].split()[1])
+    q = res.charge_e.astype(np.float64)
+    for beta in CTI_BETAS:
+        if beta != 0.478:
+            yield _cti_variant(res, q, direction, tr, beta)
+
+
+def _cti_words(p, res) -> str:
+    serial = any(p.get("serial_density_per_px") or [])
+    dens = (p["serial_density_per_px"] if serial else p["density_per_px"])[0]
+    tau = (p["serial_release_time_s"] if serial else p["release_time_s"])[0]
+    where = ("along the rows, away from the serial register's output" if serial else
+             "behind sources away from the read-out register")
+    dwell = p.get("serial_transfer_s", CTIParams.model_fields["serial_transfer_s"].default) if serial else \
+        p.get("parallel_transfer_s", ML11002_PARALLEL_TRANSFER_S)
+    return (f"charge trailing {where}, {dens:.3g} traps/pixel releasing in {tau / dwell:.3g} transfers "
+            f"({tau:.3g} s)"
+            + (f" (well-fill power {p['beta']:g})" if "beta" in p else "")
+            + f": {'serial' if serial else 'parallel'} charge-transfer inefficiency (radiation-damaged CCD)")
 
 
 _CTI_SIGNATURE = LinearSignature(
-    _cti_variants,
-    lambda p, res: (f"charge trailing behind sources away from the read-out register, "
-                    f"{p['density_per_px'][0]:.3g} traps/pixel releasing in {1e3 * p['release_time_s'][0]:.3g} ms: "
-                    "charge-transfer inefficiency (radiation-damaged CCD)"),
-    pattern="one-sided trails along the columns", extra_k=1)
+    _cti_variants, _cti_words, pattern="one-sided trails along the columns or the rows", extra_k=2,
+    refine=_cti_betas)
 
 
 @register_effect

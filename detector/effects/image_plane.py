@@ -706,10 +706,11 @@ def _jitter_params(th, res):
         return {"sigma_major_px": 0.0, "sigma_minor_px": 0.0, "angle_deg": round(ang, 2),
                 "vibration_px": round(amp * b, 4)}
     w, ang = _jitter_axes(th)
-    # a smear along one line has a minor variance of 0, which the fit's noise puts either side of it: down to
-    # the elongation's own threshold (ELONGATION_MIN_NEGATIVE: beyond it the change is a narrowing across, an
-    # elongation) the minor axis is the line's 0, as the transform renders it (its variances clipped at 0)
-    if w[1] <= 0 or w[1] >= 100 or w[0] < -ELONGATION_MIN_NEGATIVE * w[1]:
+    # a smear along one line has a minor variance of 0. The transform renders a negative minor variance as 0
+    # (a smear cannot narrow), so below 0 the fit's chi2 is flat in it and the fitted value is wherever the
+    # steps left it, not a measurement: the minor axis is the line's 0. Whether the sources are narrower across
+    # is the elongation's fit to say (it renders a narrowing), and the judge compares the two on held-out pixels
+    if w[1] <= 0 or w[1] >= 100:
         return None
     w0 = max(float(w[0]), 0.0)
     # an isotropic smear is psf_blur (nested in this model): jitter must be elongated to be a candidate

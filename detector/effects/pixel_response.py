@@ -61,10 +61,16 @@ def dsnu_map(rng: np.random.Generator, shape: tuple[int, int], sigma: float, law
     return np.exp(z, out=z)
 
 
-def quadratic_nonlinearity(signal_e: np.ndarray, beta: float, full_well_e: float) -> None:
-    """In place: ``S' = S (1 - beta S / FW)``, a response ``beta`` low at full well (EMVA 1288 sec. 8.2)."""
-    if beta:
-        f = signal_e * np.float32(-beta / full_well_e)
+def quadratic_nonlinearity(signal_e: np.ndarray, beta: float, full_well_e: float, beta2: float = 0.0) -> None:
+    """In place: ``S' = S (1 - beta x - beta2 x^2)``, ``x = S / FW``: a response ``beta + beta2`` low at full
+    well (EMVA 1288 sec. 8.2). ``beta`` is a deficit growing linearly with the signal; ``beta2`` one growing as
+    its square, which stays small up to a good fraction of the well and then bends: the leading term of a soft
+    saturation (a response ``a tanh(x / a)`` has ``beta2 = 1 / (3 a^2)``; the potential well's capacitance falling
+    as it fills, Janesick 2007, Photon Transfer, ch. 11)."""
+    if beta or beta2:
+        x = signal_e * np.float32(1.0 / full_well_e)
+        f = x * np.float32(-beta2) - np.float32(beta) if beta2 else np.float32(-beta)
+        f = f * x
         f += np.float32(1.0)
         signal_e *= f
 
@@ -340,18 +346,36 @@ def _gain_words(p, res) -> str:
 
 
 def _nonlin_variants(res):
-    """Two one-parameter response curves, the better one kept: the quadratic deficit (a response falling
-    linearly with the signal: most of the change near full well) and the power law (a deviation growing with
-    ln S: as much per decade of faint as of bright signal). Their derivatives at zero strength are the
-    templates [ADU per unit coefficient]: ``-S^2 / FW / g`` and ``S ln(S / S_ref) / g``."""
+    """One- and two-parameter response curves, the best kept (BIC): the quadratic deficit (a response falling
+    linearly with the signal: most of the change near full well), the cubic one (a response falling as the
+    square of the signal: a soft saturation, flat up to a good part of the well), both together, and the
+    power law (a deviation growing with ln S: as much per decade of faint as of bright signal). Their
+    derivatives at zero strength are the templates [ADU per unit coefficient]: ``-S^2 / FW / g``,
+    ``-S^3 / FW^2 / g`` and ``S ln(S / S_ref) / g``."""
     fw = res.sensor.full_well_e * res.pixel_sum
     q = res.charge_e.astype(np.float64)
-    t = -(q ** 2) / fw / res.gain
+    t = (-(q ** 2) / fw / res.gain).astype(np.float32)
+    t2 = (-(q ** 3) / fw ** 2 / res.gain).astype(np.float32)
+
+    def ok(b):
+        return -0.5 <= b <= 0.5
 
     def to_params(c):
-        return {"beta": round(float(c[0]), 6)} if -0.5 <= c[0] <= 0.5 and c[0] != 0 else None
+        return {"beta": round(float(c[0]), 6)} if ok(c[0]) and c[0] != 0 else None
 
-    yield Variant([t.astype(np.float32)], to_params, label="quadratic")
+    yield Variant([t], to_params, label="quadratic")
+
+    def to_cubic(c):
+        return {"beta": 0.0, "beta2": round(float(c[0]), 6)} if ok(c[0]) and c[0] != 0 else None
+
+    yield Variant([t2], to_cubic, label="cubic")
+
+    def to_both(c):
+        b1, b2 = float(c[0]), float(c[1])
+        return {"beta": round(b1, 6), "beta2": round(b2, 6)} if ok(b1) and ok(b2) and ok(b1 + b2) and \
+            (b1 or b2) else None
+
+    yield Variant([t, t2], to_both, label="quadratic and cubic")
     ref = POWER_LAW_REFERENCE * fw
     pos = q > 0
     t = np.zeros_like(q)
@@ -369,8 +393,12 @@ def _nonlin_words(p, res) -> str:
         return (f"response following a power law of the signal, gamma {g:.4g} ({'compressive' if g < 1 else 'expansive'}"
                 f": {100 * abs(g - 1) * np.log(10):.2g} % per decade of signal, equal to the linear one at "
                 f"{POWER_LAW_REFERENCE:g} of the full well): nonlinearity")
-    return (f"response {'deficit' if p['beta'] > 0 else 'excess'} growing as the square of the signal, "
-            f"{100 * abs(p['beta']):.2g} % at full well: nonlinearity")
+    b1, b2 = p.get("beta", 0.0), p.get("beta2", 0.0)
+    total = b1 + b2
+    law = ("growing as the square of the signal" if not b2 else "growing as the cube of the signal (a soft "
+           "saturation)" if not b1 else f"of a quadratic ({100 * b1:.2g} %) and a cubic ({100 * b2:.2g} %) term")
+    return (f"response {'deficit' if total > 0 else 'excess'} {law}, {100 * abs(total):.2g} % at full well: "
+            "nonlinearity")
 
 _PRNU_SIGNATURE = VarianceSignature(
     _prnu_template, _prnu_params,
@@ -599,14 +627,18 @@ class GainRegions(Effect):
 
 
 class NonlinearityParams(EffectParams):
-    beta: float = Field(0.02, ge=-0.5, le=0.5, description="fractional response deficit at full well [1]")
+    beta: float = Field(0.02, ge=-0.5, le=0.5, description="fractional response deficit at full well growing "
+                        "linearly with the signal [1]")
+    beta2: float = Field(0.0, ge=-0.5, le=0.5, description="fractional response deficit at full well growing as the "
+                         "square of the signal (a soft saturation) [1]")
     gamma: float = Field(1.0, ge=0.5, le=1.5, description="exponent of a power-law response, equal to the linear "
                          "one at half the full well (1: none) [1]")
 
 
 @register_effect
 class Nonlinearity(Effect):
-    """Response nonlinearity of the read-out chain: S' = S (1 - beta S / FW), then, when ``gamma`` != 1,
+    """Response nonlinearity of the read-out chain: S' = S (1 - beta x - beta2 x^2), x = S / FW, then, when
+    ``gamma`` != 1,
     the power law S'' = S' (S' / S_ref)^(gamma - 1), S_ref half the full well (:func:`power_law_nonlinearity`).
 
     A pixel at full well reads ``beta`` low (beta < 0: super-linear). Applied to the collected charge after
@@ -615,12 +647,12 @@ class Nonlinearity(Effect):
 
     name = "nonlinearity"
     scaling = "signal"
-    identity = {"beta": 0.0, "gamma": 1.0}
+    identity = {"beta": 0.0, "beta2": 0.0, "gamma": 1.0}
     stages = (Stage.READ,)
     Params = NonlinearityParams
     signature = _NONLINEARITY_SIGNATURE
 
     def apply(self, stage: Stage, tile: Tile, data: np.ndarray) -> None:
         fw = self.sensor.full_well_e * tile.bin ** 2
-        quadratic_nonlinearity(data, self.params.beta, fw)
+        quadratic_nonlinearity(data, self.params.beta, fw, self.params.beta2)
         power_law_nonlinearity(data, self.params.gamma, POWER_LAW_REFERENCE * fw)

@@ -481,8 +481,11 @@ CROSSTALK_CHANNELS = (2, 3, 4, 5, 6, 7, 8, 16)
 CROSSTALK_MIN_WIDTH = 16
 #: delays of the echo [read-out pixels] and e-folding lengths of its exponential tail [read-out pixels] the
 #: search tries (the tail refined continuously between the grid's neighbours); a fit at the largest of either
-#: is flagged (the echo may come later or last longer than the family reaches)
-CROSSTALK_DELAYS = (0, 1, 2, 3)
+#: is flagged (the echo may come later or last longer than the family reaches). Delays up to 7 read-out pixels:
+#: the range searched is not a physical bound (an echo coupled between channels whose read-out paths differ in
+#: latency by a few clock cycles lands that many pixels from its source); with delays up to 3 only, an echo
+#: delayed by 2 and smeared over the next two pixels fitted best at 3 and was refused at the bound
+CROSSTALK_DELAYS = (0, 1, 2, 3, 4, 5, 6, 7)
 CROSSTALK_TAILS = (0.0, 0.25, 0.5, 1.0, 2.0)
 #: layouts (the best by their delays alone) whose every kernel (delays and tails) is tried [layouts]
 CROSSTALK_TOP_LAYOUTS = 2
@@ -649,7 +652,7 @@ def crosstalk_k(delay: int, tail: float) -> int:
 
 class CrosstalkSignature(LinearSignature):
     """Crosstalk between read-out channels: every channel receives ``alpha`` times the other channels' signal
-    in read-out order through a causal kernel (:func:`crosstalk_kernel`: a delay of 0 .. 3 read-out pixels and
+    in read-out order through a causal kernel (:func:`crosstalk_kernel`: a delay of 0 .. 7 read-out pixels and
     an optional exponential tail), ``alpha`` of either sign.
 
     The single-frame fit searches every layout (:data:`CROSSTALK_CHANNELS`, mirrored or not) and kernel

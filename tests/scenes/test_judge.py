@@ -165,6 +165,12 @@ def test_floors(tmp_path):
     assert "not cosmic rays" in floor_reason("cosmic_rays", {"flux_per_cm2_s": 100 / 60}, sensor)
     assert floor_reason("cosmic_rays", {"flux_per_cm2_s": 2 / 60}, sensor) == ""
     assert floor_reason("hot_pixels", {"count": 0.1 * 14192 * 10640}, sensor) != ""
+    # a window's defects are a count: 17 of its 256 columns (6.6 %, 943 on the sensor) is what a sensor of 5 %
+    # defective columns shows about once in seven windows (binomial); 60 of 256 (23 %) no camera shows
+    assert floor_reason("column_defects", {"hot_columns": 943, "hot_rate_e_per_s": 0.1, "dead_columns": 0}, sensor,
+                        exptime_s=300.0) == ""
+    assert "from the window's count" in floor_reason("column_defects", {"hot_columns": 3326, "dead_columns": 0},
+                                                      sensor)
     assert floor_reason("vignetting", {"a2": 0.3}, sensor) == ""
     # the textbook null's kTC of 1.07e-13 fF (4e-6 e-) is no finding; a 1 fF node's 12 e- is
     assert "read noise" in floor_reason("reset_noise", {"capacitance_ff": 1.0661e-13}, sensor)

@@ -25,9 +25,9 @@ def _num(params: dict, key: str, default: float = 0.0) -> float:
 
 
 def nonlinearity_floor(params: dict, sensor, policy: DiagnosisPolicy, exptime_s: float | None = None) -> str:
-    """The response's relative deficit at full well: ``beta`` plus the power law's ``|1 - 2^(gamma-1)|`` (the
-    law equals the linear response at half the full well)."""
-    deficit = abs(_num(params, "beta")) + abs(1.0 - 2.0 ** (_num(params, "gamma", 1.0) - 1.0))
+    """The response's relative deficit at full well: ``beta + beta2`` (the polynomial's terms) plus the power
+    law's ``|1 - 2^(gamma-1)|`` (the law equals the linear response at half the full well)."""
+    deficit = abs(_num(params, "beta") + _num(params, "beta2")) + abs(1.0 - 2.0 ** (_num(params, "gamma", 1.0) - 1.0))
     if deficit < policy.min_nonlinearity_at_full_well:
         return (f"a non-linearity of {100 * deficit:.3g} % at full well is below the "
                 f"{100 * policy.min_nonlinearity_at_full_well:g} % any photon-transfer curve resolves")
@@ -49,21 +49,49 @@ def reset_noise_floor(params: dict, sensor, policy: DiagnosisPolicy, exptime_s: 
     return ""
 
 
-def _defects(count: float, total: float, what: str, policy: DiagnosisPolicy) -> str:
-    if total > 0 and count > policy.max_defect_fraction * total:
-        return (f"{count:.0f} {what} are {100 * count / total:.3g} % of the sensor's; no camera has more than "
+def _defects(count: float, total: float, what: str, policy: DiagnosisPolicy, seen: float | None = None) -> str:
+    """Refuse ``count`` defects of ``total`` on the sensor beyond the policy's fraction. ``count`` is extrapolated
+    from the ``seen`` units (pixels, columns) of the window when it is smaller than the sensor: the defects it
+    holds are a count, judged on the lower end of its Poisson interval (as the cosmic-ray floor judges its
+    tracks), since a window whose 256 columns hold 17 defects (6.6 %) is what a sensor of 5 % defective
+    columns shows about one time in seven (binomial), not a rate beyond every camera."""
+    if total <= 0:
+        return ""
+    lowest = count
+    if seen is not None and 0 < seen < total and count > 0:
+        from detector.effects.cosmic_rays import poisson_interval
+
+        in_window = count * seen / total
+        lowest = poisson_interval(round(in_window))[0] * total / seen
+    if lowest > policy.max_defect_fraction * total:
+        return (f"{count:.0f} {what} are {100 * count / total:.3g} % of the sensor's (at least "
+                f"{100 * lowest / total:.3g} % from the window's count); no camera has more than "
                 f"{100 * policy.max_defect_fraction:g} %: a pattern of many small deviations, not defects")
     return ""
 
 
+def _window_px(sensor) -> float | None:
+    w, h = getattr(sensor, "roi_shape", (0, 0))
+    return float(w * h) if w and h else None
+
+
+def _window_columns(sensor) -> float | None:
+    w = getattr(sensor, "roi_shape", (0, 0))[0]
+    return float(w) if w else None
+
+
 def hot_pixels_floor(params: dict, sensor, policy: DiagnosisPolicy, exptime_s: float | None = None) -> str:
-    return _defects(_num(params, "count"), sensor.sensor_width_px * sensor.sensor_height_px, "hot pixels", policy)
+    return _defects(_num(params, "count"), sensor.sensor_width_px * sensor.sensor_height_px, "hot pixels", policy,
+                    _window_px(sensor))
 
 
 def dead_pixels_floor(params: dict, sensor, policy: DiagnosisPolicy, exptime_s: float | None = None) -> str:
-    """The dead pixels on the sensor: its defects times the pixels of a cluster."""
-    return _defects(_num(params, "count") * _num(params, "cluster_px", 1.0) ** 2,
-                    sensor.sensor_width_px * sensor.sensor_height_px, "dead pixels", policy)
+    """The dead pixels on the sensor: its defects times the pixels of a cluster (the count is of clusters: the
+    sensor's and the window's pixels are counted in clusters' areas)."""
+    area = max(_num(params, "cluster_px", 1.0), 1.0) ** 2
+    seen = _window_px(sensor)
+    return _defects(_num(params, "count"), sensor.sensor_width_px * sensor.sensor_height_px / area,
+                    "dead pixels (or clusters)", policy, seen / area if seen else None)
 
 
 def column_defects_floor(params: dict, sensor, policy: DiagnosisPolicy, exptime_s: float | None = None) -> str:
@@ -71,7 +99,7 @@ def column_defects_floor(params: dict, sensor, policy: DiagnosisPolicy, exptime_
     pixel over the exposure (a column 'above its neighbours' by no measurable charge is not a charge trap or
     a leaky gate: it is a pattern of the light or of the statistics)."""
     n = _num(params, "hot_columns") + _num(params, "dead_columns")
-    why = _defects(n, sensor.sensor_width_px, "defective columns", policy)
+    why = _defects(n, sensor.sensor_width_px, "defective columns", policy, _window_columns(sensor))
     if why:
         return why
     hot, rate = _num(params, "hot_columns"), _num(params, "hot_rate_e_per_s")

@@ -1,0 +1,128 @@
+"""Signature forms that follow the laws real sensors have (issue 23, random forms): CTI trails in the serial
+register as well as the parallel one, a soft-saturating (cubic) non-linearity, a smear's minor axis that the
+transform cannot narrow, and defect counts judged on the window's count."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from helpers import small_sensor
+
+from detector import registry
+from detector.effects.cti import ML11002_PARALLEL_TRANSFER_S, CTIParams, cti_transfer
+from detector.effects.image_plane import _jitter_params, _jitter_transform
+from detector.effects.pixel_response import quadratic_nonlinearity
+from detector.signatures import Residuals, SpikeStats
+
+
+def _stars(sensor, shape, seed, n_stars=40, peak=(5e3, 3e4)):
+    """Gaussian stars (sigma 1.3 px) on a 200 ADU sky [ADU]."""
+    rng = np.random.default_rng(seed)
+    h, w = shape
+    yy, xx = np.mgrid[0:h, 0:w]
+    photo = np.full(shape, 200.0)
+    for _ in range(n_stars):
+        y0, x0 = rng.uniform(4, h - 4), rng.uniform(4, w - 4)
+        photo += rng.uniform(*peak) * np.exp(-((yy - y0) ** 2 + (xx - x0) ** 2) / (2 * 1.3 ** 2))
+    return photo, rng
+
+
+#: the window's corner on the sensor [px]: its first row and column are 1001 transfers from the registers
+CORNER = 1000
+
+
+def _residuals(sensor, photo, truth, rng):
+    """The measured frame: ``truth`` [ADU] plus the bias and Gaussian noise of the model's variance; the window
+    at (CORNER, CORNER) of the sensor."""
+    shape = photo.shape
+    h, w = shape
+    var = (photo / sensor.gain_e_per_adu + (4.0 / sensor.gain_e_per_adu) ** 2).astype(np.float32)
+    data = (truth + sensor.bias_adu + rng.normal(0, 1, shape) * np.sqrt(var)).astype(np.float32)
+    none = SpikeStats(0, 0, 0, 0, 0)
+    return Residuals(data, (photo + sensor.bias_adu).astype(np.float32), var, np.ones(shape, bool),
+                     photo.astype(np.float32), np.zeros(shape, np.float32), np.arange(h, dtype=float) + CORNER + 0.5,
+                     np.arange(w, dtype=float) + CORNER + 0.5, sensor, 10.0, none, none,
+                     background_adu=np.full(shape, 200.0 + sensor.bias_adu, np.float32), light_source="sky")
+
+
+@pytest.mark.parametrize("direction", ["serial", "parallel"])
+def test_cti_trails_are_fitted_in_their_register(direction):
+    """ArCTIc's model (Massey et al. 2014) read out along the rows (serial register) or the columns: the
+    signature names the register and the trap density within 30 % (the trail of 0.3 traps/pixel releasing
+    in one transfer; the fitted release time is one of the three the search tries)."""
+    shape = (96, 96)
+    sensor = small_sensor(width=shape[1], height=shape[0], bias_adu=100.0)
+    photo, rng = _stars(sensor, shape, 7)
+    g = sensor.gain_e_per_adu
+    q = photo * g
+    well = sensor.full_well_e
+    if direction == "serial":
+        dwell = CTIParams.model_fields["serial_transfer_s"].default
+        trailed = cti_transfer(q.T, [0.3], [0.74 * dwell], dwell, 0.478, well, CORNER + 1).T
+    else:
+        dwell = ML11002_PARALLEL_TRANSFER_S
+        trailed = cti_transfer(q, [0.3], [0.74 * dwell], dwell, 0.478, well, CORNER + 1)
+    res = _residuals(sensor, photo, trailed / g, rng)
+    fit = registry()["cti"].signature.fit(res, "cti")
+    assert fit is not None and fit.delta_bic < -100
+    p = fit.params
+    serial = any(p.get("serial_density_per_px") or [])
+    assert serial == (direction == "serial")
+    dens = (p["serial_density_per_px"] if serial else p["density_per_px"])[0]
+    assert dens == pytest.approx(0.3, rel=0.3)
+    # the fitted parameters are the plugin's own: they validate, and the parallel register of a serial fit is off
+    CTIParams(**p)
+    if serial:
+        assert not any(p["density_per_px"])
+
+
+def test_cti_is_not_found_where_there_is_none():
+    shape = (96, 96)
+    sensor = small_sensor(width=shape[1], height=shape[0], bias_adu=100.0)
+    for seed in (3, 4):
+        photo, rng = _stars(sensor, shape, seed)
+        fit = registry()["cti"].signature.fit(_residuals(sensor, photo, photo, rng), "cti")
+        assert fit is None or fit.delta_bic > -10
+
+
+def test_soft_saturation_is_the_cubic_term():
+    """``S' = S (1 - beta x - beta2 x^2)``, x = S / FW: a response ``a tanh(x / a)`` has the leading term
+    ``beta2 = 1 / (3 a^2)`` and no linear one; the plugin's apply follows the law, and the signature fits a
+    tanh compression of 6 % at full well as the cubic term (not the quadratic one), its size within 25 %."""
+    s = np.array([0.0, 1e4, 4e4], np.float32)
+    quadratic_nonlinearity(s, 0.01, 4e4, 0.05)
+    assert s[1] == pytest.approx(1e4 * (1 - 0.01 * 0.25 - 0.05 * 0.0625), rel=1e-6)
+    assert s[2] == pytest.approx(4e4 * 0.94, rel=1e-6)
+    shape = (128, 128)
+    sensor = small_sensor(width=shape[1], height=shape[0], bias_adu=100.0, full_well_e=60000.0)
+    photo, rng = _stars(sensor, shape, 11, n_stars=60, peak=(5e3, 3.5e4))
+    fw = sensor.full_well_e
+    a = 2.3  # 1 - a tanh(1 / a) = 0.0598
+    q = photo * sensor.gain_e_per_adu
+    res = _residuals(sensor, photo, a * fw * np.tanh(q / fw / a) / sensor.gain_e_per_adu, rng)
+    fit = registry()["nonlinearity"].signature.fit(res, "nonlinearity")
+    assert fit is not None and fit.delta_bic < -50
+    p = fit.params
+    assert p["beta"] == 0.0 and p["beta2"] == pytest.approx(1 - a * np.tanh(1 / a), rel=0.25)
+
+
+def test_a_smear_cannot_narrow_so_its_minor_axis_is_zero():
+    """The jitter transform renders a negative minor variance as 0 (a smear cannot narrow the sources): the fit's
+    chi2 is flat there, so a fitted negative minor is no measurement and the form is a smear along one line."""
+    from types import SimpleNamespace
+
+    res = SimpleNamespace(sensor=SimpleNamespace(binning=1), photo_field_adu=None, data_adu=np.zeros((32, 32)))
+    img = np.zeros((32, 32))
+    img[16, 16] = 1000.0
+    import detector.effects.image_plane as ip
+
+    cap = ip._max_var
+    ip._max_var = lambda r: 100.0
+    try:
+        a = _jitter_transform(res, img, np.array([0.5, -0.3, 0.0]))
+        b = _jitter_transform(res, img, np.array([0.5, 0.0, 0.0]))
+    finally:
+        ip._max_var = cap
+    np.testing.assert_allclose(a, b, atol=1e-9)
+    p = _jitter_params(np.array([0.09, -0.05, 0.0]), res)
+    assert p is not None and p["sigma_minor_px"] == 0.0 and p["sigma_major_px"] == pytest.approx(0.3)
