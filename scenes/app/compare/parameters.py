@@ -30,6 +30,7 @@ from detector.flux_law import change_slope, flux_law
 from detector.signatures import Fit, Residuals, frame_at, pixel_score
 
 from .apply import bias_per_output_adu
+from .candidates import away_from_saturation
 from .judge import Candidate
 from .policy import DEFAULT_POLICY, DiagnosisPolicy
 
@@ -358,8 +359,13 @@ def psf_candidates(res: Residuals, scene, model, policy: DiagnosisPolicy = DEFAU
                          key=key, value=value, policy=policy)
         if within:
             cand.codes["tolerance"] = within
-        elif (best > 1) == (key == "psf.fwhm_arcsec"):  # a widening: is it every star's, or the bright ones'?
-            cand.deferred = grows_with_flux(res, fit)
+        else:
+            # a number of the scene acts on every source: not a change the saturated ones carry (their bleed)
+            why = away_from_saturation(res, fit, policy)
+            if why:
+                cand.refuse("implausible", why)
+            elif (best > 1) == (key == "psf.fwhm_arcsec"):  # a widening: is it every star's, or the bright ones'?
+                cand.deferred = grows_with_flux(res, fit)
         out.append(cand)
     for c in out:
         c.seconds = (time.perf_counter() - t0) / len(out)
