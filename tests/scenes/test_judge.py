@@ -463,3 +463,17 @@ def test_a_reachable_bound_is_not_a_pinned_fit():
     assert at_bound(cls, {"dx_px": 5.0, "dy_px": 1.0, "accel": 1.0}) == ""
     assert at_bound(cls, {"dx_px": 5.0, "dy_px": 1.0, "accel": -1.0}) == ""
     assert "dx_px" in at_bound(cls, {"dx_px": 1000.0, "dy_px": 1.0, "accel": 0.5})
+
+
+def test_a_glow_and_a_light_are_the_same_charge_on_a_light_frame():
+    """A field of dark charge (amp_glow) and a field of light (straylight) put the same charge in the same pixels
+    of an exposed frame: named as not told apart whatever their held-out scores (their forms differ, their
+    origin is not in the data); a bias ramp (added at read-out, no shot noise) is not that twin."""
+    from scenes.app.compare.judge import indistinguishable, same_charge, verdict
+
+    glow = Candidate(Fit("amp_glow", {}, -1751.0, 6, 10_000, "a glow"), 1.0, 0.0, heldout=-1789.0)
+    light = Candidate(Fit("straylight", {}, -1371.0, 6, 10_000, "a light"), 1.0, 0.0, heldout=-1376.0)
+    ramp = Candidate(Fit("bias_gradient", {}, -896.0, 3, 10_000, "a ramp"), 1.0, 0.0, heldout=-857.0)
+    assert same_charge(glow, light) and not same_charge(glow, ramp) and not same_charge(light, ramp)
+    assert [c.fit.effect for c in indistinguishable([glow, light, ramp])] == ["straylight"]
+    assert "cannot tell it apart from straylight: the same charge" in verdict([glow, light, ramp])

@@ -245,14 +245,33 @@ def rank(cands: list[Candidate], light_source: str = "") -> list[Candidate]:
     return out
 
 
+def _charge_origin(c: Candidate) -> str:
+    """"dark" for an additive field of dark charge (a glow, a dark-rate gradient), "light" for an additive field
+    of light (straylight, a sky gradient), "" otherwise."""
+    cls = registry().get(c.fit.effect)
+    if c.kind != "effect" or cls is None or cls.field_kind != "additive":
+        return ""
+    return {(Stage.DARK,): "dark", (Stage.FIELD,): "light"}.get(tuple(cls.stages), "")
+
+
+def same_charge(a: Candidate, b: Candidate) -> bool:
+    """A field of dark charge and a field of light put the same charge in the same pixels of an exposed frame:
+    both grow with the exposure, and only the pixels' response to light (a flat field) or a dark frame of the
+    same exposure tells them apart, neither of which one light frame holds. Their fitted forms may differ (a
+    glow's Gaussian from an edge, a straylight's smooth series); the charge's origin is not in the data."""
+    return {_charge_origin(a), _charge_origin(b)} == {"dark", "light"}
+
+
 def indistinguishable(sig: list[Candidate]) -> list[Candidate]:
     """The significant candidates after the first whose held-out score is as good as the first's (within the
-    policy's twin fraction, and within the scores' own scatter ~ sqrt(2 |score|))."""
-    if len(sig) < 2 or sig[0].heldout is None:
+    policy's twin fraction, and within the scores' own scatter ~ sqrt(2 |score|)), and those that put the same
+    charge in the same pixels by another origin (:func:`same_charge`)."""
+    if len(sig) < 2:
         return []
     best = sig[0].heldout
-    tol = max(sig[0].policy.twin_fraction * abs(best), 2 * np.sqrt(2 * abs(best)))
-    return [c for c in sig[1:] if c.heldout is not None and c.heldout - best <= tol]
+    tol = max(sig[0].policy.twin_fraction * abs(best), 2 * np.sqrt(2 * abs(best))) if best is not None else 0.0
+    return [c for c in sig[1:] if (best is not None and c.heldout is not None and c.heldout - best <= tol)
+            or same_charge(sig[0], c)]
 
 
 def verdict(cands: list[Candidate], morphology: dict | None = None) -> str:
@@ -272,8 +291,13 @@ def verdict(cands: list[Candidate], morphology: dict | None = None) -> str:
         best = effects[0]
         held = f", held-out {best.heldout:.4g}" if best.heldout is not None else ""
         twins = indistinguishable(effects)
-        also = (f"; the data cannot tell it apart from {', '.join(c.fit.effect for c in twins)} (their held-out "
-                "scores are as good)") if twins else ""
+        charge = [c for c in twins if same_charge(best, c)]
+        scored = [c for c in twins if c not in charge]
+        also = (f"; the data cannot tell it apart from {', '.join(c.fit.effect for c in scored)} (their held-out "
+                "scores are as good)") if scored else ""
+        also += (f"; {'nor' if scored else 'the data cannot tell it apart'} from "
+                 f"{', '.join(c.fit.effect for c in charge)}: the same charge in the same pixels, whose origin (dark "
+                 "or light) only a dark frame of the same exposure tells") if charge else ""
         text = (f"most likely missing: {best.fit.effect} (delta BIC {best.fit.delta_bic:.4g}{held}): "
                 f"{best.fit.explanation}{also}")
         if later:
