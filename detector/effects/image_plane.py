@@ -642,13 +642,13 @@ def _blur_params(th, res):
         return {"sigma_px": round(float(np.sqrt(s2)) * b, 4)} if 0 < s2 < 100 else None
     if not (0 <= s2 < 100 and 0 < f < HALO_MAX_FRACTION and 0 < h2 < _max_var(res)):
         return None
-    return {"sigma_px": round(float(np.sqrt(s2)) * b, 4), "halo_fraction": round(f, 5),
+    return {"sigma_px": round(float(np.sqrt(s2)) * b, 4), "halo_frac": round(f, 5),
             "halo_sigma_px": round(float(np.sqrt(h2)) * b, 4)}
 
 
 def _blur_words(p, res) -> str:
-    if p.get("halo_fraction"):
-        return (f"sources with far wings the model lacks: {100 * p['halo_fraction']:.3g} % of their light in a halo of "
+    if p.get("halo_frac"):
+        return (f"sources with far wings the model lacks: {100 * p['halo_frac']:.3g} % of their light in a halo of "
                 f"{p['halo_sigma_px']:.3g} px rms (scattered light: mirror micro-roughness, dust)")
     return f"sources wider than the model, as by an extra Gaussian of {p['sigma_px']:.3g} px rms: PSF blur (focus, seeing)"
 
@@ -1120,7 +1120,7 @@ def _ghost_variants(res):
 class BlurParams(EffectParams):
     sigma_px: float = Field(0.5, ge=0, le=50, description="std of the extra Gaussian blur [sensor pixels]",
                             json_schema_extra={"unit": "pixel"})
-    halo_fraction: float = Field(0.0, ge=0, lt=HALO_MAX_FRACTION,
+    halo_frac: float = Field(0.0, ge=0, lt=HALO_MAX_FRACTION,
                                  description="share of the light scattered into a wide Gaussian halo [1]",
                                  json_schema_extra={"unit": "1"})
     halo_sigma_px: float = Field(0.0, ge=0, le=200, description="std of the halo [sensor pixels]",
@@ -1130,12 +1130,12 @@ class BlurParams(EffectParams):
 @register_effect
 class PSFBlur(Effect):
     """Extra isotropic Gaussian blur of the image (defocus, seeing or optics the PSF model lacks), and/or a
-    scattering halo: ``halo_fraction`` of the light spread by a Gaussian of ``halo_sigma_px``, the rest in place
+    scattering halo: ``halo_frac`` of the light spread by a Gaussian of ``halo_sigma_px``, the rest in place
     (``(1 - f) I + f G_h * I``: the aureole of scattered light, Racine 1996 PASP 108 699)."""
 
     name = "psf_blur"
     scaling = "frame"
-    identity = {"sigma_px": 0.0, "halo_fraction": 0.0}
+    identity = {"sigma_px": 0.0, "halo_frac": 0.0}
     stages = (Stage.FIELD,)
     Params = BlurParams
     signature = TransformSignature(
@@ -1146,8 +1146,8 @@ class PSFBlur(Effect):
     def apply(self, stage: Stage, tile: Tile, data: np.ndarray) -> None:
         p = self.params
         out = blur(data, p.sigma_px)
-        if p.halo_fraction:
-            out = (1 - p.halo_fraction) * out + p.halo_fraction * blur(out, p.halo_sigma_px)
+        if p.halo_frac:
+            out = (1 - p.halo_frac) * out + p.halo_frac * blur(out, p.halo_sigma_px)
         _store(data, out)
 
 

@@ -117,13 +117,13 @@ def test_a_scattering_halo_is_named_with_its_share_and_width(tmp_path):
     form, (1 - f) I + f G_h * I) are psf_blur's halo, not a zero point (the cores lose 20 %, the stars keep
     their light), not a coupling of neighbours or a brighter-fatter; once applied the error falls to the noise."""
     (tmp_path / "model.toml").write_text(CASE_BASE)
-    (tmp_path / "truth.toml").write_text(CASE_BASE + "[effects.psf_blur]\nsigma_px = 0.0\nhalo_fraction = 0.2\n"
+    (tmp_path / "truth.toml").write_text(CASE_BASE + "[effects.psf_blur]\nsigma_px = 0.0\nhalo_frac = 0.2\n"
                                          "halo_sigma_px = 4.0\n")
     render(load_scene(str(tmp_path / "truth.toml")), tmp_path / "m.fits", seed=3)
     out = run_diagnose(load_scene(str(tmp_path / "model.toml")), tmp_path / "m.fits")
     best = out["candidates"][0]
     assert best["effect"] == "psf_blur" and best["significant"], [(c["effect"], c["delta_bic"]) for c in out["candidates"][:3]]
-    assert best["params"]["halo_fraction"] == pytest.approx(0.2, abs=0.03)
+    assert best["params"]["halo_frac"] == pytest.approx(0.2, abs=0.03)
     assert best["params"]["halo_sigma_px"] == pytest.approx(4.0, rel=0.15)
     assert "zero_point" not in out["significant"]
     apply_candidate(load_scene(str(tmp_path / "model.toml")), best, tmp_path / "round2.toml")
