@@ -65,11 +65,10 @@ class _Pose:
     @staticmethod
     def _rot(v, axis, ang_deg, sign):
         import drjit as dr
-        from drjit.llvm.ad import Array3f64
 
         a = ang_deg * (sign * math.pi / 180.0)
         co, si = dr.cos(a), dr.sin(a)
-        k = Array3f64(*axis)
+        k = type(v)(*axis)
         return v * co + dr.cross(k, v) * si + k * (dr.dot(k, v) * (1.0 - co))
 
     def to_world_dir(self, v):
@@ -82,23 +81,19 @@ class _Pose:
             v = self._rot(v, axis, ang, -1.0)
         return v
 
-    def _offset(self):
-        from drjit.llvm.ad import Array3f64
-
-        off = Array3f64(*self.pivot)
+    def _offset(self, A3):
+        off = A3(*self.pivot)
         for axis, s in self.shifts:
-            off = off + Array3f64(*axis) * s
+            off = off + A3(*axis) * s
         return off
 
     def to_world(self, p):
-        from drjit.llvm.ad import Array3f64
-
-        return self._offset() + self.to_world_dir(p - Array3f64(*self.pivot))
+        A3 = type(p)
+        return self._offset(A3) + self.to_world_dir(p - A3(*self.pivot))
 
     def to_local(self, p):
-        from drjit.llvm.ad import Array3f64
-
-        return Array3f64(*self.pivot) + self.to_local_dir(p - self._offset())
+        A3 = type(p)
+        return A3(*self.pivot) + self.to_local_dir(p - self._offset(A3))
 
 
 @dataclass
@@ -202,7 +197,7 @@ class SequentialTracer:
         """Number of rays that reach the detector (no per-ray transfer back to numpy)."""
         return int(self.loss_counts(field_deg, px, py, wavelength_nm)[OK])
 
-    def loss_counts(self, field_deg, px, py, wavelength_nm: float = 550.0) -> np.ndarray:
+    def loss_counts(self, field_deg, px, py, wavelength_nm: float = 550.0, single: bool = False) -> np.ndarray:
         """How many rays end with each loss code (index = code, 0 = reached the detector)."""
         import drjit as dr
         from drjit.llvm.ad import UInt32
@@ -211,7 +206,7 @@ class SequentialTracer:
         px = np.asarray(px, dtype=np.float64).ravel()
         py = np.asarray(py, dtype=np.float64).ravel()
         for i in range(0, len(px), BATCH):
-            res = self._trace_dr(field_deg, px[i:i + BATCH], py[i:i + BATCH], wavelength_nm)
+            res = self._trace_dr(field_deg, px[i:i + BATCH], py[i:i + BATCH], wavelength_nm, single=single)
             counts = dr.zeros(UInt32, len(LOSS_NAMES))
             dr.scatter_add(counts, UInt32(1), res["lost"])
             total += np.asarray(counts.numpy(), dtype=np.int64)
@@ -227,7 +222,7 @@ class SequentialTracer:
         return out
 
     # ------------------------------------------------------------------------------------------------
-    def _params(self, params):
+    def _params(self, params, F=None):
         """Perturbations and design parameters that enter the kernel as drjit values.
 
         Returns ``(pert, dpar)``: ``pert`` maps :data:`optics.design.PERTURBATION_NAMES` to drjit Float64
@@ -237,7 +232,7 @@ class SequentialTracer:
         import drjit as dr
         from drjit.llvm.ad import Float64
 
-        pert = {k: dr.opaque(Float64, v) for k, v in self.design.perturbation.model_dump().items() if v}
+        pert = {k: dr.opaque(F or Float64, v) for k, v in self.design.perturbation.model_dump().items() if v}
         dpar = {}
         for k, v in (params or {}).items():
             if k in PERTURBATION_NAMES:
@@ -274,7 +269,8 @@ class SequentialTracer:
             x = x + th[i]
         return out
 
-    def _trace_dr(self, field_deg, px, py, wavelength_nm, keep_path=False, params=None, soft_eps=None):
+    def _trace_dr(self, field_deg, px, py, wavelength_nm, keep_path=False, params=None, soft_eps=None,
+                  single=False):
         """The trace as drjit arrays.
 
         ``field_deg``: (theta_x, theta_y) for all rays, or an (n, 2) array, one field per ray.
@@ -285,13 +281,14 @@ class SequentialTracer:
         throughput and the moments are differentiable in the perturbations; so do, with
         ``obstruct="analytic"``, the tube front, the vanes and the focuser bore on the way back from the
         primary and behind the diagonal (:meth:`_margin_tube_side`, :meth:`_margin_focuser`). The incoming
-        bundle's obstructions do not move with the optics and stay hard."""
+        bundle's obstructions do not move with the optics and stay hard. ``single``: the whole kernel in
+        float32 (the counting path of :meth:`loss_counts`; module docstring, "Precision")."""
         import drjit as dr
-        from drjit.llvm.ad import Array3f64, Float64, UInt32
+        from drjit.llvm.ad import UInt32
 
         L = self.layout
-        F = Float64
-        pert, dpar = self._params(params)
+        F, A3 = _types(single)
+        pert, dpar = self._params(params, F)
         fd = None if _is_dr(field_deg) else np.asarray(field_deg, dtype=float)
         if fd is None:
             # drjit directions per ray (built inside the kernel by the caller, e.g. optics.gradients)
@@ -301,23 +298,24 @@ class SequentialTracer:
         elif fd.ndim == 1:
             d_np = direction(fd)
             # opaque: the field changes from call to call, the compiled kernel must not
-            d = Array3f64(*[dr.opaque(F, float(c)) for c in d_np])
+            d = A3(*[dr.opaque(F, float(c)) for c in d_np])
             dz_np = d_np[2]
         else:
             t = np.tan(np.radians(fd))
             d_np = -np.stack([t[:, 0], t[:, 1], np.ones(len(t))], -1)
             d_np /= np.linalg.norm(d_np, axis=1, keepdims=True)
-            d = Array3f64(*[to_dr(d_np[:, i]) for i in range(3)])
+            d = A3(*[to_dr(d_np[:, i], single) for i in range(3)])
             dz_np = d_np[:, 2]
         z_rim = float(L.primary_sag(L.r_primary))
-        px = px if _is_dr(px) else to_dr(px)
-        py = py if _is_dr(py) else to_dr(py)
-        p_rim = Array3f64(px, py, F(z_rim))
+        px = px if _is_dr(px) else to_dr(px, single)
+        py = py if _is_dr(py) else to_dr(py, single)
+        p_rim = A3(px, py, F(z_rim))
         z_start = L.tube_top + 1.0
         if dz_np is None:
             s0 = (z_start - z_rim) / (-d.z)
         else:
-            s0 = dr.opaque(F, (z_start - z_rim) / (-dz_np)) if fd.ndim == 1 else to_dr((z_start - z_rim) / (-dz_np))
+            s0 = dr.opaque(F, (z_start - z_rim) / (-dz_np)) if fd.ndim == 1 else \
+                to_dr((z_start - z_rim) / (-dz_np), single)
         o = p_rim - d * s0
         opl = dr.dot(o, d)                       # plane wave: zero on the plane through the origin
         n_rays = dr.width(px)
@@ -369,17 +367,17 @@ class SequentialTracer:
         elif self.obstruct == "mesh":
             kill(self._blocked_mesh(o, d, t), ENTRANCE)
         opl += t
-        n = dr.normalize(Array3f64(-c * p1l.x, -c * p1l.y, 1.0 - c * k1 * p1l.z))
+        n = dr.normalize(A3(-c * p1l.x, -c * p1l.y, 1.0 - c * k1 * p1l.z))
         if pose_p:
             n = pose_p.to_world_dir(n)
         d1 = d - 2.0 * dr.dot(d, n) * n
 
         # -- diagonal (plane through its centre, elliptical outline), tilted about its axes ---------------
-        cen = Array3f64(*[F(v) for v in L.diag_centre])
+        cen = A3(*[F(v) for v in L.diag_centre])
         pose_d = _Pose.make(L.diag_centre,
                             [((1.0 / SQRT2, 0.0, 1.0 / SQRT2), pert.get("diagonal_tilt_x_deg")),
                              ((0.0, 1.0, 0.0), pert.get("diagonal_tilt_y_deg"))], [])
-        nd = Array3f64(*[F(v) for v in L.diag_normal])
+        nd = A3(*[F(v) for v in L.diag_normal])
         if pose_d:
             nd = pose_d.to_world_dir(nd)
         denom = dr.dot(d1, nd)
@@ -423,9 +421,9 @@ class SequentialTracer:
             if s.radius_mm == 0.0:
                 t = (x_s - p.x) / dcur.x
                 hit = p + dcur * t
-                normal = Array3f64(F(-1.0), F(0.0), F(0.0))
+                normal = A3(F(-1.0), F(0.0), F(0.0))
             else:
-                centre = Array3f64(F(x_s + r_s), F(0.0), F(L.z_axis))
+                centre = A3(F(x_s + r_s), F(0.0), F(L.z_axis))
                 oc = p - centre
                 b = dr.dot(oc, dcur)
                 cc = dr.dot(oc, oc) - r_s * r_s
@@ -456,8 +454,8 @@ class SequentialTracer:
                             [((0.0, 0.0, 1.0), pert.get("sensor_tilt_x_deg")),
                              ((0.0, 1.0, 0.0), pert.get("sensor_tilt_y_deg"))], [])
         if pose_s:
-            ndet = pose_s.to_world_dir(Array3f64(F(1.0), F(0.0), F(0.0)))
-            centre = Array3f64(x_det, F(0.0), F(L.z_axis))
+            ndet = pose_s.to_world_dir(A3(F(1.0), F(0.0), F(0.0)))
+            centre = A3(x_det, F(0.0), F(L.z_axis))
             t = dr.dot(centre - p, ndet) / dr.dot(dcur, ndet)
         else:
             t = (x_det - p.x) / dcur.x
@@ -472,7 +470,7 @@ class SequentialTracer:
         elif self.obstruct == "mesh":
             kill(self._blocked_mesh_chain(chain), FOCUSER)
         if pose_s:
-            rel = pose_s.to_local(p3 - Array3f64(x_det - L.x_detector, F(0.0), F(0.0)))
+            rel = pose_s.to_local(p3 - A3(x_det - L.x_detector, F(0.0), F(0.0)))
             u = rel.z - L.z_axis
             v = rel.y
             dloc = pose_s.to_local_dir(dcur)
@@ -504,19 +502,19 @@ class SequentialTracer:
 
         L = self.layout
         blocked = dr.zeros(_Bool(), dr.width(o.x))
+        inv_dz = 1.0 / d.z          # one division for every plane z = const on this piece
         for z, r in [(L.tube_top, L.r_tube), *[(zv, L.r_vane) for zv in L.vane_z]]:
-            tz = (z - o.z) / d.z
+            tz = (z - o.z) * inv_dz
             x = o.x + d.x * tz
             y = o.y + d.y * tz
             blocked |= (tz > 1e-9) & (tz < t_end) & (x * x + y * y > r * r)
         if incoming:
-            blocked |= self._hits_diagonal_body(o, d, t_end)
-        blocked |= self._blocked_spider(o, d, t_end)
+            blocked |= self._hits_diagonal_body(o, d, t_end, inv_dz)
+        blocked |= self._blocked_spider(o, d, t_end, inv_dz)
         x_in = L.focuser_start_x
         if x_in < L.r_tube:
             lo, hi = _cylinder_interval(o.y, o.z - L.z_axis, d.y, d.z, L.r_focuser)
-            lo, hi = _clip_linear(lo, hi, -(o.x - x_in), -d.x, upper=0.0)
-            lo, hi = _clip_linear(lo, hi, o.x - L.r_tube, d.x, upper=0.0)
+            lo, hi = _slab(lo, hi, o.x, d.x, x_in, L.r_tube)
             blocked |= dr.maximum(lo, 0.0) < dr.minimum(hi, t_end)
         return blocked
 
@@ -552,7 +550,7 @@ class SequentialTracer:
                 m = dr.minimum(m, dr.select((s > 0) & (s <= 1), L.r_focuser - dr.sqrt(y * y + z * z), 1e30))
         return m
 
-    def _hits_diagonal_body(self, o, d, t_end):
+    def _hits_diagonal_body(self, o, d, t_end, inv_dz=None):
         """The diagonal with its holder: inside the vertical cylinder r < b about the ellipse centre, above
         the mirror plane and below the holder's top cap (a closed solid, so any overlap blocks)."""
         import drjit as dr
@@ -561,34 +559,31 @@ class SequentialTracer:
         cx, _, cz = L.diag_centre
         lo, hi = _cylinder_interval(o.x - cx, o.y, d.x, d.y, L.diag_b)
         # z <= holder_top
-        lo, hi = _clip_linear(lo, hi, o.z - L.holder_top, d.z, upper=0.0)
+        lo, hi = _clip_linear(lo, hi, o.z - L.holder_top, d.z, upper=0.0, inv_b=inv_dz)
         # above the plane: (z - cz) - (x - cx) >= 0
         lo, hi = _clip_linear(lo, hi, -((o.z - cz) - (o.x - cx)), -(d.z - d.x), upper=0.0)
         lo = dr.maximum(lo, 0.0)
         hi = dr.minimum(hi, t_end)
         return lo < hi
 
-    def _blocked_spider(self, o, d, t_end):
+    def _blocked_spider(self, o, d, t_end, inv_dz=None):
+        """The spider's vanes: each a box, the intersection of three slabs (along the vane
+        a = x ca + y sa in [0.9 b, R_tube], across it h = -x sa + y ca in +-w/2, and z in the vanes'
+        depth); the z slab is the same for every vane and is found once."""
         import drjit as dr
 
         L = self.layout
         blocked = dr.zeros(_Bool(), dr.width(o.x))
         z0, z1 = L.spider_z
+        big = dr.zeros(type(o.x), dr.width(o.x)) + 1e30
+        lo_z, hi_z = _slab(-big, big, o.z, d.z, z0, z1, inv_dz)
+        lo_z, hi_z = dr.maximum(lo_z, 0.0), dr.minimum(hi_z, t_end)
         for ang in L.spider_angles_deg:
             ca, sa = math.cos(math.radians(ang)), math.sin(math.radians(ang))
-            # along-vane coordinate a = x ca + y sa in [0.9 b, R_tube]; across h = -x sa + y ca in +-w/2
-            lo = dr.zeros(type(o.x), dr.width(o.x)) - 1e30
-            hi = lo + 2e30
-            lo, hi = _clip_linear(lo, hi, o.x * ca + o.y * sa - L.r_tube, d.x * ca + d.y * sa, upper=0.0)
-            lo, hi = _clip_linear(lo, hi, -(o.x * ca + o.y * sa - 0.9 * L.diag_b), -(d.x * ca + d.y * sa),
-                                  upper=0.0)
-            hcoord = -o.x * sa + o.y * ca
-            hdir = -d.x * sa + d.y * ca
-            lo, hi = _clip_linear(lo, hi, hcoord - L.spider_half_width, hdir, upper=0.0)
-            lo, hi = _clip_linear(lo, hi, -(hcoord + L.spider_half_width), -hdir, upper=0.0)
-            lo, hi = _clip_linear(lo, hi, o.z - z1, d.z, upper=0.0)
-            lo, hi = _clip_linear(lo, hi, -(o.z - z0), -d.z, upper=0.0)
-            blocked |= (dr.maximum(lo, 0.0) < dr.minimum(hi, t_end))
+            lo, hi = _slab(lo_z, hi_z, o.x * ca + o.y * sa, d.x * ca + d.y * sa, 0.9 * L.diag_b, L.r_tube)
+            lo, hi = _slab(lo, hi, -o.x * sa + o.y * ca, -d.x * sa + d.y * ca, -L.spider_half_width,
+                           L.spider_half_width)
+            blocked |= lo < hi
         return blocked
 
     def _blocked_focuser(self, chain):
@@ -603,8 +598,9 @@ class SequentialTracer:
         x0 = L.focuser_start_x
         for a, b in itertools.pairwise(chain):
             dd = b - a
+            inv = 1.0 / dd.x
             for xq in (x0, L.x_housing):
-                s = (xq - a.x) / dd.x
+                s = (xq - a.x) * inv
                 y = a.y + dd.y * s
                 z = a.z + dd.z * s - L.z_axis
                 blocked |= (s > 0) & (s <= 1) & (y * y + z * z > L.r_focuser ** 2)
@@ -639,16 +635,23 @@ def _is_dr(x) -> bool:
     return dr.is_array_v(x)
 
 
-def to_dr(a):
-    """A drjit Float64 copy of the numpy array ``a``. drjit maps numpy memory without copying, and the
+def _types(single: bool = False):
+    """(Float, Array3) drjit types of the kernel: float32 (``single``) or float64."""
+    from drjit.llvm.ad import Array3f, Array3f64, Float, Float64
+
+    return (Float, Array3f) if single else (Float64, Array3f64)
+
+
+def to_dr(a, single: bool = False):
+    """A drjit Float64 (``single``: Float32) copy of the numpy array ``a``. drjit maps numpy memory without copying, and the
     kernel's IR records the buffer's alignment (``align 128`` or ``align 1``), so an unlucky numpy
     allocation changes the kernel's hash and costs a recompilation. The copy helps for numpy's buffers; for
     repeated kernels with many inputs (the AD kernels of :mod:`optics.gradients`) the per-ray inputs are
     built inside the kernel instead (counters and gathers carry no alignment)."""
     import drjit as dr
-    from drjit.llvm.ad import Float64
 
-    return dr.copy(Float64(np.ascontiguousarray(a, dtype=np.float64)))
+    F = _types(single)[0]
+    return dr.copy(F(np.ascontiguousarray(a, dtype=np.float32 if single else np.float64)))
 
 
 def _Bool():
@@ -683,14 +686,29 @@ def _refract(d, n, n1: float, n2: float):
     return t, trans, tir
 
 
-def _clip_linear(lo, hi, a, b, upper: float = 0.0):
-    """Intersect the t-interval [lo, hi] with {t : a + b t <= upper}."""
+def _clip_linear(lo, hi, a, b, upper: float = 0.0, inv_b=None):
+    """Intersect the t-interval [lo, hi] with {t : a + b t <= upper} (``inv_b``: 1 / b when known)."""
     import drjit as dr
 
-    t = (upper - a) / b
+    t = (upper - a) * inv_b if inv_b is not None else (upper - a) / b
     parallel = dr.abs(b) < 1e-15
     new_lo = dr.select(parallel, dr.select(a <= upper, lo, 1e30), dr.select(b < 0, dr.maximum(lo, t), lo))
     new_hi = dr.select(parallel, dr.select(a <= upper, hi, -1e30), dr.select(b > 0, dr.minimum(hi, t), hi))
+    return new_lo, new_hi
+
+
+def _slab(lo, hi, c0, cd, c_lo: float, c_hi: float, inv=None):
+    """Intersect the t-interval [lo, hi] with the slab c_lo <= c0 + cd t <= c_hi (``inv``: 1 / cd when
+    known): the two half-spaces of :func:`_clip_linear` with one division."""
+    import drjit as dr
+
+    inv = 1.0 / cd if inv is None else inv
+    ta = (c_lo - c0) * inv
+    tb = (c_hi - c0) * inv
+    parallel = dr.abs(cd) < 1e-15
+    inside = (c0 >= c_lo) & (c0 <= c_hi)
+    new_lo = dr.select(parallel, dr.select(inside, lo, 1e30), dr.maximum(lo, dr.minimum(ta, tb)))
+    new_hi = dr.select(parallel, dr.select(inside, hi, -1e30), dr.minimum(hi, dr.maximum(ta, tb)))
     return new_lo, new_hi
 
 
@@ -704,8 +722,9 @@ def _cylinder_interval(qx, qy, dx, dy, r):
     disc = B * B - A * C
     root = dr.sqrt(dr.maximum(disc, 0.0))
     small = A < 1e-18
-    lo = dr.select(small, dr.select(C <= 0, -1e30, 1e30), (-B - root) / A)
-    hi = dr.select(small, dr.select(C <= 0, 1e30, -1e30), (-B + root) / A)
+    inv_a = 1.0 / A
+    lo = dr.select(small, dr.select(C <= 0, -1e30, 1e30), (-B - root) * inv_a)
+    hi = dr.select(small, dr.select(C <= 0, 1e30, -1e30), (-B + root) * inv_a)
     lo = dr.select(~small & (disc < 0), 1e30, lo)
     hi = dr.select(~small & (disc < 0), -1e30, hi)
     return lo, hi
