@@ -2,7 +2,7 @@
 
 Runs in batoid's own environment (never newtsim's), started by bench_optics_trace.py:
 
-    /work/peerenv/batoid/bin/python benchmarks/batoid_vignetting_job.py DESIGN RAYS.npz
+    /work/peerenv/batoid/bin/python benchmarks/batoid_vignetting_job.py DESIGN RAYS.npz [telescope|paraboloid]
 
 RAYS.npz holds the pupil points ``px``, ``py`` [mm] of the primary's rim plane and the field angles
 ``fields`` [deg] (n, 2), the very rays newtsim's vignetting map traces. The telescope is built by
@@ -13,6 +13,10 @@ surface by surface and counting the rays inside every optical aperture (primary 
 rims; the sensor's edge left out, as in the vignetting map). batoid models no mechanical obstructions
 (spider, vanes, tube, focuser): newtsim does that work on top. Prints JSON: wall seconds and the process's
 CPU seconds (user + system, all threads: batoid's OpenMP threads included).
+
+``paraboloid``: batoid's lightest job on the same rays instead (the previous benchmark's reference): reflect
+off the paraboloid alone and intersect its focal plane, positions back as numpy arrays, no diagonal, no
+lenses, no aperture counted.
 """
 
 from __future__ import annotations
@@ -40,6 +44,7 @@ def _cpu() -> float:
 def main(argv=None):
     argv = sys.argv[1:] if argv is None else argv
     name, rays_file = argv[0], argv[1]
+    job = argv[2] if len(argv) > 2 else "telescope"
     spec = importlib.util.spec_from_file_location(
         "make_ray_reference", ROOT / "tests" / "data" / "peers" / "batoid" / "make_ray_reference.py")
     ref = importlib.util.module_from_spec(spec)
@@ -48,6 +53,8 @@ def main(argv=None):
     items, _, z_rim, tube = ref.build(design)
     # the sensor's edge is not a loss of the vignetting map
     steps = [(optic, None if oname == "detector" else inside) for oname, optic, inside in items]
+    f = design["primary"]["focal_length_mm"]
+    mirror, focal, focus = batoid.Paraboloid(2 * f), batoid.Plane(), batoid.CoordSys(origin=[0, 0, f])
     data = np.load(rays_file)
     px, py, fields = data["px"], data["py"], data["fields"]
     n = len(px)
@@ -62,15 +69,21 @@ def main(argv=None):
         t_wall, t_cpu = time.perf_counter(), _cpu()
         rv = batoid.RayVector(px - d[0] * s0, py - d[1] * s0, z_rim_arr - d[2] * s0, np.full(n, d[0]),
                               np.full(n, d[1]), np.full(n, d[2]), wavelength=550e-9)
-        ok = np.ones(n, bool)
-        for optic, inside in steps:
-            rv = optic.trace(rv)
-            ok &= ~rv.failed if inside is None else inside(rv) & ~rv.failed
-        count = int(np.count_nonzero(ok))
+        if job == "paraboloid":
+            mirror.reflect(rv)
+            focal.intersect(rv, coordSys=focus)
+            _ = rv.x, rv.y
+            count = n
+        else:
+            ok = np.ones(n, bool)
+            for optic, inside in steps:
+                rv = optic.trace(rv)
+                ok &= ~rv.failed if inside is None else inside(rv) & ~rv.failed
+            count = int(np.count_nonzero(ok))
         wall += time.perf_counter() - t_wall
         cpu += _cpu() - t_cpu
         through.append(count / n)
-    out = {"version": batoid.__version__, "design": name, "rays": n * len(fields), "fields": len(fields),
+    out = {"version": batoid.__version__, "design": name, "job": job, "rays": n * len(fields), "fields": len(fields),
            "seconds": round(wall, 4), "cpu_s": round(cpu, 4), "mrays_per_s": round(n * len(fields) / wall / 1e6, 2),
            "through_optical_apertures": [round(t, 6) for t in through]}
     print(json.dumps(out))

@@ -11,7 +11,9 @@ The reference: batoid (its own environment, ``--batoid-python``, default ``$NEWT
 /work/peerenv/batoid/bin/python) traces the same pupil points at the same 82 fields through the same
 telescope built from the design file (benchmarks/batoid_vignetting_job.py: primary, diagonal, lenses,
 detector plane, and the optical apertures counted; batoid has no mechanical obstructions, so newtsim does
-more work per ray). Both sides report wall seconds and process CPU seconds (user + system over all threads);
+more work per ray). For the bare design also batoid's lightest job on the same rays, the previous
+benchmark's reference: the paraboloid alone to its focal plane (``batoid_paraboloid_bare``). Both sides
+report wall seconds and process CPU seconds (user + system over all threads);
 on a shared machine the CPU ratio is the steadier one.
 
 ``--before ROOT`` (repeatable) also times a checkout of an older newtsim (e.g. ``git worktree add /tmp/old
@@ -89,10 +91,10 @@ def rays_file(design: str, grid: int, rays: int, tmp: str) -> str:
     return path
 
 
-def run_batoid(design: str, path: str) -> dict:
+def run_batoid(design: str, path: str, job: str = "telescope") -> dict:
     if not os.path.exists(BATOID_PYTHON):
         return {"error": f"no batoid environment at {BATOID_PYTHON} (set NEWTSIM_BATOID_PYTHON)"}
-    p = subprocess.run([BATOID_PYTHON, str(HERE / "batoid_vignetting_job.py"), design, path], cwd=ROOT,
+    p = subprocess.run([BATOID_PYTHON, str(HERE / "batoid_vignetting_job.py"), design, path, job], cwd=ROOT,
                        capture_output=True, text=True, check=False)
     if p.returncode:
         return {"error": p.stderr.strip()[-600:]}
@@ -115,7 +117,9 @@ def main(argv=None):
            "machine": platform.machine(), "load_avg_1min": round(os.getloadavg()[0], 2)}
     with tempfile.TemporaryDirectory() as tmp:
         for design in args.designs.split(","):
-            b = run_batoid(design, rays_file(design, args.grid, args.rays, tmp))
+            path = rays_file(design, args.grid, args.rays, tmp)
+            b = run_batoid(design, path)
+            bp = run_batoid(design, path, "paraboloid") if design == "bare" else {}
             runs = {"newtsim": run_worker(ROOT, design, args.grid, args.rays)}
             for i, root in enumerate(args.before):
                 runs[f"before{i + 1}"] = run_worker(Path(root).resolve(), design, args.grid, args.rays)
@@ -124,6 +128,9 @@ def main(argv=None):
                 if "seconds" in r and "seconds" in b:
                     r["speed_vs_batoid"] = round(b["seconds"] / r["seconds"], 2)
                     r["cpu_speed_vs_batoid"] = round(b["cpu_s"] / r["cpu_s"], 2)
+                if "seconds" in r and "seconds" in bp:
+                    r["speed_vs_batoid_paraboloid"] = round(bp["seconds"] / r["seconds"], 2)
+                    r["cpu_speed_vs_batoid_paraboloid"] = round(bp["cpu_s"] / r["cpu_s"], 2)
                 key = f"newtsim_vignetting_{design}" if name == "newtsim" else f"{name}_vignetting_{design}"
                 out[key] = {k: v for k, v in r.items() if k != "throughput"}
             if "throughput" in runs["newtsim"]:
@@ -133,6 +140,8 @@ def main(argv=None):
                         out[f"{name}_vignetting_{design}"]["max_abs_throughput_change"] = float(
                             np.abs(np.asarray(r["throughput"]) - ref).max())
             out[f"batoid_{design}"] = {k: v for k, v in b.items() if k != "through_optical_apertures"}
+            if bp:
+                out[f"batoid_paraboloid_{design}"] = {k: v for k, v in bp.items() if k != "through_optical_apertures"}
     print(json.dumps(out, indent=2))
     return out
 

@@ -101,6 +101,10 @@ def x_trace(j):
         b = j.get("batoid_" + k.removeprefix("newtsim_vignetting_"), {})
         r[f"{k}_over_batoid"] = _ratio(v.get("seconds"), b.get("seconds"))
         r[f"{k}_cpu_over_batoid"] = _ratio(v.get("cpu_s"), b.get("cpu_s"))
+        bp = j.get("batoid_paraboloid_" + k.removeprefix("newtsim_vignetting_"))
+        if bp:
+            r[f"{k}_over_batoid_paraboloid"] = _ratio(v.get("seconds"), bp.get("seconds"))
+            r[f"{k}_cpu_over_batoid_paraboloid"] = _ratio(v.get("cpu_s"), bp.get("cpu_s"))
         mem[k] = v.get("peak_rss_gib")
         sec[k], sec["batoid_" + k.removeprefix("newtsim_vignetting_")] = v.get("seconds"), b.get("seconds")
     return r, mem, sec
