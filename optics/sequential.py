@@ -440,7 +440,8 @@ class SequentialTracer:
         if self.obstruct == "analytic" and soft_eps:
             aperture(self._margin_tube_side(p1, d1, t), TO_DIAGONAL)
         elif self.obstruct == "analytic":
-            kill(self._blocked_tube_side(p1, d1, t, incoming=False), TO_DIAGONAL)
+            kill(self._blocked_tube_side(p1, d1, t, incoming=False, z_max=self._return_leg_z_max(pert)),
+                 TO_DIAGONAL)
         elif self.obstruct == "mesh":
             kill(self._blocked_mesh(p1, d1, t), TO_DIAGONAL)
         opl += t
@@ -542,23 +543,39 @@ class SequentialTracer:
         return out
 
     # -- analytic obstructions ---------------------------------------------------------------------------
-    def _blocked_tube_side(self, o, d, t_end, incoming: bool = True):
+    def _return_leg_z_max(self, pert) -> float | None:
+        """An upper bound [mm] on the height of every ray between the primary and the diagonal that is still
+        alive there: its ends are on the primary (z <= rim sag + radius, whatever the primary's tilt) and
+        inside the diagonal's outline (z <= centre + a / sqrt2, or centre + a when the diagonal is tilted).
+        The tube front, vanes and spider above it cannot stop such a ray, so the kernel leaves them out:
+        the same loss codes, less work."""
+        L = self.layout
+        tilted = "diagonal_tilt_x_deg" in pert or "diagonal_tilt_y_deg" in pert
+        top = L.diag_centre[2] + (L.diag_a if tilted else L.diag_a / SQRT2)
+        return max(top, float(L.primary_sag(L.r_primary)) + L.r_primary) + 1.0
+
+    def _blocked_tube_side(self, o, d, t_end, incoming: bool = True, z_max: float | None = None):
         """Mechanical parts inside the tube along a straight piece of ray: the tube front and the annular
         vanes (the ray's radius where it crosses each plane), the spider, the focuser bore where it
-        reaches into the tube, and (``incoming``) the diagonal's body seen from the sky side."""
+        reaches into the tube, and (``incoming``) the diagonal's body seen from the sky side. ``z_max``:
+        a bound on the piece's height [mm] (:meth:`_return_leg_z_max`); parts above it are left out."""
         import drjit as dr
 
         L = self.layout
         blocked = dr.zeros(_Bool(), dr.width(o.x))
         inv_dz = 1.0 / d.z          # one division for every plane z = const on this piece
+        z_max = math.inf if z_max is None else z_max
         for z, r in [(L.tube_top, L.r_tube), *[(zv, L.r_vane) for zv in L.vane_z]]:
+            if z > z_max:
+                continue
             tz = (z - o.z) * inv_dz
             x = o.x + d.x * tz
             y = o.y + d.y * tz
             blocked |= (tz > 1e-9) & (tz < t_end) & (x * x + y * y > r * r)
         if incoming:
             blocked |= self._hits_diagonal_body(o, d, t_end, inv_dz)
-        blocked |= self._blocked_spider(o, d, t_end, inv_dz)
+        if L.spider_z[0] <= z_max:
+            blocked |= self._blocked_spider(o, d, t_end, inv_dz)
         x_in = L.focuser_start_x
         if x_in < L.r_tube:
             lo, hi = _cylinder_interval(o.y, o.z - L.z_axis, d.y, d.z, L.r_focuser)
