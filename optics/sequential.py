@@ -515,7 +515,9 @@ class SequentialTracer:
         if self.obstruct == "analytic" and soft_eps:
             aperture(self._margin_focuser(chain), FOCUSER)
         elif self.obstruct == "analytic":
-            kill(self._blocked_focuser(chain), FOCUSER)
+            static = not (pose_c or pose_s or "sensor_piston_um" in pert) and all(
+                isinstance(x, float) and isinstance(r, float) for x, r in geo)
+            kill(self._blocked_focuser(chain, self._chain_x_bounds(pert) if static else None), FOCUSER)
         elif self.obstruct == "mesh":
             kill(self._blocked_mesh_chain(chain), FOCUSER)
         if pose_s:
@@ -651,20 +653,41 @@ class SequentialTracer:
             blocked |= lo < hi
         return blocked
 
-    def _blocked_focuser(self, chain):
+    def _chain_x_bounds(self, pert) -> list[tuple[float, float]]:
+        """Where along x [mm] each vertex of a live ray's chain (diagonal, every lens surface, detector) can
+        lie in the unperturbed corrector and sensor: inside the diagonal's outline (its tilt allowed for),
+        within each lens surface's sag at its clear semi-diameter, on the detector plane; 1 mm of margin."""
+        L = self.layout
+        tilted = "diagonal_tilt_x_deg" in pert or "diagonal_tilt_y_deg" in pert
+        half = L.diag_a if tilted else L.diag_a / SQRT2
+        out = [(L.diag_centre[0] - half - 1.0, L.diag_centre[0] + half + 1.0)]
+        for s in L.lenses:
+            r, h = abs(s.radius_mm), s.semi_diameter_mm
+            sag = r - math.sqrt(max(r * r - h * h, 0.0)) if r else 0.0
+            out.append((s.x_mm - sag - 1.0, s.x_mm + sag + 1.0))
+        out.append((L.x_detector - 1.0, L.x_detector + 1.0))
+        return out
+
+    def _blocked_focuser(self, chain, x_bounds=None):
         """The folded beam must pass the focuser bore (radius r_f about the focuser axis) where it starts
         at the tube wall and where it enters the camera housing. ``chain`` lists the ray's vertices from
         the diagonal to the detector; each straight piece is checked where it crosses those two planes.
-        Between them the distance to the axis along a straight piece is convex, so the two ends decide."""
+        Between them the distance to the axis along a straight piece is convex, so the two ends decide.
+        ``x_bounds`` (:meth:`_chain_x_bounds`): a piece whose ends cannot straddle a plane is not checked
+        against it (the same result, less work)."""
         import drjit as dr
 
         L = self.layout
         blocked = dr.zeros(_Bool(), dr.width(chain[0].x))
         x0 = L.focuser_start_x
-        for a, b in itertools.pairwise(chain):
+        for k, (a, b) in enumerate(itertools.pairwise(chain)):
+            planes = [xq for xq in (x0, L.x_housing) if x_bounds is None
+                      or min(x_bounds[k][0], x_bounds[k + 1][0]) <= xq <= max(x_bounds[k][1], x_bounds[k + 1][1])]
+            if not planes:
+                continue
             dd = b - a
             inv = 1.0 / dd.x
-            for xq in (x0, L.x_housing):
+            for xq in planes:
                 s = (xq - a.x) * inv
                 y = a.y + dd.y * s
                 z = a.z + dd.z * s - L.z_axis
