@@ -466,29 +466,30 @@ class SequentialTracer:
             # opaque: a new wavelength changes the indices, not the compiled kernel
             n_after_py = float(_index(s.after, wavelength_nm))
             n_after = dr.opaque(F, n_after_py)
+            # every way of being lost at this surface has the same code: one mask, one update of ``lost``
             if s.radius_mm == 0.0:
                 t = (x_s - p.x) / dcur.x
                 hit = p + dcur * t
                 normal = A3(F(-1.0), F(0.0), F(0.0))
+                lens_lost = t <= 0
             else:
                 centre = A3(F(x_s + r_s), F(0.0), F(L.z_axis))
                 oc = p - centre
                 b = dr.dot(oc, dcur)
                 cc = dr.dot(oc, oc) - r_s * r_s
                 disc = b * b - cc
-                kill(disc < 0, LENS)
                 t = -b - math.copysign(1.0, s.radius_mm) * dr.sqrt(_max(disc, 0.0))
                 hit = p + dcur * t
                 normal = (hit - centre) * (1.0 / r_s)
-            kill(t <= 0, LENS)
+                lens_lost = (disc < 0) | (t <= 0)
             if soft_eps:
                 aperture(s.semi_diameter_mm - dr.sqrt(hit.y * hit.y + (hit.z - L.z_axis) ** 2), LENS)
             else:
-                kill(hit.y * hit.y + (hit.z - L.z_axis) ** 2 > s.semi_diameter_mm ** 2, LENS)
+                lens_lost |= hit.y * hit.y + (hit.z - L.z_axis) ** 2 > s.semi_diameter_mm ** 2
             opl += n_medium * t
             # the ratio of indices as one opaque value: no division per ray
             dcur, tr, tir = _refract(dcur, normal, n_medium, n_after, dr.opaque(F, n_medium_py / n_after_py))
-            kill(tir, LENS)
+            kill(lens_lost | tir, LENS)
             coated = t_coated is not None and "air" in (s.before.lower(), s.after.lower())
             trans *= t_coated if coated else tr          # cemented glass-glass surfaces: Fresnel
             p, n_medium, n_medium_py = hit, n_after, n_after_py
