@@ -353,6 +353,13 @@ class SequentialTracer:
             d = A3(*[to_dr(d_np[:, i], single) for i in range(3)])
             dz_np = d_np[:, 2]
         z_rim = float(L.primary_sag(L.r_primary))
+        # the bundle's widest slope (for leaving out parts no live ray can reach, :meth:`_blocked_tube_side`)
+        nominal_primary = not any(k.startswith("primary") for k in [*pert, *dpar])
+        beam_tan = None
+        if nominal_primary and fd.ndim == 1:
+            beam_tan = math.hypot(*(math.tan(math.radians(a)) for a in fd))
+        elif nominal_primary and len(fd):
+            beam_tan = float(np.max(np.hypot(*np.tan(np.radians(fd)).T)))
         px = px if _is_dr(px) else to_dr(px, single)
         py = py if _is_dr(py) else to_dr(py, single)
         p_rim = A3(px, py, F(z_rim))
@@ -409,7 +416,7 @@ class SequentialTracer:
             kill(p1l.x * p1l.x + p1l.y * p1l.y > L.r_primary ** 2, PRIMARY_MISS)
         p1 = pose_p.to_world(p1l) if pose_p else p1l
         if self.obstruct == "analytic":
-            kill(self._blocked_tube_side(o, d, t), ENTRANCE)
+            kill(self._blocked_tube_side(o, d, t, beam_tan=beam_tan), ENTRANCE)
         elif self.obstruct == "mesh":
             kill(self._blocked_mesh(o, d, t), ENTRANCE)
         opl += t
@@ -440,8 +447,8 @@ class SequentialTracer:
         if self.obstruct == "analytic" and soft_eps:
             aperture(self._margin_tube_side(p1, d1, t), TO_DIAGONAL)
         elif self.obstruct == "analytic":
-            kill(self._blocked_tube_side(p1, d1, t, incoming=False, z_max=self._return_leg_z_max(pert)),
-                 TO_DIAGONAL)
+            z_max, x_max = self._return_leg_bounds(pert, nominal_primary)
+            kill(self._blocked_tube_side(p1, d1, t, incoming=False, z_max=z_max, x_max=x_max), TO_DIAGONAL)
         elif self.obstruct == "mesh":
             kill(self._blocked_mesh(p1, d1, t), TO_DIAGONAL)
         opl += t
@@ -546,30 +553,43 @@ class SequentialTracer:
         return out
 
     # -- analytic obstructions ---------------------------------------------------------------------------
-    def _return_leg_z_max(self, pert) -> float | None:
-        """An upper bound [mm] on the height of every ray between the primary and the diagonal that is still
-        alive there: its ends are on the primary (z <= rim sag + radius, whatever the primary's tilt) and
-        inside the diagonal's outline (z <= centre + a / sqrt2, or centre + a when the diagonal is tilted).
-        The tube front, vanes and spider above it cannot stop such a ray, so the kernel leaves them out:
-        the same loss codes, less work."""
+    def _return_leg_bounds(self, pert, nominal_primary: bool) -> tuple[float, float | None]:
+        """Bounds [mm] on the height z and on x of every ray between the primary and the diagonal that is
+        still alive there: its ends are on the primary (z <= rim sag + radius whatever the primary's tilt;
+        |x| <= the rim radius for the unperturbed primary) and inside the diagonal's outline (z, x within
+        centre + a / sqrt2, or + a when the diagonal is tilted); 1 mm of margin. The tube front, vanes and
+        spider above the height, and the focuser bore beyond x, cannot stop such a ray: the kernel leaves
+        them out, with the same loss codes and less work."""
         L = self.layout
         tilted = "diagonal_tilt_x_deg" in pert or "diagonal_tilt_y_deg" in pert
-        top = L.diag_centre[2] + (L.diag_a if tilted else L.diag_a / SQRT2)
-        return max(top, float(L.primary_sag(L.r_primary)) + L.r_primary) + 1.0
+        half = L.diag_a if tilted else L.diag_a / SQRT2
+        z_max = max(L.diag_centre[2] + half, float(L.primary_sag(L.r_primary)) + L.r_primary) + 1.0
+        x_max = max(L.diag_centre[0] + half, L.r_primary) + 1.0 if nominal_primary else None
+        return z_max, x_max
 
-    def _blocked_tube_side(self, o, d, t_end, incoming: bool = True, z_max: float | None = None):
+    def _blocked_tube_side(self, o, d, t_end, incoming: bool = True, z_max: float | None = None,
+                           x_max: float | None = None, beam_tan: float | None = None):
         """Mechanical parts inside the tube along a straight piece of ray: the tube front and the annular
         vanes (the ray's radius where it crosses each plane), the spider, the focuser bore where it
-        reaches into the tube, and (``incoming``) the diagonal's body seen from the sky side. ``z_max``:
-        a bound on the piece's height [mm] (:meth:`_return_leg_z_max`); parts above it are left out."""
+        reaches into the tube, and (``incoming``) the diagonal's body seen from the sky side.
+
+        Parts no live ray can reach are left out of the kernel (the same loss codes, less work): above
+        ``z_max`` or beyond ``x_max`` [mm] (:meth:`_return_leg_bounds`), and, for the incoming bundle of
+        slope at most ``beam_tan`` (tan of the field angle) that reaches the unperturbed primary inside its
+        rim, openings wider than the bundle where it crosses them (radius <= R + z beam_tan at height z):
+        the vanes are sized not to vignette the sensor's field, so within it they never stop a ray."""
         import drjit as dr
 
         L = self.layout
         blocked = dr.zeros(_Bool(), dr.width(o.x))
         inv_dz = 1.0 / d.z          # one division for every plane z = const on this piece
         z_max = math.inf if z_max is None else z_max
+
+        def beam_inside(r_open, z):
+            return incoming and beam_tan is not None and L.r_primary + beam_tan * z + 1.0 < r_open
+
         for z, r in [(L.tube_top, L.r_tube), *[(zv, L.r_vane) for zv in L.vane_z]]:
-            if z > z_max:
+            if z > z_max or beam_inside(r, z):
                 continue
             tz = (z - o.z) * inv_dz
             x = o.x + d.x * tz
@@ -580,7 +600,8 @@ class SequentialTracer:
         if L.spider_z[0] <= z_max:
             blocked |= self._blocked_spider(o, d, t_end, inv_dz)
         x_in = L.focuser_start_x
-        if x_in < L.r_tube:
+        if x_in < L.r_tube and not beam_inside(x_in, L.z_axis + L.r_focuser) and not (
+                x_max is not None and x_max < x_in):
             lo, hi = _cylinder_interval(o.y, o.z - L.z_axis, d.y, d.z, L.r_focuser)
             lo, hi = _slab(lo, hi, o.x, d.x, x_in, L.r_tube)
             blocked |= _max(lo, 0.0) < _min(hi, t_end)
