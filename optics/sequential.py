@@ -356,8 +356,6 @@ class SequentialTracer:
         # the bundle's widest slope (for leaving out parts no live ray can reach, :meth:`_blocked_tube_side`)
         nominal_primary = not any(k.startswith("primary") for k in [*pert, *dpar])
         beam_tan = None
-        # one direction for the whole bundle: what depends on it alone is computed here, not per ray
-        d_uniform = tuple(float(c) for c in direction(fd)) if fd.ndim == 1 else None
         if nominal_primary and fd.ndim == 1:
             beam_tan = math.hypot(*(math.tan(math.radians(a)) for a in fd))
         elif nominal_primary and len(fd):
@@ -418,7 +416,7 @@ class SequentialTracer:
             kill(p1l.x * p1l.x + p1l.y * p1l.y > L.r_primary ** 2, PRIMARY_MISS)
         p1 = pose_p.to_world(p1l) if pose_p else p1l
         if self.obstruct == "analytic":
-            kill(self._blocked_tube_side(o, d, t, beam_tan=beam_tan, d_py=d_uniform), ENTRANCE)
+            kill(self._blocked_tube_side(o, d, t, beam_tan=beam_tan), ENTRANCE)
         elif self.obstruct == "mesh":
             kill(self._blocked_mesh(o, d, t), ENTRANCE)
         opl += t
@@ -570,7 +568,7 @@ class SequentialTracer:
         return z_max, x_max
 
     def _blocked_tube_side(self, o, d, t_end, incoming: bool = True, z_max: float | None = None,
-                           x_max: float | None = None, beam_tan: float | None = None, d_py=None):
+                           x_max: float | None = None, beam_tan: float | None = None):
         """Mechanical parts inside the tube along a straight piece of ray: the tube front and the annular
         vanes (the ray's radius where it crosses each plane), the spider, the focuser bore where it
         reaches into the tube, and (``incoming``) the diagonal's body seen from the sky side.
@@ -579,16 +577,12 @@ class SequentialTracer:
         ``z_max`` or beyond ``x_max`` [mm] (:meth:`_return_leg_bounds`), and, for the incoming bundle of
         slope at most ``beam_tan`` (tan of the field angle) that reaches the unperturbed primary inside its
         rim, openings wider than the bundle where it crosses them (radius <= R + z beam_tan at height z):
-        the vanes are sized not to vignette the sensor's field, so within it they never stop a ray.
-        ``d_py``: the direction as three floats when every ray has it (a star's bundle): the reciprocals
-        and the parallel cases that depend on it alone are then found once, not per ray."""
+        the vanes are sized not to vignette the sensor's field, so within it they never stop a ray."""
         import drjit as dr
 
         L = self.layout
         blocked = dr.zeros(_Bool(), dr.width(o.x))
-        F = type(o.x)
-        # one division for every plane z = const on this piece
-        inv_dz = dr.opaque(F, 1.0 / d_py[2]) if d_py else 1.0 / d.z
+        inv_dz = 1.0 / d.z          # one division for every plane z = const on this piece
         z_max = math.inf if z_max is None else z_max
 
         def beam_inside(r_open, z):
@@ -602,15 +596,14 @@ class SequentialTracer:
             y = o.y + d.y * tz
             blocked |= (tz > 1e-9) & (tz < t_end) & (x * x + y * y > r * r)
         if incoming:
-            blocked |= self._hits_diagonal_body(o, d, t_end, inv_dz, d_py)
+            blocked |= self._hits_diagonal_body(o, d, t_end, inv_dz)
         if L.spider_z[0] <= z_max:
-            blocked |= self._blocked_spider(o, d, t_end, inv_dz, d_py)
+            blocked |= self._blocked_spider(o, d, t_end, inv_dz)
         x_in = L.focuser_start_x
         if x_in < L.r_tube and not beam_inside(x_in, L.z_axis + L.r_focuser) and not (
                 x_max is not None and x_max < x_in):
-            lo, hi = _cylinder_interval(o.y, o.z - L.z_axis, d.y, d.z, L.r_focuser,
-                                        a_py=d_py[1] ** 2 + d_py[2] ** 2 if d_py else None)
-            lo, hi = _slab(lo, hi, o.x, d.x, x_in, L.r_tube, cd_py=d_py[0] if d_py else None)
+            lo, hi = _cylinder_interval(o.y, o.z - L.z_axis, d.y, d.z, L.r_focuser)
+            lo, hi = _slab(lo, hi, o.x, d.x, x_in, L.r_tube)
             blocked |= _max(lo, 0.0) < _min(hi, t_end)
         return blocked
 
@@ -646,23 +639,23 @@ class SequentialTracer:
                 m = _min(m, dr.select((s > 0) & (s <= 1), L.r_focuser - dr.sqrt(y * y + z * z), 1e30))
         return m
 
-    def _hits_diagonal_body(self, o, d, t_end, inv_dz=None, d_py=None):
+    def _hits_diagonal_body(self, o, d, t_end, inv_dz=None):
         """The diagonal with its holder: inside the vertical cylinder r < b about the ellipse centre, above
         the mirror plane and below the holder's top cap (a closed solid, so any overlap blocks)."""
+        import drjit as dr
+
         L = self.layout
         cx, _, cz = L.diag_centre
-        lo, hi = _cylinder_interval(o.x - cx, o.y, d.x, d.y, L.diag_b,
-                                    a_py=d_py[0] ** 2 + d_py[1] ** 2 if d_py else None)
+        lo, hi = _cylinder_interval(o.x - cx, o.y, d.x, d.y, L.diag_b)
         # z <= holder_top
-        lo, hi = _clip_linear(lo, hi, o.z - L.holder_top, d_py[2] if d_py else d.z, upper=0.0, inv_b=inv_dz)
+        lo, hi = _clip_linear(lo, hi, o.z - L.holder_top, d.z, upper=0.0, inv_b=inv_dz)
         # above the plane: (z - cz) - (x - cx) >= 0
-        lo, hi = _clip_linear(lo, hi, -((o.z - cz) - (o.x - cx)), -(d_py[2] - d_py[0]) if d_py else -(d.z - d.x),
-                              upper=0.0)
+        lo, hi = _clip_linear(lo, hi, -((o.z - cz) - (o.x - cx)), -(d.z - d.x), upper=0.0)
         lo = _max(lo, 0.0)
         hi = _min(hi, t_end)
         return lo < hi
 
-    def _blocked_spider(self, o, d, t_end, inv_dz=None, d_py=None):
+    def _blocked_spider(self, o, d, t_end, inv_dz=None):
         """The spider's vanes: each a box, the intersection of three slabs (along the vane
         a = x ca + y sa in [0.9 b, R_tube], across it h = -x sa + y ca in +-w/2, and z in the vanes'
         depth); the z slab is the same for every vane and is found once."""
@@ -672,14 +665,13 @@ class SequentialTracer:
         blocked = dr.zeros(_Bool(), dr.width(o.x))
         z0, z1 = L.spider_z
         big = dr.zeros(type(o.x), dr.width(o.x)) + 1e30
-        lo_z, hi_z = _slab(-big, big, o.z, d.z, z0, z1, inv_dz, cd_py=d_py[2] if d_py else None)
+        lo_z, hi_z = _slab(-big, big, o.z, d.z, z0, z1, inv_dz)
         lo_z, hi_z = _max(lo_z, 0.0), _min(hi_z, t_end)
         for ang in L.spider_angles_deg:
             ca, sa = math.cos(math.radians(ang)), math.sin(math.radians(ang))
-            lo, hi = _slab(lo_z, hi_z, o.x * ca + o.y * sa, d.x * ca + d.y * sa, 0.9 * L.diag_b, L.r_tube,
-                           cd_py=d_py[0] * ca + d_py[1] * sa if d_py else None)
+            lo, hi = _slab(lo_z, hi_z, o.x * ca + o.y * sa, d.x * ca + d.y * sa, 0.9 * L.diag_b, L.r_tube)
             lo, hi = _slab(lo, hi, -o.x * sa + o.y * ca, -d.x * sa + d.y * ca, -L.spider_half_width,
-                           L.spider_half_width, cd_py=-d_py[0] * sa + d_py[1] * ca if d_py else None)
+                           L.spider_half_width)
             blocked |= lo < hi
         return blocked
 
@@ -825,16 +817,9 @@ def _refract(d, n, n1: float, n2: float, eta=None):
 
 
 def _clip_linear(lo, hi, a, b, upper: float = 0.0, inv_b=None):
-    """Intersect the t-interval [lo, hi] with {t : a + b t <= upper} (``inv_b``: 1 / b when known; ``b`` a
-    float when every ray has it: the parallel case and the side are then decided once)."""
+    """Intersect the t-interval [lo, hi] with {t : a + b t <= upper} (``inv_b``: 1 / b when known)."""
     import drjit as dr
 
-    if isinstance(b, float):
-        if abs(b) < 1e-15:
-            inside = a <= upper
-            return dr.select(inside, lo, 1e30), dr.select(inside, hi, -1e30)
-        t = (upper - a) * (inv_b if inv_b is not None else dr.opaque(type(a), 1.0 / b))
-        return (_max(lo, t), hi) if b < 0 else (lo, _min(hi, t))
     t = (upper - a) * inv_b if inv_b is not None else (upper - a) / b
     parallel = dr.abs(b) < 1e-15
     new_lo = dr.select(parallel, dr.select(a <= upper, lo, 1e30), dr.select(b < 0, _max(lo, t), lo))
@@ -842,21 +827,11 @@ def _clip_linear(lo, hi, a, b, upper: float = 0.0, inv_b=None):
     return new_lo, new_hi
 
 
-def _slab(lo, hi, c0, cd, c_lo: float, c_hi: float, inv=None, cd_py: float | None = None):
+def _slab(lo, hi, c0, cd, c_lo: float, c_hi: float, inv=None):
     """Intersect the t-interval [lo, hi] with the slab c_lo <= c0 + cd t <= c_hi (``inv``: 1 / cd when
-    known): the two half-spaces of :func:`_clip_linear` with one division. ``cd_py``: cd as a float when
-    every ray has it (the parallel case, the reciprocal and which end is near are then decided once)."""
+    known): the two half-spaces of :func:`_clip_linear` with one division."""
     import drjit as dr
 
-    if cd_py is not None:
-        if abs(cd_py) < 1e-15:
-            inside = (c0 >= c_lo) & (c0 <= c_hi)
-            return dr.select(inside, lo, 1e30), dr.select(inside, hi, -1e30)
-        inv = dr.opaque(type(c0), 1.0 / cd_py) if inv is None else inv
-        ta = (c_lo - c0) * inv
-        tb = (c_hi - c0) * inv
-        near, far = (ta, tb) if cd_py > 0 else (tb, ta)
-        return _max(lo, near), _min(hi, far)
     inv = 1.0 / cd if inv is None else inv
     ta = (c_lo - c0) * inv
     tb = (c_hi - c0) * inv
@@ -867,23 +842,13 @@ def _slab(lo, hi, c0, cd, c_lo: float, c_hi: float, inv=None, cd_py: float | Non
     return new_lo, new_hi
 
 
-def _cylinder_interval(qx, qy, dx, dy, r, a_py: float | None = None):
-    """t-interval where (qx + t dx)^2 + (qy + t dy)^2 <= r^2 (empty: lo > hi). ``a_py``: dx^2 + dy^2 as a
-    float when every ray has it (its reciprocal and the near-parallel case then decided once)."""
+def _cylinder_interval(qx, qy, dx, dy, r):
+    """t-interval where (qx + t dx)^2 + (qy + t dy)^2 <= r^2 (empty: lo > hi)."""
     import drjit as dr
 
+    A = dx * dx + dy * dy
     B = qx * dx + qy * dy
     C = qx * qx + qy * qy - r * r
-    if a_py is not None:
-        if a_py < 1e-18:
-            inside = C <= 0
-            return dr.select(inside, -1e30, 1e30), dr.select(inside, 1e30, -1e30)
-        disc = B * B - dr.opaque(type(qx), a_py) * C
-        root = dr.sqrt(_max(disc, 0.0))
-        inv_a = dr.opaque(type(qx), 1.0 / a_py)
-        miss = disc < 0
-        return dr.select(miss, 1e30, (-B - root) * inv_a), dr.select(miss, -1e30, (-B + root) * inv_a)
-    A = dx * dx + dy * dy
     disc = B * B - A * C
     root = dr.sqrt(_max(disc, 0.0))
     small = A < 1e-18
