@@ -258,6 +258,27 @@ class SequentialTracer:
             total += np.asarray(counts.numpy(), dtype=np.int64)
         return total
 
+    def loss_counts_fields(self, fields, px, py, wavelength_nm: float = 550.0, single: bool = False,
+                           sync_every: int = 16, progress=None) -> np.ndarray:
+        """:meth:`loss_counts` for many fields over the same pupil points (drjit arrays, e.g. from
+        :func:`pupil_uniform_dr`): ``counts[k, code]``. One compiled kernel per field adds into one counter
+        array (field k's eight counters at an opaque offset 8k: the same kernel for every field), and the
+        kernels are queued without waiting for each other; the process waits for them every ``sync_every``
+        fields (``progress(done)`` is then called) and once at the end."""
+        import drjit as dr
+        from drjit.llvm.ad import UInt32
+
+        counts = dr.zeros(UInt32, len(LOSS_NAMES) * len(fields))
+        for k, field in enumerate(fields):
+            res = self._trace_dr(field, px, py, wavelength_nm, single=single)
+            dr.scatter_add(counts, UInt32(1), res["lost"] + dr.opaque(UInt32, len(LOSS_NAMES) * k))
+            dr.eval(counts)
+            if (k + 1) % sync_every == 0 or k + 1 == len(fields):
+                dr.sync_thread()
+                if progress:
+                    progress(k + 1)
+        return np.asarray(counts.numpy(), dtype=np.int64).reshape(len(fields), len(LOSS_NAMES))
+
     def _trace_batch(self, field_deg, px, py, wavelength_nm):
         import drjit as dr
 

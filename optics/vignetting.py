@@ -13,7 +13,8 @@ Binomial error of each T: sqrt(T (1 - T) / N) (stratified sampling makes the tru
 Speed and precision. Every field point sees the same pupil points: drjit makes them once
 (:func:`optics.sequential.pupil_uniform_dr`, up to :data:`CHUNK` at a time) and keeps them in memory, and one
 float32 counting kernel per field traces them and adds each ray's loss code into eight counters; no ray
-crosses to numpy. float32 moves a ray's landing point by at most 0.3 um and changes the fate of a few rays per
+crosses to numpy, and the fields' kernels are queued without waiting for each other (the process waits once
+per row of the grid: :meth:`optics.sequential.SequentialTracer.loss_counts_fields`). float32 moves a ray's landing point by at most 0.3 um and changes the fate of a few rays per
 million that graze an edge: maps agree with the float64 kernel's to a few rays per field, a hundredth of the
 binomial error (module :mod:`optics.sequential`, "Precision"). docs/performance.md, "The sequential trace",
 has the profile and the speed against batoid.
@@ -121,14 +122,12 @@ def vignetting_map(tracer: SequentialTracer, grid: int | tuple[int, int] = 9, ra
     # and traced by one float32 counting kernel per field (module docstring, "Speed and precision")
     counts = np.zeros((len(fields), len(LOSS_NAMES)), dtype=np.int64)
     chunks = range(0, rays, CHUNK)
-    done, total = 0, nx * ny * len(chunks)
-    for start in chunks:
+    total = nx * ny * len(chunks)
+    for c, start in enumerate(chunks):
         px, py = pupil_uniform_dr(min(CHUNK, rays - start), L.r_primary, seed, single=SINGLE, start=start)
-        for k, field in enumerate(fields):
-            counts[k] += tracer.loss_counts(field, px, py, wavelength_nm, single=SINGLE)
-            if k and progress:
-                done += 1
-                progress(done, total)
+        report = (lambda k, c=c: progress(c * nx * ny + max(k - 1, 0), total)) if progress else None
+        counts += tracer.loss_counts_fields(fields, px, py, wavelength_nm, single=SINGLE, sync_every=nx,
+                                            progress=report)
         del px, py
     through = (counts[:, OK] + counts[:, DETECTOR_MISS]) / rays
     t_axis = through[0]

@@ -169,6 +169,28 @@ def test_float32_counting_kernel_agrees_with_float64(mi, name):
             assert np.abs(a[k].numpy()[ok] - b[k].numpy()[ok]).max() < 5e-4      # mm
 
 
+def test_fields_queued_in_one_kernel_count_as_one_by_one(mi):
+    """loss_counts_fields (the vignetting map's path: every field's kernel queued, one counter array) gives
+    each field's loss_counts, and fields on both sides of the axis and on it replay one compiled kernel."""
+    import drjit as dr
+
+    tr = SequentialTracer(load_design("art"), mi)
+    px, py = pupil_uniform_dr(20_000, tr.layout.r_primary, seed=2, single=True)
+    fields = [(0.0, 0.0), (-0.7, 0.4), (0.7, -0.4), (0.0, 1.1)]
+    tr.loss_counts_fields(fields[:1], px, py, single=True)          # compile
+    dr.set_flag(dr.JitFlag.KernelHistory, True)
+    try:
+        dr.kernel_history()
+        counts = tr.loss_counts_fields(fields, px, py, single=True, sync_every=3)
+        hashes = {k["hash"] for k in dr.kernel_history() if k["type"] == dr.KernelType.JIT}
+    finally:
+        dr.set_flag(dr.JitFlag.KernelHistory, False)
+    assert len(hashes) == 1
+    for f, c in zip(fields, counts):
+        assert np.array_equal(c, tr.loss_counts(f, px, py, single=True))
+    assert np.all(counts.sum(axis=1) == 20_000)
+
+
 def test_coated_and_uncoated_lens_surfaces(mi, bare):
     """Each glass-air surface transmits 1 - R_AR with its coating (0.5 % by default), or the Fresnel
     transmittance 1 - ((n - 1)/(n + 1))^2 of bare glass at (near-)normal incidence."""
