@@ -374,13 +374,15 @@ class SequentialTracer:
             d = A3(*[to_dr(d_np[:, i], single) for i in range(3)])
             dz_np = d_np[:, 2]
         z_rim = float(L.primary_sag(L.r_primary))
-        # the bundle's widest slope (for leaving out parts no live ray can reach, :meth:`_blocked_tube_side`)
+        # for leaving out parts no live ray can reach (:meth:`_blocked_tube_side`): a bound on the bundle's
+        # slope, the same for every field the sensor sees (its corner's), so that one compiled kernel
+        # serves them all; fields beyond it get every check
         nominal_primary = not any(k.startswith("primary") for k in [*pert, *dpar])
         beam_tan = None
-        if nominal_primary and fd.ndim == 1:
-            beam_tan = math.hypot(*(math.tan(math.radians(a)) for a in fd))
-        elif nominal_primary and len(fd):
-            beam_tan = float(np.max(np.hypot(*np.tan(np.radians(fd)).T)))
+        if nominal_primary and len(fd):
+            field_tan = np.max(np.hypot(*np.tan(np.radians(fd.reshape(-1, 2))).T))
+            sensor_tan = math.hypot(*L.detector_half) / L.focal_length * (1.0 + 1e-9)
+            beam_tan = sensor_tan if field_tan <= sensor_tan else None
         px = px if _is_dr(px) else to_dr(px, single)
         py = py if _is_dr(py) else to_dr(py, single)
         p_rim = A3(px, py, F(z_rim))
