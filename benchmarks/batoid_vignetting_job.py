@@ -27,11 +27,11 @@ import math
 import resource
 import sys
 import time
-import tomllib
 from pathlib import Path
 
 import batoid
 import numpy as np
+import tomllib
 
 ROOT = Path(__file__).resolve().parents[1]
 

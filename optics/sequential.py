@@ -665,7 +665,6 @@ class SequentialTracer:
     def _hits_diagonal_body(self, o, d, t_end, inv_dz=None):
         """The diagonal with its holder: inside the vertical cylinder r < b about the ellipse centre, above
         the mirror plane and below the holder's top cap (a closed solid, so any overlap blocks)."""
-        import drjit as dr
 
         L = self.layout
         cx, _, cz = L.diag_centre
@@ -741,7 +740,6 @@ class SequentialTracer:
 
     # -- mesh obstructions (Mitsuba BVH) -----------------------------------------------------------------
     def _blocked_mesh(self, o, d, t_end):
-        import drjit as dr
 
         mi = self.mi
         eps = 1e-3
