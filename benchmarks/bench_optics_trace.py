@@ -1,106 +1,147 @@
-"""Sequential ray-tracing speed: newtsim (drjit, llvm) against batoid on the same job, same run.
+"""Sequential ray-tracing speed: newtsim's vignetting map against batoid on the same rays, same run.
 
-Job (batoid's natural one): a collimated bundle at 0.5 deg off axis fills a 400 mm f/2.4 paraboloid
-(metres in batoid, millimetres in newtsim), reflects, and is carried to the focal plane; the positions come
-back as numpy arrays. newtsim does more on each ray than batoid here: it also folds the beam at the 45
-degree diagonal (with its elliptical outline) before the focal plane, in double precision. A second
-newtsim figure adds every mechanical obstruction (vanes, spider, diagonal body, focuser: the vignetting
-job), and a third the corrector's lenses of the `art` design when it has them.
+The job is `newtsim optics vignetting DESIGN --grid 9 --rays 2400000 --no-cache`: 82 field points (the axis
+and a 9 x 9 grid spanning the sensor) of 2.4 M pupil rays each, 196.8 M rays, every one traced through the
+primary, the diagonal, the corrector (when the design has one) and every mechanical obstruction, and counted
+by where it was lost. At that size tracing, not start-up, is timed (the map's own function,
+:func:`optics.vignetting.vignetting_map`, after a small warm-up map has compiled the kernels; no result
+cache is involved).
 
-Prints JSON. Run: python benchmarks/bench_optics_trace.py [--rays N] [--repeat R]
+The reference: batoid (its own environment, ``--batoid-python``, default ``$NEWTSIM_BATOID_PYTHON`` or
+/work/peerenv/batoid/bin/python) traces the same pupil points at the same 82 fields through the same
+telescope built from the design file (benchmarks/batoid_vignetting_job.py: primary, diagonal, lenses,
+detector plane, and the optical apertures counted; batoid has no mechanical obstructions, so newtsim does
+more work per ray). For the bare design also batoid's lightest job on the same rays, the previous
+benchmark's reference: the paraboloid alone to its focal plane (``batoid_paraboloid_bare``). Both sides
+report wall seconds and process CPU seconds (user + system over all threads);
+on a shared machine the CPU ratio is the steadier one.
+
+``--before ROOT`` (repeatable) also times a checkout of an older newtsim (e.g. ``git worktree add /tmp/old
+<commit>``) on the same job in the same run: the before/after table of docs/performance.md.
+
+Prints JSON. Run: python benchmarks/bench_optics_trace.py [--designs bare,art] [--grid 9] [--rays 2400000]
 """
 
 from __future__ import annotations
 
 import argparse
 import json
-import math
 import os
 import platform
+import subprocess
 import sys
-import time
+import tempfile
+from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, os.path.join(os.path.dirname(__file__), ".."))
+HERE = Path(__file__).resolve().parent
+ROOT = HERE.parent
+BATOID_PYTHON = os.environ.get("NEWTSIM_BATOID_PYTHON", "/work/peerenv/batoid/bin/python")
 
 
-def best_of(fn, repeat):
-    fn()  # warm-up: kernel compilation, caches
-    times = []
-    for _ in range(repeat):
-        t0 = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - t0)
-    return min(times), float(np.median(times))
+def worker(design: str, grid: int, rays: int) -> dict:
+    """Time one vignetting map in this process (the newtsim on ``sys.path``)."""
+    import resource
+    import time
+
+    from optics import load_design
+    from optics.llvm import init_mitsuba
+    from optics.sequential import SequentialTracer
+    from optics.vignetting import vignetting_map
+
+    def cpu():
+        r = resource.getrusage(resource.RUSAGE_SELF)
+        return r.ru_utime + r.ru_stime
+
+    tracer = SequentialTracer(load_design(design), init_mitsuba(), obstruct="analytic")
+    vignetting_map(tracer, 2, 1000, 550.0, 0)               # warm-up: compiles (or loads) the kernels
+    w0, c0 = time.perf_counter(), cpu()
+    res = vignetting_map(tracer, grid, rays, 550.0, 0)
+    wall, cpu_s = time.perf_counter() - w0, cpu() - c0
+    n = rays * (grid * grid + 1)
+    return {"seconds": round(wall, 4), "cpu_s": round(cpu_s, 4), "rays": n, "mrays_per_s": round(n / wall / 1e6, 2),
+            "on_axis_throughput": res.on_axis_throughput, "throughput": res.throughput.round(6).tolist(),
+            "peak_rss_gib": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2 ** 20, 3)}
 
 
-def batoid_job(px_mm, py_mm, field_deg, f_mm):
-    import batoid
+def run_worker(root: Path, design: str, grid: int, rays: int) -> dict:
+    env = {**os.environ, "PYTHONPATH": str(root)}
+    p = subprocess.run([sys.executable, str(HERE / "bench_optics_trace.py"), "--worker", design, "--grid", str(grid),
+                        "--rays", str(rays)], cwd=root, env=env, capture_output=True, text=True, check=False)
+    if p.returncode:
+        return {"error": p.stderr.strip()[-600:]}
+    return json.loads(p.stdout[p.stdout.find("{"):])
 
-    f = f_mm * 1e-3
-    mirror = batoid.Paraboloid(2 * f)
-    focal = batoid.Plane()
-    th = math.radians(field_deg)
-    vx, vz = -math.sin(th), -math.cos(th)
-    x0 = px_mm * 1e-3
-    y0 = py_mm * 1e-3
-    z0 = np.full_like(x0, 1.0)
 
-    def run():
-        rv = batoid.RayVector(x0 - vx * 0, y0, z0, np.full_like(x0, vx), np.zeros_like(x0), np.full_like(x0, vz),
-                              wavelength=550e-9)
-        mirror.reflect(rv)
-        focal.intersect(rv, coordSys=batoid.CoordSys(origin=[0, 0, f]))
-        return rv.x, rv.y
+def rays_file(design: str, grid: int, rays: int, tmp: str) -> str:
+    """The pupil points and fields of the map, as the vignetting map makes them, for batoid."""
+    from optics import load_design
+    from optics.layout import make_layout
+    from optics.llvm import init_mitsuba
+    from optics.sequential import pupil_uniform_dr
+    from optics.vignetting import map_fields
 
-    return run
+    init_mitsuba()
+    layout = make_layout(load_design(design))
+    fields = map_fields(layout, (grid, grid))[0]
+    px, py = pupil_uniform_dr(rays, layout.r_primary, 0, single=True)
+    path = os.path.join(tmp, f"rays_{design}.npz")
+    np.savez(path, px=px.numpy().astype(np.float64), py=py.numpy().astype(np.float64), fields=np.asarray(fields))
+    return path
+
+
+def run_batoid(design: str, path: str, job: str = "telescope") -> dict:
+    if not os.path.exists(BATOID_PYTHON):
+        return {"error": f"no batoid environment at {BATOID_PYTHON} (set NEWTSIM_BATOID_PYTHON)"}
+    p = subprocess.run([BATOID_PYTHON, str(HERE / "batoid_vignetting_job.py"), design, path, job], cwd=ROOT,
+                       capture_output=True, text=True, check=False)
+    if p.returncode:
+        return {"error": p.stderr.strip()[-600:]}
+    return json.loads(p.stdout[p.stdout.find("{"):])
 
 
 def main(argv=None):
     ap = argparse.ArgumentParser()
-    ap.add_argument("--rays", type=int, default=1 << 22)
-    ap.add_argument("--repeat", type=int, default=5)
+    ap.add_argument("--designs", default="bare,art")
+    ap.add_argument("--grid", type=int, default=9)
+    ap.add_argument("--rays", type=int, default=2_400_000, help="rays per field point")
+    ap.add_argument("--before", action="append", default=[], help="root of an older newtsim to time too")
+    ap.add_argument("--worker", default=None, help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
+    if args.worker:
+        print(json.dumps(worker(args.worker, args.grid, args.rays)))
+        return None
 
-    from optics import load_design
-    from optics.llvm import init_mitsuba
-    from optics.sequential import SequentialTracer, pupil_uniform
-
-    mi = init_mitsuba()
-    n = args.rays
-    px, py = pupil_uniform(n, 200.0, seed=0)
-    field = 0.5
-    out = {"rays": n, "field_deg": field, "cpus": os.cpu_count(), "machine": platform.machine()}
-
-    try:
-        run_b = batoid_job(px, py, field, 960.0)
-        xb, _ = run_b()
-        tb, tb_med = best_of(run_b, args.repeat)
-        out["batoid"] = {"seconds": round(tb, 4), "median_s": round(tb_med, 4), "mrays_per_s": round(n / tb / 1e6, 2),
-                         "version": __import__("batoid").__version__}
-    except ImportError:
-        out["batoid"] = {"error": "batoid not installed (pip install batoid)"}
-
-    bare = load_design("bare")
-    jobs = {"newtsim_folded_no_obstructions": SequentialTracer(bare, mi, obstruct="none"),
-            "newtsim_vignetting_job": SequentialTracer(bare, mi, obstruct="analytic")}
-    art = load_design("art")
-    if art.corrector.enabled:
-        jobs["newtsim_art_with_corrector"] = SequentialTracer(art, mi, obstruct="analytic")
-    for name, tr in jobs.items():
-        res = tr.trace((field, 0.0), px, py)
-        t, t_med = best_of(lambda tr=tr: tr.trace((field, 0.0), px, py), args.repeat)
-        tc, _ = best_of(lambda tr=tr: tr.count((field, 0.0), px, py), args.repeat)
-        out[name] = {"seconds": round(t, 4), "median_s": round(t_med, 4), "mrays_per_s": round(n / t / 1e6, 2),
-                     "count_only_mrays_per_s": round(n / tc / 1e6, 2), "reached_detector": round(float(res.ok.mean()), 4)}
-        if "batoid" in out and "seconds" in out["batoid"]:
-            out[name]["speed_vs_batoid"] = round(out["batoid"]["seconds"] / t, 2)
-    # agreement on the image position (same physics): mean u of newtsim vs batoid's mean x (mm)
-    if "seconds" in out.get("batoid", {}):
-        r = jobs["newtsim_folded_no_obstructions"].trace((field, 0.0), px, py)
-        out["centroid_check_mm"] = {"newtsim_u": round(float(r.u[r.ok].mean()), 5),
-                                    "batoid_x": round(float(np.mean(xb) * 1e3), 5)}
+    out = {"job": f"vignetting map, grid {args.grid} (+ axis), {args.rays} rays per field", "cpus": os.cpu_count(),
+           "machine": platform.machine(), "load_avg_1min": round(os.getloadavg()[0], 2)}
+    with tempfile.TemporaryDirectory() as tmp:
+        for design in args.designs.split(","):
+            path = rays_file(design, args.grid, args.rays, tmp)
+            b = run_batoid(design, path)
+            bp = run_batoid(design, path, "paraboloid") if design == "bare" else {}
+            runs = {"newtsim": run_worker(ROOT, design, args.grid, args.rays)}
+            for i, root in enumerate(args.before):
+                runs[f"before{i + 1}"] = run_worker(Path(root).resolve(), design, args.grid, args.rays)
+                runs[f"before{i + 1}"]["root"] = str(root)
+            for name, r in runs.items():
+                if "seconds" in r and "seconds" in b:
+                    r["speed_vs_batoid"] = round(b["seconds"] / r["seconds"], 2)
+                    r["cpu_speed_vs_batoid"] = round(b["cpu_s"] / r["cpu_s"], 2)
+                if "seconds" in r and "seconds" in bp:
+                    r["speed_vs_batoid_paraboloid"] = round(bp["seconds"] / r["seconds"], 2)
+                    r["cpu_speed_vs_batoid_paraboloid"] = round(bp["cpu_s"] / r["cpu_s"], 2)
+                key = f"newtsim_vignetting_{design}" if name == "newtsim" else f"{name}_vignetting_{design}"
+                out[key] = {k: v for k, v in r.items() if k != "throughput"}
+            if "throughput" in runs["newtsim"]:
+                ref = np.asarray(runs["newtsim"]["throughput"])
+                for name, r in runs.items():
+                    if name != "newtsim" and "throughput" in r:
+                        out[f"{name}_vignetting_{design}"]["max_abs_throughput_change"] = float(
+                            np.abs(np.asarray(r["throughput"]) - ref).max())
+            out[f"batoid_{design}"] = {k: v for k, v in b.items() if k != "through_optical_apertures"}
+            if bp:
+                out[f"batoid_paraboloid_{design}"] = {k: v for k, v in bp.items() if k != "through_optical_apertures"}
     print(json.dumps(out, indent=2))
     return out
 

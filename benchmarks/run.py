@@ -94,9 +94,20 @@ def x_sensor(j):
 
 
 def x_trace(j):
-    b = _g(j, "batoid", "seconds")
-    r = {f"{k}_over_batoid": _ratio(v["seconds"], b) for k, v in j.items() if k.startswith("newtsim_")}
-    return r, {}, {"batoid": b, **{k: v["seconds"] for k, v in j.items() if k.startswith("newtsim_")}}
+    # newtsim_vignetting_<design> against batoid_<design>: the same rays, so a time ratio is 1 / speed ratio
+    news = {k: v for k, v in j.items() if k.startswith("newtsim_vignetting_")}
+    r, mem, sec = {}, {}, {}
+    for k, v in news.items():
+        b = j.get("batoid_" + k.removeprefix("newtsim_vignetting_"), {})
+        r[f"{k}_over_batoid"] = _ratio(v.get("seconds"), b.get("seconds"))
+        r[f"{k}_cpu_over_batoid"] = _ratio(v.get("cpu_s"), b.get("cpu_s"))
+        bp = j.get("batoid_paraboloid_" + k.removeprefix("newtsim_vignetting_"))
+        if bp:
+            r[f"{k}_over_batoid_paraboloid"] = _ratio(v.get("seconds"), bp.get("seconds"))
+            r[f"{k}_cpu_over_batoid_paraboloid"] = _ratio(v.get("cpu_s"), bp.get("cpu_s"))
+        mem[k] = v.get("peak_rss_gib")
+        sec[k], sec["batoid_" + k.removeprefix("newtsim_vignetting_")] = v.get("seconds"), b.get("seconds")
+    return r, mem, sec
 
 
 def x_gradients(j):

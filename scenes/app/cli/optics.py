@@ -102,7 +102,7 @@ def vignetting(design, grid, rays, wavelength_nm, obstruct, json_out, plot_out, 
         plot_path = outs.file(plot_out, "--plot") if plot_out else None
         fits_path = outs.file(fits_out, "--fits") if fits_out else None
         d = _design(design)
-        settings = {"grid": grid, "rays": rays, "wavelength_nm": wavelength_nm, "obstruct": obstruct, "seed": seed}
+        settings = vig.cache_settings(grid, rays, wavelength_nm, obstruct, seed)
 
         def compute():
             tracer = SequentialTracer(d, _mitsuba(), obstruct=obstruct)
