@@ -1,0 +1,82 @@
+"""The trails' grouping (``Trails.from_samples``, ``Trails.concat``) gathers the samples once, in their final
+order: the same arrays as the plain formula it replaces (a stable sort of the samples by key, segments then
+stably sorted by their first row; docs/performance.md, "Third round")."""
+
+import numpy as np
+import pytest
+
+import scenes.image.signal as signal
+from scenes.image.signal import Trails
+
+FIELDS = ("x", "y", "e", "t_lo", "t_hi", "start", "w", "ylo", "yhi", "xlo", "xhi")
+
+
+def _plain(x, y, e, t_lo, t_hi, w, key) -> dict:
+    """Stable sort by key, segments' boxes, then the segments stably by ylo (the formula replaced)."""
+    o = np.argsort(key, kind="stable")
+    x, y, e, t_lo, t_hi, w, key = (a[o] for a in (x, y, e, t_lo, t_hi, w, key))
+    start = np.flatnonzero(np.r_[True, key[1:] != key[:-1]])
+    bounds = np.r_[start, x.size]
+    segs = []
+    for a, b in zip(bounds[:-1], bounds[1:]):
+        ws = int(w[a])
+        iy, ix = np.rint(y[a:b]).astype(np.int64), np.rint(x[a:b]).astype(np.int64)
+        segs.append((iy.min() - ws, a, b, ws, iy.max() + ws, ix.min() - ws, ix.max() + ws))
+    segs.sort(key=lambda s: s[0])  # list.sort is stable
+    return _assemble(segs, (x, y, e, t_lo, t_hi))
+
+
+def _assemble(segs, arrays) -> dict:
+    out = {k: np.concatenate([a[s[1]:s[2]] for s in segs]) for k, a in zip(FIELDS[:5], arrays)}
+    out["start"] = np.r_[0, np.cumsum([s[2] - s[1] for s in segs])]
+    for k, i in (("w", 3), ("ylo", 0), ("yhi", 4), ("xlo", 5), ("xhi", 6)):
+        out[k] = np.array([s[i] for s in segs], dtype=np.int64)
+    return out
+
+
+def _check(tr: Trails, expected: dict) -> None:
+    for k in FIELDS:
+        got = getattr(tr, k)
+        assert np.array_equal(got, expected[k]), k
+        assert got.dtype == np.asarray(expected[k]).dtype or k == "start", k
+
+
+def _samples(rng, n, runs: bool):
+    x, y = rng.uniform(-20, 300, n), rng.uniform(-20, 300, n)
+    e, t = rng.uniform(0, 5, n), rng.uniform(0, 1, n)
+    if runs:  # each key one contiguous run (a star's samples in time order), keys in any order
+        lens = rng.multinomial(n, np.ones(9) / 9)
+        lens = lens[lens > 0]
+        key = np.repeat(rng.permutation(2 * lens.size)[:lens.size], lens)
+        w = np.repeat(rng.integers(3, 9, lens.size), lens)
+    else:  # a key in several runs
+        key, w = rng.integers(0, 7, n), rng.integers(3, 9, n)
+    return x, y, e, t, t + 0.1, w, key
+
+
+@pytest.mark.parametrize("runs", [True, False])
+def test_from_samples_equals_the_sort_by_key_then_by_first_row(runs):
+    rng = np.random.default_rng(4 + runs)
+    for _ in range(40):
+        cols = _samples(rng, int(rng.integers(1, 300)), runs)
+        _check(Trails.from_samples(*cols), _plain(*cols))
+
+
+@pytest.mark.parametrize("pieces_max", [64, 0])
+def test_concat_equals_the_stable_merge_of_the_parts_segments(monkeypatch, pieces_max):
+    """Copied as slices (few pieces) or gathered (``CONCAT_PIECES_MAX`` = 0): the segments of all parts stably
+    sorted by ylo, each with its own samples."""
+    monkeypatch.setattr(signal, "CONCAT_PIECES_MAX", pieces_max)
+    rng = np.random.default_rng(9)
+    for _ in range(30):
+        parts = [Trails.from_samples(*_samples(rng, int(rng.integers(1, 200)), bool(rng.integers(2))))
+                 for _ in range(int(rng.integers(2, 5)))]
+        segs, arrays, off = [], [], 0
+        for p in parts:
+            for k in range(len(p)):
+                a, b = int(p.start[k]) + off, int(p.start[k + 1]) + off
+                segs.append((p.ylo[k], a, b, p.w[k], p.yhi[k], p.xlo[k], p.xhi[k]))
+            off += p.x.size
+        arrays = [np.concatenate([getattr(p, k) for p in parts]) for k in FIELDS[:5]]
+        segs.sort(key=lambda s: s[0])
+        _check(Trails.concat(parts), _assemble(segs, arrays))
