@@ -174,13 +174,15 @@ class Trails:
         order = np.argsort(run_key, kind="stable")
         if run.size > 1 and not np.all(run_key[order[1:]] != run_key[order[:-1]]):  # a key in two runs
             return cls._grouped(x, y, e, t_lo, t_hi, w, key)
-        ix, iy = np.rint(x).astype(np.int64), np.rint(y).astype(np.int64)
+        def pixel(a):  # rint is monotonic: the rounded extremes of a run are the extremes of its rounded values
+            return np.rint(a).astype(np.int64)
+
         ws = w[run].astype(np.int64)
-        ylo = np.minimum.reduceat(iy, run) - ws
+        ylo = pixel(np.minimum.reduceat(y, run)) - ws
         order = order[np.argsort(ylo[order], kind="stable")]  # by key, then stably by ylo (:meth:`sorted`)
         return cls._take_runs((x, y, e, t_lo, t_hi), np.r_[run, x.size].astype(np.int64), order, ws, ylo,
-                              np.maximum.reduceat(iy, run) + ws, np.minimum.reduceat(ix, run) - ws,
-                              np.maximum.reduceat(ix, run) + ws)
+                              pixel(np.maximum.reduceat(y, run)) + ws, pixel(np.minimum.reduceat(x, run)) - ws,
+                              pixel(np.maximum.reduceat(x, run)) + ws)
 
     @classmethod
     def _grouped(cls, x, y, e, t_lo, t_hi, w, key) -> Trails:
