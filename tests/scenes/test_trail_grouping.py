@@ -1,6 +1,7 @@
 """The trails' grouping (``Trails.from_samples``, ``Trails.concat``) gathers the samples once, in their final
 order: the same arrays as the plain formula it replaces (a stable sort of the samples by key, segments then
-stably sorted by their first row; docs/performance.md, "Third round")."""
+stably sorted by their first row); the stamps' pixel fractions are filled in one buffer: the same numbers as the
+concatenated edges (docs/performance.md, "Third round")."""
 
 import numpy as np
 import pytest
@@ -80,3 +81,22 @@ def test_concat_equals_the_stable_merge_of_the_parts_segments(monkeypatch, piece
         arrays = [np.concatenate([getattr(p, k) for p in parts]) for k in FIELDS[:5]]
         segs.sort(key=lambda s: s[0])
         _check(Trails.concat(parts), _assemble(segs, arrays))
+
+
+def test_stamp_fractions_from_one_buffer_equal_the_concatenated_edges():
+    """gaussian_pixel_fractions(stamp=True): Phi at the edges d - 1/2 and the last d + 1/2, scaled by 1/sigma,
+    differenced (eq. 52), bit for bit the formula with the concatenated edges."""
+    from scipy.special import ndtr
+
+    from scenes.image.psf import gaussian_pixel_fractions
+
+    rng = np.random.default_rng(1)
+    x = rng.uniform(-50.0, 5000.0, 500)
+    d = (np.rint(x)[:, None] + np.arange(-13, 14)) - x[:, None]
+    for sigma in (0.4, 1.314, 3.7):
+        edges = np.concatenate([d - 0.5, d[:, -1:] + 0.5], axis=1)
+        edges *= 1.0 / sigma
+        cdf = ndtr(edges)
+        expected = cdf[:, 1:] - cdf[:, :-1]
+        assert np.array_equal(gaussian_pixel_fractions(d, sigma, stamp=True), expected)
+        assert np.array_equal(gaussian_pixel_fractions(d, sigma), expected)  # the steps tested: the same path
