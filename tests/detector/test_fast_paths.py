@@ -171,3 +171,26 @@ def test_separable_vignetting_map_equals_fitpacks_grid_evaluation():
         assert got.shape == (vv.size, uu.size)
         tol = 0.0 if nu > SEPARABLE_MAP_COEFS + 4 else 1e-14
         assert np.max(np.abs(got - ref) / np.abs(ref)) <= tol
+
+
+def test_corner_glow_distance_from_exact_squares_equals_hypot_to_an_ulp_and_the_map_to_the_bit():
+    """A corner's distance sqrt(dy^2 + dx^2) of half-integer pixel centres (exact squares: the correctly rounded
+    distance) is within 1 ulp of libm's hypot, and the float32 glow (peak exp(-d / L)) of every corner of a
+    binned and an unbinned window is the hypot form's, bit for bit."""
+    from detector.effects.glow import _exact_squares, edge_rate
+
+    ys, xs = np.arange(0.0, 10640.0, 7.5), np.arange(0.5, 14192.0, 3.5)
+    assert _exact_squares(ys) and _exact_squares(xs) and not _exact_squares(np.array([0.25]))
+    d = np.sqrt(np.add.outer(ys * ys, xs * xs))
+    h = np.hypot(ys[:, None], xs[None, :])
+    assert np.max(np.abs(d - h) / np.spacing(h)) <= 1.0
+    for binning in (1, 2):
+        s = make_sensor("imx411", {"width": 1024, "height": 480, "binning": binning})
+        det = Detector(s, build_effects({}, s), workers=1)
+        t = det.tiles(1.0, 0)[0]
+        y, x = t.pixel_centres()
+        for corner in ("bottom-left", "bottom-right", "top-left", "top-right"):
+            fast, ref = (np.zeros(t.shape, np.float32) for _ in range(2))
+            edge_rate(y, x, s.sensor_height_px, s.sensor_width_px, corner, 5.0, 400.0, fast)
+            edge_rate(y, x, s.sensor_height_px, s.sensor_width_px, corner, 5.0, 400.0, ref, exact=False)
+            assert np.array_equal(fast, ref)
