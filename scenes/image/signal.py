@@ -265,6 +265,17 @@ class Trails:
         return Samples.concat([Samples(self.x, self.y, self.e, self.t_lo, self.t_hi, w)])
 
 
+def partly_exposed(t_lo, t_hi, row_first, row_last, row_time_s: float, exptime_s: float) -> np.ndarray:
+    """Indices of the samples whose interval ``[t_lo, t_hi]`` is not inside the exposure window of every row from
+    ``row_first`` to ``row_last`` (:func:`window_overlap`). For the others the overlap is the interval itself on
+    each of those rows, ``min(t_hi, t0 + T) - max(t_lo, t0) = t_hi - t_lo``, so the weight is exactly 1.0 (the
+    same subtraction over itself; ``t0`` grows with the row, in floating point too)."""
+    t0_first = np.asarray(row_first, dtype=float) * row_time_s
+    t0_last = np.asarray(row_last, dtype=float) * row_time_s
+    inside = (t_lo >= t0_last) & (t_hi <= t0_first + exptime_s) & (t_hi - t_lo > 0)
+    return np.flatnonzero(~inside)
+
+
 def render_trails(tr: Trails, psf, acc: np.ndarray, row0: int, col0: int, row_time_s: float = 0.0,
                   exptime_s: float = 0.0) -> None:
     """Add the segments reaching ``acc`` (rows row0.., cols col0..) as matrix products (separable PSF).
@@ -311,7 +322,10 @@ def _render_segments(tr: Trails, psf, acc: np.ndarray, row0: int, col0: int, ks:
     ex, ey = psf.factors(x, y, cols - x[:, None], rows - y[:, None], stamp=True)  # consecutive pixels
     ey = ey * tr.e[idx, None]
     if row_time_s > 0:
-        ey *= window_overlap(tr.t_lo[idx, None], tr.t_hi[idx, None], rows, row_time_s, exptime_s)
+        part = partly_exposed(tr.t_lo[idx], tr.t_hi[idx], rows[:, 0], rows[:, -1], row_time_s, exptime_s)
+        if part.size:  # the others' weights are exactly 1 on every row of their stamps
+            ey[part] *= window_overlap(tr.t_lo[idx[part], None], tr.t_hi[idx[part], None], rows[part], row_time_s,
+                                       exptime_s)
     r_lo = np.maximum(row0, tr.ylo[ks])
     r_hi = np.minimum(row0 + nrow, tr.yhi[ks] + 1)
     c_lo = np.maximum(col0, tr.xlo[ks])

@@ -3,10 +3,12 @@ order: the same arrays as the plain formula it replaces (a stable sort of the sa
 stably sorted by their first row); the stamps' pixel fractions are filled in one buffer: the same numbers as the
 concatenated edges (docs/performance.md, "Third round")."""
 
+from itertools import pairwise
+
 import numpy as np
 import pytest
 
-import scenes.image.signal as signal
+from scenes.image import signal
 from scenes.image.signal import Trails
 
 FIELDS = ("x", "y", "e", "t_lo", "t_hi", "start", "w", "ylo", "yhi", "xlo", "xhi")
@@ -19,7 +21,7 @@ def _plain(x, y, e, t_lo, t_hi, w, key) -> dict:
     start = np.flatnonzero(np.r_[True, key[1:] != key[:-1]])
     bounds = np.r_[start, x.size]
     segs = []
-    for a, b in zip(bounds[:-1], bounds[1:]):
+    for a, b in pairwise(bounds):
         ws = int(w[a])
         iy, ix = np.rint(y[a:b]).astype(np.int64), np.rint(x[a:b]).astype(np.int64)
         segs.append((iy.min() - ws, a, b, ws, iy.max() + ws, ix.min() - ws, ix.max() + ws))
@@ -100,3 +102,24 @@ def test_stamp_fractions_from_one_buffer_equal_the_concatenated_edges():
         expected = cdf[:, 1:] - cdf[:, :-1]
         assert np.array_equal(gaussian_pixel_fractions(d, sigma, stamp=True), expected)
         assert np.array_equal(gaussian_pixel_fractions(d, sigma), expected)  # the steps tested: the same path
+
+
+def test_samples_inside_every_rows_window_have_weights_of_exactly_one():
+    """partly_exposed names every sample whose rolling-shutter weights (window_overlap over its stamp's rows) are
+    not all exactly 1.0; the others' weights are 1.0 bit for bit, so their rows are left as they are."""
+    from scenes.image.motion import window_overlap
+    from scenes.image.signal import partly_exposed
+
+    rng = np.random.default_rng(3)
+    tau, T, w = 4.7e-5, 2.0, 13
+    for dt in (2.0 / 142, 1e-4, 0.3):
+        t = rng.uniform(-0.05, 2.6, 20_000)
+        t_lo, t_hi = t - dt / 2, t + dt / 2
+        rows = rng.integers(-20, 10_700, t.size)[:, None] + np.arange(-w, w + 1)
+        f = window_overlap(t_lo[:, None], t_hi[:, None], rows, tau, T)
+        part = partly_exposed(t_lo, t_hi, rows[:, 0], rows[:, -1], tau, T)
+        whole = np.setdiff1d(np.arange(t.size), part)
+        assert np.all(f[whole] == 1.0)
+        clearly_inside = (t_lo[part] > rows[part, -1] * tau + 1e-9) & (t_hi[part] < rows[part, 0] * tau + T - 1e-9)
+        assert not np.any(clearly_inside)  # only samples at a window's edge are weighted
+        assert 0 < part.size < t.size
