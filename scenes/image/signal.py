@@ -391,9 +391,8 @@ class SourceSignal:
         render_trails(self.trails, self.psf, acc, r0, c0, self.row_time_s, self.exptime_s)
         if self.extra is not None:
             acc += self.extra(y0, y1, x0, x1)
-        out = acc.astype(np.float32)
-        out += np.float32(self.background_e)
-        return out
+        # float32(acc) + float32(background) in one pass: the sum rounded from the rounded terms, as in two passes
+        return np.add(acc, np.float32(self.background_e), dtype=np.float32, casting="unsafe")
 
     def image(self, shape: tuple[int, int]) -> np.ndarray:
         """The whole read-out window (rows, cols) at once, float32 (for tests and small frames)."""

@@ -123,3 +123,21 @@ def test_samples_inside_every_rows_window_have_weights_of_exactly_one():
         clearly_inside = (t_lo[part] > rows[part, -1] * tau + 1e-9) & (t_hi[part] < rows[part, 0] * tau + T - 1e-9)
         assert not np.any(clearly_inside)  # only samples at a window's edge are weighted
         assert 0 < part.size < t.size
+
+
+def test_source_signal_tile_is_the_float32_sum_of_the_rounded_terms():
+    """SourceSignal's tile in one pass: float32(sources) + float32(background), bit for bit the two-pass form."""
+    from scenes.image.psf import GaussianPSF
+    from scenes.image.signal import Samples, SourceSignal, render_samples
+
+    rng = np.random.default_rng(8)
+    n = 300
+    inf = np.full(n, np.inf)
+    s = Samples.concat([Samples(rng.uniform(0, 200, n), rng.uniform(0, 120, n), rng.uniform(1, 1e5, n), -inf, inf,
+                                np.full(n, 7))])
+    for bg in (0.0, 46.7, 3.3e-3):
+        sig = SourceSignal(s, GaussianPSF(2.2), background_e=bg)
+        expected = render_samples(s, sig.psf, 0, 120, 0, 200).astype(np.float32)
+        expected += np.float32(bg)
+        got = sig(0, 120, 0, 200)
+        assert got.dtype == np.float32 and np.array_equal(got, expected)
