@@ -58,7 +58,8 @@ def standard_normal_f32(rng: np.random.Generator, shape) -> np.ndarray:
     ``ln(1 - u1)`` in float64, the rest in float32. Each block of :data:`NORMAL_BLOCK` deviates takes its
     first half from the cosines and its second half from the sines of the same radii and angles (a block of k
     deviates draws ceil(k / 2) of each uniform, u1's first); the deviates of a call are the blocks in C order.
-    Not the same numbers as ``rng.standard_normal``: same generator state, same deviates.
+    Not the same numbers as ``rng.standard_normal``: same generator state, same deviates (numpy's vectorised ln,
+    cos and sin: their last bit may depend on the CPU's instruction set).
     """
     out = np.empty(shape, dtype=np.float32)
     flat = out.reshape(-1)

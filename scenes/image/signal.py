@@ -174,6 +174,7 @@ class Trails:
         order = np.argsort(run_key, kind="stable")
         if run.size > 1 and not np.all(run_key[order[1:]] != run_key[order[:-1]]):  # a key in two runs
             return cls._grouped(x, y, e, t_lo, t_hi, w, key)
+
         def pixel(a):  # rint is monotonic: the rounded extremes of a run are the extremes of its rounded values
             return np.rint(a).astype(np.int64)
 
@@ -203,7 +204,7 @@ class Trails:
         lens = np.diff(bounds)[order]
         start = np.r_[0, np.cumsum(lens)].astype(np.int64)
         if np.array_equal(order, np.arange(order.size)):
-            cols = arrays
+            cols = tuple(np.array(a) for a in arrays)  # copies: the trails never share the caller's arrays
         else:
             idx = np.arange(int(start[-1])) + np.repeat(bounds[:-1][order] - start[:-1], lens)
             cols = tuple(a[idx] for a in arrays)
