@@ -36,7 +36,7 @@ import numpy as np
 
 from .effects.base import Effect, Stage, Tile
 from .errors import DetectorError
-from .rng import BAND_ROWS
+from .rng import BAND_ROWS, standard_normal_f32
 from .sensor import SensorConfig
 
 Signal = Union[float, np.ndarray, Callable[[int, int, int, int], np.ndarray]]
@@ -65,7 +65,7 @@ def shot_noise(rng: np.random.Generator, mean_e: np.ndarray) -> np.ndarray:
 def read_noise(rng: np.random.Generator, signal_e: np.ndarray, sigma_e: float) -> None:
     """Add zero-mean Gaussian read noise of ``sigma_e`` [e-] in place (eq. 33)."""
     if sigma_e > 0:
-        noise = rng.standard_normal(signal_e.shape, dtype=np.float32)
+        noise = standard_normal_f32(rng, signal_e.shape)
         noise *= np.float32(sigma_e)
         signal_e += noise
 

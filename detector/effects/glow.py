@@ -35,18 +35,32 @@ def bivariate_normal_rate(ys: np.ndarray, xs: np.ndarray, x0: float, y0: float, 
     out[r0:r1, c0:c1] += (peak * np.exp(-0.5 * q)).astype(np.float32)
 
 
+def _exact_squares(v: np.ndarray) -> bool:
+    """True when every value is a multiple of 1/2 of magnitude <= 2^24 (pixel centres, binned or not): its
+    square and the sum of two such squares are exact in float64 (<= 2^51 quarters), so ``sqrt(a^2 + b^2)`` is
+    the correctly rounded distance (libm's ``hypot`` is within 1 ulp of it: off by one ulp for ~0.6 % of an
+    IMX411 frame's half-integer pairs, docs/performance.md)."""
+    return bool(v.size == 0 or (np.max(np.abs(v)) <= 2.0 ** 24 and np.array_equal(2.0 * v, np.rint(2.0 * v))))
+
+
 def edge_rate(ys: np.ndarray, xs: np.ndarray, height: int, width: int, where: str, peak: float, scale_px: float,
-              out: np.ndarray) -> None:
+              out: np.ndarray, exact: bool | None = None) -> None:
     """Add ``peak exp(-d / L)`` [e-/s] with ``d`` the distance [px] to an edge or corner of the sensor.
 
     Evaluated in float64 and added as float32; along an edge the law depends on one coordinate, so it is
     evaluated once per row or column and broadcast; the operations run in place (the same values as the
-    whole-array expression, without its temporaries)."""
+    whole-array expression, without its temporaries). A corner's distance is ``sqrt(dy^2 + dx^2)`` when the
+    squares are exact (:func:`_exact_squares`, tested here unless ``exact`` says so), else ``hypot``."""
     dx = {"left": xs, "right": (width - 1) - xs}
     dy = {"bottom": ys, "top": (height - 1) - ys}
     parts = where.split("-")
     if len(parts) == 2:  # a corner: "bottom-left" ...
-        d = np.hypot(dy[parts[0]][:, None], dx[parts[1]][None, :])
+        a, b = np.asarray(dy[parts[0]], dtype=np.float64), np.asarray(dx[parts[1]], dtype=np.float64)
+        if exact if exact is not None else (_exact_squares(a) and _exact_squares(b)):  # correctly rounded
+            d = np.add.outer(a * a, b * b)
+            np.sqrt(d, out=d)
+        else:
+            d = np.hypot(a[:, None], b[None, :])
     elif where in dx:
         d = np.array(dx[where], dtype=np.float64)[None, :]
     else:
@@ -321,9 +335,10 @@ class AmpGlow(Effect):
         # the same values as rate_map(tile) * t added, without a tile-sized temporary
         ys, xs = tile.pixel_centres()
         step = max(1, EDGE_BLOCK_PIXELS // max(1, xs.size))
+        exact = _exact_squares(np.r_[ys, xs, ys - (s.sensor_height_px - 1), xs - (s.sensor_width_px - 1)])
         for r in range(0, ys.size, step):
             m = np.zeros((min(step, ys.size - r), xs.size), dtype=np.float32)
             edge_rate(ys[r:r + step], xs, s.sensor_height_px, s.sensor_width_px, p.edge, p.amplitude_e_per_s,
-                      p.scale_px, m)
+                      p.scale_px, m, exact)
             m *= t
             data[r:r + step] += m

@@ -62,6 +62,7 @@ import numpy as np
 from pydantic import Field, model_validator
 
 from ..errors import DetectorError
+from ..rng import standard_normal_f32
 from .base import Effect, EffectParams, Stage, Tile, register_effect
 
 
@@ -351,7 +352,7 @@ class NoiseMap(_MapEffect):
         return self.variance_on_tile(tile)
 
     def apply(self, stage: Stage, tile: Tile, data: np.ndarray) -> None:
-        n = tile.rng(self.name).standard_normal(data.shape, dtype=np.float32)
+        n = standard_normal_f32(tile.rng(self.name), data.shape)
         n *= np.sqrt(self.variance_on_tile(tile))
         data += n
 

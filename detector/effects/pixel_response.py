@@ -17,6 +17,7 @@ from typing import Literal
 import numpy as np
 from pydantic import Field, model_validator
 
+from ..rng import standard_normal_f32
 from ..signatures import (
     DEFECT_K,
     GroupSignature,
@@ -37,7 +38,7 @@ from .common import hardware_positions, in_tile, output_xy, roi_mask
 
 def prnu_map(rng: np.random.Generator, shape: tuple[int, int], sigma: float) -> np.ndarray:
     """Photo-response map with mean 1 and spatial std ``sigma`` (EMVA 1288 PRNU), clipped at 0 [1]."""
-    m = rng.standard_normal(shape, dtype=np.float32)
+    m = standard_normal_f32(rng, shape)
     m *= np.float32(sigma)
     m += np.float32(1.0)
     np.maximum(m, 0, out=m)
@@ -50,7 +51,7 @@ def dsnu_map(rng: np.random.Generator, shape: tuple[int, int], sigma: float, law
     ``lognormal`` (default) keeps every pixel's dark current positive and gives the skewed tail measured
     on real sensors (Janesick 2007, ch. 7); ``normal`` is the EMVA 1288 Gaussian approximation.
     """
-    z = rng.standard_normal(shape, dtype=np.float32)
+    z = standard_normal_f32(rng, shape)
     if law == "normal":
         z *= np.float32(sigma)
         z += np.float32(1.0)

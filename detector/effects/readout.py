@@ -20,6 +20,7 @@ import numpy as np
 from pydantic import Field
 from scipy.ndimage import binary_dilation
 
+from ..rng import standard_normal_f32
 from ..signatures import (
     Fit,
     LinearSignature,
@@ -853,7 +854,7 @@ class ResetNoise(Effect):
     def apply(self, stage: Stage, tile: Tile, data: np.ndarray) -> None:
         sigma = self.sigma_e()
         if sigma:
-            n = tile.rng(self.name).standard_normal(data.shape, dtype=np.float32)
+            n = standard_normal_f32(tile.rng(self.name), data.shape)
             n *= np.float32(sigma)
             data += n
 

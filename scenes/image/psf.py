@@ -128,11 +128,13 @@ def gaussian_pixel_fractions(d, sigma: float, stamp: bool = False):
     else:
         step = d[:, 1:] - d[:, :-1] if d.ndim == 2 and d.shape[1] > 1 and d.size else None
         consecutive = step is not None and step.min() >= 1.0 - 1e-9 and step.max() <= 1.0 + 1e-9
-    if consecutive:
-        edges = np.concatenate([d - 0.5, d[:, -1:] + 0.5], axis=1)
-        edges *= 1.0 / sigma
-        cdf = ndtr(edges)
-        return cdf[:, 1:] - cdf[:, :-1]
+    if consecutive:  # edges d - 1/2 and the last d + 1/2, scaled, their CDF and its differences: one buffer
+        cdf = np.empty((d.shape[0], d.shape[1] + 1))
+        np.add(d[:, -1], 0.5, out=cdf[:, -1])
+        np.subtract(d, 0.5, out=cdf[:, :-1])
+        cdf *= 1.0 / sigma
+        ndtr(cdf, out=cdf)
+        return np.subtract(cdf[:, 1:], cdf[:, :-1])
     return normal_interval_mass((d - 0.5) / sigma, (d + 0.5) / sigma)
 
 

@@ -38,6 +38,8 @@ from .motion import window_overlap
 
 CHUNK_ELEMENTS = 1 << 21  # stamp pixels per vectorised chunk (memory ~ 16 bytes each, a few x)
 TRAIL_CHUNK_ELEMENTS = 1 << 19  # trail samples x box width per chunk (~4 MB matrices: cache-friendlier)
+#: Trails.concat copies the samples as slices when its merge leaves at most this many pieces, else gathers them
+CONCAT_PIECES_MAX = 64
 
 
 @dataclass
@@ -158,10 +160,34 @@ class Trails:
 
     @classmethod
     def from_samples(cls, x, y, e, t_lo, t_hi, w, key) -> Trails:
-        """Group samples by ``key`` (source x segment number; stable: the input order is kept inside)."""
+        """Group samples by ``key`` (source x segment number; stable: the input order is kept inside), segments
+        in increasing ``ylo`` (stable in ``key``).
+
+        When each key's samples are one contiguous run of the input (a star's samples in time order), the stable
+        sort by key only reorders the runs: the segments are measured on the input as it is and the samples
+        gathered once, in their final order (:meth:`_grouped`: the same arrays as the sort)."""
         x, y, e, t_lo, t_hi, w, key = (np.ravel(a) for a in (x, y, e, t_lo, t_hi, w, key))
         if x.size == 0:
             return cls.empty()
+        run = np.flatnonzero(np.r_[True, key[1:] != key[:-1]])
+        run_key = key[run]
+        order = np.argsort(run_key, kind="stable")
+        if run.size > 1 and not np.all(run_key[order[1:]] != run_key[order[:-1]]):  # a key in two runs
+            return cls._grouped(x, y, e, t_lo, t_hi, w, key)
+
+        def pixel(a):  # rint is monotonic: the rounded extremes of a run are the extremes of its rounded values
+            return np.rint(a).astype(np.int64)
+
+        ws = w[run].astype(np.int64)
+        ylo = pixel(np.minimum.reduceat(y, run)) - ws
+        order = order[np.argsort(ylo[order], kind="stable")]  # by key, then stably by ylo (:meth:`sorted`)
+        return cls._take_runs((x, y, e, t_lo, t_hi), np.r_[run, x.size].astype(np.int64), order, ws, ylo,
+                              pixel(np.maximum.reduceat(y, run)) + ws, pixel(np.minimum.reduceat(x, run)) - ws,
+                              pixel(np.maximum.reduceat(x, run)) + ws)
+
+    @classmethod
+    def _grouped(cls, x, y, e, t_lo, t_hi, w, key) -> Trails:
+        """:meth:`from_samples` for any key order: a stable sort of the samples by key, then :meth:`sorted`."""
         order = np.argsort(key, kind="stable")
         x, y, e, t_lo, t_hi, w, key = (a[order] for a in (x, y, e, t_lo, t_hi, w, key))
         start = np.flatnonzero(np.r_[True, key[1:] != key[:-1]])
@@ -173,28 +199,59 @@ class Trails:
         return seg.sorted()
 
     @classmethod
+    def _take_runs(cls, arrays, bounds, order, w, ylo, yhi, xlo, xhi) -> Trails:
+        """Segments ``order`` (of runs ``bounds[k]:bounds[k + 1]`` of ``arrays``), their samples gathered once."""
+        lens = np.diff(bounds)[order]
+        start = np.r_[0, np.cumsum(lens)].astype(np.int64)
+        if np.array_equal(order, np.arange(order.size)):
+            cols = tuple(np.array(a) for a in arrays)  # copies: the trails never share the caller's arrays
+        else:
+            idx = np.arange(int(start[-1])) + np.repeat(bounds[:-1][order] - start[:-1], lens)
+            cols = tuple(a[idx] for a in arrays)
+        return cls(*cols, start, w[order], ylo[order], yhi[order], xlo[order], xhi[order])
+
+    @classmethod
     def concat(cls, parts: list[Trails]) -> Trails:
+        """The parts' segments in one set, in increasing ``ylo`` (stable in the parts' order). Runs of segments
+        that stay consecutive (a part merged with a few segments of another) are copied as slices."""
         parts = [p for p in parts if len(p)]
         if not parts:
             return cls.empty()
         if len(parts) == 1:
             return parts[0]
         offs = np.cumsum([0] + [p.x.size for p in parts])
-        cat = {k: np.concatenate([getattr(p, k) for p in parts]) for k in ("x", "y", "e", "t_lo", "t_hi", "w", "ylo",
-                                                                             "yhi", "xlo", "xhi")}
-        start = np.concatenate([p.start[:-1] + o for p, o in zip(parts, offs)] + [offs[-1:]])
-        return cls(start=start, **cat).sorted()
+        seg = {k: np.concatenate([getattr(p, k) for p in parts]) for k in ("w", "ylo", "yhi", "xlo", "xhi")}
+        bounds = np.concatenate([p.start[:-1] + o for p, o in zip(parts, offs)] + [offs[-1:]])
+        order = np.argsort(seg["ylo"], kind="stable")
+        # pieces of consecutive samples of one part: cut where the next segment is not the next one of its part
+        part = np.repeat(np.arange(len(parts)), [len(p) for p in parts])
+        cut = np.flatnonzero((order[1:] != order[:-1] + 1) | (part[order[1:]] != part[order[:-1]])) + 1
+        if cut.size > CONCAT_PIECES_MAX:
+            cat = {k: np.concatenate([getattr(p, k) for p in parts]) for k in ("x", "y", "e", "t_lo", "t_hi")}
+            return cls._take_runs(tuple(cat.values()), bounds, order, seg["w"], seg["ylo"], seg["yhi"], seg["xlo"],
+                                  seg["xhi"])
+        first, last = order[np.r_[0, cut]], order[np.r_[cut - 1, order.size - 1]]
+        lo, hi = bounds[first], bounds[last + 1]  # each piece: samples lo:hi of the concatenation
+        part_of = part[first]
+        cols = []
+        for k in ("x", "y", "e", "t_lo", "t_hi"):
+            out = np.empty(int(offs[-1]), dtype=np.result_type(*[getattr(p, k) for p in parts]))
+            pos = 0
+            for a, b, j in zip(lo, hi, part_of):
+                out[pos:pos + b - a] = getattr(parts[j], k)[a - offs[j]:b - offs[j]]
+                pos += b - a
+            cols.append(out)
+        lens = np.diff(bounds)[order]
+        start = np.r_[0, np.cumsum(lens)].astype(np.int64)
+        return cls(*cols, start, *(seg[k][order] for k in ("w", "ylo", "yhi", "xlo", "xhi")))
 
     def sorted(self) -> Trails:
         """Segments in increasing ``ylo`` (samples reordered accordingly)."""
         order = np.argsort(self.ylo, kind="stable")
         if np.all(order == np.arange(order.size)):
             return self
-        lens = np.diff(self.start)[order]
-        start = np.r_[0, np.cumsum(lens)].astype(np.int64)
-        idx = np.arange(int(start[-1])) + np.repeat(self.start[:-1][order] - start[:-1], lens)
-        return Trails(self.x[idx], self.y[idx], self.e[idx], self.t_lo[idx], self.t_hi[idx], start, self.w[order],
-                      self.ylo[order], self.yhi[order], self.xlo[order], self.xhi[order])
+        return Trails._take_runs((self.x, self.y, self.e, self.t_lo, self.t_hi), self.start, order, self.w, self.ylo,
+                                 self.yhi, self.xlo, self.xhi)
 
     def __len__(self) -> int:
         return int(self.w.size)
@@ -207,6 +264,17 @@ class Trails:
         """The samples as independent points (for a PSF without a separable form)."""
         w = np.repeat(self.w, np.diff(self.start))
         return Samples.concat([Samples(self.x, self.y, self.e, self.t_lo, self.t_hi, w)])
+
+
+def partly_exposed(t_lo, t_hi, row_first, row_last, row_time_s: float, exptime_s: float) -> np.ndarray:
+    """Indices of the samples whose interval ``[t_lo, t_hi]`` is not inside the exposure window of every row from
+    ``row_first`` to ``row_last`` (:func:`window_overlap`). For the others the overlap is the interval itself on
+    each of those rows, ``min(t_hi, t0 + T) - max(t_lo, t0) = t_hi - t_lo``, so the weight is exactly 1.0 (the
+    same subtraction over itself; ``t0`` grows with the row, in floating point too)."""
+    t0_first = np.asarray(row_first, dtype=float) * row_time_s
+    t0_last = np.asarray(row_last, dtype=float) * row_time_s
+    inside = (t_lo >= t0_last) & (t_hi <= t0_first + exptime_s) & (t_hi - t_lo > 0)
+    return np.flatnonzero(~inside)
 
 
 def render_trails(tr: Trails, psf, acc: np.ndarray, row0: int, col0: int, row_time_s: float = 0.0,
@@ -255,7 +323,10 @@ def _render_segments(tr: Trails, psf, acc: np.ndarray, row0: int, col0: int, ks:
     ex, ey = psf.factors(x, y, cols - x[:, None], rows - y[:, None], stamp=True)  # consecutive pixels
     ey = ey * tr.e[idx, None]
     if row_time_s > 0:
-        ey *= window_overlap(tr.t_lo[idx, None], tr.t_hi[idx, None], rows, row_time_s, exptime_s)
+        part = partly_exposed(tr.t_lo[idx], tr.t_hi[idx], rows[:, 0], rows[:, -1], row_time_s, exptime_s)
+        if part.size:  # the others' weights are exactly 1 on every row of their stamps
+            ey[part] *= window_overlap(tr.t_lo[idx[part], None], tr.t_hi[idx[part], None], rows[part], row_time_s,
+                                       exptime_s)
     r_lo = np.maximum(row0, tr.ylo[ks])
     r_hi = np.minimum(row0 + nrow, tr.yhi[ks] + 1)
     c_lo = np.maximum(col0, tr.xlo[ks])
@@ -321,9 +392,8 @@ class SourceSignal:
         render_trails(self.trails, self.psf, acc, r0, c0, self.row_time_s, self.exptime_s)
         if self.extra is not None:
             acc += self.extra(y0, y1, x0, x1)
-        out = acc.astype(np.float32)
-        out += np.float32(self.background_e)
-        return out
+        # float32(acc) + float32(background) in one pass: the sum rounded from the rounded terms, as in two passes
+        return np.add(acc, np.float32(self.background_e), dtype=np.float32, casting="unsafe")
 
     def image(self, shape: tuple[int, int]) -> np.ndarray:
         """The whole read-out window (rows, cols) at once, float32 (for tests and small frames)."""

@@ -93,3 +93,104 @@ def test_a_finished_tile_releases_its_hardware_maps():
     t.release()
     m2 = t.hardware_map("prnu", draw)
     assert m2 is not m1 and np.array_equal(m1, m2)  # drawn again from the hardware seed: the same map
+
+
+def _box_muller_reference(seed: int, n: int, block: int) -> np.ndarray:
+    """The Box-Muller transform written out deviate by deviate block (float64 throughout, then rounded)."""
+    rng = np.random.default_rng(seed)
+    out = []
+    for i in range(0, n, block):
+        k = min(block, n - i)
+        h = (k + 1) // 2
+        u1 = rng.random(h)
+        u2 = rng.random(h, dtype=np.float32).astype(np.float64)
+        r = np.sqrt(-2.0 * np.log(1.0 - u1))
+        theta = 2.0 * np.pi * u2
+        out += [r * np.cos(theta), (r * np.sin(theta))[:k - h]]
+    return np.concatenate(out)
+
+
+def test_box_muller_normals_are_the_transform_of_the_generators_uniforms():
+    """standard_normal_f32 is r cos(2 pi u2), r sin(2 pi u2), r = sqrt(-2 ln(1 - u1)) (Box & Muller 1958) of
+    the generator's uniforms, to float32 rounding and the float32 trigonometry's few ulps; an odd count and a
+    partial last block included; the same state gives the same deviates."""
+    from detector.rng import NORMAL_BLOCK, standard_normal_f32
+
+    n = 2 * NORMAL_BLOCK + 1001
+    got = standard_normal_f32(np.random.default_rng(11), (n,))
+    assert got.dtype == np.float32 and got.shape == (n,)
+    ref = _box_muller_reference(11, n, NORMAL_BLOCK)
+    assert np.max(np.abs(got - ref)) < 3e-6  # |z| <= 5.5 here: a few float32 ulps of r plus the angle's rounding
+    assert np.array_equal(standard_normal_f32(np.random.default_rng(11), (n,)), got)
+    two_d = standard_normal_f32(np.random.default_rng(11), (3, 7))
+    assert np.array_equal(two_d.ravel(), standard_normal_f32(np.random.default_rng(11), (21,)))
+
+
+def test_box_muller_normals_are_standard_normal():
+    """Moments and quantiles of 2e6 deviates against N(0, 1): mean, variance, skewness, excess kurtosis within
+    5 standard errors, the two-sided tail beyond 3 and 4 sigma within 5 binomial errors, and no two
+    deviates of a block's cosine and sine halves correlated (r cos, r sin are independent)."""
+    from scipy.special import ndtr
+
+    from detector.rng import NORMAL_BLOCK, standard_normal_f32
+
+    n = 2_000_000
+    z = standard_normal_f32(np.random.default_rng(5), (n,)).astype(np.float64)
+    se = 1.0 / np.sqrt(n)
+    assert abs(z.mean()) < 5 * se
+    assert abs(z.var() - 1.0) < 5 * np.sqrt(2.0) * se
+    assert abs(np.mean(z ** 3)) < 5 * np.sqrt(15.0) * se
+    assert abs(np.mean(z ** 4) - 3.0) < 5 * np.sqrt(96.0) * se
+    for k in (1.0, 2.0, 3.0, 4.0):
+        p = 2.0 * ndtr(-k)
+        assert abs(np.mean(np.abs(z) > k) - p) < 5 * np.sqrt(p * (1 - p) / n)
+    h = NORMAL_BLOCK // 2
+    blocks = z[: (n // NORMAL_BLOCK) * NORMAL_BLOCK].reshape(-1, NORMAL_BLOCK)
+    c, s = blocks[:, :h].ravel(), blocks[:, h:].ravel()
+    assert abs(np.corrcoef(c, s)[0, 1]) < 5 / np.sqrt(c.size)
+    assert abs(np.corrcoef(c ** 2, s ** 2)[0, 1]) < 5 / np.sqrt(c.size)
+
+
+def test_separable_vignetting_map_equals_fitpacks_grid_evaluation():
+    """The map's tensor-product spline as two design-matrix products equals RectBivariateSpline's grid
+    evaluation (bicubic and linear axes, points beyond the map held at its edge) to 1e-14 relative; a map
+    finer than SEPARABLE_MAP_COEFS keeps fitpack's evaluation (the same callable's numbers exactly)."""
+    from scipy.interpolate import RectBivariateSpline
+
+    from detector.effects.optical import SEPARABLE_MAP_COEFS, map_interpolator
+
+    rng = np.random.default_rng(2)
+    for nv, nu in ((9, 9), (3, 12), (12, 2), (5, SEPARABLE_MAP_COEFS + 8)):
+        v, u = np.linspace(-15.0, 15.0, nv), np.linspace(-20.0, 20.0, nu)
+        ri = 1.0 - 0.002 * (u[None, :] ** 2 + v[:, None] ** 2) / 4 + 0.01 * rng.random((nv, nu))
+        f = map_interpolator(u, v, ri)
+        vv, uu = np.linspace(-17.0, 16.0, 37), np.linspace(-21.0, 23.0, 301)
+        kv, ku = (3 if nv >= 4 else 1), (3 if nu >= 4 else 1)
+        ref = RectBivariateSpline(v, u, ri, kx=kv, ky=ku)(np.clip(vv, v[0], v[-1]), np.clip(uu, u[0], u[-1]))
+        got = f(vv, uu)
+        assert got.shape == (vv.size, uu.size)
+        tol = 0.0 if nu > SEPARABLE_MAP_COEFS + 4 else 1e-14
+        assert np.max(np.abs(got - ref) / np.abs(ref)) <= tol
+
+
+def test_corner_glow_distance_from_exact_squares_equals_hypot_to_an_ulp_and_the_map_to_the_bit():
+    """A corner's distance sqrt(dy^2 + dx^2) of half-integer pixel centres (exact squares: the correctly rounded
+    distance) is within 1 ulp of libm's hypot, and the float32 glow (peak exp(-d / L)) of every corner of a
+    binned and an unbinned window is the hypot form's, bit for bit."""
+    from detector.effects.glow import _exact_squares, edge_rate
+
+    ys, xs = np.arange(0.0, 10640.0, 7.5), np.arange(0.5, 14192.0, 3.5)
+    assert _exact_squares(ys) and _exact_squares(xs) and not _exact_squares(np.array([0.25]))
+    d = np.sqrt(np.add.outer(ys * ys, xs * xs))
+    h = np.hypot(ys[:, None], xs[None, :])
+    assert np.max(np.abs(d - h) / np.spacing(h)) <= 1.0
+    for binning in (1, 2):
+        s = make_sensor("imx411", {"width": 1024, "height": 480, "binning": binning})
+        det = Detector(s, build_effects({}, s), workers=1)
+        t = det.tiles(1.0, 0)[0]
+        y, x = t.pixel_centres()
+        for corner in ("bottom-left", "bottom-right", "top-left", "top-right"):
+            fast, ref = (np.zeros(t.shape, np.float32) for _ in range(2))
+            edge_rate(y, x, s.sensor_height_px, s.sensor_width_px, corner, 5.0, 400.0, fast)
+            edge_rate(y, x, s.sensor_height_px, s.sensor_width_px, corner, 5.0, 400.0, ref, exact=False)
+            assert np.array_equal(fast, ref)
