@@ -16,6 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from detector.errors import DetectorError
+from detector.effects.image_plane import displaced_halo_transfer
 from scenes.measured import parse_section, read_hdu
 
 from . import calib
@@ -362,8 +363,6 @@ def init_scene(frame: str, scene_name: str = "scene", *, bias=(), dark=(), flat=
         halo_info = starmod.fit_psf_halo(sdata, bkg, phot, fwhm_px, min(beta, 1000.0), cov_px2, rms, gain=gain,
                                          saturation=sat_px, mask=mask)
     if halo_info is not None and halo_info["kept"]:
-        from detector.effects.image_plane import displaced_halo_transfer
-
         halo = (halo_info["halo_frac"], halo_info["halo_sigma_px"], halo_info["halo_dx_px"], halo_info["halo_dy_px"])
         phot = starmod.photometry(sdata, bkg, cols, fwhm_px, min(beta, 1000.0), sat_px, rms, keep=~sharp,
                                   gain=gain, cov_px2=cov_px2, extra=displaced_halo_transfer(*halo))
@@ -371,8 +370,13 @@ def init_scene(frame: str, scene_name: str = "scene", *, bias=(), dark=(), flat=
                      f"{halo[1]:.2f} px rms centred ({halo[2]:+.2f}, {halo[3]:+.2f}) px from its core (the frame's "
                      f"chi2 {halo_info['chi2_without_halo']:.0f} -> {halo_info['chi2_with_halo']:.0f}): the flare of a "
                      "fast lens off its axis; in the scene as effects.psf_elongation's halo")
-    # ---- sky
-    sky_adu = float(np.median(bkg[~mask])) if (~mask).any() else float(np.median(bkg))
+    # ---- sky: the background of the frame without the scene's own stars (their wings and halos are the stars')
+    sky_map = bkg
+    if phot is not None and phot["x"].size and psf.get("ok"):
+        sky_map = starmod.sky_without_stars(sdata, phot, fwhm_px, min(beta, 1000.0), cov_px2,
+                                            None if halo is None else displaced_halo_transfer(*halo),
+                                            mask=mask | (data >= sat_cut))
+    sky_adu = float(np.median(sky_map[~mask])) if (~mask).any() else float(np.median(sky_map))
     sky_e_s = max((sky_adu - bias) * gain / max(t, 1e-9) - float(dark_e_v.value), 0.0)
     # ---- the scene
     preset = "ml11002" if kind == "ccd" else "imx411"
@@ -507,8 +511,9 @@ def init_scene(frame: str, scene_name: str = "scene", *, bias=(), dark=(), flat=
             scene["exposure"]["time_s"] = 0.0
     else:
         scene["sky"] = {"background_mag_arcsec2": None, "stars": True, "star_seed": 0}
-        sources["sky.background_mag_arcsec2"] = (f"measured: background {sky_adu:.2f} ADU (photutils Background2D) above "
-                                                 f"the bias, through the scene's band")
+        sources["sky.background_mag_arcsec2"] = (f"measured: background {sky_adu:.2f} ADU (photutils Background2D"
+                                                 + (" of the frame less the scene's stars" if sky_map is not bkg else "")
+                                                 + ") above the bias, through the scene's band")
     cat_info = {}
     if scene["sky"].get("stars"):
         cat_info = _catalogue(catalog, scene, band, phot, cols, fwhm_px, drop, data.shape, gain, t, geom, header,

@@ -294,6 +294,27 @@ def _psf_and_grad(gx, gy, cx, cy, alpha: float, beta: float, sub: int, cov: np.n
 FILTER_CHUNK = 400
 
 
+#: the half-width [px] of the stars' models subtracted before the sky is measured (their wings beyond it fall
+#: below the sky's noise for all but the brightest; a saturated star's reach, SATURATED_MAX_RADIUS_PX, the same)
+SKY_STAR_RADIUS_PX = 40
+
+
+def sky_without_stars(data, phot: dict, fwhm_px: float, beta: float, cov: np.ndarray | None, extra=None,
+                      mask: np.ndarray | None = None):
+    """The frame's background (photutils ``Background2D``, :func:`background`) once the scene's own stars
+    (``phot``: flux x the scene's PSF, its elongation ``cov`` and further filter ``extra``) are subtracted, with
+    ``mask`` and the non-finite pixels left out: the light the scene's sky has to supply. The background of the
+    frame itself holds the stars' wings and halos between the masked sources (a Moffat of beta 1.8 has 4 % of
+    its light beyond 7 FWHM), which the scene's stars already carry: counted twice, the model's sky is too bright
+    (the PANOPTES frame: by 4.7 ADU, 0.36 sigma of its sky noise, on every pixel)."""
+    h, w = data.shape
+    R = int(np.clip(max(SKY_STAR_RADIUS_PX, round(8 * fwhm_px)), 8, 2 * SKY_STAR_RADIUS_PX))
+    S = _render_stars(phot, np.ones(len(phot["x"]), bool), (h, w), R, moffat_alpha(fwhm_px, beta), beta,
+                      subsamples(fwhm_px), cov, extra)
+    bad = ~np.isfinite(data) | (mask if mask is not None else False)
+    return background(data - S, mask=bad)[0]
+
+
 #: the halo is written into the scene when it lowers the frame's chi2 by more than the BIC's price of its four
 #: parameters (4 ln N; Schwarz 1978, Ann. Stat. 6, 461) plus this margin ...
 HALO_MIN_DELTA_CHI2 = 25.0
