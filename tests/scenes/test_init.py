@@ -804,3 +804,27 @@ def test_init_keeps_no_halo_where_the_psf_has_none(tmp_path):
     halo = json.loads((tmp_path / "s.json").read_text())["psf"]["halo"]
     assert halo is None or not halo["kept"], halo
     assert "halo_frac" not in tomllib.loads((tmp_path / "s.toml").read_text()).get("effects", {}).get("psf_elongation", {})
+
+
+def test_sky_is_measured_without_the_stars_wings(tmp_path):
+    """Stars of a wide-winged Moffat (beta 1.8: 4 % of the light beyond 7 FWHM) raise the frame's background
+    between them; the scene's stars carry those wings, so its sky is the background of the frame less its stars
+    (the previous init took the frame's own background: 400 ADU of sky read as 401.3)."""
+    rng = np.random.default_rng(5)
+    img = _star_field(rng, _grid_stars(6, flux=(5e4, 3e5), fwhm=2.5, rng=rng), beta=1.8)
+    summary, _, _ = _init_frame(tmp_path, img)
+    assert abs(summary["sky"]["background_adu"] - 400.0) < 0.5, summary["sky"]
+
+
+def test_a_neighbour_in_a_brighter_stars_segment_is_found_in_the_residual(tmp_path):
+    """A faint star 5 px from a saturated one (one segment, which the deblending keeps whole): the residual of
+    the fitted stars holds it, and init adds it to the catalogue (iterative PSF photometry); the residual of a
+    bright star's own core is not taken for a star."""
+    rng = np.random.default_rng(6)
+    stars = _grid_stars(5, flux=(2e4, 8e4), fwhm=2.0, rng=rng)
+    stars[12] = (64.0, 64.0, 3e6, 2.0)  # saturated at 60 000 ADU below
+    stars.append((69.0, 62.0, 2e4, 2.0))
+    img = np.minimum(_star_field(rng, stars), 60000.0)
+    summary, _, cat = _init_frame(tmp_path, img, SATURATE=60000.0)
+    assert _nearest(cat, 69.0, 62.0) < 0.7, cat
+    assert len(cat) <= len(stars)

@@ -370,6 +370,15 @@ def init_scene(frame: str, scene_name: str = "scene", *, bias=(), dark=(), flat=
                      f"{halo[1]:.2f} px rms centred ({halo[2]:+.2f}, {halo[3]:+.2f}) px from its core (the frame's "
                      f"chi2 {halo_info['chi2_without_halo']:.0f} -> {halo_info['chi2_with_halo']:.0f}): the flare of a "
                      "fast lens off its axis; in the scene as effects.psf_elongation's halo")
+    # the stars the detection missed (a neighbour kept in a brighter star's segment): found in the residual of the
+    # fitted stars and fitted (iterative PSF photometry)
+    if phot is not None and phot["x"].size and psf.get("ok"):
+        phot = starmod.residual_stars(sdata, bkg, phot, fwhm_px, min(beta, 1000.0), cov_px2, rms, gain=gain,
+                                      saturation=sat_px, mask=mask,
+                                      extra=None if halo is None else displaced_halo_transfer(*halo))
+        if phot["added"]:
+            notes.append(f"{phot['added']} stars found in the residual of the fitted ones (missed by the detection: "
+                         "neighbours of brighter stars) and fitted")
     # ---- sky: the background of the frame without the scene's own stars (their wings and halos are the stars')
     sky_map = bkg
     if phot is not None and phot["x"].size and psf.get("ok"):
