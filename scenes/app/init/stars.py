@@ -344,8 +344,11 @@ def residual_stars(data, bkg, phot: dict, fwhm_px: float, beta: float, cov: np.n
     snr = num / den
     mod = ndimage.gaussian_filter(np.where(bad, 0.0, S), sg, mode="constant")
     size = 2 * int(math.ceil(fwhm_px)) + 1
+    # the pixels beside a left-out one (a saturated core's edge: its filtered residual is not a star's) neither are
+    # peaks nor hide one
+    snr = np.where(ndimage.binary_dilation(bad, iterations=1), -np.inf, snr)
     peak = (snr >= RESIDUAL_STAR_SNR) & (snr == ndimage.maximum_filter(snr, size=size)) & \
-        (num >= RESIDUAL_STAR_MODEL_SHARE * mod) & ~ndimage.binary_dilation(bad, iterations=1)
+        (num >= RESIDUAL_STAR_MODEL_SHARE * mod)
     py, px = np.nonzero(peak)
     if px.size:
         from scipy.spatial import cKDTree
