@@ -237,6 +237,16 @@ def _moffat_and_grad(dx, dy, alpha: float, beta: float, sub: int = 3):
     return k * p / n, k * gx / n, k * gy / n
 
 
+def _moffat_value(dx, dy, alpha: float, beta: float, sub: int = 3):
+    """:func:`_moffat_and_grad`'s value alone (the models drawn, not fitted)."""
+    p = 0.0
+    for ox in _sub(sub):
+        for oy in _sub(sub):
+            x, y = dx + ox, dy + oy
+            p = p + (1 + (x * x + y * y) / alpha ** 2) ** (-beta)
+    return (beta - 1) / (math.pi * alpha ** 2) * p / (sub * sub)
+
+
 def elongation_cov_px2(psf: dict, fwhm_px: float) -> np.ndarray:
     """The measured elliptical PSF as the round one of FWHM ``fwhm_px`` (the quadratic mean of the axes) plus a
     second-moment change ``dC`` [output px^2, (x, y)]: the Gaussian-equivalent variances of the major and minor
@@ -257,9 +267,11 @@ def _psf_and_grad(gx, gy, cx, cy, alpha: float, beta: float, sub: int, cov: np.n
     :func:`detector.effects.image_plane.displaced_halo_transfer`) of unit flux, and its derivatives with respect
     to the centre, on the stamps of pixel coordinates ``gx, gy`` (n, H, W) centred at ``cx, cy`` (n,).
 
-    The filter acts on each star's stamp extended by the filter's reach (4 sigma of its largest axis, and the
-    extra filter's pad), where the Moffat is evaluated exactly, then cropped: the star as the scene draws it (the filter commutes with the shift, so the centre derivatives are
-    the filtered ones)."""
+    The filter acts on each star's stamp extended by the elongation's reach (4 sigma of its largest axis), where
+    the Moffat is evaluated exactly, and by half the extra filter's reach in zeros (the FFT is cyclic: light
+    moved by less than the stamp plus twice that margin does not wrap onto the stamp), then cropped: the star as the scene draws it, less the extra filter's share
+    of the Moffat's far wings beyond the stamp (PANOPTES: 18 % of the 7 % beyond 7 px) (the filter commutes with
+    the shift, so the centre derivatives are the filtered ones)."""
     if cov is None and extra is None:
         return _moffat_and_grad(gx - cx[:, None, None], gy - cy[:, None, None], alpha, beta, sub)
     from detector.effects.image_plane import ELONGATION_MAX_GAIN
@@ -271,13 +283,16 @@ def _psf_and_grad(gx, gy, cx, cy, alpha: float, beta: float, sub: int, cov: np.n
         return tuple(np.concatenate([p[k] for p in parts]) for k in range(3))
     cov = np.zeros((2, 2)) if cov is None else cov
     ev = np.linalg.eigvalsh(cov)
-    pad = math.ceil(4 * math.sqrt(max(float(np.max(np.abs(ev))), 0.0))) + 1
-    if extra is not None:
-        pad += int(extra[1])
+    pc = math.ceil(4 * math.sqrt(max(float(np.max(np.abs(ev))), 0.0))) + 1
+    # a cyclic filter of reach r moves no light of the stamp back onto it when the zeros about it are r / 2 wide
+    pe = int(math.ceil(extra[1] / 2)) if extra is not None else 0
+    pad = pc + pe
     H, W = np.shape(gy)[1], np.shape(gx)[2]  # the grids may be broadcast: (n, 1, W) and (n, H, 1)
-    ex = gx[:, :1, :1] + np.arange(-pad, W + pad)[None, None, :]
-    ey = gy[:, :1, :1] + np.arange(-pad, H + pad)[None, :, None]
+    ex = gx[:, :1, :1] + np.arange(-pc, W + pc)[None, None, :]
+    ey = gy[:, :1, :1] + np.arange(-pc, H + pc)[None, :, None]
     P, dPx, dPy = _moffat_and_grad(ex - cx[:, None, None], ey - cy[:, None, None], alpha, beta, sub)
+    if pe:  # the extra filter's reach: zeros (no wrap-around of the halo), the Moffat's far wings left out
+        P, dPx, dPy = (np.pad(a, ((0, 0), (pe, pe), (pe, pe))) for a in (P, dPx, dPy))
     fy = np.fft.fftfreq(H + 2 * pad)[:, None]
     fx = np.fft.rfftfreq(W + 2 * pad)[None, :]
     q = cov[0, 0] * fx * fx + 2 * cov[0, 1] * fx * fy + cov[1, 1] * fy * fy
@@ -288,6 +303,23 @@ def _psf_and_grad(gx, gy, cx, cy, alpha: float, beta: float, sub: int, cov: np.n
     out = [np.fft.irfft2(np.fft.rfft2(a, axes=(-2, -1)) * tf, s=shape, axes=(-2, -1))[:, pad:pad + H, pad:pad + W]
            for a in (P, dPx, dPy)]
     return out[0], out[1], out[2]
+
+
+def _filter_image(img: np.ndarray, cov: np.ndarray | None, extra=None) -> np.ndarray:
+    """``img`` filtered by the elongation's Gaussian of covariance ``cov`` (capped as the effect's) and the extra
+    filter ``(transfer, pad)``, the frame's edges extended (:func:`detector.effects.image_plane.fourier_filter`)."""
+    from detector.effects.image_plane import ELONGATION_MAX_GAIN, fourier_filter
+
+    cov = np.zeros((2, 2)) if cov is None else np.asarray(cov, float)
+    ev = np.linalg.eigvalsh(cov)
+    pad = math.ceil(4 * math.sqrt(max(float(np.max(np.abs(ev))), 0.0))) + 1 + (int(extra[1]) if extra is not None else 0)
+
+    def transfer(fx, fy):
+        q = cov[0, 0] * fx * fx + 2 * cov[0, 1] * fx * fy + cov[1, 1] * fy * fy
+        tf = np.minimum(np.exp(-2 * np.pi ** 2 * q), ELONGATION_MAX_GAIN)
+        return tf * extra[0](fx, fy) if extra is not None else tf
+
+    return fourier_filter(img, pad, transfer)
 
 
 #: stars filtered at once by :func:`_psf_and_grad` (their extended stamps held in memory together)
@@ -724,6 +756,11 @@ def _fit_stars(z_img, raw_img, satmap, rms, x0, y0, f0, R: int, ax: float, beta:
 def _render_stars(fit: dict, use: np.ndarray, shape, R: int, ax: float, beta: float, sub: int, cov,
                   extra=None) -> np.ndarray:
     """The fitted models (flux x PSF, no background) of the stars ``use`` on an image of ``shape``."""
+    if cov is not None or extra is not None:
+        # the stars' round Moffats, then the elongation and the extra filter on the whole image, as the renderer
+        # applies [effects.psf_elongation] (the filters are linear and commute with the shifts)
+        img = _render_stars(fit, use, shape, R, ax, beta, sub, None)
+        return _filter_image(img, cov, extra)
     h, w = shape
     out = np.zeros((h + 2 * R + 2, w + 2 * R + 2))
     sel = np.flatnonzero(use)
@@ -734,7 +771,7 @@ def _render_stars(fit: dict, use: np.ndarray, shape, R: int, ax: float, beta: fl
         xi, yi = np.round(fit["x"][chunk]).astype(int), np.round(fit["y"][chunk]).astype(int)
         gx = (xi[:, None, None] + off[None, None, :]).astype(float)
         gy = (yi[:, None, None] + off[None, :, None]).astype(float)
-        P, _, _ = _psf_and_grad(gx, gy, fit["x"][chunk], fit["y"][chunk], ax, beta, sub, cov, extra)
+        P = _moffat_value(gx - fit["x"][chunk][:, None, None], gy - fit["y"][chunk][:, None, None], ax, beta, sub)
         YY = np.broadcast_to(yi[:, None, None] + off[None, :, None] + R + 1, P.shape)
         XX = np.broadcast_to(xi[:, None, None] + off[None, None, :] + R + 1, P.shape)
         inside = (YY >= 0) & (YY < out.shape[0]) & (XX >= 0) & (XX < out.shape[1])
