@@ -313,6 +313,32 @@ def one_sided_tail(image: np.ndarray, tail_px: float, tail_frac: float, angle_de
     return fourier_filter(image, pad, lambda fx, fy: transfer(fx, fy).astype(ctype, copy=False), spectra, workers)
 
 
+def displaced_halo_transfer(halo_frac: float, sigma_px: float, dx_px: float, dy_px: float):
+    """The transfer function ``H(fx, fy)`` [1] (``f`` in cycles/px) of a PSF that keeps ``1 - halo_frac`` of each
+    source's light in its core and spreads ``halo_frac`` over a round Gaussian halo of rms ``sigma_px`` [px]
+    per axis centred ``(dx_px, dy_px)`` [px] from it, and the pad [px] a filter with it needs:
+    ``k(x) = (1 - f) delta(x) + f N(x; d, sigma^2 I)``, whose Fourier transform is (the shift theorem and the
+    Gaussian's transform; Bracewell 2000, ch. 6)::
+
+        H(f) = 1 - f_h + f_h exp(-2 pi^2 sigma^2 |f|^2) exp(-2 pi i f . d)
+
+    The flare of a fast camera lens off its axis: a sharp core and a broad patch of the light the lens's
+    residual aberrations (coma, spherochromatism, the out-of-focus colours) spread and displace along the field
+    radius (Kingslake & Johnson, *Lens Design Fundamentals*, 2nd ed. 2010, ch. 4: the comatic flare lies to one
+    side of the sharp image; Racine 1996, PASP 108, 699: a PSF is a core and a broad aureole). The Gaussian
+    gives the flare its first two moments (mean ``d``, variance ``sigma^2``): the share, reach and displacement
+    a residual of a few pixels sees. The source's light centroid moves by ``f d``; its light is conserved."""
+    f, s = float(halo_frac), float(sigma_px)
+    dx, dy = float(dx_px), float(dy_px)
+    pad = int(np.ceil(4 * s + max(abs(dx), abs(dy)))) + 2
+
+    def transfer(fx, fy):
+        return (1.0 - f) + f * np.exp(-2 * np.pi ** 2 * s * s * (fx * fx + fy * fy)
+                                      - 2j * np.pi * (fx * dx + fy * dy))
+
+    return transfer, pad
+
+
 def tail_cumulants(tail_px: float, tail_frac: float) -> tuple[float, float, float]:
     """The first three cumulants (k1 [px], k2 [px^2], k3 [px^3]) along its direction of the one-sided tail
     kernel of :func:`one_sided_tail_transfer` (a point of weight ``1 - f`` and an exponential of mean ``L``
@@ -1197,6 +1223,14 @@ class ElongationParams(EffectParams):
                              json_schema_extra={"unit": "1"})
     tail_angle_deg: float = Field(0.0, ge=-180, le=180, description="direction of the tail, counter-clockwise from "
                                   "+x [deg]", json_schema_extra={"unit": "deg"})
+    halo_frac: float = Field(0.0, ge=0, le=0.8, description="share of each source's light in a displaced Gaussian "
+                             "halo (the flare of a fast lens off its axis; 0: none) [1]", json_schema_extra={"unit": "1"})
+    halo_sigma_px: float = Field(0.0, ge=0, le=50, description="rms of the halo per axis [sensor px]",
+                                 json_schema_extra={"unit": "pixel"})
+    halo_dx_px: float = Field(0.0, ge=-50, le=50, description="the halo's centre from its source along the columns "
+                              "[sensor px]", json_schema_extra={"unit": "pixel"})
+    halo_dy_px: float = Field(0.0, ge=-50, le=50, description="the halo's centre from its source along the rows "
+                              "[sensor px]", json_schema_extra={"unit": "pixel"})
 
 
 @register_effect
@@ -1207,6 +1241,10 @@ class PSFElongation(Effect):
     axis a capped deconvolution), so the second moments of every source become ``C_psf + dC`` (moments of
     a convolution add; for a Gaussian PSF the result is exact, for a Moffat its core). ``dC`` must leave
     ``C_psf + dC`` positive: a narrowing larger than the PSF's own variance has no meaning.
+
+    Its displaced halo (``halo_frac``, set by ``newtsim init``, not fitted by the diagnosis): that share of every
+    source's light in a round Gaussian of ``halo_sigma_px`` centred ``(halo_dx_px, halo_dy_px)`` from it
+    (:func:`displaced_halo_transfer`: the flare of a fast lens off its axis), applied after the tail.
 
     Its lopsided form: ``tail_frac`` of every source's light in a one-sided exponential tail of ``tail_px``
     along ``tail_angle_deg``, the core in place (:func:`one_sided_tail`: coma, a one-sided tracking tail),
@@ -1235,6 +1273,10 @@ class PSFElongation(Effect):
             out = gaussian_filter_cov(out, cov, max_gain=ELONGATION_MAX_GAIN)
         if p.tail_frac and p.tail_px:
             out = one_sided_tail(out, p.tail_px, p.tail_frac, p.tail_angle_deg)
+        if p.halo_frac:
+            transfer, pad = displaced_halo_transfer(p.halo_frac, p.halo_sigma_px, p.halo_dx_px, p.halo_dy_px)
+            ctype = np.complex128 if out.dtype == np.float64 else np.complex64
+            out = fourier_filter(out, pad, lambda fx, fy: transfer(fx, fy).astype(ctype, copy=False))
         if out is not data:
             _store(data, out)
 

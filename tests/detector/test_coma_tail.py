@@ -113,3 +113,28 @@ def test_the_effect_renders_the_tail_and_zero_share_is_identity():
     same = data.copy()
     eff.apply(None, None, same)
     assert np.array_equal(same, data)
+
+
+@pytest.mark.parametrize("frac,sigma_h,dx,dy", [(0.2, 3.0, 1.5, 2.5), (0.5, 1.0, -3.0, 0.0)])
+def test_the_displaced_halo_moves_the_moments_of_a_point_plus_a_gaussian(frac, sigma_h, dx, dy):
+    """psf_elongation's displaced halo (the flare of a fast lens off its axis): a Gaussian source (sigma 2 px)
+    keeps its flux; its centroid moves by f d and its variance along each axis grows by f sigma_h^2 +
+    f (1 - f) d^2 (the mixture of a point of weight 1 - f and a Gaussian of mean d, variance sigma_h^2), as the
+    effect renders it."""
+    sigma = 2.0
+    g, x, y = _gauss(129, 64.0, sigma)
+    eff = ip.PSFElongation(ip.ElongationParams(halo_frac=frac, halo_sigma_px=sigma_h, halo_dx_px=dx, halo_dy_px=dy), None)
+    transfer, pad = ip.displaced_halo_transfer(frac, sigma_h, dx, dy)
+    out = ip.fourier_filter(g, pad, transfer)
+    flux = out.sum()
+    mx, my = (out * x).sum() / flux, (out * y).sum() / flux
+    vx = (out * (x - mx) ** 2).sum() / flux - sigma ** 2
+    vy = (out * (y - my) ** 2).sum() / flux - sigma ** 2
+    assert flux == pytest.approx(1.0, abs=1e-8)
+    assert (mx, my) == pytest.approx((frac * dx, frac * dy), abs=1e-6)
+    assert vx == pytest.approx(frac * sigma_h ** 2 + frac * (1 - frac) * dx ** 2, abs=1e-5)
+    assert vy == pytest.approx(frac * sigma_h ** 2 + frac * (1 - frac) * dy ** 2, abs=1e-5)
+    # the effect applies the same filter
+    data = g.astype(np.float64).copy()
+    eff.apply(None, None, data)
+    assert np.allclose(data, out, atol=1e-12)

@@ -16,6 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from detector.errors import DetectorError
+from detector.effects.image_plane import displaced_halo_transfer
 from scenes.measured import parse_section, read_hdu
 
 from . import calib
@@ -328,7 +329,7 @@ def init_scene(frame: str, scene_name: str = "scene", *, bias=(), dark=(), flat=
     # stars with that same PSF, so the catalogue's fluxes are those of the scene's own stars
     elongated = bool(psf.get("ok") and psf["n"] >= 5 and psf["ellipticity"] > ELONGATED)
     cov_px2 = starmod.elongation_cov_px2(psf, fwhm_px) if elongated else None
-    phot = None
+    phot, halo_info, halo = None, None, None
     if seg is not None and frame_type == "light":
         sharp = cols["fwhm"] < 0.5 * fwhm_px
         phot = starmod.photometry(sdata, bkg, cols, fwhm_px, min(beta, 1000.0), sat_px, rms, keep=~sharp,
@@ -356,8 +357,35 @@ def init_scene(frame: str, scene_name: str = "scene", *, bias=(), dark=(), flat=
         minfo["edge_rolloff"] = rolloff
     mask = drop | cores
     minfo["masked_fraction"] = float(mask.mean())
-    # ---- sky
-    sky_adu = float(np.median(bkg[~mask])) if (~mask).any() else float(np.median(bkg))
+    # the PSF's displaced halo (the flare of a fast lens off its axis): measured on the whole frame with the stars
+    # as fitted, the mask left out; when it is kept, the stars are measured again with that PSF
+    if phot is not None and psf.get("ok") and phot["x"].size:
+        halo_info = starmod.fit_psf_halo(sdata, bkg, phot, fwhm_px, min(beta, 1000.0), cov_px2, rms, gain=gain,
+                                         saturation=sat_px, mask=mask)
+    if halo_info is not None and halo_info["kept"]:
+        halo = (halo_info["halo_frac"], halo_info["halo_sigma_px"], halo_info["halo_dx_px"], halo_info["halo_dy_px"])
+        phot = starmod.photometry(sdata, bkg, cols, fwhm_px, min(beta, 1000.0), sat_px, rms, keep=~sharp,
+                                  gain=gain, cov_px2=cov_px2, extra=displaced_halo_transfer(*halo))
+        notes.append(f"the PSF has a displaced halo: {100 * halo[0]:.1f} % of each star's light in a Gaussian of "
+                     f"{halo[1]:.2f} px rms centred ({halo[2]:+.2f}, {halo[3]:+.2f}) px from its core (the frame's "
+                     f"chi2 {halo_info['chi2_without_halo']:.0f} -> {halo_info['chi2_with_halo']:.0f}): the flare of a "
+                     "fast lens off its axis; in the scene as effects.psf_elongation's halo")
+    # the stars the detection missed (a neighbour kept in a brighter star's segment): found in the residual of the
+    # fitted stars and fitted (iterative PSF photometry)
+    if phot is not None and phot["x"].size and psf.get("ok"):
+        phot = starmod.residual_stars(sdata, bkg, phot, fwhm_px, min(beta, 1000.0), cov_px2, rms, gain=gain,
+                                      saturation=sat_px, mask=mask,
+                                      extra=None if halo is None else displaced_halo_transfer(*halo))
+        if phot["added"]:
+            notes.append(f"{phot['added']} stars found in the residual of the fitted ones (missed by the detection: "
+                         "neighbours of brighter stars) and fitted")
+    # ---- sky: the background of the frame without the scene's own stars (their wings and halos are the stars')
+    sky_map = bkg
+    if phot is not None and phot["x"].size and psf.get("ok"):
+        sky_map = starmod.sky_without_stars(sdata, phot, fwhm_px, min(beta, 1000.0), cov_px2,
+                                            None if halo is None else displaced_halo_transfer(*halo),
+                                            mask=mask | (data >= sat_cut))
+    sky_adu = float(np.median(sky_map[~mask])) if (~mask).any() else float(np.median(sky_map))
     sky_e_s = max((sky_adu - bias) * gain / max(t, 1e-9) - float(dark_e_v.value), 0.0)
     # ---- the scene
     preset = "ml11002" if kind == "ccd" else "imx411"
@@ -445,7 +473,18 @@ def init_scene(frame: str, scene_name: str = "scene", *, bias=(), dark=(), flat=
         effects["dark_map"] = {"path": f"{scene_name}_dark.fits", "sigma_hdu": 1}
         sources["effects.dark_map"] = ("measured: per-pixel slope of bias and darks against time [e-/s] (adopted gain), "
                                        "its standard error in HDU 1")
-    if elongated:
+    if halo is not None:
+        dc = (cov_px2 if cov_px2 is not None else np.zeros((2, 2))) * binning ** 2
+        effects["psf_elongation"] = {"dcxx_px2": round(float(dc[0, 0]), 5), "dcyy_px2": round(float(dc[1, 1]), 5),
+                                     "dcxy_px2": round(float(dc[0, 1]), 5), "halo_frac": round(halo[0], 5),
+                                     "halo_sigma_px": round(halo[1] * binning, 4),
+                                     "halo_dx_px": round(halo[2] * binning, 4), "halo_dy_px": round(halo[3] * binning, 4)}
+        sources["effects.psf_elongation"] = (
+            (f"measured: FWHM {psf['fwhm_major_px']:.2f} x {psf['fwhm_minor_px']:.2f} px, major axis at "
+             f"{psf['pa_major_deg']:.0f} deg from +x (median of {psf['n']} stars); " if elongated else "measured: ")
+            + f"the halo from the whole frame's residual (chi2 {halo_info['chi2_without_halo']:.0f} without it, "
+            f"{halo_info['chi2_with_halo']:.0f} with it)")
+    elif elongated:
         # the measured elliptical PSF as the round one plus a second-moment change dC (Gaussian-equivalent
         # variances of the major and minor axes about the quadratic-mean FWHM, rotated to the major axis), in
         # sensor pixels: the scene's [psf] has no ellipticity key, the renderer's elongation is this effect
@@ -481,8 +520,9 @@ def init_scene(frame: str, scene_name: str = "scene", *, bias=(), dark=(), flat=
             scene["exposure"]["time_s"] = 0.0
     else:
         scene["sky"] = {"background_mag_arcsec2": None, "stars": True, "star_seed": 0}
-        sources["sky.background_mag_arcsec2"] = (f"measured: background {sky_adu:.2f} ADU (photutils Background2D) above "
-                                                 f"the bias, through the scene's band")
+        sources["sky.background_mag_arcsec2"] = (f"measured: background {sky_adu:.2f} ADU (photutils Background2D"
+                                                 + (" of the frame less the scene's stars" if sky_map is not bkg else "")
+                                                 + ") above the bias, through the scene's band")
     cat_info = {}
     if scene["sky"].get("stars"):
         cat_info = _catalogue(catalog, scene, band, phot, cols, fwhm_px, drop, data.shape, gain, t, geom, header,
@@ -515,7 +555,7 @@ def init_scene(frame: str, scene_name: str = "scene", *, bias=(), dark=(), flat=
         "header": {k: v.to_json() for k, v in hv.items()},
         "calibration": {"missing": cam["missing"], **n_cal},
         "overscan": ov, "wcs": {k: v for k, v in (geom or {}).items() if k != "sip"} or None,
-        "psf": {k: v for k, v in psf.items() if k != "rows"}, "optics": optics_info,
+        "psf": {**{k: v for k, v in psf.items() if k != "rows"}, "halo": halo_info}, "optics": optics_info,
         "sky": {"background_adu": sky_adu, "e_per_s_per_px": sky_e_s, "noise_adu": float(np.median(rms))},
         "noise": noise_info,
         "mask": minfo, "catalogue": cat_info, "notes": notes, "seconds": time.perf_counter() - t0,
