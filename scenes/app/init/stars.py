@@ -753,6 +753,12 @@ def _fit_stars(z_img, raw_img, satmap, rms, x0, y0, f0, R: int, ax: float, beta:
             "ap_sum": ap_sum}
 
 
+#: the drawn models average a pixel's sub-samples out to this many FWHM plus this margin [px] from the star's
+#: centre; beyond, a pixel's centre value differs from its average by less than 1e-5 of the peak
+WING_SAMPLED_FWHM = 2.0
+WING_SAMPLED_MARGIN_PX = 6
+
+
 def _render_stars(fit: dict, use: np.ndarray, shape, R: int, ax: float, beta: float, sub: int, cov,
                   extra=None) -> np.ndarray:
     """The fitted models (flux x PSF, no background) of the stars ``use`` on an image of ``shape``."""
@@ -767,11 +773,19 @@ def _render_stars(fit: dict, use: np.ndarray, shape, R: int, ax: float, beta: fl
     if sel.size == 0:
         return out[R + 1:R + 1 + h, R + 1:R + 1 + w]
     off = np.arange(-R, R + 1)
+    # the pixel average (sub x sub samples) where the Moffat curves within a pixel; beyond it the centre value
+    # (the average's correction there is below 1e-5 of the peak for FWHM 1-8 px and beta 1.3-1000)
+    fwhm = 2 * ax * math.sqrt(2 ** (1 / beta) - 1)
+    K = int(min(R, np.ceil(WING_SAMPLED_FWHM * fwhm) + WING_SAMPLED_MARGIN_PX))
+    inner = slice(R - K, R + K + 1)
     for chunk in np.array_split(sel, max(1, sel.size // 2000)):
         xi, yi = np.round(fit["x"][chunk]).astype(int), np.round(fit["y"][chunk]).astype(int)
         gx = (xi[:, None, None] + off[None, None, :]).astype(float)
         gy = (yi[:, None, None] + off[None, :, None]).astype(float)
-        P = _moffat_value(gx - fit["x"][chunk][:, None, None], gy - fit["y"][chunk][:, None, None], ax, beta, sub)
+        dx, dy = gx - fit["x"][chunk][:, None, None], gy - fit["y"][chunk][:, None, None]
+        P = _moffat_value(dx, dy, ax, beta, 1) if K < R and sub > 1 else _moffat_value(dx, dy, ax, beta, sub)
+        if K < R and sub > 1:
+            P[:, inner, inner] = _moffat_value(dx[:, :, inner], dy[:, inner, :], ax, beta, sub)
         YY = np.broadcast_to(yi[:, None, None] + off[None, :, None] + R + 1, P.shape)
         XX = np.broadcast_to(xi[:, None, None] + off[None, None, :] + R + 1, P.shape)
         inside = (YY >= 0) & (YY < out.shape[0]) & (XX >= 0) & (XX < out.shape[1])
