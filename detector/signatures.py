@@ -176,12 +176,15 @@ def spike_stats(data: np.ndarray, model: np.ndarray, var: np.ndarray, usable: np
     from scipy import ndimage
     from scipy.ndimage import median_filter
 
-    # a read value sits on the ADC's integer lattice: known to +-0.5 ADU, its rounding's variance 1/12 ADU^2
-    # (Sheppard's correction) is part of what an outlier must exceed. Where the noise is below one code (a
-    # binned average of a short dark: 99 % of the pixels on one code) the rare neighbouring code is rounding,
-    # not a 13-sigma spike; where it spans codes the term is negligible
-    z = np.where(usable, (data - model) / np.sqrt(var + ROUNDING_VAR_ADU2), 0.0).astype(np.float32)
+    z = np.where(usable, (data - model) / np.sqrt(var), 0.0).astype(np.float32)
     local = z - _median3(z)
+    # a read value sits on the ADC's integer lattice: known to +-0.5 ADU, its rounding's variance 1/12 ADU^2
+    # (Sheppard's correction) is part of what a counted outlier (a hot pixel, a track, a dead pixel) must
+    # exceed. Where the noise is below one code (a binned average of a short dark: 99 % of the pixels on one
+    # code) the rare neighbouring code is rounding, not a 13-sigma spike: such pixels are still left to the
+    # statistical comparison (below), but not counted; where the noise spans codes the term is negligible
+    shrink = np.sqrt(var / (var + ROUNDING_VAR_ADU2)).astype(np.float32)
+    zq, local_q = z * shrink, local * shrink
     pos_all = usable & (local > SPIKE_SIGMA) & (z > SPIKE_SIGMA)
     neg_all = usable & (local < -SPIKE_SIGMA) & (z < -SPIKE_SIGMA)
     # columns: mean residual of the pixels that are not spikes (spikes of spike-dense columns included), in
@@ -215,7 +218,8 @@ def spike_stats(data: np.ndarray, model: np.ndarray, var: np.ndarray, usable: np
     zc = np.where(cnt > 1, np.where(dense, z_mean, local_cl * np.sqrt(n_c) / CLIPPED_SD), 0.0)
     hot_c, cold_c = zc > LINE_SIGMA, zc < -LINE_SIGMA
     lines = hot_c | cold_c
-    pos, neg = pos_all & ~lines[None, :], neg_all & ~lines[None, :]
+    pos = pos_all & ~lines[None, :] & (zq > SPIKE_SIGMA) & (local_q > SPIKE_SIGMA)
+    neg = neg_all & ~lines[None, :] & (zq < -SPIKE_SIGMA) & (local_q < -SPIKE_SIGMA)
     lab, n = ndimage.label(pos, structure=np.ones((3, 3)))
     sizes = np.bincount(lab.ravel(), minlength=n + 1)[1:] if n else np.zeros(0, int)
     single_lab = np.nonzero(sizes == 1)[0] + 1
@@ -225,7 +229,7 @@ def spike_stats(data: np.ndarray, model: np.ndarray, var: np.ndarray, usable: np
     nsizes = np.bincount(nlab.ravel(), minlength=nn + 1)[1:] if nn else np.zeros(0, int)
     neg_single_lab = np.nonzero(nsizes == 1)[0] + 1
     neg_index = np.flatnonzero(np.isin(nlab, neg_single_lab)) if neg_single_lab.size else np.zeros(0, np.int64)
-    groups = {sign: outlier_groups(z, seeds, usable, sign) for sign, seeds in ((1, pos), (-1, neg))}
+    groups = {sign: outlier_groups(zq, seeds, usable, sign) for sign, seeds in ((1, pos), (-1, neg))}
     stats = SpikeStats(
         single_pos=int(single_lab.size), cluster_pos=int(n - single_lab.size), single_neg=int((nsizes == 1).sum()),
         hot_cols=int(hot_c.sum()), cold_cols=int(cold_c.sum()),
