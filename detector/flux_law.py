@@ -132,7 +132,4 @@ def change_slope(res, change_adu: np.ndarray) -> Slope | None:
     saturated = np.isfinite(res.data_adu) & (res.data_adu >= NEAR_SATURATION_SHARE * res.saturation_ceiling_adu)
     flux, amp, err = source_amplitudes(source, np.sqrt(np.maximum(res.var_adu2, 0)), res.fit, residual,
                                        np.broadcast_to(change_adu, res.data_adu.shape), saturated)
-    import os
-    if os.environ.get('NEWTSIM_DEBUG'):
-        print('SLOPE', len(flux), np.round(flux[:12]), np.round(amp[:12],3), np.round(err[:12],4), flux_slope(flux, amp, err))
     return flux_slope(flux, amp, err)
