@@ -121,15 +121,10 @@ def change_slope(res, change_adu: np.ndarray) -> Slope | None:
     comparison ``res`` (a :class:`detector.signatures.Residuals`): the residual with the global levels refitted,
     the model's source light, its noise, its fitted pixels; sources with a pixel near saturation
     (:data:`detector.signatures.NEAR_SATURATION_SHARE` of the ceiling) left out (their cores do not grow)."""
-    from .signatures import NEAR_SATURATION_SHARE
-
     if change_adu is None or np.ndim(change_adu) != 2:
         return None
-    bg = res.background_adu if res.background_adu is not None else res.model_adu - res.photo_adu \
-        + res.background_photo_adu
-    source = res.model_adu - bg
+    source = res.model_adu - res.without_sources_adu
     residual = res.data_adu - res.model_adu - res.level_map()
-    saturated = np.isfinite(res.data_adu) & (res.data_adu >= NEAR_SATURATION_SHARE * res.saturation_ceiling_adu)
     flux, amp, err = source_amplitudes(source, np.sqrt(np.maximum(res.var_adu2, 0)), res.fit, residual,
-                                       np.broadcast_to(change_adu, res.data_adu.shape), saturated)
+                                       np.broadcast_to(change_adu, res.data_adu.shape), res.saturated)
     return flux_slope(flux, amp, err)

@@ -402,6 +402,20 @@ class Residuals:
         return np.minimum(photo, np.float32(np.median(sample))) if photo.size else photo
 
     @property
+    def without_sources_adu(self) -> np.ndarray:
+        """The model's mean frame without its sources [ADU]: ``background_adu`` when known (sky or flat screen,
+        straylight, dark, bias), else bias and dark plus the uniform part of the photo-signal
+        (:attr:`background_photo_adu`)."""
+        if self.background_adu is not None:
+            return self.background_adu
+        return self.model_adu - self.photo_adu + self.background_photo_adu
+
+    @property
+    def saturated(self) -> np.ndarray:
+        """The pixels saturated or about to be: NEAR_SATURATION_SHARE of :attr:`saturation_ceiling_adu` or more."""
+        return np.isfinite(self.data_adu) & (self.data_adu >= NEAR_SATURATION_SHARE * self.saturation_ceiling_adu)
+
+    @property
     def gain(self) -> float:
         return self.sensor.gain_e_per_adu
 

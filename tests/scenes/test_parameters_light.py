@@ -10,7 +10,7 @@ def _residuals(data, model, background, noise=3.0):
 
     return SimpleNamespace(data_adu=data, model_adu=model, background_adu=background, photo_adu=model - background,
                            var_adu2=np.full(data.shape, noise ** 2), fit=np.ones(data.shape, bool),
-                           saturation_ceiling_adu=1e12)
+                           without_sources_adu=background, saturated=np.zeros(data.shape, bool))
 
 
 def test_light_moved_into_far_wings_is_not_a_zero_point():

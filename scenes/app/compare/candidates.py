@@ -16,7 +16,7 @@ import numpy as np
 
 from detector import registry
 from detector.morphology import block_chi2
-from detector.signatures import NEAR_SATURATION_SHARE, Fit, Residuals, frame_at, heldout_delta
+from detector.signatures import Fit, Residuals, frame_at, heldout_delta
 
 from .floors import floor_reason, signal_range_floor
 from .judge import Candidate, indistinguishable, rank, verdict
@@ -142,7 +142,7 @@ def saturated_reach(res: Residuals) -> tuple[np.ndarray, int] | None:
     no pixel is saturated (NEAR_SATURATION_SHARE of the ceiling)."""
     from scipy import ndimage
 
-    sat = np.isfinite(res.data_adu) & (res.data_adu >= NEAR_SATURATION_SHARE * res.saturation_ceiling_adu)
+    sat = res.saturated
     if not sat.any():
         return None
     near = ndimage.binary_dilation(sat, np.ones((3, 3), bool), iterations=SATURATED_REACH_PX)

@@ -78,16 +78,12 @@ def enclosed_ratio(res: Residuals) -> tuple[float, float, int] | None:
     annulus; the model at the scene's levels). None: no source, or no aperture that fits."""
     from scipy import ndimage
 
-    from detector.signatures import NEAR_SATURATION_SHARE
-
-    bg = res.background_adu if res.background_adu is not None else res.model_adu - res.photo_adu \
-        + res.background_photo_adu
-    source = res.model_adu - bg
-    noise = np.sqrt(np.maximum(res.var_adu2, 1e-12))
-    core = source > 3.0 * noise
-    saturated = np.isfinite(res.data_adu) & (res.data_adu >= NEAR_SATURATION_SHARE * res.saturation_ceiling_adu)
+    source = res.model_adu - res.without_sources_adu
+    core = source > 3.0 * np.sqrt(np.maximum(res.var_adu2, 1e-12))
     if not core.any():
         return None
+    saturated = res.saturated
+    r = (res.data_adu - res.model_adu).astype(np.float64)
     box = np.ones((3, 3), bool)
     for grow in ENCLOSED_GROW_PX:
         ap = ndimage.binary_dilation(core, box, iterations=grow)
@@ -102,7 +98,6 @@ def enclosed_ratio(res: Residuals) -> tuple[float, float, int] | None:
         use = ap & res.fit & ~drop
         if ring.sum() < RING_MIN_PIXELS or ap.mean() > APERTURE_MAX_SHARE or not use.any():
             continue
-        r = (res.data_adu - res.model_adu).astype(np.float64)
         b = float(np.median(r[ring]))
         total = float(np.sum(source[use], dtype=np.float64))
         if total <= 0:

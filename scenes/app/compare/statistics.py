@@ -216,8 +216,7 @@ def background_adu(res: Residuals) -> np.ndarray:
     """The model's mean frame without its sources [ADU]: sky (or flat screen) and straylight through the chain,
     dark signal and bias (``background_adu`` that :func:`scenes.app.compare.model.residuals` attaches). Without
     it, bias and dark plus the uniform part of the photo-signal (:meth:`Residuals.level_templates`)."""
-    bg = res.background_adu
-    return res.model_adu - res.photo_adu + res.background_photo_adu if bg is None else bg
+    return res.without_sources_adu
 
 
 def star_photometry(res: Residuals, truth: np.ndarray | None, radius_px: float = 4.0, max_stars: int = 2000) -> dict:
