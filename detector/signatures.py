@@ -35,6 +35,7 @@ unit parameters, and the fitted parameters are the plugin's own.
 
 from __future__ import annotations
 
+import functools
 import warnings
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field, replace
@@ -630,11 +631,23 @@ class Residuals:
 
 
 def _gram(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """``a @ b.T`` for (templates, pixels) arrays. Through einsum above 16 templates: some OpenBLAS builds
-    run this shape (few rows, millions of columns) 20-50x slower than a plain loop on a loaded machine."""
-    if a.ndim == 2 and b.ndim == 2 and max(a.shape[0], b.shape[0]) > 16:
-        return np.einsum("in,jn->ij", a, b, optimize=False)
+    """``a @ b.T`` for (templates, pixels) arrays, on BLAS: fast on one BLAS thread (:func:`single_blas_thread`,
+    which the diagnosis's entry points hold); with several threads on a loaded machine OpenBLAS runs this shape
+    (few rows, millions of columns) 10-60x slower."""
     return a @ b.T
+
+
+def single_blas_thread(fn):
+    """Run ``fn`` with the BLAS library limited to one thread (restored after). The diagnosis's products have
+    few rows and millions of columns: on the 2-core development machine under load, 40 templates of 2^20
+    pixels took 0.14-0.16 s on one OpenBLAS thread, 0.7-3.2 s on two, 1.2-1.4 s through a plain einsum loop."""
+    @functools.wraps(fn)
+    def wrapper(*args, **kwargs):
+        from threadpoolctl import threadpool_limits
+
+        with threadpool_limits(limits=1, user_api="blas"):
+            return fn(*args, **kwargs)
+    return wrapper
 
 
 def _independent(g: np.ndarray, tol: float = 1e-6) -> list[int]:

@@ -19,6 +19,7 @@ import tomli_w
 from detector.errors import DetectorError
 from detector.jsonable import jsonable
 from detector.morphology import describe
+from detector.signatures import single_blas_thread
 from scenes.scene import load_scene
 
 from . import fullframe
@@ -40,6 +41,7 @@ __all__ = ["SIGNIFICANT_DELTA_BIC", "ModelFrame", "best_candidate", "build_model
            "run_diagnose", "run_rounds"]
 
 
+@single_blas_thread
 def run_compare(scene, measured: str | Path, workers: int | None = None, *, large_px: int | None = None,
                 progress=None) -> dict:
     """Model vs measurement: the full result (arrays included) with ``summary`` (the contract's JSON).
@@ -77,6 +79,7 @@ def _run_compare(scene, measured: str | Path, workers: int | None = None) -> dic
     return result
 
 
+@single_blas_thread
 def run_diagnose(scene, measured: str | Path, workers: int | None = None, progress=None, *,
                  large_px: int | None = None, policy: DiagnosisPolicy = DEFAULT_POLICY) -> dict:
     """compare + every absent effect fitted and ranked: ``{"baseline", "candidates", "verdict", ...}``.

@@ -65,6 +65,7 @@ from detector.signatures import (
     Variant,
     heldout_delta,
     search_sample,
+    single_blas_thread,
 )
 from scenes.errors import SceneError
 from scenes.scene import load_scene, read_toml
@@ -254,6 +255,7 @@ def shared_levels(series: Series, frames: list[Residuals]) -> list[str]:
 
 # --- compare ------------------------------------------------------------------------------------------------
 
+@single_blas_thread
 def run_series_compare(series: Series, workers: int | None = None, progress: Callable[[str], None] | None = None
                        ) -> dict:
     """Every frame compared with its model (:func:`scenes.app.compare.run._run_compare`), and the series'
@@ -756,6 +758,7 @@ def series_light(frames: list[Residuals]) -> str:
     return "flat" if all(r.light_source == "flat" for r in frames) else ""
 
 
+@single_blas_thread
 def run_series_diagnose(series: Series, workers: int | None = None, progress=None,
                         policy: DiagnosisPolicy = DEFAULT_POLICY) -> dict:
     """compare + every absent effect fitted to the series and ranked (the single-frame JSON keys for the
