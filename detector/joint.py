@@ -27,7 +27,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .signatures import CHUNK_PIXELS, Residuals, _at
+from .signatures import CHUNK_PIXELS, Residuals, template_at
 
 Values = Callable[[np.ndarray], np.ndarray]
 
@@ -84,7 +84,7 @@ def frame_gram(res: Residuals, idx: np.ndarray, r: np.ndarray, w: np.ndarray, sh
             t = np.atleast_2d(np.asarray(own(ii), np.float64))
             tp = t.shape[0]
             parts.append(t)
-        parts += [np.stack([_at(t, shape, ii) for t in lv]) for lv in (lsh, lown) if lv]
+        parts += [np.stack([template_at(t, shape, ii) for t in lv]) for lv in (lsh, lown) if lv]
         zz = np.concatenate(parts) if parts else np.zeros((0, ii.size))
         zw = zz * w[sl]
         gg, zr = zw @ zz.T, zw @ r[sl]
@@ -107,7 +107,7 @@ class SampleGrams:
         shape = res.data_adu.shape
         lsh, lown = level_columns(res, shared_levels)
         self.ls, self.lf = len(lsh), len(lown)
-        self.lv = (np.stack([_at(t, shape, idx) for t in (*lsh, *lown)]) if lsh or lown
+        self.lv = (np.stack([template_at(t, shape, idx) for t in (*lsh, *lown)]) if lsh or lown
                    else np.zeros((0, idx.size)))
         self.idx, self.r, self.w, self.scale = idx, r, w, scale
         lw = self.lv * w

@@ -522,12 +522,12 @@ class Residuals:
                 for a in range(0, idx.size, CHUNK_PIXELS):
                     sl = slice(a, a + CHUNK_PIXELS)
                     if a not in chunks:
-                        chunks[a] = np.stack([_at(t, shape, idx[sl]) for t in temps]).astype(store)
+                        chunks[a] = np.stack([template_at(t, shape, idx[sl]) for t in temps]).astype(store)
                     x = chunks[a].astype(np.float64)
                     xw = x * w[sl]
                     g += xw @ x.T
                     b += xw @ r[sl]
-                keep = [allowed[i] for i in _independent(g[np.ix_(allowed, allowed)], tol=LEVEL_DEGENERACY)]
+                keep = [allowed[i] for i in independent_columns(g[np.ix_(allowed, allowed)], tol=LEVEL_DEGENERACY)]
                 if not keep:
                     break
                 coef = np.linalg.solve(g[np.ix_(keep, keep)], b[keep])
@@ -535,7 +535,7 @@ class Residuals:
                 dv = np.zeros(idx.size)
                 for c, i in zip(coef, keep):
                     if i in charge:
-                        dv += c * _at(temps[i], shape, idx)
+                        dv += c * template_at(temps[i], shape, idx)
                 dv *= self.poisson_adu
                 w_new = 1.0 / np.maximum(1.0 / w0 + dv, 0.25 / w0)
                 converged = np.allclose(w_new, w, rtol=1e-4)
@@ -568,13 +568,24 @@ class Residuals:
         if not keep:
             return np.zeros((0, idx.size))
         temps = self.level_templates()
-        return np.stack([_at(temps[i], self.data_adu.shape, idx) for i in keep])
+        return np.stack([template_at(temps[i], self.data_adu.shape, idx) for i in keep])
 
     def shared_levels(self) -> dict:
         """The cache entries a copy with the same fitted pixels, model and templates (only ``data_adu``
         changed) may start from: the level templates and their values at the fitted pixels."""
         self.levels()
         return {k: self._flat[k] for k in ("level_templates", "level_chunks") if k in self._flat}
+
+    def memo(self, key: str, compute: Callable[[], object]):
+        """A value derived from these residuals, computed once by ``compute()`` and kept with them (the
+        statistics every candidate of one comparison shares). A copy made with other data starts without it."""
+        if key not in self._flat:
+            self._flat[key] = compute()
+        return self._flat[key]
+
+    def forget(self, key: str):
+        """Drop (and return) a value :meth:`memo` kept, None if there was none."""
+        return self._flat.pop(key, None)
 
     def project(self, v: np.ndarray) -> np.ndarray:
         """``v`` (values on the fitted pixels) minus its weighted least-squares fit by the global levels: what
@@ -598,7 +609,7 @@ class Residuals:
             temps = self.level_templates()
             rp = r.copy()
             for c, i in zip(lv["coef"], lv["keep"]):
-                rp -= c * _at(temps[i], self.data_adu.shape, idx)
+                rp -= c * template_at(temps[i], self.data_adu.shape, idx)
             self._flat["r_profiled"] = rp
         return self._flat["idx"], self._flat["r_profiled"], self.levels()["w"]
 
@@ -650,7 +661,7 @@ def single_blas_thread(fn):
     return wrapper
 
 
-def _independent(g: np.ndarray, tol: float = 1e-6) -> list[int]:
+def independent_columns(g: np.ndarray, tol: float = 1e-6) -> list[int]:
     """Indices of the columns kept, in order, from their Gram matrix ``g``: a column whose normalised
     residual after the kept ones is below ``tol`` (indistinguishable from them) is dropped."""
     d = np.sqrt(np.maximum(np.diag(g), 0.0))
@@ -670,7 +681,7 @@ def _independent(g: np.ndarray, tol: float = 1e-6) -> list[int]:
     return keep
 
 
-def _at(t: np.ndarray, shape: tuple[int, int], idx: np.ndarray) -> np.ndarray:
+def template_at(t: np.ndarray, shape: tuple[int, int], idx: np.ndarray) -> np.ndarray:
     """A template (2-D map, or a scalar-like array broadcast to the frame) at flat pixel indices, float64."""
     t = np.asarray(t)
     if t.ndim == 2 and t.shape == shape:
@@ -893,7 +904,7 @@ class Variant:
     def values(self, idx: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
         if self.at is not None:
             return np.atleast_2d(np.asarray(self.at(idx), np.float64))
-        return np.stack([_at(t, shape, idx) for t in self.maps()])
+        return np.stack([template_at(t, shape, idx) for t in self.maps()])
 
 
 #: fitted pixels a linear signature searches its variants on (a regular subsample; the winner is refitted
@@ -937,7 +948,7 @@ def weighted_lstsq(templates: list[np.ndarray], idx: np.ndarray, r: np.ndarray, 
     """
     if shape is None:
         shape = next((tuple(tm.shape) for tm in templates if np.ndim(tm) == 2), None)
-    t = np.stack([_at(tm, shape, idx) if shape is not None else np.asarray(tm, np.float64).ravel()[idx]
+    t = np.stack([template_at(tm, shape, idx) if shape is not None else np.asarray(tm, np.float64).ravel()[idx]
                   for tm in templates])
     return solve_templates(t, r, w, project)
 
@@ -1528,7 +1539,7 @@ def smooth_component(res: Residuals, template: np.ndarray) -> tuple[float, float
     cosine basis times ``template`` (e.g. the photo-signal for a PRNU map's large scales). Returns (delta
     -2 ln L over all fitted pixels, rms of the fitted relative pattern, number of templates)."""
     vs = variance_sample(res)
-    t = _at(template, res.data_adu.shape, vs["idx"])
+    t = template_at(template, res.data_adu.shape, vs["idx"])
     if not np.any(t):
         return 0.0, 0.0, 0
     basis = cosine_basis(res.data_adu.shape, vs["idx"], constant=False)
@@ -1569,7 +1580,7 @@ class VarianceSignature(Signature):
     def fit(self, res: Residuals, name: str) -> Fit | None:
         vs = variance_sample(res)
         full = self.template(res)
-        t = _at(full, res.data_adu.shape, vs["idx"])
+        t = template_at(full, res.data_adu.shape, vs["idx"])
         if not np.any(t > 0):
             return None
         best = None
@@ -1654,7 +1665,7 @@ class VarianceSignature(Signature):
         theta = fit.state.get("theta")
         if not theta or theta <= 0 or not vs["idx"].size:
             return ""
-        q = theta * _at(self.template(res), res.data_adu.shape, vs["idx"]) * vs["w"]
+        q = theta * template_at(self.template(res), res.data_adu.shape, vs["idx"]) * vs["w"]
         med = float(np.median(q))
         if med <= 0 or not np.any(q > 2 * med):
             return ""
@@ -1703,7 +1714,7 @@ class VarianceSignature(Signature):
         shape = res.data_adu.shape
         y, x = np.divmod(vs["idx"], shape[1])
         cell = np.minimum(y * cells // shape[0], cells - 1) * cells + np.minimum(x * cells // shape[1], cells - 1)
-        t = _at(self.template(res), shape, vs["idx"])
+        t = template_at(self.template(res), shape, vs["idx"])
         ratios, errs = [], []
         for c in range(cells * cells):
             sel = cell == c
@@ -1743,7 +1754,7 @@ class VarianceSignature(Signature):
         vs = variance_sample(res)
         if not vs["idx"].size:
             return 0.0
-        t = _at(self.template(res), res.data_adu.shape, vs["idx"])
+        t = template_at(self.template(res), res.data_adu.shape, vs["idx"])
         k3 = (self.laws or {}).get(fit.state["law"])
         k3f = None if k3 is None else (lambda th, k3=k3: k3(th, res, vs["idx"]))
         _, d = ml_variance_scale(vs["r_white"], vs["v"], t, outliers=True, k3=k3f, k3_base=vs["k3_poisson"],

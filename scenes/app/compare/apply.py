@@ -13,7 +13,7 @@ import numpy as np
 import tomli_w
 from astropy.io import fits
 
-from detector.signatures import LEVEL_DEGENERACY, _at, _independent
+from detector.signatures import LEVEL_DEGENERACY, independent_columns, template_at
 from scenes.scene import load_scene
 
 from .model import build_model, read_measurement, residuals
@@ -139,10 +139,10 @@ def _solve_levels(res, idx, r, w, wanted: list[int]) -> tuple[list[int], np.ndar
     ``wanted`` (indices of :attr:`Residuals.LEVELS`): (the positions in ``wanted`` kept, degenerate ones dropped
     in order, and their coefficients)."""
     temps = res.level_templates()
-    x = np.stack([_at(temps[i], res.data_adu.shape, idx) for i in wanted])
+    x = np.stack([template_at(temps[i], res.data_adu.shape, idx) for i in wanted])
     xw = x * w
     g = xw @ x.T
-    keep = _independent(g, tol=LEVEL_DEGENERACY)
+    keep = independent_columns(g, tol=LEVEL_DEGENERACY)
     if not keep:
         return [], np.zeros(0)
     return keep, np.linalg.solve(g[np.ix_(keep, keep)], (xw @ r)[keep])

@@ -60,11 +60,11 @@ def robust_excess_var(res: Residuals) -> tuple[float, float]:
     """(the data's variance beyond the model's, the model's) [ADU^2], medians over the fitted pixels with
     the levels refitted: ``median(r^2) / 0.4549 - median(v)`` (0.4549 = median of chi2 with 1 dof), which
     sources the model misplaces (a few per cent of the pixels) cannot inflate, unlike a mean."""
-    if "robust_excess" not in res._flat:
+    def compute():
         _, r, w = res.flat_profiled()
         v = float(np.median(1.0 / w)) if w.size else 0.0
-        res._flat["robust_excess"] = (float(np.median(r * r)) / 0.4549 - v if r.size else 0.0, v)
-    return res._flat["robust_excess"]
+        return (float(np.median(r * r)) / 0.4549 - v if r.size else 0.0, v)
+    return res.memo("robust_excess", compute)
 
 
 def overfit(fit: Fit, chi2_per_dof: float, res: Residuals | None = None,
@@ -109,9 +109,8 @@ def stars_check(res: Residuals, fit: Fit, truth, policy: DiagnosisPolicy = DEFAU
     right."""
     if truth is None or fit.delta_adu is None:
         return ""
-    if "stars_before" not in res._flat:  # the same for every candidate of this comparison
-        res._flat["stars_before"] = star_photometry(res, truth, max_stars=300)
-    before = res._flat["stars_before"]
+    # the same for every candidate of this comparison
+    before = res.memo("stars_before", lambda: star_photometry(res, truth, max_stars=300))
     if before.get("n", 0) < policy.stars_min:
         return ""
     moved = replace(res, model_adu=(res.model_adu + fit.delta_adu).astype(np.float32), _flat={})
@@ -395,7 +394,7 @@ def score_heldout(res: Residuals, cands: list[Candidate], progress=None,
         c.seconds += time.perf_counter() - t0
         if progress is not None:
             progress(f"{c.fit.effect} (held out)")
-    res._flat.pop("heldout_folds", None)  # the folds every candidate shared (detector.signatures._folds)
+    res.forget("heldout_folds")  # the folds every candidate shared (detector.signatures.heldout_delta)
 
 
 def source_candidates(res: Residuals, truth, scene, policy: DiagnosisPolicy = DEFAULT_POLICY) -> list[Candidate]:

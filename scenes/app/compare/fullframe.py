@@ -812,7 +812,7 @@ def sample_residuals(P: Pass, setup: Setup) -> tuple[Residuals, np.ndarray]:
     res = Residuals(data, mean, var, usable & ~statistical, photo, cat("dark"), ys, xs, ss, setup.exptime_s, spikes,
                     model_spikes, photo_field_adu=cat("photo_field"), background_adu=cat("bg"),
                     row_var_adu2=row_offset_var_adu2(setup.detector))
-    res._flat["sample_real"] = real
+    res.memo("sample_real", lambda: real)
     return res, rows
 
 
@@ -912,7 +912,7 @@ def run_compare_large(scene, measured: str | Path, workers: int | None = None, p
                 skew=float(sstats.skew(zsub)) if zsub.size > 2 else 0.0,
                 kurtosis=float(sstats.kurtosis(zsub)) if zsub.size > 3 else 0.0)
     data_sub, model_sub = np.concatenate(P.data_sub), np.concatenate(P.model_sub)
-    real = res_s._flat.pop("sample_real")
+    real = res_s.forget("sample_real")
     rsub = real[:, ::3].ravel()
     result.update({
         "chi2_per_dof": chi2_full, "n_pixels": n_pix, "n_compared": col_n, "n_statistical": n_pix - col_n,
