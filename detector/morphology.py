@@ -34,10 +34,11 @@ from scipy import ndimage as ndi
 from scipy.ndimage import gaussian_filter
 
 from .signatures import Residuals, frame_at
+from .significance import DETECTION_SIGMA, STRUCTURE_SIGMA
 
 #: the residual is structured when the block chi2 (or the pixel chi2 for added noise) exceeds its degrees of
 #: freedom by this many standard deviations
-SIGNIFICANT_SIGMA = 8.0
+SIGNIFICANT_SIGMA = STRUCTURE_SIGMA
 #: a periodogram peak this many times the median power is significant on its own (white noise: P(bin > c x
 #: median) = 2^-c; over the ~1.3e5 frequencies of a 512 x 512 cut, c = 30 is a false alarm of ~1e-4 per frame)
 PERIODIC_CONTRAST = 30.0
@@ -47,7 +48,7 @@ GEOMETRY_SHARE = 0.25
 BLOCKS = 48
 #: a compact feature is detected above this many (robust) standard deviations of the band-passed z map and kept
 #: when its peak reaches FEATURE_PEAK of them
-FEATURE_DETECT, FEATURE_PEAK = 5.0, 8.0
+FEATURE_DETECT, FEATURE_PEAK = DETECTION_SIGMA, STRUCTURE_SIGMA
 #: smoothing scales [output px] of the compact-feature search (a difference of Gaussians s - 6 s each)
 FEATURE_SCALES = (1.0, 2.0, 4.0, 8.0)
 #: order of the 2-D Legendre basis of the smooth fields (the ``gradient`` family and the kind test)

@@ -43,10 +43,11 @@ import numpy as np
 from scipy import optimize
 
 from detector.sensor import SensorConfig
+from detector.significance import DETECTION_SIGMA, STRUCTURE_SIGMA
 from detector.stats import mad_std
 
 #: |z - median_3x3(z)| above which a pixel is a spike (hot/dead pixel, cosmic-ray hit) [sigma]
-SPIKE_SIGMA = 5.0
+SPIKE_SIGMA = DETECTION_SIGMA
 #: |column or row mean| above which a column/row is an outlier [sigma of the mean]
 LINE_SIGMA = 6.0
 #: columns of the running median an outlier column is compared with [columns]
@@ -1627,7 +1628,7 @@ class VarianceSignature(Signature):
     #: the prediction) may carry at most this share of the excess chi2 there
     MAX_MEAN_SHARE = 0.25
     #: ... when those bins' means are significant at this many standard deviations of their chi2
-    MEAN_SIGMA = 8.0
+    MEAN_SIGMA = STRUCTURE_SIGMA
 
     def zero_mean(self, fit: Fit, res: Residuals) -> str:
         """A noise or a pixel-to-pixel non-uniformity scatters the pixels about the model: its mean is zero.

@@ -75,6 +75,7 @@ import scipy.stats
 from pydantic import Field
 from scipy import ndimage, signal
 
+from ..significance import FOOTPRINT_SIGMA
 from ..signatures import Fit, LinearSignature, Residuals, Variant, fit_linear, search_sample
 from .base import Effect, EffectParams, Stage, Tile, register_effect
 from .image_plane import (
@@ -225,7 +226,7 @@ SCAN_GLOBAL_P = 1e-3
 #: falls on the frame
 SCAN_MIN_OVERLAP = 0.1
 #: a model source pixel brighter than this many noise sigmas is a source core, masked in the scan
-CORE_SIGMA = 3.0
+CORE_SIGMA = FOOTPRINT_SIGMA
 #: the other map family's peak is fitted as well when its z is at least this share of the best one's
 SECOND_FAMILY_Z = 0.9
 

@@ -27,6 +27,7 @@ import time
 import numpy as np
 
 from detector.flux_law import change_slope, flux_law
+from detector.significance import DETECTION_SIGMA
 from detector.signatures import Fit, Residuals, frame_at, pixel_score
 
 from .apply import bias_per_output_adu
@@ -67,7 +68,7 @@ RING_GAP_PX, RING_WIDTH_PX = 2, 6
 RING_MIN_PIXELS = 100
 APERTURE_MAX_SHARE = 0.5
 #: standard errors by which the enclosed light's ratio must differ from the zero point's for the test to speak
-ENCLOSED_SIGMA = 5.0
+ENCLOSED_SIGMA = DETECTION_SIGMA
 
 
 def enclosed_ratio(res: Residuals) -> tuple[float, float, int] | None:
