@@ -34,7 +34,7 @@ from scipy import ndimage as ndi
 from scipy.ndimage import gaussian_filter
 
 from .signatures import Residuals, frame_at
-from .significance import DETECTION_SIGMA, STRUCTURE_SIGMA
+from .significance import DETECTION_SIGMA, EXPLAINS_MOST, STRUCTURE_SIGMA
 
 #: the residual is structured when the block chi2 (or the pixel chi2 for added noise) exceeds its degrees of
 #: freedom by this many standard deviations
@@ -736,7 +736,7 @@ def _source_light(res: Residuals) -> np.ndarray:
 
 
 #: a line pattern follows the sources when their light per line explains this share of the lines' excess
-LINE_SOURCE_SHARE = 0.5
+LINE_SOURCE_SHARE = EXPLAINS_MOST
 
 
 def _lines_through_sources(res: Residuals, lm, lw, okl, axis: int, excess: float) -> float | None:

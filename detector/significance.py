@@ -26,3 +26,8 @@ FOOTPRINT_SIGMA = 3.0
 #: a change of -2 ln L between two models (a delta BIC, a Poisson deviance, a held-out sample's) by more than this
 #: is "very strong" evidence (Kass & Raftery 1995, JASA 90, 773): the DESIGN contract's significance
 STRONG_EVIDENCE = 10.0
+#: a form that claims a residual must explain most of it: at least this share of the excess chi2 it is fitted to
+#: (the judge's min_explained, min_support_share, min_catch_all_share and parameter_explained_share; a ghost
+#: about its strongest copy; a line pattern through the sources): what remains looks like noise, not like the
+#: rest of another effect
+EXPLAINS_MOST = 0.5

@@ -28,8 +28,8 @@ from typing import Literal
 import numpy as np
 from pydantic import Field, field_validator
 
-from ..significance import DETECTION_SIGMA
 from ..signatures import NEAR_SATURATION_SHARE, Fit, Signature, gls_quadratic, lstsq_delta
+from ..significance import DETECTION_SIGMA
 from .base import Effect, EffectParams, Stage, Tile, register_effect
 
 # --- pure functions ---------------------------------------------------------------------------------------

@@ -54,8 +54,8 @@ from __future__ import annotations
 import numpy as np
 from pydantic import Field
 
-from ..significance import DETECTION_SIGMA
 from ..signatures import LinearSignature, Variant
+from ..significance import DETECTION_SIGMA
 from .base import Effect, EffectParams, Stage, Tile, register_effect
 
 

@@ -75,8 +75,8 @@ import scipy.stats
 from pydantic import Field
 from scipy import ndimage, signal
 
-from ..significance import FOOTPRINT_SIGMA
 from ..signatures import Fit, LinearSignature, Residuals, Variant, fit_linear, search_sample
+from ..significance import EXPLAINS_MOST, FOOTPRINT_SIGMA
 from .base import Effect, EffectParams, Stage, Tile, register_effect
 from .image_plane import (
     FIT_FFT_WORKERS,
@@ -441,7 +441,7 @@ GHOST_CONFIRMED_SHARE = 0.6
 #: about the copy that carries the most of the claim, the fitted ghost must take this share of the residual's
 #: excess chi2 there (what remains looks like noise): a trail or a glint that a copy lands on keeps most of
 #: its excess outside the ghost's round profile (0.28 for a satellite trail; 0.98 for a real ghost)
-GHOST_STAMP_SHARE = 0.5
+GHOST_STAMP_SHARE = EXPLAINS_MOST
 #: bright sources the map is checked on
 GHOST_CHECK_SOURCES = 40
 #: parameters the free form chooses beside alpha: the offset (2), the radius, the profile's form, the family

@@ -100,7 +100,6 @@ APERTURE_MAX_SHARE | N | geometry | apertures' largest share of the frame (then 
 ENCLOSED_SIGMA | D | statistics | standard errors for the enclosed-light test to speak (detection_sigma)
 PSF_WINDOW_PX | N | budget | central window of the PSF re-render
 @scenes/app/compare/policy.py
-EXPLAINS_MOST | D | physics | a name explains most (half) of what is wrong
 SCALE_TOLERANCE | D | physics | a scene's scale known to a few per cent: 10 % off is a finding
 @scenes/app/compare/report.py
 DPI | N | display | plot resolution
@@ -126,6 +125,7 @@ PEAK_SIDE | N | budget | cut-out searched for spectral peaks
 DETECTION_SIGMA | D | statistics | 5 sigma: one-sided 2.9e-7 per test
 STRUCTURE_SIGMA | D | calibration | 8 sigma of a many-pixel chi2 excess; no null frame beyond it (docs/null_calibration.md)
 FOOTPRINT_SIGMA | D | statistics | a source's footprint: model light 3 sigma above the noise (SExtractor)
+EXPLAINS_MOST | D | physics | a form explains most (half) of the residual it claims
 STRONG_EVIDENCE | D | contract | -2 ln L change of 10: very strong evidence (Kass & Raftery 1995)
 @detector/signatures.py
 SPIKE_SIGMA | D | statistics | a pixel is a spike beyond detection_sigma
@@ -496,11 +496,11 @@ def markdown(entries: list[Entry], literals: dict) -> str:
         if any(r.values()):
             lines.append(f"| `{path}` | {r['policy fields']} | {r['decision']} | {r['numerical']} | "
                          f"{r['references']} | {r['literals']} |")
-    lines += [f"| **total** | {tot['policy fields']} | {tot['decision']} | {tot['numerical']} | "
-              f"{tot['references']} | {tot['literals']} |", "",
-              f"Named decision thresholds: {tot['policy fields'] + tot['decision']} ({tot['policy fields']} policy "
-              f"fields, {tot['decision']} module constants; {tot['unaccounted']} unaccounted); numerical settings: "
-              f"{tot['numerical']}.", "", "### Shared definitions and their references", "",
+    lines += [(f"| **total** | {tot['policy fields']} | {tot['decision']} | {tot['numerical']} | "
+               f"{tot['references']} | {tot['literals']} |"), "",
+              (f"Named decision thresholds: {tot['policy fields'] + tot['decision']} ({tot['policy fields']} policy "
+               f"fields, {tot['decision']} module constants; {tot['unaccounted']} unaccounted); numerical settings: "
+               f"{tot['numerical']}."), "", "### Shared definitions and their references", "",
               "| definition | value | referenced by |", "|---|---|---|"]
     for e in entries:
         refs = [f"`{r.path}:{r.name}`" for r in entries

@@ -27,8 +27,8 @@ import time
 import numpy as np
 
 from detector.flux_law import change_slope, flux_law
-from detector.significance import DETECTION_SIGMA
 from detector.signatures import Fit, Residuals, frame_at, pixel_score
+from detector.significance import DETECTION_SIGMA
 
 from .apply import bias_per_output_adu
 from .candidates import away_from_saturation

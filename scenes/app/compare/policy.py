@@ -21,15 +21,13 @@ from dataclasses import MISSING, asdict, dataclass, field, fields, replace
 from pathlib import Path
 
 from detector.errors import DetectorError
-from detector.significance import DETECTION_SIGMA, STRONG_EVIDENCE, STRUCTURE_SIGMA
+from detector.significance import DETECTION_SIGMA, EXPLAINS_MOST, STRONG_EVIDENCE, STRUCTURE_SIGMA
 
 #: why a field has its value: the DESIGN contract, the null calibration, or physics
 BASES = ("contract", "calibration", "physics", "statistics")
-#: fields that ask the same question share one value: a name must explain most of what is wrong (min_explained,
-#: min_support_share, min_catch_all_share, parameter_explained_share) ...
-EXPLAINS_MOST = 0.5
-#: ... and a refitted scale of the scene or of its noise is a finding beyond this relative change
-#: (parameter_scale_tolerance, noise_scale_tolerance)
+#: fields that ask the same question share one value (the significance levels and EXPLAINS_MOST of
+#: detector/significance.py, and this): a refitted scale of the scene or of its noise is a finding beyond this
+#: relative change (parameter_scale_tolerance, noise_scale_tolerance)
 SCALE_TOLERANCE = 0.1
 
 
