@@ -123,7 +123,7 @@ MAP_SIDE | N | display | residual map size in the report
 PEAK_SIDE | N | budget | cut-out searched for spectral peaks
 @detector/significance.py
 DETECTION_SIGMA | D | statistics | 5 sigma: one-sided 2.9e-7 per test
-STRUCTURE_SIGMA | D | calibration | 8 sigma of a many-pixel chi2 excess; no null frame beyond it (docs/null_calibration.md)
+STRUCTURE_SIGMA | D | calibration | 8 sigma of a many-pixel chi2 excess; no null beyond it (docs/null_calibration.md)
 FOOTPRINT_SIGMA | D | statistics | a source's footprint: model light 3 sigma above the noise (SExtractor)
 EXPLAINS_MOST | D | physics | a form explains most (half) of the residual it claims
 STRONG_EVIDENCE | D | contract | -2 ln L change of 10: very strong evidence (Kass & Raftery 1995)

@@ -61,7 +61,8 @@ def test_policy_fields_documented_and_docs_current():
     for name, value in DEFAULT_POLICY.to_json().items():
         assert f"`{name}`" in table and isinstance(value, (int, float))
     head = DOC_PATH.read_text().partition(AUDIT_MARKER)[0]  # the generated threshold audit follows the table
-    assert head.rstrip("\n") == table.rstrip("\n"), "docs/diagnosis_policy.md is stale: python -m scenes.app.compare.policy"
+    assert head.rstrip("\n") == table.rstrip("\n"), \
+        "docs/diagnosis_policy.md is stale: python -m scenes.app.compare.policy"
     assert DEFAULT_POLICY.significant_delta_bic == -10.0  # the DESIGN contract
 
 
