@@ -17,6 +17,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from . import significance
+
 #: the least signal-to-noise ratio of a source's own amplitude for the source to enter the slope (below it the
 #: amplitude's logarithm is not defined well enough to fit)
 SOURCE_MIN_SNR = 5.0
@@ -30,7 +32,7 @@ MIN_FLUX_RANGE = 3.0
 SEPARATION_SIGMA = 4.0
 #: the model's source light above this many standard deviations of a pixel's noise marks a source's footprint
 #: (then grown by FOOTPRINT_GROW_PX to hold its wings)
-FOOTPRINT_SIGMA = 3.0
+FOOTPRINT_SIGMA = significance.FOOTPRINT_SIGMA
 FOOTPRINT_GROW_PX = 2
 
 

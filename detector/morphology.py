@@ -34,10 +34,11 @@ from scipy import ndimage as ndi
 from scipy.ndimage import gaussian_filter
 
 from .signatures import Residuals, frame_at
+from .significance import DETECTION_SIGMA, EXPLAINS_MOST, STRONG_EVIDENCE, STRUCTURE_SIGMA
 
 #: the residual is structured when the block chi2 (or the pixel chi2 for added noise) exceeds its degrees of
 #: freedom by this many standard deviations
-SIGNIFICANT_SIGMA = 8.0
+SIGNIFICANT_SIGMA = STRUCTURE_SIGMA
 #: a periodogram peak this many times the median power is significant on its own (white noise: P(bin > c x
 #: median) = 2^-c; over the ~1.3e5 frequencies of a 512 x 512 cut, c = 30 is a false alarm of ~1e-4 per frame)
 PERIODIC_CONTRAST = 30.0
@@ -47,7 +48,7 @@ GEOMETRY_SHARE = 0.25
 BLOCKS = 48
 #: a compact feature is detected above this many (robust) standard deviations of the band-passed z map and kept
 #: when its peak reaches FEATURE_PEAK of them
-FEATURE_DETECT, FEATURE_PEAK = 5.0, 8.0
+FEATURE_DETECT, FEATURE_PEAK = DETECTION_SIGMA, STRUCTURE_SIGMA
 #: smoothing scales [output px] of the compact-feature search (a difference of Gaussians s - 6 s each)
 FEATURE_SCALES = (1.0, 2.0, 4.0, 8.0)
 #: order of the 2-D Legendre basis of the smooth fields (the ``gradient`` family and the kind test)
@@ -433,7 +434,7 @@ def describe(res: Residuals, delta_adu: np.ndarray | None = None) -> dict:
     on_source = None
     if res.background_adu is not None:
         srcmap = np.asarray(res.model_adu, np.float64) - res.background_adu
-        on_source = srcmap > 5.0 * np.sqrt(np.maximum(np.asarray(res.var_adu2, np.float64), 1e-12))
+        on_source = srcmap > SOURCE_KERNEL_CORE_SIGMA * np.sqrt(np.maximum(np.asarray(res.var_adu2, np.float64), 1e-12))
     if zp.size <= FEATURE_MAX_PIXELS:
         feats = compact_features(zp, okp, on_source)
     else:  # the band-passed search costs ~9 s on 2048^2: larger frames keep the block-map families only
@@ -538,7 +539,7 @@ def describe(res: Residuals, delta_adu: np.ndarray | None = None) -> dict:
             bic = {"additive": d_add + k_terms * ln, "multiplicative": d_mul + (k_terms + 1) * ln,
                    "mixed": d_both + (2 * k_terms + 1) * ln}
             kind = min(bic, key=bic.get)
-            if kind == "mixed" and min(bic["additive"], bic["multiplicative"]) - bic["mixed"] < 10:
+            if kind == "mixed" and min(bic["additive"], bic["multiplicative"]) - bic["mixed"] < STRONG_EVIDENCE:
                 kind = "additive" if bic["additive"] <= bic["multiplicative"] else "multiplicative"
     else:
         kind = "additive"
@@ -593,7 +594,7 @@ def describe(res: Residuals, delta_adu: np.ndarray | None = None) -> dict:
     # local: what the smooth field leaves in a few blocks
     resid = (yg - (fit_grad if d_grad <= d_rad else fit_rad)) * np.sqrt(wg)
     resid -= np.mean(resid)
-    strong = np.abs(resid) > 5
+    strong = np.abs(resid) > DETECTION_SIGMA
     shares["local"] = float(np.sum(resid[strong] ** 2) / max(total, 1e-300)) if strong.sum() <= 0.1 * nb else 0.0
     # rings and blobs: the share of the band-passed structure in their footprints (compact_features)
     if feats["n_rings"]:
@@ -735,7 +736,7 @@ def _source_light(res: Residuals) -> np.ndarray:
 
 
 #: a line pattern follows the sources when their light per line explains this share of the lines' excess
-LINE_SOURCE_SHARE = 0.5
+LINE_SOURCE_SHARE = EXPLAINS_MOST
 
 
 def _lines_through_sources(res: Residuals, lm, lw, okl, axis: int, excess: float) -> float | None:
@@ -1003,7 +1004,7 @@ def _feature_map(feats: dict, rmap: np.ndarray, wmap: np.ndarray, light: np.ndar
     rings_on_src = feats["n_srings"] >= 2 and feats["n_srings"] >= 2 * feats["n_rings"]
     if res is not None and res.background_adu is not None:
         srcmap = np.asarray(res.model_adu, np.float64) - res.background_adu
-        on_source = srcmap > 5.0 * np.sqrt(np.maximum(np.asarray(res.var_adu2, np.float64), 1e-12))
+        on_source = srcmap > SOURCE_KERNEL_CORE_SIGMA * np.sqrt(np.maximum(np.asarray(res.var_adu2, np.float64), 1e-12))
         if rings_on_src:
             r_max = 2.0 * feats["sring_radius_px"] + 2.0 * feats["scale_srings"]
             amap, _ = _source_profile_map(rmap, wmap, np.where(np.isfinite(srcmap), srcmap, 0.0), r_max)
@@ -1198,7 +1199,7 @@ def _kind_from_sources(res: Residuals, idx, r, w) -> str | None:
     if res.background_adu is None:
         return None
     srcl = (np.asarray(res.model_adu, np.float64) - res.background_adu).ravel()[idx]
-    on = srcl * np.sqrt(w) > 5.0
+    on = srcl * np.sqrt(w) > SOURCE_KERNEL_CORE_SIGMA
     if on.sum() < 200:
         return None
     bg = np.maximum(np.asarray(res.background_photo_adu, np.float64).ravel()[idx][on], 1e-9)

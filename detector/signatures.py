@@ -44,10 +44,11 @@ import numpy as np
 from scipy import optimize
 
 from detector.sensor import SensorConfig
+from detector.significance import DETECTION_SIGMA, STRONG_EVIDENCE, STRUCTURE_SIGMA
 from detector.stats import mad_std
 
 #: |z - median_3x3(z)| above which a pixel is a spike (hot/dead pixel, cosmic-ray hit) [sigma]
-SPIKE_SIGMA = 5.0
+SPIKE_SIGMA = DETECTION_SIGMA
 #: |column or row mean| above which a column/row is an outlier [sigma of the mean]
 LINE_SIGMA = 6.0
 #: columns of the running median an outlier column is compared with [columns]
@@ -1598,7 +1599,7 @@ class VarianceSignature(Signature):
         n = res.n_fit
         note = law or ""
         extra = {}
-        if self.smooth is not None and d + k * np.log(max(n, 2)) < -10:
+        if self.smooth is not None and d + k * np.log(max(n, 2)) < -STRONG_EVIDENCE:
             ds, rms, m = smooth_component(res, self.smooth(res))
             if m and ds + m * np.log(max(n, 2)) < 0:
                 d, k = d + ds, k + m
@@ -1634,13 +1635,13 @@ class VarianceSignature(Signature):
         if why:
             return why
         rho, z = neighbour_correlation(res)
-        if rho > self.MAX_NEIGHBOUR_CORRELATION and z > 5 and not (self.lines and self._along_lines(res)):
+        if rho > self.MAX_NEIGHBOUR_CORRELATION and z > DETECTION_SIGMA and not (self.lines and self._along_lines(res)):
             return (f"the extra scatter is correlated between neighbouring pixels (correlation {rho:.2f}, {z:.0f} "
                     "sigma): a structure a few pixels wide, not a pixel-to-pixel non-uniformity or noise")
         rho, z, n, share = tail_neighbour_correlation(res)
         # (only when the tail carries most of the extra scatter: a white PRNU over the whole flat is not judged by
         # the dust rings that make its outliers)
-        if rho > self.MAX_TAIL_CORRELATION and z > 5 and share > 0.5:
+        if rho > self.MAX_TAIL_CORRELATION and z > DETECTION_SIGMA and share > 0.5:
             return (f"the pixels that carry the extra scatter have neighbours that share their sign (correlation "
                     f"{rho:.2f} over {n} outlying pixels, {z:.0f} sigma; independent noise gives 0): a structure a few "
                     "pixels wide (light moved into rings, pixels in pairs or clusters, smeared sources), not "
@@ -1651,7 +1652,7 @@ class VarianceSignature(Signature):
     #: the prediction) may carry at most this share of the excess chi2 there
     MAX_MEAN_SHARE = 0.25
     #: ... when those bins' means are significant at this many standard deviations of their chi2
-    MEAN_SIGMA = 8.0
+    MEAN_SIGMA = STRUCTURE_SIGMA
 
     def zero_mean(self, fit: Fit, res: Residuals) -> str:
         """A noise or a pixel-to-pixel non-uniformity scatters the pixels about the model: its mean is zero.
@@ -1740,7 +1741,7 @@ class VarianceSignature(Signature):
         mean = float(np.sum(wts * ratios) / np.sum(wts))
         chi2, dof = float(np.sum(wts * (ratios - mean) ** 2)), ratios.size - 1
         spread = float(np.sqrt(np.sum(wts * (ratios - mean) ** 2) / np.sum(wts))) / max(abs(mean), 1e-12)
-        if chi2 > dof + 5 * np.sqrt(2 * dof) and spread > self.MAX_CELL_SPREAD:
+        if chi2 > dof + DETECTION_SIGMA * np.sqrt(2 * dof) and spread > self.MAX_CELL_SPREAD:
             return (f"the extra scatter varies across the frame ({ratios.min():.2g} to {ratios.max():.2g} x the fit's, "
                     f"chi2 {chi2:.0f} for {dof} dof): a gradient of the noise, which this noise's template does not "
                     "have")

@@ -29,6 +29,7 @@ import numpy as np
 from pydantic import Field, field_validator
 
 from ..signatures import NEAR_SATURATION_SHARE, Fit, Signature, gls_quadratic, lstsq_delta
+from ..significance import DETECTION_SIGMA
 from .base import Effect, EffectParams, Stage, Tile, register_effect
 
 # --- pure functions ---------------------------------------------------------------------------------------
@@ -86,7 +87,7 @@ def _cell_fractions(res, period: int = 2) -> np.ndarray | None:
 #: the 2-pixel period) [pixels]
 CFA_FIT_PIXELS = 1_000_000
 #: |z| above which a pixel is left out of the response fit as an outlier (hot pixel, cosmic ray) [sigma]
-CFA_CLIP_SIGMA = 5.0
+CFA_CLIP_SIGMA = DETECTION_SIGMA
 
 
 def _unsaturated(res) -> np.ndarray:

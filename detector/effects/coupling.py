@@ -55,6 +55,7 @@ import numpy as np
 from pydantic import Field
 
 from ..signatures import LinearSignature, Variant
+from ..significance import DETECTION_SIGMA
 from .base import Effect, EffectParams, Stage, Tile, register_effect
 
 
@@ -185,7 +186,7 @@ _BF_SIGNATURE = LinearSignature(
     pattern="flux-dependent widening of bright sources", extra_k=1, check=bf_check)
 #: how many standard errors the source-free pixels' neighbour correlation may fall short of what a fitted IPC
 #: implies before the IPC is refused (and the least the implied correlation must reach for the test to speak)
-IPC_NOISE_SIGMA = 5.0
+IPC_NOISE_SIGMA = DETECTION_SIGMA
 
 
 def ipc_noise_correlation(alpha: float) -> float:

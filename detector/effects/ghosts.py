@@ -76,6 +76,7 @@ from pydantic import Field
 from scipy import ndimage, signal
 
 from ..signatures import Fit, LinearSignature, Residuals, Variant, fit_linear, search_sample
+from ..significance import EXPLAINS_MOST, FOOTPRINT_SIGMA
 from .base import Effect, EffectParams, Stage, Tile, register_effect
 from .image_plane import (
     FIT_FFT_WORKERS,
@@ -225,7 +226,7 @@ SCAN_GLOBAL_P = 1e-3
 #: falls on the frame
 SCAN_MIN_OVERLAP = 0.1
 #: a model source pixel brighter than this many noise sigmas is a source core, masked in the scan
-CORE_SIGMA = 3.0
+CORE_SIGMA = FOOTPRINT_SIGMA
 #: the other map family's peak is fitted as well when its z is at least this share of the best one's
 SECOND_FAMILY_Z = 0.9
 
@@ -440,7 +441,7 @@ GHOST_CONFIRMED_SHARE = 0.6
 #: about the copy that carries the most of the claim, the fitted ghost must take this share of the residual's
 #: excess chi2 there (what remains looks like noise): a trail or a glint that a copy lands on keeps most of
 #: its excess outside the ghost's round profile (0.28 for a satellite trail; 0.98 for a real ghost)
-GHOST_STAMP_SHARE = 0.5
+GHOST_STAMP_SHARE = EXPLAINS_MOST
 #: bright sources the map is checked on
 GHOST_CHECK_SOURCES = 40
 #: parameters the free form chooses beside alpha: the offset (2), the radius, the profile's form, the family

@@ -31,6 +31,7 @@ from ..signatures import (
     ml_variance_scale,
     search_sample,
 )
+from ..significance import DETECTION_SIGMA
 from .base import Effect, EffectParams, Stage, Tile, register_effect
 
 K_BOLTZMANN = 1.380649e-23  # J/K
@@ -287,7 +288,7 @@ class RowOffsetSignature(Signature):
             rho1 = float(np.dot(u[1:], u[:-1]) / max(np.dot(u, u), 1e-300))
             ratio = float(np.sum(r * r / v)) / n
             rho_extra = rho1 * ratio / (ratio - 1) if ratio > 1 else 0.0
-            if rho_extra > self.MAX_LAG1 and rho1 * np.sqrt(n) > 5:
+            if rho_extra > self.MAX_LAG1 and rho1 * np.sqrt(n) > DETECTION_SIGMA:
                 return (f"the row offsets are correlated from one row to the next (lag-1 correlation {rho_extra:.2f} "
                         f"of the extra offsets, {rho1 * np.sqrt(n):.0f} sigma): a level drifting during the read-out "
                         "or a slow pickup, not independent row noise")

@@ -15,6 +15,7 @@ from collections.abc import Callable
 import numpy as np
 
 from detector.cosmics import ENVIRONMENTS
+from detector.significance import DETECTION_SIGMA
 
 from .policy import DEFAULT_POLICY, DiagnosisPolicy
 
@@ -172,7 +173,7 @@ def floor_reason(effect: str, params: dict, sensor, policy: DiagnosisPolicy = DE
 #: candidates whose evidence is pixels brighter than the model that stay put: hot in every frame
 HOT_EFFECTS = ("hot_pixels", "dark_rate_tail")
 #: a pixel is hot in the user's dark when its rate is this many robust sigmas above the map's median
-HOT_IN_DARK_SIGMA = 5.0
+HOT_IN_DARK_SIGMA = DETECTION_SIGMA
 
 
 def hot_in_dark(res, scene, policy: DiagnosisPolicy = DEFAULT_POLICY) -> str:

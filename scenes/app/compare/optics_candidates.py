@@ -96,6 +96,7 @@ import time
 import numpy as np
 
 from detector.signatures import Fit, Residuals
+from detector.significance import DETECTION_SIGMA, STRONG_EVIDENCE
 
 from .statistics import background_adu
 
@@ -412,7 +413,7 @@ def optics_candidates(res: Residuals, truth, scene, *, mi=None, families=None, p
     explained = {}
     uniform = uniform_change_chi2(stars, sigma, sensor, parity)
     pixels, pixel_problem = None, ""
-    if model is not None and any((ref - c.fit.chi2) / q > 10 for c in cands):
+    if model is not None and any((ref - c.fit.chi2) / q > STRONG_EVIDENCE for c in cands):
         try:
             pixels = PixelPredictor.build(model, scene, design, mi)
         except (OSError, ValueError, KeyError) as exc:
@@ -424,7 +425,7 @@ def optics_candidates(res: Residuals, truth, scene, *, mi=None, families=None, p
         values, errs = np.array(fit.values, float), fit.errors * math.sqrt(q)
         t1 = time.perf_counter()
         delta, m2l, scale = None, None, 1.0
-        if pixels is not None and drop > 10 and scored < PIXEL_FAMILIES:
+        if pixels is not None and drop > STRONG_EVIDENCE and scored < PIXEL_FAMILIES:
             # a prediction of every pixel: scored like the pixel candidates (their -2 ln L, levels refitted);
             # the best family's amplitude refined on the pixels (the moments' aperture cuts the wings)
             delta, m2l, scale = pixels.score(res, fit.names, values, refine=scored == 0)
@@ -433,7 +434,7 @@ def optics_candidates(res: Residuals, truth, scene, *, mi=None, families=None, p
         z = values / np.where(errs > 0, errs, np.inf)
         i = int(np.argmax(np.abs(z)))
         effect = DEFOCUS if c.family == "defocus" else MISALIGNMENT
-        if effect not in explained and drop > 10:   # the best of each kind: with the field pattern
+        if effect not in explained and drop > STRONG_EVIDENCE:   # the best of each kind: with the field pattern
             words = explain(fit.names[i], values[i], errs[i], tracer, fit.fields_deg,
                             {"n_rays": N_RAYS, "wavelengths_nm": WAVELENGTHS_NM})
         else:
@@ -498,15 +499,16 @@ def field_pattern_check(cands: list, optical: list) -> None:
     the stars' moment changes (``chi2_uniform`` within 5 sqrt(2 dof) of its dof), and an optics candidate
     scored on the pixels must not fit them far better (a chi^2 lower by more than 10 q, q its scatter scale).
     Marks those candidates ``implausible`` in place."""
-    best = next((c for c in optical if c.fit.delta_adu is not None and c.fit.delta_bic < -10), None)
+    best = next((c for c in optical if c.fit.delta_adu is not None
+                 and c.fit.delta_bic < c.policy.significant_delta_bic), None)
     if best is None:
         return
     st = best.fit.state
     u, dof, q = st.get("chi2_uniform"), st.get("dof_uniform"), st.get("scale", 1.0)
     if u is None or dof is None or dof <= 0:
         return
-    varies = u - dof > 5.0 * math.sqrt(2.0 * dof)
-    explained = (u - st["chi2"]) / q > 10.0
+    varies = u - dof > DETECTION_SIGMA * math.sqrt(2.0 * dof)
+    explained = (u - st["chi2"]) / q > STRONG_EVIDENCE
     if not (varies and explained):
         return
     family = best.fit.note.replace("_", " ")

@@ -28,6 +28,7 @@ import numpy as np
 
 from detector.flux_law import change_slope, flux_law
 from detector.signatures import Fit, Residuals, frame_at, pixel_score
+from detector.significance import DETECTION_SIGMA, FOOTPRINT_SIGMA
 
 from .apply import bias_per_output_adu
 from .candidates import away_from_saturation
@@ -67,7 +68,7 @@ RING_GAP_PX, RING_WIDTH_PX = 2, 6
 RING_MIN_PIXELS = 100
 APERTURE_MAX_SHARE = 0.5
 #: standard errors by which the enclosed light's ratio must differ from the zero point's for the test to speak
-ENCLOSED_SIGMA = 5.0
+ENCLOSED_SIGMA = DETECTION_SIGMA
 
 
 def enclosed_ratio(res: Residuals) -> tuple[float, float, int] | None:
@@ -79,7 +80,7 @@ def enclosed_ratio(res: Residuals) -> tuple[float, float, int] | None:
     from scipy import ndimage
 
     source = res.model_adu - res.without_sources_adu
-    core = source > 3.0 * np.sqrt(np.maximum(res.var_adu2, 1e-12))
+    core = source > FOOTPRINT_SIGMA * np.sqrt(np.maximum(res.var_adu2, 1e-12))
     if not core.any():
         return None
     saturated = res.saturated

@@ -21,9 +21,14 @@ from dataclasses import MISSING, asdict, dataclass, field, fields, replace
 from pathlib import Path
 
 from detector.errors import DetectorError
+from detector.significance import DETECTION_SIGMA, EXPLAINS_MOST, STRONG_EVIDENCE, STRUCTURE_SIGMA
 
 #: why a field has its value: the DESIGN contract, the null calibration, or physics
 BASES = ("contract", "calibration", "physics", "statistics")
+#: fields that ask the same question share one value (the significance levels and EXPLAINS_MOST of
+#: detector/significance.py, and this): a refitted scale of the scene or of its noise is a finding beyond this
+#: relative change (parameter_scale_tolerance, noise_scale_tolerance)
+SCALE_TOLERANCE = 0.1
 
 
 def _f(default, unit: str, basis: str, doc: str):
@@ -37,7 +42,7 @@ class DiagnosisPolicy:
 
     # -- what "significant" means: one meaning for single frames, large frames and series ------------------------
     significant_delta_bic: float = _f(
-        -10.0, "delta BIC", "contract",
+        -STRONG_EVIDENCE, "delta BIC", "contract",
         "a candidate is significant only below this delta BIC (DESIGN.md; 'very strong' evidence, Kass & Raftery "
         "1995, JASA 90, 773)")
     significant_heldout: float = _f(
@@ -60,28 +65,28 @@ class DiagnosisPolicy:
 
     # -- a name must take what is wrong, not a corner of it ---------------------------------------------------------
     structure_sigma: float = _f(
-        8.0, "sigma", "calibration",
+        STRUCTURE_SIGMA, "sigma", "calibration",
         "the frame's large-scale structure (block chi2 beyond its dof) is significant above this many standard "
         "deviations of its chi2")
     min_explained: float = _f(
-        0.5, "1", "physics",
+        EXPLAINS_MOST, "1", "physics",
         "where that structure is significant, a candidate changing the mean must remove at least this share "
         "of it: the missing effect explains most of what is wrong, not a corner of it")
     excess_sigma: float = _f(
-        5.0, "sigma", "statistics",
+        DETECTION_SIGMA, "sigma", "statistics",
         "the frame's whole excess chi2 (levels refitted) is significant above this many standard deviations")
     min_excess_share: float = _f(
         0.02, "1", "physics",
         "where that excess is significant, a pixel candidate must remove at least this share of it")
     min_support_share: float = _f(
-        0.5, "1", "physics",
+        EXPLAINS_MOST, "1", "physics",
         "a candidate that changes the mean must remove at least this share of the excess chi2 over the pixels "
         "it acts on (where that excess is significant)")
     support_mass: float = _f(
         0.9, "1", "statistics",
         "the pixels a candidate acts on: its largest weighted squared changes, carrying this share of their sum")
     support_sigma: float = _f(
-        8.0, "sigma", "statistics",
+        STRUCTURE_SIGMA, "sigma", "statistics",
         "the excess over those pixels is significant above this many standard deviations of its chi2")
 
     # -- a fit that only hides a residual -------------------------------------------------------------------------
@@ -104,7 +109,7 @@ class DiagnosisPolicy:
         0.2, "|ln flux ratio|", "physics", "... and must leave it below this")
     stars_min: int = _f(10, "stars", "statistics", "bright stars needed for that photometry test")
     sample_worse: float = _f(
-        10.0, "delta -2 ln L", "contract",
+        STRONG_EVIDENCE, "delta -2 ln L", "contract",
         "large frames: a candidate fitted on the binned frame must not worsen the full-resolution band sample "
         "by more than this (the delta BIC scale)")
     consistency_factor: float = _f(
@@ -114,14 +119,14 @@ class DiagnosisPolicy:
 
     # -- a name must beat a description ---------------------------------------------------------------------------
     min_catch_all_share: float = _f(
-        0.5, "1", "physics",
+        EXPLAINS_MOST, "1", "physics",
         "a physical candidate is named only when, on the same held-out folds, it predicts at least this share "
         "of what the residual's empirical map (the catch-all description) predicts: the missing effect "
         "explains most of what is wrong, as min_explained asks of the large-scale structure")
 
     # -- is a number of the scene wrong? (parameter candidates) ----------------------------------------------------
     parameter_scale_tolerance: float = _f(
-        0.1, "1", "physics",
+        SCALE_TOLERANCE, "1", "physics",
         "a refitted scale of the scene (the sources' zero point, the sky, the dark current) is a finding when "
         "it differs from 1 by more than this: a model knows its lamp, transparency and temperature to a few "
         "per cent (the validation's measured cameras differ by 1.5-3 %), a zero point 10 % off is an error of "
@@ -137,7 +142,7 @@ class DiagnosisPolicy:
     psf_min_stars: int = _f(
         5, "stars", "statistics", "stars with a peak above 10 sigma needed to fit the PSF's width")
     noise_scale_tolerance: float = _f(
-        0.1, "1", "physics",
+        SCALE_TOLERANCE, "1", "physics",
         "a gain or read noise refitted from the residual's variance is a finding beyond this relative change")
 
     # -- physical effect-size floors ------------------------------------------------------------------------------
@@ -170,7 +175,7 @@ class DiagnosisPolicy:
         "sheets (EMVA 1288) give 1e-5 to 1e-3 of the pixels and a grade-2 CCD a few tens of its thousands of "
         "columns; the count is extrapolated from the frame to the sensor, so the floor leaves a margin")
     parameter_explained_share: float = _f(
-        0.5, "1", "physics",
+        EXPLAINS_MOST, "1", "physics",
         "a level candidate whose deviation shrinks by more than this share once the best significant effect is "
         "in the model is that effect's doing (its form differs from the plugin's, so some remains): the "
         "effect is named first and the next round refits the number")
@@ -252,9 +257,14 @@ def markdown_table(policy: DiagnosisPolicy = DEFAULT_POLICY) -> str:
 
 
 DOC_PATH = Path(__file__).resolve().parents[3] / "docs" / "diagnosis_policy.md"
+#: the docs' generated threshold audit (examples/diagnose/threshold_audit.py --write) follows this line; the
+#: policy's table is what precedes it
+AUDIT_MARKER = "<!-- threshold audit: generated by examples/diagnose/threshold_audit.py --write; do not edit -->"
 
 assert all(f.default is not MISSING for f in fields(DiagnosisPolicy))
 
 if __name__ == "__main__":  # pragma: no cover - the docs generator
-    DOC_PATH.write_text(markdown_table())
+    old = DOC_PATH.read_text() if DOC_PATH.is_file() else ""
+    tail = AUDIT_MARKER + old.partition(AUDIT_MARKER)[2] if AUDIT_MARKER in old else ""
+    DOC_PATH.write_text(markdown_table() + ("\n" + tail if tail else ""))
     sys.stdout.write(f"wrote {DOC_PATH}\n")

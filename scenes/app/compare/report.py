@@ -29,20 +29,24 @@ from pathlib import Path
 
 import numpy as np
 
+from detector.significance import DETECTION_SIGMA, STRONG_EVIDENCE
+
+from .policy import DEFAULT_POLICY
+
 #: resolution of the embedded plots [dots per inch]: small files, still legible
 DPI = 72
 #: colour scale limit of the z map [sigma]
 Z_CLIP = 5.0
 #: a region, row/column profile or outlier class is flagged when its excess is above this [sigma]
-FLAG_SIGMA = 5.0
+FLAG_SIGMA = DETECTION_SIGMA
 #: Poisson deviance of an outlier count above which it is flagged (~3 sigma for one count)
-DEVIANCE_FLAG = 10.0
+DEVIANCE_FLAG = STRONG_EVIDENCE
 #: power over the median above which a full-resolution spectral peak is flagged (white noise: ~15-25)
 PEAK_FLAG = 100.0
 #: misfit below which the model explains the frame (noise-only frames give ~0-3)
 MISFIT_OK = 5.0
 #: candidates whose delta BIC is at or above this are not significant (DESIGN.md contract)
-SIGNIFICANT_DELTA_BIC = -10.0
+SIGNIFICANT_DELTA_BIC = DEFAULT_POLICY.significant_delta_bic
 
 _CSS = """
 body{font-family:system-ui,-apple-system,"Segoe UI",Helvetica,Arial,sans-serif;max-width:1000px;margin:1.5em auto;

@@ -687,7 +687,7 @@ def _frame_shares(cand: Candidate, sf: SeriesFit, frames: list[Residuals], polic
 def _consistency(sf: SeriesFit, labels: list[str], policy: DiagnosisPolicy = DEFAULT_POLICY) -> str:
     vals = []
     for lab, f, d in zip(labels, sf.frames, sf.per_frame_delta):
-        if f is None or d > -10:
+        if f is None or d > policy.significant_delta_bic:
             continue
         num = next((v for v in f.params.values() if isinstance(v, (int, float)) and not isinstance(v, bool)), None)
         if num is not None and num != 0:
@@ -822,7 +822,8 @@ def separation(frames: list[Residuals], labels: list[str], cands: list[Candidate
     if best is None:
         return None
     rival = next((c for c in cands if c is not best and c.fit.effect != best.fit.effect and c.plausible
-                  and not c.rejected and c.fit.delta_bic < -10 and c.fit.effect in fits), None)
+                  and not c.rejected and c.fit.delta_bic < c.policy.significant_delta_bic
+                  and c.fit.effect in fits), None)
     pair = [("best", best, fits[best.fit.effect])]
     if rival is not None:
         pair.append(("rival", rival, fits[rival.fit.effect]))

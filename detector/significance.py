@@ -1,0 +1,33 @@
+"""The significance levels the diagnosis shares: one meaning of "significant" wherever the same test is made.
+
+Each level is defined here once and referenced by name by the modules that test it (detector/signatures.py,
+detector/morphology.py, the effect plugins, and the judge's :class:`scenes.app.compare.policy.DiagnosisPolicy`,
+whose defaults take them), so that the same test cannot drift apart in two places. The audit
+(examples/diagnose/threshold_audit.py) lists every other threshold of the diagnosis and its basis.
+"""
+
+from __future__ import annotations
+
+#: a single test statistic with a unit-normal null (one pixel's |z| against its noise, a fitted quantity in its
+#: standard errors, a chi2 excess in its standard deviations sqrt(2 n)) is significant beyond this many sigma:
+#: the "5 sigma" of a detection, a one-sided false-alarm probability of 2.9e-7 per test (a 512 x 512 frame's
+#: 2.6e5 pixels then give ~0.08 false spikes)
+DETECTION_SIGMA = 5.0
+#: a structure of the residual (the block or pixel chi2 of a whole frame, or of the pixels a candidate acts on,
+#: beyond its degrees of freedom; the peak of a band-passed map) is significant beyond this many standard
+#: deviations: larger than DETECTION_SIGMA because the null distribution of such a sum is fattened by the
+#: model's small imperfections, which a frame of 1e5-1e7 pixels resolves (the null calibration,
+#: docs/null_calibration.md, found no null frame beyond it)
+STRUCTURE_SIGMA = 8.0
+#: a pixel belongs to a source's footprint (its core, masked or measured as the source) where the model's source
+#: light exceeds this many standard deviations of the pixel's noise: the detection threshold of source
+#: extraction (SExtractor's DETECT_THRESH is 1.5-3 sigma per pixel, Bertin & Arnouts 1996, A&AS 117, 393)
+FOOTPRINT_SIGMA = 3.0
+#: a change of -2 ln L between two models (a delta BIC, a Poisson deviance, a held-out sample's) by more than this
+#: is "very strong" evidence (Kass & Raftery 1995, JASA 90, 773): the DESIGN contract's significance
+STRONG_EVIDENCE = 10.0
+#: a form that claims a residual must explain most of it: at least this share of the excess chi2 it is fitted to
+#: (the judge's min_explained, min_support_share, min_catch_all_share and parameter_explained_share; a ghost
+#: about its strongest copy; a line pattern through the sources): what remains looks like noise, not like the
+#: rest of another effect
+EXPLAINS_MOST = 0.5
