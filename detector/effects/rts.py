@@ -97,7 +97,7 @@ RTS_CORE_PIXELS = 10_000
 RTS_MAX_ACTIVE = 0.05
 #: median step amplitudes [model sigma] the fit tries (log-spaced) and the log-normal spreads of the amplitudes
 RTS_AMPLITUDES_SIGMA = tuple(float(x) for x in np.geomspace(1.0, 60.0, 14))
-RTS_SPREADS_LN = (0.2, 0.6, 1.0)
+RTS_SPREADS_LN = (0.15, 0.4, 0.7, 1.0)
 #: Gauss-Hermite nodes of the log-normal amplitude law
 RTS_NODES = 7
 
@@ -125,13 +125,13 @@ def _log_ratio(lr: np.ndarray, f: float) -> np.ndarray:
     return np.logaddexp(np.log1p(-f), np.log(f) + lr)
 
 
-def _fraction_em(lr: np.ndarray, wt: np.ndarray, cap: float, iters: int = 60) -> float:
+def _fraction_em(lr: np.ndarray, wt: np.ndarray, cap: float, iters: int = 200) -> float:
     """The fraction ``f <= cap`` maximising ``sum wt ln((1 - f) + f exp(lr))`` (EM; the function is concave)."""
     f = 1e-3
     for _ in range(iters):
         resp = np.exp(np.log(f) + lr - _log_ratio(lr, f))
         new = min(max(float(np.sum(wt * resp) / np.sum(wt)), 1e-9), cap)
-        if abs(new - f) < 1e-3 * f:
+        if abs(new - f) < 1e-4 * f:
             return new
         f = new
     return f
@@ -184,13 +184,19 @@ def rts_frame_sample(res) -> tuple[np.ndarray, np.ndarray, np.ndarray, int] | No
     # the core's width measured robustly: a white excess of every pixel (a read noise or a DSNU the model lacks,
     # candidates of their own) widens it; the sparse steps beyond it are what RTS is asked to explain
     vv = vv * max(1.0, mad_std(rr / np.sqrt(vv), max_n=None)) ** 2
-    tail = np.abs(rr) > RTS_TAIL_Z * np.sqrt(vv)
+    return (*rts_tail_sample(rr, vv), int(idx.size))
+
+
+def rts_tail_sample(r: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(r, v, weight): every pixel beyond RTS_TAIL_Z, and a regular subsample of at most RTS_CORE_PIXELS of the
+    others weighted by the share of them it stands for (the likelihood's sum over the core, estimated)."""
+    tail = np.abs(r) > RTS_TAIL_Z * np.sqrt(v)
     core = np.flatnonzero(~tail)
     step = max(1, core.size // RTS_CORE_PIXELS)
     pick = core[::step]
     sel = np.concatenate([np.flatnonzero(tail), pick])
     wt = np.concatenate([np.ones(int(tail.sum())), np.full(pick.size, core.size / max(pick.size, 1))])
-    return rr[sel], vv[sel], wt, int(idx.size)
+    return r[sel], v[sel], wt
 
 
 def rts_frame_fit(r: np.ndarray, v: np.ndarray, wt: np.ndarray, cap: float = RTS_MAX_ACTIVE) -> dict:
