@@ -258,6 +258,16 @@ class RTSFrameSignature(Signature):
     def score(self, fit, res):
         return None
 
+    def plausible(self, fit, res) -> str:
+        """A CCD reads every pixel through one output amplifier: a trap in its transistor makes a temporal noise of
+        the read-out (steps along the rows as it switches), not isolated pixels stepping each on its own
+        (Janesick 2007, Photon Transfer, ch. 11; Wang et al. 2006: RTS pixels are the in-pixel source followers
+        of CMOS sensors)."""
+        if getattr(res.sensor, "kind", "") == "ccd":
+            return ("a CCD reads every pixel through one output amplifier: isolated pixels stepping each on its own "
+                    "are not its telegraph noise (dead or cold pixels, a heavy-tailed pixel noise)")
+        return ""
+
     def fit(self, res, name):
         sample = rts_frame_sample(res)
         if sample is None:

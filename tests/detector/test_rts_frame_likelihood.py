@@ -106,3 +106,18 @@ def test_dsnu_and_read_noise_follow_their_variance_laws():
     flat = np.full(shape, 125.0)
     d, k = deltas(flat, np.full(shape, 0.3 * 125.0 / g))
     assert abs(d - k) < 2 * np.log(res_n := shape[0] * shape[1]) and res_n > 0
+
+
+def test_isolated_steps_are_rts_of_a_cmos_pixel_not_of_a_ccd():
+    """RTS pixels are the in-pixel source followers of a CMOS sensor (Wang et al. 2006); a CCD reads every pixel
+    through one amplifier, so the same steps on a CCD frame are not named RTS."""
+    rng = np.random.default_rng(6)
+    shape = (256, 256)
+    model, var = np.full(shape, 1000.0), np.full(shape, 20.0)
+    hit = rng.random(shape) < 2e-3
+    data = model + np.sqrt(var) * rng.standard_normal(shape) + np.where(hit, 40.0 * rng.choice([-1, 1], shape), 0.0)
+    for camera, ok in (("imx411", True), ("ml11002", False)):
+        res = residuals_of(data, model, var, np.zeros(shape), make_sensor(camera, {"width": 256, "height": 256}))
+        fit = RTSNoise.signature.fit(res, "rts_noise")
+        assert fit.delta_bic < -100
+        assert (RTSNoise.signature.plausible(fit, res) == "") == ok
