@@ -100,6 +100,9 @@ RTS_AMPLITUDES_SIGMA = tuple(float(x) for x in np.geomspace(1.0, 60.0, 14))
 RTS_SPREADS_LN = (0.15, 0.4, 0.7, 1.0)
 #: Gauss-Hermite nodes of the log-normal amplitude law
 RTS_NODES = 7
+#: below this noise [ADC codes] the likelihood is that of the read codes, not a density (the lattice of codes is
+#: then coarse against the noise: a density's error there grows as (code / sigma)^2 / 24 per pixel)
+RTS_CODED_SIGMA = 3.0
 
 
 def _amplitude_nodes(a: float, s: float) -> tuple[np.ndarray, np.ndarray]:
@@ -108,16 +111,34 @@ def _amplitude_nodes(a: float, s: float) -> tuple[np.ndarray, np.ndarray]:
     return a * np.exp(s * x), w / w.sum()
 
 
-def _log_component(r: np.ndarray, v: np.ndarray, amps: np.ndarray, wts: np.ndarray, symmetric: bool) -> np.ndarray:
-    """ln of the density of ``r`` [ADU] for an offset of amplitude drawn from (amps, wts) [ADU] -- both signs with
-    equal probability (``symmetric``: a CDS-read telegraph step) or positive only -- plus N(0, v)."""
+def _log_normal_mass(x: np.ndarray, v: np.ndarray, q: float) -> np.ndarray:
+    """ln of the likelihood of reading ``x`` [ADU] under N(0, v): its density or, with a code width ``q`` > 0, the
+    probability of the code ``[x - q/2, x + q/2]`` (a read value known only to its ADC code: where the noise is
+    below a few codes, a density would take the code lattice for structure), in the tail nearer to it."""
+    if q <= 0:
+        return -0.5 * x * x / v - 0.5 * np.log(2 * np.pi * v)
+    from scipy.special import log_ndtr
+
+    sd = np.sqrt(v)
+    lo, hi = (x - 0.5 * q) / sd, (x + 0.5 * q) / sd
+    flip = lo > 0
+    a, b = np.where(flip, -hi, lo), np.where(flip, -lo, hi)
+    la, lb = log_ndtr(a), log_ndtr(b)
+    return lb + np.log1p(-np.exp(np.minimum(la - lb, -1e-12)))
+
+
+def _log_component(r: np.ndarray, v: np.ndarray, amps: np.ndarray, wts: np.ndarray, symmetric: bool,
+                   q: float = 0.0) -> np.ndarray:
+    """ln of the likelihood of ``r`` [ADU] for an offset of amplitude drawn from (amps, wts) [ADU] -- both signs
+    with equal probability (``symmetric``: a CDS-read telegraph step) or positive only -- plus N(0, v) (per code of
+    width ``q`` when > 0: :func:`_log_normal_mass`)."""
     out = np.full(r.shape, -np.inf)
     for a, w in zip(amps, wts):
-        lp = -0.5 * (r - a) ** 2 / v
+        lp = _log_normal_mass(r - a, v, q)
         if symmetric:
-            lp = np.logaddexp(lp, -0.5 * (r + a) ** 2 / v) + np.log(0.5)
+            lp = np.logaddexp(lp, _log_normal_mass(r + a, v, q)) + np.log(0.5)
         out = np.logaddexp(out, np.log(w) + lp)
-    return out - 0.5 * np.log(2 * np.pi * v)
+    return out
 
 
 def _log_ratio(lr: np.ndarray, f: float) -> np.ndarray:
@@ -137,8 +158,9 @@ def _fraction_em(lr: np.ndarray, wt: np.ndarray, cap: float, iters: int = 200) -
     return f
 
 
-def rts_frame_sample(res) -> tuple[np.ndarray, np.ndarray, np.ndarray, int] | None:
-    """The pixels the one-frame RTS likelihood uses: (residual [ADU], variance [ADU^2], weight, pixels stood for).
+def rts_frame_sample(res) -> tuple[np.ndarray, np.ndarray, np.ndarray, int, float] | None:
+    """The pixels the one-frame RTS likelihood uses: (residual [ADU], variance [ADU^2], weight, pixels stood for,
+    ADC code width [ADU] when the likelihood is that of the codes, else 0).
 
     Every usable pixel where no light falls (an RTS step is light-independent, and where light falls a dead
     pixel or a response may also lower a pixel), its residual against the level-profiled model less its local
@@ -171,20 +193,31 @@ def rts_frame_sample(res) -> tuple[np.ndarray, np.ndarray, np.ndarray, int] | No
     num = gaussian_filter(np.where(fit, r * w, 0.0), WHITE_SCALE, mode="nearest")
     den = gaussian_filter(w, WHITE_SCALE, mode="nearest")
     r = r - num / np.maximum(den, 1e-30)
-    rm = np.where(ok, r, np.nan)
-    with np.errstate(all="ignore"):
-        import warnings
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore", RuntimeWarning)
-            r = r - np.nan_to_num(np.nanmedian(rm, axis=1))[:, None]
-            rm = np.where(ok, r, np.nan)
-            r = r - np.nan_to_num(np.nanmedian(rm, axis=0))[None, :]
+    # line offsets as clipped means (a step counts at most RTS_TAIL_Z sigma in its line's mean; a median would
+    # snap to the lattice of ADC codes where the noise is below a code)
+    lim = RTS_TAIL_Z * np.sqrt(np.where(ok, v, 0.0) + ROUNDING_VAR_ADU2)
+    for axis in (1, 0):
+        rc = np.where(ok, np.clip(r, -lim, lim), 0.0)
+        m = rc.sum(axis=axis) / np.maximum(ok.sum(axis=axis), 1)
+        r = r - (m[:, None] if axis == 1 else m[None, :])
     idx = flat_idx[dark]
-    rr, vv = r.ravel()[idx], v.ravel()[idx] + ROUNDING_VAR_ADU2
-    # the core's width measured robustly: a white excess of every pixel (a read noise or a DSNU the model lacks,
-    # candidates of their own) widens it; the sparse steps beyond it are what RTS is asked to explain
-    vv = vv * max(1.0, mad_std(rr / np.sqrt(vv), max_n=None)) ** 2
-    return (*rts_tail_sample(rr, vv), int(idx.size))
+    rr, vv = r.ravel()[idx], v.ravel()[idx]
+    # read values on integer ADC codes where the noise spans few codes: the likelihood of each code (q = 1 ADU);
+    # elsewhere the density, the rounding's 1/12 ADU^2 added to the variance (Sheppard's correction)
+    d = res.data_adu.ravel()[idx[:: max(1, idx.size // 10_000)]]
+    q = 1.0 if np.all(d == np.round(d)) and float(np.median(vv)) < (RTS_CODED_SIGMA * 1.0) ** 2 else 0.0
+    # the core's width: a white excess of every pixel (a read noise or a DSNU the model lacks, candidates of their
+    # own) widens it; the sparse steps beyond it are what RTS is asked to explain. Measured robustly (the MAD) on a
+    # density; on codes (whose moments and quantiles are the lattice's, not the noise's) by the codes' likelihood
+    if q == 0.0:
+        vv = vv + ROUNDING_VAR_ADU2
+        vv = vv * max(1.0, mad_std(rr / np.sqrt(vv), max_n=None)) ** 2
+    else:
+        sub = slice(None, None, max(1, rr.size // RTS_CORE_PIXELS))
+        scales = np.geomspace(1.0, 10.0, 25)
+        m2l = [float(-np.sum(_log_normal_mass(rr[sub], vv[sub] * c, q))) for c in scales]
+        vv = vv * float(scales[int(np.argmin(m2l))])
+    return (*rts_tail_sample(rr, vv), int(idx.size), q)
 
 
 def rts_tail_sample(r: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -199,7 +232,7 @@ def rts_tail_sample(r: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, np.ndarra
     return r[sel], v[sel], wt
 
 
-def rts_frame_fit(r: np.ndarray, v: np.ndarray, wt: np.ndarray, cap: float = RTS_MAX_ACTIVE) -> dict:
+def rts_frame_fit(r: np.ndarray, v: np.ndarray, wt: np.ndarray, cap: float = RTS_MAX_ACTIVE, q: float = 0.0) -> dict:
     """Maximum likelihood of one frame's RTS steps (Kirton & Uren 1989; Wang et al. 2006): each pixel is
     ``N(0, v)`` or, with probability ``f``, offset by ``+A`` or ``-A`` with equal probability (a trap that changed
     state between the reset and the signal sample of CDS: module docstring), ``A`` log-normal (median ``a``,
@@ -211,16 +244,17 @@ def rts_frame_fit(r: np.ndarray, v: np.ndarray, wt: np.ndarray, cap: float = RTS
     (``delta_neg``), and the pixels above are *predicted* with them (``delta_pos``): RTS is credited with
     ``delta_neg + max(delta_pos, delta_neg)`` -- the steps up it predicts, when there (a population of steps
     up alone is not credited beyond its mirror, and steps up it predicts but that are missing count against it).
-    Amplitudes on a grid of RTS_AMPLITUDES_SIGMA x RTS_SPREADS_LN, the fraction by EM.
+    Amplitudes on a grid of RTS_AMPLITUDES_SIGMA x RTS_SPREADS_LN, the fraction by EM; with ``q`` > 0 each pixel's
+    likelihood is that of its ADC code of width ``q`` [ADU] (:func:`_log_normal_mass`).
 
     Returns delta (<= 0 when RTS explains something), f, a [ADU], s, delta_neg, delta_pos."""
     sd = float(np.median(np.sqrt(v)))
     neg = r < 0
-    lc = -0.5 * r * r / v - 0.5 * np.log(2 * np.pi * v)
+    lc = _log_normal_mass(r, v, q)
     best = None
     for k in RTS_AMPLITUDES_SIGMA:
         for s in RTS_SPREADS_LN:
-            lr = _log_component(r, v, *_amplitude_nodes(k * sd, s), symmetric=True) - lc
+            lr = _log_component(r, v, *_amplitude_nodes(k * sd, s), symmetric=True, q=q) - lc
             f = _fraction_em(lr[neg], wt[neg], cap)
             dn = float(-2 * np.sum(wt[neg] * _log_ratio(lr[neg], f)))
             if best is None or dn < best[0]:
@@ -272,8 +306,8 @@ class RTSFrameSignature(Signature):
         sample = rts_frame_sample(res)
         if sample is None:
             return None
-        r, v, wt, n = sample
-        out = rts_frame_fit(r, v, wt)
+        r, v, wt, n, q = sample
+        out = rts_frame_fit(r, v, wt, q=q)
         if out["f"] <= 0 or out["delta_neg"] >= 0:
             return None
         g = res.gain

@@ -8,6 +8,7 @@ credited with a population of steps up alone (hot pixels) nor with a white exces
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from detector.effects.rts import RTSNoise, rts_frame_fit, rts_population, rts_tail_sample
 from detector.sensor import make_sensor
@@ -121,3 +122,23 @@ def test_isolated_steps_are_rts_of_a_cmos_pixel_not_of_a_ccd():
         fit = RTSNoise.signature.fit(res, "rts_noise")
         assert fit.delta_bic < -100
         assert (RTSNoise.signature.plausible(fit, res) == "") == ok
+
+
+@pytest.mark.parametrize("offset", [0.0, 0.3, 0.5])
+def test_read_codes_below_the_noise_of_a_code_are_not_steps(offset):
+    """A 16 x 16 average-binned dark: the noise (0.2 ADU) is below one ADC code and the read values sit on integer
+    codes about a model mean ``offset`` above a code (the same everywhere on a uniform dark). A density takes the lattice of codes for +-1 ADU steps in a few per
+    cent of the pixels; the likelihood of each code does not (nothing significant), and still finds steps of
+    8 codes in 0.2 % of the pixels."""
+    s = make_sensor("imx411", {"width": 256, "height": 256})
+    rng = np.random.default_rng(7)
+    shape = (256, 256)
+    model = np.full(shape, 500.0 + offset)
+    var = np.full(shape, 0.04)
+    data = np.round(model + np.sqrt(var) * rng.standard_normal(shape))
+    fit = RTSNoise.signature.fit(residuals_of(data, model, var, np.zeros(shape), s), "rts_noise")
+    assert fit is None or fit.delta_bic > 0
+    hit = rng.random(shape) < 2e-3
+    stepped = data + np.where(hit, 8.0 * rng.choice([-1, 1], shape), 0.0)
+    fit = RTSNoise.signature.fit(residuals_of(stepped, model, var, np.zeros(shape), s), "rts_noise")
+    assert fit is not None and fit.delta_bic < -100
