@@ -1702,6 +1702,9 @@ class VarianceSignature(Signature):
     MAX_CELL_RATIO = 4.0
     #: ... and the cells' excess variances (over the template's) may scatter by this fraction (rms) of their mean
     MAX_CELL_SPREAD = 0.5
+    #: a cell is far above the rest only when its excess is beyond this many of its standard errors from the
+    #: median cell's (the 5-sigma of the judge's other structure tests)
+    CELL_SIGMA = 5.0
 
     def uniformity(self, fit: Fit, res: Residuals, cells: int = 4) -> str:
         """The added scatter follows its template over the frame (kTC noise is the same everywhere, PRNU
@@ -1732,7 +1735,11 @@ class VarianceSignature(Signature):
             return ""
         ratios, errs = np.asarray(ratios), np.asarray(errs)
         med = float(np.median(ratios))
-        if ratios.max() > self.MAX_CELL_RATIO * max(med, 0.05) and ratios.max() > 2.0:
+        top = int(np.argmax(ratios))
+        # (and significantly so: where the fit claims little variance, a cell's ratio is its noise over a small
+        # number -- 1e10 "x the fit's" in one cell and -1e9 in the median one say nothing about where it sits)
+        if (ratios[top] > self.MAX_CELL_RATIO * max(med, 0.05) and ratios[top] > 2.0
+                and ratios[top] - max(med, 0.0) > self.CELL_SIGMA * errs[top]):
             return (f"the extra scatter sits in one part of the frame ({ratios.max():.2g} x the fit's there, {med:.2g} x "
                     "in the median region): a local structure the fit took for noise, not this noise")
         # ... or it varies across the frame far beyond the cells' errors (a gradient of the noise): chi2 of the

@@ -41,7 +41,8 @@ import numpy as np
 from pydantic import Field, model_validator
 
 from ..rng import generator
-from ..signatures import CountSignature
+from ..stats import mad_std
+from ..signatures import Fit, Signature
 from .base import Effect, EffectParams, Stage, Tile, register_effect
 
 
@@ -86,47 +87,239 @@ def _mean_flip_probability(tau_min_s: float, tau_max_s: float, cds_interval_s: f
     return float((p1 * (1 - p1) * (1.0 - np.exp(-cds_interval_s * (1 / t0 + 1 / t1)))).mean())
 
 
-def _rts_counts(res):
-    """Three-level RTS makes isolated pixels step *down* as often as up, independently of light: negative
-    single spikes where no light falls (a dead pixel cannot show there), with as many positive ones. The
-    count compared is the unlit negative spikes plus the positive ones up to the same excess (so that a
-    population of hot pixels alone, positive only, gives no RTS candidate). Fraction and median amplitude
-    from the negative spikes, for the plugin's default time constants and amplitude spread."""
-    from math import erfc, log, sqrt
+#: |z| beyond which every pixel enters the one-frame RTS likelihood; below it a regular subsample of at most
+#: RTS_CORE_PIXELS pixels stands for the rest (weighted by the share it stands for) [model sigma]
+RTS_TAIL_Z = 3.0
+RTS_CORE_PIXELS = 10_000
+#: the largest fraction of the pixels that may show an RTS step in one frame [1]: the populations measured in
+#: CMOS image sensors are below a few per cent of the pixels (Wang et al. 2006; Chao et al. 2019), of which only
+#: those whose trap changes state between the two CDS samples step; a heavier "tail" is a noise of every pixel
+RTS_MAX_ACTIVE = 0.05
+#: median step amplitudes [model sigma] the fit tries (log-spaced) and the log-normal spreads of the amplitudes
+RTS_AMPLITUDES_SIGMA = tuple(float(x) for x in np.geomspace(1.0, 60.0, 14))
+RTS_SPREADS_LN = (0.15, 0.4, 0.7, 1.0)
+#: Gauss-Hermite nodes of the log-normal amplitude law
+RTS_NODES = 7
+#: below this noise [ADC codes] the likelihood is that of the read codes, not a density (the lattice of codes is
+#: then coarse against the noise: a density's error there grows as (code / sigma)^2 / 24 per pixel)
+RTS_CODED_SIGMA = 3.0
 
-    from ..signatures import SPIKE_SIGMA
+
+def _amplitude_nodes(a: float, s: float) -> tuple[np.ndarray, np.ndarray]:
+    """Amplitudes and weights of a log-normal law (median ``a``, log-sigma ``s``) on RTS_NODES nodes."""
+    x, w = np.polynomial.hermite_e.hermegauss(RTS_NODES)
+    return a * np.exp(s * x), w / w.sum()
+
+
+def _log_normal_mass(x: np.ndarray, v: np.ndarray, q: float) -> np.ndarray:
+    """ln of the likelihood of reading ``x`` [ADU] under N(0, v): its density or, with a code width ``q`` > 0, the
+    probability of the code ``[x - q/2, x + q/2]`` (a read value known only to its ADC code: where the noise is
+    below a few codes, a density would take the code lattice for structure), in the tail nearer to it."""
+    if q <= 0:
+        return -0.5 * x * x / v - 0.5 * np.log(2 * np.pi * v)
+    from scipy.special import log_ndtr
+
+    sd = np.sqrt(v)
+    lo, hi = (x - 0.5 * q) / sd, (x + 0.5 * q) / sd
+    flip = lo > 0
+    a, b = np.where(flip, -hi, lo), np.where(flip, -lo, hi)
+    la, lb = log_ndtr(a), log_ndtr(b)
+    return lb + np.log1p(-np.exp(np.minimum(la - lb, -1e-12)))
+
+
+def _log_component(r: np.ndarray, v: np.ndarray, amps: np.ndarray, wts: np.ndarray, symmetric: bool,
+                   q: float = 0.0) -> np.ndarray:
+    """ln of the likelihood of ``r`` [ADU] for an offset of amplitude drawn from (amps, wts) [ADU] -- both signs
+    with equal probability (``symmetric``: a CDS-read telegraph step) or positive only -- plus N(0, v) (per code of
+    width ``q`` when > 0: :func:`_log_normal_mass`)."""
+    out = np.full(r.shape, -np.inf)
+    for a, w in zip(amps, wts):
+        lp = _log_normal_mass(r - a, v, q)
+        if symmetric:
+            lp = np.logaddexp(lp, _log_normal_mass(r + a, v, q)) + np.log(0.5)
+        out = np.logaddexp(out, np.log(w) + lp)
+    return out
+
+
+def _log_ratio(lr: np.ndarray, f: float) -> np.ndarray:
+    """ln of ``(1 - f) + f exp(lr)`` per pixel: the mixture's density over the core's."""
+    return np.logaddexp(np.log1p(-f), np.log(f) + lr)
+
+
+def _fraction_em(lr: np.ndarray, wt: np.ndarray, cap: float, iters: int = 200) -> float:
+    """The fraction ``f <= cap`` maximising ``sum wt ln((1 - f) + f exp(lr))`` (EM; the function is concave)."""
+    f = 1e-3
+    for _ in range(iters):
+        resp = np.exp(np.log(f) + lr - _log_ratio(lr, f))
+        new = min(max(float(np.sum(wt * resp) / np.sum(wt)), 1e-9), cap)
+        if abs(new - f) < 1e-4 * f:
+            return new
+        f = new
+    return f
+
+
+def rts_frame_sample(res) -> tuple[np.ndarray, np.ndarray, np.ndarray, int, float] | None:
+    """The pixels the one-frame RTS likelihood uses: (residual [ADU], variance [ADU^2], weight, pixels stood for,
+    ADC code width [ADU] when the likelihood is that of the codes, else 0).
+
+    Every usable pixel where no light falls (an RTS step is light-independent, and where light falls a dead
+    pixel or a response may also lower a pixel), its residual against the level-profiled model less its local
+    mean (a Gaussian of WHITE_SCALE px over the fitted pixels: smooth structure is not pixel steps) and less the
+    robust (median) offsets of its row and its column (row noise, defective columns: whole lines, not isolated
+    pixels; a sparse RTS population leaves a line median unchanged). The variance is the model's plus the
+    rounding of the ADC codes (a read value is known to +-0.5 ADU), widened by the residual's robust scatter
+    when that exceeds it (a white excess of every pixel is not sparse steps). Pixels beyond RTS_TAIL_Z all count; the rest
+    through a regular subsample weighted by the share it stands for."""
+    from scipy.ndimage import gaussian_filter
+
+    from ..signatures import ROUNDING_VAR_ADU2, WHITE_SCALE
     from .pixel_response import _lit
 
-    d, m = res.data_spikes, res.model_spikes
-    if not d.single_neg_index.size:
+    usable = res.usable if res.usable is not None else res.fit
+    if res.train is not None:
+        usable = usable & res.train
+    level = res.level_map()
+    r = (res.data_adu.astype(np.float64) - res.model_adu - level)
+    v = res.var_adu2.astype(np.float64)
+    ok = usable & np.isfinite(r) & np.isfinite(v) & (v > 0)
+    flat_idx = np.flatnonzero(ok)
+    if flat_idx.size < 100:
         return None
-    dark_d = ~_lit(res, d.single_neg_index)
-    neg_d = int(dark_d.sum())
-    neg_m = int((~_lit(res, m.single_neg_index)).sum()) if m.single_neg_index.size else m.single_neg
-    if neg_d <= neg_m + 2:
+    dark = ~_lit(res, flat_idx)
+    if dark.sum() < 100:
         return None
-    pos_d = min(d.single_pos, m.single_pos + (neg_d - neg_m))
-    idx = d.single_neg_index[dark_d]
-    g = res.gain
-    steps_e = (res.model_adu.ravel()[idx] - res.data_adu.ravel()[idx]).astype(np.float64) * g
-    amp = float(np.median(steps_e))
-    thr_e = SPIKE_SIGMA * float(np.median(np.sqrt(res.var_adu2.ravel()[idx]))) * g
-    p = RTSParams()
-    visible = 0.5 * erfc((log(thr_e) - log(max(amp, 1e-3))) / (p.amplitude_sigma_ln * sqrt(2)))
-    per_px = _mean_flip_probability(p.tau_min_s, p.tau_max_s, p.cds_interval_s) * max(visible, 0.05)
-    n_dark = max(int((res.photo_adu <= 0).sum()), 1) if (res.photo_adu <= 0).any() else res.data_adu.size
-    # a binned output pixel holds binning^2 sensor pixels, each of which may carry a trap: the fraction is per
-    # sensor pixel (an RTS step of one of them is still an isolated spike of the output pixel)
-    frac = min((neg_d - neg_m) / (per_px * n_dark * res.sensor.binning ** 2), 0.1)
-    return ({"fraction": float(f"{frac:.3g}"), "amplitude_e": round(amp, 2)}, neg_d + pos_d,
-            neg_m + m.single_pos, 2)
+    fit = ok & res.fit
+    w = np.where(fit, 1.0 / np.where(v > 0, v, 1.0), 0.0)
+    num = gaussian_filter(np.where(fit, r * w, 0.0), WHITE_SCALE, mode="nearest")
+    den = gaussian_filter(w, WHITE_SCALE, mode="nearest")
+    r = r - num / np.maximum(den, 1e-30)
+    # line offsets as clipped means (a step counts at most RTS_TAIL_Z sigma in its line's mean; a median would
+    # snap to the lattice of ADC codes where the noise is below a code)
+    lim = RTS_TAIL_Z * np.sqrt(np.where(ok, v, 0.0) + ROUNDING_VAR_ADU2)
+    for axis in (1, 0):
+        rc = np.where(ok, np.clip(r, -lim, lim), 0.0)
+        m = rc.sum(axis=axis) / np.maximum(ok.sum(axis=axis), 1)
+        r = r - (m[:, None] if axis == 1 else m[None, :])
+    idx = flat_idx[dark]
+    rr, vv = r.ravel()[idx], v.ravel()[idx]
+    # read values on integer ADC codes where the noise spans few codes: the likelihood of each code (q = 1 ADU);
+    # elsewhere the density, the rounding's 1/12 ADU^2 added to the variance (Sheppard's correction)
+    d = res.data_adu.ravel()[idx[:: max(1, idx.size // 10_000)]]
+    q = 1.0 if np.all(d == np.round(d)) and float(np.median(vv)) < (RTS_CODED_SIGMA * 1.0) ** 2 else 0.0
+    # the core's width: a white excess of every pixel (a read noise or a DSNU the model lacks, candidates of their
+    # own) widens it; the sparse steps beyond it are what RTS is asked to explain. Measured robustly (the MAD) on a
+    # density; on codes (whose moments and quantiles are the lattice's, not the noise's) by the codes' likelihood
+    if q == 0.0:
+        vv = vv + ROUNDING_VAR_ADU2
+        vv = vv * max(1.0, mad_std(rr / np.sqrt(vv), max_n=None)) ** 2
+    else:
+        sub = slice(None, None, max(1, rr.size // RTS_CORE_PIXELS))
+        scales = np.geomspace(1.0, 10.0, 25)
+        m2l = [float(-np.sum(_log_normal_mass(rr[sub], vv[sub] * c, q))) for c in scales]
+        vv = vv * float(scales[int(np.argmin(m2l))])
+    return (*rts_tail_sample(rr, vv), int(idx.size), q)
 
 
-_RTS_SIGNATURE = CountSignature(
-    _rts_counts,
-    lambda p, res: (f"isolated pixels stepping up and down by ~{p['amplitude_e']:.3g} e- where no light falls "
-                    f"({100 * p['fraction']:.2g} % of the pixels): random telegraph noise"),
-    pattern="isolated positive and negative spikes in equal numbers, independent of light")
+def rts_tail_sample(r: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(r, v, weight): every pixel beyond RTS_TAIL_Z, and a regular subsample of at most RTS_CORE_PIXELS of the
+    others weighted by the share of them it stands for (the likelihood's sum over the core, estimated)."""
+    tail = np.abs(r) > RTS_TAIL_Z * np.sqrt(v)
+    core = np.flatnonzero(~tail)
+    step = max(1, core.size // RTS_CORE_PIXELS)
+    pick = core[::step]
+    sel = np.concatenate([np.flatnonzero(tail), pick])
+    wt = np.concatenate([np.ones(int(tail.sum())), np.full(pick.size, core.size / max(pick.size, 1))])
+    return r[sel], v[sel], wt
+
+
+def rts_frame_fit(r: np.ndarray, v: np.ndarray, wt: np.ndarray, cap: float = RTS_MAX_ACTIVE, q: float = 0.0) -> dict:
+    """Maximum likelihood of one frame's RTS steps (Kirton & Uren 1989; Wang et al. 2006): each pixel is
+    ``N(0, v)`` or, with probability ``f``, offset by ``+A`` or ``-A`` with equal probability (a trap that changed
+    state between the reset and the signal sample of CDS: module docstring), ``A`` log-normal (median ``a``,
+    log-sigma ``s``): a sparse, heavy-tailed, *symmetric* mixture on top of the Gaussian noise.
+
+    The likelihood ratio against ``N(0, v)`` is a sum over the pixels below the model and the pixels above it.
+    Positive outliers have other causes (hot pixels, particle hits, each a candidate of its own); negative ones
+    on pixels without light only a step down. So (f, a, s) are fitted on the pixels below the model
+    (``delta_neg``), and the pixels above are *predicted* with them (``delta_pos``): RTS is credited with
+    ``delta_neg + max(delta_pos, delta_neg)`` -- the steps up it predicts, when there (a population of steps
+    up alone is not credited beyond its mirror, and steps up it predicts but that are missing count against it).
+    Amplitudes on a grid of RTS_AMPLITUDES_SIGMA x RTS_SPREADS_LN, the fraction by EM; with ``q`` > 0 each pixel's
+    likelihood is that of its ADC code of width ``q`` [ADU] (:func:`_log_normal_mass`).
+
+    Returns delta (<= 0 when RTS explains something), f, a [ADU], s, delta_neg, delta_pos."""
+    sd = float(np.median(np.sqrt(v)))
+    neg = r < 0
+    lc = _log_normal_mass(r, v, q)
+    best = None
+    for k in RTS_AMPLITUDES_SIGMA:
+        for s in RTS_SPREADS_LN:
+            lr = _log_component(r, v, *_amplitude_nodes(k * sd, s), symmetric=True, q=q) - lc
+            f = _fraction_em(lr[neg], wt[neg], cap)
+            dn = float(-2 * np.sum(wt[neg] * _log_ratio(lr[neg], f)))
+            if best is None or dn < best[0]:
+                best = (dn, f, k * sd, s, lr)
+    dn, f, a, s, lr = best
+    dp = float(-2 * np.sum(wt[~neg] * _log_ratio(lr[~neg], f)))
+    return {"delta": dn + max(dp, dn), "f": float(f), "a_adu": float(a), "s": float(s), "delta_neg": dn,
+            "delta_pos": dp, "n_tail": int(np.sum(wt == 1))}
+
+
+def rts_population(f_active: float, binning: int, cds_interval_s: float = 5e-6) -> dict:
+    """The plugin's population parameters for a per-frame step fraction ``f_active`` of the output pixels: one
+    frame measures only the product of the trap fraction and the probability that a trap steps between the two
+    CDS samples, so the fraction is given for the plugin's default time constants, or, when that would exceed
+    5 % of the pixels, for fast traps (mean dwell times 1 - 10 CDS intervals) that step in most frames."""
+    d = RTSParams()
+    per = 2 * _mean_flip_probability(d.tau_min_s, d.tau_max_s, cds_interval_s)
+    frac = f_active / (per * binning ** 2)
+    if frac <= 0.05:
+        return {"fraction": float(f"{frac:.3g}")}
+    lo, hi = cds_interval_s, 10 * cds_interval_s
+    per = 2 * _mean_flip_probability(lo, hi, cds_interval_s)
+    return {"fraction": float(f"{min(f_active / (per * binning ** 2), 0.099):.3g}"), "tau_min_s": lo,
+            "tau_max_s": hi}
+
+
+class RTSFrameSignature(Signature):
+    """Random telegraph steps on one frame, by the likelihood of a symmetric sparse mixture (:func:`rts_frame_fit`)
+    over the pixels where no light falls (:func:`rts_frame_sample`); compared over the whole frame, not scored on
+    a held-out half (a few tens of stepping pixels)."""
+
+    kind = "counts"
+    pattern = "isolated pixels stepped up and down by equal amounts, independent of light"
+
+    def score(self, fit, res):
+        return None
+
+    def plausible(self, fit, res) -> str:
+        """A CCD reads every pixel through one output amplifier: a trap in its transistor makes a temporal noise of
+        the read-out (steps along the rows as it switches), not isolated pixels stepping each on its own
+        (Janesick 2007, Photon Transfer, ch. 11; Wang et al. 2006: RTS pixels are the in-pixel source followers
+        of CMOS sensors)."""
+        if getattr(res.sensor, "kind", "") == "ccd":
+            return ("a CCD reads every pixel through one output amplifier: isolated pixels stepping each on its own "
+                    "are not its telegraph noise (dead or cold pixels, a heavy-tailed pixel noise)")
+        return ""
+
+    def fit(self, res, name):
+        sample = rts_frame_sample(res)
+        if sample is None:
+            return None
+        r, v, wt, n, q = sample
+        out = rts_frame_fit(r, v, wt, q=q)
+        if out["f"] <= 0 or out["delta_neg"] >= 0:
+            return None
+        g = res.gain
+        params = {**rts_population(out["f"], res.sensor.binning), "amplitude_e": round(out["a_adu"] * g, 3),
+                  "amplitude_sigma_ln": out["s"]}
+        expl = (f"isolated pixels stepping up and down by ~{params['amplitude_e']:.3g} e- where no light falls "
+                f"({100 * out['f']:.2g} % of the pixels in this frame, as many below the model as above): random "
+                "telegraph noise")
+        return Fit(name, params, out["delta"], 3, n, expl, state=out)
+
+
+_RTS_SIGNATURE = RTSFrameSignature()
 
 
 class RTSParams(EffectParams):

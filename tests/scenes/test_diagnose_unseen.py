@@ -269,30 +269,11 @@ def test_straylight_forms_add_light_only_and_reach_their_levels():
 
 
 def test_rts_fraction_is_per_sensor_pixel_on_a_binned_frame():
-    """The RTS count signature estimates the fraction of *sensor* pixels with a trap: the same negative spikes on
-    an output frame binned b x b (b^2 sensor pixels per output pixel) mean a b^2 times smaller fraction."""
-    from types import SimpleNamespace
+    """The RTS signature estimates the fraction of *sensor* pixels with a trap: the same steps on an output frame
+    binned b x b (b^2 sensor pixels per output pixel) mean a b^2 times smaller fraction."""
+    from detector.effects.rts import rts_population
 
-    import numpy as np
-
-    from detector.effects.rts import _rts_counts
-
-    shape = (1000, 1000)
-    rng = np.random.default_rng(1)
-    idx = np.sort(rng.choice(shape[0] * shape[1], 40, replace=False))
-    model = np.full(shape, 500.0, np.float32)
-    data = model.copy()
-    data.ravel()[idx] -= 30.0
-    spikes = SimpleNamespace(single_neg_index=idx, single_pos=40, single_neg=40)
-    none = SimpleNamespace(single_neg_index=np.zeros(0, int), single_pos=0, single_neg=0)
-
-    def fraction(b):
-        res = SimpleNamespace(data_spikes=spikes, model_spikes=none, photo_adu=np.zeros(shape, np.float32),
-                              var_adu2=np.full(shape, 4.0, np.float32), model_adu=model, data_adu=data, gain=1.0,
-                              sensor=SimpleNamespace(binning=b))
-        return _rts_counts(res)[0]["fraction"]
-
-    f1, f2 = fraction(1), fraction(2)
+    f1, f2 = rts_population(2e-4, 1)["fraction"], rts_population(2e-4, 2)["fraction"]
     assert 0 < f1 < 0.1 and abs(f2 / f1 - 0.25) < 0.01
 
 

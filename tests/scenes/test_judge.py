@@ -486,3 +486,23 @@ def test_a_glow_and_a_light_are_the_same_charge_on_a_light_frame():
     assert same_charge(glow, light) and not same_charge(glow, ramp) and not same_charge(light, ramp)
     assert [c.fit.effect for c in indistinguishable([glow, light, ramp])] == ["straylight"]
     assert "cannot tell it apart from straylight: the same charge" in verdict([glow, light, ramp])
+
+
+def test_a_dsnu_and_a_read_noise_are_the_same_scatter_where_the_dark_is_uniform():
+    """A DSNU adds (sigma D)^2, a read noise a constant (Janesick 2007): on a frame of uniform dark signal D their
+    added variances are proportional, the same likelihood, named as not told apart whatever their held-out scores;
+    where D varies over the frame (a glow, a temperature gradient) their laws differ and they are not twins."""
+    from scenes.app.compare.judge import indistinguishable, same_scatter, verdict
+
+    shape = (64, 64)
+    dark = np.full(shape, 15.0)
+    ramp = np.broadcast_to(np.linspace(5.0, 40.0, shape[1]), shape)
+    read = Candidate(Fit("reset_noise", {}, -160.0, 1, 4096, "a read noise", extra_var_adu2=np.full(shape, 4.0)),
+                     1.0, 0.0, heldout=-150.0)
+    for d, twins in ((dark, True), (ramp, False)):
+        dsnu = Candidate(Fit("dsnu", {}, -151.0, 2, 4096, "a dsnu", extra_var_adu2=0.04 * d ** 2 / 1.4 ** 2),
+                         1.0, 0.0, heldout=-60.0)
+        assert same_scatter(read, dsnu) == twins
+        assert ([c.fit.effect for c in indistinguishable([read, dsnu])] == ["dsnu"]) == twins
+    assert "cannot tell it apart from dsnu: the same added variance" in verdict([read, Candidate(
+        Fit("dsnu", {}, -151.0, 2, 4096, "a dsnu", extra_var_adu2=0.04 * dark ** 2), 1.0, 0.0, heldout=-60.0)])

@@ -262,16 +262,43 @@ def same_charge(a: Candidate, b: Candidate) -> bool:
     return {_charge_origin(a), _charge_origin(b)} == {"dark", "light"}
 
 
+#: two added variances are the same law on a frame when their per-pixel ratio is constant to this (relative
+#: r.m.s.): float32 templates of one map agree to ~1e-7; a dark signal that varies by 1 % over the frame already
+#: gives a DSNU's (dark^2) and a read noise's (constant) laws a 2 % difference
+SAME_SCATTER_TOLERANCE = 1e-3
+
+
+def same_scatter(a: Candidate, b: Candidate) -> bool:
+    """Two effects that add zero-mean scatter whose variances are proportional over the frame are the same
+    likelihood on it, whatever their physics: a DSNU adds (sigma D)^2 with D the dark signal, growing with the
+    exposure and the dark current; a reset or read noise adds a constant (Janesick 2007, Photon Transfer, ch. 7
+    and 11: the dark-signal non-uniformity is a fixed pattern proportional to the dark signal, the read noise is
+    not). Where the dark signal is uniform the two laws are one constant, and only a frame of another exposure
+    (or another dark signal) tells them apart: not a tie the held-out scores need to find."""
+    va, vb = a.fit.extra_var_adu2, b.fit.extra_var_adu2
+    if va is None or vb is None or a.fit.delta_adu is not None or b.fit.delta_adu is not None:
+        return False
+    va, vb = np.asarray(va, np.float64), np.asarray(vb, np.float64)
+    if va.ndim == 0 or vb.ndim == 0 or va.shape != vb.shape:
+        return False
+    both = (va > 0) & (vb > 0)
+    if both.sum() < 100:
+        return False
+    ratio = va[both] / vb[both]
+    return float(np.std(ratio)) <= SAME_SCATTER_TOLERANCE * float(np.mean(ratio))
+
+
 def indistinguishable(sig: list[Candidate]) -> list[Candidate]:
     """The significant candidates after the first whose held-out score is as good as the first's (within the
-    policy's twin fraction, and within the scores' own scatter ~ sqrt(2 |score|)), and those that put the same
-    charge in the same pixels by another origin (:func:`same_charge`)."""
+    policy's twin fraction, and within the scores' own scatter ~ sqrt(2 |score|)), those that put the same
+    charge in the same pixels by another origin (:func:`same_charge`) and those that add the same scatter
+    (:func:`same_scatter`)."""
     if len(sig) < 2:
         return []
     best = sig[0].heldout
     tol = max(sig[0].policy.twin_fraction * abs(best), 2 * np.sqrt(2 * abs(best))) if best is not None else 0.0
     return [c for c in sig[1:] if (best is not None and c.heldout is not None and c.heldout - best <= tol)
-            or same_charge(sig[0], c)]
+            or same_charge(sig[0], c) or same_scatter(sig[0], c)]
 
 
 def verdict(cands: list[Candidate], morphology: dict | None = None) -> str:
@@ -292,10 +319,16 @@ def verdict(cands: list[Candidate], morphology: dict | None = None) -> str:
         held = f", held-out {best.heldout:.4g}" if best.heldout is not None else ""
         twins = indistinguishable(effects)
         charge = [c for c in twins if same_charge(best, c)]
-        scored = [c for c in twins if c not in charge]
+        scatter = [c for c in twins if c not in charge and same_scatter(best, c)]
+        scored = [c for c in twins if c not in charge and c not in scatter]
         also = (f"; the data cannot tell it apart from {', '.join(c.fit.effect for c in scored)} (their held-out "
                 "scores are as good)") if scored else ""
-        also += (f"; {'nor' if scored else 'the data cannot tell it apart'} from "
+        also += (f"; {'nor' if also else 'the data cannot tell it apart'} from "
+                 f"{', '.join(c.fit.effect for c in scatter)}: the same added variance in every pixel of this frame (a "
+                 "DSNU's grows as the dark signal squared, a PRNU's as the light squared, a read noise's is constant: "
+                 "laws that agree where that signal is uniform; a frame of another exposure or level tells them "
+                 "apart)") if scatter else ""
+        also += (f"; {'nor' if also else 'the data cannot tell it apart'} from "
                  f"{', '.join(c.fit.effect for c in charge)}: the same charge in the same pixels, whose origin (dark "
                  "or light) only a dark frame of the same exposure tells") if charge else ""
         text = (f"most likely missing: {best.fit.effect} (delta BIC {best.fit.delta_bic:.4g}{held}): "
