@@ -649,8 +649,8 @@ def series_candidates(frames: list[Residuals], labels: list[str], present: set[s
             cand.refuse("consistency", consistency)
         floor = next((w for w in (floor_reason(name, f.params, r.sensor, policy, r.exptime_s)
                                   for r, f in zip(frames, sf.frames) if f is not None) if w), "")
-        ranges = [signal_range_floor(name, r, policy) for r in frames]
-        if not floor and ranges and all(ranges):  # no frame of the series reaches the signal a law needs
+        ranges = [signal_range_floor(name, r, policy, f.params) for r, f in zip(frames, sf.frames) if f is not None]
+        if not floor and ranges and all(ranges):  # no frame of the series measures the law within its signal
             floor = ranges[int(np.argmax([len(w) for w in ranges]))]
         if floor:
             cand.refuse("floor", floor)
