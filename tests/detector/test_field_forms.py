@@ -8,6 +8,7 @@ import numpy as np
 from helpers import small_sensor
 
 from detector import registry
+from detector.effects.base import Stage, Tile
 from detector.effects.pixel_response import frame_reference_fraction, line_gain_vector, power_law_nonlinearity
 from detector.effects.sky import legendre_field_rate, window_uv
 from detector.signatures import Residuals, SpikeStats, heldout_delta
@@ -51,6 +52,13 @@ def test_straylight_fits_a_cubic_field_of_light_at_the_order_the_pixels_support(
     # the field less its mean (a constant is the sky's level, refitted with it)
     err = (rendered - rendered.mean()) - (cubic - cubic.mean())
     assert float(np.sqrt(np.mean(err ** 2))) < 0.03 * span
+    # the effect with the fitted parameters adds that field of light [e-] on the window (a tile of it)
+    cls = registry()["straylight"]
+    eff = cls(cls.Params.model_validate(p), sensor)
+    tile = Tile(sensor, 0, sensor.roi_y0, sensor.roi_y0 + 96, sensor.roi_x0, sensor.roi_x0 + 128, 10.0, 1)
+    light = np.full((96, 128), 600.0, np.float32)
+    eff.apply(Stage.FIELD, tile, light)
+    assert np.allclose(light - 600.0, rendered * 10.0, atol=1e-3)
 
 
 def _flat(sensor, shape, level_adu=20000.0):
