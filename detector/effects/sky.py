@@ -173,8 +173,8 @@ def _field_words(p, res) -> str:
         vals = [float(straylight_field_e(np.array([y]), np.array([x]), yc, xc, p, res.exptime_s)[0, 0])
                 for y, x in zip(ys, xs)]
         what = "from its faintest to its brightest corner, curved"
-    return (f"a smooth additive light across the field, {max(vals) - min(vals):.3g} e- {what}, growing with "
-            "exposure, in the light only: straylight (or a sky gradient that is not a plane)")
+    return (f"a smooth additive light across the field, {max(vals) - min(vals):.3g} e- per sensor pixel {what}, "
+            "growing with exposure, in the light only: straylight (or a sky gradient that is not a plane)")
 
 
 def sky_light_check(fit, res) -> str:
