@@ -153,29 +153,41 @@ FLOORS: dict[str, Callable[[dict, object, DiagnosisPolicy, float | None], str]] 
 }
 
 
-def signal_range_floor(effect: str, res, policy: DiagnosisPolicy = DEFAULT_POLICY, params: dict | None = None) -> str:
-    """"" or why the frame's signal does not measure the fitted response law (gate ``floor``): a non-linearity is
-    judged by what it changes within the frame's own signal range, from its median to its 99.9th percentile
-    (per sensor pixel: the light and the dark charge of an output pixel over the pixels summed into it): the
-    law's response there, ``S'/S`` at the top over ``S'/S`` at the median (:func:`response_ratio`), must differ
-    by the policy's ``min_nonlinearity_in_range``. A law's size at full well, on a frame of a few per cent of
-    the well, is an extrapolation the pixels cannot check; its change across the frame's signal is what they
-    measure (a gamma law compresses every decade of signal alike; a quadratic deficit little at low signal)."""
-    if effect != "nonlinearity":
-        return ""
+def signal_range(res) -> tuple[float, float] | None:
+    """(median, 99.9th percentile) of a frame's signal per sensor pixel [e-] over its fitted pixels: the light
+    and the dark charge of an output pixel over the pixels summed into it (None: no fitted pixel)."""
     ok = res.fit
     if not np.any(ok):
-        return ""
+        return None
     charge = (np.broadcast_to(res.photo_adu, ok.shape)[ok] * res.gain
               + np.broadcast_to(res.dark_e, ok.shape)[ok]) / res.pixel_sum
     lo, top = (float(v) for v in np.percentile(charge, [50.0, 99.9]))
+    return max(lo, 0.0), top
+
+
+def signal_range_floor(effect: str, res, policy: DiagnosisPolicy = DEFAULT_POLICY, params: dict | None = None,
+                       signal: tuple[float, float] | None = None) -> str:
+    """"" or why the frame's signal does not measure the fitted response law (gate ``floor``): a non-linearity is
+    judged by what it changes within the frame's own signal range (:func:`signal_range`: from its median to its
+    99.9th percentile; ``signal`` overrides it, e.g. a series' range across its frames): the law's response
+    there, ``S'/S`` at the top over ``S'/S`` at the median (:func:`response_ratio`), must differ by the policy's
+    ``min_nonlinearity_in_range``. A law's size at full well, on a frame of a few per cent of the well, is an
+    extrapolation the pixels cannot check; its change across the frame's signal is what they measure (a gamma
+    law compresses every decade of signal alike; a quadratic deficit little at low signal)."""
+    if effect != "nonlinearity":
+        return ""
+    got = signal if signal is not None else signal_range(res)
+    if got is None:
+        return ""
+    lo, top = got
     fw = float(res.sensor.full_well_e)
-    change = float(abs(response_ratio(params or {}, top / fw) / response_ratio(params or {}, max(lo, 0.0) / fw) - 1.0))
+    change = float(abs(response_ratio(params or {}, top / fw) / response_ratio(params or {}, lo / fw) - 1.0))
     if change < policy.min_nonlinearity_in_range:
-        return (f"over the frame's own signal ({max(lo, 0.0):.3g} to {top:.3g} e- per pixel, {100 * top / fw:.2g} % of "
-                f"the {fw:.3g} e- full well at most) the fitted law changes the response by {100 * change:.2g} %, "
-                f"less than the {100 * policy.min_nonlinearity_in_range:g} % a linearity measurement resolves: its "
-                "size beyond that range is an extrapolation the pixels cannot check")
+        return (f"over the {'series' if signal is not None else 'frame'}'s own signal ({lo:.3g} to {top:.3g} e- per "
+                f"pixel, {100 * top / fw:.2g} % of the {fw:.3g} e- full well at most) the fitted law changes the "
+                f"response by {100 * change:.2g} %, less than the {100 * policy.min_nonlinearity_in_range:g} % a "
+                "linearity measurement resolves: its size beyond that range is an extrapolation the pixels cannot "
+                "check")
     return ""
 
 
