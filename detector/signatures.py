@@ -1550,6 +1550,69 @@ def smooth_component(res: Residuals, template: np.ndarray) -> tuple[float, float
     return d * vs["scale"], float(np.sqrt(np.mean(rel * rel))), basis.shape[0]
 
 
+#: the lines' gains of a response pattern (column amplifiers, row drivers) are independent from line to line:
+#: the neighbouring lines' detrended gains may correlate by at most this much (or 3 / sqrt(lines), their
+#: noise); a pattern whose neighbouring lines follow each other is a step or a slope, not line-wise gains
+MAX_LINE_GAIN_CORRELATION = 0.1
+#: pixels a line needs for its gain to be estimated [pixels]
+MIN_LINE_PIXELS = 8
+
+
+def line_gains(res: Residuals, template: np.ndarray, axis: int, r: np.ndarray | None = None) -> dict | None:
+    """The line-wise part of a multiplicative pattern: every column (``axis`` 1) or row (``axis`` 0) has its
+    own gain ``1 + g``, ``g ~ N(0, s^2)`` independent from line to line (a CMOS sensor's column amplifiers, the
+    column and row variances of EMVA 1288 Release 4.0 sect. 8.2; Janesick 2007, Photon Transfer, ch. 8: the
+    fixed-pattern noise of a response has pixel, column and row parts), times ``template`` [ADU] (the
+    photo-signal).
+
+    Each line's gain is measured from the level-profiled residual ``r`` (default: the frame's) as the weighted
+    mean ``m = sum(r t w) / sum(t^2 w)`` of noise variance ``1 / sum(t^2 w)``; their smooth trend across the
+    lines (Legendre degree SMOOTH_ORDER: a response's large scales are its smooth part's) is removed; ``s^2``
+    is the random effect's maximum-likelihood variance (``m ~ N(0, s^2 + 1 / den)``: one parameter, as a PRNU's
+    white part is one). The mean change is each line's best linear unbiased prediction ``m s^2 den / (1 + s^2
+    den)`` (Robinson 1991, Stat. Sci. 6, 15): on pixels the fit did not see, the lines' gains repeat, so a
+    line pattern predicts them. Returns ``{"delta": map [ADU], "d": delta -2 ln L, "sigma": s, "rho": the
+    neighbouring lines' correlation}``, or None when there is no such part (``s = 0``, too few lines, or lines
+    whose gains follow each other: see MAX_LINE_GAIN_CORRELATION)."""
+    shape = res.data_adu.shape
+    idx, rp, w = res.flat_profiled()
+    r = rp if r is None else r
+    t = _at(template, shape, idx)
+    n = shape[1] if axis == 1 else shape[0]
+    line = idx % shape[1] if axis == 1 else idx // shape[1]
+    den = np.bincount(line, t * t * w, n)
+    cnt = np.bincount(line, None, n)
+    ok = (den > 0) & (cnt >= MIN_LINE_PIXELS)
+    if ok.sum() < 4 * (SMOOTH_ORDER + 1):
+        return None
+    m = np.bincount(line, r * t * w, n)[ok] / den[ok]
+    dn = den[ok]
+    x = np.linspace(-1.0, 1.0, n)[ok]
+    vx = np.polynomial.legendre.legvander(x, SMOOTH_ORDER) * np.sqrt(dn)[:, None]
+    m = m - (np.polynomial.legendre.legvander(x, SMOOTH_ORDER)
+             @ np.linalg.lstsq(vx, m * np.sqrt(dn), rcond=None)[0])
+    m2 = m * m
+
+    def m2l(log_s2: float) -> float:
+        s2 = np.exp(log_s2)
+        return float(np.sum(np.log1p(s2 * dn) + m2 / (s2 + 1.0 / dn) - m2 * dn))
+
+    got = optimize.minimize_scalar(m2l, bounds=(np.log(1e-14), np.log(0.25)), method="bounded")
+    d = float(got.fun)
+    if not np.isfinite(d) or d >= 0:
+        return None
+    s2 = float(np.exp(got.x))
+    z = m * np.sqrt(dn)
+    rho = float(np.dot(z[1:], z[:-1]) / max(np.dot(z, z), 1e-300))
+    if rho > max(MAX_LINE_GAIN_CORRELATION, 3.0 / np.sqrt(z.size)):
+        return None
+    g = np.zeros(n)
+    g[np.flatnonzero(ok)] = m * s2 * dn / (1.0 + s2 * dn)
+    gmap = g[None, :] if axis == 1 else g[:, None]
+    delta = (np.broadcast_to(template, shape) * gmap).astype(np.float32)
+    return {"delta": delta, "d": d, "sigma": float(np.sqrt(s2)), "rho": rho}
+
+
 class VarianceSignature(Signature):
     """The effect adds zero-mean scatter of variance ``theta * template(res)`` [ADU^2 per unit theta].
 
@@ -1570,15 +1633,43 @@ class VarianceSignature(Signature):
     def __init__(self, template: Callable[[Residuals], np.ndarray], to_params: Callable[..., dict | None],
                  explain: Callable[[dict, Residuals], str], pattern: str = "", laws: dict | None = None,
                  smooth: Callable[[Residuals], np.ndarray] | None = None,
-                 check: Callable[[Fit, Residuals], str] | None = None, lines: bool = False):
+                 check: Callable[[Fit, Residuals], str] | None = None, lines: bool = False,
+                 line_template: Callable[[Residuals], np.ndarray] | None = None):
         self.template, self.to_params, self.explain, self.pattern = template, to_params, explain, pattern
         self.laws, self.smooth, self.check = laws, smooth, check
+        #: a multiplicative pattern with line-wise gains (:func:`line_gains`) times this template: fitted, and
+        #: kept when the BIC prefers it, as the pattern's column and row parts
+        self.line_template = line_template
         #: a fixed pattern may have row and column components besides the pixels' own (EMVA 1288 Release
         #: 4.0, sect. 8.2: the spatial variance split into row, column and pixel variances): scatter correlated
         #: along one axis only is such a pattern, not a structure a few pixels wide
         self.lines = lines
 
+    def _lines(self, res: Residuals) -> tuple[Residuals, np.ndarray | None, float, dict]:
+        """The pattern's line-wise gains (columns, then rows, each kept when its delta -2 ln L pays for its one
+        parameter, BIC): (the residuals without them, their mean change [ADU] or None, their delta -2 ln L,
+        their sigmas)."""
+        if self.line_template is None:
+            return res, None, 0.0, {}
+        tmpl = np.asarray(self.line_template(res), np.float32)
+        penalty = np.log(max(res.n_fit, 2))
+        idx, r, _ = res.flat_profiled()
+        delta, d, sig = None, 0.0, {}
+        for axis, key in ((1, "column_sigma"), (0, "row_sigma")):
+            got = line_gains(res, tmpl, axis, r if delta is None else r - _at(delta, res.data_adu.shape, idx))
+            if got is None or got["d"] + penalty >= 0:
+                continue
+            delta = got["delta"] if delta is None else delta + got["delta"]
+            d += got["d"]
+            sig[key] = got["sigma"]
+        if delta is None:
+            return res, None, 0.0, {}
+        rest = replace(res, data_adu=(res.data_adu - delta).astype(np.float32), _flat=res.shared_levels())
+        return rest, delta, d, sig
+
     def fit(self, res: Residuals, name: str) -> Fit | None:
+        res_all = res
+        res, line_delta, line_d, line_sig = self._lines(res)
         vs = variance_sample(res)
         full = self.template(res)
         t = template_at(full, res.data_adu.shape, vs["idx"])
@@ -1605,10 +1696,15 @@ class VarianceSignature(Signature):
                 d, k = d + ds, k + m
                 extra = {"smooth_rms": rms}
                 note = (note + " " if note else "") + f"+ low-frequency pattern {100 * rms:.2g} % rms"
+        if line_delta is not None:
+            params = {**params, **{key: float(f"{v:.6g}") for key, v in line_sig.items()}}
+            d, k = d + line_d, k + len(line_sig)
+            note = (note + " " if note else "") + "+ " + " and ".join(
+                f"{key.split('_')[0]} gains {100 * v:.2g} % rms" for key, v in line_sig.items())
         params_explain = {**params, **extra}
-        return Fit(name, params, d, k, n, self.explain(params_explain, res),
+        return Fit(name, params, d, k, n, self.explain(params_explain, res_all),
                    extra_var_adu2=theta * np.broadcast_to(full, res.data_adu.shape), note=note,
-                   state={"theta": theta, "law": law})
+                   delta_adu=line_delta, state={"theta": theta, "law": law})
 
     #: added scatter is pixel-to-pixel: a neighbour correlation of the whitened residual above this (and
     #: significant) is a structure of a few pixels (rings, fringes, blurred sources), not a non-uniformity
@@ -1631,6 +1727,8 @@ class VarianceSignature(Signature):
             why = self.check(fit, res)
             if why:
                 return why
+        if fit.delta_adu is not None:  # the scatter is judged on what the pattern's line gains leave
+            res = replace(res, data_adu=(res.data_adu - fit.delta_adu).astype(np.float32), _flat=res.shared_levels())
         why = self.uniformity(fit, res) or self.zero_mean(fit, res)
         if why:
             return why
@@ -1759,6 +1857,10 @@ class VarianceSignature(Signature):
         pixel-to-pixel residual of ``res`` (the low-frequency part of the pattern is not scored)."""
         if "theta" not in fit.state:
             return pixel_score(fit, res)
+        lines = 0.0
+        if fit.delta_adu is not None:  # the line gains fitted on the other fold, as a mean change on these pixels
+            lines = pixel_score(Fit(fit.effect, {}, 0.0, 0, fit.n, "", delta_adu=fit.delta_adu), res)
+            res = replace(res, data_adu=(res.data_adu - fit.delta_adu).astype(np.float32), _flat=res.shared_levels())
         vs = variance_sample(res)
         if not vs["idx"].size:
             return 0.0
@@ -1767,7 +1869,7 @@ class VarianceSignature(Signature):
         k3f = None if k3 is None else (lambda th, k3=k3: k3(th, res, vs["idx"]))
         _, d = ml_variance_scale(vs["r_white"], vs["v"], t, outliers=True, k3=k3f, k3_base=vs["k3_poisson"],
                                  fixed_theta=fit.state["theta"])
-        return float(d * vs["scale"])
+        return float(d * vs["scale"]) + float(lines or 0.0)
 
 
 # --- counts ------------------------------------------------------------------------------------------------------

@@ -377,23 +377,42 @@ def _nonlin_variants(res):
             (b1 or b2) else None
 
     yield Variant([t, t2], to_both, label="quadratic and cubic")
-    ref = POWER_LAW_REFERENCE * fw
     pos = q > 0
+    # the law is referenced at the frame's own median signal (it equals the linear response there): what the
+    # frame measures is how the response changes across its signal, not its level at half the well, which a
+    # frame of a few per cent of the well would only extrapolate (a real SBIG dark's gamma 1.027 from 67 e-,
+    # referenced at half its 133 000 e- well, lowered the whole dark by 16 % when rendered)
+    ref_frac = frame_reference_fraction(res)
+    if ref_frac is None:
+        return
+    ref = ref_frac * fw
     t = np.zeros_like(q)
     t[pos] = q[pos] * np.log(q[pos] / ref) / res.gain
 
     def to_power(c):
-        return {"beta": 0.0, "gamma": round(1.0 + float(c[0]), 6)} if 0 < abs(c[0]) <= 0.5 else None
+        return {"beta": 0.0, "gamma": round(1.0 + float(c[0]), 6), "gamma_reference": float(f"{ref_frac:.6g}")} \
+            if 0 < abs(c[0]) <= 0.5 else None
 
     yield Variant([t.astype(np.float32)], to_power, label="power law")
+
+
+def frame_reference_fraction(res) -> float | None:
+    """The frame's median signal per sensor pixel [fraction of the full well] over its fitted pixels with a
+    positive charge: where the diagnosis references a power-law response (None: no charge)."""
+    q = np.asarray(res.charge_e, np.float64)
+    ok = np.broadcast_to(res.fit, q.shape) & (q > 0)
+    if not ok.any():
+        return None
+    return float(np.median(q[ok])) / (res.sensor.full_well_e * res.pixel_sum)
 
 
 def _nonlin_words(p, res) -> str:
     if p.get("gamma", 1.0) != 1.0:
         g = p["gamma"]
+        ref = p.get("gamma_reference", POWER_LAW_REFERENCE)
         return (f"response following a power law of the signal, gamma {g:.4g} ({'compressive' if g < 1 else 'expansive'}"
                 f": {100 * abs(g - 1) * np.log(10):.2g} % per decade of signal, equal to the linear one at "
-                f"{POWER_LAW_REFERENCE:g} of the full well): nonlinearity")
+                f"{ref:.3g} of the full well): nonlinearity")
     b1, b2 = p.get("beta", 0.0), p.get("beta2", 0.0)
     total = b1 + b2
     law = ("growing as the square of the signal" if not b2 else "growing as the cube of the signal (a soft "
@@ -401,14 +420,21 @@ def _nonlin_words(p, res) -> str:
     return (f"response {'deficit' if total > 0 else 'excess'} {law}, {100 * abs(total):.2g} % at full well: "
             "nonlinearity")
 
+def _prnu_words(p, res) -> str:
+    lines = [f"{what} gains of {100 * p[key]:.2g} % rms" for key, what in (("column_sigma", "column"),
+                                                                         ("row_sigma", "row")) if p.get(key)]
+    return (f"pixel-to-pixel scatter proportional to the signal, {100 * p['sigma']:.2g} % of it"
+            + (f", with {' and '.join(lines)} (line-wise response: column amplifiers, row drivers)" if lines else "")
+            + (f", with a low-frequency pattern of {100 * p['smooth_rms']:.2g} % rms (a flat-field map the white "
+               "prnu model does not carry)" if "smooth_rms" in p else "")
+            + ": photo-response non-uniformity (PRNU)")
+
+
 _PRNU_SIGNATURE = VarianceSignature(
-    _prnu_template, _prnu_params,
-    lambda p, res: (f"pixel-to-pixel scatter proportional to the signal, {100 * p['sigma']:.2g} % of it"
-                    + (f", with a low-frequency pattern of {100 * p['smooth_rms']:.2g} % rms (a flat-field map "
-                       "the white prnu model does not carry)" if "smooth_rms" in p else "")
-                    + ": photo-response non-uniformity (PRNU)"),
-    pattern="extra variance growing as the square of the photo-signal (and its large-scale pattern)",
-    smooth=lambda res: res.photo_adu, lines=True)
+    _prnu_template, _prnu_params, _prnu_words,
+    pattern="extra variance growing as the square of the photo-signal (and its large-scale pattern), with "
+            "column and row gains",
+    smooth=lambda res: res.photo_adu, lines=True, line_template=lambda res: res.photo_adu)
 
 _DSNU_SIGNATURE = VarianceSignature(
     _dsnu_template, _dsnu_params,
@@ -436,11 +462,18 @@ _NONLINEARITY_SIGNATURE = LinearSignature(
 class PRNUParams(EffectParams):
     sigma: float = Field(0.01, ge=0, le=0.5, description="spatial std of the response, fraction of the mean [1]",
                          json_schema_extra={"unit": "1"})
+    column_sigma: float = Field(0.0, ge=0, le=0.5, description="std of the columns' gains (one per column: a CMOS "
+                                "sensor's column amplifiers), fraction of the mean [1]", json_schema_extra={"unit": "1"})
+    row_sigma: float = Field(0.0, ge=0, le=0.5, description="std of the rows' gains (one per row), fraction of the "
+                             "mean [1]", json_schema_extra={"unit": "1"})
 
 
 @register_effect
 class PRNU(Effect):
-    """Photo-response non-uniformity: each pixel's sensitivity is 1 + sigma N(0,1), mean 1.
+    """Photo-response non-uniformity: each pixel's sensitivity is 1 + sigma N(0,1), mean 1, times its column's
+    gain 1 + column_sigma N(0,1) and its row's 1 + row_sigma N(0,1) (the pixel, column and row parts of a
+    response's fixed pattern, EMVA 1288 Release 4.0 sect. 8.2; a CMOS sensor's column amplifiers, Janesick 2007
+    ch. 8).
 
     Multiplies the expected photo-electrons before the shot-noise draw (EMVA 1288 eq. 4.3; Janesick 2007
     ch. 8). Fixed pattern: drawn from the hardware seed, the same every frame.
@@ -455,11 +488,26 @@ class PRNU(Effect):
     signature = _PRNU_SIGNATURE
 
     def variance_e2(self, stage: Stage, tile: Tile, mean_e: np.ndarray) -> np.ndarray:
-        return (np.float32(self.params.sigma) * mean_e) ** 2
+        p = self.params
+        return (np.float32(np.sqrt(p.sigma ** 2 + p.column_sigma ** 2 + p.row_sigma ** 2)) * mean_e) ** 2
 
     def apply(self, stage: Stage, tile: Tile, data: np.ndarray) -> None:
         if self.params.sigma:
             data *= tile.hardware_map(self.name, lambda rng, shape: prnu_map(rng, shape, self.params.sigma))
+        s = self.sensor
+        if self.params.column_sigma:  # one gain per sensor column, the same for every tile and window
+            g = line_gain_vector(s.hardware_seed, "prnu_columns", s.sensor_width_px, self.params.column_sigma)
+            data *= g[tile.x0:tile.x1][None, :]
+        if self.params.row_sigma:
+            g = line_gain_vector(s.hardware_seed, "prnu_rows", s.sensor_height_px, self.params.row_sigma)
+            data *= g[tile.y0:tile.y1][:, None]
+
+
+def line_gain_vector(seed: int, name: str, n: int, sigma: float) -> np.ndarray:
+    """The gains ``1 + sigma N(0, 1)`` (at least 0) of ``n`` sensor lines, drawn from the hardware seed."""
+    from ..rng import generator
+
+    return np.maximum(1.0 + sigma * generator(seed, name).standard_normal(n), 0.0).astype(np.float32)
 
 
 class DSNUParams(EffectParams):
@@ -633,14 +681,18 @@ class NonlinearityParams(EffectParams):
     beta2: float = Field(0.0, ge=-0.5, le=0.5, description="fractional response deficit at full well growing as the "
                          "square of the signal (a soft saturation) [1]")
     gamma: float = Field(1.0, ge=0.5, le=1.5, description="exponent of a power-law response, equal to the linear "
-                         "one at half the full well (1: none) [1]")
+                         "one at gamma_reference of the full well (1: none) [1]")
+    gamma_reference: float = Field(POWER_LAW_REFERENCE, gt=0, le=1, description="signal where the power law equals "
+                                   "the linear response, fraction of the full well (the diagnosis sets the frame's "
+                                   "median signal) [1]", json_schema_extra={"unit": "1"})
 
 
 @register_effect
 class Nonlinearity(Effect):
     """Response nonlinearity of the read-out chain: S' = S (1 - beta x - beta2 x^2), x = S / FW, then, when
     ``gamma`` != 1,
-    the power law S'' = S' (S' / S_ref)^(gamma - 1), S_ref half the full well (:func:`power_law_nonlinearity`).
+    the power law S'' = S' (S' / S_ref)^(gamma - 1), S_ref ``gamma_reference`` of the full well (half by default;
+    the diagnosis references it at the frame's median signal; :func:`power_law_nonlinearity`).
 
     A pixel at full well reads ``beta`` low (beta < 0: super-linear). Applied to the collected charge after
     the full-well clip and before read noise (EMVA 1288 sec. 8.2 linearity error; Janesick 2007 ch. 11).
@@ -656,4 +708,4 @@ class Nonlinearity(Effect):
     def apply(self, stage: Stage, tile: Tile, data: np.ndarray) -> None:
         fw = self.sensor.full_well_e * tile.bin ** 2
         quadratic_nonlinearity(data, self.params.beta, fw, self.params.beta2)
-        power_law_nonlinearity(data, self.params.gamma, POWER_LAW_REFERENCE * fw)
+        power_law_nonlinearity(data, self.params.gamma, self.params.gamma_reference * fw)

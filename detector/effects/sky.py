@@ -29,6 +29,18 @@ diagnosis fits when a field-wide additive light is missing and the scene's stray
 the scene's own ray-traced straylight (``[effects.straylight]`` with ``pst = ...``: the Sun and the Moon
 through the design's PST, :mod:`scenes.straylight`) is the physical model to move to once the source is
 known. (Mitigation of straylight: Breault 1995, Handbook of Optics vol. I, ch. 38.)
+
+The second-order field is the leading part of a smooth field; a scattered light from outside the field (a
+point source beyond an edge, a ring of the baffles, a moonlit tube) is smooth but not a quadric, and a
+quadric fitted to a cubic field fails where it acts most (its corners). ``model = "legendre"`` is the field
+as a series of products of Legendre polynomials over the read-out window,
+
+    S(x, y) = sum_{1 <= i + j <= n} c_ij P_i(u) P_j(v),   u, v in [-1, 1] across the window's width and height
+
+[e-/s per pixel], of an order ``n`` the diagnosis chooses by BIC (Schwarz 1978: each order's templates pay
+``ln N`` each) from 2 to ``MAX_FIELD_ORDER``: the form of any smooth field of light, whatever its source, to
+the order the frame's pixels support (the residual's own smooth description uses the same basis,
+:mod:`detector.morphology`).
 """
 
 from __future__ import annotations
@@ -147,36 +159,22 @@ def straylight_field_e(ys: np.ndarray, xs: np.ndarray, yc: float, xc: float, c: 
 _FIELD_KEYS = ("gx", "gy", "gxx", "gxy", "gyy")
 
 
-def _field_variants(res):
-    if res.exptime_s <= 0 or not np.any(res.photo_adu > 0):
-        return
-    yc, xc = _sensor_centre(res.sensor)
-    f = res.exptime_s * res.pixel_sum / res.gain  # ADU per output pixel per e-/s/pixel
-    x = ((res.xs - xc) / KPX).astype(np.float64)
-    y = ((res.ys - yc) / KPX).astype(np.float64)
-    temps = [(f * x)[None, :].astype(np.float32), (f * y)[:, None].astype(np.float32),
-             (f * x * x)[None, :].astype(np.float32), (f * y[:, None] * x[None, :]).astype(np.float32),
-             (f * y * y)[:, None].astype(np.float32)]
-
-    def to_params(c):
-        vals = [float(v) for v in c]
-        if max(abs(v) for v in vals) > MAX_FIELD:
-            return None
-        return {"model": "field", **{k: round(v, 6) for k, v in zip(_FIELD_KEYS, vals)}}
-
-    yield Variant(temps, to_params, "quadratic")
-
-
 def _field_words(p, res) -> str:
     s = res.sensor
     yc, xc = _sensor_centre(s)
     w, h = s.roi_shape
     ys = np.array([s.roi_y0, s.roi_y0 + h - 1, s.roi_y0, s.roi_y0 + h - 1, s.roi_y0 + h / 2.0])
     xs = np.array([s.roi_x0, s.roi_x0, s.roi_x0 + w - 1, s.roi_x0 + w - 1, s.roi_x0 + w / 2.0])
-    vals = [float(straylight_field_e(np.array([y]), np.array([x]), yc, xc, p, res.exptime_s)[0, 0]) for y, x in zip(ys, xs)]
-    return (f"a smooth additive light across the field, {max(vals) - min(vals):.3g} e- from its faintest to its "
-            "brightest corner, curved, growing with exposure, in the light only: straylight (or a sky gradient "
-            "that is not a plane)")
+    if p.get("model") == "legendre":
+        vv, uu = window_uv(s, np.linspace(s.roi_y0, s.roi_y0 + h - 1, 33), np.linspace(s.roi_x0, s.roi_x0 + w - 1, 33))
+        vals = (legendre_field_rate(vv, uu, p["order"], p["coef"]) * res.exptime_s).ravel().tolist()
+        what = f"from its faintest to its brightest part (a Legendre series of order {p['order']})"
+    else:
+        vals = [float(straylight_field_e(np.array([y]), np.array([x]), yc, xc, p, res.exptime_s)[0, 0])
+                for y, x in zip(ys, xs)]
+        what = "from its faintest to its brightest corner, curved"
+    return (f"a smooth additive light across the field, {max(vals) - min(vals):.3g} e- per sensor pixel {what}, "
+            "growing with exposure, in the light only: straylight (or a sky gradient that is not a plane)")
 
 
 def sky_light_check(fit, res) -> str:
@@ -190,15 +188,83 @@ def sky_light_check(fit, res) -> str:
 
 _field_check = sky_light_check
 
+#: highest order of the Legendre field the diagnosis tries (its BIC picks the order; 6: 27 templates, a field
+#: with up to three extrema across the window)
+MAX_FIELD_ORDER = 6
 
-_FIELD_SIGNATURE = LinearSignature(_field_variants, _field_words,
-                                   pattern="additive smooth (second-order) field of light, with its shot noise",
-                                   extra_k=0, adds_charge=True, check=_field_check)
+
+def legendre_terms(order: int) -> list[tuple[int, int]]:
+    """The (i, j) of the products P_i(u) P_j(v) with 1 <= i + j <= order, in the order of the coefficients."""
+    return [(i, j) for i in range(order + 1) for j in range(order + 1 - i) if i + j >= 1]
+
+
+def window_uv(sensor, ys: np.ndarray, xs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Sensor rows ``ys`` and columns ``xs`` (pixel centres) as (v, u) in [-1, 1] across the read-out window
+    (its first pixel's outer edge at -1, its last pixel's at +1)."""
+    w, h = sensor.roi_shape
+    u = 2.0 * (np.asarray(xs, np.float64) + 0.5 - sensor.roi_x0) / w - 1.0
+    v = 2.0 * (np.asarray(ys, np.float64) + 0.5 - sensor.roi_y0) / h - 1.0
+    return v, u
+
+
+def legendre_field_rate(v: np.ndarray, u: np.ndarray, order: int, coef) -> np.ndarray:
+    """The field ``sum c_ij P_i(u) P_j(v)`` [the coefficients' unit] on the grid of 1-D ``v`` (rows) and ``u``
+    (columns); shape (len(v), len(u))."""
+    pu = np.polynomial.legendre.legvander(np.asarray(u, np.float64), order)
+    pv = np.polynomial.legendre.legvander(np.asarray(v, np.float64), order)
+    out = np.zeros((pv.shape[0], pu.shape[0]))
+    for (i, j), c in zip(legendre_terms(order), coef):
+        out += float(c) * pv[:, j][:, None] * pu[:, i][None, :]
+    return out
+
+
+def _legendre_variant(res, order: int, f: float, pu: np.ndarray, pv: np.ndarray):
+    terms = legendre_terms(order)
+    w = res.data_adu.shape[1]
+
+    def at(idx):
+        y, x = np.divmod(np.asarray(idx), w)
+        return np.stack([f * pv[y, j] * pu[x, i] for i, j in terms])
+
+    def maps():
+        return [(f * pv[:, j][:, None] * pu[:, i][None, :]).astype(np.float32) for i, j in terms]
+
+    def to_params(c):
+        vals = [float(v) for v in c]
+        if max(abs(v) for v in vals) > MAX_FIELD:
+            return None
+        return {"model": "legendre", "order": order, "coef": [round(v, 8) for v in vals]}
+
+    return Variant(maps, to_params, f"legendre {order}", at=at)
+
+
+def _legendre_variants(res):
+    """The Legendre fields of orders 2 to MAX_FIELD_ORDER over the window (the signature's BIC picks one)."""
+    if res.exptime_s <= 0 or not np.any(res.photo_adu > 0):
+        return
+    f = res.exptime_s * res.pixel_sum / res.gain  # ADU per output pixel per e-/s/pixel
+    v, u = window_uv(res.sensor, res.ys, res.xs)
+    pu = np.polynomial.legendre.legvander(u, MAX_FIELD_ORDER)
+    pv = np.polynomial.legendre.legvander(v, MAX_FIELD_ORDER)
+    for order in range(2, MAX_FIELD_ORDER + 1):
+        yield _legendre_variant(res, order, f, pu, pv)
+
+
+_FIELD_SIGNATURE = LinearSignature(_legendre_variants, lambda p, res: _field_words(p, res),
+                                   pattern="additive smooth field of light (a Legendre series of the order the "
+                                   "frame supports), with its shot noise",
+                                   extra_k=1, adds_charge=True, check=_field_check)
 
 
 class StraylightFieldParams(EffectParams):
-    model: Literal["field"] = Field("field", description="the smooth-field form (the scene's ray-traced form "
-                                    "has pst = ... instead)")
+    model: Literal["field", "legendre"] = Field(
+        "field", description="the smooth-field form: 'field' the second-order polynomial about the sensor centre "
+        "(gx ... gyy), 'legendre' the Legendre series of ``order`` over the read-out window (``coef``); the "
+        "scene's ray-traced form has pst = ... instead")
+    order: int = Field(2, ge=1, le=12, description="order of the Legendre series (model 'legendre') [1]")
+    coef: list[float] = Field(default_factory=list, description="coefficients of P_i(u) P_j(v), 1 <= i + j <= order, "
+                              "i outer (model 'legendre') [e-/s/pixel]",
+                              json_schema_extra={"unit": "electron / (s pixel)"})
     gx: float = Field(0.0, ge=-MAX_FIELD, le=MAX_FIELD, description="linear term along the columns "
                       "[e-/s/pixel per 1000 px]", json_schema_extra={"unit": "electron / (s pixel kpixel)"})
     gy: float = Field(0.0, ge=-MAX_FIELD, le=MAX_FIELD, description="linear term along the rows "
@@ -233,5 +299,9 @@ class StraylightField(Effect):
         ys, xs = tile.pixel_centres()
         yc, xc = _sensor_centre(self.sensor)
         p = self.params
-        data += straylight_field_e(ys, xs, yc, xc, {k: getattr(p, k) for k in _FIELD_KEYS}, tile.exptime_s)
+        if p.model == "legendre":
+            v, u = window_uv(self.sensor, ys, xs)
+            data += (legendre_field_rate(v, u, p.order, p.coef) * tile.exptime_s).astype(np.float32)
+        else:
+            data += straylight_field_e(ys, xs, yc, xc, {k: getattr(p, k) for k in _FIELD_KEYS}, tile.exptime_s)
         np.maximum(data, 0, out=data)

@@ -186,25 +186,38 @@ def test_floors(tmp_path):
     assert floor_reason("reset_noise", {"capacitance_ff": 1.0}, sensor) == ""
 
 
-def test_a_response_law_needs_a_signal_range():
-    """EMVA 1288 measures linearity from 5 % of saturation: on a dark of 67 e- per pixel (a 133 000 e- well,
-    the real SBIG dark that a gamma of 1.027 once 'fitted') a non-linearity is refused; on a flat at 30 % of the
-    well, or for another effect, nothing is said. Sum binning: the charge per sensor pixel is compared."""
+def test_a_response_law_is_judged_within_the_frames_signal_range():
+    """A non-linearity is judged by what it changes between the frame's median and its 99.9th percentile
+    signal (per sensor pixel), not by its size extrapolated to full well: on a uniform dark of 67 e- (a
+    133 000 e- well, the real SBIG dark that a gamma of 1.027 once 'fitted') nothing is measured; a gamma law
+    compresses every decade of signal alike, so on a star frame reaching 3.6 % of the well (sky 100 e-, peaks
+    2870 e- of 80 000) a gamma of 0.995 changes the response by 1.7 % there and is measured, while a quadratic
+    deficit of 1 % at full well changes it by 0.035 % and is not. Sum binning: charge per sensor pixel."""
     from types import SimpleNamespace
 
-    from scenes.app.compare.floors import signal_range_floor
+    from scenes.app.compare.floors import response_ratio, signal_range_floor
 
-    def res(photo_adu, dark_e, pixel_sum=1):
-        shape = (64, 64)
-        return SimpleNamespace(fit=np.ones(shape, bool), photo_adu=np.full(shape, photo_adu, np.float32),
-                               dark_e=np.full(shape, dark_e, np.float32), gain=1.5, pixel_sum=pixel_sum,
-                               sensor=SimpleNamespace(full_well_e=133_000.0))
+    def res(photo_adu, dark_e, pixel_sum=1, fw=133_000.0):
+        photo = np.broadcast_to(np.asarray(photo_adu, np.float32), (64, 64))
+        return SimpleNamespace(fit=np.ones((64, 64), bool), photo_adu=photo,
+                               dark_e=np.full((64, 64), dark_e, np.float32), gain=1.5, pixel_sum=pixel_sum,
+                               sensor=SimpleNamespace(full_well_e=fw))
 
-    assert "extrapolation" in signal_range_floor("nonlinearity", res(0.0, 67.0))
-    assert signal_range_floor("nonlinearity", res(0.3 * 133_000 / 1.5, 67.0)) == ""
-    assert signal_range_floor("prnu", res(0.0, 67.0)) == ""
-    # binned 4x4 (sum): 16 pixels' charge in one output pixel; 0.3 x 133 000 e- in all is 1.9 % per pixel
-    assert "extrapolation" in signal_range_floor("nonlinearity", res(0.3 * 133_000 / 1.5, 0.0, pixel_sum=16))
+    gamma = {"gamma": 1.027, "gamma_reference": 67.0 / 133_000}
+    assert "extrapolation" in signal_range_floor("nonlinearity", res(0.0, 67.0), params=gamma)
+    assert signal_range_floor("prnu", res(0.0, 67.0), params=gamma) == ""
+    # stars: 99.8 % of the pixels at the sky's 100 e-, the brightest 0.2 % at 2870 e- (3.6 % of an 80 000 e- well)
+    light_e = np.full(64 * 64, 100.0)
+    light_e[:9] = 2870.0
+    stars = res(light_e.reshape(64, 64) / 1.5, 0.0, fw=80_000.0)
+    g = {"gamma": 0.995, "gamma_reference": 100.0 / 80_000}
+    change = float(response_ratio(g, 2870 / 80_000) / response_ratio(g, 100 / 80_000) - 1)
+    assert abs(change - (28.7 ** -0.005 - 1)) < 1e-9  # the power law: (top / median)^(gamma - 1) - 1, -1.7 %
+    assert signal_range_floor("nonlinearity", stars, params=g) == ""
+    assert "extrapolation" in signal_range_floor("nonlinearity", stars, params={"beta": 0.01})
+    # binned 4x4 (sum): 16 pixels' charge in one output pixel is judged per sensor pixel
+    assert signal_range_floor("nonlinearity", res(light_e.reshape(64, 64) * 16 / 1.5, 0.0, pixel_sum=16, fw=80_000.0),
+                              params=g) == ""
 
 
 # --- the scene's numbers, on textbook frames -------------------------------------------------------------------

@@ -220,6 +220,9 @@ def test_parts_route_straylight_by_form(tmp_path):
     assert "straylight" not in traced.parts.effect_tables and "straylight" in traced.effects
     field = load_scene(str(_scene(tmp_path, "f", "[effects.straylight]\nmodel = 'field'\ngx = 1.0\n")))
     assert field.parts.straylight is None and field.parts.effect_tables["straylight"]["gx"] == 1.0
+    series = load_scene(str(_scene(tmp_path, "l", "[effects.straylight]\nmodel = 'legendre'\norder = 2\n"
+                                   "coef = [0.1, 0.0, 0.0, 0.2, 0.0]\n")))
+    assert series.parts.straylight is None and series.parts.effect_tables["straylight"]["order"] == 2
     assert traced.sensor() is traced.parts.sensor  # built once
     traced.detector["gain_e_per_adu"] = 2.5  # a changed [detector] is resolved again
     assert traced.sensor().gain_e_per_adu == 2.5

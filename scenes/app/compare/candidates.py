@@ -236,7 +236,7 @@ def candidates(res: Residuals, present: set[str], progress=None, truth=None,
         why = implausibility(cls, fit, res)
         if why:
             c.refuse("bound" if "sits at its bound" in why else "implausible", why)
-        why = floor_reason(name, fit.params, res.sensor, policy, res.exptime_s) or signal_range_floor(name, res, policy)
+        why = floor_reason(name, fit.params, res.sensor, policy, res.exptime_s) or signal_range_floor(name, res, policy, fit.params)
         if why:
             c.refuse("floor", why)
         out.append(c)

@@ -25,10 +25,22 @@ def _num(params: dict, key: str, default: float = 0.0) -> float:
     return float(v) if isinstance(v, (int, float)) and not isinstance(v, bool) else default
 
 
+def response_ratio(params: dict, x: np.ndarray | float) -> np.ndarray:
+    """S' / S of the ``nonlinearity`` effect's law at signals ``x`` [fraction of the full well]: the polynomial
+    ``1 - beta x - beta2 x^2``, then the power law ``(S' / S_ref)^(gamma - 1)`` (S_ref ``gamma_reference`` of the
+    well, half by default), as :class:`detector.effects.pixel_response.Nonlinearity` applies them."""
+    x = np.maximum(np.asarray(x, np.float64), 1e-12)
+    r = 1.0 - _num(params, "beta") * x - _num(params, "beta2") * x * x
+    ref = _num(params, "gamma_reference", 0.5) or 0.5
+    return r * np.maximum(x * r / ref, 1e-12) ** (_num(params, "gamma", 1.0) - 1.0)
+
+
 def nonlinearity_floor(params: dict, sensor, policy: DiagnosisPolicy, exptime_s: float | None = None) -> str:
     """The response's relative deficit at full well: ``beta + beta2`` (the polynomial's terms) plus the power
-    law's ``|1 - 2^(gamma-1)|`` (the law equals the linear response at half the full well)."""
-    deficit = abs(_num(params, "beta") + _num(params, "beta2")) + abs(1.0 - 2.0 ** (_num(params, "gamma", 1.0) - 1.0))
+    law's ``|1 - (1 / S_ref)^(gamma-1)|`` (the law equals the linear response at ``gamma_reference`` of the well)."""
+    ref = _num(params, "gamma_reference", 0.5) or 0.5
+    deficit = abs(_num(params, "beta") + _num(params, "beta2")) + abs(
+        1.0 - (1.0 / ref) ** (_num(params, "gamma", 1.0) - 1.0))
     if deficit < policy.min_nonlinearity_at_full_well:
         return (f"a non-linearity of {100 * deficit:.3g} % at full well is below the "
                 f"{100 * policy.min_nonlinearity_at_full_well:g} % any photon-transfer curve resolves")
@@ -142,23 +154,41 @@ FLOORS: dict[str, Callable[[dict, object, DiagnosisPolicy, float | None], str]] 
 }
 
 
-def signal_range_floor(effect: str, res, policy: DiagnosisPolicy = DEFAULT_POLICY) -> str:
-    """"" or why the frame's signal cannot measure a response law (gate ``floor``): a non-linearity needs a
-    signal reaching the policy's ``min_nonlinearity_signal_fraction`` of the full well (per sensor pixel: the
-    light and the dark charge of an output pixel over the pixels summed into it)."""
-    if effect != "nonlinearity":
-        return ""
+def signal_range(res) -> tuple[float, float] | None:
+    """(median, 99.9th percentile) of a frame's signal per sensor pixel [e-] over its fitted pixels: the light
+    and the dark charge of an output pixel over the pixels summed into it (None: no fitted pixel)."""
     ok = res.fit
     if not np.any(ok):
-        return ""
+        return None
     charge = (np.broadcast_to(res.photo_adu, ok.shape)[ok] * res.gain
               + np.broadcast_to(res.dark_e, ok.shape)[ok]) / res.pixel_sum
-    top = float(np.percentile(charge, 99.9))
+    lo, top = (float(v) for v in np.percentile(charge, [50.0, 99.9]))
+    return max(lo, 0.0), top
+
+
+def signal_range_floor(effect: str, res, policy: DiagnosisPolicy = DEFAULT_POLICY, params: dict | None = None,
+                       signal: tuple[float, float] | None = None) -> str:
+    """"" or why the frame's signal does not measure the fitted response law (gate ``floor``): a non-linearity is
+    judged by what it changes within the frame's own signal range (:func:`signal_range`: from its median to its
+    99.9th percentile; ``signal`` overrides it, e.g. a series' range across its frames): the law's response
+    there, ``S'/S`` at the top over ``S'/S`` at the median (:func:`response_ratio`), must differ by the policy's
+    ``min_nonlinearity_in_range``. A law's size at full well, on a frame of a few per cent of the well, is an
+    extrapolation the pixels cannot check; its change across the frame's signal is what they measure (a gamma
+    law compresses every decade of signal alike; a quadratic deficit little at low signal)."""
+    if effect != "nonlinearity":
+        return ""
+    got = signal if signal is not None else signal_range(res)
+    if got is None:
+        return ""
+    lo, top = got
     fw = float(res.sensor.full_well_e)
-    if top < policy.min_nonlinearity_signal_fraction * fw:
-        return (f"the frame's signal reaches {top:.3g} e- per pixel, {100 * top / fw:.2g} % of the {fw:.3g} e- full "
-                f"well (less than {100 * policy.min_nonlinearity_signal_fraction:g} %): a response law fitted there "
-                "is an extrapolation the pixels cannot check")
+    change = float(abs(response_ratio(params or {}, top / fw) / response_ratio(params or {}, lo / fw) - 1.0))
+    if change < policy.min_nonlinearity_in_range:
+        return (f"over the {'series' if signal is not None else 'frame'}'s own signal ({lo:.3g} to {top:.3g} e- per "
+                f"pixel, {100 * top / fw:.2g} % of the {fw:.3g} e- full well at most) the fitted law changes the "
+                f"response by {100 * change:.2g} %, less than the {100 * policy.min_nonlinearity_in_range:g} % a "
+                "linearity measurement resolves: its size beyond that range is an extrapolation the pixels cannot "
+                "check")
     return ""
 
 

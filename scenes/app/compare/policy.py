@@ -150,13 +150,15 @@ class DiagnosisPolicy:
         0.001, "1", "physics",
         "a non-linearity smaller than this at full well (0.1 %) is not a finding: photon-transfer curves of "
         "scientific CCD/CMOS measure 0.1-1 % at best (Janesick 2007, Photon Transfer, ch. 5)")
-    min_nonlinearity_signal_fraction: float = _f(
-        0.05, "1", "physics",
-        "a non-linearity is measured only on a frame whose signal reaches this fraction of the full well (its "
-        "99.9th percentile): EMVA 1288 (release 4.0, sect. 6.9) measures the linearity error from 5 % to 95 % of "
-        "saturation; fitted on a dark's or a faint sky's few per cent, a response law's curvature is an "
-        "extrapolation that the pixels cannot check (a real SBIG dark: gamma 1.027 from 67 e- of a 133 000 e- "
-        "well, which rendered lowered the whole dark by 16 %)")
+    min_nonlinearity_in_range: float = _f(
+        0.001, "1", "physics",
+        "a non-linearity is a finding when, within the frame's own signal range (its median to its 99.9th "
+        "percentile), the fitted law changes the response by at least this fraction (0.1 %, the linearity error "
+        "a photon-transfer measurement resolves, Janesick 2007 ch. 5; EMVA 1288 release 4.0 sect. 6.9); its size "
+        "at full well, on a frame of a few per cent of the well, is an extrapolation the pixels cannot check, so "
+        "the frame's range is what is asked, and a power law is referenced at the frame's median signal (a real "
+        "SBIG dark: gamma 1.027 from 67 e- of a 133 000 e- well, referenced at half the well, lowered the whole "
+        "dark by 16 % when rendered)")
     min_extra_noise_fraction: float = _f(
         0.1, "1", "physics",
         "an extra white read-out noise (kTC, a read noise above the data sheet) smaller than this fraction of the "

@@ -73,7 +73,7 @@ from scenes.scene import load_scene, read_toml
 from . import fullframe
 from .apply import LEVEL_SCALE_TOL, apply_candidate, parameter_bundle
 from .candidates import chi2_after, implausibility, overfit, stars_check, structure_share, support_share
-from .floors import floor_reason, signal_range_floor
+from .floors import floor_reason, signal_range, signal_range_floor
 from .judge import Candidate, judge_json, kind_gate, rank, verdict
 from .ledger import plot_ledger, update_ledger
 from .parameters import calibration_candidates
@@ -651,9 +651,12 @@ def series_candidates(frames: list[Residuals], labels: list[str], present: set[s
             cand.refuse("consistency", consistency)
         floor = next((w for w in (floor_reason(name, f.params, r.sensor, policy, r.exptime_s)
                                   for r, f in zip(frames, sf.frames) if f is not None) if w), "")
-        ranges = [signal_range_floor(name, r, policy) for r in frames]
-        if not floor and ranges and all(ranges):  # no frame of the series reaches the signal a law needs
-            floor = ranges[int(np.argmax([len(w) for w in ranges]))]
+        if not floor:  # the series measures a response law across the signal of all its frames
+            spans = [g for g in (signal_range(r) for r in frames) if g is not None]
+            fitted = next((f for f in sf.frames if f is not None), None)
+            if spans and fitted is not None:
+                floor = signal_range_floor(name, frames[0], policy, fitted.params,
+                                           signal=(min(g[0] for g in spans), max(g[1] for g in spans)))
         if floor:
             cand.refuse("floor", floor)
         cand.scaling = cls.scaling or "frame"  # type: ignore[attr-defined]
