@@ -1259,6 +1259,11 @@ def _distortion_check(fit, res) -> str:
     what is left of them when those are free is the distortion's own evidence."""
     ctx = search_sample(res)
     idx, r, w = ctx["idx"], ctx["r"], ctx["w"]
+    # linearised about the best similarity (its own Gauss-Newton fit, :class:`PointingOffset`): the templates'
+    # first order then holds for displacements of a fraction of the PSF about it, however large the similarity
+    sim_fit = PointingOffset.signature.fit(res, "pointing_offset")
+    if sim_fit is not None and sim_fit.delta_adu is not None:
+        r = r - frame_at(sim_fit.delta_adu, idx)
     n = 1e-3  # the fields' scale (sensor px at 1000 px): the templates' sizes comparable, the fit unchanged
     sim = _displacement_templates(res, idx, [lambda x, y: (np.ones_like(x), np.zeros_like(y)),
                                              lambda x, y: (np.zeros_like(x), np.ones_like(y)),
@@ -1273,9 +1278,8 @@ def _distortion_check(fit, res) -> str:
     if extra >= 3 + NESTED_SIGMA * np.sqrt(6):
         return ""
     return (f"a shift, rotation and plate-scale change of the field fit the sources' displacement as well: the "
-            f"distortion's terms remove only {extra:.3g} more chi2 of the search sample beyond them (3 parameters; "
-            f"{-d_sim:.3g} by the similarity): a pointing, position-angle or plate-scale error (pointing_offset), "
-            "not a distortion")
+            f"distortion's terms remove only {extra:.3g} more chi2 of the search sample beyond them (3 parameters): "
+            "a pointing, position-angle or plate-scale error (pointing_offset), not a distortion")
 
 
 def _ghost_variants(res):
