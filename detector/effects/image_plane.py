@@ -1236,8 +1236,9 @@ NESTED_SIGMA = 8.0
 
 
 def _displacement_templates(res, idx, fields) -> np.ndarray:
-    """First-order templates [ADU per unit] of the model image moved by each displacement field (a function of
-    the sample pixels' sensor coordinates (x, y) from the sensor centre returning (dx, dy) [sensor px])."""
+    """First-order templates [ADU per unit] at the flat pixels ``idx`` of the model image moved by each
+    displacement field (a function of the pixels' sensor coordinates (x, y) from the sensor centre returning
+    (dx, dy) [sensor px])."""
     d, b = _derivatives(res), res.sensor.binning
     iy, ix = np.divmod(idx, res.data_adu.shape[1])
     yc, xc = _sensor_centre(res)
@@ -1251,35 +1252,44 @@ def _displacement_templates(res, idx, fields) -> np.ndarray:
 
 
 def _distortion_check(fit, res) -> str:
-    """A distortion is named only for what a similarity transform of the field cannot do. The residual is
-    fitted (linearised, on the search sample) with the displacement templates of a shift, a rotation and a
-    scale change, then with those and the distortion's three (radial r^3, Brown's two decentering terms):
-    the distortion's terms must remove a significant chi2 beyond the similarity (NESTED_SIGMA). Over a
-    window the radial term is partly a scale change and the decentering terms partly a shift and a rotation;
-    what is left of them when those are free is the distortion's own evidence."""
-    ctx = search_sample(res)
-    idx, r, w = ctx["idx"], ctx["r"], ctx["w"]
-    # linearised about the best similarity (its own Gauss-Newton fit, :class:`PointingOffset`): the templates'
-    # first order then holds for displacements of a fraction of the PSF about it, however large the similarity
-    sim_fit = PointingOffset.signature.fit(res, "pointing_offset")
-    if sim_fit is not None and sim_fit.delta_adu is not None:
-        r = r - frame_at(sim_fit.delta_adu, idx)
-    n = 1e-3  # the fields' scale (sensor px at 1000 px): the templates' sizes comparable, the fit unchanged
-    sim = _displacement_templates(res, idx, [lambda x, y: (np.ones_like(x), np.zeros_like(y)),
-                                             lambda x, y: (np.zeros_like(x), np.ones_like(y)),
-                                             lambda x, y: (-n * y, n * x), lambda x, y: (n * x, n * y)])
-    dist = _displacement_templates(res, idx, [lambda x, y: (n ** 3 * x * (x * x + y * y), n ** 3 * y * (x * x + y * y)),
-                                              lambda x, y: decentering_shift(x, y, n * n, 0.0),
-                                              lambda x, y: decentering_shift(x, y, 0.0, n * n)])
-    both = np.concatenate([sim, dist])
-    _, d_sim = fit_linear(res, lambda i: sim[:, np.searchsorted(idx, i)], idx, r, w)
-    _, d_both = fit_linear(res, lambda i: both[:, np.searchsorted(idx, i)], idx, r, w)
-    extra = d_sim - d_both
-    if extra >= 3 + NESTED_SIGMA * np.sqrt(6):
+    """A distortion is named only for what a similarity transform of the field cannot do. Over a window the
+    radial term is partly a scale change and the decentering terms partly a shift and a rotation, so the two
+    forms are weighed against their joint one (similarity + distortion, linearised about each form's own
+    Gauss-Newton fit, on every fitted pixel: the power of the fits the judge arbitrates): the distortion is
+    refused when its terms add nothing significant beyond the best similarity (NESTED_SIGMA, 3 parameters)
+    while the similarity's add something beyond the distortion (4 parameters): then the field moved as a
+    whole, rotated or changed scale. When neither adds to the other, the frame cannot tell them apart and
+    the judge compares them on held-out pixels."""
+    if fit.delta_adu is None:
         return ""
-    return (f"a shift, rotation and plate-scale change of the field fit the sources' displacement as well: the "
-            f"distortion's terms remove only {extra:.3g} more chi2 of the search sample beyond them (3 parameters): "
-            "a pointing, position-angle or plate-scale error (pointing_offset), not a distortion")
+    idx, _, w = res.flat_profiled()
+    r = res.flat()[1]
+    sim_fit = PointingOffset.signature.fit(res, "pointing_offset")
+    if sim_fit is None or sim_fit.delta_adu is None:
+        return ""
+    n = 1e-3  # the fields' scale (sensor px at 1000 px): the templates' sizes comparable, the fit unchanged
+    sim = [lambda x, y: (np.ones_like(x), np.zeros_like(y)), lambda x, y: (np.zeros_like(x), np.ones_like(y)),
+           lambda x, y: (-n * y, n * x), lambda x, y: (n * x, n * y)]
+    dist = [lambda x, y: (n ** 3 * x * (x * x + y * y), n ** 3 * y * (x * x + y * y)),
+            lambda x, y: decentering_shift(x, y, n * n, 0.0), lambda x, y: decentering_shift(x, y, 0.0, n * n)]
+
+    def beyond(delta, own):
+        """chi2 the joint form's templates remove beyond the form's own, about that form's fit."""
+        rr = r - frame_at(delta, idx)
+        _, d_own = fit_linear(res, lambda i: _displacement_templates(res, i, own), idx, rr, w)
+        _, d_both = fit_linear(res, lambda i: _displacement_templates(res, i, sim + dist), idx, rr, w)
+        return d_own - d_both
+
+    over_sim = beyond(sim_fit.delta_adu, sim)
+    if over_sim >= 3 + NESTED_SIGMA * np.sqrt(6):
+        return ""
+    over_dist = beyond(fit.delta_adu, dist)
+    if over_dist < 4 + NESTED_SIGMA * np.sqrt(8):
+        return ""
+    return (f"a shift, rotation and plate-scale change of the field fit the sources' displacement better: the "
+            f"distortion's terms remove only {over_sim:.3g} more chi2 beyond them (3 parameters), theirs "
+            f"{over_dist:.3g} beyond the distortion's (4 parameters): a pointing, position-angle or plate-scale "
+            "error (pointing_offset), not a distortion")
 
 
 def _ghost_variants(res):
