@@ -178,7 +178,7 @@ def test_a_rotated_and_scaled_field_is_a_pointing_offset_not_a_distortion():
     plate-scale change about the sensor centre: the similarity transform WCSs hold (Calabretta & Greisen
     2002). pointing_offset fits it (its chained similarity form) and passes its field-variation test; a
     distortion's terms, which take part of it (the decentering terms hold a shift and a rotation's share), add
-    nothing significant beyond the similarity and are refused (the nested test)."""
+    nothing significant beyond the similarity while the similarity adds to them: refused (the nested test)."""
     rot, sc = 0.1, 5e-4
     res = _star_frame(lambda p, ys, xs, yc, xc: similarity(p, ys, xs, yc, xc, 0.05, -0.03, rot, sc))
     off = registry()["pointing_offset"].signature.fit(res, "pointing_offset")
