@@ -36,10 +36,11 @@ def test_a_small_ipc_on_light_alone_is_the_image_of_a_blur_unless_the_frame_tell
 
     shape, q = (200, 200), 100.0
     idx = np.arange(shape[0] * shape[1])
+    data = (q + np.random.default_rng(3).normal(0.0, np.sqrt(q), shape)).astype(np.float32)
 
     def frame(dark):
         return SimpleNamespace(sensor=SimpleNamespace(binning=1), var_adu2=np.full(shape, q, np.float32),
-                               data_adu=np.full(shape, q, np.float32), model_adu=np.full(shape, q, np.float32),
+                               data_adu=data, model_adu=np.full(shape, q, np.float32),
                                fit=np.ones(shape, bool), photo_adu=np.full(shape, q, np.float32),
                                background_photo_adu=np.full(shape, q, np.float32), charge_e=q + dark,
                                dark_e=dark, gain=1.0, flat_profiled=lambda: (idx, None, np.full(idx.size, 1 / q)))
