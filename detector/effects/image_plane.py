@@ -1229,9 +1229,9 @@ def _offset_check(fit, res) -> str:
 
 
 #: distortion is what no similarity transform of the field (shift, rotation, plate scale: pointing_offset) does:
-#: the distortion's terms must remove, beyond the best similarity, a chi2 this many standard deviations above
-#: the mean of chi2 with 3 degrees of freedom (mean k, variance 2 k: the nested likelihood-ratio test, Wilks
-#: 1938, at the 8-sigma bar the region tests above use)
+#: a form adds to the other when the joint form removes, beyond it, a chi2 this many standard deviations above
+#: the mean of chi2 with k degrees of freedom, its extra parameters (mean k, variance 2 k: the nested
+#: likelihood-ratio test, Wilks 1938, at the 8-sigma bar the region tests above use); :func:`_distortion_check`
 NESTED_SIGMA = 8.0
 
 
