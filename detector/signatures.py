@@ -762,6 +762,15 @@ class Signature:
         """delta(-2 ln L) of ``fit`` on the fitted pixels of ``res`` (global levels refitted on them)."""
         return pixel_score(fit, res)
 
+    #: optional ``(fit, res) -> tuple of effect names``: the effects that make the same image in this frame as
+    #: the fitted one (a coupling of the pixels' charge and a blur of the light, when every charge is light and
+    #: the coupled noise is below what the frame measures); set by the effect's module
+    untold = None
+
+    def untold_from(self, fit: Fit, res: Residuals) -> tuple[str, ...]:
+        """The effects this frame cannot tell ``fit`` from by physics (:attr:`untold`; none by default)."""
+        return tuple(self.untold(fit, res)) if self.untold is not None else ()
+
 
 def pixel_score(fit: Fit, res: Residuals) -> float | None:
     """Gaussian delta(-2 ln L) over the fitted pixels of ``res`` when ``fit``'s mean change and added

@@ -194,15 +194,11 @@ def ipc_noise_correlation(alpha: float) -> float:
     return 2 * alpha * (1 - 4 * alpha) / ((1 - 4 * alpha) ** 2 + 4 * alpha ** 2)
 
 
-def ipc_check(fit, res) -> str:
-    """IPC couples the collected charge, its shot noise included: where no source falls, the residual's
-    nearest-neighbour correlation must be ``ipc_noise_correlation(alpha)`` times the shot noise's share of the
-    variance (the read noise is added after the coupling). When the data could show that correlation (at least
-    2 x IPC_NOISE_SIGMA standard errors of the estimate) and lack it by more than IPC_NOISE_SIGMA, the 3x3
-    smoothing the fit found is in the image (a blur, a motion), not in the pixels. Unbinned frames only (binning
-    dilutes the correlation to the bin edges)."""
+def _ipc_noise_evidence(fit, res):
+    """(observed, implied, standard error) of the source-free pixels' nearest-neighbour correlation under the
+    fitted IPC (:func:`ipc_check`); None when it cannot be measured (a binned frame, fewer than 1000 pairs)."""
     if res.sensor.binning != 1:
-        return ""
+        return None
     var = np.maximum(res.var_adu2, 1e-12)
     z = (res.data_adu - res.model_adu) / np.sqrt(var)
     quiet = res.fit & ((res.photo_adu - res.background_photo_adu) <= 0.1 * np.sqrt(var))
@@ -211,12 +207,25 @@ def ipc_check(fit, res) -> str:
     b = np.concatenate([p[1][p[2]] for p in pairs]).astype(np.float64)
     n = a.size
     if n < 1000:
-        return ""
+        return None
     a, b = a - a.mean(), b - b.mean()
     rho_obs = float(np.sum(a * b) / np.sqrt(np.sum(a * a) * np.sum(b * b)))
     shot = float(np.mean((res.charge_e / np.float32(res.gain ** 2))[quiet] / var[quiet]))
     rho_exp = ipc_noise_correlation(float(fit.params["alpha"])) * min(max(shot, 0.0), 1.0)
-    se = 1.0 / np.sqrt(n)
+    return rho_obs, rho_exp, 1.0 / np.sqrt(n), n
+
+
+def ipc_check(fit, res) -> str:
+    """IPC couples the collected charge, its shot noise included: where no source falls, the residual's
+    nearest-neighbour correlation must be ``ipc_noise_correlation(alpha)`` times the shot noise's share of the
+    variance (the read noise is added after the coupling). When the data could show that correlation (at least
+    2 x IPC_NOISE_SIGMA standard errors of the estimate) and lack it by more than IPC_NOISE_SIGMA, the 3x3
+    smoothing the fit found is in the image (a blur, a motion), not in the pixels. Unbinned frames only (binning
+    dilutes the correlation to the bin edges)."""
+    ev = _ipc_noise_evidence(fit, res)
+    if ev is None:
+        return ""
+    rho_obs, rho_exp, se, n = ev
     if rho_exp >= 2 * IPC_NOISE_SIGMA * se and rho_exp - rho_obs > IPC_NOISE_SIGMA * se:
         return (f"the noise where no source falls has a neighbour correlation of {rho_obs:.4f} +- {se:.4f} over {n} "
                 f"pairs; a coupling of {fit.params['alpha']:.3g} would give {rho_exp:.4f} (its shot noise is coupled "
@@ -224,11 +233,40 @@ def ipc_check(fit, res) -> str:
     return ""
 
 
+#: the chi2 [1] by which the fitted IPC of the frame's charge that is not light (dark current, hot pixels) must
+#: differ from nothing for the frame to tell the coupling of the charge from a blur of the light: 25, a 5-sigma
+#: difference of a one-parameter fit (chi2_1 at 5 sigma)
+IPC_STAGE_CHI2 = 25.0
+
+
+def ipc_untold_from(fit, res) -> tuple[str, ...]:
+    """The light's blur (``psf_blur``) when this frame cannot tell the fitted IPC from it. A 3x3 coupling of
+    the pixels' charge acting on light alone is the image of a PSF changed by that same small kernel (any small
+    symmetric kernel is a PSF change: to first order both add ``(var / 2) Laplacian(I)``, their fourth moments
+    are a PSF's as well). What tells them apart is the stage: IPC couples the shot noise too (the noise test
+    of :func:`ipc_check` can speak: the implied correlation at least 2 x IPC_NOISE_SIGMA standard errors) and
+    every charge that is not light (the coupling of the model's dark charge, hot pixels included, at least
+    IPC_STAGE_CHI2 of chi2). When neither can, the two are the same image in this frame."""
+    ev = _ipc_noise_evidence(fit, res)
+    if ev is not None and ev[1] >= 2 * IPC_NOISE_SIGMA * ev[2]:
+        return ()
+    dark = np.asarray(res.dark_e, np.float32)
+    if dark.size > 1 and np.any(dark):
+        dark = np.broadcast_to(dark, res.data_adu.shape).astype(np.float32)
+        alpha, diag = float(fit.params["alpha"]), float(fit.params.get("alpha_diag", 0.0))
+        t = (ipc(dark, alpha, diag) - dark) / np.float32(res.gain)
+        idx, _, w = res.flat_profiled()
+        if float(np.sum(t.ravel()[idx].astype(np.float64) ** 2 * w)) >= IPC_STAGE_CHI2:
+            return ()
+    return ("psf_blur",)
+
+
 _IPC_SIGNATURE = LinearSignature(
     _ipc_variants,
     lambda p, res: (f"a fixed fraction {p['alpha']:.2g} of every pixel's signal read in its neighbours, "
                     "independent of flux: inter-pixel capacitance"),
     pattern="a flux-independent 3x3 coupling of every pixel into its neighbours", extra_k=1, check=ipc_check)
+_IPC_SIGNATURE.untold = ipc_untold_from
 
 
 class BrighterFatterParams(EffectParams):

@@ -140,6 +140,30 @@ def shift(image: np.ndarray, dx_px: float, dy_px: float) -> np.ndarray:
     return ndimage.shift(image, (dy_px, dx_px), order=1, mode="nearest").astype(image.dtype)
 
 
+def similarity(image: np.ndarray, ys: np.ndarray, xs: np.ndarray, yc: float, xc: float, dx_px: float, dy_px: float,
+               rot_deg: float = 0.0, scale: float = 0.0, step: float = 1.0, at: np.ndarray | None = None
+               ) -> np.ndarray:
+    """The image moved by (dx, dy) [sensor px], rotated by ``rot_deg`` (counter-clockwise in (x, y)) and scaled
+    by ``1 + scale`` about the sensor point (xc, yc): the content at ``p`` (from the centre) lands at
+    ``(1 + scale) R(rot) p + d``, the similarity transform (4 parameters) a WCS's linear part holds (its
+    reference pixel, position angle and plate scale: Calabretta & Greisen 2002, A&A 395 1077, sect. 2.1).
+
+    ``ys``, ``xs`` are the sensor coordinates of the image's pixel centres, ``step`` their spacing (the binning
+    of an output image); bilinear as :func:`shift` (the pixel boxes' overlap, never negative). With ``at``
+    (flat indices of output pixels) only those are computed (a 1-D array of their values)."""
+    if at is None:
+        yy, xx = np.meshgrid(ys - yc, xs - xc, indexing="ij")
+    else:
+        iy, ix = np.divmod(np.asarray(at), image.shape[1])
+        yy, xx = ys[iy] - yc, xs[ix] - xc
+    c, s = np.cos(np.radians(rot_deg)), np.sin(np.radians(rot_deg))
+    u, v = xx - dx_px, yy - dy_px  # the inverse map: each output pixel samples the input there
+    src_x = (c * u + s * v) / (1.0 + scale) + xc
+    src_y = (-s * u + c * v) / (1.0 + scale) + yc
+    return ndimage.map_coordinates(image, [(src_y - ys[0]) / step, (src_x - xs[0]) / step], order=1,
+                                   mode="nearest").astype(image.dtype)
+
+
 #: time sampling of a curved or accelerating drift path [px]: the Gauss-Legendre nodes of
 #: :func:`drift_path_transfer` are at most this far apart along the path (far finer than the nodes need: the
 #: rule integrates ``exp(-2 pi i f . p(t))`` to ~1e-12 at any frequency of the grid)
@@ -455,7 +479,10 @@ class TransformSignature(Signature):
         if not _has_structure(res):
             return None
         if not self.nested:
-            return self._fit(res, name, self.start, self.transform, self.to_params, self.steps)
+            fit = self._fit(res, name, self.start, self.transform, self.to_params, self.steps)
+            if fit is not None:
+                fit.state["transform_sub"] = np.arange(self.steps.size)
+            return fit
         best = None
         n_all = self.steps.size
         prev = None  # with ``chain``: the previous subset's fit
@@ -478,10 +505,36 @@ class TransformSignature(Signature):
                             lambda th, r, embed=embed: self.to_params(embed(th), r), self.steps[sub])
             if fit is not None:
                 fit.state["transform_theta"] = embed(fit.state["transform_theta"])
+                fit.state["transform_sub"] = sub
             prev = fit
             if fit is not None and (best is None or fit.delta_bic < best.delta_bic):
                 best = fit
         return best
+
+    def refit(self, fit, res, name):
+        """``fit``'s form (its nested subset of the parameters) refitted on the fitted pixels of ``res`` (a
+        held-out fold), started from ``fit``'s parameters: as :meth:`LinearSignature.refit` keeps its variant,
+        the fold's fit is cross-validated without repeating the form search (the nested forms' choice and the
+        starts' linearised estimates, which on half the pixels of a small effect may land on another form or
+        another local minimum and score the search's noise, not the effect)."""
+        th, sub = fit.state.get("transform_theta"), fit.state.get("transform_sub")
+        if th is None or sub is None:
+            return self.fit(res, name)
+        if not _has_structure(res):
+            return None
+        th, sub, n_all = np.asarray(th, float), np.asarray(sub, int), self.steps.size
+
+        def embed(t):
+            full = np.zeros(n_all)
+            full[sub] = t
+            return full
+
+        out = self._fit(res, name, lambda r: th[sub].copy(),
+                        lambda r, photo, t, **kw: self.transform(r, photo, embed(t), **kw),
+                        lambda t, r: self.to_params(embed(t), r), self.steps[sub])
+        if out is not None:
+            out.state.update(transform_theta=embed(out.state["transform_theta"]), transform_sub=sub)
+        return out
 
     def _fit(self, res, name, start, transform, to_params, steps):
         # Gauss-Newton on the search subsample of the fitted pixels, with the global levels refitted at every
@@ -914,15 +967,52 @@ def _elongation_check(fit, res) -> str:
     return ""
 
 
-# offset: theta = (dx, dy) [output px]
-def _offset_start(res):
-    return _linear_start(res, ["x", "y"], [-1.0, -1.0])
+# offset: theta = (dx, dy [output px], rotation [deg], plate-scale change [1]); nested and chained: the rigid
+# shift first, then the similarity transform started from it
+def _offset_start(res, sub=(0, 1)):
+    return np.concatenate([_linear_start(res, ["x", "y"], [-1.0, -1.0]), [0.0, 0.0]])
+
+
+def _offset_transform(res, photo, th, at=None):
+    th = np.asarray(th, float)
+    b = res.sensor.binning
+    rot = float(np.clip(th[2], -10.0, 10.0)) if th.size > 2 else 0.0  # OffsetParams' bounds: the fit sees them
+    sc = float(np.clip(th[3], -0.05, 0.05)) if th.size > 3 else 0.0
+    if rot == 0.0 and sc == 0.0 and at is None:
+        return shift(photo, float(th[0]), float(th[1]))
+    yc, xc = _sensor_centre(res)
+    return similarity(photo, res.ys, res.xs, yc, xc, float(th[0]) * b, float(th[1]) * b, rot, sc, step=b, at=at)
+
+
+def _field_radius(res) -> float:
+    """The largest distance [sensor px] of the window's pixels from the sensor centre."""
+    yc, xc = _sensor_centre(res)
+    return float(np.sqrt(max((res.ys - yc) ** 2) + max((res.xs - xc) ** 2)))
 
 
 def _offset_params(th, res):
     b = res.sensor.binning
+    th = np.asarray(th, float)
     dx, dy = float(th[0]) * b, float(th[1]) * b
-    return {"dx_px": round(dx, 4), "dy_px": round(dy, 4)} if np.hypot(dx, dy) < 20 * b else None
+    rot = float(th[2]) if th.size > 2 else 0.0
+    sc = float(th[3]) if th.size > 3 else 0.0
+    if np.hypot(dx, dy) >= 20 * b or abs(rot) > 10.0 or abs(sc) > 0.05:
+        return None
+    out = {"dx_px": round(dx, 4), "dy_px": round(dy, 4)}
+    if rot or sc:
+        out.update(rot_deg=float(f"{rot:.4g}"), scale=float(f"{sc:.4g}"))
+    return out
+
+
+def _offset_words(p, res) -> str:
+    text = f"every source displaced by ({p['dx_px']:+.3g}, {p['dy_px']:+.3g}) px"
+    rot, sc = p.get("rot_deg", 0.0), p.get("scale", 0.0)
+    if not (rot or sc):
+        return text + ": pointing offset"
+    r = _field_radius(res)
+    return (text + f", the field rotated by {rot:+.3g} deg and its scale changed by {sc:+.2g} about the sensor "
+            f"centre (up to {abs(np.radians(rot)) * r:.2g} px and {abs(sc) * r:.2g} px at the farthest pixel): the "
+            "pointing, position angle or plate scale differ from the WCS (its linear part)")
 
 
 # drift: theta = (dx, dy [output px], accel [1], sagitta [output px]); straight first, then the path from it
@@ -1117,12 +1207,89 @@ def _offset_check(fit, res) -> str:
     b = res.sensor.binning
     shifts = coef.reshape(9, 2) * b  # sensor px
     rms = float(np.sqrt(np.sum(info[use, None] * shifts[use] ** 2) / np.sum(info[use])))
-    offset = float(np.hypot(fit.params["dx_px"], fit.params["dy_px"]))
-    if rms <= MAX_OFFSET_VARIATION * offset:
+    # the fitted motion at the regions' centres (weighted by their information): the common shift, and with a
+    # rotation or a scale change what they add there
+    yc, xc = _sensor_centre(res)
+    wt = w * (gx * gx + gy * gy)
+    cnt = np.maximum(np.bincount(cell, wt, minlength=9), 1e-300)
+    cx = np.bincount(cell, wt * res.xs[x], minlength=9) / cnt - xc
+    cy = np.bincount(cell, wt * res.ys[y], minlength=9) / cnt - yc
+    p = fit.params
+    rot, sc = np.radians(p.get("rot_deg", 0.0)), p.get("scale", 0.0)
+    mx = p["dx_px"] + (1 + sc) * (np.cos(rot) * cx - np.sin(rot) * cy) - cx
+    my = p["dy_px"] + (1 + sc) * (np.sin(rot) * cx + np.cos(rot) * cy) - cy
+    motion = float(np.sqrt(np.sum(info[use] * (mx[use] ** 2 + my[use] ** 2)) / np.sum(info[use])))
+    if rms <= MAX_OFFSET_VARIATION * motion:
         return ""
-    return (f"the sources' displacement varies across the field: the regions' own shifts differ from the common "
-            f"{offset:.2g} px by {rms:.2g} px rms (chi2 falls by {gain:.0f} for 18 parameters): a distortion, rotation or "
-            "plate-scale change the WCS lacks, not a rigid pointing offset")
+    rigid = not (p.get("rot_deg", 0.0) or sc)
+    return (f"the sources' displacement varies across the field beyond the fitted "
+            f"{'shift' if rigid else 'shift, rotation and scale'}: the regions' own shifts differ from its "
+            f"{motion:.2g} px (rms) by {rms:.2g} px rms (chi2 falls by {gain:.0f} for 18 parameters): a distortion the "
+            f"WCS lacks{', or a rotation or plate-scale change' if rigid else ''}, not a pointing offset")
+
+
+#: distortion is what no similarity transform of the field (shift, rotation, plate scale: pointing_offset) does:
+#: a form adds to the other when the joint form removes, beyond it, a chi2 this many standard deviations above
+#: the mean of chi2 with k degrees of freedom, its extra parameters (mean k, variance 2 k: the nested
+#: likelihood-ratio test, Wilks 1938, at the 8-sigma bar the region tests above use); :func:`_distortion_check`
+NESTED_SIGMA = 8.0
+
+
+def _displacement_templates(res, idx, fields) -> np.ndarray:
+    """First-order templates [ADU per unit] at the flat pixels ``idx`` of the model image moved by each
+    displacement field (a function of the pixels' sensor coordinates (x, y) from the sensor centre returning
+    (dx, dy) [sensor px])."""
+    d, b = _derivatives(res), res.sensor.binning
+    iy, ix = np.divmod(idx, res.data_adu.shape[1])
+    yc, xc = _sensor_centre(res)
+    x, y = res.xs[ix] - xc, res.ys[iy] - yc
+    gx, gy = d["x"].ravel()[idx], d["y"].ravel()[idx]
+    out = []
+    for f in fields:
+        fx, fy = f(x, y)
+        out.append(-(gx * fx + gy * fy) / b)
+    return np.stack(out)
+
+
+def _distortion_check(fit, res) -> str:
+    """A distortion is named only for what a similarity transform of the field cannot do. Over a window the
+    radial term is partly a scale change and the decentering terms partly a shift and a rotation, so the two
+    forms are weighed against their joint one (similarity + distortion, linearised about each form's own
+    Gauss-Newton fit, on every fitted pixel: the power of the fits the judge arbitrates): the distortion is
+    refused when its terms add nothing significant beyond the best similarity (NESTED_SIGMA, 3 parameters)
+    while the similarity's add something beyond the distortion (4 parameters): then the field moved as a
+    whole, rotated or changed scale. When neither adds to the other, the frame cannot tell them apart and
+    the judge compares them on held-out pixels."""
+    if fit.delta_adu is None:
+        return ""
+    idx, _, w = res.flat_profiled()
+    r = res.flat()[1]
+    sim_fit = PointingOffset.signature.fit(res, "pointing_offset")
+    if sim_fit is None or sim_fit.delta_adu is None:
+        return ""
+    n = 1e-3  # the fields' scale (sensor px at 1000 px): the templates' sizes comparable, the fit unchanged
+    sim = [lambda x, y: (np.ones_like(x), np.zeros_like(y)), lambda x, y: (np.zeros_like(x), np.ones_like(y)),
+           lambda x, y: (-n * y, n * x), lambda x, y: (n * x, n * y)]
+    dist = [lambda x, y: (n ** 3 * x * (x * x + y * y), n ** 3 * y * (x * x + y * y)),
+            lambda x, y: decentering_shift(x, y, n * n, 0.0), lambda x, y: decentering_shift(x, y, 0.0, n * n)]
+
+    def beyond(delta, own):
+        """chi2 the joint form's templates remove beyond the form's own, about that form's fit."""
+        rr = r - frame_at(delta, idx)
+        _, d_own = fit_linear(res, lambda i: _displacement_templates(res, i, own), idx, rr, w)
+        _, d_both = fit_linear(res, lambda i: _displacement_templates(res, i, sim + dist), idx, rr, w)
+        return d_own - d_both
+
+    over_sim = beyond(sim_fit.delta_adu, sim)
+    if over_sim >= 3 + NESTED_SIGMA * np.sqrt(6):
+        return ""
+    over_dist = beyond(fit.delta_adu, dist)
+    if over_dist < 4 + NESTED_SIGMA * np.sqrt(8):
+        return ""
+    return (f"a shift, rotation and plate-scale change of the field fit the sources' displacement better: the "
+            f"distortion's terms remove only {over_sim:.3g} more chi2 beyond them (3 parameters), theirs "
+            f"{over_dist:.3g} beyond the distortion's (4 parameters): a pointing, position-angle or plate-scale "
+            "error (pointing_offset), not a distortion")
 
 
 def _ghost_variants(res):
@@ -1284,24 +1451,39 @@ class PSFElongation(Effect):
 class OffsetParams(EffectParams):
     dx_px: float = Field(0.0, ge=-1e4, le=1e4, description="image shift along columns [sensor px]")
     dy_px: float = Field(0.0, ge=-1e4, le=1e4, description="image shift along rows [sensor px]")
+    rot_deg: float = Field(0.0, ge=-10, le=10, description="rotation of the field about the sensor centre, "
+                           "counter-clockwise in (x, y) [deg] (a position-angle error of the WCS)")
+    scale: float = Field(0.0, ge=-0.05, le=0.05, description="plate-scale change about the sensor centre: "
+                         "distances from it grow by 1 + scale [1] (a focal-length or refraction change)")
 
 
 @register_effect
 class PointingOffset(Effect):
-    """The telescope points slightly elsewhere than the header says: the whole image moves (WCS unchanged)."""
+    """The telescope points slightly elsewhere than the header says, about a position angle and at a plate
+    scale slightly other than the header's: the whole image moves by the similarity transform of
+    :func:`similarity` (shift, rotation and scale about the sensor centre; the WCS unchanged). What a
+    similarity transform cannot do is a ``distortion``.
+
+    The diagnosis fits the rigid shift first, then (chained) the similarity transform started from it; the
+    form with the lower delta BIC is proposed."""
 
     name = "pointing_offset"
     scaling = "frame"
-    identity = {"dx_px": 0.0, "dy_px": 0.0}
+    identity = {"dx_px": 0.0, "dy_px": 0.0, "rot_deg": 0.0, "scale": 0.0}
     stages = (Stage.FIELD,)
     Params = OffsetParams
     signature = TransformSignature(
-        _offset_start, lambda res, photo, th: shift(photo, float(th[0]), float(th[1])), _offset_params,
-        [0.01, 0.01], pattern="dipoles on every source, all in one direction", check=_offset_check,
-        explain=lambda p, res: f"every source displaced by ({p['dx_px']:+.3g}, {p['dy_px']:+.3g}) px: pointing offset")
+        _offset_start, _offset_transform, _offset_params, [0.01, 0.01, 1e-3, 1e-5], nested=[(0, 1), (0, 1, 2, 3)],
+        chain=True, pattern="dipoles on every source, all in one direction, or turning and growing across the "
+                            "field as a rotation or a scale change does", check=_offset_check, explain=_offset_words)
 
     def apply(self, stage: Stage, tile: Tile, data: np.ndarray) -> None:
-        _store(data, shift(data, self.params.dx_px, self.params.dy_px))
+        p = self.params
+        if not (p.rot_deg or p.scale):
+            _store(data, shift(data, p.dx_px, p.dy_px))
+            return
+        ys, xs, yc, xc = _photo_sensor_coords(tile)
+        _store(data, similarity(data, ys, xs, yc, xc, p.dx_px, p.dy_px, p.rot_deg, p.scale))
 
 
 class DriftParams(EffectParams):
@@ -1367,6 +1549,7 @@ class Distortion(Effect):
     Params = DistortionParams
     signature = TransformSignature(
         _distortion_start, _distortion_transform, _distortion_params, [1e-10, 1e-8, 1e-8], nested=[(0,), (0, 1, 2)],
+        check=_distortion_check,
         pattern="source dipoles growing towards the corners (as r^3 radially, as r^2 for a decentred element)",
         explain=_distortion_words)
 

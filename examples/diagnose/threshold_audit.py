@@ -320,6 +320,27 @@ MAX_TEMPERATURE_SPAN_K | D | physics | a die spans a few kelvin at most
 GN_ITERATIONS | N | iterations | Gauss-Newton iterations
 GN_TOL_K | N | tolerance | Gauss-Newton convergence
 GN_MAX_K | N | bound | temperature differences the search explores
+@detector/effects/coupling.py
+IPC_STAGE_CHI2 | D | statistics | the IPC of the charge that is not light must differ from nothing by chi2_1 at 5 sigma to tell the stage
+@detector/effects/image_plane.py
+NESTED_SIGMA | D | statistics | nested likelihood-ratio test of distortion vs the similarity transform (Wilks 1938), the region tests' 8 sigma
+@detector/effects/rts.py
+RTS_TAIL_Z | N | sampling | pixels beyond it always enter the one-frame RTS likelihood, the core is subsampled
+RTS_CORE_PIXELS | N | budget | most core pixels of the one-frame RTS likelihood
+RTS_MAX_ACTIVE | D | physics | RTS populations of CMOS sensors stay below a few per cent of the pixels (Wang et al. 2006)
+RTS_SPREADS_LN | N | grid | log-normal spreads of the step amplitudes tried
+RTS_NODES | N | quadrature | Gauss-Hermite nodes of the amplitude law
+RTS_CODED_SIGMA | N | model | below this noise [codes] the likelihood is that of the read codes (a density's error grows as (q/sigma)^2/24)
+@detector/effects/sky.py
+MAX_FIELD_ORDER | N | grid | highest Legendre order of the smooth light field the BIC chooses among
+@detector/signatures.py
+MAX_LINE_GAIN_CORRELATION | D | physics | line-wise gains (column amplifiers) are independent; neighbours that follow each other are a step
+MIN_LINE_PIXELS | N | sampling | pixels a line needs for its gain estimate
+VarianceSignature.CELL_SIGMA | D | statistics | a cell is far above the rest only beyond detection-like 5 standard errors
+@scenes/app/compare/candidates.py
+DITHER_SEED | N | seed | fixed dither of integer read codes (reproducibility)
+@scenes/app/compare/judge.py
+SAME_SCATTER_TOLERANCE | D | physics | two added variances proportional to 1e-3 (float32 templates of one map agree to 1e-7; a 1 % dark gradient gives 2 %)
 """
 
 

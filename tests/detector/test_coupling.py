@@ -23,3 +23,33 @@ def test_ipc_is_refused_when_the_sky_noise_is_not_coupled():
         why = ipc_check(fit, res)
         assert bool(why) is refused, why
     assert abs(ipc_noise_correlation(0.02) - 0.0433) < 1e-3
+
+
+def test_a_small_ipc_on_light_alone_is_the_image_of_a_blur_unless_the_frame_tells_the_stage():
+    """A 0.17 % coupling of a frame whose charge is all light, with too few quiet pairs to see the coupled noise
+    (0.0034 implied, +-0.0035 measured), is the image of a PSF changed by that kernel: the IPC says it cannot be
+    told from psf_blur. Hot pixels in the dark charge (charge that is not light) or a coupling the noise test
+    can see (2 %: 0.043) tell the stage."""
+    from types import SimpleNamespace
+
+    from detector.effects.coupling import ipc_untold_from
+
+    shape, q = (200, 200), 100.0
+    idx = np.arange(shape[0] * shape[1])
+    data = (q + np.random.default_rng(3).normal(0.0, np.sqrt(q), shape)).astype(np.float32)
+
+    def frame(dark):
+        return SimpleNamespace(sensor=SimpleNamespace(binning=1), var_adu2=np.full(shape, q, np.float32),
+                               data_adu=data, model_adu=np.full(shape, q, np.float32),
+                               fit=np.ones(shape, bool), photo_adu=np.full(shape, q, np.float32),
+                               background_photo_adu=np.full(shape, q, np.float32), charge_e=q + dark,
+                               dark_e=dark, gain=1.0, flat_profiled=lambda: (idx, None, np.full(idx.size, 1 / q)))
+
+    small, large = SimpleNamespace(params={"alpha": 0.0017}), SimpleNamespace(params={"alpha": 0.02})
+    no_dark = np.zeros(shape, np.float32)
+    hot = no_dark.copy()
+    hot[50, 50] = hot[120, 30] = 50_000.0
+    assert ipc_untold_from(small, frame(no_dark)) == ("psf_blur",)
+    assert ipc_untold_from(small, frame(np.full(shape, 30.0, np.float32))) == ("psf_blur",)  # a uniform dark
+    assert ipc_untold_from(small, frame(hot)) == ()
+    assert ipc_untold_from(large, frame(no_dark)) == ()

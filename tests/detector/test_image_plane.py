@@ -113,3 +113,22 @@ def test_drift_in_the_chain_zero_is_identity():
     moved = Detector(s, build_effects({"pointing_drift": {"dx_px": 5.0, "dy_px": 0.0}}, s)).expose(img, 1.0, 1,
                                                                                                noiseless=True)
     assert np.isclose(_moments(moved)[3], _moments(base)[3] + 25 / 12, atol=0.01)
+
+
+def test_a_pointing_offset_with_rotation_and_scale_moves_a_star_by_the_similarity_transform():
+    """pointing_offset's similarity about the sensor centre: a star at p (from the centre) goes to
+    (1 + scale) R(rot) p + d, its flux kept (bilinear: the pixel boxes' overlap)."""
+    s = make_sensor("ml11002", {"width": 128, "height": 128, "x0": 0, "y0": 0, "dark_current_e_per_s": 0.0})
+    yc, xc = (s.sensor_height_px - 1) / 2.0, (s.sensor_width_px - 1) / 2.0
+    img = _star((128, 128), 40.0, 70.0, 1.5, 1e5)
+    base = Detector(s, []).expose(img, 1.0, 1, noiseless=True)
+    prm = {"dx_px": 0.3, "dy_px": -0.2, "rot_deg": 0.02, "scale": 3e-4}
+    out = Detector(s, build_effects({"pointing_offset": prm}, s)).expose(img, 1.0, 1, noiseless=True)
+    f0, cx0, cy0, *_ = _moments(base - np.median(base))
+    f, cx, cy, *_ = _moments(out - np.median(out))
+    a = np.radians(prm["rot_deg"])
+    px, py = cx0 - xc, cy0 - yc  # about 2000 px from the centre: the rotation moves it by ~0.6 px
+    ex = xc + (1 + prm["scale"]) * (np.cos(a) * px - np.sin(a) * py) + prm["dx_px"]
+    ey = yc + (1 + prm["scale"]) * (np.sin(a) * px + np.cos(a) * py) + prm["dy_px"]
+    assert abs(cx - ex) < 0.01 and abs(cy - ey) < 0.01 and abs(f - f0) < 1e-3 * f0
+

@@ -13,7 +13,7 @@ import pytest
 
 from detector.effects import registry
 from detector.effects.defects import ColumnSignature
-from detector.effects.image_plane import _offset_check, radial_distortion, shift
+from detector.effects.image_plane import _distortion_check, _offset_check, radial_distortion, shift, similarity
 from detector.sensor import make_sensor
 from detector.signatures import Residuals, SpikeStats, tail_neighbour_correlation
 
@@ -160,6 +160,7 @@ def test_a_decentering_distortion_is_not_a_pointing_offset_and_is_fitted_as_one(
     assert dist.params["p1_per_px"] == pytest.approx(p1, rel=0.1)
     assert dist.params["p2_per_px"] == pytest.approx(p2, rel=0.1)
     assert dist.delta_bic < off.delta_bic
+    assert _distortion_check(dist, res) == ""  # beyond what a shift, rotation and scale change do
 
 
 def test_a_radial_distortion_keeps_the_simpler_form():
@@ -169,6 +170,37 @@ def test_a_radial_distortion_keeps_the_simpler_form():
     fit = registry()["distortion"].signature.fit(res, "distortion")
     assert fit.params["k_per_px2"] == pytest.approx(k, rel=0.1)
     assert fit.params["p1_per_px"] == 0.0 and fit.params["p2_per_px"] == 0.0 and fit.k == 1
+    assert _distortion_check(fit, res) == ""  # r^3 is not a plate-scale change (r) over the window
+
+
+def test_a_rotated_and_scaled_field_is_a_pointing_offset_not_a_distortion():
+    """A small shift with a rotation (0.1 deg: 0.3 px at the window's corners, three times the shift) and a
+    plate-scale change about the sensor centre: the similarity transform WCSs hold (Calabretta & Greisen
+    2002). pointing_offset fits it (its chained similarity form) and passes its field-variation test; a
+    distortion's terms, which take part of it (the decentering terms hold a shift and a rotation's share), add
+    nothing significant beyond the similarity while the similarity adds to them: refused (the nested test)."""
+    rot, sc = 0.1, 5e-4
+    res = _star_frame(lambda p, ys, xs, yc, xc: similarity(p, ys, xs, yc, xc, 0.05, -0.03, rot, sc))
+    off = registry()["pointing_offset"].signature.fit(res, "pointing_offset")
+    assert off.k == 4
+    assert off.params["rot_deg"] == pytest.approx(rot, rel=0.1) and off.params["scale"] == pytest.approx(sc, abs=1e-4)
+    assert off.params["dx_px"] == pytest.approx(0.05, abs=0.03) and off.params["dy_px"] == pytest.approx(-0.03, abs=0.03)
+    assert _offset_check(off, res) == ""
+    dist = registry()["distortion"].signature.fit(res, "distortion")
+    assert dist is not None and dist.delta_bic < -10 and off.delta_bic < dist.delta_bic
+    assert "a shift, rotation and plate-scale change of the field fit the" in _distortion_check(dist, res)
+
+
+def test_a_transform_refit_on_the_same_pixels_keeps_the_form_and_its_fit():
+    """TransformSignature.refit (the held-out folds' fit): started from the in-sample parameters of the chosen
+    nested form, refitted on the given pixels; on the same pixels it returns that form and that fit."""
+    res = _star_frame(lambda p, ys, xs, yc, xc: similarity(p, ys, xs, yc, xc, 0.2, -0.1, 0.05, 0.0))
+    sig = registry()["pointing_offset"].signature
+    fit = sig.fit(res, "pointing_offset")
+    again = sig.refit(fit, res, "pointing_offset")
+    assert again.k == fit.k and set(again.params) == set(fit.params)
+    assert again.params["rot_deg"] == pytest.approx(fit.params["rot_deg"], rel=0.02)
+    assert again.delta_m2lnl == pytest.approx(fit.delta_m2lnl, rel=1e-3)
 
 
 def _lopsided(p, frac=0.4, length_px=1.5, angle_deg=20.0):

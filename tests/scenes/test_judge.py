@@ -519,3 +519,27 @@ def test_a_dsnu_and_a_read_noise_are_the_same_scatter_where_the_dark_is_uniform(
         assert ([c.fit.effect for c in indistinguishable([read, dsnu])] == ["dsnu"]) == twins
     assert "cannot tell it apart from dsnu: the same added variance" in verdict([read, Candidate(
         Fit("dsnu", {}, -151.0, 2, 4096, "a dsnu", extra_var_adu2=0.04 * dark ** 2), 1.0, 0.0, heldout=-60.0)])
+
+
+def test_an_ipc_the_frame_cannot_tell_from_a_blur_is_named_with_it():
+    """An IPC whose own physics says this frame cannot tell it from a blur of the light (``untold``) is named
+    with psf_blur as not told apart, even when the blur's form scores short of the held-out bar (a contender:
+    significant by delta BIC, plausible); an IPC the frame does tell (no ``untold``) is named alone, and a blur
+    refused as implausible is no twin."""
+    from scenes.app.compare.judge import indistinguishable, rank, same_image, verdict
+
+    def pair(untold=("psf_blur",), blur_why=""):
+        ipc = Candidate(Fit("ipc", {}, -46.8, 2, 10_000, "a coupling"), 1.0, 0.0, heldout=-59.5, untold=untold)
+        blur = Candidate(Fit("psf_blur", {}, -54.9, 2, 10_000, "a blur"), 1.0, 0.0, heldout=-35.7,
+                         implausible=blur_why)
+        return ipc, blur
+
+    ipc, blur = pair()
+    assert ipc.significant and not blur.significant and blur.contender and same_image(ipc, blur)
+    assert indistinguishable([ipc], [ipc, blur]) == [blur]
+    assert [c.fit.effect for c in rank([blur, ipc])] == ["ipc", "psf_blur"]
+    assert "cannot tell it apart from psf_blur: the same small kernel" in verdict([ipc, blur])
+    ipc, blur = pair(untold=())
+    assert indistinguishable([ipc], [ipc, blur]) == [] and "psf_blur" not in verdict([ipc, blur])
+    ipc, blur = pair(blur_why="not a blur")
+    assert indistinguishable([ipc], [ipc, blur]) == []

@@ -83,6 +83,9 @@ class Candidate:
     deferred: str = ""
     policy: DiagnosisPolicy = DEFAULT_POLICY
     codes: dict = field(default_factory=dict)  #: gate code -> reason, for the gates set by the evidence
+    #: the effects its signature says this frame cannot tell it from by physics (the same image at another
+    #: stage: :meth:`detector.signatures.Signature.untold_from`)
+    untold: tuple = ()
 
     def __post_init__(self):
         if self.rejected and "overfit" not in self.codes and "stars" not in self.codes:
@@ -151,6 +154,8 @@ class Candidate:
                "explains_structure": self.explains, "explains_excess": self.excess_share,
                "explains_where_it_acts": self.support_share, "variant": f.note,
                "seconds": self.seconds}
+        if self.untold:
+            out["same_image_as"] = list(self.untold)
         if self.kind == "parameter":
             out["key"], out["value"] = self.key, self.value
             if self.ambiguous:
@@ -235,10 +240,12 @@ def rank(cands: list[Candidate], light_source: str = "") -> list[Candidate]:
 
     out = sorted(cands, key=key)
     sig = [c for c in out if c.significant and c.kind != "parameter"]
-    twins = indistinguishable(sig)
+    twins = indistinguishable(sig, out)
     if twins:
         flat = light_source == "flat"
-        group = sorted([sig[0], *twins], key=lambda c: (flat and not _of_light(c), c.fit.delta_bic))
+        group = sorted([sig[0], *[c for c in twins if c.significant]],
+                       key=lambda c: (flat and not _of_light(c), c.fit.delta_bic))
+        group += [c for c in twins if not c.significant]  # the same image, its own score short of the bar
         params = [c for c in out if c.significant and c.kind == "parameter" and not (c.ambiguous or c.deferred)]
         rest = [c for c in out if c not in group and c not in params]
         out = params + group + rest
@@ -288,17 +295,29 @@ def same_scatter(a: Candidate, b: Candidate) -> bool:
     return float(np.std(ratio)) <= SAME_SCATTER_TOLERANCE * float(np.mean(ratio))
 
 
-def indistinguishable(sig: list[Candidate]) -> list[Candidate]:
+def same_image(a: Candidate, b: Candidate) -> bool:
+    """One of the two says, by its own physics, that this frame cannot tell it from the other (the same image
+    made at another stage: a coupling of the pixels' charge and a blur of the light, :attr:`Candidate.untold`)."""
+    return b.fit.effect in a.untold or a.fit.effect in b.untold
+
+
+def indistinguishable(sig: list[Candidate], cands: list[Candidate] = ()) -> list[Candidate]:
     """The significant candidates after the first whose held-out score is as good as the first's (within the
-    policy's twin fraction, and within the scores' own scatter ~ sqrt(2 |score|)), those that put the same
-    charge in the same pixels by another origin (:func:`same_charge`) and those that add the same scatter
-    (:func:`same_scatter`)."""
-    if len(sig) < 2:
+    policy's twin fraction, and within the scores' own scatter ~ sqrt(2 |score|)), and those that put the same
+    charge in the same pixels by another origin (:func:`same_charge`) or add the same scatter
+    (:func:`same_scatter`); then, of ``cands``, the contenders
+    (significant by delta BIC, plausible, not rejected) that make the same image as the first in this frame
+    (:func:`same_image`): a form of the same image whose held-out score falls short does not make the data
+    tell the two stages apart."""
+    if not sig:
         return []
     best = sig[0].heldout
     tol = max(sig[0].policy.twin_fraction * abs(best), 2 * np.sqrt(2 * abs(best))) if best is not None else 0.0
-    return [c for c in sig[1:] if (best is not None and c.heldout is not None and c.heldout - best <= tol)
-            or same_charge(sig[0], c) or same_scatter(sig[0], c)]
+    out = [c for c in sig[1:] if (best is not None and c.heldout is not None and c.heldout - best <= tol)
+           or same_charge(sig[0], c) or same_scatter(sig[0], c) or same_image(sig[0], c)]
+    out += [c for c in cands if c.kind != "parameter" and c is not sig[0] and c not in out and not c.significant
+            and c.contender and same_image(sig[0], c)]
+    return out
 
 
 def verdict(cands: list[Candidate], morphology: dict | None = None) -> str:
@@ -317,10 +336,11 @@ def verdict(cands: list[Candidate], morphology: dict | None = None) -> str:
     if effects:
         best = effects[0]
         held = f", held-out {best.heldout:.4g}" if best.heldout is not None else ""
-        twins = indistinguishable(effects)
+        twins = indistinguishable(effects, cands)
         charge = [c for c in twins if same_charge(best, c)]
         scatter = [c for c in twins if c not in charge and same_scatter(best, c)]
-        scored = [c for c in twins if c not in charge and c not in scatter]
+        image = [c for c in twins if c not in charge and c not in scatter and same_image(best, c)]
+        scored = [c for c in twins if c not in charge and c not in scatter and c not in image]
         also = (f"; the data cannot tell it apart from {', '.join(c.fit.effect for c in scored)} (their held-out "
                 "scores are as good)") if scored else ""
         also += (f"; {'nor' if also else 'the data cannot tell it apart'} from "
@@ -331,6 +351,10 @@ def verdict(cands: list[Candidate], morphology: dict | None = None) -> str:
         also += (f"; {'nor' if also else 'the data cannot tell it apart'} from "
                  f"{', '.join(c.fit.effect for c in charge)}: the same charge in the same pixels, whose origin (dark "
                  "or light) only a dark frame of the same exposure tells") if charge else ""
+        also += (f"; {'nor' if also else 'the data cannot tell it apart'} from "
+                 f"{', '.join(c.fit.effect for c in image)}: the same small kernel on the same pixels, whose stage "
+                 "(the pixels' charge or the light) only a coupled noise or a charge not of light would tell, "
+                 "neither measurable in this frame") if image else ""
         text = (f"most likely missing: {best.fit.effect} (delta BIC {best.fit.delta_bic:.4g}{held}): "
                 f"{best.fit.explanation}{also}")
         if later:
@@ -365,4 +389,5 @@ def judge_json(cands: list[Candidate], policy: DiagnosisPolicy) -> dict:
     sig = [c for c in cands if c.significant]
     return {"policy": policy.to_json(), "gate_codes": GATES,
             "significant": [c.fit.effect for c in sig],
-            "indistinguishable": [c.fit.effect for c in indistinguishable([c for c in sig if c.kind != "parameter"])]}
+            "indistinguishable": [c.fit.effect for c in indistinguishable([c for c in sig if c.kind != "parameter"],
+                                                                          cands)]}

@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import json
 import sys
+import warnings
 from dataclasses import MISSING, asdict, dataclass, field, fields, replace
 from pathlib import Path
 
@@ -34,6 +35,14 @@ SCALE_TOLERANCE = 0.1
 def _f(default, unit: str, basis: str, doc: str):
     assert basis in BASES, basis
     return field(default=default, metadata={"unit": unit, "basis": basis, "doc": doc})
+
+
+#: fields of earlier policies that no longer exist: a policy file naming one still loads (the field ignored,
+#: with a warning saying what replaced it)
+RETIRED = {
+    "min_nonlinearity_signal_fraction": "the non-linearity is judged by its change of the response within the "
+    "frame's own signal range (min_nonlinearity_in_range), not on frames reaching a share of the full well",
+}
 
 
 @dataclass(frozen=True)
@@ -191,10 +200,14 @@ class DiagnosisPolicy:
         return asdict(self)
 
     def with_overrides(self, table: dict, file: str = "<policy>") -> DiagnosisPolicy:
-        """A copy with ``table``'s values; an unknown key or a value of the wrong type is a one-line error."""
+        """A copy with ``table``'s values; an unknown key or a value of the wrong type is a one-line error; a
+        retired field (:data:`RETIRED`) is ignored with a warning that names what replaced it."""
         known = {f.name: f for f in fields(self)}
         changes = {}
         for key, value in table.items():
+            if key in RETIRED and key not in known:
+                warnings.warn(f"{file}: policy field {key!r} is retired and ignored: {RETIRED[key]}", stacklevel=2)
+                continue
             if key not in known:
                 close = sorted(known, key=lambda k: -_similarity(k, key))[:3]
                 raise DetectorError(f"unknown policy field {key!r}", file=file, key=key,

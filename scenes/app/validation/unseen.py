@@ -734,7 +734,7 @@ class ComaTail(RealWorld):
 
 class AffineOffset(RealWorld):
     """A pointing offset (``dx``, ``dy``) [px] with a small rotation ``rot_deg`` and a plate-scale change
-    ``scale`` about the sensor centre (the plugin: a pure shift)."""
+    ``scale`` about the sensor centre (the plugin's similarity transform, drawn here independently)."""
 
     name = "uw_affine"
     stages = (Stage.FIELD,)
