@@ -1586,7 +1586,7 @@ def line_gains(res: Residuals, template: np.ndarray, axis: int, r: np.ndarray | 
     shape = res.data_adu.shape
     idx, rp, w = res.flat_profiled()
     r = rp if r is None else r
-    t = _at(template, shape, idx)
+    t = template_at(template, shape, idx)
     n = shape[1] if axis == 1 else shape[0]
     line = idx % shape[1] if axis == 1 else idx // shape[1]
     den = np.bincount(line, t * t * w, n)
@@ -1665,7 +1665,7 @@ class VarianceSignature(Signature):
         idx, r, _ = res.flat_profiled()
         delta, d, sig = None, 0.0, {}
         for axis, key in ((1, "column_sigma"), (0, "row_sigma")):
-            got = line_gains(res, tmpl, axis, r if delta is None else r - _at(delta, res.data_adu.shape, idx))
+            got = line_gains(res, tmpl, axis, r if delta is None else r - template_at(delta, res.data_adu.shape, idx))
             if got is None or got["d"] + penalty >= 0:
                 continue
             delta = got["delta"] if delta is None else delta + got["delta"]
