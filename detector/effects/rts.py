@@ -103,6 +103,12 @@ RTS_NODES = 7
 #: below this noise [ADC codes] the likelihood is that of the read codes, not a density (the lattice of codes is
 #: then coarse against the noise: a density's error there grows as (code / sigma)^2 / 24 per pixel)
 RTS_CODED_SIGMA = 3.0
+#: on read codes (the noise below RTS_CODED_SIGMA codes) the smallest step [codes] the likelihood may claim: a step
+#: of about one code lands on the nearest codes of the core, whose frequencies measure the core's own law on the
+#: lattice (its fractional offset and width, a rounding or averaging the model gets slightly wrong) as much as
+#: steps; only steps beyond the neighbouring codes are resolved as steps (three textbook 16 x 16 average-binned
+#: IMX411 biases of 315 nulls were given RTS steps of exactly one code, docs/null_calibration.md)
+RTS_MIN_CODED_STEP = 2.0
 
 
 def _amplitude_nodes(a: float, s: float) -> tuple[np.ndarray, np.ndarray]:
@@ -253,12 +259,17 @@ def rts_frame_fit(r: np.ndarray, v: np.ndarray, wt: np.ndarray, cap: float = RTS
     lc = _log_normal_mass(r, v, q)
     best = None
     for k in RTS_AMPLITUDES_SIGMA:
+        if q > 0 and k * sd < RTS_MIN_CODED_STEP * q:
+            continue
         for s in RTS_SPREADS_LN:
             lr = _log_component(r, v, *_amplitude_nodes(k * sd, s), symmetric=True, q=q) - lc
             f = _fraction_em(lr[neg], wt[neg], cap)
             dn = float(-2 * np.sum(wt[neg] * _log_ratio(lr[neg], f)))
             if best is None or dn < best[0]:
                 best = (dn, f, k * sd, s, lr)
+    if best is None:
+        return {"delta": 0.0, "f": 0.0, "a_adu": 0.0, "s": 0.0, "delta_neg": 0.0, "delta_pos": 0.0,
+                "n_tail": int(np.sum(wt == 1))}
     dn, f, a, s, lr = best
     dp = float(-2 * np.sum(wt[~neg] * _log_ratio(lr[~neg], f)))
     return {"delta": dn + max(dp, dn), "f": float(f), "a_adu": float(a), "s": float(s), "delta_neg": dn,

@@ -142,3 +142,4 @@ def test_read_codes_below_the_noise_of_a_code_are_not_steps(offset):
     stepped = data + np.where(hit, 8.0 * rng.choice([-1, 1], shape), 0.0)
     fit = RTSNoise.signature.fit(residuals_of(stepped, model, var, np.zeros(shape), s), "rts_noise")
     assert fit is not None and fit.delta_bic < -100
+

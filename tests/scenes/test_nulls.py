@@ -57,3 +57,19 @@ def test_a_textbook_null_dark_names_nothing(tmp_path):
     assert "significance_sigma" in rec["morphology"]
     s = nulls.summarise([rec])
     assert s["n"] == 1 and s["false_alarms"] == 0 and "min_dbic_gated" in s["distribution"]
+
+
+@pytest.mark.skipif(not nulls.TEXTBOOK_CHAIN.exists(), reason=f"textbook chain not found: {nulls.TEXTBOOK_CHAIN}")
+def test_a_textbook_binned_bias_has_no_rts_steps_of_one_code(tmp_path):
+    """A 16 x 16 average-binned IMX411 bias through the textbook chain (record f0013 of the null run of seed
+    2744798417): its noise is below one ADC code, and the one-frame RTS likelihood took the neighbouring codes
+    of the core for steps of exactly one code (delta BIC -29, 0.44 % of the pixels). Steps are claimed only beyond
+    the neighbouring codes (detector.effects.rts.RTS_MIN_CODED_STEP): nothing is named."""
+    case = {"id": "f0013", "kind": "single", "class": "imx411/bias/bin16", "camera": "imx411", "frame": "bias",
+            "geometry": "full_bin16", "seed": 1849678985,
+            "scene": {"detector": {"preset": "imx411", "binning": 16, "binning_mode": "average"},
+                      "sky": {"stars": False}, "exposure": {"time_s": 0.0, "frame": "bias"}}}
+    (rec,) = nulls.run_nulls(1, 0, tmp_path, workers=1, cases=[case])
+    assert rec["error"] == "", rec.get("traceback")
+    assert rec["significant"] == []
+    assert not any(c["effect"] == "rts_noise" and c["delta_bic"] < 0 for c in rec["candidates"])
