@@ -109,6 +109,10 @@ RTS_CODED_SIGMA = 3.0
 #: steps; only steps beyond the neighbouring codes are resolved as steps (three textbook 16 x 16 average-binned
 #: IMX411 biases of 315 nulls were given RTS steps of exactly one code, docs/null_calibration.md)
 RTS_MIN_CODED_STEP = 2.0
+#: the smallest median step [model sigma] the likelihood may claim: a step below RTS_TAIL_Z noise sigmas widens
+#: the core's tails (a read noise's own kurtosis) rather than standing out of it, and one frame cannot tell the
+#: two apart (a textbook-free null IMX411 dark was given steps of 1.0 sigma in 1 % of its pixels)
+RTS_MIN_STEP_SIGMA = RTS_TAIL_Z
 
 
 def _amplitude_nodes(a: float, s: float) -> tuple[np.ndarray, np.ndarray]:
@@ -259,7 +263,7 @@ def rts_frame_fit(r: np.ndarray, v: np.ndarray, wt: np.ndarray, cap: float = RTS
     lc = _log_normal_mass(r, v, q)
     best = None
     for k in RTS_AMPLITUDES_SIGMA:
-        if q > 0 and k * sd < RTS_MIN_CODED_STEP * q:
+        if k < RTS_MIN_STEP_SIGMA or (q > 0 and k * sd < RTS_MIN_CODED_STEP * q):
             continue
         for s in RTS_SPREADS_LN:
             lr = _log_component(r, v, *_amplitude_nodes(k * sd, s), symmetric=True, q=q) - lc

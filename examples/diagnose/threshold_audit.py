@@ -330,6 +330,7 @@ RTS_CORE_PIXELS | N | budget | most core pixels of the one-frame RTS likelihood
 RTS_MAX_ACTIVE | D | physics | RTS populations of CMOS sensors stay below a few per cent of the pixels (Wang et al. 2006)
 RTS_SPREADS_LN | N | grid | log-normal spreads of the step amplitudes tried
 RTS_NODES | N | quadrature | Gauss-Hermite nodes of the amplitude law
+RTS_MIN_STEP_SIGMA | D | statistics | a step below the tail bar (RTS_TAIL_Z sigmas) widens the core, one frame cannot tell it from a read noise's kurtosis
 RTS_MIN_CODED_STEP | D | statistics | on read codes a step of about one code lands on the core's neighbouring codes (the lattice), not resolved as a step
 RTS_CODED_SIGMA | N | model | below this noise [codes] the likelihood is that of the read codes (a density's error grows as (q/sigma)^2/24)
 @detector/effects/sky.py

@@ -172,7 +172,8 @@ def signal_range_floor(effect: str, res, policy: DiagnosisPolicy = DEFAULT_POLIC
     judged by what it changes within the frame's own signal range (:func:`signal_range`: from its median to its
     99.9th percentile; ``signal`` overrides it, e.g. a series' range across its frames): the law's response
     there, ``S'/S`` at the top over ``S'/S`` at the median (:func:`response_ratio`), must differ by the policy's
-    ``min_nonlinearity_in_range``. A law's size at full well, on a frame of a few per cent of the well, is an
+    ``min_nonlinearity_in_range``, unless the signal reaches ``min_nonlinearity_signal_fraction`` of the full well
+    (where a linearity measurement starts). A law's size at full well, on a frame of a few per cent of the well, is an
     extrapolation the pixels cannot check; its change across the frame's signal is what they measure (a gamma
     law compresses every decade of signal alike; a quadratic deficit little at low signal)."""
     if effect != "nonlinearity":
@@ -182,6 +183,8 @@ def signal_range_floor(effect: str, res, policy: DiagnosisPolicy = DEFAULT_POLIC
         return ""
     lo, top = got
     fw = float(res.sensor.full_well_e)
+    if top >= policy.min_nonlinearity_signal_fraction * fw:  # the range a linearity measurement spans
+        return ""
     change = float(abs(response_ratio(params or {}, top / fw) / response_ratio(params or {}, lo / fw) - 1.0))
     if change < policy.min_nonlinearity_in_range:
         return (f"over the {'series' if signal is not None else 'frame'}'s own signal ({lo:.3g} to {top:.3g} e- per "

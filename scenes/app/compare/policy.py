@@ -39,10 +39,7 @@ def _f(default, unit: str, basis: str, doc: str):
 
 #: fields of earlier policies that no longer exist: a policy file naming one still loads (the field ignored,
 #: with a warning saying what replaced it)
-RETIRED = {
-    "min_nonlinearity_signal_fraction": "the non-linearity is judged by its change of the response within the "
-    "frame's own signal range (min_nonlinearity_in_range), not on frames reaching a share of the full well",
-}
+RETIRED: dict[str, str] = {}
 
 
 @dataclass(frozen=True)
@@ -159,10 +156,15 @@ class DiagnosisPolicy:
         0.001, "1", "physics",
         "a non-linearity smaller than this at full well (0.1 %) is not a finding: photon-transfer curves of "
         "scientific CCD/CMOS measure 0.1-1 % at best (Janesick 2007, Photon Transfer, ch. 5)")
+    min_nonlinearity_signal_fraction: float = _f(
+        0.05, "1", "physics",
+        "a frame whose signal reaches this fraction of the full well (its 99.9th percentile) measures a response "
+        "law (EMVA 1288 release 4.0, sect. 6.9, measures the linearity error from 5 % to 95 % of saturation); a "
+        "frame below it must show the law within its own range (min_nonlinearity_in_range)")
     min_nonlinearity_in_range: float = _f(
         0.001, "1", "physics",
-        "a non-linearity is a finding when, within the frame's own signal range (its median to its 99.9th "
-        "percentile), the fitted law changes the response by at least this fraction (0.1 %, the linearity error "
+        "on a frame below min_nonlinearity_signal_fraction of the full well, a non-linearity is a finding when, "
+        "within the frame's own signal range (its median to its 99.9th percentile), the fitted law changes the response by at least this fraction (0.1 %, the linearity error "
         "a photon-transfer measurement resolves, Janesick 2007 ch. 5; EMVA 1288 release 4.0 sect. 6.9); its size "
         "at full well, on a frame of a few per cent of the well, is an extrapolation the pixels cannot check, so "
         "the frame's range is what is asked, and a power law is referenced at the frame's median signal (a real "
