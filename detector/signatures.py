@@ -696,6 +696,13 @@ def template_at(t: np.ndarray, shape: tuple[int, int], idx: np.ndarray) -> np.nd
     return np.broadcast_to(t, shape).ravel()[idx].astype(np.float64)
 
 
+def on_read_codes(res: "Residuals", idx: np.ndarray) -> bool:
+    """Whether the frame's values at flat pixels ``idx`` are read values on the ADC's integer codes (a regular
+    subsample of at most ~10 000 of them checked), not a float frame (an average of reads, a calibrated frame)."""
+    d = res.data_adu.ravel()[idx[:: max(1, idx.size // 10_000)]]
+    return bool(np.all(d == np.round(d)))
+
+
 def frame_at(a, idx: np.ndarray) -> np.ndarray:
     """``np.asarray(a, np.float64).ravel()[idx]`` (a frame, or a view that broadcasts to one, at flat pixel
     indices) without a float64 copy of the whole frame: the same numbers."""

@@ -182,7 +182,7 @@ def rts_frame_sample(res) -> tuple[np.ndarray, np.ndarray, np.ndarray, int, floa
     through a regular subsample weighted by the share it stands for."""
     from scipy.ndimage import gaussian_filter
 
-    from ..signatures import ROUNDING_VAR_ADU2, WHITE_SCALE
+    from ..signatures import ROUNDING_VAR_ADU2, WHITE_SCALE, on_read_codes
     from .pixel_response import _lit
 
     usable = res.usable if res.usable is not None else res.fit
@@ -214,8 +214,7 @@ def rts_frame_sample(res) -> tuple[np.ndarray, np.ndarray, np.ndarray, int, floa
     rr, vv = r.ravel()[idx], v.ravel()[idx]
     # read values on integer ADC codes where the noise spans few codes: the likelihood of each code (q = 1 ADU);
     # elsewhere the density, the rounding's 1/12 ADU^2 added to the variance (Sheppard's correction)
-    d = res.data_adu.ravel()[idx[:: max(1, idx.size // 10_000)]]
-    q = 1.0 if np.all(d == np.round(d)) and float(np.median(vv)) < (RTS_CODED_SIGMA * 1.0) ** 2 else 0.0
+    q = 1.0 if on_read_codes(res, idx) and float(np.median(vv)) < (RTS_CODED_SIGMA * 1.0) ** 2 else 0.0
     # the core's width: a white excess of every pixel (a read noise or a DSNU the model lacks, candidates of their
     # own) widens it; the sparse steps beyond it are what RTS is asked to explain. Measured robustly (the MAD) on a
     # density; on codes (whose moments and quantiles are the lattice's, not the noise's) by the codes' likelihood

@@ -16,7 +16,7 @@ import numpy as np
 
 from detector import registry
 from detector.morphology import block_chi2
-from detector.signatures import Fit, Residuals, frame_at, heldout_delta
+from detector.signatures import Fit, Residuals, frame_at, heldout_delta, on_read_codes
 
 from .floors import floor_reason, signal_range_floor
 from .judge import Candidate, indistinguishable, rank, verdict
@@ -75,8 +75,7 @@ def robust_excess_var(res: Residuals) -> tuple[float, float]:
         v = float(np.median(1.0 / w)) if w.size else 0.0
         q2 = 0.0
         if r.size:
-            d = res.data_adu.ravel()[idx[:: max(1, idx.size // 10_000)]]
-            if np.all(d == np.round(d)):  # read values on the integer codes
+            if on_read_codes(res, idx):
                 u = np.random.default_rng(DITHER_SEED).random(r.size) - 0.5
                 r, q2 = r + u, 1.0 / 12.0
         return (float(np.median(r * r)) / 0.4549 - v - q2 if r.size else 0.0, v)
