@@ -101,6 +101,7 @@ ENCLOSED_SIGMA | D | statistics | standard errors for the enclosed-light test to
 PSF_WINDOW_PX | N | budget | central window of the PSF re-render
 @scenes/app/compare/policy.py
 SCALE_TOLERANCE | D | physics | a scene's scale known to a few per cent: 10 % off is a finding
+LINEARITY_RESOLVED | D | physics | the linearity error a photon-transfer curve resolves, 0.1 % (Janesick 2007)
 @scenes/app/compare/report.py
 DPI | N | display | plot resolution
 Z_CLIP | N | display | colour scale of the z map
@@ -123,9 +124,12 @@ MAP_SIDE | N | display | residual map size in the report
 PEAK_SIDE | N | budget | cut-out searched for spectral peaks
 @detector/significance.py
 DETECTION_SIGMA | D | statistics | 5 sigma: one-sided 2.9e-7 per test
+DETECTION_P | D | statistics | DETECTION_SIGMA as a one-sided probability (normal tail)
+FRAME_FALSE_ALARM | D | statistics | a frame-wide search's peak: false alarms per frame and search
 STRUCTURE_SIGMA | D | calibration | 8 sigma of a many-pixel chi2 excess; no null beyond it (docs/null_calibration.md)
 FOOTPRINT_SIGMA | D | statistics | a source's footprint: model light 3 sigma above the noise (SExtractor)
 EXPLAINS_MOST | D | physics | a form explains most (half) of the residual it claims
+MIN_TEST_PIXELS | D | statistics | fewest pixels a refit or test of a subset of the frame speaks on
 STRONG_EVIDENCE | D | contract | -2 ln L change of 10: very strong evidence (Kass & Raftery 1995)
 @detector/signatures.py
 SPIKE_SIGMA | D | statistics | a pixel is a spike beyond detection_sigma
@@ -186,7 +190,7 @@ MAP_LONG_SPAN | D | design | a feature this long is a trail
 KIND_LOCAL_SIGMA_PX | N | scale | smoothing of the local additive estimate
 SOURCE_KERNEL_HALF | N | geometry | half size of the source kernel
 SOURCE_KERNEL_PIXELS | N | budget | source kernel subsample
-SOURCE_KERNEL_CORE_SIGMA | D | statistics | a source pixel: model light 5 sigma above the noise
+SOURCE_KERNEL_CORE_SIGMA | D | statistics | a source pixel: its footprint, model light FOOTPRINT_SIGMA above the noise
 SOURCE_KERNEL_HARMONICS | N | basis | angular harmonics of the kernel
 @detector/flux_law.py
 SOURCE_MIN_SNR | D | statistics | S/N of a source's amplitude to enter the slope
@@ -294,7 +298,7 @@ RowOffsetSignature.SMOOTH_DEGREE | N | basis | polynomial degree of the smooth-c
 RowOffsetSignature.SMOOTH_FRACTION | D | design | a row-offset fit is a smooth curve above this share
 RowOffsetSignature.COLUMN_FRACTION | D | design | a whole-frame pattern, not row noise
 RowOffsetSignature.MAX_LAG1 | D | physics | row noise is white from row to row (Janesick 2007)
-RowOffsetSignature.PERIODIC_FALSE_ALARM | D | statistics | one-sided 5 sigma (rounded)
+RowOffsetSignature.PERIODIC_FALSE_ALARM | D | statistics | one-sided DETECTION_SIGMA (DETECTION_P)
 RowOffsetSignature.PERIODIC_NEIGHBOURS | N | estimator | frequencies of the local spectral level
 BIAS_PROFILE_ORDERS | N | grid | bias pattern orders tried
 BIAS_FIELD_ORDERS | N | grid | bias field orders tried
@@ -392,12 +396,28 @@ def _numeric_literal(node: ast.AST) -> bool:
     return False
 
 
+#: functions a reference may apply to another definition (a stated formula: a chi2 bar from a sigma, a
+#: probability from a sigma), called as ``module.function``
+FORMULA_MODULES = {"math", "np", "numpy"}
+FORMULA_FUNCTIONS = {"sqrt", "erfc", "erf", "exp", "log", "log10"}
+
+
+def _formula(node: ast.AST) -> bool:
+    return (isinstance(node, ast.Call) and not node.keywords and isinstance(node.func, ast.Attribute)
+            and isinstance(node.func.value, ast.Name) and node.func.value.id in FORMULA_MODULES
+            and node.func.attr in FORMULA_FUNCTIONS)
+
+
 def _reference(node: ast.AST) -> bool:
-    """An expression of names (and numbers) only: a value taken from another definition."""
+    """An expression of names (and numbers, and the formula functions of :data:`FORMULA_FUNCTIONS`) only, with
+    at least one name of another definition: a value taken from another definition by a stated formula."""
     leaves = list(ast.walk(node))
-    return (any(isinstance(n, (ast.Name, ast.Attribute)) for n in leaves)
+    calls = [n for n in leaves if isinstance(n, ast.Call)]
+    funcs = {id(c.func) for c in calls} | {id(c.func.value) for c in calls if isinstance(c.func, ast.Attribute)}
+    names = [n for n in leaves if isinstance(n, (ast.Name, ast.Attribute)) and id(n) not in funcs]
+    return (bool(names) and all(_formula(c) for c in calls)
             and all(isinstance(n, (ast.Name, ast.Attribute, ast.Constant, ast.UnaryOp, ast.BinOp, ast.Load,
-                                   ast.operator, ast.unaryop, ast.Tuple)) for n in leaves)
+                                   ast.operator, ast.unaryop, ast.Tuple, ast.Call)) for n in leaves)
             and not any(isinstance(n, ast.Constant) and isinstance(n.value, str) for n in leaves))
 
 

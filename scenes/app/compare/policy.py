@@ -30,6 +30,11 @@ BASES = ("contract", "calibration", "physics", "statistics")
 #: detector/significance.py, and this): a refitted scale of the scene or of its noise is a finding beyond this
 #: relative change (parameter_scale_tolerance, noise_scale_tolerance)
 SCALE_TOLERANCE = 0.1
+#: ... and this: a non-linearity is a finding when the response law departs from a line by this fraction, at full
+#: well or within the frame's own range (min_nonlinearity_at_full_well, min_nonlinearity_in_range): 0.1 %, the
+#: linearity error a photon-transfer measurement resolves (Janesick 2007, Photon Transfer, ch. 5; EMVA 1288
+#: release 4.0, sect. 6.9)
+LINEARITY_RESOLVED = 0.001
 
 
 def _f(default, unit: str, basis: str, doc: str):
@@ -153,7 +158,7 @@ class DiagnosisPolicy:
 
     # -- physical effect-size floors ------------------------------------------------------------------------------
     min_nonlinearity_at_full_well: float = _f(
-        0.001, "1", "physics",
+        LINEARITY_RESOLVED, "1", "physics",
         "a non-linearity smaller than this at full well (0.1 %) is not a finding: photon-transfer curves of "
         "scientific CCD/CMOS measure 0.1-1 % at best (Janesick 2007, Photon Transfer, ch. 5)")
     min_nonlinearity_signal_fraction: float = _f(
@@ -162,7 +167,7 @@ class DiagnosisPolicy:
         "law (EMVA 1288 release 4.0, sect. 6.9, measures the linearity error from 5 % to 95 % of saturation); a "
         "frame below it must show the law within its own range (min_nonlinearity_in_range)")
     min_nonlinearity_in_range: float = _f(
-        0.001, "1", "physics",
+        LINEARITY_RESOLVED, "1", "physics",
         "on a frame below min_nonlinearity_signal_fraction of the full well, a non-linearity is a finding when, "
         "within the frame's own signal range (its median to its 99.9th percentile), the fitted law changes the response by at least this fraction (0.1 %, the linearity error "
         "a photon-transfer measurement resolves, Janesick 2007 ch. 5; EMVA 1288 release 4.0 sect. 6.9); its size "
@@ -193,9 +198,9 @@ class DiagnosisPolicy:
         "in the model is that effect's doing (its form differs from the plugin's, so some remains): the "
         "effect is named first and the next round refits the number")
     hot_in_dark_fraction: float = _f(
-        0.5, "1", "physics",
+        EXPLAINS_MOST, "1", "physics",
         "when the scene has the user's dark, a hot-pixel candidate needs at least this share of its pixels hot "
-        "in that dark (a hot pixel is hot in every frame)")
+        "in that dark (a hot pixel is hot in every frame): most of the pixels it claims (EXPLAINS_MOST)")
 
     def to_json(self) -> dict:
         """The values, by name (every ``diagnose --json`` records them under ``policy``)."""
