@@ -6,10 +6,13 @@ consolidated. This script reads the source (AST, nothing is imported or run) of 
 ``detector/significance.py`` and the effect plugins ``detector/effects/*.py``, and lists
 
 * every module-level or class-level UPPERCASE assignment of a number (or a tuple of numbers): a *definition*;
-  one whose value is a name of another definition (``SPIKE_SIGMA = DETECTION_SIGMA``) is a *reference* to a
-  shared threshold and is not counted again;
+  one whose value is a name of another definition (``SPIKE_SIGMA = DETECTION_SIGMA``), or a stated formula of
+  one (``IPC_STAGE_CHI2 = DETECTION_SIGMA ** 2``, a chi2 bar from a sigma; ``DETECTION_P = 0.5 *
+  math.erfc(DETECTION_SIGMA / math.sqrt(2.0))``, a probability from it: arithmetic and the functions of
+  :data:`FORMULA_FUNCTIONS`), is a *reference* to a shared threshold and is not counted again;
 * every field of :class:`scenes.app.compare.policy.DiagnosisPolicy` (a definition when its default is a number,
-  a reference when it is a shared constant);
+  a reference when it is a shared constant; a field whose basis is ``budget``, a cost of the search, is a
+  numerical setting);
 * every numeric literal in a comparison (``<``, ``<=``, ``>``, ``>=``) inside that code, apart from 0 and +-1:
   the unnamed thresholds.
 
@@ -345,6 +348,12 @@ MIN_LINE_PIXELS | N | sampling | pixels a line needs for its gain estimate
 VarianceSignature.CELL_SIGMA | D | statistics | a cell is far above the rest only beyond detection-like 5 standard errors
 @scenes/app/compare/candidates.py
 DITHER_SEED | N | seed | fixed dither of integer read codes (reproducibility)
+SIGNIFICANT_DELTA_BIC | D | contract | the policy's significant_delta_bic
+OVERFIT_CHI2_PER_DOF | D | statistics | the policy's overfit_chi2_per_dof
+@scenes/app/compare/series.py
+MAX_SERIES_FRAME_PX | N | budget | a series' frames take the large-frame path above the same size
+@detector/effects/cti.py
+CTI_RELEASE_TRANSFERS | N | model | the trap release times rendered and fitted (the HST ACS ones)
 @scenes/app/compare/judge.py
 SAME_SCATTER_TOLERANCE | D | physics | two added variances proportional to 1e-3 (float32 templates of one map agree to 1e-7; a 1 % dark gradient gives 2 %)
 """
@@ -454,8 +463,10 @@ def _policy_fields(path: str, cls: ast.ClassDef) -> list[Entry]:
             default = args[0]
             basis = args[2].value if len(args) > 2 and isinstance(args[2], ast.Constant) else "unaccounted"
             doc = ast.literal_eval(args[3]) if len(args) > 3 else ""
+            # a field whose basis is a budget (a cost of the search) is a numerical setting, as the modules' are
+            cls_ = NUMERICAL if basis == "budget" else DECISION
             out.append(Entry(path, node.target.id, node.lineno, ast.unparse(default), not _numeric_literal(default),
-                             DECISION, basis, " ".join(str(doc).split())[:90], True, policy=True))
+                             cls_, basis, " ".join(str(doc).split())[:90], True, policy=True))
     return out
 
 
@@ -509,7 +520,7 @@ def counts(entries: list[Entry], literals: dict) -> dict[str, dict[str, int]]:
     for path in sorted({e.path for e in entries} | set(literals)):
         es = [e for e in entries if e.path == path]
         own = [e for e in es if not e.shared]
-        out[path] = {"policy fields": sum(e.policy for e in own),
+        out[path] = {"policy fields": sum(e.policy and e.cls == DECISION for e in own),
                      "decision": sum(e.cls == DECISION and not e.policy for e in own),
                      "unaccounted": sum(not e.known for e in own),
                      "numerical": sum(e.cls == NUMERICAL for e in own),
@@ -558,7 +569,7 @@ def markdown(entries: list[Entry], literals: dict) -> str:
             lines.append(f"| `{e.path}` | `{e.name}` | {_fmt(v)} | {e.basis} | {_fmt(e.reason)} |")
     lines += ["", "### Numerical settings", "", "| file | name | value | kind | reason |", "|---|---|---|---|---|"]
     for e in entries:
-        if e.cls == NUMERICAL and not e.policy:
+        if e.cls == NUMERICAL:
             lines.append(f"| `{e.path}` | `{e.name}` | {_fmt(e.value)} | {e.basis} | {_fmt(e.reason)} |")
     return "\n".join(lines) + "\n"
 

@@ -24,11 +24,13 @@ from pathlib import Path
 from detector.errors import DetectorError
 from detector.significance import DETECTION_SIGMA, EXPLAINS_MOST, STRONG_EVIDENCE, STRUCTURE_SIGMA
 
-#: why a field has its value: the DESIGN contract, the null calibration, or physics
-BASES = ("contract", "calibration", "physics", "statistics")
+#: why a field has its value: the DESIGN contract, the null calibration, physics, a property of the test, or a
+#: budget (a cost of the search, not a threshold: how many contenders are scored)
+BASES = ("contract", "calibration", "physics", "statistics", "budget")
 #: fields that ask the same question share one value (the significance levels and EXPLAINS_MOST of
 #: detector/significance.py, and this): a refitted scale of the scene or of its noise is a finding beyond this
-#: relative change (parameter_scale_tolerance, noise_scale_tolerance)
+#: relative change (parameter_scale_tolerance, noise_scale_tolerance); a candidate may worsen the sources'
+#: photometry by as much and no more (stars_worse_ln)
 SCALE_TOLERANCE = 0.1
 #: ... and this: a non-linearity is a finding when the response law departs from a line by this fraction, at full
 #: well or within the frame's own range (min_nonlinearity_at_full_well, min_nonlinearity_in_range): 0.1 %, the
@@ -64,7 +66,7 @@ class DiagnosisPolicy:
         "binned 8x8, three ADC codes of noise); confirmed on 315 more from a fresh seed: -32.8 apart from one "
         "kTC noise of 4e-6 e- at -40.6, now below the noise floor (min_extra_noise_fraction)")
     heldout_candidates: int = _f(
-        8, "candidates", "statistics",
+        8, "candidates", "budget",
         "contenders (best delta BIC first) scored on held-out pixels: the cost of the cross-validation")
     twin_fraction: float = _f(
         0.05, "1", "calibration",
@@ -113,9 +115,9 @@ class DiagnosisPolicy:
         0.05, "1", "statistics",
         "... and never less than this fraction of the model's own variance")
     stars_worse_ln: float = _f(
-        0.1, "|ln flux ratio|", "physics",
+        SCALE_TOLERANCE, "|ln flux ratio|", "physics",
         "a candidate reshaping the sources may worsen the bright stars' median |ln(data/model flux)| by at "
-        "most this much ...")
+        "most this much (SCALE_TOLERANCE: a flux error the size of a zero point that is itself a finding) ...")
     stars_ok_ln: float = _f(
         0.2, "|ln flux ratio|", "physics", "... and must leave it below this")
     stars_min: int = _f(10, "stars", "statistics", "bright stars needed for that photometry test")
@@ -266,7 +268,8 @@ def markdown_table(policy: DiagnosisPolicy = DEFAULT_POLICY) -> str:
              "Generated from `scenes/app/compare/policy.py` (`python -m scenes.app.compare.policy`); do not edit.",
              "Every threshold the judge uses, its unit and the basis of its value: the DESIGN `contract`, a",
              "`calibration` on null frames of the independent textbook chain (docs/null_calibration.md),",
-             "`physics` (what no real camera does) or `statistics` (a property of the test itself).",
+             "`physics` (what no real camera does) or `statistics` (a property of the test itself); a `budget` is",
+             "a cost of the search (how many contenders are scored), not a threshold.",
              "`newtsim diagnose --policy FILE` overrides any of them; `diagnose --json` records the policy used.",
              "", "| field | value | unit | basis | meaning |", "|---|---|---|---|---|"]
     for f in fields(policy):
