@@ -679,7 +679,8 @@ def _sensor_centre(res) -> tuple[float, float]:
 # about it, the rest left in place: the far wings micro-roughness and dust scatter, Racine 1996 PASP 108 699)
 #: halo widths [output px^2] the halo's start is chosen from (by its linear fit: a share of the light moved)
 HALO_START_VAR = (4.0, 16.0, 64.0)
-#: the largest share of the light a halo may hold (beyond, the source itself is the wide part)
+#: the largest share of the light a halo (or a one-sided tail, TAIL_MAX_FRAC) may hold: beyond, the source
+#: itself is the wide part, more wings than core
 HALO_MAX_FRACTION = 0.5
 
 
@@ -874,8 +875,9 @@ TAIL_MAX_FIT_PX = 50.0
 #: shortest tail [sensor px] proposed: a shorter one is a sub-pixel shift and blur of the core
 TAIL_MIN_PX = 0.2
 #: share of the light in the tail above which a tail is not plausible: the source would be more tail than core,
-#: which no coma short of a grossly misaligned mirror makes (and there the scene's PSF itself is wrong)
-TAIL_MAX_FRAC = 0.6
+#: which no coma short of a grossly misaligned mirror makes (and there the scene's PSF itself is wrong): the
+#: halo's bar, HALO_MAX_FRACTION (a source is more core than wings)
+TAIL_MAX_FRAC = HALO_MAX_FRACTION
 #: tail length [in PSF FWHM] above which a tail is not plausible: a coma flare or a tracking tail several PSF
 #: widths long is a trail (pointing_drift) or a PSF the scene's optics must model, not a correction of it
 TAIL_MAX_FWHM = 3.0
