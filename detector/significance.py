@@ -18,9 +18,10 @@ DETECTION_SIGMA = 5.0
 #: ... the same level as a one-sided false-alarm probability (2.87e-7), for tests whose null law is not normal
 #: (the largest of m periodogram ordinates: m exp(-t) below it)
 DETECTION_P = 0.5 * math.erfc(DETECTION_SIGMA / math.sqrt(2.0))
-#: a search over a whole frame (every position, scale or geometry of a matched filter, a ghost's scan) reports
-#: its peak when white noise reaches it this rarely per frame and search: the look-elsewhere correction of a
-#: detection whose number of independent trials the search itself counts (a frame per thousand)
+#: a test of a whole frame is a false alarm this rarely per frame (a frame per thousand): a search's peak over
+#: every position, scale or geometry (a matched filter, a ghost's scan: the look-elsewhere correction of a
+#: detection whose number of independent trials the search itself counts), or one count of the frame against its
+#: expectation (the tracks of cosmic rays: a one-sided Poisson interval of this confidence's complement)
 FRAME_FALSE_ALARM = 1e-3
 #: a structure of the residual (the block or pixel chi2 of a whole frame, or of the pixels a candidate acts on,
 #: beyond its degrees of freedom; the peak of a band-passed map) is significant beyond this many standard
@@ -49,3 +50,8 @@ EXPLAINS_MOST = 0.5
 #: stars, a background ring about an aperture) speaks: below it the chi2 of a few-parameter fit is far from its
 #: asymptotic law and a handful of outliers decide it
 MIN_TEST_PIXELS = 100
+#: a population of anomalous pixels (hot or dead pixels, defective columns, pixels with random telegraph steps)
+#: holds at most this fraction of a sensor's pixels: camera data sheets give 1e-5 to 1e-3 of the pixels hot or
+#: dead (EMVA 1288) and a grade-2 CCD a few tens of its thousands of columns; RTS populations of CMOS sensors are
+#: below a few per cent (Wang et al. 2006; Chao et al. 2019). Beyond it, a pattern of many small deviations
+MAX_DEFECT_FRACTION = 0.05

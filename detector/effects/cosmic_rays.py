@@ -22,6 +22,7 @@ from pydantic import Field, model_validator
 from .. import cosmics
 from ..errors import DetectorError
 from ..rng import generator
+from ..significance import FRAME_FALSE_ALARM
 from ..signatures import TRACK_K, GroupSignature, group_gain, is_track, on_source, outlier_pixels
 from .base import Effect, EffectParams, Stage, Tile, register_effect
 
@@ -47,8 +48,9 @@ class CosmicFrame:
 
 
 #: one-sided confidence of the Poisson interval of the track count (Garwood 1936, Biometrika 28, 437): the data
-#: cannot tell the rate from the environment's flux while that flux lies inside it
-TRACK_RATE_CONFIDENCE = 0.999
+#: cannot tell the rate from the environment's flux while that flux lies inside it; a test of the whole frame,
+#: false this rarely per frame (FRAME_FALSE_ALARM)
+TRACK_RATE_CONFIDENCE = 1.0 - FRAME_FALSE_ALARM
 
 
 def window_area_cm2(sensor) -> float:

@@ -22,7 +22,9 @@ from dataclasses import MISSING, asdict, dataclass, field, fields, replace
 from pathlib import Path
 
 from detector.errors import DetectorError
-from detector.significance import DETECTION_SIGMA, EXPLAINS_MOST, STRONG_EVIDENCE, STRUCTURE_SIGMA
+from detector.significance import (
+    DETECTION_SIGMA, EXPLAINS_MOST, MAX_DEFECT_FRACTION, STRONG_EVIDENCE, STRUCTURE_SIGMA,
+)
 
 #: why a field has its value: the DESIGN contract, the null calibration, physics, a property of the test, or a
 #: budget (a cost of the search, not a threshold: how many contenders are scored)
@@ -190,7 +192,7 @@ class DiagnosisPolicy:
         "events, a few times the muon rate at most; a rate 100x the physical one is a pattern of bright pixels, "
         "not particles)")
     max_defect_fraction: float = _f(
-        0.05, "1", "physics",
+        MAX_DEFECT_FRACTION, "1", "physics",
         "hot or dead pixels (or columns) on more than this fraction of the sensor are not defects: camera data "
         "sheets (EMVA 1288) give 1e-5 to 1e-3 of the pixels and a grade-2 CCD a few tens of its thousands of "
         "columns; the count is extrapolated from the frame to the sensor, so the floor leaves a margin")
