@@ -44,7 +44,9 @@ import numpy as np
 from scipy import optimize
 
 from detector.sensor import SensorConfig
-from detector.significance import DETECTION_SIGMA, FOOTPRINT_SIGMA, STRONG_EVIDENCE, STRUCTURE_SIGMA
+from detector.significance import (
+    DETECTION_SIGMA, FOOTPRINT_SIGMA, MAX_DEFECT_FRACTION, STRONG_EVIDENCE, STRUCTURE_SIGMA,
+)
 from detector.stats import mad_std
 
 #: |z - median_3x3(z)| above which a pixel is a spike (hot/dead pixel, cosmic-ray hit) [sigma]
@@ -151,8 +153,9 @@ GROW_SIGMA = FOOTPRINT_SIGMA
 #: how far [pixels] a spike is grown into its surroundings
 GROW_PIXELS = 3
 #: a column in which more than this fraction of the pixels are spikes is a candidate defective column: its
-#: spikes count towards its mean, not towards the spike statistics
-DENSE_COLUMN_FRACTION = 0.05
+#: spikes count towards its mean, not towards the spike statistics (more anomalous pixels than a population of
+#: defects holds, MAX_DEFECT_FRACTION, are a pattern of their column)
+DENSE_COLUMN_FRACTION = MAX_DEFECT_FRACTION
 #: |z| at which a column's values are clipped for its robust mean [sigma]: an outlying pixel moves the mean by
 #: at most 1.4 of its standard errors / sqrt(n) (the median's 1.0), at 95 % of the plain mean's efficiency
 #: for a column offset (the median's 80 %) (Huber 1964, Ann. Math. Stat. 35, 73)
@@ -161,8 +164,9 @@ COLUMN_CLIP = 1.0
 CLIPPED_SD = 0.7183
 #: when more than this fraction of the columns are outliers they are a pattern of the whole frame (a Bayer
 #: mosaic: every other column), not defective columns: counted, but kept in the pixel-by-pixel comparison
-#: (PANOPTES's raw frame flagged 520 of 700 columns and left a quarter of its pixels to compare)
-MAX_LINE_FRACTION = 0.1
+#: (PANOPTES's raw frame flagged 520 of 700 columns and left a quarter of its pixels to compare): the bar of
+#: every population of defects, MAX_DEFECT_FRACTION (the judge's max_defect_fraction refuses them as defects)
+MAX_LINE_FRACTION = MAX_DEFECT_FRACTION
 
 
 #: the variance of rounding a value to the ADC's integer codes [ADU^2] (a uniform error of +-0.5 ADU)
