@@ -130,8 +130,8 @@ DETECTION_SIGMA | D | statistics | 5 sigma: one-sided 2.9e-7 per test
 DETECTION_P | D | statistics | DETECTION_SIGMA as a one-sided probability (normal tail)
 FRAME_FALSE_ALARM | D | statistics | a test of a whole frame (a search's peak, a count): false alarms per frame
 STRUCTURE_SIGMA | D | calibration | 8 sigma of a many-pixel chi2 excess; no null beyond it (docs/null_calibration.md)
-FOOTPRINT_SIGMA | D | statistics | a source's footprint: model light 3 sigma above the noise (SExtractor)
-EXPLAINS_MOST | D | physics | a form explains most (half) of the residual it claims
+FOOTPRINT_SIGMA | D | statistics | a part of a detected whole (a footprint pixel, a spike's group, one source of a ghost): 3 sigma (SExtractor)
+EXPLAINS_MOST | D | physics | a claim covers most (half) of what it claims (residual, pixels, excess)
 MIN_TEST_PIXELS | D | statistics | fewest pixels a refit or test of a subset of the frame speaks on
 MAX_DEFECT_FRACTION | D | physics | anomalous-pixel populations (defects, RTS) hold a few per cent of the pixels at most
 STRONG_EVIDENCE | D | contract | -2 ln L change of 10: very strong evidence (Kass & Raftery 1995)
