@@ -35,7 +35,12 @@ from scipy.ndimage import gaussian_filter
 
 from .signatures import Residuals, frame_at
 from .significance import (
-    DETECTION_SIGMA, EXPLAINS_MOST, FOOTPRINT_SIGMA, FRAME_FALSE_ALARM, STRONG_EVIDENCE, STRUCTURE_SIGMA,
+    DETECTION_SIGMA,
+    EXPLAINS_MOST,
+    FOOTPRINT_SIGMA,
+    FRAME_FALSE_ALARM,
+    STRONG_EVIDENCE,
+    STRUCTURE_SIGMA,
 )
 
 #: the residual is structured when the block chi2 (or the pixel chi2 for added noise) exceeds its degrees of

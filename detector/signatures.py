@@ -45,7 +45,11 @@ from scipy import optimize
 
 from detector.sensor import SensorConfig
 from detector.significance import (
-    DETECTION_SIGMA, FOOTPRINT_SIGMA, MAX_DEFECT_FRACTION, STRONG_EVIDENCE, STRUCTURE_SIGMA,
+    DETECTION_SIGMA,
+    FOOTPRINT_SIGMA,
+    MAX_DEFECT_FRACTION,
+    STRONG_EVIDENCE,
+    STRUCTURE_SIGMA,
 )
 from detector.stats import mad_std
 

@@ -22,8 +22,8 @@ from pydantic import Field, model_validator
 from .. import cosmics
 from ..errors import DetectorError
 from ..rng import generator
-from ..significance import FRAME_FALSE_ALARM
 from ..signatures import TRACK_K, GroupSignature, group_gain, is_track, on_source, outlier_pixels
+from ..significance import FRAME_FALSE_ALARM
 from .base import Effect, EffectParams, Stage, Tile, register_effect
 
 #: Refuse frames expecting more hits than this (memory: ~ 200 bytes per hit); split the exposure instead.

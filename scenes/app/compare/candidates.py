@@ -16,8 +16,8 @@ import numpy as np
 
 from detector import registry
 from detector.morphology import block_chi2
-from detector.significance import FOOTPRINT_SIGMA, MIN_TEST_PIXELS
 from detector.signatures import Fit, Residuals, frame_at, heldout_delta, on_read_codes
+from detector.significance import FOOTPRINT_SIGMA, MIN_TEST_PIXELS
 
 from .floors import floor_reason, signal_range_floor
 from .judge import Candidate, indistinguishable, rank, verdict

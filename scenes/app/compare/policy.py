@@ -23,7 +23,11 @@ from pathlib import Path
 
 from detector.errors import DetectorError
 from detector.significance import (
-    DETECTION_SIGMA, EXPLAINS_MOST, MAX_DEFECT_FRACTION, STRONG_EVIDENCE, STRUCTURE_SIGMA,
+    DETECTION_SIGMA,
+    EXPLAINS_MOST,
+    MAX_DEFECT_FRACTION,
+    STRONG_EVIDENCE,
+    STRUCTURE_SIGMA,
 )
 
 #: why a field has its value: the DESIGN contract, the null calibration, physics, a property of the test, or a
