@@ -20,8 +20,8 @@ import numpy as np
 from . import significance
 
 #: the least signal-to-noise ratio of a source's own amplitude for the source to enter the slope (below it the
-#: amplitude's logarithm is not defined well enough to fit)
-SOURCE_MIN_SNR = 5.0
+#: amplitude's logarithm is not defined well enough to fit): a detected source, DETECTION_SIGMA
+SOURCE_MIN_SNR = significance.DETECTION_SIGMA
 #: the fewest sources the slope is fitted on, and the least ratio of their brightest to their faintest flux:
 #: with fewer, or fluxes within a factor of this, the slope has nothing to measure
 MIN_SOURCES = 4

@@ -34,7 +34,14 @@ from scipy import ndimage as ndi
 from scipy.ndimage import gaussian_filter
 
 from .signatures import Residuals, frame_at
-from .significance import DETECTION_SIGMA, EXPLAINS_MOST, STRONG_EVIDENCE, STRUCTURE_SIGMA
+from .significance import (
+    DETECTION_SIGMA,
+    EXPLAINS_MOST,
+    FOOTPRINT_SIGMA,
+    FRAME_FALSE_ALARM,
+    STRONG_EVIDENCE,
+    STRUCTURE_SIGMA,
+)
 
 #: the residual is structured when the block chi2 (or the pixel chi2 for added noise) exceeds its degrees of
 #: freedom by this many standard deviations
@@ -762,8 +769,9 @@ def _lines_through_sources(res: Residuals, lm, lw, okl, axis: int, excess: float
 
 #: a line profile is periodic when one frequency holds this share of its power beyond the noise ...
 LINE_PERIOD_SHARE = 0.3
-#: ... and stands this many times above the noise's mean power (a chi2 with 2 dof: e^-30 per frequency)
-LINE_PERIOD_POWER = 30.0
+#: ... and stands this many times above the noise's mean power (a chi2 with 2 dof: e^-30 per frequency): the
+#: bar of a spectral line significant on its own, PERIODIC_CONTRAST
+LINE_PERIOD_POWER = PERIODIC_CONTRAST
 #: ... and this many times above the median power of its neighbouring frequencies on either side (a line, not
 #: a red continuum) ...
 LINE_PERIOD_CONTRAST = 10.0
@@ -861,8 +869,9 @@ def _periodic_map(rmap: np.ndarray, wmap: np.ndarray, light: np.ndarray, kind: s
 
 
 #: false alarms per frame and smoothing scale of the matched filter that decides which compact features the
-#: empirical map carries (:func:`_significant_features`): a seed is a peak the noise reaches this rarely
-MAP_FALSE_ALARM = 1e-3
+#: empirical map carries (:func:`_significant_features`): a seed is a peak the noise reaches this rarely (the
+#: frame search's FRAME_FALSE_ALARM)
+MAP_FALSE_ALARM = FRAME_FALSE_ALARM
 #: a seeded feature is grown down to where its matched-filter S/N falls to this many sigma (below it the
 #: feature is not told from the noise)
 MAP_GROW_SIGMA = 2.0
@@ -1220,8 +1229,8 @@ def _kind_from_sources(res: Residuals, idx, r, w) -> str | None:
 SOURCE_KERNEL_HALF = 6
 #: ... fitted on at most this many pixels next to the sources (a regular subsample beyond) [pixels]
 SOURCE_KERNEL_PIXELS = 60_000
-#: a source pixel: its model light this many sigma above the noise
-SOURCE_KERNEL_CORE_SIGMA = 5.0
+#: a source pixel: its model light this many sigma above the noise (a source's footprint, FOOTPRINT_SIGMA)
+SOURCE_KERNEL_CORE_SIGMA = FOOTPRINT_SIGMA
 
 
 #: angular harmonics of the kernel's annuli: 0 (a ring, a halo), 1 (one-sided: a trail, a coma), 2 (an

@@ -44,7 +44,13 @@ import numpy as np
 from scipy import optimize
 
 from detector.sensor import SensorConfig
-from detector.significance import DETECTION_SIGMA, STRONG_EVIDENCE, STRUCTURE_SIGMA
+from detector.significance import (
+    DETECTION_SIGMA,
+    FOOTPRINT_SIGMA,
+    MAX_DEFECT_FRACTION,
+    STRONG_EVIDENCE,
+    STRUCTURE_SIGMA,
+)
 from detector.stats import mad_std
 
 #: |z - median_3x3(z)| above which a pixel is a spike (hot/dead pixel, cosmic-ray hit) [sigma]
@@ -145,13 +151,15 @@ def _median3(z: np.ndarray) -> np.ndarray:
     return median_filter(z, size=3, mode="nearest")
 
 
-#: |z| down to which a spike's connected surroundings are compared statistically with it [sigma]
-GROW_SIGMA = 3.0
+#: |z| down to which a spike's connected surroundings are compared statistically with it [sigma]: a pixel of the
+#: spike's group, a part of a detection (FOOTPRINT_SIGMA)
+GROW_SIGMA = FOOTPRINT_SIGMA
 #: how far [pixels] a spike is grown into its surroundings
 GROW_PIXELS = 3
 #: a column in which more than this fraction of the pixels are spikes is a candidate defective column: its
-#: spikes count towards its mean, not towards the spike statistics
-DENSE_COLUMN_FRACTION = 0.05
+#: spikes count towards its mean, not towards the spike statistics (more anomalous pixels than a population of
+#: defects holds, MAX_DEFECT_FRACTION, are a pattern of their column)
+DENSE_COLUMN_FRACTION = MAX_DEFECT_FRACTION
 #: |z| at which a column's values are clipped for its robust mean [sigma]: an outlying pixel moves the mean by
 #: at most 1.4 of its standard errors / sqrt(n) (the median's 1.0), at 95 % of the plain mean's efficiency
 #: for a column offset (the median's 80 %) (Huber 1964, Ann. Math. Stat. 35, 73)
@@ -160,8 +168,9 @@ COLUMN_CLIP = 1.0
 CLIPPED_SD = 0.7183
 #: when more than this fraction of the columns are outliers they are a pattern of the whole frame (a Bayer
 #: mosaic: every other column), not defective columns: counted, but kept in the pixel-by-pixel comparison
-#: (PANOPTES's raw frame flagged 520 of 700 columns and left a quarter of its pixels to compare)
-MAX_LINE_FRACTION = 0.1
+#: (PANOPTES's raw frame flagged 520 of 700 columns and left a quarter of its pixels to compare): the bar of
+#: every population of defects, MAX_DEFECT_FRACTION (the judge's max_defect_fraction refuses them as defects)
+MAX_LINE_FRACTION = MAX_DEFECT_FRACTION
 
 
 #: the variance of rounding a value to the ADC's integer codes [ADU^2] (a uniform error of +-0.5 ADU)
@@ -1723,8 +1732,9 @@ class VarianceSignature(Signature):
                    delta_adu=line_delta, state={"theta": theta, "law": law})
 
     #: added scatter is pixel-to-pixel: a neighbour correlation of the whitened residual above this (and
-    #: significant) is a structure of a few pixels (rings, fringes, blurred sources), not a non-uniformity
-    MAX_NEIGHBOUR_CORRELATION = 0.1
+    #: significant) is a structure of a few pixels (rings, fringes, blurred sources), not a non-uniformity: the
+    #: same bar of "independent from neighbour to neighbour" as the lines' gains' (MAX_LINE_GAIN_CORRELATION)
+    MAX_NEIGHBOUR_CORRELATION = MAX_LINE_GAIN_CORRELATION
     #: ... and the outlying pixels' correlation with their neighbours (:func:`tail_neighbour_correlation`)
     MAX_TAIL_CORRELATION = 0.15
 
@@ -1817,8 +1827,8 @@ class VarianceSignature(Signature):
     #: ... and the cells' excess variances (over the template's) may scatter by this fraction (rms) of their mean
     MAX_CELL_SPREAD = 0.5
     #: a cell is far above the rest only when its excess is beyond this many of its standard errors from the
-    #: median cell's (the 5-sigma of the judge's other structure tests)
-    CELL_SIGMA = 5.0
+    #: median cell's (the DETECTION_SIGMA of one tested quantity in its standard errors)
+    CELL_SIGMA = DETECTION_SIGMA
 
     def uniformity(self, fit: Fit, res: Residuals, cells: int = 4) -> str:
         """The added scatter follows its template over the frame (kTC noise is the same everywhere, PRNU

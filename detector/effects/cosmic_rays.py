@@ -23,6 +23,7 @@ from .. import cosmics
 from ..errors import DetectorError
 from ..rng import generator
 from ..signatures import TRACK_K, GroupSignature, group_gain, is_track, on_source, outlier_pixels
+from ..significance import FRAME_FALSE_ALARM
 from .base import Effect, EffectParams, Stage, Tile, register_effect
 
 #: Refuse frames expecting more hits than this (memory: ~ 200 bytes per hit); split the exposure instead.
@@ -47,8 +48,9 @@ class CosmicFrame:
 
 
 #: one-sided confidence of the Poisson interval of the track count (Garwood 1936, Biometrika 28, 437): the data
-#: cannot tell the rate from the environment's flux while that flux lies inside it
-TRACK_RATE_CONFIDENCE = 0.999
+#: cannot tell the rate from the environment's flux while that flux lies inside it; a test of the whole frame,
+#: false this rarely per frame (FRAME_FALSE_ALARM)
+TRACK_RATE_CONFIDENCE = 1.0 - FRAME_FALSE_ALARM
 
 
 def window_area_cm2(sensor) -> float:

@@ -234,9 +234,9 @@ def ipc_check(fit, res) -> str:
 
 
 #: the chi2 [1] by which the fitted IPC of the frame's charge that is not light (dark current, hot pixels) must
-#: differ from nothing for the frame to tell the coupling of the charge from a blur of the light: 25, a 5-sigma
-#: difference of a one-parameter fit (chi2_1 at 5 sigma)
-IPC_STAGE_CHI2 = 25.0
+#: differ from nothing for the frame to tell the coupling of the charge from a blur of the light: a
+#: DETECTION_SIGMA difference of a one-parameter fit (chi2_1 = DETECTION_SIGMA^2 = 25)
+IPC_STAGE_CHI2 = DETECTION_SIGMA ** 2
 
 
 def ipc_untold_from(fit, res) -> tuple[str, ...]:

@@ -17,6 +17,7 @@ import numpy as np
 from pydantic import Field
 
 from ..signatures import CountSignature, Fit, Signature, frame_fraction, spread_check
+from ..significance import EXPLAINS_MOST
 from ..stats import mad_std
 from .base import Effect, EffectParams, Stage, Tile, register_effect
 from .common import hardware_positions, in_tile, output_xy, roi_mask
@@ -181,8 +182,9 @@ class ColumnSignature(Signature):
     #: a defective column's outlying pixels come in long runs along it (a trap to the serial register, a whole
     #: column): runs shorter than this many rows are pixel defects or clusters that happen to cross it
     MIN_RUN = 8
-    #: ... which may carry at most this share of the outlier columns' net excess
-    MAX_SHORT_RUN_SHARE = 0.5
+    #: ... which may carry at most this share of the outlier columns' net excess (the long runs carry most of
+    #: what the column claim covers: EXPLAINS_MOST)
+    MAX_SHORT_RUN_SHARE = EXPLAINS_MOST
 
     @classmethod
     def short_run_share(cls, d: np.ndarray, var: np.ndarray, sigma: float = 5.0, grow: float = 2.0,

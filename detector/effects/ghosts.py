@@ -76,7 +76,7 @@ from pydantic import Field
 from scipy import ndimage, signal
 
 from ..signatures import Fit, LinearSignature, Residuals, Variant, fit_linear, search_sample
-from ..significance import EXPLAINS_MOST, FOOTPRINT_SIGMA
+from ..significance import EXPLAINS_MOST, FOOTPRINT_SIGMA, FRAME_FALSE_ALARM
 from .base import Effect, EffectParams, Stage, Tile, register_effect
 from .image_plane import (
     FIT_FFT_WORKERS,
@@ -220,8 +220,9 @@ def ghost_general(image: np.ndarray, ys: np.ndarray, xs: np.ndarray, yc: float, 
 GHOST_PROBE_RADII_PX = (4.0, 12.0, 35.0)
 #: the scan's arrays are binned to at most this many pixels a side (and by up to a quarter of the probe radius)
 SCAN_MAX_SIDE = 768
-#: global false-alarm probability of the scan's peak over every geometry, probe and map family searched
-SCAN_GLOBAL_P = 1e-3
+#: global false-alarm probability of the scan's peak over every geometry, probe and map family searched: the
+#: frame search's (FRAME_FALSE_ALARM)
+SCAN_GLOBAL_P = FRAME_FALSE_ALARM
 #: a geometry is searched only where at least this share of the sources' ghost (its weighted template norm)
 #: falls on the frame
 SCAN_MIN_OVERLAP = 0.1
@@ -434,10 +435,11 @@ GHOST_INNER_RATIOS = (0.3, 0.5, 0.7)
 GHOST_MIN_RMS_PX = 3.0
 GHOST_MIN_RMS_PSF = 2.0
 #: the map must be confirmed by the bright sources whose ghost the fit predicts detectably (local chi2 gain
-#: >= GHOST_SOURCE_CHI2): at least GHOST_MIN_SOURCES of them (free geometry) and this share showing it
-GHOST_SOURCE_CHI2 = 9.0
+#: >= GHOST_SOURCE_CHI2, a part of the detected ghost at FOOTPRINT_SIGMA: 9): at least GHOST_MIN_SOURCES of
+#: them (free geometry) and this share showing it
+GHOST_SOURCE_CHI2 = FOOTPRINT_SIGMA ** 2
 GHOST_MIN_SOURCES = 3
-GHOST_CONFIRMED_SHARE = 0.6
+GHOST_CONFIRMED_SHARE = EXPLAINS_MOST  # most of them
 #: about the copy that carries the most of the claim, the fitted ghost must take this share of the residual's
 #: excess chi2 there (what remains looks like noise): a trail or a glint that a copy lands on keeps most of
 #: its excess outside the ghost's round profile (0.28 for a satellite trail; 0.98 for a real ghost)

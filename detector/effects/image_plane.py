@@ -46,6 +46,7 @@ from ..signatures import (
     profiled_chi2,
     search_sample,
 )
+from ..significance import STRUCTURE_SIGMA
 from .base import Effect, EffectParams, Stage, Tile, register_effect
 
 # --- pure functions -------------------------------------------------------------------------------------------
@@ -678,7 +679,8 @@ def _sensor_centre(res) -> tuple[float, float]:
 # about it, the rest left in place: the far wings micro-roughness and dust scatter, Racine 1996 PASP 108 699)
 #: halo widths [output px^2] the halo's start is chosen from (by its linear fit: a share of the light moved)
 HALO_START_VAR = (4.0, 16.0, 64.0)
-#: the largest share of the light a halo may hold (beyond, the source itself is the wide part)
+#: the largest share of the light a halo (or a one-sided tail, TAIL_MAX_FRAC) may hold: beyond, the source
+#: itself is the wide part, more wings than core
 HALO_MAX_FRACTION = 0.5
 
 
@@ -736,9 +738,12 @@ def _blur_words(p, res) -> str:
 #: sigma_major / sigma_minor below which a fitted smear counts as isotropic (then it is psf_blur)
 JITTER_MIN_ELONGATION = 1.1
 
-#: smallest vibration amplitude [output px] proposed: an oscillation over less than 1.5 px peak to peak is a
-#: blur any small PSF change makes (as for DRIFT_MIN_LENGTH)
-VIBRATION_MIN_AMPLITUDE = 0.75
+#: drift length [output px] below which a fitted trail is not proposed: a box shorter than this is a blur any
+#: small PSF change makes (psf_blur, jitter), not a trail
+DRIFT_MIN_LENGTH = 1.5
+#: smallest vibration amplitude [output px] proposed: an oscillation over less than DRIFT_MIN_LENGTH peak to
+#: peak is the same blur
+VIBRATION_MIN_AMPLITUDE = DRIFT_MIN_LENGTH / 2
 
 
 def _jitter_start(res, terms=(0, 1, 2)):
@@ -870,8 +875,9 @@ TAIL_MAX_FIT_PX = 50.0
 #: shortest tail [sensor px] proposed: a shorter one is a sub-pixel shift and blur of the core
 TAIL_MIN_PX = 0.2
 #: share of the light in the tail above which a tail is not plausible: the source would be more tail than core,
-#: which no coma short of a grossly misaligned mirror makes (and there the scene's PSF itself is wrong)
-TAIL_MAX_FRAC = 0.6
+#: which no coma short of a grossly misaligned mirror makes (and there the scene's PSF itself is wrong): the
+#: halo's bar, HALO_MAX_FRACTION (a source is more core than wings)
+TAIL_MAX_FRAC = HALO_MAX_FRACTION
 #: tail length [in PSF FWHM] above which a tail is not plausible: a coma flare or a tracking tail several PSF
 #: widths long is a trail (pointing_drift) or a PSF the scene's optics must model, not a correction of it
 TAIL_MAX_FWHM = 3.0
@@ -1016,9 +1022,6 @@ def _offset_words(p, res) -> str:
 
 
 # drift: theta = (dx, dy [output px], accel [1], sagitta [output px]); straight first, then the path from it
-#: drift length [output px] below which a fitted trail is not proposed: a box shorter than this is a blur any
-#: small PSF change makes (psf_blur, jitter), not a trail
-DRIFT_MIN_LENGTH = 1.5
 #: |accel| from which a fitted path is described as dwelling at one end (the speed changes by a factor
 #: ``(1 + accel) / (1 - accel)`` ~ 1.9 from one end to the other)
 DRIFT_DWELL_ACCEL = 0.3
@@ -1231,8 +1234,8 @@ def _offset_check(fit, res) -> str:
 #: distortion is what no similarity transform of the field (shift, rotation, plate scale: pointing_offset) does:
 #: a form adds to the other when the joint form removes, beyond it, a chi2 this many standard deviations above
 #: the mean of chi2 with k degrees of freedom, its extra parameters (mean k, variance 2 k: the nested
-#: likelihood-ratio test, Wilks 1938, at the 8-sigma bar the region tests above use); :func:`_distortion_check`
-NESTED_SIGMA = 8.0
+#: likelihood-ratio test, Wilks 1938, at the STRUCTURE_SIGMA bar the region tests above use); :func:`_distortion_check`
+NESTED_SIGMA = STRUCTURE_SIGMA
 
 
 def _displacement_templates(res, idx, fields) -> np.ndarray:

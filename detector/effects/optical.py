@@ -27,6 +27,7 @@ from pydantic import Field, model_validator
 
 from ..errors import DetectorError
 from ..signatures import LinearSignature, Variant, fit_linear, search_sample
+from ..significance import DETECTION_SIGMA
 from .base import Effect, EffectParams, Stage, Tile, register_effect
 
 
@@ -247,8 +248,9 @@ def _loss_at_edge(p: dict, res) -> float:
 VIGNETTING_RINGS = 16
 #: the chi2 by which the observed ring profile must depart from a non-increasing light before a vignetting is
 #: refused: the statistic of an isotonic fit (a chi-bar-squared, Robertson, Wright & Dykstra 1988, Order
-#: Restricted Statistical Inference, ch. 2), whose tail beyond 25 is below 1e-5 for 16 rings (about 4.5 sigma)
-VIGNETTING_RISE_CHI2 = 25.0
+#: Restricted Statistical Inference, ch. 2), at the detection bar of a chi2: DETECTION_SIGMA^2 = 25 (the
+#: chi-bar-squared's tail beyond it is below 1e-5 for 16 rings, about 4.5 sigma)
+VIGNETTING_RISE_CHI2 = DETECTION_SIGMA ** 2
 #: the size of that rise, as a share of the ring profile's own span (brightest to faintest ring), below which a
 #: significant rise is the fitted form's shortfall, not light added away from the centre: a fall-off about a
 #: centre found within the refinement's tolerance, elliptical to the draws' axis ratio 0.6, flattens its central

@@ -31,7 +31,7 @@ from ..signatures import (
     ml_variance_scale,
     search_sample,
 )
-from ..significance import DETECTION_SIGMA
+from ..significance import DETECTION_P, DETECTION_SIGMA, EXPLAINS_MOST
 from .base import Effect, EffectParams, Stage, Tile, register_effect
 
 K_BOLTZMANN = 1.380649e-23  # J/K
@@ -190,8 +190,9 @@ class RowOffsetSignature(Signature):
     kind = "rows"
     pattern = "row means scatter beyond the pixel noise"
     #: a row-offset fit is a smooth curve when a polynomial of this degree in the row index takes more than
-    #: SMOOTH_FRACTION of the row means' excess chi2
-    SMOOTH_DEGREE, SMOOTH_FRACTION = 4, 0.8
+    #: SMOOTH_FRACTION of the row means' excess chi2: most of it (EXPLAINS_MOST)
+    SMOOTH_DEGREE = 4
+    SMOOTH_FRACTION = EXPLAINS_MOST
     #: ... or a pattern of the whole frame when the column means' excess variance is this fraction of the rows'
     COLUMN_FRACTION = 0.5
     #: ... or a drift when the extra row offsets (the smooth curve removed) keep this lag-1 autocorrelation: row
@@ -203,7 +204,7 @@ class RowOffsetSignature(Signature):
     #: row noise is white from row to row, a pickup or clock interference repeats (Priestley 1981, Spectral
     #: Analysis and Time Series, sect. 6.1.4: a periodogram ordinate over the local spectral level is
     #: exponential with mean 1; the largest of m exceeds t with probability ~ m exp(-t))
-    PERIODIC_FALSE_ALARM = 2.9e-7
+    PERIODIC_FALSE_ALARM = DETECTION_P
     #: frequencies on each side whose mean gives the local spectral level (a 1/f part varies slowly over it; the
     #: next frequency on each side, where a line between two frequencies leaks, is left out)
     PERIODIC_NEIGHBOURS = 16
@@ -427,8 +428,9 @@ KTC_MAX_READ_RATIO = 3.0
 
 #: the share of the claimed excess variance that one spatial frequency may hold before the excess is a pattern,
 #: not white noise: white noise puts ~1e-4 of its power in the strongest of the ~1e5 frequencies of a 512 x 512
-#: cut; a pick-up wave puts all of its own there (half of it: the policy's share for "the effect's doing")
-KTC_PERIODIC_SHARE = 0.5
+#: cut; a pick-up wave puts all of its own there (most of it: EXPLAINS_MOST, the policy's share for "the
+#: effect's doing")
+KTC_PERIODIC_SHARE = EXPLAINS_MOST
 
 
 def _ktc_check(fit, res) -> str:

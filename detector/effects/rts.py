@@ -43,6 +43,7 @@ from pydantic import Field, model_validator
 from ..rng import generator
 from ..stats import mad_std
 from ..signatures import Fit, Signature
+from ..significance import MAX_DEFECT_FRACTION
 from .base import Effect, EffectParams, Stage, Tile, register_effect
 
 
@@ -94,7 +95,8 @@ RTS_CORE_PIXELS = 10_000
 #: the largest fraction of the pixels that may show an RTS step in one frame [1]: the populations measured in
 #: CMOS image sensors are below a few per cent of the pixels (Wang et al. 2006; Chao et al. 2019), of which only
 #: those whose trap changes state between the two CDS samples step; a heavier "tail" is a noise of every pixel
-RTS_MAX_ACTIVE = 0.05
+#: (the bar of every anomalous-pixel population, MAX_DEFECT_FRACTION)
+RTS_MAX_ACTIVE = MAX_DEFECT_FRACTION
 #: median step amplitudes [model sigma] the fit tries (log-spaced) and the log-normal spreads of the amplitudes
 RTS_AMPLITUDES_SIGMA = tuple(float(x) for x in np.geomspace(1.0, 60.0, 14))
 RTS_SPREADS_LN = (0.15, 0.4, 0.7, 1.0)

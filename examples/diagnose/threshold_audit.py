@@ -6,10 +6,13 @@ consolidated. This script reads the source (AST, nothing is imported or run) of 
 ``detector/significance.py`` and the effect plugins ``detector/effects/*.py``, and lists
 
 * every module-level or class-level UPPERCASE assignment of a number (or a tuple of numbers): a *definition*;
-  one whose value is a name of another definition (``SPIKE_SIGMA = DETECTION_SIGMA``) is a *reference* to a
-  shared threshold and is not counted again;
+  one whose value is a name of another definition (``SPIKE_SIGMA = DETECTION_SIGMA``), or a stated formula of
+  one (``IPC_STAGE_CHI2 = DETECTION_SIGMA ** 2``, a chi2 bar from a sigma; ``DETECTION_P = 0.5 *
+  math.erfc(DETECTION_SIGMA / math.sqrt(2.0))``, a probability from it: arithmetic and the functions of
+  :data:`FORMULA_FUNCTIONS`), is a *reference* to a shared threshold and is not counted again;
 * every field of :class:`scenes.app.compare.policy.DiagnosisPolicy` (a definition when its default is a number,
-  a reference when it is a shared constant);
+  a reference when it is a shared constant; a field whose basis is ``budget``, a cost of the search, is a
+  numerical setting);
 * every numeric literal in a comparison (``<``, ``<=``, ``>``, ``>=``) inside that code, apart from 0 and +-1:
   the unnamed thresholds.
 
@@ -101,6 +104,7 @@ ENCLOSED_SIGMA | D | statistics | standard errors for the enclosed-light test to
 PSF_WINDOW_PX | N | budget | central window of the PSF re-render
 @scenes/app/compare/policy.py
 SCALE_TOLERANCE | D | physics | a scene's scale known to a few per cent: 10 % off is a finding
+LINEARITY_RESOLVED | D | physics | the linearity error a photon-transfer curve resolves, 0.1 % (Janesick 2007)
 @scenes/app/compare/report.py
 DPI | N | display | plot resolution
 Z_CLIP | N | display | colour scale of the z map
@@ -123,9 +127,13 @@ MAP_SIDE | N | display | residual map size in the report
 PEAK_SIDE | N | budget | cut-out searched for spectral peaks
 @detector/significance.py
 DETECTION_SIGMA | D | statistics | 5 sigma: one-sided 2.9e-7 per test
+DETECTION_P | D | statistics | DETECTION_SIGMA as a one-sided probability (normal tail)
+FRAME_FALSE_ALARM | D | statistics | a test of a whole frame (a search's peak, a count): false alarms per frame
 STRUCTURE_SIGMA | D | calibration | 8 sigma of a many-pixel chi2 excess; no null beyond it (docs/null_calibration.md)
-FOOTPRINT_SIGMA | D | statistics | a source's footprint: model light 3 sigma above the noise (SExtractor)
-EXPLAINS_MOST | D | physics | a form explains most (half) of the residual it claims
+FOOTPRINT_SIGMA | D | statistics | a part of a detected whole (a footprint pixel, a spike's group, one source of a ghost): 3 sigma (SExtractor)
+EXPLAINS_MOST | D | physics | a claim covers most (half) of what it claims (residual, pixels, excess)
+MIN_TEST_PIXELS | D | statistics | fewest pixels a refit or test of a subset of the frame speaks on
+MAX_DEFECT_FRACTION | D | physics | anomalous-pixel populations (defects, RTS) hold a few per cent of the pixels at most
 STRONG_EVIDENCE | D | contract | -2 ln L change of 10: very strong evidence (Kass & Raftery 1995)
 @detector/signatures.py
 SPIKE_SIGMA | D | statistics | a pixel is a spike beyond detection_sigma
@@ -186,7 +194,7 @@ MAP_LONG_SPAN | D | design | a feature this long is a trail
 KIND_LOCAL_SIGMA_PX | N | scale | smoothing of the local additive estimate
 SOURCE_KERNEL_HALF | N | geometry | half size of the source kernel
 SOURCE_KERNEL_PIXELS | N | budget | source kernel subsample
-SOURCE_KERNEL_CORE_SIGMA | D | statistics | a source pixel: model light 5 sigma above the noise
+SOURCE_KERNEL_CORE_SIGMA | D | statistics | a source pixel: its footprint, model light FOOTPRINT_SIGMA above the noise
 SOURCE_KERNEL_HARMONICS | N | basis | angular harmonics of the kernel
 @detector/flux_law.py
 SOURCE_MIN_SNR | D | statistics | S/N of a source's amplitude to enter the slope
@@ -294,7 +302,7 @@ RowOffsetSignature.SMOOTH_DEGREE | N | basis | polynomial degree of the smooth-c
 RowOffsetSignature.SMOOTH_FRACTION | D | design | a row-offset fit is a smooth curve above this share
 RowOffsetSignature.COLUMN_FRACTION | D | design | a whole-frame pattern, not row noise
 RowOffsetSignature.MAX_LAG1 | D | physics | row noise is white from row to row (Janesick 2007)
-RowOffsetSignature.PERIODIC_FALSE_ALARM | D | statistics | one-sided 5 sigma (rounded)
+RowOffsetSignature.PERIODIC_FALSE_ALARM | D | statistics | one-sided DETECTION_SIGMA (DETECTION_P)
 RowOffsetSignature.PERIODIC_NEIGHBOURS | N | estimator | frequencies of the local spectral level
 BIAS_PROFILE_ORDERS | N | grid | bias pattern orders tried
 BIAS_FIELD_ORDERS | N | grid | bias field orders tried
@@ -341,6 +349,12 @@ MIN_LINE_PIXELS | N | sampling | pixels a line needs for its gain estimate
 VarianceSignature.CELL_SIGMA | D | statistics | a cell is far above the rest only beyond detection-like 5 standard errors
 @scenes/app/compare/candidates.py
 DITHER_SEED | N | seed | fixed dither of integer read codes (reproducibility)
+SIGNIFICANT_DELTA_BIC | D | contract | the policy's significant_delta_bic
+OVERFIT_CHI2_PER_DOF | D | statistics | the policy's overfit_chi2_per_dof
+@scenes/app/compare/series.py
+MAX_SERIES_FRAME_PX | N | budget | a series' frames take the large-frame path above the same size
+@detector/effects/cti.py
+CTI_RELEASE_TRANSFERS | N | model | the trap release times rendered and fitted (the HST ACS ones)
 @scenes/app/compare/judge.py
 SAME_SCATTER_TOLERANCE | D | physics | two added variances proportional to 1e-3 (float32 templates of one map agree to 1e-7; a 1 % dark gradient gives 2 %)
 """
@@ -392,12 +406,28 @@ def _numeric_literal(node: ast.AST) -> bool:
     return False
 
 
+#: functions a reference may apply to another definition (a stated formula: a chi2 bar from a sigma, a
+#: probability from a sigma), called as ``module.function``
+FORMULA_MODULES = {"math", "np", "numpy"}
+FORMULA_FUNCTIONS = {"sqrt", "erfc", "erf", "exp", "log", "log10"}
+
+
+def _formula(node: ast.AST) -> bool:
+    return (isinstance(node, ast.Call) and not node.keywords and isinstance(node.func, ast.Attribute)
+            and isinstance(node.func.value, ast.Name) and node.func.value.id in FORMULA_MODULES
+            and node.func.attr in FORMULA_FUNCTIONS)
+
+
 def _reference(node: ast.AST) -> bool:
-    """An expression of names (and numbers) only: a value taken from another definition."""
+    """An expression of names (and numbers, and the formula functions of :data:`FORMULA_FUNCTIONS`) only, with
+    at least one name of another definition: a value taken from another definition by a stated formula."""
     leaves = list(ast.walk(node))
-    return (any(isinstance(n, (ast.Name, ast.Attribute)) for n in leaves)
+    calls = [n for n in leaves if isinstance(n, ast.Call)]
+    funcs = {id(c.func) for c in calls} | {id(c.func.value) for c in calls if isinstance(c.func, ast.Attribute)}
+    names = [n for n in leaves if isinstance(n, (ast.Name, ast.Attribute)) and id(n) not in funcs]
+    return (bool(names) and all(_formula(c) for c in calls)
             and all(isinstance(n, (ast.Name, ast.Attribute, ast.Constant, ast.UnaryOp, ast.BinOp, ast.Load,
-                                   ast.operator, ast.unaryop, ast.Tuple)) for n in leaves)
+                                   ast.operator, ast.unaryop, ast.Tuple, ast.Call)) for n in leaves)
             and not any(isinstance(n, ast.Constant) and isinstance(n.value, str) for n in leaves))
 
 
@@ -434,8 +464,10 @@ def _policy_fields(path: str, cls: ast.ClassDef) -> list[Entry]:
             default = args[0]
             basis = args[2].value if len(args) > 2 and isinstance(args[2], ast.Constant) else "unaccounted"
             doc = ast.literal_eval(args[3]) if len(args) > 3 else ""
+            # a field whose basis is a budget (a cost of the search) is a numerical setting, as the modules' are
+            cls_ = NUMERICAL if basis == "budget" else DECISION
             out.append(Entry(path, node.target.id, node.lineno, ast.unparse(default), not _numeric_literal(default),
-                             DECISION, basis, " ".join(str(doc).split())[:90], True, policy=True))
+                             cls_, basis, " ".join(str(doc).split())[:90], True, policy=True))
     return out
 
 
@@ -489,7 +521,7 @@ def counts(entries: list[Entry], literals: dict) -> dict[str, dict[str, int]]:
     for path in sorted({e.path for e in entries} | set(literals)):
         es = [e for e in entries if e.path == path]
         own = [e for e in es if not e.shared]
-        out[path] = {"policy fields": sum(e.policy for e in own),
+        out[path] = {"policy fields": sum(e.policy and e.cls == DECISION for e in own),
                      "decision": sum(e.cls == DECISION and not e.policy for e in own),
                      "unaccounted": sum(not e.known for e in own),
                      "numerical": sum(e.cls == NUMERICAL for e in own),
@@ -538,7 +570,7 @@ def markdown(entries: list[Entry], literals: dict) -> str:
             lines.append(f"| `{e.path}` | `{e.name}` | {_fmt(v)} | {e.basis} | {_fmt(e.reason)} |")
     lines += ["", "### Numerical settings", "", "| file | name | value | kind | reason |", "|---|---|---|---|---|"]
     for e in entries:
-        if e.cls == NUMERICAL and not e.policy:
+        if e.cls == NUMERICAL:
             lines.append(f"| `{e.path}` | `{e.name}` | {_fmt(e.value)} | {e.basis} | {_fmt(e.reason)} |")
     return "\n".join(lines) + "\n"
 

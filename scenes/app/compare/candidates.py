@@ -17,6 +17,7 @@ import numpy as np
 from detector import registry
 from detector.morphology import block_chi2
 from detector.signatures import Fit, Residuals, frame_at, heldout_delta, on_read_codes
+from detector.significance import FOOTPRINT_SIGMA, MIN_TEST_PIXELS
 
 from .floors import floor_reason, signal_range_floor
 from .judge import Candidate, indistinguishable, rank, verdict
@@ -145,10 +146,10 @@ def stars_check(res: Residuals, fit: Fit, truth, policy: DiagnosisPolicy = DEFAU
 #: unsaturated star's: a saturated star's wings out to a few FWHM and its bleed's spill beside the trail
 SATURATED_REACH_PX = 10
 #: the fewest compared pixels beyond that reach on which the change is refitted (fewer: not tested)
-AWAY_MIN_PIXELS = 100
+AWAY_MIN_PIXELS = MIN_TEST_PIXELS
 #: standard errors by which the refitted amplitude must fall short of the share (one-sided 0.13 % for a change
-#: that does act on every source)
-AWAY_SIGMA = 3.0
+#: that does act on every source): one side of a test of a change already significant, FOOTPRINT_SIGMA
+AWAY_SIGMA = FOOTPRINT_SIGMA
 
 
 def saturated_reach(res: Residuals) -> tuple[np.ndarray, int] | None:

@@ -28,7 +28,7 @@ import numpy as np
 
 from detector.flux_law import change_slope, flux_law
 from detector.signatures import Fit, Residuals, frame_at, pixel_score
-from detector.significance import DETECTION_SIGMA, FOOTPRINT_SIGMA
+from detector.significance import DETECTION_SIGMA, FOOTPRINT_SIGMA, MIN_TEST_PIXELS
 
 from .apply import bias_per_output_adu
 from .candidates import away_from_saturation
@@ -63,9 +63,9 @@ def level_fit(res: Residuals, delta_adu=None) -> dict[str, tuple[float, float]]:
 ENCLOSED_GROW_PX = (16, 8, 4)
 #: the ring beyond that aperture whose median residual is the local background: from this far out, this wide [px]
 RING_GAP_PX, RING_WIDTH_PX = 2, 6
-#: the fewest fitted pixels of that ring, and the largest share of the frame the apertures may cover (beyond,
-#: the next narrower aperture is taken)
-RING_MIN_PIXELS = 100
+#: the fewest fitted pixels of that ring (MIN_TEST_PIXELS), and the largest share of the frame the apertures may
+#: cover (beyond, the next narrower aperture is taken)
+RING_MIN_PIXELS = MIN_TEST_PIXELS
 APERTURE_MAX_SHARE = 0.5
 #: standard errors by which the enclosed light's ratio must differ from the zero point's for the test to speak
 ENCLOSED_SIGMA = DETECTION_SIGMA

@@ -22,14 +22,27 @@ from dataclasses import MISSING, asdict, dataclass, field, fields, replace
 from pathlib import Path
 
 from detector.errors import DetectorError
-from detector.significance import DETECTION_SIGMA, EXPLAINS_MOST, STRONG_EVIDENCE, STRUCTURE_SIGMA
+from detector.significance import (
+    DETECTION_SIGMA,
+    EXPLAINS_MOST,
+    MAX_DEFECT_FRACTION,
+    STRONG_EVIDENCE,
+    STRUCTURE_SIGMA,
+)
 
-#: why a field has its value: the DESIGN contract, the null calibration, or physics
-BASES = ("contract", "calibration", "physics", "statistics")
+#: why a field has its value: the DESIGN contract, the null calibration, physics, a property of the test, or a
+#: budget (a cost of the search, not a threshold: how many contenders are scored)
+BASES = ("contract", "calibration", "physics", "statistics", "budget")
 #: fields that ask the same question share one value (the significance levels and EXPLAINS_MOST of
 #: detector/significance.py, and this): a refitted scale of the scene or of its noise is a finding beyond this
-#: relative change (parameter_scale_tolerance, noise_scale_tolerance)
+#: relative change (parameter_scale_tolerance, noise_scale_tolerance); a candidate may worsen the sources'
+#: photometry by as much and no more (stars_worse_ln)
 SCALE_TOLERANCE = 0.1
+#: ... and this: a non-linearity is a finding when the response law departs from a line by this fraction, at full
+#: well or within the frame's own range (min_nonlinearity_at_full_well, min_nonlinearity_in_range): 0.1 %, the
+#: linearity error a photon-transfer measurement resolves (Janesick 2007, Photon Transfer, ch. 5; EMVA 1288
+#: release 4.0, sect. 6.9)
+LINEARITY_RESOLVED = 0.001
 
 
 def _f(default, unit: str, basis: str, doc: str):
@@ -59,7 +72,7 @@ class DiagnosisPolicy:
         "binned 8x8, three ADC codes of noise); confirmed on 315 more from a fresh seed: -32.8 apart from one "
         "kTC noise of 4e-6 e- at -40.6, now below the noise floor (min_extra_noise_fraction)")
     heldout_candidates: int = _f(
-        8, "candidates", "statistics",
+        8, "candidates", "budget",
         "contenders (best delta BIC first) scored on held-out pixels: the cost of the cross-validation")
     twin_fraction: float = _f(
         0.05, "1", "calibration",
@@ -108,9 +121,9 @@ class DiagnosisPolicy:
         0.05, "1", "statistics",
         "... and never less than this fraction of the model's own variance")
     stars_worse_ln: float = _f(
-        0.1, "|ln flux ratio|", "physics",
+        SCALE_TOLERANCE, "|ln flux ratio|", "physics",
         "a candidate reshaping the sources may worsen the bright stars' median |ln(data/model flux)| by at "
-        "most this much ...")
+        "most this much (SCALE_TOLERANCE: a flux error the size of a zero point that is itself a finding) ...")
     stars_ok_ln: float = _f(
         0.2, "|ln flux ratio|", "physics", "... and must leave it below this")
     stars_min: int = _f(10, "stars", "statistics", "bright stars needed for that photometry test")
@@ -153,7 +166,7 @@ class DiagnosisPolicy:
 
     # -- physical effect-size floors ------------------------------------------------------------------------------
     min_nonlinearity_at_full_well: float = _f(
-        0.001, "1", "physics",
+        LINEARITY_RESOLVED, "1", "physics",
         "a non-linearity smaller than this at full well (0.1 %) is not a finding: photon-transfer curves of "
         "scientific CCD/CMOS measure 0.1-1 % at best (Janesick 2007, Photon Transfer, ch. 5)")
     min_nonlinearity_signal_fraction: float = _f(
@@ -162,7 +175,7 @@ class DiagnosisPolicy:
         "law (EMVA 1288 release 4.0, sect. 6.9, measures the linearity error from 5 % to 95 % of saturation); a "
         "frame below it must show the law within its own range (min_nonlinearity_in_range)")
     min_nonlinearity_in_range: float = _f(
-        0.001, "1", "physics",
+        LINEARITY_RESOLVED, "1", "physics",
         "on a frame below min_nonlinearity_signal_fraction of the full well, a non-linearity is a finding when, "
         "within the frame's own signal range (its median to its 99.9th percentile), the fitted law changes the response by at least this fraction (0.1 %, the linearity error "
         "a photon-transfer measurement resolves, Janesick 2007 ch. 5; EMVA 1288 release 4.0 sect. 6.9); its size "
@@ -183,7 +196,7 @@ class DiagnosisPolicy:
         "events, a few times the muon rate at most; a rate 100x the physical one is a pattern of bright pixels, "
         "not particles)")
     max_defect_fraction: float = _f(
-        0.05, "1", "physics",
+        MAX_DEFECT_FRACTION, "1", "physics",
         "hot or dead pixels (or columns) on more than this fraction of the sensor are not defects: camera data "
         "sheets (EMVA 1288) give 1e-5 to 1e-3 of the pixels and a grade-2 CCD a few tens of its thousands of "
         "columns; the count is extrapolated from the frame to the sensor, so the floor leaves a margin")
@@ -193,9 +206,9 @@ class DiagnosisPolicy:
         "in the model is that effect's doing (its form differs from the plugin's, so some remains): the "
         "effect is named first and the next round refits the number")
     hot_in_dark_fraction: float = _f(
-        0.5, "1", "physics",
+        EXPLAINS_MOST, "1", "physics",
         "when the scene has the user's dark, a hot-pixel candidate needs at least this share of its pixels hot "
-        "in that dark (a hot pixel is hot in every frame)")
+        "in that dark (a hot pixel is hot in every frame): most of the pixels it claims (EXPLAINS_MOST)")
 
     def to_json(self) -> dict:
         """The values, by name (every ``diagnose --json`` records them under ``policy``)."""
@@ -261,7 +274,8 @@ def markdown_table(policy: DiagnosisPolicy = DEFAULT_POLICY) -> str:
              "Generated from `scenes/app/compare/policy.py` (`python -m scenes.app.compare.policy`); do not edit.",
              "Every threshold the judge uses, its unit and the basis of its value: the DESIGN `contract`, a",
              "`calibration` on null frames of the independent textbook chain (docs/null_calibration.md),",
-             "`physics` (what no real camera does) or `statistics` (a property of the test itself).",
+             "`physics` (what no real camera does) or `statistics` (a property of the test itself); a `budget` is",
+             "a cost of the search (how many contenders are scored), not a threshold.",
              "`newtsim diagnose --policy FILE` overrides any of them; `diagnose --json` records the policy used.",
              "", "| field | value | unit | basis | meaning |", "|---|---|---|---|---|"]
     for f in fields(policy):

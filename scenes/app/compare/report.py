@@ -29,6 +29,7 @@ from pathlib import Path
 
 import numpy as np
 
+from detector.morphology import PERIODIC_CONTRAST
 from detector.significance import DETECTION_SIGMA, STRONG_EVIDENCE
 
 from .policy import DEFAULT_POLICY
@@ -41,10 +42,12 @@ Z_CLIP = 5.0
 FLAG_SIGMA = DETECTION_SIGMA
 #: Poisson deviance of an outlier count above which it is flagged (~3 sigma for one count)
 DEVIANCE_FLAG = STRONG_EVIDENCE
-#: power over the median above which a full-resolution spectral peak is flagged (white noise: ~15-25)
-PEAK_FLAG = 100.0
-#: misfit below which the model explains the frame (noise-only frames give ~0-3)
-MISFIT_OK = 5.0
+#: power over the median above which a full-resolution spectral peak is flagged (white noise: ~15-25): the
+#: morphology's bar of a spectral line significant on its own
+PEAK_FLAG = PERIODIC_CONTRAST
+#: misfit (a standardised excess [sigma]) below which the model explains the frame (noise-only frames give ~0-3):
+#: the detection bar of a standardised excess, DETECTION_SIGMA
+MISFIT_OK = DETECTION_SIGMA
 #: candidates whose delta BIC is at or above this are not significant (DESIGN.md contract)
 SIGNIFICANT_DELTA_BIC = DEFAULT_POLICY.significant_delta_bic
 
