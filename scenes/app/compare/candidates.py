@@ -16,7 +16,7 @@ import numpy as np
 
 from detector import registry
 from detector.morphology import block_chi2
-from detector.signatures import Fit, Residuals, frame_at, heldout_delta, on_read_codes
+from detector.signatures import Fit, Residuals, dither_codes, frame_at, heldout_delta
 
 from .floors import floor_reason, signal_range_floor
 from .judge import Candidate, indistinguishable, rank, verdict
@@ -56,10 +56,6 @@ def at_bound(cls, params: dict) -> str:
     return ""
 
 
-#: fixed seed of the dither that spreads read values on integer ADC codes over their code (robust_excess_var)
-DITHER_SEED = 20_230_117
-
-
 def robust_excess_var(res: Residuals) -> tuple[float, float]:
     """(the data's variance beyond the model's, the model's) [ADU^2], medians over the fitted pixels with
     the levels refitted: ``median(r^2) / 0.4549 - median(v)`` (0.4549 = median of chi2 with 1 dof), which
@@ -75,9 +71,7 @@ def robust_excess_var(res: Residuals) -> tuple[float, float]:
         v = float(np.median(1.0 / w)) if w.size else 0.0
         q2 = 0.0
         if r.size:
-            if on_read_codes(res, idx):
-                u = np.random.default_rng(DITHER_SEED).random(r.size) - 0.5
-                r, q2 = r + u, 1.0 / 12.0
+            r, q2 = dither_codes(res, idx, r)
         return (float(np.median(r * r)) / 0.4549 - v - q2 if r.size else 0.0, v)
     return res.memo("robust_excess", compute)
 
