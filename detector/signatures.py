@@ -1786,14 +1786,17 @@ class VarianceSignature(Signature):
         if self.smooth is not None and d + k * np.log(max(n, 2)) < -STRONG_EVIDENCE:
             tmpl = self.smooth(res)
             ln = np.log(max(n, 2))
-            ds, rms, m, cos_delta = smooth_component(res, tmpl)
-            best_smooth = (ds + m * ln, ds, m, rms, cos_delta) if m and ds + m * ln < 0 else None
-            # ... or a map of any shape at the scale of a few pixels (a pattern of more cycles than the cosines
-            # hold), when its BIC (its smoother's effective parameters) is the better: it is predicted on pixels
-            # the fit did not see (its mean change is the fit's, scored by the held-out folds)
+            # the response map at the scale of a few pixels, of any shape (a pattern of more cycles than a cosine
+            # basis holds), when it pays for its smoother's effective parameters (BIC); else the smooth cosines
+            # of a few cycles. Either is the fit's mean change: predicted on pixels the fit did not see (the
+            # held-out folds) and judged on the frame's large-scale structure as every mean change is
             got = smooth_map_component(res, tmpl)
-            if got is not None and got[0] + got[2] * ln < min(0.0, best_smooth[0] if best_smooth else 0.0):
+            best_smooth = None
+            if got is not None and got[0] + got[2] * ln < 0:
                 best_smooth = (got[0] + got[2] * ln, got[0], got[2], got[1], got[3])
+            else:
+                ds, rms, m, cos_delta = smooth_component(res, tmpl)
+                best_smooth = (ds + m * ln, ds, m, rms, cos_delta) if m and ds + m * ln < 0 else None
             if best_smooth is not None:
                 _, ds, m, rms, smooth_delta = best_smooth
                 d, k = d + ds, k + m
