@@ -373,9 +373,13 @@ def _overlap(a, b) -> bool:
     return bool((a[4][y0 - a[0]:y1 - a[0], x0 - a[2]:x1 - a[2]] & b[4][y0 - b[0]:y1 - b[0], x0 - b[2]:x1 - b[2]]).any())
 
 
-def block_chi2(res: Residuals, delta_adu: np.ndarray | None = None) -> tuple[float, int]:
+def block_chi2(res: Residuals, delta_adu: np.ndarray | None = None,
+               extra_var_adu2: np.ndarray | float | None = None) -> tuple[float, int]:
     """(chi2, number) of the weighted block means of the level-profiled residual (minus ``delta_adu``): the
-    large-scale structure a mean pattern leaves, blind to pixel-to-pixel noise."""
+    large-scale structure a mean pattern leaves, blind to pixel-to-pixel noise. With ``extra_var_adu2`` (a
+    candidate's added pixel variance [ADU^2], its positive part) the block means' variances include it
+    (``sum w^2 e / (sum w)^2``): a white pixel pattern's block means scatter by its own variance too, which is
+    the candidate's scatter, not a structure it leaves."""
     shape = res.data_adu.shape
     idx, r, w = res.flat_profiled()
     if delta_adu is not None:
@@ -390,7 +394,12 @@ def block_chi2(res: Residuals, delta_adu: np.ndarray | None = None) -> tuple[flo
     sw = _blocks(wmap, b)
     ok = sw > 0
     mean = _blocks(rmap, b, wmap)[ok] / sw[ok]
-    wb = 1.0 / (1.0 / sw[ok] + float(res.row_var_adu2) / b)  # a block mean shares the offsets of its b rows
+    var_b = 1.0 / sw[ok] + float(res.row_var_adu2) / b  # a block mean shares the offsets of its b rows
+    if extra_var_adu2 is not None:
+        emap = np.zeros(shape, np.float64)
+        emap.ravel()[idx] = np.maximum(frame_at(np.broadcast_to(extra_var_adu2, shape), idx), 0.0)
+        var_b = var_b + _blocks(emap * wmap * wmap, b)[ok] / sw[ok] ** 2
+    wb = 1.0 / var_b
     return float(np.sum(mean * mean * wb)), int(ok.sum())
 
 

@@ -712,6 +712,24 @@ def on_read_codes(res: "Residuals", idx: np.ndarray) -> bool:
     return bool(np.all(d == np.round(d)))
 
 
+#: fixed seed of the dither that spreads read values on integer ADC codes over their code (reproducible)
+DITHER_SEED = 20_230_117
+
+
+def dither_codes(res: "Residuals", idx: np.ndarray, r: np.ndarray, spacing: float = 1.0) -> tuple[np.ndarray, float]:
+    """(``r`` dithered, the dither's variance): when the frame's values at flat pixels ``idx`` are read values on
+    the ADC's integer codes (:func:`on_read_codes`), the residuals ``r`` there (a lattice of points ``spacing``
+    apart: 1 ADU, or its rescaling) are spread uniformly over their code (a fixed-seed dither: a dithered
+    quantizer's output is continuous, Widrow & Kollar 2008, Quantization Noise, ch. 19) and the dither's
+    variance ``spacing^2 / 12`` is returned for the caller to take off. A median of squares of lattice values
+    snaps to a lattice point, off by up to half a code: at a noise of a few ADU an error of several ADU^2 in a
+    variance (a 6 ADU noise: +-5 ADU^2). Unchanged (variance 0) on a float frame."""
+    if not np.size(r) or not on_read_codes(res, idx):
+        return r, 0.0
+    u = np.random.default_rng(DITHER_SEED).random(r.size) - 0.5
+    return r + spacing * u, spacing * spacing / 12.0
+
+
 def frame_at(a, idx: np.ndarray) -> np.ndarray:
     """``np.asarray(a, np.float64).ravel()[idx]`` (a frame, or a view that broadcasts to one, at flat pixel
     indices) without a float64 copy of the whole frame: the same numbers."""
@@ -1468,7 +1486,7 @@ def variance_sample(res: Residuals) -> dict:
             k3_poisson /= float(b) ** 4
         res._flat["variance_sample"] = {"sub": sub, "idx": idx[sub], "r": rs, "v": 1.0 / ws, "w": ws,
                                         "r_white": (rs - smooth) / np.sqrt(keep_var),
-                                        "scale": idx.size / max(sub.size, 1),
+                                        "keep_var": keep_var, "scale": idx.size / max(sub.size, 1),
                                         "k3_poisson": k3_poisson}
     return res._flat["variance_sample"]
 
@@ -1560,19 +1578,77 @@ def tail_neighbour_correlation(res: Residuals) -> tuple[float, float, int, float
     return res._flat["tail_neighbour_correlation"]
 
 
-def smooth_component(res: Residuals, template: np.ndarray) -> tuple[float, float, int]:
+def smooth_component(res: Residuals, template: np.ndarray) -> tuple[float, float, int, np.ndarray | None]:
     """The low-frequency part of a multiplicative pattern: the level-profiled residual fitted by the smooth
     cosine basis times ``template`` (e.g. the photo-signal for a PRNU map's large scales). Returns (delta
-    -2 ln L over all fitted pixels, rms of the fitted relative pattern, number of templates)."""
+    -2 ln L over all fitted pixels, rms of the fitted relative pattern, number of templates, the fitted mean
+    change [ADU] on the whole frame: what the pattern predicts on pixels it was not fitted on)."""
     vs = variance_sample(res)
-    t = template_at(template, res.data_adu.shape, vs["idx"])
+    shape = res.data_adu.shape
+    t = template_at(template, shape, vs["idx"])
     if not np.any(t):
-        return 0.0, 0.0, 0
-    basis = cosine_basis(res.data_adu.shape, vs["idx"], constant=False)
+        return 0.0, 0.0, 0, None
+    basis = cosine_basis(shape, vs["idx"], constant=False)
     levels = res.level_values(vs["idx"])  # the levels the frame fits (Residuals.levels)
-    _, d, part = lstsq_delta(vs["r"], vs["w"], basis * t, levels if levels.size else None)
+    c, d, part = lstsq_delta(vs["r"], vs["w"], basis * t, levels if levels.size else None)
     rel = part / np.where(t != 0, t, np.inf)
-    return d * vs["scale"], float(np.sqrt(np.mean(rel * rel))), basis.shape[0]
+    # the fitted map on every pixel, separably (cosine_basis's terms: k along x, l along y, (0, 0) left out)
+    o = SMOOTH_ORDER
+    cx = np.cos(np.pi * np.outer(np.arange(o + 1), (np.arange(shape[1]) + 0.5) / shape[1]))
+    cy = np.cos(np.pi * np.outer(np.arange(o + 1), (np.arange(shape[0]) + 0.5) / shape[0]))
+    ks, ms = zip(*[(k, m) for k in range(o + 1) for m in range(o + 1) if k or m])
+    coef = np.zeros((o + 1, o + 1))
+    coef[list(ks), list(ms)] = c
+    full = (cy.T @ coef.T @ cx) * np.broadcast_to(np.asarray(template, np.float64), shape)
+    return d * vs["scale"], float(np.sqrt(np.mean(rel * rel))), basis.shape[0], full.astype(np.float32)
+
+
+#: blocks a side of the frame's shorter axis over which a pattern's low-frequency map is measured
+#: (:func:`smooth_map_component`): detector.morphology's empirical map's (its BLOCKS), so a named pattern's
+#: large scales are measured as finely as the description's that it must predict as well as
+SMOOTH_MAP_BLOCKS = 48
+
+
+def smooth_map_component(res: Residuals, template: np.ndarray) -> tuple[float, float, float, np.ndarray] | None:
+    """The low-frequency part of a multiplicative pattern as a map of any shape (a PRNU's flat-field map:
+    coating and thickness variations, Janesick 2007, Photon Transfer, ch. 8; not only the few cycles of
+    :func:`smooth_component`'s cosine basis): the pattern's template-weighted least-squares value in blocks of
+    ``min(shape) / SMOOTH_MAP_BLOCKS`` pixels (``sum w t r / sum w t^2``), smoothed over a block (normalised
+    convolution, a Gaussian of one block), interpolated to every pixel and times ``template`` [ADU]. Returns
+    (delta -2 ln L over the fitted pixels with the levels refitted, rms of the relative map, its effective
+    number of parameters: the smoother's trace, the blocks with data times the Gaussian's central weight, the
+    mean change [ADU] on the whole frame), or None without a template."""
+    from scipy.ndimage import gaussian_filter
+
+    from detector.morphology import _upsample
+
+    shape = res.data_adu.shape
+    idx, r, w = res.flat_profiled()
+    if not idx.size:
+        return None
+    t = template_at(template, shape, idx)
+    if not np.any(t):
+        return None
+    b = int(max(2, min(shape) // SMOOTH_MAP_BLOCKS))
+    ny, nx = -(-shape[0] // b), -(-shape[1] // b)
+    y, x = np.divmod(idx, shape[1])
+    cell = (y // b) * nx + x // b
+    num = np.bincount(cell, w * t * r, minlength=ny * nx).reshape(ny, nx)
+    den = np.bincount(cell, w * t * t, minlength=ny * nx).reshape(ny, nx)
+    has = den > 0
+    if has.sum() < 4:
+        return None
+    sm = gaussian_filter(num, 1.0, mode="nearest") / np.maximum(gaussian_filter(den, 1.0, mode="nearest"), 1e-300)
+    impulse = np.zeros((9, 9))
+    impulse[4, 4] = 1.0
+    k_eff = float(has.sum()) * float(gaussian_filter(impulse, 1.0, mode="constant")[4, 4])
+    rel = _upsample(np.where(np.isfinite(sm), sm, 0.0), b, shape)
+    delta = (rel * np.broadcast_to(np.asarray(template, np.float32), shape)).astype(np.float32)
+    levels = res.level_values(idx)
+    c, d, _ = lstsq_delta(r, w, delta.ravel()[idx].astype(np.float64)[None, :], levels if levels.size else None)
+    c0 = float(c[0]) if np.isfinite(c[0]) else 0.0  # the map's amplitude refitted with the levels (about 1)
+    rel_at = c0 * rel.ravel()[idx]
+    return d, float(np.sqrt(np.mean(rel_at * rel_at))), k_eff, (c0 * delta).astype(np.float32)
 
 
 #: the lines' gains of a response pattern (column amplifiers, row drivers) are independent from line to line:
@@ -1715,9 +1791,23 @@ class VarianceSignature(Signature):
         n = res.n_fit
         note = law or ""
         extra = {}
+        smooth_delta = None
         if self.smooth is not None and d + k * np.log(max(n, 2)) < -STRONG_EVIDENCE:
-            ds, rms, m = smooth_component(res, self.smooth(res))
-            if m and ds + m * np.log(max(n, 2)) < 0:
+            tmpl = self.smooth(res)
+            ln = np.log(max(n, 2))
+            # the response map at the scale of a few pixels, of any shape (a pattern of more cycles than a cosine
+            # basis holds), when it pays for its smoother's effective parameters (BIC); else the smooth cosines
+            # of a few cycles. Either is the fit's mean change: predicted on pixels the fit did not see (the
+            # held-out folds) and judged on the frame's large-scale structure as every mean change is
+            got = smooth_map_component(res, tmpl)
+            best_smooth = None
+            if got is not None and got[0] + got[2] * ln < 0:
+                best_smooth = (got[0] + got[2] * ln, got[0], got[2], got[1], got[3])
+            else:
+                ds, rms, m, cos_delta = smooth_component(res, tmpl)
+                best_smooth = (ds + m * ln, ds, m, rms, cos_delta) if m and ds + m * ln < 0 else None
+            if best_smooth is not None:
+                _, ds, m, rms, smooth_delta = best_smooth
                 d, k = d + ds, k + m
                 extra = {"smooth_rms": rms}
                 note = (note + " " if note else "") + f"+ low-frequency pattern {100 * rms:.2g} % rms"
@@ -1727,6 +1817,8 @@ class VarianceSignature(Signature):
             note = (note + " " if note else "") + "+ " + " and ".join(
                 f"{key.split('_')[0]} gains {100 * v:.2g} % rms" for key, v in line_sig.items())
         params_explain = {**params, **extra}
+        if smooth_delta is not None:
+            line_delta = smooth_delta if line_delta is None else (line_delta + smooth_delta).astype(np.float32)
         return Fit(name, params, d, k, n, self.explain(params_explain, res_all),
                    extra_var_adu2=theta * np.broadcast_to(full, res.data_adu.shape), note=note,
                    delta_adu=line_delta, state={"theta": theta, "law": law})
@@ -1843,13 +1935,17 @@ class VarianceSignature(Signature):
         y, x = np.divmod(vs["idx"], shape[1])
         cell = np.minimum(y * cells // shape[0], cells - 1) * cells + np.minimum(x * cells // shape[1], cells - 1)
         t = template_at(self.template(res), shape, vs["idx"])
+        # read values on integer codes: the whitened residual is a lattice of codes 1 / sqrt(keep_var) apart, whose
+        # median of squares snaps between lattice points (a cell's excess off by several ADU^2 at a noise of a few
+        # ADU, a "gradient of the noise" from cell to cell): dithered over its code first (as robust_excess_var)
+        rw, q2 = dither_codes(res, vs["idx"], vs["r_white"], 1.0 / np.sqrt(vs["keep_var"]))
         ratios, errs = [], []
         for c in range(cells * cells):
             sel = cell == c
             if sel.sum() < 200:
                 continue
             v = float(np.median(vs["v"][sel]))
-            excess = float(np.median(vs["r_white"][sel] ** 2)) / 0.4549 - v
+            excess = float(np.median(rw[sel] ** 2)) / 0.4549 - v - q2
             pred = theta * float(np.mean(t[sel]))
             if pred > 0:
                 ratios.append(excess / pred)
@@ -2017,11 +2113,32 @@ def lattice(index: np.ndarray, shape: tuple[int, int], periods=(2, 3, 4, 6, 8)) 
     return best
 
 
+def spike_events(index: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
+    """The independent detections among local-outlier pixels at flat ``index``: spikes closer than the width of
+    the 3x3 median they stand out from (Chebyshev distance <= 2: their windows share pixels) are one event, the
+    first of each kept. A defect cluster of 3x3 or more stands out of that median at its corners only (an inner
+    pixel's median is the cluster's own level), which are 8-disconnected: one defect, four "isolated" spikes
+    two pixels apart. A test of where independent defects fall (a Poisson process: :func:`clustered`,
+    :func:`lattice`) counts defects, not the corners of each."""
+    from scipy import ndimage
+
+    index = np.asarray(index, np.int64)
+    if index.size < 2:
+        return index
+    img = np.zeros(shape, bool)
+    img.ravel()[index] = True
+    lab, _ = ndimage.label(ndimage.binary_dilation(img, np.ones((3, 3), bool)), structure=np.ones((3, 3)))
+    _, first = np.unique(lab.ravel()[index], return_index=True)
+    return index[np.sort(first)]
+
+
 def spread_check(which: str) -> Callable[[Fit, Residuals], str]:
     """A plausibility check for defects at random positions (hot, dead pixels): the data's isolated spikes
-    of that sign (``which``: "pos" or "neg") are not crowded into one region (a blob, a glint, a ring)."""
+    of that sign (``which``: "pos" or "neg"), as independent events (:func:`spike_events`), are not crowded
+    into one region (a blob, a glint, a ring) nor on a lattice."""
     def check(fit: Fit, res: Residuals) -> str:
         idx = res.data_spikes.single_pos_index if which == "pos" else res.data_spikes.single_neg_index
+        idx = spike_events(idx, res.data_adu.shape)
         period, sig_p = lattice(idx, res.data_adu.shape)
         if sig_p > 10:
             return (f"the isolated {'bright' if which == 'pos' else 'dark'} pixels sit on a regular lattice (period "

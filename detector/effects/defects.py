@@ -16,7 +16,18 @@ from typing import Literal
 import numpy as np
 from pydantic import Field
 
-from ..signatures import CountSignature, Fit, Signature, frame_fraction, spread_check
+from ..signatures import (
+    DEFECT_K,
+    TRACK_MAX_PEAK_SHARE,
+    Fit,
+    GroupSignature,
+    Signature,
+    frame_fraction,
+    group_gain,
+    on_source,
+    outlier_pixels,
+    spread_check,
+)
 from ..significance import EXPLAINS_MOST
 from ..stats import mad_std
 from .base import Effect, EffectParams, Stage, Tile, register_effect
@@ -93,6 +104,36 @@ def _hot_counts(res):
     count = min(count, 10_000_000)
     return ({"count": count, "law": "weibull", "weibull_shape": shape, "scale_s": round(scale, 3), **extra},
             d.single_pos, m.single_pos, 2)
+
+
+def hot_defects(res, groups: np.ndarray) -> np.ndarray:
+    """The groups of bright pixels that may be hot or warm pixels: one pixel, or a pixel holding more than
+    TRACK_MAX_PEAK_SHARE of its group's signal (a hot pixel and the few per cent its neighbours couple), seen
+    whole (not touching a saturated or flagged pixel), not on the model's sources. Groups whose charge spreads
+    over their pixels are tracks or blobs (:func:`detector.signatures.is_track`), not a pixel's own leakage."""
+    if groups.size == 0:
+        return groups
+    ok = (((groups["n"] == 1) | (groups["peak_share"] > TRACK_MAX_PEAK_SHARE)) & ~groups["edge"]
+          & ~on_source(res, groups["peak"]))
+    return groups[ok]
+
+
+def _hot_groups(res):
+    """Hot and warm pixels from the chi2 their groups of bright pixels carry beyond what the model's realisation
+    makes (:func:`detector.signatures.group_gain`, as dead pixels and particle tracks are judged): ten pixels
+    at 100 sigma are a finding whatever their number, which a count of spikes alone (a two-sample Poisson
+    ratio of 10 against 0: a delta of -14) does not see. The law's parameters from :func:`_hot_counts`."""
+    counted = _hot_counts(res)
+    if counted is None:
+        return None
+    params = counted[0]
+    npx = outlier_pixels(res)
+    d_data, n_data = group_gain(hot_defects(res, res.data_spikes.pos_groups), DEFECT_K, npx)
+    d_model, n_model = group_gain(hot_defects(res, res.model_spikes.pos_groups), DEFECT_K, npx)
+    delta = min(d_data - d_model, 0.0)
+    if delta >= 0 or n_data <= n_model:
+        return None
+    return params, delta, n_data, n_model, 2
 
 
 def column_mixture_gain(x: np.ndarray, threshold: float) -> tuple[float, int]:
@@ -268,8 +309,8 @@ def _column_words(p, res):
             f"({p['dead_columns']}) their neighbours: column defects")
 
 
-_HOT_SIGNATURE = CountSignature(
-    _hot_counts,
+_HOT_SIGNATURE = GroupSignature(
+    _hot_groups,
     lambda p, res: (f"isolated bright pixels that do not move with the sky ({p['count']} on the sensor, "
                     f"time-to-double scale {p['scale_s']:.3g} s): hot and warm pixels"),
     pattern="isolated positive spikes", check=spread_check("pos"))

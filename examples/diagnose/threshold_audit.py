@@ -347,8 +347,9 @@ MAX_FIELD_ORDER | N | grid | highest Legendre order of the smooth light field th
 MAX_LINE_GAIN_CORRELATION | D | physics | line-wise gains (column amplifiers) are independent; neighbours that follow each other are a step
 MIN_LINE_PIXELS | N | sampling | pixels a line needs for its gain estimate
 VarianceSignature.CELL_SIGMA | D | statistics | a cell is far above the rest only beyond detection-like 5 standard errors
-@scenes/app/compare/candidates.py
 DITHER_SEED | N | seed | fixed dither of integer read codes (reproducibility)
+SMOOTH_MAP_BLOCKS | N | grid | blocks a side of a variance pattern's low-frequency map (the morphology's empirical map's BLOCKS)
+@scenes/app/compare/candidates.py
 SIGNIFICANT_DELTA_BIC | D | contract | the policy's significant_delta_bic
 OVERFIT_CHI2_PER_DOF | D | statistics | the policy's overfit_chi2_per_dof
 @scenes/app/compare/series.py

@@ -184,3 +184,59 @@ def test_one_track_on_a_dark_is_named_at_its_count_and_a_null_dark_is_clean(tmp_
     area_cm2 = s.roi_shape[0] * s.roi_shape[1] * (s.pixel_pitch_um * 1e-4) ** 2
     assert first["params"]["flux_per_cm2_s"] == pytest.approx(1 / (area_cm2 * scene.exposure.time_s), rel=0.01)
     assert first["params"]["flux_per_cm2_s"] > 100 * ENVIRONMENTS["ground"].flux_per_cm2_s
+
+
+# --- defects counted as events; hot pixels judged on their chi2 (issue 23, random forms) --------------------------
+
+def test_a_dead_clusters_corners_are_one_event_and_random_clusters_are_not_crowded():
+    """A 3x3 dead cluster stands out of the 3x3 median at its four corners only (8-disconnected, two pixels
+    apart): one defect, which the spread test counts once. Five random 3x3 clusters (20 "isolated" corners, 22 %
+    of them in one cell of 64, 12 sigma as pixels) are spread as a Poisson process; twelve defects crowded into
+    one cell are still a local structure."""
+    from types import SimpleNamespace
+
+    from detector.signatures import clustered, spike_events, spread_check
+
+    shape = (256, 256)
+
+    def corners(ys, xs):
+        return np.array(sorted((y + dy) * shape[1] + x + dx for y, x in zip(ys, xs) for dy in (0, 2) for dx in (0, 2)))
+
+    rng = np.random.default_rng(4)
+    ys, xs = rng.integers(0, 250, 5), rng.integers(0, 250, 5)
+    idx = corners(ys, xs)
+    assert spike_events(idx, shape).size == 5
+    res = SimpleNamespace(data_spikes=SimpleNamespace(single_neg_index=idx), data_adu=np.zeros(shape))
+    assert spread_check("neg")(None, res) == ""
+    # a clump: 12 isolated defects inside one 32 x 32 cell and 12 spread over the frame
+    clump = np.array([(5 + 5 * (i % 6)) * shape[1] + 100 + 5 * (i // 6) for i in range(12)])
+    spread = rng.choice(shape[0] * shape[1], 12, replace=False)
+    idx2 = np.concatenate([clump, spread])
+    assert spike_events(idx2, shape).size == idx2.size  # 5 px apart: separate detections
+    share, sigma = clustered(spike_events(idx2, shape), shape)
+    assert share >= 0.5 and sigma > 10
+    res2 = SimpleNamespace(data_spikes=SimpleNamespace(single_neg_index=idx2), data_adu=np.zeros(shape))
+    assert "crowd" in spread_check("neg")(None, res2)
+
+
+def test_a_few_very_hot_pixels_on_a_dark_are_named_and_a_null_dark_is_clean(tmp_path):
+    """Eight pixels 60-200 sigma above a null dark: their count alone (8 against the realisation's 0: a
+    two-sample Poisson ratio of -11) does not pay for the parameters, their chi2 does (group_gain, as dead
+    pixels and tracks are judged)."""
+    p = write_scene(tmp_path / "dark.toml", DARK)
+    scene = load_scene(str(p))
+    null = textbook_frame(p, tmp_path / "null.fits", 5)
+    out0 = run.run_diagnose(scene, null)
+    assert out0["significant"] == [], out0["verdict"]
+    with fits.open(null) as hl:
+        data = hl[0].data.astype(np.float64)
+        hdr = hl[0].header
+    rng = np.random.default_rng(8)
+    sd = float(np.std(data))
+    for y, x, k in zip(rng.integers(4, SIDE - 4, 8), rng.integers(4, SIDE - 4, 8), rng.uniform(60, 200, 8)):
+        data[y, x] += k * sd
+    meas = tmp_path / "hot.fits"
+    fits.PrimaryHDU(np.round(data).astype(np.uint16), header=hdr).writeto(meas)
+    out = run.run_diagnose(scene, meas)
+    first = _first(out)
+    assert first is not None and first["effect"] == "hot_pixels", out["verdict"]

@@ -16,7 +16,7 @@ import numpy as np
 
 from detector import registry
 from detector.morphology import block_chi2
-from detector.signatures import Fit, Residuals, frame_at, heldout_delta, on_read_codes
+from detector.signatures import Fit, Residuals, dither_codes, frame_at, heldout_delta
 from detector.significance import FOOTPRINT_SIGMA, MIN_TEST_PIXELS
 
 from .floors import floor_reason, signal_range_floor
@@ -57,10 +57,6 @@ def at_bound(cls, params: dict) -> str:
     return ""
 
 
-#: fixed seed of the dither that spreads read values on integer ADC codes over their code (robust_excess_var)
-DITHER_SEED = 20_230_117
-
-
 def robust_excess_var(res: Residuals) -> tuple[float, float]:
     """(the data's variance beyond the model's, the model's) [ADU^2], medians over the fitted pixels with
     the levels refitted: ``median(r^2) / 0.4549 - median(v)`` (0.4549 = median of chi2 with 1 dof), which
@@ -76,9 +72,7 @@ def robust_excess_var(res: Residuals) -> tuple[float, float]:
         v = float(np.median(1.0 / w)) if w.size else 0.0
         q2 = 0.0
         if r.size:
-            if on_read_codes(res, idx):
-                u = np.random.default_rng(DITHER_SEED).random(r.size) - 0.5
-                r, q2 = r + u, 1.0 / 12.0
+            r, q2 = dither_codes(res, idx, r)
         return (float(np.median(r * r)) / 0.4549 - v - q2 if r.size else 0.0, v)
     return res.memo("robust_excess", compute)
 
@@ -358,27 +352,34 @@ def support_shares(res: Residuals, cands: list[Candidate], policy: DiagnosisPoli
 
 
 def structure_share(res: Residuals, delta: np.ndarray, policy: DiagnosisPolicy = DEFAULT_POLICY,
-                    blocks: tuple[float, int] | None = None) -> float | None:
+                    blocks: tuple[float, int] | None = None, extra_var_adu2=None) -> float | None:
     """The share of the frame's significant large-scale structure (block chi2 beyond its dof,
     :func:`detector.morphology.block_chi2`) that the mean change ``delta`` removes; None when the structure is
     not significant or ``delta`` is a pattern of a few pixels (a CFA, a blur, a shift: not judged by the block
-    means). ``blocks``: the frame's ``block_chi2(res)`` when the caller has it."""
+    means). ``blocks``: the frame's ``block_chi2(res)`` when the caller has it. ``extra_var_adu2``: the
+    candidate's added variance, which the block means left carry (a white response pattern's block means are
+    its own scatter, averaged: the pattern a PRNU's low-frequency map comes with)."""
     chi2, n = block_chi2(res) if blocks is None else blocks
     if n == 0 or (chi2 - n) / np.sqrt(2 * n) < policy.structure_sigma:
         return None
     idx, _, w = res.flat_profiled()
     if large_scale_share(res, delta, idx, w) < 0.5:
         return None
-    after, _ = block_chi2(res, delta)
+    after, _ = block_chi2(res, delta, extra_var_adu2)
     return round(float(np.clip((chi2 - after) / (chi2 - n), -1.0, 1.0)), 4)
 
 
 def structure_shares(res: Residuals, cands: list[Candidate], policy: DiagnosisPolicy = DEFAULT_POLICY) -> None:
     """:func:`structure_share` of every candidate with a mean change that is significant by delta BIC."""
     blocks = block_chi2(res)
+    reg = registry()
     for c in cands:
         if c.fit.delta_adu is not None and c.fit.delta_bic < policy.significant_delta_bic:
-            share = structure_share(res, c.fit.delta_adu, policy, blocks)
+            # (a variance candidate's scatter is in its blocks' variances: a mean change that only comes with
+            # added charge's shot noise, a glow's, is judged on its mean change alone, as before)
+            sig = reg[c.fit.effect].signature if c.fit.effect in reg else None
+            extra = c.fit.extra_var_adu2 if getattr(sig, "kind", "") == "variance" else None
+            share = structure_share(res, c.fit.delta_adu, policy, blocks, extra)
             if share is not None:
                 c.explains = share
 
