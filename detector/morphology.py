@@ -1012,7 +1012,8 @@ def _feature_map(feats: dict, rmap: np.ndarray, wmap: np.ndarray, light: np.ndar
       residual smoothed at half the scale at which each feature is significant (normalised convolution over
       the fitted pixels: a feature found only at a coarse scale is not mapped with its noise); the pixels the
       comparison left to statistics (the spikes a glint's or a latent image's core makes) take their own
-      residual, unless saturated: the feature is mapped where it is brightest, not interpolated from its wings.
+      residual, unless saturated: the feature is mapped where it is brightest, not interpolated from its wings
+      (only the spikes of ``res.train`` on a held-out fold: the other fold's pixels are the ones it is scored on).
     """
     foot = feats["footprint"]["rings"] | feats["footprint"]["blobs"] | feats["footprint"]["srings"]
     scale = max([feats.get(f"scale_{f}", 1.0) for f in ("rings", "blobs", "srings") if feats[f"n_{f}"]] or [1.0])
@@ -1057,6 +1058,11 @@ def _feature_map(feats: dict, rmap: np.ndarray, wmap: np.ndarray, light: np.ndar
             cap_adu = min(float(s.adc_max_adu), s.bias_adu + s.full_well_e * res.pixel_sum / res.gain)
             core = (grown & (ok == 0) & np.isfinite(raw) & (res.data_adu < 0.95 * cap_adu)
                     & (res.model_adu < 0.95 * cap_adu))
+            if res.train is not None:
+                # on a held-out fold the pixels of the other fold are not fitted either (``ok`` is 0 there):
+                # they are the pixels the map will be scored on, not spikes left to statistics, and copying
+                # their residual would make the description predict them exactly (a leak of the test fold)
+                core &= res.train
             sm = np.where(core, raw, sm)
         amap = amap + np.where(grown, sm, 0.0)
     if not np.any(amap):

@@ -76,8 +76,28 @@ def quadratic_nonlinearity(signal_e: np.ndarray, beta: float, full_well_e: float
         signal_e *= f
 
 
+def knee_nonlinearity(signal_e: np.ndarray, deficit: float, knee_e: float) -> None:
+    """In place: ``S' = S - deficit (S - K)`` above the knee ``K`` [e-], ``S`` below it: a response linear up
+    to a signal where its slope changes by ``deficit`` (0.2: the slope falls to 80 %; negative: it rises), then
+    linear again. Where the sense node's or the output amplifier's gain changes with the signal at one level
+    (the storage well's capacitance stepping as it fills, a source follower leaving its linear range) the
+    response bends over a narrow range of the signal rather than along the whole well: a piecewise-linear
+    (knee) response (Janesick 2007, Photon Transfer, ch. 11: non-linearity near full well; EMVA 1288 R4.0
+    sec. 8.2 measures the deviation from a straight line whatever its form; multi-slope CMOS pixels set such
+    knees on purpose)."""
+    if deficit:
+        above = np.maximum(signal_e - np.float32(knee_e), np.float32(0.0))
+        signal_e -= np.float32(deficit) * above
+
+
 #: signal [fraction of the full well] where a power-law response equals the linear one (its reference)
 POWER_LAW_REFERENCE = 0.5
+
+#: the knees [fraction of the full well] the diagnosis tries for a piecewise-linear response: the upper part of
+#: the well, where a sense node or an amplifier leaves its linear range (below 0.2 the knee would be a change of
+#: gain over the whole frame's sources, the quadratic and power laws' domain; above 0.8 it meets the clip at full
+#: well that blooming and saturation act on)
+KNEE_FRACTIONS = (0.2, 0.3, 0.4, 0.5, 0.6, 0.7, 0.8)
 
 
 def power_law_nonlinearity(signal_e: np.ndarray, gamma: float, reference_e: float) -> None:
@@ -377,6 +397,18 @@ def _nonlin_variants(res):
             (b1 or b2) else None
 
     yield Variant([t, t2], to_both, label="quadratic and cubic")
+    # a knee: the slope changes at one signal (its position searched over KNEE_FRACTIONS: one more parameter);
+    # the template is -max(S - K, 0) / g, the response's change per unit of the slope's deficit above K
+    for kf in KNEE_FRACTIONS:
+        hinge = (-np.maximum(q - kf * fw, 0.0) / res.gain).astype(np.float32)
+        if not np.any(hinge[np.broadcast_to(res.fit, hinge.shape)]):
+            continue
+
+        def to_knee(c, kf=kf):
+            d = float(c[0])
+            return {"beta": 0.0, "knee": kf, "knee_deficit": round(d, 6)} if -0.9 <= d <= 0.9 and d != 0 else None
+
+        yield Variant([hinge], to_knee, label=f"knee at {kf:g} of the full well", extra_k=1)
     pos = q > 0
     # the law is referenced at the frame's own median signal (it equals the linear response there): what the
     # frame measures is how the response changes across its signal, not its level at half the well, which a
@@ -407,6 +439,11 @@ def frame_reference_fraction(res) -> float | None:
 
 
 def _nonlin_words(p, res) -> str:
+    if p.get("knee_deficit"):
+        d = p["knee_deficit"]
+        return (f"response linear up to {p['knee']:.2g} of the full well, its slope {'lower' if d > 0 else 'higher'} "
+                f"by {100 * abs(d):.2g} % above it ({100 * d * (1 - p['knee']):.2g} % "
+                f"{'deficit' if d > 0 else 'excess'} at full well): nonlinearity (a knee)")
     if p.get("gamma", 1.0) != 1.0:
         g = p["gamma"]
         ref = p.get("gamma_reference", POWER_LAW_REFERENCE)
@@ -685,12 +722,17 @@ class NonlinearityParams(EffectParams):
     gamma_reference: float = Field(POWER_LAW_REFERENCE, gt=0, le=1, description="signal where the power law equals "
                                    "the linear response, fraction of the full well (the diagnosis sets the frame's "
                                    "median signal) [1]", json_schema_extra={"unit": "1"})
+    knee: float = Field(1.0, gt=0, le=1, description="signal where the response's slope changes, fraction of the "
+                        "full well (a piecewise-linear response; 1: no knee) [1]", json_schema_extra={"unit": "1"})
+    knee_deficit: float = Field(0.0, ge=-0.9, le=0.9, description="fractional fall of the response's slope above "
+                                "the knee (negative: a rise) [1]")
 
 
 @register_effect
 class Nonlinearity(Effect):
-    """Response nonlinearity of the read-out chain: S' = S (1 - beta x - beta2 x^2), x = S / FW, then, when
-    ``gamma`` != 1,
+    """Response nonlinearity of the read-out chain: with ``knee_deficit`` the piecewise-linear response of
+    :func:`knee_nonlinearity` (a knee at ``knee`` of the full well), then S' = S (1 - beta x - beta2 x^2),
+    x = S / FW, then, when ``gamma`` != 1,
     the power law S'' = S' (S' / S_ref)^(gamma - 1), S_ref ``gamma_reference`` of the full well (half by default;
     the diagnosis references it at the frame's median signal; :func:`power_law_nonlinearity`).
 
@@ -700,12 +742,13 @@ class Nonlinearity(Effect):
 
     name = "nonlinearity"
     scaling = "signal"
-    identity = {"beta": 0.0, "beta2": 0.0, "gamma": 1.0}
+    identity = {"beta": 0.0, "beta2": 0.0, "gamma": 1.0, "knee_deficit": 0.0}
     stages = (Stage.READ,)
     Params = NonlinearityParams
     signature = _NONLINEARITY_SIGNATURE
 
     def apply(self, stage: Stage, tile: Tile, data: np.ndarray) -> None:
         fw = self.sensor.full_well_e * tile.bin ** 2
+        knee_nonlinearity(data, self.params.knee_deficit, self.params.knee * fw)
         quadratic_nonlinearity(data, self.params.beta, fw, self.params.beta2)
         power_law_nonlinearity(data, self.params.gamma, self.params.gamma_reference * fw)

@@ -496,8 +496,20 @@ CROSSTALK_TOP_LAYOUTS = 2
 
 
 def crosstalk_signal(res) -> np.ndarray:
-    """The model's bias-free signal [ADU] that the channels couple (what :class:`Crosstalk` acts on)."""
-    return (res.model_adu - res.sensor.bias_adu * res.adu_sum).astype(np.float32)
+    """The model's signal [ADU] whose echoes the diagnosis looks for: the bias-free signal (what
+    :class:`Crosstalk` acts on) without the background light (:attr:`~detector.signatures.Residuals.
+    background_photo_adu`: the sky or the flat screen).
+
+    The background's echo carries no copy of anything: a uniform background sends the same ``(n - 1) alpha``
+    times its level into every channel, a global level the comparison already profiles; only its slow
+    variation (a vignetted sky, a per cent of it, times ``alpha`` ~1e-3) would be left, far below the noise.
+    The sources' echoes are the crosstalk's signature. Coupling the sources alone is also the form that holds
+    when the coupling is not linear down to the background: crosstalk measured on bright sources
+    (Freyhammer et al. 2001, Exp. Astron. 12, 147) or applied above a threshold of the aggressor's signal
+    (an echo of the signal above the channel's background) has no echo of the sky, while the plugin's
+    linear form echoes it as a level; both are this template to within the levels."""
+    bg = res.background_photo_adu
+    return (res.model_adu - res.sensor.bias_adu * res.adu_sum - bg).astype(np.float32)
 
 
 class CrosstalkLayout:

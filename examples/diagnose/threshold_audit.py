@@ -288,6 +288,7 @@ VIGNETTING_RISE_CHI2 | D | statistics | chi-bar-squared of a rising ring profile
 VIGNETTING_RISE_SHARE | D | design | a rise this small is the form's shortfall
 @detector/effects/pixel_response.py
 POWER_LAW_REFERENCE | N | model | reference signal of the power-law response
+KNEE_FRACTIONS | N | grid | knee positions of a piecewise-linear response tried
 MAX_DEAD_CLUSTER_PX | D | physics | largest dead cluster (EMVA 1288, Janesick 2007)
 MAX_DEAD_CLUSTER_SIDE | N | model | largest cluster side the render draws
 _REGION_GRIDS | N | grid | region layouts tried

@@ -11,7 +11,7 @@ from helpers import small_sensor
 from detector import registry
 from detector.effects.cti import ML11002_PARALLEL_TRANSFER_S, CTIParams, cti_transfer
 from detector.effects.image_plane import _jitter_params, _jitter_transform
-from detector.effects.pixel_response import quadratic_nonlinearity
+from detector.effects.pixel_response import KNEE_FRACTIONS, knee_nonlinearity, quadratic_nonlinearity
 from detector.signatures import Residuals, SpikeStats
 
 
@@ -104,6 +104,35 @@ def test_soft_saturation_is_the_cubic_term():
     assert fit is not None and fit.delta_bic < -50
     p = fit.params
     assert p["beta"] == 0.0 and p["beta2"] == pytest.approx(1 - a * np.tanh(1 / a), rel=0.25)
+
+
+def test_a_knee_response_is_fitted_as_a_knee():
+    """A response linear up to 0.45 of the full well whose slope then falls by 25 % (a piecewise-linear, knee
+    response): the plugin's apply follows the law below and above the knee; the signature fits it as a knee
+    (one of KNEE_FRACTIONS within 0.1 of the truth), its slope deficit within 30 %, and it beats the smooth laws
+    (the quadratic, cubic and power-law fits leave the bend)."""
+    from scenes.app.compare.floors import nonlinearity_floor, response_ratio
+    from scenes.app.compare.policy import DEFAULT_POLICY
+
+    s = np.array([1e4, 3e4, 4e4], np.float32)
+    knee_nonlinearity(s, 0.25, 2e4)
+    assert s[0] == 1e4 and s[1] == pytest.approx(3e4 - 0.25 * 1e4) and s[2] == pytest.approx(4e4 - 0.25 * 2e4)
+    assert response_ratio({"knee": 0.5, "knee_deficit": 0.25}, 1.0) == pytest.approx(1 - 0.25 * 0.5)
+    assert response_ratio({"knee": 0.5, "knee_deficit": 0.25}, 0.4) == pytest.approx(1.0)
+    shape = (128, 128)
+    sensor = small_sensor(width=shape[1], height=shape[0], bias_adu=100.0, full_well_e=60000.0)
+    photo, rng = _stars(sensor, shape, 12, n_stars=80, peak=(1e4, 3.8e4))
+    fw = sensor.full_well_e
+    q = (photo * sensor.gain_e_per_adu).astype(np.float32)
+    knee_nonlinearity(q, 0.25, 0.45 * fw)
+    res = _residuals(sensor, photo, q / sensor.gain_e_per_adu, rng)
+    sig = registry()["nonlinearity"].signature
+    fit = sig.fit(res, "nonlinearity")
+    assert fit is not None and fit.delta_bic < -50
+    p = fit.params
+    assert p["knee"] in KNEE_FRACTIONS and abs(p["knee"] - 0.45) <= 0.1
+    assert p["knee_deficit"] == pytest.approx(0.25, rel=0.3)
+    assert nonlinearity_floor(p, sensor, DEFAULT_POLICY) == ""  # 25 % x (1 - knee) at full well
 
 
 def test_a_smear_cannot_narrow_so_its_minor_axis_is_zero():

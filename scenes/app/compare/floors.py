@@ -26,21 +26,26 @@ def _num(params: dict, key: str, default: float = 0.0) -> float:
 
 
 def response_ratio(params: dict, x: np.ndarray | float) -> np.ndarray:
-    """S' / S of the ``nonlinearity`` effect's law at signals ``x`` [fraction of the full well]: the polynomial
-    ``1 - beta x - beta2 x^2``, then the power law ``(S' / S_ref)^(gamma - 1)`` (S_ref ``gamma_reference`` of the
-    well, half by default), as :class:`detector.effects.pixel_response.Nonlinearity` applies them."""
+    """S' / S of the ``nonlinearity`` effect's law at signals ``x`` [fraction of the full well]: the knee
+    ``1 - knee_deficit max(x - knee, 0) / x``, then the polynomial ``1 - beta x - beta2 x^2`` of that signal,
+    then the power law ``(S' / S_ref)^(gamma - 1)`` (S_ref ``gamma_reference`` of the well, half by default), as
+    :class:`detector.effects.pixel_response.Nonlinearity` applies them."""
     x = np.maximum(np.asarray(x, np.float64), 1e-12)
-    r = 1.0 - _num(params, "beta") * x - _num(params, "beta2") * x * x
+    rk = 1.0 - _num(params, "knee_deficit") * np.maximum(x - _num(params, "knee", 1.0), 0.0) / x
+    xk = x * rk
+    r = rk * (1.0 - _num(params, "beta") * xk - _num(params, "beta2") * xk * xk)
     ref = _num(params, "gamma_reference", 0.5) or 0.5
     return r * np.maximum(x * r / ref, 1e-12) ** (_num(params, "gamma", 1.0) - 1.0)
 
 
 def nonlinearity_floor(params: dict, sensor, policy: DiagnosisPolicy, exptime_s: float | None = None) -> str:
     """The response's relative deficit at full well: ``beta + beta2`` (the polynomial's terms) plus the power
-    law's ``|1 - (1 / S_ref)^(gamma-1)|`` (the law equals the linear response at ``gamma_reference`` of the well)."""
+    law's ``|1 - (1 / S_ref)^(gamma-1)|`` (the law equals the linear response at ``gamma_reference`` of the well)
+    plus the knee's ``knee_deficit (1 - knee)``."""
     ref = _num(params, "gamma_reference", 0.5) or 0.5
     deficit = abs(_num(params, "beta") + _num(params, "beta2")) + abs(
-        1.0 - (1.0 / ref) ** (_num(params, "gamma", 1.0) - 1.0))
+        1.0 - (1.0 / ref) ** (_num(params, "gamma", 1.0) - 1.0)) + abs(
+        _num(params, "knee_deficit") * (1.0 - _num(params, "knee", 1.0)))
     if deficit < policy.min_nonlinearity_at_full_well:
         return (f"a non-linearity of {100 * deficit:.3g} % at full well is below the "
                 f"{100 * policy.min_nonlinearity_at_full_well:g} % any photon-transfer curve resolves")
