@@ -311,3 +311,18 @@ def test_probe_forms_follow_their_laws():
     bias = np.zeros(tile.shape, np.float32)
     NS["BiasJump"](s, step_adu=1.5, at=0.4).apply(None, tile, bias)
     assert set(np.unique(bias).tolist()) <= {0.0, 1.5} and bias[-1, 0] == 1.5
+
+
+def test_error_halved_within_the_noise_rule():
+    """Nothing to halve is not a failure: an error before within 3 standard deviations of the noise passes, for
+    both metrics; beyond it, only a ratio <= 0.5 passes."""
+    eh = NS["error_halved"]
+    n = 20000
+    sd = (2 / n) ** 0.5
+    assert eh({"metric": "chi2_minus_1", "before": {"chi2_minus_1": 2.9 * sd, "n_support": n}})
+    assert not eh({"metric": "chi2_minus_1", "before": {"chi2_minus_1": 3.1 * sd, "n_support": n}})
+    assert eh({"metric": "chi2_minus_1", "error_ratio": 0.5, "before": {"chi2_minus_1": 1.0, "n_support": n}})
+    # one cosmic-ray track against a model without: a two-sample Poisson deviance of 1.39, misfit 0.27
+    assert eh({"metric": "misfit", "error_ratio": 1.0, "before": {"misfit": 0.27}})
+    assert not eh({"metric": "misfit", "error_ratio": 0.9, "before": {"misfit": 3.9}})
+    assert eh({"metric": "misfit", "error_ratio": 0.4, "before": {"misfit": 3.9}})

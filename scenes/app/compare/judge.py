@@ -301,6 +301,20 @@ def same_image(a: Candidate, b: Candidate) -> bool:
     return b.fit.effect in a.untold or a.fit.effect in b.untold
 
 
+#: why the data cannot tell the first name from a twin, in the order the verdict says them: each a predicate of
+#: (first, twin) and its reason; the last (None) takes the twins whose held-out scores are as good
+TWIN_REASONS = (
+    (same_charge, "the same charge in the same pixels, whose origin (dark or light) only a dark frame of the same "
+                  "exposure tells"),
+    (same_scatter, "the same added variance in every pixel of this frame (a DSNU's grows as the dark signal "
+                   "squared, a PRNU's as the light squared, a read noise's is constant: laws that agree where that "
+                   "signal is uniform; a frame of another exposure or level tells them apart)"),
+    (same_image, "the same small kernel on the same pixels, whose stage (the pixels' charge or the light) only a "
+                 "coupled noise or a charge not of light would tell, neither measurable in this frame"),
+    (None, "their held-out scores are as good"),
+)
+
+
 def indistinguishable(sig: list[Candidate], cands: list[Candidate] = ()) -> list[Candidate]:
     """The significant candidates after the first whose held-out score is as good as the first's (within the
     policy's twin fraction, and within the scores' own scatter ~ sqrt(2 |score|)), and those that put the same
@@ -336,25 +350,13 @@ def verdict(cands: list[Candidate], morphology: dict | None = None) -> str:
     if effects:
         best = effects[0]
         held = f", held-out {best.heldout:.4g}" if best.heldout is not None else ""
-        twins = indistinguishable(effects, cands)
-        charge = [c for c in twins if same_charge(best, c)]
-        scatter = [c for c in twins if c not in charge and same_scatter(best, c)]
-        image = [c for c in twins if c not in charge and c not in scatter and same_image(best, c)]
-        scored = [c for c in twins if c not in charge and c not in scatter and c not in image]
-        also = (f"; the data cannot tell it apart from {', '.join(c.fit.effect for c in scored)} (their held-out "
-                "scores are as good)") if scored else ""
-        also += (f"; {'nor' if also else 'the data cannot tell it apart'} from "
-                 f"{', '.join(c.fit.effect for c in scatter)}: the same added variance in every pixel of this frame (a "
-                 "DSNU's grows as the dark signal squared, a PRNU's as the light squared, a read noise's is constant: "
-                 "laws that agree where that signal is uniform; a frame of another exposure or level tells them "
-                 "apart)") if scatter else ""
-        also += (f"; {'nor' if also else 'the data cannot tell it apart'} from "
-                 f"{', '.join(c.fit.effect for c in charge)}: the same charge in the same pixels, whose origin (dark "
-                 "or light) only a dark frame of the same exposure tells") if charge else ""
-        also += (f"; {'nor' if also else 'the data cannot tell it apart'} from "
-                 f"{', '.join(c.fit.effect for c in image)}: the same small kernel on the same pixels, whose stage "
-                 "(the pixels' charge or the light) only a coupled noise or a charge not of light would tell, "
-                 "neither measurable in this frame") if image else ""
+        also, left = "", indistinguishable(effects, cands)
+        for told, why in TWIN_REASONS:
+            group = [c for c in left if told is None or told(best, c)]
+            left = [c for c in left if c not in group]
+            if group:
+                also += (f"; {'nor' if also else 'the data cannot tell it apart'} from "
+                         f"{', '.join(c.fit.effect for c in group)}: {why}")
         text = (f"most likely missing: {best.fit.effect} (delta BIC {best.fit.delta_bic:.4g}{held}): "
                 f"{best.fit.explanation}{also}")
         if later:
