@@ -2091,3 +2091,78 @@ def edge_fraction(img: np.ndarray, where: str) -> float:
     e = {"left": img[:, : max(1, w // 10)], "right": img[:, -max(1, w // 10):],
          "bottom": img[: max(1, h // 10)], "top": img[-max(1, h // 10):]}[where].mean()
     return float(e / c) if c else float("inf")
+
+
+
+#: the chi2 [1] by which a light pattern's law (an added light or a response to the light) must be told from
+#: the other law of the same shape: 25, a 5-sigma difference of a one-parameter fit (chi2_1 at 5 sigma), as
+#: for the stage of a coupling (detector.effects.coupling.IPC_STAGE_CHI2)
+LIGHT_LAW_CHI2 = 25.0
+
+
+def light_law_evidence(fit: Fit, res: Residuals, multiplicative: bool) -> tuple[float, float] | None:
+    """(delta, separation) [chi2]: how much better the frame's residual is fitted by the fitted light pattern's
+    shape under the other law than under its own (``delta`` > 0: the other law), and the chi2 of what tells
+    the two laws apart at the fitted amplitude. An added light ``A(x)`` and a response ``P(x)`` to the light
+    ``L(x)`` (vignetting, a flat-field error) give the same image wherever ``L`` is one flat level (a flat
+    screen, a sky with no source bright enough): ``(P - 1) L = A`` with ``A = (P - 1) L_bg``; they differ only by
+    the pattern times the light above that level, ``A (L / L_bg - 1)``, the sources (Janesick 2007, Photon
+    Transfer, ch. 8: a flat field is taken with a uniform light because the response is a factor of it). The
+    fitted change ``D`` (its ``delta_adu`` [ADU]) is turned into the other law's form ``T`` (``D L / L_bg`` for
+    an added light, ``D L_bg / L`` for a response); both are cleared of the frame's global levels and fitted
+    (one scale each) to the level-profiled residual. None: no fitted map or no light."""
+    if fit.delta_adu is None:
+        return None
+    shape = res.data_adu.shape
+    idx, r, w = res.flat_profiled()
+    if idx.size < 16:
+        return None
+    light = template_at(res.photo_adu, shape, idx).astype(np.float64)
+    bg = template_at(res.background_photo_adu, shape, idx).astype(np.float64)
+    ok = (light > 0) & (bg > 0)
+    if ok.sum() < 16:
+        return None
+    d = template_at(np.asarray(fit.delta_adu, np.float32), shape, idx).astype(np.float64)
+    ratio = np.where(ok, light / np.where(ok, bg, 1.0), 1.0)
+    t = d / ratio if multiplicative else d * ratio
+    lv = res.levels()
+    temps = res.level_templates()
+    sw = np.sqrt(w)
+    basis = np.stack([template_at(temps[i], shape, idx).astype(np.float64) * sw for i in lv["keep"]], axis=1) \
+        if len(lv["keep"]) else np.zeros((idx.size, 0))
+
+    def clear(v):
+        return v - basis @ np.linalg.lstsq(basis, v, rcond=None)[0] if basis.shape[1] else v
+
+    dw, tw, rw = clear(d * sw), clear(t * sw), clear(np.asarray(r, np.float64) * sw)
+
+    def gain(x):
+        xx = float(np.dot(x, x))
+        return float(np.dot(rw, x)) ** 2 / xx if xx > 0 else 0.0
+
+    tt = float(np.dot(tw, tw))
+    rest = dw - tw * (float(np.dot(dw, tw)) / tt) if tt > 0 else dw
+    return gain(tw) - gain(dw), float(np.dot(rest, rest))
+
+
+def light_law_check(fit: Fit, res: Residuals, multiplicative: bool) -> str:
+    """Why the fitted light pattern is not of its law: the same shape under the other law fits the frame
+    better by more than LIGHT_LAW_CHI2 ("" when not)."""
+    ev = light_law_evidence(fit, res, multiplicative)
+    if ev is None or ev[0] <= LIGHT_LAW_CHI2:
+        return ""
+    if multiplicative:
+        return (f"the fitted shape added to the light, not multiplying it, fits the frame better (chi2 {ev[0]:.3g}, "
+                f"more than {LIGHT_LAW_CHI2:g}; the sources carry the difference): an added light, not a response")
+    return (f"the fitted shape multiplying the light, not added to it, fits the frame better (chi2 {ev[0]:.3g}, more "
+            f"than {LIGHT_LAW_CHI2:g}; the sources carry the difference): a response to the light, not added light")
+
+
+def light_law_untold(others: tuple[str, ...], multiplicative: bool):
+    """A :attr:`Signature.untold` hook: ``others`` (the light patterns of the other law) when this frame does
+    not tell the fitted pattern's law from theirs: the same shape under the other law fits within
+    LIGHT_LAW_CHI2 of its own (:func:`light_law_evidence`)."""
+    def untold(fit: Fit, res: Residuals) -> tuple[str, ...]:
+        ev = light_law_evidence(fit, res, multiplicative)
+        return others if ev is not None and ev[0] > -LIGHT_LAW_CHI2 else ()
+    return untold

@@ -50,7 +50,7 @@ from typing import Literal
 import numpy as np
 from pydantic import Field
 
-from ..signatures import LinearSignature, Variant
+from ..signatures import LinearSignature, Variant, light_law_check, light_law_untold
 from .base import Effect, EffectParams, Stage, Tile, register_effect
 
 #: the gradient's length unit: the rates change per this many sensor pixels
@@ -100,6 +100,8 @@ def _sky_words(p, res) -> str:
 
 _SKY_SIGNATURE = LinearSignature(_sky_variants, _sky_words, pattern="additive plane of light (with its shot noise)",
                                  extra_k=0, adds_charge=True, check=lambda fit, res: sky_light_check(fit, res))
+#: an added light and a response to the light of the same shape are one image where the light is one level
+_SKY_SIGNATURE.untold = light_law_untold(("vignetting",), multiplicative=False)
 
 
 # --- adapter -------------------------------------------------------------------------------------------------
@@ -183,7 +185,8 @@ def sky_light_check(fit, res) -> str:
     if getattr(res, "light_source", "") == "flat":
         return ("the frame's light is a flat-field screen, which blocks the sky: no sky light or straylight reaches "
                 "the sensor; a smooth pattern on a flat is a response (vignetting, a flat-field error)")
-    return ""
+    # an added light of this shape against a response of the same shape: the sources tell (not a flat screen)
+    return light_law_check(fit, res, multiplicative=False)
 
 
 _field_check = sky_light_check
@@ -254,6 +257,7 @@ _FIELD_SIGNATURE = LinearSignature(_legendre_variants, lambda p, res: _field_wor
                                    pattern="additive smooth field of light (a Legendre series of the order the "
                                    "frame supports), with its shot noise",
                                    extra_k=1, adds_charge=True, check=_field_check)
+_FIELD_SIGNATURE.untold = light_law_untold(("vignetting",), multiplicative=False)
 
 
 class StraylightFieldParams(EffectParams):

@@ -303,12 +303,22 @@ def same_image(a: Candidate, b: Candidate) -> bool:
 
 #: why the data cannot tell the first name from a twin, in the order the verdict says them: each a predicate of
 #: (first, twin) and its reason; the last (None) takes the twins whose held-out scores are as good
+def same_light(a: Candidate, b: Candidate) -> bool:
+    """One acts on the light only (a response: vignetting) and the other adds light (straylight, a sky
+    gradient): the pair :func:`detector.signatures.light_law_evidence` weighs, the same image on a frame whose
+    light is one level (their :attr:`Candidate.untold` says when the frame does not tell them)."""
+    return (_of_light(a) and _charge_origin(b) == "light") or (_of_light(b) and _charge_origin(a) == "light")
+
+
 TWIN_REASONS = (
     (same_charge, "the same charge in the same pixels, whose origin (dark or light) only a dark frame of the same "
                   "exposure tells"),
     (same_scatter, "the same added variance in every pixel of this frame (a DSNU's grows as the dark signal "
                    "squared, a PRNU's as the light squared, a read noise's is constant: laws that agree where that "
                    "signal is uniform; a frame of another exposure or level tells them apart)"),
+    (lambda a, b: same_image(a, b) and same_light(a, b),
+     "the same smooth pattern of the light, added to it or multiplying it (a response), which only sources bright "
+     "enough above a light of one level would tell: a flat field taken through the same optics tells which"),
     (same_image, "the same small kernel on the same pixels, whose stage (the pixels' charge or the light) only a "
                  "coupled noise or a charge not of light would tell, neither measurable in this frame"),
     (None, "their held-out scores are as good"),
