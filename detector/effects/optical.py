@@ -30,31 +30,10 @@ from ..signatures import LinearSignature, Variant, fit_linear, light_law_check, 
 from .base import Effect, EffectParams, Stage, Tile, register_effect
 
 
-def elliptical_rho2(du_mm, dv_mm, r_corner_mm: float, axis_ratio: float = 1.0, angle_deg: float = 0.0):
-    """rho^2 of the radial model about its centre (offsets ``du``, ``dv`` [mm]): ``(a^2 + (b / q)^2) / r_c^2``
-    with ``a``, ``b`` the offsets along the major axis (at ``angle_deg`` from the columns) and across it, ``q``
-    the axis ratio (1: circles). Elliptical contours are what a tilted sensor or an obstruction off the axis
-    makes of a pupil's vignetting (the "cat's eye" of an off-axis pupil)."""
-    if axis_ratio == 1.0:
-        return (du_mm ** 2 + dv_mm ** 2) / r_corner_mm ** 2
-    t = np.deg2rad(angle_deg)
-    a = du_mm * np.cos(t) + dv_mm * np.sin(t)
-    b = -du_mm * np.sin(t) + dv_mm * np.cos(t)
-    return (a ** 2 + (b / axis_ratio) ** 2) / r_corner_mm ** 2
-
-
 def radial_vignetting(u_mm: np.ndarray, v_mm: np.ndarray, r_corner_mm: float, a2: float, a4: float,
-                      centre_mm: tuple[float, float] = (0.0, 0.0), profile_rho: list[float] | None = None,
-                      profile_loss: list[float] | None = None, axis_ratio: float = 1.0,
-                      angle_deg: float = 0.0) -> np.ndarray:
-    """RI = 1 - a2 rho^2 - a4 rho^4, rho = |(u, v) - centre| / r_corner, clipped to [0, 1] [1]; or, with a
-    tabulated profile, RI = 1 - L(rho), L piecewise linear through (0, 0) and (``profile_rho``,
-    ``profile_loss``), constant beyond its last knot. ``axis_ratio`` < 1: elliptical contours
-    (:func:`elliptical_rho2`)."""
-    rho2 = elliptical_rho2(u_mm - centre_mm[0], v_mm - centre_mm[1], r_corner_mm, axis_ratio, angle_deg)
-    if profile_rho:
-        loss = np.interp(np.sqrt(rho2), [0.0, *profile_rho], [0.0, *profile_loss])
-        return np.clip(1.0 - loss, 0.0, 1.0)
+                      centre_mm: tuple[float, float] = (0.0, 0.0)) -> np.ndarray:
+    """RI = 1 - a2 rho^2 - a4 rho^4, rho = |(u, v) - centre| / r_corner, clipped to [0, 1] [1]."""
+    rho2 = ((u_mm - centre_mm[0]) ** 2 + (v_mm - centre_mm[1]) ** 2) / r_corner_mm ** 2
     return np.clip(1.0 - a2 * rho2 - a4 * rho2 * rho2, 0.0, 1.0)
 
 
@@ -142,74 +121,22 @@ def _offsets_mm(res, cx_mm: float, cy_mm: float) -> tuple[np.ndarray, np.ndarray
     return u, v
 
 
-#: knots of the free radial profile of the diagnosis (``form = "profile"``): equally spaced in rho up to the
-#: window's farthest pixel from the centre; the loss is 0 at the centre and piecewise linear between them. A law
-#: that saturates within the window (a Gaussian or cos^4 fall-off about a centre in it) is no polynomial of
-#: rho^2; this form follows any radial law (five numbers, priced by the BIC), and the ring test of the data
-#: (:func:`observed_rise`) still asks that the light never rise away from the centre
-PROFILE_KNOTS = 5
-
-
-def _hats(rho: np.ndarray, knots: np.ndarray) -> np.ndarray:
-    """(knots, pixels) the piecewise-linear basis through (0, 0): hat k is 1 at knot k, 0 at its neighbours
-    (the last one 1 beyond the last knot)."""
-    grid = np.concatenate([[0.0], knots])
-    out = np.empty((len(knots), rho.size))
-    for k in range(1, len(grid)):
-        left = np.clip((rho - grid[k - 1]) / (grid[k] - grid[k - 1]), 0.0, 1.0)
-        right = np.clip((grid[k + 1] - rho) / (grid[k + 1] - grid[k]), 0.0, 1.0) if k + 1 < len(grid) else 1.0
-        out[k - 1] = np.minimum(left, right)
-    return out
-
-
-def _vignetting_variant(res, cx_mm: float, cy_mm: float, radius_mm: float | None = None, form: str = "poly",
-                        axis_ratio: float = 1.0, angle_deg: float = 0.0):
+def _vignetting_variant(res, cx_mm: float, cy_mm: float, radius_mm: float | None = None):
     s = res.sensor
     pitch_mm = s.pixel_pitch_um * 1e-3
     u, v = _offsets_mm(res, cx_mm, cy_mm)
     r_corner = radius_mm or 0.5 * pitch_mm * float(np.hypot(s.sensor_width_px, s.sensor_height_px))
     photo = res.photo_adu
     w = photo.shape[1]
-    label = f"{cx_mm}|{cy_mm}|{radius_mm or 0.0}|{form}|{axis_ratio}|{angle_deg}"
-    q, ang = axis_ratio, angle_deg
-    shape_p = {} if q == 1.0 else {"axis_ratio": round(float(q), 4), "angle_deg": round(float(ang) % 180.0, 2)}
-    extra = 0 if q == 1.0 else 2  # an ellipse chooses two numbers more than a circle (counted in the BIC)
-    if form == "profile":
-        rho_max = float(np.sqrt(max(elliptical_rho2(a, b, r_corner, q, ang) for a in (u[0], u[-1])
-                                    for b in (v[0], v[-1]))))
-        knots = rho_max * np.arange(1, PROFILE_KNOTS + 1) / PROFILE_KNOTS
-
-        def at_p(idx):
-            y, x = np.divmod(idx, w)
-            rho = np.sqrt(elliptical_rho2(u[x], v[y], r_corner, q, ang))
-            return -photo.ravel()[idx].astype(np.float64) * _hats(rho, knots)
-
-        def maps_p():
-            rho = np.sqrt(elliptical_rho2(u[None, :], v[:, None], r_corner, q, ang))
-            h = _hats(rho.ravel(), knots).reshape(len(knots), *rho.shape)
-            return [(-photo * hk).astype(np.float32) for hk in h]
-
-        def to_params_p(c):
-            loss = [float(x) for x in c]
-            if max(abs(x) for x in loss) > 1.0:
-                return None
-            p = {"profile_rho": [round(float(k), 5) for k in knots], "profile_loss": [round(x, 6) for x in loss]}
-            if cx_mm or cy_mm:
-                p.update(centre_x_mm=round(cx_mm, 3), centre_y_mm=round(cy_mm, 3))
-            if radius_mm:
-                p["radius_mm"] = round(float(radius_mm), 4)
-            return p | shape_p
-
-        return Variant(maps_p, to_params_p, label, at=at_p, extra_k=extra)
 
     def at(idx):
         y, x = np.divmod(idx, w)
-        rho2 = elliptical_rho2(u[x], v[y], r_corner, q, ang)
+        rho2 = (u[x] ** 2 + v[y] ** 2) / r_corner ** 2
         p = photo.ravel()[idx].astype(np.float64)
         return np.stack([-p * rho2, -p * rho2 * rho2])
 
     def maps():
-        rho2 = elliptical_rho2(u[None, :], v[:, None], r_corner, q, ang).astype(np.float32)
+        rho2 = ((u[None, :] ** 2 + v[:, None] ** 2) / r_corner ** 2).astype(np.float32)
         ph = photo.astype(np.float32)
         return [-ph * rho2, -ph * rho2 * rho2]
 
@@ -221,16 +148,9 @@ def _vignetting_variant(res, cx_mm: float, cy_mm: float, radius_mm: float | None
             p.update(centre_x_mm=round(cx_mm, 3), centre_y_mm=round(cy_mm, 3))
         if radius_mm:
             p["radius_mm"] = round(float(radius_mm), 4)
-        return p | shape_p if ok else None
+        return p if ok else None
 
-    return Variant(maps, to_params, label, at=at, extra_k=extra)
-
-
-def _label(label: str) -> tuple[float, float, float | None, str, float, float]:
-    """(cx, cy, radius or None, form, axis ratio, angle) of a variant's label ("cx|cy|radius[|form|q|angle]")."""
-    x = label.split("|")
-    return (float(x[0]), float(x[1]), float(x[2]) or None, (x[3] if len(x) > 3 else "poly"),
-            float(x[4]) if len(x) > 4 else 1.0, float(x[5]) if len(x) > 5 else 0.0)
+    return Variant(maps, to_params, f"{cx_mm}|{cy_mm}|{radius_mm or 0.0}", at=at)
 
 
 def _window_geometry_mm(res) -> tuple[float, float, float]:
@@ -255,7 +175,6 @@ def _vignetting_variants(res):
     for fx in _CENTRE_GRID:
         for fy in _CENTRE_GRID:
             yield _vignetting_variant(res, fx * rc, fy * rc)
-            yield _vignetting_variant(res, fx * rc, fy * rc, form="profile")
     # a window much smaller than the sensor: a fall-off on the window's own scale (a shadow of the tube or
     # a baffle, a filter's edge, vignetting about a centre far off the optical axis), about centres around it
     wx, wy, rw = _window_geometry_mm(res)
@@ -263,7 +182,6 @@ def _vignetting_variants(res):
         for fx in (-1.0, -0.5, 0.0, 0.5, 1.0):
             for fy in (-1.0, -0.5, 0.0, 0.5, 1.0):
                 yield _vignetting_variant(res, wx + fx * rw, wy + fy * rw, 2 * rw)
-                yield _vignetting_variant(res, wx + fx * rw, wy + fy * rw, 2 * rw, form="profile")
 
 
 #: farthest centre offset the refinement may reach [fraction of the half-diagonal]: the grid's edge, plus a step
@@ -277,7 +195,8 @@ def _vignetting_refine(best, res):
     the step, moved to the best, the step halved when none is better; Kolda, Lewis & Torczon 2003, SIAM
     Rev. 45, 385) on the search sample, down to :data:`_CENTRE_TOL`; a centre off by a grid step leaves a
     gradient a bias or glow candidate would take next."""
-    cx, cy, radius, form, _, _ = _label(best.label)
+    cx, cy, radius = (float(x) for x in best.label.split("|"))
+    radius = radius or None
     rc = _half_diagonal_mm(res)
     ctx, shape = search_sample(res), res.data_adu.shape
     if radius is None:
@@ -289,7 +208,7 @@ def _vignetting_refine(best, res):
     def score(x, y):
         if max(abs(x - ox), abs(y - oy)) > reach:  # a centre far off the field makes a plane, not vignetting
             return np.inf
-        v = _vignetting_variant(res, x, y, radius, form)
+        v = _vignetting_variant(res, x, y, radius)
         c, d = fit_linear(res, lambda i: v.values(i, shape), ctx["idx"], ctx["r"], ctx["w"])
         return d if v.to_params(c) is not None else np.inf
 
@@ -304,47 +223,7 @@ def _vignetting_refine(best, res):
             here, cx, cy = d, x, y
         else:
             step /= 2
-    yield _vignetting_variant(res, cx, cy, radius, form)
-
-    # the elliptical form about that centre: a grid of axis ratios and angles, then the same compass search
-    # over (centre, axis ratio, angle)
-    def score_e(x, y, q, a):
-        if max(abs(x - ox), abs(y - oy)) > reach or not _AXIS_RATIO_MIN <= q < 1.0:
-            return np.inf
-        v = _vignetting_variant(res, x, y, radius, form, q, a)
-        c, d = fit_linear(res, lambda i: v.values(i, shape), ctx["idx"], ctx["r"], ctx["w"])
-        return d if v.to_params(c) is not None else np.inf
-
-    # from the refined centre and from a 3 x 3 grid over the region the centre may reach (a fall-off of
-    # elliptical contours draws a circle's centre away from its own)
-    starts = [(cx, cy)] + [(ox + fx * reach, oy + fy * reach) for fx in (-0.5, 0.0, 0.5) for fy in (-0.5, 0.0, 0.5)]
-    here, cx, cy, q, a = min((score_e(x0, y0, q_, a_), x0, y0, q_, a_) for x0, y0 in starts
-                             for q_ in _AXIS_RATIOS for a_ in _ANGLES_DEG)
-    if not np.isfinite(here):
-        return
-    step = 1.0  # in units of (0.05 half-diagonals of the reach, 0.1 in the axis ratio, 15 deg)
-    unit = 0.05 * reach / _CENTRE_MAX if radius is None else 0.05 * reach
-    for _ in range(80):
-        if step < 0.02:
-            break
-        trials = []
-        for dx, dy, dq, da in ((1, 0, 0, 0), (-1, 0, 0, 0), (0, 1, 0, 0), (0, -1, 0, 0), (0, 0, 1, 0),
-                               (0, 0, -1, 0), (0, 0, 0, 1), (0, 0, 0, -1)):
-            x, y, q_, a_ = cx + dx * step * unit, cy + dy * step * unit, q + dq * step * 0.1, a + da * step * 15.0
-            trials.append((score_e(x, y, q_, a_), x, y, q_, a_))
-        d, x, y, q_, a_ = min(trials)
-        if d < here:
-            here, cx, cy, q, a = d, x, y, q_, a_
-        else:
-            step /= 2
-    yield _vignetting_variant(res, cx, cy, radius, form, q, a % 180.0)
-
-
-#: axis ratios and major-axis angles [deg] of the elliptical forms tried about the refined centre, and the
-#: smallest axis ratio the refinement may reach [1]
-_AXIS_RATIOS = (0.8, 0.6, 0.4)
-_ANGLES_DEG = (0.0, 45.0, 90.0, 135.0)
-_AXIS_RATIO_MIN = 0.25
+    yield _vignetting_variant(res, cx, cy, radius)
 
 
 def _rho2_max(res, p: dict) -> float:
@@ -354,16 +233,12 @@ def _rho2_max(res, p: dict) -> float:
     pitch_mm = s.pixel_pitch_um * 1e-3
     u, v = _offsets_mm(res, p.get("centre_x_mm", 0.0), p.get("centre_y_mm", 0.0))
     r_corner = p.get("radius_mm") or 0.5 * pitch_mm * float(np.hypot(s.sensor_width_px, s.sensor_height_px))
-    # a convex form's largest value over the window is at one of its corners
-    return float(max(elliptical_rho2(x, y, r_corner, p.get("axis_ratio", 1.0), p.get("angle_deg", 0.0))
-                     for x in (u[0], u[-1]) for y in (v[0], v[-1])))
+    return float((np.max(u * u) + np.max(v * v)) / r_corner ** 2)
 
 
 def _loss_at_edge(p: dict, res) -> float:
     """The fitted loss at the sensor's corner (rho = 1), or for a window-scale fit at the window's farthest pixel
     (the polynomial beyond the window is not measured)."""
-    if "profile_loss" in p:  # its last knot is the window's farthest pixel
-        return float(p["profile_loss"][-1])
     x = min(_rho2_max(res, p), 1.0) if "radius_mm" in p else 1.0
     return p["a2"] * x + p["a4"] * x * x
 
@@ -400,8 +275,7 @@ def observed_rise(p: dict, res) -> tuple[float, float]:
     if ok.sum() < 10 * VIGNETTING_RINGS:
         return 0.0, 0.0
     u, v = _offsets_mm(res, p.get("centre_x_mm", 0.0), p.get("centre_y_mm", 0.0))
-    t = elliptical_rho2(u[idx[ok] % shape[1]], v[idx[ok] // shape[1]], 1.0, p.get("axis_ratio", 1.0),
-                        p.get("angle_deg", 0.0))
+    t = u[idx[ok] % shape[1]] ** 2 + v[idx[ok] // shape[1]] ** 2
     q = r[ok] / photo[ok]  # relative residual: the light's change [1]
     wq = w[ok] * photo[ok] ** 2  # its inverse variance
     edges = np.quantile(t, np.linspace(0, 1, VIGNETTING_RINGS + 1))
@@ -422,11 +296,8 @@ def _vignetting_check(fit, res) -> str:
     VIGNETTING_RISE_CHI2 and by more than VIGNETTING_RISE_SHARE of the profile's span). A pattern that brightens away from its centre where it is observed is an added
     light or a flat-field error."""
     p = fit.params
-    if "profile_loss" in p and max(p["profile_loss"]) <= 0:
-        return ("the fitted profile gains light away from its centre everywhere: vignetting only takes light away "
-                "(an added light or a flat-field error)")
-    a2, a4 = p.get("a2", 0.0), p.get("a4", 0.0)
-    if "profile_loss" not in p and a2 <= 0 and a4 <= 0:
+    a2, a4 = p["a2"], p["a4"]
+    if a2 <= 0 and a4 <= 0:
         return (f"the fitted form gains light away from its centre everywhere (a2 = {a2:+.3g}, a4 = {a4:+.3g}): "
                 "vignetting only takes light away (an added light or a flat-field error)")
     # a fitted polynomial that turns over within or beyond the window is the form's shortfall on a fall-off that
@@ -448,16 +319,15 @@ _VIGNETTING_SIGNATURE = LinearSignature(
                     + ("the window's farthest pixel from its centre, " if "radius_mm" in p else "the corner, ")
                     + "proportional to the signal"
                     + (f", centred at ({p['centre_x_mm']:+.3g}, {p['centre_y_mm']:+.3g}) mm off the axis"
-                       if "centre_x_mm" in p else "")
-                    + (f", elliptical (axis ratio {p['axis_ratio']:.2f}, major axis at {p['angle_deg']:.0f} deg)"
-                       if "axis_ratio" in p else "") + ": vignetting"),
+                       if "centre_x_mm" in p else "") + ": vignetting"),
     pattern="multiplicative radial fall-off of the light", extra_k=3, refine=_vignetting_refine, of_light=True,
     check=_vignetting_check)
 #: a response to the light and an added light of the same shape are one image where the light is one level
 _VIGNETTING_SIGNATURE.untold = light_law_untold(("straylight", "sky_gradient"), multiplicative=True)
 #: the variant of a label ("cx|cy|radius"), on any frame: a series refines the centre on one frame and fits
 #: that one form on every frame (scenes.app.compare.series)
-_VIGNETTING_SIGNATURE.rebuild = lambda label, res: _vignetting_variant(res, *_label(label))
+_VIGNETTING_SIGNATURE.rebuild = lambda label, res: _vignetting_variant(
+    res, *(float(x) for x in label.split("|")[:2]), float(label.split("|")[2]) or None)
 
 
 def relative_illumination(params: VignettingParams, sensor):
@@ -481,8 +351,7 @@ def relative_illumination(params: VignettingParams, sensor):
         if interp is not None:
             return interp(v, u)
         return radial_vignetting(u[None, :], v[:, None], r_corner, params.a2, params.a4,
-                                 (params.centre_x_mm, params.centre_y_mm), params.profile_rho, params.profile_loss,
-                                 params.axis_ratio, params.angle_deg)
+                                 (params.centre_x_mm, params.centre_y_mm))
 
     return ri
 
@@ -500,28 +369,11 @@ class VignettingParams(EffectParams):
                                json_schema_extra={"unit": "mm"})
     radius_mm: float | None = Field(None, gt=0, le=500, description="radial model: the radius where rho = 1 "
                                     "(default: the sensor's half-diagonal)", json_schema_extra={"unit": "mm"})
-    axis_ratio: float = Field(1.0, gt=0, le=1, description="radial model: minor over major axis of its elliptical "
-                              "contours (1: circles)", json_schema_extra={"unit": "1"})
-    angle_deg: float = Field(0.0, ge=-360, le=360, description="radial model: the major axis's angle from the "
-                             "columns", json_schema_extra={"unit": "deg"})
-    profile_rho: list[float] | None = Field(None, description="tabulated radial model: knots of rho (increasing, "
-                                            "> 0), in units of the model's radius", json_schema_extra={"unit": "1"})
-    profile_loss: list[float] | None = Field(None, description="tabulated radial model: the light lost at each "
-                                             "knot (0 at the centre, piecewise linear between, constant beyond the "
-                                             "last)", json_schema_extra={"unit": "1"})
 
     @model_validator(mode="after")
     def _one_form(self):
-        if self.map_file and (self.a2 or self.a4 or self.profile_rho):
-            raise ValueError("give either map_file or the radial model (a2/a4 or a profile), not both")
-        if (self.profile_rho is None) != (self.profile_loss is None) or (
-                self.profile_rho is not None and (len(self.profile_rho) != len(self.profile_loss)
-                                                  or not self.profile_rho
-                                                  or np.any(np.diff([0.0, *self.profile_rho]) <= 0))):
-            raise ValueError("profile_rho and profile_loss: two lists of the same length, profile_rho increasing "
-                             "from above 0")
-        if self.profile_rho and (self.a2 or self.a4):
-            raise ValueError("give either the polynomial a2/a4 or the tabulated profile, not both")
+        if self.map_file and (self.a2 or self.a4):
+            raise ValueError("give either map_file or the radial coefficients a2/a4, not both")
         return self
 
 
