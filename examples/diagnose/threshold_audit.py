@@ -336,7 +336,6 @@ RTS_MIN_CODED_STEP | D | statistics | on read codes a step of about one code lan
 RTS_CODED_SIGMA | N | model | below this noise [codes] the likelihood is that of the read codes (a density's error grows as (q/sigma)^2/24)
 @detector/effects/sky.py
 MAX_FIELD_ORDER | N | grid | highest Legendre order of the smooth light field the BIC chooses among
-EDGE_SCALES | N | grid | e-folding lengths of a straylight entering from an edge, tried (fractions of the sensor)
 @detector/signatures.py
 MAX_LINE_GAIN_CORRELATION | D | physics | line-wise gains (column amplifiers) are independent; neighbours that follow each other are a step
 MIN_LINE_PIXELS | N | sampling | pixels a line needs for its gain estimate
