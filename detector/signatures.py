@@ -778,6 +778,14 @@ class Signature:
         """The effects this frame cannot tell ``fit`` from by physics (:attr:`untold`; none by default)."""
         return tuple(self.untold(fit, res)) if self.untold is not None else ()
 
+    #: optional ``(fit, res) -> bool``: whether the frame tells, on the fitted pattern itself, that its law
+    #: (added or multiplying the light) is its own and not the other (set by the effect's module)
+    told = None
+
+    def law_told(self, fit: Fit, res: Residuals) -> bool:
+        """Whether this frame tells ``fit``'s law apart in its favour (:attr:`told`; False by default)."""
+        return bool(self.told(fit, res)) if self.told is not None else False
+
 
 def pixel_score(fit: Fit, res: Residuals) -> float | None:
     """Gaussian delta(-2 ln L) over the fitted pixels of ``res`` when ``fit``'s mean change and added
@@ -2113,6 +2121,14 @@ def light_law_evidence(fit: Fit, res: Residuals, multiplicative: bool) -> tuple[
     (one scale each) to the level-profiled residual. None: no fitted map or no light."""
     if fit.delta_adu is None:
         return None
+    key = ("light_law", multiplicative, id(res))
+    if key in fit.state:  # the check, the ties and the kind gate ask the same question of one fit
+        return fit.state[key]
+    fit.state[key] = out = _light_law_evidence(fit, res, multiplicative)
+    return out
+
+
+def _light_law_evidence(fit: Fit, res: Residuals, multiplicative: bool) -> tuple[float, float] | None:
     shape = res.data_adu.shape
     idx, r, w = res.flat_profiled()
     if idx.size < 16:
@@ -2166,3 +2182,14 @@ def light_law_untold(others: tuple[str, ...], multiplicative: bool):
         ev = light_law_evidence(fit, res, multiplicative)
         return others if ev is not None and ev[0] > -LIGHT_LAW_CHI2 else ()
     return untold
+
+
+def light_law_told(multiplicative: bool):
+    """A :attr:`Signature.told` hook: whether this frame tells the fitted light pattern's own law (added, or a
+    response) from the other law of the same shape, in its favour, by more than LIGHT_LAW_CHI2: a finding on
+    the candidate's own shape that a description's kind (:func:`detector.morphology.describe`) does not
+    overrule."""
+    def told(fit: Fit, res: Residuals) -> bool:
+        ev = light_law_evidence(fit, res, multiplicative)
+        return ev is not None and ev[0] < -LIGHT_LAW_CHI2
+    return told

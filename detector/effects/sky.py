@@ -50,7 +50,7 @@ from typing import Literal
 import numpy as np
 from pydantic import Field
 
-from ..signatures import LinearSignature, Variant, light_law_check, light_law_untold
+from ..signatures import LinearSignature, Variant, light_law_check, light_law_told, light_law_untold
 from .glow import edge_distance, edge_rate
 from .base import Effect, EffectParams, Stage, Tile, register_effect
 
@@ -103,6 +103,7 @@ _SKY_SIGNATURE = LinearSignature(_sky_variants, _sky_words, pattern="additive pl
                                  extra_k=0, adds_charge=True, check=lambda fit, res: sky_light_check(fit, res))
 #: an added light and a response to the light of the same shape are one image where the light is one level
 _SKY_SIGNATURE.untold = light_law_untold(("vignetting",), multiplicative=False)
+_SKY_SIGNATURE.told = light_law_told(multiplicative=False)
 
 
 # --- adapter -------------------------------------------------------------------------------------------------
@@ -296,6 +297,7 @@ _FIELD_SIGNATURE = LinearSignature(_legendre_variants, lambda p, res: _field_wor
                                    "frame supports), with its shot noise",
                                    extra_k=1, adds_charge=True, check=_field_check)
 _FIELD_SIGNATURE.untold = light_law_untold(("vignetting",), multiplicative=False)
+_FIELD_SIGNATURE.told = light_law_told(multiplicative=False)
 
 
 class StraylightFieldParams(EffectParams):

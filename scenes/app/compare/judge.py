@@ -86,6 +86,10 @@ class Candidate:
     #: the effects its signature says this frame cannot tell it from by physics (the same image at another
     #: stage: :meth:`detector.signatures.Signature.untold_from`)
     untold: tuple = ()
+    #: its signature found, on the fitted pattern itself, that its law (added or multiplying the light) is its
+    #: own and not the other's (:meth:`detector.signatures.Signature.law_told`): the morphology's kind, a
+    #: description's, does not overrule it
+    law_told: bool = False
 
     def __post_init__(self):
         if self.rejected and "overfit" not in self.codes and "stars" not in self.codes:
@@ -206,14 +210,16 @@ def kind_gate(cands: list[Candidate], morphology: dict | None) -> None:
     residual is a positive finding (the structure follows the model's light, the stars in the dim part are
     dimmer: :func:`detector.morphology.describe`), which no added charge or ADU pattern makes. The converse
     is not asked: "additive" is what the morphology says when it finds no such scaling, an absence of
-    evidence, not a finding."""
+    evidence, not a finding. A candidate whose own shape was tested under both laws and found added
+    (:attr:`Candidate.law_told`) keeps its law: that test is on its fitted pattern, the morphology's on a
+    description."""
     m = morphology or {}
     if not (m.get("significant") and m.get("kind") == "multiplicative" and m.get("kind_certain")):
         return
     reg = registry()
     for c in cands:
         cls = reg.get(c.fit.effect)
-        if c.kind == "effect" and cls is not None and cls.field_kind == "additive" and c.contender:
+        if c.kind == "effect" and cls is not None and cls.field_kind == "additive" and c.contender and not c.law_told:
             c.refuse("kind", (f"{c.fit.effect} adds a field whatever the light, but the residual scales with "
                               "the light (the morphology's multiplicative fit): a response, not added light"))
 
