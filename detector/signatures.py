@@ -805,6 +805,14 @@ class Signature:
         """The effects this frame cannot tell ``fit`` from by physics (:attr:`untold`; none by default)."""
         return tuple(self.untold(fit, res)) if self.untold is not None else ()
 
+    #: optional ``(fit, res) -> bool``: whether the frame tells, on the fitted pattern itself, that its law
+    #: (added or multiplying the light) is its own and not the other (set by the effect's module)
+    told = None
+
+    def law_told(self, fit: Fit, res: Residuals) -> bool:
+        """Whether this frame tells ``fit``'s law apart in its favour (:attr:`told`; False by default)."""
+        return bool(self.told(fit, res)) if self.told is not None else False
+
 
 def pixel_score(fit: Fit, res: Residuals) -> float | None:
     """Gaussian delta(-2 ln L) over the fitted pixels of ``res`` when ``fit``'s mean change and added
@@ -1659,6 +1667,46 @@ MAX_LINE_GAIN_CORRELATION = 0.1
 MIN_LINE_PIXELS = 8
 
 
+def sparse_lines_gain(m: np.ndarray, dn: np.ndarray, iterations: int = 60) -> float:
+    """delta -2 ln L of line gains ``m`` (noise variances ``1 / dn``) explained as a sparse set of deviating
+    lines -- a fraction ``f`` of the lines from ``N(mu, tau^2)``, every other line's gain exactly zero -- against
+    no line gain at all (three parameters: ``f``, ``mu``, ``tau^2``; EM from the most outlying lines).
+
+    It is the alternative to :func:`line_gains`' law, a gain for every line drawn from ``N(0, s^2)`` (one
+    parameter): column amplifiers give every column its own gain (EMVA 1288 Release 4.0 sect. 8.2), while a
+    fabrication defect or a trap leaves most columns as they are and a few off (Janesick 2007, ch. 8, column
+    defects). Compared by their BIC (the sparse law's two parameters more), the data say which law the lines
+    follow: a PRNU's column part is only claimed by a random effect over every column."""
+    v0 = 1.0 / np.maximum(dn, 1e-300)
+    z2 = m * m / v0
+    if m.size < 8:
+        return 0.0
+    order = np.argsort(-z2)
+    k0 = max(1, int(np.sum(z2 > 9.0)))
+    sel = order[:k0]
+    f, mu = k0 / m.size, float(np.mean(m[sel]))
+    tau2 = float(np.var(m[sel])) if k0 > 1 else 0.0
+
+    def logn(x, mean, var):
+        return -0.5 * ((x - mean) ** 2 / var + np.log(2 * np.pi * var))
+
+    l0 = logn(m, 0.0, v0)
+    for _ in range(iterations):
+        a = np.log(max(1 - f, 1e-12)) + l0
+        b = np.log(max(f, 1e-12)) + logn(m, mu, tau2 + v0)
+        g = np.exp(b - np.logaddexp(a, b))
+        sg = float(g.sum())
+        if sg < 1e-9:
+            return 0.0
+        f = min(max(sg / m.size, 1.0 / m.size), 1.0)
+        wt = g / (tau2 + v0)
+        mu = float(np.sum(wt * m) / max(np.sum(wt), 1e-300))
+        tau2 = max(float(np.sum(g * ((m - mu) ** 2 - v0)) / sg), 0.0)
+    a = np.log(max(1 - f, 1e-12)) + l0
+    b = np.log(max(f, 1e-12)) + logn(m, mu, tau2 + v0)
+    return min(-2.0 * float(np.sum(np.logaddexp(a, b) - l0)), 0.0)
+
+
 def line_gains(res: Residuals, template: np.ndarray, axis: int, r: np.ndarray | None = None) -> dict | None:
     """The line-wise part of a multiplicative pattern: every column (``axis`` 1) or row (``axis`` 0) has its
     own gain ``1 + g``, ``g ~ N(0, s^2)`` independent from line to line (a CMOS sensor's column amplifiers, the
@@ -1674,7 +1722,8 @@ def line_gains(res: Residuals, template: np.ndarray, axis: int, r: np.ndarray | 
     den)`` (Robinson 1991, Stat. Sci. 6, 15): on pixels the fit did not see, the lines' gains repeat, so a
     line pattern predicts them. Returns ``{"delta": map [ADU], "d": delta -2 ln L, "sigma": s, "rho": the
     neighbouring lines' correlation}``, or None when there is no such part (``s = 0``, too few lines, or lines
-    whose gains follow each other: see MAX_LINE_GAIN_CORRELATION)."""
+    whose gains follow each other: see MAX_LINE_GAIN_CORRELATION, or lines of which a few deviate and the
+    rest are alike: :func:`sparse_lines_gain`, preferred by the BIC)."""
     shape = res.data_adu.shape
     idx, rp, w = res.flat_profiled()
     r = rp if r is None else r
@@ -1707,6 +1756,8 @@ def line_gains(res: Residuals, template: np.ndarray, axis: int, r: np.ndarray | 
     rho = float(np.dot(z[1:], z[:-1]) / max(np.dot(z, z), 1e-300))
     if rho > max(MAX_LINE_GAIN_CORRELATION, 3.0 / np.sqrt(z.size)):
         return None
+    if sparse_lines_gain(m, dn) + 2 * np.log(z.size) < d:
+        return None  # a few deviating lines among identical ones: defective lines, not every line's own gain
     g = np.zeros(n)
     g[np.flatnonzero(ok)] = m * s2 * dn / (1.0 + s2 * dn)
     gmap = g[None, :] if axis == 1 else g[:, None]
@@ -2175,3 +2226,97 @@ def edge_fraction(img: np.ndarray, where: str) -> float:
     e = {"left": img[:, : max(1, w // 10)], "right": img[:, -max(1, w // 10):],
          "bottom": img[: max(1, h // 10)], "top": img[-max(1, h // 10):]}[where].mean()
     return float(e / c) if c else float("inf")
+
+
+
+#: the chi2 [1] by which a light pattern's law (an added light or a response to the light) must be told from
+#: the other law of the same shape: 25, a 5-sigma difference of a one-parameter fit (chi2_1 at 5 sigma), as
+#: for the stage of a coupling (detector.effects.coupling.IPC_STAGE_CHI2): DETECTION_SIGMA squared
+LIGHT_LAW_CHI2 = DETECTION_SIGMA ** 2
+
+
+def light_law_evidence(fit: Fit, res: Residuals, multiplicative: bool) -> tuple[float, float] | None:
+    """(delta, separation) [chi2]: how much better the frame's residual is fitted by the fitted light pattern's
+    shape under the other law than under its own (``delta`` > 0: the other law), and the chi2 of what tells
+    the two laws apart at the fitted amplitude. An added light ``A(x)`` and a response ``P(x)`` to the light
+    ``L(x)`` (vignetting, a flat-field error) give the same image wherever ``L`` is one flat level (a flat
+    screen, a sky with no source bright enough): ``(P - 1) L = A`` with ``A = (P - 1) L_bg``; they differ only by
+    the pattern times the light above that level, ``A (L / L_bg - 1)``, the sources (Janesick 2007, Photon
+    Transfer, ch. 8: a flat field is taken with a uniform light because the response is a factor of it). The
+    fitted change ``D`` (its ``delta_adu`` [ADU]) is turned into the other law's form ``T`` (``D L / L_bg`` for
+    an added light, ``D L_bg / L`` for a response); both are cleared of the frame's global levels and fitted
+    (one scale each) to the level-profiled residual. None: no fitted map or no light."""
+    if fit.delta_adu is None:
+        return None
+    key = ("light_law", multiplicative, id(res))
+    if key in fit.state:  # the check, the ties and the kind gate ask the same question of one fit
+        return fit.state[key]
+    fit.state[key] = out = _light_law_evidence(fit, res, multiplicative)
+    return out
+
+
+def _light_law_evidence(fit: Fit, res: Residuals, multiplicative: bool) -> tuple[float, float] | None:
+    shape = res.data_adu.shape
+    idx, r, w = res.flat_profiled()
+    if idx.size < 16:
+        return None
+    light = template_at(res.photo_adu, shape, idx).astype(np.float64)
+    bg = template_at(res.background_photo_adu, shape, idx).astype(np.float64)
+    ok = (light > 0) & (bg > 0)
+    if ok.sum() < 16:
+        return None
+    d = template_at(np.asarray(fit.delta_adu, np.float32), shape, idx).astype(np.float64)
+    ratio = np.where(ok, light / np.where(ok, bg, 1.0), 1.0)
+    t = d / ratio if multiplicative else d * ratio
+    lv = res.levels()
+    temps = res.level_templates()
+    sw = np.sqrt(w)
+    basis = np.stack([template_at(temps[i], shape, idx).astype(np.float64) * sw for i in lv["keep"]], axis=1) \
+        if len(lv["keep"]) else np.zeros((idx.size, 0))
+
+    def clear(v):
+        return v - basis @ np.linalg.lstsq(basis, v, rcond=None)[0] if basis.shape[1] else v
+
+    dw, tw, rw = clear(d * sw), clear(t * sw), clear(np.asarray(r, np.float64) * sw)
+
+    def gain(x):
+        xx = float(np.dot(x, x))
+        return float(np.dot(rw, x)) ** 2 / xx if xx > 0 else 0.0
+
+    tt = float(np.dot(tw, tw))
+    rest = dw - tw * (float(np.dot(dw, tw)) / tt) if tt > 0 else dw
+    return gain(tw) - gain(dw), float(np.dot(rest, rest))
+
+
+def light_law_check(fit: Fit, res: Residuals, multiplicative: bool) -> str:
+    """Why the fitted light pattern is not of its law: the same shape under the other law fits the frame
+    better by more than LIGHT_LAW_CHI2 ("" when not)."""
+    ev = light_law_evidence(fit, res, multiplicative)
+    if ev is None or ev[0] <= LIGHT_LAW_CHI2:
+        return ""
+    if multiplicative:
+        return (f"the fitted shape added to the light, not multiplying it, fits the frame better (chi2 {ev[0]:.3g}, "
+                f"more than {LIGHT_LAW_CHI2:g}; the sources carry the difference): an added light, not a response")
+    return (f"the fitted shape multiplying the light, not added to it, fits the frame better (chi2 {ev[0]:.3g}, more "
+            f"than {LIGHT_LAW_CHI2:g}; the sources carry the difference): a response to the light, not added light")
+
+
+def light_law_untold(others: tuple[str, ...], multiplicative: bool):
+    """A :attr:`Signature.untold` hook: ``others`` (the light patterns of the other law) when this frame does
+    not tell the fitted pattern's law from theirs: the same shape under the other law fits within
+    LIGHT_LAW_CHI2 of its own (:func:`light_law_evidence`)."""
+    def untold(fit: Fit, res: Residuals) -> tuple[str, ...]:
+        ev = light_law_evidence(fit, res, multiplicative)
+        return others if ev is not None and ev[0] > -LIGHT_LAW_CHI2 else ()
+    return untold
+
+
+def light_law_told(multiplicative: bool):
+    """A :attr:`Signature.told` hook: whether this frame tells the fitted light pattern's own law (added, or a
+    response) from the other law of the same shape, in its favour, by more than LIGHT_LAW_CHI2: a finding on
+    the candidate's own shape that a description's kind (:func:`detector.morphology.describe`) does not
+    overrule."""
+    def told(fit: Fit, res: Residuals) -> bool:
+        ev = light_law_evidence(fit, res, multiplicative)
+        return ev is not None and ev[0] < -LIGHT_LAW_CHI2
+    return told

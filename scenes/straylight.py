@@ -54,7 +54,7 @@ restores it exactly). The render passes that map as data (``ri``: the relative i
 ``[effects.vignetting]`` table, :func:`detector.effects.optical.relative_illumination`).
 
 One name, two forms. ``[effects.straylight]`` with ``pst`` is this module's (the scene evaluates it: it needs
-the ephemerides and the optics); with ``model = "field"`` or ``"legendre"`` it is the detector's smooth field
+the ephemerides and the optics); with ``model = "field"``, ``"legendre"`` or ``"edge"`` it is the detector's smooth field
 (:class:`detector.effects.sky.StraylightField`, the form diagnosis fits). A loaded scene routes the table
 once (:func:`is_traced_straylight`): ``scene.parts.straylight`` holds this form, validated, and
 ``scene.parts.effect_tables`` the field form with the other registry effects.
@@ -132,7 +132,7 @@ def is_traced_straylight(table) -> bool:
     """``[effects.straylight]`` is the scene's own (Sun and Moon through a PST) unless it says
     ``model = "field"`` or ``"legendre"`` (the detector's smooth-field forms,
     :class:`detector.effects.sky.StraylightField`)."""
-    return not (isinstance(table, dict) and table.get("model") in ("field", "legendre"))
+    return not (isinstance(table, dict) and table.get("model") in ("field", "legendre", "edge"))
 
 
 def straylight_config(table: dict, *, file: str | None = None) -> StraylightCfg:

@@ -81,7 +81,7 @@ _EDGES = ("left", "right", "top", "bottom", "bottom-left", "bottom-right", "top-
 _SCALES = tuple(np.geomspace(0.005, 0.5, 9))  # e-folding lengths tried, fractions of the longer sensor side
 
 
-def _edge_distance(res, where: str, y: np.ndarray, x: np.ndarray) -> np.ndarray:
+def edge_distance(res, where: str, y: np.ndarray, x: np.ndarray) -> np.ndarray:
     """Distance [sensor px] of output pixels (row index y, column index x) to an edge or corner."""
     s = res.sensor
     ys, xs = res.ys[y], res.xs[x]
@@ -100,7 +100,7 @@ def _glow_variant(res, where: str, scale: float) -> Variant:
 
     def at(idx):
         y, x = np.divmod(idx, w)
-        return (unit * np.exp(-_edge_distance(res, where, y, x) / scale))[None, :]
+        return (unit * np.exp(-edge_distance(res, where, y, x) / scale))[None, :]
 
     def maps():
         t = np.zeros(res.data_adu.shape, np.float32)

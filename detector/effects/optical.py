@@ -26,7 +26,7 @@ import numpy as np
 from pydantic import Field, model_validator
 
 from ..errors import DetectorError
-from ..signatures import LinearSignature, Variant, fit_linear, search_sample
+from ..signatures import LinearSignature, Variant, fit_linear, light_law_check, light_law_untold, search_sample
 from ..significance import DETECTION_SIGMA
 from .base import Effect, EffectParams, Stage, Tile, register_effect
 
@@ -311,7 +311,8 @@ def _vignetting_check(fit, res) -> str:
                 f"never-rising profile, more than {VIGNETTING_RISE_CHI2:g}, by {100 * share:.3g} % of the rings' "
                 f"span, more than {100 * VIGNETTING_RISE_SHARE:g} %): vignetting only takes light away (an "
                 "added light or a flat-field error)")
-    return ""
+    # a response of this shape against an added light of the same shape: the sources tell
+    return light_law_check(fit, res, multiplicative=True)
 
 
 _VIGNETTING_SIGNATURE = LinearSignature(
@@ -323,6 +324,8 @@ _VIGNETTING_SIGNATURE = LinearSignature(
                        if "centre_x_mm" in p else "") + ": vignetting"),
     pattern="multiplicative radial fall-off of the light", extra_k=3, refine=_vignetting_refine, of_light=True,
     check=_vignetting_check)
+#: a response to the light and an added light of the same shape are one image where the light is one level
+_VIGNETTING_SIGNATURE.untold = light_law_untold(("straylight", "sky_gradient"), multiplicative=True)
 #: the variant of a label ("cx|cy|radius"), on any frame: a series refines the centre on one frame and fits
 #: that one form on every frame (scenes.app.compare.series)
 _VIGNETTING_SIGNATURE.rebuild = lambda label, res: _vignetting_variant(

@@ -199,6 +199,39 @@ class RowOffsetSignature(Signature):
     #: noise draws a new offset for every row read (Janesick 2007, ch. 10); a 1/f (pink) part correlates
     #: neighbours far less (0.44 for the hidden-effect suite's pink row noise; 0.75 for a bias random walk)
     MAX_LAG1 = 0.6
+    #: ... unless their spectrum is a flicker noise's: the read chain's 1/f noise (Janesick 2007, Photon Transfer,
+    #: ch. 7: flicker noise of the output amplifier, power ~ 1/f^alpha with alpha ~ 1) makes row offsets that
+    #: correlate from row to row, while a level drifting as a random walk falls as 1/f^2. Correlated offsets
+    #: are a drift when their spectral index (:meth:`spectral_index`) is steeper than this index, midway between
+    #: the two laws
+    MAX_SPECTRAL_INDEX = 1.5
+
+    @classmethod
+    def spectral_index(cls, u: np.ndarray, ratio: float) -> float | None:
+        """alpha: the power of the extra row offsets falls as 1/f^alpha (alpha the Whittle maximum-likelihood
+        index: each periodogram ordinate I_k of the whitened offsets ``u`` is exponential about ``A k^-alpha + c``,
+        Whittle 1953; ``c`` the white pixel noise of the row means, 1 / ``ratio`` of their variance), over the
+        frequencies above the removed smooth curve's (k > 8). None with fewer than 16 frequencies or no excess."""
+        from scipy.optimize import minimize
+
+        n = u.size
+        power = np.abs(np.fft.rfft(u - u.mean())) ** 2 / n
+        k = np.arange(power.size, dtype=np.float64)
+        sel = k > 8
+        if sel.sum() < 16 or ratio <= 1:
+            return None
+        ik, kk = power[sel], k[sel]
+        c = float(np.mean(power[1:])) / ratio
+        lk = np.log(kk / kk[0])
+
+        def nll(p):
+            m = np.exp(p[0] - p[1] * lk) + c
+            return float(np.sum(np.log(m) + ik / m))
+
+        a0 = np.log(max(float(np.mean(ik[:8])) - c, 1e-6 * c))
+        best = min((minimize(nll, [a0, al], method="Nelder-Mead", options={"xatol": 1e-4, "fatol": 1e-3}) for al in
+                    (0.5, 1.0, 2.0)), key=lambda o: o.fun)
+        return float(best.x[1])
     #: ... or a periodic pattern when one frequency of the whitened row offsets stands above its neighbours' level
     #: beyond this false-alarm probability over all frequencies (5 sigma one-sided, the judge's excess_sigma):
     #: row noise is white from row to row, a pickup or clock interference repeats (Priestley 1981, Spectral
@@ -290,9 +323,13 @@ class RowOffsetSignature(Signature):
             ratio = float(np.sum(r * r / v)) / n
             rho_extra = rho1 * ratio / (ratio - 1) if ratio > 1 else 0.0
             if rho_extra > self.MAX_LAG1 and rho1 * np.sqrt(n) > DETECTION_SIGMA:
-                return (f"the row offsets are correlated from one row to the next (lag-1 correlation {rho_extra:.2f} "
-                        f"of the extra offsets, {rho1 * np.sqrt(n):.0f} sigma): a level drifting during the read-out "
-                        "or a slow pickup, not independent row noise")
+                alpha = self.spectral_index(u, ratio)
+                if alpha is None or alpha > self.MAX_SPECTRAL_INDEX:
+                    return (f"the row offsets are correlated from one row to the next (lag-1 correlation {rho_extra:.2f} "
+                            f"of the extra offsets, {rho1 * np.sqrt(n):.0f} sigma"
+                            + (f"; their spectrum falls as 1/f^{alpha:.2g}, steeper than a flicker noise's"
+                               if alpha is not None else "") + "): a level drifting during the read-out "
+                            "or a slow pickup, not row noise")
             peak = self.periodic_peak(u)
             if peak is not None:
                 period, ratio = peak

@@ -50,7 +50,8 @@ from typing import Literal
 import numpy as np
 from pydantic import Field
 
-from ..signatures import LinearSignature, Variant
+from ..signatures import LinearSignature, Variant, light_law_check, light_law_told, light_law_untold
+from .glow import edge_distance, edge_rate
 from .base import Effect, EffectParams, Stage, Tile, register_effect
 
 #: the gradient's length unit: the rates change per this many sensor pixels
@@ -100,6 +101,9 @@ def _sky_words(p, res) -> str:
 
 _SKY_SIGNATURE = LinearSignature(_sky_variants, _sky_words, pattern="additive plane of light (with its shot noise)",
                                  extra_k=0, adds_charge=True, check=lambda fit, res: sky_light_check(fit, res))
+#: an added light and a response to the light of the same shape are one image where the light is one level
+_SKY_SIGNATURE.untold = light_law_untold(("vignetting",), multiplicative=False)
+_SKY_SIGNATURE.told = light_law_told(multiplicative=False)
 
 
 # --- adapter -------------------------------------------------------------------------------------------------
@@ -165,6 +169,11 @@ def _field_words(p, res) -> str:
     w, h = s.roi_shape
     ys = np.array([s.roi_y0, s.roi_y0 + h - 1, s.roi_y0, s.roi_y0 + h - 1, s.roi_y0 + h / 2.0])
     xs = np.array([s.roi_x0, s.roi_x0, s.roi_x0 + w - 1, s.roi_x0 + w - 1, s.roi_x0 + w / 2.0])
+    if p.get("model") == "edge":
+        return (f"an additive light entering from the sensor's {p['edge']} {'corner' if '-' in p['edge'] else 'edge'}, "
+                f"{p['amplitude_e_per_s'] * res.exptime_s:.3g} e- per sensor pixel there, falling off over "
+                f"{p['scale_px']:.3g} px (e-folding), growing with exposure, in the light only: straylight (a lit "
+                "baffle or housing edge, a light leak)")
     if p.get("model") == "legendre":
         vv, uu = window_uv(s, np.linspace(s.roi_y0, s.roi_y0 + h - 1, 33), np.linspace(s.roi_x0, s.roi_x0 + w - 1, 33))
         vals = (legendre_field_rate(vv, uu, p["order"], p["coef"]) * res.exptime_s).ravel().tolist()
@@ -183,7 +192,8 @@ def sky_light_check(fit, res) -> str:
     if getattr(res, "light_source", "") == "flat":
         return ("the frame's light is a flat-field screen, which blocks the sky: no sky light or straylight reaches "
                 "the sensor; a smooth pattern on a flat is a response (vignetting, a flat-field error)")
-    return ""
+    # an added light of this shape against a response of the same shape: the sources tell (not a flat screen)
+    return light_law_check(fit, res, multiplicative=False)
 
 
 _field_check = sky_light_check
@@ -248,19 +258,60 @@ def _legendre_variants(res):
     pv = np.polynomial.legendre.legvander(v, MAX_FIELD_ORDER)
     for order in range(2, MAX_FIELD_ORDER + 1):
         yield _legendre_variant(res, order, f, pu, pv)
+    side = max(res.sensor.sensor_width_px, res.sensor.sensor_height_px)
+    for where in EDGES:
+        for frac in EDGE_SCALES:
+            yield _edge_variant(res, where, frac * side, f)
+
+
+#: the edges and corners a straylight may enter from, and its e-folding distances tried [fractions of the
+#: sensor's longer side]: a lit baffle, a housing edge or a light leak puts light along one side of the sensor
+#: that falls off into the field, over a few per cent of it to all of it (not localised like an amplifier's
+#: glow, ``amp_glow``'s GLOW_MAX_SCALE); a falling exponential is no low-order Legendre series
+EDGES = ("left", "right", "top", "bottom", "bottom-left", "bottom-right", "top-left", "top-right")
+EDGE_SCALES = tuple(np.geomspace(0.02, 1.0, 7))
+
+
+def _edge_variant(res, where: str, scale: float, f: float) -> Variant:
+    s = res.sensor
+    w = res.data_adu.shape[1]
+
+    def at(idx):
+        y, x = np.divmod(np.asarray(idx), w)
+        return (f * np.exp(-edge_distance(res, where, y, x) / scale))[None, :]
+
+    def maps():
+        t = np.zeros(res.data_adu.shape, np.float32)
+        edge_rate(res.ys, res.xs, s.sensor_height_px, s.sensor_width_px, where, 1.0, scale, t)
+        return [t * np.float32(f)]
+
+    def to_params(c):
+        return ({"model": "edge", "edge": where, "amplitude_e_per_s": round(float(c[0]), 6),
+                 "scale_px": round(float(scale), 1)} if 0 < c[0] <= MAX_FIELD else None)
+
+    return Variant(maps, to_params, f"edge {where}|{scale:.6g}", at=at)
 
 
 _FIELD_SIGNATURE = LinearSignature(_legendre_variants, lambda p, res: _field_words(p, res),
                                    pattern="additive smooth field of light (a Legendre series of the order the "
                                    "frame supports), with its shot noise",
                                    extra_k=1, adds_charge=True, check=_field_check)
+_FIELD_SIGNATURE.untold = light_law_untold(("vignetting",), multiplicative=False)
+_FIELD_SIGNATURE.told = light_law_told(multiplicative=False)
 
 
 class StraylightFieldParams(EffectParams):
-    model: Literal["field", "legendre"] = Field(
+    model: Literal["field", "legendre", "edge"] = Field(
         "field", description="the smooth-field form: 'field' the second-order polynomial about the sensor centre "
-        "(gx ... gyy), 'legendre' the Legendre series of ``order`` over the read-out window (``coef``); the "
-        "scene's ray-traced form has pst = ... instead")
+        "(gx ... gyy), 'legendre' the Legendre series of ``order`` over the read-out window (``coef``), 'edge' a "
+        "light entering from an edge or corner of the sensor falling as exp(-d / scale_px) (``edge``, "
+        "``amplitude_e_per_s``, ``scale_px``); the scene's ray-traced form has pst = ... instead")
+    edge: str = Field("left", description="the sensor edge or corner the light enters from (model 'edge'): left, "
+                      "right, top, bottom or a corner such as bottom-left")
+    amplitude_e_per_s: float = Field(0.0, ge=0, le=1e6, description="the light at that edge (model 'edge') "
+                                     "[e-/s/pixel]", json_schema_extra={"unit": "electron / (s pixel)"})
+    scale_px: float = Field(100.0, gt=0, le=1e6, description="e-folding distance from that edge (model 'edge') "
+                            "[sensor px]", json_schema_extra={"unit": "pixel"})
     order: int = Field(2, ge=1, le=12, description="order of the Legendre series (model 'legendre') [1]")
     coef: list[float] = Field(default_factory=list, description="coefficients of P_i(u) P_j(v), 1 <= i + j <= order, "
                               "i outer (model 'legendre') [e-/s/pixel]",
@@ -302,6 +353,11 @@ class StraylightField(Effect):
         if p.model == "legendre":
             v, u = window_uv(self.sensor, ys, xs)
             data += (legendre_field_rate(v, u, p.order, p.coef) * tile.exptime_s).astype(np.float32)
+        elif p.model == "edge":
+            t = np.zeros(data.shape, np.float32)
+            edge_rate(ys, xs, self.sensor.sensor_height_px, self.sensor.sensor_width_px, p.edge,
+                      p.amplitude_e_per_s * tile.exptime_s, p.scale_px, t)
+            data += t
         else:
             data += straylight_field_e(ys, xs, yc, xc, {k: getattr(p, k) for k in _FIELD_KEYS}, tile.exptime_s)
         np.maximum(data, 0, out=data)

@@ -303,6 +303,7 @@ RowOffsetSignature.SMOOTH_DEGREE | N | basis | polynomial degree of the smooth-c
 RowOffsetSignature.SMOOTH_FRACTION | D | design | a row-offset fit is a smooth curve above this share
 RowOffsetSignature.COLUMN_FRACTION | D | design | a whole-frame pattern, not row noise
 RowOffsetSignature.MAX_LAG1 | D | physics | row noise is white from row to row (Janesick 2007)
+RowOffsetSignature.MAX_SPECTRAL_INDEX | D | physics | correlated row offsets: a flicker noise's spectrum falls as 1/f, a drifting level's as 1/f^2; midway
 RowOffsetSignature.PERIODIC_FALSE_ALARM | D | statistics | one-sided DETECTION_SIGMA (DETECTION_P)
 RowOffsetSignature.PERIODIC_NEIGHBOURS | N | estimator | frequencies of the local spectral level
 BIAS_PROFILE_ORDERS | N | grid | bias pattern orders tried
@@ -347,6 +348,7 @@ MAX_FIELD_ORDER | N | grid | highest Legendre order of the smooth light field th
 @detector/signatures.py
 MAX_LINE_GAIN_CORRELATION | D | physics | line-wise gains (column amplifiers) are independent; neighbours that follow each other are a step
 MIN_LINE_PIXELS | N | sampling | pixels a line needs for its gain estimate
+LIGHT_LAW_CHI2 | D | statistics | a light pattern's law (added or a response) is told from the other law of the same shape at chi2_1 of 5 sigma
 VarianceSignature.CELL_SIGMA | D | statistics | a cell is far above the rest only beyond detection-like 5 standard errors
 DITHER_SEED | N | seed | fixed dither of integer read codes (reproducibility)
 SMOOTH_MAP_BLOCKS | N | grid | blocks a side of a variance pattern's low-frequency map (the morphology's empirical map's BLOCKS)

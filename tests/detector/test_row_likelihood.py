@@ -105,3 +105,28 @@ def test_row_offsets_that_repeat_are_a_periodic_pattern_not_row_noise():
         assert ("period" in why) == periodic_expected, why
     flags = sum(RowOffsetSignature.periodic_peak(rng.normal(size=334)) is not None for _ in range(500))
     assert flags <= 2
+
+
+def _power_law_series(n, alpha, rng):
+    f = np.fft.rfftfreq(n)
+    f[0] = f[1]
+    x = np.fft.irfft((rng.standard_normal(f.size) + 1j * rng.standard_normal(f.size)) * f ** (-alpha / 2), n)
+    return x / x.std()
+
+
+def test_flicker_row_offsets_are_told_from_a_drifting_level_by_their_spectral_index():
+    """Correlated row offsets: a read chain's 1/f (flicker) noise has spectral index ~1, a level drifting as a
+    random walk ~2 (its Whittle index); the row-noise plausibility tells them apart at MAX_SPECTRAL_INDEX."""
+    from detector.effects.readout import RowOffsetSignature as R
+
+    rng = np.random.default_rng(35)
+    n = 2048
+    x = np.linspace(-1, 1, n)
+    basis = np.polynomial.legendre.legvander(x, R.SMOOTH_DEGREE)
+    for make, lo, hi in ((lambda: _power_law_series(n, 1.0, rng), 0.7, 1.3),
+                         (lambda: np.cumsum(rng.standard_normal(n)) / 20.0, 1.8, 2.5)):
+        u = 3.0 * make() + rng.standard_normal(n)  # the extra offsets over the row means' pixel noise
+        u = u - basis @ np.linalg.lstsq(basis, u, rcond=None)[0]
+        alpha = R.spectral_index(u, float(np.mean(u * u)))
+        assert lo < alpha < hi
+    assert 1.0 < R.MAX_SPECTRAL_INDEX < 2.0

@@ -543,3 +543,22 @@ def test_an_ipc_the_frame_cannot_tell_from_a_blur_is_named_with_it():
     assert indistinguishable([ipc], [ipc, blur]) == [] and "psf_blur" not in verdict([ipc, blur])
     ipc, blur = pair(blur_why="not a blur")
     assert indistinguishable([ipc], [ipc, blur]) == []
+
+
+def test_a_response_and_an_added_light_the_frame_cannot_tell_are_named_together_and_a_told_law_passes_the_kind_gate():
+    """A vignetting whose own law this frame does not tell from an added light (``untold``: one light level)
+    is named with straylight as the same smooth pattern of the light; an added light whose own shape the
+    frame finds added (``law_told``) is not refused by the morphology's multiplicative kind, one that is not
+    told is."""
+    from scenes.app.compare.judge import indistinguishable, kind_gate, same_light, verdict
+
+    vig = Candidate(Fit("vignetting", {}, -160.0, 5, 10_000, "a fall-off"), 1.0, 0.0, heldout=-70.0,
+                    untold=("straylight", "sky_gradient"))
+    stray = Candidate(Fit("straylight", {}, -100.0, 6, 10_000, "an added light"), 1.0, 0.0, heldout=-20.0)
+    assert same_light(vig, stray) and indistinguishable([vig], [vig, stray]) == [stray]
+    assert "cannot tell it apart from straylight: the same smooth pattern of the light" in verdict([vig, stray])
+    morph = {"significant": True, "kind": "multiplicative", "kind_certain": True}
+    told = Candidate(Fit("straylight", {}, -300.0, 6, 10_000, "an added light"), 1.0, 0.0, law_told=True)
+    untold = Candidate(Fit("sky_gradient", {}, -300.0, 2, 10_000, "a gradient"), 1.0, 0.0)
+    kind_gate([told, untold], morph)
+    assert "kind" not in told.codes and "kind" in untold.codes

@@ -233,6 +233,11 @@ def candidates(res: Residuals, present: set[str], progress=None, truth=None,
         why = floor_reason(name, fit.params, res.sensor, policy, res.exptime_s) or signal_range_floor(name, res, policy, fit.params)
         if why:
             c.refuse("floor", why)
+        if hasattr(cls.signature, "law_told"):
+            try:
+                c.law_told = bool(cls.signature.law_told(fit, res))
+            except Exception:  # noqa: BLE001  (a plugin's hook that raises claims nothing)
+                c.law_told = False
         if c.contender and hasattr(cls.signature, "untold_from"):
             try:
                 c.untold = tuple(cls.signature.untold_from(fit, res))

@@ -86,6 +86,10 @@ class Candidate:
     #: the effects its signature says this frame cannot tell it from by physics (the same image at another
     #: stage: :meth:`detector.signatures.Signature.untold_from`)
     untold: tuple = ()
+    #: its signature found, on the fitted pattern itself, that its law (added or multiplying the light) is its
+    #: own and not the other's (:meth:`detector.signatures.Signature.law_told`): the morphology's kind, a
+    #: description's, does not overrule it
+    law_told: bool = False
 
     def __post_init__(self):
         if self.rejected and "overfit" not in self.codes and "stars" not in self.codes:
@@ -206,14 +210,16 @@ def kind_gate(cands: list[Candidate], morphology: dict | None) -> None:
     residual is a positive finding (the structure follows the model's light, the stars in the dim part are
     dimmer: :func:`detector.morphology.describe`), which no added charge or ADU pattern makes. The converse
     is not asked: "additive" is what the morphology says when it finds no such scaling, an absence of
-    evidence, not a finding."""
+    evidence, not a finding. A candidate whose own shape was tested under both laws and found added
+    (:attr:`Candidate.law_told`) keeps its law: that test is on its fitted pattern, the morphology's on a
+    description."""
     m = morphology or {}
     if not (m.get("significant") and m.get("kind") == "multiplicative" and m.get("kind_certain")):
         return
     reg = registry()
     for c in cands:
         cls = reg.get(c.fit.effect)
-        if c.kind == "effect" and cls is not None and cls.field_kind == "additive" and c.contender:
+        if c.kind == "effect" and cls is not None and cls.field_kind == "additive" and c.contender and not c.law_told:
             c.refuse("kind", (f"{c.fit.effect} adds a field whatever the light, but the residual scales with "
                               "the light (the morphology's multiplicative fit): a response, not added light"))
 
@@ -303,12 +309,22 @@ def same_image(a: Candidate, b: Candidate) -> bool:
 
 #: why the data cannot tell the first name from a twin, in the order the verdict says them: each a predicate of
 #: (first, twin) and its reason; the last (None) takes the twins whose held-out scores are as good
+def same_light(a: Candidate, b: Candidate) -> bool:
+    """One acts on the light only (a response: vignetting) and the other adds light (straylight, a sky
+    gradient): the pair :func:`detector.signatures.light_law_evidence` weighs, the same image on a frame whose
+    light is one level (their :attr:`Candidate.untold` says when the frame does not tell them)."""
+    return (_of_light(a) and _charge_origin(b) == "light") or (_of_light(b) and _charge_origin(a) == "light")
+
+
 TWIN_REASONS = (
     (same_charge, "the same charge in the same pixels, whose origin (dark or light) only a dark frame of the same "
                   "exposure tells"),
     (same_scatter, "the same added variance in every pixel of this frame (a DSNU's grows as the dark signal "
                    "squared, a PRNU's as the light squared, a read noise's is constant: laws that agree where that "
                    "signal is uniform; a frame of another exposure or level tells them apart)"),
+    (lambda a, b: same_image(a, b) and same_light(a, b),
+     "the same smooth pattern of the light, added to it or multiplying it (a response), which only sources bright "
+     "enough above a light of one level would tell: a flat field taken through the same optics tells which"),
     (same_image, "the same small kernel on the same pixels, whose stage (the pixels' charge or the light) only a "
                  "coupled noise or a charge not of light would tell, neither measurable in this frame"),
     (None, "their held-out scores are as good"),
