@@ -1586,11 +1586,22 @@ def tail_neighbour_correlation(res: Residuals) -> tuple[float, float, int, float
     return res._flat["tail_neighbour_correlation"]
 
 
-def smooth_component(res: Residuals, template: np.ndarray) -> tuple[float, float, int, np.ndarray | None]:
+def _with_scatter(w: np.ndarray, extra_var_adu2, shape, idx) -> np.ndarray:
+    """Weights 1 / var of the fitted pixels ``idx`` with a fitted pattern's own added variance [ADU^2] in them:
+    a mean change fitted beside an added scatter is weighed by the whole variance, or the scatter's own noise
+    reads as a structure (its chi2 gain grows by (var + extra) / var)."""
+    if extra_var_adu2 is None:
+        return w
+    return w / (1.0 + w * template_at(extra_var_adu2, shape, idx).astype(np.float64))
+
+
+def smooth_component(res: Residuals, template: np.ndarray,
+                     extra_var_adu2: np.ndarray | None = None) -> tuple[float, float, int, np.ndarray | None]:
     """The low-frequency part of a multiplicative pattern: the level-profiled residual fitted by the smooth
-    cosine basis times ``template`` (e.g. the photo-signal for a PRNU map's large scales). Returns (delta
-    -2 ln L over all fitted pixels, rms of the fitted relative pattern, number of templates, the fitted mean
-    change [ADU] on the whole frame: what the pattern predicts on pixels it was not fitted on)."""
+    cosine basis times ``template`` (e.g. the photo-signal for a PRNU map's large scales), weighed with the
+    pattern's own added variance ``extra_var_adu2`` [ADU^2] when given. Returns (delta -2 ln L over all fitted
+    pixels, rms of the fitted relative pattern, number of templates, the fitted mean change [ADU] on the whole
+    frame: what the pattern predicts on pixels it was not fitted on)."""
     vs = variance_sample(res)
     shape = res.data_adu.shape
     t = template_at(template, shape, vs["idx"])
@@ -1598,7 +1609,8 @@ def smooth_component(res: Residuals, template: np.ndarray) -> tuple[float, float
         return 0.0, 0.0, 0, None
     basis = cosine_basis(shape, vs["idx"], constant=False)
     levels = res.level_values(vs["idx"])  # the levels the frame fits (Residuals.levels)
-    c, d, part = lstsq_delta(vs["r"], vs["w"], basis * t, levels if levels.size else None)
+    w = _with_scatter(vs["w"], extra_var_adu2, shape, vs["idx"])
+    c, d, part = lstsq_delta(vs["r"], w, basis * t, levels if levels.size else None)
     rel = part / np.where(t != 0, t, np.inf)
     # the fitted map on every pixel, separably (cosine_basis's terms: k along x, l along y, (0, 0) left out)
     o = SMOOTH_ORDER
@@ -1609,54 +1621,6 @@ def smooth_component(res: Residuals, template: np.ndarray) -> tuple[float, float
     coef[list(ks), list(ms)] = c
     full = (cy.T @ coef.T @ cx) * np.broadcast_to(np.asarray(template, np.float64), shape)
     return d * vs["scale"], float(np.sqrt(np.mean(rel * rel))), basis.shape[0], full.astype(np.float32)
-
-
-#: blocks a side of the frame's shorter axis over which a pattern's low-frequency map is measured
-#: (:func:`smooth_map_component`): detector.morphology's empirical map's (its BLOCKS), so a named pattern's
-#: large scales are measured as finely as the description's that it must predict as well as
-SMOOTH_MAP_BLOCKS = 48
-
-
-def smooth_map_component(res: Residuals, template: np.ndarray) -> tuple[float, float, float, np.ndarray] | None:
-    """The low-frequency part of a multiplicative pattern as a map of any shape (a PRNU's flat-field map:
-    coating and thickness variations, Janesick 2007, Photon Transfer, ch. 8; not only the few cycles of
-    :func:`smooth_component`'s cosine basis): the pattern's template-weighted least-squares value in blocks of
-    ``min(shape) / SMOOTH_MAP_BLOCKS`` pixels (``sum w t r / sum w t^2``), smoothed over a block (normalised
-    convolution, a Gaussian of one block), interpolated to every pixel and times ``template`` [ADU]. Returns
-    (delta -2 ln L over the fitted pixels with the levels refitted, rms of the relative map, its effective
-    number of parameters: the smoother's trace, the blocks with data times the Gaussian's central weight, the
-    mean change [ADU] on the whole frame), or None without a template."""
-    from scipy.ndimage import gaussian_filter
-
-    from detector.morphology import _upsample
-
-    shape = res.data_adu.shape
-    idx, r, w = res.flat_profiled()
-    if not idx.size:
-        return None
-    t = template_at(template, shape, idx)
-    if not np.any(t):
-        return None
-    b = int(max(2, min(shape) // SMOOTH_MAP_BLOCKS))
-    ny, nx = -(-shape[0] // b), -(-shape[1] // b)
-    y, x = np.divmod(idx, shape[1])
-    cell = (y // b) * nx + x // b
-    num = np.bincount(cell, w * t * r, minlength=ny * nx).reshape(ny, nx)
-    den = np.bincount(cell, w * t * t, minlength=ny * nx).reshape(ny, nx)
-    has = den > 0
-    if has.sum() < 4:
-        return None
-    sm = gaussian_filter(num, 1.0, mode="nearest") / np.maximum(gaussian_filter(den, 1.0, mode="nearest"), 1e-300)
-    impulse = np.zeros((9, 9))
-    impulse[4, 4] = 1.0
-    k_eff = float(has.sum()) * float(gaussian_filter(impulse, 1.0, mode="constant")[4, 4])
-    rel = _upsample(np.where(np.isfinite(sm), sm, 0.0), b, shape)
-    delta = (rel * np.broadcast_to(np.asarray(template, np.float32), shape)).astype(np.float32)
-    levels = res.level_values(idx)
-    c, d, _ = lstsq_delta(r, w, delta.ravel()[idx].astype(np.float64)[None, :], levels if levels.size else None)
-    c0 = float(c[0]) if np.isfinite(c[0]) else 0.0  # the map's amplitude refitted with the levels (about 1)
-    rel_at = c0 * rel.ravel()[idx]
-    return d, float(np.sqrt(np.mean(rel_at * rel_at))), k_eff, (c0 * delta).astype(np.float32)
 
 
 #: the lines' gains of a response pattern (column amplifiers, row drivers) are independent from line to line:
@@ -1846,17 +1810,14 @@ class VarianceSignature(Signature):
         if self.smooth is not None and d + k * np.log(max(n, 2)) < -STRONG_EVIDENCE:
             tmpl = self.smooth(res)
             ln = np.log(max(n, 2))
-            # the response map at the scale of a few pixels, of any shape (a pattern of more cycles than a cosine
-            # basis holds), when it pays for its smoother's effective parameters (BIC); else the smooth cosines
-            # of a few cycles. Either is the fit's mean change: predicted on pixels the fit did not see (the
-            # held-out folds) and judged on the frame's large-scale structure as every mean change is
-            got = smooth_map_component(res, tmpl)
-            best_smooth = None
-            if got is not None and got[0] + got[2] * ln < 0:
-                best_smooth = (got[0] + got[2] * ln, got[0], got[2], got[1], got[3])
-            else:
-                ds, rms, m, cos_delta = smooth_component(res, tmpl)
-                best_smooth = (ds + m * ln, ds, m, rms, cos_delta) if m and ds + m * ln < 0 else None
+            # the response's large scales (a flat-field map: coating and thickness variations, Janesick 2007,
+            # Photon Transfer, ch. 8) in the smooth cosines of a few cycles, weighed with the fit's own scatter;
+            # the fit's mean change: predicted on pixels the fit did not see (the held-out folds) and judged on
+            # the frame's large-scale structure as every mean change is. (A map of any shape at the description's
+            # scale was tried: it is the catch-all under a name, and took a frame's gain regions as PRNU.)
+            scatter = theta * np.broadcast_to(full, res.data_adu.shape)  # the fit's own added variance
+            ds, rms, m, cos_delta = smooth_component(res, tmpl, scatter)
+            best_smooth = (ds + m * ln, ds, m, rms, cos_delta) if m and ds + m * ln < 0 else None
             if best_smooth is not None:
                 _, ds, m, rms, smooth_delta = best_smooth
                 d, k = d + ds, k + m

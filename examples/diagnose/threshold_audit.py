@@ -351,7 +351,6 @@ MIN_LINE_PIXELS | N | sampling | pixels a line needs for its gain estimate
 LIGHT_LAW_CHI2 | D | statistics | a light pattern's law (added or a response) is told from the other law of the same shape at chi2_1 of 5 sigma
 VarianceSignature.CELL_SIGMA | D | statistics | a cell is far above the rest only beyond detection-like 5 standard errors
 DITHER_SEED | N | seed | fixed dither of integer read codes (reproducibility)
-SMOOTH_MAP_BLOCKS | N | grid | blocks a side of a variance pattern's low-frequency map (the morphology's empirical map's BLOCKS)
 @scenes/app/compare/candidates.py
 SIGNIFICANT_DELTA_BIC | D | contract | the policy's significant_delta_bic
 OVERFIT_CHI2_PER_DOF | D | statistics | the policy's overfit_chi2_per_dof
