@@ -231,13 +231,20 @@ def _of_light(c: Candidate) -> bool:
     return cls is not None and set(cls.stages) == {Stage.RESPONSE}
 
 
+def _multiplies(c: Candidate) -> bool:
+    """The candidate multiplies the signal: a response of the light (:func:`_of_light`) or a multiplicative
+    field at another stage (an amplifier's gain regions)."""
+    cls = registry().get(c.fit.effect)
+    return _of_light(c) or (cls is not None and c.kind == "effect" and cls.field_kind == "multiplicative")
+
+
 def rank(cands: list[Candidate], light_source: str = "") -> list[Candidate]:
     """Best first: significant parameters of the scene (a number of the scene that is wrong comes before an
     effect that is missing), then the significant effects by their held-out score (delta BIC where there is
     none), then the others that are plausible and not rejected, then the implausible and the rejected, each
     by delta BIC. Twins (as good on held-out pixels) go by delta BIC (fewer parameters for the same fit
     first); on a flat-screen frame (``light_source`` "flat"), whose uniform light cannot tell a response from
-    added charge, a response comes first."""
+    added charge, what multiplies the signal (a response, a gain) comes first."""
     def key(c):
         sig = c.significant
         tier = ((0 if not (c.ambiguous or c.deferred) else 1.5) if c.kind == "parameter" else 1) if sig else \
@@ -250,7 +257,7 @@ def rank(cands: list[Candidate], light_source: str = "") -> list[Candidate]:
     if twins:
         flat = light_source == "flat"
         group = sorted([sig[0], *[c for c in twins if c.significant]],
-                       key=lambda c: (flat and not _of_light(c), c.fit.delta_bic))
+                       key=lambda c: (flat and not _multiplies(c), c.fit.delta_bic))
         group += [c for c in twins if not c.significant]  # the same image, its own score short of the bar
         params = [c for c in out if c.significant and c.kind == "parameter" and not (c.ambiguous or c.deferred)]
         rest = [c for c in out if c not in group and c not in params]
