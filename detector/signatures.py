@@ -2229,14 +2229,23 @@ def _light_law_evidence(fit: Fit, res: Residuals, multiplicative: bool) -> tuple
     d = template_at(np.asarray(fit.delta_adu, np.float32), shape, idx).astype(np.float64)
     ratio = np.where(ok, light / np.where(ok, bg, 1.0), 1.0)
     t = d / ratio if multiplicative else d * ratio
-    lv = res.levels()
-    temps = res.level_templates()
     sw = np.sqrt(w)
-    basis = np.stack([template_at(temps[i], shape, idx).astype(np.float64) * sw for i in lv["keep"]], axis=1) \
-        if len(lv["keep"]) else np.zeros((idx.size, 0))
+
+    def levels_q():
+        """An orthonormal basis of the weighted global levels at the fitted pixels (one QR for every light
+        pattern of the comparison)."""
+        lv, temps = res.levels(), res.level_templates()
+        if not len(lv["keep"]):
+            return None
+        basis = np.stack([template_at(temps[i], shape, idx).astype(np.float64) * sw for i in lv["keep"]], axis=1)
+        q, rr = np.linalg.qr(basis)
+        diag = np.abs(np.diag(rr))
+        return q[:, diag > 1e-12 * max(float(diag.max()), 1e-300)]  # levels that are one another's left out
+
+    q = res.memo("light_law_levels_q", levels_q)
 
     def clear(v):
-        return v - basis @ np.linalg.lstsq(basis, v, rcond=None)[0] if basis.shape[1] else v
+        return v - q @ (q.T @ v) if q is not None and q.shape[1] else v
 
     dw, tw, rw = clear(d * sw), clear(t * sw), clear(np.asarray(r, np.float64) * sw)
 
