@@ -333,6 +333,19 @@ def group_gain(groups: np.ndarray, k_per_group: int, n_pixels: int) -> tuple[flo
     return float(g[keep].sum()), int(keep.sum())
 
 
+def group_excess(data_groups: np.ndarray, model_groups: np.ndarray, k_per_group: int,
+                 n_pixels: int) -> tuple[float, int, int] | None:
+    """The data's groups (:func:`group_gain`) beyond the model realisation's groups of the same kind: (delta
+    -2 ln L < 0, groups kept in the data, in the model), or None when the data's groups carry no more chi2 or
+    are no more numerous than the model's (hot and dead pixels, particle tracks are judged alike)."""
+    d_data, n_data = group_gain(data_groups, k_per_group, n_pixels)
+    d_model, n_model = group_gain(model_groups, k_per_group, n_pixels)
+    delta = min(d_data - d_model, 0.0)
+    if delta >= 0 or n_data <= n_model:
+        return None
+    return delta, n_data, n_model
+
+
 def group_price(groups: np.ndarray, k_per_group: int, n_pixels: int) -> np.ndarray:
     """Each group's delta(-2 ln L) of :func:`group_gain`: ``-(chi2 - n) + k_per_group ln n_pixels`` (n_pixels at
     least 2); a group pays for its parameters (is kept) where it is below 0."""

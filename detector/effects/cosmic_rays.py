@@ -22,7 +22,7 @@ from pydantic import Field, model_validator
 from .. import cosmics
 from ..errors import DetectorError
 from ..rng import generator
-from ..signatures import TRACK_K, GroupSignature, group_gain, is_track, on_source, outlier_pixels
+from ..signatures import TRACK_K, GroupSignature, group_excess, is_track, on_source, outlier_pixels
 from ..significance import FRAME_FALSE_ALARM
 from .base import Effect, EffectParams, Stage, Tile, register_effect
 
@@ -90,11 +90,11 @@ def _cosmic_groups(res):
     if res.exptime_s <= 0:
         return None
     npx = outlier_pixels(res)
-    d_data, n_data = group_gain(tracks(res, res.data_spikes.pos_groups), TRACK_K, npx)
-    d_model, n_model = group_gain(tracks(res, res.model_spikes.pos_groups), TRACK_K, npx)
-    delta = min(d_data - d_model, 0.0)
-    if delta >= 0 or n_data <= n_model:
+    got = group_excess(tracks(res, res.data_spikes.pos_groups), tracks(res, res.model_spikes.pos_groups), TRACK_K,
+                       npx)
+    if got is None:
         return None
+    delta, n_data, n_model = got
     exposure = window_area_cm2(res.sensor) * res.exptime_s  # [cm^2 s]
     # the rate's estimate; its floor (scenes' cosmic_rays_floor) judges the count's Poisson interval
     flux = (n_data - n_model) / exposure

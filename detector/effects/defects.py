@@ -23,7 +23,7 @@ from ..signatures import (
     GroupSignature,
     Signature,
     frame_fraction,
-    group_gain,
+    group_excess,
     on_source,
     outlier_pixels,
     spread_check,
@@ -128,11 +128,11 @@ def _hot_groups(res):
         return None
     params = counted[0]
     npx = outlier_pixels(res)
-    d_data, n_data = group_gain(hot_defects(res, res.data_spikes.pos_groups), DEFECT_K, npx)
-    d_model, n_model = group_gain(hot_defects(res, res.model_spikes.pos_groups), DEFECT_K, npx)
-    delta = min(d_data - d_model, 0.0)
-    if delta >= 0 or n_data <= n_model:
+    got = group_excess(hot_defects(res, res.data_spikes.pos_groups), hot_defects(res, res.model_spikes.pos_groups),
+                       DEFECT_K, npx)
+    if got is None:
         return None
+    delta, n_data, n_model = got
     return params, delta, n_data, n_model, 2
 
 

@@ -93,13 +93,15 @@ def edge_distance(res, where: str, y: np.ndarray, x: np.ndarray) -> np.ndarray:
     return dx[where]() if where in dx else dy[where]()
 
 
-def _glow_variant(res, where: str, scale: float) -> Variant:
+def edge_variant(res, where: str, scale: float, unit: float, max_amplitude: float, label: str) -> Variant:
+    """A field falling as ``exp(-d / scale)`` from the sensor's ``where`` (an edge or a corner, :func:`edge_rate`),
+    ``unit`` [ADU] per e-/s of its amplitude: the one template of an amplifier glow and of a light entering from
+    an edge; its amplitude [e-/s] is kept in (0, ``max_amplitude``]."""
     s = res.sensor
-    unit = float(res.exptime_s * res.pixel_sum / res.gain)
     w = res.data_adu.shape[1]
 
     def at(idx):
-        y, x = np.divmod(idx, w)
+        y, x = np.divmod(np.asarray(idx), w)
         return (unit * np.exp(-edge_distance(res, where, y, x) / scale))[None, :]
 
     def maps():
@@ -109,9 +111,13 @@ def _glow_variant(res, where: str, scale: float) -> Variant:
 
     def to_params(c):
         return ({"model": "edge", "edge": where, "amplitude_e_per_s": round(float(c[0]), 6),
-                 "scale_px": round(float(scale), 1)} if 0 < c[0] <= 1e6 else None)
+                 "scale_px": round(float(scale), 1)} if 0 < c[0] <= max_amplitude else None)
 
-    return Variant(maps, to_params, f"{where}|{scale}", at=at)
+    return Variant(maps, to_params, label, at=at)
+
+
+def _glow_variant(res, where: str, scale: float) -> Variant:
+    return edge_variant(res, where, scale, float(res.exptime_s * res.pixel_sum / res.gain), 1e6, f"{where}|{scale}")
 
 
 def _gauss_variant(res, x_frac: float, y_frac: float, sigma_px: float) -> Variant:

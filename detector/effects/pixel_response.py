@@ -25,7 +25,7 @@ from ..signatures import (
     VarianceSignature,
     Variant,
     frame_fraction,
-    group_gain,
+    group_excess,
     group_price,
     on_source,
     outlier_pixels,
@@ -196,11 +196,10 @@ def _dead_groups(res):
     npx = outlier_pixels(res)
     gd = _dead_defects(res, res.data_spikes.neg_groups)
     gm = _dead_defects(res, res.model_spikes.neg_groups)
-    d_data, n_data = group_gain(gd, DEFECT_K, npx)
-    d_model, n_model = group_gain(gm, DEFECT_K, npx)
-    delta = min(d_data - d_model, 0.0)
-    if delta >= 0 or n_data <= n_model:
+    got = group_excess(gd, gm, DEFECT_K, npx)
+    if got is None:
         return None
+    delta, n_data, n_model = got
     kept = gd[group_price(gd, DEFECT_K, npx) < 0]  # the groups group_gain kept
     idx = kept["peak"]
     photo = res.photo_adu.ravel()[idx].astype(np.float64)

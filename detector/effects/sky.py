@@ -51,8 +51,8 @@ import numpy as np
 from pydantic import Field
 
 from ..signatures import LinearSignature, Variant, light_law_check, light_law_told, light_law_untold
-from .glow import edge_distance, edge_rate
 from .base import Effect, EffectParams, Stage, Tile, register_effect
+from .glow import edge_rate, edge_variant
 
 #: the gradient's length unit: the rates change per this many sensor pixels
 KPX = 1000.0
@@ -273,23 +273,7 @@ EDGE_SCALES = tuple(np.geomspace(0.02, 1.0, 7))
 
 
 def _edge_variant(res, where: str, scale: float, f: float) -> Variant:
-    s = res.sensor
-    w = res.data_adu.shape[1]
-
-    def at(idx):
-        y, x = np.divmod(np.asarray(idx), w)
-        return (f * np.exp(-edge_distance(res, where, y, x) / scale))[None, :]
-
-    def maps():
-        t = np.zeros(res.data_adu.shape, np.float32)
-        edge_rate(res.ys, res.xs, s.sensor_height_px, s.sensor_width_px, where, 1.0, scale, t)
-        return [t * np.float32(f)]
-
-    def to_params(c):
-        return ({"model": "edge", "edge": where, "amplitude_e_per_s": round(float(c[0]), 6),
-                 "scale_px": round(float(scale), 1)} if 0 < c[0] <= MAX_FIELD else None)
-
-    return Variant(maps, to_params, f"edge {where}|{scale:.6g}", at=at)
+    return edge_variant(res, where, scale, f, MAX_FIELD, f"edge {where}|{scale:.6g}")
 
 
 _FIELD_SIGNATURE = LinearSignature(_legendre_variants, lambda p, res: _field_words(p, res),
