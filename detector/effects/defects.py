@@ -14,7 +14,7 @@ from __future__ import annotations
 from typing import Literal
 
 import numpy as np
-from pydantic import Field
+from pydantic import Field, model_validator
 
 from ..signatures import (
     DEFECT_K,
@@ -28,7 +28,7 @@ from ..signatures import (
     outlier_pixels,
     spread_check,
 )
-from ..significance import EXPLAINS_MOST
+from ..significance import DETECTION_SIGMA, EXPLAINS_MOST
 from ..stats import mad_std
 from .base import Effect, EffectParams, Stage, Tile, register_effect
 from .common import hardware_positions, in_tile, output_xy, roi_mask
@@ -299,14 +299,92 @@ class ColumnSignature(Signature):
         hot, cold = int((x > LINE_SIGMA).sum()), int((x < -LINE_SIGMA).sum())
         exc = res.data_spikes.col_excess_e  # of the outlier columns (source columns are not told apart here)
         rate = float(np.median(exc)) / res.pixel_sum / max(res.exptime_s, 1e-9) if exc.size else 0.0
-        params = {"hot_columns": round(hot / frac), "hot_rate_e_per_s": round(max(rate, 0.0), 4),
-                  "dead_columns": round(cold / frac)}
+        hot_j, cold_j = self._columns(zd, x)
+        resp = self._response(res, cold_j)
+        params = {"hot_columns": max(round(hot / frac), hot_j.size), "hot_rate_e_per_s": round(max(rate, 0.0), 4),
+                  "dead_columns": max(round(cold / frac), cold_j.size),
+                  "dead_response": round(float(np.median(resp)), 4) if resp.size else 0.0,
+                  "hot_at": [int(c) for c in s.roi_x0 + hot_j * s.binning],
+                  "dead_at": [int(c) for c in s.roi_x0 + cold_j * s.binning],
+                  "hot_at_rate_e_per_s": [round(float(r), 5) for r in self._excess_rate(res, hot_j)],
+                  "dead_at_response": [round(float(r), 4) for r in resp]}
         return Fit(name, params, d, k, int(x.size), _column_words(params, res))
+
+    @staticmethod
+    def _columns(zd: np.ndarray, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The output columns of the hot and of the dead population: where the column statistic, on the scale
+        :meth:`_gain` put it, lies beyond LINE_SIGMA (source columns, NaN, are neither)."""
+        from ..signatures import LINE_SIGMA
+
+        z = np.asarray(zd, float)
+        fin = z[np.isfinite(z)]
+        if fin.size < 16 or x.size == 0:
+            return np.zeros(0, int), np.zeros(0, int)
+        scale = max(1.0, mad_std(fin, max_n=None))
+        zs = np.nan_to_num(z / scale)
+        return np.flatnonzero(zs > LINE_SIGMA), np.flatnonzero(zs < -LINE_SIGMA)
+
+    @staticmethod
+    def _column_means(res) -> tuple[np.ndarray, np.ndarray]:
+        """Each column's mean residual [ADU] over its usable pixels, pixels beyond DETECTION_SIGMA of the column's
+        median left out (a hot pixel or a track crossing it), and which columns have any."""
+        use = res.usable if res.usable is not None else res.fit
+        r = res.data_adu - res.model_adu
+        sd = np.sqrt(np.maximum(res.var_adu2, 1e-12))
+        med = np.nanmedian(np.where(use, r, np.nan), axis=0)
+        keep = use & (np.abs(r - np.nan_to_num(med)[None, :]) < DETECTION_SIGMA * sd)
+        n = keep.sum(axis=0)
+        return np.where(keep, r, 0.0).sum(axis=0) / np.maximum(n, 1), n > 0
+
+    @classmethod
+    def _excess_rate(cls, res, cols: np.ndarray) -> np.ndarray:
+        """The excess dark current of each hot column [e-/s per sensor pixel]: its mean residual above the median
+        of its LINE_WINDOW neighbours' (the other outlier columns left out), in electrons, over the exposure."""
+        from ..signatures import LINE_WINDOW
+
+        if cols.size == 0:
+            return np.zeros(0)
+        m, ok = cls._column_means(res)
+        normal = ok.copy()
+        normal[cols] = False
+        out = []
+        for j in cols:
+            lo, hi = max(j - LINE_WINDOW, 0), min(j + LINE_WINDOW + 1, m.size)
+            near = np.flatnonzero(normal[lo:hi]) + lo
+            base = float(np.median(m[near])) if near.size else 0.0
+            out.append(max(m[j] - base, 0.0) * res.gain / res.pixel_sum / max(res.exptime_s, 1e-9))
+        return np.asarray(out)
+
+    @staticmethod
+    def _response(res, cols: np.ndarray) -> np.ndarray:
+        """The photo-response each dead column keeps, relative to its neighbours [1]. Each column's scale of the
+        model's photo-signal that the data hold, ``q = 1 + sum(r p / v) / sum(p^2 / v)`` (r the residual, p the
+        model's photo-signal, v the variance, over the column's usable pixels), divided by the median ``q`` of
+        the other columns (a light level the model has wrong scales every column alike), in [0, 1); 0 where
+        the frame holds no light to measure it (a dark: a dead column shows nothing there)."""
+        if cols.size == 0:
+            return np.zeros(0)
+        use = res.usable if res.usable is not None else res.fit
+        p = np.where(use, res.photo_adu, 0.0)
+        v = np.maximum(res.var_adu2, 1e-12)
+        info = (p * p / v).sum(axis=0)
+        others = info > 0
+        others[cols] = False
+        if not others.any():
+            return np.zeros(cols.size)
+        r = np.where(use, res.data_adu - res.model_adu, 0.0)
+        q = 1.0 + (r * p / v).sum(axis=0) / np.maximum(info, 1e-300)
+        rho = q[cols] / float(np.median(q[others]))
+        # the light's response known to worse than 100 % (info < 1): nothing measured, a dead column
+        return np.where(info[cols] >= 1.0, np.clip(rho, 0.0, 0.999), 0.0)
 
 
 def _column_words(p, res):
+    seen = len(p.get("hot_at") or []) + len(p.get("dead_at") or [])
+    weak = f", keeping {100 * p['dead_response']:.3g} % of the light" if p.get("dead_response") else ""
     return (f"whole columns above ({p['hot_columns']} on the sensor, {p['hot_rate_e_per_s']:.3g} e-/s) or below "
-            f"({p['dead_columns']}) their neighbours: column defects")
+            f"({p['dead_columns']}{weak}) their neighbours: column defects ({seen} in the window, placed where "
+            f"they were seen)")
 
 
 _HOT_SIGNATURE = GroupSignature(
@@ -383,6 +461,32 @@ class ColumnDefectParams(EffectParams):
     hot_columns: int = Field(5, ge=0, le=100_000, description="columns with excess dark current [columns]")
     hot_rate_e_per_s: float = Field(5.0, ge=0, le=1e6, description="excess dark current of a hot column [e-/s]")
     dead_columns: int = Field(2, ge=0, le=100_000, description="columns without photo-response [columns]")
+    dead_response: float = Field(0.0, ge=0, lt=1, description="relative photo-response of a dead column "
+                                 "(0: none; a weak column between 0 and 1) [1]")
+    hot_at: list[int] | None = Field(None, description="sensor columns of hot columns where they were measured "
+                                     "(0-based); the rest of ``hot_columns`` are drawn elsewhere")
+    dead_at: list[int] | None = Field(None, description="sensor columns of dead columns where they were measured "
+                                      "(0-based); the rest of ``dead_columns`` are drawn elsewhere")
+    hot_at_rate_e_per_s: list[float] | None = Field(None, description="the measured excess dark current of each "
+                                                    "column of ``hot_at`` (default ``hot_rate_e_per_s``) [e-/s]")
+    dead_at_response: list[float] | None = Field(None, description="the measured relative response of each column "
+                                                 "of ``dead_at`` (default ``dead_response``) [1]")
+
+    @model_validator(mode="after")
+    def _check(self):
+        for key, count in (("hot_at", self.hot_columns), ("dead_at", self.dead_columns)):
+            at = getattr(self, key) or []
+            if len(at) > count or len(set(at)) < len(at) or any(c < 0 for c in at):
+                raise ValueError(f"{key} must list at most {key.split('_')[0]}_columns = {count} distinct "
+                                 f"non-negative sensor columns, got {at}")
+        if set(self.hot_at or []) & set(self.dead_at or []):
+            raise ValueError("a column cannot be in both hot_at and dead_at")
+        for key, at, lo, hi in (("hot_at_rate_e_per_s", "hot_at", 0.0, 1e6), ("dead_at_response", "dead_at", 0.0, 1.0)):
+            v = getattr(self, key)
+            if v is not None and (len(v) != len(getattr(self, at) or []) or any(not lo <= x <= hi for x in v)):
+                raise ValueError(f"{key} must hold one value in [{lo:g}, {hi:g}] per column of {at} "
+                                 f"({len(getattr(self, at) or [])}), got {v}")
+        return self
 
 
 @register_effect
@@ -390,7 +494,10 @@ class ColumnDefects(Effect):
     """Hot and dead columns: a charge trap or a leaky transfer gate affects a whole column (Janesick 2007,
     ch. 8, "column defects"; common in CCDs, also in CMOS column amplifiers). Hot columns add
     ``hot_rate_e_per_s t`` electrons to the mean of every pixel of the column; dead columns lose their
-    photo-response. Columns from the hardware seed; table ``COLDEF``.
+    photo-response (keep ``dead_response`` of it: a weak column). Columns from the hardware seed; table
+    ``COLDEF``. Columns measured in a frame (``hot_at``, ``dead_at``: what ``diagnose`` finds in the read-out
+    window) are placed where they were seen; the rest of each population is drawn among the other columns
+    outside the read-out window (the window shows every defective column it holds).
     """
 
     name = "column_defects"
@@ -398,26 +505,55 @@ class ColumnDefects(Effect):
     identity = {"hot_columns": 0, "dead_columns": 0}
     stages = (Stage.RESPONSE, Stage.DARK)
     Params = ColumnDefectParams
-    pattern = True
     signature = _COLUMN_SIGNATURE
+
+    @property
+    def pattern(self) -> bool:
+        """A hardware realisation the real camera does not share, unless its columns were measured (``hot_at``,
+        ``dead_at``): then they are the camera's own and act in the model's mean frame (the rest of the
+        populations lie outside the read-out window)."""
+        return self.params.hot_at is None and self.params.dead_at is None
 
     def setup(self) -> None:
         from ..rng import generator
 
-        p, w = self.params, self.sensor.sensor_width_px
-        rng = generator(self.sensor.hardware_seed, self.name)
-        cols = rng.permutation(w)[: min(w, p.hot_columns + p.dead_columns)]
-        self.hot, self.dead = np.sort(cols[: p.hot_columns]), np.sort(cols[p.hot_columns:])
+        p, s = self.params, self.sensor
+        w = s.sensor_width_px
+        rng = generator(s.hardware_seed, self.name)
+        if p.hot_at is None and p.dead_at is None:
+            cols = rng.permutation(w)[: min(w, p.hot_columns + p.dead_columns)]
+            self.hot, self.dead = np.sort(cols[: p.hot_columns]), np.sort(cols[p.hot_columns:])
+            self.hot_rate = np.full(self.hot.size, p.hot_rate_e_per_s)
+            self.dead_resp = np.full(self.dead.size, p.dead_response)
+            return
+        hot_at, dead_at = np.asarray(p.hot_at or [], int), np.asarray(p.dead_at or [], int)
+        rates = np.asarray(p.hot_at_rate_e_per_s or [p.hot_rate_e_per_s] * hot_at.size, float)
+        resp = np.asarray(p.dead_at_response or [p.dead_response] * dead_at.size, float)
+        x0, x1 = s.roi_x0, s.roi_x0 + s.roi_shape[0]
+        free = np.setdiff1d(np.arange(w), np.concatenate([hot_at, dead_at]))
+        free = rng.permutation(free[(free < x0) | (free >= x1)])
+        n_hot = max(p.hot_columns - hot_at.size, 0)
+        n_dead = max(p.dead_columns - dead_at.size, 0)
+        hot = np.concatenate([hot_at, free[:n_hot]])
+        dead = np.concatenate([dead_at, free[n_hot:n_hot + n_dead]])
+        rates = np.concatenate([rates, np.full(hot.size - hot_at.size, p.hot_rate_e_per_s)])
+        resp = np.concatenate([resp, np.full(dead.size - dead_at.size, p.dead_response)])
+        keep_h, keep_d = np.argsort(hot)[hot[np.argsort(hot)] < w], np.argsort(dead)[dead[np.argsort(dead)] < w]
+        self.hot, self.hot_rate = hot[keep_h], rates[keep_h]
+        self.dead, self.dead_resp = dead[keep_d], resp[keep_d]
 
-    def _local(self, tile: Tile, cols: np.ndarray) -> np.ndarray:
-        c = cols[(cols >= tile.x0) & (cols < tile.x1)]
-        return (c - tile.x0) // tile.bin
+    @staticmethod
+    def _local(tile: Tile, cols: np.ndarray, values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        inside = (cols >= tile.x0) & (cols < tile.x1)
+        return (cols[inside] - tile.x0) // tile.bin, values[inside]
 
     def apply(self, stage: Stage, tile: Tile, data: np.ndarray) -> None:
         if stage is Stage.RESPONSE:
-            data[:, self._local(tile, self.dead)] = 0.0
+            j, v = self._local(tile, self.dead, self.dead_resp)
+            data[:, j] *= v.astype(np.float32)
         else:
-            data[:, self._local(tile, self.hot)] += np.float32(self.params.hot_rate_e_per_s * tile.exptime_s)
+            j, v = self._local(tile, self.hot, self.hot_rate)
+            data[:, j] += (v * tile.exptime_s).astype(np.float32)
 
     def truth(self, state=None) -> dict[str, np.ndarray]:
         s = self.sensor
@@ -427,5 +563,5 @@ class ColumnDefects(Effect):
         t = np.zeros(int(inside.sum()), dtype=[("x", "i4"), ("x_sensor", "i4"), ("kind", "S4"), ("rate_e_per_s", "f8")])
         t["x_sensor"], t["kind"] = cols[inside], kind[inside]
         t["x"] = (cols[inside] - s.roi_x0) // s.binning
-        t["rate_e_per_s"] = np.where(kind[inside] == b"hot", self.params.hot_rate_e_per_s, 0.0)
+        t["rate_e_per_s"] = np.concatenate([self.hot_rate, np.zeros(self.dead.size)])[inside]
         return {"COLDEF": t}

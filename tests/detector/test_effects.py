@@ -93,6 +93,28 @@ def test_hot_columns_add_rate_times_time():
     assert len(cols) > 0 and np.allclose(m[:, cols], 30.0) and np.count_nonzero(m.sum(0)) == len(cols)
 
 
+def test_measured_columns_sit_where_they_were_seen_and_act_in_the_mean_frame():
+    """Columns found in a frame (``hot_at``, ``dead_at``: sensor columns) keep their measured rate and response;
+    the rest of each population is drawn outside the read-out window; being the camera's own, they act in the
+    model's mean frame (:meth:`Detector.moments`), while drawn positions (a realisation) are left out of it."""
+    s = small(x0=100, y0=0, dark_current_e_per_s=0.0)
+    eff = {"column_defects": {"hot_columns": 40, "hot_at": [105, 130], "hot_at_rate_e_per_s": [2.0, 0.5],
+                              "dead_columns": 30, "dead_at": [150], "dead_at_response": [0.9]}}
+    det = Detector(s, build_effects(eff, s))
+    m = det.expose(1000.0, 10.0, 1, noiseless=True)
+    assert np.allclose(m[:, 5], 20.0 + 1000.0) and np.allclose(m[:, 30], 5.0 + 1000.0)
+    assert np.allclose(m[:, 50], 900.0) and np.allclose(m[:, 60], 1000.0)
+    tr = det.truth(10.0, 1)["COLDEF"]
+    assert sorted(tr["x_sensor"]) == [105, 130, 150]  # the drawn 67 others lie outside the window
+    mean, _, _ = det.moments(1000.0, 10.0)
+    assert mean[0, 50] < mean[0, 60] and mean[0, 5] > mean[0, 60]
+    drawn = Detector(s, build_effects({"column_defects": {"hot_columns": 600, "hot_rate_e_per_s": 3.0}}, s))
+    mean_d, _, _ = drawn.moments(1000.0, 10.0)
+    assert np.ptp(mean_d[0]) == 0.0
+    with pytest.raises(ValueError, match="hot_at_rate_e_per_s"):
+        build_effects({"column_defects": {"hot_columns": 2, "hot_at": [1, 2], "hot_at_rate_e_per_s": [1.0]}}, s)
+
+
 def test_gain_regions_scale_signal_per_region():
     s = small(x0=0, y0=0, width=4008, height=240, read_noise_e=0.0, dark_current_e_per_s=0.0, gain_e_per_adu=1.0)
     det = Detector(s, build_effects({"gain_regions": {"nx": 2, "ny": 1, "gains": [1.0, 1.1]}}, s))

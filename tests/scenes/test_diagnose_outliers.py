@@ -240,3 +240,35 @@ def test_a_few_very_hot_pixels_on_a_dark_are_named_and_a_null_dark_is_clean(tmp_
     out = run.run_diagnose(scene, meas)
     first = _first(out)
     assert first is not None and first["effect"] == "hot_pixels", out["verdict"]
+
+
+def test_weak_columns_are_placed_where_they_were_seen_and_the_apply_removes_them(flat_scene, tmp_path):
+    """Three weak columns of a flat (90-95 % response, 128 rows at 15 000 e-: each column's response known to
+    ~0.03 %): diagnose finds them at their sensor columns with their responses; one --apply puts them in the
+    model's mean frame and the comparison's misfit falls to the noise (columns drawn at random positions,
+    as before, could not lower it)."""
+    from scenes.app.compare import run_compare
+    from scenes.app.compare.apply import apply_candidate
+
+    scene = load_scene(str(flat_scene))
+    at, resp = [1010, 1041, 1100], [0.9, 0.95, 0.92]
+    sick = write_scene(tmp_path / "sick.toml", FLAT, effects={"column_defects": {
+        "hot_columns": 0, "dead_columns": 3, "dead_at": at, "dead_at_response": resp}})
+    meas = tmp_path / "sick.fits"
+    render(load_scene(str(sick)), meas, seed=5, progress=False)
+    out = run.run_diagnose(scene, meas)
+    first = _first(out)
+    assert first is not None and first["effect"] == "column_defects", out["verdict"]
+    p = first["params"]
+    assert p["dead_at"] == at and p["hot_at"] == [], p
+    assert p["dead_at_response"] == pytest.approx(resp, abs=0.003), p
+    new = apply_candidate(scene, first, tmp_path / "applied.toml", meas)
+
+    def column_z(sc):  # each weak column's mean residual in standard errors of that mean
+        res = run_compare(sc, meas)["_residuals"]
+        j = np.asarray(at) - FLAT["detector"]["x0"]
+        r = (res.data_adu - res.model_adu)[:, j]
+        return r.mean(axis=0) / np.sqrt(res.var_adu2[:, j].sum(axis=0)) * SIDE
+
+    before, after = column_z(scene), column_z(load_scene(str(new)))
+    assert (before < -50).all() and (np.abs(after) < 3).all(), (before, after)
