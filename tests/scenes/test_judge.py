@@ -562,3 +562,20 @@ def test_a_response_and_an_added_light_the_frame_cannot_tell_are_named_together_
     untold = Candidate(Fit("sky_gradient", {}, -300.0, 2, 10_000, "a gradient"), 1.0, 0.0)
     kind_gate([told, untold], morph)
     assert "kind" not in told.codes and "kind" in untold.codes
+
+
+def test_a_response_applied_refits_the_stars_with_the_sky(star_scene, tmp_path):
+    """A response to the light (here a non-linearity, whose power law about a reference is a gain there) scales
+    the stars as it scales the sky: --apply refits the sources' scale with the sky level (as the diagnosis
+    profiled them). An additive candidate leaves the sources' scale alone (misplaced stars would pull it)."""
+    from scenes.app.compare.apply import apply_candidate
+
+    sc = load_scene(str(star_scene))
+    brighter = ["sky.source_flux_scale=1.05", f"sky.background_mag_arcsec2={sc.sky.background_mag_arcsec2 - 0.053}"]
+    meas = textbook_frame(star_scene, tmp_path / "bright.fits", 8, brighter)
+    nl = {"effect": "nonlinearity", "kind": "effect", "params": {"beta": 0.0, "gamma": 1.0}, "explanation": "test"}
+    new = load_scene(str(apply_candidate(sc, nl, tmp_path / "nl.toml", meas)))
+    assert new.sky.source_flux_scale == pytest.approx(1.05, rel=0.01)
+    dg = {"effect": "dark_gradient", "kind": "effect", "params": {}, "explanation": "test"}
+    add = load_scene(str(apply_candidate(sc, dg, tmp_path / "dg.toml", meas)))
+    assert add.sky.source_flux_scale == 1.0 and add.sky.background_mag_arcsec2 < sc.sky.background_mag_arcsec2

@@ -58,14 +58,29 @@ def apply_candidate(scene, cand: dict, path: str | Path, measured: str | Path | 
     p = Path(path)
     notes = []
     if measured is not None:
-        # a PSF change moves each star's light between its core and its wings: the sources' scale that goes
-        # with it (which the diagnosis profiled when it scored the change) is refitted with the sky
+        # a PSF change moves each star's light between its core and its wings, and a response (a non-linearity,
+        # a gain) scales the stars' light as it scales the sky's: the sources' scale that goes with it (which
+        # the diagnosis profiled when it scored the change) is refitted with the sky
         psf = cand.get("kind") == "parameter" and any(
             str(c.get("key", "")).startswith("psf.") for c in (cand.get("parameters") or [cand]))
-        data, notes = carry_levels(data, refit_levels(p, data, measured, with_sources=psf), scene)
+        data, notes = carry_levels(data, refit_levels(p, data, measured, with_sources=psf or _scales_light(cand)),
+                                   scene)
     p.write_text(f"# written by newtsim diagnose --apply: added {added}\n"
                  f"# {cand['explanation']}\n" + "".join(f"# and {n}\n" for n in notes) + tomli_w.dumps(data))
     return p
+
+
+def _scales_light(cand: dict) -> bool:
+    """Whether the candidate is a response to the light (a multiplicative field: vignetting, gains, a flat; or
+    a law of the collected signal applied at read-out: a non-linearity), which changes the stars' level as it
+    changes the sky's."""
+    from detector import registry
+    from detector.effects.base import Stage
+
+    eff = registry().get(cand.get("effect", "")) if cand.get("kind", "effect") == "effect" else None
+    if eff is None:
+        return False
+    return eff.field_kind == "multiplicative" or (tuple(eff.stages) == (Stage.READ,) and eff.scaling == "signal")
 
 
 def write_perturbed_design(scene, params: dict, scene_path: Path) -> Path:
@@ -179,7 +194,7 @@ def carry_levels(data: dict, levels: dict[str, float], scene) -> tuple[dict, lis
     if abs(c) > LEVEL_SCALE_TOL and 1 + c > 0:
         old = float(sky.get("source_flux_scale", scene.sky.source_flux_scale))
         sky["source_flux_scale"] = round(old * (1 + c), 6)
-        notes.append(f"the sources' scale refitted with the PSF: source_flux_scale {old:.5g} -> "
+        notes.append(f"the sources' scale refitted with the change: source_flux_scale {old:.5g} -> "
                      f"{sky['source_flux_scale']:.6g}")
     c = levels.get("background_scale", 0.0)
     if abs(c) > LEVEL_SCALE_TOL and 1 + c > 0.05:
