@@ -314,8 +314,9 @@ def test_probe_forms_follow_their_laws():
 
 
 def test_error_halved_within_the_noise_rule():
-    """Nothing to halve is not a failure: an error before within 3 standard deviations of the noise passes, for
-    both metrics; beyond it, only a ratio <= 0.5 passes."""
+    """Nothing to halve is not a failure: an error before within the noise passes (chi2/dof: 3 standard
+    deviations; the misfit: below the 99th percentile of null frames' misfit, NULL_MISFIT); beyond it, only a
+    ratio <= 0.5 passes."""
     eh = NS["error_halved"]
     n = 20000
     sd = (2 / n) ** 0.5
@@ -324,5 +325,19 @@ def test_error_halved_within_the_noise_rule():
     assert eh({"metric": "chi2_minus_1", "error_ratio": 0.5, "before": {"chi2_minus_1": 1.0, "n_support": n}})
     # one cosmic-ray track against a model without: a two-sample Poisson deviance of 1.39, misfit 0.27
     assert eh({"metric": "misfit", "error_ratio": 1.0, "before": {"misfit": 0.27}})
-    assert not eh({"metric": "misfit", "error_ratio": 0.9, "before": {"misfit": 3.9}})
-    assert eh({"metric": "misfit", "error_ratio": 0.4, "before": {"misfit": 3.9}})
+    bar = NS["NULL_MISFIT"]
+    assert eh({"metric": "misfit", "error_ratio": 1.0, "before": {"misfit": 0.99 * bar}})
+    assert not eh({"metric": "misfit", "error_ratio": 0.9, "before": {"misfit": 1.01 * bar}})
+    assert eh({"metric": "misfit", "error_ratio": 0.4, "before": {"misfit": 2 * bar}})
+
+
+def test_null_frames_misfit_is_mostly_below_the_within_noise_bar(tmp_path):
+    """NULL_MISFIT is the 99th percentile of null frames' misfit (300 frames in its calibration): two null frames
+    of each outlier-count base are below it, and the misfit of a null is not zero (ten positive parts)."""
+    import numpy as np
+
+    from scenes.app.validation.random_forms import misfit_null
+
+    rows = misfit_null(2, 3603, tmp_path)
+    m = np.array([r["misfit"] for r in rows])
+    assert len(rows) == 10 and (m < NS["NULL_MISFIT"]).all() and np.median(m) > 0.1, m

@@ -1298,6 +1298,38 @@ def fresh_seed() -> int:
 
 # --- running ------------------------------------------------------------------------------------------------------
 
+#: the bases the outlier-count families (:data:`.unseen.STATISTICAL`) draw their cases on
+NULL_MISFIT_BASES = ("dark_s", "dark_cmos_s", "dark_corner_s", "flat_s", "flat_imx_s")
+
+
+def misfit_null(n_per_base: int, seed: int, workdir: Path, progress=None) -> list[dict]:
+    """The profiled misfit and chi2/dof - 1 (:func:`error_of`) of null frames: each base of
+    :data:`NULL_MISFIT_BASES` rendered ``n_per_base`` times with a random case's level offsets (light, dark,
+    bias, as :func:`scenes.app.validation.random_forms.draw_case` draws them) and nothing hidden, compared with
+    its model scene. ``progress(i, n)`` after each frame."""
+    from scenes.app.compare import run_compare
+    from scenes.scene import load_scene
+
+    rng = np.random.default_rng(seed)
+    rows, n = [], n_per_base * len(NULL_MISFIT_BASES)
+    workdir.mkdir(parents=True, exist_ok=True)
+    for base in NULL_MISFIT_BASES:
+        model = HE["write_scene"](HE["model_scene"](base, None), workdir / f"{base}.model.toml")
+        for _ in range(n_per_base):
+            frame_seed = int(rng.integers(1, 2**31 - 1))
+            sgn = float(rng.choice([-1.0, 1.0]))
+            lv = Levels(light=sgn * float(rng.uniform(0.010, 0.015)), dark=-sgn * float(rng.uniform(0.02, 0.03)),
+                              bias_adu=float(rng.choice([-1.0, 1.0])) * float(rng.uniform(0.3, 0.6)))
+            info = HE["make_frame"](base, None, lv, workdir / f"{base}.fits", seed=frame_seed, workers=1)
+            e = HE["error_of"](run_compare(load_scene(str(model)), info["measured"], workers=1), None)
+            rows.append({"base": base, "frame_seed": frame_seed, "misfit": e["misfit"],
+                         "chi2_minus_1": e["chi2_minus_1"], "n_support": e["n_support"]})
+            if progress is not None:
+                progress(len(rows), n)
+    return rows
+
+
+
 def run_case(case: RandomCase, workdir: Path, workers: int | None = None) -> dict:
     """Make the measured frame of ``case`` and diagnose it as :func:`.unseen.diagnose_case` does."""
     workdir.mkdir(parents=True, exist_ok=True)
