@@ -304,11 +304,17 @@ class ColumnSignature(Signature):
         params = {"hot_columns": max(round(hot / frac), hot_j.size), "hot_rate_e_per_s": round(max(rate, 0.0), 4),
                   "dead_columns": max(round(cold / frac), cold_j.size),
                   "dead_response": round(float(np.median(resp)), 4) if resp.size else 0.0,
-                  "hot_at": [int(c) for c in s.roi_x0 + hot_j * s.binning],
-                  "dead_at": [int(c) for c in s.roi_x0 + cold_j * s.binning],
+                  "hot_at": self._sensor_columns(res, hot_j), "dead_at": self._sensor_columns(res, cold_j),
                   "hot_at_rate_e_per_s": [round(float(r), 5) for r in self._excess_rate(res, hot_j)],
                   "dead_at_response": [round(float(r), 4) for r in resp]}
         return Fit(name, params, d, k, int(x.size), _column_words(params, res))
+
+    @staticmethod
+    def _sensor_columns(res, cols: np.ndarray) -> list[int]:
+        """The first sensor column of each output column ``cols`` (from the residuals' sensor coordinates of the
+        pixel centres: a binned column spans ``binning`` sensor columns)."""
+        b = res.sensor.binning
+        return [int(round(float(res.xs[j]) - (b - 1) / 2.0)) for j in cols]
 
     @staticmethod
     def _columns(zd: np.ndarray, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
