@@ -314,7 +314,7 @@ class ColumnSignature(Signature):
         """The first sensor column of each output column ``cols`` (from the residuals' sensor coordinates of the
         pixel centres: a binned column spans ``binning`` sensor columns)."""
         b = res.sensor.binning
-        return [int(round(float(res.xs[j]) - (b - 1) / 2.0)) for j in cols]
+        return [round(float(res.xs[j]) - (b - 1) / 2.0) for j in cols]
 
     @staticmethod
     def _columns(zd: np.ndarray, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

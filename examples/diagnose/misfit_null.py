@@ -18,10 +18,10 @@ from pathlib import Path
 
 os.environ.setdefault("OMP_NUM_THREADS", "1")
 
-import numpy as np  # noqa: E402
+import numpy as np
 
-from scenes.app.validation.random_forms import misfit_null  # noqa: E402
-from scenes.app.validation.unseen import NULL_MISFIT  # noqa: E402
+from scenes.app.validation.random_forms import misfit_null
+from scenes.app.validation.unseen import NULL_MISFIT
 
 
 def main(argv=None) -> int:
