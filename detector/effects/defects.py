@@ -305,8 +305,12 @@ class ColumnSignature(Signature):
                   "dead_columns": max(round(cold / frac), cold_j.size),
                   "dead_response": round(float(np.median(resp)), 4) if resp.size else 0.0,
                   "hot_at": self._sensor_columns(res, hot_j), "dead_at": self._sensor_columns(res, cold_j),
-                  "hot_at_rate_e_per_s": [round(float(r), 5) for r in self._excess_rate(res, hot_j)],
                   "dead_at_response": [round(float(r), 4) for r in resp]}
+        rates, rows = self._hot_extent(res, hot_j)
+        params["hot_at_rate_e_per_s"] = [round(float(r), 5) for r in rates]
+        if any(r is not None for r in rows):  # a trap's column: the excess on one side of it
+            height = s.sensor_height_px
+            params["hot_at_rows"] = [list(r) if r is not None else [0, height] for r in rows]
         return Fit(name, params, d, k, int(x.size), _column_words(params, res))
 
     @staticmethod
@@ -343,23 +347,51 @@ class ColumnSignature(Signature):
         return np.where(keep, r, 0.0).sum(axis=0) / np.maximum(n, 1), n > 0
 
     @classmethod
-    def _excess_rate(cls, res, cols: np.ndarray) -> np.ndarray:
-        """The excess dark current of each hot column [e-/s per sensor pixel]: its mean residual above the median
-        of its LINE_WINDOW neighbours' (the other outlier columns left out), in electrons, over the exposure."""
+    def _hot_extent(cls, res, cols: np.ndarray) -> tuple[np.ndarray, list]:
+        """Each hot column's excess dark current [e-/s per sensor pixel] and the sensor rows ``(start, stop)`` it
+        lies in (None: the whole column). A charge trap in a column leaks into the pixels transferred through
+        it, the rows on one side of it (Janesick 2007, ch. 8): the excess is the whole column or one side of a
+        change point, whichever explains more chi2 beyond the change point's Schwarz price (ln n). The excess is
+        measured above the median of the column's LINE_WINDOW neighbours (the other outlier columns left out),
+        pixels beyond DETECTION_SIGMA of the column's median left out (a hot pixel, a track)."""
         from ..signatures import LINE_WINDOW
 
         if cols.size == 0:
-            return np.zeros(0)
+            return np.zeros(0), []
         m, ok = cls._column_means(res)
         normal = ok.copy()
         normal[cols] = False
-        out = []
+        use = res.usable if res.usable is not None else res.fit
+        b = res.sensor.binning
+        rates, rows = [], []
         for j in cols:
             lo, hi = max(j - LINE_WINDOW, 0), min(j + LINE_WINDOW + 1, m.size)
             near = np.flatnonzero(normal[lo:hi]) + lo
             base = float(np.median(m[near])) if near.size else 0.0
-            out.append(max(m[j] - base, 0.0) * res.gain / res.pixel_sum / max(res.exptime_s, 1e-9))
-        return np.asarray(out)
+            v = np.maximum(res.var_adu2[:, j].astype(np.float64), 1e-12)
+            x = res.data_adu[:, j].astype(np.float64) - res.model_adu[:, j] - base
+            good = use[:, j] & np.isfinite(x)
+            if good.any():
+                good &= np.abs(x - np.median(x[good])) < DETECTION_SIGMA * np.sqrt(v)
+            w = np.where(good, 1.0 / v, 0.0)
+            s_, w_ = np.cumsum(np.where(good, x, 0.0) * w), np.cumsum(w)
+            extent, mean = None, (s_[-1] / w_[-1] if w_[-1] > 0 else 0.0)
+            if w_[-1] > 0 and x.size > 2:
+                whole = s_[-1] ** 2 / w_[-1]
+                with np.errstate(divide="ignore", invalid="ignore"):
+                    low = np.where(w_[:-1] > 0, s_[:-1] ** 2 / w_[:-1], 0.0)  # rows [0, k]
+                    up_w = w_[-1] - w_[:-1]
+                    high = np.where(up_w > 0, (s_[-1] - s_[:-1]) ** 2 / up_w, 0.0)  # rows (k, n)
+                k_lo, k_hi = int(np.argmax(low)), int(np.argmax(high))
+                if max(low[k_lo], high[k_hi]) - whole > np.log(max(int(good.sum()), 2)):
+                    if low[k_lo] >= high[k_hi]:
+                        first, last, mean = 0, k_lo, s_[k_lo] / w_[k_lo]
+                    else:
+                        first, last, mean = k_hi + 1, x.size - 1, (s_[-1] - s_[k_hi]) / up_w[k_hi]
+                    extent = (round(float(res.ys[first]) - (b - 1) / 2.0), round(float(res.ys[last]) + (b - 1) / 2.0) + 1)
+            rates.append(max(float(mean), 0.0) * res.gain / res.pixel_sum / max(res.exptime_s, 1e-9))
+            rows.append(extent)
+        return np.asarray(rates), rows
 
     @staticmethod
     def _response(res, cols: np.ndarray) -> np.ndarray:
@@ -477,6 +509,9 @@ class ColumnDefectParams(EffectParams):
                                                     "column of ``hot_at`` (default ``hot_rate_e_per_s``) [e-/s]")
     dead_at_response: list[float] | None = Field(None, description="the measured relative response of each column "
                                                  "of ``dead_at`` (default ``dead_response``) [1]")
+    hot_at_rows: list[list[int]] | None = Field(None, description="the sensor rows [start, stop) of each column of "
+                                                "``hot_at`` that hold its excess (a trap's column: the rows on one "
+                                                "side of the trap; default the whole column)")
 
     @model_validator(mode="after")
     def _check(self):
@@ -492,6 +527,11 @@ class ColumnDefectParams(EffectParams):
             if v is not None and (len(v) != len(getattr(self, at) or []) or any(not lo <= x <= hi for x in v)):
                 raise ValueError(f"{key} must hold one value in [{lo:g}, {hi:g}] per column of {at} "
                                  f"({len(getattr(self, at) or [])}), got {v}")
+        rows = self.hot_at_rows
+        if rows is not None and (len(rows) != len(self.hot_at or []) or any(len(r) != 2 or not 0 <= r[0] < r[1]
+                                                                           for r in rows)):
+            raise ValueError(f"hot_at_rows must hold one [start, stop) pair of sensor rows, 0 <= start < stop, per "
+                             f"column of hot_at ({len(self.hot_at or [])}), got {rows}")
         return self
 
 
@@ -531,6 +571,7 @@ class ColumnDefects(Effect):
             self.hot, self.dead = np.sort(cols[: p.hot_columns]), np.sort(cols[p.hot_columns:])
             self.hot_rate = np.full(self.hot.size, p.hot_rate_e_per_s)
             self.dead_resp = np.full(self.dead.size, p.dead_response)
+            self.hot_rows = None
             return
         hot_at, dead_at = np.asarray(p.hot_at or [], int), np.asarray(p.dead_at or [], int)
         rates = np.asarray(p.hot_at_rate_e_per_s or [p.hot_rate_e_per_s] * hot_at.size, float)
@@ -544,8 +585,11 @@ class ColumnDefects(Effect):
         dead = np.concatenate([dead_at, free[n_hot:n_hot + n_dead]])
         rates = np.concatenate([rates, np.full(hot.size - hot_at.size, p.hot_rate_e_per_s)])
         resp = np.concatenate([resp, np.full(dead.size - dead_at.size, p.dead_response)])
+        rows = np.asarray((p.hot_at_rows or [[0, s.sensor_height_px]] * hot_at.size)
+                          + [[0, s.sensor_height_px]] * (hot.size - hot_at.size), np.int64).reshape(-1, 2)
         keep_h, keep_d = np.argsort(hot)[hot[np.argsort(hot)] < w], np.argsort(dead)[dead[np.argsort(dead)] < w]
         self.hot, self.hot_rate = hot[keep_h], rates[keep_h]
+        self.hot_rows = rows[keep_h] if p.hot_at_rows is not None else None
         self.dead, self.dead_resp = dead[keep_d], resp[keep_d]
 
     @staticmethod
@@ -557,9 +601,14 @@ class ColumnDefects(Effect):
         if stage is Stage.RESPONSE:
             j, v = self._local(tile, self.dead, self.dead_resp)
             data[:, j] *= v.astype(np.float32)
-        else:
+        elif self.hot_rows is None:
             j, v = self._local(tile, self.hot, self.hot_rate)
             data[:, j] += (v * tile.exptime_s).astype(np.float32)
+        else:  # measured extents: each column's excess over its rows
+            ys = tile.pixel_centres()[0]
+            inside = (self.hot >= tile.x0) & (self.hot < tile.x1)
+            for c, r, (a, b) in zip(self.hot[inside], self.hot_rate[inside], self.hot_rows[inside]):
+                data[(ys >= a) & (ys < b), (c - tile.x0) // tile.bin] += np.float32(r * tile.exptime_s)
 
     def truth(self, state=None) -> dict[str, np.ndarray]:
         s = self.sensor

@@ -111,6 +111,13 @@ def test_measured_columns_sit_where_they_were_seen_and_act_in_the_mean_frame():
     drawn = Detector(s, build_effects({"column_defects": {"hot_columns": 600, "hot_rate_e_per_s": 3.0}}, s))
     mean_d, _, _ = drawn.moments(1000.0, 10.0)
     assert np.ptp(mean_d[0]) == 0.0
+    # a trap's column: the excess only over the rows on one side of the trap
+    part = {"column_defects": {"hot_columns": 1, "hot_at": [110], "hot_at_rate_e_per_s": [2.0], "dead_columns": 0,
+                               "hot_at_rows": [[0, 300]]}}
+    m = Detector(s, build_effects(part, s)).expose(0.0, 10.0, 1, noiseless=True)
+    assert np.allclose(m[:300, 10], 20.0) and np.allclose(m[300:, 10], 0.0)
+    with pytest.raises(ValueError, match="hot_at_rows"):
+        build_effects({"column_defects": {"hot_columns": 1, "hot_at": [1], "hot_at_rows": [[5, 2]]}}, s)
     with pytest.raises(ValueError, match="hot_at_rate_e_per_s"):
         build_effects({"column_defects": {"hot_columns": 2, "hot_at": [1, 2], "hot_at_rate_e_per_s": [1.0]}}, s)
 
