@@ -221,12 +221,11 @@ def spike_stats(data: np.ndarray, model: np.ndarray, var: np.ndarray, usable: np
     # The clipped mean's standard error is that of a clipped unit normal (CLIPPED_SD / sqrt(n)), not the
     # column's own scatter: where the residual is a strong smooth pattern (a vignetted flat) every value is
     # clipped, the own scatter vanishes and every column would be an "outlier"
-    # z is first taken from its running median along each row (LINE_WINDOW pixels, the columns' neighbours): a
-    # light level 1 % off (2 sigma of a bright flat's pixel) would otherwise push every value to the clip and
-    # leave no column standing out of its neighbours (a weak column at 0.6 sigma per pixel, 9 sigma per column,
-    # read 1.6); an isolated column does not move the median of its row's neighbours
-    zr = z - median_filter(np.where(usable, z, 0.0), size=(1, LINE_WINDOW), mode="nearest")
-    zk = np.where(keep, np.clip(zr, -COLUMN_CLIP, COLUMN_CLIP), 0.0)
+    # z is first taken from its local level (:func:`mesh_level`, the median of each GROUP_MESH_PX block): a light
+    # level 1 % off (2 sigma of a bright flat's pixel) would otherwise push every value to the clip and leave no
+    # column standing out of its neighbours (a weak column at 0.6 sigma per pixel, 9 sigma per column, read
+    # 1.6); one column of a block barely moves its median
+    zk = np.where(keep, np.clip(z - mesh_level(z, keep), -COLUMN_CLIP, COLUMN_CLIP), 0.0)
     n_c = np.maximum(cnt, 1)
     zcl = zk.sum(axis=0) / n_c
     local_cl = zcl - median_filter(zcl, size=LINE_WINDOW, mode="nearest")
@@ -267,6 +266,21 @@ def spike_stats(data: np.ndarray, model: np.ndarray, var: np.ndarray, usable: np
     return stats, statistical
 
 
+def mesh_level(z: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    """The local level of ``z``: the median of its ``mask`` pixels in each block of a GROUP_MESH_PX mesh (the
+    background mesh of SExtractor, Bertin & Arnouts 1996), 0 in a block without one; full resolution, float32."""
+    h, w = z.shape
+    m = GROUP_MESH_PX
+    hb, wb = -(-h // m), -(-w // m)
+    pad = np.full((hb * m, wb * m), np.nan, np.float32)
+    pad[:h, :w] = np.where(mask, z, np.nan)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # a block without a usable pixel: its level is 0
+        level = np.nanmedian(pad.reshape(hb, m, wb, m).transpose(0, 2, 1, 3).reshape(hb, wb, m * m), axis=2)
+    level = np.nan_to_num(level).astype(np.float32)
+    return np.repeat(np.repeat(level, m, axis=0), m, axis=1)[:h, :w]
+
+
 def outlier_groups(z: np.ndarray, seeds: np.ndarray, usable: np.ndarray, sign: int) -> np.ndarray:
     """The connected groups of outlying pixels of one ``sign`` (+1, -1) of the normalised residual ``z``, as a
     :data:`GROUP_DTYPE` table: a defect cluster, a particle track, a hot pixel, whole.
@@ -282,16 +296,7 @@ def outlier_groups(z: np.ndarray, seeds: np.ndarray, usable: np.ndarray, sign: i
 
     if not seeds.any():
         return np.zeros(0, GROUP_DTYPE)
-    h, w = z.shape
-    m = GROUP_MESH_PX
-    hb, wb = -(-h // m), -(-w // m)
-    pad = np.full((hb * m, wb * m), np.nan, np.float32)
-    pad[:h, :w] = np.where(usable & ~seeds, z, np.nan)
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", RuntimeWarning)  # a block without a usable pixel: its level is 0
-        level = np.nanmedian(pad.reshape(hb, m, wb, m).transpose(0, 2, 1, 3).reshape(hb, wb, m * m), axis=2)
-    level = np.nan_to_num(level).astype(np.float32)
-    zl = z - np.repeat(np.repeat(level, m, axis=0), m, axis=1)[:h, :w]
+    zl = z - mesh_level(z, usable & ~seeds)
     sample = zl[usable & ~seeds]
     scale = max(1.0, mad_std(sample)) if sample.size > 16 else 1.0
     zs = sign * zl / np.float32(scale)
@@ -303,7 +308,7 @@ def outlier_groups(z: np.ndarray, seeds: np.ndarray, usable: np.ndarray, sign: i
     idx = np.flatnonzero(lab)
     g = lab.ravel()[idx] - 1
     v = np.maximum(zs.ravel()[idx].astype(np.float64), 0.0)
-    yy, xx = np.divmod(idx, w)
+    yy, xx = np.divmod(idx, z.shape[1])
     out = np.zeros(n, GROUP_DTYPE)
     out["n"] = np.bincount(g, minlength=n)
     out["chi2"] = np.bincount(g, v * v, minlength=n)
