@@ -48,7 +48,6 @@ from detector.significance import (
     DETECTION_SIGMA,
     FOOTPRINT_SIGMA,
     MAX_DEFECT_FRACTION,
-    STRONG_EVIDENCE,
     STRUCTURE_SIGMA,
 )
 from detector.stats import mad_std
