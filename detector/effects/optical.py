@@ -26,7 +26,15 @@ import numpy as np
 from pydantic import Field, model_validator
 
 from ..errors import DetectorError
-from ..signatures import LinearSignature, Variant, fit_linear, light_law_check, light_law_untold, search_sample
+from ..signatures import (
+    LINEAR_SEARCH_PIXELS,
+    LinearSignature,
+    Variant,
+    fit_linear,
+    light_law_check,
+    light_law_untold,
+    search_sample,
+)
 from ..significance import DETECTION_SIGMA
 from .base import Effect, EffectParams, Stage, Tile, register_effect
 
@@ -311,13 +319,25 @@ def observed_rise(p: dict, res) -> tuple[float, float]:
     q = r[ok] / photo[ok]  # relative residual: the light's change [1]
     wq = w[ok] * photo[ok] ** 2  # its inverse variance
 
-    def at(cx, cy):
+    def on_all(cx, cy):
         return _ring_profile(*_offsets_mm(res, cx, cy), cols, rows, q, wq)
 
     cx, cy = p.get("centre_x_mm", 0.0), p.get("centre_y_mm", 0.0)
-    best = at(cx, cy)
+    best = on_all(cx, cy)
     if not _rises(best):
         return best
+    # the search runs on a regular subsample of at most LINEAR_SEARCH_PIXELS pixels (the chi2 scaled to all of
+    # them, as a linear signature's search); the centre it settles on is measured on every pixel
+    step_px = max(1, int(np.ceil(q.size / LINEAR_SEARCH_PIXELS)))
+    sub = slice(0, None, step_px)
+
+    def at(cx, cy):
+        chi2, share = _ring_profile(*_offsets_mm(res, cx, cy), cols[sub], rows[sub], q[sub], wq[sub])
+        return chi2 * step_px, share
+
+    def result(cx, cy):
+        return on_all(cx, cy) if step_px > 1 else at(cx, cy)
+
     rc = _half_diagonal_mm(res)
     if "radius_mm" in p:  # the window's own scale: centres about the window, as the fit's grid and refinement
         ox, oy, rw = _window_geometry_mm(res)
@@ -327,10 +347,12 @@ def observed_rise(p: dict, res) -> tuple[float, float]:
         ox, oy = 0.0, 0.0
         grid = [(fx * rc, fy * rc) for fx in _CENTRE_GRID for fy in _CENTRE_GRID]
         reach, step = _CENTRE_MAX * rc, 0.05 * rc
+    first = best
+    best = at(cx, cy)
     for gx, gy in grid:
         trial = at(gx, gy)
         if not _rises(trial):
-            return trial
+            return result(gx, gy)
         if trial[0] < best[0]:
             best, cx, cy = trial, gx, gy
     for _ in range(60):  # compass search (Kolda, Lewis & Torczon 2003) on the rise's chi2
@@ -340,12 +362,13 @@ def observed_rise(p: dict, res) -> tuple[float, float]:
                   if (dx or dy) and max(abs(cx + dx - ox), abs(cy + dy - oy)) <= reach]
         for trial, x, y in trials:
             if not _rises(trial):
-                return trial
+                return result(x, y)
         if trials and min(t[0][0] for t in trials) < best[0]:
             best, cx, cy = min(trials, key=lambda t: t[0][0])
         else:
             step /= 2
-    return best
+    out = result(cx, cy)
+    return out if out[0] < first[0] else first
 
 
 def _vignetting_check(fit, res) -> str:
