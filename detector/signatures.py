@@ -48,7 +48,6 @@ from detector.significance import (
     DETECTION_SIGMA,
     FOOTPRINT_SIGMA,
     MAX_DEFECT_FRACTION,
-    STRONG_EVIDENCE,
     STRUCTURE_SIGMA,
 )
 from detector.stats import mad_std
@@ -1830,7 +1829,11 @@ class VarianceSignature(Signature):
         note = law or ""
         extra = {}
         smooth_delta = None
-        if self.smooth is not None and d + k * np.log(max(n, 2)) < -STRONG_EVIDENCE:
+        # the smooth part is a part of the pattern the whole is claimed for: tried once the pixel-to-pixel part
+        # belongs to it as a part (its chi2 gain beyond FOOTPRINT_SIGMA squared), the whole (scatter and large
+        # scales) then judged by its delta BIC as every candidate is; a weak scatter under a stronger flat-field
+        # map is one response (Janesick 2007, ch. 8), which a gain step or a fall-off would otherwise take
+        if self.smooth is not None and d < -FOOTPRINT_SIGMA ** 2:
             tmpl = self.smooth(res)
             ln = np.log(max(n, 2))
             # the response's large scales (a flat-field map: coating and thickness variations, Janesick 2007,

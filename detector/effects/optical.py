@@ -26,7 +26,15 @@ import numpy as np
 from pydantic import Field, model_validator
 
 from ..errors import DetectorError
-from ..signatures import LinearSignature, Variant, fit_linear, light_law_check, light_law_untold, search_sample
+from ..signatures import (
+    LINEAR_SEARCH_PIXELS,
+    LinearSignature,
+    Variant,
+    fit_linear,
+    light_law_check,
+    light_law_untold,
+    search_sample,
+)
 from ..significance import DETECTION_SIGMA
 from .base import Effect, EffectParams, Stage, Tile, register_effect
 
@@ -260,26 +268,14 @@ VIGNETTING_RISE_CHI2 = DETECTION_SIGMA ** 2
 VIGNETTING_RISE_SHARE = 0.1
 
 
-def observed_rise(p: dict, res) -> tuple[float, float]:
-    """How much the observed light, in rings of rho^2 about the fitted centre, departs from a light that never
-    rises away from the centre: (the chi2 between the rings' level-profiled relative residuals and their
-    non-increasing isotonic fit (``scipy.optimize.isotonic_regression``, weights the rings' inverse
-    variances), the rise's size as a share of the rings' span: the largest gain of a ring over a ring nearer
-    the centre, over the brightest minus the faintest ring). Measured on the data, not on the fitted
-    polynomial: a polynomial fitted to a monotone fall-off that saturates (a cos^4, a Lorentzian, a
-    Gaussian) turns over by up to 40 % of its depth."""
+def _ring_profile(u: np.ndarray, v: np.ndarray, cols: np.ndarray, rows: np.ndarray, q: np.ndarray,
+                  wq: np.ndarray) -> tuple[float, float]:
+    """(chi2 from a non-increasing profile, the rise's share of the span) of the relative residuals ``q``
+    (inverse variances ``wq``) in rings of equal pixel count of the squared distance from the centre at which
+    ``u``, ``v`` [mm] are measured (the pixels at ``cols``, ``rows``)."""
     from scipy.optimize import isotonic_regression
 
-    idx, r, w = res.flat_profiled()
-    shape = res.data_adu.shape
-    photo = np.broadcast_to(res.photo_adu, shape).ravel()[idx].astype(np.float64)
-    ok = (photo > 0) & (w > 0)
-    if ok.sum() < 10 * VIGNETTING_RINGS:
-        return 0.0, 0.0
-    u, v = _offsets_mm(res, p.get("centre_x_mm", 0.0), p.get("centre_y_mm", 0.0))
-    t = u[idx[ok] % shape[1]] ** 2 + v[idx[ok] // shape[1]] ** 2
-    q = r[ok] / photo[ok]  # relative residual: the light's change [1]
-    wq = w[ok] * photo[ok] ** 2  # its inverse variance
+    t = u[cols] ** 2 + v[rows] ** 2
     edges = np.quantile(t, np.linspace(0, 1, VIGNETTING_RINGS + 1))
     ring = np.clip(np.searchsorted(edges, t, side="right") - 1, 0, VIGNETTING_RINGS - 1)
     wk = np.bincount(ring, wq, VIGNETTING_RINGS)
@@ -291,10 +287,94 @@ def observed_rise(p: dict, res) -> tuple[float, float]:
     return float(np.sum(wk[keep] * (mk - iso) ** 2)), (gain / span if span > 0 else 0.0)
 
 
+def _rises(rise: tuple[float, float]) -> bool:
+    """A ring profile that rises away from its centre: beyond VIGNETTING_RISE_CHI2 and by more than
+    VIGNETTING_RISE_SHARE of its span."""
+    return rise[0] > VIGNETTING_RISE_CHI2 and rise[1] > VIGNETTING_RISE_SHARE
+
+
+def observed_rise(p: dict, res) -> tuple[float, float]:
+    """How much the observed light, in rings of rho^2 about a centre, departs from a light that never
+    rises away from that centre: (the chi2 between the rings' level-profiled relative residuals and their
+    non-increasing isotonic fit (``scipy.optimize.isotonic_regression``, weights the rings' inverse
+    variances), the rise's size as a share of the rings' span: the largest gain of a ring over a ring nearer
+    the centre, over the brightest minus the faintest ring). Measured on the data, not on the fitted
+    polynomial: a polynomial fitted to a monotone fall-off that saturates (a cos^4, a Lorentzian, a
+    Gaussian) turns over by up to 40 % of its depth.
+
+    The centre is the fitted one, or, when the light rises away from it, the centre about which it rises
+    least, searched over the centres the fit itself may take (:func:`_vignetting_variants`' grid, then a
+    compass search as :func:`_vignetting_refine` within its reach): the question is whether the light falls
+    away from some centre, not from the polynomial's. A fall-off the circular polynomial cannot follow (an
+    elliptical one, a cos^4 about a centre off the window) puts its best polynomial centre where the light
+    still rises, while the rings about the fall-off's own centre fall (every ray from it falls, so does every
+    ring's mean); a light with a minimum inside the field, or steps, rises away from every centre."""
+    idx, r, w = res.flat_profiled()
+    shape = res.data_adu.shape
+    photo = np.broadcast_to(res.photo_adu, shape).ravel()[idx].astype(np.float64)
+    ok = (photo > 0) & (w > 0)
+    if ok.sum() < 10 * VIGNETTING_RINGS:
+        return 0.0, 0.0
+    cols, rows = idx[ok] % shape[1], idx[ok] // shape[1]
+    q = r[ok] / photo[ok]  # relative residual: the light's change [1]
+    wq = w[ok] * photo[ok] ** 2  # its inverse variance
+
+    def on_all(cx, cy):
+        return _ring_profile(*_offsets_mm(res, cx, cy), cols, rows, q, wq)
+
+    cx, cy = p.get("centre_x_mm", 0.0), p.get("centre_y_mm", 0.0)
+    best = on_all(cx, cy)
+    if not _rises(best):
+        return best
+    # the search runs on a regular subsample of at most LINEAR_SEARCH_PIXELS pixels (the chi2 scaled to all of
+    # them, as a linear signature's search); the centre it settles on is measured on every pixel
+    step_px = max(1, int(np.ceil(q.size / LINEAR_SEARCH_PIXELS)))
+    sub = slice(0, None, step_px)
+
+    def at(cx, cy):
+        chi2, share = _ring_profile(*_offsets_mm(res, cx, cy), cols[sub], rows[sub], q[sub], wq[sub])
+        return chi2 * step_px, share
+
+    def result(cx, cy):
+        return on_all(cx, cy) if step_px > 1 else at(cx, cy)
+
+    rc = _half_diagonal_mm(res)
+    if "radius_mm" in p:  # the window's own scale: centres about the window, as the fit's grid and refinement
+        ox, oy, rw = _window_geometry_mm(res)
+        grid = [(ox + fx * rw, oy + fy * rw) for fx in (-1.0, -0.5, 0.0, 0.5, 1.0) for fy in (-1.0, -0.5, 0.0, 0.5, 1.0)]
+        reach, step = 1.5 * rw, 0.25 * rw
+    else:
+        ox, oy = 0.0, 0.0
+        grid = [(fx * rc, fy * rc) for fx in _CENTRE_GRID for fy in _CENTRE_GRID]
+        reach, step = _CENTRE_MAX * rc, 0.05 * rc
+    first = best
+    best = at(cx, cy)
+    for gx, gy in grid:
+        trial = at(gx, gy)
+        if not _rises(trial):
+            return result(gx, gy)
+        if trial[0] < best[0]:
+            best, cx, cy = trial, gx, gy
+    for _ in range(60):  # compass search (Kolda, Lewis & Torczon 2003) on the rise's chi2
+        if step < _CENTRE_TOL * rc:
+            break
+        trials = [(at(cx + dx, cy + dy), cx + dx, cy + dy) for dx in (-step, 0.0, step) for dy in (-step, 0.0, step)
+                  if (dx or dy) and max(abs(cx + dx - ox), abs(cy + dy - oy)) <= reach]
+        for trial, x, y in trials:
+            if not _rises(trial):
+                return result(x, y)
+        if trials and min(t[0][0] for t in trials) < best[0]:
+            best, cx, cy = min(trials, key=lambda t: t[0][0])
+        else:
+            step /= 2
+    out = result(cx, cy)
+    return out if out[0] < first[0] else first
+
+
 def _vignetting_check(fit, res) -> str:
     """Vignetting takes light away towards the edge of the field: the fitted relative illumination
     ``1 - a2 rho^2 - a4 rho^4`` must lose light somewhere away from its centre, and the
-    observed light must not rise away from the fitted centre (:func:`observed_rise` beyond
+    observed light must not rise away from every centre the fit may take (:func:`observed_rise` beyond
     VIGNETTING_RISE_CHI2 and by more than VIGNETTING_RISE_SHARE of the profile's span). A pattern that brightens away from its centre where it is observed is an added
     light or a flat-field error."""
     p = fit.params
@@ -306,9 +386,10 @@ def _vignetting_check(fit, res) -> str:
     # saturates (a cos^4, a Gaussian about a centre off the window's: the loss at the sensor's corner came out
     # negative for a 20 % deep cos^4): the data's own ring profile decides
     rise, share = observed_rise(p, res)
-    if rise > VIGNETTING_RISE_CHI2 and share > VIGNETTING_RISE_SHARE:
-        return (f"the observed light rises away from the fitted centre (rings of rho^2: chi2 {rise:.3g} from a "
-                f"never-rising profile, more than {VIGNETTING_RISE_CHI2:g}, by {100 * share:.3g} % of the rings' "
+    if _rises((rise, share)):
+        return (f"the observed light rises away from every centre the fit may take (rings of rho^2 about the least "
+                f"rising: chi2 {rise:.3g} from a never-rising profile, more than {VIGNETTING_RISE_CHI2:g}, by "
+                f"{100 * share:.3g} % of the rings' "
                 f"span, more than {100 * VIGNETTING_RISE_SHARE:g} %): vignetting only takes light away (an "
                 "added light or a flat-field error)")
     # a response of this shape against an added light of the same shape: the sources tell

@@ -547,7 +547,8 @@ def test_an_ipc_the_frame_cannot_tell_from_a_blur_is_named_with_it():
 
 def test_a_response_and_an_added_light_the_frame_cannot_tell_are_named_together_and_a_told_law_passes_the_kind_gate():
     """A vignetting whose own law this frame does not tell from an added light (``untold``: one light level)
-    is named with straylight as the same smooth pattern of the light; an added light whose own shape the
+    is named with straylight as the same smooth pattern of the light (also when straylight's own form is short of
+    the BIC bar, not when it is refused); an added light whose own shape the
     frame finds added (``law_told``) is not refused by the morphology's multiplicative kind, one that is not
     told is."""
     from scenes.app.compare.judge import indistinguishable, kind_gate, same_light, verdict
@@ -557,6 +558,15 @@ def test_a_response_and_an_added_light_the_frame_cannot_tell_are_named_together_
     stray = Candidate(Fit("straylight", {}, -100.0, 6, 10_000, "an added light"), 1.0, 0.0, heldout=-20.0)
     assert same_light(vig, stray) and indistinguishable([vig], [vig, stray]) == [stray]
     assert "cannot tell it apart from straylight: the same smooth pattern of the light" in verdict([vig, stray])
+    # the added light's own form short of the BIC bar (its 14 Legendre terms pay more than the fall-off's two):
+    # the first's shape still does not tell the laws, so it is still named with it; refused, it is no twin
+    weak = Candidate(Fit("straylight", {}, -7.4, 15, 10_000, "an added light"), 1.0, 0.0)
+    assert not weak.contender and indistinguishable([vig], [vig, weak]) == [weak]
+    refused = Candidate(Fit("straylight", {}, -7.4, 15, 10_000, "an added light"), 1.0, 0.0,
+                        implausible="a response, not added light")
+    assert indistinguishable([vig], [vig, refused]) == []
+    told_vig = Candidate(Fit("vignetting", {}, -160.0, 5, 10_000, "a fall-off"), 1.0, 0.0, heldout=-70.0)
+    assert indistinguishable([told_vig], [told_vig, weak]) == []
     morph = {"significant": True, "kind": "multiplicative", "kind_certain": True}
     told = Candidate(Fit("straylight", {}, -300.0, 6, 10_000, "an added light"), 1.0, 0.0, law_told=True)
     untold = Candidate(Fit("sky_gradient", {}, -300.0, 2, 10_000, "a gradient"), 1.0, 0.0)

@@ -199,6 +199,29 @@ def test_strong_elliptical_fall_off_off_centre_named_vignetting(tmp_path):
     assert row["first"] == "vignetting"
 
 
+def test_off_centre_cos4_vignetting_not_handed_to_the_zero_point(tmp_path):
+    """A 13 % deep cos^4 fall-off of axis ratio 0.88 about a point near a corner of a 256 px IMX411 window of
+    stars (a drawn case, vignetting-2223024438858727001): the circular polynomial's best centre leaves rings
+    about it whose light rises (chi2 259, 16 % of the span), while the light falls away from the fall-off's own
+    centre (every ray from it falls, so does every ring's mean: detector.effects.optical.observed_rise searches
+    the centres the fit may take). Refused as "rising", the dimmed stars were named a zero point of x 0.88."""
+    row = R.run_case(R.draw_case("vignetting", 2223024438858727001), tmp_path, workers=1)
+    assert row["first"] == "vignetting"
+    assert not row["confidently_wrong"]
+
+
+def test_weak_prnu_with_a_large_scale_part_not_taken_for_gain_steps(tmp_path):
+    """A PRNU of 0.13 % white and 0.24 % low-frequency rms on a flat (0.16 x the shot noise; a drawn case,
+    prnu-200161311579918290): the white part alone is short of the BIC bar, so its smooth part was never tried
+    and a gain step of 0.1 % took the large scales. The smooth part is now tried once the white part belongs to
+    the pattern as a part (detector.significance.FOOTPRINT_SIGMA): the response is named (PRNU, or vignetting
+    for its smooth part, both accepted), not amplifier gain regions."""
+    row = R.run_case(R.draw_case("prnu", 200161311579918290), tmp_path, workers=1)
+    assert row["first"] in ("prnu", "vignetting")
+    prnu = next((c for c in row["ranking"] if c[0] == "prnu"), None)
+    assert prnu is not None and prnu[2]  # the PRNU (white and smooth) is significant itself
+
+
 @pytest.mark.parametrize("case_seed, length_px, first", [
     (2136684188336113015, 6.85, "pointing_drift"),  # an accelerating drift from rest: accel = 1 is reached
     (562860603431504720, 1.36, "jitter"),  # a smear too short to call a trail, along one line

@@ -345,7 +345,8 @@ def indistinguishable(sig: list[Candidate], cands: list[Candidate] = ()) -> list
     (:func:`same_scatter`); then, of ``cands``, the contenders
     (significant by delta BIC, plausible, not rejected) that make the same image as the first in this frame
     (:func:`same_image`): a form of the same image whose held-out score falls short does not make the data
-    tell the two stages apart."""
+    tell the two stages apart; for the two laws of a light pattern (:func:`same_light`) the plausible ones
+    whose own delta BIC falls short too (:func:`_other_law`)."""
     if not sig:
         return []
     best = sig[0].heldout
@@ -353,8 +354,16 @@ def indistinguishable(sig: list[Candidate], cands: list[Candidate] = ()) -> list
     out = [c for c in sig[1:] if (best is not None and c.heldout is not None and c.heldout - best <= tol)
            or same_charge(sig[0], c) or same_scatter(sig[0], c) or same_image(sig[0], c)]
     out += [c for c in cands if c.kind != "parameter" and c is not sig[0] and c not in out and not c.significant
-            and c.contender and same_image(sig[0], c)]
+            and (c.contender or _other_law(sig[0], c)) and same_image(sig[0], c)]
     return out
+
+
+def _other_law(first: Candidate, c: Candidate) -> bool:
+    """``c`` is the other law of ``first``'s light pattern (:func:`same_light`), plausible and not rejected:
+    ``first``'s own evidence (its :attr:`Candidate.untold`, the same fitted shape under both laws) is what
+    says the frame does not tell an added light from a response, whatever ``c``'s own form pays for its
+    parameters (a Legendre series of 14 terms short of the BIC bar where the two-term fall-off passes it)."""
+    return same_light(first, c) and c.plausible and not c.rejected
 
 
 def verdict(cands: list[Candidate], morphology: dict | None = None) -> str:
