@@ -16,7 +16,7 @@ import numpy as np
 
 from detector import registry
 from detector.morphology import block_chi2
-from detector.signatures import Fit, Residuals, dither_codes, frame_at, heldout_delta
+from detector.signatures import Fit, Residuals, dither_codes, frame_at, heldout_blind, heldout_delta
 from detector.significance import FOOTPRINT_SIGMA, MIN_TEST_PIXELS
 
 from .floors import floor_reason, signal_range_floor
@@ -416,6 +416,7 @@ def score_heldout(res: Residuals, cands: list[Candidate], progress=None,
         t0 = time.perf_counter()
         try:
             c.heldout = heldout_delta(sig, res, c.fit.effect, c.fit)
+            c.heldout_blind = c.heldout is not None and heldout_blind(c.fit, res)
         except Exception as exc:  # noqa: BLE001
             c.refuse("error", f"cannot be scored on held-out pixels ({type(exc).__name__}: {exc})")
         c.seconds += time.perf_counter() - t0

@@ -90,6 +90,9 @@ class Candidate:
     #: own and not the other's (:meth:`detector.signatures.Signature.law_told`): the morphology's kind, a
     #: description's, does not overrule it
     law_told: bool = False
+    #: one held-out fold sees less than a detection of its change
+    #: (:func:`detector.signatures.heldout_blind`): its held-out score tests it neither way
+    heldout_blind: bool = False
 
     def __post_init__(self):
         if self.rejected and "overfit" not in self.codes and "stars" not in self.codes:
@@ -160,6 +163,8 @@ class Candidate:
                "seconds": self.seconds}
         if self.untold:
             out["same_image_as"] = list(self.untold)
+        if self.heldout_blind:
+            out["heldout_blind"] = True
         if self.kind == "parameter":
             out["key"], out["value"] = self.key, self.value
             if self.ambiguous:
@@ -334,6 +339,9 @@ TWIN_REASONS = (
      "enough above a light of one level would tell: a flat field taken through the same optics tells which"),
     (same_image, "the same small kernel on the same pixels, whose stage (the pixels' charge or the light) only a "
                  "coupled noise or a charge not of light would tell, neither measurable in this frame"),
+    (lambda a, b: b.heldout_blind and not b.significant,
+     "it fits the frame as well or better, and the held-out test cannot weigh it: the few bright pixels that carry "
+     "its change lie in one fold of the checkerboard, the other sees less than a detection of it"),
     (None, "their held-out scores are as good"),
 )
 
@@ -353,8 +361,21 @@ def indistinguishable(sig: list[Candidate], cands: list[Candidate] = ()) -> list
     out = [c for c in sig[1:] if (best is not None and c.heldout is not None and c.heldout - best <= tol)
            or same_charge(sig[0], c) or same_scatter(sig[0], c) or same_image(sig[0], c)]
     out += [c for c in cands if c.kind != "parameter" and c is not sig[0] and c not in out and not c.significant
-            and c.contender and same_image(sig[0], c)]
+            and c.contender and (same_image(sig[0], c) or blind_rival(sig[0], c))]
     return out
+
+
+def blind_rival(first: Candidate, c: Candidate) -> bool:
+    """``c`` fits the frame as well as ``first`` or better (its delta BIC within the twins' tolerance of
+    :func:`indistinguishable`, or below) but was not named because its held-out score is no test of it
+    (:attr:`Candidate.heldout_blind`): a fold of the checkerboard sees less than a detection of its change, so
+    the fit on that fold is noise, and its failure on the other fold says nothing of the effect. Only the
+    held-out pixels could have told the two apart, and for ``c`` they cannot: a tie, not a name for ``first``."""
+    if not c.heldout_blind or c.fit.delta_bic >= c.policy.significant_delta_bic:
+        return False
+    best = first.fit.delta_bic
+    tol = max(first.policy.twin_fraction * abs(best), 2 * np.sqrt(2 * abs(best)))
+    return c.fit.delta_bic - best <= tol
 
 
 def verdict(cands: list[Candidate], morphology: dict | None = None) -> str:
