@@ -435,3 +435,48 @@ def source_candidates(res: Residuals, truth, scene, policy: DiagnosisPolicy = DE
         out.append(Candidate(fit, chi2, time.perf_counter() - t0, policy=policy))
         t0 = time.perf_counter()
     return out
+
+
+def nested_fit(res: Residuals, given: Fit, name: str) -> Fit | None:
+    """``name``'s signature fitted again with ``given``'s mean change already in the model (the data less that
+    change, the global levels refitted as before): what it explains that ``given`` leaves."""
+    sig = getattr(registry().get(name), "signature", None)
+    if sig is None or given.delta_adu is None:
+        return None
+    left = replace(res, data_adu=(res.data_adu - given.delta_adu).astype(np.float32), _flat=res.shared_levels())
+    try:
+        fit = sig.fit(left, name)
+    except Exception:  # noqa: BLE001  (a signature that cannot refit tells nothing)
+        return None
+    return fit if fit is not None and np.isfinite(fit.delta_m2lnl) else None
+
+
+def blind_rivals(res: Residuals, cands: list[Candidate], policy: DiagnosisPolicy = DEFAULT_POLICY) -> None:
+    """The tie of the first significant effect with a rival whose held-out test is blind
+    (:func:`.judge.blind_rival`) is decided by nesting, when the pixels decide it: each fitted again with the
+    other's change in the model. When the rival still explains significantly what the first leaves (delta BIC
+    below the policy's significance) and the first, beside the rival, explains nothing significant, the first
+    is refused (gate ``nested``) and the rival, whose held-out score was no test (:attr:`Candidate.heldout`
+    cleared), is judged on its delta BIC: a compressive response that takes charge from the bright stars'
+    cores is not a brighter-fatter widening (each star's flux kept) nor a jitter (every star widened alike)
+    when it also takes the flux those leave, and they add nothing beside it. Both significant beside the other,
+    or neither: the tie stays (:func:`.judge.indistinguishable`)."""
+    from .judge import blind_rival, rank
+
+    sig = [c for c in rank(cands, res.light_source) if c.significant and c.kind == "effect"]
+    if not sig or sig[0].fit.delta_adu is None:
+        return
+    first = sig[0]
+    rivals = sorted((c for c in cands if c is not first and c.kind == "effect" and not c.significant and c.contender
+                     and c.fit.delta_adu is not None and blind_rival(first, c)), key=lambda c: c.fit.delta_bic)
+    for c in rivals:
+        rival_left = nested_fit(res, first.fit, c.fit.effect)
+        first_left = nested_fit(res, c.fit, first.fit.effect)
+        if rival_left is None or first_left is None:
+            continue
+        if rival_left.delta_bic < policy.significant_delta_bic <= first_left.delta_bic:
+            first.refuse("nested", (f"beside {c.fit.effect} it explains nothing significant (delta BIC "
+                                    f"{first_left.delta_bic:.4g}), while {c.fit.effect} explains what it leaves "
+                                    f"(delta BIC {rival_left.delta_bic:.4g})"))
+            c.heldout = None
+            return

@@ -47,6 +47,7 @@ GATES: dict[str, str] = {
     "consistency": "series: one piece of hardware, but its strength differs between frames",
     "sample": "large frame: it worsens the full-resolution band sample",
     "tolerance": "a parameter within the policy's tolerance of the scene's value: not a finding",
+    "nested": "beside a rival whose held-out test is blind it explains nothing, and the rival explains what it leaves",
     "error": "its evidence could not be computed",
 }
 
