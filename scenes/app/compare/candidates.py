@@ -451,32 +451,52 @@ def nested_fit(res: Residuals, given: Fit, name: str) -> Fit | None:
     return fit if fit is not None and np.isfinite(fit.delta_m2lnl) else None
 
 
+def explains_beside(res: Residuals, c: Candidate, o: Candidate, policy: DiagnosisPolicy = DEFAULT_POLICY) -> str:
+    """"" unless nesting tells ``c`` from ``o`` in ``c``'s favour, else the one-line reason for ``o``'s refusal:
+    ``c`` fitted again with ``o``'s change in the model still explains significantly what ``o`` leaves (delta BIC
+    below the policy's significance), and ``o`` fitted again beside ``c`` explains nothing significant (or
+    nothing at all). Both significant beside the other, or neither: the pixels do not decide."""
+    c_left = nested_fit(res, o.fit, c.fit.effect)
+    if c_left is None or c_left.delta_bic >= policy.significant_delta_bic:
+        return ""
+    o_left = nested_fit(res, c.fit, o.fit.effect)
+    if o_left is not None and o_left.delta_bic < policy.significant_delta_bic:
+        return ""
+    return (f"beside {c.fit.effect} it explains nothing significant"
+            + (f" (delta BIC {o_left.delta_bic:.4g})" if o_left is not None else "")
+            + f", while {c.fit.effect} explains what it leaves (delta BIC {c_left.delta_bic:.4g})")
+
+
 def blind_rivals(res: Residuals, cands: list[Candidate], policy: DiagnosisPolicy = DEFAULT_POLICY) -> None:
-    """The tie of the first significant effect with a rival whose held-out test is blind
-    (:func:`.judge.blind_rival`) is decided by nesting, when the pixels decide it: each fitted again with the
-    other's change in the model. When the rival still explains significantly what the first leaves (delta BIC
-    below the policy's significance) and the first, beside the rival, explains nothing significant, the first
-    is refused (gate ``nested``) and the rival, whose held-out score was no test (:attr:`Candidate.heldout`
-    cleared), is judged on its delta BIC: a compressive response that takes charge from the bright stars'
-    cores is not a brighter-fatter widening (each star's flux kept) nor a jitter (every star widened alike)
-    when it also takes the flux those leave, and they add nothing beside it. Both significant beside the other,
-    or neither: the tie stays (:func:`.judge.indistinguishable`)."""
+    """A contender whose held-out test is blind (:attr:`Candidate.heldout_blind`: one fold sees less than a
+    detection of its change) and that fits as well as the first significant effect or better
+    (:func:`.judge.blind_rival`), or, when no effect is significant, the blind contender that fits best, is
+    told from the others by nesting (:func:`explains_beside`): when it explains significantly what each of them
+    (the first name and the other scored contenders) leaves and none explains anything beside it, they are
+    refused (gate ``nested``) and it is judged on its delta BIC (its held-out score, no test of it, cleared). A
+    compressive response taking charge from the bright stars' cores leaves each star's flux short, which no
+    brighter-fatter widening (each star's flux kept) or jitter (every star widened alike) makes; they add nothing
+    beside it. Otherwise the tie stays (:func:`.judge.indistinguishable`), or nothing is named: a blind
+    candidate with no rival to be told from is not tested at all."""
     from .judge import blind_rival, rank
 
-    sig = [c for c in rank(cands, res.light_source) if c.significant and c.kind == "effect"]
-    if not sig or sig[0].fit.delta_adu is None:
-        return
-    first = sig[0]
-    rivals = sorted((c for c in cands if c is not first and c.kind == "effect" and not c.significant and c.contender
-                     and c.fit.delta_adu is not None and blind_rival(first, c)), key=lambda c: c.fit.delta_bic)
-    for c in rivals:
-        rival_left = nested_fit(res, first.fit, c.fit.effect)
-        first_left = nested_fit(res, c.fit, first.fit.effect)
-        if rival_left is None or first_left is None:
+    ranked = rank(cands, res.light_source)
+    sig = [c for c in ranked if c.significant and c.kind == "effect"]
+    scored = [c for c in ranked if c.kind == "effect" and c.contender and c.fit.delta_adu is not None
+              and not c.significant and c.heldout is not None]
+    if sig:
+        blind = [c for c in scored if c.heldout_blind and blind_rival(sig[0], c)]
+    else:
+        blind = sorted((c for c in scored if c.heldout_blind), key=lambda c: c.fit.delta_bic)[:1]
+        if blind and blind[0].fit.delta_bic > min(c.fit.delta_bic for c in scored):
+            return  # a better fit that is not blind failed its held-out test: nothing to decide
+    for c in sorted(blind, key=lambda c: c.fit.delta_bic):
+        others = [o for o in sig[:1] + scored if o is not c and o.fit.delta_adu is not None]
+        if not others:
             continue
-        if rival_left.delta_bic < policy.significant_delta_bic <= first_left.delta_bic:
-            first.refuse("nested", (f"beside {c.fit.effect} it explains nothing significant (delta BIC "
-                                    f"{first_left.delta_bic:.4g}), while {c.fit.effect} explains what it leaves "
-                                    f"(delta BIC {rival_left.delta_bic:.4g})"))
+        reasons = [explains_beside(res, c, o, policy) for o in others]
+        if all(reasons):
+            for o, why in zip(others, reasons):
+                o.refuse("nested", why)
             c.heldout = None
             return
