@@ -922,10 +922,16 @@ def fold_detections(fit: Fit, res: Residuals) -> tuple[float, float] | None:
     if d is None:
         return None
     black = heldout_mask(res)
-    d = np.broadcast_to(np.asarray(d, np.float64), res.fit.shape)
-    w = 1.0 / np.maximum(np.asarray(res.var_adu2, np.float64), 1e-12)
-    w = np.broadcast_to(w, res.fit.shape)
-    return tuple(float(np.sum(d[m] ** 2 * w[m])) for m in (res.fit & black, res.fit & ~black))
+    shape = res.fit.shape
+    d, v = np.broadcast_to(d, shape), np.broadcast_to(res.var_adu2, shape)
+    out = [0.0, 0.0]
+    for y in range(0, shape[0], 256):  # in bands of rows: no float64 copy of a full frame
+        sl = slice(y, y + 256)
+        q = d[sl].astype(np.float64) ** 2 / np.maximum(v[sl].astype(np.float64), 1e-12)
+        fit, b = res.fit[sl], black[sl]
+        out[0] += float(q[fit & b].sum())
+        out[1] += float(q[fit & ~b].sum())
+    return out[0], out[1]
 
 
 def heldout_blind(fit: Fit, res: Residuals) -> bool:
