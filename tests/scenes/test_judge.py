@@ -617,3 +617,15 @@ def test_a_rival_whose_held_out_test_is_blind_ties_with_the_first_name():
                       heldout=1500.0, heldout_blind=True)
     # delta BIC -12.9 against -217.8: beyond the twins' tolerance 2 sqrt(2 x 217.8)
     assert worse.contender and not blind_rival(strong, worse)
+
+
+def test_a_blind_candidate_alone_is_described_as_untested_not_as_failed():
+    """With nothing significant, a candidate that fits best but whose held-out test is blind is not called
+    "not credible" by its held-out score: the verdict says the held-out pixels cannot test it."""
+    from scenes.app.compare.judge import verdict
+
+    nl = Candidate(Fit("nonlinearity", {}, -150.0, 1, 65536, "a compression"), 1.0, 0.0, heldout=2705.0,
+                   heldout_blind=True)
+    assert not nl.significant and "cannot test it" in verdict([nl])
+    nl.heldout_blind = False
+    assert "not credible: held-out delta 2705" in verdict([nl])

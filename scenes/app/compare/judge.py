@@ -423,6 +423,10 @@ def verdict(cands: list[Candidate], morphology: dict | None = None) -> str:
         c = named[0]
         reasons = gate_reasons(c)
         why = f" ({c.fit.effect} fits but is not credible: {reasons[0][1]} [{reasons[0][0]}])" if reasons else ""
+        if c.heldout_blind and reasons and reasons[0][0] == "heldout":
+            why = (f" ({c.fit.effect} fits best, but the held-out pixels cannot test it: one fold of the checkerboard "
+                   "sees less than a detection of its change; nor do the pixels tell it from the other candidates "
+                   "when each is fitted beside it)")
     if morphology and morphology.get("significant"):
         return ("no catalogue effect explains the residual" + why + "; what is missing looks like "
                 + morphology["explanation"])
