@@ -938,7 +938,7 @@ def heldout_blind(fit: Fit, res: Residuals) -> bool:
     """Whether one held-out fold sees less than a detection of ``fit``'s change (:func:`fold_detections`): the
     held-out score does not test it."""
     got = fold_detections(fit, res)
-    return got is not None and min(got) < DETECTION_SIGMA ** 2
+    return got is not None and float(np.sqrt(min(got))) < DETECTION_SIGMA
 
 
 def _folds(res: Residuals, black: np.ndarray) -> tuple[Residuals, Residuals]:
