@@ -885,13 +885,7 @@ def heldout_delta(signature: Signature, res: Residuals, name: str, fit: Fit | No
     never saw (Arlot & Celisse 2010, Stat. Surveys 4, 40: cross-validation for model selection; blocks keep
     the folds apart for spatially correlated residuals, Roberts et al. 2017, Ecography 40, 913).
     None when the signature cannot be scored on a part of the frame (outlier counts)."""
-    black = checkerboard(res.data_adu.shape)
-    if res.row_var_adu2 > 0:
-        # row noise: the pixels of a row share an offset, so the folds are bands of whole rows (a form that
-        # follows one fold's row offsets must fail on the other's)
-        block = int(max(4, min(HELDOUT_BLOCK, res.data_adu.shape[0] // 8)))
-        black = np.broadcast_to(((np.arange(res.data_adu.shape[0]) // block) % 2 == 0)[:, None],
-                                res.data_adu.shape).copy()
+    black = heldout_mask(res)
     total = 0.0
     folds = _folds(res, black)
     for part, held in ((folds[0], folds[1]), (folds[1], folds[0])):
@@ -912,6 +906,48 @@ def heldout_delta(signature: Signature, res: Residuals, name: str, fit: Fit | No
             return None
         total += s
     return float(total)
+
+
+def heldout_mask(res: Residuals) -> np.ndarray:
+    """The first held-out fold of ``res`` (True; the second is the rest): the black squares of
+    :func:`checkerboard`, or, under row noise, bands of whole rows (the pixels of a row share an offset, so a
+    form that follows one fold's row offsets must fail on the other's)."""
+    if res.row_var_adu2 > 0:
+        block = int(max(4, min(HELDOUT_BLOCK, res.data_adu.shape[0] // 8)))
+        return np.broadcast_to(((np.arange(res.data_adu.shape[0]) // block) % 2 == 0)[:, None],
+                               res.data_adu.shape).copy()
+    return checkerboard(res.data_adu.shape)
+
+
+def fold_detections(fit: Fit, res: Residuals) -> tuple[float, float] | None:
+    """The chi2 of ``fit``'s mean change on each held-out fold of :func:`heldout_delta` (``sum d^2 / v`` over the
+    fold's fitted pixels): how well each fold alone sees the fitted change. None without a mean change.
+
+    Cross-validation tests a fit only where both folds see what it changes: a fold on which the change is below
+    a detection (chi2 < DETECTION_SIGMA^2) fits noise, and its fit, scored on the other fold, fails there however
+    real the effect (a compressive response seen in the cores of the two bright stars of a star window, both in
+    one square of the checkerboard); its held-out score is then no test of the effect, for or against."""
+    d = fit.delta_adu
+    if d is None:
+        return None
+    black = heldout_mask(res)
+    shape = res.fit.shape
+    d, v = np.broadcast_to(d, shape), np.broadcast_to(res.var_adu2, shape)
+    out = [0.0, 0.0]
+    for y in range(0, shape[0], 256):  # in bands of rows: no float64 copy of a full frame
+        sl = slice(y, y + 256)
+        q = d[sl].astype(np.float64) ** 2 / np.maximum(v[sl].astype(np.float64), 1e-12)
+        fit, b = res.fit[sl], black[sl]
+        out[0] += float(q[fit & b].sum())
+        out[1] += float(q[fit & ~b].sum())
+    return out[0], out[1]
+
+
+def heldout_blind(fit: Fit, res: Residuals) -> bool:
+    """Whether one held-out fold sees less than a detection of ``fit``'s change (:func:`fold_detections`): the
+    held-out score does not test it."""
+    got = fold_detections(fit, res)
+    return got is not None and float(np.sqrt(min(got))) < DETECTION_SIGMA
 
 
 def _folds(res: Residuals, black: np.ndarray) -> tuple[Residuals, Residuals]:

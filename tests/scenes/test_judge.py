@@ -589,3 +589,70 @@ def test_a_response_applied_refits_the_stars_with_the_sky(star_scene, tmp_path):
     dg = {"effect": "dark_gradient", "kind": "effect", "params": {}, "explanation": "test"}
     add = load_scene(str(apply_candidate(sc, dg, tmp_path / "dg.toml", meas)))
     assert add.sky.source_flux_scale == 1.0 and add.sky.background_mag_arcsec2 < sc.sky.background_mag_arcsec2
+
+
+def test_a_change_seen_by_one_fold_only_is_not_tested_by_the_held_out_pixels():
+    """Cross-validation weighs a fit only where both folds see its change: a compressive response taking 3 %
+    of the cores of two bright stars (peaks 55 000 e-, shot noise ~ 235 e-) that both lie in one 32 x 32 block
+    of the checkerboard leaves the other fold with less than a detection (chi2 < DETECTION_SIGMA^2) of it,
+    while the same change on stars spread over the frame is seen by both folds."""
+    from types import SimpleNamespace
+
+    from detector.signatures import HELDOUT_BLOCK, fold_detections, heldout_blind
+    from detector.significance import DETECTION_SIGMA
+
+    shape = (256, 256)
+    var = np.full(shape, 200.0 + 3.5 ** 2, np.float32)
+    res = SimpleNamespace(fit=np.ones(shape, bool), var_adu2=var, row_var_adu2=0.0,
+                          data_adu=np.zeros(shape, np.float32))
+
+    def cores(positions):
+        d = np.zeros(shape, np.float32)
+        for y, x in positions:
+            var[y - 1:y + 2, x - 1:x + 2] = 55_000.0
+            d[y - 1:y + 2, x - 1:x + 2] = -0.03 * 55_000.0
+        return Fit("nonlinearity", {}, -200.0, 1, 65536, "a compression", delta_adu=d)
+
+    one_block = cores([(10, 10), (20, 22)])  # both in the first block (HELDOUT_BLOCK px a side)
+    assert max(y for y, _ in [(10, 10), (20, 22)]) + 1 < HELDOUT_BLOCK
+    seen = fold_detections(one_block, res)
+    assert min(seen) < DETECTION_SIGMA ** 2 < max(seen) and heldout_blind(one_block, res)
+    var[...] = 200.0 + 3.5 ** 2
+    spread = cores([(10, 10), (10, 42), (100, 150), (100, 182)])  # two blocks of each colour
+    assert min(fold_detections(spread, res)) > DETECTION_SIGMA ** 2 and not heldout_blind(spread, res)
+    assert fold_detections(Fit("x", {}, -1.0, 1, 10, ""), res) is None
+
+
+def test_a_rival_whose_held_out_test_is_blind_ties_with_the_first_name():
+    """A brighter-fatter named on its held-out score is not named alone when a non-linearity fits the frame
+    better in-sample but could not be tested on held-out pixels (its change seen by one fold only): the verdict
+    says the data cannot tell them apart; a blind rival that fits clearly worse, or one whose held-out test was
+    not blind, is no tie."""
+    from scenes.app.compare.judge import blind_rival, indistinguishable, rank, verdict
+
+    bf = Candidate(Fit("brighter_fatter", {}, -38.4, 2, 65536, "wider bright stars"), 1.0, 0.0, heldout=-60.5)
+    nl = Candidate(Fit("nonlinearity", {}, -54.6, 1, 65536, "a compression"), 1.0, 0.0, heldout=1500.0,
+                   heldout_blind=True)
+    assert bf.significant and not nl.significant and nl.contender and blind_rival(bf, nl)
+    assert indistinguishable([bf], [bf, nl]) == [nl]
+    assert [c.fit.effect for c in rank([nl, bf])][:2] == ["brighter_fatter", "nonlinearity"]
+    assert "cannot tell it apart from nonlinearity: it fits the frame as well or better" in verdict([bf, nl])
+    nl.heldout_blind = False
+    assert indistinguishable([bf], [bf, nl]) == []
+    strong = Candidate(Fit("brighter_fatter", {}, -240.0, 2, 65536, "wider bright stars"), 1.0, 0.0, heldout=-250.0)
+    worse = Candidate(Fit("nonlinearity", {}, -24.0, 1, 65536, "a compression"), 1.0, 0.0,
+                      heldout=1500.0, heldout_blind=True)
+    # delta BIC -12.9 against -217.8: beyond the twins' tolerance 2 sqrt(2 x 217.8)
+    assert worse.contender and not blind_rival(strong, worse)
+
+
+def test_a_blind_candidate_alone_is_described_as_untested_not_as_failed():
+    """With nothing significant, a candidate that fits best but whose held-out test is blind is not called
+    "not credible" by its held-out score: the verdict says the held-out pixels cannot test it."""
+    from scenes.app.compare.judge import verdict
+
+    nl = Candidate(Fit("nonlinearity", {}, -150.0, 1, 65536, "a compression"), 1.0, 0.0, heldout=2705.0,
+                   heldout_blind=True)
+    assert not nl.significant and "cannot test it" in verdict([nl])
+    nl.heldout_blind = False
+    assert "not credible: held-out delta 2705" in verdict([nl])

@@ -16,7 +16,7 @@ import numpy as np
 
 from detector import registry
 from detector.morphology import block_chi2
-from detector.signatures import Fit, Residuals, dither_codes, frame_at, heldout_delta
+from detector.signatures import Fit, Residuals, dither_codes, frame_at, heldout_blind, heldout_delta
 from detector.significance import FOOTPRINT_SIGMA, MIN_TEST_PIXELS
 
 from .floors import floor_reason, signal_range_floor
@@ -416,6 +416,7 @@ def score_heldout(res: Residuals, cands: list[Candidate], progress=None,
         t0 = time.perf_counter()
         try:
             c.heldout = heldout_delta(sig, res, c.fit.effect, c.fit)
+            c.heldout_blind = c.heldout is not None and heldout_blind(c.fit, res)
         except Exception as exc:  # noqa: BLE001
             c.refuse("error", f"cannot be scored on held-out pixels ({type(exc).__name__}: {exc})")
         c.seconds += time.perf_counter() - t0
@@ -434,3 +435,68 @@ def source_candidates(res: Residuals, truth, scene, policy: DiagnosisPolicy = DE
         out.append(Candidate(fit, chi2, time.perf_counter() - t0, policy=policy))
         t0 = time.perf_counter()
     return out
+
+
+def nested_fit(res: Residuals, given: Fit, name: str) -> Fit | None:
+    """``name``'s signature fitted again with ``given``'s mean change already in the model (the data less that
+    change, the global levels refitted as before): what it explains that ``given`` leaves."""
+    sig = getattr(registry().get(name), "signature", None)
+    if sig is None or given.delta_adu is None:
+        return None
+    left = replace(res, data_adu=(res.data_adu - given.delta_adu).astype(np.float32), _flat=res.shared_levels())
+    try:
+        fit = sig.fit(left, name)
+    except Exception:  # noqa: BLE001  (a signature that cannot refit tells nothing)
+        return None
+    return fit if fit is not None and np.isfinite(fit.delta_m2lnl) else None
+
+
+def explains_beside(res: Residuals, c: Candidate, o: Candidate, policy: DiagnosisPolicy = DEFAULT_POLICY) -> str:
+    """"" unless nesting tells ``c`` from ``o`` in ``c``'s favour, else the one-line reason for ``o``'s refusal:
+    ``c`` fitted again with ``o``'s change in the model still explains significantly what ``o`` leaves (delta BIC
+    below the policy's significance), and ``o`` fitted again beside ``c`` explains nothing significant (or
+    nothing at all). Both significant beside the other, or neither: the pixels do not decide."""
+    c_left = nested_fit(res, o.fit, c.fit.effect)
+    if c_left is None or c_left.delta_bic >= policy.significant_delta_bic:
+        return ""
+    o_left = nested_fit(res, c.fit, o.fit.effect)
+    if o_left is not None and o_left.delta_bic < policy.significant_delta_bic:
+        return ""
+    return (f"beside {c.fit.effect} it explains nothing significant"
+            + (f" (delta BIC {o_left.delta_bic:.4g})" if o_left is not None else "")
+            + f", while {c.fit.effect} explains what it leaves (delta BIC {c_left.delta_bic:.4g})")
+
+
+def blind_rivals(res: Residuals, cands: list[Candidate], policy: DiagnosisPolicy = DEFAULT_POLICY) -> None:
+    """A contender whose held-out test is blind (:attr:`Candidate.heldout_blind`: one fold sees less than a
+    detection of its change) and that fits as well as the first significant effect or better
+    (:func:`.judge.blind_rival`), or, when no effect is significant, the blind contender that fits best, is
+    told from the others by nesting (:func:`explains_beside`): when it explains significantly what each of them
+    (the first name and the other scored contenders) leaves and none explains anything beside it, they are
+    refused (gate ``nested``) and it is judged on its delta BIC (its held-out score, no test of it, cleared). A
+    compressive response taking charge from the bright stars' cores leaves each star's flux short, which no
+    brighter-fatter widening (each star's flux kept) or jitter (every star widened alike) makes; they add nothing
+    beside it. Otherwise the tie stays (:func:`.judge.indistinguishable`), or nothing is named: a blind
+    candidate with no rival to be told from is not tested at all."""
+    from .judge import blind_rival, rank
+
+    ranked = rank(cands, res.light_source)
+    sig = [c for c in ranked if c.significant and c.kind == "effect"]
+    scored = [c for c in ranked if c.kind == "effect" and c.contender and c.fit.delta_adu is not None
+              and not c.significant and c.heldout is not None]
+    if sig:
+        blind = [c for c in scored if c.heldout_blind and blind_rival(sig[0], c)]
+    else:
+        blind = sorted((c for c in scored if c.heldout_blind), key=lambda c: c.fit.delta_bic)[:1]
+        if blind and blind[0].fit.delta_bic > min(c.fit.delta_bic for c in scored):
+            return  # a better fit that is not blind failed its held-out test: nothing to decide
+    for c in sorted(blind, key=lambda c: c.fit.delta_bic):
+        others = [o for o in sig[:1] + scored if o is not c and o.fit.delta_adu is not None]
+        if not others:
+            continue
+        reasons = [explains_beside(res, c, o, policy) for o in others]
+        if all(reasons):
+            for o, why in zip(others, reasons):
+                o.refuse("nested", why)
+            c.heldout = None
+            return

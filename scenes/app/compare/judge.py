@@ -47,6 +47,7 @@ GATES: dict[str, str] = {
     "consistency": "series: one piece of hardware, but its strength differs between frames",
     "sample": "large frame: it worsens the full-resolution band sample",
     "tolerance": "a parameter within the policy's tolerance of the scene's value: not a finding",
+    "nested": "beside a rival whose held-out test is blind it explains nothing, and the rival explains what it leaves",
     "error": "its evidence could not be computed",
 }
 
@@ -90,6 +91,9 @@ class Candidate:
     #: own and not the other's (:meth:`detector.signatures.Signature.law_told`): the morphology's kind, a
     #: description's, does not overrule it
     law_told: bool = False
+    #: one held-out fold sees less than a detection of its change
+    #: (:func:`detector.signatures.heldout_blind`): its held-out score tests it neither way
+    heldout_blind: bool = False
 
     def __post_init__(self):
         if self.rejected and "overfit" not in self.codes and "stars" not in self.codes:
@@ -160,6 +164,8 @@ class Candidate:
                "seconds": self.seconds}
         if self.untold:
             out["same_image_as"] = list(self.untold)
+        if self.heldout_blind:
+            out["heldout_blind"] = True
         if self.kind == "parameter":
             out["key"], out["value"] = self.key, self.value
             if self.ambiguous:
@@ -334,6 +340,9 @@ TWIN_REASONS = (
      "enough above a light of one level would tell: a flat field taken through the same optics tells which"),
     (same_image, "the same small kernel on the same pixels, whose stage (the pixels' charge or the light) only a "
                  "coupled noise or a charge not of light would tell, neither measurable in this frame"),
+    (lambda a, b: b.heldout_blind and not b.significant,
+     "it fits the frame as well or better, and the held-out test cannot weigh it: the few bright pixels that carry "
+     "its change lie in one fold of the checkerboard, the other sees less than a detection of it"),
     (None, "their held-out scores are as good"),
 )
 
@@ -354,7 +363,8 @@ def indistinguishable(sig: list[Candidate], cands: list[Candidate] = ()) -> list
     out = [c for c in sig[1:] if (best is not None and c.heldout is not None and c.heldout - best <= tol)
            or same_charge(sig[0], c) or same_scatter(sig[0], c) or same_image(sig[0], c)]
     out += [c for c in cands if c.kind != "parameter" and c is not sig[0] and c not in out and not c.significant
-            and (c.contender or _other_law(sig[0], c)) and same_image(sig[0], c)]
+            and ((c.contender or _other_law(sig[0], c)) and same_image(sig[0], c)
+                 or c.contender and blind_rival(sig[0], c))]
     return out
 
 
@@ -364,6 +374,19 @@ def _other_law(first: Candidate, c: Candidate) -> bool:
     says the frame does not tell an added light from a response, whatever ``c``'s own form pays for its
     parameters (a Legendre series of 14 terms short of the BIC bar where the two-term fall-off passes it)."""
     return same_light(first, c) and c.plausible and not c.rejected
+
+
+def blind_rival(first: Candidate, c: Candidate) -> bool:
+    """``c`` fits the frame as well as ``first`` or better (its delta BIC within the twins' tolerance of
+    :func:`indistinguishable`, or below) but was not named because its held-out score is no test of it
+    (:attr:`Candidate.heldout_blind`): a fold of the checkerboard sees less than a detection of its change, so
+    the fit on that fold is noise, and its failure on the other fold says nothing of the effect. Only the
+    held-out pixels could have told the two apart, and for ``c`` they cannot: a tie, not a name for ``first``."""
+    if not c.heldout_blind or c.fit.delta_bic >= c.policy.significant_delta_bic:
+        return False
+    best = first.fit.delta_bic
+    tol = max(first.policy.twin_fraction * abs(best), 2 * np.sqrt(2 * abs(best)))
+    return c.fit.delta_bic - best <= tol
 
 
 def verdict(cands: list[Candidate], morphology: dict | None = None) -> str:
@@ -410,6 +433,10 @@ def verdict(cands: list[Candidate], morphology: dict | None = None) -> str:
         c = named[0]
         reasons = gate_reasons(c)
         why = f" ({c.fit.effect} fits but is not credible: {reasons[0][1]} [{reasons[0][0]}])" if reasons else ""
+        if c.heldout_blind and reasons and reasons[0][0] == "heldout":
+            why = (f" ({c.fit.effect} fits best, but the held-out pixels cannot test it: one fold of the checkerboard "
+                   "sees less than a detection of its change; nor do the pixels tell it from the other candidates "
+                   "when each is fitted beside it)")
     if morphology and morphology.get("significant"):
         return ("no catalogue effect explains the residual" + why + "; what is missing looks like "
                 + morphology["explanation"])

@@ -171,13 +171,13 @@ class DiagnosisPolicy:
         "scientific CCD/CMOS measure 0.1-1 % at best (Janesick 2007, Photon Transfer, ch. 5)")
     min_nonlinearity_signal_fraction: float = _f(
         0.05, "1", "physics",
-        "a frame whose signal reaches this fraction of the full well (its 99.9th percentile) measures a response "
+        "a frame whose signal reaches this fraction of the full well (its brightest fitted pixel in the model) measures a response "
         "law (EMVA 1288 release 4.0, sect. 6.9, measures the linearity error from 5 % to 95 % of saturation); a "
         "frame below it must show the law within its own range (min_nonlinearity_in_range)")
     min_nonlinearity_in_range: float = _f(
         LINEARITY_RESOLVED, "1", "physics",
         "on a frame below min_nonlinearity_signal_fraction of the full well, a non-linearity is a finding when, "
-        "within the frame's own signal range (its median to its 99.9th percentile), the fitted law changes the response by at least this fraction (0.1 %, the linearity error "
+        "within the frame's own signal range (its median to its brightest fitted pixel), the fitted law changes the response by at least this fraction (0.1 %, the linearity error "
         "a photon-transfer measurement resolves, Janesick 2007 ch. 5; EMVA 1288 release 4.0 sect. 6.9); its size "
         "at full well, on a frame of a few per cent of the well, is an extrapolation the pixels cannot check, so "
         "the frame's range is what is asked, and a power law is referenced at the frame's median signal (a real "

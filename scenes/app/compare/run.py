@@ -24,7 +24,7 @@ from scenes.scene import load_scene
 
 from . import fullframe
 from .apply import apply_candidate, apply_empirical, parameter_bundle
-from .candidates import SIGNIFICANT_DELTA_BIC, candidates, source_candidates
+from .candidates import SIGNIFICANT_DELTA_BIC, blind_rivals, candidates, source_candidates
 from .catch_all import compare_with_catch_all, outliers_after_catch_all
 from .floors import HOT_EFFECTS, hot_in_dark
 from .judge import judge_json, kind_gate, rank, verdict
@@ -123,6 +123,7 @@ def _run_diagnose(scene, measured: str | Path, workers: int | None = None, progr
         progress("the catch-all (held out)")
     catch_all = compare_with_catch_all(res, effects, morph)
     outliers_after_catch_all(res, effects, morph, morph.get("empirical"))
+    blind_rivals(res, effects, policy)
     explained_away(params, rank(effects, res.light_source), res, scene)
     cands = rank(params + effects, res.light_source)
     out = finish_diagnosis(cmp, cands, problems, morph, policy, t0, catch_all)
