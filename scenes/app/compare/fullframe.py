@@ -73,7 +73,7 @@ from detector.stats import mad_std
 from scenes.app.render import Setup, prepare
 from scenes.measured import scene_mask
 
-from .candidates import candidates, source_candidates
+from .candidates import blind_rivals, candidates, source_candidates
 from .catch_all import compare_with_catch_all
 from .judge import judge_json, kind_gate, rank, verdict
 from .model import REALISATION_SEED, _wcs_offset, background_signal, row_offset_var_adu2, saturation_adu
@@ -1054,6 +1054,7 @@ def run_diagnose_large(scene, measured: str | Path, workers: int | None = None, 
     morph = describe(res_b)
     kind_gate(cb, morph)
     catch_all = compare_with_catch_all(res_b, cb, morph)
+    blind_rivals(res_b, cb, policy)
     explained_away(params, rank(cb, res_b.light_source), res_b, scene)
     cands = rank(params + cb + cs + ct, res_b.light_source)
     scale = ({id(c): "binned" for c in cb} | {id(c): "sample" for c in cs} | {id(c): "cut-out" for c in ct}
