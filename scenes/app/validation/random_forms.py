@@ -1094,8 +1094,16 @@ def fam_jitter(rng):
     law = _choice(rng, ["sine", "walk"])
     amp, t = _loguniform(rng, 0.2, 2.5) if law == "sine" else _loguniform(rng, 0.03, 0.25)
     prm = {"law": law, "amp_px": amp, "angle_deg": float(rng.uniform(0, 180)), "seed": int(rng.integers(2 ** 31))}
-    return Draw(base, [("MotionPath", prm)], f"{law} image motion, {amp:.3g} px", t,
-                accept=("jitter", "psf_elongation") + (("psf_blur",) if law == "walk" else ()))
+    accept = ("jitter", "psf_elongation") + (("psf_blur",) if law == "walk" else ())
+    if law == "walk":
+        # a walk that wanders as far as the judge's DRIFT_MIN_LENGTH is a drifting pointing (a path), as a drift
+        # shorter than it is image motion of any law (fam_pointing_drift): the path MotionPath draws, its span
+        from detector.effects.image_plane import DRIFT_MIN_LENGTH
+
+        path = np.cumsum(np.random.default_rng(prm["seed"]).standard_normal((32, 2)) * amp, axis=0)
+        span = float(np.max(np.hypot(*(path[:, None, :] - path[None, :, :]).transpose(2, 0, 1))))
+        accept += ("pointing_drift",) if span >= DRIFT_MIN_LENGTH else ()
+    return Draw(base, [("MotionPath", prm)], f"{law} image motion, {amp:.3g} px", t, accept=accept)
 
 
 def fam_pointing_drift(rng):
