@@ -488,6 +488,21 @@ def describe(res: Residuals, delta_adu: np.ndarray | None = None) -> dict:
                 out["empirical"] = {"kind": "additive", "map": ker["map"]}
         return out
     out["significant"] = True
+    if block_sigma < SIGNIFICANT_SIGMA:
+        # no mean pattern at the block scale, but a pattern finer than a block (a pick-up or fringes of a few
+        # pixels' period) averages out in the blocks and raises the pixel chi2 as extra scatter would: when
+        # one spatial frequency stands out of the periodogram and the pattern it carries takes a good share
+        # (GEOMETRY_SHARE) of the excess pixel chi2, the residual is that periodic pattern, not added noise
+        zhp = zp - gaussian_filter(zp, b, mode="nearest")
+        period, contrast, _ = _peak(zhp, _cut_row_factor(wmap, row_var))
+        if contrast >= PERIODIC_CONTRAST:
+            desc = _periodic_only(res, period, contrast, zhp, wmap)
+            pmap = _periodic_map(rmap, wmap, light, desc["kind"], row_var)
+            if _map_gain(pmap, rmap, wmap, light) >= GEOMETRY_SHARE * max(noise_excess, 0.0):
+                out["significance_sigma"] = round(max(out["significance_sigma"], _peak_sigma(contrast, zhp)), 2)
+                out.update(desc)
+                out["empirical"] = pmap
+                return out
     if block_sigma < SIGNIFICANT_SIGMA:  # extra scatter, no mean pattern: where is it?
         z2 = np.where(wmap > 0, rmap * rmap * wmap, np.nan)
         vb = np.nanmean(z2[: (shape[0] // b) * b, : (shape[1] // b) * b].reshape(ny, b, nx, b), axis=(1, 3))
@@ -874,6 +889,13 @@ def _periodic_map(rmap: np.ndarray, wmap: np.ndarray, light: np.ndarray, kind: s
             near |= (dym <= PERIODIC_KEEP_BINS) & (ix <= PERIODIC_KEEP_BINS - kx)
         keep |= near
     amap = np.fft.irfft2(np.where(keep & ~low, f, 0.0), s=r.shape)
+    # the band-pass of a residual with unfitted pixels (masked sources, the other fold of a held-out split) holds
+    # the pattern times the fitted fraction: its amplitude is the weighted least-squares scale of the map on the
+    # fitted pixels (the map's own form, its level set by the pixels it was made from)
+    on = wmap > 0
+    den = float(np.sum(wmap[on] * amap[on] ** 2))
+    if den > 0:
+        amap = amap * max(float(np.sum(wmap[on] * amap[on] * r[on])) / den, 0.0)
     return _relative(kind, amap, light)
 
 
