@@ -751,6 +751,16 @@ def describe(res: Residuals, delta_adu: np.ndarray | None = None) -> dict:
             if fmap is not None and _map_gain(fmap, rmap, wmap, light) > _map_gain(out["empirical"], rmap, wmap,
                                                                                       light):
                 out["empirical"] = fmap
+    elif main in ("rows", "columns") and through is not None and not line_period:
+        # light smeared along the lines through the sources: the smear itself (one fraction of each line's
+        # source light), which predicts the lines' other pixels, when it takes more than the lines' own means
+        # leave to chance (a line map follows each line's noise too)
+        axis = 1 if main == "rows" else 0
+        out["empirical"] = _smear_map(res, through, axis)
+        lmap = _line_map(rmap, wmap, light, "additive", axis=axis)
+        n_lines = float(np.sum(wmap.sum(axis=axis) > 0))  # the chi2 a line map takes from noise alone
+        if _map_gain(lmap, rmap, wmap, light) - _map_gain(out["empirical"], rmap, wmap, light) > n_lines:
+            out["empirical"] = lmap
     elif main in ("rows", "columns") and kind in ("additive", "multiplicative", "mixed") and not line_period:
         out["empirical"] = _line_map(rmap, wmap, light, kind, axis=1 if main == "rows" else 0)
     elif periodic_map is not None:
@@ -860,7 +870,17 @@ def _line_map(rmap: np.ndarray, wmap: np.ndarray, light: np.ndarray, kind: str, 
     var = 1.0 / np.where(sw > 0, sw, np.inf)
     means = means * np.clip(1.0 - var / np.maximum(means * means, 1e-300), 0.0, 1.0)
     amap = np.broadcast_to(means[:, None] if axis == 1 else means[None, :], rmap.shape)
-    return _relative(kind, np.asarray(amap, np.float64), light)
+    return {**_relative(kind, np.asarray(amap, np.float64), light), "form": "rows" if axis == 1 else "columns"}
+
+
+def _smear_map(res: Residuals, slope: float, axis: int) -> dict:
+    """The empirical map of light smeared along the lines through the sources (:func:`_lines_through_sources`):
+    every pixel holds ``slope`` of its line's source light [ADU], less its mean over the frame (the levels take
+    that). One number for the whole frame, so it holds between the lines it was measured on."""
+    s_line = _source_light(res).sum(axis=axis)
+    amap = np.broadcast_to((s_line - s_line.mean())[:, None] if axis == 1 else (s_line - s_line.mean())[None, :],
+                           res.data_adu.shape)
+    return {"kind": "additive", "map": (slope * amap).astype(np.float32)}
 
 
 #: the empirical map of a periodic pattern keeps the Fourier components within this radius [frequency bins] of

@@ -797,6 +797,11 @@ class Signature:
     kind = "custom"
     #: a short phrase for reports: which residual pattern the effect makes
     pattern = ""
+    #: the fit counts outliers of the residual (spikes, pixel groups, outlier columns), judged by their statistics
+    #: over the frame: a structured residual makes outliers too, so the judge asks them again of what remains
+    #: once the residual's description is in the model (issue 23: outlier-count signatures are judged after the
+    #: catch-all)
+    outlier_count = False
 
     def fit(self, res: Residuals, name: str) -> Fit | None:  # pragma: no cover - abstract
         raise NotImplementedError
@@ -2087,6 +2092,7 @@ class CountSignature(Signature):
     amplitudes. ``fit_counts(res) -> (params, observed, model_expected, k) | None``."""
 
     kind = "counts"
+    outlier_count = True
 
     def __init__(self, fit_counts: Callable[[Residuals], tuple | None], explain: Callable[[dict, Residuals], str],
                  pattern: str = "", check: Callable[[Fit, Residuals], str] | None = None):
