@@ -100,3 +100,32 @@ def test_line_gains_refuse_a_periodic_column_pattern():
     white = light * (0.02 * np.sqrt(0.5) * rng.normal(size=N))[None, :]
     got = line_gains(_res(white, seed=4), light, axis=1)
     assert got is not None and abs(got["sigma"] / (0.02 * np.sqrt(0.5)) - 1.0) < 0.25
+
+
+def test_outlier_columns_are_asked_again_after_a_periodic_description():
+    """The judge asks outlier counts again once the description is in the model (``outlier_count``: hot pixels'
+    counts and the column defects' outlier columns alike). A flat (1000 ADU) whose column response is a square
+    wave of period 18 columns, 1.5 % deep, is described as periodic with a map that is not the columns' own
+    (form ``columns``, of which the columns are not asked: it is their own image), so the column defects would
+    be judged on what the periodic map leaves; the map takes the pattern (what it leaves is the noise)."""
+    from dataclasses import replace
+
+    from detector import registry
+    from detector.morphology import _line_map
+    from detector.signatures import CountSignature
+
+    assert registry()["column_defects"].signature.outlier_count and CountSignature.outlier_count
+    k = np.arange(N)
+    light = np.full((N, N), 1000.0)
+    truth = light * (0.015 * np.sign(np.sin(2 * np.pi * (k + 0.5) / 18.0)))[None, :]
+    res = replace(_res(truth, seed=7), photo_adu=light.astype(np.float32), light_source="flat", _flat={})
+    m = describe(res)
+    assert "periodic" in m["geometry"] and m["empirical"].get("form") != "columns", m["explanation"]
+    emp = m["empirical"]
+    delta = np.asarray(emp["map"], float) * (light if emp["kind"] == "multiplicative" else 1.0)
+    r = (res.data_adu - res.model_adu).astype(float)
+    left = float(np.mean(((r - r.mean()) - (delta - delta.mean())) ** 2)) / SIG ** 2
+    # a square wave holds 8 / pi^2 (1 + 1/9 + 1/25) of its power (1.5 sigma)^2 in the three peaks the map keeps
+    kept = 8.0 / np.pi ** 2 * (1.0 + 1.0 / 9.0 + 1.0 / 25.0)
+    assert left < 1.0 + (1.0 - kept) * 1.5 ** 2 + 0.02, left
+    assert _line_map(r, np.full((N, N), 1.0), light, "additive", axis=0)["form"] == "columns"
