@@ -488,6 +488,21 @@ def describe(res: Residuals, delta_adu: np.ndarray | None = None) -> dict:
                 out["empirical"] = {"kind": "additive", "map": ker["map"]}
         return out
     out["significant"] = True
+    if block_sigma < SIGNIFICANT_SIGMA:
+        # no mean pattern at the block scale, but a pattern finer than a block (a pick-up or fringes of a few
+        # pixels' period) averages out in the blocks and raises the pixel chi2 as extra scatter would: when
+        # one spatial frequency stands out of the periodogram and the pattern it carries takes a good share
+        # (GEOMETRY_SHARE) of the excess pixel chi2, the residual is that periodic pattern, not added noise
+        zhp = zp - gaussian_filter(zp, b, mode="nearest")
+        period, contrast, _ = _peak(zhp, _cut_row_factor(wmap, row_var))
+        if contrast >= PERIODIC_CONTRAST:
+            desc = _periodic_only(res, period, contrast, zhp, wmap)
+            pmap = _periodic_map(rmap, wmap, light, desc["kind"], row_var)
+            if _map_gain(pmap, rmap, wmap, light) >= GEOMETRY_SHARE * max(noise_excess, 0.0):
+                out["significance_sigma"] = round(max(out["significance_sigma"], _peak_sigma(contrast, zhp)), 2)
+                out.update(desc)
+                out["empirical"] = pmap
+                return out
     if block_sigma < SIGNIFICANT_SIGMA:  # extra scatter, no mean pattern: where is it?
         z2 = np.where(wmap > 0, rmap * rmap * wmap, np.nan)
         vb = np.nanmean(z2[: (shape[0] // b) * b, : (shape[1] // b) * b].reshape(ny, b, nx, b), axis=(1, 3))
@@ -671,12 +686,14 @@ def describe(res: Residuals, delta_adu: np.ndarray | None = None) -> dict:
     else:
         scale = float(b * max(ny, nx))
     periodic_map = None
-    if main == "periodic" and kind in ("additive", "multiplicative", "mixed"):
+    if (main == "periodic" or line_period) and kind in ("additive", "multiplicative", "mixed"):
+        # a pattern of lines with a period is mapped by its frequencies, as any periodic pattern: the map then
+        # holds its form between the lines it was made from (a fold's rows predict the other fold's)
         periodic_map = _periodic_map(rmap, wmap, light, kind, row_var)
     if main in ("rings", "blobs") or (main == "sources" and rings_on_src):
         fam = "srings" if main == "sources" else main
         amp, unit, desc = _feature_amplitude(res, feats, fam, rmap, light, kind == "multiplicative" and has_light)
-    elif periodic_map is not None:
+    elif periodic_map is not None and main == "periodic":
         # the band-passed pattern itself: a sinusoid of amplitude sqrt(2) x its rms
         pm = periodic_map["map"][wmap > 0] if np.any(wmap > 0) else periodic_map["map"]
         a = math.sqrt(2.0) * float(np.sqrt(np.mean(np.square(pm, dtype=np.float64))))
@@ -734,7 +751,17 @@ def describe(res: Residuals, delta_adu: np.ndarray | None = None) -> dict:
             if fmap is not None and _map_gain(fmap, rmap, wmap, light) > _map_gain(out["empirical"], rmap, wmap,
                                                                                       light):
                 out["empirical"] = fmap
-    elif main in ("rows", "columns") and kind in ("additive", "multiplicative", "mixed"):
+    elif main in ("rows", "columns") and through is not None and not line_period:
+        # light smeared along the lines through the sources: the smear itself (one fraction of each line's
+        # source light), which predicts the lines' other pixels, when it takes more than the lines' own means
+        # leave to chance (a line map follows each line's noise too)
+        axis = 1 if main == "rows" else 0
+        out["empirical"] = _smear_map(res, through, axis)
+        lmap = _line_map(rmap, wmap, light, "additive", axis=axis)
+        n_lines = float(np.sum(wmap.sum(axis=axis) > 0))  # the chi2 a line map takes from noise alone
+        if _map_gain(lmap, rmap, wmap, light) - _map_gain(out["empirical"], rmap, wmap, light) > n_lines:
+            out["empirical"] = lmap
+    elif main in ("rows", "columns") and kind in ("additive", "multiplicative", "mixed") and not line_period:
         out["empirical"] = _line_map(rmap, wmap, light, kind, axis=1 if main == "rows" else 0)
     elif periodic_map is not None:
         out["empirical"] = periodic_map
@@ -834,11 +861,26 @@ def _relative(kind: str, amap: np.ndarray, light: np.ndarray) -> dict:
 
 def _line_map(rmap: np.ndarray, wmap: np.ndarray, light: np.ndarray, kind: str, axis: int) -> dict:
     """The empirical map of a row (``axis`` 1) or column (``axis`` 0) pattern: each line's weighted mean
-    residual [ADU], broadcast along it (relative to the line's mean light when multiplicative)."""
+    residual [ADU], broadcast along it (relative to the line's mean light when multiplicative). Each mean
+    ``m`` (variance ``1 / sum w``) is weighted by the Wiener factor ``max(0, 1 - var / m^2)``, as the periodic
+    map's frequencies are (:func:`_periodic_map`): a line the pattern does not lift above its noise carries
+    noise only, and a map of it would predict nothing on the line's other pixels."""
     sw = wmap.sum(axis=axis)
     means = np.where(sw > 0, (rmap * wmap).sum(axis=axis) / np.where(sw > 0, sw, 1.0), 0.0)
+    var = 1.0 / np.where(sw > 0, sw, np.inf)
+    means = means * np.clip(1.0 - var / np.maximum(means * means, 1e-300), 0.0, 1.0)
     amap = np.broadcast_to(means[:, None] if axis == 1 else means[None, :], rmap.shape)
-    return _relative(kind, np.asarray(amap, np.float64), light)
+    return {**_relative(kind, np.asarray(amap, np.float64), light), "form": "rows" if axis == 1 else "columns"}
+
+
+def _smear_map(res: Residuals, slope: float, axis: int) -> dict:
+    """The empirical map of light smeared along the lines through the sources (:func:`_lines_through_sources`):
+    every pixel holds ``slope`` of its line's source light [ADU], less its mean over the frame (the levels take
+    that). One number for the whole frame, so it holds between the lines it was measured on."""
+    s_line = _source_light(res).sum(axis=axis)
+    amap = np.broadcast_to((s_line - s_line.mean())[:, None] if axis == 1 else (s_line - s_line.mean())[None, :],
+                           res.data_adu.shape)
+    return {"kind": "additive", "map": (slope * amap).astype(np.float32)}
 
 
 #: the empirical map of a periodic pattern keeps the Fourier components within this radius [frequency bins] of
@@ -851,19 +893,33 @@ PERIODIC_PEAKS = 3
 def _periodic_map(rmap: np.ndarray, wmap: np.ndarray, light: np.ndarray, kind: str, row_var: float = 0.0) -> dict:
     """The empirical map of a periodic pattern: the residual [ADU] band-passed around its strongest spatial
     frequencies (a smooth part, below 6 cycles across the frame, left out), on the whole frame; the ``fx = 0``
-    column weighed against the power row noise (``row_var`` [ADU^2]) puts there (:func:`row_power_factor`)."""
-    r = np.where(wmap > 0, rmap, 0.0)
-    f = np.fft.rfft2(r - r[wmap > 0].mean() if np.any(wmap > 0) else r)
-    p = np.abs(f) ** 2
-    p[:, 0] /= row_power_factor(wmap, row_var, whitened=False)
+    column weighed against the power row noise (``row_var`` [ADU^2]) puts there (:func:`row_power_factor`).
+
+    The frequencies are taken one at a time, each from what the ones before leave (CLEAN: Roberts, Lehar &
+    Dreher 1987, AJ 93, 968): the periodogram of a residual with unfitted pixels (masked sources, the other
+    fold of a held-out split) holds every pattern's copies shifted by the mask's own frequencies, which are no
+    pattern (on the other pixels they have the opposite sign); taking a component out with its mask takes its
+    copies out too. Each kept frequency is weighted by the Wiener factor ``max(0, 1 - N / P)`` (``P`` its power, ``N`` the
+    noise's mean power: the median power over ln 2, an exponential law's, times the row-noise factor at
+    ``fx = 0``), the least-squares linear estimate of a pattern from pixels with noise (Wiener 1949; Press et
+    al., Numerical Recipes, sect. 13.3); a band-pass of the fitted pixels holds the pattern times their share
+    of the frame, which the component is divided by."""
+    on = wmap > 0
+    r = np.where(on, rmap - (rmap[on].mean() if np.any(on) else 0.0), 0.0)
+    fill = max(float(on.mean()), 1e-3)
+    g_row = row_power_factor(wmap, row_var, whitened=False)
     fy = np.fft.fftfreq(r.shape[0])[:, None]
     fx = np.fft.rfftfreq(r.shape[1])[None, :]
     low = np.hypot(fy * r.shape[0], fx * r.shape[1]) < 6.0
-    p = np.where(low, 0.0, p)
-    keep = np.zeros(p.shape, bool)
-    iy, ix = np.mgrid[: p.shape[0], : p.shape[1]]
+    iy, ix = np.mgrid[: low.shape[0], : low.shape[1]]
+    amap = np.zeros(r.shape, np.float64)
     for _ in range(PERIODIC_PEAKS):
-        ky, kx = np.unravel_index(int(np.argmax(np.where(keep, 0.0, p))), p.shape)
+        f = np.fft.rfft2(r)
+        p = np.abs(f) ** 2
+        p[:, 0] /= g_row
+        p = np.where(low, 0.0, p)
+        ky, kx = np.unravel_index(int(np.argmax(p)), p.shape)
+        med = float(np.median(p[p > 0])) if np.any(p > 0) else 0.0
         if p[ky, kx] <= 0:
             break
         dy = np.minimum(np.abs(iy - ky), r.shape[0] - np.abs(iy - ky))
@@ -872,8 +928,11 @@ def _periodic_map(rmap: np.ndarray, wmap: np.ndarray, light: np.ndarray, kind: s
             my = (-ky) % r.shape[0]
             dym = np.minimum(np.abs(iy - my), r.shape[0] - np.abs(iy - my))
             near |= (dym <= PERIODIC_KEEP_BINS) & (ix <= PERIODIC_KEEP_BINS - kx)
-        keep |= near
-    amap = np.fft.irfft2(np.where(keep & ~low, f, 0.0), s=r.shape)
+        noise = med / math.log(2.0)
+        wiener = np.clip(1.0 - noise / np.where(p > 0, p, np.inf), 0.0, 1.0)
+        comp = np.fft.irfft2(np.where(near & ~low, f * wiener, 0.0), s=r.shape) / fill
+        amap += comp
+        r = np.where(on, r - comp, 0.0)
     return _relative(kind, amap, light)
 
 

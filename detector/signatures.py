@@ -45,6 +45,7 @@ from scipy import optimize
 
 from detector.sensor import SensorConfig
 from detector.significance import (
+    DETECTION_P,
     DETECTION_SIGMA,
     FOOTPRINT_SIGMA,
     MAX_DEFECT_FRACTION,
@@ -805,6 +806,11 @@ class Signature:
     kind = "custom"
     #: a short phrase for reports: which residual pattern the effect makes
     pattern = ""
+    #: the fit counts outliers of the residual (spikes, pixel groups, outlier columns), judged by their statistics
+    #: over the frame: a structured residual makes outliers too, so the judge asks them again of what remains
+    #: once the residual's description is in the model (issue 23: outlier-count signatures are judged after the
+    #: catch-all)
+    outlier_count = False
 
     def fit(self, res: Residuals, name: str) -> Fit | None:  # pragma: no cover - abstract
         raise NotImplementedError
@@ -1681,6 +1687,40 @@ def smooth_component(res: Residuals, template: np.ndarray,
     return d * vs["scale"], float(np.sqrt(np.mean(rel * rel))), basis.shape[0], full.astype(np.float32)
 
 
+#: one frequency of a line profile (row offsets, column gains) stands above its neighbours' spectral level beyond
+#: this false-alarm probability over all frequencies (5 sigma one-sided, the judge's excess_sigma): offsets or
+#: gains drawn line by line are white, a pickup or a clock's interference repeats (Priestley 1981, Spectral
+#: Analysis and Time Series, sect. 6.1.4: a periodogram ordinate over the local spectral level is exponential
+#: with mean 1; the largest of m exceeds t with probability ~ m exp(-t))
+PERIODIC_LINE_FALSE_ALARM = DETECTION_P
+#: frequencies on each side whose mean gives the local spectral level (a 1/f part varies slowly over it; the
+#: next frequency on each side, where a line between two frequencies leaks, is left out)
+PERIODIC_LINE_NEIGHBOURS = 16
+
+
+def periodic_line_peak(u: np.ndarray) -> tuple[float, float] | None:
+    """(period [lines], ratio) of the strongest frequency of a whitened line profile ``u`` (row offsets, column
+    gains) when it stands above the mean level of its PERIODIC_LINE_NEIGHBOURS neighbours on each side beyond
+    the PERIODIC_LINE_FALSE_ALARM probability over all frequencies; None otherwise."""
+    n = u.size
+    power = np.abs(np.fft.rfft(u - u.mean()))[1:] ** 2  # frequencies k = 1 .. n/2
+    m, h = power.size, PERIODIC_LINE_NEIGHBOURS
+    if m < 2 * h + 1:
+        return None
+    # the neighbours of k: [k - h - 1, k - 1) and [k + 2, k + 2 + h), clipped to the spectrum (prefix sums)
+    cs = np.concatenate([[0.0], np.cumsum(power)])
+    k = np.arange(m)
+    lo_a, lo_b = np.maximum(k - h - 1, 0), np.maximum(k - 1, 0)
+    hi_a, hi_b = np.minimum(k + 2, m), np.minimum(k + 2 + h, m)
+    count = (lo_b - lo_a) + (hi_b - hi_a)
+    level = ((cs[lo_b] - cs[lo_a]) + (cs[hi_b] - cs[hi_a])) / np.maximum(count, 1)
+    ratio = np.where(level > 0, power / np.where(level > 0, level, 1.0), 0.0)
+    k = int(np.argmax(ratio))
+    if m * np.exp(-ratio[k]) >= PERIODIC_LINE_FALSE_ALARM:
+        return None
+    return n / (k + 1), float(ratio[k])
+
+
 #: the lines' gains of a response pattern (column amplifiers, row drivers) are independent from line to line:
 #: the neighbouring lines' detrended gains may correlate by at most this much (or 3 / sqrt(lines), their
 #: noise); a pattern whose neighbouring lines follow each other is a step or a slope, not line-wise gains
@@ -1745,7 +1785,8 @@ def line_gains(res: Residuals, template: np.ndarray, axis: int, r: np.ndarray | 
     line pattern predicts them. Returns ``{"delta": map [ADU], "d": delta -2 ln L, "sigma": s, "rho": the
     neighbouring lines' correlation}``, or None when there is no such part (``s = 0``, too few lines, or lines
     whose gains follow each other: see MAX_LINE_GAIN_CORRELATION, or lines of which a few deviate and the
-    rest are alike: :func:`sparse_lines_gain`, preferred by the BIC)."""
+    rest are alike: :func:`sparse_lines_gain`, preferred by the BIC, or lines whose gains repeat with a period:
+    :func:`periodic_line_peak`, a pattern of a period seen through the lines, as a pickup is through the rows)."""
     shape = res.data_adu.shape
     idx, rp, w = res.flat_profiled()
     r = rp if r is None else r
@@ -1778,6 +1819,8 @@ def line_gains(res: Residuals, template: np.ndarray, axis: int, r: np.ndarray | 
     rho = float(np.dot(z[1:], z[:-1]) / max(np.dot(z, z), 1e-300))
     if rho > max(MAX_LINE_GAIN_CORRELATION, 3.0 / np.sqrt(z.size)):
         return None
+    if periodic_line_peak(z) is not None:
+        return None  # gains that repeat with a period: a periodic pattern seen through the lines, not line-wise gains
     if sparse_lines_gain(m, dn) + 2 * np.log(z.size) < d:
         return None  # a few deviating lines among identical ones: defective lines, not every line's own gain
     g = np.zeros(n)
@@ -2098,6 +2141,7 @@ class CountSignature(Signature):
     amplitudes. ``fit_counts(res) -> (params, observed, model_expected, k) | None``."""
 
     kind = "counts"
+    outlier_count = True
 
     def __init__(self, fit_counts: Callable[[Residuals], tuple | None], explain: Callable[[dict, Residuals], str],
                  pattern: str = "", check: Callable[[Fit, Residuals], str] | None = None):

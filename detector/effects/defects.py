@@ -183,6 +183,7 @@ class ColumnSignature(Signature):
 
     kind = "columns"
     pattern = "outlier columns"
+    outlier_count = True
 
     def score(self, fit, res):
         return None  # compared by the statistics of all the columns, not pixel by pixel

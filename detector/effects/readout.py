@@ -29,9 +29,10 @@ from ..signatures import (
     Variant,
     fit_linear,
     ml_variance_scale,
+    periodic_line_peak,
     search_sample,
 )
-from ..significance import DETECTION_P, DETECTION_SIGMA, EXPLAINS_MOST
+from ..significance import DETECTION_SIGMA, EXPLAINS_MOST
 from .base import Effect, EffectParams, Stage, Tile, register_effect
 
 K_BOLTZMANN = 1.380649e-23  # J/K
@@ -232,38 +233,13 @@ class RowOffsetSignature(Signature):
         best = min((minimize(nll, [a0, al], method="Nelder-Mead", options={"xatol": 1e-4, "fatol": 1e-3}) for al in
                     (0.5, 1.0, 2.0)), key=lambda o: o.fun)
         return float(best.x[1])
-    #: ... or a periodic pattern when one frequency of the whitened row offsets stands above its neighbours' level
-    #: beyond this false-alarm probability over all frequencies (5 sigma one-sided, the judge's excess_sigma):
-    #: row noise is white from row to row, a pickup or clock interference repeats (Priestley 1981, Spectral
-    #: Analysis and Time Series, sect. 6.1.4: a periodogram ordinate over the local spectral level is
-    #: exponential with mean 1; the largest of m exceeds t with probability ~ m exp(-t))
-    PERIODIC_FALSE_ALARM = DETECTION_P
-    #: frequencies on each side whose mean gives the local spectral level (a 1/f part varies slowly over it; the
-    #: next frequency on each side, where a line between two frequencies leaks, is left out)
-    PERIODIC_NEIGHBOURS = 16
-
-    @classmethod
-    def periodic_peak(cls, u: np.ndarray) -> tuple[float, float] | None:
+    @staticmethod
+    def periodic_peak(u: np.ndarray) -> tuple[float, float] | None:
         """(period [rows], ratio) of the strongest frequency of the whitened row offsets ``u`` when it stands
-        above the mean level of its PERIODIC_NEIGHBOURS neighbours on each side beyond the
-        PERIODIC_FALSE_ALARM probability over all frequencies; None otherwise."""
-        n = u.size
-        power = np.abs(np.fft.rfft(u - u.mean()))[1:] ** 2  # frequencies k = 1 .. n/2
-        m, h = power.size, cls.PERIODIC_NEIGHBOURS
-        if m < 2 * h + 1:
-            return None
-        # the neighbours of k: [k - h - 1, k - 1) and [k + 2, k + 2 + h), clipped to the spectrum (prefix sums)
-        cs = np.concatenate([[0.0], np.cumsum(power)])
-        k = np.arange(m)
-        lo_a, lo_b = np.maximum(k - h - 1, 0), np.maximum(k - 1, 0)
-        hi_a, hi_b = np.minimum(k + 2, m), np.minimum(k + 2 + h, m)
-        count = (lo_b - lo_a) + (hi_b - hi_a)
-        level = ((cs[lo_b] - cs[lo_a]) + (cs[hi_b] - cs[hi_a])) / np.maximum(count, 1)
-        ratio = np.where(level > 0, power / np.where(level > 0, level, 1.0), 0.0)
-        k = int(np.argmax(ratio))
-        if m * np.exp(-ratio[k]) >= cls.PERIODIC_FALSE_ALARM:
-            return None
-        return n / (k + 1), float(ratio[k])
+        above its neighbours' spectral level beyond the frame's false-alarm probability
+        (:func:`detector.signatures.periodic_line_peak`): row noise is white from row to row, a pickup or a
+        clock's interference repeats."""
+        return periodic_line_peak(u)
 
     @staticmethod
     def line_means(res, axis: int = 1):

@@ -304,8 +304,6 @@ RowOffsetSignature.SMOOTH_FRACTION | D | design | a row-offset fit is a smooth c
 RowOffsetSignature.COLUMN_FRACTION | D | design | a whole-frame pattern, not row noise
 RowOffsetSignature.MAX_LAG1 | D | physics | row noise is white from row to row (Janesick 2007)
 RowOffsetSignature.MAX_SPECTRAL_INDEX | D | physics | correlated row offsets: a flicker noise's spectrum falls as 1/f, a drifting level's as 1/f^2; midway
-RowOffsetSignature.PERIODIC_FALSE_ALARM | D | statistics | one-sided DETECTION_SIGMA (DETECTION_P)
-RowOffsetSignature.PERIODIC_NEIGHBOURS | N | estimator | frequencies of the local spectral level
 BIAS_PROFILE_ORDERS | N | grid | bias pattern orders tried
 BIAS_FIELD_ORDERS | N | grid | bias field orders tried
 KTC_MAX_READ_RATIO | D | physics | a kTC noise is part of the read noise
@@ -347,6 +345,8 @@ RTS_CODED_SIGMA | N | model | below this noise [codes] the likelihood is that of
 MAX_FIELD_ORDER | N | grid | highest Legendre order of the smooth light field the BIC chooses among
 @detector/signatures.py
 MAX_LINE_GAIN_CORRELATION | D | physics | line-wise gains (column amplifiers) are independent; neighbours that follow each other are a step
+PERIODIC_LINE_FALSE_ALARM | D | statistics | one-sided DETECTION_SIGMA (DETECTION_P): line offsets or gains drawn line by line have no period
+PERIODIC_LINE_NEIGHBOURS | N | estimator | frequencies of the local spectral level
 MIN_LINE_PIXELS | N | sampling | pixels a line needs for its gain estimate
 LIGHT_LAW_CHI2 | D | statistics | a light pattern's law (added or a response) is told from the other law of the same shape at chi2_1 of 5 sigma
 VarianceSignature.CELL_SIGMA | D | statistics | a cell is far above the rest only beyond detection-like 5 standard errors

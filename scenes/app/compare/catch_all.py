@@ -73,7 +73,8 @@ def compare_with_catch_all(res: Residuals, cands: list, morph: dict) -> float | 
 
 
 def outliers_after_catch_all(res: Residuals, cands: list, morph: dict, empirical: dict | None) -> None:
-    """Judge the outlier-count candidates (hot and dead pixels, columns, cosmic rays) on what remains once the
+    """Judge the outlier-count candidates (hot and dead pixels, columns, cosmic rays: their signature's
+    ``outlier_count``) on what remains once the
     catch-all has taken the structured residual: the outlier statistics recomputed against the model plus
     the residual's empirical map; a count candidate that is no longer significant there was counting the
     pattern's pixels (a ghost's or a PRNU's low-frequency part's, a periodic pattern's), not defects (gate
@@ -81,10 +82,17 @@ def outliers_after_catch_all(res: Residuals, cands: list, morph: dict, empirical
     from dataclasses import replace
 
     from detector import registry
-    from detector.signatures import CountSignature, spike_stats
+    from detector.signatures import spike_stats
 
-    counts = [c for c in cands if c.contender and isinstance(getattr(registry().get(c.fit.effect), "signature",
-                                                                        None), CountSignature)]
+    def counted(c) -> bool:
+        sig = getattr(registry().get(c.fit.effect), "signature", None)
+        if not (c.contender and getattr(sig, "outlier_count", False)):
+            return False
+        # a description that is a map of the frame's columns themselves (each column's own mean) is the column
+        # outliers' own image, not a pattern that made them: nothing to ask of the columns once it is taken
+        return not (sig.kind == "columns" and (empirical or {}).get("form") == "columns")
+
+    counts = [c for c in cands if counted(c)]
     if not counts or not morph.get("significant") or not empirical or empirical.get("map") is None:
         return
     fit = empirical_fit(res, {**morph, "empirical": empirical})
