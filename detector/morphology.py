@@ -27,6 +27,7 @@ also returned (``empirical``) so the caller can offer it as an empirical map whe
 
 from __future__ import annotations
 
+import hashlib
 import math
 
 import numpy as np
@@ -226,8 +227,30 @@ def periodic_line(res) -> tuple[float, float, float]:
     zmap.ravel()[idx] = r * np.sqrt(w)
     wmap.ravel()[idx] = w
     b = int(max(2, min(shape) // BLOCKS))
-    zmap = zmap - gaussian_filter(zmap, b, mode="nearest")
+    zmap = zmap - block_smooth(res, zmap, b)
     return _peak(zmap, _cut_row_factor(wmap, float(res.row_var_adu2)))
+
+
+def block_smooth(res: Residuals, zmap: np.ndarray, b: int) -> np.ndarray:
+    """``gaussian_filter(zmap, b, mode="nearest")``: a z map's smooth part at the block scale ``b`` [px], the part
+    the periodic search takes out; the row-noise candidate's :func:`periodic_line` and :func:`describe` smooth the
+    same z map of one comparison (:func:`kept_gaussian`). Do not modify the returned array."""
+    return kept_gaussian(res, "morphology_block_smooth", zmap, b)
+
+
+def kept_gaussian(res: Residuals, slot: str, a: np.ndarray, sigma: float) -> np.ndarray:
+    """``gaussian_filter(a, sigma, mode="nearest")``, kept with ``res`` under ``slot`` for the last map it was
+    asked for (identified by its bytes): a second call with the same map returns the same array (the same
+    numbers; a Gaussian of a whole frame costs 0.1-2 s, its key a hash of the map, ~0.02 s). One map per slot
+    (a frame's worth of memory). Do not modify the returned array."""
+    z = np.ascontiguousarray(a)
+    key = (hashlib.blake2b(z.view(np.uint8).reshape(-1), digest_size=16).digest(), z.shape, z.dtype.str,
+           float(sigma))
+    kept = res.memo(slot, dict)
+    if kept.get("key") != key:
+        kept.clear()
+        kept.update(key=key, map=gaussian_filter(z, sigma, mode="nearest"))
+    return kept["map"]
 
 
 def _band(z: np.ndarray, ok: np.ndarray, s: float) -> np.ndarray:
@@ -469,7 +492,7 @@ def describe(res: Residuals, delta_adu: np.ndarray | None = None) -> dict:
             return out
         # one spatial frequency far above the rest: a pick-up or fringe pattern too weak to move the chi2. The
         # fx = 0 column is measured against the power the model's row noise puts there (row_power_factor)
-        zhp = zp - gaussian_filter(zp, b, mode="nearest")
+        zhp = zp - block_smooth(res, zp, b)
         period, contrast, _ = _peak(zhp, _cut_row_factor(wmap, row_var))
         if contrast >= PERIODIC_CONTRAST:
             out["significant"] = True
@@ -597,9 +620,9 @@ def describe(res: Residuals, delta_adu: np.ndarray | None = None) -> dict:
         shares[name] = max(ex, 0.0) / pixel_total
     # periodic: the strongest frequency of the pixel z-map once its smooth part (a block-scale Gaussian) and,
     # where they dominate, the line patterns are taken out
-    zmap = np.where(wmap > 0, rmap * np.sqrt(wmap), 0.0)
-    zmap = zmap - gaussian_filter(zmap, b, mode="nearest")
     if max(shares.get("rows", 0.0), shares.get("columns", 0.0)) < GEOMETRY_SHARE:
+        zmap = np.where(wmap > 0, rmap * np.sqrt(wmap), 0.0)
+        zmap = zmap - block_smooth(res, zmap, b)
         period, contrast, peak_share = _peak(zmap, _cut_row_factor(wmap, row_var))
     else:
         period, contrast, peak_share = 0.0, 0.0, 0.0
@@ -1206,7 +1229,7 @@ def _local_estimates(res: Residuals, idx, r, w, on) -> dict:
         num, den = rm.sum(axis=axis), wm.sum(axis=axis)
         out[name] = np.where(den[at] > 0, num[at] / np.maximum(den[at], 1e-300), 0.0)
     num = gaussian_filter(rm, KIND_LOCAL_SIGMA_PX, mode="nearest")
-    den = gaussian_filter(wm, KIND_LOCAL_SIGMA_PX, mode="nearest")
+    den = kept_gaussian(res, "morphology_local_weight", wm, KIND_LOCAL_SIGMA_PX)  # the same weights each call
     out["local"] = (num / np.maximum(den, 1e-300)).ravel()[idx[on]]
     return out
 
