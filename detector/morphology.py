@@ -227,30 +227,27 @@ def periodic_line(res) -> tuple[float, float, float]:
     zmap.ravel()[idx] = r * np.sqrt(w)
     wmap.ravel()[idx] = w
     b = int(max(2, min(shape) // BLOCKS))
-    zmap = zmap - block_smooth(res, zmap, b)
+    zmap = zmap - block_smooth(res, zmap, b, keep=True)
     return _peak(zmap, _cut_row_factor(wmap, float(res.row_var_adu2)))
 
 
-def block_smooth(res: Residuals, zmap: np.ndarray, b: int) -> np.ndarray:
+def block_smooth(res: Residuals, zmap: np.ndarray, b: int, keep: bool = False) -> np.ndarray:
     """``gaussian_filter(zmap, b, mode="nearest")``: a z map's smooth part at the block scale ``b`` [px], the part
-    the periodic search takes out; the row-noise candidate's :func:`periodic_line` and :func:`describe` smooth the
-    same z map of one comparison (:func:`kept_gaussian`). Do not modify the returned array."""
-    return kept_gaussian(res, "morphology_block_smooth", zmap, b)
-
-
-def kept_gaussian(res: Residuals, slot: str, a: np.ndarray, sigma: float) -> np.ndarray:
-    """``gaussian_filter(a, sigma, mode="nearest")``, kept with ``res`` under ``slot`` for the last map it was
-    asked for (identified by its bytes): a second call with the same map returns the same array (the same
-    numbers; a Gaussian of a whole frame costs 0.1-2 s, its key a hash of the map, ~0.02 s). One map per slot
-    (a frame's worth of memory). Do not modify the returned array."""
-    z = np.ascontiguousarray(a)
-    key = (hashlib.blake2b(z.view(np.uint8).reshape(-1), digest_size=16).digest(), z.shape, z.dtype.str,
-           float(sigma))
-    kept = res.memo(slot, dict)
-    if kept.get("key") != key:
-        kept.clear()
-        kept.update(key=key, map=gaussian_filter(z, sigma, mode="nearest"))
-    return kept["map"]
+    the periodic search takes out. The row-noise candidate's :func:`periodic_line` and :func:`describe` smooth the
+    same z map of one comparison, and a Gaussian of tens of pixels over a whole frame costs seconds: with
+    ``keep`` the map is kept with ``res`` (one, identified by the z map's bytes, ~0.02 s to hash); without, a
+    kept map of the same z map is handed over (and no longer kept), else it is computed. The same numbers
+    either way. Do not modify the returned array."""
+    z = np.ascontiguousarray(zmap)
+    key = (hashlib.blake2b(z.view(np.uint8).reshape(-1), digest_size=16).digest(), z.shape, z.dtype.str, int(b))
+    kept = res.forget("morphology_block_smooth")
+    if kept is not None and kept[0] == key:
+        out = kept[1]
+    else:
+        out = gaussian_filter(z, b, mode="nearest")
+    if keep:
+        res.memo("morphology_block_smooth", lambda: (key, out))
+    return out
 
 
 def _band(z: np.ndarray, ok: np.ndarray, s: float) -> np.ndarray:
@@ -492,7 +489,7 @@ def describe(res: Residuals, delta_adu: np.ndarray | None = None) -> dict:
             return out
         # one spatial frequency far above the rest: a pick-up or fringe pattern too weak to move the chi2. The
         # fx = 0 column is measured against the power the model's row noise puts there (row_power_factor)
-        zhp = zp - block_smooth(res, zp, b)
+        zhp = zp - block_smooth(res, zp, b, keep=True)
         period, contrast, _ = _peak(zhp, _cut_row_factor(wmap, row_var))
         if contrast >= PERIODIC_CONTRAST:
             out["significant"] = True
@@ -1229,7 +1226,7 @@ def _local_estimates(res: Residuals, idx, r, w, on) -> dict:
         num, den = rm.sum(axis=axis), wm.sum(axis=axis)
         out[name] = np.where(den[at] > 0, num[at] / np.maximum(den[at], 1e-300), 0.0)
     num = gaussian_filter(rm, KIND_LOCAL_SIGMA_PX, mode="nearest")
-    den = kept_gaussian(res, "morphology_local_weight", wm, KIND_LOCAL_SIGMA_PX)  # the same weights each call
+    den = gaussian_filter(wm, KIND_LOCAL_SIGMA_PX, mode="nearest")
     out["local"] = (num / np.maximum(den, 1e-300)).ravel()[idx[on]]
     return out
 

@@ -2234,23 +2234,15 @@ def _light_law_evidence(fit: Fit, res: Residuals, multiplicative: bool) -> tuple
     idx, r, w = res.flat_profiled()
     if idx.size < 16:
         return None
-
-    def light_ratio():
-        """``L / L_bg`` at the fitted pixels (1 where either is not positive; None with fewer than 16 lit) and the
-        square roots of their weights: the same for every light pattern of the comparison."""
-        light = template_at(res.photo_adu, shape, idx).astype(np.float64)
-        bg = template_at(res.background_photo_adu, shape, idx).astype(np.float64)
-        ok = (light > 0) & (bg > 0)
-        if ok.sum() < 16:
-            return None
-        return np.where(ok, light / np.where(ok, bg, 1.0), 1.0), np.sqrt(w)
-
-    kept = res.memo("light_law_ratio", light_ratio)
-    if kept is None:
+    light = template_at(res.photo_adu, shape, idx).astype(np.float64)
+    bg = template_at(res.background_photo_adu, shape, idx).astype(np.float64)
+    ok = (light > 0) & (bg > 0)
+    if ok.sum() < 16:
         return None
-    ratio, sw = kept
     d = template_at(np.asarray(fit.delta_adu, np.float32), shape, idx).astype(np.float64)
+    ratio = np.where(ok, light / np.where(ok, bg, 1.0), 1.0)
     t = d / ratio if multiplicative else d * ratio
+    sw = np.sqrt(w)
 
     def levels_q():
         """An orthonormal basis of the weighted global levels at the fitted pixels (one QR for every light
@@ -2268,8 +2260,7 @@ def _light_law_evidence(fit: Fit, res: Residuals, multiplicative: bool) -> tuple
     def clear(v):
         return v - q @ (q.T @ v) if q is not None and q.shape[1] else v
 
-    rw = res.memo("light_law_residual", lambda: clear(np.asarray(r, np.float64) * sw))  # the frame's, cleared
-    dw, tw = clear(d * sw), clear(t * sw)
+    dw, tw, rw = clear(d * sw), clear(t * sw), clear(np.asarray(r, np.float64) * sw)
 
     def gain(x):
         xx = float(np.dot(x, x))

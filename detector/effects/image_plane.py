@@ -74,7 +74,7 @@ def blur(image: np.ndarray, sigma_major_px: float, sigma_minor_px: float | None 
 MAX_CACHED_SPECTRA = 3
 #: filtered images a ``spectra`` cache of :func:`fourier_filter` keeps at most (each 8 bytes per pixel): a fit's
 #: steps filter the same image with the same transfer function again (a Jacobian column whose parameter does not
-#: enter that filter, a step back to an earlier point), which then costs a copy, not an inverse transform
+#: enter that filter: a halo's share), which then costs nothing, not an inverse transform
 MAX_CACHED_OUTPUTS = 2
 #: threads of the diagnosis fits' Fourier transforms (:class:`TransformSignature`; the rendering's stay numpy's)
 FIT_FFT_WORKERS = max(1, min(4, os.cpu_count() or 1))
@@ -90,8 +90,8 @@ def fourier_filter(image: np.ndarray, pad: int, transfer, spectra: dict | None =
     (the same numbers as recomputing it). ``workers``: None, numpy's transforms (the rendering); a number,
     scipy's on that many threads (the diagnosis fits; the same transform to rounding, ~1e-15 relative).
     ``key``, optional with ``spectra``: a hashable that names ``transfer`` (its kind and parameters); the
-    filtered image is then kept in ``spectra`` too and a second call with the same key returns a copy of it
-    (the same numbers: the same computation)."""
+    filtered image is then kept in ``spectra`` too and a second call with the same key returns it again (the
+    same numbers: the same computation; the caller must not modify it)."""
     if workers is None:
         rfft2, irfft2 = np.fft.rfft2, np.fft.irfft2
     else:
@@ -104,7 +104,7 @@ def fourier_filter(image: np.ndarray, pad: int, transfer, spectra: dict | None =
     skey = (int(pad), np.dtype(work).str, image.shape, workers)
     okey = None if spectra is None or key is None else ("out", key, skey)
     if okey is not None and okey in spectra:
-        return spectra[okey].copy()
+        return spectra[okey]
     cached = None if spectra is None else spectra.get(skey)
     if cached is None:
         big = np.pad(image.astype(work, copy=False), pad, mode="edge")
@@ -125,7 +125,6 @@ def fourier_filter(image: np.ndarray, pad: int, transfer, spectra: dict | None =
     if okey is not None:
         _evict(spectra, True, MAX_CACHED_OUTPUTS)
         spectra[okey] = out
-        return out.copy()
     return out
 
 
