@@ -27,6 +27,7 @@ also returned (``empirical``) so the caller can offer it as an empirical map whe
 
 from __future__ import annotations
 
+import hashlib
 import math
 
 import numpy as np
@@ -226,8 +227,27 @@ def periodic_line(res) -> tuple[float, float, float]:
     zmap.ravel()[idx] = r * np.sqrt(w)
     wmap.ravel()[idx] = w
     b = int(max(2, min(shape) // BLOCKS))
-    zmap = zmap - gaussian_filter(zmap, b, mode="nearest")
+    zmap = zmap - block_smooth(res, zmap, b, keep=True)
     return _peak(zmap, _cut_row_factor(wmap, float(res.row_var_adu2)))
+
+
+def block_smooth(res: Residuals, zmap: np.ndarray, b: int, keep: bool = False) -> np.ndarray:
+    """``gaussian_filter(zmap, b, mode="nearest")``: a z map's smooth part at the block scale ``b`` [px], the part
+    the periodic search takes out. The row-noise candidate's :func:`periodic_line` and :func:`describe` smooth the
+    same z map of one comparison, and a Gaussian of tens of pixels over a whole frame costs seconds: with
+    ``keep`` the map is kept with ``res`` (one, identified by the z map's bytes, ~0.02 s to hash); without, a
+    kept map of the same z map is handed over (and no longer kept), else it is computed. The same numbers
+    either way. Do not modify the returned array."""
+    z = np.ascontiguousarray(zmap)
+    key = (hashlib.blake2b(z.view(np.uint8).reshape(-1), digest_size=16).digest(), z.shape, z.dtype.str, int(b))
+    kept = res.forget("morphology_block_smooth")
+    if kept is not None and kept[0] == key:
+        out = kept[1]
+    else:
+        out = gaussian_filter(z, b, mode="nearest")
+    if keep:
+        res.memo("morphology_block_smooth", lambda: (key, out))
+    return out
 
 
 def _band(z: np.ndarray, ok: np.ndarray, s: float) -> np.ndarray:
@@ -469,7 +489,7 @@ def describe(res: Residuals, delta_adu: np.ndarray | None = None) -> dict:
             return out
         # one spatial frequency far above the rest: a pick-up or fringe pattern too weak to move the chi2. The
         # fx = 0 column is measured against the power the model's row noise puts there (row_power_factor)
-        zhp = zp - gaussian_filter(zp, b, mode="nearest")
+        zhp = zp - block_smooth(res, zp, b, keep=True)
         period, contrast, _ = _peak(zhp, _cut_row_factor(wmap, row_var))
         if contrast >= PERIODIC_CONTRAST:
             out["significant"] = True
@@ -612,9 +632,9 @@ def describe(res: Residuals, delta_adu: np.ndarray | None = None) -> dict:
         shares[name] = max(ex, 0.0) / pixel_total
     # periodic: the strongest frequency of the pixel z-map once its smooth part (a block-scale Gaussian) and,
     # where they dominate, the line patterns are taken out
-    zmap = np.where(wmap > 0, rmap * np.sqrt(wmap), 0.0)
-    zmap = zmap - gaussian_filter(zmap, b, mode="nearest")
     if max(shares.get("rows", 0.0), shares.get("columns", 0.0)) < GEOMETRY_SHARE:
+        zmap = np.where(wmap > 0, rmap * np.sqrt(wmap), 0.0)
+        zmap = zmap - block_smooth(res, zmap, b)
         period, contrast, peak_share = _peak(zmap, _cut_row_factor(wmap, row_var))
     else:
         period, contrast, peak_share = 0.0, 0.0, 0.0

@@ -173,16 +173,21 @@ class _Watermarks:
         s_cap, nn = self.capacity, self.n
         top = self.top.reshape(s_cap + 1, nn)
         cum = self.cum.reshape(s_cap + 1, nn, self.k)
-        cum[s_cap - 1, idx, :] = self.total[:, idx].T  # the last slot's cum, into the array for the shift
-        t = top[:, idx]
+        # every pool at once (the usual case: all stacks grow together) through slices, else a fancy index
+        sel = slice(None) if idx.size == nn else idx
+        cum[s_cap - 1, sel, :] = self.total[:, sel].T  # the last slot's cum, into the array for the shift
+        t = top[:, sel]
         span = t[2:s_cap - 1] - t[4:s_cap + 1]  # pair (s, s + 1), s = 2 .. capacity - 2
         s = 2 + np.argmin(span, axis=0)
-        j = np.arange(s_cap)[:, None]
-        top[:s_cap, idx] = np.take_along_axis(t, j + (j >= s + 1), axis=0)
-        top[s_cap, idx] = 0.0
-        c = cum[:, idx, :]
-        cum[:s_cap, idx, :] = np.take_along_axis(c, (j + (j >= s))[:, :, None], axis=0)
-        self.last[idx] -= nn
+        # slot j takes slot j + 1 from the merged pair on (the same values as a gather, without the index); the
+        # slots below the lowest merged pair keep theirs
+        lo = int(s.min())
+        j = np.arange(lo, s_cap)[:, None]
+        top[lo:s_cap, sel] = np.where(j >= s + 1, t[lo + 1:], t[lo:s_cap])
+        top[s_cap, sel] = 0.0
+        c = cum[lo:, sel, :]
+        cum[lo:s_cap, sel, :] = np.where((j >= s)[:, :, None], c[1:], c[:s_cap - lo])
+        self.last[sel] -= nn
 
 
 def cti_transfer(image_e: np.ndarray, density_per_px, release_time_s, transfer_s: float, beta: float,

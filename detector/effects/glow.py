@@ -93,16 +93,25 @@ def edge_distance(res, where: str, y: np.ndarray, x: np.ndarray) -> np.ndarray:
     return dx[where]() if where in dx else dy[where]()
 
 
+def _edge_distance_at(res, where: str, idx) -> np.ndarray:
+    """:func:`edge_distance` of the flat output pixels ``idx``, kept with ``res`` for the last (edge, index
+    array) asked for: a search tries every e-folding length of one edge on the same pixels in a row."""
+    kept = res.memo("edge_distance_at", dict)
+    if kept.get("where") != where or kept.get("idx") is not idx:
+        y, x = np.divmod(np.asarray(idx), res.data_adu.shape[1])
+        kept.clear()
+        kept.update(where=where, idx=idx, d=edge_distance(res, where, y, x))
+    return kept["d"]
+
+
 def edge_variant(res, where: str, scale: float, unit: float, max_amplitude: float, label: str) -> Variant:
     """A field falling as ``exp(-d / scale)`` from the sensor's ``where`` (an edge or a corner, :func:`edge_rate`),
     ``unit`` [ADU] per e-/s of its amplitude: the one template of an amplifier glow and of a light entering from
     an edge; its amplitude [e-/s] is kept in (0, ``max_amplitude``]."""
     s = res.sensor
-    w = res.data_adu.shape[1]
 
     def at(idx):
-        y, x = np.divmod(np.asarray(idx), w)
-        return (unit * np.exp(-edge_distance(res, where, y, x) / scale))[None, :]
+        return (unit * np.exp(-_edge_distance_at(res, where, idx) / scale))[None, :]
 
     def maps():
         t = np.zeros(res.data_adu.shape, np.float32)

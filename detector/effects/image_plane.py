@@ -72,19 +72,26 @@ def blur(image: np.ndarray, sigma_major_px: float, sigma_minor_px: float | None 
 
 #: padded spectra a ``spectra`` cache of :func:`fourier_filter` keeps at most (each ~ 16 bytes per pixel)
 MAX_CACHED_SPECTRA = 3
+#: filtered images a ``spectra`` cache of :func:`fourier_filter` keeps at most (each 8 bytes per pixel): a fit's
+#: steps filter the same image with the same transfer function again (a Jacobian column whose parameter does not
+#: enter that filter: a halo's share), which then costs nothing, not an inverse transform
+MAX_CACHED_OUTPUTS = 2
 #: threads of the diagnosis fits' Fourier transforms (:class:`TransformSignature`; the rendering's stay numpy's)
 FIT_FFT_WORKERS = max(1, min(4, os.cpu_count() or 1))
 
 
-def fourier_filter(image: np.ndarray, pad: int, transfer, spectra: dict | None = None, workers: int | None = None
-                   ) -> np.ndarray:
+def fourier_filter(image: np.ndarray, pad: int, transfer, spectra: dict | None = None, workers: int | None = None,
+                   key: tuple | None = None) -> np.ndarray:
     """``image`` filtered in Fourier space by ``transfer(fx, fy)`` [cycles/px], edges extended by ``pad``
     pixels of their own values (so a frame's border does not wrap onto the opposite one).
 
     ``spectra``, optional: a dict the caller keeps for *one* ``image`` (a fit that filters the same image
     with many transfer functions): the padded image's spectrum is stored there by ``pad`` and reused
     (the same numbers as recomputing it). ``workers``: None, numpy's transforms (the rendering); a number,
-    scipy's on that many threads (the diagnosis fits; the same transform to rounding, ~1e-15 relative)."""
+    scipy's on that many threads (the diagnosis fits; the same transform to rounding, ~1e-15 relative).
+    ``key``, optional with ``spectra``: a hashable that names ``transfer`` (its kind and parameters); the
+    filtered image is then kept in ``spectra`` too and a second call with the same key returns it again (the
+    same numbers: the same computation; the caller must not modify it)."""
     if workers is None:
         rfft2, irfft2 = np.fft.rfft2, np.fft.irfft2
     else:
@@ -94,16 +101,18 @@ def fourier_filter(image: np.ndarray, pad: int, transfer, spectra: dict | None =
         def irfft2(a, s):
             return scipy.fft.irfft2(a, s=s, workers=workers)
     work = np.float64 if image.dtype == np.float64 else np.float32  # the diagnosis fits in double precision
-    key = (int(pad), np.dtype(work).str, image.shape, workers)
-    cached = None if spectra is None else spectra.get(key)
+    skey = (int(pad), np.dtype(work).str, image.shape, workers)
+    okey = None if spectra is None or key is None else ("out", key, skey)
+    if okey is not None and okey in spectra:
+        return spectra[okey]
+    cached = None if spectra is None else spectra.get(skey)
     if cached is None:
         big = np.pad(image.astype(work, copy=False), pad, mode="edge")
         cached = (rfft2(big), big.shape)
         del big
         if spectra is not None:
-            while len(spectra) >= MAX_CACHED_SPECTRA:
-                spectra.pop(next(iter(spectra)))
-            spectra[key] = cached
+            _evict(spectra, False, MAX_CACHED_SPECTRA)
+            spectra[skey] = cached
     spec, shape = cached
     fy = np.fft.fftfreq(shape[0])[:, None]
     fx = np.fft.rfftfreq(shape[1])[None, :]
@@ -112,7 +121,19 @@ def fourier_filter(image: np.ndarray, pad: int, transfer, spectra: dict | None =
     # curved or accelerating drift path) in the complex type of that precision
     h = h.astype(np.result_type(work, np.complex64) if np.iscomplexobj(h) else work, copy=False)
     out = irfft2(spec * h, s=shape)
-    return out[pad:-pad, pad:-pad].astype(image.dtype)
+    out = out[pad:-pad, pad:-pad].astype(image.dtype)
+    if okey is not None:
+        _evict(spectra, True, MAX_CACHED_OUTPUTS)
+        spectra[okey] = out
+    return out
+
+
+def _evict(spectra: dict, outputs: bool, keep: int) -> None:
+    """Drop the oldest entries of one kind (filtered images or spectra) from a ``spectra`` cache until fewer
+    than ``keep`` are left."""
+    mine = [k for k in spectra if (k[0] == "out") == outputs]
+    for k in mine[:max(len(mine) - keep + 1, 0)]:
+        spectra.pop(k)
 
 
 def gaussian_filter_cov(image: np.ndarray, cov: np.ndarray, max_gain: float = 1.0, spectra: dict | None = None,
@@ -129,7 +150,8 @@ def gaussian_filter_cov(image: np.ndarray, cov: np.ndarray, max_gain: float = 1.
         q = cov[0, 0] * fx * fx + 2 * cov[0, 1] * fx * fy + cov[1, 1] * fy * fy
         return np.minimum(np.exp(-2 * np.pi ** 2 * q), max_gain)
 
-    return fourier_filter(image, pad, transfer, spectra, workers)
+    key = ("gaussian", np.asarray(cov, np.float64).tobytes(), float(max_gain))
+    return fourier_filter(image, pad, transfer, spectra, workers, key=key)
 
 
 def shift(image: np.ndarray, dx_px: float, dy_px: float) -> np.ndarray:
@@ -268,10 +290,12 @@ def drift_smear(image: np.ndarray, dx_px: float, dy_px: float, accel: float = 0.
         return image.copy()
     if accel == 0 and sagitta_px == 0:
         pad = int(np.ceil(0.5 * max(abs(dx_px), abs(dy_px)))) + 2
-        return fourier_filter(image, pad, lambda fx, fy: np.sinc(fx * dx_px + fy * dy_px), spectra, workers)
+        return fourier_filter(image, pad, lambda fx, fy: np.sinc(fx * dx_px + fy * dy_px), spectra, workers,
+                              key=("sinc", float(dx_px), float(dy_px)))
     ctype = np.complex128 if image.dtype == np.float64 else np.complex64  # fourier_filter's working precision
     transfer, pad = drift_path_transfer(dx_px, dy_px, accel, sagitta_px, ctype)
-    return fourier_filter(image, pad, transfer, spectra, workers)
+    return fourier_filter(image, pad, transfer, spectra, workers,
+                          key=("drift_path", float(dx_px), float(dy_px), float(accel), float(sagitta_px)))
 
 
 def vibration_smear(image: np.ndarray, ax_px: float, ay_px: float, spectra: dict | None = None,
@@ -286,7 +310,7 @@ def vibration_smear(image: np.ndarray, ax_px: float, ay_px: float, spectra: dict
         return image.copy()
     pad = int(np.ceil(max(abs(ax_px), abs(ay_px)))) + 2
     return fourier_filter(image, pad, lambda fx, fy: special.j0(2 * np.pi * (fx * ax_px + fy * ay_px)), spectra,
-                          workers)
+                          workers, key=("j0", float(ax_px), float(ay_px)))
 
 
 def one_sided_tail_transfer(tail_px: float, tail_frac: float, angle_deg: float):
@@ -308,8 +332,17 @@ def one_sided_tail_transfer(tail_px: float, tail_frac: float, angle_deg: float):
     ux, uy = np.cos(np.radians(angle_deg)), np.sin(np.radians(angle_deg))
     pad = int(np.ceil(8 * length)) + 2  # exp(-8): 3e-4 of the tail beyond the pad
 
+    b = (2j * np.pi * length).imag
+
     def transfer(fx, fy):
-        return (1.0 - f) + f / (1.0 + 2j * np.pi * length * (fx * ux + fy * uy))
+        # (1 - f) + f / (1 + 2 pi i L f.u), the denominator built in place: its real part is 1, its imaginary
+        # part 2 pi L f.u (the same numbers as the complex product, without a complex temporary)
+        z = np.empty(np.broadcast_shapes(np.shape(fx), np.shape(fy)), np.complex128)
+        z.real = 1.0
+        np.multiply(fx * ux + fy * uy, b, out=z.imag)
+        np.divide(f, z, out=z)
+        z += 1.0 - f
+        return z
 
     return transfer, pad
 
@@ -335,7 +368,8 @@ def one_sided_tail(image: np.ndarray, tail_px: float, tail_frac: float, angle_de
         return image.copy()
     ctype = np.complex128 if image.dtype == np.float64 else np.complex64
     transfer, pad = one_sided_tail_transfer(tail_px, tail_frac, angle_deg)
-    return fourier_filter(image, pad, lambda fx, fy: transfer(fx, fy).astype(ctype, copy=False), spectra, workers)
+    return fourier_filter(image, pad, lambda fx, fy: transfer(fx, fy).astype(ctype, copy=False), spectra, workers,
+                          key=("tail", float(tail_px), float(tail_frac), float(angle_deg)))
 
 
 def displaced_halo_transfer(halo_frac: float, sigma_px: float, dx_px: float, dy_px: float):
@@ -557,18 +591,19 @@ class TransformSignature(Signature):
 
         def image(th):
             if last.get("theta") == np.asarray(th, float).tobytes() and last["full"] is not None:
-                return last["full"]
+                return np.minimum(last["full"], cap)
             return np.minimum(transform(res, photo, th, **kw), cap)
 
         def on_sample(th):
-            """The transformed, clipped image at the search sample's pixels only (what the steps use)."""
+            """The transformed, clipped image at the search sample's pixels only (what the steps use); the
+            whole transformed image is kept unclipped (clipped by :func:`image` when it is asked for)."""
             key = np.asarray(th, float).tobytes()
             if last.get("theta") != key:
                 if self._at:
                     full, values = None, np.minimum(transform(res, photo, th, at=sidx, **kw), cap)
                 else:
-                    full = np.minimum(transform(res, photo, th, **kw), cap)
-                    values = full.ravel()[sidx]
+                    full = transform(res, photo, th, **kw)
+                    values = np.minimum(full.ravel()[sidx], cap)
                 last.update(theta=key, full=full, values=values)
             return last["values"]
 
