@@ -331,6 +331,7 @@ GN_MAX_K | N | bound | temperature differences the search explores
 @detector/effects/coupling.py
 IPC_STAGE_CHI2 | D | statistics | the IPC of the charge that is not light must differ from nothing by chi2_1 at 5 sigma to tell the stage
 @detector/effects/image_plane.py
+MAX_CACHED_OUTPUTS | N | budget | filtered images a fit keeps for its repeated Fourier filters
 NESTED_SIGMA | D | statistics | nested likelihood-ratio test of distortion vs the similarity transform (Wilks 1938), the region tests' 8 sigma
 @detector/effects/rts.py
 RTS_TAIL_Z | N | sampling | pixels beyond it always enter the one-frame RTS likelihood, the core is subsampled
