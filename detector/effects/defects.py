@@ -299,7 +299,7 @@ class ColumnSignature(Signature):
         frac = s.roi_shape[0] / s.sensor_width_px
         hot, cold = int((x > LINE_SIGMA).sum()), int((x < -LINE_SIGMA).sum())
         exc = res.data_spikes.col_excess_e  # of the outlier columns (source columns are not told apart here)
-        rate = float(np.median(exc)) / res.pixel_sum / max(res.exptime_s, 1e-9) if exc.size else 0.0
+        rate = float(np.median(exc)) * self._per_sensor_pixel(res) if exc.size else 0.0
         hot_j, cold_j = self._columns(zd, x)
         resp = self._response(res, cold_j)
         params = {"hot_columns": max(round(hot / frac), hot_j.size), "hot_rate_e_per_s": round(max(rate, 0.0), 4),
@@ -353,8 +353,11 @@ class ColumnSignature(Signature):
         lies in (None: the whole column). A charge trap in a column leaks into the pixels transferred through
         it, the rows on one side of it (Janesick 2007, ch. 8): the excess is the whole column or one side of a
         change point, whichever explains more chi2 beyond the change point's Schwarz price (ln n). The excess is
-        measured above the median of the column's LINE_WINDOW neighbours (the other outlier columns left out),
-        pixels beyond DETECTION_SIGMA of the column's median left out (a hot pixel, a track)."""
+        measured above each row's median of the column's LINE_WINDOW neighbours (the other outlier columns left
+        out), pixels beyond DETECTION_SIGMA of their running median along the column left out (a hot pixel, a
+        track; a trap's step is not one)."""
+        from scipy.ndimage import median_filter
+
         from ..signatures import LINE_WINDOW
 
         if cols.size == 0:
@@ -368,12 +371,16 @@ class ColumnSignature(Signature):
         for j in cols:
             lo, hi = max(j - LINE_WINDOW, 0), min(j + LINE_WINDOW + 1, m.size)
             near = np.flatnonzero(normal[lo:hi]) + lo
-            base = float(np.median(m[near])) if near.size else 0.0
+            # each row's level from the neighbours in that row: a residual that trends along the column (a light
+            # level off times a vignetting, row offsets) is not a trap's change point
+            r_near = (res.data_adu[:, near] - res.model_adu[:, near]).astype(np.float64)
+            base = np.median(r_near, axis=1) if near.size else np.zeros(res.data_adu.shape[0])
             v = np.maximum(res.var_adu2[:, j].astype(np.float64), 1e-12)
             x = res.data_adu[:, j].astype(np.float64) - res.model_adu[:, j] - base
             good = use[:, j] & np.isfinite(x)
-            if good.any():
-                good &= np.abs(x - np.median(x[good])) < DETECTION_SIGMA * np.sqrt(v)
+            if good.any():  # a hot pixel or a track stands out of its neighbours along the column; a trap's step not
+                local = median_filter(np.where(good, x, np.median(x[good])), size=5, mode="nearest")
+                good &= np.abs(x - local) < DETECTION_SIGMA * np.sqrt(v)
             w = np.where(good, 1.0 / v, 0.0)
             s_, w_ = np.cumsum(np.where(good, x, 0.0) * w), np.cumsum(w)
             extent, mean = None, (s_[-1] / w_[-1] if w_[-1] > 0 else 0.0)
@@ -389,8 +396,11 @@ class ColumnSignature(Signature):
                         first, last, mean = 0, k_lo, s_[k_lo] / w_[k_lo]
                     else:
                         first, last, mean = k_hi + 1, x.size - 1, (s_[-1] - s_[k_hi]) / up_w[k_hi]
-                    extent = (round(float(res.ys[first]) - (b - 1) / 2.0), round(float(res.ys[last]) + (b - 1) / 2.0) + 1)
-            rates.append(max(float(mean), 0.0) * res.gain / res.pixel_sum / max(res.exptime_s, 1e-9))
+                    # a side that reaches the frame's edge goes on beyond it, to the sensor's edge (the trap's side)
+                    extent = (0 if first == 0 else round(float(res.ys[first]) - (b - 1) / 2.0),
+                              res.sensor.sensor_height_px if last == x.size - 1
+                              else round(float(res.ys[last]) + (b - 1) / 2.0) + 1)
+            rates.append(max(float(mean), 0.0) * res.gain * cls._per_sensor_pixel(res))
             rows.append(extent)
         return np.asarray(rates), rows
 
@@ -414,8 +424,18 @@ class ColumnSignature(Signature):
         r = np.where(use, res.data_adu - res.model_adu, 0.0)
         q = 1.0 + (r * p / v).sum(axis=0) / np.maximum(info, 1e-300)
         rho = q[cols] / float(np.median(q[others]))
+        # one dead sensor column in an output column of b: rho = 1 - (1 - r) / b (the response stage acts before
+        # the binning), so the sensor column keeps r = 1 - b (1 - rho)
+        r_col = 1.0 - res.sensor.binning * (1.0 - rho)
         # the light's response known to worse than 100 % (info < 1): nothing measured, a dead column
-        return np.where(info[cols] >= 1.0, np.clip(rho, 0.0, 0.999), 0.0)
+        return np.where(info[cols] >= 1.0, np.clip(r_col, 0.0, 0.999), 0.0)
+
+    @staticmethod
+    def _per_sensor_pixel(res) -> float:
+        """[1/s per output-pixel electron]: a hot sensor column adds its rate x t to each of its pixels before the
+        binning, b of them in an output column of b (1/b of a b x b average): an output pixel's excess E [e-]
+        is ``rate t pixel_sum / b``."""
+        return res.sensor.binning / res.pixel_sum / max(res.exptime_s, 1e-9)
 
 
 def _column_words(p, res):
@@ -540,7 +560,8 @@ class ColumnDefectParams(EffectParams):
 class ColumnDefects(Effect):
     """Hot and dead columns: a charge trap or a leaky transfer gate affects a whole column (Janesick 2007,
     ch. 8, "column defects"; common in CCDs, also in CMOS column amplifiers). Hot columns add
-    ``hot_rate_e_per_s t`` electrons to the mean of every pixel of the column; dead columns lose their
+    ``hot_rate_e_per_s t`` electrons (a measured column: its own ``hot_at_rate_e_per_s``, over its
+    ``hot_at_rows``) to the mean of every pixel of the column; dead columns lose their
     photo-response (keep ``dead_response`` of it: a weak column). Columns from the hardware seed; table
     ``COLDEF``. Columns measured in a frame (``hot_at``, ``dead_at``: what ``diagnose`` finds in the read-out
     window) are placed where they were seen; the rest of each population is drawn among the other columns

@@ -157,9 +157,13 @@ def _gauss_variant(res, x_frac: float, y_frac: float, sigma_px: float) -> Varian
     # a glow is extended: no narrower than the shortest e-folding length the edge law tries (and 16 px); a
     # narrower bump is a source the model lacks
     narrowest = max(_SCALES[0] * max(s.sensor_width_px, s.sensor_height_px), 16.0)
+    widest = GLOW_MAX_SCALE * max(s.sensor_width_px, s.sensor_height_px)
 
     def to_params(c):
-        if outside > sigma_px or inside > 2.0 * sigma_px or sigma_px < narrowest:
+        # ... and localised: no wider than the edge law's longest e-folding distance (GLOW_MAX_SCALE of the
+        # sensor); a wider bump is a field-wide gradient (a flat one trades its level against the dark and bias
+        # levels: a "glow" of 60 000 px and 5.6e3 e- whose apply saturated every pixel of a binned dark)
+        if outside > sigma_px or inside > 2.0 * sigma_px or sigma_px < narrowest or sigma_px > widest:
             return None
         return ({"model": "gaussian", "sources": [{"x_frac": round(float(x_frac), 5), "y_frac": round(float(y_frac), 5),
                                                    "amplitude_e_per_s": round(float(c[0]), 6),

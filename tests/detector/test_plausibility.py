@@ -388,3 +388,19 @@ def test_outlier_columns_of_integer_data_between_two_codes():
     data[:, 200] = np.rint(500.5 + 0.5 * sd + sd * rng.standard_normal(512))
     stats, _ = spike_stats(data, model, var, np.ones(data.shape, bool), 1.0)
     assert stats.col_z[200] > LINE_SIGMA and stats.hot_cols == 1
+
+
+def test_a_glow_wider_than_the_edge_laws_longest_is_no_glow():
+    """An amplifier glow is localised (GLOW_MAX_SCALE of the sensor, the edge law's longest e-folding): a
+    bivariate-normal source wider than that is a field-wide gradient, whose nearly flat template trades its
+    level against the dark and bias levels (a 60 000 px "glow" of 5.6e3 e- saturated a binned dark's model)."""
+    from helpers import residuals_of, small_sensor
+
+    from detector.effects.glow import GLOW_MAX_SCALE, _gauss_variant
+
+    s = small_sensor("ml11002", 64, 64)
+    z = np.zeros((64, 64))
+    res = residuals_of(z, z, z + 1.0, z, s)
+    side = max(s.sensor_width_px, s.sensor_height_px)
+    assert _gauss_variant(res, 0.0, 0.0, 0.9 * GLOW_MAX_SCALE * side).to_params([1.0]) is not None
+    assert _gauss_variant(res, 0.0, 0.0, 1.1 * GLOW_MAX_SCALE * side).to_params([1.0]) is None

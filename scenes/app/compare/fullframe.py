@@ -1054,7 +1054,8 @@ def run_diagnose_large(scene, measured: str | Path, workers: int | None = None, 
     morph = describe(res_b)
     kind_gate(cb, morph)
     catch_all = compare_with_catch_all(res_b, cb, morph)
-    blind_rivals(res_b, cb, policy)
+    blind_rivals(res_b, cb, policy)  # the smooth effects on the binned frame, the pixel-scale ones on the sample
+    blind_rivals(res_s, cs, policy)
     explained_away(params, rank(cb, res_b.light_source), res_b, scene)
     cands = rank(params + cb + cs + ct, res_b.light_source)
     scale = ({id(c): "binned" for c in cb} | {id(c): "sample" for c in cs} | {id(c): "cut-out" for c in ct}

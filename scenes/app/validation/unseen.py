@@ -1788,6 +1788,8 @@ WITHIN_NOISE_SD = 3.0
 #: the nulls exceed 3). The misfit sums ten standardised positive parts (the chi2, seven outlier counts, the
 #: rows and the columns), so a null's is not 0 and its spread is not one standard deviation's
 NULL_MISFIT = 5.1
+
+
 def error_halved(row: dict) -> bool:
     """The error fell by at least half after the apply; or, with nothing to halve, the error before was within
     the noise: for ``chi2_minus_1``, chi2/dof - 1 below 3 sqrt(2 / n) over the support (3 standard deviations
