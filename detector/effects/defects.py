@@ -26,6 +26,7 @@ from ..signatures import (
     group_excess,
     on_source,
     outlier_pixels,
+    periodic_line_peak,
     spread_check,
 )
 from ..significance import DETECTION_SIGMA, EXPLAINS_MOST
@@ -201,6 +202,12 @@ class ColumnSignature(Signature):
         cols = np.flatnonzero(np.abs(np.nan_to_num(z)) > LINE_SIGMA)
         if not cols.size:
             return ""
+        # defects sit at random columns: column means that repeat with a period are a periodic pattern seen
+        # through the columns (as a pickup is seen through the rows, periodic_line_peak), not defective columns
+        peak = self._column_period(res)
+        if peak is not None:
+            return (f"the column means repeat with a period of {peak[0]:.3g} columns (its power {peak[1]:.3g} times "
+                    "its neighbours'): a periodic pattern seen through the columns, not defective columns")
         level, _ = res.level_maps()
         # every pixel of the columns (an outlier column is not fitted pixel by pixel), spikes clipped at 5 sigma
         d = res.data_adu[:, cols] - res.model_adu[:, cols] - level[:, cols]
@@ -220,6 +227,23 @@ class ColumnSignature(Signature):
                     f"their net excess in runs under {self.MIN_RUN} rows; median run {run:.0f} rows): defective pixels or clusters "
                     "crossing those columns, not defective columns")
         return ""
+
+    @classmethod
+    def _column_period(cls, res) -> tuple[float, float] | None:
+        """(period [columns], ratio) of a significant period of the column means (:func:`periodic_line_peak` of
+        their local excess over their running mean of LINE_WINDOW columns, in standard errors: a running median
+        flips with the majority of a fast square wave), or None."""
+        from scipy.ndimage import uniform_filter1d
+
+        from ..signatures import LINE_WINDOW
+
+        m, ok = cls._column_means(res)
+        if ok.sum() < 16:
+            return None
+        use = res.usable if res.usable is not None else res.fit
+        se = np.sqrt(np.where(use, res.var_adu2, 0.0).sum(axis=0)) / np.maximum(use.sum(axis=0), 1)
+        u = np.where(ok, (m - uniform_filter1d(m, LINE_WINDOW, mode="nearest")) / np.maximum(se, 1e-12), 0.0)
+        return periodic_line_peak(u)
 
     #: a defective column's outlying pixels come in long runs along it (a trap to the serial register, a whole
     #: column): runs shorter than this many rows are pixel defects or clusters that happen to cross it

@@ -404,3 +404,26 @@ def test_a_glow_wider_than_the_edge_laws_longest_is_no_glow():
     side = max(s.sensor_width_px, s.sensor_height_px)
     assert _gauss_variant(res, 0.0, 0.0, 0.9 * GLOW_MAX_SCALE * side).to_params([1.0]) is not None
     assert _gauss_variant(res, 0.0, 0.0, 1.1 * GLOW_MAX_SCALE * side).to_params([1.0]) is None
+
+
+def test_columns_that_repeat_with_a_period_are_no_column_defects():
+    """Defective columns sit at random columns: a response that repeats every 3.3 columns (a square wave, 2 %)
+    gives column means with a significant period, read as a periodic pattern; ten weak columns at random
+    positions give none."""
+    from helpers import residuals_of, small_sensor
+
+    from detector.effects.defects import ColumnSignature
+
+    rng = np.random.default_rng(5)
+    s = small_sensor("ml11002", 256, 128)
+    model = np.full((128, 256), 20000.0)
+    var = model / 1.5 + 10.0
+    wave = np.where((np.arange(256) / 3.3) % 1.0 < 0.5, 1.0, 0.98)
+    weak = np.ones(256)
+    weak[rng.choice(256, 10, replace=False)] = 0.98
+    for response, periodic in ((wave, True), (weak, False)):
+        data = model * response[None, :] + rng.standard_normal(model.shape) * np.sqrt(var)
+        peak = ColumnSignature._column_period(residuals_of(data, model, var, model, s))
+        assert (peak is not None) == periodic, peak
+        if periodic:
+            assert abs(peak[0] - 3.3) < 0.1, peak
