@@ -359,7 +359,7 @@ def indistinguishable(sig: list[Candidate], cands: list[Candidate] = ()) -> list
     if not sig:
         return []
     best = sig[0].heldout
-    tol = max(sig[0].policy.twin_fraction * abs(best), 2 * np.sqrt(2 * abs(best))) if best is not None else 0.0
+    tol = twin_tolerance(best, sig[0].policy) if best is not None else 0.0
     out = [c for c in sig[1:] if (best is not None and c.heldout is not None and c.heldout - best <= tol)
            or same_charge(sig[0], c) or same_scatter(sig[0], c) or same_image(sig[0], c)]
     out += [c for c in cands if c.kind != "parameter" and c is not sig[0] and c not in out and not c.significant
@@ -376,6 +376,13 @@ def _other_law(first: Candidate, c: Candidate) -> bool:
     return same_light(first, c) and c.plausible and not c.rejected
 
 
+def twin_tolerance(best: float, policy) -> float:
+    """How far a score (a -2 ln L change) may lie from the best one's ``best`` and still tie with it: the policy's
+    ``twin_fraction`` of it, or two standard deviations of a chi2 difference of that size (sqrt(2 |best|)),
+    whichever is larger."""
+    return max(policy.twin_fraction * abs(best), 2 * np.sqrt(2 * abs(best)))
+
+
 def blind_rival(first: Candidate, c: Candidate) -> bool:
     """``c`` fits the frame as well as ``first`` or better (its delta BIC within the twins' tolerance of
     :func:`indistinguishable`, or below) but was not named because its held-out score is no test of it
@@ -385,7 +392,7 @@ def blind_rival(first: Candidate, c: Candidate) -> bool:
     if not c.heldout_blind or c.fit.delta_bic >= c.policy.significant_delta_bic:
         return False
     best = first.fit.delta_bic
-    tol = max(first.policy.twin_fraction * abs(best), 2 * np.sqrt(2 * abs(best)))
+    tol = twin_tolerance(best, first.policy)
     return c.fit.delta_bic - best <= tol
 
 
