@@ -63,6 +63,7 @@ from detector.signatures import (
     LinearSignature,
     Residuals,
     Variant,
+    heldout_blind,
     heldout_delta,
     search_sample,
     single_blas_thread,
@@ -749,6 +750,10 @@ def _heldout(frames: list[Residuals], cands: list[Candidate], fits: dict, progre
                         break
                     total, scored = total + h, True
                 c.heldout = total if scored else None
+                # blind in every frame (one fold of each sees less than a detection of its change): the summed
+                # held-out score tests it neither way, as a single frame's (a tie in the judge, not a refusal)
+                c.heldout_blind = scored and all(heldout_blind(f, r) for r, f in zip(frames, sf.frames)
+                                                 if f is not None)
         except Exception as exc:  # noqa: BLE001
             c.refuse("error", f"cannot be scored on held-out frames ({type(exc).__name__}: {exc})")
         c.seconds += time.perf_counter() - t0
