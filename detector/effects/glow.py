@@ -95,12 +95,16 @@ def edge_distance(res, where: str, y: np.ndarray, x: np.ndarray) -> np.ndarray:
 
 def _edge_distance_at(res, where: str, idx) -> np.ndarray:
     """:func:`edge_distance` of the flat output pixels ``idx``, kept with ``res`` for the last (edge, index
-    array) asked for: a search tries every e-folding length of one edge on the same pixels in a row."""
+    array) asked for: a search tries every e-folding length of one edge on the same pixels in a row. The index
+    array is known by its memory (address, length, stride; the kept reference keeps that memory from being
+    reused): the least squares pass a new view of the same sample each time."""
     kept = res.memo("edge_distance_at", dict)
-    if kept.get("where") != where or kept.get("idx") is not idx:
-        y, x = np.divmod(np.asarray(idx), res.data_adu.shape[1])
+    idx = np.asarray(idx)
+    key = (where, idx.__array_interface__["data"][0], idx.shape, idx.strides, idx.dtype.str)
+    if kept.get("key") != key:
+        y, x = np.divmod(idx, res.data_adu.shape[1])
         kept.clear()
-        kept.update(where=where, idx=idx, d=edge_distance(res, where, y, x))
+        kept.update(key=key, idx=idx, d=edge_distance(res, where, y, x))
     return kept["d"]
 
 
