@@ -513,7 +513,7 @@ def describe(res: Residuals, delta_adu: np.ndarray | None = None) -> dict:
         # pixels' period) averages out in the blocks and raises the pixel chi2 as extra scatter would: when
         # one spatial frequency stands out of the periodogram and the pattern it carries takes a good share
         # (GEOMETRY_SHARE) of the excess pixel chi2, the residual is that periodic pattern, not added noise
-        zhp = zp - gaussian_filter(zp, b, mode="nearest")
+        zhp = zp - block_smooth(res, zp, b, keep=True)
         period, contrast, _ = _peak(zhp, _cut_row_factor(wmap, row_var))
         if contrast >= PERIODIC_CONTRAST:
             desc = _periodic_only(res, period, contrast, zhp, wmap)
