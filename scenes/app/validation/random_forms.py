@@ -1282,10 +1282,15 @@ def draw_case(family: str, case_seed: int) -> RandomCase:
     d = FAMILIES[family][1](rng)
     if family not in FULL_SIZE_FAMILIES:
         d.base = f"{d.base}_s"
+    return RandomCase(family, int(case_seed), d, draw_levels(rng))
+
+
+def draw_levels(rng) -> Levels:
+    """The global levels a case's measured frame has off the model's: the light 1-1.5 % one way, the dark 2-3 %
+    the other, the bias 0.3-0.6 ADU either way (what a model of a real camera has wrong)."""
     sgn = float(_choice(rng, [-1.0, 1.0]))
-    levels = Levels(light=sgn * float(rng.uniform(0.010, 0.015)), dark=-sgn * float(rng.uniform(0.02, 0.03)),
-                    bias_adu=float(_choice(rng, [-1.0, 1.0])) * float(rng.uniform(0.3, 0.6)))
-    return RandomCase(family, int(case_seed), d, levels)
+    return Levels(light=sgn * float(rng.uniform(0.010, 0.015)), dark=-sgn * float(rng.uniform(0.02, 0.03)),
+                  bias_adu=float(_choice(rng, [-1.0, 1.0])) * float(rng.uniform(0.3, 0.6)))
 
 
 def draw_cases(master_seed: int, n: int, families=None) -> list[RandomCase]:
@@ -1313,7 +1318,7 @@ NULL_MISFIT_BASES = ("dark_s", "dark_cmos_s", "dark_corner_s", "flat_s", "flat_i
 def misfit_null(n_per_base: int, seed: int, workdir: Path, progress=None) -> list[dict]:
     """The profiled misfit and chi2/dof - 1 (:func:`error_of`) of null frames: each base of
     :data:`NULL_MISFIT_BASES` rendered ``n_per_base`` times with a random case's level offsets (light, dark,
-    bias, as :func:`scenes.app.validation.random_forms.draw_case` draws them) and nothing hidden, compared with
+    bias: :func:`draw_levels`) and nothing hidden, compared with
     its model scene. ``progress(i, n)`` after each frame."""
     from scenes.app.compare import run_compare
     from scenes.scene import load_scene
@@ -1325,17 +1330,13 @@ def misfit_null(n_per_base: int, seed: int, workdir: Path, progress=None) -> lis
         model = HE["write_scene"](HE["model_scene"](base, None), workdir / f"{base}.model.toml")
         for _ in range(n_per_base):
             frame_seed = int(rng.integers(1, 2**31 - 1))
-            sgn = float(rng.choice([-1.0, 1.0]))
-            lv = Levels(light=sgn * float(rng.uniform(0.010, 0.015)), dark=-sgn * float(rng.uniform(0.02, 0.03)),
-                              bias_adu=float(rng.choice([-1.0, 1.0])) * float(rng.uniform(0.3, 0.6)))
-            info = HE["make_frame"](base, None, lv, workdir / f"{base}.fits", seed=frame_seed, workers=1)
+            info = HE["make_frame"](base, None, draw_levels(rng), workdir / f"{base}.fits", seed=frame_seed, workers=1)
             e = HE["error_of"](run_compare(load_scene(str(model)), info["measured"], workers=1), None)
             rows.append({"base": base, "frame_seed": frame_seed, "misfit": e["misfit"],
                          "chi2_minus_1": e["chi2_minus_1"], "n_support": e["n_support"]})
             if progress is not None:
                 progress(len(rows), n)
     return rows
-
 
 
 def run_case(case: RandomCase, workdir: Path, workers: int | None = None) -> dict:
