@@ -37,6 +37,16 @@ def _first(out: dict) -> dict | None:
     return next((c for c in out["candidates"] if c["significant"]), None)
 
 
+def _diagnose_plugin_frame(scene, base: dict, effects: dict, tmp_path, seed: int) -> tuple:
+    """A frame measured with newtsim's own plugin ``effects`` added to ``base`` (rendered with ``seed``),
+    diagnosed against ``scene``: (the measured frame's path, the diagnosis, its first significant candidate)."""
+    sick = write_scene(tmp_path / "sick.toml", base, effects=effects)
+    meas = tmp_path / "sick.fits"
+    render(load_scene(str(sick)), meas, seed=seed, progress=False)
+    out = run.run_diagnose(scene, meas)
+    return meas, out, _first(out)
+
+
 # --- the statistics on synthetic residuals ---------------------------------------------------------------------
 
 def test_groups_carry_their_chi2_and_shape():
@@ -144,12 +154,8 @@ def flat_scene(tmp_path_factory):
 def test_weak_and_clustered_dead_pixels_are_named_and_a_null_flat_is_clean(flat_scene, tmp_path):
     scene = load_scene(str(flat_scene))
     # the measured frame: the same flat with weak 2x2 clusters of responses 0.3-0.7 (newtsim's own plugin)
-    sick = write_scene(tmp_path / "sick.toml", FLAT, effects={"dead_pixels": {
-        "count": 20000, "cluster_px": 2, "response": 0.3, "response_max": 0.7}})
-    meas = tmp_path / "sick.fits"
-    render(load_scene(str(sick)), meas, seed=5, progress=False)
-    out = run.run_diagnose(scene, meas)
-    first = _first(out)
+    _, out, first = _diagnose_plugin_frame(scene, FLAT, {"dead_pixels": {
+        "count": 20000, "cluster_px": 2, "response": 0.3, "response_max": 0.7}}, tmp_path, 5)
     assert first is not None and first["effect"] == "dead_pixels", out["verdict"]
     p = first["params"]
     assert p["cluster_px"] == 2 and "response_max" in p, p
@@ -252,12 +258,8 @@ def test_weak_columns_are_placed_where_they_were_seen_and_the_apply_removes_them
 
     scene = load_scene(str(flat_scene))
     at, resp = [1010, 1041, 1100], [0.9, 0.95, 0.92]
-    sick = write_scene(tmp_path / "sick.toml", FLAT, effects={"column_defects": {
-        "hot_columns": 0, "dead_columns": 3, "dead_at": at, "dead_at_response": resp}})
-    meas = tmp_path / "sick.fits"
-    render(load_scene(str(sick)), meas, seed=5, progress=False)
-    out = run.run_diagnose(scene, meas)
-    first = _first(out)
+    meas, out, first = _diagnose_plugin_frame(scene, FLAT, {"column_defects": {
+        "hot_columns": 0, "dead_columns": 3, "dead_at": at, "dead_at_response": resp}}, tmp_path, 5)
     assert first is not None and first["effect"] == "column_defects", out["verdict"]
     p = first["params"]
     assert p["dead_at"] == at and p["hot_at"] == [], p
@@ -282,14 +284,10 @@ def test_a_trap_column_is_found_with_the_rows_its_excess_lies_in(tmp_path, binni
     pixel in 10 s against the ML11002's ~4.5 sigma of noise per pixel; binned 2 x 2, one hot sensor column
     puts 2 of its pixels in each output pixel)."""
     dark = {**DARK, "detector": {**DARK["detector"], "binning": binning}}
-    p = write_scene(tmp_path / "dark.toml", dark)
-    sick = write_scene(tmp_path / "sick.toml", dark, effects={"column_defects": {
+    scene = load_scene(str(write_scene(tmp_path / "dark.toml", dark)))
+    _, out, first = _diagnose_plugin_frame(scene, dark, {"column_defects": {
         "hot_columns": 2, "dead_columns": 0, "hot_at": [1020, 1090], "hot_at_rate_e_per_s": [5.0, 3.0],
-        "hot_at_rows": [[850, 960], [0, 10000]]}})
-    meas = tmp_path / "sick.fits"
-    render(load_scene(str(sick)), meas, seed=9, progress=False)
-    out = run.run_diagnose(load_scene(str(p)), meas)
-    first = _first(out)
+        "hot_at_rows": [[850, 960], [0, 10000]]}}, tmp_path, 9)
     assert first is not None and first["effect"] == "column_defects", out["verdict"]
     q = first["params"]
     assert q["hot_at"] == [1020, 1090], q
