@@ -420,6 +420,11 @@ class Residuals:
     usable: np.ndarray | None = None
 
     @property
+    def outlier_usable(self) -> np.ndarray:
+        """The pixels the outlier statistics look at: ``usable`` when known, else ``fit``."""
+        return self.usable if self.usable is not None else self.fit
+
+    @property
     def photo_field(self) -> np.ndarray:
         """The photo-signal an image-plane effect acts on: before the clip and the response when known."""
         return self.photo_adu if self.photo_field_adu is None else self.photo_field_adu
@@ -2181,7 +2186,7 @@ class GroupSignature(CountSignature):
 
 def outlier_pixels(res: Residuals) -> int:
     """Pixels the outlier statistics looked at (``usable``, else ``fit``): the n of their Schwarz price."""
-    return int(np.count_nonzero(res.usable if res.usable is not None else res.fit))
+    return int(np.count_nonzero(res.outlier_usable))
 
 
 def on_source(res: Residuals, index: np.ndarray) -> np.ndarray:

@@ -240,7 +240,7 @@ class ColumnSignature(Signature):
         m, ok = cls._column_means(res)
         if ok.sum() < 16:
             return None
-        use = res.usable if res.usable is not None else res.fit
+        use = res.outlier_usable
         se = np.sqrt(np.where(use, res.var_adu2, 0.0).sum(axis=0)) / np.maximum(use.sum(axis=0), 1)
         u = np.where(ok, (m - uniform_filter1d(m, LINE_WINDOW, mode="nearest")) / np.maximum(se, 1e-12), 0.0)
         return periodic_line_peak(u)
@@ -321,13 +321,14 @@ class ColumnSignature(Signature):
         d = min(d_data - d_model, 0.0)
         s = res.sensor
         frac = s.roi_shape[0] / s.sensor_width_px
-        hot, cold = int((x > LINE_SIGMA).sum()), int((x < -LINE_SIGMA).sum())
+        # the output columns of the two populations (x holds the finite columns, source columns are NaN)
+        finite = np.flatnonzero(np.isfinite(zd))
+        hot_j, cold_j = finite[x > LINE_SIGMA], finite[x < -LINE_SIGMA]
         exc = res.data_spikes.col_excess_e  # of the outlier columns (source columns are not told apart here)
         rate = float(np.median(exc)) * self._per_sensor_pixel(res) if exc.size else 0.0
-        hot_j, cold_j = self._columns(zd, x)
         resp = self._response(res, cold_j)
-        params = {"hot_columns": max(round(hot / frac), hot_j.size), "hot_rate_e_per_s": round(max(rate, 0.0), 4),
-                  "dead_columns": max(round(cold / frac), cold_j.size),
+        params = {"hot_columns": round(hot_j.size / frac), "hot_rate_e_per_s": round(max(rate, 0.0), 4),
+                  "dead_columns": round(cold_j.size / frac),
                   "dead_response": round(float(np.median(resp)), 4) if resp.size else 0.0,
                   "hot_at": self._sensor_columns(res, hot_j), "dead_at": self._sensor_columns(res, cold_j),
                   "dead_at_response": [round(float(r), 4) for r in resp]}
@@ -346,24 +347,10 @@ class ColumnSignature(Signature):
         return [round(float(res.xs[j]) - (b - 1) / 2.0) for j in cols]
 
     @staticmethod
-    def _columns(zd: np.ndarray, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """The output columns of the hot and of the dead population: where the column statistic, on the scale
-        :meth:`_gain` put it, lies beyond LINE_SIGMA (source columns, NaN, are neither)."""
-        from ..signatures import LINE_SIGMA
-
-        z = np.asarray(zd, float)
-        fin = z[np.isfinite(z)]
-        if fin.size < 16 or x.size == 0:
-            return np.zeros(0, int), np.zeros(0, int)
-        scale = max(1.0, mad_std(fin, max_n=None))
-        zs = np.nan_to_num(z / scale)
-        return np.flatnonzero(zs > LINE_SIGMA), np.flatnonzero(zs < -LINE_SIGMA)
-
-    @staticmethod
     def _column_means(res) -> tuple[np.ndarray, np.ndarray]:
         """Each column's mean residual [ADU] over its usable pixels, pixels beyond DETECTION_SIGMA of the column's
         median left out (a hot pixel or a track crossing it), and which columns have any."""
-        use = res.usable if res.usable is not None else res.fit
+        use = res.outlier_usable
         r = res.data_adu - res.model_adu
         sd = np.sqrt(np.maximum(res.var_adu2, 1e-12))
         med = np.nanmedian(np.where(use, r, np.nan), axis=0)
@@ -386,14 +373,13 @@ class ColumnSignature(Signature):
 
         if cols.size == 0:
             return np.zeros(0), []
-        m, ok = cls._column_means(res)
-        normal = ok.copy()
+        normal = cls._column_means(res)[1]
         normal[cols] = False
-        use = res.usable if res.usable is not None else res.fit
+        use = res.outlier_usable
         b = res.sensor.binning
         rates, rows = [], []
         for j in cols:
-            lo, hi = max(j - LINE_WINDOW, 0), min(j + LINE_WINDOW + 1, m.size)
+            lo, hi = max(j - LINE_WINDOW, 0), min(j + LINE_WINDOW + 1, normal.size)
             near = np.flatnonzero(normal[lo:hi]) + lo
             # each row's level from the neighbours in that row: a residual that trends along the column (a light
             # level off times a vignetting, row offsets) is not a trap's change point
@@ -437,7 +423,7 @@ class ColumnSignature(Signature):
         the frame holds no light to measure it (a dark: a dead column shows nothing there)."""
         if cols.size == 0:
             return np.zeros(0)
-        use = res.usable if res.usable is not None else res.fit
+        use = res.outlier_usable
         p = np.where(use, res.photo_adu, 0.0)
         v = np.maximum(res.var_adu2, 1e-12)
         info = (p * p / v).sum(axis=0)
@@ -633,7 +619,12 @@ class ColumnDefects(Effect):
         resp = np.concatenate([resp, np.full(dead.size - dead_at.size, p.dead_response)])
         rows = np.asarray((p.hot_at_rows or [[0, s.sensor_height_px]] * hot_at.size)
                           + [[0, s.sensor_height_px]] * (hot.size - hot_at.size), np.int64).reshape(-1, 2)
-        keep_h, keep_d = np.argsort(hot)[hot[np.argsort(hot)] < w], np.argsort(dead)[dead[np.argsort(dead)] < w]
+
+        def on_sensor(cols):  # sorted, the columns beyond the sensor's width dropped
+            order = np.argsort(cols)
+            return order[cols[order] < w]
+
+        keep_h, keep_d = on_sensor(hot), on_sensor(dead)
         self.hot, self.hot_rate = hot[keep_h], rates[keep_h]
         self.hot_rows = rows[keep_h] if p.hot_at_rows is not None else None
         self.dead, self.dead_resp = dead[keep_d], resp[keep_d]

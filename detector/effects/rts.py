@@ -187,7 +187,7 @@ def rts_frame_sample(res) -> tuple[np.ndarray, np.ndarray, np.ndarray, int, floa
     from ..signatures import ROUNDING_VAR_ADU2, WHITE_SCALE, on_read_codes
     from .pixel_response import _lit
 
-    usable = res.usable if res.usable is not None else res.fit
+    usable = res.outlier_usable
     if res.train is not None:
         usable = usable & res.train
     level = res.level_map()

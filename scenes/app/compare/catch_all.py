@@ -99,7 +99,7 @@ def outliers_after_catch_all(res: Residuals, cands: list, morph: dict, empirical
     if fit is None or fit.delta_adu is None:
         return
     model = (res.model_adu + fit.delta_adu).astype(np.float32)
-    usable = res.usable if res.usable is not None else res.fit
+    usable = res.outlier_usable
     spikes, _ = spike_stats(res.data_adu, model, res.var_adu2, usable, res.gain)
     after = replace(res, model_adu=model, data_spikes=spikes, _flat={})
     for c in counts:
