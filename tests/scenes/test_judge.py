@@ -623,6 +623,52 @@ def test_a_change_seen_by_one_fold_only_is_not_tested_by_the_held_out_pixels():
     assert fold_detections(Fit("x", {}, -1.0, 1, 10, ""), res) is None
 
 
+def test_a_change_in_one_block_is_held_out_on_blocks_both_folds_see():
+    """A compressive response (a tanh law, 12 % low at 0.85 of the full well) in the core of a star window's one
+    bright star falls in one block of the default checkerboard: one fold sees less than a detection of it and the
+    held-out score does not test it. On the largest smaller blocks both folds see it on
+    (:func:`detector.signatures.seeing_block`), the law fitted on one part of the core predicts the other; on the
+    same window without the response nothing is fitted that both folds could see, so no smaller blocks are used."""
+    from detector.effects import registry as effects
+    from detector.sensor import make_sensor
+    from detector.signatures import default_block, heldout_blind, heldout_delta, seeing_block
+    from scenes.app.compare.policy import DEFAULT_POLICY
+
+    sensor = make_sensor("ml11002")
+    g, fw = sensor.gain_e_per_adu, sensor.full_well_e
+    yy, xx = np.mgrid[:128, :128]
+    q = np.full((128, 128), 2000.0)  # sky [e-]
+    for y0, x0, peak in ((40.3, 50.6, 0.85), (90.2, 100.7, 0.1), (20.5, 110.2, 0.05)):  # peaks [full well]
+        q += peak * fw * np.exp(-((yy - y0) ** 2 + (xx - x0) ** 2) / (2 * 1.3 ** 2))
+    sig = effects()["nonlinearity"].signature
+
+    def window(a, seed):
+        measured_e = a * np.tanh(q / fw / a) * fw if a else q
+        var_e = q + 100.0
+        noise = np.random.default_rng(seed).standard_normal(q.shape) * np.sqrt(var_e)
+        return residuals_of((measured_e + noise) / g + sensor.bias_adu, q / g + sensor.bias_adu, var_e / g ** 2,
+                            q / g, sensor)
+
+    res = window(1.5, 1)
+    fit = sig.fit(res, "nonlinearity")
+    assert fit.delta_bic < DEFAULT_POLICY.significant_delta_bic and heldout_blind(fit, res)
+    block = seeing_block(fit, res)
+    assert block is not None and block < default_block(res.data_adu.shape) and not heldout_blind(fit, res, block)
+    assert heldout_delta(sig, res, "nonlinearity", fit, block) < DEFAULT_POLICY.significant_heldout
+    for seed in (2, 3):
+        null = window(None, seed)
+        fit = sig.fit(null, "nonlinearity")
+        assert fit.delta_bic > DEFAULT_POLICY.significant_delta_bic and seeing_block(fit, null) is None
+    # the judge scores every contender again on those blocks (their held-out scores, compared, share one layout)
+    from scenes.app.compare.candidates import candidates
+
+    others = set(effects()) - {"nonlinearity", "brighter_fatter"}
+    cands, _ = candidates(window(1.5, 1), others)
+    scored = [c for c in cands if c.heldout is not None]
+    assert {c.fit.effect for c in scored} == {"nonlinearity", "brighter_fatter"}
+    assert {c.heldout_block for c in scored} == {block} and all(not c.heldout_blind for c in scored)
+
+
 def test_a_rival_whose_held_out_test_is_blind_ties_with_the_first_name():
     """A brighter-fatter named on its held-out score is not named alone when a non-linearity fits the frame
     better in-sample but could not be tested on held-out pixels (its change seen by one fold only): the verdict

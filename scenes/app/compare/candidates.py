@@ -16,7 +16,8 @@ import numpy as np
 
 from detector import registry
 from detector.morphology import block_chi2
-from detector.signatures import Fit, Residuals, dither_codes, frame_at, heldout_blind, heldout_delta
+from detector.signatures import (Fit, Residuals, dither_codes, frame_at, heldout_blind, heldout_delta,
+                                 seeing_block)
 from detector.significance import FOOTPRINT_SIGMA, MIN_TEST_PIXELS
 
 from .floors import floor_reason, signal_range_floor
@@ -422,6 +423,22 @@ def score_heldout(res: Residuals, cands: list[Candidate], progress=None,
         c.seconds += time.perf_counter() - t0
         if progress is not None:
             progress(f"{c.fit.effect} (held out)")
+    # the best-fitting contender's change carried by too few pixels for the default blocks (one fold sees less
+    # than a detection of it): every contender is scored again, on the largest blocks both folds see that change
+    # on (detector.signatures.seeing_block), so their held-out scores (and the catch-all's) share one layout
+    scored = [c for c in cands if c.heldout is not None and c.fit.delta_adu is not None]
+    best = min(scored, key=lambda c: c.fit.delta_bic, default=None)
+    block = seeing_block(best.fit, res) if best is not None and best.heldout_blind else None
+    if block is not None:
+        res.forget("heldout_folds")
+        for c in scored:
+            t0 = time.perf_counter()
+            try:
+                h = heldout_delta(reg[c.fit.effect].signature, res, c.fit.effect, c.fit, block)
+                c.heldout, c.heldout_blind, c.heldout_block = h, h is not None and heldout_blind(c.fit, res, block), block
+            except Exception as exc:  # noqa: BLE001
+                c.refuse("error", f"cannot be scored on held-out pixels ({type(exc).__name__}: {exc})")
+            c.seconds += time.perf_counter() - t0
     res.forget("heldout_folds")  # the folds every candidate shared (detector.signatures.heldout_delta)
 
 

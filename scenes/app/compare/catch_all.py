@@ -48,10 +48,11 @@ class CatchAll(Signature):
         return pixel_score(fit, res)
 
 
-def catch_all_heldout(res: Residuals) -> float | None:
-    """The catch-all's held-out delta -2 ln L on the checkerboard folds every candidate is scored on (0 when
-    neither fold's residual is significant: the description predicts nothing)."""
-    h = heldout_delta(CatchAll(), res, "catch_all")
+def catch_all_heldout(res: Residuals, block: int | None = None) -> float | None:
+    """The catch-all's held-out delta -2 ln L on the checkerboard folds every candidate is scored on (blocks of
+    ``block`` pixels; default: :func:`detector.signatures.default_block`) (0 when neither fold's residual is
+    significant: the description predicts nothing)."""
+    h = heldout_delta(CatchAll(), res, "catch_all", block=block)
     return None if h is None else float(h)
 
 
@@ -67,8 +68,13 @@ def compare_with_catch_all(res: Residuals, cands: list, morph: dict) -> float | 
     ca = catch_all_heldout(res)
     if ca is None:
         return None
+    by_block = {None: ca}  # a candidate scored on smaller blocks is compared on the same folds
     for c in scored:
-        c.catch_all_heldout = ca
+        b = getattr(c, "heldout_block", None)
+        if b not in by_block:
+            by_block[b] = catch_all_heldout(res, b)
+        c.catch_all_heldout = by_block[b]
+    res.forget("heldout_folds")
     return ca
 
 

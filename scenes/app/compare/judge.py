@@ -94,6 +94,9 @@ class Candidate:
     #: one held-out fold sees less than a detection of its change
     #: (:func:`detector.signatures.heldout_blind`): its held-out score tests it neither way
     heldout_blind: bool = False
+    #: the side of the checkerboard's blocks its held-out score was taken on when the default ones were blind to
+    #: it (:func:`detector.signatures.seeing_block`; None: the default blocks)
+    heldout_block: int | None = None
 
     def __post_init__(self):
         if self.rejected and "overfit" not in self.codes and "stars" not in self.codes:
@@ -166,6 +169,8 @@ class Candidate:
             out["same_image_as"] = list(self.untold)
         if self.heldout_blind:
             out["heldout_blind"] = True
+        if self.heldout_block is not None:
+            out["heldout_block_px"] = self.heldout_block
         if self.kind == "parameter":
             out["key"], out["value"] = self.key, self.value
             if self.ambiguous:

@@ -705,8 +705,8 @@ def make_frame(base: str, extra, levels: Levels, out: Path, seed: int = 11, work
     ext = [scene_hdu(scene)] + [table_hdu(n, t) for n, t in det.truth(setup.exptime_s, seed, state).items()]
     write_streamed(out, header, det.iter_frame(setup.signal_e, setup.exptime_s, seed, state=state),
                    sensor.output_shape, dtype, ext)
-    support, truth_chi2 = effect_support(setup, det, added)
-    return {"measured": str(out), "support": support, "truth_chi2": truth_chi2,
+    support, truth_chi2, change = effect_support(setup, det, added, with_change=True)
+    return {"measured": str(out), "support": support, "truth_chi2": truth_chi2, "truth_change_adu": change,
             "truth": [dict(type=type(e).__name__, **_jsonable(e.describe_truth()))
                       for e in added if isinstance(e, RealWorld)]}
 
@@ -715,21 +715,38 @@ def make_frame(base: str, extra, levels: Levels, out: Path, seed: int = 11, work
 SUPPORT_SIGMA = 0.2
 
 
-def effect_support(setup, det: Detector, added: list) -> tuple[np.ndarray, float | None]:
+def effect_support(setup, det: Detector, added: list, with_change: bool = False) -> tuple:
     """Where the hidden effect acts: output pixels whose expected value it changes by more than
     SUPPORT_SIGMA model sigmas (every pixel for an effect that adds noise or scatter, or for none); and how
     detectable it is whatever the diagnosis: the chi2 that its exact template (the change of the expected
     frame, amplitude known) removes on a noise-free frame, sum((m1 - m0)^2 / v0) over every pixel (None for
     an effect that adds noise or scatter). Fitting that template's amplitude alone needs about 2 ln(N) of it
-    to pass a BIC test; a diagnosis that must also find the form's shape needs more."""
+    to pass a BIC test; a diagnosis that must also find the form's shape needs more. With ``with_change``, the
+    change of the expected frame ``m1 - m0`` [ADU] too (None where there is no chi2), for
+    :func:`truth_chi2_after_levels`."""
     shape = det.sensor.output_shape
     if not added or any(e.stochastic or e.stages == (Stage.CHARGE,) for e in added):
-        return np.ones(shape, bool), None
+        return (np.ones(shape, bool), None) + ((None,) if with_change else ())
     m0, v0, _ = setup.detector.moments(setup.signal_e, setup.exptime_s)
     m1, _, _ = det.moments(setup.signal_e, setup.exptime_s)
     z2 = (m1 - m0) ** 2 / v0
     sup = z2 > SUPPORT_SIGMA ** 2
-    return (sup if sup.any() else np.ones(shape, bool)), float(np.sum(z2, dtype=np.float64))
+    out = (sup if sup.any() else np.ones(shape, bool)), float(np.sum(z2, dtype=np.float64))
+    return out + (((m1 - m0).astype(np.float32),) if with_change else ())
+
+
+def truth_chi2_after_levels(res, change_adu) -> float | None:
+    """The chi2 the hidden effect's exact change ``change_adu`` [ADU] (:func:`effect_support`) keeps on the
+    pixels the diagnosis fits once the global levels a model only knows to a few per cent (the light, the sky,
+    the dark; :meth:`detector.signatures.Residuals.level_templates`) have taken what they can of it:
+    ``sum w (P d)^2`` over the fitted pixels, ``P`` the residuals' level projection. What truth chi2 counts
+    but no diagnosis can see (a near-uniform compression of a bright sky is a sky level; saturated pixels are
+    not fitted) is left out. None without a change."""
+    if change_adu is None:
+        return None
+    idx, _, w = res.flat()
+    d = res.project(np.asarray(change_adu, np.float64).ravel()[idx])
+    return float(np.dot(d * d, w))
 
 
 def _jsonable(d: dict) -> dict:

@@ -1347,7 +1347,8 @@ def run_case(case: RandomCase, workdir: Path, workers: int | None = None) -> dic
     model = HE["write_scene"](HE["model_scene"](uc.base, uc.effect), workdir / f"{case.name}.model.toml")
     info = HE["make_frame"](uc.base, uc.make, uc.levels, workdir / f"{case.name}.fits", seed=case.frame_seed,
                             workers=workers)
-    row = U.diagnose_case(uc, model, Path(info["measured"]), info["support"], workdir, workers=workers)
+    row = U.diagnose_case(uc, model, Path(info["measured"]), info["support"], workdir, workers=workers,
+                          truth_change_adu=info.get("truth_change_adu"))
     row.update(case.record())
     row.update(label=case.effect or f"ooc:{case.family}", truth_chi2=info["truth_chi2"],
                case_seconds=round(time.perf_counter() - t0, 1))
@@ -1415,6 +1416,10 @@ def _figures(rows: list[dict]) -> dict:
             # the cases whose exact template could be seen at all (chi2 >= 25) or whose effect is a noise: "from
             # strong to near the threshold", without the draws below any threshold
             "named_first_seen": _frac(seen, lambda r: r.get("named_first")),
+            # the same, with the template's chi2 left once the frame's global levels took what they can of it on
+            # the pixels the diagnosis fits (.hidden.truth_chi2_after_levels; rows without it count as before)
+            "named_first_seen_levels": _frac([r for r in cat if _detectability(r, after_levels=True)
+                                              != "truth chi2 < 25"], lambda r: r.get("named_first")),
             "confidently_wrong": _frac(cat + ooc, lambda r: r.get("confidently_wrong")),
             "confidently_wrong_strict": _frac(cat, lambda r: r.get("confidently_wrong_strict")),
             "ambiguous_right": _frac(cat, lambda r: r.get("cannot_tell_apart") and not r.get("named_first")
@@ -1425,8 +1430,10 @@ def _figures(rows: list[dict]) -> dict:
             "errors": len(rows) - len(ok)}
 
 
-def _detectability(r) -> str:
+def _detectability(r, after_levels: bool = False) -> str:
     tc = r.get("truth_chi2")
+    if after_levels and r.get("truth_chi2_levels") is not None:
+        tc = r["truth_chi2_levels"]
     if tc is None:
         return "noise or scatter (no template chi2)"
     return "truth chi2 < 25" if tc < 25 else ("25 <= truth chi2 < 1000" if tc < 1000 else "truth chi2 >= 1000")
@@ -1485,6 +1492,8 @@ def markdown(rows: list[dict], summ: dict, meta: dict) -> str:
              f"| named first (catalogue cases) | {_pct(o['named_first'])} |",
              (f"| named first, the catalogue cases an exact template sees (truth chi2 >= 25) or noise forms | "
               f"{_pct(o['named_first_seen'])} |"),
+             (f"| named first, the same with the template's chi2 after the frame's global levels (on the fitted "
+              f"pixels) >= 25 | {_pct(o['named_first_seen_levels'])} |"),
              f"| confidently wrong (catalogue + out-of-catalogue cases) | {_pct(o['confidently_wrong'])} |",
              (f"| wrong first counting the ones flagged as not told apart (catalogue) | "
               f"{_pct(o['confidently_wrong_strict'])} |"),
@@ -1520,7 +1529,9 @@ def markdown(rows: list[dict], summ: dict, meta: dict) -> str:
         mtxt = f"{mo.get('kind')} / {mo.get('geometry')}" + ("" if mo.get("significant") else " (n.s.)") if mo else "-"
         exp = ", ".join(r["accept"]) if r["accept"] else f"{r['kind']} / {', '.join(r['geometry'])}"
         first = f"{r['first']} ({U._f(r.get('first_delta_bic'))})" if r["first"] != "none" else "none"
-        lines.append(f"| {r['case']} | {r['base']} | {r['strength_t']:.2f} | {U._f(r.get('truth_chi2'))} | "
+        tcl = r.get("truth_chi2_levels")
+        tc = U._f(r.get("truth_chi2")) + ("" if tcl is None else f" ({U._f(tcl)} after levels)")
+        lines.append(f"| {r['case']} | {r['base']} | {r['strength_t']:.2f} | {tc} | "
                      f"{r['description']} | {first} | {exp} | {'**yes**' if r.get('confidently_wrong') else 'no'} | "
                      f"{mtxt} | {U._f(r.get('error_ratio'))} |")
     return "\n".join(lines) + "\n"

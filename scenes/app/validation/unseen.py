@@ -71,6 +71,7 @@ from detector.rng import generator
 HE = runpy.run_path(str(Path(__file__).resolve().with_name("hidden.py")), run_name="hidden_effects")
 RealWorld, Levels = HE["RealWorld"], HE["Levels"]
 model_scene, make_frame, write_scene, error_of = HE["model_scene"], HE["make_frame"], HE["write_scene"], HE["error_of"]
+truth_chi2_after_levels = HE["truth_chi2_after_levels"]
 STATISTICAL = HE["STATISTICAL"]
 
 # --- more base scenes (added to hidden_effects' BASES, which model_scene / measured_scene read) ----------------
@@ -1656,7 +1657,7 @@ def accepted_names(accept) -> tuple:
 
 
 def diagnose_case(case: UnseenCase, model_toml: Path, measured: Path, support, workdir: Path,
-                  workers: int | None = None) -> dict:
+                  workers: int | None = None, truth_change_adu=None) -> dict:
     """Diagnose ``measured`` against ``model_toml``, apply the first significant plausible candidate (or the
     morphology's empirical map) with the measured frame, compare again."""
     from scenes.app.compare import run_compare, run_diagnose
@@ -1695,7 +1696,8 @@ def diagnose_case(case: UnseenCase, model_toml: Path, measured: Path, support, w
            "verdict": out.get("verdict"), "seconds": round(seconds, 2), "metric": metric,
            "cannot_tell_apart": ([best["effect"], *out.get("indistinguishable", [])]
                                  if best is not None and out.get("indistinguishable") else []),
-           "before": error_of(out["_compare"], support)}
+           "before": error_of(out["_compare"], support),
+           "truth_chi2_levels": truth_chi2_after_levels(out["_compare"]["_residuals"], truth_change_adu)}
     row["named_first"] = row["first"] in accept if accept else None
     if case.group == "ooc":
         row["confidently_wrong"] = bool(wrong_named)
@@ -1729,7 +1731,8 @@ def run_case(name: str, workdir: Path, seed: int = 11, workers: int | None = Non
     t0 = time.perf_counter()
     model = write_scene(model_scene(case.base, case.effect), workdir / f"{name}.model.toml")
     info = make_frame(case.base, case.make, case.levels, workdir / f"{name}.fits", seed=seed, workers=workers)
-    row = diagnose_case(case, model, Path(info["measured"]), info["support"], workdir, workers=workers)
+    row = diagnose_case(case, model, Path(info["measured"]), info["support"], workdir, workers=workers,
+                        truth_change_adu=info.get("truth_change_adu"))
     row.update(truth=info["truth"], truth_chi2=info["truth_chi2"], levels=vars(case.levels),
                case_seconds=round(time.perf_counter() - t0, 1))
     return row
