@@ -139,6 +139,30 @@ def test_drawn_effect_changes_the_expected_frame(tmp_path):
     info = R.HE["make_frame"](case.draw.base, case.make, case.levels, tmp_path / "m.fits", seed=3, workers=1)
     assert info["truth_chi2"] > 100 and info["support"].any()
     assert math.isfinite(info["truth_chi2"])
+    assert info["truth_change_adu"].shape == info["support"].shape and np.abs(info["truth_change_adu"]).max() > 0
+
+
+def test_truth_chi2_after_levels_leaves_out_what_a_level_takes():
+    """The detectability a diagnosis can reach: a compression of every pixel's light by 1 % (what a response law
+    does on a frame whose light is a bright sky and faint stars) is the light level a model only knows to a few
+    per cent, so after the levels nothing is left of its chi2; a 5 % deficit in the core of the window's one
+    bright star keeps the part that no scale of the star's light (the sources' zero point) takes: the core
+    against the wings."""
+    from detector.sensor import make_sensor
+    from helpers import residuals_of
+
+    sensor = make_sensor("ml11002")
+    yy, xx = np.mgrid[:64, :64]
+    photo = 5000.0 + 20000.0 * np.exp(-((yy - 30.2) ** 2 + (xx - 20.7) ** 2) / (2 * 1.4 ** 2))  # [ADU]
+    var = photo / sensor.gain_e_per_adu + 10.0
+    res = residuals_of(photo + sensor.bias_adu, photo + sensor.bias_adu, var, photo, sensor)
+    uniform = -0.01 * photo
+    core = np.where(photo > 15000.0, -0.05 * photo, 0.0)
+    raw = [float(np.sum(d ** 2 / var)) for d in (uniform, core)]
+    after = [R.HE["truth_chi2_after_levels"](res, d) for d in (uniform, core)]
+    assert raw[0] > 1000 and after[0] < 1e-3 * raw[0]
+    assert 0.25 * raw[1] > 25 and 0.25 * raw[1] < after[1] < raw[1]
+    assert R.HE["truth_chi2_after_levels"](res, None) is None
 
 
 def test_summary_counts_and_confusions():
