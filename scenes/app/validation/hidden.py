@@ -157,6 +157,10 @@ class RealWorld(Effect):
     """Base of a real-world variant: an Effect acting at its physical stage, not registered in the catalogue."""
 
     name = "real_world"
+    #: True when the change is an independent draw per pixel with no large-scale part (a white fixed pattern,
+    #: e.g. a DSNU map): a frame made without the map shows it only as the law of its pixel values, an excess
+    #: scatter (:func:`scatter_sigma`), not as the template its truth chi2 assumes known
+    pixel_scatter = False
 
     def __init__(self, sensor, **params):
         super().__init__(SimpleNamespace(**params), sensor)
@@ -706,13 +710,26 @@ def make_frame(base: str, extra, levels: Levels, out: Path, seed: int = 11, work
     write_streamed(out, header, det.iter_frame(setup.signal_e, setup.exptime_s, seed, state=state),
                    sensor.output_shape, dtype, ext)
     support, truth_chi2 = effect_support(setup, det, added)
+    white = bool(added) and all(getattr(e, "pixel_scatter", False) for e in added)
     return {"measured": str(out), "support": support, "truth_chi2": truth_chi2,
+            "scatter_sigma": scatter_sigma(truth_chi2, support.size) if white and truth_chi2 is not None else None,
             "truth": [dict(type=type(e).__name__, **_jsonable(e.describe_truth()))
                       for e in added if isinstance(e, RealWorld)]}
 
 
 #: a pixel belongs to a hidden effect's support where it changes the expected frame by this many sigma
 SUPPORT_SIGMA = 0.2
+
+
+def scatter_sigma(truth_chi2: float, n_pixels: int) -> float:
+    """How many standard deviations one frame sees a white fixed pattern by [sigma]: without its map, a pattern
+    drawn independently per pixel (a DSNU, EMVA 1288 Release 4.0 sect. 8) only adds the variance sum(z^2) =
+    truth_chi2 to the frame's chi2 over ``n_pixels``, whose own scatter is sqrt(2 n) (a chi2 of n degrees of
+    freedom): truth_chi2 / sqrt(2 n). Its exact template (truth_chi2 >= 25) is what a second frame of the same
+    sensor (or the map) would give; one frame needs this to pass DETECTION_SIGMA, and even then a variance
+    proportional to a uniform dark signal is a read noise's too (only another exposure or dark level, or the law's
+    shape, tells them apart)."""
+    return float(truth_chi2) / float(np.sqrt(2.0 * max(int(n_pixels), 1)))
 
 
 def effect_support(setup, det: Detector, added: list) -> tuple[np.ndarray, float | None]:

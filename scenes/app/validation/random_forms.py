@@ -68,6 +68,7 @@ from scipy import ndimage, optimize, signal
 
 from detector.effects.base import Stage
 from detector.effects.blooming import bleed_columns
+from detector.significance import DETECTION_SIGMA
 
 from . import unseen as U
 
@@ -1350,6 +1351,7 @@ def run_case(case: RandomCase, workdir: Path, workers: int | None = None) -> dic
     row = U.diagnose_case(uc, model, Path(info["measured"]), info["support"], workdir, workers=workers)
     row.update(case.record())
     row.update(label=case.effect or f"ooc:{case.family}", truth_chi2=info["truth_chi2"],
+               scatter_sigma=info.get("scatter_sigma"),
                case_seconds=round(time.perf_counter() - t0, 1))
     return row
 
@@ -1410,10 +1412,11 @@ def _figures(rows: list[dict]) -> dict:
     ok = [r for r in rows if r.get("first") != "error"]
     cat = [r for r in ok if r.get("group") == "catalogue"]
     ooc = [r for r in ok if r.get("group") == "ooc"]
-    seen = [r for r in cat if _detectability(r) != "truth chi2 < 25"]
+    seen = [r for r in cat if _detectability(r) not in UNSEEN]
     return {"named_first": _frac(cat, lambda r: r.get("named_first")),
-            # the cases whose exact template could be seen at all (chi2 >= 25) or whose effect is a noise: "from
-            # strong to near the threshold", without the draws below any threshold
+            # the cases one frame can see at all (an exact template's chi2 >= 25, a white pattern's scatter at
+            # DETECTION_SIGMA) or whose effect is a noise: "from strong to near the threshold", without the draws
+            # below any threshold
             "named_first_seen": _frac(seen, lambda r: r.get("named_first")),
             "confidently_wrong": _frac(cat + ooc, lambda r: r.get("confidently_wrong")),
             "confidently_wrong_strict": _frac(cat, lambda r: r.get("confidently_wrong_strict")),
@@ -1425,11 +1428,22 @@ def _figures(rows: list[dict]) -> dict:
             "errors": len(rows) - len(ok)}
 
 
+#: the detectability classes below any single-frame threshold: an exact template's chi2 under 25 (DETECTION_SIGMA
+#: squared), a white pattern's excess scatter under DETECTION_SIGMA (:func:`.hidden.scatter_sigma`: its truth chi2
+#: is the template's, which one frame without the pattern's map does not have)
+BELOW_TEMPLATE = "truth chi2 < 25"
+BELOW_SCATTER = f"white pattern, scatter < {DETECTION_SIGMA:g} sigma in one frame"
+UNSEEN = (BELOW_TEMPLATE, BELOW_SCATTER)
+
+
 def _detectability(r) -> str:
     tc = r.get("truth_chi2")
+    ss = r.get("scatter_sigma")
+    if ss is not None and ss < DETECTION_SIGMA:
+        return BELOW_SCATTER
     if tc is None:
         return "noise or scatter (no template chi2)"
-    return "truth chi2 < 25" if tc < 25 else ("25 <= truth chi2 < 1000" if tc < 1000 else "truth chi2 >= 1000")
+    return BELOW_TEMPLATE if tc < 25 else ("25 <= truth chi2 < 1000" if tc < 1000 else "truth chi2 >= 1000")
 
 
 def summary(rows: list[dict]) -> dict:
@@ -1483,7 +1497,8 @@ def markdown(rows: list[dict], summ: dict, meta: dict) -> str:
     lines = [f"# Random forms, master seed {meta['seed']} ({meta['n']} cases, {meta['date']}, commit {meta['commit']})",
              "", "Figures with 95 % Wilson intervals.", "", "| metric | value |", "|---|---|",
              f"| named first (catalogue cases) | {_pct(o['named_first'])} |",
-             (f"| named first, the catalogue cases an exact template sees (truth chi2 >= 25) or noise forms | "
+             (f"| named first, the catalogue cases one frame can see (an exact template's truth chi2 >= 25, a white "
+              f"pattern's scatter >= {DETECTION_SIGMA:g} sigma) or noise forms | "
               f"{_pct(o['named_first_seen'])} |"),
              f"| confidently wrong (catalogue + out-of-catalogue cases) | {_pct(o['confidently_wrong'])} |",
              (f"| wrong first counting the ones flagged as not told apart (catalogue) | "
@@ -1520,7 +1535,9 @@ def markdown(rows: list[dict], summ: dict, meta: dict) -> str:
         mtxt = f"{mo.get('kind')} / {mo.get('geometry')}" + ("" if mo.get("significant") else " (n.s.)") if mo else "-"
         exp = ", ".join(r["accept"]) if r["accept"] else f"{r['kind']} / {', '.join(r['geometry'])}"
         first = f"{r['first']} ({U._f(r.get('first_delta_bic'))})" if r["first"] != "none" else "none"
-        lines.append(f"| {r['case']} | {r['base']} | {r['strength_t']:.2f} | {U._f(r.get('truth_chi2'))} | "
+        chi2 = U._f(r.get("truth_chi2")) + (f" (scatter {r['scatter_sigma']:.1f} sigma)"
+                                            if r.get("scatter_sigma") is not None else "")
+        lines.append(f"| {r['case']} | {r['base']} | {r['strength_t']:.2f} | {chi2} | "
                      f"{r['description']} | {first} | {exp} | {'**yes**' if r.get('confidently_wrong') else 'no'} | "
                      f"{mtxt} | {U._f(r.get('error_ratio'))} |")
     return "\n".join(lines) + "\n"

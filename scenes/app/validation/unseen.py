@@ -449,6 +449,7 @@ class LawDSNU(RealWorld):
 
     name = "uw_dsnu"
     stages = (Stage.DARK,)
+    pixel_scatter = True  # a white map: one frame sees its variance, not its template
 
     def apply(self, stage, tile, data):
         p = self.params
@@ -1730,8 +1731,8 @@ def run_case(name: str, workdir: Path, seed: int = 11, workers: int | None = Non
     model = write_scene(model_scene(case.base, case.effect), workdir / f"{name}.model.toml")
     info = make_frame(case.base, case.make, case.levels, workdir / f"{name}.fits", seed=seed, workers=workers)
     row = diagnose_case(case, model, Path(info["measured"]), info["support"], workdir, workers=workers)
-    row.update(truth=info["truth"], truth_chi2=info["truth_chi2"], levels=vars(case.levels),
-               case_seconds=round(time.perf_counter() - t0, 1))
+    row.update(truth=info["truth"], truth_chi2=info["truth_chi2"], scatter_sigma=info.get("scatter_sigma"),
+               levels=vars(case.levels), case_seconds=round(time.perf_counter() - t0, 1))
     return row
 
 
