@@ -323,13 +323,14 @@ def _dark_pattern_field(c: Candidate) -> bool:
 
 
 def same_dark_field(a: Candidate, b: Candidate) -> bool:
-    """A DSNU fitted with a large-scale part and an additive field of dark charge (a glow, a dark-rate gradient)
-    put the same dark charge in the same pixels: the dark-signal non-uniformity spans every spatial scale (EMVA
-    1288 Release 4.0, sect. 8.3: its spectrogram; Janesick 2007, Photon Transfer, ch. 7), and its large scales
-    are a field of dark rate, whatever form each fit gives it (a cosine series, a glow from an edge, a plane).
-    Their fitted forms may differ; which name the smooth dark charge gets is not in the data."""
-    return ((_dark_pattern_field(a) and _charge_origin(b) == "dark")
-            or (_dark_pattern_field(b) and _charge_origin(a) == "dark"))
+    """``a``, a DSNU fitted with a large-scale part, and ``b``, an additive field of dark charge (a glow, a
+    dark-rate gradient), put the same dark charge in the same pixels: the dark-signal non-uniformity spans every
+    spatial scale (EMVA 1288 Release 4.0, sect. 8.3: its spectrogram; Janesick 2007, Photon Transfer, ch. 7), and
+    its large scales are a field of dark rate. When the DSNU's general form (a cosine series times the dark
+    signal) comes first, the data say that a smooth dark charge is there, not which of the two names it has;
+    when a dark field's own form comes first (better on held-out pixels), it is a form the data prefer, and the
+    held-out scores alone decide whether the DSNU ties with it (not symmetric)."""
+    return _dark_pattern_field(a) and _charge_origin(b) == "dark"
 
 
 def same_image(a: Candidate, b: Candidate) -> bool:
@@ -350,8 +351,9 @@ def same_light(a: Candidate, b: Candidate) -> bool:
 TWIN_REASONS = (
     (same_charge, "the same charge in the same pixels, whose origin (dark or light) only a dark frame of the same "
                   "exposure tells"),
-    (same_dark_field, "the same dark charge in a smooth pattern: a DSNU's large scales are a field of dark rate "
-                      "(a glow or a dark-rate gradient is one too), whatever form each fit gives it"),
+    (lambda a, b: same_dark_field(a, b) or same_dark_field(b, a),
+     "the same dark charge in a smooth pattern: a DSNU's large scales are a field of dark rate (a glow or a "
+     "dark-rate gradient is one too), whatever form each fit gives it"),
     (same_scatter, "the same added variance in every pixel of this frame (a DSNU's grows as the dark signal "
                    "squared, a PRNU's as the light squared, a read noise's is constant: laws that agree where that "
                    "signal is uniform; a frame of another exposure or level tells them apart)"),

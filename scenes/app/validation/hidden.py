@@ -157,9 +157,9 @@ class RealWorld(Effect):
     """Base of a real-world variant: an Effect acting at its physical stage, not registered in the catalogue."""
 
     name = "real_world"
-    #: True when the change is an independent draw per pixel with no large-scale part (a white fixed pattern,
-    #: e.g. a DSNU map): a frame made without the map shows it only as the law of its pixel values, an excess
-    #: scatter (:func:`scatter_sigma`), not as the template its truth chi2 assumes known
+    #: True when the change is a fixed pattern drawn per pixel (a DSNU map, with or without large scales): a frame
+    #: made without the map shows its white part only as the law of its pixel values, an excess scatter, and its
+    #: large scales as a template (:func:`scatter_sigma`), not as the exact template its truth chi2 assumes known
     pixel_scatter = False
 
     def __init__(self, sensor, **params):
@@ -318,6 +318,7 @@ class GammaDSNU(RealWorld):
     plugin's white lognormal map)."""
 
     name = "rw_dsnu"
+    pixel_scatter = True
     stages = (Stage.DARK,)
 
     def apply(self, stage, tile, data):
@@ -709,10 +710,9 @@ def make_frame(base: str, extra, levels: Levels, out: Path, seed: int = 11, work
     ext = [scene_hdu(scene)] + [table_hdu(n, t) for n, t in det.truth(setup.exptime_s, seed, state).items()]
     write_streamed(out, header, det.iter_frame(setup.signal_e, setup.exptime_s, seed, state=state),
                    sensor.output_shape, dtype, ext)
-    support, truth_chi2 = effect_support(setup, det, added)
     white = bool(added) and all(getattr(e, "pixel_scatter", False) for e in added)
-    return {"measured": str(out), "support": support, "truth_chi2": truth_chi2,
-            "scatter_sigma": scatter_sigma(truth_chi2, support.size) if white and truth_chi2 is not None else None,
+    support, truth_chi2, scatter = effect_support(setup, det, added, white=white)
+    return {"measured": str(out), "support": support, "truth_chi2": truth_chi2, "scatter_sigma": scatter,
             "truth": [dict(type=type(e).__name__, **_jsonable(e.describe_truth()))
                       for e in added if isinstance(e, RealWorld)]}
 
@@ -721,32 +721,48 @@ def make_frame(base: str, extra, levels: Levels, out: Path, seed: int = 11, work
 SUPPORT_SIGMA = 0.2
 
 
-def scatter_sigma(truth_chi2: float, n_pixels: int) -> float:
-    """How many standard deviations one frame sees a white fixed pattern by [sigma]: without its map, a pattern
-    drawn independently per pixel (a DSNU, EMVA 1288 Release 4.0 sect. 8) only adds the variance sum(z^2) =
-    truth_chi2 to the frame's chi2 over ``n_pixels``, whose own scatter is sqrt(2 n) (a chi2 of n degrees of
-    freedom): truth_chi2 / sqrt(2 n). Its exact template (truth_chi2 >= 25) is what a second frame of the same
-    sensor (or the map) would give; one frame needs this to pass DETECTION_SIGMA, and even then a variance
-    proportional to a uniform dark signal is a read noise's too (only another exposure or dark level, or the law's
-    shape, tells them apart)."""
-    return float(truth_chi2) / float(np.sqrt(2.0 * max(int(n_pixels), 1)))
+def scatter_sigma(change: np.ndarray, var: np.ndarray) -> float:
+    """How many standard deviations one frame sees a fixed pattern by when it does not have the pattern's map
+    [sigma]: its large scales (the change smoothed over WHITE_SCALE output pixels, the scale below which the
+    diagnosis's variance fits take structure for scatter) as a template, sqrt(sum(smooth^2 / v)); the rest,
+    drawn independently per pixel (a DSNU, EMVA 1288 Release 4.0 sect. 8), only as the variance sum(white^2 / v)
+    it adds to the chi2 of n pixels, whose own scatter is sqrt(2 n): sum(white^2 / v) / sqrt(2 n). The larger of
+    the two. The pattern's exact template chi2 (the truth chi2) is what its map, or a second frame of the same
+    sensor, would give; and even a scatter seen in one frame, when it is proportional to a uniform dark signal,
+    is a read noise's too (only another exposure or dark level, or the law's shape, tells them apart)."""
+    from scipy.ndimage import gaussian_filter
+
+    from detector.signatures import WHITE_SCALE
+
+    change = np.asarray(change, np.float64)
+    var = np.asarray(var, np.float64)
+    smooth = gaussian_filter(change, WHITE_SCALE, mode="nearest")
+    smooth -= smooth.mean()  # a global level is the profiled levels' (bias, dark), not the pattern's
+    white = change - gaussian_filter(change, WHITE_SCALE, mode="nearest")
+    as_template = float(np.sqrt(np.sum(smooth * smooth / var)))
+    as_scatter = float(np.sum(white * white / var)) / float(np.sqrt(2.0 * change.size))
+    return max(as_template, as_scatter)
 
 
-def effect_support(setup, det: Detector, added: list) -> tuple[np.ndarray, float | None]:
+def effect_support(setup, det: Detector, added: list, white: bool = False
+                   ) -> tuple[np.ndarray, float | None, float | None]:
     """Where the hidden effect acts: output pixels whose expected value it changes by more than
-    SUPPORT_SIGMA model sigmas (every pixel for an effect that adds noise or scatter, or for none); and how
+    SUPPORT_SIGMA model sigmas (every pixel for an effect that adds noise or scatter, or for none); how
     detectable it is whatever the diagnosis: the chi2 that its exact template (the change of the expected
     frame, amplitude known) removes on a noise-free frame, sum((m1 - m0)^2 / v0) over every pixel (None for
     an effect that adds noise or scatter). Fitting that template's amplitude alone needs about 2 ln(N) of it
-    to pass a BIC test; a diagnosis that must also find the form's shape needs more."""
+    to pass a BIC test; a diagnosis that must also find the form's shape needs more. With ``white`` (a pattern
+    drawn per pixel, :attr:`RealWorld.pixel_scatter`), also how many sigma one frame sees it by without its map
+    (:func:`scatter_sigma`; None otherwise)."""
     shape = det.sensor.output_shape
     if not added or any(e.stochastic or e.stages == (Stage.CHARGE,) for e in added):
-        return np.ones(shape, bool), None
+        return np.ones(shape, bool), None, None
     m0, v0, _ = setup.detector.moments(setup.signal_e, setup.exptime_s)
     m1, _, _ = det.moments(setup.signal_e, setup.exptime_s)
     z2 = (m1 - m0) ** 2 / v0
     sup = z2 > SUPPORT_SIGMA ** 2
-    return (sup if sup.any() else np.ones(shape, bool)), float(np.sum(z2, dtype=np.float64))
+    return ((sup if sup.any() else np.ones(shape, bool)), float(np.sum(z2, dtype=np.float64)),
+            scatter_sigma(m1 - m0, v0) if white else None)
 
 
 def _jsonable(d: dict) -> dict:

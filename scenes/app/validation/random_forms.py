@@ -1414,8 +1414,8 @@ def _figures(rows: list[dict]) -> dict:
     ooc = [r for r in ok if r.get("group") == "ooc"]
     seen = [r for r in cat if _detectability(r) not in UNSEEN]
     return {"named_first": _frac(cat, lambda r: r.get("named_first")),
-            # the cases one frame can see at all (an exact template's chi2 >= 25, a white pattern's scatter at
-            # DETECTION_SIGMA) or whose effect is a noise: "from strong to near the threshold", without the draws
+            # the cases one frame can see at all (an exact template's chi2 >= 25, a pattern drawn per pixel at
+            # DETECTION_SIGMA without its map) or whose effect is a noise: "from strong to near the threshold", without the draws
             # below any threshold
             "named_first_seen": _frac(seen, lambda r: r.get("named_first")),
             "confidently_wrong": _frac(cat + ooc, lambda r: r.get("confidently_wrong")),
@@ -1429,10 +1429,11 @@ def _figures(rows: list[dict]) -> dict:
 
 
 #: the detectability classes below any single-frame threshold: an exact template's chi2 under 25 (DETECTION_SIGMA
-#: squared), a white pattern's excess scatter under DETECTION_SIGMA (:func:`.hidden.scatter_sigma`: its truth chi2
-#: is the template's, which one frame without the pattern's map does not have)
+#: squared), a pattern drawn per pixel seen by one frame without its map (its large scales as a template, the rest
+#: as excess scatter: :func:`.hidden.scatter_sigma`) under DETECTION_SIGMA: its truth chi2 is the exact map's,
+#: which one frame does not have
 BELOW_TEMPLATE = "truth chi2 < 25"
-BELOW_SCATTER = f"white pattern, scatter < {DETECTION_SIGMA:g} sigma in one frame"
+BELOW_SCATTER = f"pixel pattern, < {DETECTION_SIGMA:g} sigma in one frame"
 UNSEEN = (BELOW_TEMPLATE, BELOW_SCATTER)
 
 
@@ -1497,8 +1498,8 @@ def markdown(rows: list[dict], summ: dict, meta: dict) -> str:
     lines = [f"# Random forms, master seed {meta['seed']} ({meta['n']} cases, {meta['date']}, commit {meta['commit']})",
              "", "Figures with 95 % Wilson intervals.", "", "| metric | value |", "|---|---|",
              f"| named first (catalogue cases) | {_pct(o['named_first'])} |",
-             (f"| named first, the catalogue cases one frame can see (an exact template's truth chi2 >= 25, a white "
-              f"pattern's scatter >= {DETECTION_SIGMA:g} sigma) or noise forms | "
+             (f"| named first, the catalogue cases one frame can see (an exact template's truth chi2 >= 25, a pattern "
+              f"drawn per pixel >= {DETECTION_SIGMA:g} sigma without its map) or noise forms | "
               f"{_pct(o['named_first_seen'])} |"),
              f"| confidently wrong (catalogue + out-of-catalogue cases) | {_pct(o['confidently_wrong'])} |",
              (f"| wrong first counting the ones flagged as not told apart (catalogue) | "
@@ -1535,7 +1536,7 @@ def markdown(rows: list[dict], summ: dict, meta: dict) -> str:
         mtxt = f"{mo.get('kind')} / {mo.get('geometry')}" + ("" if mo.get("significant") else " (n.s.)") if mo else "-"
         exp = ", ".join(r["accept"]) if r["accept"] else f"{r['kind']} / {', '.join(r['geometry'])}"
         first = f"{r['first']} ({U._f(r.get('first_delta_bic'))})" if r["first"] != "none" else "none"
-        chi2 = U._f(r.get("truth_chi2")) + (f" (scatter {r['scatter_sigma']:.1f} sigma)"
+        chi2 = U._f(r.get("truth_chi2")) + (f" (one frame {r['scatter_sigma']:.1f} sigma)"
                                             if r.get("scatter_sigma") is not None else "")
         lines.append(f"| {r['case']} | {r['base']} | {r['strength_t']:.2f} | {chi2} | "
                      f"{r['description']} | {first} | {exp} | {'**yes**' if r.get('confidently_wrong') else 'no'} | "

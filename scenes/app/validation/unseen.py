@@ -449,7 +449,7 @@ class LawDSNU(RealWorld):
 
     name = "uw_dsnu"
     stages = (Stage.DARK,)
-    pixel_scatter = True  # a white map: one frame sees its variance, not its template
+    pixel_scatter = True
 
     def apply(self, stage, tile, data):
         p = self.params
