@@ -541,8 +541,9 @@ def test_a_dsnu_with_large_scales_and_a_dark_field_are_the_same_dark_charge():
                      heldout=-1500.0)
     assert same_dark_field(dsnu, dark) and not same_dark_field(dark, dsnu)
     assert not same_dark_field(white, dark) and not same_dark_field(dsnu, bias)
-    glow = Candidate(Fit("amp_glow", {}, -3000.0, 6, 4096, "a glow", delta_adu=field), 1.0, 0.0, heldout=-3000.0)
-    assert indistinguishable([glow, dsnu]) == []
+    glow = Candidate(Fit("amp_glow", {}, -3000.0, 6, 4096, "a glow", delta_adu=field, extra_var_adu2=var), 1.0, 0.0,
+                     heldout=-3000.0)  # its charge's shot noise: a variance too, but no pattern
+    assert indistinguishable([glow, dsnu]) == [] and not same_dark_field(glow, dark)
     assert [c.fit.effect for c in indistinguishable([dsnu, dark, bias])] == ["dark_gradient"]
     assert "cannot tell it apart from dark_gradient: the same dark charge in a smooth pattern" in verdict(
         [dsnu, dark, bias])

@@ -315,11 +315,12 @@ def same_scatter(a: Candidate, b: Candidate) -> bool:
 
 
 def _dark_pattern_field(c: Candidate) -> bool:
-    """A fixed pattern of the dark charge (a DSNU) whose fit carries a large-scale part: a mean change of dark
-    charge besides its added scatter."""
+    """A fixed pattern of the dark charge fitted as added scatter (a DSNU: a hardware pattern with a variance
+    signature) whose fit carries a large-scale part: a mean change of dark charge besides its scatter. (A glow or
+    a dark-rate gradient also carries a variance, the shot noise of its charge, but is no pattern.)"""
     cls = registry().get(c.fit.effect)
-    return (c.kind == "effect" and cls is not None and tuple(cls.stages) == (Stage.DARK,)
-            and c.fit.extra_var_adu2 is not None and c.fit.delta_adu is not None)
+    return (c.kind == "effect" and cls is not None and cls.pattern and tuple(cls.stages) == (Stage.DARK,)
+            and getattr(cls.signature, "kind", "") == "variance" and c.fit.delta_adu is not None)
 
 
 def same_dark_field(a: Candidate, b: Candidate) -> bool:
