@@ -736,9 +736,9 @@ def scatter_sigma(change: np.ndarray, var: np.ndarray) -> float:
 
     change = np.asarray(change, np.float64)
     var = np.asarray(var, np.float64)
-    smooth = gaussian_filter(change, WHITE_SCALE, mode="nearest")
-    smooth -= smooth.mean()  # a global level is the profiled levels' (bias, dark), not the pattern's
-    white = change - gaussian_filter(change, WHITE_SCALE, mode="nearest")
+    local = gaussian_filter(change, WHITE_SCALE, mode="nearest")
+    smooth = local - local.mean()  # a global level is the profiled levels' (bias, dark), not the pattern's
+    white = change - local
     as_template = float(np.sqrt(np.sum(smooth * smooth / var)))
     as_scatter = float(np.sum(white * white / var)) / float(np.sqrt(2.0 * change.size))
     return max(as_template, as_scatter)
