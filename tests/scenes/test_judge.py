@@ -521,6 +521,34 @@ def test_a_dsnu_and_a_read_noise_are_the_same_scatter_where_the_dark_is_uniform(
         Fit("dsnu", {}, -151.0, 2, 4096, "a dsnu", extra_var_adu2=0.04 * dark ** 2), 1.0, 0.0, heldout=-60.0)])
 
 
+def test_a_dsnu_with_large_scales_and_a_dark_field_are_the_same_dark_charge():
+    """A DSNU whose fit carries a large-scale part (a mean change of dark charge) and an additive field of dark
+    charge (a dark-rate gradient, a glow) put the same dark charge in the same pixels (EMVA 1288 sect. 8.3: the
+    DSNU spans every spatial scale): named as not told apart whatever their held-out scores; a white DSNU (no
+    mean change) is no such twin, nor is a bias structure (added at read-out); a dark field whose own form comes
+    first (better on held-out pixels) is a form the data prefer, tied with the DSNU only by the held-out scores."""
+    from scenes.app.compare.judge import indistinguishable, same_dark_field, verdict
+
+    shape = (64, 64)
+    field = np.broadcast_to(np.linspace(-3.0, 3.0, shape[1]), shape).astype(np.float32)
+    var = np.full(shape, 2.0, np.float32)
+    dsnu = Candidate(Fit("dsnu", {}, -2400.0, 20, 4096, "a dsnu with large scales", delta_adu=field,
+                         extra_var_adu2=var), 1.0, 0.0, heldout=-2300.0)
+    white = Candidate(Fit("dsnu", {}, -2400.0, 2, 4096, "a white dsnu", extra_var_adu2=var), 1.0, 0.0, heldout=-2300.0)
+    dark = Candidate(Fit("dark_gradient", {}, -1600.0, 2, 4096, "a dark-rate field", delta_adu=field), 1.0, 0.0,
+                     heldout=-1600.0)
+    bias = Candidate(Fit("bias_gradient", {}, -1500.0, 3, 4096, "a bias ramp", delta_adu=field), 1.0, 0.0,
+                     heldout=-1500.0)
+    assert same_dark_field(dsnu, dark) and not same_dark_field(dark, dsnu)
+    assert not same_dark_field(white, dark) and not same_dark_field(dsnu, bias)
+    glow = Candidate(Fit("amp_glow", {}, -3000.0, 6, 4096, "a glow", delta_adu=field, extra_var_adu2=var), 1.0, 0.0,
+                     heldout=-3000.0)  # its charge's shot noise: a variance too, but no pattern
+    assert indistinguishable([glow, dsnu]) == [] and not same_dark_field(glow, dark)
+    assert [c.fit.effect for c in indistinguishable([dsnu, dark, bias])] == ["dark_gradient"]
+    assert "cannot tell it apart from dark_gradient: the same dark charge in a smooth pattern" in verdict(
+        [dsnu, dark, bias])
+
+
 def test_an_ipc_the_frame_cannot_tell_from_a_blur_is_named_with_it():
     """An IPC whose own physics says this frame cannot tell it from a blur of the light (``untold``) is named
     with psf_blur as not told apart, even when the blur's form scores short of the held-out bar (a contender:

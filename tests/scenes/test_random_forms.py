@@ -165,6 +165,37 @@ def test_truth_chi2_after_levels_leaves_out_what_a_level_takes():
     assert R.HE["truth_chi2_after_levels"](res, None) is None
 
 
+def test_a_dsnu_is_judged_by_what_one_frame_sees_of_it(tmp_path):
+    """A DSNU map drawn per pixel has a truth chi2 (its exact template) far above 25, but one frame without the map
+    sees its white part only as added variance: sum(z^2) / sqrt(2 N) sigma (a chi2 of N pixels scatters by
+    sqrt(2 N)). A uniform-law DSNU of 10 % on the 300 s dark (15 e- of dark, 11 e- of read noise per pixel) adds
+    (1.5 e-)^2 / (15 + 121) e-^2 = 1.7 % to each pixel's variance: about 1e3 of chi2 over 65536 pixels, 3 sigma
+    as scatter, below one frame's detection and out of the report's 'seen' figure. A DSNU with a 15 % low-frequency
+    part is seen by one frame as that part's template (tens of sigma)."""
+    def frame(cls, prm):
+        case = R.RandomCase("dsnu", 1, R.Draw("dark_s", [(cls, prm)], "test", 0.5, accept=("dsnu",)))
+        return R.HE["make_frame"](case.draw.base, case.make, case.levels, tmp_path / "d.fits", seed=3, workers=1)
+
+    info = frame("LawDSNU", {"law": "uniform", "sigma": 0.1})
+    n = info["support"].size
+    assert n == 256 * 256
+    assert info["truth_chi2"] == pytest.approx(n * (0.1 * 15.0) ** 2 / (15.0 + 11.0 ** 2), rel=0.1)
+    assert info["scatter_sigma"] == pytest.approx(info["truth_chi2"] / math.sqrt(2 * n), rel=0.02)
+    assert 25 < info["truth_chi2"] and info["scatter_sigma"] < R.DETECTION_SIGMA
+    lf = frame("GammaDSNU", {"sigma": 0.08, "lf_rms": 0.15})
+    assert lf["scatter_sigma"] > 4 * R.DETECTION_SIGMA
+    rows = [{"case": "dsnu-1", "family": "dsnu", "camera": "ml11002", "strength_t": 0.5, "group": "catalogue",
+             "label": "dsnu", "first": "none", "named_first": False, "confidently_wrong": False, "accept": ["dsnu"],
+             "truth_chi2": info["truth_chi2"], "scatter_sigma": info["scatter_sigma"], "before": {},
+             "error_ratio": None},
+            {"case": "dsnu-2", "family": "dsnu", "camera": "ml11002", "strength_t": 0.9, "group": "catalogue",
+             "label": "dsnu", "first": "dsnu", "named_first": True, "confidently_wrong": False, "accept": ["dsnu"],
+             "truth_chi2": 1e5, "scatter_sigma": 300.0, "before": {}, "error_ratio": 0.1}]
+    s = R.summary(rows)
+    assert (s["overall"]["named_first_seen"]["n"], s["overall"]["named_first_seen"]["of"]) == (1, 1)
+    assert R.BELOW_SCATTER in s["by_detectability"] and "truth chi2 >= 1000" in s["by_detectability"]
+
+
 def test_summary_counts_and_confusions():
     """The report's figures: named first over catalogue cases, confidently wrong over every effect case (a first
     name flagged as not told apart from an accepted one is ambiguous, not wrong), the right kind for the

@@ -319,6 +319,26 @@ def same_scatter(a: Candidate, b: Candidate) -> bool:
     return float(np.std(ratio)) <= SAME_SCATTER_TOLERANCE * float(np.mean(ratio))
 
 
+def _dark_pattern_field(c: Candidate) -> bool:
+    """A fixed pattern of the dark charge fitted as added scatter (a DSNU: a hardware pattern with a variance
+    signature) whose fit carries a large-scale part: a mean change of dark charge besides its scatter. (A glow or
+    a dark-rate gradient also carries a variance, the shot noise of its charge, but is no pattern.)"""
+    cls = registry().get(c.fit.effect)
+    return (c.kind == "effect" and cls is not None and cls.pattern and tuple(cls.stages) == (Stage.DARK,)
+            and getattr(cls.signature, "kind", "") == "variance" and c.fit.delta_adu is not None)
+
+
+def same_dark_field(a: Candidate, b: Candidate) -> bool:
+    """``a``, a DSNU fitted with a large-scale part, and ``b``, an additive field of dark charge (a glow, a
+    dark-rate gradient), put the same dark charge in the same pixels: the dark-signal non-uniformity spans every
+    spatial scale (EMVA 1288 Release 4.0, sect. 8.3: its spectrogram; Janesick 2007, Photon Transfer, ch. 7), and
+    its large scales are a field of dark rate. When the DSNU's general form (a cosine series times the dark
+    signal) comes first, the data say that a smooth dark charge is there, not which of the two names it has;
+    when a dark field's own form comes first (better on held-out pixels), it is a form the data prefer, and the
+    held-out scores alone decide whether the DSNU ties with it (not symmetric)."""
+    return _dark_pattern_field(a) and _charge_origin(b) == "dark"
+
+
 def same_image(a: Candidate, b: Candidate) -> bool:
     """One of the two says, by its own physics, that this frame cannot tell it from the other (the same image
     made at another stage: a coupling of the pixels' charge and a blur of the light, :attr:`Candidate.untold`)."""
@@ -337,6 +357,9 @@ def same_light(a: Candidate, b: Candidate) -> bool:
 TWIN_REASONS = (
     (same_charge, "the same charge in the same pixels, whose origin (dark or light) only a dark frame of the same "
                   "exposure tells"),
+    (lambda a, b: same_dark_field(a, b) or same_dark_field(b, a),
+     "the same dark charge in a smooth pattern: a DSNU's large scales are a field of dark rate (a glow or a "
+     "dark-rate gradient is one too), whatever form each fit gives it"),
     (same_scatter, "the same added variance in every pixel of this frame (a DSNU's grows as the dark signal "
                    "squared, a PRNU's as the light squared, a read noise's is constant: laws that agree where that "
                    "signal is uniform; a frame of another exposure or level tells them apart)"),
@@ -355,7 +378,8 @@ TWIN_REASONS = (
 def indistinguishable(sig: list[Candidate], cands: list[Candidate] = ()) -> list[Candidate]:
     """The significant candidates after the first whose held-out score is as good as the first's (within the
     policy's twin fraction, and within the scores' own scatter ~ sqrt(2 |score|)), and those that put the same
-    charge in the same pixels by another origin (:func:`same_charge`) or add the same scatter
+    charge in the same pixels by another origin (:func:`same_charge`), the same smooth dark charge under a DSNU's
+    large scales and a dark field (:func:`same_dark_field`) or add the same scatter
     (:func:`same_scatter`); then, of ``cands``, the contenders
     (significant by delta BIC, plausible, not rejected) that make the same image as the first in this frame
     (:func:`same_image`): a form of the same image whose held-out score falls short does not make the data
@@ -366,7 +390,8 @@ def indistinguishable(sig: list[Candidate], cands: list[Candidate] = ()) -> list
     best = sig[0].heldout
     tol = twin_tolerance(best, sig[0].policy) if best is not None else 0.0
     out = [c for c in sig[1:] if (best is not None and c.heldout is not None and c.heldout - best <= tol)
-           or same_charge(sig[0], c) or same_scatter(sig[0], c) or same_image(sig[0], c)]
+           or same_charge(sig[0], c) or same_dark_field(sig[0], c) or same_scatter(sig[0], c)
+           or same_image(sig[0], c)]
     out += [c for c in cands if c.kind != "parameter" and c is not sig[0] and c not in out and not c.significant
             and ((c.contender or _other_law(sig[0], c)) and same_image(sig[0], c)
                  or c.contender and blind_rival(sig[0], c))]

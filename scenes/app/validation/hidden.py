@@ -157,6 +157,10 @@ class RealWorld(Effect):
     """Base of a real-world variant: an Effect acting at its physical stage, not registered in the catalogue."""
 
     name = "real_world"
+    #: True when the change is a fixed pattern drawn per pixel (a DSNU map, with or without large scales): a frame
+    #: made without the map shows its white part only as the law of its pixel values, an excess scatter, and its
+    #: large scales as a template (:func:`scatter_sigma`), not as the exact template its truth chi2 assumes known
+    pixel_scatter = False
 
     def __init__(self, sensor, **params):
         super().__init__(SimpleNamespace(**params), sensor)
@@ -314,6 +318,7 @@ class GammaDSNU(RealWorld):
     plugin's white lognormal map)."""
 
     name = "rw_dsnu"
+    pixel_scatter = True
     stages = (Stage.DARK,)
 
     def apply(self, stage, tile, data):
@@ -705,8 +710,10 @@ def make_frame(base: str, extra, levels: Levels, out: Path, seed: int = 11, work
     ext = [scene_hdu(scene)] + [table_hdu(n, t) for n, t in det.truth(setup.exptime_s, seed, state).items()]
     write_streamed(out, header, det.iter_frame(setup.signal_e, setup.exptime_s, seed, state=state),
                    sensor.output_shape, dtype, ext)
-    support, truth_chi2, change = effect_support(setup, det, added, with_change=True)
-    return {"measured": str(out), "support": support, "truth_chi2": truth_chi2, "truth_change_adu": change,
+    white = bool(added) and all(getattr(e, "pixel_scatter", False) for e in added)
+    support, truth_chi2, scatter, change = effect_support(setup, det, added, white=white, with_change=True)
+    return {"measured": str(out), "support": support, "truth_chi2": truth_chi2, "scatter_sigma": scatter,
+            "truth_change_adu": change,
             "truth": [dict(type=type(e).__name__, **_jsonable(e.describe_truth()))
                       for e in added if isinstance(e, RealWorld)]}
 
@@ -715,23 +722,48 @@ def make_frame(base: str, extra, levels: Levels, out: Path, seed: int = 11, work
 SUPPORT_SIGMA = 0.2
 
 
-def effect_support(setup, det: Detector, added: list, with_change: bool = False) -> tuple:
+def scatter_sigma(change: np.ndarray, var: np.ndarray) -> float:
+    """How many standard deviations one frame sees a fixed pattern by when it does not have the pattern's map
+    [sigma]: its large scales (the change smoothed over WHITE_SCALE output pixels, the scale below which the
+    diagnosis's variance fits take structure for scatter) as a template, sqrt(sum(smooth^2 / v)); the rest,
+    drawn independently per pixel (a DSNU, EMVA 1288 Release 4.0 sect. 8), only as the variance sum(white^2 / v)
+    it adds to the chi2 of n pixels, whose own scatter is sqrt(2 n): sum(white^2 / v) / sqrt(2 n). The larger of
+    the two. The pattern's exact template chi2 (the truth chi2) is what its map, or a second frame of the same
+    sensor, would give; and even a scatter seen in one frame, when it is proportional to a uniform dark signal,
+    is a read noise's too (only another exposure or dark level, or the law's shape, tells them apart)."""
+    from scipy.ndimage import gaussian_filter
+
+    from detector.signatures import WHITE_SCALE
+
+    change = np.asarray(change, np.float64)
+    var = np.asarray(var, np.float64)
+    local = gaussian_filter(change, WHITE_SCALE, mode="nearest")
+    smooth = local - local.mean()  # a global level is the profiled levels' (bias, dark), not the pattern's
+    white = change - local
+    as_template = float(np.sqrt(np.sum(smooth * smooth / var)))
+    as_scatter = float(np.sum(white * white / var)) / float(np.sqrt(2.0 * change.size))
+    return max(as_template, as_scatter)
+
+
+def effect_support(setup, det: Detector, added: list, white: bool = False, with_change: bool = False) -> tuple:
     """Where the hidden effect acts: output pixels whose expected value it changes by more than
-    SUPPORT_SIGMA model sigmas (every pixel for an effect that adds noise or scatter, or for none); and how
+    SUPPORT_SIGMA model sigmas (every pixel for an effect that adds noise or scatter, or for none); how
     detectable it is whatever the diagnosis: the chi2 that its exact template (the change of the expected
     frame, amplitude known) removes on a noise-free frame, sum((m1 - m0)^2 / v0) over every pixel (None for
     an effect that adds noise or scatter). Fitting that template's amplitude alone needs about 2 ln(N) of it
-    to pass a BIC test; a diagnosis that must also find the form's shape needs more. With ``with_change``, the
-    change of the expected frame ``m1 - m0`` [ADU] too (None where there is no chi2), for
-    :func:`truth_chi2_after_levels`."""
+    to pass a BIC test; a diagnosis that must also find the form's shape needs more. With ``white`` (a pattern
+    drawn per pixel, :attr:`RealWorld.pixel_scatter`), also how many sigma one frame sees it by without its map
+    (:func:`scatter_sigma`; None otherwise). With ``with_change``, the change of the expected frame ``m1 - m0``
+    [ADU] too (None where there is no chi2), for :func:`truth_chi2_after_levels`."""
     shape = det.sensor.output_shape
     if not added or any(e.stochastic or e.stages == (Stage.CHARGE,) for e in added):
-        return (np.ones(shape, bool), None) + ((None,) if with_change else ())
+        return (np.ones(shape, bool), None, None) + ((None,) if with_change else ())
     m0, v0, _ = setup.detector.moments(setup.signal_e, setup.exptime_s)
     m1, _, _ = det.moments(setup.signal_e, setup.exptime_s)
     z2 = (m1 - m0) ** 2 / v0
     sup = z2 > SUPPORT_SIGMA ** 2
-    out = (sup if sup.any() else np.ones(shape, bool)), float(np.sum(z2, dtype=np.float64))
+    out = ((sup if sup.any() else np.ones(shape, bool)), float(np.sum(z2, dtype=np.float64)),
+           scatter_sigma(m1 - m0, v0) if white else None)
     return out + (((m1 - m0).astype(np.float32),) if with_change else ())
 
 

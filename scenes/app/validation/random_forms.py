@@ -68,6 +68,7 @@ from scipy import ndimage, optimize, signal
 
 from detector.effects.base import Stage
 from detector.effects.blooming import bleed_columns
+from detector.significance import DETECTION_SIGMA
 
 from . import unseen as U
 
@@ -1351,6 +1352,7 @@ def run_case(case: RandomCase, workdir: Path, workers: int | None = None) -> dic
                           truth_change_adu=info.get("truth_change_adu"))
     row.update(case.record())
     row.update(label=case.effect or f"ooc:{case.family}", truth_chi2=info["truth_chi2"],
+               scatter_sigma=info.get("scatter_sigma"),
                case_seconds=round(time.perf_counter() - t0, 1))
     return row
 
@@ -1411,15 +1413,16 @@ def _figures(rows: list[dict]) -> dict:
     ok = [r for r in rows if r.get("first") != "error"]
     cat = [r for r in ok if r.get("group") == "catalogue"]
     ooc = [r for r in ok if r.get("group") == "ooc"]
-    seen = [r for r in cat if _detectability(r) != "truth chi2 < 25"]
+    seen = [r for r in cat if _detectability(r) not in UNSEEN]
     return {"named_first": _frac(cat, lambda r: r.get("named_first")),
-            # the cases whose exact template could be seen at all (chi2 >= 25) or whose effect is a noise: "from
-            # strong to near the threshold", without the draws below any threshold
+            # the cases one frame can see at all (an exact template's chi2 >= 25, a pattern drawn per pixel at
+            # DETECTION_SIGMA without its map) or whose effect is a noise: "from strong to near the threshold", without the draws
+            # below any threshold
             "named_first_seen": _frac(seen, lambda r: r.get("named_first")),
             # the same, with the template's chi2 left once the frame's global levels took what they can of it on
             # the pixels the diagnosis fits (.hidden.truth_chi2_after_levels; rows without it count as before)
-            "named_first_seen_levels": _frac([r for r in cat if _detectability(r, after_levels=True)
-                                              != "truth chi2 < 25"], lambda r: r.get("named_first")),
+            "named_first_seen_levels": _frac([r for r in cat if _detectability(r, after_levels=True) not in UNSEEN],
+                                              lambda r: r.get("named_first")),
             "confidently_wrong": _frac(cat + ooc, lambda r: r.get("confidently_wrong")),
             "confidently_wrong_strict": _frac(cat, lambda r: r.get("confidently_wrong_strict")),
             "ambiguous_right": _frac(cat, lambda r: r.get("cannot_tell_apart") and not r.get("named_first")
@@ -1430,13 +1433,25 @@ def _figures(rows: list[dict]) -> dict:
             "errors": len(rows) - len(ok)}
 
 
+#: the detectability classes below any single-frame threshold: an exact template's chi2 under 25 (DETECTION_SIGMA
+#: squared), a pattern drawn per pixel seen by one frame without its map (its large scales as a template, the rest
+#: as excess scatter: :func:`.hidden.scatter_sigma`) under DETECTION_SIGMA: its truth chi2 is the exact map's,
+#: which one frame does not have
+BELOW_TEMPLATE = "truth chi2 < 25"
+BELOW_SCATTER = f"pixel pattern, < {DETECTION_SIGMA:g} sigma in one frame"
+UNSEEN = (BELOW_TEMPLATE, BELOW_SCATTER)
+
+
 def _detectability(r, after_levels: bool = False) -> str:
     tc = r.get("truth_chi2")
     if after_levels and r.get("truth_chi2_levels") is not None:
         tc = r["truth_chi2_levels"]
+    ss = r.get("scatter_sigma")
+    if ss is not None and ss < DETECTION_SIGMA:
+        return BELOW_SCATTER
     if tc is None:
         return "noise or scatter (no template chi2)"
-    return "truth chi2 < 25" if tc < 25 else ("25 <= truth chi2 < 1000" if tc < 1000 else "truth chi2 >= 1000")
+    return BELOW_TEMPLATE if tc < 25 else ("25 <= truth chi2 < 1000" if tc < 1000 else "truth chi2 >= 1000")
 
 
 def summary(rows: list[dict]) -> dict:
@@ -1490,7 +1505,8 @@ def markdown(rows: list[dict], summ: dict, meta: dict) -> str:
     lines = [f"# Random forms, master seed {meta['seed']} ({meta['n']} cases, {meta['date']}, commit {meta['commit']})",
              "", "Figures with 95 % Wilson intervals.", "", "| metric | value |", "|---|---|",
              f"| named first (catalogue cases) | {_pct(o['named_first'])} |",
-             (f"| named first, the catalogue cases an exact template sees (truth chi2 >= 25) or noise forms | "
+             (f"| named first, the catalogue cases one frame can see (an exact template's truth chi2 >= 25, a pattern "
+              f"drawn per pixel >= {DETECTION_SIGMA:g} sigma without its map) or noise forms | "
               f"{_pct(o['named_first_seen'])} |"),
              (f"| named first, the same with the template's chi2 after the frame's global levels (on the fitted "
               f"pixels) >= 25 | {_pct(o['named_first_seen_levels'])} |"),
@@ -1530,8 +1546,9 @@ def markdown(rows: list[dict], summ: dict, meta: dict) -> str:
         exp = ", ".join(r["accept"]) if r["accept"] else f"{r['kind']} / {', '.join(r['geometry'])}"
         first = f"{r['first']} ({U._f(r.get('first_delta_bic'))})" if r["first"] != "none" else "none"
         tcl = r.get("truth_chi2_levels")
-        tc = U._f(r.get("truth_chi2")) + ("" if tcl is None else f" ({U._f(tcl)} after levels)")
-        lines.append(f"| {r['case']} | {r['base']} | {r['strength_t']:.2f} | {tc} | "
+        chi2 = (U._f(r.get("truth_chi2")) + ("" if tcl is None else f" ({U._f(tcl)} after levels)")
+                + (f" (one frame {r['scatter_sigma']:.1f} sigma)" if r.get("scatter_sigma") is not None else ""))
+        lines.append(f"| {r['case']} | {r['base']} | {r['strength_t']:.2f} | {chi2} | "
                      f"{r['description']} | {first} | {exp} | {'**yes**' if r.get('confidently_wrong') else 'no'} | "
                      f"{mtxt} | {U._f(r.get('error_ratio'))} |")
     return "\n".join(lines) + "\n"

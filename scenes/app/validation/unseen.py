@@ -450,6 +450,7 @@ class LawDSNU(RealWorld):
 
     name = "uw_dsnu"
     stages = (Stage.DARK,)
+    pixel_scatter = True
 
     def apply(self, stage, tile, data):
         p = self.params
@@ -1733,8 +1734,8 @@ def run_case(name: str, workdir: Path, seed: int = 11, workers: int | None = Non
     info = make_frame(case.base, case.make, case.levels, workdir / f"{name}.fits", seed=seed, workers=workers)
     row = diagnose_case(case, model, Path(info["measured"]), info["support"], workdir, workers=workers,
                         truth_change_adu=info.get("truth_change_adu"))
-    row.update(truth=info["truth"], truth_chi2=info["truth_chi2"], levels=vars(case.levels),
-               case_seconds=round(time.perf_counter() - t0, 1))
+    row.update(truth=info["truth"], truth_chi2=info["truth_chi2"], scatter_sigma=info.get("scatter_sigma"),
+               levels=vars(case.levels), case_seconds=round(time.perf_counter() - t0, 1))
     return row
 
 
