@@ -823,14 +823,16 @@ def _lines_through_sources(res: Residuals, lm, lw, okl, axis: int, excess: float
     return slope
 
 
-#: a line profile is periodic when one frequency holds this share of its power beyond the noise ...
-LINE_PERIOD_SHARE = 0.3
+#: a line profile is periodic when one frequency holds this share of its power beyond the noise: most of it,
+#: EXPLAINS_MOST (the bar of :data:`detector.effects.readout.KTC_PERIODIC_SHARE` for a claimed excess variance
+#: that one frequency holds) ...
+LINE_PERIOD_SHARE = EXPLAINS_MOST
 #: ... and stands this many times above the noise's mean power (a chi2 with 2 dof: e^-30 per frequency): the
 #: bar of a spectral line significant on its own, PERIODIC_CONTRAST
 LINE_PERIOD_POWER = PERIODIC_CONTRAST
 #: ... and this many times above the median power of its neighbouring frequencies on either side (a line, not
-#: a red continuum) ...
-LINE_PERIOD_CONTRAST = 10.0
+#: a red continuum): the bar of a periodogram peak over the median, PERIODIC_CONTRAST ...
+LINE_PERIOD_CONTRAST = PERIODIC_CONTRAST
 #: ... with at least this many cycles across the frame (fewer: a smooth curve, as the periodic maps take it)
 LINE_PERIOD_MIN_CYCLES = 6
 
@@ -961,8 +963,9 @@ def _periodic_map(rmap: np.ndarray, wmap: np.ndarray, light: np.ndarray, kind: s
 #: frame search's FRAME_FALSE_ALARM)
 MAP_FALSE_ALARM = FRAME_FALSE_ALARM
 #: a seeded feature is grown down to where its matched-filter S/N falls to this many sigma (below it the
-#: feature is not told from the noise)
-MAP_GROW_SIGMA = 2.0
+#: feature is not told from the noise): a part of a detected whole, FOOTPRINT_SIGMA (as a spike's group is grown,
+#: :data:`detector.signatures.GROW_SIGMA`)
+MAP_GROW_SIGMA = FOOTPRINT_SIGMA
 #: the per-source profile of the empirical map extends at most this far [output px]
 PROFILE_MAX_PX = 32
 
