@@ -914,8 +914,9 @@ PERIODIC_PEAKS = 3
 
 def _periodic_map(rmap: np.ndarray, wmap: np.ndarray, light: np.ndarray, kind: str, row_var: float = 0.0) -> dict:
     """The empirical map of a periodic pattern: the residual [ADU] band-passed around its strongest spatial
-    frequencies (a smooth part, below 6 cycles across the frame, left out), on the whole frame; the ``fx = 0``
-    column weighed against the power row noise (``row_var`` [ADU^2]) puts there (:func:`row_power_factor`).
+    frequencies (a smooth part, below LINE_PERIOD_MIN_CYCLES cycles across the frame, left out), on the whole
+    frame; the ``fx = 0`` column weighed against the power row noise (``row_var`` [ADU^2]) puts there
+    (:func:`row_power_factor`).
 
     The frequencies are taken one at a time, each from what the ones before leave (CLEAN: Roberts, Lehar &
     Dreher 1987, AJ 93, 968): the periodogram of a residual with unfitted pixels (masked sources, the other
@@ -932,7 +933,7 @@ def _periodic_map(rmap: np.ndarray, wmap: np.ndarray, light: np.ndarray, kind: s
     g_row = row_power_factor(wmap, row_var, whitened=False)
     fy = np.fft.fftfreq(r.shape[0])[:, None]
     fx = np.fft.rfftfreq(r.shape[1])[None, :]
-    low = np.hypot(fy * r.shape[0], fx * r.shape[1]) < 6.0
+    low = np.hypot(fy * r.shape[0], fx * r.shape[1]) < LINE_PERIOD_MIN_CYCLES
     iy, ix = np.mgrid[: low.shape[0], : low.shape[1]]
     amap = np.zeros(r.shape, np.float64)
     for _ in range(PERIODIC_PEAKS):
