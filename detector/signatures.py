@@ -2090,7 +2090,7 @@ class VarianceSignature(Signature):
             med = float(np.median(ratios))
             where = (f"it sits in one part of the frame ({ratios.max():.2g} x the fit's there, {med:.2g} x in the "
                      "median region): a local structure the fit took for noise"
-                     if ratios.max() - mean > mean - ratios.min() and np.sum(ratios > mean) == 1 else
+                     if np.max(wts * (ratios - mean) ** 2) > EXPLAINS_MOST * chi2 else  # (one cell holds most of it)
                      "a gradient of the noise, which this noise's template does not have")
             return (f"the extra scatter varies across the frame ({ratios.min():.2g} to {ratios.max():.2g} x the fit's, "
                     f"chi2 {chi2:.0f} for {dof} dof): {where}")
