@@ -168,7 +168,6 @@ VarianceSignature.MAX_TAIL_CORRELATION | D | physics | outlying pixels uncorrela
 VarianceSignature.MAX_ACROSS_LINES | D | physics | a line pattern: neighbours across lines uncorrelated
 VarianceSignature.MAX_MEAN_SHARE | D | physics | added scatter is zero-mean
 VarianceSignature.MEAN_SIGMA | D | statistics | those means significant at structure_sigma
-VarianceSignature.MAX_CELL_SPREAD | D | physics | scatter of the cells' excess variances: the template predicts most (EXPLAINS_MOST) of each cell's
 @detector/morphology.py
 SIGNIFICANT_SIGMA | D | calibration | a structured residual: structure_sigma
 PERIODIC_CONTRAST | D | statistics | periodogram peak over the median: ~1e-4 false alarms per frame
@@ -346,7 +345,7 @@ PERIODIC_LINE_FALSE_ALARM | D | statistics | one-sided DETECTION_SIGMA (DETECTIO
 PERIODIC_LINE_NEIGHBOURS | N | estimator | frequencies of the local spectral level
 MIN_LINE_PIXELS | N | sampling | pixels a line needs for its gain estimate
 LIGHT_LAW_CHI2 | D | statistics | a light pattern's law (added or a response) is told from the other law of the same shape at chi2_1 of 5 sigma
-VarianceSignature.CELL_SIGMA | D | statistics | the cells' excess variances scatter beyond their errors: chi2 at DETECTION_SIGMA
+VarianceSignature.CELL_SIGMA | D | statistics | the cells' excess variances scatter beyond their errors: chi2 at DETECTION_SIGMA (and the template explains less than EXPLAINS_MOST of their mean square)
 DITHER_SEED | N | seed | fixed dither of integer read codes (reproducibility)
 @scenes/app/compare/candidates.py
 SIGNIFICANT_DELTA_BIC | D | contract | the policy's significant_delta_bic
