@@ -22,10 +22,10 @@ from . import significance
 #: the least signal-to-noise ratio of a source's own amplitude for the source to enter the slope (below it the
 #: amplitude's logarithm is not defined well enough to fit): a detected source, DETECTION_SIGMA
 SOURCE_MIN_SNR = significance.DETECTION_SIGMA
-#: the fewest sources the slope is fitted on, and the least ratio of their brightest to their faintest flux:
-#: with fewer, or fluxes within a factor of this, the slope has nothing to measure
+#: the fewest sources the slope is fitted on: with fewer the slope has nothing to measure (a narrow range of
+#: fluxes needs no bar of its own: the slope's standard error, 1 / sqrt(sum w (ln F - mean)^2), grows as the
+#: range shrinks, and :func:`flux_law` then finds the two laws not SEPARATION_SIGMA errors apart)
 MIN_SOURCES = 4
-MIN_FLUX_RANGE = 3.0
 #: how many standard errors of the slope must separate the two laws for the sources to tell them apart (the
 #: nearer law is then at least this many halves of that gap from the other: a 2-sigma one-sided decision
 #: with a gap of 4 sigma)
@@ -87,14 +87,12 @@ def flux_slope(flux: np.ndarray, amp: np.ndarray, err: np.ndarray) -> Slope | No
     """The weighted straight line ``ln(amp) = a + p ln(flux)`` through the sources whose amplitude is positive
     and measured to SOURCE_MIN_SNR (error of ln(amp): err / amp); p's error from the normal matrix, times
     sqrt(chi2 / dof) when the points scatter more than their errors (the model's own misfit per source).
-    None when fewer than MIN_SOURCES sources qualify or their fluxes span less than MIN_FLUX_RANGE."""
+    None when fewer than MIN_SOURCES sources qualify or their fluxes are all one."""
     ok = np.isfinite(amp) & np.isfinite(err) & (err > 0) & (flux > 0) & (amp > SOURCE_MIN_SNR * err)
     if ok.sum() < MIN_SOURCES:
         return None
     f, a, e = flux[ok], amp[ok], err[ok]
     spread = float(f.max() / f.min())
-    if spread < MIN_FLUX_RANGE:
-        return None
     x, y, s = np.log(f), np.log(a), e / a
     w = 1.0 / s ** 2
     xm = np.sum(w * x) / np.sum(w)

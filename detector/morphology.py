@@ -823,14 +823,16 @@ def _lines_through_sources(res: Residuals, lm, lw, okl, axis: int, excess: float
     return slope
 
 
-#: a line profile is periodic when one frequency holds this share of its power beyond the noise ...
-LINE_PERIOD_SHARE = 0.3
+#: a line profile is periodic when one frequency holds this share of its power beyond the noise: most of it,
+#: EXPLAINS_MOST (the bar of :data:`detector.effects.readout.KTC_PERIODIC_SHARE` for a claimed excess variance
+#: that one frequency holds) ...
+LINE_PERIOD_SHARE = EXPLAINS_MOST
 #: ... and stands this many times above the noise's mean power (a chi2 with 2 dof: e^-30 per frequency): the
 #: bar of a spectral line significant on its own, PERIODIC_CONTRAST
 LINE_PERIOD_POWER = PERIODIC_CONTRAST
 #: ... and this many times above the median power of its neighbouring frequencies on either side (a line, not
-#: a red continuum) ...
-LINE_PERIOD_CONTRAST = 10.0
+#: a red continuum): the bar of a periodogram peak over the median, PERIODIC_CONTRAST ...
+LINE_PERIOD_CONTRAST = PERIODIC_CONTRAST
 #: ... with at least this many cycles across the frame (fewer: a smooth curve, as the periodic maps take it)
 LINE_PERIOD_MIN_CYCLES = 6
 
@@ -912,8 +914,9 @@ PERIODIC_PEAKS = 3
 
 def _periodic_map(rmap: np.ndarray, wmap: np.ndarray, light: np.ndarray, kind: str, row_var: float = 0.0) -> dict:
     """The empirical map of a periodic pattern: the residual [ADU] band-passed around its strongest spatial
-    frequencies (a smooth part, below 6 cycles across the frame, left out), on the whole frame; the ``fx = 0``
-    column weighed against the power row noise (``row_var`` [ADU^2]) puts there (:func:`row_power_factor`).
+    frequencies (a smooth part, below LINE_PERIOD_MIN_CYCLES cycles across the frame, left out), on the whole
+    frame; the ``fx = 0`` column weighed against the power row noise (``row_var`` [ADU^2]) puts there
+    (:func:`row_power_factor`).
 
     The frequencies are taken one at a time, each from what the ones before leave (CLEAN: Roberts, Lehar &
     Dreher 1987, AJ 93, 968): the periodogram of a residual with unfitted pixels (masked sources, the other
@@ -930,7 +933,7 @@ def _periodic_map(rmap: np.ndarray, wmap: np.ndarray, light: np.ndarray, kind: s
     g_row = row_power_factor(wmap, row_var, whitened=False)
     fy = np.fft.fftfreq(r.shape[0])[:, None]
     fx = np.fft.rfftfreq(r.shape[1])[None, :]
-    low = np.hypot(fy * r.shape[0], fx * r.shape[1]) < 6.0
+    low = np.hypot(fy * r.shape[0], fx * r.shape[1]) < LINE_PERIOD_MIN_CYCLES
     iy, ix = np.mgrid[: low.shape[0], : low.shape[1]]
     amap = np.zeros(r.shape, np.float64)
     for _ in range(PERIODIC_PEAKS):
@@ -961,8 +964,9 @@ def _periodic_map(rmap: np.ndarray, wmap: np.ndarray, light: np.ndarray, kind: s
 #: frame search's FRAME_FALSE_ALARM)
 MAP_FALSE_ALARM = FRAME_FALSE_ALARM
 #: a seeded feature is grown down to where its matched-filter S/N falls to this many sigma (below it the
-#: feature is not told from the noise)
-MAP_GROW_SIGMA = 2.0
+#: feature is not told from the noise): a part of a detected whole, FOOTPRINT_SIGMA (as a spike's group is grown,
+#: :data:`detector.signatures.GROW_SIGMA`)
+MAP_GROW_SIGMA = FOOTPRINT_SIGMA
 #: the per-source profile of the empirical map extends at most this far [output px]
 PROFILE_MAX_PX = 32
 

@@ -47,6 +47,7 @@ from detector.sensor import SensorConfig
 from detector.significance import (
     DETECTION_P,
     DETECTION_SIGMA,
+    EXPLAINS_MOST,
     FOOTPRINT_SIGMA,
     MAX_DEFECT_FRACTION,
     STRUCTURE_SIGMA,
@@ -1657,8 +1658,9 @@ def neighbour_axes(res: Residuals) -> tuple[float, float, int, int]:
     return res._flat["neighbour_axes"]
 
 
-#: the tail of the whitened residual (|z| above this many sigma): the pixels that carry an extra scatter
-TAIL_SIGMA = 3.0
+#: the tail of the whitened residual (|z| above this many sigma): the pixels that carry an extra scatter, each a
+#: part of the detected excess (FOOTPRINT_SIGMA, as a spike's group and a source's footprint)
+TAIL_SIGMA = FOOTPRINT_SIGMA
 
 
 def tail_neighbour_correlation(res: Residuals) -> tuple[float, float, int, float]:
@@ -1982,8 +1984,9 @@ class VarianceSignature(Signature):
     #: significant) is a structure of a few pixels (rings, fringes, blurred sources), not a non-uniformity: the
     #: same bar of "independent from neighbour to neighbour" as the lines' gains' (MAX_LINE_GAIN_CORRELATION)
     MAX_NEIGHBOUR_CORRELATION = MAX_LINE_GAIN_CORRELATION
-    #: ... and the outlying pixels' correlation with their neighbours (:func:`tail_neighbour_correlation`)
-    MAX_TAIL_CORRELATION = 0.15
+    #: ... and the outlying pixels' correlation with their neighbours (:func:`tail_neighbour_correlation`): the
+    #: same bar, an independent pixel's outlier does not know its neighbours
+    MAX_TAIL_CORRELATION = MAX_NEIGHBOUR_CORRELATION
 
     #: a pattern of lines: across them, neighbours correlate by at most this much (and 3 / sqrt(pairs))
     MAX_ACROSS_LINES = 0.02
@@ -2012,7 +2015,7 @@ class VarianceSignature(Signature):
         rho, z, n, share = tail_neighbour_correlation(res)
         # (only when the tail carries most of the extra scatter: a white PRNU over the whole flat is not judged by
         # the dust rings that make its outliers)
-        if rho > self.MAX_TAIL_CORRELATION and z > DETECTION_SIGMA and share > 0.5:
+        if rho > self.MAX_TAIL_CORRELATION and z > DETECTION_SIGMA and share > EXPLAINS_MOST:
             return (f"the pixels that carry the extra scatter have neighbours that share their sign (correlation "
                     f"{rho:.2f} over {n} outlying pixels, {z:.0f} sigma; independent noise gives 0): a structure a few "
                     "pixels wide (light moved into rings, pixels in pairs or clusters, smeared sources), not "
@@ -2069,19 +2072,20 @@ class VarianceSignature(Signature):
                 f"{100 * min(share, 1.0):.0f} % of the excess there): a mean change the model lacks (a response, "
                 "light moved or added), not zero-mean scatter")
 
-    #: the excess variance of a cell may exceed the template's prediction by this factor over the median cell
-    MAX_CELL_RATIO = 4.0
-    #: ... and the cells' excess variances (over the template's) may scatter by this fraction (rms) of their mean
-    MAX_CELL_SPREAD = 0.5
-    #: a cell is far above the rest only when its excess is beyond this many of its standard errors from the
-    #: median cell's (the DETECTION_SIGMA of one tested quantity in its standard errors)
+    #: the cells' excess variances (over the template's) scatter about their mean significantly when their chi2
+    #: exceeds its dof by this many standard deviations (the DETECTION_SIGMA of one tested quantity) ...
     CELL_SIGMA = DETECTION_SIGMA
+    #: ... and by at least this fraction (rms) of their mean (a read-noise gradient of the unseen suite spreads
+    #: its cells by 0.5-1 of it; as a share explained, EXPLAINS_MOST would be a spread of 1 and names it kTC)
+    MAX_CELL_SPREAD = 0.5
 
     def uniformity(self, fit: Fit, res: Residuals, cells: int = 4) -> str:
         """The added scatter follows its template over the frame (kTC noise is the same everywhere, PRNU
         follows the light squared): the robust excess variance of each of ``cells`` x ``cells`` regions over
         the template's prediction; one region far above the rest is a structure the local whitening left,
-        not this noise."""
+        not this noise. One cell far above the rest and a gradient across the frame are one test: the cells'
+        excess variances scatter about their mean significantly (CELL_SIGMA) and by more than MAX_CELL_SPREAD of
+        it."""
         vs = variance_sample(res)
         theta = fit.state.get("theta")
         if not theta or vs["idx"].size < 400 * cells * cells:
@@ -2109,24 +2113,20 @@ class VarianceSignature(Signature):
         if len(ratios) < 4:
             return ""
         ratios, errs = np.asarray(ratios), np.asarray(errs)
-        med = float(np.median(ratios))
-        top = int(np.argmax(ratios))
-        # (and significantly so: where the fit claims little variance, a cell's ratio is its noise over a small
-        # number -- 1e10 "x the fit's" in one cell and -1e9 in the median one say nothing about where it sits)
-        if (ratios[top] > self.MAX_CELL_RATIO * max(med, 0.05) and ratios[top] > 2.0
-                and ratios[top] - max(med, 0.0) > self.CELL_SIGMA * errs[top]):
-            return (f"the extra scatter sits in one part of the frame ({ratios.max():.2g} x the fit's there, {med:.2g} x "
-                    "in the median region): a local structure the fit took for noise, not this noise")
-        # ... or it varies across the frame far beyond the cells' errors (a gradient of the noise): chi2 of the
-        # cells' ratios about their weighted mean, and a spread of at least MAX_CELL_SPREAD of the fit's scatter
+        # the cells' ratios about their weighted mean (where the fit claims little variance a cell's ratio is its
+        # noise over a small number: its error says so, and its weight is small)
         wts = 1.0 / np.maximum(errs, 1e-12) ** 2
         mean = float(np.sum(wts * ratios) / np.sum(wts))
         chi2, dof = float(np.sum(wts * (ratios - mean) ** 2)), ratios.size - 1
         spread = float(np.sqrt(np.sum(wts * (ratios - mean) ** 2) / np.sum(wts))) / max(abs(mean), 1e-12)
-        if chi2 > dof + DETECTION_SIGMA * np.sqrt(2 * dof) and spread > self.MAX_CELL_SPREAD:
+        if chi2 > dof + self.CELL_SIGMA * np.sqrt(2 * dof) and spread > self.MAX_CELL_SPREAD:
+            med = float(np.median(ratios))
+            where = (f"it sits in one part of the frame ({ratios.max():.2g} x the fit's there, {med:.2g} x in the "
+                     "median region): a local structure the fit took for noise"
+                     if np.max(wts * (ratios - mean) ** 2) > EXPLAINS_MOST * chi2 else  # (one cell holds most of it)
+                     "a gradient of the noise, which this noise's template does not have")
             return (f"the extra scatter varies across the frame ({ratios.min():.2g} to {ratios.max():.2g} x the fit's, "
-                    f"chi2 {chi2:.0f} for {dof} dof): a gradient of the noise, which this noise's template does not "
-                    "have")
+                    f"chi2 {chi2:.0f} for {dof} dof): {where}")
         return ""
 
     def score(self, fit: Fit, res: Residuals) -> float | None:

@@ -55,7 +55,7 @@ expected null maximum of ``~2 ln N`` in chi2, below the ``2 ln n`` the BIC charg
 (``N <~ 4 n``). The general form wins over the plugin's only when it pays for them.
 
 Plausibility (:meth:`GhostSignature.plausible`): ``0 < alpha <= 0.1``; the profile must be defocused (rms
-radius at least :data:`GHOST_MIN_RMS_PX` sensor px and :data:`GHOST_MIN_RMS_PSF` times the sources' own);
+radius at least :data:`GHOST_MIN_RMS_PSF` times the sources' own);
 and a ghost must sit where the map puts it for most of the bright sources whose ghost the fit predicts
 detectably, not rest on one source.
 
@@ -223,9 +223,6 @@ SCAN_MAX_SIDE = 768
 #: global false-alarm probability of the scan's peak over every geometry, probe and map family searched: the
 #: frame search's (FRAME_FALSE_ALARM)
 SCAN_GLOBAL_P = FRAME_FALSE_ALARM
-#: a geometry is searched only where at least this share of the sources' ghost (its weighted template norm)
-#: falls on the frame
-SCAN_MIN_OVERLAP = 0.1
 #: a model source pixel brighter than this many noise sigmas is a source core, masked in the scan
 CORE_SIGMA = FOOTPRINT_SIGMA
 #: the other map family's peak is fitted as well when its z is at least this share of the best one's
@@ -348,7 +345,9 @@ def scan_geometry(rw: np.ndarray, w: np.ndarray, src: np.ndarray, step: float, p
                 ly = np.arange(shape[0])[:, None]
                 lx = np.arange(shape[1])[None, :]
                 valid = (ly <= 2 * (hb - 1)) & (lx <= 2 * (wbw - 1))
-            valid = valid & (den > SCAN_MIN_OVERLAP * full)
+            # every geometry whose ghost falls on the frame at all (its template's norm there above the FFT's
+            # round-off): the z is normalised by that norm, and the global false alarm counts every one searched
+            valid = valid & (den > np.finfo(np.float64).eps * full)
             nv = int(valid.sum())
             if nv < 16:
                 continue
@@ -430,9 +429,8 @@ def refine_lag(rw: np.ndarray, w: np.ndarray, g_ext: np.ndarray, pad: int, mode:
 #: profile grid of the fit at the found geometry: outer radii [sensor px], annulus obscuration ratios
 GHOST_RADII_PX = (3.0, 4.5, 7.0, 10.0, 15.0, 22.0, 33.0, 50.0, 75.0)
 GHOST_INNER_RATIOS = (0.3, 0.5, 0.7)
-#: a ghost is defocused: its profile's rms radius is at least this many sensor px (a disc >= 8.5 px across,
-#: the reflection pair >= ~0.15 mm apart at f/2.4 with 9 um pixels) and this many times the sources' own
-GHOST_MIN_RMS_PX = 3.0
+#: a ghost is defocused: its profile's rms radius is at least this many times the sources' own (a sharp copy
+#: of the sources, the PSF's own size, is a latent image or an electronic crosstalk)
 GHOST_MIN_RMS_PSF = 2.0
 #: the map must be confirmed by the bright sources whose ghost the fit predicts detectably (local chi2 gain
 #: >= GHOST_SOURCE_CHI2, a part of the detected ghost at FOOTPRINT_SIGMA: 9): at least GHOST_MIN_SOURCES of
@@ -668,7 +666,7 @@ class GhostSignature(LinearSignature):
             psf = psf_rms_px(src) * step
             fit.state["psf_rms_px"] = psf
         rms = kernel_rms_px(p.get("profile", "disc"), p["radius_px"], p.get("inner_ratio", 0.0))
-        need = max(GHOST_MIN_RMS_PX, GHOST_MIN_RMS_PSF * psf)
+        need = GHOST_MIN_RMS_PSF * psf
         if rms < need:
             return (f"the copies are sharp (profile rms radius {rms:.3g} px < {need:.3g} px, the sources' own "
                     f"{psf:.3g} px): a ghost is defocused by its extra reflection path; a sharp copy of the sources "

@@ -31,6 +31,7 @@ from ..signatures import (
     outlier_pixels,
     spread_check,
 )
+from ..significance import MAX_DEFECT_FRACTION
 from .base import Effect, EffectParams, Stage, Tile, register_effect
 from .common import hardware_positions, in_tile, output_xy, roi_mask
 
@@ -262,9 +263,10 @@ def _gain_variants(res):
 
 
 #: boundaries found from the data: at most this many along an axis, each at least this share of the frame
-#: from an edge and from another (a segment narrower than that is a column defect or an edge effect)
+#: from an edge and from another: a segment that holds fewer lines holds fewer pixels than an anomalous-pixel
+#: population may (MAX_DEFECT_FRACTION), and is a column defect or an edge effect, not an amplifier's region
 MAX_FOUND_SPLITS = 2
-MIN_SEGMENT_SHARE = 0.1
+MIN_SEGMENT_SHARE = MAX_DEFECT_FRACTION
 
 
 def _best_split(rc: np.ndarray, sc: np.ndarray, wc: np.ndarray, fixed: list[int], lo: int) -> int | None:

@@ -162,14 +162,12 @@ OUTLIER_MAX_FRACTION | N | model | bound of that component's weight
 VARIANCE_FIT_PIXELS | N | budget | variance fit subsample
 SMOOTH_ORDER | N | basis | order of the smooth cosine basis
 WHITE_SCALE | N | scale | local mean removed before a variance fit
-TAIL_SIGMA | D | statistics | the whitened residual's tail beyond 3 sigma
+TAIL_SIGMA | D | statistics | the whitened residual's tail: each pixel a part of the detected excess (FOOTPRINT_SIGMA)
 VarianceSignature.MAX_NEIGHBOUR_CORRELATION | D | physics | added scatter is pixel-to-pixel
-VarianceSignature.MAX_TAIL_CORRELATION | D | physics | outlying pixels uncorrelated with neighbours
+VarianceSignature.MAX_TAIL_CORRELATION | D | physics | outlying pixels uncorrelated with neighbours: the same bar as all pixels'
 VarianceSignature.MAX_ACROSS_LINES | D | physics | a line pattern: neighbours across lines uncorrelated
 VarianceSignature.MAX_MEAN_SHARE | D | physics | added scatter is zero-mean
 VarianceSignature.MEAN_SIGMA | D | statistics | those means significant at structure_sigma
-VarianceSignature.MAX_CELL_RATIO | D | design | a cell's excess variance over the template's
-VarianceSignature.MAX_CELL_SPREAD | D | design | scatter of the cells' excess variances
 @detector/morphology.py
 SIGNIFICANT_SIGMA | D | calibration | a structured residual: structure_sigma
 PERIODIC_CONTRAST | D | statistics | periodogram peak over the median: ~1e-4 false alarms per frame
@@ -181,14 +179,14 @@ FEATURE_SCALES | N | grid | smoothing scales of the feature search
 SMOOTH_ORDER | N | basis | Legendre order of the smooth fields
 FEATURE_MAX_PIXELS | N | budget | full-resolution feature search up to this size
 LINE_SOURCE_SHARE | D | design | a line pattern follows the sources
-LINE_PERIOD_SHARE | D | design | a line profile is periodic: one frequency's share
+LINE_PERIOD_SHARE | D | statistics | a line profile is periodic: one frequency holds most (EXPLAINS_MOST) of its excess power, as KTC_PERIODIC_SHARE
 LINE_PERIOD_POWER | D | statistics | ... its power over the noise (e^-30 per frequency)
-LINE_PERIOD_CONTRAST | D | statistics | ... over its neighbouring frequencies
+LINE_PERIOD_CONTRAST | D | statistics | ... over its neighbouring frequencies' median (PERIODIC_CONTRAST)
 LINE_PERIOD_MIN_CYCLES | D | design | ... with at least this many cycles
 PERIODIC_KEEP_BINS | N | geometry | Fourier radius of a periodic map
 PERIODIC_PEAKS | N | budget | peaks of a periodic map
 MAP_FALSE_ALARM | D | statistics | matched-filter false alarms per frame and scale
-MAP_GROW_SIGMA | D | statistics | a seeded feature grown to 2 sigma
+MAP_GROW_SIGMA | D | statistics | a seeded feature grown to FOOTPRINT_SIGMA (a part of the detected whole)
 PROFILE_MAX_PX | N | geometry | extent of the per-source profile
 MAP_LONG_SPAN | D | design | a feature this long is a trail
 KIND_LOCAL_SIGMA_PX | N | scale | smoothing of the local additive estimate
@@ -199,7 +197,6 @@ SOURCE_KERNEL_HARMONICS | N | basis | angular harmonics of the kernel
 @detector/flux_law.py
 SOURCE_MIN_SNR | D | statistics | S/N of a source's amplitude to enter the slope
 MIN_SOURCES | D | statistics | fewest sources of the slope
-MIN_FLUX_RANGE | D | statistics | least flux range of the slope
 SEPARATION_SIGMA | D | statistics | standard errors separating the two laws
 FOOTPRINT_SIGMA | D | statistics | a source footprint: model light 3 sigma above the noise
 FOOTPRINT_GROW_PX | N | geometry | footprint growth
@@ -240,12 +237,10 @@ ColumnSignature.MAX_SHORT_RUN_SHARE | D | design | share short runs may carry
 GHOST_PROBE_RADII_PX | N | grid | probe radii of the scan
 SCAN_MAX_SIDE | N | budget | scan binning
 SCAN_GLOBAL_P | D | statistics | global false-alarm probability of the scan's peak
-SCAN_MIN_OVERLAP | D | design | share of the ghost on the frame for a geometry to be searched
 CORE_SIGMA | D | statistics | a source core: model light 3 sigma above the noise
 SECOND_FAMILY_Z | N | search | the other family fitted too when close
 GHOST_RADII_PX | N | grid | profile radii of the fit
 GHOST_INNER_RATIOS | N | grid | annulus ratios of the fit
-GHOST_MIN_RMS_PX | D | physics | a ghost is defocused (px)
 GHOST_MIN_RMS_PSF | D | physics | a ghost is defocused (PSF widths)
 GHOST_SOURCE_CHI2 | D | statistics | a source's ghost detectable (chi2 gain 9 = 3 sigma)
 GHOST_MIN_SOURCES | D | statistics | sources confirming a free ghost
@@ -293,7 +288,7 @@ MAX_DEAD_CLUSTER_PX | D | physics | largest dead cluster (EMVA 1288, Janesick 20
 MAX_DEAD_CLUSTER_SIDE | N | model | largest cluster side the render draws
 _REGION_GRIDS | N | grid | region layouts tried
 MAX_FOUND_SPLITS | N | search | boundaries searched per axis
-MIN_SEGMENT_SHARE | D | design | a segment narrower is a column or edge defect
+MIN_SEGMENT_SHARE | D | physics | a segment narrower holds fewer pixels than a defect population may (MAX_DEFECT_FRACTION)
 @detector/effects/readout.py
 K_BOLTZMANN | N | constant | CODATA
 Q_ELECTRON | N | constant | CODATA
@@ -350,7 +345,8 @@ PERIODIC_LINE_FALSE_ALARM | D | statistics | one-sided DETECTION_SIGMA (DETECTIO
 PERIODIC_LINE_NEIGHBOURS | N | estimator | frequencies of the local spectral level
 MIN_LINE_PIXELS | N | sampling | pixels a line needs for its gain estimate
 LIGHT_LAW_CHI2 | D | statistics | a light pattern's law (added or a response) is told from the other law of the same shape at chi2_1 of 5 sigma
-VarianceSignature.CELL_SIGMA | D | statistics | a cell is far above the rest only beyond detection-like 5 standard errors
+VarianceSignature.CELL_SIGMA | D | statistics | the cells' excess variances scatter beyond their errors: chi2 at DETECTION_SIGMA
+VarianceSignature.MAX_CELL_SPREAD | D | design | ... by this fraction (rms) of their mean
 DITHER_SEED | N | seed | fixed dither of integer read codes (reproducibility)
 @scenes/app/compare/candidates.py
 SIGNIFICANT_DELTA_BIC | D | contract | the policy's significant_delta_bic

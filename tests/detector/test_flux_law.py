@@ -44,7 +44,14 @@ def test_a_widening_that_grows_with_flux_follows_the_other_law():
 
 def test_too_few_sources_or_too_narrow_a_flux_range_cannot_tell():
     assert flux_slope(np.array([1e4, 2e4, 5e4]), np.ones(3), np.full(3, 0.01)) is None  # three sources
-    assert flux_slope(np.linspace(1e4, 2e4, 8), np.ones(8), np.full(8, 0.01)) is None  # a factor 2
+    # a narrow range of fluxes (a factor 2) is no bar of its own: the slope's standard error, 1 / sqrt(sum w
+    # (ln F - mean)^2), says whether it tells the laws 0 and 1 apart (amplitude ratios 1 and 2 across it)
+    narrow = np.linspace(1e4, 2e4, 8)
+    precise = flux_slope(narrow, np.ones(8), np.full(8, 0.01))  # 1 % amplitudes: 0.016 on the slope
+    assert precise.error == pytest.approx(0.01 / np.sqrt(np.sum((np.log(narrow) - np.log(narrow).mean()) ** 2)))
+    assert flux_law(precise, 0.0, 1.0) is False
+    rough = flux_slope(narrow, np.ones(8), np.full(8, 0.2))  # 20 % amplitudes: 0.31 on the slope, < 4 sigma apart
+    assert flux_law(rough, 0.0, 1.0) is None
     assert flux_law(Slope(0.9, 0.3, 8, 10.0), 0.0, 1.0) is None  # the laws 0 and 1 are 3.3 sigma apart: < 4
     assert flux_law(Slope(0.9, 0.05, 8, 10.0), 0.0, 1.0) is True
 
