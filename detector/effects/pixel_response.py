@@ -20,6 +20,7 @@ from pydantic import Field, model_validator
 from ..rng import standard_normal_f32
 from ..signatures import (
     DEFECT_K,
+    LINE_WINDOW,
     GroupSignature,
     LinearSignature,
     VarianceSignature,
@@ -261,10 +262,11 @@ def _gain_variants(res):
     yield from _gain_split_variants(res, sig)
 
 
-#: boundaries found from the data: at most this many along an axis, each at least this share of the frame
-#: from an edge and from another (a segment narrower than that is a column defect or an edge effect)
+#: boundaries found from the data: at most this many along an axis, each at least LINE_WINDOW lines from an edge
+#: and from another: a step of the line means that persists over that many lines is a level of the neighbourhood
+#: to the column (row) statistic, which compares each line with the running median of its LINE_WINDOW
+#: neighbours (a region), where a narrower group of lines stands out of it as outlier lines (column defects)
 MAX_FOUND_SPLITS = 2
-MIN_SEGMENT_SHARE = 0.1
 
 
 def _best_split(rc: np.ndarray, sc: np.ndarray, wc: np.ndarray, fixed: list[int], lo: int) -> int | None:
@@ -309,7 +311,7 @@ def _gain_split_variants(res, sig: np.ndarray):
     sv = sig.ravel()[idx].astype(np.float64)
     for axis in ("x", "y"):
         pos, n = (x, wd) if axis == "x" else (y, h)
-        lo = max(int(np.ceil(MIN_SEGMENT_SHARE * n)), 2)
+        lo = LINE_WINDOW
         if n < 2 * lo:
             continue
         rc = np.bincount(pos, r, n)
