@@ -1921,7 +1921,8 @@ class VarianceSignature(Signature):
         # belongs to it as a part (its chi2 gain beyond FOOTPRINT_SIGMA squared), the whole (scatter and large
         # scales) then judged by its delta BIC as every candidate is; a weak scatter under a stronger flat-field
         # map is one response (Janesick 2007, ch. 8), which a gain step or a fall-off would otherwise take
-        if self.smooth is not None and d < -FOOTPRINT_SIGMA ** 2:
+        part = -FOOTPRINT_SIGMA ** 2  # the chi2 gain of a part of something detected as a whole
+        if self.smooth is not None and d < part:
             tmpl = self.smooth(res)
             ln = np.log(max(n, 2))
             # the response's large scales (a flat-field map: coating and thickness variations, Janesick 2007,
@@ -1944,9 +1945,15 @@ class VarianceSignature(Signature):
 
                 sm = np.asarray(smooth_delta, np.float32)
                 fine = (sm - gaussian_filter(sm, WHITE_SCALE, mode="nearest")).ravel()[vs["idx"]]
-                shot = np.maximum(frame_at(sm, vs["idx"]) * res.poisson_adu, -0.9 * vs["v"])
+                charge = frame_at(sm, vs["idx"])
+                if not np.any(res.photo_adu > 0):
+                    # on a frame without light one frame's mean cannot tell the bias offset from a dark level,
+                    # so the levels may give the field's mean charge to the bias, without its shot noise: the
+                    # field is counted as added charge from its lowest pixel (at least what it adds)
+                    charge = charge - float(np.min(sm))
+                shot = np.maximum(charge * res.poisson_adu, -0.9 * vs["v"])
                 theta, d0, law = best_law(vs["v"] + shot, vs["r_white"] - fine / np.sqrt(vs["keep_var"]))
-                if d0 * vs["scale"] >= -FOOTPRINT_SIGMA ** 2:
+                if d0 * vs["scale"] >= part:
                     return None
                 params = self.to_params(theta, res) if law is None else self.to_params(theta, res, law)
                 if params is None:

@@ -293,6 +293,7 @@ MAX_DEAD_CLUSTER_PX | D | physics | largest dead cluster (EMVA 1288, Janesick 20
 MAX_DEAD_CLUSTER_SIDE | N | model | largest cluster side the render draws
 _REGION_GRIDS | N | grid | region layouts tried
 MAX_FOUND_SPLITS | N | search | boundaries searched per axis
+MIN_SEGMENT_SHARE | D | design | a segment narrower is a column or edge defect
 @detector/effects/readout.py
 K_BOLTZMANN | N | constant | CODATA
 Q_ELECTRON | N | constant | CODATA
