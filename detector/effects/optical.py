@@ -232,27 +232,34 @@ def _vignetting_refine(best, res):
         ox, oy, rw = _window_geometry_mm(res)
         reach = 1.5 * rw
 
-    def score(x, y):
+    def score(x, y, elliptical):
         if max(abs(x - ox), abs(y - oy)) > reach:  # a centre far off the field makes a plane, not vignetting
             return np.inf
-        v = _vignetting_variant(res, x, y, radius)
+        v = _vignetting_variant(res, x, y, radius, elliptical)
         c, d = fit_linear(res, lambda i: v.values(i, shape), ctx["idx"], ctx["r"], ctx["w"])
         return d if v.to_params(c) is not None else np.inf
 
-    here, step = score(cx, cy), 0.05 * rc
-    for _ in range(60):
-        if step < _CENTRE_TOL * rc:
-            break
-        trials = [(score(cx + dx, cy + dy), cx + dx, cy + dy) for dx in (-step, 0.0, step)
-                  for dy in (-step, 0.0, step) if dx or dy]
-        d, x, y = min(trials)
-        if d < here:
-            here, cx, cy = d, x, y
-        else:
-            step /= 2
+    def search(cx, cy, elliptical):
+        here, step = score(cx, cy, elliptical), 0.05 * rc
+        for _ in range(60):
+            if step < _CENTRE_TOL * rc:
+                break
+            trials = [(score(cx + dx, cy + dy, elliptical), cx + dx, cy + dy) for dx in (-step, 0.0, step)
+                      for dy in (-step, 0.0, step) if dx or dy]
+            d, x, y = min(trials)
+            if d < here:
+                here, cx, cy = d, x, y
+            else:
+                step /= 2
+        return cx, cy
+
+    cx, cy = search(cx, cy, False)
     yield _vignetting_variant(res, cx, cy, radius)
-    # ... and the same centre with an elliptical fall-off (two more coefficients, which the BIC weighs)
-    yield _vignetting_variant(res, cx, cy, radius, elliptical=True)
+    # ... and an elliptical fall-off (two more coefficients, which the BIC weighs), its centre searched from the
+    # circular one's or the field's (the grid's middle), whichever fits better: an elliptical fall-off puts the
+    # best circular centre off its own, on the far side of a ridge of the elliptical fit's chi2
+    start = min([(cx, cy), (ox, oy)], key=lambda c: score(*c, True))
+    yield _vignetting_variant(res, *search(*start, True), radius, elliptical=True)
 
 
 def _rho2_max(res, p: dict) -> float:
