@@ -204,8 +204,9 @@ def _check(fit, res) -> str:
     """A temperature gradient modulates the sensor's dark current: it cannot take the dark rate below zero
     at a corner (the change at the corners, ``(|gx| + |gy|) / 2``, stays below the sensor's dark rate plus
     the measured dark level); in the exponential form (which never goes below zero) the temperature
-    difference corner to corner, ``|tx| + |ty|``, stays within MAX_TEMPERATURE_SPAN_K."""
-    p, s = fit.params, res.sensor
+    difference corner to corner, ``|tx| + |ty|``, stays within MAX_TEMPERATURE_SPAN_K; a smooth field's
+    peak to peak, as the temperature difference the doubling law needs for it (:func:`field_span_k`), too."""
+    p = fit.params
     span = abs(p.get("temperature_x_k", 0.0)) + abs(p.get("temperature_y_k", 0.0))
     if p.get("field_e_per_s"):
         span = field_span_k(p["field_e_per_s"], res)
