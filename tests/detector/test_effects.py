@@ -321,6 +321,6 @@ def test_a_narrow_amplifier_strip_is_a_gain_region_not_columns():
     fit = registry()["gain_regions"].signature.fit(res, "gain_regions")
     splits = fit.params.get("splits_x")
     assert splits and len(splits) == 2, fit.params
-    assert abs(splits[0] - lo) <= 8 and abs(splits[1] - hi) <= 8, splits
+    assert abs(splits[0] - lo) <= 16 and abs(splits[1] - hi) <= 16, splits  # within two binned columns
     g = fit.params["gains"]
     assert g[1] / g[0] == pytest.approx(0.993, abs=1e-3) and g[2] / g[0] == pytest.approx(1.0, abs=1e-3)
