@@ -5,7 +5,7 @@ which doubles every ~6-7 K near room temperature (Janesick 2001, Scientific CCDs
 Widenhorn et al. 2002, J. Appl. Phys. 92, 7434). A cold finger at one side of the die, or a warm read-out
 amplifier, leaves a temperature gradient of a few tenths of a kelvin to a few kelvin across the sensor.
 
-Two forms, which add:
+Three forms, which add:
 
 * the linear ramp (``gradient_x_e_per_s``, ``gradient_y_e_per_s``): to first order in ``dT`` the dark rate
   changes by ``dD = D ln2 dT / T_2`` (``T_2`` the doubling interval), a ramp of the dark rate [e-/s];
@@ -13,7 +13,12 @@ Two forms, which add:
   ``T = tx u + ty v`` [K] (``u, v`` in -0.5..0.5 across the sensor) changes the dark rate by
   ``D0 (2^(T / T_2) - 1)``, ``D0`` the sensor's dark rate and ``T_2`` from the sensor's temperature
   (:func:`doubling_interval_k`): a ramp with curvature along the gradient, its curvature fixed by its slope
-  and level (``d^2D/dT^2 = (ln2 / T_2) dD/dT``).
+  and level (``d^2D/dT^2 = (ln2 / T_2) dD/dT``);
+* a smooth field of any low order (``field_e_per_s``): the 2-D cosine series of
+  :func:`detector.effects.readout.bias_field_adu` over the sensor [e-/s], a die's temperature field with more
+  than one heat source or sink; in the diagnosis offered on frames without light, in the same basis as a bias
+  structure of that frame, so that on one dark the forms do not decide between them, the dark charge's shot
+  noise does (a bias frame, or a dark of another exposure, tells them apart).
 
 Unlike a bias ramp (an offset of the read-out, the same in every frame) it grows with exposure time and
 carries its shot noise, which tells the two apart in a dark series (``newtsim diagnose --series``). On one
@@ -293,7 +298,8 @@ class DarkGradientParams(EffectParams):
 @register_effect
 class DarkGradient(Effect):
     """Dark-current gradient across the sensor (a temperature gradient over the die, Janesick 2001 eq. 7.4):
-    adds ``(gx u + gy v + D0 (2^((tx u + ty v) / T_2) - 1)) t`` [e-] to the dark charge, ``u, v`` in
+    adds ``(gx u + gy v + D0 (2^((tx u + ty v) / T_2) - 1) + F(u, v)) t`` [e-] to the dark charge (``F`` the
+    smooth field of ``field_e_per_s``), ``u, v`` in
     -0.5..0.5 across the sensor, ``D0`` the sensor's dark rate, ``T_2`` the doubling interval at the sensor's
     temperature (:func:`doubling_interval_k`), never taking the pixel's dark charge below zero. Grows with
     exposure time; its shot noise is drawn with the rest of the dark charge."""
