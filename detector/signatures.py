@@ -1236,19 +1236,6 @@ def joint_levels(res: Residuals, values: Callable[[np.ndarray], np.ndarray], idx
     return dict(zip(res.levels()["names"], (float(v) for v in np.linalg.solve(nn, ny))))
 
 
-def added_charge(res: Residuals, delta: np.ndarray) -> np.ndarray:
-    """The charge [ADU] a fitted mean change ``delta`` [ADU] adds: ``delta`` itself, but on a frame without light
-    whose levels gave the mean dark signal to the bias offset (a dark, where one frame's mean cannot tell the two:
-    :meth:`Residuals.level_templates`) ``delta`` counted from its lowest value: the change was fitted with the
-    levels, so its mean went to the offset, without the shot noise that mean charge carries; the field adds at
-    least ``delta - min(delta)``."""
-    names = res.levels()["names"]
-    if (delta.size and "offset_adu" in names and "dark_scale" not in names and "light_scale" not in names
-            and not np.any(res.photo_adu > 0)):
-        return delta - float(np.min(delta))
-    return delta
-
-
 def with_shot_noise(res: Residuals, fit: Fit) -> Fit:
     """``fit`` (a mean change ``delta`` of charge) with the shot noise of that charge: ``dv = delta / g``
     [ADU^2] (Poisson: variance = mean; :attr:`Residuals.poisson_adu`) added to the model variance, and the
@@ -1258,11 +1245,9 @@ def with_shot_noise(res: Residuals, fit: Fit) -> Fit:
     idx, r, _ = res.flat()
     delta = frame_at(fit.delta_adu, idx)
     rr, v = res.project(r - delta), 1.0 / res.levels()["w"]
-    charge = added_charge(res, delta)
-    floor = float(np.min(delta)) if charge is not delta else 0.0  # the offset of added_charge
-    dv = np.maximum(charge * res.poisson_adu, -0.9 * v)
+    dv = np.maximum(delta * res.poisson_adu, -0.9 * v)
     corr = float(np.sum(np.log1p(dv / v) + rr * rr * (1.0 / (v + dv) - 1.0 / v)))
-    extra = np.maximum((np.asarray(fit.delta_adu, np.float32) - np.float32(floor)) * np.float32(res.poisson_adu),
+    extra = np.maximum(np.asarray(fit.delta_adu, np.float32) * np.float32(res.poisson_adu),
                        np.float32(-0.9) * res.var_adu2).astype(np.float32)  # less light: less noise, never < 0
     return replace(fit, delta_m2lnl=fit.delta_m2lnl + corr, extra_var_adu2=extra)
 
@@ -1960,10 +1945,7 @@ class VarianceSignature(Signature):
 
                 sm = np.asarray(smooth_delta, np.float32)
                 fine = (sm - gaussian_filter(sm, WHITE_SCALE, mode="nearest")).ravel()[vs["idx"]]
-                charge = frame_at(sm, vs["idx"])
-                if added_charge(res, charge) is not charge:  # its mean given to the bias offset (a dark)
-                    charge = charge - float(np.min(sm))
-                shot = np.maximum(charge * res.poisson_adu, -0.9 * vs["v"])
+                shot = np.maximum(frame_at(sm, vs["idx"]) * res.poisson_adu, -0.9 * vs["v"])
                 theta, d0, law = best_law(vs["v"] + shot, vs["r_white"] - fine / np.sqrt(vs["keep_var"]))
                 if d0 * vs["scale"] >= part:
                     return None
