@@ -1932,13 +1932,17 @@ class VarianceSignature(Signature):
         t = template_at(full, res.data_adu.shape, vs["idx"])
         if not np.any(t > 0):
             return None
-        best = None
-        for law, k3 in (self.laws or {None: None}).items():
-            k3f = None if k3 is None else (lambda th, k3=k3: k3(th, res, vs["idx"]))
-            theta, d = ml_variance_scale(vs["r_white"], vs["v"], t, outliers=True, k3=k3f, k3_base=vs["k3_poisson"])
-            if best is None or d < best[1]:
-                best = (theta, d, law)
-        theta, d, law = best
+
+        def best_law(v, r):  # (theta, delta -2 ln L on the sample, law) of the best law: residual r, variance v
+            best = None
+            for law, k3 in (self.laws or {None: None}).items():
+                k3f = None if k3 is None else (lambda th, k3=k3: k3(th, res, vs["idx"]))
+                theta, d = ml_variance_scale(r, v, t, outliers=True, k3=k3f, k3_base=vs["k3_poisson"])
+                if best is None or d < best[1]:
+                    best = (theta, d, law)
+            return best
+
+        theta, d, law = best_law(vs["v"], vs["r_white"])
         params = self.to_params(theta, res) if law is None else self.to_params(theta, res, law)
         if params is None:
             return None
@@ -1952,7 +1956,8 @@ class VarianceSignature(Signature):
         # belongs to it as a part (its chi2 gain beyond FOOTPRINT_SIGMA squared), the whole (scatter and large
         # scales) then judged by its delta BIC as every candidate is; a weak scatter under a stronger flat-field
         # map is one response (Janesick 2007, ch. 8), which a gain step or a fall-off would otherwise take
-        if self.smooth is not None and d < -FOOTPRINT_SIGMA ** 2:
+        part = -FOOTPRINT_SIGMA ** 2  # the chi2 gain of a part of something detected as a whole
+        if self.smooth is not None and d < part:
             tmpl = self.smooth(res)
             ln = np.log(max(n, 2))
             # the response's large scales (a flat-field map: coating and thickness variations, Janesick 2007,
@@ -1965,6 +1970,24 @@ class VarianceSignature(Signature):
             best_smooth = (ds + m * ln, ds, m, rms, cos_delta) if m and ds + m * ln < 0 else None
             if best_smooth is not None:
                 _, ds, m, rms, smooth_delta = best_smooth
+                # the pixel-to-pixel scatter is what remains beyond the smooth part, which must still be a part
+                # of the whole: the smooth part's own fine structure (the template's: a missing response
+                # multiplies the sources, whose residuals are a few pixels wide and go as the light squared)
+                # comes off the whitened residual, and its charge carries its shot noise (with_shot_noise). A
+                # smooth field of dark charge whose shot noise, or a response whose sources, were taken for a
+                # scatter is a field, not a non-uniformity of the pixels
+                from scipy.ndimage import gaussian_filter
+
+                sm = np.asarray(smooth_delta, np.float32)
+                fine = (sm - gaussian_filter(sm, WHITE_SCALE, mode="nearest")).ravel()[vs["idx"]]
+                shot = np.maximum(frame_at(sm, vs["idx"]) * res.poisson_adu, -0.9 * vs["v"])
+                theta, d0, law = best_law(vs["v"] + shot, vs["r_white"] - fine / np.sqrt(vs["keep_var"]))
+                if d0 * vs["scale"] >= part:
+                    return None
+                params = self.to_params(theta, res) if law is None else self.to_params(theta, res, law)
+                if params is None:
+                    return None
+                d, note = d0 * vs["scale"], law or ""
                 d, k = d + ds, k + m
                 extra = {"smooth_rms": rms}
                 note = (note + " " if note else "") + f"+ low-frequency pattern {100 * rms:.2g} % rms"

@@ -40,10 +40,19 @@ from .base import Effect, EffectParams, Stage, Tile, register_effect
 
 
 def radial_vignetting(u_mm: np.ndarray, v_mm: np.ndarray, r_corner_mm: float, a2: float, a4: float,
-                      centre_mm: tuple[float, float] = (0.0, 0.0)) -> np.ndarray:
-    """RI = 1 - a2 rho^2 - a4 rho^4, rho = |(u, v) - centre| / r_corner, clipped to [0, 1] [1]."""
-    rho2 = ((u_mm - centre_mm[0]) ** 2 + (v_mm - centre_mm[1]) ** 2) / r_corner_mm ** 2
-    return np.clip(1.0 - a2 * rho2 - a4 * rho2 * rho2, 0.0, 1.0)
+                      centre_mm: tuple[float, float] = (0.0, 0.0), a2_cos2: float = 0.0,
+                      a2_sin2: float = 0.0) -> np.ndarray:
+    """RI = 1 - (a2 + a2_cos2 cos 2phi + a2_sin2 sin 2phi) rho^2 - a4 rho^4, rho = |(u, v) - centre| / r_corner,
+    phi its azimuth from the columns' axis, clipped to [0, 1] [1]. The azimuthal terms make the fall-off
+    elliptical (its rho^2 rate changing with direction, ``(du^2 - dv^2) a2_cos2 + 2 du dv a2_sin2``): the
+    vignetting of an off-axis field, whose pupil is clipped by two apertures into a cat's eye (Smith 2008, Modern
+    Optical Engineering, 4th ed., sect. 6.5), or of a sensor tilted to the optical axis."""
+    du, dv = u_mm - centre_mm[0], v_mm - centre_mm[1]
+    rho2 = (du ** 2 + dv ** 2) / r_corner_mm ** 2
+    out = 1.0 - a2 * rho2 - a4 * rho2 * rho2
+    if a2_cos2 or a2_sin2:
+        out = out - (a2_cos2 * (du ** 2 - dv ** 2) + a2_sin2 * 2.0 * du * dv) / r_corner_mm ** 2
+    return np.clip(out, 0.0, 1.0)
 
 
 def read_vignetting_map(path: str | Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -130,7 +139,9 @@ def _offsets_mm(res, cx_mm: float, cy_mm: float) -> tuple[np.ndarray, np.ndarray
     return u, v
 
 
-def _vignetting_variant(res, cx_mm: float, cy_mm: float, radius_mm: float | None = None):
+def _vignetting_variant(res, cx_mm: float, cy_mm: float, radius_mm: float | None = None, elliptical: bool = False):
+    """The radial polynomial about a centre (``a2``, ``a4``); ``elliptical``: with the azimuthal terms of its rho^2
+    rate (``a2_cos2``, ``a2_sin2``: :func:`radial_vignetting`)."""
     s = res.sensor
     pitch_mm = s.pixel_pitch_um * 1e-3
     u, v = _offsets_mm(res, cx_mm, cy_mm)
@@ -138,28 +149,35 @@ def _vignetting_variant(res, cx_mm: float, cy_mm: float, radius_mm: float | None
     photo = res.photo_adu
     w = photo.shape[1]
 
+    def terms(uu, vv, p):
+        rho2 = (uu ** 2 + vv ** 2) / r_corner ** 2
+        out = [-p * rho2, -p * rho2 * rho2]
+        if elliptical:
+            out += [-p * (uu ** 2 - vv ** 2) / r_corner ** 2, -p * 2.0 * uu * vv / r_corner ** 2]
+        return out
+
     def at(idx):
         y, x = np.divmod(idx, w)
-        rho2 = (u[x] ** 2 + v[y] ** 2) / r_corner ** 2
-        p = photo.ravel()[idx].astype(np.float64)
-        return np.stack([-p * rho2, -p * rho2 * rho2])
+        return np.stack(terms(u[x], v[y], photo.ravel()[idx].astype(np.float64)))
 
     def maps():
-        rho2 = ((u[None, :] ** 2 + v[:, None] ** 2) / r_corner ** 2).astype(np.float32)
-        ph = photo.astype(np.float32)
-        return [-ph * rho2, -ph * rho2 * rho2]
+        return [t.astype(np.float32) for t in terms(u[None, :], v[:, None], photo.astype(np.float64))]
 
     def to_params(c):
-        a2, a4 = (float(x) for x in c)
-        ok = abs(a2) <= VIGNETTING_COEF_MAX and abs(a4) <= VIGNETTING_COEF_MAX and a2 + a4 < 1
+        a2, a4 = (float(x) for x in c[:2])
+        quad = float(np.hypot(c[2], c[3])) if elliptical else 0.0  # the rho^2 rate's azimuthal amplitude
+        ok = (abs(a2) + quad <= VIGNETTING_COEF_MAX and abs(a4) <= VIGNETTING_COEF_MAX and a2 + quad + a4 < 1)
         p = {"a2": round(a2, 6), "a4": round(a4, 6)}
+        if elliptical:
+            p.update(a2_cos2=round(float(c[2]), 6), a2_sin2=round(float(c[3]), 6))
         if cx_mm or cy_mm:
             p.update(centre_x_mm=round(cx_mm, 3), centre_y_mm=round(cy_mm, 3))
         if radius_mm:
             p["radius_mm"] = round(float(radius_mm), 4)
         return p if ok else None
 
-    return Variant(maps, to_params, f"{cx_mm}|{cy_mm}|{radius_mm or 0.0}", at=at)
+    return Variant(maps, to_params, f"{cx_mm}|{cy_mm}|{radius_mm or 0.0}" + ("|elliptical" if elliptical else ""),
+                   at=at)
 
 
 def _window_geometry_mm(res) -> tuple[float, float, float]:
@@ -204,7 +222,7 @@ def _vignetting_refine(best, res):
     the step, moved to the best, the step halved when none is better; Kolda, Lewis & Torczon 2003, SIAM
     Rev. 45, 385) on the search sample, down to :data:`_CENTRE_TOL`; a centre off by a grid step leaves a
     gradient a bias or glow candidate would take next."""
-    cx, cy, radius = (float(x) for x in best.label.split("|"))
+    cx, cy, radius = (float(x) for x in best.label.split("|")[:3])
     radius = radius or None
     rc = _half_diagonal_mm(res)
     ctx, shape = search_sample(res), res.data_adu.shape
@@ -214,25 +232,34 @@ def _vignetting_refine(best, res):
         ox, oy, rw = _window_geometry_mm(res)
         reach = 1.5 * rw
 
-    def score(x, y):
+    def score(x, y, elliptical):
         if max(abs(x - ox), abs(y - oy)) > reach:  # a centre far off the field makes a plane, not vignetting
             return np.inf
-        v = _vignetting_variant(res, x, y, radius)
+        v = _vignetting_variant(res, x, y, radius, elliptical)
         c, d = fit_linear(res, lambda i: v.values(i, shape), ctx["idx"], ctx["r"], ctx["w"])
         return d if v.to_params(c) is not None else np.inf
 
-    here, step = score(cx, cy), 0.05 * rc
-    for _ in range(60):
-        if step < _CENTRE_TOL * rc:
-            break
-        trials = [(score(cx + dx, cy + dy), cx + dx, cy + dy) for dx in (-step, 0.0, step)
-                  for dy in (-step, 0.0, step) if dx or dy]
-        d, x, y = min(trials)
-        if d < here:
-            here, cx, cy = d, x, y
-        else:
-            step /= 2
+    def search(cx, cy, elliptical):
+        here, step = score(cx, cy, elliptical), 0.05 * rc
+        for _ in range(60):
+            if step < _CENTRE_TOL * rc:
+                break
+            trials = [(score(cx + dx, cy + dy, elliptical), cx + dx, cy + dy) for dx in (-step, 0.0, step)
+                      for dy in (-step, 0.0, step) if dx or dy]
+            d, x, y = min(trials)
+            if d < here:
+                here, cx, cy = d, x, y
+            else:
+                step /= 2
+        return cx, cy
+
+    cx, cy = search(cx, cy, False)
     yield _vignetting_variant(res, cx, cy, radius)
+    # ... and an elliptical fall-off (two more coefficients, which the BIC weighs), its centre searched from the
+    # circular one's or the field's (the grid's middle), whichever fits better: an elliptical fall-off puts the
+    # best circular centre off its own, on the far side of a ridge of the elliptical fit's chi2
+    start = min([(cx, cy), (ox, oy)], key=lambda c: score(*c, True))
+    yield _vignetting_variant(res, *search(*start, True), radius, elliptical=True)
 
 
 def _rho2_max(res, p: dict) -> float:
@@ -410,7 +437,8 @@ _VIGNETTING_SIGNATURE.untold = light_law_untold(("straylight", "sky_gradient"), 
 #: the variant of a label ("cx|cy|radius"), on any frame: a series refines the centre on one frame and fits
 #: that one form on every frame (scenes.app.compare.series)
 _VIGNETTING_SIGNATURE.rebuild = lambda label, res: _vignetting_variant(
-    res, *(float(x) for x in label.split("|")[:2]), float(label.split("|")[2]) or None)
+    res, *(float(x) for x in label.split("|")[:2]), float(label.split("|")[2]) or None,
+    elliptical=label.endswith("|elliptical"))
 
 
 def relative_illumination(params: VignettingParams, sensor):
@@ -434,7 +462,7 @@ def relative_illumination(params: VignettingParams, sensor):
         if interp is not None:
             return interp(v, u)
         return radial_vignetting(u[None, :], v[:, None], r_corner, params.a2, params.a4,
-                                 (params.centre_x_mm, params.centre_y_mm))
+                                 (params.centre_x_mm, params.centre_y_mm), params.a2_cos2, params.a2_sin2)
 
     return ri
 
@@ -446,6 +474,12 @@ class VignettingParams(EffectParams):
                       description="radial model: loss at the corner from the rho^2 term", json_schema_extra={"unit": "1"})
     a4: float = Field(0.0, ge=-VIGNETTING_COEF_MAX, le=VIGNETTING_COEF_MAX, description="radial model: rho^4 term",
                       json_schema_extra={"unit": "1"})
+    a2_cos2: float = Field(0.0, ge=-VIGNETTING_COEF_MAX, le=VIGNETTING_COEF_MAX,
+                           description="radial model: the rho^2 loss's change with azimuth, cos(2 phi) part (an "
+                           "elliptical fall-off, axes along the columns and rows)", json_schema_extra={"unit": "1"})
+    a2_sin2: float = Field(0.0, ge=-VIGNETTING_COEF_MAX, le=VIGNETTING_COEF_MAX,
+                           description="radial model: the rho^2 loss's change with azimuth, sin(2 phi) part (an "
+                           "elliptical fall-off, axes at 45 degrees)", json_schema_extra={"unit": "1"})
     centre_x_mm: float = Field(0.0, ge=-100, le=100, description="radial model: centre offset along columns",
                                json_schema_extra={"unit": "mm"})
     centre_y_mm: float = Field(0.0, ge=-100, le=100, description="radial model: centre offset along rows",
@@ -455,7 +489,7 @@ class VignettingParams(EffectParams):
 
     @model_validator(mode="after")
     def _one_form(self):
-        if self.map_file and (self.a2 or self.a4):
+        if self.map_file and (self.a2 or self.a4 or self.a2_cos2 or self.a2_sin2):
             raise ValueError("give either map_file or the radial coefficients a2/a4, not both")
         return self
 

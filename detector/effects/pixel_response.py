@@ -20,6 +20,7 @@ from pydantic import Field, model_validator
 from ..rng import standard_normal_f32
 from ..signatures import (
     DEFECT_K,
+    LINE_WINDOW,
     GroupSignature,
     LinearSignature,
     VarianceSignature,
@@ -262,20 +263,26 @@ def _gain_variants(res):
     yield from _gain_split_variants(res, sig)
 
 
-#: boundaries found from the data: at most this many along an axis, each at least this share of the frame
-#: from an edge and from another: a segment that holds fewer lines holds fewer pixels than an anomalous-pixel
-#: population may (MAX_DEFECT_FRACTION), and is a column defect or an edge effect, not an amplifier's region
+#: boundaries found from the data: at most this many along an axis, each at least this share of the frame from
+#: an edge (a segment that holds fewer lines holds fewer pixels than an anomalous-pixel population may,
+#: MAX_DEFECT_FRACTION: at the frame's edge it is an edge effect, a glow along it, a shadow), and at least
+#: LINE_WINDOW lines from another: a step of the line means that persists over that many lines is a level of the
+#: neighbourhood to the column (row) statistic, which compares each line with the running median of its
+#: LINE_WINDOW neighbours (a region, an amplifier's strip), where a narrower group of lines stands out of it as
+#: outlier lines (column defects)
 MAX_FOUND_SPLITS = 2
 MIN_SEGMENT_SHARE = MAX_DEFECT_FRACTION
 
 
-def _best_split(rc: np.ndarray, sc: np.ndarray, wc: np.ndarray, fixed: list[int], lo: int) -> int | None:
+def _best_split(rc: np.ndarray, sc: np.ndarray, wc: np.ndarray, fixed: list[int], lo: int,
+                gap: int | None = None) -> int | None:
     """The boundary (index of the first line after it) that, added to ``fixed``, most lowers the weighted
     least-squares misfit of a piecewise-constant ratio ``rc / sc`` (line sums of the residual and of the
     signal, weights ``wc`` = sc^2 / var): binary segmentation (Scott & Knott 1974). Each segment [a, b)
     explains ``(sum sc rc wc)^2 / sum sc^2 wc`` of the misfit; a new boundary j changes only the segment that
     holds it, so every j is scored at once from prefix sums. None when no boundary at least ``lo`` lines from
-    the edges and from ``fixed`` explains anything."""
+    the edges and ``gap`` (default ``lo``) from ``fixed`` explains anything."""
+    gap = lo if gap is None else gap
     n = rc.size
     ss = np.concatenate([[0.0], np.cumsum(sc * sc * wc)])
     sr = np.concatenate([[0.0], np.cumsum(sc * rc * wc)])
@@ -286,7 +293,7 @@ def _best_split(rc: np.ndarray, sc: np.ndarray, wc: np.ndarray, fixed: list[int]
 
     j = np.arange(lo, n - lo + 1)
     if fixed:
-        j = j[np.min(np.abs(j[:, None] - np.asarray(fixed)[None, :]), axis=1) >= lo]
+        j = j[np.min(np.abs(j[:, None] - np.asarray(fixed)[None, :]), axis=1) >= gap]
     if j.size == 0:
         return None
     cuts = np.asarray(sorted([0, n, *fixed]))
@@ -320,7 +327,7 @@ def _gain_split_variants(res, sig: np.ndarray):
         wc = np.where(vc > 0, 1.0 / np.maximum(vc, 1e-30), 0.0)
         cuts: list[int] = []
         for _ in range(MAX_FOUND_SPLITS):
-            j = _best_split(rc, sc, wc, cuts, lo)
+            j = _best_split(rc, sc, wc, cuts, lo, min(lo, LINE_WINDOW))
             if j is None:
                 break
             cuts = sorted([*cuts, j])

@@ -31,6 +31,7 @@ from ..signatures import (
     ml_variance_scale,
     periodic_line_peak,
     search_sample,
+    template_at,
 )
 from ..significance import DETECTION_SIGMA, EXPLAINS_MOST
 from .base import Effect, EffectParams, Stage, Tile, register_effect
@@ -347,13 +348,14 @@ def _bias_variants(res):
                  "quadratic_adu": round(float(c[2]), 4)} if worst <= s.bias_adu else None)
 
     yield Variant(unit, to_params)
-    if not _unlit(res):
-        return
+    unlit = _unlit(res)
+    if not unlit and (np.any(res.photo_adu > 0) or res.exptime_s <= 0):
+        return  # a frame with light: a smooth pattern is the light's (sky, straylight, a response) or charge's
     # on a frame without light or dark charge a pattern along the columns can only be the read-out's: the
     # serial direction's fixed pattern, in cosine series of growing order (chosen by BIC)
     top = max(BIAS_PROFILE_ORDERS)
     rows = [(f * bias_profile_adu(res.xs, s.sensor_width_px, np.eye(top)[k]))[None, :] for k in range(top)]
-    for order in BIAS_PROFILE_ORDERS:
+    for order in BIAS_PROFILE_ORDERS if unlit else ():
 
         def with_profile(c):
             p = to_params(c[:3])
@@ -367,38 +369,68 @@ def _bias_variants(res):
             return dict(p, column_profile_adu=coeffs)
 
         yield Variant(unit + rows[:order], with_profile, label=f"column profile of {order} cosine terms")
-    # ... and on a bias frame (no integration: nothing but the read-out can make a pattern) a smooth 2-D
-    # structure (the read's drift along the rows with the serial pattern, an amplifier's warm-up spreading into
-    # the array), in 2-D cosine series of growing order (chosen by BIC). On an exposed dark a smooth 2-D pattern
-    # may be charge (a glow, a dark-current gradient), which differs from it only by its shot noise
+    # ... and on a frame without light a smooth 2-D structure (the read's drift along the rows with the serial
+    # pattern, an amplifier's warm-up spreading into the array), in 2-D cosine series of growing order (chosen by
+    # BIC): on a bias frame (no integration: nothing but the read-out can make a pattern) over the window it sees;
+    # on an exposed dark over the sensor, the basis the dark-rate field of a temperature gradient is offered in
+    # (detector.effects.thermal): on one dark frame the two differ only by the dark charge's shot noise, so
+    # neither is preferred for its form (a bias frame, or a dark of another exposure, tells them apart)
     if res.exptime_s > 0:
-        return
+        box = [0.0, 0.0, s.sensor_width_px - 1.0, s.sensor_height_px - 1.0]
+    else:
+        box = [float(res.xs.min()), float(res.ys.min()), float(res.xs.max()), float(res.ys.max())]  # the window's
+
+    def with_field(coef):
+        if float(np.max(np.abs(field_on_window(coef, box, res)))) > s.bias_adu:  # bounded by the bias too
+            return None
+        return {"gradient_x_adu": 0.0, "gradient_y_adu": 0.0, "quadratic_adu": 0.0,
+                "field_adu": [[float(v) for v in row] for row in coef], "field_box_px": box}
+
+    yield from cosine_field_variants(res, f, box, with_field)
+
+
+def field_on_window(coef, box, res) -> np.ndarray:
+    """:func:`bias_field_adu` of coefficients ``coef`` over the box ``box`` [sensor px] on a BIAS_FIELD_GRID x
+    BIAS_FIELD_GRID grid spanning the window the residuals cover (the part of the field the data constrains)."""
+    s = res.sensor
+    grid = np.linspace(0, 1, BIAS_FIELD_GRID)
+    ys = float(res.ys.min()) + grid * float(res.ys.max() - res.ys.min())
+    xs = float(res.xs.min()) + grid * float(res.xs.max() - res.xs.min())
+    return bias_field_adu(ys, xs, s.sensor_height_px, s.sensor_width_px, coef, box)
+
+
+def cosine_field_variants(res, unit, box, to_params, orders=None):
+    """Variants of a smooth 2-D field: :func:`bias_field_adu`'s cosine series over the box ``(x0, y0, x1, y1)``
+    [sensor px], ``order x order`` terms (``C_00`` left out: the level's) for each order of ``orders`` (default
+    BIAS_FIELD_ORDERS), times ``unit`` (ADU per unit coefficient: a scalar, or a map that broadcasts), the
+    coefficients rounded to 4 significant digits and passed as an ``order x order`` array to ``to_params``
+    (its parameters, or None out of bounds). The one smooth-field basis of the additive fields that differ by
+    their physics only (a bias structure, a dark-rate field)."""
     width = res.data_adu.shape[1]
-    box = [float(res.xs.min()), float(res.ys.min()), float(res.xs.max()), float(res.ys.max())]  # the window's
-    v = (res.ys - box[1]) / max(box[3] - box[1], 1.0)
-    u = (res.xs - box[0]) / max(box[2] - box[0], 1.0)
-    cv = np.cos(np.pi * v[:, None] * np.arange(max(BIAS_FIELD_ORDERS)))
-    cu = np.cos(np.pi * u[:, None] * np.arange(max(BIAS_FIELD_ORDERS)))
-    for order in BIAS_FIELD_ORDERS:
+    orders = BIAS_FIELD_ORDERS if orders is None else orders
+    v = np.clip((res.ys - box[1]) / max(box[3] - box[1], 1.0), 0.0, 1.0)
+    u = np.clip((res.xs - box[0]) / max(box[2] - box[0], 1.0), 0.0, 1.0)
+    cv = np.cos(np.pi * v[:, None] * np.arange(max(orders))).astype(np.float32)
+    cu = np.cos(np.pi * u[:, None] * np.arange(max(orders))).astype(np.float32)
+    unit = np.asarray(unit, np.float32)
+    for order in orders:
         terms = [(j, k) for j in range(order) for k in range(order) if j or k]
+
+        def maps(terms=terms):
+            return [(unit * (cv[:, j, None] * cu[None, :, k])).astype(np.float32) for j, k in terms]
 
         def at(idx, terms=terms):
             y, x = np.divmod(idx, width)
-            return np.stack([float(f) * cv[y, j] * cu[x, k] for j, k in terms])
+            scale = template_at(unit, res.data_adu.shape, idx) if unit.ndim else float(unit)
+            return np.stack([scale * cv[y, j] * cu[x, k] for j, k in terms])
 
-        def with_field(c, order=order, terms=terms):
+        def params(c, order=order, terms=terms):
             coef = np.zeros((order, order))
             for (j, k), ck in zip(terms, c):
                 coef[j, k] = float(f"{ck:.4g}")
-            field = bias_field_on_box(coef, box, s.sensor_height_px, s.sensor_width_px)
-            if float(np.max(np.abs(field))) > s.bias_adu:  # the field's extremes are bounded by the bias too
-                return None
-            return {"gradient_x_adu": 0.0, "gradient_y_adu": 0.0, "quadratic_adu": 0.0,
-                    "field_adu": [[float(v) for v in row] for row in coef], "field_box_px": box}
+            return to_params(coef)
 
-        yield Variant(lambda terms=terms: [(float(f) * cv[:, j, None] * cu[None, :, k]).astype(np.float32)
-                                           for j, k in terms],
-                      with_field, label=f"2-D field of {order} x {order} cosine terms", at=at)
+        yield Variant(maps, params, label=f"2-D field of {order} x {order} cosine terms", at=at)
 
 
 #: orders of the bias pattern along the serial direction the bias fit tries on unlit frames [cosine terms]

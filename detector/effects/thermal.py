@@ -5,7 +5,7 @@ which doubles every ~6-7 K near room temperature (Janesick 2001, Scientific CCDs
 Widenhorn et al. 2002, J. Appl. Phys. 92, 7434). A cold finger at one side of the die, or a warm read-out
 amplifier, leaves a temperature gradient of a few tenths of a kelvin to a few kelvin across the sensor.
 
-Two forms, which add:
+Three forms, which add:
 
 * the linear ramp (``gradient_x_e_per_s``, ``gradient_y_e_per_s``): to first order in ``dT`` the dark rate
   changes by ``dD = D ln2 dT / T_2`` (``T_2`` the doubling interval), a ramp of the dark rate [e-/s];
@@ -13,7 +13,12 @@ Two forms, which add:
   ``T = tx u + ty v`` [K] (``u, v`` in -0.5..0.5 across the sensor) changes the dark rate by
   ``D0 (2^(T / T_2) - 1)``, ``D0`` the sensor's dark rate and ``T_2`` from the sensor's temperature
   (:func:`doubling_interval_k`): a ramp with curvature along the gradient, its curvature fixed by its slope
-  and level (``d^2D/dT^2 = (ln2 / T_2) dD/dT``).
+  and level (``d^2D/dT^2 = (ln2 / T_2) dD/dT``);
+* a smooth field of any low order (``field_e_per_s``): the 2-D cosine series of
+  :func:`detector.effects.readout.bias_field_adu` over the sensor [e-/s], a die's temperature field with more
+  than one heat source or sink; in the diagnosis offered on frames without light, in the same basis as a bias
+  structure of that frame, so that on one dark the forms do not decide between them, the dark charge's shot
+  noise does (a bias frame, or a dark of another exposure, tells them apart).
 
 Unlike a bias ramp (an offset of the read-out, the same in every frame) it grows with exposure time and
 carries its shot noise, which tells the two apart in a dark series (``newtsim diagnose --series``). On one
@@ -28,6 +33,7 @@ from pydantic import Field
 
 from ..signatures import LinearSignature, Variant, fit_linear, profiled_chi2, search_sample
 from .base import Effect, EffectParams, Stage, Tile, register_effect
+from .readout import bias_field_adu, cosine_field_variants, field_on_window
 
 #: silicon band gap [eV] near room temperature (Sze & Ng 2007, Physics of Semiconductor Devices, 3rd ed.,
 #: Table 1.2 / Appendix G: 1.12 eV at 300 K)
@@ -140,6 +146,16 @@ def _variants(res):
 
     linear = Variant([(unit * u)[None, :], (unit * v)[:, None]], to_params, label="linear ramp")
     yield linear
+    if res.exptime_s > 0 and not np.any(res.photo_adu > 0):
+        # on a frame without light, a smooth dark-rate field of any low-order shape (a die's temperature field
+        # with more than one heat source or sink: not a plane, its curvature not the doubling law's), in the
+        # basis a bias structure of the same frame is offered in (detector.effects.readout.cosine_field_variants,
+        # over the sensor): one dark frame tells the two only by the dark charge's shot noise, not by their forms.
+        # (On a frame with light a smooth added field of any shape is the light's, the same charge.)
+        box = [0.0, 0.0, s.sensor_width_px - 1.0, s.sensor_height_px - 1.0]
+        yield from cosine_field_variants(res, unit, box, lambda coef: {
+            "gradient_x_e_per_s": 0.0, "gradient_y_e_per_s": 0.0, "temperature_x_k": 0.0, "temperature_y_k": 0.0,
+            "field_e_per_s": [[float(x) for x in row] for row in coef]})
     d0 = float(s.dark_current_e_per_s)
     if res.exptime_s <= 0 or d0 <= 0:
         return
@@ -193,16 +209,18 @@ def _check(fit, res) -> str:
     """A temperature gradient modulates the sensor's dark current: it cannot take the dark rate below zero
     at a corner (the change at the corners, ``(|gx| + |gy|) / 2``, stays below the sensor's dark rate plus
     the measured dark level); in the exponential form (which never goes below zero) the temperature
-    difference corner to corner, ``|tx| + |ty|``, stays within MAX_TEMPERATURE_SPAN_K."""
-    p, s = fit.params, res.sensor
+    difference corner to corner, ``|tx| + |ty|``, stays within MAX_TEMPERATURE_SPAN_K; a smooth field's
+    peak to peak, as the temperature difference the doubling law needs for it (:func:`field_span_k`), too."""
+    p = fit.params
     span = abs(p.get("temperature_x_k", 0.0)) + abs(p.get("temperature_y_k", 0.0))
+    if p.get("field_e_per_s"):
+        span = field_span_k(p["field_e_per_s"], res)
     if span > MAX_TEMPERATURE_SPAN_K:
         return (f"the sensor would be {span:.3g} K warmer at one corner than at the opposite one, more than "
                 f"{MAX_TEMPERATURE_SPAN_K:.0f} K across a sensor's die: not a temperature gradient; an offset "
                 "ramp (bias) or a light taken for dark current")
     corner = (abs(p["gradient_x_e_per_s"]) + abs(p["gradient_y_e_per_s"])) / 2
-    mean_rate = float(np.median(res.dark_e)) / max(res.exptime_s * res.pixel_sum, 1e-12) if res.dark_e.size else 0.0
-    base = max(s.dark_current_e_per_s, mean_rate)
+    base = base_rate(res)
     if corner > 1.5 * base + 1e-9:
         return (f"the dark rate would change by {corner:.3g} e-/s at the corners, more than the sensor's dark rate "
                 f"({base:.3g} e-/s): a temperature gradient cannot do that; an offset ramp (bias) or a light taken "
@@ -210,9 +228,36 @@ def _check(fit, res) -> str:
     return ""
 
 
+def base_rate(res) -> float:
+    """The dark rate [e-/s per sensor pixel] a temperature field modulates: the sensor's, or the frame's
+    modelled median dark rate when larger."""
+    mean_rate = float(np.median(res.dark_e)) / max(res.exptime_s * res.pixel_sum, 1e-12) if res.dark_e.size else 0.0
+    return max(float(res.sensor.dark_current_e_per_s), mean_rate)
+
+
+def field_span_k(coef, res) -> float:
+    """The temperature difference [K] a smooth dark-rate field (cosine coefficients ``coef`` [e-/s] over the
+    sensor) needs across the window the frame sees: its peak to peak ``P`` on top of the dark rate ``D``
+    (:func:`base_rate`) at its lowest, ``T_2 log2(1 + P / D)`` (the doubling law, Janesick 2001 eq. 7.4); inf
+    without a dark rate."""
+    s = res.sensor
+    box = [0.0, 0.0, s.sensor_width_px - 1.0, s.sensor_height_px - 1.0]
+    ptp, base = float(np.ptp(field_on_window(coef, box, res))), base_rate(res)
+    if base <= 0:
+        return float("inf") if ptp > 0 else 0.0
+    return doubling_interval_k(s.temperature_c) * float(np.log2(1.0 + ptp / base))
+
+
 def _explain(p: dict, res) -> str:
     tx, ty = p.get("temperature_x_k", 0.0), p.get("temperature_y_k", 0.0)
     words = []
+    if p.get("field_e_per_s"):
+        s = res.sensor
+        box = [0.0, 0.0, s.sensor_width_px - 1.0, s.sensor_height_px - 1.0]
+        ptp = float(np.ptp(field_on_window(p["field_e_per_s"], box, res)))
+        n = len(p["field_e_per_s"])
+        words.append(f"a smooth dark-rate field of {ptp:.3g} e-/s peak to peak ({n} x {n} cosine terms over the "
+                     f"sensor; {field_span_k(p['field_e_per_s'], res):.3g} K across the window at the doubling law)")
     if tx or ty:
         t2 = doubling_interval_k(res.sensor.temperature_c)
         words.append(f"the sensor {abs(tx):.3g} K {'warmer' if tx >= 0 else 'cooler'} at the right edge, "
@@ -243,12 +288,18 @@ class DarkGradientParams(EffectParams):
     temperature_y_k: float = Field(0.0, ge=-100, le=100,
                                    description="temperature difference across the sensor height, top minus "
                                                "bottom [K] (exponential law, doubling every T_2)")
+    field_e_per_s: list[list[float]] = Field(default_factory=list, max_length=16,
+                                             description="2-D cosine-series coefficients C_jk (rows j, columns k; "
+                                             "C_00 ignored) of a smooth dark-rate field over the sensor, sum_jk C_jk "
+                                             "cos(j pi v) cos(k pi u), u = x / (W - 1), v = y / (H - 1) [e-/s/pixel]",
+                                             json_schema_extra={"unit": "e-/s"})
 
 
 @register_effect
 class DarkGradient(Effect):
     """Dark-current gradient across the sensor (a temperature gradient over the die, Janesick 2001 eq. 7.4):
-    adds ``(gx u + gy v + D0 (2^((tx u + ty v) / T_2) - 1)) t`` [e-] to the dark charge, ``u, v`` in
+    adds ``(gx u + gy v + D0 (2^((tx u + ty v) / T_2) - 1) + F(u, v)) t`` [e-] to the dark charge (``F`` the
+    smooth field of ``field_e_per_s``), ``u, v`` in
     -0.5..0.5 across the sensor, ``D0`` the sensor's dark rate, ``T_2`` the doubling interval at the sensor's
     temperature (:func:`doubling_interval_k`), never taking the pixel's dark charge below zero. Grows with
     exposure time; its shot noise is drawn with the rest of the dark charge."""
@@ -266,10 +317,12 @@ class DarkGradient(Effect):
         p, s = self.params, self.sensor
         linear = p.gradient_x_e_per_s != 0 or p.gradient_y_e_per_s != 0
         thermal = (p.temperature_x_k != 0 or p.temperature_y_k != 0) and s.dark_current_e_per_s > 0
-        if not tile.exptime_s or not (linear or thermal):
+        if not tile.exptime_s or not (linear or thermal or p.field_e_per_s):
             return
         ys, xs = tile.pixel_centres()
         m = gradient_rate(ys, xs, s.sensor_height_px, s.sensor_width_px, p.gradient_x_e_per_s, p.gradient_y_e_per_s)
+        if p.field_e_per_s:
+            m += bias_field_adu(ys, xs, s.sensor_height_px, s.sensor_width_px, p.field_e_per_s)
         if thermal:
             m += thermal_rate(ys, xs, s.sensor_height_px, s.sensor_width_px, s.dark_current_e_per_s,
                               p.temperature_x_k, p.temperature_y_k, doubling_interval_k(s.temperature_c))

@@ -160,3 +160,72 @@ def test_a_variant_with_a_fixed_part_counts_its_chi2_from_the_residual_itself():
         res, idx, r, wt)
     assert d == pytest.approx(direct, rel=1e-6, abs=1e-3)
     np.testing.assert_allclose(v.fixed_map((h, w)), fmap)
+
+
+# ------------------------------------------------------------------ smooth fields of any low-order shape
+def _poly_field(s, scale: float) -> np.ndarray:
+    """A smooth field on the binned ML11002 window that is neither a plane nor the doubling law's curvature
+    (a cross term and a one-sided bowl: two heat sources), peak to peak ``scale``."""
+    h, w = s.output_shape
+    u = (np.arange(w) / (w - 1) - 0.5)[None, :]
+    v = (np.arange(h) / (h - 1) - 0.5)[:, None]
+    f = 0.6 * u - 0.3 * v + 1.5 * u * v + 1.2 * (v + 0.5) ** 2
+    return scale * (f - f.min()) / np.ptp(f)
+
+
+def test_a_smooth_dark_field_is_fitted_in_the_bias_basis_and_told_from_a_bias_by_its_shot_noise():
+    """On a dark frame a dark-rate field and a bias structure get the same smooth basis (2-D cosines over the
+    sensor): the forms do not decide, the dark charge's shot noise does; the fitted field is the truth's."""
+    s = make_sensor("ml11002", {"binning": 8})
+    extra = _poly_field(s, 1500.0)  # [e-] per binned pixel: ~0.04 e-/s per sensor pixel over 600 s
+    res = _dark_residuals(extra_e=extra, seed=4)
+    f = _fits(res)
+    dark, why = f["dark_gradient"]
+    bias = f["bias_gradient"][0]
+    assert why == "", why
+    assert dark.params.get("field_e_per_s") and "field_adu" in bias.params  # the same basis for both
+    assert "smooth dark-rate field" in dark.explanation
+    # the field's mean change is the truth's up to a constant (the level's)
+    got = np.asarray(dark.delta_adu, float) * s.gain_e_per_adu
+    diff = got - extra
+    assert np.std(diff - diff.mean()) < 0.05 * np.ptp(extra)
+    # the same fit of the mean; the dark charge's shot noise speaks for the dark
+    assert dark.delta_bic < bias.delta_bic, (dark.delta_bic, bias.delta_bic)
+
+
+def test_a_smooth_bias_field_on_a_dark_is_not_taken_for_dark_charge():
+    s = make_sensor("ml11002", {"binning": 8})
+    res = _dark_residuals(extra_adu=_poly_field(s, 500.0), seed=6)
+    f = _fits(res)
+    bias, dark = f["bias_gradient"][0], f["dark_gradient"]
+    assert "field_adu" in bias.params
+    assert dark[0] is None or dark[1] != "" or bias.delta_bic < dark[0].delta_bic, (bias.delta_bic, dark)
+
+
+def test_a_smooth_dark_field_is_fitted_better_by_the_dark_field_than_by_a_dsnu():
+    """A smooth dark field without any pixel-to-pixel scatter: the dark-rate field in the bias's basis fits it
+    better than a DSNU's low-frequency part with its scatter. (The DSNU still finds a scatter: the shot noise of
+    the field's mean charge, which on one dark the levels give to the bias offset without its shot noise.)"""
+    s = make_sensor("ml11002", {"binning": 8})
+    res = _dark_residuals(extra_e=_poly_field(s, 1500.0), seed=7)
+    dsnu = registry()["dsnu"].signature.fit(res, "dsnu")
+    dark = registry()["dark_gradient"].signature.fit(res, "dark_gradient")
+    assert dsnu is None or dark.delta_bic < dsnu.delta_bic, (dark.delta_bic, dsnu.delta_bic)
+
+
+def test_apply_renders_the_smooth_dark_field():
+    from detector.effects.readout import bias_field_adu
+
+    s = make_sensor("ml11002", {"binning": 8})
+    t = 300.0
+    coef = [[0.0, 0.01, -0.004], [0.005, 0.002, 0.0], [-0.003, 0.0, 0.001]]
+    base = Detector(s, []).expose(0.0, t, 1, noiseless=True)
+    got = Detector(s, build_effects({"dark_gradient": {"gradient_x_e_per_s": 0.0, "field_e_per_s": coef}}, s)
+                   ).expose(0.0, t, 1, noiseless=True)
+    h, w = s.output_shape
+    b = s.binning
+    ys, xs = np.arange(h * b, dtype=float), np.arange(w * b, dtype=float)
+    rate = bias_field_adu(ys, xs, s.sensor_height_px, s.sensor_width_px, coef).astype(float)
+    expect = (np.maximum(rate + s.dark_current_e_per_s, 0) - s.dark_current_e_per_s) * t
+    expect = expect.reshape(h, b, w, b).sum(axis=(1, 3))
+    np.testing.assert_allclose(got - base, expect, rtol=2e-3, atol=2e-3 * np.abs(expect).max())

@@ -295,3 +295,32 @@ def test_gain_regions_boundary_found_where_the_amplifiers_meet():
     f = det.expose(500.0, 1.0, 1).astype(float) - s.bias_adu  # below the full well (ADU: the gains act there)
     step = xs > fit.params["splits_x"][0]
     assert f[:, step].mean() / f[:, ~step].mean() == pytest.approx(g[1] / g[0], rel=1e-3)
+
+
+def test_a_narrow_amplifier_strip_is_a_gain_region_not_columns():
+    """Three strips with the middle one 5 % of the frame wide (25 binned columns, 0.7 % low): a step of the column
+    means that persists over more than LINE_WINDOW columns is a region; the two boundaries are found where the
+    strip starts and ends (binary segmentation with boundaries LINE_WINDOW lines apart)."""
+    from detector import registry
+    from detector.signatures import LINE_WINDOW, Residuals, SpikeStats
+
+    s = small(x0=0, y0=0, width=4008, height=64, binning=8, read_noise_e=5.0, dark_current_e_per_s=0.0,
+              gain_e_per_adu=1.0)
+    h, w = s.output_shape
+    ys, xs = np.arange(h) * 8 + 3.5, np.arange(w) * 8 + 3.5
+    rng = np.random.default_rng(6)
+    photo = np.full((h, w), 64 * 5000.0)
+    lo, hi = 0.43 * 4008, 0.48 * 4008
+    assert (hi - lo) / 8 > LINE_WINDOW and (hi - lo) / 4008 < 0.1  # narrower than the edges' segment share
+    gain = np.where((xs > lo) & (xs < hi), 0.993, 1.0)[None, :]
+    var = photo + 25.0
+    data = 1000 + photo * gain + rng.normal(0, 1, (h, w)) * np.sqrt(var)
+    res = Residuals(data.astype(np.float32), (1000 + photo).astype(np.float32), var.astype(np.float32),
+                    np.ones((h, w), bool), photo.astype(np.float32), np.zeros((h, w), np.float32), ys, xs, s, 1.0,
+                    SpikeStats(0, 0, 0, 0, 0), SpikeStats(0, 0, 0, 0, 0))
+    fit = registry()["gain_regions"].signature.fit(res, "gain_regions")
+    splits = fit.params.get("splits_x")
+    assert splits and len(splits) == 2, fit.params
+    assert abs(splits[0] - lo) <= 16 and abs(splits[1] - hi) <= 16, splits  # within two binned columns
+    g = fit.params["gains"]
+    assert g[1] / g[0] == pytest.approx(0.993, abs=1e-3) and g[2] / g[0] == pytest.approx(1.0, abs=1e-3)

@@ -339,6 +339,22 @@ def same_dark_field(a: Candidate, b: Candidate) -> bool:
     return _dark_pattern_field(a) and _charge_origin(b) == "dark"
 
 
+def _read_out_offset(c: Candidate) -> bool:
+    """An additive field of the read-out (a bias structure): added in ADU whatever the exposure."""
+    cls = registry().get(c.fit.effect)
+    return (c.kind == "effect" and cls is not None and cls.field_kind == "additive"
+            and tuple(cls.stages) == (Stage.ADU,) and cls.scaling == "none")
+
+
+def dark_or_offset(a: Candidate, b: Candidate) -> bool:
+    """One is a field of dark charge (a dark-rate field, a glow), the other an offset of the read-out (a bias
+    structure): on one dark frame the same smooth field in the same basis, told apart only by the dark charge's
+    shot noise; a bias frame (where the dark field is zero) or a dark of another exposure (where it scales with
+    the time) tells them."""
+    return ((_charge_origin(a) == "dark" and _read_out_offset(b))
+            or (_charge_origin(b) == "dark" and _read_out_offset(a)))
+
+
 def same_image(a: Candidate, b: Candidate) -> bool:
     """One of the two says, by its own physics, that this frame cannot tell it from the other (the same image
     made at another stage: a coupling of the pixels' charge and a blur of the light, :attr:`Candidate.untold`)."""
@@ -368,6 +384,9 @@ TWIN_REASONS = (
      "enough above a light of one level would tell: a flat field taken through the same optics tells which"),
     (same_image, "the same small kernel on the same pixels, whose stage (the pixels' charge or the light) only a "
                  "coupled noise or a charge not of light would tell, neither measurable in this frame"),
+    (dark_or_offset, ("the same smooth field, of dark charge or an offset of the read-out, whose shot noise does "
+                      "not tell them apart here; a bias frame (where dark charge is zero) or a dark of another "
+                      "exposure (where it scales with the time) does")),
     (lambda a, b: b.heldout_blind and not b.significant,
      "it fits the frame as well or better, and the held-out test cannot weigh it: the few bright pixels that carry "
      "its change lie in one fold of the checkerboard, the other sees less than a detection of it"),

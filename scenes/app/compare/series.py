@@ -437,6 +437,15 @@ def joint_linear(name: str, sig: LinearSignature, frames: list[Residuals], share
             return [v.to_params(sol.shared) if _concerned(g) else "-" for v, g in zip(vs, grams)]
         return [v.to_params(c) if _concerned(g) else "-" for v, c, g in zip(vs, sol.own, grams)]
 
+    n_all = sum(r.n_fit for r in frames)
+
+    def bic(vs, sol):
+        """Variants of different sizes (a ramp, a series of 8 x 8 cosines) compared as a single frame's search
+        compares them (:meth:`detector.signatures.LinearSignature._best`): chi2 plus their templates (once
+        when shared, once per frame otherwise) times ln n (Schwarz 1978)."""
+        k = len(vs[0].values(np.zeros(1, np.intp), frames[0].data_adu.shape)) + vs[0].extra_k
+        return sol.delta_chi2 + k * (1 if mode == "shared" else len(frames)) * math.log(max(n_all, 2))
+
     def search(cands):
         best = None
         for vs in cands:
@@ -444,8 +453,9 @@ def joint_linear(name: str, sig: LinearSignature, frames: list[Residuals], share
             ps = params_of(vs, sol, grams)
             if (mode == "shared" and any(p is None for p in ps)) or all(p in (None, "-") for p in ps):
                 continue
-            if best is None or sol.delta_chi2 < best[1].delta_chi2:
-                best = (vs, sol)
+            score = bic(vs, sol)
+            if best is None or score < best[2]:
+                best = (vs, sol, score)
         return best
 
     best = search(list(zip(*variant_lists)))
