@@ -136,7 +136,6 @@ MAX_DEFECT_FRACTION | D | physics | anomalous-pixel populations (defects, RTS) h
 STRONG_EVIDENCE | D | contract | -2 ln L change of 10: very strong evidence (Kass & Raftery 1995)
 @detector/signatures.py
 SPIKE_SIGMA | D | statistics | a pixel is a spike beyond detection_sigma
-LINE_SIGMA | D | statistics | a column/row mean is an outlier beyond 6 standard errors
 LINE_WINDOW | N | estimator | running-median window of the column test
 MAX_FIT_PIXELS | N | budget | variance fit subsample
 LEVEL_DEGENERACY | N | tolerance | 1 - R^2 below which a level is degenerate with the others (conditioning)
