@@ -191,7 +191,6 @@ SOURCE_KERNEL_CORE_SIGMA | D | statistics | a source pixel: its footprint, model
 SOURCE_KERNEL_HARMONICS | N | basis | angular harmonics of the kernel
 @detector/flux_law.py
 SOURCE_MIN_SNR | D | statistics | S/N of a source's amplitude to enter the slope
-MIN_SOURCES | D | statistics | fewest sources of the slope
 SEPARATION_SIGMA | D | statistics | standard errors separating the two laws
 FOOTPRINT_SIGMA | D | statistics | a source footprint: model light 3 sigma above the noise
 FOOTPRINT_GROW_PX | N | geometry | footprint growth
