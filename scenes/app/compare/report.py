@@ -33,6 +33,7 @@ from detector.morphology import periodic_contrast
 from detector.significance import DETECTION_SIGMA, STRONG_EVIDENCE
 
 from .policy import DEFAULT_POLICY
+from .statistics import PEAK_SIDE
 
 #: resolution of the embedded plots [dots per inch]: small files, still legible
 DPI = 72
@@ -382,9 +383,9 @@ def _peaks_html(result: dict, shown: int = 3) -> str:
     rows = [[p.get("fx"), p.get("fy"), p.get("power_ratio")] for p in peaks]
     side = pk.get("side")
     # a peak is flagged above the morphology's bar of a spectral line significant on its own among the cut's
-    # frequencies (white noise tops out at ~15-25 x the median)
-    n = int(_num(side)) * (int(_num(side)) // 2 + 1) if np.isfinite(_num(side)) else 1
-    flag = periodic_contrast(n)
+    # frequencies (white noise tops out at ~15-25 x the median); a result without the side: the default cut's
+    k = int(_num(side)) if np.isfinite(_num(side)) else PEAK_SIDE
+    flag = periodic_contrast(k * (k // 2 + 1))
     cls = ["flag" if _num(p.get("power_ratio")) > flag else "" for p in peaks]
     tab = _table(["fx [cycles/px]", "fy [cycles/px]", "power / median"], rows, numeric={0, 1, 2}, row_class=cls,
                  digits=3)
