@@ -22,10 +22,6 @@ from . import significance
 #: the least signal-to-noise ratio of a source's own amplitude for the source to enter the slope (below it the
 #: amplitude's logarithm is not defined well enough to fit): a detected source, DETECTION_SIGMA
 SOURCE_MIN_SNR = significance.DETECTION_SIGMA
-#: the fewest sources the slope is fitted on: with fewer the slope has nothing to measure (a narrow range of
-#: fluxes needs no bar of its own: the slope's standard error, 1 / sqrt(sum w (ln F - mean)^2), grows as the
-#: range shrinks, and :func:`flux_law` then finds the two laws not SEPARATION_SIGMA errors apart)
-MIN_SOURCES = 4
 #: how many standard errors of the slope must separate the two laws for the sources to tell them apart (the
 #: nearer law is then at least this many halves of that gap from the other: a 2-sigma one-sided decision
 #: with a gap of 4 sigma)
@@ -87,9 +83,13 @@ def flux_slope(flux: np.ndarray, amp: np.ndarray, err: np.ndarray) -> Slope | No
     """The weighted straight line ``ln(amp) = a + p ln(flux)`` through the sources whose amplitude is positive
     and measured to SOURCE_MIN_SNR (error of ln(amp): err / amp); p's error from the normal matrix, times
     sqrt(chi2 / dof) when the points scatter more than their errors (the model's own misfit per source).
-    None when fewer than MIN_SOURCES sources qualify or their fluxes are all one."""
+    None when the line through the sources that qualify has no degree of freedom left to measure their scatter
+    about it (fewer than three) or their fluxes are all one: no bar of its own on their number or range, the
+    slope's standard error (inflated by that scatter) grows as they are fewer or their fluxes closer, and
+    :func:`flux_law` then finds the two laws not SEPARATION_SIGMA errors apart."""
     ok = np.isfinite(amp) & np.isfinite(err) & (err > 0) & (flux > 0) & (amp > SOURCE_MIN_SNR * err)
-    if ok.sum() < MIN_SOURCES:
+    dof = int(ok.sum()) - 2  # a straight line's two parameters
+    if dof < 1:
         return None
     f, a, e = flux[ok], amp[ok], err[ok]
     spread = float(f.max() / f.min())
@@ -102,8 +102,7 @@ def flux_slope(flux: np.ndarray, amp: np.ndarray, err: np.ndarray) -> Slope | No
     p = float(np.sum(w * (x - xm) * y) / sxx)
     a0 = np.sum(w * (y - p * (x - xm))) / np.sum(w)
     chi2 = float(np.sum(w * (y - a0 - p * (x - xm)) ** 2))
-    dof = ok.sum() - 2
-    inflate = max(1.0, np.sqrt(chi2 / dof)) if dof > 0 else 1.0
+    inflate = max(1.0, np.sqrt(chi2 / dof))
     return Slope(p, float(inflate / np.sqrt(sxx)), int(ok.sum()), spread)
 
 

@@ -47,9 +47,6 @@ from .significance import (
 #: the residual is structured when the block chi2 (or the pixel chi2 for added noise) exceeds its degrees of
 #: freedom by this many standard deviations
 SIGNIFICANT_SIGMA = STRUCTURE_SIGMA
-#: a periodogram peak this many times the median power is significant on its own (white noise: P(bin > c x
-#: median) = 2^-c; over the ~1.3e5 frequencies of a 512 x 512 cut, c = 30 is a false alarm of ~1e-4 per frame)
-PERIODIC_CONTRAST = 30.0
 #: a family is part of the geometry when it takes at least this share of the structured chi2
 GEOMETRY_SHARE = 0.25
 #: blocks across the shorter side of the frame for the binned maps
@@ -139,6 +136,27 @@ def _cut(z: np.ndarray) -> tuple[slice, slice] | None:
     return slice(y0, y0 + side), slice(x0, x0 + side)
 
 
+def tested_frequencies(shape: tuple[int, ...]) -> int:
+    """The number of frequencies the periodogram of :func:`_peak` searches on a map of ``shape``: those of the
+    rfft2 of its central cut (:func:`_cut`, at most 512 x 512)."""
+    side = min(512, *shape)
+    return side * (side // 2 + 1)
+
+
+def periodic_contrast(n_frequencies: int) -> float:
+    """The bar of a periodogram peak over the median power, significant on its own among ``n_frequencies``
+    frequencies searched: a bin of a white noise's periodogram is exponential (chi2 with 2 dof), so P(bin > c x
+    median) = 2^-c, and the strongest of n bins passes ``c = log2(n / FRAME_FALSE_ALARM)`` once in
+    1 / FRAME_FALSE_ALARM frames (the look-elsewhere effect, as :func:`_peak_sigma`): 27.0 over the 131 584
+    frequencies of a 512 x 512 cut, 25.0 over those of a 256 x 256 one."""
+    return math.log2(max(int(n_frequencies), 1) / FRAME_FALSE_ALARM)
+
+
+def periodic_bar(shape: tuple[int, ...]) -> float:
+    """:func:`periodic_contrast` of the frequencies :func:`_peak` searches on a map of ``shape``."""
+    return periodic_contrast(tested_frequencies(shape))
+
+
 def row_power_factor(w: np.ndarray, row_var_adu2: float, whitened: bool = True) -> float:
     """The expected periodogram power of the zero horizontal frequency (``fx = 0``: patterns constant along
     the rows) over that of every other frequency, for noise whose pixels of one row share an offset (row
@@ -218,7 +236,7 @@ def _peak(z: np.ndarray, row_factor: float = 1.0) -> tuple[float, float, float]:
 def periodic_line(res) -> tuple[float, float, float]:
     """(period [px], contrast, share) of the strongest spatial frequency of a frame's whitened residual (the
     levels refitted, its smooth part at the block scale taken out): the peak's power over the median power
-    (:data:`PERIODIC_CONTRAST` is significant on its own) and its share of the whole (high-passed) power. A
+    (:func:`periodic_bar` of the frame's shape is significant on its own) and its share of the whole (high-passed) power. A
     white noise spreads its power over every frequency; a pick-up pattern puts it into one."""
     shape = res.data_adu.shape
     idx, r, w = res.flat_profiled()
@@ -491,7 +509,7 @@ def describe(res: Residuals, delta_adu: np.ndarray | None = None) -> dict:
         # fx = 0 column is measured against the power the model's row noise puts there (row_power_factor)
         zhp = zp - block_smooth(res, zp, b, keep=True)
         period, contrast, _ = _peak(zhp, _cut_row_factor(wmap, row_var))
-        if contrast >= PERIODIC_CONTRAST:
+        if contrast >= periodic_bar(zhp.shape):
             out["significant"] = True
             out["significance_sigma"] = round(max(out["significance_sigma"], _peak_sigma(contrast, zhp)), 2)
             out.update(_periodic_only(res, period, contrast, zhp, wmap))
@@ -515,7 +533,7 @@ def describe(res: Residuals, delta_adu: np.ndarray | None = None) -> dict:
         # (GEOMETRY_SHARE) of the excess pixel chi2, the residual is that periodic pattern, not added noise
         zhp = zp - block_smooth(res, zp, b, keep=True)
         period, contrast, _ = _peak(zhp, _cut_row_factor(wmap, row_var))
-        if contrast >= PERIODIC_CONTRAST:
+        if contrast >= periodic_bar(zhp.shape):
             desc = _periodic_only(res, period, contrast, zhp, wmap)
             pmap = _periodic_map(rmap, wmap, light, desc["kind"], row_var)
             if _map_gain(pmap, rmap, wmap, light) >= GEOMETRY_SHARE * max(noise_excess, 0.0):
@@ -827,12 +845,10 @@ def _lines_through_sources(res: Residuals, lm, lw, okl, axis: int, excess: float
 #: EXPLAINS_MOST (the bar of :data:`detector.effects.readout.KTC_PERIODIC_SHARE` for a claimed excess variance
 #: that one frequency holds) ...
 LINE_PERIOD_SHARE = EXPLAINS_MOST
-#: ... and stands this many times above the noise's mean power (a chi2 with 2 dof: e^-30 per frequency): the
-#: bar of a spectral line significant on its own, PERIODIC_CONTRAST
-LINE_PERIOD_POWER = PERIODIC_CONTRAST
-#: ... and this many times above the median power of its neighbouring frequencies on either side (a line, not
-#: a red continuum): the bar of a periodogram peak over the median, PERIODIC_CONTRAST ...
-LINE_PERIOD_CONTRAST = PERIODIC_CONTRAST
+#: ... and stands above the noise's mean power by the bar of a spectral line significant on its own among the
+#: profile's frequencies searched (:func:`periodic_contrast`, over the median power: ln 2 times it over the
+#: mean), and above the median power of its neighbouring frequencies on either side by the same bar (a line,
+#: not a red continuum) ...
 #: ... with at least this many cycles across the frame (fewer: a smooth curve, as the periodic maps take it)
 LINE_PERIOD_MIN_CYCLES = 6
 
@@ -840,8 +856,8 @@ LINE_PERIOD_MIN_CYCLES = 6
 def _line_period(lm: np.ndarray, lw: np.ndarray) -> float:
     """The period [lines] of a row or column profile ``lm`` (weights ``lw`` [1/ADU^2]) when one frequency of at
     least LINE_PERIOD_MIN_CYCLES cycles holds LINE_PERIOD_SHARE of its power beyond the noise, stands
-    LINE_PERIOD_POWER times above the noise's own power and LINE_PERIOD_CONTRAST times above its neighbours
-    on both sides (a pick-up, a flicker through a rolling shutter, a periodic banding); 0 otherwise."""
+    :func:`periodic_contrast` (of the frequencies searched) above the noise's own median power and as many
+    times above its neighbours' on both sides (a pick-up, a flicker through a rolling shutter, a periodic banding); 0 otherwise."""
     n = lm.size
     if n < 16:
         return 0.0
@@ -850,11 +866,13 @@ def _line_period(lm: np.ndarray, lw: np.ndarray) -> float:
     p[:LINE_PERIOD_MIN_CYCLES] = 0.0
     k = int(np.argmax(p))
     excess = float(np.sum(np.maximum(p - 1.0, 0.0)))
-    if p[k] < LINE_PERIOD_POWER or excess <= 0 or (p[k] - 1.0) < LINE_PERIOD_SHARE * excess:
+    bar = periodic_contrast(p.size - LINE_PERIOD_MIN_CYCLES)  # over the median power
+    over_mean = bar * math.log(2.0)  # the same bar over the mean (a unit exponential's median is ln 2)
+    if p[k] < over_mean or excess <= 0 or (p[k] - 1.0) < LINE_PERIOD_SHARE * excess:
         return 0.0
     # a line, not a red continuum (a drift, a random walk: their power falls smoothly with frequency)
     sides = [p[max(LINE_PERIOD_MIN_CYCLES, k - 10): k - 1], p[k + 2: k + 11]]
-    if any(sd.size and p[k] < LINE_PERIOD_CONTRAST * float(np.median(sd)) for sd in sides):
+    if any(sd.size and p[k] < bar * float(np.median(sd)) for sd in sides):
         return 0.0
     if 0 < k < p.size - 1 and min(p[k - 1], p[k + 1]) > 0:  # the peak between bins (a parabola in log power)
         a, b, c = np.log(p[k - 1]), np.log(p[k]), np.log(p[k + 1])
@@ -1214,8 +1232,7 @@ def _peak_sigma(contrast: float, z: np.ndarray) -> float:
     exponential, P(> c median) = 2^-c, times the number of bins searched (the look-elsewhere effect)."""
     from scipy.stats import norm
 
-    side = min(512, *z.shape)
-    log10_p = math.log10(side * (side // 2 + 1)) - contrast * math.log10(2.0)
+    log10_p = math.log10(tested_frequencies(z.shape)) - contrast * math.log10(2.0)
     return float(norm.isf(10.0 ** log10_p)) if log10_p > -300 else 37.0
 
 

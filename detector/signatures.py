@@ -49,6 +49,7 @@ from detector.significance import (
     DETECTION_SIGMA,
     EXPLAINS_MOST,
     FOOTPRINT_SIGMA,
+    FRAME_FALSE_ALARM,
     MAX_DEFECT_FRACTION,
     STRUCTURE_SIGMA,
 )
@@ -56,8 +57,16 @@ from detector.stats import mad_std
 
 #: |z - median_3x3(z)| above which a pixel is a spike (hot/dead pixel, cosmic-ray hit) [sigma]
 SPIKE_SIGMA = DETECTION_SIGMA
-#: |column or row mean| above which a column/row is an outlier [sigma of the mean]
-LINE_SIGMA = 6.0
+
+
+def line_sigma(n_lines: int) -> float:
+    """|column or row mean| [standard errors of the mean] above which one of ``n_lines`` lines tested is an
+    outlier: the two-sided normal bar of a whole-frame false-alarm rate FRAME_FALSE_ALARM over the lines
+    (Bonferroni): 4.6 for 256 lines, 4.9 for 1002, 5.2 for 6000."""
+    from scipy.stats import norm
+
+    return float(norm.isf(FRAME_FALSE_ALARM / (2.0 * max(int(n_lines), 1))))
+
 #: columns of the running median an outlier column is compared with [columns]
 LINE_WINDOW = 9
 #: pixels used at most by a variance fit (a regular subsample beyond that) [pixels]
@@ -116,8 +125,8 @@ class SpikeStats:
     single_pos: int  #: isolated positive spikes (1 pixel): hot/warm pixels
     cluster_pos: int  #: connected positive spikes of 2 or more pixels: cosmic-ray tracks
     single_neg: int  #: isolated negative spikes: dead pixels
-    hot_cols: int  #: columns whose mean lies LINE_SIGMA above the model
-    cold_cols: int  #: columns whose mean lies LINE_SIGMA below the model
+    hot_cols: int  #: columns whose mean lies line_sigma above the model
+    cold_cols: int  #: columns whose mean lies line_sigma below the model
     #: excess electrons of the positive single spikes
     single_pos_excess_e: np.ndarray = field(default_factory=lambda: np.zeros(0))
     col_excess_e: np.ndarray = field(default_factory=lambda: np.zeros(0))  #: per outlier hot column, per pixel
@@ -232,7 +241,8 @@ def spike_stats(data: np.ndarray, model: np.ndarray, var: np.ndarray, usable: np
     local_cl = zcl - median_filter(zcl, size=LINE_WINDOW, mode="nearest")
     z_mean = local_mean / np.maximum(col_err, 1e-12)
     zc = np.where(cnt > 1, np.where(dense, z_mean, local_cl * np.sqrt(n_c) / CLIPPED_SD), 0.0)
-    hot_c, cold_c = zc > LINE_SIGMA, zc < -LINE_SIGMA
+    bar = line_sigma(zc.size)
+    hot_c, cold_c = zc > bar, zc < -bar
     lines = hot_c | cold_c
     pos = pos_all & ~lines[None, :] & (zq > SPIKE_SIGMA) & (local_q > SPIKE_SIGMA)
     neg = neg_all & ~lines[None, :] & (zq < -SPIKE_SIGMA) & (local_q < -SPIKE_SIGMA)

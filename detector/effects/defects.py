@@ -194,12 +194,12 @@ class ColumnSignature(Signature):
     MIN_EVENNESS = 0.25
 
     def plausible(self, fit, res) -> str:
-        from ..signatures import LINE_SIGMA
+        from ..signatures import line_sigma
 
         z = res.data_spikes.col_z
         if z.size != res.data_adu.shape[1]:
             return ""
-        cols = np.flatnonzero(np.abs(np.nan_to_num(z)) > LINE_SIGMA)
+        cols = np.flatnonzero(np.abs(np.nan_to_num(z)) > line_sigma(z.size))
         if not cols.size:
             return ""
         # defects sit at random columns: column means that repeat with a period are a periodic pattern seen
@@ -290,14 +290,15 @@ class ColumnSignature(Signature):
 
     @staticmethod
     def _gain(z: np.ndarray) -> tuple[float, int, np.ndarray]:
-        from ..signatures import LINE_SIGMA
+        from ..signatures import line_sigma
 
+        n = z.size
         z = z[np.isfinite(z)] if z.size else z
         if z.size < 16:
             return 0.0, 0, z
         scale = max(1.0, mad_std(z, max_n=None))
         x = z / scale
-        d, k = column_mixture_gain(x, LINE_SIGMA)
+        d, k = column_mixture_gain(x, line_sigma(n))
         return d, k, x
 
     @staticmethod
@@ -308,7 +309,7 @@ class ColumnSignature(Signature):
         return (res.charge_e >= 0.8 * fw).any(axis=0)
 
     def fit(self, res, name):
-        from ..signatures import LINE_SIGMA
+        from ..signatures import line_sigma
 
         src = self._source_columns(res)
         zd = np.where(src, np.nan, res.data_spikes.col_z) if res.data_spikes.col_z.size == src.size else \
@@ -323,7 +324,8 @@ class ColumnSignature(Signature):
         frac = s.roi_shape[0] / s.sensor_width_px
         # the output columns of the two populations (x holds the finite columns, source columns are NaN)
         finite = np.flatnonzero(np.isfinite(zd))
-        hot_j, cold_j = finite[x > LINE_SIGMA], finite[x < -LINE_SIGMA]
+        bar = line_sigma(zd.size)
+        hot_j, cold_j = finite[x > bar], finite[x < -bar]
         exc = res.data_spikes.col_excess_e  # of the outlier columns (source columns are not told apart here)
         rate = float(np.median(exc)) * self._per_sensor_pixel(res) if exc.size else 0.0
         resp = self._response(res, cold_j)

@@ -484,16 +484,16 @@ def _ktc_check(fit, res) -> str:
     component of the read noise). On a lit frame, an extra white noise far above that read noise is the
     light's own pixel-to-pixel scatter (a PRNU, which a uniform light cannot tell from it). kTC noise is
     thermal and white: an excess whose power sits in one spatial frequency (significant on its own, the
-    morphology's PERIODIC_CONTRAST, and holding KTC_PERIODIC_SHARE of the excess) is a periodic pattern
+    morphology's periodic_bar, and holding KTC_PERIODIC_SHARE of the excess) is a periodic pattern
     (electronic pick-up), not reset noise."""
-    from ..morphology import PERIODIC_CONTRAST, periodic_line
+    from ..morphology import periodic_bar, periodic_line
 
     theta0 = float(fit.state.get("theta", 0.0))
     v = float(np.median(1.0 / np.maximum(res.flat_profiled()[2], 1e-30))) if res.n_fit else 0.0
     if theta0 > 0 and v > 0:
         period, contrast, share = periodic_line(res)
         excess = theta0 / (theta0 + v)  # the claimed excess's share of the pixels' variance
-        if contrast >= PERIODIC_CONTRAST and share >= KTC_PERIODIC_SHARE * excess:
+        if contrast >= periodic_bar(res.data_adu.shape) and share >= KTC_PERIODIC_SHARE * excess:
             return (f"the extra scatter sits in one spatial frequency (period {period:.3g} px, {contrast:.3g} x the "
                     f"median power, {100 * share:.2g} % of the power against the {100 * excess:.2g} % the excess "
                     "claims): a periodic pattern (electronic pick-up), not white kTC noise")

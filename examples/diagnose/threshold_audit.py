@@ -110,7 +110,6 @@ DPI | N | display | plot resolution
 Z_CLIP | N | display | colour scale of the z map
 FLAG_SIGMA | D | statistics | report flags an excess chi2 beyond detection_sigma
 DEVIANCE_FLAG | D | statistics | report flags an outlier count's Poisson deviance (~3 sigma)
-PEAK_FLAG | D | statistics | report flags a spectral peak's power over the median
 MISFIT_OK | D | statistics | report says the model explains the frame (nulls give 0-3)
 SIGNIFICANT_DELTA_BIC | D | contract | the policy's significant_delta_bic (DESIGN contract)
 @scenes/app/compare/series.py
@@ -137,7 +136,6 @@ MAX_DEFECT_FRACTION | D | physics | anomalous-pixel populations (defects, RTS) h
 STRONG_EVIDENCE | D | contract | -2 ln L change of 10: very strong evidence (Kass & Raftery 1995)
 @detector/signatures.py
 SPIKE_SIGMA | D | statistics | a pixel is a spike beyond detection_sigma
-LINE_SIGMA | D | statistics | a column/row mean is an outlier beyond 6 standard errors
 LINE_WINDOW | N | estimator | running-median window of the column test
 MAX_FIT_PIXELS | N | budget | variance fit subsample
 LEVEL_DEGENERACY | N | tolerance | 1 - R^2 below which a level is degenerate with the others (conditioning)
@@ -170,7 +168,6 @@ VarianceSignature.MAX_MEAN_SHARE | D | physics | added scatter is zero-mean
 VarianceSignature.MEAN_SIGMA | D | statistics | those means significant at structure_sigma
 @detector/morphology.py
 SIGNIFICANT_SIGMA | D | calibration | a structured residual: structure_sigma
-PERIODIC_CONTRAST | D | statistics | periodogram peak over the median: ~1e-4 false alarms per frame
 GEOMETRY_SHARE | D | design | a family is part of the geometry
 BLOCKS | N | grid | blocks of the binned maps
 FEATURE_DETECT | D | statistics | a compact feature detected at detection_sigma
@@ -180,8 +177,6 @@ SMOOTH_ORDER | N | basis | Legendre order of the smooth fields
 FEATURE_MAX_PIXELS | N | budget | full-resolution feature search up to this size
 LINE_SOURCE_SHARE | D | design | a line pattern follows the sources
 LINE_PERIOD_SHARE | D | statistics | a line profile is periodic: one frequency holds most (EXPLAINS_MOST) of its excess power, as KTC_PERIODIC_SHARE
-LINE_PERIOD_POWER | D | statistics | ... its power over the noise (e^-30 per frequency)
-LINE_PERIOD_CONTRAST | D | statistics | ... over its neighbouring frequencies' median (PERIODIC_CONTRAST)
 LINE_PERIOD_MIN_CYCLES | D | design | ... with at least this many cycles
 PERIODIC_KEEP_BINS | N | geometry | Fourier radius of a periodic map
 PERIODIC_PEAKS | N | budget | peaks of a periodic map
@@ -196,7 +191,6 @@ SOURCE_KERNEL_CORE_SIGMA | D | statistics | a source pixel: its footprint, model
 SOURCE_KERNEL_HARMONICS | N | basis | angular harmonics of the kernel
 @detector/flux_law.py
 SOURCE_MIN_SNR | D | statistics | S/N of a source's amplitude to enter the slope
-MIN_SOURCES | D | statistics | fewest sources of the slope
 SEPARATION_SIGMA | D | statistics | standard errors separating the two laws
 FOOTPRINT_SIGMA | D | statistics | a source footprint: model light 3 sigma above the noise
 FOOTPRINT_GROW_PX | N | geometry | footprint growth

@@ -43,7 +43,14 @@ def test_a_widening_that_grows_with_flux_follows_the_other_law():
 
 
 def test_too_few_sources_or_too_narrow_a_flux_range_cannot_tell():
-    assert flux_slope(np.array([1e4, 2e4, 5e4]), np.ones(3), np.full(3, 0.01)) is None  # three sources
+    # two sources: a line through them has no degree of freedom left to measure their scatter about it
+    assert flux_slope(np.array([1e4, 5e4]), np.ones(2), np.full(2, 0.01)) is None
+    # three sources have one: with 1 % amplitudes over a factor 5 in flux they tell the laws 0 and 1 apart, and
+    # a scatter about the line beyond their errors inflates the slope's error until they cannot
+    three = flux_slope(np.array([1e4, 2e4, 5e4]), np.ones(3), np.full(3, 0.01))
+    assert three.n == 3 and flux_law(three, 0.0, 1.0) is False
+    scattered = flux_slope(np.array([1e4, 2e4, 5e4]), np.array([1.0, 1.6, 1.0]), np.full(3, 0.01))
+    assert flux_law(scattered, 0.0, 1.0) is None
     # a narrow range of fluxes (a factor 2) is no bar of its own: the slope's standard error, 1 / sqrt(sum w
     # (ln F - mean)^2), says whether it tells the laws 0 and 1 apart (amplitude ratios 1 and 2 across it)
     narrow = np.linspace(1e4, 2e4, 8)

@@ -129,3 +129,27 @@ def test_outlier_columns_are_asked_again_after_a_periodic_description():
     kept = 8.0 / np.pi ** 2 * (1.0 + 1.0 / 9.0 + 1.0 / 25.0)
     assert left < 1.0 + (1.0 - kept) * 1.5 ** 2 + 0.02, left
     assert _line_map(r, np.full((N, N), 1.0), light, "additive", axis=0)["form"] == "columns"
+
+
+def test_periodic_bar_is_the_frame_false_alarm_of_the_bins_searched():
+    """The bar of a periodogram peak over the median power, from the number of frequencies searched: the
+    strongest of n exponential bins passes c x median with probability ~ n 2^-c (Monte Carlo of white noise on
+    a 64 x 64 cut: 2112 bins, bar log2(2112 / 1e-3) = 21.0; the bar a factor 10 lower in false alarm sits
+    log2(10) higher)."""
+    import pytest
+
+    from detector.morphology import periodic_bar, periodic_contrast, tested_frequencies
+    from detector.significance import FRAME_FALSE_ALARM
+
+    assert tested_frequencies((64, 64)) == 64 * 33
+    assert periodic_bar((64, 64)) == pytest.approx(np.log2(64 * 33 / FRAME_FALSE_ALARM))
+    assert periodic_bar((668, 1002)) == pytest.approx(26.97, abs=0.01)  # a 512 x 512 cut
+    assert periodic_contrast(10 * 2112) - periodic_contrast(2112) == pytest.approx(np.log2(10.0))
+    # the exceedance of a lower bar (c = 12, where n 2^-c = 0.52) by the strongest white-noise bin: 1 - e^-0.52
+    rng = np.random.default_rng(5)
+    hits = 0
+    for _ in range(200):
+        p = np.abs(np.fft.rfft2(rng.standard_normal((64, 64)))) ** 2
+        p = p.ravel()[1:]
+        hits += p.max() / np.median(p) > 12.0
+    assert hits / 200 == pytest.approx(1 - np.exp(-2112 * 2.0 ** -12), abs=0.1)

@@ -11,7 +11,7 @@ scene at full resolution). The period moved with the seed and vanished with ``ro
 
 Independent references: the mean power of the ``fx = 0`` column of Monte-Carlo realisations (Wiener-Khinchin
 for independent rows) against the closed form; white noise's periodogram maximum over ~3e4 bins (~15 x the
-median, below PERIODIC_CONTRAST = 30); a weak pick-up across the columns is still found at its period, and
+median, below the bar periodic_bar derives from the bins searched and FRAME_FALSE_ALARM, 25); a weak pick-up across the columns is still found at its period, and
 a row pattern above the row noise still as rows.
 """
 
@@ -20,7 +20,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from detector.morphology import PERIODIC_CONTRAST, _peak, describe, row_power_factor
+from detector.morphology import _peak, describe, periodic_bar, row_power_factor
 from detector.sensor import make_sensor
 from detector.signatures import Residuals, SpikeStats
 
@@ -81,7 +81,7 @@ def test_row_noise_alone_is_no_periodic_pattern(seed):
     res = _frame(seed)
     zp = (res.data_adu - res.model_adu) / np.sqrt(res.var_adu2)
     _, raw, _ = _peak(zp - zp.mean())
-    assert raw > PERIODIC_CONTRAST  # the mechanism is there: the unweighted periodogram is fooled
+    assert raw > periodic_bar(zp.shape)  # the mechanism is there: the unweighted periodogram is fooled
     m = describe(res)
     assert not m["significant"], m["explanation"]
     assert "periodic" not in m["geometry"]
@@ -92,7 +92,7 @@ def test_white_noise_contrast_is_unchanged():
     res = _frame(4, row_var=0.0)
     zp = (res.data_adu - res.model_adu) / np.sqrt(res.var_adu2)
     period, contrast, _ = _peak(zp)
-    assert 8 < contrast < PERIODIC_CONTRAST
+    assert 8 < contrast < periodic_bar(zp.shape)
     assert not describe(res)["significant"]
 
 

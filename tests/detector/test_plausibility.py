@@ -375,7 +375,7 @@ def test_outlier_columns_of_integer_data_between_two_codes():
     (a 300 s IMX411 dark): no column is an outlier (the columns' medians would jump between 500 and 501,
     18 of their standard errors apart), the columns' statistics are unit normal; a column 0.5 sigma high along
     its length is found."""
-    from detector.signatures import LINE_SIGMA, spike_stats
+    from detector.signatures import line_sigma, spike_stats
 
     rng = np.random.default_rng(8)
     sd = 2.9
@@ -387,7 +387,7 @@ def test_outlier_columns_of_integer_data_between_two_codes():
     assert 0.85 < np.nanstd(stats.col_z) < 1.15
     data[:, 200] = np.rint(500.5 + 0.5 * sd + sd * rng.standard_normal(512))
     stats, _ = spike_stats(data, model, var, np.ones(data.shape, bool), 1.0)
-    assert stats.col_z[200] > LINE_SIGMA and stats.hot_cols == 1
+    assert stats.col_z[200] > line_sigma(stats.col_z.size) and stats.hot_cols == 1
 
 
 def test_a_glow_wider_than_the_edge_laws_longest_is_no_glow():

@@ -61,12 +61,12 @@ from detector.errors import DetectorError
 from detector.morphology import describe
 from detector.signatures import (
     GROW_SIGMA,
-    LINE_SIGMA,
     LINE_WINDOW,
     MAX_LINE_FRACTION,
     SPIKE_SIGMA,
     Residuals,
     SpikeStats,
+    line_sigma,
     spike_stats,
 )
 from detector.stats import mad_std
@@ -732,14 +732,14 @@ class _bar:
 # --- the reductions as Residuals -------------------------------------------------------------------------------------
 
 def outlier_columns(P: Pass) -> np.ndarray:
-    """Columns whose mean residual over the whole frame lies LINE_SIGMA standard errors from the running
+    """Columns whose mean residual over the whole frame lies line_sigma standard errors from the running
     median of their neighbours (hot and dead columns; as :func:`detector.signatures.spike_stats`)."""
     n = P.n_gc.sum(axis=0, dtype=np.int64)
     mean = P.r_gc.sum(axis=0, dtype=np.float64) / np.maximum(n, 1)
     err = np.sqrt(P.v_gc.sum(axis=0, dtype=np.float64)) / np.maximum(n, 1)
     local = mean - ndimage.median_filter(mean, size=LINE_WINDOW, mode="nearest")
     zc = np.where(n > 0, local / np.maximum(err, 1e-12), 0.0)
-    lines = np.abs(zc) > LINE_SIGMA
+    lines = np.abs(zc) > line_sigma(zc.size)
     return lines if lines.mean() <= MAX_LINE_FRACTION else np.zeros_like(lines)
 
 

@@ -29,10 +29,11 @@ from pathlib import Path
 
 import numpy as np
 
-from detector.morphology import PERIODIC_CONTRAST
+from detector.morphology import periodic_contrast
 from detector.significance import DETECTION_SIGMA, STRONG_EVIDENCE
 
 from .policy import DEFAULT_POLICY
+from .statistics import PEAK_SIDE
 
 #: resolution of the embedded plots [dots per inch]: small files, still legible
 DPI = 72
@@ -42,9 +43,6 @@ Z_CLIP = 5.0
 FLAG_SIGMA = DETECTION_SIGMA
 #: Poisson deviance of an outlier count above which it is flagged (~3 sigma for one count)
 DEVIANCE_FLAG = STRONG_EVIDENCE
-#: power over the median above which a full-resolution spectral peak is flagged (white noise: ~15-25): the
-#: morphology's bar of a spectral line significant on its own
-PEAK_FLAG = PERIODIC_CONTRAST
 #: misfit (a standardised excess [sigma]) below which the model explains the frame (noise-only frames give ~0-3):
 #: the detection bar of a standardised excess, DETECTION_SIGMA
 MISFIT_OK = DETECTION_SIGMA
@@ -383,13 +381,17 @@ def _peaks_html(result: dict, shown: int = 3) -> str:
     if not peaks:
         return ""
     rows = [[p.get("fx"), p.get("fy"), p.get("power_ratio")] for p in peaks]
-    cls = ["flag" if _num(p.get("power_ratio")) > PEAK_FLAG else "" for p in peaks]
+    side = pk.get("side")
+    # a peak is flagged above the morphology's bar of a spectral line significant on its own among the cut's
+    # frequencies (white noise tops out at ~15-25 x the median); a result without the side: the default cut's
+    k = int(_num(side)) if np.isfinite(_num(side)) else PEAK_SIDE
+    flag = periodic_contrast(k * (k // 2 + 1))
+    cls = ["flag" if _num(p.get("power_ratio")) > flag else "" for p in peaks]
     tab = _table(["fx [cycles/px]", "fy [cycles/px]", "power / median"], rows, numeric={0, 1, 2}, row_class=cls,
                  digits=3)
-    side = pk.get("side")
     note = (f'<p class="note">Strongest peaks of the full-resolution spectrum of z (central {_e(side)} x {_e(side)} '
             "pixels, sources and pixels not compared set to 0). White noise tops out at ~15-25 x the median "
-            f"(highlighted above {PEAK_FLAG:g}). (0.5, 0.5): a 2 x 2 pattern such as a Bayer mosaic; (0.5, 0) or "
+            f"(highlighted above {flag:.3g}). (0.5, 0.5): a 2 x 2 pattern such as a Bayer mosaic; (0.5, 0) or "
             "(0, 0.5): alternate columns or rows.</p>")
     return tab + note
 
