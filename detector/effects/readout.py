@@ -371,14 +371,12 @@ def _bias_variants(res):
         yield Variant(unit + rows[:order], with_profile, label=f"column profile of {order} cosine terms")
     # ... and on a frame without light a smooth 2-D structure (the read's drift along the rows with the serial
     # pattern, an amplifier's warm-up spreading into the array), in 2-D cosine series of growing order (chosen by
-    # BIC): on a bias frame (no integration: nothing but the read-out can make a pattern) over the window it sees;
-    # on an exposed dark over the sensor, the basis the dark-rate field of a temperature gradient is offered in
-    # (detector.effects.thermal): on one dark frame the two differ only by the dark charge's shot noise, so
-    # neither is preferred for its form (a bias frame, or a dark of another exposure, tells them apart)
-    if res.exptime_s > 0:
-        box = [0.0, 0.0, s.sensor_width_px - 1.0, s.sensor_height_px - 1.0]
-    else:
-        box = [float(res.xs.min()), float(res.ys.min()), float(res.xs.max()), float(res.ys.max())]  # the window's
+    # BIC), over the window the frame sees (the part of the field the data constrains: cosines over the sensor
+    # seen through a window are nearly collinear, their coefficients ill-conditioned): on an exposed dark the
+    # basis the dark-rate field of a temperature gradient is offered in (detector.effects.thermal), so that on
+    # one dark frame the two differ only by the dark charge's shot noise and neither is preferred for its form
+    # (a bias frame, or a dark of another exposure, tells them apart)
+    box = window_box(res)
 
     def with_field(coef):
         if float(np.max(np.abs(field_on_window(coef, box, res)))) > s.bias_adu:  # bounded by the bias too
@@ -387,6 +385,16 @@ def _bias_variants(res):
                 "field_adu": [[float(v) for v in row] for row in coef], "field_box_px": box}
 
     yield from cosine_field_variants(res, f, box, with_field)
+
+
+def sensor_box(s) -> list[float]:
+    """The sensor's box ``(x0, y0, x1, y1)`` [sensor px], first to last pixel centre."""
+    return [0.0, 0.0, s.sensor_width_px - 1.0, s.sensor_height_px - 1.0]
+
+
+def window_box(res) -> list[float]:
+    """The box ``(x0, y0, x1, y1)`` [sensor px] of the pixel centres the residuals ``res`` cover (its window)."""
+    return [float(res.xs.min()), float(res.ys.min()), float(res.xs.max()), float(res.ys.max())]
 
 
 def field_on_window(coef, box, res) -> np.ndarray:

@@ -33,7 +33,7 @@ from pydantic import Field
 
 from ..signatures import LinearSignature, Variant, fit_linear, profiled_chi2, search_sample
 from .base import Effect, EffectParams, Stage, Tile, register_effect
-from .readout import bias_field_adu, cosine_field_variants, field_on_window
+from .readout import bias_field_adu, cosine_field_variants, field_on_window, sensor_box, window_box
 
 #: silicon band gap [eV] near room temperature (Sze & Ng 2007, Physics of Semiconductor Devices, 3rd ed.,
 #: Table 1.2 / Appendix G: 1.12 eV at 300 K)
@@ -150,12 +150,12 @@ def _variants(res):
         # on a frame without light, a smooth dark-rate field of any low-order shape (a die's temperature field
         # with more than one heat source or sink: not a plane, its curvature not the doubling law's), in the
         # basis a bias structure of the same frame is offered in (detector.effects.readout.cosine_field_variants,
-        # over the sensor): one dark frame tells the two only by the dark charge's shot noise, not by their forms.
-        # (On a frame with light a smooth added field of any shape is the light's, the same charge.)
-        box = [0.0, 0.0, s.sensor_width_px - 1.0, s.sensor_height_px - 1.0]
+        # over the window the frame sees): one dark frame tells the two only by the dark charge's shot noise, not
+        # by their forms. (On a frame with light a smooth added field of any shape is the light's, the same charge.)
+        box = window_box(res)
         yield from cosine_field_variants(res, unit, box, lambda coef: {
             "gradient_x_e_per_s": 0.0, "gradient_y_e_per_s": 0.0, "temperature_x_k": 0.0, "temperature_y_k": 0.0,
-            "field_e_per_s": [[float(x) for x in row] for row in coef]})
+            "field_e_per_s": [[float(x) for x in row] for row in coef], "field_box_px": box})
     d0 = float(s.dark_current_e_per_s)
     if res.exptime_s <= 0 or d0 <= 0:
         return
@@ -214,7 +214,7 @@ def _check(fit, res) -> str:
     p = fit.params
     span = abs(p.get("temperature_x_k", 0.0)) + abs(p.get("temperature_y_k", 0.0))
     if p.get("field_e_per_s"):
-        span = field_span_k(p["field_e_per_s"], res)
+        span = field_span_k(p["field_e_per_s"], res, p.get("field_box_px") or None)
     if span > MAX_TEMPERATURE_SPAN_K:
         return (f"the sensor would be {span:.3g} K warmer at one corner than at the opposite one, more than "
                 f"{MAX_TEMPERATURE_SPAN_K:.0f} K across a sensor's die: not a temperature gradient; an offset "
@@ -235,13 +235,13 @@ def base_rate(res) -> float:
     return max(float(res.sensor.dark_current_e_per_s), mean_rate)
 
 
-def field_span_k(coef, res) -> float:
-    """The temperature difference [K] a smooth dark-rate field (cosine coefficients ``coef`` [e-/s] over the
-    sensor) needs across the window the frame sees: its peak to peak ``P`` on top of the dark rate ``D``
+def field_span_k(coef, res, box=None) -> float:
+    """The temperature difference [K] a smooth dark-rate field (cosine coefficients ``coef`` [e-/s] over the box
+    ``box``, default the sensor) needs across the window the frame sees: its peak to peak ``P`` on top of the dark rate ``D``
     (:func:`base_rate`) at its lowest, ``T_2 log2(1 + P / D)`` (the doubling law, Janesick 2001 eq. 7.4); inf
     without a dark rate."""
     s = res.sensor
-    box = [0.0, 0.0, s.sensor_width_px - 1.0, s.sensor_height_px - 1.0]
+    box = sensor_box(s) if box is None else box
     ptp, base = float(np.ptp(field_on_window(coef, box, res))), base_rate(res)
     if base <= 0:
         return float("inf") if ptp > 0 else 0.0
@@ -252,12 +252,11 @@ def _explain(p: dict, res) -> str:
     tx, ty = p.get("temperature_x_k", 0.0), p.get("temperature_y_k", 0.0)
     words = []
     if p.get("field_e_per_s"):
-        s = res.sensor
-        box = [0.0, 0.0, s.sensor_width_px - 1.0, s.sensor_height_px - 1.0]
+        box = p.get("field_box_px") or sensor_box(res.sensor)
         ptp = float(np.ptp(field_on_window(p["field_e_per_s"], box, res)))
         n = len(p["field_e_per_s"])
-        words.append(f"a smooth dark-rate field of {ptp:.3g} e-/s peak to peak ({n} x {n} cosine terms over the "
-                     f"sensor; {field_span_k(p['field_e_per_s'], res):.3g} K across the window at the doubling law)")
+        words.append(f"a smooth dark-rate field of {ptp:.3g} e-/s peak to peak across the window ({n} x {n} cosine "
+                     f"terms; {field_span_k(p['field_e_per_s'], res, box):.3g} K across it at the doubling law)")
     if tx or ty:
         t2 = doubling_interval_k(res.sensor.temperature_c)
         words.append(f"the sensor {abs(tx):.3g} K {'warmer' if tx >= 0 else 'cooler'} at the right edge, "
@@ -290,9 +289,14 @@ class DarkGradientParams(EffectParams):
                                                "bottom [K] (exponential law, doubling every T_2)")
     field_e_per_s: list[list[float]] = Field(default_factory=list, max_length=16,
                                              description="2-D cosine-series coefficients C_jk (rows j, columns k; "
-                                             "C_00 ignored) of a smooth dark-rate field over the sensor, sum_jk C_jk "
-                                             "cos(j pi v) cos(k pi u), u = x / (W - 1), v = y / (H - 1) [e-/s/pixel]",
+                                             "C_00 ignored) of a smooth dark-rate field, sum_jk C_jk cos(j pi v) "
+                                             "cos(k pi u), u, v in [0, 1] across field_box_px (default the sensor: "
+                                             "u = x / (W - 1), v = y / (H - 1)) [e-/s/pixel] (bias_field_adu)",
                                              json_schema_extra={"unit": "e-/s"})
+    field_box_px: list[float] = Field(default_factory=list, max_length=4,
+                                      description="the box (x0, y0, x1, y1) [sensor px] over which field_e_per_s's "
+                                      "cosines run from 0 to pi (held at its edge beyond it; empty: the sensor)",
+                                      json_schema_extra={"unit": "pixel"})
 
 
 @register_effect
@@ -322,7 +326,7 @@ class DarkGradient(Effect):
         ys, xs = tile.pixel_centres()
         m = gradient_rate(ys, xs, s.sensor_height_px, s.sensor_width_px, p.gradient_x_e_per_s, p.gradient_y_e_per_s)
         if p.field_e_per_s:
-            m += bias_field_adu(ys, xs, s.sensor_height_px, s.sensor_width_px, p.field_e_per_s)
+            m += bias_field_adu(ys, xs, s.sensor_height_px, s.sensor_width_px, p.field_e_per_s, p.field_box_px or None)
         if thermal:
             m += thermal_rate(ys, xs, s.sensor_height_px, s.sensor_width_px, s.dark_current_e_per_s,
                               p.temperature_x_k, p.temperature_y_k, doubling_interval_k(s.temperature_c))

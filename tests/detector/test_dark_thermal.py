@@ -229,3 +229,42 @@ def test_apply_renders_the_smooth_dark_field():
     expect = (np.maximum(rate + s.dark_current_e_per_s, 0) - s.dark_current_e_per_s) * t
     expect = expect.reshape(h, b, w, b).sum(axis=(1, 3))
     np.testing.assert_allclose(got - base, expect, rtol=2e-3, atol=2e-3 * np.abs(expect).max())
+
+
+def test_a_windowed_dark_field_round_trips_fit_params_apply():
+    """On a window of a dark (a region of interest a fifth of the sensor a side) the smooth dark-rate field is
+    fitted over the window's box (cosines over the whole sensor seen through the window are nearly collinear):
+    the fitted parameters, applied by the effect on that window, give back the fitted mean change, and that is
+    the truth's up to the level."""
+    from detector.effects.base import Stage, Tile
+    from detector.effects.thermal import DarkGradient
+
+    s = make_sensor("ml11002", {"binning": 8})
+    b, t = s.binning, 600.0
+    y0, x0, hh, ww = 40, 60, 40, 56  # binned pixels: the window [y0*b, (y0+hh)*b) x [x0*b, (x0+ww)*b)
+    ys, xs = b * (y0 + np.arange(hh)) + (b - 1) / 2.0, b * (x0 + np.arange(ww)) + (b - 1) / 2.0
+    u = ((xs - xs[0]) / np.ptp(xs))[None, :]
+    v = ((ys - ys[0]) / np.ptp(ys))[:, None]
+    extra = 1500.0 * (0.6 * u - 0.3 * v + 1.5 * u * v + 1.2 * v * v) / 2.0  # [e-] per binned pixel
+    dark = np.full((hh, ww), s.dark_current_e_per_s * t * b * b)
+    g = s.gain_e_per_adu
+    rng = np.random.default_rng(11)
+    charge = dark + extra
+    f32 = np.float32
+    res = Residuals(f32(s.bias_adu + (charge + rng.normal(0, np.sqrt(charge + s.read_noise_e ** 2))) / g),
+                    f32(s.bias_adu + dark / g), f32((dark + s.read_noise_e ** 2) / g ** 2), np.ones((hh, ww), bool),
+                    np.zeros((hh, ww), f32), f32(dark), ys, xs, s, t, SpikeStats(0, 0, 0, 0, 0),
+                    SpikeStats(0, 0, 0, 0, 0))
+    fit = registry()["dark_gradient"].signature.fit(res, "dark_gradient")
+    p = fit.params
+    assert p.get("field_e_per_s"), p
+    assert p["field_box_px"] == [xs[0], ys[0], xs[-1], ys[-1]]  # the window's box
+    assert max(abs(c) for row in p["field_e_per_s"] for c in row) < 1.0  # well-conditioned: e-/s, not 1e3
+    eff = DarkGradient(DarkGradient.Params(**p), s)
+    back = np.full((hh * b, ww * b), s.dark_current_e_per_s * t, np.float32)  # the dark charge it adds to
+    eff.apply(Stage.DARK, Tile(s, 0, y0 * b, (y0 + hh) * b, x0 * b, (x0 + ww) * b, t, 0), back)
+    back = back.reshape(hh, b, ww, b).sum(axis=(1, 3)) / g  # [ADU] per binned pixel
+    fitted = np.asarray(fit.delta_adu, float)
+    np.testing.assert_allclose(back - back.mean(), fitted - fitted.mean(), atol=0.01 * np.ptp(fitted))
+    truth = extra / g
+    assert np.std((fitted - truth) - (fitted - truth).mean()) < 0.05 * np.ptp(truth)
