@@ -438,7 +438,8 @@ def cosine_field_variants(res, unit, box, to_params, orders=None):
                 coef[j, k] = float(f"{ck:.4g}")
             return to_params(coef)
 
-        yield Variant(maps, params, label=f"2-D field of {order} x {order} cosine terms", at=at)
+        yield Variant(maps, params, at=at, label=f"2-D field of {order} x {order} cosine terms over x {box[0]:g}.."
+                      f"{box[2]:g}, y {box[1]:g}..{box[3]:g} px")  # the box in the label: one basis, one name
 
 
 #: orders of the bias pattern along the serial direction the bias fit tries on unlit frames [cosine terms]
