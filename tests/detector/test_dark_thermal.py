@@ -268,3 +268,26 @@ def test_a_windowed_dark_field_round_trips_fit_params_apply():
     np.testing.assert_allclose(back - back.mean(), fitted - fitted.mean(), atol=0.01 * np.ptp(fitted))
     truth = extra / g
     assert np.std((fitted - truth) - (fitted - truth).mean()) < 0.05 * np.ptp(truth)
+
+
+def test_a_dark_field_below_zero_rate_is_refused_and_its_span_is_the_doubling_laws_ratio():
+    """A smooth dark-rate field that takes the rate below zero within the window is no temperature field; one that
+    does not needs ``T_2 log2((D + F_max) / (D + F_min))`` across the window; a ragged field is refused."""
+    from types import SimpleNamespace
+
+    from detector.effects.readout import field_on_window, sensor_box
+    from detector.effects.thermal import DarkGradientParams, _check, base_rate, field_span_k
+
+    res = _dark_residuals(seed=8)
+    d = base_rate(res)
+    zero = {"gradient_x_e_per_s": 0.0, "gradient_y_e_per_s": 0.0, "temperature_x_k": 0.0, "temperature_y_k": 0.0}
+    deep = [[0.0, 2.0 * d], [0.0, 0.0]]  # cos(pi u) of amplitude 2 D: the rate at one edge -D
+    assert field_span_k(deep, res) is None
+    assert "below zero" in _check(SimpleNamespace(params=dict(zero, field_e_per_s=deep)), res)
+    mild = [[0.0, 0.2 * d], [0.0, 0.0]]
+    f = field_on_window(mild, sensor_box(res.sensor), res)
+    t2 = doubling_interval_k(res.sensor.temperature_c)
+    assert field_span_k(mild, res) == pytest.approx(t2 * np.log2((d + f.max()) / (d + f.min())), rel=1e-6)
+    assert _check(SimpleNamespace(params=dict(zero, field_e_per_s=mild)), res) == ""
+    with pytest.raises(ValueError, match="rectangular"):
+        DarkGradientParams(field_e_per_s=[[0.0, 1.0], [0.0]])
