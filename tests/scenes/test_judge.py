@@ -383,7 +383,8 @@ def test_empirical_apply_into_another_folder(tmp_path):
     with fits.open(meas) as hl:
         data, hdr = hl[0].data.astype(np.float64), hl[0].header
     yy, xx = np.mgrid[0:192, 0:192]
-    data += 40.0 * np.exp(-((yy - 70) ** 2 + (xx - 120) ** 2) / (2 * 9.0 ** 2))  # a glow no plugin has
+    # a compact glow no plugin has (3 px: far finer than a smooth field of 8 x 8 cosines over the window resolves)
+    data += 60.0 * np.exp(-((yy - 70) ** 2 + (xx - 120) ** 2) / (2 * 3.0 ** 2))
     fits.PrimaryHDU(np.rint(data).astype(np.uint16), header=hdr).writeto(meas, overwrite=True)
     out_dir = tmp_path / "rounds"
     out_dir.mkdir()
@@ -730,3 +731,4 @@ def test_a_blind_candidate_alone_is_described_as_untested_not_as_failed():
     assert not nl.significant and "cannot test it" in verdict([nl])
     nl.heldout_blind = False
     assert "not credible: held-out delta 2705" in verdict([nl])
+
