@@ -95,16 +95,8 @@ def bias_field_adu(ys: np.ndarray, xs: np.ndarray, height: int, width: int, coef
     return (cy @ c @ cx).astype(np.float32)
 
 
-#: points per axis of the grid over its box on which a fitted 2-D bias field is bounded and described
+#: points per axis of the grid over the window on which a fitted 2-D field is bounded and described
 BIAS_FIELD_GRID = 65
-
-
-def bias_field_on_box(coeffs, box, height: int, width: int) -> np.ndarray:
-    """:func:`bias_field_adu` [ADU] on a BIAS_FIELD_GRID x BIAS_FIELD_GRID grid spanning its box ``(x0, y0, x1,
-    y1)`` [sensor px] edge to edge: the field's extremes and its peak to peak."""
-    x0, y0, x1, y1 = box
-    grid = np.linspace(0, 1, BIAS_FIELD_GRID)
-    return bias_field_adu(y0 + grid * (y1 - y0), x0 + grid * (x1 - x0), height, width, coeffs, (x0, y0, x1, y1))
 
 
 #: span of an exponential crosstalk tail [e-folding lengths]: lags beyond it carry < e^-5 = 0.7 % of the echo
@@ -459,12 +451,10 @@ def _bias_words(p, res) -> str:
              f"{p['quadratic_adu']:+.3g} ADU bowl at the corners"]
     field = p.get("field_adu") or []
     if field:
-        s = res.sensor
-        box = p.get("field_box_px") or (0.0, 0.0, s.sensor_width_px - 1.0, s.sensor_height_px - 1.0)
-        shape = bias_field_on_box(field, box, s.sensor_height_px, s.sensor_width_px)
+        shape = field_on_window(field, p.get("field_box_px") or sensor_box(res.sensor), res)  # what it bounds
         return (f"an additive offset independent of the signal, a smooth 2-D pattern of {float(np.ptp(shape)):.3g} ADU "
-                f"peak to peak ({len(field)} x {len(field)} cosine terms: the read-out's drift and fixed pattern): "
-                "bias structure")
+                f"peak to peak across the window ({len(field)} x {len(field)} cosine terms: the read-out's drift and "
+                "fixed pattern): bias structure")
     prof = p.get("column_profile_adu") or []
     if prof:
         u = np.linspace(0, res.sensor.sensor_width_px - 1, 257)
