@@ -167,6 +167,10 @@ def _vignetting_variant(res, cx_mm: float, cy_mm: float, radius_mm: float | None
         a2, a4 = (float(x) for x in c[:2])
         quad = float(np.hypot(c[2], c[3])) if elliptical else 0.0  # the rho^2 rate's azimuthal amplitude
         ok = (abs(a2) + quad <= VIGNETTING_COEF_MAX and abs(a4) <= VIGNETTING_COEF_MAX and a2 + quad + a4 < 1)
+        # an elliptical fall-off (a cat's eye, a tilt) loses light in every direction: its rho^2 rate along the
+        # least-losing axis, a2 - quad, is not negative (a saddle gains light along one axis, which the rings of
+        # observed_rise, averaging over azimuth, do not see)
+        ok = ok and a2 - quad >= 0.0
         p = {"a2": round(a2, 6), "a4": round(a4, 6)}
         if elliptical:
             p.update(a2_cos2=round(float(c[2]), 6), a2_sin2=round(float(c[3]), 6))
@@ -218,7 +222,8 @@ _CENTRE_TOL = 0.001
 
 
 def _vignetting_refine(best, res):
-    """The centre refined from the grid's best by a pattern search (compass search: the 8 neighbours at
+    """The circular fall-off's centre, then an elliptical one's (with the azimuthal terms of its rho^2 rate, no
+    direction gaining light), each refined from the grid's best by a pattern search (compass search: the 8 neighbours at
     the step, moved to the best, the step halved when none is better; Kolda, Lewis & Torczon 2003, SIAM
     Rev. 45, 385) on the search sample, down to :data:`_CENTRE_TOL`; a centre off by a grid step leaves a
     gradient a bias or glow candidate would take next."""
@@ -276,7 +281,13 @@ def _loss_at_edge(p: dict, res) -> float:
     """The fitted loss at the sensor's corner (rho = 1), or for a window-scale fit at the window's farthest pixel
     (the polynomial beyond the window is not measured)."""
     x = min(_rho2_max(res, p), 1.0) if "radius_mm" in p else 1.0
-    return p["a2"] * x + p["a4"] * x * x
+    return _a2_major(p) * x + p["a4"] * x * x
+
+
+def _a2_major(p: dict) -> float:
+    """The rho^2 rate along the axis that loses the most light: ``a2`` plus the azimuthal terms' amplitude
+    ``hypot(a2_cos2, a2_sin2)`` (:func:`radial_vignetting`; ``a2`` for a circular fall-off)."""
+    return p["a2"] + float(np.hypot(p.get("a2_cos2", 0.0), p.get("a2_sin2", 0.0)))
 
 
 #: rings of equal pixel count about the fitted centre in which the observed light is measured [rings]
@@ -400,12 +411,13 @@ def observed_rise(p: dict, res) -> tuple[float, float]:
 
 def _vignetting_check(fit, res) -> str:
     """Vignetting takes light away towards the edge of the field: the fitted relative illumination
-    ``1 - a2 rho^2 - a4 rho^4`` must lose light somewhere away from its centre, and the
+    ``1 - a2 rho^2 - a4 rho^4`` must lose light somewhere away from its centre (along the axis that loses the
+    most: an elliptical fall-off's rate ``a2 + hypot(a2_cos2, a2_sin2)``), and the
     observed light must not rise away from every centre the fit may take (:func:`observed_rise` beyond
     VIGNETTING_RISE_CHI2 and by more than VIGNETTING_RISE_SHARE of the profile's span). A pattern that brightens away from its centre where it is observed is an added
     light or a flat-field error."""
     p = fit.params
-    a2, a4 = p["a2"], p["a4"]
+    a2, a4 = _a2_major(p), p["a4"]  # along the axis that loses the most (an elliptical fall-off's major one)
     if a2 <= 0 and a4 <= 0:
         return (f"the fitted form gains light away from its centre everywhere (a2 = {a2:+.3g}, a4 = {a4:+.3g}): "
                 "vignetting only takes light away (an added light or a flat-field error)")

@@ -95,16 +95,8 @@ def bias_field_adu(ys: np.ndarray, xs: np.ndarray, height: int, width: int, coef
     return (cy @ c @ cx).astype(np.float32)
 
 
-#: points per axis of the grid over its box on which a fitted 2-D bias field is bounded and described
+#: points per axis of the grid over the window on which a fitted 2-D field is bounded and described
 BIAS_FIELD_GRID = 65
-
-
-def bias_field_on_box(coeffs, box, height: int, width: int) -> np.ndarray:
-    """:func:`bias_field_adu` [ADU] on a BIAS_FIELD_GRID x BIAS_FIELD_GRID grid spanning its box ``(x0, y0, x1,
-    y1)`` [sensor px] edge to edge: the field's extremes and its peak to peak."""
-    x0, y0, x1, y1 = box
-    grid = np.linspace(0, 1, BIAS_FIELD_GRID)
-    return bias_field_adu(y0 + grid * (y1 - y0), x0 + grid * (x1 - x0), height, width, coeffs, (x0, y0, x1, y1))
 
 
 #: span of an exponential crosstalk tail [e-folding lengths]: lags beyond it carry < e^-5 = 0.7 % of the echo
@@ -371,14 +363,12 @@ def _bias_variants(res):
         yield Variant(unit + rows[:order], with_profile, label=f"column profile of {order} cosine terms")
     # ... and on a frame without light a smooth 2-D structure (the read's drift along the rows with the serial
     # pattern, an amplifier's warm-up spreading into the array), in 2-D cosine series of growing order (chosen by
-    # BIC): on a bias frame (no integration: nothing but the read-out can make a pattern) over the window it sees;
-    # on an exposed dark over the sensor, the basis the dark-rate field of a temperature gradient is offered in
-    # (detector.effects.thermal): on one dark frame the two differ only by the dark charge's shot noise, so
-    # neither is preferred for its form (a bias frame, or a dark of another exposure, tells them apart)
-    if res.exptime_s > 0:
-        box = [0.0, 0.0, s.sensor_width_px - 1.0, s.sensor_height_px - 1.0]
-    else:
-        box = [float(res.xs.min()), float(res.ys.min()), float(res.xs.max()), float(res.ys.max())]  # the window's
+    # BIC), over the window the frame sees (the part of the field the data constrains: cosines over the sensor
+    # seen through a window are nearly collinear, their coefficients ill-conditioned): on an exposed dark the
+    # basis the dark-rate field of a temperature gradient is offered in (detector.effects.thermal), so that on
+    # one dark frame the two differ only by the dark charge's shot noise and neither is preferred for its form
+    # (a bias frame, or a dark of another exposure, tells them apart)
+    box = window_box(res)
 
     def with_field(coef):
         if float(np.max(np.abs(field_on_window(coef, box, res)))) > s.bias_adu:  # bounded by the bias too
@@ -387,6 +377,16 @@ def _bias_variants(res):
                 "field_adu": [[float(v) for v in row] for row in coef], "field_box_px": box}
 
     yield from cosine_field_variants(res, f, box, with_field)
+
+
+def sensor_box(s) -> list[float]:
+    """The sensor's box ``(x0, y0, x1, y1)`` [sensor px], first to last pixel centre."""
+    return [0.0, 0.0, s.sensor_width_px - 1.0, s.sensor_height_px - 1.0]
+
+
+def window_box(res) -> list[float]:
+    """The box ``(x0, y0, x1, y1)`` [sensor px] of the pixel centres the residuals ``res`` cover (its window)."""
+    return [float(res.xs.min()), float(res.ys.min()), float(res.xs.max()), float(res.ys.max())]
 
 
 def field_on_window(coef, box, res) -> np.ndarray:
@@ -430,7 +430,8 @@ def cosine_field_variants(res, unit, box, to_params, orders=None):
                 coef[j, k] = float(f"{ck:.4g}")
             return to_params(coef)
 
-        yield Variant(maps, params, label=f"2-D field of {order} x {order} cosine terms", at=at)
+        yield Variant(maps, params, at=at, label=f"2-D field of {order} x {order} cosine terms over x {box[0]:g}.."
+                      f"{box[2]:g}, y {box[1]:g}..{box[3]:g} px")  # the box in the label: one basis, one name
 
 
 #: orders of the bias pattern along the serial direction the bias fit tries on unlit frames [cosine terms]
@@ -450,12 +451,10 @@ def _bias_words(p, res) -> str:
              f"{p['quadratic_adu']:+.3g} ADU bowl at the corners"]
     field = p.get("field_adu") or []
     if field:
-        s = res.sensor
-        box = p.get("field_box_px") or (0.0, 0.0, s.sensor_width_px - 1.0, s.sensor_height_px - 1.0)
-        shape = bias_field_on_box(field, box, s.sensor_height_px, s.sensor_width_px)
+        shape = field_on_window(field, p.get("field_box_px") or sensor_box(res.sensor), res)  # what it bounds
         return (f"an additive offset independent of the signal, a smooth 2-D pattern of {float(np.ptp(shape)):.3g} ADU "
-                f"peak to peak ({len(field)} x {len(field)} cosine terms: the read-out's drift and fixed pattern): "
-                "bias structure")
+                f"peak to peak across the window ({len(field)} x {len(field)} cosine terms: the read-out's drift and "
+                "fixed pattern): bias structure")
     prof = p.get("column_profile_adu") or []
     if prof:
         u = np.linspace(0, res.sensor.sensor_width_px - 1, 257)

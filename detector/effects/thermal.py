@@ -29,11 +29,11 @@ bias's ramps and centred bowl, and the dark charge's shot noise, are what tell t
 from __future__ import annotations
 
 import numpy as np
-from pydantic import Field
+from pydantic import Field, field_validator
 
 from ..signatures import LinearSignature, Variant, fit_linear, profiled_chi2, search_sample
 from .base import Effect, EffectParams, Stage, Tile, register_effect
-from .readout import bias_field_adu, cosine_field_variants, field_on_window
+from .readout import bias_field_adu, cosine_field_variants, field_on_window, sensor_box, window_box
 
 #: silicon band gap [eV] near room temperature (Sze & Ng 2007, Physics of Semiconductor Devices, 3rd ed.,
 #: Table 1.2 / Appendix G: 1.12 eV at 300 K)
@@ -150,12 +150,12 @@ def _variants(res):
         # on a frame without light, a smooth dark-rate field of any low-order shape (a die's temperature field
         # with more than one heat source or sink: not a plane, its curvature not the doubling law's), in the
         # basis a bias structure of the same frame is offered in (detector.effects.readout.cosine_field_variants,
-        # over the sensor): one dark frame tells the two only by the dark charge's shot noise, not by their forms.
-        # (On a frame with light a smooth added field of any shape is the light's, the same charge.)
-        box = [0.0, 0.0, s.sensor_width_px - 1.0, s.sensor_height_px - 1.0]
+        # over the window the frame sees): one dark frame tells the two only by the dark charge's shot noise, not
+        # by their forms. (On a frame with light a smooth added field of any shape is the light's, the same charge.)
+        box = window_box(res)
         yield from cosine_field_variants(res, unit, box, lambda coef: {
             "gradient_x_e_per_s": 0.0, "gradient_y_e_per_s": 0.0, "temperature_x_k": 0.0, "temperature_y_k": 0.0,
-            "field_e_per_s": [[float(x) for x in row] for row in coef]})
+            "field_e_per_s": [[float(x) for x in row] for row in coef], "field_box_px": box})
     d0 = float(s.dark_current_e_per_s)
     if res.exptime_s <= 0 or d0 <= 0:
         return
@@ -210,11 +210,16 @@ def _check(fit, res) -> str:
     at a corner (the change at the corners, ``(|gx| + |gy|) / 2``, stays below the sensor's dark rate plus
     the measured dark level); in the exponential form (which never goes below zero) the temperature
     difference corner to corner, ``|tx| + |ty|``, stays within MAX_TEMPERATURE_SPAN_K; a smooth field's
-    peak to peak, as the temperature difference the doubling law needs for it (:func:`field_span_k`), too."""
+    peak to peak, as the temperature difference the doubling law needs for it (:func:`field_span_k`), too, and it
+    does not take the dark rate below zero within the window."""
     p = fit.params
     span = abs(p.get("temperature_x_k", 0.0)) + abs(p.get("temperature_y_k", 0.0))
     if p.get("field_e_per_s"):
-        span = field_span_k(p["field_e_per_s"], res)
+        span = field_span_k(p["field_e_per_s"], res, p.get("field_box_px") or None)
+        if span is None:
+            return ("the smooth dark-rate field would take the dark rate below zero within the window (its lowest "
+                    f"point more than the dark rate, {base_rate(res):.3g} e-/s, below it): a temperature field "
+                    "cannot do that; an offset structure (bias) or a light taken for dark current")
     if span > MAX_TEMPERATURE_SPAN_K:
         return (f"the sensor would be {span:.3g} K warmer at one corner than at the opposite one, more than "
                 f"{MAX_TEMPERATURE_SPAN_K:.0f} K across a sensor's die: not a temperature gradient; an offset "
@@ -235,29 +240,32 @@ def base_rate(res) -> float:
     return max(float(res.sensor.dark_current_e_per_s), mean_rate)
 
 
-def field_span_k(coef, res) -> float:
-    """The temperature difference [K] a smooth dark-rate field (cosine coefficients ``coef`` [e-/s] over the
-    sensor) needs across the window the frame sees: its peak to peak ``P`` on top of the dark rate ``D``
-    (:func:`base_rate`) at its lowest, ``T_2 log2(1 + P / D)`` (the doubling law, Janesick 2001 eq. 7.4); inf
-    without a dark rate."""
+def field_span_k(coef, res, box=None) -> float | None:
+    """The temperature difference [K] a smooth dark-rate field ``F`` (cosine coefficients ``coef`` [e-/s] over the
+    box ``box``, default the sensor) needs across the window the frame sees (on :func:`field_on_window`'s grid),
+    on top of the dark rate ``D`` (:func:`base_rate`): by the doubling law (Janesick 2001 eq. 7.4)
+    ``T_2 log2((D + F_max) / (D + F_min))``; None when the field takes the rate to or below zero
+    (``D + F_min <= 0``: no temperature does that)."""
     s = res.sensor
-    box = [0.0, 0.0, s.sensor_width_px - 1.0, s.sensor_height_px - 1.0]
-    ptp, base = float(np.ptp(field_on_window(coef, box, res))), base_rate(res)
-    if base <= 0:
-        return float("inf") if ptp > 0 else 0.0
-    return doubling_interval_k(s.temperature_c) * float(np.log2(1.0 + ptp / base))
+    box = sensor_box(s) if box is None else box
+    f, base = field_on_window(coef, box, res), base_rate(res)
+    lo, hi = base + float(np.min(f)), base + float(np.max(f))
+    if lo <= 0:
+        return None if hi > lo else 0.0
+    return doubling_interval_k(s.temperature_c) * float(np.log2(hi / lo))
 
 
 def _explain(p: dict, res) -> str:
     tx, ty = p.get("temperature_x_k", 0.0), p.get("temperature_y_k", 0.0)
     words = []
     if p.get("field_e_per_s"):
-        s = res.sensor
-        box = [0.0, 0.0, s.sensor_width_px - 1.0, s.sensor_height_px - 1.0]
+        box = p.get("field_box_px") or sensor_box(res.sensor)
         ptp = float(np.ptp(field_on_window(p["field_e_per_s"], box, res)))
         n = len(p["field_e_per_s"])
-        words.append(f"a smooth dark-rate field of {ptp:.3g} e-/s peak to peak ({n} x {n} cosine terms over the "
-                     f"sensor; {field_span_k(p['field_e_per_s'], res):.3g} K across the window at the doubling law)")
+        span = field_span_k(p["field_e_per_s"], res, box)
+        words.append(f"a smooth dark-rate field of {ptp:.3g} e-/s peak to peak across the window ({n} x {n} cosine "
+                     "terms; " + (f"{span:.3g} K across it at the doubling law)" if span is not None else
+                                  "more than the dark rate: no temperature field)"))
     if tx or ty:
         t2 = doubling_interval_k(res.sensor.temperature_c)
         words.append(f"the sensor {abs(tx):.3g} K {'warmer' if tx >= 0 else 'cooler'} at the right edge, "
@@ -290,9 +298,30 @@ class DarkGradientParams(EffectParams):
                                                "bottom [K] (exponential law, doubling every T_2)")
     field_e_per_s: list[list[float]] = Field(default_factory=list, max_length=16,
                                              description="2-D cosine-series coefficients C_jk (rows j, columns k; "
-                                             "C_00 ignored) of a smooth dark-rate field over the sensor, sum_jk C_jk "
-                                             "cos(j pi v) cos(k pi u), u = x / (W - 1), v = y / (H - 1) [e-/s/pixel]",
+                                             "C_00 ignored) of a smooth dark-rate field, sum_jk C_jk cos(j pi v) "
+                                             "cos(k pi u), u, v in [0, 1] across field_box_px (default the sensor: "
+                                             "u = x / (W - 1), v = y / (H - 1)) [e-/s/pixel] (bias_field_adu)",
                                              json_schema_extra={"unit": "e-/s"})
+    field_box_px: list[float] = Field(default_factory=list, max_length=4,
+                                      description="the box (x0, y0, x1, y1) [sensor px] over which field_e_per_s's "
+                                      "cosines run from 0 to pi (held at its edge beyond it; empty: the sensor)",
+                                      json_schema_extra={"unit": "pixel"})
+
+
+    @field_validator("field_e_per_s")
+    @classmethod
+    def _rectangular(cls, v: list[list[float]]) -> list[list[float]]:
+        if v and (any(len(row) != len(v[0]) for row in v) or not v[0]):
+            raise ValueError(f"field_e_per_s must be a rectangular array of coefficients (rows of equal, non-zero "
+                             f"length), got rows of lengths {[len(row) for row in v]}")
+        return v
+
+    @field_validator("field_box_px")
+    @classmethod
+    def _box(cls, v: list[float]) -> list[float]:
+        if v and (len(v) != 4 or v[2] <= v[0] or v[3] <= v[1]):
+            raise ValueError(f"field_box_px must be empty or (x0, y0, x1, y1) with x1 > x0, y1 > y0 [px], got {v}")
+        return v
 
 
 @register_effect
@@ -322,7 +351,7 @@ class DarkGradient(Effect):
         ys, xs = tile.pixel_centres()
         m = gradient_rate(ys, xs, s.sensor_height_px, s.sensor_width_px, p.gradient_x_e_per_s, p.gradient_y_e_per_s)
         if p.field_e_per_s:
-            m += bias_field_adu(ys, xs, s.sensor_height_px, s.sensor_width_px, p.field_e_per_s)
+            m += bias_field_adu(ys, xs, s.sensor_height_px, s.sensor_width_px, p.field_e_per_s, p.field_box_px or None)
         if thermal:
             m += thermal_rate(ys, xs, s.sensor_height_px, s.sensor_width_px, s.dark_current_e_per_s,
                               p.temperature_x_k, p.temperature_y_k, doubling_interval_k(s.temperature_c))

@@ -164,12 +164,17 @@ def test_white_noise_alone_takes_no_field():
     assert fit is None or fit.delta_bic > -10
 
 
-def test_the_field_on_its_box_spans_the_box_edge_to_edge():
-    """The grid on which a fitted field is bounded by the bias and described: its corners are the box's, where
-    the cosines are at 0 and pi (C_01 cos(k pi u) is +C_01 at x0, -C_01 at x1)."""
-    from detector.effects.readout import BIAS_FIELD_GRID, bias_field_on_box
+def test_the_field_on_its_window_spans_the_window_edge_to_edge():
+    """The grid on which a fitted field is bounded by the bias and described: the window the residuals cover,
+    edge to edge; over the window's own box its corners are where the cosines are at 0 and pi (C_01 cos(k pi u)
+    is +C_01 at x0, -C_01 at x1)."""
+    from types import SimpleNamespace
+
+    from detector.effects.readout import BIAS_FIELD_GRID, field_on_window, window_box
 
     coef = [[0.0, 3.0], [0.0, 0.0]]
-    got = bias_field_on_box(coef, (10.0, 20.0, 70.0, 50.0), 60, 90)
+    res = SimpleNamespace(sensor=SimpleNamespace(sensor_height_px=60, sensor_width_px=90),
+                          ys=np.linspace(20.0, 50.0, 31), xs=np.linspace(10.0, 70.0, 61))
+    got = field_on_window(coef, window_box(res), res)
     assert got.shape == (BIAS_FIELD_GRID, BIAS_FIELD_GRID)
     assert got[0, 0] == pytest.approx(3.0) and got[-1, -1] == pytest.approx(-3.0) and np.ptp(got) == pytest.approx(6.0)

@@ -265,25 +265,34 @@ def test_nonlinearity_power_law_follows_its_formula():
     assert x.tolist() == [0.0, -3.0, 25000.0]  # no signal, no change; the reference is a fixed point
 
 
+def _flat_residuals(s, gain_map, seed: int):
+    """Residuals of a flat of 5000 e- per sensor pixel on the 8x8-binned sensor ``s`` (bias 1000 ADU, gain 1), its
+    light multiplied by ``gain_map`` (broadcasting), with its shot and read noise, against the flat's model."""
+    from detector.signatures import Residuals, SpikeStats
+
+    h, w = s.output_shape
+    ys, xs = np.arange(h) * 8 + 3.5, np.arange(w) * 8 + 3.5
+    rng = np.random.default_rng(seed)
+    photo = np.full((h, w), 64 * 5000.0)
+    var = photo + 25.0
+    data = 1000 + photo * gain_map + rng.normal(0, 1, (h, w)) * np.sqrt(var)
+    return Residuals(data.astype(np.float32), (1000 + photo).astype(np.float32), var.astype(np.float32),
+                     np.ones((h, w), bool), photo.astype(np.float32), np.zeros((h, w), np.float32), ys, xs, s, 1.0,
+                     SpikeStats(0, 0, 0, 0, 0), SpikeStats(0, 0, 0, 0, 0))
+
+
 def test_gain_regions_boundary_found_where_the_amplifiers_meet():
     """A flat read by two amplifiers that meet at sensor column 1300 of a 4008-column sensor (not its middle):
     the diagnosis finds the boundary from the data (binary segmentation of the residual's column sums) and
     the two gains' ratio (1.004) within its statistical error; the effect then renders the same step there."""
     from detector import registry
-    from detector.signatures import Residuals, SpikeStats
 
     s = small(x0=0, y0=0, width=4008, height=64, binning=8, read_noise_e=5.0, dark_current_e_per_s=0.0,
               gain_e_per_adu=1.0)
     h, w = s.output_shape
-    ys, xs = np.arange(h) * 8 + 3.5, np.arange(w) * 8 + 3.5
-    rng = np.random.default_rng(5)
-    photo = np.full((h, w), 64 * 5000.0)
+    xs = np.arange(w) * 8 + 3.5
     gain = np.where(xs < 1300, 1.0, 1.004)[None, :] / (1.004 * (1 - 1300 / 4008) + 1300 / 4008)
-    var = photo + 25.0
-    data = 1000 + photo * gain + rng.normal(0, 1, (h, w)) * np.sqrt(var)
-    res = Residuals(data.astype(np.float32), (1000 + photo).astype(np.float32), var.astype(np.float32),
-                    np.ones((h, w), bool), photo.astype(np.float32), np.zeros((h, w), np.float32), ys, xs, s, 1.0,
-                    SpikeStats(0, 0, 0, 0, 0), SpikeStats(0, 0, 0, 0, 0))
+    res = _flat_residuals(s, gain, seed=5)
     fit = registry()["gain_regions"].signature.fit(res, "gain_regions")
     assert fit.params.get("splits_x") and abs(fit.params["splits_x"][0] - 1300) <= 8
     g = fit.params["gains"]
@@ -302,22 +311,18 @@ def test_a_narrow_amplifier_strip_is_a_gain_region_not_columns():
     means that persists over more than LINE_WINDOW columns is a region; the two boundaries are found where the
     strip starts and ends (binary segmentation with boundaries LINE_WINDOW lines apart)."""
     from detector import registry
-    from detector.signatures import LINE_WINDOW, Residuals, SpikeStats
+    from detector.effects.pixel_response import MIN_SEGMENT_SHARE
+    from detector.signatures import LINE_WINDOW
 
     s = small(x0=0, y0=0, width=4008, height=64, binning=8, read_noise_e=5.0, dark_current_e_per_s=0.0,
               gain_e_per_adu=1.0)
     h, w = s.output_shape
-    ys, xs = np.arange(h) * 8 + 3.5, np.arange(w) * 8 + 3.5
-    rng = np.random.default_rng(6)
-    photo = np.full((h, w), 64 * 5000.0)
+    xs = np.arange(w) * 8 + 3.5
     lo, hi = 0.43 * 4008, 0.48 * 4008
-    assert (hi - lo) / 8 > LINE_WINDOW and (hi - lo) / 4008 < 0.1  # narrower than the edges' segment share
+    # wider than LINE_WINDOW lines, narrower than a segment at the frame's edge must be (its share, in lines)
+    assert LINE_WINDOW < (hi - lo) / 8 < np.ceil(MIN_SEGMENT_SHARE * w)
     gain = np.where((xs > lo) & (xs < hi), 0.993, 1.0)[None, :]
-    var = photo + 25.0
-    data = 1000 + photo * gain + rng.normal(0, 1, (h, w)) * np.sqrt(var)
-    res = Residuals(data.astype(np.float32), (1000 + photo).astype(np.float32), var.astype(np.float32),
-                    np.ones((h, w), bool), photo.astype(np.float32), np.zeros((h, w), np.float32), ys, xs, s, 1.0,
-                    SpikeStats(0, 0, 0, 0, 0), SpikeStats(0, 0, 0, 0, 0))
+    res = _flat_residuals(s, gain, seed=6)
     fit = registry()["gain_regions"].signature.fit(res, "gain_regions")
     splits = fit.params.get("splits_x")
     assert splits and len(splits) == 2, fit.params

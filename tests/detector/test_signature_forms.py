@@ -184,3 +184,23 @@ def test_an_elliptical_fall_off_is_fitted_with_the_azimuthal_terms():
     assert fit is not None and fit.note.endswith("|elliptical"), None if fit is None else fit.note
     assert fit.params["a2_sin2"] == pytest.approx(0.12, rel=0.2)
     assert abs(fit.params["a2_cos2"]) < 0.03
+
+
+def test_an_elliptical_saddle_is_refused_and_its_loss_counts_the_major_axis():
+    """An elliptical fall-off loses light in every direction: a saddle (a2 = 0.05 with an azimuthal amplitude 0.3,
+    light rising by 0.25 rho^2 along one axis) gets no parameters; a fall-off's loss at the corner counts its
+    rho^2 rate along the axis that loses most, a2 + hypot(a2_cos2, a2_sin2)."""
+    from detector.effects.optical import _loss_at_edge, _vignetting_variant
+
+    shape = (32, 32)
+    s = small_sensor(width=shape[1], height=shape[0], bias_adu=100.0)
+    ones = np.ones(shape, np.float32)
+    none = SpikeStats(0, 0, 0, 0, 0)
+    res = Residuals(ones, ones, ones, np.ones(shape, bool), ones, 0 * ones, np.arange(shape[0]) + 0.5,
+                    np.arange(shape[1]) + 0.5, s, 10.0, none, none)
+    v = _vignetting_variant(res, 0.0, 0.0, elliptical=True)
+    assert v.to_params(np.array([0.05, 0.0, 0.3, 0.0])) is None
+    assert v.to_params(np.array([-0.05, 0.0, 0.0, 0.2])) is None  # along one diagonal it gains light too
+    p = v.to_params(np.array([0.2, 0.01, 0.06, 0.08]))
+    assert p is not None
+    assert _loss_at_edge(p, res) == pytest.approx(0.2 + 0.1 + 0.01)

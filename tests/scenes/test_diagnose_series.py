@@ -196,3 +196,19 @@ def test_a_camera_number_the_calibration_frames_contradict_is_named_and_applied(
     same = write_case(SeriesCase("camera", model, frames), tmp_path / "same")
     d0 = run_series_diagnose(load_series(same))
     assert not any(c["significant"] for c in d0["candidates"] if c.get("kind") == "parameter")
+
+
+def test_aligned_pairs_variants_by_label_never_different_bases_by_position():
+    """Two frames offered a smooth field over different boxes (labels naming the box) are not paired by
+    position: only the variants under one label are, in the first frame's order."""
+    from detector.signatures import Variant
+    from scenes.app.compare.series import _aligned
+
+    def v(label):
+        return Variant([np.ones((2, 2), np.float32)], lambda c: {}, label=label)
+
+    a = [v("linear ramp"), v("2-D field of 3 x 3 cosine terms over x 0..9, y 0..9 px")]
+    b = [v("2-D field of 3 x 3 cosine terms over x 0..19, y 0..19 px"), v("linear ramp")]
+    got = _aligned([a, b], [None, None])
+    assert [[x.label for x in fr] for fr in got] == [["linear ramp"], ["linear ramp"]]
+    assert _aligned([a[1:], b[:1]], [None, None]) is None

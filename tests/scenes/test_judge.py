@@ -383,7 +383,8 @@ def test_empirical_apply_into_another_folder(tmp_path):
     with fits.open(meas) as hl:
         data, hdr = hl[0].data.astype(np.float64), hl[0].header
     yy, xx = np.mgrid[0:192, 0:192]
-    data += 40.0 * np.exp(-((yy - 70) ** 2 + (xx - 120) ** 2) / (2 * 9.0 ** 2))  # a glow no plugin has
+    # a compact glow no plugin has (3 px: far finer than a smooth field of 8 x 8 cosines over the window resolves)
+    data += 60.0 * np.exp(-((yy - 70) ** 2 + (xx - 120) ** 2) / (2 * 3.0 ** 2))
     fits.PrimaryHDU(np.rint(data).astype(np.uint16), header=hdr).writeto(meas, overwrite=True)
     out_dir = tmp_path / "rounds"
     out_dir.mkdir()
@@ -730,3 +731,20 @@ def test_a_blind_candidate_alone_is_described_as_untested_not_as_failed():
     assert not nl.significant and "cannot test it" in verdict([nl])
     nl.heldout_blind = False
     assert "not credible: held-out delta 2705" in verdict([nl])
+
+
+def test_a_dark_field_first_ties_with_a_dsnu_by_its_held_out_score_not_by_their_charge():
+    """A dark field whose own form comes first, tied with a DSNU with large scales by the held-out scores only,
+    is reported so (the held-out scores' reason), not as the same dark charge whatever each fit's form
+    (:func:`scenes.app.compare.judge.same_dark_field` is not symmetric)."""
+    from scenes.app.compare.judge import verdict
+
+    field = np.broadcast_to(np.linspace(-3.0, 3.0, 64), (64, 64)).astype(np.float32)
+    var = np.full((64, 64), 2.0, np.float32)
+    dark = Candidate(Fit("dark_gradient", {}, -2400.0, 2, 4096, "a dark-rate field", delta_adu=field), 1.0, 0.0,
+                     heldout=-2300.0)
+    dsnu = Candidate(Fit("dsnu", {}, -2390.0, 20, 4096, "a dsnu with large scales", delta_adu=field,
+                         extra_var_adu2=var), 1.0, 0.0, heldout=-2299.0)
+    text = verdict([dark, dsnu])
+    assert "cannot tell it apart from dsnu" in text and "held-out scores are as good" in text, text
+    assert "the same dark charge in a smooth pattern" not in text, text

@@ -373,7 +373,7 @@ def same_light(a: Candidate, b: Candidate) -> bool:
 TWIN_REASONS = (
     (same_charge, "the same charge in the same pixels, whose origin (dark or light) only a dark frame of the same "
                   "exposure tells"),
-    (lambda a, b: same_dark_field(a, b) or same_dark_field(b, a),
+    (same_dark_field,  # not symmetric: a dark field first ties with a DSNU by the held-out scores alone
      "the same dark charge in a smooth pattern: a DSNU's large scales are a field of dark rate (a glow or a "
      "dark-rate gradient is one too), whatever form each fit gives it"),
     (same_scatter, "the same added variance in every pixel of this frame (a DSNU's grows as the dark signal "

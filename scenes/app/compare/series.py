@@ -525,19 +525,20 @@ def joint_linear(name: str, sig: LinearSignature, frames: list[Residuals], share
 def _aligned(lists: list[list], frames: list[Residuals]) -> list[list] | None:
     """The frames' variant lists made parallel: a frame a signature has no variant for (a light pattern on a
     dark frame) gets zero templates of the same count (it is then not concerned, :func:`_concerned`); where
-    frames are offered different variants, those they all have (by label); None when they share none."""
+    frames are offered different variants, those they all have (by label: a variant's label names its basis,
+    so two frames' variants are paired only under one label); None when they share none."""
     ref_i = next((i for i, v in enumerate(lists) if v), None)
     if ref_i is None:
         return None
-    if any(v and len(v) != len(lists[ref_i]) for v in lists):
-        # a variant some frames are not offered (a bias profile fitted on unlit frames only): the variants
-        # every frame that has any shares, by label, in the first frame's order
+    if any(v and [x.label for x in v] != [x.label for x in lists[ref_i]] for v in lists):
+        # a variant some frames are not offered (a bias profile fitted on unlit frames only), or offered in
+        # another basis (a smooth field over another window: its label names the box): the variants every
+        # frame that has any shares, by label, in the first frame's order (never paired by position alone)
         common = set.intersection(*[{x.label for x in v} for v in lists if v])
         if len(common) == 0 or any(v and len({x.label for x in v}) != len(v) for v in lists):
             return None
-        lists = [[x for x in v if x.label in common] for v in lists]
-        if any(v and len(v) != len(lists[ref_i]) for v in lists):
-            return None
+        order = [x.label for x in lists[ref_i] if x.label in common]
+        lists = [[{x.label: x for x in v}[name] for name in order] if v else [] for v in lists]
     ref, res = lists[ref_i], frames[ref_i]
     probe = np.zeros(1, dtype=np.intp)
     counts = [np.atleast_2d(v.values(probe, res.data_adu.shape)).shape[0] for v in ref] if any(
