@@ -424,10 +424,12 @@ def score_heldout(res: Residuals, cands: list[Candidate], progress=None,
         if progress is not None:
             progress(f"{c.fit.effect} (held out)")
     # the best-fitting contender's change carried by too few pixels for the default blocks (one fold sees less
-    # than a detection of it): every contender is scored again, on the largest blocks both folds see that change
-    # on (detector.signatures.seeing_block), so their held-out scores (and the catch-all's) share one layout
-    scored = [c for c in cands if c.heldout is not None and c.fit.delta_adu is not None]
-    best = min(scored, key=lambda c: c.fit.delta_bic, default=None)
+    # than a detection of it): every contender with a held-out score (the variance-only ones too) is scored
+    # again, on the largest blocks both folds see that change on (detector.signatures.seeing_block), so their
+    # held-out scores (and the catch-all's) share one layout; a candidate that cannot be scored there keeps its
+    # default-block score (and heldout_block None)
+    scored = [c for c in cands if c.heldout is not None]
+    best = min((c for c in scored if c.fit.delta_adu is not None), key=lambda c: c.fit.delta_bic, default=None)
     block = seeing_block(best.fit, res) if best is not None and best.heldout_blind else None
     if block is not None:
         res.forget("heldout_folds")
@@ -435,7 +437,8 @@ def score_heldout(res: Residuals, cands: list[Candidate], progress=None,
             t0 = time.perf_counter()
             try:
                 h = heldout_delta(reg[c.fit.effect].signature, res, c.fit.effect, c.fit, block)
-                c.heldout, c.heldout_blind, c.heldout_block = h, h is not None and heldout_blind(c.fit, res, block), block
+                if h is not None:
+                    c.heldout, c.heldout_blind, c.heldout_block = h, heldout_blind(c.fit, res, block), block
             except Exception as exc:  # noqa: BLE001
                 c.refuse("error", f"cannot be scored on held-out pixels ({type(exc).__name__}: {exc})")
             c.seconds += time.perf_counter() - t0
