@@ -973,22 +973,28 @@ def heldout_blind(fit: Fit, res: Residuals, block: int | None = None) -> bool:
     return got is not None and float(np.sqrt(min(got))) < DETECTION_SIGMA
 
 
-def seeing_block(fit: Fit, res: Residuals) -> int | None:
-    """The side of the largest checkerboard blocks (:func:`default_block` halved down to one pixel) on which both
-    held-out folds see a detection of ``fit``'s change (:func:`heldout_blind`), or None when not even single
-    pixels do (or the fit has no mean change).
+def seeing_block(fit: Fit, res: Residuals, floor_px: int = 2) -> int | None:
+    """The side of the largest checkerboard blocks (:func:`default_block` halved down to ``floor_px``) on which
+    both held-out folds see a detection of ``fit``'s change (:func:`heldout_blind`), or None when not even blocks
+    of ``floor_px`` do (or the fit has no mean change).
+
+    ``floor_px`` is the residual's coherence length (the caller's: about twice the sources' rms radius, at least
+    2 px): on smaller blocks every held-out pixel has training pixels within the PSF, so a form smooth on that
+    scale, or a mismatch correlated over the PSF, scores about as well held out as in sample, and the held-out
+    score is no longer a test (Roberts et al. 2017, Ecography 40, 913: the blocks must be larger than the
+    residuals' correlation range).
 
     A change carried by a few pixels (the cores of a star window's one or two bright stars, where a response
     law acts) falls in one block of the default checkerboard: its held-out score tests it neither way. Smaller
     blocks split those pixels between the folds, so the form fitted on one part is scored on the other: still
     a test against noise (a form that only follows the noise of a few pixels fits one fold and fails the
-    other), while the blocks are as large as the change allows. What smaller blocks do not test is which of
+    other) as long as the blocks are larger than the noise's coherence length, while the blocks are as large as the change allows. What smaller blocks do not test is which of
     two forms fitting the same pixels is right: that is left to the twins' comparison and to nesting
     (the judge's ``indistinguishable``, ``blind_rivals``)."""
     if fit.delta_adu is None:
         return None
     block = default_block(res.data_adu.shape) // 2
-    while block >= 1:
+    while block >= max(1, floor_px):
         if not heldout_blind(fit, res, block):
             return block
         block //= 2

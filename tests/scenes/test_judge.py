@@ -695,6 +695,12 @@ def test_a_change_in_one_block_is_held_out_on_blocks_both_folds_see():
     scored = [c for c in cands if c.heldout is not None]
     assert {c.fit.effect for c in scored} == {"nonlinearity", "brighter_fatter"}
     assert {c.heldout_block for c in scored} == {block} and all(not c.heldout_blind for c in scored)
+    # no block below the residual's coherence length (twice the stars' rms radius, sqrt(2) 1.3 px: 4 px): a
+    # held-out pixel with training pixels within the PSF is not held out from a PSF-scale mismatch
+    from scenes.app.compare.candidates import coherence_px
+
+    assert coherence_px(res) == 4 and block >= 4
+    assert seeing_block(sig.fit(res, "nonlinearity"), res, 2 * block) is None  # the floor stops the halving
 
 
 def test_a_rival_whose_held_out_test_is_blind_ties_with_the_first_name():
