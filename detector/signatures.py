@@ -883,6 +883,15 @@ def default_block(shape: tuple[int, int]) -> int:
     return int(max(4, min(HELDOUT_BLOCK, min(shape) // 8)))
 
 
+def layout_block(res: Residuals) -> int:
+    """The default block of the held-out layout in use on ``res`` [output pixels]: under row noise the bands of
+    whole rows of :func:`heldout_mask` (HELDOUT_BLOCK rows, fewer on short frames: at least 8 bands, at least 4
+    rows), else :func:`default_block` of the checkerboard."""
+    if res.row_var_adu2 > 0:
+        return int(max(4, min(HELDOUT_BLOCK, res.data_adu.shape[0] // 8)))
+    return default_block(res.data_adu.shape)
+
+
 def checkerboard(shape: tuple[int, int], block: int | None = None) -> np.ndarray:
     """The black squares (True) of a checkerboard of ``block`` x ``block`` pixels over a frame."""
     if block is None:
@@ -936,7 +945,7 @@ def heldout_mask(res: Residuals, block: int | None = None) -> np.ndarray:
     fail on the other's)."""
     if res.row_var_adu2 > 0:
         if block is None:
-            block = int(max(4, min(HELDOUT_BLOCK, res.data_adu.shape[0] // 8)))
+            block = layout_block(res)
         return np.broadcast_to(((np.arange(res.data_adu.shape[0]) // block) % 2 == 0)[:, None],
                                res.data_adu.shape).copy()
     return checkerboard(res.data_adu.shape, block)
@@ -974,7 +983,7 @@ def heldout_blind(fit: Fit, res: Residuals, block: int | None = None) -> bool:
 
 
 def seeing_block(fit: Fit, res: Residuals, floor_px: int = 2) -> int | None:
-    """The side of the largest checkerboard blocks (:func:`default_block` halved down to ``floor_px``) on which
+    """The side of the largest held-out blocks (:func:`layout_block` halved down to ``floor_px``) on which
     both held-out folds see a detection of ``fit``'s change (:func:`heldout_blind`), or None when not even blocks
     of ``floor_px`` do (or the fit has no mean change).
 
@@ -993,7 +1002,7 @@ def seeing_block(fit: Fit, res: Residuals, floor_px: int = 2) -> int | None:
     (the judge's ``indistinguishable``, ``blind_rivals``)."""
     if fit.delta_adu is None:
         return None
-    block = default_block(res.data_adu.shape) // 2
+    block = layout_block(res) // 2
     while block >= max(1, floor_px):
         if not heldout_blind(fit, res, block):
             return block

@@ -736,3 +736,17 @@ def test_a_blind_candidate_alone_is_described_as_untested_not_as_failed():
     assert not nl.significant and "cannot test it" in verdict([nl])
     nl.heldout_blind = False
     assert "not credible: held-out delta 2705" in verdict([nl])
+
+
+def test_the_held_out_default_block_is_the_layout_in_use():
+    """Under row noise the folds are bands of whole rows, and their default height (at least 8 bands) is set by
+    the frame's rows alone: a tall narrow frame keeps 32-row bands, where the checkerboard's default (at least 8
+    blocks a side) would be 16; the finer-block search starts from that same default (one helper)."""
+    from types import SimpleNamespace
+
+    from detector.signatures import default_block, heldout_mask, layout_block
+
+    tall = SimpleNamespace(data_adu=np.zeros((4096, 128), np.float32), row_var_adu2=1.0)
+    assert layout_block(tall) == 32 and default_block(tall.data_adu.shape) == 16
+    assert np.array_equal(heldout_mask(tall), heldout_mask(tall, 32))
+    assert layout_block(SimpleNamespace(data_adu=tall.data_adu, row_var_adu2=0.0)) == 16
