@@ -750,3 +750,18 @@ def test_the_held_out_default_block_is_the_layout_in_use():
     assert layout_block(tall) == 32 and default_block(tall.data_adu.shape) == 16
     assert np.array_equal(heldout_mask(tall), heldout_mask(tall, 32))
     assert layout_block(SimpleNamespace(data_adu=tall.data_adu, row_var_adu2=0.0)) == 16
+
+
+def test_the_catch_all_is_scored_on_the_blocks_the_candidates_were_compared_on(monkeypatch):
+    """Every contender re-scored on finer blocks is set against the catch-all on those same folds; the reported
+    catch-all score is that one, and the default-block catch-all, compared with nobody, is not computed."""
+    from types import SimpleNamespace
+
+    from scenes.app.compare import catch_all as ca
+
+    asked = []
+    monkeypatch.setattr(ca, "catch_all_heldout", lambda res, block=None: asked.append(block) or -10.0 * (block or 1))
+    res = SimpleNamespace(forget=lambda key: None)
+    cands = [SimpleNamespace(heldout=-5.0, kind="effect", heldout_block=4, catch_all_heldout=None) for _ in range(2)]
+    assert ca.compare_with_catch_all(res, cands, {"significant": True}) == -40.0
+    assert asked == [4] and all(c.catch_all_heldout == -40.0 for c in cands)
