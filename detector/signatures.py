@@ -1678,6 +1678,26 @@ def neighbour_axes(res: Residuals) -> tuple[float, float, int, int]:
 TAIL_SIGMA = FOOTPRINT_SIGMA
 
 
+#: the whitened residual's tail is clipped here before its neighbour correlation (one cosmic ray or saturated
+#: core does not carry the statistic) [sigma]
+TAIL_CLIP_SIGMA = 30.0
+
+
+@functools.cache
+def max_tail_correlation() -> float:
+    """The largest correlation of the outlying pixels with their neighbours (:func:`tail_neighbour_correlation`)
+    that independent pixels read through the sensor's inter-pixel capacitance give: a neighbour reads a fraction
+    ``alpha`` of an outlier of whitened amplitude A (Moore et al. 2004; :mod:`detector.effects.coupling`), so the
+    pair correlation is ``alpha A / sqrt(1 + alpha^2 A^2)``, largest at the tail's clip A = TAIL_CLIP_SIGMA. With
+    the catalogue's CMOS coupling (:class:`detector.effects.coupling.IPCParams`' alpha, 0.5 %) that is 0.148: a
+    hot-pixel or DSNU tail on a coupled sensor stays below it, a structure a few pixels wide (rings, pixel
+    pairs, smeared sources; neighbours at tens of per cent of the outlier) exceeds it."""
+    from detector.effects.coupling import IPCParams  # (the effects import this module: resolved at call time)
+
+    a = float(IPCParams.model_fields["alpha"].default) * TAIL_CLIP_SIGMA
+    return float(a / np.sqrt(1.0 + a * a))
+
+
 def tail_neighbour_correlation(res: Residuals) -> tuple[float, float, int, float]:
     """(correlation, significance in sigma, tail pixels, the tail's share of the excess chi2 of the whitened
     residual): the correlation of the pixels in the tail of the
@@ -1688,7 +1708,7 @@ def tail_neighbour_correlation(res: Residuals) -> tuple[float, float, int, float
     few pixels to move :func:`neighbour_correlation`. Cached."""
     if "tail_neighbour_correlation" not in res._flat:
         zw, m = _whitened_map(res)
-        zc = np.clip(zw, -30.0, 30.0)
+        zc = np.clip(zw, -TAIL_CLIP_SIGMA, TAIL_CLIP_SIGMA)
         tail = m & (np.abs(zc) > TAIL_SIGMA)
         sxy = sxx = syy = 0.0
         n = 0
@@ -2022,9 +2042,6 @@ class VarianceSignature(Signature):
     #: significant) is a structure of a few pixels (rings, fringes, blurred sources), not a non-uniformity: the
     #: same bar of "independent from neighbour to neighbour" as the lines' gains' (MAX_LINE_GAIN_CORRELATION)
     MAX_NEIGHBOUR_CORRELATION = MAX_LINE_GAIN_CORRELATION
-    #: ... and the outlying pixels' correlation with their neighbours (:func:`tail_neighbour_correlation`): the
-    #: same bar, an independent pixel's outlier does not know its neighbours
-    MAX_TAIL_CORRELATION = MAX_NEIGHBOUR_CORRELATION
 
     #: a pattern of lines: across them, neighbours correlate by at most this much (and 3 / sqrt(pairs))
     MAX_ACROSS_LINES = 0.02
@@ -2053,7 +2070,7 @@ class VarianceSignature(Signature):
         rho, z, n, share = tail_neighbour_correlation(res)
         # (only when the tail carries most of the extra scatter: a white PRNU over the whole flat is not judged by
         # the dust rings that make its outliers)
-        if rho > self.MAX_TAIL_CORRELATION and z > DETECTION_SIGMA and share > EXPLAINS_MOST:
+        if rho > max_tail_correlation() and z > DETECTION_SIGMA and share > EXPLAINS_MOST:
             return (f"the pixels that carry the extra scatter have neighbours that share their sign (correlation "
                     f"{rho:.2f} over {n} outlying pixels, {z:.0f} sigma; independent noise gives 0): a structure a few "
                     "pixels wide (light moved into rings, pixels in pairs or clusters, smeared sources), not "
