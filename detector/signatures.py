@@ -1460,6 +1460,19 @@ SMOOTH_ORDER = 5
 WHITE_SCALE = 6.0
 
 
+def local_mean(values: np.ndarray, weights: np.ndarray, scale: float = WHITE_SCALE) -> np.ndarray:
+    """The local weighted mean of a map [its unit]: the normalised convolution ``G * (x w) / G * w`` with a
+    Gaussian of ``scale`` output pixels (Knutsson & Westin 1993), ``weights`` zero off the pixels that count (the
+    fitted ones), so unfitted pixels (masked source cores, saturated or flagged pixels) do not pull it. The one
+    local mean the variance fits remove (:func:`variance_sample`, the whitened map, a smooth part's fine
+    structure) and the validation's white/large-scale split use."""
+    from scipy.ndimage import gaussian_filter
+
+    num = gaussian_filter(values * weights, scale, mode="nearest")
+    den = gaussian_filter(weights, scale, mode="nearest")
+    return num / np.maximum(den, 1e-30)
+
+
 def _m2l_pixels(r: np.ndarray, s: np.ndarray, k3=None) -> np.ndarray:
     """-2 ln of the core density of every pixel: N(0, s), or its first Edgeworth correction for a third
     cumulant ``k3`` (``1 + k3 / (6 s^1.5) He3(z)``, kept positive)."""
@@ -1591,18 +1604,14 @@ def variance_sample(res: Residuals) -> dict:
     pixels, rescaled for the variance the subtraction removes), so that mean structure a model lacks (a
     gradient, a vignetting, a glow) is not mistaken for pixel-to-pixel scatter."""
     if "variance_sample" not in res._flat:
-        from scipy.ndimage import gaussian_filter
-
         idx, r, w = res.flat_profiled()
         step = max(1, idx.size // VARIANCE_FIT_PIXELS)
         sub = np.arange(0, idx.size, step)
         rs, ws = r[sub], w[sub]
         # the local weighted mean (normalised convolution with a Gaussian of WHITE_SCALE output pixels)
-        rw, ww = np.zeros(res.data_adu.size, np.float32), np.zeros(res.data_adu.size, np.float32)
-        rw[idx], ww[idx] = r * w, w
-        rw = gaussian_filter(rw.reshape(res.data_adu.shape), WHITE_SCALE, mode="nearest").ravel()
-        ww = gaussian_filter(ww.reshape(res.data_adu.shape), WHITE_SCALE, mode="nearest").ravel()
-        smooth = rw[idx[sub]] / np.maximum(ww[idx[sub]], 1e-30)
+        rr, ww = np.zeros(res.data_adu.size, np.float32), np.zeros(res.data_adu.size, np.float32)
+        rr[idx], ww[idx] = r, w
+        smooth = local_mean(rr.reshape(res.data_adu.shape), ww.reshape(res.data_adu.shape)).ravel()[idx[sub]]
         # white noise keeps 1 - 3 / (4 pi s^2) of its variance through r - G * r
         keep_var = 1.0 - 3.0 / (4 * np.pi * WHITE_SCALE ** 2)
         # the shot noise's own skewness: third cumulant = mean charge [e-], in ADU^3
@@ -1621,17 +1630,13 @@ def _whitened_map(res: Residuals) -> tuple[np.ndarray, np.ndarray]:
     """(z, fitted): the level-profiled residual in model sigmas minus its Gaussian local mean of
     :data:`WHITE_SCALE` px (normalised convolution over the fitted pixels), 0 off them; cached."""
     if "whitened_map" not in res._flat:
-        from scipy.ndimage import gaussian_filter
-
         idx, r, w = res.flat_profiled()
         shape = res.data_adu.shape
         z = np.zeros(shape, np.float32)
         m = np.zeros(shape, np.float32)
         z.ravel()[idx] = r * np.sqrt(w)
         m.ravel()[idx] = 1.0
-        num = gaussian_filter(z, WHITE_SCALE, mode="nearest")
-        den = gaussian_filter(m, WHITE_SCALE, mode="nearest")
-        res._flat["whitened_map"] = (np.where(m > 0, z - num / np.maximum(den, 1e-6), 0.0).astype(np.float32), m > 0)
+        res._flat["whitened_map"] = (np.where(m > 0, z - local_mean(z, m), 0.0).astype(np.float32), m > 0)
     return res._flat["whitened_map"]
 
 
@@ -2011,10 +2016,13 @@ class VarianceSignature(Signature):
                 # comes off the whitened residual, and its charge carries its shot noise (with_shot_noise). A
                 # smooth field of dark charge whose shot noise, or a response whose sources, were taken for a
                 # scatter is a field, not a non-uniformity of the pixels
-                from scipy.ndimage import gaussian_filter
-
+                # (its local mean the residual's own, over the fitted pixels and weighed as r_white's: a plain
+                # filter is pulled by the masked source cores, where a response's template is largest)
                 sm = np.asarray(smooth_delta, np.float32)
-                fine = (sm - gaussian_filter(sm, WHITE_SCALE, mode="nearest")).ravel()[vs["idx"]]
+                fidx, _, fw = res.flat_profiled()
+                wm = np.zeros(sm.size, np.float32)
+                wm[fidx] = fw
+                fine = (sm - local_mean(sm, wm.reshape(sm.shape))).ravel()[vs["idx"]]
                 shot = np.maximum(frame_at(sm, vs["idx"]) * res.poisson_adu, -0.9 * vs["v"])
                 theta, d0, law = best_law(vs["v"] + shot, vs["r_white"] - fine / np.sqrt(vs["keep_var"]))
                 if d0 * vs["scale"] >= part:

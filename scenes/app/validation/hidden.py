@@ -732,13 +732,11 @@ def scatter_sigma(change: np.ndarray, var: np.ndarray) -> float:
     the two. The pattern's exact template chi2 (the truth chi2) is what its map, or a second frame of the same
     sensor, would give; and even a scatter seen in one frame, when it is proportional to a uniform dark signal,
     is a read noise's too (only another exposure or dark level, or the law's shape, tells them apart)."""
-    from scipy.ndimage import gaussian_filter
-
-    from detector.signatures import WHITE_SCALE
+    from detector.signatures import WHITE_SCALE, local_mean
 
     change = np.asarray(change, np.float64)
     var = np.asarray(var, np.float64)
-    local = gaussian_filter(change, WHITE_SCALE, mode="nearest")
+    local = local_mean(change, 1.0 / var)  # the diagnosis's own local mean (every pixel counts here)
     smooth = local - local.mean()  # a global level is the profiled levels' (bias, dark), not the pattern's
     white = change - local
     # a white pattern's own noise leaks into the smoothed map: G keeps sum(k^2) = 1 / (4 pi s^2) of an i.i.d.
