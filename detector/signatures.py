@@ -893,6 +893,15 @@ def default_block(shape: tuple[int, int]) -> int:
     return int(max(4, min(HELDOUT_BLOCK, min(shape) // 8)))
 
 
+def layout_block(res: Residuals) -> int:
+    """The default block of the held-out layout in use on ``res`` [output pixels]: under row noise the bands of
+    whole rows of :func:`heldout_mask` (HELDOUT_BLOCK rows, fewer on short frames: at least 8 bands, at least 4
+    rows), else :func:`default_block` of the checkerboard."""
+    if res.row_var_adu2 > 0:
+        return int(max(4, min(HELDOUT_BLOCK, res.data_adu.shape[0] // 8)))
+    return default_block(res.data_adu.shape)
+
+
 def checkerboard(shape: tuple[int, int], block: int | None = None) -> np.ndarray:
     """The black squares (True) of a checkerboard of ``block`` x ``block`` pixels over a frame."""
     if block is None:
@@ -946,7 +955,7 @@ def heldout_mask(res: Residuals, block: int | None = None) -> np.ndarray:
     fail on the other's)."""
     if res.row_var_adu2 > 0:
         if block is None:
-            block = int(max(4, min(HELDOUT_BLOCK, res.data_adu.shape[0] // 8)))
+            block = layout_block(res)
         return np.broadcast_to(((np.arange(res.data_adu.shape[0]) // block) % 2 == 0)[:, None],
                                res.data_adu.shape).copy()
     return checkerboard(res.data_adu.shape, block)
@@ -983,22 +992,28 @@ def heldout_blind(fit: Fit, res: Residuals, block: int | None = None) -> bool:
     return got is not None and float(np.sqrt(min(got))) < DETECTION_SIGMA
 
 
-def seeing_block(fit: Fit, res: Residuals) -> int | None:
-    """The side of the largest checkerboard blocks (:func:`default_block` halved down to one pixel) on which both
-    held-out folds see a detection of ``fit``'s change (:func:`heldout_blind`), or None when not even single
-    pixels do (or the fit has no mean change).
+def seeing_block(fit: Fit, res: Residuals, floor_px: int = 2) -> int | None:
+    """The side of the largest held-out blocks (:func:`layout_block` halved down to ``floor_px``) on which
+    both held-out folds see a detection of ``fit``'s change (:func:`heldout_blind`), or None when not even blocks
+    of ``floor_px`` do (or the fit has no mean change).
+
+    ``floor_px`` is the residual's coherence length (the caller's: about twice the sources' rms radius, at least
+    2 px): on smaller blocks every held-out pixel has training pixels within the PSF, so a form smooth on that
+    scale, or a mismatch correlated over the PSF, scores about as well held out as in sample, and the held-out
+    score is no longer a test (Roberts et al. 2017, Ecography 40, 913: the blocks must be larger than the
+    residuals' correlation range).
 
     A change carried by a few pixels (the cores of a star window's one or two bright stars, where a response
     law acts) falls in one block of the default checkerboard: its held-out score tests it neither way. Smaller
     blocks split those pixels between the folds, so the form fitted on one part is scored on the other: still
     a test against noise (a form that only follows the noise of a few pixels fits one fold and fails the
-    other), while the blocks are as large as the change allows. What smaller blocks do not test is which of
+    other) as long as the blocks are larger than the noise's coherence length, while the blocks are as large as the change allows. What smaller blocks do not test is which of
     two forms fitting the same pixels is right: that is left to the twins' comparison and to nesting
     (the judge's ``indistinguishable``, ``blind_rivals``)."""
     if fit.delta_adu is None:
         return None
-    block = default_block(res.data_adu.shape) // 2
-    while block >= 1:
+    block = layout_block(res) // 2
+    while block >= max(1, floor_px):
         if not heldout_blind(fit, res, block):
             return block
         block //= 2
@@ -1455,6 +1470,19 @@ SMOOTH_ORDER = 5
 WHITE_SCALE = 6.0
 
 
+def local_mean(values: np.ndarray, weights: np.ndarray, scale: float = WHITE_SCALE) -> np.ndarray:
+    """The local weighted mean of a map [its unit]: the normalised convolution ``G * (x w) / G * w`` with a
+    Gaussian of ``scale`` output pixels (Knutsson & Westin 1993), ``weights`` zero off the pixels that count (the
+    fitted ones), so unfitted pixels (masked source cores, saturated or flagged pixels) do not pull it. The one
+    local mean the variance fits remove (:func:`variance_sample`, the whitened map, a smooth part's fine
+    structure) and the validation's white/large-scale split use."""
+    from scipy.ndimage import gaussian_filter
+
+    num = gaussian_filter(values * weights, scale, mode="nearest")
+    den = gaussian_filter(weights, scale, mode="nearest")
+    return num / np.maximum(den, 1e-30)
+
+
 def _m2l_pixels(r: np.ndarray, s: np.ndarray, k3=None) -> np.ndarray:
     """-2 ln of the core density of every pixel: N(0, s), or its first Edgeworth correction for a third
     cumulant ``k3`` (``1 + k3 / (6 s^1.5) He3(z)``, kept positive)."""
@@ -1586,18 +1614,14 @@ def variance_sample(res: Residuals) -> dict:
     pixels, rescaled for the variance the subtraction removes), so that mean structure a model lacks (a
     gradient, a vignetting, a glow) is not mistaken for pixel-to-pixel scatter."""
     if "variance_sample" not in res._flat:
-        from scipy.ndimage import gaussian_filter
-
         idx, r, w = res.flat_profiled()
         step = max(1, idx.size // VARIANCE_FIT_PIXELS)
         sub = np.arange(0, idx.size, step)
         rs, ws = r[sub], w[sub]
         # the local weighted mean (normalised convolution with a Gaussian of WHITE_SCALE output pixels)
-        rw, ww = np.zeros(res.data_adu.size, np.float32), np.zeros(res.data_adu.size, np.float32)
-        rw[idx], ww[idx] = r * w, w
-        rw = gaussian_filter(rw.reshape(res.data_adu.shape), WHITE_SCALE, mode="nearest").ravel()
-        ww = gaussian_filter(ww.reshape(res.data_adu.shape), WHITE_SCALE, mode="nearest").ravel()
-        smooth = rw[idx[sub]] / np.maximum(ww[idx[sub]], 1e-30)
+        rr, ww = np.zeros(res.data_adu.size, np.float32), np.zeros(res.data_adu.size, np.float32)
+        rr[idx], ww[idx] = r, w
+        smooth = local_mean(rr.reshape(res.data_adu.shape), ww.reshape(res.data_adu.shape)).ravel()[idx[sub]]
         # white noise keeps 1 - 3 / (4 pi s^2) of its variance through r - G * r
         keep_var = 1.0 - 3.0 / (4 * np.pi * WHITE_SCALE ** 2)
         # the shot noise's own skewness: third cumulant = mean charge [e-], in ADU^3
@@ -1616,17 +1640,13 @@ def _whitened_map(res: Residuals) -> tuple[np.ndarray, np.ndarray]:
     """(z, fitted): the level-profiled residual in model sigmas minus its Gaussian local mean of
     :data:`WHITE_SCALE` px (normalised convolution over the fitted pixels), 0 off them; cached."""
     if "whitened_map" not in res._flat:
-        from scipy.ndimage import gaussian_filter
-
         idx, r, w = res.flat_profiled()
         shape = res.data_adu.shape
         z = np.zeros(shape, np.float32)
         m = np.zeros(shape, np.float32)
         z.ravel()[idx] = r * np.sqrt(w)
         m.ravel()[idx] = 1.0
-        num = gaussian_filter(z, WHITE_SCALE, mode="nearest")
-        den = gaussian_filter(m, WHITE_SCALE, mode="nearest")
-        res._flat["whitened_map"] = (np.where(m > 0, z - num / np.maximum(den, 1e-6), 0.0).astype(np.float32), m > 0)
+        res._flat["whitened_map"] = (np.where(m > 0, z - local_mean(z, m), 0.0).astype(np.float32), m > 0)
     return res._flat["whitened_map"]
 
 
@@ -1673,6 +1693,26 @@ def neighbour_axes(res: Residuals) -> tuple[float, float, int, int]:
 TAIL_SIGMA = FOOTPRINT_SIGMA
 
 
+#: the whitened residual's tail is clipped here before its neighbour correlation (one cosmic ray or saturated
+#: core does not carry the statistic) [sigma]
+TAIL_CLIP_SIGMA = 30.0
+
+
+@functools.cache
+def max_tail_correlation() -> float:
+    """The largest correlation of the outlying pixels with their neighbours (:func:`tail_neighbour_correlation`)
+    that independent pixels read through the sensor's inter-pixel capacitance give: a neighbour reads a fraction
+    ``alpha`` of an outlier of whitened amplitude A (Moore et al. 2004; :mod:`detector.effects.coupling`), so the
+    pair correlation is ``alpha A / sqrt(1 + alpha^2 A^2)``, largest at the tail's clip A = TAIL_CLIP_SIGMA. With
+    the catalogue's CMOS coupling (:class:`detector.effects.coupling.IPCParams`' alpha, 0.5 %) that is 0.148: a
+    hot-pixel or DSNU tail on a coupled sensor stays below it, a structure a few pixels wide (rings, pixel
+    pairs, smeared sources; neighbours at tens of per cent of the outlier) exceeds it."""
+    from detector.effects.coupling import IPCParams  # (the effects import this module: resolved at call time)
+
+    a = float(IPCParams.model_fields["alpha"].default) * TAIL_CLIP_SIGMA
+    return float(a / np.sqrt(1.0 + a * a))
+
+
 def tail_neighbour_correlation(res: Residuals) -> tuple[float, float, int, float]:
     """(correlation, significance in sigma, tail pixels, the tail's share of the excess chi2 of the whitened
     residual): the correlation of the pixels in the tail of the
@@ -1683,7 +1723,7 @@ def tail_neighbour_correlation(res: Residuals) -> tuple[float, float, int, float
     few pixels to move :func:`neighbour_correlation`. Cached."""
     if "tail_neighbour_correlation" not in res._flat:
         zw, m = _whitened_map(res)
-        zc = np.clip(zw, -30.0, 30.0)
+        zc = np.clip(zw, -TAIL_CLIP_SIGMA, TAIL_CLIP_SIGMA)
         tail = m & (np.abs(zc) > TAIL_SIGMA)
         sxy = sxx = syy = 0.0
         n = 0
@@ -1986,10 +2026,13 @@ class VarianceSignature(Signature):
                 # comes off the whitened residual, and its charge carries its shot noise (with_shot_noise). A
                 # smooth field of dark charge whose shot noise, or a response whose sources, were taken for a
                 # scatter is a field, not a non-uniformity of the pixels
-                from scipy.ndimage import gaussian_filter
-
+                # (its local mean the residual's own, over the fitted pixels and weighed as r_white's: a plain
+                # filter is pulled by the masked source cores, where a response's template is largest)
                 sm = np.asarray(smooth_delta, np.float32)
-                fine = (sm - gaussian_filter(sm, WHITE_SCALE, mode="nearest")).ravel()[vs["idx"]]
+                fidx, _, fw = res.flat_profiled()
+                wm = np.zeros(sm.size, np.float32)
+                wm[fidx] = fw
+                fine = (sm - local_mean(sm, wm.reshape(sm.shape))).ravel()[vs["idx"]]
                 shot = np.maximum(frame_at(sm, vs["idx"]) * res.poisson_adu, -0.9 * vs["v"])
                 theta, d0, law = best_law(vs["v"] + shot, vs["r_white"] - fine / np.sqrt(vs["keep_var"]))
                 if d0 * vs["scale"] >= part:
@@ -2017,9 +2060,6 @@ class VarianceSignature(Signature):
     #: significant) is a structure of a few pixels (rings, fringes, blurred sources), not a non-uniformity: the
     #: same bar of "independent from neighbour to neighbour" as the lines' gains' (MAX_LINE_GAIN_CORRELATION)
     MAX_NEIGHBOUR_CORRELATION = MAX_LINE_GAIN_CORRELATION
-    #: ... and the outlying pixels' correlation with their neighbours (:func:`tail_neighbour_correlation`): the
-    #: same bar, an independent pixel's outlier does not know its neighbours
-    MAX_TAIL_CORRELATION = MAX_NEIGHBOUR_CORRELATION
 
     #: a pattern of lines: across them, neighbours correlate by at most this much (and 3 / sqrt(pairs))
     MAX_ACROSS_LINES = 0.02
@@ -2048,7 +2088,7 @@ class VarianceSignature(Signature):
         rho, z, n, share = tail_neighbour_correlation(res)
         # (only when the tail carries most of the extra scatter: a white PRNU over the whole flat is not judged by
         # the dust rings that make its outliers)
-        if rho > self.MAX_TAIL_CORRELATION and z > DETECTION_SIGMA and share > EXPLAINS_MOST:
+        if rho > max_tail_correlation() and z > DETECTION_SIGMA and share > EXPLAINS_MOST:
             return (f"the pixels that carry the extra scatter have neighbours that share their sign (correlation "
                     f"{rho:.2f} over {n} outlying pixels, {z:.0f} sigma; independent noise gives 0): a structure a few "
                     "pixels wide (light moved into rings, pixels in pairs or clusters, smeared sources), not "

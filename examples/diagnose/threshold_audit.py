@@ -160,9 +160,9 @@ OUTLIER_MAX_FRACTION | N | model | bound of that component's weight
 VARIANCE_FIT_PIXELS | N | budget | variance fit subsample
 SMOOTH_ORDER | N | basis | order of the smooth cosine basis
 WHITE_SCALE | N | scale | local mean removed before a variance fit
+TAIL_CLIP_SIGMA | N | clip | the whitened tail clipped before its neighbour correlation (one cosmic ray does not carry it)
 TAIL_SIGMA | D | statistics | the whitened residual's tail: each pixel a part of the detected excess (FOOTPRINT_SIGMA)
 VarianceSignature.MAX_NEIGHBOUR_CORRELATION | D | physics | added scatter is pixel-to-pixel
-VarianceSignature.MAX_TAIL_CORRELATION | D | physics | outlying pixels uncorrelated with neighbours: the same bar as all pixels'
 VarianceSignature.MAX_ACROSS_LINES | D | physics | a line pattern: neighbours across lines uncorrelated
 VarianceSignature.MAX_MEAN_SHARE | D | physics | added scatter is zero-mean
 VarianceSignature.MEAN_SIGMA | D | statistics | those means significant at structure_sigma

@@ -65,6 +65,29 @@ def test_outliers_in_pairs_share_their_sign_with_a_neighbour():
     assert rho > 0.3 and z > 5 and share > 0.5
 
 
+def test_a_hot_pixel_tail_read_through_ipc_stays_below_the_tail_bar():
+    """Independent hot pixels (10-20 sigma) read through inter-pixel capacitance (each neighbour reads alpha of
+    the pixel) correlate with their neighbours by at most alpha A / sqrt(1 + alpha^2 A^2); the bar is that at the
+    tail's 30-sigma clip for the catalogue's CMOS coupling (IPCParams' alpha, 0.5 %): 0.148. Such a tail stays
+    below it at that coupling and at 2 %, the top of what small-pixel CMOS sensors show; pixel pairs exceed it
+    by far (above)."""
+    from detector.effects.coupling import IPCParams, ipc
+    from detector.signatures import max_tail_correlation
+
+    assert max_tail_correlation() == pytest.approx(0.148, abs=1e-3)
+    shape = (256, 256)
+    s = make_sensor("ml11002", {"width": 256, "height": 256})
+    for alpha in (IPCParams().alpha, 0.02):
+        rng = np.random.default_rng(6)
+        charge = np.full(shape, 1000.0)
+        hot = rng.random(shape) < 0.003
+        charge[hot] += rng.uniform(100.0, 200.0, int(hot.sum()))  # 10-20 sigma of the 10 ADU noise
+        data = ipc(charge.astype(np.float32), alpha) + rng.normal(0, 10, shape)
+        res = _res(data, np.full(shape, 1000.0), np.full(shape, 100.0), np.zeros(shape), s)
+        rho, _, _, share = tail_neighbour_correlation(res)
+        assert share > 0.5 and rho < max_tail_correlation(), (alpha, rho)
+
+
 # ------------------------------------------------------------------------------------ zero mean
 def _prnu_case(compress: float, seed: int = 5):
     """A star field with a white PRNU of 2 % (data) and optionally a compressive response

@@ -696,6 +696,12 @@ def test_a_change_in_one_block_is_held_out_on_blocks_both_folds_see():
     scored = [c for c in cands if c.heldout is not None]
     assert {c.fit.effect for c in scored} == {"nonlinearity", "brighter_fatter"}
     assert {c.heldout_block for c in scored} == {block} and all(not c.heldout_blind for c in scored)
+    # no block below the residual's coherence length (twice the stars' rms radius, sqrt(2) 1.3 px: 4 px): a
+    # held-out pixel with training pixels within the PSF is not held out from a PSF-scale mismatch
+    from scenes.app.compare.candidates import coherence_px
+
+    assert coherence_px(res) == 4 and block >= 4
+    assert seeing_block(sig.fit(res, "nonlinearity"), res, 2 * block) is None  # the floor stops the halving
 
 
 def test_a_rival_whose_held_out_test_is_blind_ties_with_the_first_name():
@@ -748,3 +754,32 @@ def test_a_dark_field_first_ties_with_a_dsnu_by_its_held_out_score_not_by_their_
     text = verdict([dark, dsnu])
     assert "cannot tell it apart from dsnu" in text and "held-out scores are as good" in text, text
     assert "the same dark charge in a smooth pattern" not in text, text
+
+
+def test_the_held_out_default_block_is_the_layout_in_use():
+    """Under row noise the folds are bands of whole rows, and their default height (at least 8 bands) is set by
+    the frame's rows alone: a tall narrow frame keeps 32-row bands, where the checkerboard's default (at least 8
+    blocks a side) would be 16; the finer-block search starts from that same default (one helper)."""
+    from types import SimpleNamespace
+
+    from detector.signatures import default_block, heldout_mask, layout_block
+
+    tall = SimpleNamespace(data_adu=np.zeros((4096, 128), np.float32), row_var_adu2=1.0)
+    assert layout_block(tall) == 32 and default_block(tall.data_adu.shape) == 16
+    assert np.array_equal(heldout_mask(tall), heldout_mask(tall, 32))
+    assert layout_block(SimpleNamespace(data_adu=tall.data_adu, row_var_adu2=0.0)) == 16
+
+
+def test_the_catch_all_is_scored_on_the_blocks_the_candidates_were_compared_on(monkeypatch):
+    """Every contender re-scored on finer blocks is set against the catch-all on those same folds; the reported
+    catch-all score is that one, and the default-block catch-all, compared with nobody, is not computed."""
+    from types import SimpleNamespace
+
+    from scenes.app.compare import catch_all as ca
+
+    asked = []
+    monkeypatch.setattr(ca, "catch_all_heldout", lambda res, block=None: asked.append(block) or -10.0 * (block or 1))
+    res = SimpleNamespace(forget=lambda key: None)
+    cands = [SimpleNamespace(heldout=-5.0, kind="effect", heldout_block=4, catch_all_heldout=None) for _ in range(2)]
+    assert ca.compare_with_catch_all(res, cands, {"significant": True}) == -40.0
+    assert asked == [4] and all(c.catch_all_heldout == -40.0 for c in cands)

@@ -352,3 +352,23 @@ def test_a_walk_that_wanders_a_drift_length_accepts_the_drift():
         path = np.cumsum(np.random.default_rng(prm["seed"]).standard_normal((32, 2)) * prm["amp_px"], axis=0)
         span = max(np.hypot(*(a - b)) for a in path for b in path)
         assert (span >= DRIFT_MIN_LENGTH) == drifts and ("pointing_drift" in case.draw.accept) == drifts
+
+
+def test_a_white_pattern_at_large_n_is_not_a_template():
+    """A pattern drawn independently per pixel has no large scale: its smoothed map holds only the expected leakage
+    of its own noise, sum(white^2 / v) / (4 pi s^2 - 1) (a Gaussian of s px keeps 1 / (4 pi s^2) of an i.i.d.
+    variance), which is not a template. On 1024^2 pixels at 0.4 % of the variance that leakage alone would read as
+    3.1 sigma; the pattern is seen only as scatter (sum(z^2) / sqrt(2 N), 2.9 sigma). A true large-scale part on
+    top is still seen as a template."""
+    from scenes.app.validation.hidden import scatter_sigma
+
+    n, r = 1024, 0.004
+    rng = np.random.default_rng(37)
+    white = rng.standard_normal((n, n)) * math.sqrt(r)
+    var = np.ones((n, n))
+    expected = float(np.sum(white ** 2)) / math.sqrt(2.0 * n * n)
+    assert expected == pytest.approx(2.9, abs=0.2)
+    assert scatter_sigma(white, var) == pytest.approx(expected, rel=0.01)  # the scatter, not the leakage (3.1)
+    yy = np.arange(n)[:, None] / n
+    ramp = 0.02 * (yy - 0.5) * np.ones((1, n))  # sum(ramp^2) = 0.0004 / 12 n^2: 5.9 sigma as a template
+    assert 5.0 < scatter_sigma(white + ramp, var) < 6.5

@@ -15,6 +15,7 @@ from dataclasses import replace
 import numpy as np
 
 from detector import registry
+from detector.effects.ghosts import psf_rms_px, source_image
 from detector.morphology import block_chi2
 from detector.signatures import (Fit, Residuals, dither_codes, frame_at, heldout_blind, heldout_delta,
                                  seeing_block)
@@ -405,6 +406,14 @@ def large_scale_share(res: Residuals, delta: np.ndarray, idx: np.ndarray, w: np.
     return big / total
 
 
+def coherence_px(res: Residuals) -> int:
+    """The residual's coherence length [output px]: about twice the sources' rms radius
+    (:func:`detector.effects.ghosts.psf_rms_px` of the model's sources), at least 2 px (pixel-independent noise
+    with a one-pixel margin); the smallest held-out block that keeps the folds apart."""
+    rms = psf_rms_px(source_image(res)) if res.photo_adu is not None and res.photo_adu.size else 0.0
+    return max(2, int(np.ceil(2.0 * rms)))
+
+
 def score_heldout(res: Residuals, cands: list[Candidate], progress=None,
                   policy: DiagnosisPolicy = DEFAULT_POLICY) -> None:
     """The held-out delta of the contenders (at most the policy's ``heldout_candidates``, best delta BIC
@@ -424,18 +433,25 @@ def score_heldout(res: Residuals, cands: list[Candidate], progress=None,
         if progress is not None:
             progress(f"{c.fit.effect} (held out)")
     # the best-fitting contender's change carried by too few pixels for the default blocks (one fold sees less
-    # than a detection of it): every contender is scored again, on the largest blocks both folds see that change
-    # on (detector.signatures.seeing_block), so their held-out scores (and the catch-all's) share one layout
-    scored = [c for c in cands if c.heldout is not None and c.fit.delta_adu is not None]
-    best = min(scored, key=lambda c: c.fit.delta_bic, default=None)
-    block = seeing_block(best.fit, res) if best is not None and best.heldout_blind else None
+    # than a detection of it): every contender with a held-out score (the variance-only ones too) is scored
+    # again, on the largest blocks both folds see that change on (detector.signatures.seeing_block), so their
+    # held-out scores (and the catch-all's) share one layout; a candidate that cannot be scored there keeps its
+    # default-block score (and heldout_block None). The blocks are no smaller than the residual's coherence
+    # length (about twice the sources' rms radius, detector.effects.ghosts.psf_rms_px; 2 px without sources):
+    # a held-out pixel with training pixels within the PSF is not held out from a PSF-scale mismatch
+    scored = [c for c in cands if c.heldout is not None]
+    best = min((c for c in scored if c.fit.delta_adu is not None), key=lambda c: c.fit.delta_bic, default=None)
+    block = None
+    if best is not None and best.heldout_blind:
+        block = seeing_block(best.fit, res, coherence_px(res))
     if block is not None:
         res.forget("heldout_folds")
         for c in scored:
             t0 = time.perf_counter()
             try:
                 h = heldout_delta(reg[c.fit.effect].signature, res, c.fit.effect, c.fit, block)
-                c.heldout, c.heldout_blind, c.heldout_block = h, h is not None and heldout_blind(c.fit, res, block), block
+                if h is not None:
+                    c.heldout, c.heldout_blind, c.heldout_block = h, heldout_blind(c.fit, res, block), block
             except Exception as exc:  # noqa: BLE001
                 c.refuse("error", f"cannot be scored on held-out pixels ({type(exc).__name__}: {exc})")
             c.seconds += time.perf_counter() - t0

@@ -58,24 +58,23 @@ def catch_all_heldout(res: Residuals, block: int | None = None) -> float | None:
 
 def compare_with_catch_all(res: Residuals, cands: list, morph: dict) -> float | None:
     """Set the catch-all's held-out score on every effect candidate with a held-out score (its
-    ``catch_all_delta`` follows), when the frame's residual is significant; returns the catch-all's score
-    (None: not computed)."""
+    ``catch_all_delta`` follows), when the frame's residual is significant: on the blocks that candidate was
+    scored on (its ``heldout_block``; the catch-all is computed only on the blocks some candidate uses). Returns
+    the catch-all's score on the blocks the candidates were compared on (the finer blocks when any candidate
+    was re-scored on them; None: not computed)."""
     if not morph.get("significant"):
         return None
     scored = [c for c in cands if c.heldout is not None and c.kind == "effect"]
     if not scored:
         return None
-    ca = catch_all_heldout(res)
-    if ca is None:
-        return None
-    by_block = {None: ca}  # a candidate scored on smaller blocks is compared on the same folds
+    by_block: dict = {}  # a candidate scored on smaller blocks is compared on the same folds
     for c in scored:
-        b = getattr(c, "heldout_block", None)
-        if b not in by_block:
-            by_block[b] = catch_all_heldout(res, b)
-        c.catch_all_heldout = by_block[b]
+        if c.heldout_block not in by_block:
+            by_block[c.heldout_block] = catch_all_heldout(res, c.heldout_block)
+        c.catch_all_heldout = by_block[c.heldout_block]
     res.forget("heldout_folds")
-    return ca
+    finer = [b for b in by_block if b is not None]
+    return by_block[finer[0] if finer else None]
 
 
 def outliers_after_catch_all(res: Residuals, cands: list, morph: dict, empirical: dict | None) -> None:

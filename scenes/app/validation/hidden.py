@@ -725,23 +725,28 @@ SUPPORT_SIGMA = 0.2
 def scatter_sigma(change: np.ndarray, var: np.ndarray) -> float:
     """How many standard deviations one frame sees a fixed pattern by when it does not have the pattern's map
     [sigma]: its large scales (the change smoothed over WHITE_SCALE output pixels, the scale below which the
-    diagnosis's variance fits take structure for scatter) as a template, sqrt(sum(smooth^2 / v)); the rest,
+    diagnosis's variance fits take structure for scatter) as a template, sqrt(sum(smooth^2 / v)) less the white
+    part's expected leakage into the smoothed map (below); the rest,
     drawn independently per pixel (a DSNU, EMVA 1288 Release 4.0 sect. 8), only as the variance sum(white^2 / v)
     it adds to the chi2 of n pixels, whose own scatter is sqrt(2 n): sum(white^2 / v) / sqrt(2 n). The larger of
     the two. The pattern's exact template chi2 (the truth chi2) is what its map, or a second frame of the same
     sensor, would give; and even a scatter seen in one frame, when it is proportional to a uniform dark signal,
     is a read noise's too (only another exposure or dark level, or the law's shape, tells them apart)."""
-    from scipy.ndimage import gaussian_filter
-
-    from detector.signatures import WHITE_SCALE
+    from detector.signatures import WHITE_SCALE, local_mean
 
     change = np.asarray(change, np.float64)
     var = np.asarray(var, np.float64)
-    local = gaussian_filter(change, WHITE_SCALE, mode="nearest")
+    local = local_mean(change, 1.0 / var)  # the diagnosis's own local mean (every pixel counts here)
     smooth = local - local.mean()  # a global level is the profiled levels' (bias, dark), not the pattern's
     white = change - local
-    as_template = float(np.sqrt(np.sum(smooth * smooth / var)))
-    as_scatter = float(np.sum(white * white / var)) / float(np.sqrt(2.0 * change.size))
+    # a white pattern's own noise leaks into the smoothed map: G keeps sum(k^2) = 1 / (4 pi s^2) of an i.i.d.
+    # variance and the rest is left with 1 - 1 / (4 pi s^2) (the centre weight 1 / (2 pi s^2) counted), so the
+    # smoothed map holds sum(white^2 / v) / (4 pi s^2 - 1) with no large scale present: that expected leakage is
+    # not a template
+    chi2_white = float(np.sum(white * white / var))
+    leak = chi2_white / (4.0 * np.pi * WHITE_SCALE ** 2 - 1.0)
+    as_template = float(np.sqrt(max(float(np.sum(smooth * smooth / var)) - leak, 0.0)))
+    as_scatter = chi2_white / float(np.sqrt(2.0 * change.size))
     return max(as_template, as_scatter)
 
 
