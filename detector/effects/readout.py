@@ -367,7 +367,8 @@ def _bias_variants(res):
     # seen through a window are nearly collinear, their coefficients ill-conditioned): on an exposed dark the
     # basis the dark-rate field of a temperature gradient is offered in (detector.effects.thermal), so that on
     # one dark frame the two differ only by the dark charge's shot noise and neither is preferred for its form
-    # (a bias frame, or a dark of another exposure, tells them apart)
+    # (a bias frame, or a dark of another exposure, tells them apart); both are sensor-scale fields, as smooth
+    # through a window as the window's share of the sensor makes them (sensor_scale_orders)
     box = window_box(res)
 
     def with_field(coef):
@@ -376,12 +377,26 @@ def _bias_variants(res):
         return {"gradient_x_adu": 0.0, "gradient_y_adu": 0.0, "quadratic_adu": 0.0,
                 "field_adu": [[float(v) for v in row] for row in coef], "field_box_px": box}
 
-    yield from cosine_field_variants(res, f, box, with_field)
+    yield from cosine_field_variants(res, f, box, with_field,
+                                     orders=sensor_scale_orders(res) if res.exptime_s > 0 else None)
 
 
 def sensor_box(s) -> list[float]:
     """The sensor's box ``(x0, y0, x1, y1)`` [sensor px], first to last pixel centre."""
     return [0.0, 0.0, s.sensor_width_px - 1.0, s.sensor_height_px - 1.0]
+
+
+def sensor_scale_orders(res, orders=None) -> tuple[int, ...]:
+    """The orders of a window's cosine series (:func:`cosine_field_variants`, default BIAS_FIELD_ORDERS) for a
+    sensor-scale field (a read-out drift, a die's temperature field): a series of N terms over the sensor has
+    N - 1 half cycles across it, of which a window spanning the share ``f`` of the sensor (the larger of its two
+    axes) sees (N - 1) f; the window's series needs ceil((N - 1) f) + 1 terms (at least the smallest order: a
+    bowl, a saddle, ramps). Over a window's own box the largest order would take a glow's corner or a local
+    blob as a smooth field."""
+    orders = BIAS_FIELD_ORDERS if orders is None else orders
+    s = res.sensor
+    share = max(float(np.ptp(res.xs)) / max(s.sensor_width_px - 1, 1), float(np.ptp(res.ys)) / max(s.sensor_height_px - 1, 1))
+    return tuple(sorted({min(n, max(min(orders), int(np.ceil((n - 1) * share)) + 1)) for n in orders}))
 
 
 def window_box(res) -> list[float]:

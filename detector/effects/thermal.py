@@ -33,7 +33,8 @@ from pydantic import Field, field_validator
 
 from ..signatures import LinearSignature, Variant, fit_linear, profiled_chi2, search_sample
 from .base import Effect, EffectParams, Stage, Tile, register_effect
-from .readout import bias_field_adu, cosine_field_variants, field_on_window, sensor_box, window_box
+from .readout import (bias_field_adu, cosine_field_variants, field_on_window, sensor_box, sensor_scale_orders,
+                      window_box)
 
 #: silicon band gap [eV] near room temperature (Sze & Ng 2007, Physics of Semiconductor Devices, 3rd ed.,
 #: Table 1.2 / Appendix G: 1.12 eV at 300 K)
@@ -153,7 +154,7 @@ def _variants(res):
         # over the window the frame sees): one dark frame tells the two only by the dark charge's shot noise, not
         # by their forms. (On a frame with light a smooth added field of any shape is the light's, the same charge.)
         box = window_box(res)
-        yield from cosine_field_variants(res, unit, box, lambda coef: {
+        yield from cosine_field_variants(res, unit, box, orders=sensor_scale_orders(res), to_params=lambda coef: {
             "gradient_x_e_per_s": 0.0, "gradient_y_e_per_s": 0.0, "temperature_x_k": 0.0, "temperature_y_k": 0.0,
             "field_e_per_s": [[float(x) for x in row] for row in coef], "field_box_px": box})
     d0 = float(s.dark_current_e_per_s)
