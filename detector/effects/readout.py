@@ -390,13 +390,13 @@ def sensor_scale_orders(res, orders=None) -> tuple[int, ...]:
     """The orders of a window's cosine series (:func:`cosine_field_variants`, default BIAS_FIELD_ORDERS) for a
     sensor-scale field (a read-out drift, a die's temperature field): a series of N terms over the sensor has
     N - 1 half cycles across it, of which a window spanning the share ``f`` of the sensor (the larger of its two
-    axes) sees (N - 1) f; the window's series needs ceil((N - 1) f) + 1 terms (at least the smallest order: a
-    bowl, a saddle, ramps). Over a window's own box the largest order would take a glow's corner or a local
-    blob as a smooth field."""
+    axes) sees (N - 1) f; the window's series needs ceil((N - 1) f) + 1 terms (2 at least: ramps and their
+    cross term). Over a window's own box a larger order would take a glow's corner or a local blob as a smooth
+    field."""
     orders = BIAS_FIELD_ORDERS if orders is None else orders
     s = res.sensor
     share = max(float(np.ptp(res.xs)) / max(s.sensor_width_px - 1, 1), float(np.ptp(res.ys)) / max(s.sensor_height_px - 1, 1))
-    return tuple(sorted({min(n, max(min(orders), int(np.ceil((n - 1) * share)) + 1)) for n in orders}))
+    return tuple(sorted({min(n, int(np.ceil((n - 1) * share)) + 1) for n in orders}))
 
 
 def window_box(res) -> list[float]:

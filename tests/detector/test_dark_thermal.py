@@ -248,7 +248,7 @@ def test_a_windowed_dark_field_round_trips_fit_params_apply():
     ys, xs = b * (y0 + np.arange(hh)) + (b - 1) / 2.0, b * (x0 + np.arange(ww)) + (b - 1) / 2.0
     u = ((xs - xs[0]) / np.ptp(xs))[None, :]
     v = ((ys - ys[0]) / np.ptp(ys))[:, None]
-    extra = 1500.0 * (0.6 * u - 0.3 * v + 1.5 * u * v + 1.2 * v * v) / 2.0  # [e-] per binned pixel
+    extra = 1500.0 * (0.6 * u - 0.3 * v + 1.5 * u * v) / 2.0  # [e-] per binned pixel: a sensor-scale field's part
     dark = np.full((hh, ww), s.dark_current_e_per_s * t * b * b)
     g = s.gain_e_per_adu
     rng = np.random.default_rng(11)
