@@ -423,13 +423,9 @@ def score_heldout(res: Residuals, cands: list[Candidate], progress=None,
         sig = reg[c.fit.effect].signature if c.fit.effect in reg else None
         if sig is None or not hasattr(sig, "score"):
             continue
-        t0 = time.perf_counter()
-        try:
-            c.heldout = heldout_delta(sig, res, c.fit.effect, c.fit)
-            c.heldout_blind = c.heldout is not None and heldout_blind(c.fit, res)
-        except Exception as exc:  # noqa: BLE001
-            c.refuse("error", f"cannot be scored on held-out pixels ({type(exc).__name__}: {exc})")
-        c.seconds += time.perf_counter() - t0
+        got = _heldout_of(c, sig, res)
+        if got is not None:
+            c.heldout, c.heldout_blind = got
         if progress is not None:
             progress(f"{c.fit.effect} (held out)")
     # the best-fitting contender's change carried by too few pixels for the default blocks (one fold sees less
@@ -447,15 +443,24 @@ def score_heldout(res: Residuals, cands: list[Candidate], progress=None,
     if block is not None:
         res.forget("heldout_folds")
         for c in scored:
-            t0 = time.perf_counter()
-            try:
-                h = heldout_delta(reg[c.fit.effect].signature, res, c.fit.effect, c.fit, block)
-                if h is not None:
-                    c.heldout, c.heldout_blind, c.heldout_block = h, heldout_blind(c.fit, res, block), block
-            except Exception as exc:  # noqa: BLE001
-                c.refuse("error", f"cannot be scored on held-out pixels ({type(exc).__name__}: {exc})")
-            c.seconds += time.perf_counter() - t0
+            got = _heldout_of(c, reg[c.fit.effect].signature, res, block)
+            if got is not None and got[0] is not None:
+                (c.heldout, c.heldout_blind), c.heldout_block = got, block
     res.forget("heldout_folds")  # the folds every candidate shared (detector.signatures.heldout_delta)
+
+
+def _heldout_of(c: Candidate, sig, res: Residuals, block: int | None = None) -> tuple[float | None, bool] | None:
+    """``c``'s held-out delta on blocks of ``block`` pixels (default: the layout's) and whether the test is blind
+    to its change; None (and ``c`` refused) when it cannot be scored. Its time is added to ``c.seconds``."""
+    t0 = time.perf_counter()
+    try:
+        h = heldout_delta(sig, res, c.fit.effect, c.fit, block)
+        return h, h is not None and heldout_blind(c.fit, res, block)
+    except Exception as exc:  # noqa: BLE001
+        c.refuse("error", f"cannot be scored on held-out pixels ({type(exc).__name__}: {exc})")
+        return None
+    finally:
+        c.seconds += time.perf_counter() - t0
 
 
 def source_candidates(res: Residuals, truth, scene, policy: DiagnosisPolicy = DEFAULT_POLICY) -> list[Candidate]:
