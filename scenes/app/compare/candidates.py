@@ -17,8 +17,7 @@ import numpy as np
 from detector import registry
 from detector.effects.ghosts import psf_rms_px, source_image
 from detector.morphology import block_chi2
-from detector.signatures import (Fit, Residuals, dither_codes, frame_at, heldout_blind, heldout_delta,
-                                 seeing_block)
+from detector.signatures import Fit, Residuals, dither_codes, frame_at, heldout_blind, heldout_delta, seeing_block
 from detector.significance import FOOTPRINT_SIGMA, MIN_TEST_PIXELS
 
 from .floors import floor_reason, signal_range_floor
