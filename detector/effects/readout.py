@@ -15,9 +15,10 @@ References
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
+from typing import Annotated
 
 import numpy as np
-from pydantic import Field
+from pydantic import AfterValidator, Field
 from scipy.ndimage import binary_dilation
 
 from ..rng import standard_normal_f32
@@ -93,6 +94,43 @@ def bias_field_adu(ys: np.ndarray, xs: np.ndarray, height: int, width: int, coef
     cy = np.cos(np.pi * v[:, None] * np.arange(c.shape[0])[None, :])
     cx = np.cos(np.pi * np.arange(c.shape[1])[:, None] * u[None, :])
     return (cy @ c @ cx).astype(np.float32)
+
+
+def _rectangular_coefficients(v: list[list[float]]) -> list[list[float]]:
+    if v and (any(len(row) != len(v[0]) for row in v) or not v[0]):
+        raise ValueError(f"a smooth field's coefficients must be a rectangular array (rows of equal, non-zero "
+                         f"length), got rows of lengths {[len(row) for row in v]}")
+    return v
+
+
+def _field_box(v: list[float]) -> list[float]:
+    if v and (len(v) != 4 or v[2] <= v[0] or v[3] <= v[1]):
+        raise ValueError(f"a field's box must be empty or (x0, y0, x1, y1) with x1 > x0, y1 > y0 [px], got {v}")
+    return v
+
+
+#: the cosine-series coefficients C_jk of a smooth field (:func:`bias_field_adu`), validated rectangular
+FieldCoefficients = Annotated[list[list[float]], AfterValidator(_rectangular_coefficients)]
+#: the box (x0, y0, x1, y1) [sensor px] a field's cosines run over, validated empty or ordered
+FieldBox = Annotated[list[float], AfterValidator(_field_box)]
+
+
+def field_coefficients(unit: str, what: str):
+    """The parameter declaration of a smooth field's coefficients in ``unit`` (``what``: the field's meaning),
+    shared by the bias structure and the dark-rate field (one basis, :func:`bias_field_adu`)."""
+    return Field(default_factory=list, max_length=16,
+                 description=f"2-D cosine-series coefficients C_jk (rows j, columns k; C_00 ignored) of {what}, "
+                 "sum_jk C_jk cos(j pi v) cos(k pi u), u, v in [0, 1] across field_box_px (default the sensor: "
+                 f"u = x / (W - 1), v = y / (H - 1)) [{unit}] (bias_field_adu)",
+                 json_schema_extra={"unit": unit})
+
+
+def field_box(coefficients_key: str):
+    """The parameter declaration of the box a smooth field's coefficients (``coefficients_key``) run over."""
+    return Field(default_factory=list, max_length=4,
+                 description=f"the box (x0, y0, x1, y1) [sensor px] over which {coefficients_key}'s cosines run from "
+                 "0 to pi (held at its edge beyond it; empty: the sensor)",
+                 json_schema_extra={"unit": "pixel"})
 
 
 #: points per axis of the grid over the window on which a fitted 2-D field is bounded and described
@@ -940,16 +978,8 @@ class BiasGradientParams(EffectParams):
     column_profile_adu: list[float] = Field(default_factory=list, max_length=64,
                                             description="cosine-series coefficients c_k of a fixed pattern along "
                                             "the serial direction, sum_k c_k cos(k pi x / (W - 1)) [ADU]")
-    field_adu: list[list[float]] = Field(default_factory=list, max_length=16,
-                                         description="2-D cosine-series coefficients C_jk (rows j, columns k; C_00 "
-                                         "ignored) of a smooth fixed pattern, sum_jk C_jk cos(j pi v) cos(k pi u), "
-                                         "u, v in [0, 1] across field_box_px (default the sensor: u = x / (W - 1), "
-                                         "v = y / (H - 1)) [ADU] (bias_field_adu)",
-                                         json_schema_extra={"unit": "ADU"})
-    field_box_px: list[float] = Field(default_factory=list, max_length=4,
-                                      description="the box (x0, y0, x1, y1) [sensor px] over which field_adu's cosines "
-                                      "run from 0 to pi (held at its edge beyond it; empty: the sensor)",
-                                      json_schema_extra={"unit": "pixel"})
+    field_adu: FieldCoefficients = field_coefficients("ADU", "a smooth fixed pattern")
+    field_box_px: FieldBox = field_box("field_adu")
 
 
 @register_effect

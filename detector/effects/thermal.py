@@ -29,12 +29,22 @@ bias's ramps and centred bowl, and the dark charge's shot noise, are what tell t
 from __future__ import annotations
 
 import numpy as np
-from pydantic import Field, field_validator
+from pydantic import Field
 
 from ..signatures import LinearSignature, Variant, fit_linear, profiled_chi2, search_sample
 from .base import Effect, EffectParams, Stage, Tile, register_effect
-from .readout import (bias_field_adu, cosine_field_variants, field_on_window, sensor_box, sensor_scale_orders,
-                      window_box)
+from .readout import (
+    FieldBox,
+    FieldCoefficients,
+    bias_field_adu,
+    cosine_field_variants,
+    field_box,
+    field_coefficients,
+    field_on_window,
+    sensor_box,
+    sensor_scale_orders,
+    window_box,
+)
 
 #: silicon band gap [eV] near room temperature (Sze & Ng 2007, Physics of Semiconductor Devices, 3rd ed.,
 #: Table 1.2 / Appendix G: 1.12 eV at 300 K)
@@ -297,32 +307,8 @@ class DarkGradientParams(EffectParams):
     temperature_y_k: float = Field(0.0, ge=-100, le=100,
                                    description="temperature difference across the sensor height, top minus "
                                                "bottom [K] (exponential law, doubling every T_2)")
-    field_e_per_s: list[list[float]] = Field(default_factory=list, max_length=16,
-                                             description="2-D cosine-series coefficients C_jk (rows j, columns k; "
-                                             "C_00 ignored) of a smooth dark-rate field, sum_jk C_jk cos(j pi v) "
-                                             "cos(k pi u), u, v in [0, 1] across field_box_px (default the sensor: "
-                                             "u = x / (W - 1), v = y / (H - 1)) [e-/s/pixel] (bias_field_adu)",
-                                             json_schema_extra={"unit": "e-/s"})
-    field_box_px: list[float] = Field(default_factory=list, max_length=4,
-                                      description="the box (x0, y0, x1, y1) [sensor px] over which field_e_per_s's "
-                                      "cosines run from 0 to pi (held at its edge beyond it; empty: the sensor)",
-                                      json_schema_extra={"unit": "pixel"})
-
-
-    @field_validator("field_e_per_s")
-    @classmethod
-    def _rectangular(cls, v: list[list[float]]) -> list[list[float]]:
-        if v and (any(len(row) != len(v[0]) for row in v) or not v[0]):
-            raise ValueError(f"field_e_per_s must be a rectangular array of coefficients (rows of equal, non-zero "
-                             f"length), got rows of lengths {[len(row) for row in v]}")
-        return v
-
-    @field_validator("field_box_px")
-    @classmethod
-    def _box(cls, v: list[float]) -> list[float]:
-        if v and (len(v) != 4 or v[2] <= v[0] or v[3] <= v[1]):
-            raise ValueError(f"field_box_px must be empty or (x0, y0, x1, y1) with x1 > x0, y1 > y0 [px], got {v}")
-        return v
+    field_e_per_s: FieldCoefficients = field_coefficients("e-/s", "a smooth dark-rate field")
+    field_box_px: FieldBox = field_box("field_e_per_s")
 
 
 @register_effect

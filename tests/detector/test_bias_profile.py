@@ -196,3 +196,20 @@ def test_a_sensor_scale_field_is_as_smooth_through_a_window_as_its_share_of_the_
     assert sensor_scale_orders(res(200, 200)) == (2,)
     assert sensor_scale_orders(res(4008, 2672)) == tuple(BIAS_FIELD_ORDERS)
     assert sensor_scale_orders(res(2004, 1336)) == (2, 3, 5)  # ceil((N - 1) x 0.4999) + 1 for N = 3, 5, 8
+
+
+@pytest.mark.parametrize("params, key", [("BiasGradientParams", "field_adu"), ("DarkGradientParams", "field_e_per_s")])
+def test_both_smooth_fields_validate_their_coefficients_and_box_alike(params, key):
+    """The bias structure [ADU] and the dark-rate field [e-/s] share one declaration of their basis: a ragged
+    coefficient array or a box with x1 <= x0 is an error naming the key, in either unit."""
+    from detector.effects import readout, thermal
+
+    cls = getattr(readout, params, None) or getattr(thermal, params)
+    ok = cls(**{key: [[0.0, 1.0], [2.0, 3.0]], "field_box_px": [0.0, 0.0, 10.0, 10.0]})
+    assert getattr(ok, key) == [[0.0, 1.0], [2.0, 3.0]]
+    with pytest.raises(ValueError, match=f"{key}[\\s\\S]*rectangular"):
+        cls(**{key: [[0.0, 1.0], [2.0]]})
+    with pytest.raises(ValueError, match="field_box_px[\\s\\S]*x1 > x0"):
+        cls(field_box_px=[0.0, 0.0, -1.0, 10.0])
+    unit = cls.model_json_schema()["properties"][key]["unit"]
+    assert unit == ("ADU" if key == "field_adu" else "e-/s")
