@@ -1241,8 +1241,11 @@ def fit_linear(res: Residuals, values: Callable[[np.ndarray], np.ndarray], idx: 
         b_ = tr - tn @ np.linalg.solve(nn, nr)
     else:
         a_, b_ = tt, tr
-    # a template with (almost) nothing left once the levels are refitted carries no information
-    dead = np.diag(a_) <= 1e-9 * np.maximum(raw, 1e-300)
+    # a template with (almost) nothing left once the levels are refitted carries no information: it is
+    # indistinguishable from them by the levels' own rule (LEVEL_DEGENERACY of its weighted norm left). A field's
+    # linear term across a window whose dark level holds a temperature ramp kept 3e-9 of its norm: fitted, its
+    # coefficient was the noise's (a ramp of 37 e-, the dark level's opposite ramp taking it back)
+    dead = np.diag(a_) <= LEVEL_DEGENERACY * np.maximum(raw, 1e-300)
     scale = np.sqrt(np.where(dead, 1.0, np.maximum(np.diag(a_), 1e-300)))
     an = a_ / np.outer(scale, scale)
     an[dead, :] = 0.0
