@@ -237,7 +237,6 @@ GHOST_RADII_PX | N | grid | profile radii of the fit
 GHOST_INNER_RATIOS | N | grid | annulus ratios of the fit
 GHOST_MIN_RMS_PSF | D | physics | a ghost is defocused (PSF widths)
 GHOST_SOURCE_CHI2 | D | statistics | a source's ghost detectable (chi2 gain 9 = 3 sigma)
-GHOST_MIN_SOURCES | D | statistics | sources confirming a free ghost
 GHOST_CONFIRMED_SHARE | D | design | share of them showing it
 GHOST_STAMP_SHARE | D | design | the ghost takes this share of the excess about its copy
 GHOST_CHECK_SOURCES | N | budget | sources the map is checked on
