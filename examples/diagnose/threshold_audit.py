@@ -120,7 +120,7 @@ THUMB | N | display | thumbnail side
 HALF_WIDTH_PX | N | geometry | band around a streak's track
 MIN_PERIOD_BINS | N | grid | shortest period tried (Nyquist and PSF)
 N_PERIODS | N | grid | periods tried
-MIN_BINS | D | statistics | bins needed along a track for the light-curve test
+LIGHT_CURVE_PARAMETERS | N | model | parameters a light curve adds (amplitude, phase, period): the k of its delta BIC
 @scenes/app/compare/statistics.py
 MAP_SIDE | N | display | residual map size in the report
 PEAK_SIDE | N | budget | cut-out searched for spectral peaks
