@@ -349,7 +349,6 @@ MAX_SERIES_FRAME_PX | N | budget | a series' frames take the large-frame path ab
 @detector/effects/cti.py
 CTI_RELEASE_TRANSFERS | N | model | the trap release times rendered and fitted (the HST ACS ones)
 @scenes/app/compare/judge.py
-SAME_SCATTER_TOLERANCE | D | physics | two added variances proportional to 1e-3 (float32 templates of one map agree to 1e-7; a 1 % dark gradient gives 2 %)
 """
 
 
