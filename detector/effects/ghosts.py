@@ -433,10 +433,9 @@ GHOST_INNER_RATIOS = (0.3, 0.5, 0.7)
 #: of the sources, the PSF's own size, is a latent image or an electronic crosstalk)
 GHOST_MIN_RMS_PSF = 2.0
 #: the map must be confirmed by the bright sources whose ghost the fit predicts detectably (local chi2 gain
-#: >= GHOST_SOURCE_CHI2, a part of the detected ghost at FOOTPRINT_SIGMA: 9): at least GHOST_MIN_SOURCES of
-#: them (free geometry) and this share showing it
+#: >= GHOST_SOURCE_CHI2, a part of the detected ghost at FOOTPRINT_SIGMA: 9): this share of them showing it,
+#: asked when a real ghost would fail the count with less than FRAME_FALSE_ALARM (:func:`confirmation_miss`)
 GHOST_SOURCE_CHI2 = FOOTPRINT_SIGMA ** 2
-GHOST_MIN_SOURCES = 3
 GHOST_CONFIRMED_SHARE = EXPLAINS_MOST  # most of them
 #: about the copy that carries the most of the claim, the fitted ghost must take this share of the residual's
 #: excess chi2 there (what remains looks like noise): a trail or a glint that a copy lands on keeps most of
@@ -746,13 +745,28 @@ class GhostSignature(LinearSignature):
                     f"{100 * max(taken, 0.0) / excess:.0f} % of the excess chi2 about it ({excess:.3g}); the rest "
                     "stays (a trail, a glint or a line that a copy of a source lands on)")
         single = alpha * alpha * dens >= GHOST_SOURCE_CHI2
-        if single.sum() >= GHOST_MIN_SOURCES:
+        if single.any() and confirmation_miss(alpha * np.sqrt(dens[single])) < FRAME_FALSE_ALARM:
             a_i = nums[single] / dens[single]
             ok = (a_i >= 0.3 * alpha) | (a_i >= alpha - 2 / np.sqrt(dens[single]))
             if ok.sum() < GHOST_CONFIRMED_SHARE * single.sum():
                 return (f"only {int(ok.sum())} of the {int(single.sum())} bright sources whose ghost the fit predicts "
                         "show one where the map puts it: the pattern is not a ghost of the sources")
         return ""
+
+
+def confirmation_miss(snr: np.ndarray) -> float:
+    """The probability that a real ghost fails the confirmation count: its sources, each showing the fitted
+    ghost with S/N ``snr`` (alpha / its standard error), miss it (their own amplitude below 0.3 alpha and more
+    than 2 standard errors short of alpha) each with ``Phi(-max(2, 0.7 snr))``, independently; the count fails
+    when fewer than GHOST_CONFIRMED_SHARE of them show it. The number of misses is Poisson-binomial (a sum of
+    independent Bernoulli trials, computed exactly by convolution)."""
+    p = scipy.stats.norm.sf(np.maximum(2.0, 0.7 * np.asarray(snr, np.float64)))
+    dist = np.ones(1)
+    for pi in p:  # the distribution of the number of misses
+        dist = np.convolve(dist, [1.0 - pi, pi])
+    n = len(p)
+    misses = np.arange(n + 1)
+    return float(dist[(n - misses) < GHOST_CONFIRMED_SHARE * n].sum())
 
 
 # --- adapter ----------------------------------------------------------------------------------------------------

@@ -120,7 +120,7 @@ THUMB | N | display | thumbnail side
 HALF_WIDTH_PX | N | geometry | band around a streak's track
 MIN_PERIOD_BINS | N | grid | shortest period tried (Nyquist and PSF)
 N_PERIODS | N | grid | periods tried
-MIN_BINS | D | statistics | bins needed along a track for the light-curve test
+LIGHT_CURVE_PARAMETERS | N | model | parameters a light curve adds (amplitude, phase, period): the k of its delta BIC
 @scenes/app/compare/statistics.py
 MAP_SIDE | N | display | residual map size in the report
 PEAK_SIDE | N | budget | cut-out searched for spectral peaks
@@ -237,7 +237,6 @@ GHOST_RADII_PX | N | grid | profile radii of the fit
 GHOST_INNER_RATIOS | N | grid | annulus ratios of the fit
 GHOST_MIN_RMS_PSF | D | physics | a ghost is defocused (PSF widths)
 GHOST_SOURCE_CHI2 | D | statistics | a source's ghost detectable (chi2 gain 9 = 3 sigma)
-GHOST_MIN_SOURCES | D | statistics | sources confirming a free ghost
 GHOST_CONFIRMED_SHARE | D | design | share of them showing it
 GHOST_STAMP_SHARE | D | design | the ghost takes this share of the excess about its copy
 GHOST_CHECK_SOURCES | N | budget | sources the map is checked on
@@ -350,7 +349,6 @@ MAX_SERIES_FRAME_PX | N | budget | a series' frames take the large-frame path ab
 @detector/effects/cti.py
 CTI_RELEASE_TRANSFERS | N | model | the trap release times rendered and fitted (the HST ACS ones)
 @scenes/app/compare/judge.py
-SAME_SCATTER_TOLERANCE | D | physics | two added variances proportional to 1e-3 (float32 templates of one map agree to 1e-7; a 1 % dark gradient gives 2 %)
 """
 
 

@@ -251,3 +251,15 @@ def test_signal_oaconvolve_reference_for_the_fourier_profile():
         b = signal.oaconvolve(img, gh.ghost_kernel(profile, radius, inner), mode="same")
         assert np.abs(a - b).max() < 0.05 * b.max(), profile
         assert a.sum() == pytest.approx(b.sum(), rel=0.02)
+
+
+def test_the_ghost_confirmation_is_asked_when_a_real_ghost_would_pass_it():
+    """The sources' confirmation of a free ghost is asked when a real ghost fails it with less than
+    FRAME_FALSE_ALARM: always from three sources that each show it at the detection floor (S/N 3, as the count
+    of three before), from one alone only when it shows it far beyond (S/N 6)."""
+    from detector.significance import FRAME_FALSE_ALARM
+
+    assert gh.confirmation_miss(np.full(3, 3.0)) < FRAME_FALSE_ALARM
+    assert gh.confirmation_miss(np.full(1, 3.0)) > FRAME_FALSE_ALARM
+    assert gh.confirmation_miss(np.full(1, 6.0)) < FRAME_FALSE_ALARM
+    assert gh.confirmation_miss(np.full(8, 3.0)) < gh.confirmation_miss(np.full(3, 3.0))

@@ -81,6 +81,20 @@ def test_policy_file_overrides_and_errors(tmp_path):
         load_policy(tmp_path / "bad2.json")
 
 
+
+def test_retired_policy_fields_still_load_with_a_warning(tmp_path):
+    """A policy file (or a ``policy`` table of an older ``diagnose --json``) naming a field that a test's own
+    statistic replaced still loads: the field is ignored with a warning saying what replaced it."""
+    from scenes.app.compare.policy import RETIRED
+
+    assert {"stars_min", "stars_ok_ln", "psf_min_stars", "noise_floor_fraction"} <= set(RETIRED)
+    for key in RETIRED:
+        assert key not in DEFAULT_POLICY.to_json()
+        (tmp_path / f"{key}.json").write_text(json.dumps({"policy": {key: 1, "heldout_candidates": 4}}))
+        with pytest.warns(UserWarning, match=key):
+            pol = load_policy(tmp_path / f"{key}.json")
+        assert pol.heldout_candidates == 4
+
 # --- the gates ----------------------------------------------------------------------------------------------
 
 def _cand(name="x", d=-100.0, heldout=None, **kw) -> Candidate:
@@ -518,6 +532,13 @@ def test_a_dsnu_and_a_read_noise_are_the_same_scatter_where_the_dark_is_uniform(
                          1.0, 0.0, heldout=-60.0)
         assert same_scatter(read, dsnu) == twins
         assert ([c.fit.effect for c in indistinguishable([read, dsnu])] == ["dsnu"]) == twins
+    # proportional to what the frame can tell: a 0.2 % spread of the ratio over 4096 pixels is at most 0.008 of
+    # -2 ln L (no frame tells the laws apart), a 6 % spread up to 7 (the laws differ)
+    x = np.broadcast_to(np.linspace(-1.0, 1.0, shape[1]), shape)
+    for spread, twins in ((0.001, True), (0.05, False)):
+        var = 0.04 * (dark * (1 + spread * x)) ** 2
+        dsnu = Candidate(Fit("dsnu", {}, -151.0, 2, 4096, "a dsnu", extra_var_adu2=var), 1.0, 0.0, heldout=-60.0)
+        assert same_scatter(read, dsnu) == twins, spread
     assert "cannot tell it apart from dsnu: the same added variance" in verdict([read, Candidate(
         Fit("dsnu", {}, -151.0, 2, 4096, "a dsnu", extra_var_adu2=0.04 * dark ** 2), 1.0, 0.0, heldout=-60.0)])
 

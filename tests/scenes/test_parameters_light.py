@@ -32,3 +32,16 @@ def test_light_moved_into_far_wings_is_not_a_zero_point():
     darker = _residuals(0.75 * (model - sky) + sky + rng.normal(0, 3, model.shape), model, bg)
     assert enclosed_ratio(darker)[0] == pytest.approx(0.75, abs=0.01)
     assert light_moved(darker, 0.75, DEFAULT_POLICY) == ""
+
+
+def test_the_psf_width_scan_gives_its_standard_error():
+    """The PSF's width is refitted when its likelihood scan measures it (no count of stars): -2 ln L rising as
+    (ln x / 0.02)^2 has a standard error 0.02 in ln x, wherever the scan's lowest point is; a flat scan none."""
+    from scenes.app.compare.parameters import PSF_STEPS, width_error
+
+    x = np.sort(np.array((1.0, *PSF_STEPS)))
+    y = (np.log(x) / 0.02) ** 2
+    assert width_error(x, y, int(np.argmin(y))) == pytest.approx(0.02, rel=1e-6)
+    y_edge = (np.log(x / 1.4) / 0.02) ** 2
+    assert width_error(x, y_edge, int(np.argmin(y_edge))) == pytest.approx(0.02, rel=1e-6)
+    assert width_error(x, np.zeros_like(x), 0) == np.inf

@@ -196,6 +196,21 @@ def test_the_robust_excess_of_integer_codes_is_not_snapped_to_the_code_lattice()
     assert not overfit(Fit("reset_noise", {}, -1e3, 1, h * w, "", extra_var_adu2=extra), 1.0, res)
 
 
+
+def test_the_robust_excess_error_is_the_scatter_of_its_median():
+    """The noise-excess test's floor (DETECTION_SIGMA standard errors of the bulk's excess, not a fraction of the
+    model's variance): the median of n values v chi2_1 over the chi2_1 median scatters by robust_excess_error."""
+    from scipy.stats import chi2
+
+    from scenes.app.compare.candidates import robust_excess_error
+
+    rng = np.random.default_rng(5)
+    v, n = 30.0, 20_000
+    m = chi2.ppf(0.5, 1)
+    est = [np.median(v * rng.chisquare(1, n)) / m for _ in range(300)]
+    assert np.std(est) == pytest.approx(robust_excess_error(v, n), rel=0.15)
+    assert robust_excess_error(v, 0) == np.inf
+
 def test_a_column_pattern_of_the_whole_frame_stays_in_the_pixel_comparison():
     """A few outlier columns are defects (compared by their counts, masked from the pixel fit); most of the
     columns off (column fixed-pattern noise, a mosaic the model lacks) is a pattern the pixel comparison
@@ -245,3 +260,20 @@ def test_levels_refitted_on_the_applied_scene_scale_its_values():
     data, notes = carry_levels(data, {"background_scale": 0.041, "offset_adu": 3.0}, scene)
     assert data["sky"]["background_mag_arcsec2"] == pytest.approx(19.17 - 2.5 * math.log10(1.041), abs=1e-5)
     assert data["detector"]["bias_adu"] == pytest.approx(993.0) and len(notes) == 2
+
+
+def test_the_photometry_worsening_is_paired_star_by_star():
+    """The stars' photometry test (no count of stars, no absolute bar): the change of |ln(data/model flux)| star
+    by star, its median and the median's standard error; two stars or fewer cannot show a worsening."""
+    from scenes.app.compare.candidates import photometry_worsening
+
+    rng = np.random.default_rng(3)
+    x, y = rng.uniform(0, 500, 200), rng.uniform(0, 500, 200)
+    before = {"n": 200, "x": x, "y": y, "flux_ratio": np.exp(rng.normal(0, 0.05, 200))}
+    worse = {"n": 200, "x": x, "y": y, "flux_ratio": before["flux_ratio"] * 1.3}
+    med, err, n = photometry_worsening(before, worse)
+    assert n == 200 and med > 0.1 and med > 5 * err
+    med, err, n = photometry_worsening(before, {**before})
+    assert med == 0.0 and n == 200
+    one = {"n": 1, "x": x[:1], "y": y[:1], "flux_ratio": np.array([2.0])}
+    assert photometry_worsening(one, one)[1] == np.inf

@@ -13,12 +13,13 @@ import time
 from dataclasses import replace
 
 import numpy as np
+from scipy.stats import chi2 as chi2_dist
 
 from detector import registry
 from detector.effects.ghosts import psf_rms_px, source_image
 from detector.morphology import block_chi2
 from detector.signatures import Fit, Residuals, dither_codes, frame_at, heldout_blind, heldout_delta, seeing_block
-from detector.significance import FOOTPRINT_SIGMA, MIN_TEST_PIXELS
+from detector.significance import DETECTION_SIGMA, FOOTPRINT_SIGMA, MIN_TEST_PIXELS
 
 from .floors import floor_reason, signal_range_floor
 from .judge import Candidate, indistinguishable, rank, verdict
@@ -78,11 +79,25 @@ def robust_excess_var(res: Residuals) -> tuple[float, float]:
     return res.memo("robust_excess", compute)
 
 
+def robust_excess_error(var_adu2: float, n: int) -> float:
+    """The standard error [ADU^2] of :func:`robust_excess_var`'s excess over ``n`` pixels whose residual variance
+    is ``var_adu2``: the sample median of ``n`` values ``var chi2_1`` scatters by ``var / (2 f(m) sqrt(n))``, ``m``
+    the chi2_1 median and ``f`` its density there (the asymptotic variance of a sample quantile, Cramer 1946,
+    Mathematical Methods of Statistics, sect. 28.5), and the excess is that median over ``m``: 2.33 var /
+    sqrt(n). Infinite without pixels."""
+    if n <= 0:
+        return float("inf")
+    m = float(chi2_dist.ppf(0.5, 1))
+    return float(var_adu2 / (2.0 * m * chi2_dist.pdf(m, 1) * np.sqrt(n)))
+
+
 def overfit(fit: Fit, chi2_per_dof: float, res: Residuals | None = None,
             policy: DiagnosisPolicy = DEFAULT_POLICY) -> str:
     """Why a candidate that only adds variance is not the missing effect ("" when it may be): it brings
     chi2/dof far below 1, or it claims far more variance than the bulk of the pixels shows (a structured
-    residual, e.g. misplaced stars, taken for noise)."""
+    residual, e.g. misplaced stars, taken for noise): the policy's ``noise_excess_factor`` times that excess, or
+    times DETECTION_SIGMA standard errors of it (:func:`robust_excess_error`) where the bulk shows none it can
+    resolve."""
     if fit.delta_adu is not None or fit.extra_var_adu2 is None:
         return ""
     if chi2_per_dof < policy.overfit_chi2_per_dof:
@@ -90,8 +105,9 @@ def overfit(fit: Fit, chi2_per_dof: float, res: Residuals | None = None,
                 "absorbs a structured residual, it does not explain it")
     if res is not None:
         excess, v = robust_excess_var(res)
+        floor = DETECTION_SIGMA * robust_excess_error(v + max(excess, 0.0), res.flat_profiled()[0].size)
         claimed = float(np.median(np.asarray(fit.extra_var_adu2, np.float64)))
-        if claimed > policy.noise_excess_factor * max(excess, policy.noise_floor_fraction * v):
+        if claimed > policy.noise_excess_factor * max(excess, floor):
             return (f"claims {claimed:.3g} ADU^2 of noise where the bulk of the pixels shows {max(excess, 0):.3g} "
                     f"beyond the model's {v:.3g}: a structured residual taken for noise")
     return ""
@@ -111,29 +127,53 @@ def chi2_after(res: Residuals, fit: Fit) -> float:
     return float(np.dot(r * r, w) / max(idx.size, 1))
 
 
+def photometry_worsening(before: dict, after: dict) -> tuple[float, float, int]:
+    """(median, standard error, count) of the change of ``|ln(data/model flux)|`` star by star, over the stars
+    measured in both photometries (:func:`scenes.app.compare.statistics.star_photometry`, matched by their
+    catalogue position): a paired difference, so the stars' own scatter about the model cancels. The standard
+    error of a median, ``sqrt(pi/2) sigma / sqrt(n)`` with the robust sigma (1.4826 MAD) of the differences
+    (Kenney & Keeping 1962, Mathematics of Statistics, sect. 13.13); infinite below two stars."""
+    if not before.get("n", 0) or not after.get("n", 0):
+        return 0.0, float("inf"), 0
+    ab = {(float(x), float(y)): abs(np.log(max(f, 1e-6))) for x, y, f in zip(before["x"], before["y"],
+                                                                        before["flux_ratio"])}
+    d = np.array([abs(np.log(max(f, 1e-6))) - ab[(float(x), float(y))]
+                  for x, y, f in zip(after["x"], after["y"], after["flux_ratio"]) if (float(x), float(y)) in ab])
+    d = d[np.isfinite(d)]
+    if d.size < 2:
+        return (float(np.median(d)) if d.size else 0.0), float("inf"), int(d.size)
+    med = float(np.median(d))
+    sigma = 1.4826 * float(np.median(np.abs(d - med)))
+    return med, float(np.sqrt(np.pi / 2) * sigma / np.sqrt(d.size)), int(d.size)
+
+
 def stars_check(res: Residuals, fit: Fit, truth, policy: DiagnosisPolicy = DEFAULT_POLICY) -> str:
     """Why a candidate that reshapes sources (an image-plane transform) is not physical ("" when it may be):
     with it in the model, the catalogue stars the model already measures right (aperture photometry over
-    the model's background, :func:`scenes.app.compare.statistics.star_photometry`) are measured wrong. A blur that
-    lowers the pixel chi2 of a crowded field by spreading its sources towards what the model lacks (blends,
-    unresolved stars) fails this; a real blur, elongation or shift leaves the stars right or makes them
-    right."""
+    the model's background, :func:`scenes.app.compare.statistics.star_photometry`) are measured wrong: their
+    median ``|ln(data/model flux)|`` grows by more than the policy's ``stars_worse_ln``, and the stars' own
+    change (:func:`photometry_worsening`) is a worsening beyond DETECTION_SIGMA of its standard error (a few
+    stars, or stars whose photometry scatters, cannot show one). A blur that lowers the pixel chi2 of a
+    crowded field by spreading its sources towards what the model lacks (blends, unresolved stars) fails this;
+    a real blur, elongation or shift leaves the stars right or makes them right."""
     if truth is None or fit.delta_adu is None:
         return ""
     # the same for every candidate of this comparison
     before = res.memo("stars_before", lambda: star_photometry(res, truth, max_stars=300))
-    if before.get("n", 0) < policy.stars_min:
+    if not before.get("n", 0):
         return ""
     moved = replace(res, model_adu=(res.model_adu + fit.delta_adu).astype(np.float32), _flat={})
     after = star_photometry(moved, truth, max_stars=300)
-    if after.get("n", 0) < policy.stars_min:
+    if not after.get("n", 0):
         return ""
     b = float(np.nanmedian(np.abs(np.log(np.clip(before["flux_ratio"], 1e-6, None)))))
     a = float(np.nanmedian(np.abs(np.log(np.clip(after["flux_ratio"], 1e-6, None)))))
-    if a > b + policy.stars_worse_ln and a > policy.stars_ok_ln:
+    worse, err, _ = photometry_worsening(before, after)
+    if a > b + policy.stars_worse_ln and worse > DETECTION_SIGMA * err:
         return (f"makes the bright stars' photometry wrong: median data/model flux {before['median_flux_ratio']:.3g} "
-                f"-> {after['median_flux_ratio']:.3g} over {after['n']} stars; the light it moves belongs to sources "
-                "the model lacks (blends, unresolved stars), not to a wider PSF")
+                f"-> {after['median_flux_ratio']:.3g} over {after['n']} stars (|ln| worse by {worse:.3g} +- "
+                f"{err:.2g} star by star); the light it moves belongs to sources the model lacks (blends, "
+                "unresolved stars), not to a wider PSF")
     return ""
 
 

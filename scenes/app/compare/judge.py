@@ -293,19 +293,21 @@ def same_charge(a: Candidate, b: Candidate) -> bool:
     return {_charge_origin(a), _charge_origin(b)} == {"dark", "light"}
 
 
-#: two added variances are the same law on a frame when their per-pixel ratio is constant to this (relative
-#: r.m.s.): float32 templates of one map agree to ~1e-7; a dark signal that varies by 1 % over the frame already
-#: gives a DSNU's (dark^2) and a read noise's (constant) laws a 2 % difference
-SAME_SCATTER_TOLERANCE = 1e-3
-
-
 def same_scatter(a: Candidate, b: Candidate) -> bool:
     """Two effects that add zero-mean scatter whose variances are proportional over the frame are the same
     likelihood on it, whatever their physics: a DSNU adds (sigma D)^2 with D the dark signal, growing with the
     exposure and the dark current; a reset or read noise adds a constant (Janesick 2007, Photon Transfer, ch. 7
     and 11: the dark-signal non-uniformity is a fixed pattern proportional to the dark signal, the read noise is
     not). Where the dark signal is uniform the two laws are one constant, and only a frame of another exposure
-    (or another dark signal) tells them apart: not a tie the held-out scores need to find."""
+    (or another dark signal) tells them apart: not a tie the held-out scores need to find.
+
+    Proportional on this frame: the frame cannot tell the two laws apart. Data of variance ``V_a`` scored
+    against ``V_b`` (the amplitude refitted, ``c``) lose ``E[delta(-2 ln L)] = sum(V_a/V_b - 1 - ln(V_a/V_b))
+    ~ 1/2 sum(((v_a - c v_b) / V)^2)`` (Kullback & Leibler 1951 for two normals of one mean), ``V`` the pixel's
+    whole variance; with ``V >= v_a`` this is at most ``1/2 n rms^2`` of the ratio ``v_a / v_b`` relative to its
+    mean over the ``n`` pixels. The laws are the same when even that bound is within one unit of -2 ln L (one
+    standard deviation of a chi2 of one parameter): float32 templates of one map (rms ~1e-7) always, a DSNU
+    and a read noise on a dark signal varying by 1 % over a 256 x 256 frame (rms 2 %, a bound of 13) not."""
     va, vb = a.fit.extra_var_adu2, b.fit.extra_var_adu2
     if va is None or vb is None or a.fit.delta_adu is not None or b.fit.delta_adu is not None:
         return False
@@ -316,7 +318,8 @@ def same_scatter(a: Candidate, b: Candidate) -> bool:
     if both.sum() < 100:
         return False
     ratio = va[both] / vb[both]
-    return float(np.std(ratio)) <= SAME_SCATTER_TOLERANCE * float(np.mean(ratio))
+    rms = float(np.std(ratio)) / float(np.mean(ratio))
+    return 0.5 * ratio.size * rms * rms <= 1.0
 
 
 def _dark_pattern_field(c: Candidate) -> bool:

@@ -299,20 +299,29 @@ def _psf_delta(scene, res: Residuals, model, key: str, value: float) -> tuple[fl
     return (None if s is None else float(s)), fit
 
 
+def width_error(x: np.ndarray, y: np.ndarray, i: int) -> float:
+    """The standard error of ln(value) of a re-rendered scene number from its likelihood scan: ``y`` the
+    delta -2 ln L at the factors ``x`` (sorted), ``i`` the lowest. A parabola in ln x through the three scan
+    points about the lowest (the two at the scan's end when it is there) has curvature ``a``, and -2 ln L
+    grows by 1 at one standard error: ``1 / sqrt(a)`` (Wilks 1938; infinite when the scan is not curved,
+    the frame's sources do not measure the number)."""
+    j = min(max(i, 1), x.size - 2)
+    a = float(np.polyfit(np.log(x[j - 1:j + 2]), y[j - 1:j + 2], 2)[0])
+    return 1.0 / np.sqrt(a) if a > 0 else float("inf")
+
+
 def psf_candidates(res: Residuals, scene, model, policy: DiagnosisPolicy = DEFAULT_POLICY,
                    truth=None) -> list[Candidate]:
     """The PSF's FWHM (and a Moffat's beta) refitted by re-rendering the scene at a few values: the delta
     -2 ln L at each, a parabola through the best three, one more render at its minimum. Only for a light
-    frame with stars and an analytic PSF (``gaussian`` or ``moffat``) with enough bright stars."""
+    frame with stars and an analytic PSF (``gaussian`` or ``moffat``), when its sources measure the number
+    well enough that a change of the policy's ``psf_width_tolerance`` is DETECTION_SIGMA standard errors of
+    the scan (:func:`width_error`)."""
     if scene.exposure.frame != "light" or not scene.sky.stars or scene.psf.model not in ("gaussian", "moffat"):
         return []
     if truth is None or len(truth) == 0:
         return []
     t0 = time.perf_counter()
-    # enough bright sources to tell a width: peaks above 10 sigma of the model
-    src = res.model_adu - (res.background_adu if res.background_adu is not None else res.model_adu)
-    if int(np.sum(src > 10 * np.sqrt(np.maximum(res.var_adu2, 1e-6)))) < 9 * policy.psf_min_stars:
-        return []
     out = []
     params = [("psf_width", "psf.fwhm_arcsec", float(scene.psf.fwhm_arcsec), policy.psf_width_tolerance,
                "the PSF's FWHM")]
@@ -332,6 +341,8 @@ def psf_candidates(res: Residuals, scene, model, policy: DiagnosisPolicy = DEFAU
         order = np.argsort(xs)
         x, y = np.asarray(xs)[order], np.asarray(ys)[order]
         i = int(np.argmin(y))
+        if width_error(x, y, i) * DETECTION_SIGMA > np.log1p(tol):
+            continue  # too few or too faint sources: a change of the tolerance would not be detected
         if 0 < i < x.size - 1:
             a, b, c = np.polyfit(np.log(x[i - 1:i + 2]), y[i - 1:i + 2], 2)
             best = float(np.exp(-b / (2 * a))) if a > 0 else float(x[i])

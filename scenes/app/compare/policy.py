@@ -52,7 +52,16 @@ def _f(default, unit: str, basis: str, doc: str):
 
 #: fields of earlier policies that no longer exist: a policy file naming one still loads (the field ignored,
 #: with a warning saying what replaced it)
-RETIRED: dict[str, str] = {}
+RETIRED: dict[str, str] = {
+    "stars_ok_ln": "the photometry test asks the stars' own worsening to be significant (DETECTION_SIGMA of its "
+                   "standard error, candidates.photometry_worsening) instead of an absolute bar",
+    "stars_min": "the photometry test's standard error (candidates.photometry_worsening) says when there are "
+                 "too few stars to show a worsening",
+    "psf_min_stars": "the PSF's width is refitted when its likelihood scan's standard error resolves "
+                     "psf_width_tolerance at DETECTION_SIGMA (parameters.width_error), not from a count of stars",
+    "noise_floor_fraction": "the floor of the noise-excess test is DETECTION_SIGMA standard errors of the bulk's "
+                            "excess variance (candidates.robust_excess_error), not a fraction of the model's",
+}
 
 
 @dataclass(frozen=True)
@@ -116,17 +125,14 @@ class DiagnosisPolicy:
     noise_excess_factor: float = _f(
         3.0, "1", "statistics",
         "a noise-only candidate may claim at most this many times the variance the bulk of the pixels shows "
-        "beyond the model's (median squared residual)")
-    noise_floor_fraction: float = _f(
-        0.05, "1", "statistics",
-        "... and never less than this fraction of the model's own variance")
+        "beyond the model's (median squared residual), or than DETECTION_SIGMA standard errors of that excess "
+        "where the bulk shows none it resolves (candidates.robust_excess_error)")
     stars_worse_ln: float = _f(
         SCALE_TOLERANCE, "|ln flux ratio|", "physics",
         "a candidate reshaping the sources may worsen the bright stars' median |ln(data/model flux)| by at "
-        "most this much (SCALE_TOLERANCE: a flux error the size of a zero point that is itself a finding) ...")
-    stars_ok_ln: float = _f(
-        0.2, "|ln flux ratio|", "physics", "... and must leave it below this")
-    stars_min: int = _f(10, "stars", "statistics", "bright stars needed for that photometry test")
+        "most this much (SCALE_TOLERANCE: a flux error the size of a zero point that is itself a finding), the "
+        "stars' own change being a worsening beyond DETECTION_SIGMA of its standard error "
+        "(candidates.photometry_worsening)")
     sample_worse: float = _f(
         STRONG_EVIDENCE, "delta -2 ln L", "contract",
         "large frames: a candidate fitted on the binned frame must not worsen the full-resolution band sample "
@@ -158,8 +164,6 @@ class DiagnosisPolicy:
         0.05, "1", "physics",
         "a refitted PSF FWHM is a finding when it differs from the scene's by more than this fraction "
         "(seeing varies by more within a night; 5 % is what the stars measure well)")
-    psf_min_stars: int = _f(
-        5, "stars", "statistics", "stars with a peak above 10 sigma needed to fit the PSF's width")
     noise_scale_tolerance: float = _f(
         SCALE_TOLERANCE, "1", "physics",
         "a gain or read noise refitted from the residual's variance is a finding beyond this relative change")

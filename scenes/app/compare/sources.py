@@ -29,8 +29,10 @@ HALF_WIDTH_PX = 6.0
 MIN_PERIOD_BINS = 4.0
 #: periods tried on the logarithmic grid (then refined around the best)
 N_PERIODS = 400
-#: bins needed along the track
-MIN_BINS = 16
+#: parameters the light curve adds to a steady object (amplitude, phase, period): the ``k`` of its delta BIC; the
+#: fit needs more bins along the track than these and the profiled flux scale (its significance is then the
+#: delta BIC's and the held-out score's, as every candidate's)
+LIGHT_CURVE_PARAMETERS = 3
 
 
 def track_profile(res: Residuals, row, bg: np.ndarray) -> dict | None:
@@ -39,7 +41,9 @@ def track_profile(res: Residuals, row, bg: np.ndarray) -> dict | None:
     (-1 outside the band)."""
     t0, t1 = float(row["t0_s"]), float(row["t1_s"])
     band = track_band(res.data_adu.shape, row, HALF_WIDTH_PX)
-    if not (np.isfinite(t0) and np.isfinite(t1) and t1 > t0) or band is None or band["length"] < MIN_BINS:
+    if not (np.isfinite(t0) and np.isfinite(t1) and t1 > t0) or band is None:
+        return None
+    if band["length"] <= LIGHT_CURVE_PARAMETERS + 1:  # no bin left to test the fit on
         return None
     box, along, length = band["box"], band["along"], band["length"]
     n = int(np.floor(length))
@@ -50,7 +54,7 @@ def track_profile(res: Residuals, row, bg: np.ndarray) -> dict | None:
     m = np.bincount(bins[sel], (res.model_adu[box] - bg[box])[sel], n)
     v = np.bincount(bins[sel], res.var_adu2[box][sel], n)
     ok = (v > 0) & (m > 3 * np.sqrt(np.maximum(v, 1e-30)))
-    if ok.sum() < MIN_BINS:
+    if ok.sum() <= LIGHT_CURVE_PARAMETERS + 1:
         return None
     t = t0 + (np.arange(n) + 0.5) / length * (t1 - t0)
     return {"d": d, "m": m, "v": v, "t": t, "ok": ok, "box": box, "bins": bins, "dt_bin": (t1 - t0) / length}
@@ -107,8 +111,8 @@ def light_curve_fit(res: Residuals, row, index: int, bg: np.ndarray | None = Non
     name = str(row["name"].decode() if isinstance(row["name"], bytes) else row["name"]).strip()
     words = (f"the streak of {name or f'objects[{index}]'} brightens and fades by {100 * a / np.sqrt(2):.2g} % rms "
              f"with a {period:.3g} s period along its track: a tumbling or glinting object (a light curve)")
-    return Fit(LIGHT_CURVE, {"object": index, "light_curve": curve}, best - chi2_0, 3, n, words, delta_adu=delta,
-               note=f"period {period:.4g} s")
+    return Fit(LIGHT_CURVE, {"object": index, "light_curve": curve}, best - chi2_0, LIGHT_CURVE_PARAMETERS, n, words,
+               delta_adu=delta, note=f"period {period:.4g} s")
 
 
 def light_curve_candidates(res: Residuals, truth, scene):
