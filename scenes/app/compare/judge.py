@@ -370,6 +370,25 @@ def same_light(a: Candidate, b: Candidate) -> bool:
     return (_of_light(a) and _charge_origin(b) == "light") or (_of_light(b) and _charge_origin(a) == "light")
 
 
+#: the gates that weigh how much of what is wrong a candidate removes (not whether its form is this effect's): a
+#: rival refused by these alone still says something is there that its form predicts
+SHARE_GATES = frozenset({"structure", "excess", "support"})
+
+
+def better_rival(first: Candidate, c: Candidate) -> bool:
+    """``c`` predicts the pixels neither fit saw better than ``first`` does (its held-out score significant and at
+    least as good, on the same folds), and was refused only for the share of what is wrong it removes
+    (:data:`SHARE_GATES`), not for its form: the held-out pixels, the judge's one test of a form against another,
+    prefer ``c``, and ``first``'s own shares do not tell its form from ``c``'s. Naming ``first`` alone would be a
+    claim the data do not make: a tie, with ``first`` still the one that passes every gate."""
+    if c.heldout is None or first.heldout is None or c.heldout >= c.policy.significant_heldout:
+        return False
+    if c.heldout_block != first.heldout_block or not c.contender:
+        return False
+    gates = set(c.gates)
+    return bool(gates) and gates <= SHARE_GATES and c.heldout <= first.heldout
+
+
 TWIN_REASONS = (
     (same_charge, "the same charge in the same pixels, whose origin (dark or light) only a dark frame of the same "
                   "exposure tells"),
@@ -387,6 +406,9 @@ TWIN_REASONS = (
     (dark_or_offset, ("the same smooth field, of dark charge or an offset of the read-out, whose shot noise does "
                       "not tell them apart here; a bias frame (where dark charge is zero) or a dark of another "
                       "exposure (where it scales with the time) does")),
+    (lambda a, b: better_rival(a, b),
+     "it predicts the held-out pixels better, but removes too little of what is wrong where it acts or overall: the "
+     "held-out pixels prefer its form, the shares do not single out the first's"),
     (lambda a, b: b.heldout_blind and not b.significant,
      "it fits the frame as well or better, and the held-out test cannot weigh it: the few bright pixels that carry "
      "its change lie in one fold of the checkerboard, the other sees less than a detection of it"),
@@ -403,7 +425,8 @@ def indistinguishable(sig: list[Candidate], cands: list[Candidate] = ()) -> list
     (significant by delta BIC, plausible, not rejected) that make the same image as the first in this frame
     (:func:`same_image`): a form of the same image whose held-out score falls short does not make the data
     tell the two stages apart; for the two laws of a light pattern (:func:`same_light`) the plausible ones
-    whose own delta BIC falls short too (:func:`_other_law`)."""
+    whose own delta BIC falls short too (:func:`_other_law`); and the contenders refused only for their shares
+    whose held-out score is better than the first's (:func:`better_rival`)."""
     if not sig:
         return []
     best = sig[0].heldout
@@ -413,7 +436,7 @@ def indistinguishable(sig: list[Candidate], cands: list[Candidate] = ()) -> list
            or same_image(sig[0], c)]
     out += [c for c in cands if c.kind != "parameter" and c is not sig[0] and c not in out and not c.significant
             and ((c.contender or _other_law(sig[0], c)) and same_image(sig[0], c)
-                 or c.contender and blind_rival(sig[0], c))]
+                 or c.contender and blind_rival(sig[0], c) or better_rival(sig[0], c))]
     return out
 
 
