@@ -217,12 +217,13 @@ def _variants(res):
 
 
 def _check(fit, res) -> str:
-    """A temperature gradient modulates the sensor's dark current: it cannot take the dark rate below zero
-    at a corner (the change at the corners, ``(|gx| + |gy|) / 2``, stays below the sensor's dark rate plus
-    the measured dark level); in the exponential form (which never goes below zero) the temperature
-    difference corner to corner, ``|tx| + |ty|``, stays within MAX_TEMPERATURE_SPAN_K; a smooth field's
-    peak to peak, as the temperature difference the doubling law needs for it (:func:`field_span_k`), too, and it
-    does not take the dark rate below zero within the window."""
+    """A temperature gradient modulates the sensor's dark current: within the window the frame sees it cannot
+    take the dark rate (:func:`base_rate`) below zero, and the temperature difference the doubling law needs
+    for its lowest and highest rate there stays within MAX_TEMPERATURE_SPAN_K: for the linear ramp
+    (:func:`ramp_span_k`) and a smooth field (:func:`field_span_k`) alike; in the exponential form (which never
+    goes below zero) the temperature difference corner to corner, ``|tx| + |ty|``, stays within it. (The ramp
+    is a first-order form of the doubling law: extrapolated beyond the window it is no longer the law, so the
+    window, which the data constrain, is where it is tested.)"""
     p = fit.params
     span = abs(p.get("temperature_x_k", 0.0)) + abs(p.get("temperature_y_k", 0.0))
     if p.get("field_e_per_s"):
@@ -231,24 +232,57 @@ def _check(fit, res) -> str:
             return ("the smooth dark-rate field would take the dark rate below zero within the window (its lowest "
                     f"point more than the dark rate, {base_rate(res):.3g} e-/s, below it): a temperature field "
                     "cannot do that; an offset structure (bias) or a light taken for dark current")
+    gx, gy = p.get("gradient_x_e_per_s", 0.0), p.get("gradient_y_e_per_s", 0.0)
+    if gx or gy:
+        ramp = ramp_span_k(gx, gy, res)
+        if ramp is None:
+            return (f"the dark-rate ramp ({gx:+.3g}, {gy:+.3g} e-/s across the sensor) would take the dark rate "
+                    f"below zero within the window (the frame's dark rate is {base_rate(res):.3g} e-/s): a "
+                    "temperature gradient cannot do that; an offset ramp (bias) or a light taken for dark current")
+        span = max(span, ramp)
     if span > MAX_TEMPERATURE_SPAN_K:
         return (f"the sensor would be {span:.3g} K warmer at one corner than at the opposite one, more than "
                 f"{MAX_TEMPERATURE_SPAN_K:.0f} K across a sensor's die: not a temperature gradient; an offset "
                 "ramp (bias) or a light taken for dark current")
-    corner = (abs(p["gradient_x_e_per_s"]) + abs(p["gradient_y_e_per_s"])) / 2
-    base = base_rate(res)
-    if corner > 1.5 * base + 1e-9:
-        return (f"the dark rate would change by {corner:.3g} e-/s at the corners, more than the sensor's dark rate "
-                f"({base:.3g} e-/s): a temperature gradient cannot do that; an offset ramp (bias) or a light taken "
-                "for dark current")
     return ""
+
+
+def frame_dark_rate(res) -> float:
+    """A frame without light: its own mean dark rate [e-/s per sensor pixel], the model's median dark rate plus
+    the residual's median (data - model on the fitted pixels) in dark rate; 0 on a frame with light (whose
+    residual level is the light's too). A dark-rate field the model lacks raises the frame's mean dark rate by its
+    own mean: the rate it modulates is the frame's, not the model's. (A bias offset moves the same median; one
+    dark frame does not tell the two, a bias frame does.)"""
+    if res.exptime_s <= 0 or not res.dark_e.size or np.any(res.photo_adu > 0) or not np.any(res.fit):
+        return 0.0
+    unit = res.exptime_s * res.pixel_sum / res.gain  # ADU per (e-/s) of dark rate per sensor pixel
+    excess = float(np.median((res.data_adu - res.model_adu)[res.fit]))
+    return float(np.median(res.dark_e)) / (res.exptime_s * res.pixel_sum) + excess / unit
 
 
 def base_rate(res) -> float:
     """The dark rate [e-/s per sensor pixel] a temperature field modulates: the sensor's, or the frame's
-    modelled median dark rate when larger."""
+    modelled median dark rate, or on a frame without light its measured one (:func:`frame_dark_rate`), whichever
+    is the largest."""
     mean_rate = float(np.median(res.dark_e)) / max(res.exptime_s * res.pixel_sum, 1e-12) if res.dark_e.size else 0.0
-    return max(float(res.sensor.dark_current_e_per_s), mean_rate)
+    return max(float(res.sensor.dark_current_e_per_s), mean_rate, frame_dark_rate(res))
+
+
+def ramp_span_k(gx: float, gy: float, res) -> float | None:
+    """The temperature difference [K] the dark-rate ramp ``gx u + gy v`` [e-/s across the sensor's width and
+    height] needs across the window the frame sees, about the dark rate ``D`` (:func:`base_rate`) at the window's
+    mean: by the doubling law (Janesick 2001 eq. 7.4) ``T_2 log2((D + r_max) / (D + r_min))``, ``r`` the ramp at
+    the window's corners less its mean there; None when it takes the rate to or below zero (``D + r_min <= 0``)."""
+    s = res.sensor
+    u, v = sensor_uv(np.array([res.ys.min(), res.ys.max()]), np.array([res.xs.min(), res.xs.max()]),
+                     s.sensor_height_px, s.sensor_width_px)
+    r = gx * np.asarray(u, np.float64)[None, :] + gy * np.asarray(v, np.float64)[:, None]
+    r = r - r.mean()  # a plane's mean over a rectangle is its corners' mean
+    base = base_rate(res)
+    lo, hi = base + float(r.min()), base + float(r.max())
+    if lo <= 0:
+        return None if hi > lo else 0.0
+    return doubling_interval_k(s.temperature_c) * float(np.log2(hi / lo))
 
 
 def field_span_k(coef, res, box=None) -> float | None:

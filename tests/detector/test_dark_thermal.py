@@ -294,3 +294,33 @@ def test_a_dark_field_below_zero_rate_is_refused_and_its_span_is_the_doubling_la
     assert _check(SimpleNamespace(params=dict(zero, field_e_per_s=mild)), res) == ""
     with pytest.raises(ValueError, match="rectangular"):
         DarkGradientParams(field_e_per_s=[[0.0, 1.0], [0.0]])
+
+
+def test_a_dark_ramp_is_tested_on_the_window_at_the_frames_dark_rate():
+    """The linear ramp is a first-order form of the doubling law: it is refused when it takes the dark rate below
+    zero within the window the frame sees (not at the sensor's corners, where it is no longer the law), at the
+    frame's own mean dark rate (which a dark-rate field the model lacks raises), and its span there is the doubling
+    law's ratio."""
+    from types import SimpleNamespace
+
+    from detector.effects.thermal import _check, base_rate, frame_dark_rate, ramp_span_k
+
+    res = _dark_residuals(seed=8)
+    d = base_rate(res)
+    assert frame_dark_rate(res) == pytest.approx(res.sensor.dark_current_e_per_s, rel=0.05)  # a null dark
+    zero = {"gradient_x_e_per_s": 0.0, "gradient_y_e_per_s": 0.0, "temperature_x_k": 0.0, "temperature_y_k": 0.0}
+    frac = (res.xs.max() - res.xs.min()) / max(res.sensor.sensor_width_px - 1, 1)  # the window's share of the width
+    mild = 0.5 * d / frac  # across the sensor: +-0.25 d across the window
+    span = ramp_span_k(mild, 0.0, res)
+    t2 = doubling_interval_k(res.sensor.temperature_c)
+    assert span == pytest.approx(t2 * np.log2(1.25 / 0.75), rel=1e-3)
+    assert _check(SimpleNamespace(params=dict(zero, gradient_x_e_per_s=mild)), res) == ""
+    deep = 3.0 * d / frac  # +-1.5 d across the window: the rate below zero at one side
+    assert ramp_span_k(deep, 0.0, res) is None
+    assert "below zero within the window" in _check(SimpleNamespace(params=dict(zero, gradient_x_e_per_s=deep)), res)
+    # the same ramp on a frame whose measured dark rate is four times the model's is a physical field
+    lifted = SimpleNamespace(**{k: getattr(res, k) for k in ("exptime_s", "dark_e", "photo_adu", "fit", "pixel_sum",
+                                                           "gain", "model_adu", "xs", "ys", "sensor")})
+    lifted.data_adu = res.data_adu + np.float32(3.0 * d * res.exptime_s * res.pixel_sum / res.gain)
+    assert frame_dark_rate(lifted) == pytest.approx(frame_dark_rate(res) + 3.0 * d, rel=1e-2)
+    assert ramp_span_k(deep, 0.0, lifted) is not None

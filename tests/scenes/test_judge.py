@@ -804,3 +804,42 @@ def test_the_catch_all_is_scored_on_the_blocks_the_candidates_were_compared_on(m
     cands = [SimpleNamespace(heldout=-5.0, kind="effect", heldout_block=4, catch_all_heldout=None) for _ in range(2)]
     assert ca.compare_with_catch_all(res, cands, {"significant": True}) == -40.0
     assert asked == [4] and all(c.catch_all_heldout == -40.0 for c in cands)
+
+
+def test_a_rival_refused_for_its_shares_that_predicts_the_held_out_pixels_better_ties_with_the_first():
+    """A name that passes every gate is not named alone when a rival predicts the held-out pixels better and was
+    refused only for the share of what is wrong it removes (where it acts, overall, the large scales): the held-out
+    pixels prefer the rival's form, so the verdict says the data cannot tell them apart. A rival refused for its form
+    (implausible), or whose held-out score is worse, is no tie."""
+    from scenes.app.compare.judge import better_rival, indistinguishable, rank, verdict
+
+    gain = Candidate(Fit("gain_regions", {}, -5000.0, 6, 65536, "gain steps"), 1.0, 0.0, heldout=-4900.0)
+    vig = Candidate(Fit("vignetting", {}, -6000.0, 6, 65536, "a fall-off"), 1.0, 0.0, heldout=-5900.0,
+                    support_share=0.2)
+    assert gain.significant and not vig.significant and vig.gates == ["support"] and better_rival(gain, vig)
+    assert indistinguishable([gain], [gain, vig]) == [vig]
+    assert [c.fit.effect for c in rank([vig, gain])][:2] == ["gain_regions", "vignetting"]
+    assert "cannot tell it apart from vignetting: it predicts the held-out pixels better" in verdict([gain, vig])
+    worse = Candidate(Fit("vignetting", {}, -6000.0, 6, 65536, "a fall-off"), 1.0, 0.0, heldout=-4000.0,
+                      support_share=0.2)
+    assert not better_rival(gain, worse) and indistinguishable([gain], [gain, worse]) == []
+    vig.refuse("implausible", "not this effect's form")
+    assert not better_rival(gain, vig) and indistinguishable([gain], [gain, vig]) == []
+
+
+def test_on_a_frame_with_light_a_bias_structure_goes_after_the_light_it_ties_with():
+    """A bias structure and an added light tied on held-out pixels are named together; on a frame with light the
+    light comes first (the bias frames calibrate the model's offsets, a light pattern is seen only with light),
+    whatever their delta BIC; without light the order inside the tie stays by delta BIC."""
+    from scenes.app.compare.judge import indistinguishable, rank
+
+    def pair():
+        bias = Candidate(Fit("bias_gradient", {}, -1375.0, 3, 65536, "an offset"), 1.0, 0.0, heldout=-1400.0)
+        light = Candidate(Fit("straylight", {}, -1350.0, 6, 65536, "an added light"), 1.0, 0.0, heldout=-1390.0)
+        return bias, light
+
+    bias, light = pair()
+    assert indistinguishable([bias, light]) == [light]
+    assert [c.fit.effect for c in rank([bias, light], "sky")][:2] == ["straylight", "bias_gradient"]
+    assert [c.fit.effect for c in rank([bias, light], "none")][:2] == ["bias_gradient", "straylight"]
+    assert [c.fit.effect for c in rank([bias, light], "")][:2] == ["bias_gradient", "straylight"]

@@ -255,7 +255,9 @@ def rank(cands: list[Candidate], light_source: str = "") -> list[Candidate]:
     none), then the others that are plausible and not rejected, then the implausible and the rejected, each
     by delta BIC. Twins (as good on held-out pixels) go by delta BIC (fewer parameters for the same fit
     first); on a flat-screen frame (``light_source`` "flat"), whose uniform light cannot tell a response from
-    added charge, what multiplies the signal (a response, a gain) comes first."""
+    added charge, what multiplies the signal (a response, a gain) comes first; on a frame with light (a flat or
+    a sky), an offset of the read-out (a bias structure) comes after the fields of light it ties with
+    (:func:`light_before_offset`)."""
     def key(c):
         sig = c.significant
         tier = ((0 if not (c.ambiguous or c.deferred) else 1.5) if c.kind == "parameter" else 1) if sig else \
@@ -268,12 +270,25 @@ def rank(cands: list[Candidate], light_source: str = "") -> list[Candidate]:
     if twins:
         flat = light_source == "flat"
         group = sorted([sig[0], *[c for c in twins if c.significant]],
-                       key=lambda c: (flat and not _multiplies(c), c.fit.delta_bic))
+                       key=lambda c: (flat and not _multiplies(c), light_before_offset(c, group_of=twins + [sig[0]],
+                                                                                        light_source=light_source),
+                                      c.fit.delta_bic))
         group += [c for c in twins if not c.significant]  # the same image, its own score short of the bar
         params = [c for c in out if c.significant and c.kind == "parameter" and not (c.ambiguous or c.deferred)]
         rest = [c for c in out if c not in group and c not in params]
         out = params + group + rest
     return out
+
+
+def light_before_offset(c: Candidate, group_of: list[Candidate], light_source: str) -> bool:
+    """Whether ``c``, an offset of the read-out (:func:`_read_out_offset`, a bias structure), goes after the fields
+    of light in its tie on a frame with light (``light_source`` "flat" or "sky"): the two are one additive image
+    there, told apart only by the light's shot noise. The order inside a tie is not evidence (the verdict names
+    both); it follows what calibrates each: the model's bias is the bias frames' (and the overscan's), which
+    show an offset structure and no light, while a pattern of the light is seen only on frames with light."""
+    if light_source not in ("flat", "sky") or not _read_out_offset(c):
+        return False
+    return any(_charge_origin(o) == "light" or _of_light(o) for o in group_of if o is not c)
 
 
 def _charge_origin(c: Candidate) -> str:
@@ -373,6 +388,25 @@ def same_light(a: Candidate, b: Candidate) -> bool:
     return (_of_light(a) and _charge_origin(b) == "light") or (_of_light(b) and _charge_origin(a) == "light")
 
 
+#: the gates that weigh how much of what is wrong a candidate removes (not whether its form is this effect's): a
+#: rival refused by these alone still says something is there that its form predicts
+SHARE_GATES = frozenset({"structure", "excess", "support"})
+
+
+def better_rival(first: Candidate, c: Candidate) -> bool:
+    """``c`` predicts the pixels neither fit saw better than ``first`` does (its held-out score significant and at
+    least as good, on the same folds), and was refused only for the share of what is wrong it removes
+    (:data:`SHARE_GATES`), not for its form: the held-out pixels, the judge's one test of a form against another,
+    prefer ``c``, and ``first``'s own shares do not tell its form from ``c``'s. Naming ``first`` alone would be a
+    claim the data do not make: a tie, with ``first`` still the one that passes every gate."""
+    if c.heldout is None or first.heldout is None or c.heldout >= c.policy.significant_heldout:
+        return False
+    if c.heldout_block != first.heldout_block or not c.contender:
+        return False
+    gates = set(c.gates)
+    return bool(gates) and gates <= SHARE_GATES and c.heldout <= first.heldout
+
+
 TWIN_REASONS = (
     (same_charge, "the same charge in the same pixels, whose origin (dark or light) only a dark frame of the same "
                   "exposure tells"),
@@ -390,6 +424,9 @@ TWIN_REASONS = (
     (dark_or_offset, ("the same smooth field, of dark charge or an offset of the read-out, whose shot noise does "
                       "not tell them apart here; a bias frame (where dark charge is zero) or a dark of another "
                       "exposure (where it scales with the time) does")),
+    (lambda a, b: better_rival(a, b),
+     "it predicts the held-out pixels better, but removes too little of what is wrong where it acts or overall: the "
+     "held-out pixels prefer its form, the shares do not single out the first's"),
     (lambda a, b: b.heldout_blind and not b.significant,
      "it fits the frame as well or better, and the held-out test cannot weigh it: the few bright pixels that carry "
      "its change lie in one fold of the checkerboard, the other sees less than a detection of it"),
@@ -406,7 +443,8 @@ def indistinguishable(sig: list[Candidate], cands: list[Candidate] = ()) -> list
     (significant by delta BIC, plausible, not rejected) that make the same image as the first in this frame
     (:func:`same_image`): a form of the same image whose held-out score falls short does not make the data
     tell the two stages apart; for the two laws of a light pattern (:func:`same_light`) the plausible ones
-    whose own delta BIC falls short too (:func:`_other_law`)."""
+    whose own delta BIC falls short too (:func:`_other_law`); and the contenders refused only for their shares
+    whose held-out score is better than the first's (:func:`better_rival`)."""
     if not sig:
         return []
     best = sig[0].heldout
@@ -416,7 +454,7 @@ def indistinguishable(sig: list[Candidate], cands: list[Candidate] = ()) -> list
            or same_image(sig[0], c)]
     out += [c for c in cands if c.kind != "parameter" and c is not sig[0] and c not in out and not c.significant
             and ((c.contender or _other_law(sig[0], c)) and same_image(sig[0], c)
-                 or c.contender and blind_rival(sig[0], c))]
+                 or c.contender and blind_rival(sig[0], c) or better_rival(sig[0], c))]
     return out
 
 
