@@ -96,8 +96,9 @@ DEFECT_K = 3
 #: parameters of one particle track of its own: its two ends (4) and its deposit
 TRACK_K = 5
 #: a track spreads its charge over pixels: its peak pixel holds at most this share of its signal (a hot pixel,
-#: with its neighbours' interpixel coupling of a few per cent, holds more than 0.9; a particle crossing a pixel
-#: diffuses half of its charge into the neighbours at the usual sigma of 0.5 px)
+#: with its neighbours' interpixel coupling of a few per cent (Moore et al. 2004, as :func:`max_tail_correlation`),
+#: holds more than 0.9; a particle crossing a pixel diffuses half of its charge into the neighbours at the usual
+#: sigma of 0.5 px)
 TRACK_MAX_PEAK_SHARE = 0.9
 #: a track is narrower than a sampled point-spread function: the r.m.s. width of its signal across its major
 #: axis is below this [output pixels] (a PSF sampled at Nyquist, FWHM 2 px, has 0.85)
