@@ -22,10 +22,10 @@ from . import significance
 #: the least signal-to-noise ratio of a source's own amplitude for the source to enter the slope (below it the
 #: amplitude's logarithm is not defined well enough to fit): a detected source, DETECTION_SIGMA
 SOURCE_MIN_SNR = significance.DETECTION_SIGMA
-#: how many standard errors of the slope must separate the two laws for the sources to tell them apart (the
-#: nearer law is then at least this many halves of that gap from the other: a 2-sigma one-sided decision
-#: with a gap of 4 sigma)
-SEPARATION_SIGMA = 4.0
+#: how many standard errors of the slope must separate the two laws for the sources to tell them apart: the
+#: shared significance of one tested quantity (DETECTION_SIGMA; the nearer law is then at least half of that gap
+#: from the other)
+SEPARATION_SIGMA = significance.DETECTION_SIGMA
 #: the model's source light above this many standard deviations of a pixel's noise marks a source's footprint
 #: (then grown by FOOTPRINT_GROW_PX to hold its wings)
 FOOTPRINT_SIGMA = significance.FOOTPRINT_SIGMA

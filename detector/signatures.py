@@ -96,8 +96,9 @@ DEFECT_K = 3
 #: parameters of one particle track of its own: its two ends (4) and its deposit
 TRACK_K = 5
 #: a track spreads its charge over pixels: its peak pixel holds at most this share of its signal (a hot pixel,
-#: with its neighbours' interpixel coupling of a few per cent, holds more than 0.9; a particle crossing a pixel
-#: diffuses half of its charge into the neighbours at the usual sigma of 0.5 px)
+#: with its neighbours' interpixel coupling of a few per cent (Moore et al. 2004, as :func:`max_tail_correlation`),
+#: holds more than 0.9; a particle crossing a pixel diffuses half of its charge into the neighbours at the usual
+#: sigma of 0.5 px)
 TRACK_MAX_PEAK_SHARE = 0.9
 #: a track is narrower than a sampled point-spread function: the r.m.s. width of its signal across its major
 #: axis is below this [output pixels] (a PSF sampled at Nyquist, FWHM 2 px, has 0.85)
@@ -2064,15 +2065,15 @@ class VarianceSignature(Signature):
     #: same bar of "independent from neighbour to neighbour" as the lines' gains' (MAX_LINE_GAIN_CORRELATION)
     MAX_NEIGHBOUR_CORRELATION = MAX_LINE_GAIN_CORRELATION
 
-    #: a pattern of lines: across them, neighbours correlate by at most this much (and 3 / sqrt(pairs))
-    MAX_ACROSS_LINES = 0.02
-
     def _along_lines(self, res: Residuals) -> bool:
-        """The scatter's neighbour correlation runs along one axis only (whole columns or rows)."""
+        """The scatter's neighbour correlation runs along one axis only (whole columns or rows): along it above
+        MAX_NEIGHBOUR_CORRELATION, across it not significantly above zero (below DETECTION_SIGMA standard errors
+        of a correlation over ``n`` independent pairs, 1 / sqrt(n): a pattern of lines leaves neighbours across
+        the lines uncorrelated)."""
         rv, rh, nv, nh = neighbour_axes(res)
         across, n = (rh, nh) if rv > rh else (rv, nv)
         return (max(rv, rh) > self.MAX_NEIGHBOUR_CORRELATION
-                and across < max(self.MAX_ACROSS_LINES, 3 / np.sqrt(max(n, 1))))
+                and across * np.sqrt(max(n, 1)) < DETECTION_SIGMA)
 
     def plausible(self, fit: Fit, res: Residuals) -> str:
         if self.check is not None:
@@ -2098,10 +2099,9 @@ class VarianceSignature(Signature):
                     "pixel-to-pixel scatter")
         return ""
 
-    #: added scatter is zero-mean: where the template puts it above its median, the residual's mean (in bins of
-    #: the prediction) may carry at most this share of the excess chi2 there
-    MAX_MEAN_SHARE = 0.25
-    #: ... when those bins' means are significant at this many standard deviations of their chi2
+    #: added scatter is zero-mean: where the template puts it above its median, the residual's means (in bins of
+    #: the prediction) are significant at this many standard deviations of their chi2 (the many-pixel structure
+    #: bar): a mean the scatter cannot hold
     MEAN_SIGMA = STRUCTURE_SIGMA
 
     def zero_mean(self, fit: Fit, res: Residuals) -> str:
@@ -2109,8 +2109,8 @@ class VarianceSignature(Signature):
         The extra variance the fit predicts per pixel (``q = theta t w``, in units of the model's variance) is
         binned in factors of 4 above twice its median (only where the template is not uniform: a uniform
         template's mean is a level); in each bin the locally-whitened residual's mean is measured. When those
-        means are significant and carry more than MAX_MEAN_SHARE of the excess chi2 of the binned pixels, the
-        pixels are off one way (compressed star cores, light moved out of them): a mean change the model lacks,
+        means are significant (their chi2 MEAN_SIGMA standard deviations above its dof: zero-mean scatter
+        predicts none), the pixels are off one way (compressed star cores, light moved out of them): a mean change the model lacks,
         which this scatter only absorbs."""
         vs = variance_sample(res)
         theta = fit.state.get("theta")
@@ -2140,8 +2140,6 @@ class VarianceSignature(Signature):
         if not n_bins or excess <= 0 or chi2_means < n_bins + self.MEAN_SIGMA * np.sqrt(2 * n_bins):
             return ""
         share = mean_part / excess
-        if share <= self.MAX_MEAN_SHARE:
-            return ""
         m = worst[1]
         return (f"where this scatter would be largest the pixels sit {'below' if m < 0 else 'above'} the model on "
                 f"average ({abs(m):.2g} sigma in the worst bin of its prediction; the means carry "
@@ -2149,19 +2147,16 @@ class VarianceSignature(Signature):
                 "light moved or added), not zero-mean scatter")
 
     #: the cells' excess variances (over the template's) scatter about their mean significantly when their chi2
-    #: exceeds its dof by this many standard deviations (the DETECTION_SIGMA of one tested quantity) ...
+    #: against their own errors exceeds its dof by this many standard deviations (the DETECTION_SIGMA of one
+    #: tested quantity): the noise does not follow its template over the frame
     CELL_SIGMA = DETECTION_SIGMA
-    #: ... and by at least this fraction (rms) of their mean (a read-noise gradient of the unseen suite spreads
-    #: its cells by 0.5-1 of it; as a share explained, EXPLAINS_MOST would be a spread of 1 and names it kTC)
-    MAX_CELL_SPREAD = 0.5
 
     def uniformity(self, fit: Fit, res: Residuals, cells: int = 4) -> str:
         """The added scatter follows its template over the frame (kTC noise is the same everywhere, PRNU
         follows the light squared): the robust excess variance of each of ``cells`` x ``cells`` regions over
         the template's prediction; one region far above the rest is a structure the local whitening left,
         not this noise. One cell far above the rest and a gradient across the frame are one test: the cells'
-        excess variances scatter about their mean significantly (CELL_SIGMA) and by more than MAX_CELL_SPREAD of
-        it."""
+        excess variances scatter about their mean beyond their errors (chi2 at CELL_SIGMA)."""
         vs = variance_sample(res)
         theta = fit.state.get("theta")
         if not theta or vs["idx"].size < 400 * cells * cells:
@@ -2194,8 +2189,7 @@ class VarianceSignature(Signature):
         wts = 1.0 / np.maximum(errs, 1e-12) ** 2
         mean = float(np.sum(wts * ratios) / np.sum(wts))
         chi2, dof = float(np.sum(wts * (ratios - mean) ** 2)), ratios.size - 1
-        spread = float(np.sqrt(np.sum(wts * (ratios - mean) ** 2) / np.sum(wts))) / max(abs(mean), 1e-12)
-        if chi2 > dof + self.CELL_SIGMA * np.sqrt(2 * dof) and spread > self.MAX_CELL_SPREAD:
+        if chi2 > dof + self.CELL_SIGMA * np.sqrt(2 * dof):
             med = float(np.median(ratios))
             where = (f"it sits in one part of the frame ({ratios.max():.2g} x the fit's there, {med:.2g} x in the "
                      "median region): a local structure the fit took for noise"

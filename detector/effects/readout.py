@@ -227,25 +227,21 @@ class RowOffsetSignature(Signature):
     SMOOTH_FRACTION = EXPLAINS_MOST
     #: ... or a pattern of the whole frame when the column means' excess variance is this fraction of the rows'
     COLUMN_FRACTION = 0.5
-    #: ... or a drift when the extra row offsets (the smooth curve removed) keep this lag-1 autocorrelation: row
-    #: noise draws a new offset for every row read (Janesick 2007, ch. 10); a 1/f (pink) part correlates
-    #: neighbours far less (0.44 for the hidden-effect suite's pink row noise; 0.75 for a bias random walk)
-    MAX_LAG1 = 0.6
-    #: ... unless their spectrum is a flicker noise's: the read chain's 1/f noise (Janesick 2007, Photon Transfer,
-    #: ch. 7: flicker noise of the output amplifier, power ~ 1/f^alpha with alpha ~ 1) makes row offsets that
-    #: correlate from row to row, while a level drifting as a random walk falls as 1/f^2. Correlated offsets
-    #: are a drift when their spectral index (:meth:`spectral_index`) is steeper than this index, midway between
-    #: the two laws
-    MAX_SPECTRAL_INDEX = 1.5
+    #: ... or a drift when the extra row offsets (the smooth curve removed) correlate from row to row beyond
+    #: their noise (lag-1 correlation DETECTION_SIGMA standard errors, 1 / sqrt(rows), above zero: row noise draws
+    #: a new offset for every row read, Janesick 2007, ch. 10) and their spectrum follows a level drifting as a
+    #: random walk (1/f^2) rather than the read chain's flicker noise (Janesick 2007, Photon Transfer, ch. 7:
+    #: flicker noise of the output amplifier, power ~ 1/f): the two laws compared by their Whittle likelihoods
+    #: (:meth:`drift_law_gain`), each with its amplitude fitted, so the data say which law, with no bar between
+    #: the two indices; a pink row noise correlates neighbours (0.44 for the hidden-effect suite's) and is
+    #: nearer 1/f
 
-    @classmethod
-    def spectral_index(cls, u: np.ndarray, ratio: float) -> float | None:
-        """alpha: the power of the extra row offsets falls as 1/f^alpha (alpha the Whittle maximum-likelihood
-        index: each periodogram ordinate I_k of the whitened offsets ``u`` is exponential about ``A k^-alpha + c``,
-        Whittle 1953; ``c`` the white pixel noise of the row means, 1 / ``ratio`` of their variance), over the
-        frequencies above the removed smooth curve's (k > 8). None with fewer than 16 frequencies or no excess."""
-        from scipy.optimize import minimize
-
+    @staticmethod
+    def _whittle(u: np.ndarray, ratio: float):
+        """The Whittle negative log-likelihood ``nll(log A, alpha)`` of the periodogram of the whitened extra row
+        offsets ``u``: each ordinate I_k exponential about ``A k^-alpha + c`` (Whittle 1953; ``c`` the white pixel
+        noise of the row means, 1 / ``ratio`` of their variance), over the frequencies above the removed smooth
+        curve's (k > 8); and a starting log-amplitude. None with fewer than 16 frequencies or no excess."""
         n = u.size
         power = np.abs(np.fft.rfft(u - u.mean())) ** 2 / n
         k = np.arange(power.size, dtype=np.float64)
@@ -260,10 +256,38 @@ class RowOffsetSignature(Signature):
             m = np.exp(p[0] - p[1] * lk) + c
             return float(np.sum(np.log(m) + ik / m))
 
-        a0 = np.log(max(float(np.mean(ik[:8])) - c, 1e-6 * c))
+        return nll, float(np.log(max(float(np.mean(ik[:8])) - c, 1e-6 * c)))
+
+    @classmethod
+    def spectral_index(cls, u: np.ndarray, ratio: float) -> float | None:
+        """alpha: the power of the extra row offsets falls as 1/f^alpha (the Whittle maximum-likelihood index of
+        :meth:`_whittle`). None with fewer than 16 frequencies or no excess."""
+        from scipy.optimize import minimize
+
+        got = cls._whittle(u, ratio)
+        if got is None:
+            return None
+        nll, a0 = got
         best = min((minimize(nll, [a0, al], method="Nelder-Mead", options={"xatol": 1e-4, "fatol": 1e-3}) for al in
                     (0.5, 1.0, 2.0)), key=lambda o: o.fun)
         return float(best.x[1])
+
+    @classmethod
+    def drift_law_gain(cls, u: np.ndarray, ratio: float) -> float | None:
+        """Whittle -2 ln L of a drifting level's spectrum (1/f^2, a random walk) less that of a flicker noise's
+        (1/f, the read chain's), each with its amplitude fitted (:meth:`_whittle`): negative when the extra row
+        offsets follow the drift's law. Two laws of one parameter each: the likelier is the data's, no bar
+        between them. None with fewer than 16 frequencies or no excess."""
+        from scipy.optimize import minimize_scalar
+
+        got = cls._whittle(u, ratio)
+        if got is None:
+            return None
+        nll, a0 = got
+        fits = [minimize_scalar(lambda la, al=al: nll((la, al)), bracket=(a0 - 1.0, a0 + 1.0)).fun
+                for al in (1.0, 2.0)]
+        return 2.0 * float(fits[1] - fits[0])
+
     @staticmethod
     def periodic_peak(u: np.ndarray) -> tuple[float, float] | None:
         """(period [rows], ratio) of the strongest frequency of the whitened row offsets ``u`` when it stands
@@ -329,13 +353,14 @@ class RowOffsetSignature(Signature):
             rho1 = float(np.dot(u[1:], u[:-1]) / max(np.dot(u, u), 1e-300))
             ratio = float(np.sum(r * r / v)) / n
             rho_extra = rho1 * ratio / (ratio - 1) if ratio > 1 else 0.0
-            if rho_extra > self.MAX_LAG1 and rho1 * np.sqrt(n) > DETECTION_SIGMA:
-                alpha = self.spectral_index(u, ratio)
-                if alpha is None or alpha > self.MAX_SPECTRAL_INDEX:
+            if rho1 * np.sqrt(n) > DETECTION_SIGMA:
+                drift = self.drift_law_gain(u, ratio)
+                alpha = None if drift is None else self.spectral_index(u, ratio)
+                if drift is None or drift < 0:
                     return (f"the row offsets are correlated from one row to the next (lag-1 correlation {rho_extra:.2f} "
                             f"of the extra offsets, {rho1 * np.sqrt(n):.0f} sigma"
-                            + (f"; their spectrum falls as 1/f^{alpha:.2g}, steeper than a flicker noise's"
-                               if alpha is not None else "") + "): a level drifting during the read-out "
+                            + (f"; their spectrum falls as 1/f^{alpha:.2g}, a drift's 1/f^2 likelier than a flicker "
+                               f"noise's 1/f by {-drift:.3g} in -2 ln L" if alpha is not None else "") + "): a level drifting during the read-out "
                             "or a slow pickup, not row noise")
             peak = self.periodic_peak(u)
             if peak is not None:

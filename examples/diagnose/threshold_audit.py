@@ -163,9 +163,7 @@ WHITE_SCALE | N | scale | local mean removed before a variance fit
 TAIL_CLIP_SIGMA | N | clip | the whitened tail clipped before its neighbour correlation (one cosmic ray does not carry it)
 TAIL_SIGMA | D | statistics | the whitened residual's tail: each pixel a part of the detected excess (FOOTPRINT_SIGMA)
 VarianceSignature.MAX_NEIGHBOUR_CORRELATION | D | physics | added scatter is pixel-to-pixel
-VarianceSignature.MAX_ACROSS_LINES | D | physics | a line pattern: neighbours across lines uncorrelated
-VarianceSignature.MAX_MEAN_SHARE | D | physics | added scatter is zero-mean
-VarianceSignature.MEAN_SIGMA | D | statistics | those means significant at structure_sigma
+VarianceSignature.MEAN_SIGMA | D | statistics | added scatter is zero-mean: the binned means significant at structure_sigma refute it
 @detector/morphology.py
 SIGNIFICANT_SIGMA | D | calibration | a structured residual: structure_sigma
 GEOMETRY_SHARE | D | design | a family is part of the geometry
@@ -191,7 +189,7 @@ SOURCE_KERNEL_CORE_SIGMA | D | statistics | a source pixel: its footprint, model
 SOURCE_KERNEL_HARMONICS | N | basis | angular harmonics of the kernel
 @detector/flux_law.py
 SOURCE_MIN_SNR | D | statistics | S/N of a source's amplitude to enter the slope
-SEPARATION_SIGMA | D | statistics | standard errors separating the two laws
+SEPARATION_SIGMA | D | statistics | standard errors separating the two laws: detection_sigma
 FOOTPRINT_SIGMA | D | statistics | a source footprint: model light 3 sigma above the noise
 FOOTPRINT_GROW_PX | N | geometry | footprint growth
 @detector/effects/base.py
@@ -290,8 +288,6 @@ TAIL_SPAN | N | model | span of a crosstalk tail (e-folds)
 RowOffsetSignature.SMOOTH_DEGREE | N | basis | polynomial degree of the smooth-curve test
 RowOffsetSignature.SMOOTH_FRACTION | D | design | a row-offset fit is a smooth curve above this share
 RowOffsetSignature.COLUMN_FRACTION | D | design | a whole-frame pattern, not row noise
-RowOffsetSignature.MAX_LAG1 | D | physics | row noise is white from row to row (Janesick 2007)
-RowOffsetSignature.MAX_SPECTRAL_INDEX | D | physics | correlated row offsets: a flicker noise's spectrum falls as 1/f, a drifting level's as 1/f^2; midway
 BIAS_PROFILE_ORDERS | N | grid | bias pattern orders tried
 BIAS_FIELD_ORDERS | N | grid | bias field orders tried
 KTC_MAX_READ_RATIO | D | physics | a kTC noise is part of the read noise
@@ -339,7 +335,6 @@ PERIODIC_LINE_NEIGHBOURS | N | estimator | frequencies of the local spectral lev
 MIN_LINE_PIXELS | N | sampling | pixels a line needs for its gain estimate
 LIGHT_LAW_CHI2 | D | statistics | a light pattern's law (added or a response) is told from the other law of the same shape at chi2_1 of 5 sigma
 VarianceSignature.CELL_SIGMA | D | statistics | the cells' excess variances scatter beyond their errors: chi2 at DETECTION_SIGMA
-VarianceSignature.MAX_CELL_SPREAD | D | design | ... by this fraction (rms) of their mean
 DITHER_SEED | N | seed | fixed dither of integer read codes (reproducibility)
 @scenes/app/compare/candidates.py
 SIGNIFICANT_DELTA_BIC | D | contract | the policy's significant_delta_bic

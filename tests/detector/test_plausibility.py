@@ -139,6 +139,29 @@ def test_a_prnu_may_have_column_and_row_components_but_not_blobs(pattern, plausi
     assert (why == "") == plausible, why
 
 
+@pytest.mark.parametrize("where,uniform", [("everywhere", True), ("one quarter", False)])
+def test_a_scatter_follows_its_template_over_the_frame(where, uniform):
+    """The cells' excess variances over the template's prediction scatter about their mean beyond their own
+    errors (their chi2 at CELL_SIGMA) when the scatter sits in one part of the frame; a white noise (reset
+    noise: a uniform template) spread over the whole frame passes."""
+    rng = np.random.default_rng(12)
+    shape = (256, 256)
+    s = make_sensor("ml11002", {"width": 256, "height": 256, "bias_adu": 0})
+    model = np.full(shape, 100.0)
+    var = np.full(shape, 9.0)
+    extra = np.full(shape, 3.0)
+    if where == "one quarter":
+        extra[:] = 0.0
+        extra[:128, :128] = 6.0
+    data = model + rng.normal(0, np.sqrt(var)) + extra * rng.standard_normal(shape)
+    res = _res(data, model, var, np.zeros(shape), s)
+    sig = registry()["reset_noise"].signature
+    fit = sig.fit(res, "reset_noise")
+    assert fit is not None and fit.delta_bic < -100
+    why = sig.uniformity(fit, res)
+    assert (why == "") == uniform, why
+
+
 def test_compressed_star_cores_are_not_a_prnu():
     """Cores read low: the scatter the PRNU fit wants is a mean deficit, which the zero-mean rule names."""
     res = _prnu_case(0.08)

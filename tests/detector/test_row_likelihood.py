@@ -114,19 +114,20 @@ def _power_law_series(n, alpha, rng):
     return x / x.std()
 
 
-def test_flicker_row_offsets_are_told_from_a_drifting_level_by_their_spectral_index():
+def test_flicker_row_offsets_are_told_from_a_drifting_level_by_their_spectral_law():
     """Correlated row offsets: a read chain's 1/f (flicker) noise has spectral index ~1, a level drifting as a
-    random walk ~2 (its Whittle index); the row-noise plausibility tells them apart at MAX_SPECTRAL_INDEX."""
+    random walk ~2 (its Whittle index); the row-noise plausibility tells them apart by the Whittle likelihoods of
+    the two laws (drift_law_gain: negative for the drift)."""
     from detector.effects.readout import RowOffsetSignature as R
 
     rng = np.random.default_rng(35)
     n = 2048
     x = np.linspace(-1, 1, n)
     basis = np.polynomial.legendre.legvander(x, R.SMOOTH_DEGREE)
-    for make, lo, hi in ((lambda: _power_law_series(n, 1.0, rng), 0.7, 1.3),
-                         (lambda: np.cumsum(rng.standard_normal(n)) / 20.0, 1.8, 2.5)):
+    for make, lo, hi, drift in ((lambda: _power_law_series(n, 1.0, rng), 0.7, 1.3, False),
+                                (lambda: np.cumsum(rng.standard_normal(n)) / 20.0, 1.8, 2.5, True)):
         u = 3.0 * make() + rng.standard_normal(n)  # the extra offsets over the row means' pixel noise
         u = u - basis @ np.linalg.lstsq(basis, u, rcond=None)[0]
         alpha = R.spectral_index(u, float(np.mean(u * u)))
         assert lo < alpha < hi
-    assert 1.0 < R.MAX_SPECTRAL_INDEX < 2.0
+        assert (R.drift_law_gain(u, float(np.mean(u * u))) < 0) == drift
