@@ -1186,14 +1186,21 @@ def _drift_params(th, res):
 
 
 def _drift_check(fit, res) -> str:
-    """A trail is a drift only when it beats the round blur a short trail is (a box of length L has the
-    variance L^2 / 12 of a blur along it): the nested test of the drift's fit (the straight trail's 2
-    parameters, the path's 4) against psf_blur's core on the same pixels."""
-    gain, k = _beyond_blur(fit, res)
+    """A trail is a drift only when its profile is a path's, not a smear's: a short trail is the Gaussian smear
+    of its covariance (a box of length L has the variance L^2 / 12 along it; their transfer functions part at
+    the fourth order, (pi f L)^4 / 180). The trail convolved with a Gaussian smear nests the jitter's Gaussian
+    form with the trail's parameters (2 for the straight trail, 4 for the path) more; its gain over the smear is
+    at least the drift's own gain over it, which must pass the nested test. Without a jitter fit, the round
+    blur is the simpler form (the drift's parameters beyond psf_blur's one)."""
+    smear = Jitter.signature.form_fit(res, "jitter", (0, 1, 2))
+    if smear is not None:
+        gain, k = _nested_gain(fit, smear)[0], int(fit.k)
+    else:
+        gain, k = _beyond_blur(fit, res)
     if k < 1 or nested_gain_significant(gain, k, NESTED_SIGMA):
         return ""
-    return (f"the trail is a blur within the noise: its {k} parameters beyond a round blur remove {gain:.3g} chi2, "
-            "no more than chance does: a blur (psf_blur), not a drift")
+    return (f"the trail's profile is a smear's within the noise: beyond a Gaussian smear it removes {gain:.3g} chi2 "
+            f"({k} parameters), no more than chance does: a blur or jitter (psf_blur, jitter), not a drift")
 
 
 def _drift_words(p, res) -> str:
