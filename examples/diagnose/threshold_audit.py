@@ -259,6 +259,7 @@ TAIL_MAX_FWHM | D | physics | a tail longer than 3 FWHM is a trail
 TAIL_START_FRAC | N | start | linearised start of the tail's share
 DRIFT_DWELL_ACCEL | N | wording | describes a path as dwelling
 DRIFT_BOW_PX | N | wording | describes a path as bowed
+MAX_SKEW_SHARE | D | design | a rigid offset leaves the shape alone (which reason refuses it: lopsided or varying)
 @detector/effects/optical.py
 SEPARABLE_MAP_COEFS | N | budget | evaluation method switch
 _CENTRE_GRID | N | grid | vignetting centres tried
