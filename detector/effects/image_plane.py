@@ -1286,7 +1286,7 @@ def _distortion_words(p, res) -> str:
 #: lopsided PSF and a displacement varying across the field pass the nested tests of the skew and of the
 #: regions' own shifts, each beyond the other too (a 3 x 3 grid of shifts does not follow a field growing as
 #: r^2, and a tail moves faint and saturated sources by different amounts): this share tells which the
-#: sources show, the offset being refused either way
+#: sources show (and a skew below it, with regions that do not vary, leaves the offset a candidate)
 MAX_SKEW_SHARE = 0.05
 
 
