@@ -839,6 +839,14 @@ def _smear_elongated(res) -> bool:
 
 
 # jitter: theta = (c_xx, c_yy, c_xy) [output px^2]
+#: sigma_major / sigma_minor below which a fitted Gaussian smear is named a blur (psf_blur), even when its
+#: elongation passes the nested test: the random-form draws label kernels of axis ratio 0.85-1 round (psf_blur
+#: only), and on frames of truth chi2 1e5-1e6 the nested test measures axis ratios of 0.94-0.96 (a chi2 gain of
+#: ~2500 over the round blur, psf_blur-2763062600716554132), which the held-out scores cannot tell from the
+#: blur: without this floor the judge names jitter first on 3 of the development draw's psf_blur cases
+JITTER_MIN_ELONGATION = 1.1
+
+
 def _jitter_start(res, terms=(0, 1, 2)):
     """theta = (c_xx, c_yy, c_xy [output px^2], a_x, a_y [output px]): the Gaussian smear's covariance from
     the linearised fit; a vibration's amplitude along the major axis from it (arcsine variance A^2 / 2). The
@@ -893,6 +901,9 @@ def _jitter_params(th, res):
         return None
     w0 = max(float(w[0]), 0.0)
     # an isotropic smear is psf_blur (nested in this model): whether it is elongated is :func:`_jitter_check`'s
+    # nested test; one rounder than JITTER_MIN_ELONGATION is named a blur however significant
+    if w[1] < JITTER_MIN_ELONGATION ** 2 * w0:
+        return None
     return {"sigma_major_px": round(float(np.sqrt(w[1])) * b, 4), "sigma_minor_px": round(float(np.sqrt(w0)) * b, 4),
             "angle_deg": round(ang, 2)}
 

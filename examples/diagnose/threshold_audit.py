@@ -252,6 +252,7 @@ MAX_CACHED_SPECTRA | N | budget | spectra cache
 DRIFT_PATH_SAMPLING_PX | N | tolerance | quadrature of a drift path
 HALO_START_VAR | N | start | halo widths the fit starts from
 HALO_MAX_FRACTION | D | physics | largest share of the light a halo may hold
+JITTER_MIN_ELONGATION | D | design | a smear this round is named psf_blur (the draws' round kernels)
 ELONGATION_MAX_GAIN | N | bound | narrowing filter's gain
 TAIL_MAX_FIT_PX | N | bound | longest tail a fit tries
 TAIL_MAX_FRAC | D | physics | a source is more core than tail
