@@ -55,3 +55,21 @@ MIN_TEST_PIXELS = 100
 #: dead (EMVA 1288) and a grade-2 CCD a few tens of its thousands of columns; RTS populations of CMOS sensors are
 #: below a few per cent (Wang et al. 2006; Chao et al. 2019). Beyond it, a pattern of many small deviations
 MAX_DEFECT_FRACTION = 0.05
+
+
+def nested_gain_bar(extra_params: int, sigma: float = STRUCTURE_SIGMA) -> float:
+    """The chi2 gain a model must make over a model it nests to be preferred: ``k + sigma sqrt(2 k)`` for its
+    ``k`` extra parameters. Under the simpler model the gain (twice the log-likelihood ratio) follows a chi2
+    law with k degrees of freedom, mean k and variance 2 k (Wilks 1938, Ann. Math. Stat. 9, 60); the bar is
+    that law's mean plus ``sigma`` of its standard deviations (STRUCTURE_SIGMA by default: the gain is a sum
+    over a frame's pixels, whose null is fattened by the model's small imperfections, as every structure)."""
+    if extra_params < 1:
+        raise ValueError("a nested model has at least one extra parameter")
+    return extra_params + sigma * math.sqrt(2.0 * extra_params)
+
+
+def nested_gain_significant(gain: float, extra_params: int, sigma: float = STRUCTURE_SIGMA) -> bool:
+    """Whether a richer model's chi2 gain over the simpler model it nests (``-2 ln L`` of the simpler minus
+    the richer's, on the same pixels) is significant for its ``extra_params`` extra parameters: the nested
+    likelihood-ratio test of :func:`nested_gain_bar`."""
+    return bool(gain >= nested_gain_bar(extra_params, sigma))

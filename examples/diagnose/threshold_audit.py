@@ -249,20 +249,15 @@ MAX_CACHED_SPECTRA | N | budget | spectra cache
 DRIFT_PATH_SAMPLING_PX | N | tolerance | quadrature of a drift path
 HALO_START_VAR | N | start | halo widths the fit starts from
 HALO_MAX_FRACTION | D | physics | largest share of the light a halo may hold
-JITTER_MIN_ELONGATION | D | design | a smear this round is isotropic (psf_blur)
-VIBRATION_MIN_AMPLITUDE | D | design | smallest vibration proposed
-ELONGATION_MIN_NEGATIVE | D | design | a narrowing this small is a blur
+JITTER_MIN_ELONGATION | D | design | a smear this round is named psf_blur (the draws' round kernels)
 ELONGATION_MAX_GAIN | N | bound | narrowing filter's gain
 TAIL_MAX_FIT_PX | N | bound | longest tail a fit tries
-TAIL_MIN_PX | D | design | shortest tail proposed
 TAIL_MAX_FRAC | D | physics | a source is more core than tail
 TAIL_MAX_FWHM | D | physics | a tail longer than 3 FWHM is a trail
 TAIL_START_FRAC | N | start | linearised start of the tail's share
-DRIFT_MIN_LENGTH | D | design | shortest drift proposed
 DRIFT_DWELL_ACCEL | N | wording | describes a path as dwelling
 DRIFT_BOW_PX | N | wording | describes a path as bowed
-MAX_OFFSET_VARIATION | D | physics | a rigid offset moves every source alike
-MAX_SKEW_SHARE | D | design | a rigid offset leaves the shape alone
+MAX_SKEW_SHARE | D | design | a rigid offset leaves the shape alone (which reason refuses it: lopsided or varying)
 @detector/effects/optical.py
 SEPARABLE_MAP_COEFS | N | budget | evaluation method switch
 _CENTRE_GRID | N | grid | vignetting centres tried
@@ -316,7 +311,7 @@ GN_MAX_K | N | bound | temperature differences the search explores
 IPC_STAGE_CHI2 | D | statistics | the IPC of the charge that is not light must differ from nothing by chi2_1 at 5 sigma to tell the stage
 @detector/effects/image_plane.py
 MAX_CACHED_OUTPUTS | N | budget | filtered images a fit keeps for its repeated Fourier filters
-NESTED_SIGMA | D | statistics | nested likelihood-ratio test of distortion vs the similarity transform (Wilks 1938), the region tests' 8 sigma
+NESTED_SIGMA | D | statistics | nested likelihood-ratio test of a richer image-plane form vs the simpler one it nests (Wilks 1938): jitter, drift, elongation vs blur, tail vs shift + blur, offset vs a varying or skewed one, distortion vs the similarity transform
 @detector/effects/rts.py
 RTS_TAIL_Z | N | sampling | pixels beyond it always enter the one-frame RTS likelihood, the core is subsampled
 RTS_CORE_PIXELS | N | budget | most core pixels of the one-frame RTS likelihood

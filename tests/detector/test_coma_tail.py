@@ -85,14 +85,18 @@ def test_the_psf_width_from_the_derivatives_is_the_fwhm_of_a_sampled_gaussian():
     ({"tail_px": 2.0, "tail_frac": 0.75, "tail_angle_deg": 20.0}, "more tail than core"),
     ({"tail_px": 25.0, "tail_frac": 0.3, "tail_angle_deg": 20.0}, "times the PSF's FWHM"),
 ])
-def test_a_tail_that_no_psf_has_is_not_plausible(params, bad):
+def test_a_tail_that_no_psf_has_is_not_plausible(params, bad, monkeypatch):
     g, _, _ = _gauss(101, 50.0, 1.5)  # FWHM 3.5 px: a tail of 2 px is a coma, 25 px a trail
     fit = Fit("psf_elongation", {"dcxx_px2": 0.0, "dcyy_px2": 0.0, "dcxy_px2": 0.0, **params}, -1e4, 3, 10000, "")
     why = ip._elongation_check(fit, _res_of(1e5 * g))
     assert (bad in why) if bad else why == ""
-    # the symmetric form is not judged by the tail's bounds
-    assert ip._elongation_check(Fit("psf_elongation", {"dcxx_px2": 1.0, "dcyy_px2": -0.5, "dcxy_px2": 0.0}, -1e4,
-                                    3, 10000, ""), _res_of(1e5 * g)) == ""
+    # the symmetric form is not judged by the tail's bounds, but by the nested test against the smear (the
+    # jitter's Gaussian form, its minor eigenvalue held at 0): one parameter freed, bar 1 + 8 sqrt(2) = 12.3
+    sym = Fit("psf_elongation", {"dcxx_px2": 1.0, "dcyy_px2": -0.5, "dcxy_px2": 0.0}, -1e4, 3, 10000, "")
+    for smear_m2lnl, refused in ((-9000.0, False), (-1e4 + 10.0, True)):
+        smear = Fit("jitter", {}, smear_m2lnl, 3, 10000, "")
+        monkeypatch.setattr(ip.Jitter.signature, "form_fit", lambda res, name, sub, smear=smear: smear)
+        assert ("narrowing across is within the noise" in ip._elongation_check(sym, _res_of(1e5 * g))) == refused
 
 
 def test_the_effect_renders_the_tail_and_zero_share_is_identity():

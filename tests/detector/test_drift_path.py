@@ -190,8 +190,8 @@ def test_the_diagnosis_recovers_the_path_and_prefers_it_to_jitter(tmp_path, trut
 
 
 def test_the_path_is_fitted_only_when_the_straight_drift_is_a_candidate(tmp_path, monkeypatch):
-    """A frame without any trail (a small jitter): the straight drift is not proposed, so the 4-parameter
-    path is never tried (no transform with accel or sagitta)."""
+    """A frame without any trail (a small jitter): the straight drift is not told from the jitter's smear (the
+    nested test refuses it), so the 4-parameter path is never tried (no transform with accel or sagitta)."""
     from detector.effects.base import registry
 
     res = _residuals(tmp_path, "[effects.jitter]\nsigma_major_px = 0.3\nsigma_minor_px = 0.2\nangle_deg = 10\n",
@@ -204,7 +204,9 @@ def test_the_path_is_fitted_only_when_the_straight_drift_is_a_candidate(tmp_path
         return orig(image, dx, dy, accel, sagitta_px, **kw)
 
     monkeypatch.setattr(ip, "drift_smear", counting)
-    assert registry()["pointing_drift"].signature.fit(res, "pointing_drift") is None
+    sig = registry()["pointing_drift"].signature
+    fit = sig.fit(res, "pointing_drift")
+    assert fit is None or "a smear's within the noise" in sig.plausible(fit, res)
     assert calls and all(a == 0 and s == 0 for a, s in calls)
 
 

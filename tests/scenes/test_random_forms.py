@@ -341,17 +341,16 @@ def test_a_deep_off_centre_cos4_fall_off_named_vignetting(tmp_path):
 
 
 def test_a_walk_that_wanders_a_drift_length_accepts_the_drift():
-    """Image motion of a random walk is a drifting pointing once its path spans DRIFT_MIN_LENGTH (as a drift
+    """Image motion of a random walk is a drifting pointing once its path spans SMEAR_MAX_TRAIL_PX (as a drift
     shorter than it accepts the image-motion names): the label follows the path the case draws."""
-    from detector.effects.image_plane import DRIFT_MIN_LENGTH
-    from scenes.app.validation.random_forms import draw_case
+    from scenes.app.validation.random_forms import SMEAR_MAX_TRAIL_PX, draw_case
 
     far, near = draw_case("jitter", 1350752753947001737), draw_case("jitter", 3643679130166704865)
     for case, drifts in ((far, True), (near, False)):
         prm = case.draw.effects[0][1]
         path = np.cumsum(np.random.default_rng(prm["seed"]).standard_normal((32, 2)) * prm["amp_px"], axis=0)
         span = max(np.hypot(*(a - b)) for a in path for b in path)
-        assert (span >= DRIFT_MIN_LENGTH) == drifts and ("pointing_drift" in case.draw.accept) == drifts
+        assert (span >= SMEAR_MAX_TRAIL_PX) == drifts and ("pointing_drift" in case.draw.accept) == drifts
 
 
 def test_a_white_pattern_at_large_n_is_not_a_template():

@@ -1090,6 +1090,16 @@ def fam_psf_elongation(rng):
     return _blur_draw(rng, True)
 
 
+#: the longest image motion [output px] the draws label a smear rather than a trail: a box this short has an rms of
+#: 0.43 px (L / sqrt(12)), ~1.5 times the pixel's own box (1 / sqrt(12) px), so its profile across the pixel
+#: grid is the pixel's and the PSF's, and only its second moments (an elongation) are measured; its transfer
+#: function sinc(pi f L) departs from the Gaussian of its variance by (pi f L)^4 / 180, 0.17 at the Nyquist
+#: frequency. A label of what one frame tells, not a threshold of the judge (whose drift, jitter and elongation
+#: are told apart by the nested test of their fits, frame by frame): its value is the one the development draws
+#: were labelled with (the judge's former DRIFT_MIN_LENGTH), so the accepted names of a case do not change
+SMEAR_MAX_TRAIL_PX = 1.5
+
+
 def fam_jitter(rng):
     base = _choice(rng, ["stars", "stars_imx", "stars_bright"])
     law = _choice(rng, ["sine", "walk"])
@@ -1097,13 +1107,11 @@ def fam_jitter(rng):
     prm = {"law": law, "amp_px": amp, "angle_deg": float(rng.uniform(0, 180)), "seed": int(rng.integers(2 ** 31))}
     accept = ("jitter", "psf_elongation") + (("psf_blur",) if law == "walk" else ())
     if law == "walk":
-        # a walk that wanders as far as the judge's DRIFT_MIN_LENGTH is a drifting pointing (a path), as a drift
-        # shorter than it is image motion of any law (fam_pointing_drift): the path MotionPath draws, its span
-        from detector.effects.image_plane import DRIFT_MIN_LENGTH
-
+        # a walk that wanders as far as SMEAR_MAX_TRAIL_PX is a drifting pointing (a path), as a drift shorter
+        # than it is image motion of any law (fam_pointing_drift): the path MotionPath draws, its span
         path = np.cumsum(np.random.default_rng(prm["seed"]).standard_normal((32, 2)) * amp, axis=0)
         span = float(np.max(np.hypot(*(path[:, None, :] - path[None, :, :]).transpose(2, 0, 1))))
-        accept += ("pointing_drift",) if span >= DRIFT_MIN_LENGTH else ()
+        accept += ("pointing_drift",) if span >= SMEAR_MAX_TRAIL_PX else ()
     return Draw(base, [("MotionPath", prm)], f"{law} image motion, {amp:.3g} px", t, accept=accept)
 
 
@@ -1114,11 +1122,9 @@ def fam_pointing_drift(rng):
     a = float(rng.uniform(0, 2 * np.pi))
     prm = {"law": law, "dx": length * math.cos(a), "dy": length * math.sin(a), "amp_px": length,
            "sag_px": length * float(rng.uniform(0.05, 0.3)), "angle_deg": math.degrees(a)}
-    # a trail shorter than the judge's DRIFT_MIN_LENGTH is a smear no shape test separates from image motion of
-    # another law (a box of 1.5 px has the rms of a 0.43 px jitter): an image-motion name is right for it
-    from detector.effects.image_plane import DRIFT_MIN_LENGTH
-
-    accept = ("pointing_drift",) + (("jitter", "psf_elongation") if length < DRIFT_MIN_LENGTH else ())
+    # a trail shorter than SMEAR_MAX_TRAIL_PX is a smear no shape test separates from image motion of another law
+    # (a box of 1.5 px has the rms of a 0.43 px jitter): an image-motion name is right for it
+    accept = ("pointing_drift",) + (("jitter", "psf_elongation") if length < SMEAR_MAX_TRAIL_PX else ())
     return Draw(base, [("MotionPath", prm)], f"{law} drift of {length:.3g} px", t, accept=accept)
 
 
