@@ -1229,13 +1229,14 @@ def fit_linear(res: Residuals, values: Callable[[np.ndarray], np.ndarray], idx: 
             sums = [np.array(x) for x in chunk] if sums is None else [acc + x for acc, x in zip(sums, chunk)]
     if tt is None:
         return np.zeros(0), 0.0
-    raw = np.diag(tt).copy()
     if sums is not None:  # generalised least squares with the rows' shared offsets (Woodbury, above)
         g = row_gain(c_row, sums[0])
         ut, un, ur = sums[1], sums[2], sums[3]
         utg, ung = ut * g, un * g
         tt, tn, tr = tt - utg @ ut.T, tn - utg @ un.T, tr - utg @ ur
         nn, nr = nn - ung @ un.T, nr - ung @ ur
+    # each template's norm under the noise model (the rows' offsets counted), before the levels take their part
+    raw = np.diag(tt).copy()
     if nn.size:
         k = np.linalg.solve(nn, tn.T)  # (levels, templates)
         a_ = tt - tn @ k
@@ -1243,7 +1244,8 @@ def fit_linear(res: Residuals, values: Callable[[np.ndarray], np.ndarray], idx: 
     else:
         a_, b_ = tt, tr
     # a template with (almost) nothing left once the levels are refitted carries no information: it is
-    # indistinguishable from them by the levels' own rule (LEVEL_DEGENERACY of its weighted norm left). A field's
+    # indistinguishable from them by the levels' own rule (LEVEL_DEGENERACY of its weighted norm left; the norm
+    # under the same noise model, so a row-constant template that row noise down-weights is not counted dead). A field's
     # linear term across a window whose dark level holds a temperature ramp kept 3e-9 of its norm: fitted, its
     # coefficient was the noise's (a ramp of 37 e-, the dark level's opposite ramp taking it back)
     dead = np.diag(a_) <= LEVEL_DEGENERACY * np.maximum(raw, 1e-300)

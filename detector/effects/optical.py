@@ -178,6 +178,8 @@ def _vignetting_variant(res, cx_mm: float, cy_mm: float, radius_mm: float | None
         # least-losing axis, a2 - quad, is not negative (a saddle gains light along one axis, which the rings of
         # observed_rise, averaging over azimuth, do not see)
         ok = ok and a2 - quad >= 0.0
+        # on the bound a2 = 0 the loss is the rho^4 term's: a4 <= 0 would brighten the field everywhere
+        ok = ok and (a4 > 0.0 if quartic else True)
         p = {"a2": round(a2, 6), "a4": round(a4, 6)}
         if elliptical:
             p.update(a2_cos2=round(float(c[2]), 6), a2_sin2=round(float(c[3]), 6))

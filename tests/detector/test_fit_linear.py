@@ -44,3 +44,24 @@ def test_a_template_the_levels_hold_gets_no_coefficient():
     assert c[0] == 0.0
     assert np.isfinite(c[1]) and abs(c[1]) < 5.0  # noise only: a few ADU at most
     assert d <= 0.0
+
+
+def test_a_row_constant_template_under_row_noise_is_fitted_not_dropped():
+    """Row noise down-weights a template constant along the rows (the rows' offsets could make it), but the
+    levels do not hold it: a real vertical ramp is fitted, its chi2 gain large, not counted dead."""
+    rng = np.random.default_rng(7)
+    s = make_sensor("ml11002", {"width": 1024, "height": 256})
+    h, w = s.output_shape
+    ys, xs = np.arange(h, dtype=float), np.arange(w, dtype=float)
+    v = 2 * ys / (h - 1) - 1
+    model = np.full((h, w), 1000.0, np.float32)
+    var = np.full((h, w), 25.0, np.float32)
+    data = (model + 6.0 * v[:, None] + rng.normal(0, 5.0, (h, w))).astype(np.float32)
+    zero = np.zeros((h, w), np.float32)
+    res = Residuals(data, model, var, np.ones((h, w), bool), zero, zero, ys, xs, s, 0.0,
+                    SpikeStats(0, 0, 0, 0, 0), SpikeStats(0, 0, 0, 0, 0), row_var_adu2=50.0)
+    idx, _, wts = res.flat_profiled()
+    c, d = fit_linear(res, lambda i: (2 * (np.asarray(i) // w) / (h - 1) - 1)[None, :], idx, res.flat()[1], wts)
+    # row noise of twice the pixel variance over 1024 columns leaves the ramp 1/2049 of its white-noise chi2
+    # (~61 of ~126000): below LEVEL_DEGENERACY of its white-noise norm, yet a detection
+    assert abs(c[0] - 6.0) < 2.0 and d < -30

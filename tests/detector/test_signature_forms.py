@@ -240,3 +240,7 @@ def test_a_fall_off_steeper_than_rho4_is_fitted_on_the_bound_of_its_rho2_rate():
     assert fit is not None and fit.note.endswith("|quartic"), None if fit is None else fit.note
     assert fit.params["a2"] == 0.0 and fit.params["a4"] > 0
     assert fit.delta_m2lnl < -1000
+    # on the bound the loss is the rho^4 term's: a negative one would brighten the field everywhere
+    quartic = _vignetting_variant(res, cu, cv, 2 * 0.5 * s.pixel_pitch_um * 1e-3 * float(np.hypot(*shape)),
+                                  quartic=True)
+    assert quartic.to_params(np.array([0.05])) is not None and quartic.to_params(np.array([-0.05])) is None

@@ -277,3 +277,6 @@ def test_the_photometry_worsening_is_paired_star_by_star():
     assert med == 0.0 and n == 200
     one = {"n": 1, "x": x[:1], "y": y[:1], "flux_ratio": np.array([2.0])}
     assert photometry_worsening(one, one)[1] == np.inf
+    # two stars worsened alike: a MAD of 0 is no standard error
+    two = {"n": 2, "x": x[:2], "y": y[:2], "flux_ratio": np.array([1.0, 1.0])}
+    assert photometry_worsening(two, {**two, "flux_ratio": np.array([1.5, 1.5])})[1] == np.inf

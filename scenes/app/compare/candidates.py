@@ -132,7 +132,7 @@ def photometry_worsening(before: dict, after: dict) -> tuple[float, float, int]:
     measured in both photometries (:func:`scenes.app.compare.statistics.star_photometry`, matched by their
     catalogue position): a paired difference, so the stars' own scatter about the model cancels. The standard
     error of a median, ``sqrt(pi/2) sigma / sqrt(n)`` with the robust sigma (1.4826 MAD) of the differences
-    (Kenney & Keeping 1962, Mathematics of Statistics, sect. 13.13); infinite below two stars."""
+    (Kenney & Keeping 1962, Mathematics of Statistics, sect. 13.13); infinite below three stars."""
     if not before.get("n", 0) or not after.get("n", 0):
         return 0.0, float("inf"), 0
     ab = {(float(x), float(y)): abs(np.log(max(f, 1e-6))) for x, y, f in zip(before["x"], before["y"],
@@ -140,7 +140,7 @@ def photometry_worsening(before: dict, after: dict) -> tuple[float, float, int]:
     d = np.array([abs(np.log(max(f, 1e-6))) - ab[(float(x), float(y))]
                   for x, y, f in zip(after["x"], after["y"], after["flux_ratio"]) if (float(x), float(y)) in ab])
     d = d[np.isfinite(d)]
-    if d.size < 2:
+    if d.size < 3:  # two differences give their mean and no check of their own scatter (a MAD of 0 if alike)
         return (float(np.median(d)) if d.size else 0.0), float("inf"), int(d.size)
     med = float(np.median(d))
     sigma = 1.4826 * float(np.median(np.abs(d - med)))
