@@ -494,7 +494,7 @@ class TransformSignature(Signature):
     kind = "transform"
 
     def __init__(self, start, transform, to_params, steps, explain, pattern="", n_iter: int = 6, check=None,
-                 nested: list[tuple[int, ...]] | None = None, chain: bool = False, chain_gate=None):
+                 nested: list[tuple[int, ...]] | None = None, chain: bool = False):
         self.start, self.transform, self.to_params, self.steps = start, transform, to_params, np.asarray(steps, float)
         self.explain, self.pattern, self.n_iter, self.check = explain, pattern, n_iter, check
         self.nested = nested
@@ -502,9 +502,6 @@ class TransformSignature(Signature):
         #: (the new ones at 0) and is fitted only when that one was a candidate (its ``to_params`` gave
         #: parameters): a richer form refines a simpler one (a drift's path from its straight trail)
         self.chain = chain
-        #: with ``chain``, optional ``(fit, res) -> bool``: the next subset is fitted only when the previous
-        #: subset's fit also passes it (a drift's path only from a straight trail told from a smear)
-        self.chain_gate = chain_gate
         self._spectra = {"spectra", "workers"} <= set(inspect.signature(transform).parameters)
         #: a transform that takes ``at`` (flat pixel indices) evaluates only those pixels: the search steps then
         #: cost the sample's size, not the frame's
@@ -526,7 +523,7 @@ class TransformSignature(Signature):
         for i, sub in enumerate(self.nested):
             sub = np.asarray(sub, int)
             if self.chain and i > 0:
-                if prev is None or (self.chain_gate is not None and not self.chain_gate(prev, res)):
+                if prev is None:
                     break
                 start = (lambda r, sub=sub, th0=prev.state["transform_theta"]: th0[sub])
             else:
@@ -1670,8 +1667,7 @@ class PointingDrift(Effect):
         _drift_params,
         [0.02, 0.02, 0.02, 0.02], nested=[(0, 1), (0, 1, 2, 3)], chain=True,
         pattern="sources trailed along one direction with a flat (box) profile, or along a path brighter at one "
-                "end or bowed", check=_drift_check, chain_gate=lambda fit, res: not _drift_check(fit, res),
-        explain=_drift_words)
+                "end or bowed", check=_drift_check, explain=_drift_words)
 
     def apply(self, stage: Stage, tile: Tile, data: np.ndarray) -> None:
         p = self.params
