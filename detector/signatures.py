@@ -2152,13 +2152,18 @@ class VarianceSignature(Signature):
     #: against their own errors exceeds its dof by this many standard deviations (the DETECTION_SIGMA of one
     #: tested quantity): the noise does not follow its template over the frame
     CELL_SIGMA = DETECTION_SIGMA
+    #: ... and by at least this fraction (rms) of their mean: a response or dark pattern with a large-scale part
+    #: (a PRNU of 0.24 % low-frequency rms beside 0.13 % white, a DSNU with its smooth part) spreads the cells
+    #: significantly yet is the scatter's own; a read-noise gradient of the unseen suite spreads them by 0.5-1 of it
+    MAX_CELL_SPREAD = 0.5
 
     def uniformity(self, fit: Fit, res: Residuals, cells: int = 4) -> str:
         """The added scatter follows its template over the frame (kTC noise is the same everywhere, PRNU
         follows the light squared): the robust excess variance of each of ``cells`` x ``cells`` regions over
         the template's prediction; one region far above the rest is a structure the local whitening left,
         not this noise. One cell far above the rest and a gradient across the frame are one test: the cells'
-        excess variances scatter about their mean beyond their errors (chi2 at CELL_SIGMA)."""
+        excess variances scatter about their mean beyond their errors (chi2 at CELL_SIGMA) and by more than
+        MAX_CELL_SPREAD of it."""
         vs = variance_sample(res)
         theta = fit.state.get("theta")
         if not theta or vs["idx"].size < 400 * cells * cells:
@@ -2191,7 +2196,8 @@ class VarianceSignature(Signature):
         wts = 1.0 / np.maximum(errs, 1e-12) ** 2
         mean = float(np.sum(wts * ratios) / np.sum(wts))
         chi2, dof = float(np.sum(wts * (ratios - mean) ** 2)), ratios.size - 1
-        if chi2 > dof + self.CELL_SIGMA * np.sqrt(2 * dof):
+        spread = float(np.sqrt(np.sum(wts * (ratios - mean) ** 2) / np.sum(wts))) / max(abs(mean), 1e-12)
+        if chi2 > dof + self.CELL_SIGMA * np.sqrt(2 * dof) and spread > self.MAX_CELL_SPREAD:
             med = float(np.median(ratios))
             where = (f"it sits in one part of the frame ({ratios.max():.2g} x the fit's there, {med:.2g} x in the "
                      "median region): a local structure the fit took for noise"

@@ -825,21 +825,3 @@ def test_a_rival_refused_for_its_shares_that_predicts_the_held_out_pixels_better
     assert not better_rival(gain, worse) and indistinguishable([gain], [gain, worse]) == []
     vig.refuse("implausible", "not this effect's form")
     assert not better_rival(gain, vig) and indistinguishable([gain], [gain, vig]) == []
-
-
-def test_on_a_frame_with_light_a_bias_structure_goes_after_the_light_it_ties_with():
-    """A bias structure and an added light tied on held-out pixels are named together; on a frame with light the
-    light comes first (the bias frames calibrate the model's offsets, a light pattern is seen only with light),
-    whatever their delta BIC; without light the order inside the tie stays by delta BIC."""
-    from scenes.app.compare.judge import indistinguishable, rank
-
-    def pair():
-        bias = Candidate(Fit("bias_gradient", {}, -1375.0, 3, 65536, "an offset"), 1.0, 0.0, heldout=-1400.0)
-        light = Candidate(Fit("straylight", {}, -1350.0, 6, 65536, "an added light"), 1.0, 0.0, heldout=-1390.0)
-        return bias, light
-
-    bias, light = pair()
-    assert indistinguishable([bias, light]) == [light]
-    assert [c.fit.effect for c in rank([bias, light], "sky")][:2] == ["straylight", "bias_gradient"]
-    assert [c.fit.effect for c in rank([bias, light], "none")][:2] == ["bias_gradient", "straylight"]
-    assert [c.fit.effect for c in rank([bias, light], "")][:2] == ["bias_gradient", "straylight"]

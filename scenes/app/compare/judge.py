@@ -255,9 +255,7 @@ def rank(cands: list[Candidate], light_source: str = "") -> list[Candidate]:
     none), then the others that are plausible and not rejected, then the implausible and the rejected, each
     by delta BIC. Twins (as good on held-out pixels) go by delta BIC (fewer parameters for the same fit
     first); on a flat-screen frame (``light_source`` "flat"), whose uniform light cannot tell a response from
-    added charge, what multiplies the signal (a response, a gain) comes first; on a frame with light (a flat or
-    a sky), an offset of the read-out (a bias structure) comes after the fields of light it ties with
-    (:func:`light_before_offset`)."""
+    added charge, what multiplies the signal (a response, a gain) comes first."""
     def key(c):
         sig = c.significant
         tier = ((0 if not (c.ambiguous or c.deferred) else 1.5) if c.kind == "parameter" else 1) if sig else \
@@ -270,25 +268,12 @@ def rank(cands: list[Candidate], light_source: str = "") -> list[Candidate]:
     if twins:
         flat = light_source == "flat"
         group = sorted([sig[0], *[c for c in twins if c.significant]],
-                       key=lambda c: (flat and not _multiplies(c), light_before_offset(c, group_of=twins + [sig[0]],
-                                                                                        light_source=light_source),
-                                      c.fit.delta_bic))
+                       key=lambda c: (flat and not _multiplies(c), c.fit.delta_bic))
         group += [c for c in twins if not c.significant]  # the same image, its own score short of the bar
         params = [c for c in out if c.significant and c.kind == "parameter" and not (c.ambiguous or c.deferred)]
         rest = [c for c in out if c not in group and c not in params]
         out = params + group + rest
     return out
-
-
-def light_before_offset(c: Candidate, group_of: list[Candidate], light_source: str) -> bool:
-    """Whether ``c``, an offset of the read-out (:func:`_read_out_offset`, a bias structure), goes after the fields
-    of light in its tie on a frame with light (``light_source`` "flat" or "sky"): the two are one additive image
-    there, told apart only by the light's shot noise. The order inside a tie is not evidence (the verdict names
-    both); it follows what calibrates each: the model's bias is the bias frames' (and the overscan's), which
-    show an offset structure and no light, while a pattern of the light is seen only on frames with light."""
-    if light_source not in ("flat", "sky") or not _read_out_offset(c):
-        return False
-    return any(_charge_origin(o) == "light" or _of_light(o) for o in group_of if o is not c)
 
 
 def _charge_origin(c: Candidate) -> str:
