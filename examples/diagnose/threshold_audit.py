@@ -330,6 +330,7 @@ PERIODIC_LINE_NEIGHBOURS | N | estimator | frequencies of the local spectral lev
 MIN_LINE_PIXELS | N | sampling | pixels a line needs for its gain estimate
 LIGHT_LAW_CHI2 | D | statistics | a light pattern's law (added or a response) is told from the other law of the same shape at chi2_1 of 5 sigma
 VarianceSignature.CELL_SIGMA | D | statistics | the cells' excess variances scatter beyond their errors: chi2 at DETECTION_SIGMA
+VarianceSignature.MAX_CELL_SPREAD | D | design | ... by this fraction (rms) of their mean: a pattern with a large-scale part spreads them significantly yet is the scatter's own
 DITHER_SEED | N | seed | fixed dither of integer read codes (reproducibility)
 @scenes/app/compare/candidates.py
 SIGNIFICANT_DELTA_BIC | D | contract | the policy's significant_delta_bic
