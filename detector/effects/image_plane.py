@@ -556,10 +556,8 @@ class TransformSignature(Signature):
     def form_fit(self, res, name, sub):
         """The fit of the single form ``sub`` (a nested subset, fitted from its own start), cached on ``res``:
         the simpler form a richer one must beat (:func:`_nested_gain`). None when it is no candidate."""
-        key = ("form_fit", name, tuple(int(i) for i in sub))
-        if key not in res._flat:
-            res._flat[key] = self._fit_form(res, name, sub) if _has_structure(res) else None
-        return res._flat[key]
+        return res.memo(("form_fit", name, tuple(int(i) for i in sub)),
+                        lambda: self._fit_form(res, name, sub) if _has_structure(res) else None)
 
     def refit(self, fit, res, name):
         """``fit``'s form (its nested subset of the parameters) refitted on the fitted pixels of ``res`` (a
@@ -827,12 +825,12 @@ def _linear_gain(res, simple: list, extra: list) -> float:
 def _smear_elongated(res) -> bool:
     """Whether the sources' second-moment change is significantly anisotropic (cached): the templates of a
     general covariance (xx, yy, xy) against the round blur's Laplacian (2 extra parameters), linearised."""
-    key = "smear_elongated"
-    if key not in res._flat:
+    def test():
         d = _derivatives(res)
-        gain = _linear_gain(res, [d["xx"] + d["yy"]], [d["xx"] - d["yy"], d["xy"]])
-        res._flat[key] = nested_gain_significant(gain, 2, NESTED_SIGMA)
-    return res._flat[key]
+        return nested_gain_significant(_linear_gain(res, [d["xx"] + d["yy"]], [d["xx"] - d["yy"], d["xy"]]), 2,
+                                       NESTED_SIGMA)
+
+    return res.memo("smear_elongated", test)
 
 
 # jitter: theta = (c_xx, c_yy, c_xy) [output px^2]
@@ -1049,12 +1047,12 @@ def _sources_lopsided(res) -> bool:
     derivatives, ``-1/6 k3 : grad^3 I``) beyond a shift and a symmetric second-moment change (the image's first
     and second derivatives), linearised: the nested test of the lopsided form against the shift plus blur a
     sub-pixel tail reduces to (4 extra parameters)."""
-    key = "sources_lopsided"
-    if key not in res._flat:
+    def test():
         d = _derivatives(res)
         gain = _linear_gain(res, [d["x"], d["y"], d["xx"], d["yy"], d["xy"]], list(_third_derivatives(res)))
-        res._flat[key] = nested_gain_significant(gain, 4, NESTED_SIGMA)
-    return res._flat[key]
+        return nested_gain_significant(gain, 4, NESTED_SIGMA)
+
+    return res.memo("sources_lopsided", test)
 
 
 def _tail_params(th, res):
