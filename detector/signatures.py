@@ -1390,13 +1390,26 @@ class LinearSignature(Signature):
         self.refine, self.of_light, self.adds_charge, self.check = refine, of_light, adds_charge, check
 
     def fit(self, res: Residuals, name: str) -> Fit | None:
+        """The best variant by BIC on the search sample whose parameters stay within their bounds once settled
+        on every fitted pixel (and, ``of_light``, once divided by the light level): a winner that leaves its
+        bound there falls back to the next variant in BIC order, the least squares under the bounds over the
+        variants (a weak PRNU flat whose best vignetting had a4 = 0.996 on the sample, 1.007 once rescaled,
+        left the whole fit with nothing)."""
         ctx = search_sample(res)
-        best = self._best(res, ctx, self.variants(res))
-        if best is not None and self.refine is not None:
-            best = self._best(res, ctx, [best[0], *self.refine(best[0], res)]) or best
-        if best is None:
-            return None
-        v, d, c, params = best
+        ranked = self._ranked(res, ctx, self.variants(res))
+        if ranked and self.refine is not None:
+            # stable sort: on a tie the first pass's winner stays ahead of its refinements
+            ranked = sorted([*ranked, *self._ranked(res, ctx, self.refine(ranked[0][0], res))], key=lambda b: b[4])
+        for v, d, c, params, _ in ranked:
+            fit = self._settle(res, name, ctx, v, d, c, params)
+            if fit is not None:
+                return fit
+        return None
+
+    def _settle(self, res: Residuals, name: str, ctx: dict, v: Variant, d: float, c, params: dict) -> Fit | None:
+        """The variant ``v`` found on the search sample, refitted on every fitted pixel (else the sample's
+        admissible fit, scaled), its ``of_light`` coefficients divided by the light level: the fit, or None
+        when those leave the variant's bounds."""
         idx, _, w = res.flat_profiled()
         values = (lambda i: v.values(i, res.data_adu.shape))
         if not ctx["full"]:  # the winner on every fitted pixel (else keep the subsample's, scaled)
@@ -1443,12 +1456,14 @@ class LinearSignature(Signature):
                 return None
         return self._finish(res, name, v, c, d, params)
 
-    def _best(self, res: Residuals, ctx: dict, variants: Iterable[Variant]):
-        """The variant fitting best on the search sample (lazily: only the best one is kept). Variants of
-        different sizes (a grid of 2 or 16 regions, a series of growing order) are compared by BIC (chi2 +
-        templates x ln n, Schwarz 1978): more templates always fit at least as well, so a larger variant must
-        pay for what it adds."""
-        best, penalty = None, np.log(max(res.n_fit, 2))
+    def _ranked(self, res: Residuals, ctx: dict, variants: Iterable[Variant]) -> list[tuple]:
+        """The admissible variants (``to_params`` not None) on the search sample as (variant, delta chi2,
+        coefficients, parameters, BIC), best first. Variants of different sizes (a grid of 2 or 16 regions, a
+        series of growing order) are compared by BIC (chi2 + templates x ln n, Schwarz 1978): more templates
+        always fit at least as well, so a larger variant must pay for what it adds. Only the best is kept
+        unless the winner can still be refused once settled (``of_light``: its coefficients are divided by
+        the light level after the search), so a search over variants of full-frame templates holds one."""
+        kept, penalty = [], np.log(max(res.n_fit, 2))
         for v in variants:
             c, d = fit_variant(res, v, ctx["idx"], ctx["r"], ctx["w"])
             params = v.to_params(c)
@@ -1456,9 +1471,17 @@ class LinearSignature(Signature):
                 continue
             d *= ctx["scale"]
             bic = d + (np.size(c) + v.extra_k) * penalty
-            if best is None or bic < best[4]:
-                best = (v, d, c, params, bic)
-        return None if best is None else best[:4]
+            if self.of_light:
+                kept.append((v, d, c, params, bic))
+            elif not kept or bic < kept[0][4]:
+                kept = [(v, d, c, params, bic)]
+        return sorted(kept, key=lambda b: b[4])
+
+    def _best(self, res: Residuals, ctx: dict, variants: Iterable[Variant]):
+        """(variant, delta chi2, coefficients, parameters) of the best admissible variant (:meth:`_ranked`), or
+        None."""
+        ranked = self._ranked(res, ctx, variants)
+        return ranked[0][:4] if ranked else None
 
 
 # --- added variance --------------------------------------------------------------------------------------------

@@ -139,9 +139,14 @@ def _offsets_mm(res, cx_mm: float, cy_mm: float) -> tuple[np.ndarray, np.ndarray
     return u, v
 
 
-def _vignetting_variant(res, cx_mm: float, cy_mm: float, radius_mm: float | None = None, elliptical: bool = False):
+def _vignetting_variant(res, cx_mm: float, cy_mm: float, radius_mm: float | None = None, elliptical: bool = False,
+                        quartic: bool = False):
     """The radial polynomial about a centre (``a2``, ``a4``); ``elliptical``: with the azimuthal terms of its rho^2
-    rate (``a2_cos2``, ``a2_sin2``: :func:`radial_vignetting`)."""
+    rate (``a2_cos2``, ``a2_sin2``: :func:`radial_vignetting`); ``quartic``: ``a4`` alone, ``a2 = 0``, the
+    polynomial's boundary of its own bound ``a2 >= 0``. A fall-off steeper than rho^4 (a power law, the onset of a
+    mechanical vignetting) has its unbounded least squares at ``a2 < 0``, a light that rises from the centre, which
+    the bound refuses; the least squares under the bound then lies on it (a quadratic objective's minimum over a
+    half-plane, Lawson & Hanson 1974, Solving Least Squares Problems, ch. 23: non-negative least squares)."""
     s = res.sensor
     pitch_mm = s.pixel_pitch_um * 1e-3
     u, v = _offsets_mm(res, cx_mm, cy_mm)
@@ -151,6 +156,8 @@ def _vignetting_variant(res, cx_mm: float, cy_mm: float, radius_mm: float | None
 
     def terms(uu, vv, p):
         rho2 = (uu ** 2 + vv ** 2) / r_corner ** 2
+        if quartic:
+            return [-p * rho2 * rho2]
         out = [-p * rho2, -p * rho2 * rho2]
         if elliptical:
             out += [-p * (uu ** 2 - vv ** 2) / r_corner ** 2, -p * 2.0 * uu * vv / r_corner ** 2]
@@ -164,13 +171,15 @@ def _vignetting_variant(res, cx_mm: float, cy_mm: float, radius_mm: float | None
         return [t.astype(np.float32) for t in terms(u[None, :], v[:, None], photo.astype(np.float64))]
 
     def to_params(c):
-        a2, a4 = (float(x) for x in c[:2])
+        a2, a4 = (0.0, float(c[0])) if quartic else (float(x) for x in c[:2])
         quad = float(np.hypot(c[2], c[3])) if elliptical else 0.0  # the rho^2 rate's azimuthal amplitude
         ok = (abs(a2) + quad <= VIGNETTING_COEF_MAX and abs(a4) <= VIGNETTING_COEF_MAX and a2 + quad + a4 < 1)
         # an elliptical fall-off (a cat's eye, a tilt) loses light in every direction: its rho^2 rate along the
         # least-losing axis, a2 - quad, is not negative (a saddle gains light along one axis, which the rings of
         # observed_rise, averaging over azimuth, do not see)
         ok = ok and a2 - quad >= 0.0
+        # on the bound a2 = 0 the loss is the rho^4 term's: a4 <= 0 would brighten the field everywhere
+        ok = ok and (a4 > 0.0 if quartic else True)
         p = {"a2": round(a2, 6), "a4": round(a4, 6)}
         if elliptical:
             p.update(a2_cos2=round(float(c[2]), 6), a2_sin2=round(float(c[3]), 6))
@@ -180,8 +189,8 @@ def _vignetting_variant(res, cx_mm: float, cy_mm: float, radius_mm: float | None
             p["radius_mm"] = round(float(radius_mm), 4)
         return p if ok else None
 
-    return Variant(maps, to_params, f"{cx_mm}|{cy_mm}|{radius_mm or 0.0}" + ("|elliptical" if elliptical else ""),
-                   at=at)
+    return Variant(maps, to_params, f"{cx_mm}|{cy_mm}|{radius_mm or 0.0}" + ("|elliptical" if elliptical else "")
+                   + ("|quartic" if quartic else ""), at=at)
 
 
 def _window_geometry_mm(res) -> tuple[float, float, float]:
@@ -205,14 +214,16 @@ def _vignetting_variants(res):
     rc = _half_diagonal_mm(res)
     for fx in _CENTRE_GRID:
         for fy in _CENTRE_GRID:
-            yield _vignetting_variant(res, fx * rc, fy * rc)
+            for quartic in (False, True):
+                yield _vignetting_variant(res, fx * rc, fy * rc, quartic=quartic)
     # a window much smaller than the sensor: a fall-off on the window's own scale (a shadow of the tube or
     # a baffle, a filter's edge, vignetting about a centre far off the optical axis), about centres around it
     wx, wy, rw = _window_geometry_mm(res)
     if rw < 0.5 * rc:
         for fx in (-1.0, -0.5, 0.0, 0.5, 1.0):
             for fy in (-1.0, -0.5, 0.0, 0.5, 1.0):
-                yield _vignetting_variant(res, wx + fx * rw, wy + fy * rw, 2 * rw)
+                for quartic in (False, True):
+                    yield _vignetting_variant(res, wx + fx * rw, wy + fy * rw, 2 * rw, quartic=quartic)
 
 
 #: farthest centre offset the refinement may reach [fraction of the half-diagonal]: the grid's edge, plus a step
@@ -229,6 +240,7 @@ def _vignetting_refine(best, res):
     gradient a bias or glow candidate would take next."""
     cx, cy, radius = (float(x) for x in best.label.split("|")[:3])
     radius = radius or None
+    quartic = best.label.endswith("|quartic")
     rc = _half_diagonal_mm(res)
     ctx, shape = search_sample(res), res.data_adu.shape
     if radius is None:
@@ -240,7 +252,7 @@ def _vignetting_refine(best, res):
     def score(x, y, elliptical):
         if max(abs(x - ox), abs(y - oy)) > reach:  # a centre far off the field makes a plane, not vignetting
             return np.inf
-        v = _vignetting_variant(res, x, y, radius, elliptical)
+        v = _vignetting_variant(res, x, y, radius, elliptical, quartic=quartic and not elliptical)
         c, d = fit_linear(res, lambda i: v.values(i, shape), ctx["idx"], ctx["r"], ctx["w"])
         return d if v.to_params(c) is not None else np.inf
 
@@ -259,7 +271,7 @@ def _vignetting_refine(best, res):
         return cx, cy
 
     cx, cy = search(cx, cy, False)
-    yield _vignetting_variant(res, cx, cy, radius)
+    yield _vignetting_variant(res, cx, cy, radius, quartic=quartic)
     # ... and an elliptical fall-off (two more coefficients, which the BIC weighs), its centre searched from the
     # circular one's or the field's (the grid's middle), whichever fits better: an elliptical fall-off puts the
     # best circular centre off its own, on the far side of a ridge of the elliptical fit's chi2
@@ -450,7 +462,7 @@ _VIGNETTING_SIGNATURE.untold = light_law_untold(("straylight", "sky_gradient"), 
 #: that one form on every frame (scenes.app.compare.series)
 _VIGNETTING_SIGNATURE.rebuild = lambda label, res: _vignetting_variant(
     res, *(float(x) for x in label.split("|")[:2]), float(label.split("|")[2]) or None,
-    elliptical=label.endswith("|elliptical"))
+    elliptical=label.endswith("|elliptical"), quartic=label.endswith("|quartic"))
 
 
 def relative_illumination(params: VignettingParams, sensor):

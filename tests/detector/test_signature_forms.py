@@ -205,3 +205,82 @@ def test_an_elliptical_saddle_is_refused_and_its_loss_counts_the_major_axis():
     assert p is not None
     assert _loss_at_edge(p, res) == pytest.approx(0.2 + 0.1 + 0.01)
 
+
+def test_a_fall_off_steeper_than_rho4_is_fitted_on_the_bound_of_its_rho2_rate():
+    """A power-law fall-off (rho^6, 15 % deep at the window's farthest pixel) about a centre inside the window:
+    the unbounded least squares of (a2, a4) puts a2 < 0 (light rising from the centre), which the bound a2 >= 0
+    refuses at every centre; the least squares on that bound (a4 alone) is the fit, not nothing."""
+    from detector.effects.optical import _offsets_mm, _vignetting_variant
+
+    shape = (96, 96)
+    s = small_sensor(width=shape[1], height=shape[0], bias_adu=100.0)
+    rng = np.random.default_rng(12)
+    photo = np.full(shape, 20000.0)
+    xs = np.arange(shape[1]) + s.roi_x0 + 0.5
+    ys = np.arange(shape[0]) + s.roi_y0 + 0.5
+    none = SpikeStats(0, 0, 0, 0, 0)
+    probe = Residuals(photo.astype(np.float32), photo.astype(np.float32), photo.astype(np.float32),
+                      np.ones(shape, bool), photo.astype(np.float32), np.zeros(shape, np.float32), ys, xs, s, 10.0,
+                      none, none)
+    u, v = _offsets_mm(probe, 0.0, 0.0)
+    cu, cv = float(u[30]), float(v[60])  # off the window's centre, inside it
+    rho2 = ((u[None, :] - cu) ** 2 + (v[:, None] - cv) ** 2)
+    ri = 1.0 - 0.15 * (rho2 / rho2.max()) ** 3
+    var = (photo / s.gain_e_per_adu + (4.0 / s.gain_e_per_adu) ** 2).astype(np.float32)
+    data = (photo * ri + s.bias_adu + rng.normal(0, 1, shape) * np.sqrt(var)).astype(np.float32)
+    res = Residuals(data, (photo + s.bias_adu).astype(np.float32), var, np.ones(shape, bool),
+                    photo.astype(np.float32), np.zeros(shape, np.float32), ys, xs, s, 10.0, none, none)
+    from detector.signatures import fit_variant, search_sample
+
+    ctx = search_sample(res)
+    unbounded = _vignetting_variant(res, cu, cv, 2 * 0.5 * s.pixel_pitch_um * 1e-3 * float(np.hypot(*shape)))
+    c, _ = fit_variant(res, unbounded, ctx["idx"], ctx["r"], ctx["w"])
+    assert c[0] < 0 and unbounded.to_params(c) is None  # the bound refuses the unbounded fit
+    fit = registry()["vignetting"].signature.fit(res, "vignetting")
+    assert fit is not None and fit.note.endswith("|quartic"), None if fit is None else fit.note
+    assert fit.params["a2"] == 0.0 and fit.params["a4"] > 0
+    assert fit.delta_m2lnl < -1000
+    # on the bound the loss is the rho^4 term's: a negative one would brighten the field everywhere
+    quartic = _vignetting_variant(res, cu, cv, 2 * 0.5 * s.pixel_pitch_um * 1e-3 * float(np.hypot(*shape)),
+                                  quartic=True)
+    assert quartic.to_params(np.array([0.05])) is not None and quartic.to_params(np.array([-0.05])) is None
+
+
+def test_a_linear_fit_whose_winner_leaves_its_bound_once_the_light_is_rescaled_falls_back_to_the_next():
+    """A fall-off of the light (12 % deep along the columns) on a frame 30 % short of the model's light: the
+    joint fit finds the loss as ``c = 0.12 x 0.7 = 0.084`` beside the light level, within the best variant's
+    bound (0.1) on the search, and 0.12 once divided by the light level, beyond it. The fit falls back to the
+    next variant in BIC order (a worse form within its bound) instead of returning nothing."""
+    from detector.signatures import LinearSignature, Variant
+
+    shape = (64, 64)
+    s = small_sensor(width=shape[1], height=shape[0], bias_adu=100.0)
+    rng = np.random.default_rng(3)
+    photo = np.full(shape, 20000.0)
+    x = (np.arange(shape[1]) / (shape[1] - 1))[None, :] * np.ones(shape)
+    light, depth = -0.3, 0.12
+    var = (photo / s.gain_e_per_adu + (4.0 / s.gain_e_per_adu) ** 2).astype(np.float32)
+    data = (photo * (1 + light) * (1 - depth * x ** 2) + s.bias_adu
+            + rng.normal(0, 1, shape) * np.sqrt(var)).astype(np.float32)
+    xs = np.arange(shape[1]) + s.roi_x0 + 0.5
+    ys = np.arange(shape[0]) + s.roi_y0 + 0.5
+    none = SpikeStats(0, 0, 0, 0, 0)
+    res = Residuals(data, (photo + s.bias_adu).astype(np.float32), var, np.ones(shape, bool),
+                    photo.astype(np.float32), np.zeros(shape, np.float32), ys, xs, s, 10.0, none, none)
+
+    def variant(shape_map, bound, label):
+        return Variant([(-photo * shape_map).astype(np.float32)],
+                       lambda c: {"depth": float(c[0])} if 0 < c[0] <= bound else None, label)
+
+    def variants(res):
+        yield variant(x ** 2, 0.1, "true form, bounded at 0.1")
+        yield variant(x ** 3, 1.0, "cubic")
+
+    sig = LinearSignature(variants, lambda p, res: "", of_light=True)
+    fit = sig.fit(res, "fall-off")
+    assert fit is not None and fit.note == "cubic", None if fit is None else fit.note
+    assert fit.params["depth"] > 0.1
+    # alone, the bounded true form leaves its bound once rescaled: nothing
+    alone = LinearSignature(lambda res: [variant(x ** 2, 0.1, "true form, bounded at 0.1")], lambda p, res: "",
+                            of_light=True)
+    assert alone.fit(res, "fall-off") is None
