@@ -489,7 +489,7 @@ def added_light(c: Candidate) -> bool:
 
 def explained_away(params: list[Candidate], effects: list[Candidate], res: Residuals, scene) -> None:
     """Gate (``tolerance``) the parameter candidates another candidate explains: a level that falls within
-    the policy's tolerance once the best significant effect (or the PSF's change) is in the model is that
+    the policy's tolerance once a significant effect (any of them, or the PSF's change) is in the model is that
     candidate's doing, not a wrong number of the scene (vignetting lowers a flat's mean; a narrower PSF
     makes the stars' peaks look brighter); a PSF change that the best significant effect explains (less than
     half its amplitude, or no significant evidence, left in a joint fit: :func:`conditional_evidence`) is that
@@ -497,7 +497,8 @@ def explained_away(params: list[Candidate], effects: list[Candidate], res: Resid
     scene, named first (the effect is asked again in the next round). The candidates explained are changed in place."""
     movers = [c for c in params if c.significant and c.fit.state.get("level") is None
               and c.fit.delta_adu is not None]
-    best = next((c for c in effects if c.significant and c.fit.delta_adu is not None), None)
+    named = [c for c in effects if c.significant and c.fit.delta_adu is not None]
+    best = named[0] if named else None
     for p in movers:
         if best is None:
             continue
@@ -515,7 +516,11 @@ def explained_away(params: list[Candidate], effects: list[Candidate], res: Resid
             p.deferred = (f"its evidence beside {best.fit.effect} (chi2 {left:.4g}) is smaller than "
                           f"{best.fit.effect}'s beside it ({effect_left:.4g}): named after it")
     joint_psf_steps(movers, res)
-    explainers = [c for c in movers if c.significant] + ([best] if best is not None else [])
+    # every significant effect is asked, not the first alone: which one comes first is the judge's order (a count
+    # of hot pixels, scored by its delta BIC, before a glow scored held out), not which one moves a level; the
+    # large-frame path, whose pixel-scale effects are fitted apart, asked the glow and the full-resolution path
+    # asked the hot pixels, so the same dark level was the glow's doing on one path and a wrong scene on the other
+    explainers = [c for c in movers if c.significant] + named
     own_fit = level_fit(res)
     own = {name: c for name, (c, _) in own_fit.items()}
     for e in explainers:
