@@ -526,9 +526,9 @@ class TransformSignature(Signature):
                 if prev is None:
                     break
                 start = (lambda r, sub=sub, th0=prev.state["transform_theta"]: th0[sub])
-            else:
-                start = None
-            fit = self._fit_form(res, name, sub, start)
+                fit = self._fit_form(res, name, sub, start)
+            else:  # the form from its own start: the fit the nested tests take as their simpler form
+                fit = self.form_fit(res, name, sub)
             prev = fit
             if fit is not None and (best is None or fit.delta_bic < best.delta_bic):
                 best = fit
