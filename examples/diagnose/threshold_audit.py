@@ -85,7 +85,7 @@ MIN_RADIUS_PX | N | measurement | aperture floor
 MAX_RADIUS_PX | N | measurement | aperture ceiling
 FIRST_RADIUS_PX | N | measurement | first-pass aperture
 MIN_SNR | D | statistics | a star's aperture S/N needed to be measured
-NEIGHBOUR_FRACTION | D | design | isolation of a measured star
+NEIGHBOUR_FRACTION | D | statistics | isolation of a measured star: a neighbour below its flux error at MIN_SNR (1 / MIN_SNR)
 N_RAYS | N | grid | pupil rays per field point
 WAVELENGTHS_NM | N | grid | wavelengths of the optics model
 NODES | N | grid | field points per axis
@@ -334,7 +334,7 @@ VarianceSignature.MAX_CELL_SPREAD | D | design | ... by this fraction (rms) of t
 DITHER_SEED | N | seed | fixed dither of integer read codes (reproducibility)
 @scenes/app/compare/candidates.py
 SIGNIFICANT_DELTA_BIC | D | contract | the policy's significant_delta_bic
-OVERFIT_CHI2_PER_DOF | D | statistics | the policy's overfit_chi2_per_dof
+OVERFIT_CHI2_PER_DOF | D | statistics | 1 / the policy's noise_excess_factor (the overfit test's chi2/dof bar)
 @scenes/app/compare/series.py
 MAX_SERIES_FRAME_PX | N | budget | a series' frames take the large-frame path above the same size
 @detector/effects/cti.py

@@ -31,8 +31,9 @@ __all__ = ["Candidate", "candidates", "indistinguishable", "rank", "verdict"]
 
 #: a candidate with delta BIC at or above this is not significant (DESIGN.md contract; the policy's default)
 SIGNIFICANT_DELTA_BIC = DEFAULT_POLICY.significant_delta_bic
-#: kept for readers of the old name: the policy's overfit threshold
-OVERFIT_CHI2_PER_DOF = DEFAULT_POLICY.overfit_chi2_per_dof
+#: a noise-only candidate leaving chi2/dof below this makes the model's variance more than the policy's
+#: ``noise_excess_factor`` times the variance the residual shows (:func:`overfit`)
+OVERFIT_CHI2_PER_DOF = 1.0 / DEFAULT_POLICY.noise_excess_factor
 
 
 def at_bound(cls, params: dict) -> str:
@@ -93,16 +94,22 @@ def robust_excess_error(var_adu2: float, n: int) -> float:
 
 def overfit(fit: Fit, chi2_per_dof: float, res: Residuals | None = None,
             policy: DiagnosisPolicy = DEFAULT_POLICY) -> str:
-    """Why a candidate that only adds variance is not the missing effect ("" when it may be): it brings
-    chi2/dof far below 1, or it claims far more variance than the bulk of the pixels shows (a structured
-    residual, e.g. misplaced stars, taken for noise): the policy's ``noise_excess_factor`` times that excess, or
-    times DETECTION_SIGMA standard errors of it (:func:`robust_excess_error`) where the bulk shows none it can
-    resolve."""
+    """Why a candidate that only adds variance is not the missing effect ("" when it may be): it claims far
+    more variance than the residual shows (a structured residual, e.g. misplaced stars, taken for noise), by the
+    policy's ``noise_excess_factor`` F asked two ways:
+
+    * over the whole frame: the model's variance with the claim ``v + c`` more than F times the residual's own
+      ``v + e`` (its mean square), i.e. chi2/dof after the claim below ``1 / F`` (chi2/dof ~ (v + e) / (v + c));
+      a right noise model leaves ~1 within a few sqrt(2/n);
+    * against the bulk of the pixels: the claim more than F times the variance the bulk shows beyond the model's
+      (median squared residual, which misplaced sources cannot inflate), or than DETECTION_SIGMA standard errors
+      of that excess (:func:`robust_excess_error`) where the bulk shows none it can resolve."""
     if fit.delta_adu is not None or fit.extra_var_adu2 is None:
         return ""
-    if chi2_per_dof < policy.overfit_chi2_per_dof:
-        return (f"adds so much noise that chi2/dof falls to {chi2_per_dof:.3g} (< {policy.overfit_chi2_per_dof}): it "
-                "absorbs a structured residual, it does not explain it")
+    bar = 1.0 / policy.noise_excess_factor
+    if chi2_per_dof < bar:
+        return (f"adds so much noise that chi2/dof falls to {chi2_per_dof:.3g} (< 1/{policy.noise_excess_factor:g}): "
+                "it absorbs a structured residual, it does not explain it")
     if res is not None:
         excess, v = robust_excess_var(res)
         floor = DETECTION_SIGMA * robust_excess_error(v + max(excess, 0.0), res.flat_profiled()[0].size)

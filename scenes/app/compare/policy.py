@@ -61,6 +61,8 @@ RETIRED: dict[str, str] = {
                      "psf_width_tolerance at DETECTION_SIGMA (parameters.width_error), not from a count of stars",
     "noise_floor_fraction": "the floor of the noise-excess test is DETECTION_SIGMA standard errors of the bulk's "
                             "excess variance (candidates.robust_excess_error), not a fraction of the model's",
+    "overfit_chi2_per_dof": "a noise-only candidate's chi2/dof bar is 1 / noise_excess_factor: the model's whole "
+                            "variance with the claim at most that factor times the residual's (candidates.overfit)",
 }
 
 
@@ -118,15 +120,12 @@ class DiagnosisPolicy:
         "the excess over those pixels is significant above this many standard deviations of its chi2")
 
     # -- a fit that only hides a residual -------------------------------------------------------------------------
-    overfit_chi2_per_dof: float = _f(
-        0.5, "chi2/dof", "statistics",
-        "a noise-only candidate that brings chi2/dof below this absorbs a structured residual (a right noise "
-        "model leaves ~1 within a few sqrt(2/n))")
     noise_excess_factor: float = _f(
         3.0, "1", "statistics",
         "a noise-only candidate may claim at most this many times the variance the bulk of the pixels shows "
         "beyond the model's (median squared residual), or than DETECTION_SIGMA standard errors of that excess "
-        "where the bulk shows none it resolves (candidates.robust_excess_error)")
+        "where the bulk shows none it resolves (candidates.robust_excess_error); nor make the model's whole "
+        "variance this many times the residual's (chi2/dof below its inverse; candidates.overfit)")
     stars_worse_ln: float = _f(
         SCALE_TOLERANCE, "|ln flux ratio|", "physics",
         "a candidate reshaping the sources may worsen the bright stars' median |ln(data/model flux)| by at "
