@@ -45,13 +45,16 @@ class Slope:
 
 
 def source_amplitudes(source_adu: np.ndarray, noise_adu: np.ndarray, usable: np.ndarray, residual_adu: np.ndarray,
-                      change_adu: np.ndarray, excluded: np.ndarray | None = None
+                      change_adu: np.ndarray, excluded: np.ndarray | None = None, own_scale: bool = False
                       ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(flux [ADU], amplitude, its standard error) of ``change_adu`` refitted on each source's footprint alone:
     the footprint is where the model's source light ``source_adu`` exceeds FOOTPRINT_SIGMA x ``noise_adu``,
     grown by FOOTPRINT_GROW_PX and labelled (touching sources are one); the amplitude is the weighted least
     squares ``sum(w d r) / sum(w d^2)`` over its ``usable`` pixels (w = 1 / noise^2). A footprint touching
-    ``excluded`` (saturated pixels) is left out."""
+    ``excluded`` (saturated pixels) is left out. With ``own_scale`` each source's brightness is fitted with it
+    (the amplitude of ``change_adu`` once the source's own light ``source_adu`` is refitted on the footprint:
+    the partial regression, ``(S_dr - S_ds S_sr / S_ss) / (S_dd - S_ds^2 / S_ss)``, its variance the inverse
+    of the denominator)."""
     from scipy import ndimage
 
     noise = np.maximum(np.asarray(noise_adu, np.float64), 1e-12)
@@ -70,6 +73,16 @@ def source_amplitudes(source_adu: np.ndarray, noise_adu: np.ndarray, usable: np.
     info = ndimage.sum_labels(w * d * d, lab, index)
     proj = ndimage.sum_labels(w * d * r, lab, index)
     flux = ndimage.sum_labels(np.where(core, source_adu, 0.0).astype(np.float64), labels, index)
+    if own_scale:
+        # the source's own light scale a nuisance of each footprint (partial regression on d and s): what a
+        # brightness error leaves, F x PSF, is no part of the change's amplitude
+        s = np.where(use, source_adu, 0.0).astype(np.float64)
+        ss = ndimage.sum_labels(w * s * s, lab, index)
+        ds = ndimage.sum_labels(w * d * s, lab, index)
+        sr = ndimage.sum_labels(w * s * r, lab, index)
+        ok = ss > 0
+        info = np.where(ok, info - ds * ds / np.where(ok, ss, 1.0), info)
+        proj = np.where(ok, proj - ds * sr / np.where(ok, ss, 1.0), proj)
     keep = info > 0
     if excluded is not None and np.any(excluded):
         touched = ndimage.maximum(np.asarray(excluded, float), labels, index) > 0
@@ -119,11 +132,19 @@ def change_slope(res, change_adu: np.ndarray) -> Slope | None:
     """:func:`flux_slope` of a candidate's change (``change_adu``, a frame [ADU]) on the sources of the
     comparison ``res`` (a :class:`detector.signatures.Residuals`): the residual with the global levels refitted,
     the model's source light, its noise, its fitted pixels; sources with a pixel near saturation
-    (:data:`detector.signatures.NEAR_SATURATION_SHARE` of the ceiling) left out (their cores do not grow)."""
+    (:data:`detector.signatures.NEAR_SATURATION_SHARE` of the ceiling) left out (their cores do not grow).
+
+    Each source's brightness is refitted with the change (``own_scale``): the law is about the change's shape
+    growing with the flux, not about the flux itself, which the model knows only as well as the catalogue and
+    the global light level. A light level or zero point off by a fraction ``e`` leaves ``e F x PSF`` on every
+    source, which a widening template (negative in the core) would take up as an amplitude ``~ F^-1`` of a
+    brighter-fatter template's ``F^2``: where one bright source sets the levels (its own brighter-fatter pushing
+    the light level up), every fainter source would seem to follow a PSF's law."""
     if change_adu is None or np.ndim(change_adu) != 2:
         return None
     source = res.model_adu - res.without_sources_adu
     residual = res.data_adu - res.model_adu - res.level_map()
     flux, amp, err = source_amplitudes(source, np.sqrt(np.maximum(res.var_adu2, 0)), res.fit, residual,
-                                       np.broadcast_to(change_adu, res.data_adu.shape), res.saturated)
+                                       np.broadcast_to(change_adu, res.data_adu.shape), res.saturated,
+                                       own_scale=True)
     return flux_slope(flux, amp, err)

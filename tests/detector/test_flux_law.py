@@ -70,3 +70,22 @@ def test_a_saturated_source_is_left_out():
     flux, _, _ = source_amplitudes(src, np.full(src.shape, 3.0), np.ones(src.shape, bool), src * 0, src, sat)
     assert flux.size == FLUXES.size - 1 and not np.any(np.isclose(flux, FLUXES[0], rtol=0.05))
 
+
+
+def test_a_brightness_error_is_no_part_of_the_amplitude_with_the_sources_own_scale():
+    # brighter-fatter (F^2 x a shape) on every star, under a light level 5 % too high on all of them (what one
+    # bright star's own brighter-fatter did to the fitted global level): F x PSF left on each star as well
+    psf = _stars(1.5, FLUXES)
+    bf = np.zeros(psf.shape)
+    for i, f in enumerate(FLUXES):
+        solo = np.zeros(FLUXES.size)
+        solo[i] = f
+        bf += (_stars(1.8, solo) - _stars(1.5, solo)) * (f / FLUXES[0])
+    noise = np.full(psf.shape, 3.0)
+    r = 0.05 * bf - 0.05 * psf + np.random.default_rng(2).normal(0, 3.0, psf.shape)
+    use = np.ones(psf.shape, bool)
+    # the brighter-fatter template's own law is power 0; the level's share pulls it towards the PSF's (-1)
+    pulled = flux_slope(*source_amplitudes(psf, noise, use, r, bf))
+    own = flux_slope(*source_amplitudes(psf, noise, use, r, bf, own_scale=True))
+    assert pulled.power < -5 * pulled.error
+    assert abs(own.power) < 3 * own.error + 0.02

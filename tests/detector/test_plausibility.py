@@ -396,6 +396,29 @@ def test_a_white_noise_far_above_the_read_noise_on_a_lit_frame_is_not_reset_nois
     assert prnu.plausible(prnu.fit(res, "prnu"), res) == ""
 
 
+def test_a_white_noise_far_above_the_read_noise_on_a_dark_frame_is_not_reset_noise():
+    """On a dark frame of uniform dark current a DSNU and an extra white noise are one variance; the read noise the
+    bias frames measure bounds a reset noise, so 10x that read noise is the dark signal's scatter. A bias frame
+    (no dark charge) has nothing else to scatter its pixels: the bound does not refuse it there."""
+    rng = np.random.default_rng(15)
+    s = make_sensor("ml11002", {"width": 256, "height": 256, "bias_adu": 0})
+    shape = (256, 256)
+    g = s.gain_e_per_adu
+    extra_adu = 10 * s.read_noise_e / g
+    ktc = registry()["reset_noise"].signature
+    for dark_e, refused in ((5000.0, True), (0.0, False)):
+        dark = np.full(shape, dark_e, np.float32)
+        model = dark / g
+        var = model / g + (s.read_noise_e / g) ** 2
+        data = model + rng.normal(0, np.sqrt(var + extra_adu ** 2))
+        res = Residuals(data.astype(np.float32), model.astype(np.float32), var.astype(np.float32),
+                        np.ones(shape, bool), np.zeros(shape, np.float32), dark, np.arange(256.0), np.arange(256.0),
+                        s, 10.0, SpikeStats(0, 0, 0, 0, 0), SpikeStats(0, 0, 0, 0, 0))
+        fit = ktc.fit(res, "reset_noise")
+        assert fit is not None and fit.delta_bic < -100
+        assert ("read noise" in ktc.plausible(fit, res)) is refused
+
+
 def test_the_distortion_at_sample_pixels_is_the_full_frame_there():
     rng = np.random.default_rng(13)
     img = rng.uniform(0, 100, (64, 80)).astype(np.float32)

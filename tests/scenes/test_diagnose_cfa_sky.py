@@ -99,3 +99,32 @@ def test_a_strong_mosaic_is_judged_where_it_acts_on_its_own_pixels():
     assert fit is not None and fit.params["response"][3] / fit.params["response"][0] == pytest.approx(0.879 / 0.94,
                                                                                                      abs=0.01)
     assert support_share(res, fit) > DEFAULT_POLICY.min_support_share
+
+
+def test_a_mosaic_sampled_where_the_residual_was_small_is_still_a_pattern_of_a_few_pixels():
+    """The fitted pixels leave out the residual's local outliers: a strong mosaic's dim colour planes, kept only
+    where a drift brings them near the model. Sampled there, the period-2 pattern aliases into the block means
+    and would look large-scale; measured on the usable pixels it is the pattern of a few pixels it is, and its
+    structure share is not judged (a mosaic is not judged by the block means)."""
+    from detector.sensor import make_sensor
+    from detector.signatures import Residuals, SpikeStats
+    from scenes.app.compare.candidates import large_scale_share, structure_share
+
+    s = make_sensor("imx411", {"width": 256, "height": 256, "bias_adu": 0})
+    shape = (256, 256)
+    rng = np.random.default_rng(4)
+    photo = np.full(shape, 20000.0, np.float32)
+    resp = np.array([[1.11, 0.85], [0.99, 1.05]])[np.arange(256)[:, None] % 2, np.arange(256)[None, :] % 2]
+    drift = 1 - 0.1 * (np.arange(256)[None, :] / 256 - 0.5)
+    var = (photo / s.gain_e_per_adu + 4.0).astype(np.float32)
+    data = (photo * resp * drift + rng.normal(0, np.sqrt(var))).astype(np.float32)
+    delta = (photo * (resp - 1)).astype(np.float32)
+    # the residual's outliers (beyond 5 sigma of the model) left out of the fitted pixels, as spike_stats does
+    fit = np.abs(data - photo) < 5 * np.sqrt(var)
+    usable = np.ones(shape, bool)
+    res = Residuals(data, photo, var, fit, photo, np.zeros(shape, np.float32), np.arange(256.0), np.arange(256.0),
+                    s, 10.0, SpikeStats(0, 0, 0, 0, 0), SpikeStats(0, 0, 0, 0, 0), usable=usable)
+    assert 0.2 < fit.mean() < 0.8
+    idx, _, w = res.flat_profiled()
+    assert large_scale_share(res, delta, idx, w) < 0.5
+    assert structure_share(res, delta) is None

@@ -440,7 +440,15 @@ def structure_shares(res: Residuals, cands: list[Candidate], policy: DiagnosisPo
 def large_scale_share(res: Residuals, delta: np.ndarray, idx: np.ndarray, w: np.ndarray) -> float:
     """The share of a candidate's own mean change (its chi2 over the fitted pixels) that survives averaging
     into the blocks of :func:`detector.morphology.block_chi2`: ~1 for a smooth pattern, ~0 for a pattern of
-    a few pixels."""
+    a few pixels.
+
+    A property of the pattern, so measured on pixels chosen without looking at the residual: the usable
+    pixels (:attr:`detector.signatures.Residuals.usable`) when the fitted ones leave some out. The fitted
+    pixels exclude the residual's own local outliers, and a strong pixel pattern's deep pixels are such
+    outliers (a mosaic's dim dye: whole colour planes, kept only where a smooth drift brings them near the
+    model); sampled there, a period-2 pattern aliases into the block means and looks large-scale."""
+    if res.usable is not None and res.usable.shape == res.fit.shape and bool((res.usable & ~res.fit).any()):
+        return _large_scale_share_usable(res, delta)
     # both sides with the global levels refitted: a pattern's mean (a bias bowl's constant part) is a level
     d = res.project(frame_at(delta, idx))
     total = float(np.dot(d * d, w))
@@ -448,6 +456,21 @@ def large_scale_share(res: Residuals, delta: np.ndarray, idx: np.ndarray, w: np.
         return 0.0
     zero = replace(res, data_adu=(res.model_adu + np.broadcast_to(delta, res.data_adu.shape)).astype(np.float32),
                    _flat=res.shared_levels())  # the same fitted pixels and templates: only the data changed
+    big, _ = block_chi2(zero)
+    return big / total
+
+
+def _large_scale_share_usable(res: Residuals, delta: np.ndarray) -> float:
+    """:func:`large_scale_share` on the usable pixels: the frame made of the model plus ``delta`` alone, its
+    global levels refitted, compared pixel by pixel and in blocks (the level templates gathered once per
+    comparison, :meth:`detector.signatures.Residuals.memo`)."""
+    base = res.memo("usable_levels", lambda: replace(res, data_adu=res.model_adu, fit=res.usable,
+                                                      _flat={}).shared_levels())
+    zero = replace(res, data_adu=(res.model_adu + np.broadcast_to(delta, res.data_adu.shape)).astype(np.float32),
+                   fit=res.usable, _flat=dict(base))
+    total = zero.chi2_profiled()
+    if total <= 0:
+        return 0.0
     big, _ = block_chi2(zero)
     return big / total
 
