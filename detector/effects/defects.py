@@ -11,6 +11,7 @@ fraction are *stuck*: their value is fixed whatever the exposure.
 
 from __future__ import annotations
 
+import math
 from typing import Literal
 
 import numpy as np
@@ -33,6 +34,7 @@ from ..significance import DETECTION_SIGMA, EXPLAINS_MOST
 from ..stats import mad_std
 from .base import Effect, EffectParams, Stage, Tile, register_effect
 from .common import hardware_positions, in_tile, output_xy, roi_mask
+from .pixel_response import MAX_DEAD_CLUSTER_PX
 
 # --- pure functions ---------------------------------------------------------------------------------------
 
@@ -224,7 +226,8 @@ class ColumnSignature(Signature):
         short, run = self.short_run_share(d, res.var_adu2[:, cols], clip=5.0)
         if short > self.MAX_SHORT_RUN_SHARE:
             return (f"the outlier columns' excess is carried by short groups of outlying pixels ({100 * short:.0f} % of "
-                    f"their net excess in runs under {self.MIN_RUN} rows; median run {run:.0f} rows): defective pixels or clusters "
+                    f"their net excess in runs of at most {self.MAX_CLUSTER_RUN:.0f} rows, a cluster's side; median run "
+                    f"{run:.0f} rows): defective pixels or clusters "
                     "crossing those columns, not defective columns")
         return ""
 
@@ -246,8 +249,10 @@ class ColumnSignature(Signature):
         return periodic_line_peak(u)
 
     #: a defective column's outlying pixels come in long runs along it (a trap to the serial register, a whole
-    #: column): runs shorter than this many rows are pixel defects or clusters that happen to cross it
-    MIN_RUN = 8
+    #: column): a run no longer than the side of the largest cluster of defective pixels (a square of
+    #: MAX_DEAD_CLUSTER_PX pixels, EMVA 1288 sect. 8.4, Janesick 2007 ch. 8: 5 rows) is a pixel defect or a
+    #: cluster that happens to cross it [rows]
+    MAX_CLUSTER_RUN = math.sqrt(MAX_DEAD_CLUSTER_PX)
     #: ... which may carry at most this share of the outlier columns' net excess (the long runs carry most of
     #: what the column claim covers: EXPLAINS_MOST)
     MAX_SHORT_RUN_SHARE = EXPLAINS_MOST
@@ -256,10 +261,10 @@ class ColumnSignature(Signature):
     def short_run_share(cls, d: np.ndarray, var: np.ndarray, sigma: float = 5.0, grow: float = 2.0,
                         clip: float | None = None) -> tuple[float, float]:
         """(share, median run length): of the columns' net excess (``d`` [ADU] per row x column, summed along
-        each column in the sign of its sum), the share carried by runs of fewer than MIN_RUN consecutive rows
-        of outlying pixels (a run holds a pixel beyond ``sigma`` standard deviations in that sign and goes on
-        while its pixels stay beyond ``grow``: hysteresis, so a column a few sigma off is not cut into pieces
-        by its noise); and the median length of the outlying runs [rows]. A defective column spreads its excess along its length (whether or not its
+        each column in the sign of its sum), the share carried by runs of outlying pixels no longer than
+        MAX_CLUSTER_RUN consecutive rows, a cluster's side (a run holds a pixel beyond ``sigma`` standard
+        deviations in that sign and goes on while its pixels stay beyond ``grow``: hysteresis, so a column a few
+        sigma off is not cut into pieces by its noise); and the median length of the outlying runs [rows]. A defective column spreads its excess along its length (whether or not its
         pixels stand out one by one); clusters of defective pixels put all of it in a few short runs.
         (0, 0) without an excess."""
         d = np.where(np.isfinite(d), d, 0.0)
@@ -280,7 +285,7 @@ class ColumnSignature(Signature):
                 if not seed[a_:b_].any():
                     continue
                 lengths.append(b_ - a_)
-                if b_ - a_ < cls.MIN_RUN:
+                if b_ - a_ <= cls.MAX_CLUSTER_RUN:
                     s_short += sign * float(d[a_:b_, j].sum())
             net += max(e, s_short)
             short += s_short

@@ -543,9 +543,6 @@ def _bias_words(p, res) -> str:
 
 
 _ROW_SIGNATURE = RowOffsetSignature()
-#: reset (kTC) noise is part of every read, bias frames included, so of the read noise the camera's model
-#: carries: an extra white noise this many times that read noise on a frame with light is the light's own scatter
-KTC_MAX_READ_RATIO = 3.0
 
 
 #: the share of the claimed excess variance that one spatial frequency may hold before the excess is a pattern,
@@ -558,12 +555,10 @@ KTC_PERIODIC_SHARE = EXPLAINS_MOST
 def _ktc_check(fit, res) -> str:
     """Reset noise adds the same white noise to every read, so the camera's measured read noise (its bias
     frames) already holds most of it (Janesick 2001, Scientific CCDs, sect. 3.3: kTC noise is the reset
-    component of the read noise). On a lit frame, an extra white noise far above that read noise is the
-    light's own pixel-to-pixel scatter (a PRNU, which a uniform light cannot tell from it); on a dark frame it is
-    the dark signal's (a DSNU: on a dark current uniform over the frame the two scatters are one constant, which
-    the frame alone does not tell apart, but the read noise the bias frames measure bounds the reset noise's
-    share of it whatever the exposure). On a frame without light or dark charge (a bias) nothing else could
-    scatter the pixels, and the check does not apply. kTC noise is
+    component of the read noise): a part of the read noise is at most the whole of it, so on a lit frame an
+    extra white noise above the camera's read noise itself (the data's read noise then more than sqrt(2) times
+    the one its bias frames measure) is not reset noise but the light's own pixel-to-pixel scatter (a PRNU,
+    which a uniform light cannot tell from it). kTC noise is
     thermal and white: an excess whose power sits in one spatial frequency (significant on its own, the
     morphology's periodic_bar, and holding KTC_PERIODIC_SHARE of the excess) is a periodic pattern
     (electronic pick-up), not reset noise."""
@@ -578,19 +573,17 @@ def _ktc_check(fit, res) -> str:
             return (f"the extra scatter sits in one spatial frequency (period {period:.3g} px, {contrast:.3g} x the "
                     f"median power, {100 * share:.2g} % of the power against the {100 * excess:.2g} % the excess "
                     "claims): a periodic pattern (electronic pick-up), not white kTC noise")
-    lit = bool(np.any(res.photo_adu > 0))
-    if not (lit or np.any(res.dark_e > 0)) or res.sensor.read_noise_e <= 0:
+    if not np.any(res.photo_adu > 0) or res.sensor.read_noise_e <= 0:
         return ""
     theta = float(fit.state.get("theta", 0.0))
     s = res.sensor
     reads = 1.0 if s.kind == "ccd" else float(s.binning ** 2)
     sigma_e = float(np.sqrt(max(theta, 0.0) * res.gain ** 2 * (reads if s.binning_mode == "average" else 1.0 / reads)))
-    if sigma_e > KTC_MAX_READ_RATIO * s.read_noise_e:
-        return (f"an extra white noise of {sigma_e:.3g} e- rms per read, {sigma_e / s.read_noise_e:.0f} x the camera's "
-                f"read noise ({s.read_noise_e:.3g} e-): a reset noise that large would dominate its bias frames; "
-                + ("on a lit frame it is the light's own scatter (PRNU), which a uniform light cannot tell from it"
-                   if lit else "on a dark frame it is the dark signal's own scatter (DSNU), which a uniform dark "
-                   "current cannot tell from it"))
+    if sigma_e > s.read_noise_e:  # the reset part of the read noise is at most the whole of it
+        return (f"an extra white noise of {sigma_e:.3g} e- rms per read, {sigma_e / s.read_noise_e:.2g} x the camera's "
+                f"read noise ({s.read_noise_e:.3g} e-): a reset noise is a part of the read noise its bias frames "
+                "measure, not more than all of it; on a lit frame it is the light's own scatter (PRNU), which a "
+                "uniform light cannot tell from it")
     return ""
 
 

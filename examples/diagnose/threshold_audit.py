@@ -223,7 +223,7 @@ CTI_BETAS | N | grid | well-fill powers tried
 @detector/effects/defects.py
 NOMINAL_DOUBLING_LEVEL_ADU | N | model | level defining t2 with a zero bias
 ColumnSignature.MIN_EVENNESS | D | physics | a defective column is defective along its length
-ColumnSignature.MIN_RUN | D | physics | its outlying pixels come in long runs
+ColumnSignature.MAX_CLUSTER_RUN | D | physics | its outlying pixels come in runs longer than a cluster's side (sqrt of MAX_DEAD_CLUSTER_PX)
 ColumnSignature.MAX_SHORT_RUN_SHARE | D | design | share short runs may carry
 @detector/effects/ghosts.py
 GHOST_PROBE_RADII_PX | N | grid | probe radii of the scan
@@ -266,7 +266,6 @@ _CENTRE_MAX | N | bound | centre refinement's reach
 _CENTRE_TOL | N | tolerance | centre refinement's step
 VIGNETTING_RINGS | N | grid | rings of the light profile
 VIGNETTING_RISE_CHI2 | D | statistics | chi-bar-squared of a rising ring profile
-VIGNETTING_RISE_SHARE | D | design | a rise this small is the form's shortfall
 @detector/effects/pixel_response.py
 POWER_LAW_REFERENCE | N | model | reference signal of the power-law response
 KNEE_FRACTIONS | N | grid | knee positions of a piecewise-linear response tried
@@ -285,7 +284,6 @@ RowOffsetSignature.SMOOTH_FRACTION | D | design | a row-offset fit is a smooth c
 RowOffsetSignature.COLUMN_FRACTION | D | design | a whole-frame pattern, not row noise
 BIAS_PROFILE_ORDERS | N | grid | bias pattern orders tried
 BIAS_FIELD_ORDERS | N | grid | bias field orders tried
-KTC_MAX_READ_RATIO | D | physics | a kTC noise is part of the read noise
 KTC_PERIODIC_SHARE | D | statistics | a white noise holds ~1e-4 of its power in one frequency
 CROSSTALK_MAX | D | physics | largest crosstalk a camera shows (LSST, DECam)
 CROSSTALK_FIT_MAX | N | bound | the fit's bound
@@ -330,7 +328,6 @@ PERIODIC_LINE_NEIGHBOURS | N | estimator | frequencies of the local spectral lev
 MIN_LINE_PIXELS | N | sampling | pixels a line needs for its gain estimate
 LIGHT_LAW_CHI2 | D | statistics | a light pattern's law (added or a response) is told from the other law of the same shape at chi2_1 of 5 sigma
 VarianceSignature.CELL_SIGMA | D | statistics | the cells' excess variances scatter beyond their errors: chi2 at DETECTION_SIGMA
-VarianceSignature.MAX_CELL_SPREAD | D | design | ... by this fraction (rms) of their mean: a pattern with a large-scale part spreads them significantly yet is the scatter's own
 DITHER_SEED | N | seed | fixed dither of integer read codes (reproducibility)
 @scenes/app/compare/candidates.py
 SIGNIFICANT_DELTA_BIC | D | contract | the policy's significant_delta_bic
