@@ -266,6 +266,7 @@ _CENTRE_MAX | N | bound | centre refinement's reach
 _CENTRE_TOL | N | tolerance | centre refinement's step
 VIGNETTING_RINGS | N | grid | rings of the light profile
 VIGNETTING_RISE_CHI2 | D | statistics | chi-bar-squared of a rising ring profile
+VIGNETTING_RISE_SHARE | D | design | a rise this small is the form's shortfall
 @detector/effects/pixel_response.py
 POWER_LAW_REFERENCE | N | model | reference signal of the power-law response
 KNEE_FRACTIONS | N | grid | knee positions of a piecewise-linear response tried

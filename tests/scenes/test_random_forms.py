@@ -248,9 +248,8 @@ def test_strong_elliptical_fall_off_off_centre_named_vignetting(tmp_path):
     """A 23 % deep Gaussian fall-off of axis ratio 0.71, centred a quarter of the window off its centre (a drawn
     case, vignetting-1942702256235148823): the circular model about its refined centre leaves the central rings
     1.3 % of the profile's span flat-topped, a chi2 of 112 against a profile of 2e6. That shortfall of form is
-    not light rising away from the centre: it was refused and the fall-off named gain_regions (then mended by a
-    floor on the rise's share of the span; the centre search, detector.effects.optical.observed_rise, now finds
-    where the rings do not rise without it)."""
+    not light rising away from the centre (detector.effects.optical.VIGNETTING_RISE_SHARE); it was refused and
+    the fall-off named gain_regions."""
     row = R.run_case(R.draw_case("vignetting", 1942702256235148823), tmp_path, workers=1)
     assert row["first"] == "vignetting"
 
