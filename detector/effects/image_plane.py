@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import inspect
 import os
+from dataclasses import replace
 
 import numpy as np
 import scipy.fft
@@ -494,7 +495,8 @@ class TransformSignature(Signature):
     kind = "transform"
 
     def __init__(self, start, transform, to_params, steps, explain, pattern="", n_iter: int = 6, check=None,
-                 nested: list[tuple[int, ...]] | None = None, chain: bool = False):
+                 nested: list[tuple[int, ...]] | None = None, chain: bool = False,
+                 shared: tuple[tuple[int, ...], ...] = ()):
         self.start, self.transform, self.to_params, self.steps = start, transform, to_params, np.asarray(steps, float)
         self.explain, self.pattern, self.n_iter, self.check = explain, pattern, n_iter, check
         self.nested = nested
@@ -502,6 +504,10 @@ class TransformSignature(Signature):
         #: (the new ones at 0) and is fitted only when that one was a candidate (its ``to_params`` gave
         #: parameters): a richer form refines a simpler one (a drift's path from its straight trail)
         self.chain = chain
+        #: ``shared``: the nested subsets other signatures' nested tests take as their simpler form
+        #: (:meth:`form_fit`): fitted once per frame and kept in the residuals' memo; the others are not kept
+        #: (each holds a frame-sized map)
+        self.shared = frozenset(tuple(int(i) for i in sub) for sub in shared)
         self._spectra = {"spectra", "workers"} <= set(inspect.signature(transform).parameters)
         #: a transform that takes ``at`` (flat pixel indices) evaluates only those pixels: the search steps then
         #: cost the sample's size, not the frame's
@@ -527,8 +533,12 @@ class TransformSignature(Signature):
                     break
                 start = (lambda r, sub=sub, th0=prev.state["transform_theta"]: th0[sub])
                 fit = self._fit_form(res, name, sub, start)
-            else:  # the form from its own start: the fit the nested tests take as their simpler form
+            elif tuple(int(i) for i in sub) in self.shared:  # the nested tests' simpler form: fitted once
                 fit = self.form_fit(res, name, sub)
+                # a copy of its own: the caller may drop the copy's maps (a series keeps none) or add to its state
+                fit = None if fit is None else replace(fit, state=dict(fit.state))
+            else:
+                fit = self._fit_form(res, name, sub)
             prev = fit
             if fit is not None and (best is None or fit.delta_bic < best.delta_bic):
                 best = fit
@@ -1474,7 +1484,7 @@ class PSFBlur(Effect):
     stages = (Stage.FIELD,)
     Params = BlurParams
     signature = TransformSignature(
-        _blur_start, _blur_transform, _blur_params, [0.02, 0.002, 0.1], nested=[(0,), (1, 2)],
+        _blur_start, _blur_transform, _blur_params, [0.02, 0.002, 0.1], nested=[(0,), (1, 2)], shared=((0,),),
         pattern="sources wider than the model (a Laplacian-shaped residual), or with far wings",
         explain=_blur_words)
 
@@ -1508,7 +1518,8 @@ class Jitter(Effect):
     Params = JitterParams
     signature = TransformSignature(
         _jitter_start, _jitter_transform, _jitter_params, [0.02, 0.02, 0.02, 0.02, 0.02],
-        nested=[(0, 1, 2), (3, 4)], check=_jitter_check, pattern="sources elongated along one direction",
+        nested=[(0, 1, 2), (3, 4)], shared=((0, 1, 2),), check=_jitter_check,
+        pattern="sources elongated along one direction",
         explain=_jitter_words)
 
     def apply(self, stage: Stage, tile: Tile, data: np.ndarray) -> None:
