@@ -1400,16 +1400,20 @@ class LinearSignature(Signature):
         if ranked and self.refine is not None:
             # stable sort: on a tie the first pass's winner stays ahead of its refinements
             ranked = sorted([*ranked, *self._ranked(res, ctx, self.refine(ranked[0][0], res))], key=lambda b: b[4])
-        for v, d, c, params, _ in ranked:
-            fit = self._settle(res, name, ctx, v, d, c, params)
-            if fit is not None:
+        for v, d, c, params, bic in ranked:
+            if not np.isfinite(bic):
+                continue
+            fit, stop = self._settle(res, name, ctx, v, d, c, params)
+            if fit is not None or stop:
                 return fit
         return None
 
-    def _settle(self, res: Residuals, name: str, ctx: dict, v: Variant, d: float, c, params: dict) -> Fit | None:
+    def _settle(self, res: Residuals, name: str, ctx: dict, v: Variant, d: float, c, params: dict
+                ) -> tuple[Fit | None, bool]:
         """The variant ``v`` found on the search sample, refitted on every fitted pixel (else the sample's
-        admissible fit, scaled), its ``of_light`` coefficients divided by the light level: the fit, or None
-        when those leave the variant's bounds."""
+        admissible fit, scaled), its ``of_light`` coefficients divided by the light level: (the fit, or None
+        when those leave the variant's bounds; whether the light level itself refuses it, below half the
+        model's light, which no other variant would change)."""
         idx, _, w = res.flat_profiled()
         values = (lambda i: v.values(i, res.data_adu.shape))
         if not ctx["full"]:  # the winner on every fitted pixel (else keep the subsample's, scaled)
@@ -1419,10 +1423,12 @@ class LinearSignature(Signature):
                 c, d, params = c_all, d_all, p_all
         if self.of_light:
             light = joint_levels(res, values, idx, v.target(idx, res.flat()[1]), w, c).get("light_scale", 0.0)
-            params = v.to_params(np.asarray(c) / (1.0 + light)) if light > -0.5 else None
+            if light <= -0.5:
+                return None, True
+            params = v.to_params(np.asarray(c) / (1.0 + light))
             if params is None:
-                return None
-        return self._finish(res, name, v, c, d, params)
+                return None, False
+        return self._finish(res, name, v, c, d, params), False
 
     def _finish(self, res: Residuals, name: str, v: Variant, c, d: float, params: dict) -> Fit:
         maps = v.maps()
