@@ -566,6 +566,7 @@ def _drop_maps(sf: SeriesFit) -> None:
         if f is not None:
             f.delta_adu = None
             f.extra_var_adu2 = None
+            f.state.pop("smooth_adu", None)  # a variance fit's smooth part (its cells' test is done)
 
 
 def _concerned(g) -> bool:
