@@ -112,12 +112,9 @@ APERTURE_SIGMA, MIN_RADIUS_PX, MAX_RADIUS_PX = 6.0, 4, 12
 #: aperture [px] of the first pass that sizes the star (small: the moments of a wide aperture are dominated by the
 #: error of the background level, sum r^2 / F per ADU)
 FIRST_RADIUS_PX = 6
-#: a star needs this signal-to-noise in its aperture
-MIN_SNR = 50.0
-#: ... and no other source within its box brighter than its flux's standard error at that bar, 1 / MIN_SNR of its
-#: flux: a neighbour that faint changes the star's aperture flux by less than one standard error even when all
-#: its light falls in the aperture, so the star is measured as if alone to the precision it is measured at
-NEIGHBOUR_FRACTION = 1.0 / MIN_SNR
+#: a star needs this signal-to-noise in its aperture, and no other source brighter than NEIGHBOUR_FRACTION of
+#: it within its box
+MIN_SNR, NEIGHBOUR_FRACTION = 50.0, 0.02
 #: pupil rays per field point and wavelengths [nm] of the optics model (450-900 nm, the grid's band
 #: optics.psf.DEFAULT_BAND_NM, sampled at three wavelengths), and field points per axis
 N_RAYS, WAVELENGTHS_NM, NODES = 1000, (500.0, 650.0, 800.0), 6
