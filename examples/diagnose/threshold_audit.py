@@ -85,7 +85,7 @@ MIN_RADIUS_PX | N | measurement | aperture floor
 MAX_RADIUS_PX | N | measurement | aperture ceiling
 FIRST_RADIUS_PX | N | measurement | first-pass aperture
 MIN_SNR | D | statistics | a star's aperture S/N needed to be measured
-NEIGHBOUR_FRACTION | D | statistics | isolation of a measured star: a neighbour below its flux error at MIN_SNR (1 / MIN_SNR)
+NEIGHBOUR_FRACTION | D | design | isolation of a measured star
 N_RAYS | N | grid | pupil rays per field point
 WAVELENGTHS_NM | N | grid | wavelengths of the optics model
 NODES | N | grid | field points per axis
