@@ -558,7 +558,9 @@ def _ktc_check(fit, res) -> str:
     component of the read noise): a part of the read noise is at most the whole of it, so on a lit frame an
     extra white noise above the camera's read noise itself (the data's read noise then more than sqrt(2) times
     the one its bias frames measure) is not reset noise but the light's own pixel-to-pixel scatter (a PRNU,
-    which a uniform light cannot tell from it). kTC noise is
+    which a uniform light cannot tell from it). The bound assumes the scene's read noise is the one the camera's
+    bias frames measure (a data-sheet figure after correlated double sampling would not hold the reset noise of a
+    read-out without it, which can exceed it several times: sqrt(kT/C) is 13 e- at 1 fF). kTC noise is
     thermal and white: an excess whose power sits in one spatial frequency (significant on its own, the
     morphology's periodic_bar, and holding KTC_PERIODIC_SHARE of the excess) is a periodic pattern
     (electronic pick-up), not reset noise."""
