@@ -840,11 +840,17 @@ def fam_dsnu(rng):
     info = base_info(base)
     sigma, t = _loguniform(rng, 0.05, 0.8) if not info["cmos"] else _loguniform(rng, 0.3, 3.0)
     law = _choice(rng, ["uniform", "student"] + (["gamma"] if base == "dark" else []))
+    accept = ("dsnu",)
     if law == "gamma":
-        eff = ("GammaDSNU", {"sigma": sigma, "lf_rms": float(rng.uniform(0, 0.15))})
+        lf_rms = float(rng.uniform(0, 0.15))
+        eff = ("GammaDSNU", {"sigma": sigma, "lf_rms": lf_rms})
+        # a smooth part at least as large (rms) as the pixel-to-pixel one is a field of dark rate: the DSNU spans
+        # every spatial scale and its large scales are a dark-rate non-uniformity (EMVA 1288 Release 4.0, sect.
+        # 8.3; judge.same_dark_field), which is what a frame whose white part sits under its read noise shows
+        accept += ("dark_gradient",) if lf_rms >= sigma else ()
     else:
         eff = ("LawDSNU", {"law": law, "sigma": sigma})
-    return Draw(base, [eff], f"{law} DSNU, relative std {sigma:.3g}", t, accept=("dsnu",))
+    return Draw(base, [eff], f"{law} DSNU, relative std {sigma:.3g}", t, accept=accept)
 
 
 def fam_hot_pixels(rng):
