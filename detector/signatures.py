@@ -1823,6 +1823,24 @@ PERIODIC_LINE_FALSE_ALARM = DETECTION_P
 PERIODIC_LINE_NEIGHBOURS = 16
 
 
+def without_smooth_part(res: Residuals, vs: dict, smooth_adu: np.ndarray
+                        ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(whitened residual, variance, the smooth part) on the variance sample ``vs`` (:func:`variance_sample`)
+    once a pattern's own smooth part ``smooth_adu`` [ADU] is in the model: its fine structure (the part of it
+    the whitening's local mean does not take, over the fitted pixels and weighed as ``r_white``'s: a plain
+    filter is pulled by the masked source cores) off the whitened residual, and its charge's shot noise added to
+    the variance (:func:`with_shot_noise`; at most a 90 % loss). What a variance fit with a large-scale part
+    fits its scatter on, and what that scatter is judged on."""
+    sm = np.asarray(smooth_adu, np.float32)
+    fidx, _, fw = res.flat_profiled()
+    wm = np.zeros(sm.size, np.float32)
+    wm[fidx] = fw
+    fine = (sm - local_mean(sm, wm.reshape(sm.shape))).ravel()[vs["idx"]]
+    delta = frame_at(sm, vs["idx"])
+    v = vs["v"] + np.maximum(delta * res.poisson_adu, -0.9 * vs["v"])
+    return vs["r_white"] - fine / np.sqrt(vs["keep_var"]), v, delta
+
+
 def periodic_line_peak(u: np.ndarray) -> tuple[float, float] | None:
     """(period [lines], ratio) of the strongest frequency of a whitened line profile ``u`` (row offsets, column
     gains) when it stands above the mean level of its PERIODIC_LINE_NEIGHBOURS neighbours on each side beyond
@@ -2061,15 +2079,9 @@ class VarianceSignature(Signature):
                 # comes off the whitened residual, and its charge carries its shot noise (with_shot_noise). A
                 # smooth field of dark charge whose shot noise, or a response whose sources, were taken for a
                 # scatter is a field, not a non-uniformity of the pixels
-                # (its local mean the residual's own, over the fitted pixels and weighed as r_white's: a plain
-                # filter is pulled by the masked source cores, where a response's template is largest)
-                sm = np.asarray(smooth_delta, np.float32)
-                fidx, _, fw = res.flat_profiled()
-                wm = np.zeros(sm.size, np.float32)
-                wm[fidx] = fw
-                fine = (sm - local_mean(sm, wm.reshape(sm.shape))).ravel()[vs["idx"]]
-                shot = np.maximum(frame_at(sm, vs["idx"]) * res.poisson_adu, -0.9 * vs["v"])
-                theta, d0, law = best_law(vs["v"] + shot, vs["r_white"] - fine / np.sqrt(vs["keep_var"]))
+                # (:func:`without_smooth_part`)
+                r_rest, v_rest, _ = without_smooth_part(res, vs, smooth_delta)
+                theta, d0, law = best_law(v_rest, r_rest)
                 if d0 * vs["scale"] >= part:
                     return None
                 params = self.to_params(theta, res) if law is None else self.to_params(theta, res, law)
@@ -2206,14 +2218,7 @@ class VarianceSignature(Signature):
             # variance its scatter was fitted on (their fine structure off the whitened residual, their charge's
             # shot noise added, as in fit), and a scatter that follows the signal follows the signal with them,
             # (S + delta)^2 where the model's S^2 was the template
-            sm = np.asarray(fit.state["smooth_adu"], np.float32)
-            fidx, _, fw = res.flat_profiled()
-            wm = np.zeros(sm.size, np.float32)
-            wm[fidx] = fw
-            fine = (sm - local_mean(sm, wm.reshape(shape))).ravel()[vs["idx"]]
-            delta = frame_at(sm, vs["idx"])
-            v_all = vs["v"] + np.maximum(delta * res.poisson_adu, -0.9 * vs["v"])
-            r_white = r_white - fine / np.sqrt(vs["keep_var"])
+            r_white, v_all, delta = without_smooth_part(res, vs, fit.state["smooth_adu"])
             sig = template_at(self.smooth(res), shape, vs["idx"])
             t = t * np.where(np.abs(sig) > 0, (1.0 + delta / np.where(np.abs(sig) > 0, sig, 1.0)) ** 2, 1.0)
         # read values on integer codes: the whitened residual is a lattice of codes 1 / sqrt(keep_var) apart, whose
