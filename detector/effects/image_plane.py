@@ -482,6 +482,12 @@ def _photo_sensor_coords(tile: Tile) -> tuple[np.ndarray, np.ndarray, float, flo
 
 # --- diagnosis: fitted through the transformation itself (Gauss-Newton) ------------------------------------------
 
+def _form_key(sub) -> tuple[int, ...]:
+    """A nested form's parameter subset as a hashable key (``TransformSignature.shared``, the memo of
+    :meth:`TransformSignature.form_fit`)."""
+    return tuple(int(i) for i in sub)
+
+
 class TransformSignature(Signature):
     """The effect transforms the photo-signal image: ``model' = model + T_theta(P) - P``.
 
@@ -507,7 +513,7 @@ class TransformSignature(Signature):
         #: ``shared``: the nested subsets other signatures' nested tests take as their simpler form
         #: (:meth:`form_fit`): fitted once per frame and kept in the residuals' memo; the others are not kept
         #: (each holds a frame-sized map)
-        self.shared = frozenset(tuple(int(i) for i in sub) for sub in shared)
+        self.shared = frozenset(_form_key(sub) for sub in shared)
         self._spectra = {"spectra", "workers"} <= set(inspect.signature(transform).parameters)
         #: a transform that takes ``at`` (flat pixel indices) evaluates only those pixels: the search steps then
         #: cost the sample's size, not the frame's
@@ -533,7 +539,7 @@ class TransformSignature(Signature):
                     break
                 start = (lambda r, sub=sub, th0=prev.state["transform_theta"]: th0[sub])
                 fit = self._fit_form(res, name, sub, start)
-            elif tuple(int(i) for i in sub) in self.shared:  # the nested tests' simpler form: fitted once
+            elif _form_key(sub) in self.shared:  # the nested tests' simpler form: fitted once
                 fit = self.form_fit(res, name, sub)
                 # a copy of its own: the caller may drop the copy's maps (a series keeps none) or add to its state
                 fit = None if fit is None else replace(fit, state=dict(fit.state))
@@ -566,7 +572,7 @@ class TransformSignature(Signature):
     def form_fit(self, res, name, sub):
         """The fit of the single form ``sub`` (a nested subset, fitted from its own start), cached on ``res``:
         the simpler form a richer one must beat (:func:`_nested_gain`). None when it is no candidate."""
-        return res.memo(("form_fit", name, tuple(int(i) for i in sub)),
+        return res.memo(("form_fit", name, _form_key(sub)),
                         lambda: self._fit_form(res, name, sub) if _has_structure(res) else None)
 
     def refit(self, fit, res, name):
