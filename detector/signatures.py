@@ -53,7 +53,7 @@ from detector.significance import (
     MAX_DEFECT_FRACTION,
     STRUCTURE_SIGMA,
 )
-from detector.stats import mad_std
+from detector.stats import mad_std, median_square_variance, median_square_variance_error
 
 #: |z - median_3x3(z)| above which a pixel is a spike (hot/dead pixel, cosmic-ray hit) [sigma]
 SPIKE_SIGMA = DETECTION_SIGMA
@@ -2231,12 +2231,12 @@ class VarianceSignature(Signature):
             if sel.sum() < 200:
                 continue
             v = float(np.median(v_all[sel]))
-            excess = float(np.median(rw[sel] ** 2)) / 0.4549 - v - q2
+            excess = median_square_variance(rw[sel]) - v - q2
             pred = theta * float(np.mean(t[sel]))
             if pred > 0:
                 ratios.append(excess / pred)
-                # standard error of the median-of-squares variance estimate: (v + excess) sqrt(5.44 / n)
-                errs.append(max(v + excess, v) * np.sqrt(5.44 / sel.sum()) / pred)
+                # the median-of-squares estimate's standard error at the cell's variance, (v + excess) sqrt(5.44 / n)
+                errs.append(median_square_variance_error(max(v + excess, v), int(sel.sum())) / pred)
         if len(ratios) < 4:
             return ""
         ratios, errs = np.asarray(ratios), np.asarray(errs)

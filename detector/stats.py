@@ -13,6 +13,8 @@ means the same thing everywhere:
   spread, the inliers' std after; iterated until no pixel changes), the std corrected for the truncation.
 * :func:`clipped_median_std`: the lighter variant with the MAD as the spread in every pass (a fixed number
   of passes), used on many small boxes (background maps).
+* :func:`median_square_variance` / :func:`median_square_variance_error`: the variance of zero-mean normal values
+  from the median of their squares (which a few per cent of outliers cannot inflate) and its standard error.
 """
 
 from __future__ import annotations
@@ -25,6 +27,8 @@ import numpy as np
 MAD_TO_SIGMA = 1.482602218505602
 #: statistics of a larger array are taken on a regular subsample of this many values [values]
 MAX_STAT_PIXELS = 4_000_000
+#: the median of a chi2 law with one degree of freedom, Phi^-1(3/4)^2: the median of r^2 / var of zero-mean normal r
+CHI2_1_MEDIAN = 0.6744897501960817 ** 2
 
 
 def subsample(x, max_n: int = MAX_STAT_PIXELS) -> np.ndarray:
@@ -119,3 +123,27 @@ def clipped_median_std(values, nsigma: float = 3.0, iters: int = 5) -> tuple[flo
         v = v[keep]
     med = float(np.median(v))
     return med, float(np.std(v)) / truncated_normal_std(nsigma), int(v.size)
+
+
+def median_square_variance(r) -> float:
+    """The variance of zero-mean normal values ``r`` from the median of their squares, ``median(r^2) /``
+    :data:`CHI2_1_MEDIAN` [units of r squared]: a few per cent of outliers move it by their share of the
+    ranks, not by their size (NaN without values)."""
+    r = np.asarray(r, dtype=np.float64).ravel()
+    return float(np.median(r * r)) / CHI2_1_MEDIAN if r.size else math.nan
+
+
+def median_square_variance_error(var: float, n: int) -> float:
+    """The standard error of :func:`median_square_variance` over ``n`` normal values of variance ``var``:
+    the sample median of ``n`` values ``var chi2_1`` scatters by ``var / (2 f(m) sqrt(n))``, ``m`` the chi2_1
+    median and ``f(m) = exp(-m/2) / sqrt(2 pi m)`` its density there (the asymptotic variance of a sample
+    quantile, Cramer 1946, Mathematical Methods of Statistics, sect. 28.5), and the estimate is that median
+    over ``m``: ``var sqrt(5.443 / n)`` (2.333 var / sqrt(n)). The mean of the squares scatters by
+    ``var sqrt(2 / n)``: the median buys its robustness with 2.72 times the variance, so an excess the
+    likelihood (mean-of-squares) sees at ``s`` sigma is ``s / 1.65`` sigma to this estimate. Infinite
+    without values."""
+    if n <= 0:
+        return math.inf
+    m = CHI2_1_MEDIAN
+    density = math.exp(-0.5 * m) / math.sqrt(2.0 * math.pi * m)
+    return float(var / (2.0 * m * density * math.sqrt(n)))

@@ -13,13 +13,13 @@ import time
 from dataclasses import replace
 
 import numpy as np
-from scipy.stats import chi2 as chi2_dist
 
 from detector import registry
 from detector.effects.ghosts import psf_rms_px, source_image
 from detector.morphology import block_chi2
 from detector.signatures import Fit, Residuals, dither_codes, frame_at, heldout_blind, heldout_delta, seeing_block
 from detector.significance import DETECTION_SIGMA, FOOTPRINT_SIGMA, MIN_TEST_PIXELS
+from detector.stats import median_square_variance, median_square_variance_error
 
 from .floors import floor_reason, signal_range_floor
 from .judge import Candidate, indistinguishable, rank, verdict
@@ -62,7 +62,8 @@ def at_bound(cls, params: dict) -> str:
 
 def robust_excess_var(res: Residuals) -> tuple[float, float]:
     """(the data's variance beyond the model's, the model's) [ADU^2], medians over the fitted pixels with
-    the levels refitted: ``median(r^2) / 0.4549 - median(v)`` (0.4549 = median of chi2 with 1 dof), which
+    the levels refitted: ``median(r^2) / 0.4549 - median(v)`` (:func:`detector.stats.median_square_variance`;
+    0.4549 = median of chi2 with 1 dof), which
     sources the model misplaces (a few per cent of the pixels) cannot inflate, unlike a mean.
 
     Read values on the ADC's integer codes make ``r`` a lattice of spacing 1 ADU (offset by the model's mean):
@@ -76,20 +77,15 @@ def robust_excess_var(res: Residuals) -> tuple[float, float]:
         q2 = 0.0
         if r.size:
             r, q2 = dither_codes(res, idx, r)
-        return (float(np.median(r * r)) / 0.4549 - v - q2 if r.size else 0.0, v)
+        return (median_square_variance(r) - v - q2 if r.size else 0.0, v)
     return res.memo("robust_excess", compute)
 
 
 def robust_excess_error(var_adu2: float, n: int) -> float:
     """The standard error [ADU^2] of :func:`robust_excess_var`'s excess over ``n`` pixels whose residual variance
-    is ``var_adu2``: the sample median of ``n`` values ``var chi2_1`` scatters by ``var / (2 f(m) sqrt(n))``, ``m``
-    the chi2_1 median and ``f`` its density there (the asymptotic variance of a sample quantile, Cramer 1946,
-    Mathematical Methods of Statistics, sect. 28.5), and the excess is that median over ``m``: 2.33 var /
-    sqrt(n). Infinite without pixels."""
-    if n <= 0:
-        return float("inf")
-    m = float(chi2_dist.ppf(0.5, 1))
-    return float(var_adu2 / (2.0 * m * chi2_dist.pdf(m, 1) * np.sqrt(n)))
+    is ``var_adu2``: the median-of-squares estimate's (:func:`detector.stats.median_square_variance_error`,
+    2.33 var / sqrt(n)). Infinite without pixels."""
+    return median_square_variance_error(var_adu2, n)
 
 
 def overfit(fit: Fit, chi2_per_dof: float, res: Residuals | None = None,
