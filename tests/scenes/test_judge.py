@@ -825,3 +825,28 @@ def test_a_rival_refused_for_its_shares_that_predicts_the_held_out_pixels_better
     assert not better_rival(gain, worse) and indistinguishable([gain], [gain, worse]) == []
     vig.refuse("implausible", "not this effect's form")
     assert not better_rival(gain, vig) and indistinguishable([gain], [gain, vig]) == []
+
+
+def test_a_blind_candidate_told_from_all_but_a_blind_twin_is_judged_on_its_fit(monkeypatch):
+    """blind_rivals: the blind best fit that nesting tells from the first name, tied by nesting with a blind
+    rival that fits no better, is judged on its delta BIC (the first refused ``nested``, the twin kept); a rival
+    whose held-out score is a test (not blind) and that nesting does not tell from it leaves it unjudged."""
+    from types import SimpleNamespace
+
+    from scenes.app.compare import candidates as C
+
+    change = np.zeros((4, 4))
+
+    def cand(name, m2lnl, heldout, blind):
+        return Candidate(Fit(name, {}, m2lnl, 1, 10_000, "why", delta_adu=change), 1.0, 0.0, heldout=heldout,
+                         heldout_blind=blind)
+
+    told = {("nonlinearity", "psf_blur"): "beside nonlinearity it explains nothing significant"}
+    monkeypatch.setattr(C, "explains_beside", lambda res, c, o, policy=None: told.get((c.fit.effect, o.fit.effect), ""))
+    res = SimpleNamespace(light_source="")
+    for twin_blind, named in ((True, True), (False, False)):
+        blur, nl, bf = cand("psf_blur", -53, -43, True), cand("nonlinearity", -86, -36, True), \
+            cand("brighter_fatter", -80, 104, twin_blind)
+        C.blind_rivals(res, [blur, nl, bf])
+        assert nl.significant is named and ("nested" in blur.gates) is named
+        assert "nested" not in bf.gates

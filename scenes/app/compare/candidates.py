@@ -579,8 +579,12 @@ def blind_rivals(res: Residuals, cands: list[Candidate], policy: DiagnosisPolicy
     refused (gate ``nested``) and it is judged on its delta BIC (its held-out score, no test of it, cleared). A
     compressive response taking charge from the bright stars' cores leaves each star's flux short, which no
     brighter-fatter widening (each star's flux kept) or jitter (every star widened alike) makes; they add nothing
-    beside it. Otherwise the tie stays (:func:`.judge.indistinguishable`), or nothing is named: a blind
-    candidate with no rival to be told from is not tested at all."""
+    beside it. A rival that nesting does not tell from it (neither explains significantly what the other leaves),
+    whose own held-out score is blind too and whose delta BIC is no better, is not refused but left its twin
+    (:func:`.judge.blind_rival` lists it): the few pixels carrying both changes decide nothing between them, and
+    the better fit goes first, as twins do (:func:`.judge.rank`). Otherwise the tie stays
+    (:func:`.judge.indistinguishable`), or nothing is named: a blind candidate with no rival to be told from is
+    not tested at all."""
     from .judge import blind_rival, rank
 
     ranked = rank(cands, res.light_source)
@@ -598,8 +602,9 @@ def blind_rivals(res: Residuals, cands: list[Candidate], policy: DiagnosisPolicy
         if not others:
             continue
         reasons = [explains_beside(res, c, o, policy) for o in others]
-        if all(reasons):
+        if all(why or (o.heldout_blind and o.fit.delta_bic >= c.fit.delta_bic) for o, why in zip(others, reasons)):
             for o, why in zip(others, reasons):
-                o.refuse("nested", why)
+                if why:
+                    o.refuse("nested", why)
             c.heldout = None
             return
