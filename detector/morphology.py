@@ -29,8 +29,10 @@ from __future__ import annotations
 
 import hashlib
 import math
+import os
 
 import numpy as np
+import scipy.fft
 from scipy import ndimage as ndi
 from scipy.ndimage import gaussian_filter
 
@@ -250,7 +252,7 @@ def periodic_line(res) -> tuple[float, float, float]:
 
 
 def block_smooth(res: Residuals, zmap: np.ndarray, b: int, keep: bool = False) -> np.ndarray:
-    """``gaussian_filter(zmap, b, mode="nearest")``: a z map's smooth part at the block scale ``b`` [px], the part
+    """``gaussian_filter(zmap, b, mode="nearest")`` (:func:`gaussian_nearest_fft`): a z map's smooth part at the block scale ``b`` [px], the part
     the periodic search takes out. The row-noise candidate's :func:`periodic_line` and :func:`describe` smooth the
     same z map of one comparison, and a Gaussian of tens of pixels over a whole frame costs seconds: with
     ``keep`` the map is kept with ``res`` (one, identified by the z map's bytes, ~0.02 s to hash); without, a
@@ -262,10 +264,43 @@ def block_smooth(res: Residuals, zmap: np.ndarray, b: int, keep: bool = False) -
     if kept is not None and kept[0] == key:
         out = kept[1]
     else:
-        out = gaussian_filter(z, b, mode="nearest")
+        out = gaussian_nearest_fft(z, b)
     if keep:
         res.memo("morphology_block_smooth", lambda: (key, out))
     return out
+
+
+#: threads of :func:`gaussian_nearest_fft`'s transforms
+SMOOTH_FFT_WORKERS = max(1, min(2, os.cpu_count() or 1))
+
+
+def gaussian_nearest_fft(z: np.ndarray, sigma_px: float, truncate: float = 4.0) -> np.ndarray:
+    """``scipy.ndimage.gaussian_filter(z, sigma_px, mode="nearest", truncate=truncate)`` (the same sampled
+    kernel, ``exp(-x^2 / 2 sigma^2)`` for ``|x| <= int(truncate sigma + 0.5)``, normalised to sum 1, applied
+    along each axis in turn over the edge-extended array) done as a linear convolution in Fourier space: the
+    same numbers to rounding (~1e-15 of the map's scale), in a fraction of the time for a wide kernel (a
+    direct correlation costs the kernel's ~8 sigma taps per pixel and axis, the transform ~log of the row's
+    length)."""
+    sigma = float(sigma_px)
+    r = int(truncate * sigma + 0.5)
+    x = np.arange(-r, r + 1, dtype=np.float64)
+    k = np.exp(-0.5 / sigma ** 2 * x ** 2)
+    k /= k.sum()
+    out = np.asarray(z, np.float64)
+    for axis in range(out.ndim):
+        n = out.shape[axis]
+        length = scipy.fft.next_fast_len(n + 4 * r, real=True)  # the padded row (n + 2r) convolved with 2r + 1 taps
+        pad = [(0, 0)] * out.ndim
+        pad[axis] = (r, r)
+        spec = scipy.fft.rfft(np.pad(out, pad, mode="edge"), length, axis=axis, workers=SMOOTH_FFT_WORKERS)
+        shape = [1] * out.ndim
+        shape[axis] = spec.shape[axis]
+        spec *= scipy.fft.rfft(k, length).reshape(shape)
+        full = scipy.fft.irfft(spec, length, axis=axis, workers=SMOOTH_FFT_WORKERS)
+        keep = [slice(None)] * out.ndim
+        keep[axis] = slice(2 * r, 2 * r + n)  # the full convolution's samples centred on the input's pixels
+        out = full[tuple(keep)]
+    return np.ascontiguousarray(out, dtype=z.dtype)
 
 
 def _band(z: np.ndarray, ok: np.ndarray, s: float) -> np.ndarray:
