@@ -144,7 +144,6 @@ DEFECT_K | N | model | parameters of one defect (its BIC price)
 TRACK_K | N | model | parameters of one track (its BIC price)
 TRACK_MAX_PEAK_SHARE | D | physics | a track's peak pixel holds at most 0.9 of it (diffusion, IPC)
 NYQUIST_FWHM_PX | N | constant | FWHM of a Nyquist-sampled PSF, two samples per resolution element (Shannon 1949)
-FWHM_PER_SIGMA | N | constant | a Gaussian's FWHM over its sigma, 2 sqrt(2 ln 2)
 TRACK_MAX_WIDTH_PX | D | physics | a track is narrower than a Nyquist PSF (NYQUIST_FWHM_PX / FWHM_PER_SIGMA = 0.849 px rms)
 GROUP_MESH_PX | N | estimator | background mesh of the group statistics (SExtractor)
 GROW_SIGMA | D | statistics | |z| to which a spike's surroundings join its group
