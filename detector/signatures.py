@@ -36,6 +36,7 @@ unit parameters, and the fitted parameters are the plugin's own.
 from __future__ import annotations
 
 import functools
+import math
 import warnings
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field, replace
@@ -100,9 +101,14 @@ TRACK_K = 5
 #: holds more than 0.9; a particle crossing a pixel diffuses half of its charge into the neighbours at the usual
 #: sigma of 0.5 px)
 TRACK_MAX_PEAK_SHARE = 0.9
+#: the FWHM of a point-spread function sampled at Nyquist [output pixels]: two samples per resolution element
+#: (Shannon 1949), the sharpest image an optics can form on a pixel grid without aliasing
+NYQUIST_FWHM_PX = 2.0
+#: a Gaussian's FWHM over its standard deviation, 2 sqrt(2 ln 2)
+FWHM_PER_SIGMA = 2.0 * math.sqrt(2.0 * math.log(2.0))
 #: a track is narrower than a sampled point-spread function: the r.m.s. width of its signal across its major
-#: axis is below this [output pixels] (a PSF sampled at Nyquist, FWHM 2 px, has 0.85)
-TRACK_MAX_WIDTH_PX = 0.85
+#: axis is below a Nyquist-sampled PSF's [output pixels] (FWHM 2 px: 0.849 px r.m.s.)
+TRACK_MAX_WIDTH_PX = NYQUIST_FWHM_PX / FWHM_PER_SIGMA
 
 
 def is_track(groups: np.ndarray) -> np.ndarray:

@@ -225,8 +225,10 @@ class RowOffsetSignature(Signature):
     #: SMOOTH_FRACTION of the row means' excess chi2: most of it (EXPLAINS_MOST)
     SMOOTH_DEGREE = 4
     SMOOTH_FRACTION = EXPLAINS_MOST
-    #: ... or a pattern of the whole frame when the column means' excess variance is this fraction of the rows'
-    COLUMN_FRACTION = 0.5
+    #: ... or a pattern of the whole frame when the column means' excess variance is this fraction of the rows':
+    #: row offsets leave the column means alone, so column means carrying half (EXPLAINS_MOST) of the rows'
+    #: excess are a 2-D pattern's, as a smooth curve holding most of the rows' excess is (SMOOTH_FRACTION)
+    COLUMN_FRACTION = EXPLAINS_MOST
     #: ... or a drift when the extra row offsets (the smooth curve removed) correlate from row to row beyond
     #: their noise (lag-1 correlation DETECTION_SIGMA standard errors, 1 / sqrt(rows), above zero: row noise draws
     #: a new offset for every row read, Janesick 2007, ch. 10) and their spectrum follows a level drifting as a

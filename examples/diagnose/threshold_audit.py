@@ -76,7 +76,7 @@ STREAK_HALF_WIDTH | N | geometry | half width of a streak's band
 MAX_TRACK_BOX_PX | N | budget | largest track cut-out kept
 @scenes/app/compare/model.py
 REALISATION_SEED | N | seed | fixed seed of the model realisation (reproducibility)
-MAX_NONFINITE_FRACTION | D | design | a frame with more non-finite pixels is refused
+MAX_NONFINITE_FRACTION | D | design | a frame with more non-finite pixels is refused: a diagnosis speaks on most of the frame (EXPLAINS_MOST)
 @scenes/app/compare/optics_candidates.py
 MIN_STARS | D | statistics | fewest measurable stars for an optics fit
 MAX_STARS | N | budget | stars measured at most
@@ -143,7 +143,8 @@ NEAR_SATURATION_SHARE | D | physics | response turns non-linear below the full w
 DEFECT_K | N | model | parameters of one defect (its BIC price)
 TRACK_K | N | model | parameters of one track (its BIC price)
 TRACK_MAX_PEAK_SHARE | D | physics | a track's peak pixel holds at most 0.9 of it (diffusion, IPC)
-TRACK_MAX_WIDTH_PX | D | physics | a track is narrower than a Nyquist PSF (0.85 px rms)
+NYQUIST_FWHM_PX | N | constant | FWHM of a Nyquist-sampled PSF, two samples per resolution element (Shannon 1949)
+TRACK_MAX_WIDTH_PX | D | physics | a track is narrower than a Nyquist PSF (NYQUIST_FWHM_PX / FWHM_PER_SIGMA = 0.849 px rms)
 GROUP_MESH_PX | N | estimator | background mesh of the group statistics (SExtractor)
 GROW_SIGMA | D | statistics | |z| to which a spike's surroundings join its group
 GROW_PIXELS | N | geometry | how far a spike is grown
@@ -282,7 +283,7 @@ BIAS_FIELD_GRID | N | grid | bias field description grid
 TAIL_SPAN | N | model | span of a crosstalk tail (e-folds)
 RowOffsetSignature.SMOOTH_DEGREE | N | basis | polynomial degree of the smooth-curve test
 RowOffsetSignature.SMOOTH_FRACTION | D | design | a row-offset fit is a smooth curve above this share
-RowOffsetSignature.COLUMN_FRACTION | D | design | a whole-frame pattern, not row noise
+RowOffsetSignature.COLUMN_FRACTION | D | design | a whole-frame pattern, not row noise: column means carrying half (EXPLAINS_MOST) of the rows' excess, which row offsets leave alone
 BIAS_PROFILE_ORDERS | N | grid | bias pattern orders tried
 BIAS_FIELD_ORDERS | N | grid | bias field orders tried
 KTC_PERIODIC_SHARE | D | statistics | a white noise holds ~1e-4 of its power in one frequency

@@ -17,6 +17,7 @@ import numpy as np
 
 from detector.errors import DetectorError
 from detector.signatures import Residuals, SpikeStats, spike_stats
+from detector.significance import EXPLAINS_MOST
 from scenes.app.render import Setup, prepare
 from scenes.image.signal import Samples, SourceSignal, Trails
 from scenes.measured import measured_wcs, read_measured
@@ -25,8 +26,9 @@ from scenes.scene import Scene
 
 #: seed of the model realisation used for outlier statistics (fixed: the comparison is reproducible)
 REALISATION_SEED = 20231101
-#: a measured frame with more non-finite (NaN, inf) pixels than this fraction is refused
-MAX_NONFINITE_FRACTION = 0.5
+#: a measured frame with more non-finite (NaN, inf) pixels than this fraction is refused: a diagnosis of a frame
+#: speaks on most of its pixels (EXPLAINS_MOST), else it describes a part, not the frame
+MAX_NONFINITE_FRACTION = EXPLAINS_MOST
 
 
 @dataclass

@@ -16,6 +16,7 @@ docs/diagnosis_policy.md is generated from this module (:func:`markdown_table`;
 from __future__ import annotations
 
 import json
+import math
 import sys
 import warnings
 from dataclasses import MISSING, asdict, dataclass, field, fields, replace
@@ -160,9 +161,11 @@ class DiagnosisPolicy:
         "a refitted bias offset is a finding beyond this many ADU per read: a bias drifts by a fraction of an "
         "ADU to an ADU between frames (and a rounding convention is 0.5 ADU)")
     psf_width_tolerance: float = _f(
-        0.05, "1", "physics",
-        "a refitted PSF FWHM is a finding when it differs from the scene's by more than this fraction "
-        "(seeing varies by more within a night; 5 % is what the stars measure well)")
+        math.sqrt(1.0 + SCALE_TOLERANCE) - 1.0, "1", "physics",
+        "a refitted PSF FWHM is a finding when it differs from the scene's by more than this fraction: a PSF "
+        "conserves the flux, so its peak goes as 1 / FWHM^2 and a FWHM off by this much changes every star's "
+        "peak by SCALE_TOLERANCE, a scale error that is itself a finding (sqrt(1 + SCALE_TOLERANCE) - 1, 4.9 %; "
+        "a Moffat's beta is held to the same fraction)")
     noise_scale_tolerance: float = _f(
         SCALE_TOLERANCE, "1", "physics",
         "a gain or read noise refitted from the residual's variance is a finding beyond this relative change")
