@@ -214,20 +214,21 @@ class RowOffsetSignature(Signature):
     offsets worth of variance, one of a binned CCD row one).
 
     Physically, row offsets are independent from row to row (a new offset per row read: Janesick 2007,
-    Photon Transfer, ch. 10) and leave the column means alone. A fit whose row offsets form a smooth curve
-    (a polynomial of the row index takes most of their excess variance), or that comes with an equal
-    scatter of the column means, is a 2-D pattern (a gradient, a radial fall-off) seen through the rows:
-    :meth:`plausible` says so."""
+    Photon Transfer, ch. 10) and leave the column means alone. A fit whose row offsets are a smooth curve
+    (once a polynomial of the row index is taken off, the rows scatter no more than the pixel noise allows),
+    or that comes with an equal scatter of the column means, is a 2-D pattern (a gradient, a radial
+    fall-off) seen through the rows: :meth:`plausible` says so. A row noise with a flicker (1/f) part has a
+    smooth part of its own, so the curve's share of the excess decides nothing: what is left beyond it does."""
 
     kind = "rows"
     pattern = "row means scatter beyond the pixel noise"
-    #: a row-offset fit is a smooth curve when a polynomial of this degree in the row index takes more than
-    #: SMOOTH_FRACTION of the row means' excess chi2: most of it (EXPLAINS_MOST)
+    #: a row-offset fit is a smooth curve when, a polynomial of this degree in the row index taken off, the row
+    #: means' chi2 exceeds its degrees of freedom by less than DETECTION_SIGMA standard errors (chi2 test of the
+    #: rows beyond the curve)
     SMOOTH_DEGREE = 4
-    SMOOTH_FRACTION = EXPLAINS_MOST
     #: ... or a pattern of the whole frame when the column means' excess variance is this fraction of the rows':
     #: row offsets leave the column means alone, so column means carrying half (EXPLAINS_MOST) of the rows'
-    #: excess are a 2-D pattern's, as a smooth curve holding most of the rows' excess is (SMOOTH_FRACTION)
+    #: excess are a 2-D pattern's
     COLUMN_FRACTION = EXPLAINS_MOST
     #: ... or a drift when the extra row offsets (the smooth curve removed) correlate from row to row beyond
     #: their noise (lag-1 correlation DETECTION_SIGMA standard errors, 1 / sqrt(rows), above zero: row noise draws
@@ -335,7 +336,7 @@ class RowOffsetSignature(Signature):
         return float(np.sum(np.log1p(theta / v) + r * r / (v + theta) - r * r / v))
 
     def plausible(self, fit, res) -> str:
-        r, v, ok = self.line_means(res)
+        r, v, _ = self.line_means(res)
         theta = float(np.asarray(fit.extra_var_adu2, np.float64).ravel()[0])
         n = r.size
         if n >= 3 * (self.SMOOTH_DEGREE + 1):
@@ -343,12 +344,12 @@ class RowOffsetSignature(Signature):
             basis = np.polynomial.legendre.legvander(x, self.SMOOTH_DEGREE)
             wts = 1.0 / (v + theta)
             coef = np.linalg.lstsq(basis * np.sqrt(wts)[:, None], r * np.sqrt(wts), rcond=None)[0]
-            excess = float(np.sum(r * r / v) - n)
-            smooth = float(np.sum((basis @ coef) ** 2 / v))
-            if excess > 0 and smooth > self.SMOOTH_FRACTION * excess:
+            dof = n - (self.SMOOTH_DEGREE + 1)
+            rest_sigma = (float(np.sum((r - basis @ coef) ** 2 / v)) - dof) / np.sqrt(2.0 * dof)
+            if rest_sigma < DETECTION_SIGMA:
                 return (f"the row offsets form a smooth curve (a degree-{self.SMOOTH_DEGREE} polynomial of the row "
-                        f"takes {100 * min(smooth / excess, 1):.0f} % of their excess): a large-scale 2-D pattern "
-                        "seen through the rows, not independent row noise")
+                        f"taken off, the rows scatter as the pixel noise allows: {rest_sigma:.2g} sigma of excess): a "
+                        "large-scale 2-D pattern seen through the rows, not independent row noise")
             # independent from row to row: the lag-1 autocorrelation of what the smooth curve leaves (whitened)
             # (of the extra offsets: the pixel noise of the row means, white, dilutes it by (chi2/n - 1) / (chi2/n))
             u = (r - basis @ coef) * np.sqrt(wts)

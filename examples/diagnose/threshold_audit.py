@@ -282,7 +282,6 @@ Q_ELECTRON | N | constant | CODATA
 BIAS_FIELD_GRID | N | grid | bias field description grid
 TAIL_SPAN | N | model | span of a crosstalk tail (e-folds)
 RowOffsetSignature.SMOOTH_DEGREE | N | basis | polynomial degree of the smooth-curve test
-RowOffsetSignature.SMOOTH_FRACTION | D | design | a row-offset fit is a smooth curve above this share
 RowOffsetSignature.COLUMN_FRACTION | D | design | a whole-frame pattern, not row noise: column means carrying half (EXPLAINS_MOST) of the rows' excess, which row offsets leave alone
 BIAS_PROFILE_ORDERS | N | grid | bias pattern orders tried
 BIAS_FIELD_ORDERS | N | grid | bias field orders tried

@@ -131,3 +131,33 @@ def test_flicker_row_offsets_are_told_from_a_drifting_level_by_their_spectral_la
         alpha = R.spectral_index(u, float(np.mean(u * u)))
         assert lo < alpha < hi
         assert (R.drift_law_gain(u, float(np.mean(u * u))) < 0) == drift
+
+
+def test_a_flicker_row_noise_with_a_large_smooth_part_is_row_noise_but_a_smooth_curve_is_not():
+    """A row noise with a flicker (1/f) part: a polynomial of the row takes a large share of its excess (its
+    lowest frequencies), yet the rows beyond that curve still scatter far above the pixel noise (a chi2 test,
+    DETECTION_SIGMA): row noise. The same rms as a smooth curve (a parabola along the columns) leaves nothing
+    beyond the curve: a 2-D pattern seen through the rows, refused."""
+    from detector.effects.readout import RowOffsetSignature as R
+
+    rng = np.random.default_rng(40)
+    h, w = 1024, 96
+    y = np.linspace(-1, 1, h)
+    smooth = 2.0 * (y ** 2 - np.mean(y ** 2)) / np.std(y ** 2)
+    x = np.linspace(-1, 1, h)
+    basis = np.polynomial.legendre.legvander(x, R.SMOOTH_DEGREE)
+    # a pink series whose smooth part holds most of its variance (the old share rule refused it)
+    for seed in range(50):
+        pink = 2.0 * _power_law_series(h, 1.0, np.random.default_rng(seed))
+        share = np.sum((basis @ np.linalg.lstsq(basis, pink, rcond=None)[0]) ** 2) / np.sum(pink ** 2)
+        if share > 0.5:
+            break
+    assert share > 0.5
+    sig = R()
+    for offsets, row_noise in ((pink, True), (smooth, False)):
+        r = rng.normal(0, 5.0, (h, w)) + offsets[:, None]
+        res = _res(r, np.full((h, w), 25.0), 0.0)
+        fit = sig.fit(res, "row_noise")
+        assert fit is not None and fit.delta_bic < -100
+        why = sig.plausible(fit, res)
+        assert ("smooth curve" not in why) == row_noise, why
