@@ -45,6 +45,7 @@ from .significance import (
     STRONG_EVIDENCE,
     STRUCTURE_SIGMA,
 )
+from .stats import median_square_variance
 
 #: the residual is structured when the block chi2 (or the pixel chi2 for added noise) exceeds its degrees of
 #: freedom by this many standard deviations
@@ -589,7 +590,7 @@ def describe(res: Residuals, delta_adu: np.ndarray | None = None) -> dict:
         _, dgrad, fitv = _wls(vb[okv], npb / (2 * level * level), tv)
         varies = -dgrad > 25 and float(np.ptp(fitv)) > 0.5 * max(level - 1.0, 1e-9)
         geom = ["noise", "gradient"] if varies else ["noise"]
-        extra = max(float(np.median(r * r) / 0.4549 - np.median(1 / w)), 0.0)
+        extra = max(median_square_variance(r) - float(np.median(1 / w)), 0.0)
         if varies:  # where the noise is largest (the plane's highest block), not the frame's median
             extra = max(extra, (float(np.max(fitv)) - 1.0) * float(np.median(1 / w)))
         lsub, zsub = light.ravel()[idx][:200000], (r * r * w)[:200000]

@@ -101,8 +101,9 @@ TRACK_K = 5
 #: holds more than 0.9; a particle crossing a pixel diffuses half of its charge into the neighbours at the usual
 #: sigma of 0.5 px)
 TRACK_MAX_PEAK_SHARE = 0.9
-#: the FWHM of a point-spread function sampled at Nyquist [output pixels]: two samples per resolution element
-#: (Shannon 1949), the sharpest image an optics can form on a pixel grid without aliasing
+#: the FWHM of a point-spread function "sampled at Nyquist" [output pixels]: two pixels across the FWHM, the usual
+#: rule for a stellar image (a rule of thumb after Shannon 1949, not the theorem itself: a PSF has no band limit);
+#: a decision number (the track-width bar below rests on it)
 NYQUIST_FWHM_PX = 2.0
 #: a Gaussian's FWHM over its standard deviation, 2 sqrt(2 ln 2)
 FWHM_PER_SIGMA = 2.0 * math.sqrt(2.0 * math.log(2.0))

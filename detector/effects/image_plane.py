@@ -82,7 +82,7 @@ FIT_FFT_WORKERS = max(1, min(4, os.cpu_count() or 1))
 
 
 def fourier_filter(image: np.ndarray, pad: int, transfer, spectra: dict | None = None, workers: int | None = None,
-                   key: tuple | None = None, fast_len: bool = False) -> np.ndarray:
+                   key: tuple | None = None) -> np.ndarray:
     """``image`` filtered in Fourier space by ``transfer(fx, fy)`` [cycles/px], edges extended by ``pad``
     pixels of their own values (so a frame's border does not wrap onto the opposite one).
 
@@ -92,10 +92,7 @@ def fourier_filter(image: np.ndarray, pad: int, transfer, spectra: dict | None =
     scipy's on that many threads (the diagnosis fits; the same transform to rounding, ~1e-15 relative).
     ``key``, optional with ``spectra``: a hashable that names ``transfer`` (its kind and parameters); the
     filtered image is then kept in ``spectra`` too and a second call with the same key returns it again (the
-    same numbers: the same computation; the caller must not modify it). ``fast_len`` (with ``workers``): the
-    far edges extended further, to a length the transforms do fast (:func:`_fast_pad`), for a kernel that
-    decays within ``pad`` (a Gaussian's); not for a band-limited one with slow tails (a box's ``sinc``, a
-    ``J0``), whose periodic sum over the padded frame the length changes."""
+    same numbers: the same computation; the caller must not modify it)."""
     if workers is None:
         rfft2, irfft2 = np.fft.rfft2, np.fft.irfft2
     else:
@@ -105,14 +102,13 @@ def fourier_filter(image: np.ndarray, pad: int, transfer, spectra: dict | None =
         def irfft2(a, s):
             return scipy.fft.irfft2(a, s=s, workers=workers)
     work = np.float64 if image.dtype == np.float64 else np.float32  # the diagnosis fits in double precision
-    fast_len = bool(fast_len) and workers is not None
-    skey = (int(pad), np.dtype(work).str, image.shape, workers, fast_len)
+    skey = (int(pad), np.dtype(work).str, image.shape, workers)
     okey = None if spectra is None or key is None else ("out", key, skey)
     if okey is not None and okey in spectra:
         return spectra[okey]
     cached = None if spectra is None else spectra.get(skey)
     if cached is None:
-        big = np.pad(image.astype(work, copy=False), _fast_pad(image.shape, pad, fast_len), mode="edge")
+        big = np.pad(image.astype(work, copy=False), pad, mode="edge")
         cached = (rfft2(big), big.shape)
         del big
         if spectra is not None:
@@ -126,24 +122,11 @@ def fourier_filter(image: np.ndarray, pad: int, transfer, spectra: dict | None =
     # curved or accelerating drift path) in the complex type of that precision
     h = h.astype(np.result_type(work, np.complex64) if np.iscomplexobj(h) else work, copy=False)
     out = irfft2(spec * h, s=shape)
-    out = out[pad:pad + image.shape[0], pad:pad + image.shape[1]].astype(image.dtype)
+    out = out[pad:-pad, pad:-pad].astype(image.dtype)
     if okey is not None:
         _evict(spectra, True, MAX_CACHED_OUTPUTS)
         spectra[okey] = out
     return out
-
-
-def _fast_pad(shape: tuple, pad: int, fast: bool) -> tuple:
-    """The edge extension of :func:`fourier_filter`: ``pad`` pixels on each side; with ``fast`` the far sides
-    extended further, to the next length scipy transforms fast (:func:`scipy.fft.next_fast_len`: a product of
-    small primes; a padded 2048-pixel side often has a large prime factor, 2062 = 2 x 1031, and its inverse
-    transform then costs ~3x that of 2160 on 2 threads). For a kernel that decays within ``pad`` the filtered
-    pixels are the same to the wrap-around the pad already makes negligible (a Gaussian's, 4 sigma: < 0.02 ADU
-    on a 2048^2 star field of 3e4 ADU peaks)."""
-    extra = [0, 0]
-    if fast:
-        extra = [scipy.fft.next_fast_len(n + 2 * pad, real=True) - (n + 2 * pad) for n in shape[:2]]
-    return ((pad, pad + extra[0]), (pad, pad + extra[1]))
 
 
 def _evict(spectra: dict, outputs: bool, keep: int) -> None:
@@ -169,7 +152,7 @@ def gaussian_filter_cov(image: np.ndarray, cov: np.ndarray, max_gain: float = 1.
         return np.minimum(np.exp(-2 * np.pi ** 2 * q), max_gain)
 
     key = ("gaussian", np.asarray(cov, np.float64).tobytes(), float(max_gain))
-    return fourier_filter(image, pad, transfer, spectra, workers, key=key, fast_len=True)
+    return fourier_filter(image, pad, transfer, spectra, workers, key=key)
 
 
 def shift(image: np.ndarray, dx_px: float, dy_px: float) -> np.ndarray:

@@ -222,14 +222,15 @@ class RowOffsetSignature(Signature):
 
     kind = "rows"
     pattern = "row means scatter beyond the pixel noise"
-    #: a row-offset fit is a smooth curve when, a polynomial of this degree in the row index taken off, the row
-    #: means' chi2 exceeds its degrees of freedom by less than DETECTION_SIGMA standard errors (chi2 test of the
-    #: rows beyond the curve)
+    #: a row-offset fit is a smooth curve when a polynomial of this degree in the row index is significant (its
+    #: chi2 DETECTION_SIGMA standard errors above its dof) and, taken off, leaves the row means' chi2 within
+    #: DETECTION_SIGMA standard errors of theirs (chi2 tests of the curve and of the rows beyond it; a weak white
+    #: row noise has no curve and is not refused as one)
     SMOOTH_DEGREE = 4
-    #: ... or a pattern of the whole frame when the column means' excess variance is this fraction of the rows':
-    #: row offsets leave the column means alone, so column means carrying half (EXPLAINS_MOST) of the rows'
-    #: excess are a 2-D pattern's
-    COLUMN_FRACTION = EXPLAINS_MOST
+    #: ... or a pattern of the whole frame when the column means' excess variance is this fraction of the rows'
+    #: (row offsets leave the column means alone; a ratio of per-line variances, not a share of one whole, so not
+    #: EXPLAINS_MOST: for a symmetric 2-D patch it is the frame's width over its height)
+    COLUMN_FRACTION = 0.5
     #: ... or a drift when the extra row offsets (the smooth curve removed) correlate from row to row beyond
     #: their noise (lag-1 correlation DETECTION_SIGMA standard errors, 1 / sqrt(rows), above zero: row noise draws
     #: a new offset for every row read, Janesick 2007, ch. 10) and their spectrum follows a level drifting as a
@@ -344,9 +345,10 @@ class RowOffsetSignature(Signature):
             basis = np.polynomial.legendre.legvander(x, self.SMOOTH_DEGREE)
             wts = 1.0 / (v + theta)
             coef = np.linalg.lstsq(basis * np.sqrt(wts)[:, None], r * np.sqrt(wts), rcond=None)[0]
-            dof = n - (self.SMOOTH_DEGREE + 1)
-            rest_sigma = (float(np.sum((r - basis @ coef) ** 2 / v)) - dof) / np.sqrt(2.0 * dof)
-            if rest_sigma < DETECTION_SIGMA:
+            k_curve = self.SMOOTH_DEGREE + 1
+            curve_sigma = (float(np.sum((basis @ coef) ** 2 / v)) - k_curve) / np.sqrt(2.0 * k_curve)
+            rest_sigma = (float(np.sum((r - basis @ coef) ** 2 / v)) - (n - k_curve)) / np.sqrt(2.0 * (n - k_curve))
+            if curve_sigma >= DETECTION_SIGMA and rest_sigma < DETECTION_SIGMA:
                 return (f"the row offsets form a smooth curve (a degree-{self.SMOOTH_DEGREE} polynomial of the row "
                         f"taken off, the rows scatter as the pixel noise allows: {rest_sigma:.2g} sigma of excess): a "
                         "large-scale 2-D pattern seen through the rows, not independent row noise")

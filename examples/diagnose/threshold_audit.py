@@ -143,7 +143,7 @@ NEAR_SATURATION_SHARE | D | physics | response turns non-linear below the full w
 DEFECT_K | N | model | parameters of one defect (its BIC price)
 TRACK_K | N | model | parameters of one track (its BIC price)
 TRACK_MAX_PEAK_SHARE | D | physics | a track's peak pixel holds at most 0.9 of it (diffusion, IPC)
-NYQUIST_FWHM_PX | N | constant | FWHM of a Nyquist-sampled PSF, two samples per resolution element (Shannon 1949)
+NYQUIST_FWHM_PX | D | physics | FWHM of a Nyquist-sampled PSF, two samples per resolution element (the track-width bar's decision number)
 TRACK_MAX_WIDTH_PX | D | physics | a track is narrower than a Nyquist PSF (NYQUIST_FWHM_PX / FWHM_PER_SIGMA = 0.849 px rms)
 GROUP_MESH_PX | N | estimator | background mesh of the group statistics (SExtractor)
 GROW_SIGMA | D | statistics | |z| to which a spike's surroundings join its group
@@ -282,7 +282,7 @@ Q_ELECTRON | N | constant | CODATA
 BIAS_FIELD_GRID | N | grid | bias field description grid
 TAIL_SPAN | N | model | span of a crosstalk tail (e-folds)
 RowOffsetSignature.SMOOTH_DEGREE | N | basis | polynomial degree of the smooth-curve test
-RowOffsetSignature.COLUMN_FRACTION | D | design | a whole-frame pattern, not row noise: column means carrying half (EXPLAINS_MOST) of the rows' excess, which row offsets leave alone
+RowOffsetSignature.COLUMN_FRACTION | D | design | a whole-frame pattern, not row noise (column means' excess variance over the rows')
 BIAS_PROFILE_ORDERS | N | grid | bias pattern orders tried
 BIAS_FIELD_ORDERS | N | grid | bias field orders tried
 KTC_PERIODIC_SHARE | D | statistics | a white noise holds ~1e-4 of its power in one frequency

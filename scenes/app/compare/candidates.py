@@ -580,8 +580,9 @@ def blind_rivals(res: Residuals, cands: list[Candidate], policy: DiagnosisPolicy
     compressive response taking charge from the bright stars' cores leaves each star's flux short, which no
     brighter-fatter widening (each star's flux kept) or jitter (every star widened alike) makes; they add nothing
     beside it. A rival that nesting does not tell from it (neither explains significantly what the other leaves),
-    whose own held-out score is blind too and whose delta BIC is no better, is not refused but left its twin
-    (:func:`.judge.blind_rival` lists it): the few pixels carrying both changes decide nothing between them, and
+    whose own held-out score is blind too and whose delta BIC is no better but within the twins' tolerance, is
+    not refused but left its twin (:func:`.judge.blind_rival` lists it; a rival beyond the tolerance is no twin and
+    keeps the decision open): the few pixels carrying both changes decide nothing between them, and
     the better fit goes first, as twins do (:func:`.judge.rank`). Otherwise the tie stays
     (:func:`.judge.indistinguishable`), or nothing is named: a blind candidate with no rival to be told from is
     not tested at all."""
@@ -602,7 +603,8 @@ def blind_rivals(res: Residuals, cands: list[Candidate], policy: DiagnosisPolicy
         if not others:
             continue
         reasons = [explains_beside(res, c, o, policy) for o in others]
-        if all(why or (o.heldout_blind and o.fit.delta_bic >= c.fit.delta_bic) for o, why in zip(others, reasons)):
+        if all(why or (o.heldout_blind and o.fit.delta_bic >= c.fit.delta_bic and blind_rival(c, o))
+               for o, why in zip(others, reasons)):
             for o, why in zip(others, reasons):
                 if why:
                     o.refuse("nested", why)
