@@ -253,12 +253,12 @@ def periodic_line(res) -> tuple[float, float, float]:
 
 
 def block_smooth(res: Residuals, zmap: np.ndarray, b: int, keep: bool = False) -> np.ndarray:
-    """``gaussian_filter(zmap, b, mode="nearest")`` (:func:`gaussian_nearest_fft`): a z map's smooth part at the block scale ``b`` [px], the part
-    the periodic search takes out. The row-noise candidate's :func:`periodic_line` and :func:`describe` smooth the
-    same z map of one comparison, and a Gaussian of tens of pixels over a whole frame costs seconds: with
-    ``keep`` the map is kept with ``res`` (one, identified by the z map's bytes, ~0.02 s to hash); without, a
-    kept map of the same z map is handed over (and no longer kept), else it is computed. The same numbers
-    either way. Do not modify the returned array."""
+    """``gaussian_filter(zmap, b, mode="nearest")`` (:func:`gaussian_nearest_fft`): a z map's smooth part at the
+    block scale ``b`` [px], the part the periodic search takes out. The row-noise candidate's
+    :func:`periodic_line` and :func:`describe` smooth the same z map of one comparison, and a Gaussian of tens of
+    pixels over a whole frame costs seconds: with ``keep`` the map is kept with ``res`` (one, identified by the z
+    map's bytes, ~0.02 s to hash); without, a kept map of the same z map is handed over (and no longer kept),
+    else it is computed. The same numbers either way. Do not modify the returned array."""
     z = np.ascontiguousarray(zmap)
     key = (hashlib.blake2b(z.view(np.uint8).reshape(-1), digest_size=16).digest(), z.shape, z.dtype.str, int(b))
     kept = res.forget("morphology_block_smooth")

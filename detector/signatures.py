@@ -2242,7 +2242,7 @@ class VarianceSignature(Signature):
             pred = theta * float(np.mean(t[sel]))
             if pred > 0:
                 ratios.append(excess / pred)
-                # the median-of-squares estimate's standard error at the cell's variance, (v + excess) sqrt(5.44 / n)
+                # the median-of-squares estimate's standard error at the cell's variance v + excess
                 errs.append(median_square_variance_error(max(v + excess, v), int(sel.sum())) / pred)
         if len(ratios) < 4:
             return ""

@@ -345,16 +345,16 @@ class RowOffsetSignature(Signature):
             basis = np.polynomial.legendre.legvander(x, self.SMOOTH_DEGREE)
             wts = 1.0 / (v + theta)
             coef = np.linalg.lstsq(basis * np.sqrt(wts)[:, None], r * np.sqrt(wts), rcond=None)[0]
-            k_curve = self.SMOOTH_DEGREE + 1
-            curve_sigma = (float(np.sum((basis @ coef) ** 2 / v)) - k_curve) / np.sqrt(2.0 * k_curve)
-            rest_sigma = (float(np.sum((r - basis @ coef) ** 2 / v)) - (n - k_curve)) / np.sqrt(2.0 * (n - k_curve))
+            curve, k_curve = basis @ coef, self.SMOOTH_DEGREE + 1
+            curve_sigma = (float(np.sum(curve ** 2 / v)) - k_curve) / np.sqrt(2.0 * k_curve)
+            rest_sigma = (float(np.sum((r - curve) ** 2 / v)) - (n - k_curve)) / np.sqrt(2.0 * (n - k_curve))
             if curve_sigma >= DETECTION_SIGMA and rest_sigma < DETECTION_SIGMA:
                 return (f"the row offsets form a smooth curve (a degree-{self.SMOOTH_DEGREE} polynomial of the row "
                         f"taken off, the rows scatter as the pixel noise allows: {rest_sigma:.2g} sigma of excess): a "
                         "large-scale 2-D pattern seen through the rows, not independent row noise")
             # independent from row to row: the lag-1 autocorrelation of what the smooth curve leaves (whitened)
             # (of the extra offsets: the pixel noise of the row means, white, dilutes it by (chi2/n - 1) / (chi2/n))
-            u = (r - basis @ coef) * np.sqrt(wts)
+            u = (r - curve) * np.sqrt(wts)
             rho1 = float(np.dot(u[1:], u[:-1]) / max(np.dot(u, u), 1e-300))
             ratio = float(np.sum(r * r / v)) / n
             rho_extra = rho1 * ratio / (ratio - 1) if ratio > 1 else 0.0

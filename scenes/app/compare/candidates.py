@@ -62,8 +62,8 @@ def at_bound(cls, params: dict) -> str:
 
 def robust_excess_var(res: Residuals) -> tuple[float, float]:
     """(the data's variance beyond the model's, the model's) [ADU^2], medians over the fitted pixels with
-    the levels refitted: ``median(r^2) / 0.4549 - median(v)`` (:func:`detector.stats.median_square_variance`;
-    0.4549 = median of chi2 with 1 dof), which
+    the levels refitted: ``median(r^2) / m - median(v)`` (:func:`detector.stats.median_square_variance`; ``m``
+    the median of chi2 with 1 dof, 0.4549), which
     sources the model misplaces (a few per cent of the pixels) cannot inflate, unlike a mean.
 
     Read values on the ADC's integer codes make ``r`` a lattice of spacing 1 ADU (offset by the model's mean):
@@ -603,7 +603,8 @@ def blind_rivals(res: Residuals, cands: list[Candidate], policy: DiagnosisPolicy
         if not others:
             continue
         reasons = [explains_beside(res, c, o, policy) for o in others]
-        if all(why or (o.heldout_blind and o.fit.delta_bic >= c.fit.delta_bic and blind_rival(c, o))
+        # a twin: no better a fit, within the twins' tolerance, its own held-out score blind (blind_rival)
+        if all(why or (o.fit.delta_bic >= c.fit.delta_bic and blind_rival(c, o))
                for o, why in zip(others, reasons)):
             for o, why in zip(others, reasons):
                 if why:
