@@ -180,10 +180,12 @@ def signal_range_floor(effect: str, res, policy: DiagnosisPolicy = DEFAULT_POLIC
     judged by what it changes within the frame's own signal range (:func:`signal_range`: from its median to its
     brightest fitted pixel; ``signal`` overrides it, e.g. a series' range across its frames): the law's response
     there, ``S'/S`` at the top over ``S'/S`` at the median (:func:`response_ratio`), must differ by the policy's
-    ``min_nonlinearity_in_range``, unless the signal reaches ``min_nonlinearity_signal_fraction`` of the full well
-    (where a linearity measurement starts). A law's size at full well, on a frame of a few per cent of the well, is an
-    extrapolation the pixels cannot check; its change across the frame's signal is what they measure (a gamma
-    law compresses every decade of signal alike; a quadratic deficit little at low signal)."""
+    ``min_nonlinearity_in_range``, however high the signal reaches: a law's size at full well, on a frame of a few
+    per cent of the well, is an extrapolation the pixels cannot check; its change across the frame's signal is what
+    they measure (a gamma law compresses every decade of signal alike; a quadratic deficit little at low signal);
+    on a frame that reaches high in the well that change is the law's own deficit there (the floor at full well,
+    ``min_nonlinearity_at_full_well``, asks the same size of it), and a frame without a range (a uniform flat:
+    the law's change is a level the light's level takes) measures none."""
     if effect != "nonlinearity":
         return ""
     got = signal if signal is not None else signal_range(res)
@@ -191,8 +193,6 @@ def signal_range_floor(effect: str, res, policy: DiagnosisPolicy = DEFAULT_POLIC
         return ""
     lo, top = got
     fw = float(res.sensor.full_well_e)
-    if top >= policy.min_nonlinearity_signal_fraction * fw:  # the range a linearity measurement spans
-        return ""
     change = float(abs(response_ratio(params or {}, top / fw) / response_ratio(params or {}, lo / fw) - 1.0))
     if change < policy.min_nonlinearity_in_range:
         return (f"over the {'series' if signal is not None else 'frame'}'s own signal ({lo:.3g} to {top:.3g} e- per "

@@ -64,6 +64,10 @@ RETIRED: dict[str, str] = {
                             "excess variance (candidates.robust_excess_error), not a fraction of the model's",
     "overfit_chi2_per_dof": "a noise-only candidate's chi2/dof bar is 1 / noise_excess_factor: the model's whole "
                             "variance with the claim at most that factor times the residual's (candidates.overfit)",
+    "min_nonlinearity_signal_fraction": "a non-linearity is judged by its change within the frame's own signal "
+                                        "range (min_nonlinearity_in_range) however high the frame reaches in the "
+                                        "well (floors.signal_range_floor), not spared it above a fraction of the "
+                                        "full well",
 }
 
 
@@ -175,18 +179,13 @@ class DiagnosisPolicy:
         LINEARITY_RESOLVED, "1", "physics",
         "a non-linearity smaller than this at full well (0.1 %) is not a finding: photon-transfer curves of "
         "scientific CCD/CMOS measure 0.1-1 % at best (Janesick 2007, Photon Transfer, ch. 5)")
-    min_nonlinearity_signal_fraction: float = _f(
-        0.05, "1", "physics",
-        "a frame whose signal reaches this fraction of the full well (its brightest fitted pixel in the model) measures a response "
-        "law (EMVA 1288 release 4.0, sect. 6.9, measures the linearity error from 5 % to 95 % of saturation); a "
-        "frame below it must show the law within its own range (min_nonlinearity_in_range)")
     min_nonlinearity_in_range: float = _f(
         LINEARITY_RESOLVED, "1", "physics",
-        "on a frame below min_nonlinearity_signal_fraction of the full well, a non-linearity is a finding when, "
-        "within the frame's own signal range (its median to its brightest fitted pixel), the fitted law changes the response by at least this fraction (0.1 %, the linearity error "
-        "a photon-transfer measurement resolves, Janesick 2007 ch. 5; EMVA 1288 release 4.0 sect. 6.9); its size "
-        "at full well, on a frame of a few per cent of the well, is an extrapolation the pixels cannot check, so "
-        "the frame's range is what is asked, and a power law is referenced at the frame's median signal (a real "
+        "a non-linearity is a finding when, within the frame's own signal range (its median to its brightest "
+        "fitted pixel), the fitted law changes the response by at least this fraction (0.1 %, the linearity error "
+        "a photon-transfer measurement resolves, Janesick 2007 ch. 5; EMVA 1288 release 4.0 sect. 6.9), however "
+        "high the frame reaches in the well; its size at full well, beyond that range, is an extrapolation the "
+        "pixels cannot check, so the frame's range is what is asked, and a power law is referenced at the frame's median signal (a real "
         "SBIG dark: gamma 1.027 from 67 e- of a 133 000 e- well, referenced at half the well, lowered the whole "
         "dark by 16 % when rendered)")
     min_extra_noise_fraction: float = _f(
