@@ -332,7 +332,11 @@ class CTIParams(EffectParams):
                           "transfers)")
     parallel_transfer_s: float = Field(ML11002_PARALLEL_TRANSFER_S, gt=0, le=1.0,
                                        description="dwell per parallel transfer (one serial row read) [s]")
-    beta: float = Field(0.478, gt=0, le=1, description="well-fill power (Massey et al. 2014) [1]")
+    # beta = 1 is a physical state, not a limit of the form: a packet's volume in proportion to its charge (a
+    # cloud of fixed density), the classical constant-fraction CTI (Janesick 2001, Scientific Charge-Coupled
+    # Devices, SPIE PM83, ch. 5); a larger power would thin the cloud as it fills
+    beta: float = Field(0.478, gt=0, le=1, description="well-fill power (Massey et al. 2014) [1]",
+                        json_schema_extra={"unit": "1", "bound_reachable": True})
     well_e: float | None = Field(None, gt=0, description="well depth of the fill law (default: full well) [e-]")
     serial_density_per_px: list[float] = Field(default_factory=list,
                                                description="serial-register trap densities [traps/pixel]")

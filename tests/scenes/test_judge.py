@@ -502,6 +502,17 @@ def test_a_reachable_bound_is_not_a_pinned_fit():
     assert "dx_px" in at_bound(cls, {"dx_px": 1000.0, "dy_px": 1.0, "accel": 0.5})
 
 
+def test_constant_fraction_cti_is_not_a_pinned_fit():
+    """A well-fill power of 1 is the classical constant-fraction CTI (a packet's volume in proportion to its
+    charge), a physical state the schema marks ``bound_reachable``: a cti fit there is not "at its bound"."""
+    from detector import registry
+    from scenes.app.compare.candidates import at_bound
+
+    cls = registry()["cti"]
+    assert cls.Params.model_json_schema()["properties"]["beta"].get("bound_reachable") is True
+    assert at_bound(cls, {"density_per_px": [0.2], "release_time_s": [0.004], "beta": 1.0}) == ""
+
+
 def test_a_glow_and_a_light_are_the_same_charge_on_a_light_frame():
     """A field of dark charge (amp_glow) and a field of light (straylight) put the same charge in the same pixels
     of an exposed frame: named as not told apart whatever their held-out scores (their forms differ, their
