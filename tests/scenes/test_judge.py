@@ -838,6 +838,26 @@ def test_a_rival_refused_for_its_shares_that_predicts_the_held_out_pixels_better
     assert not better_rival(gain, vig) and indistinguishable([gain], [gain, vig]) == []
 
 
+def test_a_rival_that_fits_better_and_predicts_as_well_but_misses_the_held_out_bar_ties_with_the_first():
+    """closer_rival: a rival with a lower delta BIC whose held-out score is within the scores' scatter of the
+    first's (2 sqrt(2 |score|)) and that fails only the held-out bar is a tie, listed after the first (which
+    stays first: it passes every gate); one whose held-out score is further off, or that fits worse, or fails
+    another gate, is none. The numbers (delta BIC -40.3 and -56.8) are a 0.07 px tangential distortion against a uniform shift."""
+    from scenes.app.compare.judge import closer_rival, indistinguishable, rank, verdict
+
+    shift = Candidate(Fit("pointing_offset", {}, -62.5, 2, 65536, "a shift"), 1.0, 0.0, heldout=-41.1)
+    dist = Candidate(Fit("distortion", {}, -101.2, 4, 65536, "a distortion"), 1.0, 0.0, heldout=-34.8)
+    assert shift.significant and dist.gates == ["heldout"] and closer_rival(shift, dist)
+    assert indistinguishable([shift], [shift, dist]) == [dist]
+    assert [c.fit.effect for c in rank([dist, shift])][:2] == ["pointing_offset", "distortion"]
+    assert "cannot tell it apart from distortion: it fits the frame better" in verdict([shift, dist])
+    far = Candidate(Fit("distortion", {}, -101.2, 4, 65536, "a distortion"), 1.0, 0.0, heldout=-10.0)
+    worse_fit = Candidate(Fit("distortion", {}, -79.4, 4, 65536, "a distortion"), 1.0, 0.0, heldout=-34.8)
+    assert not closer_rival(shift, far) and not closer_rival(shift, worse_fit)
+    dist.refuse("implausible", "not this effect's form")
+    assert not closer_rival(shift, dist) and indistinguishable([shift], [shift, dist]) == []
+
+
 def test_a_blind_candidate_told_from_all_but_a_blind_twin_is_judged_on_its_fit(monkeypatch):
     """blind_rivals: the blind best fit that nesting tells from the first name, tied by nesting with a blind
     rival that fits no better, is judged on its delta BIC (the first refused ``nested``, the twin kept); a rival

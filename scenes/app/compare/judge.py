@@ -392,6 +392,19 @@ def better_rival(first: Candidate, c: Candidate) -> bool:
     return bool(gates) and gates <= SHARE_GATES and c.heldout <= first.heldout
 
 
+def closer_rival(first: Candidate, c: Candidate) -> bool:
+    """``c`` fits the frame better than ``first`` (a lower delta BIC), predicts the pixels neither fit saw as
+    well as ``first`` within the scores' own scatter (:func:`twin_tolerance`, on the same folds), and fails no
+    gate but the held-out significance bar that ``first`` clears. That bar says whether a name is earned, not
+    which of two forms the pixels prefer: the pixels both fits saw prefer ``c``'s form, and the held-out ones
+    cannot tell the two apart. A tie, with ``first`` still the one that passes every gate."""
+    if not c.contender or c.heldout is None or first.heldout is None or c.heldout_block != first.heldout_block:
+        return False
+    if c.fit.delta_bic >= first.fit.delta_bic or c.gates != ["heldout"]:
+        return False
+    return c.heldout - first.heldout <= twin_tolerance(first.heldout, first.policy)
+
+
 TWIN_REASONS = (
     (same_charge, "the same charge in the same pixels, whose origin (dark or light) only a dark frame of the same "
                   "exposure tells"),
@@ -412,6 +425,9 @@ TWIN_REASONS = (
     (lambda a, b: better_rival(a, b),
      "it predicts the held-out pixels better, but removes too little of what is wrong where it acts or overall: the "
      "held-out pixels prefer its form, the shares do not single out the first's"),
+    (closer_rival,
+     "it fits the frame better, and predicts the held-out pixels as well within their scatter; only the held-out "
+     "significance bar, which the first clears, separates them: the data do not prefer the first's form"),
     (lambda a, b: b.heldout_blind and not b.significant,
      "it fits the frame as well or better, and the held-out test cannot weigh it: the few bright pixels that carry "
      "its change lie in one fold of the checkerboard, the other sees less than a detection of it"),
@@ -428,8 +444,9 @@ def indistinguishable(sig: list[Candidate], cands: list[Candidate] = ()) -> list
     (significant by delta BIC, plausible, not rejected) that make the same image as the first in this frame
     (:func:`same_image`): a form of the same image whose held-out score falls short does not make the data
     tell the two stages apart; for the two laws of a light pattern (:func:`same_light`) the plausible ones
-    whose own delta BIC falls short too (:func:`_other_law`); and the contenders refused only for their shares
-    whose held-out score is better than the first's (:func:`better_rival`)."""
+    whose own delta BIC falls short too (:func:`_other_law`); the contenders refused only for their shares
+    whose held-out score is better than the first's (:func:`better_rival`); and those refused only by the
+    held-out bar that fit better and predict as well (:func:`closer_rival`)."""
     if not sig:
         return []
     best = sig[0].heldout
@@ -439,7 +456,8 @@ def indistinguishable(sig: list[Candidate], cands: list[Candidate] = ()) -> list
            or same_image(sig[0], c)]
     out += [c for c in cands if c.kind != "parameter" and c is not sig[0] and c not in out and not c.significant
             and ((c.contender or _other_law(sig[0], c)) and same_image(sig[0], c)
-                 or c.contender and blind_rival(sig[0], c) or better_rival(sig[0], c))]
+                 or c.contender and blind_rival(sig[0], c) or better_rival(sig[0], c)
+                 or closer_rival(sig[0], c))]
     return out
 
 
