@@ -2008,6 +2008,17 @@ def line_gains(res: Residuals, template: np.ndarray, axis: int, r: np.ndarray | 
     return {"delta": delta, "d": d, "sigma": float(np.sqrt(s2)), "rho": rho}
 
 
+def law_choice_k(m: int, n: int) -> float:
+    """The BIC price of choosing one of ``m`` discrete laws, in parameters of ``ln n`` each: ``2 ln m / ln n``.
+
+    The ``k ln n`` of the BIC is the Occam factor of a continuous parameter, whose posterior narrows as
+    ``1 / sqrt(n)`` (Schwarz 1978, the Laplace approximation of the evidence); a discrete choice does not narrow
+    with the data, and its Occam factor is its prior ``1 / m``: ``-2 ln(1 / m) = 2 ln m`` of ``-2 ln L``
+    whatever ``n`` (Kass & Raftery 1995, JASA 90, 773: a model's evidence is summed over its discrete alternatives
+    with their prior weights). 0 for one law."""
+    return 2.0 * math.log(m) / math.log(max(n, 2)) if m > 1 else 0.0
+
+
 class VarianceSignature(Signature):
     """The effect adds zero-mean scatter of variance ``theta * template(res)`` [ADU^2 per unit theta].
 
@@ -2016,7 +2027,7 @@ class VarianceSignature(Signature):
 
     laws : dict law -> k3(theta, res, idx) or None
         Distribution laws of the pattern; a skewed law gives its third cumulant per pixel. More than one
-        law counts one parameter more (the choice), so a symmetric scatter is not claimed by the effect
+        law counts the choice (:func:`law_choice_k`), so a symmetric scatter is not claimed by the effect
         with a law to choose over an effect without.
     smooth : callable(res) -> template, optional
         A pattern with low-frequency power too (a PRNU map): when the scatter is significant, the fit of
@@ -2085,8 +2096,8 @@ class VarianceSignature(Signature):
         if params is None:
             return None
         d *= vs["scale"]  # the likelihood was evaluated on a subsample: scale to all fitted pixels
-        k = 1 + (1 if self.laws and len(self.laws) > 1 else 0)
         n = res.n_fit
+        k = 1 + law_choice_k(len(self.laws or ()), n)
         note = law or ""
         extra = {}
         smooth_delta = None
