@@ -437,6 +437,10 @@ class Residuals:
     #: pixels the outlier statistics may look at (not saturated, not flagged, finite): ``fit`` plus the
     #: statistically compared spikes; None when unknown (then ``fit``)
     usable: np.ndarray | None = None
+    #: (bias offset [ADU per output pixel], relative dark level [1]) a model may be off by, as one standard
+    #: deviation of each: how a dark frame's one measured level, which cannot tell the two apart in the mean, is
+    #: shared between them for the shot noise it carries (:meth:`dark_share`); None: all to the level kept
+    level_sd: tuple[float, float] | None = None
 
     @property
     def outlier_usable(self) -> np.ndarray:
@@ -593,6 +597,9 @@ class Residuals:
                 for c, i in zip(coef, keep):
                     if i in charge:
                         dv += c * template_at(temps[i], shape, idx)
+                share = self.dark_share(keep, allowed)
+                if share:  # the part of the offset that is dark charge carries its shot noise
+                    dv += share * coef[keep.index(2)]
                 dv *= self.poisson_adu
                 w_new = 1.0 / np.maximum(1.0 / w0 + dv, 0.25 / w0)
                 converged = np.allclose(w_new, w, rtol=1e-4)
@@ -600,8 +607,29 @@ class Residuals:
                 if converged:
                     break
             self._flat["levels"] = {"keep": keep, "names": [self.LEVELS[i] for i in keep],
-                                    "coef": np.asarray(coef, float), "w": w}
+                                    "coef": np.asarray(coef, float), "w": w,
+                                    "dark_share": self.dark_share(keep, allowed)}
         return self._flat["levels"]
+
+    def dark_share(self, keep: list[int], allowed: list[int]) -> float:
+        """The share of the fitted bias offset that is dark charge, where the dark level was dropped as
+        degenerate with it (a dark frame whose dark signal is uniform: the mean measures only their sum).
+
+        The mean cannot split the sum ``delta = b + d``; the priors do: a bias known to ``sb`` [ADU] and a dark
+        level to a fraction ``f`` of its mean ``D`` [ADU], each as a zero-mean Gaussian, give the posterior mean
+        ``d = delta s_d^2 / (s_b^2 + s_d^2)``, ``s_d = f D`` (the split of one measured sum between two
+        independent Gaussian unknowns). The dark part is charge and carries its shot noise (Poisson: variance =
+        mean), which the baseline's variance must hold; kept as a bias offset, a binned 300 s dark whose dark
+        current is 2 % off keeps a shot noise 2 % wrong, and an added scatter of that size (a DSNU, a reset
+        noise) is taken for it. 0 without :attr:`level_sd`, on a bias frame (no dark) or where the dark level
+        is fitted on its own."""
+        if self.level_sd is None or 2 not in keep or 3 in keep or 3 not in allowed:
+            return 0.0
+        sb, f = self.level_sd
+        dark = np.broadcast_to(self.level_templates()[3], self.data_adu.shape)
+        d_mean = float(np.mean(dark[self.fit], dtype=np.float64)) if self.n_fit else 0.0
+        sd2 = (f * d_mean) ** 2
+        return float(sd2 / (sd2 + sb * sb)) if sd2 > 0 else 0.0
 
     def level_values(self, idx: np.ndarray, sl: slice | None = None) -> np.ndarray:
         """The kept global-level templates at flat pixel indices ``idx[sl]``, shape (levels, pixels).
@@ -1980,6 +2008,17 @@ def line_gains(res: Residuals, template: np.ndarray, axis: int, r: np.ndarray | 
     return {"delta": delta, "d": d, "sigma": float(np.sqrt(s2)), "rho": rho}
 
 
+def law_choice_k(m: int, n: int) -> float:
+    """The BIC price of choosing one of ``m`` discrete laws, in parameters of ``ln n`` each: ``2 ln m / ln n``.
+
+    The ``k ln n`` of the BIC is the Occam factor of a continuous parameter, whose posterior narrows as
+    ``1 / sqrt(n)`` (Schwarz 1978, the Laplace approximation of the evidence); a discrete choice does not narrow
+    with the data, and its Occam factor is its prior ``1 / m``: ``-2 ln(1 / m) = 2 ln m`` of ``-2 ln L``
+    whatever ``n`` (Kass & Raftery 1995, JASA 90, 773: a model's evidence is summed over its discrete alternatives
+    with their prior weights). 0 for one law."""
+    return 2.0 * math.log(m) / math.log(max(n, 2)) if m > 1 else 0.0
+
+
 class VarianceSignature(Signature):
     """The effect adds zero-mean scatter of variance ``theta * template(res)`` [ADU^2 per unit theta].
 
@@ -1988,7 +2027,7 @@ class VarianceSignature(Signature):
 
     laws : dict law -> k3(theta, res, idx) or None
         Distribution laws of the pattern; a skewed law gives its third cumulant per pixel. More than one
-        law counts one parameter more (the choice), so a symmetric scatter is not claimed by the effect
+        law counts the choice (:func:`law_choice_k`), so a symmetric scatter is not claimed by the effect
         with a law to choose over an effect without.
     smooth : callable(res) -> template, optional
         A pattern with low-frequency power too (a PRNU map): when the scatter is significant, the fit of
@@ -2057,8 +2096,8 @@ class VarianceSignature(Signature):
         if params is None:
             return None
         d *= vs["scale"]  # the likelihood was evaluated on a subsample: scale to all fitted pixels
-        k = 1 + (1 if self.laws and len(self.laws) > 1 else 0)
         n = res.n_fit
+        k = 1 + law_choice_k(len(self.laws or ()), n)
         note = law or ""
         extra = {}
         smooth_delta = None

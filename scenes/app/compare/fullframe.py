@@ -76,7 +76,7 @@ from scenes.measured import scene_mask
 from .candidates import blind_rivals, candidates, source_candidates
 from .catch_all import compare_with_catch_all
 from .judge import judge_json, kind_gate, rank, verdict
-from .model import REALISATION_SEED, _wcs_offset, background_signal, row_offset_var_adu2, saturation_adu
+from .model import REALISATION_SEED, _wcs_offset, background_signal, level_sd, row_offset_var_adu2, saturation_adu
 from .parameters import explained_away, level_candidates
 from .policy import DEFAULT_POLICY, DiagnosisPolicy
 from .statistics import compare, misfit, outlier_counts, spectrum_peaks, star_photometry, summary, track_band, zmap
@@ -781,7 +781,8 @@ def binned_residuals(P: Pass, setup: Setup, lines: np.ndarray, spikes: tuple[Spi
     f32 = np.float32
     return Residuals(data.astype(f32), mean.astype(f32), np.maximum(var, 1e-6).astype(f32), fit, photo.astype(f32),
                      dark.astype(f32), ys, xs, sb, setup.exptime_s, *spikes, background_adu=bg.astype(f32),
-                     row_var_adu2=float(row_var))
+                     row_var_adu2=float(row_var),
+                     level_sd=level_sd(s, float(full) if s.binning_mode == "sum" else 1.0))
 
 
 def sample_residuals(P: Pass, setup: Setup) -> tuple[Residuals, np.ndarray]:
@@ -811,7 +812,7 @@ def sample_residuals(P: Pass, setup: Setup) -> tuple[Residuals, np.ndarray]:
     xs = s.roi_x0 + b * np.arange(data.shape[1]) + (b - 1) / 2.0
     res = Residuals(data, mean, var, usable & ~statistical, photo, cat("dark"), ys, xs, ss, setup.exptime_s, spikes,
                     model_spikes, photo_field_adu=cat("photo_field"), background_adu=cat("bg"),
-                    row_var_adu2=row_offset_var_adu2(setup.detector))
+                    row_var_adu2=row_offset_var_adu2(setup.detector), level_sd=level_sd(s))
     res.memo("sample_real", lambda: real)
     return res, rows
 

@@ -231,7 +231,19 @@ def residuals(data: np.ndarray, model: ModelFrame) -> Residuals:
                      ys, xs, s, model.setup.exptime_s, spikes, model.spikes or SpikeStats(0, 0, 0, 0, 0),
                      photo_field_adu=model.photo_field_adu, background_adu=model.background_adu,
                      row_var_adu2=model.row_var_adu2, light_source=light_source(model.setup.scene),
-                     usable=usable)
+                     usable=usable, level_sd=level_sd(s))
+
+
+def level_sd(sensor, outputs: float = 1.0, policy=None) -> tuple[float, float]:
+    """(bias offset [ADU per pixel of the residuals], relative dark level [1]) a scene may be off by: the
+    policy's tolerances of a refitted bias (per read, times the reads an output pixel holds and the ``outputs``
+    output pixels a pixel of the residuals sums) and of a refitted scale, by which
+    :meth:`detector.signatures.Residuals.dark_share` splits a dark frame's one level between them."""
+    from .apply import bias_per_output_adu
+    from .policy import DEFAULT_POLICY
+
+    p = policy or DEFAULT_POLICY
+    return (p.parameter_bias_tolerance_adu * bias_per_output_adu(sensor) * outputs, p.parameter_scale_tolerance)
 
 
 def light_source(scene) -> str:
