@@ -840,7 +840,10 @@ def _blur_params(th, res):
     out = {"sigma_px": round(float(np.sqrt(major)) * b, 4), "halo_frac": round(f, 5),
            "halo_sigma_px": round(float(np.sqrt(h2)) * b, 4)}
     if _astigmatic(th):
-        out.update(sigma_minor_px=round(float(np.sqrt(max(minor, 0.0))) * b, 4), angle_deg=round(ang, 2))
+        # an axis is defined modulo 180 deg: given in (-90, 90], away from the parameter's +-180 bounds (an
+        # axis near 180 deg is no fit pinned at a limit of its form)
+        out.update(sigma_minor_px=round(float(np.sqrt(max(minor, 0.0))) * b, 4),
+                   angle_deg=round((ang + 90.0) % 180.0 - 90.0, 2))
     return out
 
 
