@@ -29,13 +29,13 @@ from __future__ import annotations
 
 import hashlib
 import math
-import os
 
 import numpy as np
 import scipy.fft
 from scipy import ndimage as ndi
 from scipy.ndimage import gaussian_filter
 
+from .effects.image_plane import FIT_FFT_WORKERS  # the one thread setting of the diagnosis's transforms
 from .signatures import Residuals, frame_at
 from .significance import (
     DETECTION_SIGMA,
@@ -271,10 +271,6 @@ def block_smooth(res: Residuals, zmap: np.ndarray, b: int, keep: bool = False) -
     return out
 
 
-#: threads of :func:`gaussian_nearest_fft`'s transforms
-SMOOTH_FFT_WORKERS = max(1, min(2, os.cpu_count() or 1))
-
-
 def gaussian_nearest_fft(z: np.ndarray, sigma_px: float, truncate: float = 4.0) -> np.ndarray:
     """``scipy.ndimage.gaussian_filter(z, sigma_px, mode="nearest", truncate=truncate)`` (the same sampled
     kernel, ``exp(-x^2 / 2 sigma^2)`` for ``|x| <= int(truncate sigma + 0.5)``, normalised to sum 1, applied
@@ -293,11 +289,11 @@ def gaussian_nearest_fft(z: np.ndarray, sigma_px: float, truncate: float = 4.0) 
         length = scipy.fft.next_fast_len(n + 4 * r, real=True)  # the padded row (n + 2r) convolved with 2r + 1 taps
         pad = [(0, 0)] * out.ndim
         pad[axis] = (r, r)
-        spec = scipy.fft.rfft(np.pad(out, pad, mode="edge"), length, axis=axis, workers=SMOOTH_FFT_WORKERS)
+        spec = scipy.fft.rfft(np.pad(out, pad, mode="edge"), length, axis=axis, workers=FIT_FFT_WORKERS)
         shape = [1] * out.ndim
         shape[axis] = spec.shape[axis]
         spec *= scipy.fft.rfft(k, length).reshape(shape)
-        full = scipy.fft.irfft(spec, length, axis=axis, workers=SMOOTH_FFT_WORKERS)
+        full = scipy.fft.irfft(spec, length, axis=axis, workers=FIT_FFT_WORKERS)
         keep = [slice(None)] * out.ndim
         keep[axis] = slice(2 * r, 2 * r + n)  # the full convolution's samples centred on the input's pixels
         out = full[tuple(keep)]

@@ -77,7 +77,8 @@ MAX_CACHED_SPECTRA = 3
 #: steps filter the same image with the same transfer function again (a Jacobian column whose parameter does not
 #: enter that filter: a halo's share), which then costs nothing, not an inverse transform
 MAX_CACHED_OUTPUTS = 2
-#: threads of the diagnosis fits' Fourier transforms (:class:`TransformSignature`; the rendering's stay numpy's)
+#: threads of the diagnosis's Fourier transforms (:class:`TransformSignature`'s fits, the ghost scan and
+#: :func:`detector.morphology.gaussian_nearest_fft`; the rendering's stay numpy's): the one setting for all
 FIT_FFT_WORKERS = max(1, min(4, os.cpu_count() or 1))
 
 
@@ -617,10 +618,15 @@ class TransformSignature(Signature):
         kw = {"spectra": spectra, "workers": FIT_FFT_WORKERS} if self._spectra else {}
 
         last: dict = {}  # the last evaluation (a Gauss-Newton step's base is the previous step's accepted trial)
+        # the accepted parameters' evaluation (the start's, then each accepted trial's): the fit ends on it, after
+        # Jacobian columns and rejected trials have replaced ``last``, and its whole image is not transformed again
+        accepted: dict = {}
 
         def image(th):
-            if last.get("theta") == np.asarray(th, float).tobytes() and last["full"] is not None:
-                return np.minimum(last["full"], cap)
+            key = np.asarray(th, float).tobytes()
+            for ev in (last, accepted):
+                if ev.get("theta") == key and ev["full"] is not None:
+                    return np.minimum(ev["full"], cap)
             return np.minimum(transform(res, photo, th, **kw), cap)
 
         def on_sample(th):
@@ -642,6 +648,7 @@ class TransformSignature(Signature):
             return profiled_chi2(res, sidx, sr - (on_sample(th) - clipped_s), sw)
 
         best = chi2_of(theta)
+        accepted.update(last)
         for _ in range(self.n_iter):
             base = on_sample(theta)
             jac = np.stack([(on_sample(theta + h * e) - base) / h for h, e in zip(steps, np.eye(theta.size))])
@@ -656,6 +663,7 @@ class TransformSignature(Signature):
                 c = chi2_of(trial)
                 if c < best:
                     theta, best, improved = trial, c, True
+                    accepted.update(last)
                     break
                 lam /= 2
             if not improved or np.all(np.abs(lam * step) < 1e-3 * steps):
