@@ -713,6 +713,8 @@ class Residuals:
         for c, i in zip(lv["coef"], lv["keep"]):
             if self.LEVEL_IS_CHARGE[i]:
                 var += c * np.broadcast_to(temps[i], mean.shape) * self.poisson_adu
+        if lv.get("dark_share"):  # the offset's dark part carries its shot noise, as in :meth:`levels`' weights
+            var += lv["dark_share"] * lv["coef"][lv["keep"].index(2)] * self.poisson_adu
         return mean.astype(np.float32), var.astype(np.float32)
 
     def level_map(self) -> np.ndarray:
@@ -827,7 +829,7 @@ class Fit:
     effect: str
     params: dict
     delta_m2lnl: float  #: change of -2 ln L (negative: the effect explains something)
-    k: int  #: fitted parameters
+    k: float  #: fitted parameters (a discrete choice of form adds its prior's price: :func:`law_choice_k`)
     n: int  #: data points of the likelihood
     explanation: str
     #: the mean frame change it predicts [ADU] (linear kinds) and the variance it adds [ADU^2]

@@ -746,14 +746,13 @@ def _sensor_centre(res) -> tuple[float, float]:
     return (s.sensor_height_px - 1) / 2.0, (s.sensor_width_px - 1) / 2.0
 
 
-# blur: theta = (sigma^2 [output px^2], halo fraction [1], halo sigma^2 [output px^2], e_plus, e_cross [output
-# px^2]); four forms (nested): a round Gaussian blur of the whole image; a scattering halo (a share of every
-# source's light in a wide Gaussian about it, the rest left in place: the far wings micro-roughness and dust
-# scatter, Racine 1996 PASP 108 699); a core and its wings together (a seeing or defocus profile with wings:
-# Moffat 1969, A&A 3 455); and that core astigmatic (e_plus half the xx - yy variance difference, e_cross the
-# xy covariance: astigmatism or a wind-shaken tube elongates a blur too). An elongated Gaussian core without
-# wings is not fitted as a blur: it is jitter's Gaussian form, the same image (a twin by construction, not a
-# finding); what a blur has that a smear of the pointing cannot is its wings
+# blur: theta = (sigma^2 [output px^2], halo fraction [1], halo sigma^2 [output px^2]); three forms (nested): a
+# round Gaussian blur of the whole image; a scattering halo (a share of every source's light in a wide Gaussian
+# about it, the rest left in place: the far wings micro-roughness and dust scatter, Racine 1996 PASP 108 699);
+# and a round core and its wings together (a seeing or defocus profile with wings: Moffat 1969, A&A 3 455). An
+# elongated core is not fitted as a blur: alone it is jitter's Gaussian form, the same image, and with wings it
+# is the elongated PSF psf_elongation names (astigmatism, a tilted detector, wind shake); what a round blur has
+# that a smear of the pointing cannot is its wings
 #: halo widths [output px^2] the halo's start is chosen from (by its linear fit: a share of the light moved)
 HALO_START_VAR = (4.0, 16.0, 64.0)
 #: the largest share of the light a halo (or a one-sided tail, TAIL_MAX_FRAC) may hold: beyond, the source
@@ -765,8 +764,8 @@ def _blur_start(res, sub=(0,)):
     if tuple(sub) == (0,):
         c = _linear_start(res, ["xx", "yy"], [0.5, 0.5])
         return np.array([max(float(np.mean(c)), 0.05)])
-    if tuple(sub) in ((0, 1, 2), (0, 1, 2, 3, 4)):
-        return _blur_core_halo_start(res, len(sub) == 5)
+    if tuple(sub) == (0, 1, 2):
+        return _blur_core_halo_start(res)
     # the halo: its share of the light fitted linearly at each trial width, the best width kept
     ctx = search_sample(res)
     photo = np.asarray(res.photo_field, np.float64)
@@ -780,51 +779,29 @@ def _blur_start(res, sub=(0,)):
     return None if best is None else np.array([best[1], best[2]])
 
 
-def _astigmatic(th) -> bool:
-    """Whether the blur's parameters hold a non-zero astigmatic term (its core elongated)."""
-    return len(th) == 5 and bool(np.any(np.asarray(th[3:5], float)))
-
-
-def _blur_core_axes(th) -> tuple[float, float, float]:
-    """(major variance, minor variance [output px^2], major-axis angle [deg]) of the blur's core: the round
-    variance ``th[0]`` with the astigmatic terms ``th[3:5]`` (half the xx - yy difference, the xy covariance)."""
-    e = (float(th[3]), float(th[4])) if _astigmatic(th) else (0.0, 0.0)
-    w, ang = _jitter_axes(np.array([th[0] + e[0], th[0] - e[0], e[1]]))
-    return float(w[1]), float(w[0]), ang
-
-
-def _blur_core_halo_start(res, astigmatic: bool):
-    """The core and its wings together: the core's second moments (xx, yy, xy templates: the heat equation's
+def _blur_core_halo_start(res):
+    """The round core and its wings together: the core's second moments (xx + yy template: the heat equation's
     linearisation) fitted linearly with the halo's template at each trial width, the best width kept."""
     ctx = search_sample(res)
     d = _derivatives(res)
     photo = np.asarray(res.photo_field, np.float64)
-    core = [0.5 * d["xx"].ravel(), 0.5 * d["yy"].ravel(), d["xy"].ravel()]
+    core = (0.5 * (d["xx"] + d["yy"])).ravel()
     best = None
     for h2 in (1.0, *HALO_START_VAR):  # and a halo of one pixel: the near wings of a Moffat or exponential profile
         t = (blur(photo, float(np.sqrt(h2))) - photo).ravel()
-        coef, chi2 = fit_linear(res, lambda i, t=t: np.stack([c[i] for c in core] + [t[i]]), ctx["idx"], ctx["r"],
-                                ctx["w"])
-        f = float(coef[3])
+        coef, chi2 = fit_linear(res, lambda i, t=t: np.stack([core[i], t[i]]), ctx["idx"], ctx["r"], ctx["w"])
+        f = float(coef[1])
         if 0 < f < HALO_MAX_FRACTION and (best is None or chi2 < best[0]):
             best = (chi2, coef, h2)
     if best is None:
         return None
     c, h2 = best[1], best[2]
-    s2 = max(0.5 * float(c[0] + c[1]), 0.05)
-    tail = [0.5 * float(c[0] - c[1]), float(c[2])] if astigmatic else []
-    return np.array([s2, float(c[3]), h2, *tail])
+    return np.array([max(float(c[0]), 0.05), float(c[1]), h2])
 
 
 def _blur_transform(res, photo, th, spectra=None, workers=None):
     s2 = float(np.clip(th[0], 0.0, _max_var(res)))
-    if _astigmatic(th):  # an astigmatic core (only with the halo: see the forms' comment)
-        major, minor, ang = _blur_core_axes(th)
-        s2 = float(np.clip(major, 0.0, _max_var(res)))
-        out = blur(photo, float(np.sqrt(s2)), float(np.sqrt(np.clip(minor, 0.0, s2))), ang, spectra=spectra,
-                   workers=workers)
-    else:
-        out = blur(photo, float(np.sqrt(s2)), spectra=spectra, workers=workers)
+    out = blur(photo, float(np.sqrt(s2)), spectra=spectra, workers=workers)
     f = float(th[1]) if len(th) > 1 else 0.0
     if f:
         h = float(np.sqrt(np.clip(th[2], 0.0, _max_var(res))))
@@ -840,26 +817,17 @@ def _blur_params(th, res):
     s2 = float(th[0])
     f, h2 = (float(th[1]), float(th[2])) if len(th) > 1 else (0.0, 0.0)
     b = res.sensor.binning
-    if f == 0:  # a round core (an astigmatic one without wings is jitter's form: no blur of its own)
-        return {"sigma_px": round(float(np.sqrt(s2)) * b, 4)} if not _astigmatic(th) and 0 < s2 < 100 else None
-    major, minor, ang = _blur_core_axes(th)  # (s2, s2, -) for a round core
-    if not (0 <= major < 100 and 0 < f < HALO_MAX_FRACTION and 0 < h2 < _max_var(res)):
+    if f == 0:
+        return {"sigma_px": round(float(np.sqrt(s2)) * b, 4)} if 0 < s2 < 100 else None
+    if not (0 <= s2 < 100 and 0 < f < HALO_MAX_FRACTION and 0 < h2 < _max_var(res)):
         return None
-    out = {"sigma_px": round(float(np.sqrt(major)) * b, 4), "halo_frac": round(f, 5),
-           "halo_sigma_px": round(float(np.sqrt(h2)) * b, 4)}
-    if _astigmatic(th):
-        # an axis is defined modulo 180 deg: given in (-90, 90], away from the parameter's +-180 bounds (an
-        # axis near 180 deg is no fit pinned at a limit of its form)
-        out.update(sigma_minor_px=round(float(np.sqrt(max(minor, 0.0))) * b, 4),
-                   angle_deg=round((ang + 90.0) % 180.0 - 90.0, 2))
-    return out
+    return {"sigma_px": round(float(np.sqrt(s2)) * b, 4), "halo_frac": round(f, 5),
+            "halo_sigma_px": round(float(np.sqrt(h2)) * b, 4)}
 
 
 def _blur_words(p, res) -> str:
     if p.get("halo_frac"):
-        core = (f"; their core wider by {p['sigma_px']:.3g} x {p['sigma_minor_px']:.3g} px rms along "
-                f"{p['angle_deg']:.0f} deg (an astigmatic blur)" if p.get("sigma_minor_px") is not None else
-                f"; their core wider by {p['sigma_px']:.3g} px rms" if p.get("sigma_px") else "")
+        core = f"; their core wider by {p['sigma_px']:.3g} px rms" if p.get("sigma_px") else ""
         return (f"sources with far wings the model lacks: {100 * p['halo_frac']:.3g} % of their light in a halo of "
                 f"{p['halo_sigma_px']:.3g} px rms (scattered light: mirror micro-roughness, dust){core}")
     return f"sources wider than the model, as by an extra Gaussian of {p['sigma_px']:.3g} px rms: PSF blur (focus, seeing)"
@@ -1543,20 +1511,14 @@ class BlurParams(EffectParams):
                                  json_schema_extra={"unit": "1"})
     halo_sigma_px: float = Field(0.0, ge=0, le=200, description="std of the halo [sensor pixels]",
                                  json_schema_extra={"unit": "pixel"})
-    sigma_minor_px: float | None = Field(None, ge=0, le=50, description="std of the blur across its major axis "
-                                         "(None: round; an astigmatic blur) [sensor pixels]",
-                                         json_schema_extra={"unit": "pixel"})
-    angle_deg: float = Field(0.0, ge=-180, le=180, description="the blur's major axis, counter-clockwise from +x "
-                             "[deg]", json_schema_extra={"unit": "deg"})
 
 
 @register_effect
 class PSFBlur(Effect):
-    """Extra Gaussian blur of the image (defocus, seeing or optics the PSF model lacks; elongated by astigmatism
-    when ``sigma_minor_px`` is set, along ``angle_deg``), and/or a scattering halo: ``halo_frac`` of the light
-    spread by a Gaussian of ``halo_sigma_px``, the rest in place (``(1 - f) I + f G_h * I``: the aureole of
-    scattered light, Racine 1996 PASP 108 699). A core with wings (a Moffat or exponential broadening) is the
-    core and the halo together; the diagnosis fits an elongated core only with its wings (see the forms)."""
+    """Extra isotropic Gaussian blur of the image (defocus, seeing or optics the PSF model lacks), and/or a
+    scattering halo: ``halo_frac`` of the light spread by a Gaussian of ``halo_sigma_px``, the rest in place
+    (``(1 - f) I + f G_h * I``: the aureole of scattered light, Racine 1996 PASP 108 699). A core with wings (a
+    Moffat or exponential broadening) is the core and the halo together."""
 
     name = "psf_blur"
     scaling = "frame"
@@ -1564,14 +1526,14 @@ class PSFBlur(Effect):
     stages = (Stage.FIELD,)
     Params = BlurParams
     signature = TransformSignature(
-        _blur_start, _blur_transform, _blur_params, [0.02, 0.002, 0.1, 0.02, 0.02],
-        nested=[(0,), (1, 2), (0, 1, 2), (0, 1, 2, 3, 4)], shared=((0,),),
+        _blur_start, _blur_transform, _blur_params, [0.02, 0.002, 0.1],
+        nested=[(0,), (1, 2), (0, 1, 2)], shared=((0,),),
         pattern="sources wider than the model (a Laplacian-shaped residual), or with far wings",
         explain=_blur_words)
 
     def apply(self, stage: Stage, tile: Tile, data: np.ndarray) -> None:
         p = self.params
-        out = blur(data, p.sigma_px, p.sigma_minor_px, p.angle_deg)
+        out = blur(data, p.sigma_px)
         if p.halo_frac:
             out = (1 - p.halo_frac) * out + p.halo_frac * blur(out, p.halo_sigma_px)
         _store(data, out)
@@ -1580,7 +1542,8 @@ class PSFBlur(Effect):
 class JitterParams(EffectParams):
     sigma_major_px: float = Field(0.5, ge=0, le=50, description="rms pointing jitter along its major axis [px]")
     sigma_minor_px: float = Field(0.2, ge=0, le=50, description="rms pointing jitter across [px]")
-    angle_deg: float = Field(0.0, ge=-180, le=180, description="major axis, counter-clockwise from +x [deg]")
+    angle_deg: float = Field(0.0, ge=-180, le=180, description="major axis, counter-clockwise from +x [deg]",
+                             json_schema_extra={"unit": "deg", "periodic": True})
     vibration_px: float = Field(0.0, ge=0, le=50, description="amplitude of a sinusoidal vibration along angle_deg "
                                 "(0: none) [px]", json_schema_extra={"unit": "pixel"})
 
@@ -1624,7 +1587,7 @@ class ElongationParams(EffectParams):
     tail_frac: float = Field(0.0, ge=0, le=1, description="share of each source's light in the tail (0: none) [1]",
                              json_schema_extra={"unit": "1"})
     tail_angle_deg: float = Field(0.0, ge=-180, le=180, description="direction of the tail, counter-clockwise from "
-                                  "+x [deg]", json_schema_extra={"unit": "deg"})
+                                  "+x [deg]", json_schema_extra={"unit": "deg", "periodic": True})
     halo_frac: float = Field(0.0, ge=0, le=0.8, description="share of each source's light in a displaced Gaussian "
                              "halo (the flare of a fast lens off its axis; 0: none) [1]", json_schema_extra={"unit": "1"})
     halo_sigma_px: float = Field(0.0, ge=0, le=50, description="rms of the halo per axis [sensor px]",

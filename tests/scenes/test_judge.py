@@ -513,6 +513,18 @@ def test_constant_fraction_cti_is_not_a_pinned_fit():
     assert at_bound(cls, {"density_per_px": [0.2], "release_time_s": [0.004], "beta": 1.0}) == ""
 
 
+def test_an_axis_near_its_angle_bound_is_not_a_pinned_fit():
+    """An angle is periodic: a jitter axis or a coma tail fitted at 179.9 deg is one at -0.1 deg, not a fit pinned
+    at the schema's +-180; a magnitude at its bound still is."""
+    from detector import registry
+    from scenes.app.compare.candidates import at_bound
+
+    jitter, elong = registry()["jitter"], registry()["psf_elongation"]
+    assert at_bound(jitter, {"sigma_major_px": 1.0, "sigma_minor_px": 0.2, "angle_deg": 179.95}) == ""
+    assert at_bound(elong, {"tail_frac": 0.3, "tail_angle_deg": -179.99}) == ""
+    assert "sigma_major_px" in at_bound(jitter, {"sigma_major_px": 50.0, "angle_deg": 10.0})
+
+
 def test_a_glow_and_a_light_are_the_same_charge_on_a_light_frame():
     """A field of dark charge (amp_glow) and a field of light (straylight) put the same charge in the same pixels
     of an exposed frame: named as not told apart whatever their held-out scores (their forms differ, their

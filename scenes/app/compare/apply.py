@@ -141,9 +141,11 @@ def refit_levels(path: Path, data: dict, measured, with_sources: bool = False) -
         else:
             return {}
     else:
-        # a dark or bias frame: the bias offset. A uniform dark level is the same in one dark frame (it is
-        # kept as the bias, as Residuals.levels does), and the dark template holds glow, DSNU and bias
-        # structure too: scaling the dark current by its fit would be wrong
+        # a dark or bias frame: the bias offset. A uniform dark level is the same change of the mean in one
+        # dark frame; it is written as the bias (the dark template holds glow, DSNU and bias structure too:
+        # scaling the dark current by its fit would be wrong). The judge gives the offset's dark part its shot
+        # noise by the priors' split (Residuals.dark_share); that split is a prior, not a measurement, so the
+        # value written is the measured sum, and a rediagnosis of the applied scene starts near a zero offset
         wanted = [2]
     keep, coef = _solve_levels(res, idx, r, w, wanted)
     return {res.LEVELS[wanted[k]]: float(c) / (per_offset if wanted[k] == 2 else 1.0) for k, c in zip(keep, coef)}

@@ -44,8 +44,10 @@ def at_bound(cls, params: dict) -> str:
         sch = props.get(key)
         if sch is None or isinstance(value, bool) or not isinstance(value, (int, float)):
             continue
-        if sch.get("bound_reachable"):
-            continue  # a bound that is a physical state (a drift that starts or ends at rest), not a limit of form
+        if sch.get("bound_reachable") or sch.get("periodic"):
+            # a bound that is a physical state (a drift that starts or ends at rest), or an angle's (an axis at
+            # 179.9 deg is one at -0.1 deg): not a limit of form
+            continue
         alts = [sch, *sch.get("anyOf", [])]
         if any(a.get("type") == "integer" for a in alts):
             continue  # a count or a grid (amplifiers, channels) is a choice of form: its smallest value is a form too

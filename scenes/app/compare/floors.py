@@ -182,10 +182,13 @@ def signal_range_floor(effect: str, res, policy: DiagnosisPolicy = DEFAULT_POLIC
     there, ``S'/S`` at the top over ``S'/S`` at the median (:func:`response_ratio`), must differ by the policy's
     ``min_nonlinearity_in_range``, however high the signal reaches: a law's size at full well, on a frame of a few
     per cent of the well, is an extrapolation the pixels cannot check; its change across the frame's signal is what
-    they measure (a gamma law compresses every decade of signal alike; a quadratic deficit little at low signal);
-    on a frame that reaches high in the well that change is the law's own deficit there (the floor at full well,
-    ``min_nonlinearity_at_full_well``, asks the same size of it), and a frame without a range (a uniform flat:
-    the law's change is a level the light's level takes) measures none."""
+    they measure (a gamma law compresses every decade of signal alike; a quadratic deficit little at low signal).
+    On a frame whose median is low and whose top reaches high in the well (stars on a faint sky) that change is
+    close to the law's own deficit at the top (the floor at full well, ``min_nonlinearity_at_full_well``, asks the
+    same size of it); a frame of a narrow range, however high (a flat at 40-44 % of the well: a 2 % deficit at full
+    well changes its response by 0.08 %), and a frame without a range (a uniform flat: the law's change is a
+    level the light's level takes) measure a law little or not at all, whatever its size at full well: a series
+    of flats at several levels measures it (``signal`` across the frames)."""
     if effect != "nonlinearity":
         return ""
     got = signal if signal is not None else signal_range(res)

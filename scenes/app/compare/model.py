@@ -234,15 +234,18 @@ def residuals(data: np.ndarray, model: ModelFrame) -> Residuals:
                      usable=usable, level_sd=level_sd(s))
 
 
-def level_sd(sensor, outputs: float = 1.0, policy=None) -> tuple[float, float]:
+def level_sd(sensor, outputs: float = 1.0) -> tuple[float, float]:
     """(bias offset [ADU per pixel of the residuals], relative dark level [1]) a scene may be off by: the
-    policy's tolerances of a refitted bias (per read, times the reads an output pixel holds and the ``outputs``
-    output pixels a pixel of the residuals sums) and of a refitted scale, by which
-    :meth:`detector.signatures.Residuals.dark_share` splits a dark frame's one level between them."""
+    default policy's tolerances of a refitted bias (per read, times the reads an output pixel holds and the
+    ``outputs`` output pixels a pixel of the residuals sums) and of a refitted scale, by which
+    :meth:`detector.signatures.Residuals.dark_share` splits a dark frame's one level between them. Used here as
+    the one-sigma widths of the two priors (how far a scene's bias and dark current are known), not as decision
+    bars: the residuals are built before a diagnosis's policy is read, so a ``--policy`` file does not move the
+    split."""
     from .apply import bias_per_output_adu
     from .policy import DEFAULT_POLICY
 
-    p = policy or DEFAULT_POLICY
+    p = DEFAULT_POLICY
     return (p.parameter_bias_tolerance_adu * bias_per_output_adu(sensor) * outputs, p.parameter_scale_tolerance)
 
 
