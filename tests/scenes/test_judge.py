@@ -449,9 +449,11 @@ def test_a_psf_change_carries_the_sources_scale_that_goes_with_it(tmp_path):
     assert again.sky.background_mag_arcsec2 == pytest.approx(sc.sky.background_mag_arcsec2, abs=0.011)
     cmp = run.run_compare(again, meas)
     assert abs(cmp["levels"]["light_scale"]) < 0.01
-def _saturated_res(change_away: bool):
+def _saturated_res(change_away: bool, plateau: bool = False):
     """A 64 x 64 light frame with 3 x 3 saturated pixels at (6, 6), a 50 ADU bump of the residual beside them
-    (at (10, 10): their bleeding) and, when ``change_away``, the same bump at (46, 46), far from them."""
+    (at (10, 10): their bleeding) and, when ``change_away``, the same bump at (46, 46), far from them. With
+    ``plateau`` the model fills those pixels to the ceiling and the data hold them at 85 % of it (wells that
+    spill below the nominal full well)."""
     from detector import make_sensor
     from detector.signatures import Residuals, SpikeStats
 
@@ -465,6 +467,10 @@ def _saturated_res(change_away: bool):
     data = model + bump(10, 10) + (bump(46, 46) if change_away else 0.0)
     data = data + np.random.default_rng(4).normal(0.0, 10.0, data.shape)
     data[5:8, 5:8] = 7e4  # above any ceiling of a 16-bit read-out
+    if plateau:
+        ceiling = min(s.adc_max_adu, s.bias_adu + s.full_well_e / s.gain_e_per_adu)
+        model[5:8, 5:8] = ceiling
+        data[5:8, 5:8] = 0.85 * ceiling
     fit = np.ones((64, 64), bool)
     fit[5:8, 5:8] = False
     f32, z = (lambda a: np.asarray(a, np.float32)), np.zeros((64, 64), np.float32)
@@ -487,6 +493,19 @@ def test_a_transform_carried_by_the_saturated_sources_is_refused_away_from_them(
         assert (why == "") == change_away, why
         if not change_away:
             assert "1 saturated sources" in why
+
+
+def test_a_source_the_model_saturates_is_saturated_though_the_data_plateau_lower():
+    """Wells that spill below the nominal full well hold a bright source's core under the saturated share of the
+    ceiling in the data, while the model fills it: the source is a saturated one for the test of image-plane
+    transforms (its bleeding is not a smear of every source), and a change seen away from it too is not refused."""
+    from scenes.app.compare.candidates import away_from_saturation, saturated_reach
+
+    for change_away in (False, True):
+        res, delta = _saturated_res(change_away, plateau=True)
+        assert not res.saturated.any() and saturated_reach(res)[1] == 1
+        fit = Fit("jitter", {}, -500.0, 2, int(res.fit.sum()), "", delta_adu=delta)
+        assert (away_from_saturation(res, fit, DEFAULT_POLICY) == "") == change_away
 
 
 def test_a_reachable_bound_is_not_a_pinned_fit():

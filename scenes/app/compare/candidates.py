@@ -17,7 +17,16 @@ import numpy as np
 from detector import registry
 from detector.effects.ghosts import psf_rms_px, source_image
 from detector.morphology import block_chi2
-from detector.signatures import Fit, Residuals, dither_codes, frame_at, heldout_blind, heldout_delta, seeing_block
+from detector.signatures import (
+    NEAR_SATURATION_SHARE,
+    Fit,
+    Residuals,
+    dither_codes,
+    frame_at,
+    heldout_blind,
+    heldout_delta,
+    seeing_block,
+)
 from detector.significance import DETECTION_SIGMA, FOOTPRINT_SIGMA, MIN_TEST_PIXELS
 from detector.stats import median_square_variance, median_square_variance_error
 
@@ -194,10 +203,13 @@ AWAY_SIGMA = FOOTPRINT_SIGMA
 
 def saturated_reach(res: Residuals) -> tuple[np.ndarray, int] | None:
     """(the pixels within SATURATED_REACH_PX of a saturated one, the number of saturated sources), or None when
-    no pixel is saturated (NEAR_SATURATION_SHARE of the ceiling)."""
+    no pixel is saturated (NEAR_SATURATION_SHARE of the ceiling) in the data or in the model: a source the model
+    fills to its wells is a saturated source though the data plateau lower (a sensor whose wells spill below
+    the nominal full well: its charge bleeds from there)."""
     from scipy import ndimage
 
-    sat = res.saturated
+    model = np.broadcast_to(res.model_adu, res.data_adu.shape)
+    sat = res.saturated | (model >= NEAR_SATURATION_SHARE * res.saturation_ceiling_adu)
     if not sat.any():
         return None
     near = ndimage.binary_dilation(sat, np.ones((3, 3), bool), iterations=SATURATED_REACH_PX)
