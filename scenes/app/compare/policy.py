@@ -159,11 +159,13 @@ class DiagnosisPolicy:
         "a refitted scale of the scene (the sources' zero point, the sky, the dark current) is a finding when "
         "it differs from 1 by more than this: a model knows its lamp, transparency and temperature to a few "
         "per cent (the validation's measured cameras differ by 1.5-3 %), a zero point 10 % off is an error of "
-        "the scene")
+        "the scene; the default is also the dark level's prior width (a fraction of it) in the share of a dark "
+        "frame's one level between bias and dark (model.level_sd)")
     parameter_bias_tolerance_adu: float = _f(
         2.0, "ADU", "physics",
         "a refitted bias offset is a finding beyond this many ADU per read: a bias drifts by a fraction of an "
-        "ADU to an ADU between frames (and a rounding convention is 0.5 ADU)")
+        "ADU to an ADU between frames (and a rounding convention is 0.5 ADU); the default is also the bias's prior "
+        "width by which a dark frame's one level is shared between bias and dark for its shot noise (model.level_sd)")
     psf_width_tolerance: float = _f(
         math.sqrt(1.0 + SCALE_TOLERANCE) - 1.0, "1", "physics",
         "a refitted PSF FWHM is a finding when it differs from the scene's by more than this fraction: a PSF "
