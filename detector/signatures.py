@@ -626,9 +626,12 @@ class Residuals:
         if self.level_sd is None or 2 not in keep or 3 in keep or 3 not in allowed:
             return 0.0
         sb, f = self.level_sd
-        dark = np.broadcast_to(self.level_templates()[3], self.data_adu.shape)
-        d_mean = float(np.mean(dark[self.fit], dtype=np.float64)) if self.n_fit else 0.0
-        sd2 = (f * d_mean) ** 2
+
+        def dark_mean() -> float:  # the same at every reweighting of :meth:`levels`: one full-frame mean
+            dark = np.broadcast_to(self.level_templates()[3], self.data_adu.shape)
+            return float(np.mean(dark[self.fit], dtype=np.float64)) if self.n_fit else 0.0
+
+        sd2 = (f * self.memo("dark_mean", dark_mean)) ** 2
         return float(sd2 / (sd2 + sb * sb)) if sd2 > 0 else 0.0
 
     def level_values(self, idx: np.ndarray, sl: slice | None = None) -> np.ndarray:
