@@ -101,11 +101,12 @@ def _edge_distance_at(res, where: str, idx) -> np.ndarray:
     kept = res.memo("edge_distance_at", dict)
     idx = np.asarray(idx)
     key = (where, idx.__array_interface__["data"][0], idx.shape, idx.strides, idx.dtype.str)
-    if kept.get("key") != key:
+    last = kept.get("last")  # (key, index array, distances), replaced whole: safe for concurrent fits
+    if last is None or last[0] != key:
         y, x = np.divmod(idx, res.data_adu.shape[1])
-        kept.clear()
-        kept.update(key=key, idx=idx, d=edge_distance(res, where, y, x))
-    return kept["d"]
+        last = (key, idx, edge_distance(res, where, y, x))
+        kept["last"] = last
+    return last[2]
 
 
 def edge_variant(res, where: str, scale: float, unit: float, max_amplitude: float, label: str) -> Variant:

@@ -266,6 +266,27 @@ def test_zero_point_named_first_with_its_value(zero_point_round):
     assert "sky_level" not in out["significant"]
 
 
+def _without_seconds(x):
+    if isinstance(x, dict):
+        return {k: _without_seconds(v) for k, v in x.items() if k != "seconds" and not k.startswith("_")}
+    if isinstance(x, list):
+        return [_without_seconds(v) for v in x]
+    return x
+
+
+def test_fits_made_in_threads_give_the_same_diagnosis(star_scene):
+    """The signatures and the held-out scores fitted two at a time give the bytes they give one after another
+    (they share only the residuals' memoised statistics). A wider PSF: several effects contend."""
+    sc = load_scene(str(star_scene))
+    meas = textbook_frame(star_scene, star_scene.with_name("threads.fits"), 9,
+                          [f"psf.fwhm_arcsec={1.2 * sc.psf.fwhm_arcsec}"])
+    one = run.run_diagnose(sc, meas, workers=1)
+    two = run.run_diagnose(sc, meas, workers=2)
+    assert json.dumps(_without_seconds(one), sort_keys=True, default=str) == \
+        json.dumps(_without_seconds(two), sort_keys=True, default=str)
+    assert sum(c["heldout_delta"] is not None for c in one["candidates"]) >= 2  # the threads had work to share
+
+
 def test_narrower_psf_named_first_with_its_value(star_scene):
     sc = load_scene(str(star_scene))
     fwhm = sc.psf.fwhm_arcsec

@@ -10,6 +10,7 @@ significance threshold is ``delta_BIC < -10`` ("very strong" evidence, Kass & Ra
 from __future__ import annotations
 
 import time
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import replace
 
 import numpy as np
@@ -248,27 +249,52 @@ def away_from_saturation(res: Residuals, fit: Fit, policy: DiagnosisPolicy = DEF
     return ""
 
 
+def _fit_signature(res: Residuals, name: str, cls) -> tuple[Fit | None, BaseException | None, float]:
+    """One effect's signature fitted to ``res`` and validated by its parameter model: (fit or None, the
+    exception it raised or None, seconds). Pure in ``res`` (its memo only gains values), so effects may be
+    fitted concurrently."""
+    t0 = time.perf_counter()
+    try:
+        fit = cls.signature.fit(res, name)
+        if fit is not None:
+            cls.Params.model_validate(fit.params)
+        return fit, None, time.perf_counter() - t0
+    except Exception as exc:  # noqa: BLE001  (a plugin that raises is reported, the others still run)
+        return None, exc, time.perf_counter() - t0
+
+
+def fit_signatures(res: Residuals, todo: list[tuple[str, type]], threads: int = 1):
+    """(name, effect class, :func:`_fit_signature`) of every (name, effect class) in ``todo``, in its order. With
+    ``threads`` > 1 the fits run in a thread pool (numpy and scipy release the GIL in their array work); the
+    statistics they share are computed first, so every fit reads the same memoised values and the results are
+    the same bytes as one after another."""
+    if threads <= 1 or len(todo) < 2:
+        for name, cls in todo:
+            yield name, cls, _fit_signature(res, name, cls)
+        return
+    res.levels()  # shared by every fit: computed once, before the threads read it
+    res.flat()
+    with ThreadPoolExecutor(max_workers=threads) as pool:
+        futures = [pool.submit(_fit_signature, res, name, cls) for name, cls in todo]
+        for (name, cls), fut in zip(todo, futures):
+            yield name, cls, fut.result()
+
+
 def candidates(res: Residuals, present: set[str], progress=None, truth=None,
-               policy: DiagnosisPolicy = DEFAULT_POLICY) -> tuple[list[Candidate], list[dict]]:
+               policy: DiagnosisPolicy = DEFAULT_POLICY, threads: int = 1) -> tuple[list[Candidate], list[dict]]:
     """Fit every absent effect with a signature. Returns (candidates best first, problems). With the model's
-    TRUTH table, image-plane candidates must keep the catalogue stars' photometry (:func:`stars_check`)."""
+    TRUTH table, image-plane candidates must keep the catalogue stars' photometry (:func:`stars_check`).
+    ``threads`` fits that many signatures at once (:func:`fit_signatures`; the same result)."""
     out, problems = [], []
     reach = ...  # the saturated sources' reach, found when a transform first asks for it
-    for name, cls in sorted(registry().items()):
-        if name in present or cls.signature is None:
-            continue
-        t0 = time.perf_counter()
-        try:
-            fit = cls.signature.fit(res, name)
-            if fit is not None:
-                cls.Params.model_validate(fit.params)
-        except Exception as exc:  # noqa: BLE001  (a plugin that raises is reported, the others still run)
+    todo = [(name, cls) for name, cls in sorted(registry().items())
+            if name not in present and cls.signature is not None]
+    for name, cls, (fit, exc, seconds) in fit_signatures(res, todo, threads):
+        if progress is not None:
+            progress(name)
+        if exc is not None:
             problems.append({"effect": name, "error": f"{type(exc).__name__}: {exc}"})
             continue
-        finally:
-            if progress is not None:
-                progress(name)
-            seconds = time.perf_counter() - t0
         if fit is None or not np.isfinite(fit.delta_m2lnl):
             continue
         chi2 = chi2_after(res, fit)
@@ -302,18 +328,18 @@ def candidates(res: Residuals, present: set[str], progress=None, truth=None,
             except Exception:  # noqa: BLE001  (a plugin's hook that raises claims nothing)
                 c.untold = ()
         out.append(c)
-    judge_evidence(res, out, policy, progress)
+    judge_evidence(res, out, policy, progress, threads)
     return rank(out, res.light_source), problems
 
 
 def judge_evidence(res: Residuals, cands: list[Candidate], policy: DiagnosisPolicy = DEFAULT_POLICY,
-                   progress=None) -> None:
+                   progress=None, threads: int = 1) -> None:
     """The evidence the judge weighs for every candidate of one frame: the shares of what is wrong it
     removes and its held-out score. The same for every path that has the frame's residuals."""
     structure_shares(res, cands, policy)
     excess_shares(res, cands, policy)
     support_shares(res, cands, policy)
-    score_heldout(res, cands, progress=progress, policy=policy)
+    score_heldout(res, cands, progress=progress, policy=policy, threads=threads)
 
 
 def implausibility(cls, fit: Fit, res: Residuals) -> str:
@@ -494,15 +520,13 @@ def coherence_px(res: Residuals) -> int:
 
 
 def score_heldout(res: Residuals, cands: list[Candidate], progress=None,
-                  policy: DiagnosisPolicy = DEFAULT_POLICY) -> None:
+                  policy: DiagnosisPolicy = DEFAULT_POLICY, threads: int = 1) -> None:
     """The held-out delta of the contenders (at most the policy's ``heldout_candidates``, best delta BIC
-    first)."""
+    first); ``threads`` scores that many at once (the same result)."""
     reg = registry()
-    for c in sorted((c for c in cands if c.contender), key=lambda c: c.fit.delta_bic)[:policy.heldout_candidates]:
-        sig = reg[c.fit.effect].signature if c.fit.effect in reg else None
-        if sig is None or not hasattr(sig, "score"):
-            continue
-        got = _heldout_of(c, sig, res)
+    todo = [c for c in sorted((c for c in cands if c.contender), key=lambda c: c.fit.delta_bic)
+            [:policy.heldout_candidates] if c.fit.effect in reg and hasattr(reg[c.fit.effect].signature, "score")]
+    for c, got in _score_all(res, todo, reg, None, threads):
         if got is not None:
             c.heldout, c.heldout_blind = got
         if progress is not None:
@@ -521,11 +545,27 @@ def score_heldout(res: Residuals, cands: list[Candidate], progress=None,
         block = seeing_block(best.fit, res, coherence_px(res))
     if block is not None:
         res.forget("heldout_folds")
-        for c in scored:
-            got = _heldout_of(c, reg[c.fit.effect].signature, res, block)
+        for c, got in _score_all(res, scored, reg, block, threads):
             if got is not None and got[0] is not None:
                 (c.heldout, c.heldout_blind), c.heldout_block = got, block
     res.forget("heldout_folds")  # the folds every candidate shared (detector.signatures.heldout_delta)
+
+
+def _score_all(res: Residuals, todo: list[Candidate], reg: dict, block: int | None, threads: int):
+    """(candidate, :func:`_heldout_of`) of every candidate in ``todo``, in its order. The first is scored alone
+    (it builds the folds every candidate shares); with ``threads`` > 1 the others are scored in a thread pool."""
+    if not todo:
+        return
+    yield todo[0], _heldout_of(todo[0], reg[todo[0].fit.effect].signature, res, block)
+    rest = todo[1:]
+    if threads <= 1 or len(rest) < 2:
+        for c in rest:
+            yield c, _heldout_of(c, reg[c.fit.effect].signature, res, block)
+        return
+    with ThreadPoolExecutor(max_workers=threads) as pool:
+        futures = [pool.submit(_heldout_of, c, reg[c.fit.effect].signature, res, block) for c in rest]
+        for c, fut in zip(rest, futures):
+            yield c, fut.result()
 
 
 def _heldout_of(c: Candidate, sig, res: Residuals, block: int | None = None) -> tuple[float | None, bool] | None:

@@ -1034,8 +1034,11 @@ def run_diagnose_large(scene, measured: str | Path, workers: int | None = None, 
     present = set(scene.effects)
     reg = {n: c for n, c in registry().items() if c.signature is not None}
     smooth = {n for n, c in reg.items() if _scale_of(n, c) == "binned"}
-    cb, pb = candidates(res_b, present | (set(reg) - smooth), progress=progress, truth=None, policy=policy)
-    cs, ps = candidates(res_s, present | smooth, progress=progress, truth=cmp["_truth_sample"], policy=policy)
+    threads = cmp["_model"].setup.detector.workers
+    cb, pb = candidates(res_b, present | (set(reg) - smooth), progress=progress, truth=None, policy=policy,
+                        threads=threads)
+    cs, ps = candidates(res_s, present | smooth, progress=progress, truth=cmp["_truth_sample"], policy=policy,
+                        threads=threads)
     sample_deltas = {}
     for c in cb:
         c.fit.note = (c.fit.note + " " if c.fit.note else "") + f"[binned {cmp['sampling']['binning_k']}x]"

@@ -100,7 +100,8 @@ def _run_diagnose(scene, measured: str | Path, workers: int | None = None, progr
     t0 = time.perf_counter()
     truth = cmp["_model"].setup.truth
     res = cmp["_residuals"]
-    cands, problems = candidates(res, set(scene.effects), progress=progress, truth=truth, policy=policy)
+    cands, problems = candidates(res, set(scene.effects), progress=progress, truth=truth, policy=policy,
+                                 threads=cmp["_model"].setup.detector.workers)
     optical, optical_problems = optics_candidates(res, truth, scene, progress=progress, model=cmp["_model"])
     for c in optical:
         c.policy = policy
