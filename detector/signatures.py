@@ -596,7 +596,7 @@ class Residuals:
                 dv = np.zeros(idx.size)
                 for c, i in zip(coef, keep):
                     if i in charge:
-                        dv += c * template_at(temps[i], shape, idx)
+                        self._add_level_template(dv, c, i)
                 share = self.dark_share(keep, allowed)
                 if share:  # the part of the offset that is dark charge carries its shot noise
                     dv += share * coef[keep.index(2)]
@@ -610,6 +610,15 @@ class Residuals:
                                     "coef": np.asarray(coef, float), "w": w,
                                     "dark_share": self.dark_share(keep, allowed)}
         return self._flat["levels"]
+
+    def _add_level_template(self, acc: np.ndarray, c: float, i: int) -> None:
+        """``acc += c * t_i`` over the fitted pixels (``acc``: float64, one value per fitted pixel), ``t_i`` the level
+        template ``i`` at those pixels read from the chunks :meth:`levels` gathered (the same float64 numbers as
+        :func:`template_at` of the whole map, without gathering it again)."""
+        chunks = self._flat["level_chunks"]
+        for a in range(0, acc.size, CHUNK_PIXELS):
+            sl = slice(a, a + CHUNK_PIXELS)
+            acc[sl] += c * chunks[a][i].astype(np.float64)
 
     def dark_share(self, keep: list[int], allowed: list[int]) -> float:
         """The share of the fitted bias offset that is dark charge, where the dark level was dropped as
@@ -697,7 +706,10 @@ class Residuals:
             temps = self.level_templates()
             rp = r.copy()
             for c, i in zip(lv["coef"], lv["keep"]):
-                rp -= c * template_at(temps[i], self.data_adu.shape, idx)
+                if "level_chunks" in self._flat:  # rp - c t = rp + (-c) t exactly
+                    self._add_level_template(rp, -c, i)
+                else:
+                    rp -= c * template_at(temps[i], self.data_adu.shape, idx)
             self._flat["r_profiled"] = rp
         return self._flat["idx"], self._flat["r_profiled"], self.levels()["w"]
 

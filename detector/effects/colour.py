@@ -71,16 +71,34 @@ def bayer_label(response) -> str:
 
 # --- diagnosis: the photo-signal times each cell's indicator (relative responses of mean 1) ---------------------
 
-def _cell_fractions(res, period: int = 2) -> np.ndarray | None:
-    """Per output pixel, the fraction of its sensor pixels in each of the four cells, shape (4, H, W); None
-    when every output pixel holds the four cells equally (binning by a multiple of the period: the pattern
-    averages out)."""
+def _cell_factors(res, period: int = 2) -> tuple[np.ndarray, np.ndarray] | None:
+    """The fractions of an output pixel's sensor rows and columns in the even and odd cells (each (2, H) and
+    (2, W), :func:`parity_fractions`), whose products are :func:`_cell_fractions`; None when every output pixel
+    holds the four cells equally (binning by a multiple of the period: the pattern averages out)."""
     b = res.sensor.binning
     fy = parity_fractions(np.rint(res.ys - (b - 1) / 2.0), b, period)
     fx = parity_fractions(np.rint(res.xs - (b - 1) / 2.0), b, period)
     if np.allclose(fy, 0.5) and np.allclose(fx, 0.5):
         return None
+    return fy, fx
+
+
+def _cell_fractions(res, period: int = 2) -> np.ndarray | None:
+    """Per output pixel, the fraction of its sensor pixels in each of the four cells, shape (4, H, W); None
+    when every output pixel holds the four cells equally (binning by a multiple of the period: the pattern
+    averages out)."""
+    got = _cell_factors(res, period)
+    if got is None:
+        return None
+    fy, fx = got
     return np.stack([fy[p][:, None] * fx[q][None, :] for p in (0, 1) for q in (0, 1)])
+
+
+def _relative_cells_at(fy: np.ndarray, fx: np.ndarray, y: np.ndarray, x: np.ndarray) -> np.ndarray:
+    """``f_k - f_11`` (k = 00, 01, 10) of :func:`_cell_fractions` at the pixels (``y``, ``x``), shape (3, pixels):
+    the same products and differences, without the whole frame's maps."""
+    last = fy[1][y] * fx[1][x]
+    return np.stack([fy[p][y] * fx[q][x] - last for p, q in ((0, 0), (0, 1), (1, 0))])
 
 
 #: light pixels the response fit uses at most (a random subsample, fixed seed: regular strides would alias with
@@ -130,6 +148,11 @@ class CFASignature(Signature):
                 fit.k += 1  # the period chosen
                 if best is None or fit.delta_bic < best.delta_bic:
                     best = fit
+        if best is not None:  # the mean change of the chosen mosaic only (a frame-sized map)
+            c, period = best.state.pop("cells")
+            rel = _cell_fractions(res, period)
+            rel = rel[:3] - rel[3]
+            best.delta_adu = (res.photo_adu.astype(np.float64) * np.tensordot(c, rel, axes=1)).astype(np.float32)
         return best
 
     @staticmethod
@@ -153,12 +176,11 @@ class CFASignature(Signature):
                 "levels": levels if levels.size else np.zeros((1, idx.size))}
 
     def _fit_period(self, res, name, period, sample):
-        f = _cell_fractions(res, period)
+        f = _cell_factors(res, period)
         if f is None:
             return None
         idx, scale, (y, x), r, w, levels = (sample[k] for k in ("idx", "scale", "yx", "r", "w", "levels"))
-        rel = f[:3] - f[3]
-        temps = sample["photo"] * rel[:, y, x]
+        temps = sample["photo"] * _relative_cells_at(*f, y, x)
         keep = np.ones(idx.size, bool)
         row_var = float(res.row_var_adu2)  # row noise: generalised least squares over each row's pixels
         for _ in range(3):
@@ -176,9 +198,9 @@ class CFASignature(Signature):
         params = _cfa_params(np.asarray(c) / level, period) if level > 0 else None
         if params is None:
             return None
-        delta = (res.photo_adu.astype(np.float64) * np.tensordot(c, rel, axes=1)).astype(np.float32)
+        # the mean change (a frame-sized map) is made by :meth:`fit` for the chosen period only
         return Fit(name, params, d * scale, len(c), int(keep.sum() * scale), _cfa_words(params, res),
-                   delta_adu=delta, note=f"2x2 cells of {period // 2} x {period // 2} pixels")
+                   note=f"2x2 cells of {period // 2} x {period // 2} pixels", state={"cells": (c, period)})
 
     def _before_after(self, res, fit, limit: int | None):
         """On this signature's own pixels (:meth:`_sample`): (index, mean change, residual before and after the

@@ -715,12 +715,15 @@ def _third_derivatives(res) -> list[np.ndarray]:
 def _has_structure(res) -> bool:
     """Image-plane effects need sources: a flat screen or a dark (even a vignetted one: its gradients are far
     wider than any blur or shift) has nothing to move or blur. Sources are what a 7 x 7 box average does
-    not keep (a high-pass) well above the noise."""
-    p = np.asarray(res.photo_field, np.float32)  # before the response (a CFA)
-    if not p.size:
-        return False
-    hp = p - ndimage.uniform_filter(p, 7, mode="nearest")
-    return float(np.ptp(hp)) > 10 * float(np.sqrt(np.median(res.var_adu2)))
+    not keep (a high-pass) well above the noise. Kept with the residuals (every transform's fit, form and
+    held-out refit asks it of the same photo-signal and variance)."""
+    def test() -> bool:
+        p = np.asarray(res.photo_field, np.float32)  # before the response (a CFA)
+        if not p.size:
+            return False
+        hp = p - ndimage.uniform_filter(p, 7, mode="nearest")
+        return float(np.ptp(hp)) > 10 * float(np.sqrt(np.median(res.var_adu2)))
+    return res.memo("image_plane_has_structure", test)
 
 
 def _max_var(res) -> float:

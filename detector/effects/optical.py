@@ -139,6 +139,18 @@ def _offsets_mm(res, cx_mm: float, cy_mm: float) -> tuple[np.ndarray, np.ndarray
     return u, v
 
 
+def _pixels_at(res, idx: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(rows, columns, minus the photo-signal [ADU, float64]) at flat pixel indices ``idx``, kept on ``res`` for
+    the last index array asked (a centre search evaluates hundreds of variants on the same search sample)."""
+    key = (idx.__array_interface__["data"][0], idx.shape, idx.strides)
+    got = res._flat.get("vignetting_pixels")
+    if got is None or got[1] != key:
+        y, x = np.divmod(idx, res.photo_adu.shape[1])
+        got = (idx, key, y, x, -(res.photo_adu.ravel()[idx].astype(np.float64)))
+        res._flat["vignetting_pixels"] = got  # ``idx`` itself kept: its memory cannot hold another array meanwhile
+    return got[2], got[3], got[4]
+
+
 def _vignetting_variant(res, cx_mm: float, cy_mm: float, radius_mm: float | None = None, elliptical: bool = False,
                         quartic: bool = False):
     """The radial polynomial about a centre (``a2``, ``a4``); ``elliptical``: with the azimuthal terms of its rho^2
@@ -152,7 +164,6 @@ def _vignetting_variant(res, cx_mm: float, cy_mm: float, radius_mm: float | None
     u, v = _offsets_mm(res, cx_mm, cy_mm)
     r_corner = radius_mm or 0.5 * pitch_mm * float(np.hypot(s.sensor_width_px, s.sensor_height_px))
     photo = res.photo_adu
-    w = photo.shape[1]
 
     def terms(uu, vv, p):
         rho2 = (uu ** 2 + vv ** 2) / r_corner ** 2
@@ -163,9 +174,19 @@ def _vignetting_variant(res, cx_mm: float, cy_mm: float, radius_mm: float | None
             out += [-p * (uu ** 2 - vv ** 2) / r_corner ** 2, -p * 2.0 * uu * vv / r_corner ** 2]
         return out
 
+    u2, v2 = u ** 2, v ** 2  # squared before the gather: the same numbers as u[x] ** 2
+
     def at(idx):
-        y, x = np.divmod(idx, w)
-        return np.stack(terms(u[x], v[y], photo.ravel()[idx].astype(np.float64)))
+        y, x, neg_p = _pixels_at(res, idx)
+        rho2 = (u2[x] + v2[y]) / r_corner ** 2
+        first = neg_p * rho2  # -p * rho2 (and -p * rho2 * rho2 = first * rho2): as terms() evaluates them
+        if quartic:
+            return np.stack([first * rho2])
+        out = [first, first * rho2]
+        if elliptical:
+            uu, vv = u[x], v[y]
+            out += [neg_p * (u2[x] - v2[y]) / r_corner ** 2, neg_p * 2.0 * uu * vv / r_corner ** 2]
+        return np.stack(out)
 
     def maps():
         return [t.astype(np.float32) for t in terms(u[None, :], v[:, None], photo.astype(np.float64))]

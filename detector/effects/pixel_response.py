@@ -237,9 +237,12 @@ def _gain_variants(res):
     for nx, ny in _REGION_GRIDS:
         iy, ix = region_index(res.ys, res.xs, nx, ny, s.sensor_height_px, s.sensor_width_px)
         k = iy[:, None] * nx + ix[None, :]
-        present = np.unique(k)
+        # the regions the window holds: every pair of a row's and a column's region (the same sorted values as
+        # np.unique(k), from the 1-D indices); their pixel counts, the products of the rows' and columns'
+        present = np.unique(np.unique(iy)[:, None] * nx + np.unique(ix)[None, :])
         if present.size < 2:
             continue
+        npx = np.array([np.count_nonzero(iy == j // nx) * np.count_nonzero(ix == j % nx) for j in present], float)
 
         def at(idx, iy=iy, ix=ix, nx=nx, present=present):
             y, x = np.divmod(idx, w)
@@ -250,12 +253,11 @@ def _gain_variants(res):
         def maps(k=k, present=present):
             return [np.where(k == j, sig, np.float32(0)) for j in present]
 
-        def to_params(c, nx=nx, ny=ny, present=present, k=k):
+        def to_params(c, nx=nx, ny=ny, present=present, npx=npx):
             # relative gains: a common factor is the light level (refitted with the levels), so the gains are
             # normalised to a pixel-weighted mean of 1
             g = np.ones(nx * ny)
             g[present] += c
-            npx = np.array([(k == j).sum() for j in present], float)
             g = g / (np.dot(g[present], npx) / npx.sum())
             return {"nx": nx, "ny": ny, "gains": [round(float(x), 6) for x in g]} if (g > 0).all() else None
 
