@@ -784,7 +784,16 @@ def _blur_start(res, sub=(0,)):
 
 def _blur_core_halo_start(res):
     """The round core and its wings together: the core's second moments (xx + yy template: the heat equation's
-    linearisation) fitted linearly with the halo's template at each trial width, the best width kept."""
+    linearisation) fitted linearly with the halo's template at each trial width, the best width kept.
+
+    None (the form not fitted) when the round core alone is no candidate (:meth:`TransformSignature.form_fit`
+    of ``(0,)``, the shared form already fitted): second moments of a convolution add, so the core of a core
+    with wings is the sources' whole widening less its wings' share ``f h^2``, which is less than the core
+    alone finds; a core alone that does not widen the sources (``sigma^2 <= 0``) leaves the joint form's core
+    outside its range too (``_blur_params`` refuses ``sigma^2 < 0``), and its fit, a frame's worth of Fourier
+    transforms at every step, would end refused."""
+    if PSFBlur.signature.form_fit(res, PSFBlur.name, (0,)) is None:
+        return None
     ctx = search_sample(res)
     d = _derivatives(res)
     photo = np.asarray(res.photo_field, np.float64)

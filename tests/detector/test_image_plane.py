@@ -132,3 +132,18 @@ def test_a_pointing_offset_with_rotation_and_scale_moves_a_star_by_the_similarit
     ey = yc + (1 + prm["scale"]) * (np.sin(a) * px + np.cos(a) * py) + prm["dy_px"]
     assert abs(cx - ex) < 0.01 and abs(cy - ey) < 0.01 and abs(f - f0) < 1e-3 * f0
 
+
+
+def test_the_core_with_wings_is_not_fitted_when_the_round_core_alone_is_no_candidate(monkeypatch):
+    """psf_blur's joint form (core and halo) starts only from a round core that is a candidate alone: its core is
+    the sources' widening less the wings' share, so without a widening core it would end refused; the start is
+    then None (no fit, no Fourier transform of the frame) before anything of the residuals is read."""
+    asked = []
+
+    def no_core(res, name, sub):
+        asked.append((name, tuple(sub)))
+        return None
+
+    monkeypatch.setattr(ip.PSFBlur.signature, "form_fit", no_core)
+    assert ip._blur_start(object(), (0, 1, 2)) is None
+    assert asked == [("psf_blur", (0,))]
