@@ -268,7 +268,7 @@ def fit_signatures(res: Residuals, todo: list[tuple[str, type]], threads: int = 
     ``threads`` > 1 the fits run in a thread pool (numpy and scipy release the GIL in their array work); the
     statistics they share are computed first, so every fit reads the same memoised values and the results are
     the same bytes as one after another."""
-    if threads <= 1 or len(todo) < 2:
+    if threads <= 1 or len(todo) <= 1:
         for name, cls in todo:
             yield name, cls, _fit_signature(res, name, cls)
         return
@@ -558,7 +558,7 @@ def _score_all(res: Residuals, todo: list[Candidate], reg: dict, block: int | No
         return
     yield todo[0], _heldout_of(todo[0], reg[todo[0].fit.effect].signature, res, block)
     rest = todo[1:]
-    if threads <= 1 or len(rest) < 2:
+    if threads <= 1 or len(rest) <= 1:
         for c in rest:
             yield c, _heldout_of(c, reg[c.fit.effect].signature, res, block)
         return
