@@ -701,15 +701,10 @@ class Residuals:
         """(index, residual, weight) of the fitted pixels with the global levels refitted: the residual
         without the fitted levels, the weight with their shot noise."""
         if "r_profiled" not in self._flat:
-            idx, r, _ = self.flat()
-            lv = self.levels()
-            temps = self.level_templates()
-            rp = r.copy()
+            rp = self.flat()[1].copy()
+            lv = self.levels()  # gathers the templates' chunks (rp - c t = rp + (-c) t exactly)
             for c, i in zip(lv["coef"], lv["keep"]):
-                if "level_chunks" in self._flat:  # rp - c t = rp + (-c) t exactly
-                    self._add_level_template(rp, -c, i)
-                else:
-                    rp -= c * template_at(temps[i], self.data_adu.shape, idx)
+                self._add_level_template(rp, -c, i)
             self._flat["r_profiled"] = rp
         return self._flat["idx"], self._flat["r_profiled"], self.levels()["w"]
 

@@ -263,21 +263,25 @@ def _fit_signature(res: Residuals, name: str, cls) -> tuple[Fit | None, BaseExce
         return None, exc, time.perf_counter() - t0
 
 
+def _in_order(fn, items: list, threads: int):
+    """``fn(item)`` of every item, yielded in ``items``' order as they are ready; with ``threads`` > 1 (and more
+    than one item) they run in a thread pool of that many threads."""
+    if threads <= 1 or len(items) <= 1:
+        yield from map(fn, items)
+        return
+    with ThreadPoolExecutor(max_workers=threads) as pool:
+        yield from pool.map(fn, items)
+
+
 def fit_signatures(res: Residuals, todo: list[tuple[str, type]], threads: int = 1):
     """(name, effect class, :func:`_fit_signature`) of every (name, effect class) in ``todo``, in its order. With
     ``threads`` > 1 the fits run in a thread pool (numpy and scipy release the GIL in their array work); the
     statistics they share are computed first, so every fit reads the same memoised values and the results are
     the same bytes as one after another."""
-    if threads <= 1 or len(todo) <= 1:
-        for name, cls in todo:
-            yield name, cls, _fit_signature(res, name, cls)
-        return
-    res.levels()  # shared by every fit: computed once, before the threads read it
+    res.levels()  # shared by every fit: computed once, before any thread reads it
     res.flat()
-    with ThreadPoolExecutor(max_workers=threads) as pool:
-        futures = [pool.submit(_fit_signature, res, name, cls) for name, cls in todo]
-        for (name, cls), fut in zip(todo, futures):
-            yield name, cls, fut.result()
+    for (name, cls), got in zip(todo, _in_order(lambda t: _fit_signature(res, *t), todo, threads)):
+        yield name, cls, got
 
 
 def candidates(res: Residuals, present: set[str], progress=None, truth=None,
@@ -553,19 +557,13 @@ def score_heldout(res: Residuals, cands: list[Candidate], progress=None,
 
 def _score_all(res: Residuals, todo: list[Candidate], reg: dict, block: int | None, threads: int):
     """(candidate, :func:`_heldout_of`) of every candidate in ``todo``, in its order. The first is scored alone
-    (it builds the folds every candidate shares); with ``threads`` > 1 the others are scored in a thread pool."""
-    if not todo:
-        return
-    yield todo[0], _heldout_of(todo[0], reg[todo[0].fit.effect].signature, res, block)
-    rest = todo[1:]
-    if threads <= 1 or len(rest) <= 1:
-        for c in rest:
-            yield c, _heldout_of(c, reg[c.fit.effect].signature, res, block)
-        return
-    with ThreadPoolExecutor(max_workers=threads) as pool:
-        futures = [pool.submit(_heldout_of, c, reg[c.fit.effect].signature, res, block) for c in rest]
-        for c, fut in zip(rest, futures):
-            yield c, fut.result()
+    (it builds the folds every candidate shares), the others ``threads`` at a time (:func:`_in_order`)."""
+    def score(c: Candidate):
+        return _heldout_of(c, reg[c.fit.effect].signature, res, block)
+
+    if todo:
+        yield todo[0], score(todo[0])
+        yield from zip(todo[1:], _in_order(score, todo[1:], threads))
 
 
 def _heldout_of(c: Candidate, sig, res: Residuals, block: int | None = None) -> tuple[float | None, bool] | None:
