@@ -1595,6 +1595,29 @@ def _mixture_m2l(core_m2l: np.ndarray, out_m2l: np.ndarray, eps0: float, outlier
     return float(np.sum(total)), eps
 
 
+def _profiled_mixture_m2l(core_m2l: np.ndarray, out_m2l: np.ndarray) -> tuple[float, float]:
+    """-2 ln L of ``(1 - eps) core + eps outliers`` minimised over ``eps`` in ``[1e-6, OUTLIER_MAX_FRACTION]``
+    to convergence; (value, eps). The mixture's log-likelihood is concave in eps, so a bounded 1-D search
+    finds its maximum. The EM steps of :func:`_mixture_m2l` converge only linearly where the two components
+    fit the pixels about equally well (a variance just above the residuals' on a frame of a few codes: the
+    factor per step near 1), and a -2 ln L compared between two points of a fit must have eps profiled at
+    both, else the difference is EM's progress, not the fitted parameter's gain."""
+    lo, hi = np.log(1e-6), np.log(OUTLIER_MAX_FRACTION)
+
+    def total(le):
+        eps = np.exp(le)
+        return float(np.sum(-2 * np.logaddexp(np.log1p(-eps) - 0.5 * core_m2l, le - 0.5 * out_m2l)))
+
+    best = optimize.minimize_scalar(total, bounds=(lo, hi), method="bounded", options={"xatol": 1e-4})
+    le = float(best.x)
+    val = total(le)
+    for edge in (lo, hi):  # the maximum may sit on a bound (no outliers: eps -> its floor)
+        v_edge = total(edge)
+        if v_edge < val:
+            le, val = edge, v_edge
+    return val, float(np.exp(le))
+
+
 def ml_variance_scale(r: np.ndarray, v: np.ndarray, t: np.ndarray, z_cap: float = 8.0, outliers: bool = False,
                       k3: Callable[[float], np.ndarray | float] | None = None,
                       k3_base: np.ndarray | float | None = None, fixed_theta: float | None = None
@@ -1625,25 +1648,30 @@ def ml_variance_scale(r: np.ndarray, v: np.ndarray, t: np.ndarray, z_cap: float 
     out_m2l = _m2l_pixels(r, OUTLIER_WIDTH ** 2 * v) if outliers else None
     state = {"eps": 1e-3}
 
-    def m2l(theta):
+    def m2l(theta, profiled=False):
+        # the search steps eps by EM from the last point; the compared points (no effect, the fit's theta)
+        # have it profiled to convergence (:func:`_profiled_mixture_m2l`)
         k = k3_base
         if k3 is not None and theta > 0:
             k = k3(theta) if k is None else k + k3(theta)
         core = _m2l_pixels(r, v + theta * t, k)
-        val, eps = _mixture_m2l(core, out_m2l, state["eps"], outliers)
+        if profiled and outliers:
+            val, eps = _profiled_mixture_m2l(core, out_m2l)
+        else:
+            val, eps = _mixture_m2l(core, out_m2l, state["eps"], outliers)
         state["eps"] = eps
         return val
 
-    base = m2l(0.0)
+    base = m2l(0.0, profiled=True)
     if fixed_theta is not None:
-        return float(fixed_theta), m2l(float(fixed_theta)) - base
+        return float(fixed_theta), m2l(float(fixed_theta), profiled=True) - base
     tmax = max(float(np.mean(r * r) / max(np.mean(t), 1e-30)), 1e-30) * 10
     if not np.isfinite(tmax):
         return 0.0, 0.0
     best = optimize.minimize_scalar(lambda lt: m2l(np.exp(lt)), bounds=(np.log(tmax) - 30, np.log(tmax)),
                                     method="bounded", options={"xatol": 1e-3})
     theta = float(np.exp(best.x))
-    d = m2l(theta) - base
+    d = m2l(theta, profiled=True) - base
     return (theta, d) if d < 0 else (0.0, 0.0)
 
 
