@@ -134,6 +134,18 @@ def test_a_sub_pixel_blur_adds_its_continuous_covariance(law, size_px, q):
     assert np.allclose(cov(data) - cov(src), expected, atol=2e-3 * size_px ** 2 + 1e-6)
 
 
+def test_a_near_round_blur_names_its_elongation_as_a_part():
+    """A near-round blur's draw carries its elongation as a part (the names psf_elongation and jitter, right too
+    once the frame sees it), compared against the round kernel of the same covariance trace."""
+    case = next(c for c in (R.draw_case("psf_blur", s) for s in range(40)) if c.draw.effects[0][1]["q"] < 0.95)
+    ((names, alt),) = case.draw.parts
+    assert set(names) == {"psf_elongation", "jitter"} and "psf_elongation" not in case.draw.accept
+    prm, rnd = case.draw.effects[0][1], alt[0][1]
+    assert rnd["q"] == 1.0
+    assert 2 * rnd["size_px"] ** 2 == pytest.approx((1 + prm["q"] ** 2) * prm["size_px"] ** 2)
+    assert not R.draw_case("psf_elongation", 1).draw.parts
+
+
 def test_wilson_interval_covers():
     lo, hi = R.wilson(180, 200)
     assert lo < 0.9 < hi and hi - lo < 0.1

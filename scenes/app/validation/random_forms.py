@@ -28,7 +28,12 @@ seed, so that a report can be made on forms nobody has looked at:
 Amplitudes are log-uniform between a strong value and one near the detection threshold, in units of the
 frame's own noise (the pixel noise of the base scene: shot noise of the light and the dark, read noise), so
 that "near threshold" means the same on every base; each case also records ``truth_chi2``, the chi2 its exact
-template removes from a noise-free frame (:func:`.hidden.effect_support`).
+template removes from a noise-free frame (:func:`.hidden.effect_support`). A kernel acts as the continuous
+kernel does (its transfer function, :func:`blur_transfer`), whatever its width.
+
+A drawn form may hold a part that is a catalogue effect of its own (a near-round blur's elongation): the part's
+names are accepted too when the frame sees the part alone (its chi2 against the draw without it, at least
+:data:`SEEN_CHI2`, recorded as ``parts_chi2``).
 
 Each drawn case records its family, the accepted catalogue name(s) (or, out of the catalogue, the expected
 morphology ``kind`` and ``geometry`` words, as :mod:`.unseen` does), the base scene and its camera (ML11002 CCD
@@ -60,7 +65,7 @@ import tempfile
 import time
 from collections import Counter
 from concurrent.futures import ProcessPoolExecutor, as_completed
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -671,6 +676,9 @@ class Draw:
     accept: tuple = ()
     kind: str | None = None
     geometry: tuple = ()
+    #: parts of the drawn effect that are catalogue effects of their own: (names, effects without the part); the
+    #: names are right too when the part alone is seen (:func:`part_seen`)
+    parts: tuple = ()
 
 
 def _choice(rng, seq):
@@ -1124,7 +1132,18 @@ def _blur_draw(rng, elongated):
     if law == "wing":
         prm["size_px"] = size * 4
     accept = ("psf_elongation", "jitter", "psf_blur") if elongated else ("psf_blur",)
-    return Draw(base, [("KernelBlur", prm)], f"{law} blur of {prm['size_px']:.3g} px, axis ratio {q:.2f}", t, accept=accept)
+    # a near-round kernel's elongation (its covariance's anisotropic part) is a psf_elongation of its own: its
+    # names are right too when the frame sees it, against the round kernel of the same covariance trace
+    parts = () if elongated else ((("psf_elongation", "jitter"), [("KernelBlur", round_kernel(prm))]),)
+    return Draw(base, [("KernelBlur", prm)], f"{law} blur of {prm['size_px']:.3g} px, axis ratio {q:.2f}", t,
+                accept=accept, parts=parts)
+
+
+def round_kernel(prm: dict) -> dict:
+    """The round kernel of :func:`blur_kernel`'s law with the same covariance trace as ``prm``'s (the profile is
+    stretched by ``size`` along the major axis and ``q size`` across: its covariance ``size^2 diag(1, q^2)``
+    times the law's own)."""
+    return {**prm, "q": 1.0, "size_px": prm["size_px"] * math.sqrt((1 + prm["q"] ** 2) / 2)}
 
 
 def fam_psf_blur(rng):
@@ -1396,16 +1415,35 @@ def run_case(case: RandomCase, workdir: Path, workers: int | None = None) -> dic
     workdir.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
     uc = case.unseen_case()
+    parts = {" ".join(names): part_seen(case, alt, workdir / f"{case.name}.part{i}.toml", workers)
+             for i, (names, alt) in enumerate(case.draw.parts)}
+    seen = tuple(n for names, _ in case.draw.parts if parts[" ".join(names)] >= SEEN_CHI2 for n in names)
+    uc = replace(uc, accept=tuple(uc.accept) + seen)
     model = HE["write_scene"](HE["model_scene"](uc.base, uc.effect), workdir / f"{case.name}.model.toml")
     info = HE["make_frame"](uc.base, uc.make, uc.levels, workdir / f"{case.name}.fits", seed=case.frame_seed,
                             workers=workers)
     row = U.diagnose_case(uc, model, Path(info["measured"]), info["support"], workdir, workers=workers,
                           truth_change_adu=info.get("truth_change_adu"))
     row.update(case.record())
+    if parts:
+        row.update(accept=list(uc.accept), parts_chi2=parts)
     row.update(label=case.effect or f"ooc:{case.family}", truth_chi2=info["truth_chi2"],
                scatter_sigma=info.get("scatter_sigma"),
                case_seconds=round(time.perf_counter() - t0, 1))
     return row
+
+
+#: a part of a drawn effect is seen when its exact template's chi2 reaches this: the report's bar of what one frame
+#: can see at all (DETECTION_SIGMA squared, :func:`_detectability`)
+SEEN_CHI2 = DETECTION_SIGMA ** 2
+
+
+def part_seen(case: RandomCase, without: list, out: Path, workers: int | None = None) -> float:
+    """The chi2 of a part of ``case``'s drawn effect (:attr:`Draw.parts`): the expected frames with the drawn
+    effects and with ``without`` (the draw less that part) apart, on the case's base and levels."""
+    return HE["change_chi2"](case.draw.base, case.levels, case.make,
+                             lambda sensor: [CLASSES[cls](sensor, **prm) for cls, prm in without], out,
+                             workers=workers)
 
 
 def _run_one(args):
@@ -1502,7 +1540,7 @@ def _detectability(r, after_levels: bool = False) -> str:
         return BELOW_SCATTER
     if tc is None:
         return "noise or scatter (no template chi2)"
-    return BELOW_TEMPLATE if tc < 25 else ("25 <= truth chi2 < 1000" if tc < 1000 else "truth chi2 >= 1000")
+    return BELOW_TEMPLATE if tc < SEEN_CHI2 else ("25 <= truth chi2 < 1000" if tc < 1000 else "truth chi2 >= 1000")
 
 
 def summary(rows: list[dict]) -> dict:
