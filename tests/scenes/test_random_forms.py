@@ -107,6 +107,45 @@ def test_periodic_pattern_has_the_drawn_period():
     assert np.allclose(w[0], w[3])  # angle 0: the same in every row (a pattern of columns)
 
 
+@pytest.mark.parametrize("law,size_px,q", [("gauss", 0.26, 0.47), ("gauss", 1.2, 0.6), ("wing", 0.5, 0.9)])
+def test_a_sub_pixel_blur_adds_its_continuous_covariance(law, size_px, q):
+    """A kernel narrower than a pixel blurs by its continuous covariance (its samples at the pixel centres would
+    keep almost none of it): a band-limited source's second moments grow by sigma^2 along the major axis and
+    (q sigma)^2 across, scaled by the halo's share for "wing" (second moments add under convolution)."""
+    theta = 0.6
+    n = 96
+    y, x = np.indices((n, n), dtype=float) - n / 2
+    src = np.exp(-(x * x + y * y) / (2 * 2.0 ** 2))  # a 2 px Gaussian star, well sampled
+    p = SimpleNamespace(law=law, size_px=size_px, q=q, theta=theta, beta=3.0, wing=0.3)
+    data = src.copy()
+    R.KernelBlur.apply(SimpleNamespace(params=p), None, None, data)
+    assert data.sum() == pytest.approx(src.sum(), rel=1e-9)
+
+    def cov(img):
+        w = img / img.sum()
+        mx, my = (w * x).sum(), (w * y).sum()
+        return np.array([[(w * (x - mx) ** 2).sum(), (w * (x - mx) * (y - my)).sum()],
+                         [(w * (x - mx) * (y - my)).sum(), (w * (y - my) ** 2).sum()]])
+
+    c, s = math.cos(theta), math.sin(theta)
+    rot = np.array([[c, -s], [s, c]])
+    share = 0.3 if law == "wing" else 1.0
+    expected = share * rot @ np.diag([size_px ** 2, (q * size_px) ** 2]) @ rot.T
+    assert np.allclose(cov(data) - cov(src), expected, atol=2e-3 * size_px ** 2 + 1e-6)
+
+
+def test_a_near_round_blur_names_its_elongation_as_a_part():
+    """A near-round blur's draw carries its elongation as a part (the names psf_elongation and jitter, right too
+    once the frame sees it), compared against the round kernel of the same covariance trace."""
+    case = next(c for c in (R.draw_case("psf_blur", s) for s in range(40)) if c.draw.effects[0][1]["q"] < 0.95)
+    ((names, alt),) = case.draw.parts
+    assert set(names) == {"psf_elongation", "jitter"} and "psf_elongation" not in case.draw.accept
+    prm, rnd = case.draw.effects[0][1], alt[0][1]
+    assert rnd["q"] == 1.0
+    assert 2 * rnd["size_px"] ** 2 == pytest.approx((1 + prm["q"] ** 2) * prm["size_px"] ** 2)
+    assert not R.draw_case("psf_elongation", 1).draw.parts
+
+
 def test_wilson_interval_covers():
     lo, hi = R.wilson(180, 200)
     assert lo < 0.9 < hi and hi - lo < 0.1

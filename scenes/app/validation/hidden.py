@@ -718,6 +718,22 @@ def make_frame(base: str, extra, levels: Levels, out: Path, seed: int = 11, work
                       for e in added if isinstance(e, RealWorld)]}
 
 
+def change_chi2(base: str, levels: Levels, extra_a, extra_b, out: Path, workers: int | None = None) -> float:
+    """How detectable the difference of two sets of real-world effects is on ``base`` (callables(sensor) ->
+    list of Effects, as :func:`make_frame` takes): ``sum((m_a - m_b)^2 / v0)`` over every pixel, the expected
+    frames with each and the measured camera's variance, as :func:`effect_support`'s truth chi2. ``out`` names
+    the scene file written for it."""
+    from scenes.app.render import prepare
+    from scenes.scene import load_scene
+
+    setup = prepare(load_scene(str(write_scene(measured_scene(base, levels), out))), workers=workers)
+    sensor = setup.detector.sensor
+    _, v0, _ = setup.detector.moments(setup.signal_e, setup.exptime_s)
+    m_a, m_b = (Detector(sensor, setup.detector.effects + list(extra(sensor)), workers=setup.detector.workers)
+                .moments(setup.signal_e, setup.exptime_s)[0] for extra in (extra_a, extra_b))
+    return float(np.sum((m_a - m_b) ** 2 / v0, dtype=np.float64))
+
+
 #: a pixel belongs to a hidden effect's support where it changes the expected frame by this many sigma
 SUPPORT_SIGMA = 0.2
 
