@@ -982,8 +982,12 @@ def _jitter_words(p, res) -> str:
         return (f"sources smeared back and forth along {p['angle_deg']:.0f} deg, {p['vibration_px']:.3g} px either "
                 "way, brightest at both ends (an arcsine profile): a sinusoidal vibration of the pointing (a "
                 "drive or wind resonance), not a one-way drift")
+    # an elongated Gaussian blur is what random image motion makes and what a static elongated PSF wider both ways
+    # makes (astigmatism, a tilted detector: psf_elongation's form is the one narrower across): one frame's
+    # sources do not tell the two causes apart, the words say so
     return (f"sources smeared along {p['angle_deg']:.0f} deg, {p['sigma_major_px']:.3g} x {p['sigma_minor_px']:.3g} "
-            "px rms: pointing jitter")
+            "px rms: pointing jitter, or a PSF elongated and wider both ways (astigmatism, a tilted detector), "
+            "which the sources of one frame do not tell apart")
 
 
 # elongation: theta = (c_xx, c_yy, c_xy) [output px^2], one eigenvalue negative (narrower across: a smear's
