@@ -146,6 +146,20 @@ def test_a_near_round_blur_names_its_elongation_as_a_part():
     assert not R.draw_case("psf_elongation", 1).draw.parts
 
 
+def test_a_mosaic_that_dims_the_flat_beyond_the_tolerance_accepts_the_flat_level():
+    """A mosaic whose mean response with the case's light level moves the flat's light beyond the policy's scale
+    tolerance makes the flat level a finding (named first, issue 23): its name is accepted too; within it, not."""
+    from scenes.app.compare.policy import DEFAULT_POLICY
+
+    tol = DEFAULT_POLICY.parameter_scale_tolerance
+    cases = [R.draw_case("cfa", s) for s in range(60)]
+    for c in cases:
+        scale = float(np.mean(c.draw.effects[0][1]["response"])) * (1 + c.levels.light)
+        assert ("flat_level" in c.accept) == (abs(scale - 1) > tol)
+        assert c.record()["accept"] == list(c.accept) and c.unseen_case().accept == c.accept
+    assert any("flat_level" in c.accept for c in cases) and not all("flat_level" in c.accept for c in cases)
+
+
 def test_wilson_interval_covers():
     lo, hi = R.wilson(180, 200)
     assert lo < 0.9 < hi and hi - lo < 0.1

@@ -74,6 +74,7 @@ from scipy import ndimage, optimize
 from detector.effects.base import Stage
 from detector.effects.blooming import bleed_columns
 from detector.significance import DETECTION_SIGMA
+from scenes.app.compare.policy import DEFAULT_POLICY
 
 from . import unseen as U
 
@@ -679,6 +680,9 @@ class Draw:
     #: parts of the drawn effect that are catalogue effects of their own: (names, effects without the part); the
     #: names are right too when the part alone is seen (:func:`part_seen`)
     parts: tuple = ()
+    #: the drawn effect's own scale of the frame's mean light (a mosaic's mean response): with the case's light
+    #: level, a scene parameter (:attr:`RandomCase.accept`)
+    light_scale: float = 1.0
 
 
 def _choice(rng, seq):
@@ -1048,7 +1052,7 @@ def fam_cfa(rng):
     # mosaic: the label would be wrong), as the gain strips' drift is of theirs
     prm = {"cell": cell, "response": resp, "column_drift": float(rng.uniform(-1, 1) * dev * 0.3)}
     return Draw(base, [("QuadBayer", prm)], f"CFA of {2 * cell}x{2 * cell} cells, responses "
-                f"{'/'.join(f'{r:.3f}' for r in resp)}", t, accept=("cfa",))
+                f"{'/'.join(f'{r:.3f}' for r in resp)}", t, accept=("cfa",), light_scale=float(np.mean(resp)))
 
 
 def fam_nonlinearity(rng):
@@ -1317,17 +1321,29 @@ class RandomCase:
     def make(self, sensor):
         return [CLASSES[cls](sensor, **prm) for cls, prm in self.draw.effects]
 
+    @property
+    def accept(self) -> tuple:
+        """The draw's accepted names, and the flat's level when the drawn effect with the case's light level
+        moves the frame's mean light beyond what a scene may be off (the policy's
+        ``parameter_scale_tolerance``): a refitted level far from 1 is a finding the judge names first, as a
+        scene parameter (issue 23), and the drawn effect after it."""
+        d = self.draw
+        scale = d.light_scale * (1 + self.levels.light)
+        beyond = d.light_scale != 1.0 and abs(scale - 1) > DEFAULT_POLICY.parameter_scale_tolerance
+        flat = bool(BASES[d.base]["sky"].get("flat_e_per_s"))  # the light is a flat screen's (sky.flat_e_per_s)
+        return tuple(d.accept) + (("flat_level",) if beyond and flat else ())
+
     def record(self) -> dict:
         d = self.draw
         return {"case": self.name, "family": self.family, "case_seed": self.case_seed, "effect": self.effect,
                 "base": d.base, "camera": self.camera, "description": d.description, "strength_t": d.strength,
-                "accept": list(d.accept), "kind": d.kind, "geometry": list(d.geometry),
+                "accept": list(self.accept), "kind": d.kind, "geometry": list(d.geometry),
                 "effects": [[c, _jsonable(p)] for c, p in d.effects], "levels": vars(self.levels)}
 
     def unseen_case(self):
         """The case as :mod:`.unseen` runs it (catalogue: ``accept``; out of the catalogue: kind, geometry)."""
         d = self.draw
-        return U.UnseenCase(self.name, d.base, d.description, self.make, accept=d.accept, effect=self.effect,
+        return U.UnseenCase(self.name, d.base, d.description, self.make, accept=self.accept, effect=self.effect,
                             strength="strong" if d.strength >= 0.5 else "weak", kind=d.kind, geometry=d.geometry,
                             levels=self.levels)
 
