@@ -2637,6 +2637,30 @@ def light_law_untold(others: tuple[str, ...], multiplicative: bool):
     return untold
 
 
+def shot_noise_separation(fit: Fit, res: Residuals) -> float:
+    """The chi2 [1] by which the shot noise of a fitted change of charge (``fit.extra_var_adu2``, the variance
+    :func:`with_shot_noise` gave it) tells it from an offset of the read-out of the same shape, which adds none:
+    the expected delta(-2 ln L) between Gaussians of variance ``v + dv`` and ``v`` of one mean over the fitted
+    pixels, ``sum(q - ln(1 + q))`` with ``q = dv / v`` (~ ``1/2 sum q^2``; Kullback & Leibler 1951), ``v`` the
+    model's variance. 0 for a fit without a variance change."""
+    if fit.extra_var_adu2 is None:
+        return 0.0
+    idx, _, w = res.flat()
+    q = np.maximum(template_at(np.asarray(fit.extra_var_adu2, np.float32), res.data_adu.shape, idx) * w, -0.9)
+    return float(np.sum(q - np.log1p(q)))
+
+
+def charge_offset_untold(others: tuple[str, ...]):
+    """A :attr:`Signature.untold` hook of an added field of charge (a dark-rate field, a glow): ``others`` (the
+    read-out's offset fields) when the charge's shot noise does not tell the fitted field from an offset of the
+    same shape (:func:`shot_noise_separation` below LIGHT_LAW_CHI2, the bar at which one law of a shape is told
+    from another): on one frame the same smooth field, whose origin a bias frame (no dark charge) or a frame
+    of another exposure (the charge scales with it) tells."""
+    def untold(fit: Fit, res: Residuals) -> tuple[str, ...]:
+        return others if shot_noise_separation(fit, res) < LIGHT_LAW_CHI2 else ()
+    return untold
+
+
 def light_law_told(multiplicative: bool):
     """A :attr:`Signature.told` hook: whether this frame tells the fitted light pattern's own law (added, or a
     response) from the other law of the same shape, in its favour, by more than LIGHT_LAW_CHI2: a finding on

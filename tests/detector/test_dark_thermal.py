@@ -193,6 +193,34 @@ def test_a_smooth_dark_field_is_fitted_in_the_bias_basis_and_told_from_a_bias_by
     assert dark.delta_bic < bias.delta_bic, (dark.delta_bic, bias.delta_bic)
 
 
+def test_a_dark_field_whose_shot_noise_cannot_speak_is_untold_from_a_bias():
+    """The dark charge's shot noise tells a dark-rate field from a bias structure of the same shape by its
+    expected chi2, ``sum(q - ln(1 + q))``, ``q = dv / v`` (~ 1/2 sum q^2, Kullback & Leibler 1951): a field whose
+    noise cannot reach LIGHT_LAW_CHI2 says the frame does not tell it from a bias (``untold``); a strong one
+    does, and its delta BIC then beats the bias's."""
+    from detector.signatures import LIGHT_LAW_CHI2, shot_noise_separation
+
+    s = make_sensor("ml11002", {"binning": 8})
+    sig = registry()["dark_gradient"].signature
+    for scale, told in ((30.0, False), (100.0, False), (1500.0, True)):
+        res = _dark_residuals(extra_e=_poly_field(s, scale), seed=4)
+        f = _fits(res)
+        dark, bias = f["dark_gradient"][0], f["bias_gradient"][0]
+        v = res.var_adu2.astype(float)
+        dv = np.asarray(dark.extra_var_adu2, float)
+        assert dv.max() > 0
+        # independent: the mean of -2 ln L(v) + 2 ln L(v + dv) over draws of noise of variance v + dv
+        r = np.random.default_rng(7).normal(0.0, np.sqrt(v + dv), (200,) + v.shape)
+        mc = float(np.mean(np.sum(np.log(v / (v + dv)) + r * r * (1 / v - 1 / (v + dv)), axis=(1, 2))))
+        assert shot_noise_separation(dark, res) == pytest.approx(mc, rel=0.05, abs=0.5)
+        if not told:  # small changes: 1/2 sum (dv / v)^2
+            assert shot_noise_separation(dark, res) == pytest.approx(0.5 * np.sum((dv / v) ** 2), rel=0.05)
+        assert (shot_noise_separation(dark, res) >= LIGHT_LAW_CHI2) == told
+        assert sig.untold_from(dark, res) == (() if told else ("bias_gradient",))
+        if told:
+            assert dark.delta_bic < bias.delta_bic - LIGHT_LAW_CHI2
+
+
 def test_a_smooth_bias_field_on_a_dark_is_not_taken_for_dark_charge():
     s = make_sensor("ml11002", {"binning": 8})
     res = _dark_residuals(extra_adu=_poly_field(s, 500.0), seed=6)

@@ -658,6 +658,28 @@ def test_an_ipc_the_frame_cannot_tell_from_a_blur_is_named_with_it():
     assert indistinguishable([ipc], [ipc, blur]) == []
 
 
+def test_a_dark_field_whose_shot_noise_cannot_speak_ties_with_a_bias_structure():
+    """A bias structure first and a dark-rate field whose own shot noise this frame cannot measure (``untold``)
+    are named as not told apart, with the reason that a bias frame or another exposure tells them, even when
+    the held-out scores prefer the first's form (the forms differ, the origin of the field is not in the data);
+    a dark field the frame does tell (no ``untold``) is no twin."""
+    from scenes.app.compare.judge import indistinguishable, verdict
+
+    def pair(untold=("bias_gradient",)):
+        bias = Candidate(Fit("bias_gradient", {}, -264.6, 6, 16_000, "a bias structure"), 1.0, 0.0, heldout=-287.2)
+        dark = Candidate(Fit("dark_gradient", {}, -221.6, 5, 16_000, "a dark-rate field"), 1.0, 0.0, heldout=-234.0,
+                         untold=untold)
+        return bias, dark
+
+    bias, dark = pair()
+    assert bias.significant and dark.significant
+    assert indistinguishable([bias, dark], [bias, dark]) == [dark]
+    assert "cannot tell it apart from dark_gradient: the same smooth field, of dark charge or an offset" in \
+        verdict([bias, dark])
+    bias, dark = pair(untold=())
+    assert indistinguishable([bias, dark], [bias, dark]) == []
+
+
 def test_a_response_and_an_added_light_the_frame_cannot_tell_are_named_together_and_a_told_law_passes_the_kind_gate():
     """A vignetting whose own law this frame does not tell from an added light (``untold``: one light level)
     is named with straylight as the same smooth pattern of the light (also when straylight's own form is short of

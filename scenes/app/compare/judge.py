@@ -417,11 +417,11 @@ TWIN_REASONS = (
     (lambda a, b: same_image(a, b) and same_light(a, b),
      "the same smooth pattern of the light, added to it or multiplying it (a response), which only sources bright "
      "enough above a light of one level would tell: a flat field taken through the same optics tells which"),
-    (same_image, "the same small kernel on the same pixels, whose stage (the pixels' charge or the light) only a "
-                 "coupled noise or a charge not of light would tell, neither measurable in this frame"),
     (dark_or_offset, ("the same smooth field, of dark charge or an offset of the read-out, whose shot noise does "
                       "not tell them apart here; a bias frame (where dark charge is zero) or a dark of another "
                       "exposure (where it scales with the time) does")),
+    (same_image, "the same small kernel on the same pixels, whose stage (the pixels' charge or the light) only a "
+                 "coupled noise or a charge not of light would tell, neither measurable in this frame"),
     (lambda a, b: better_rival(a, b),
      "it predicts the held-out pixels better, but removes too little of what is wrong where it acts or overall: the "
      "held-out pixels prefer its form, the shares do not single out the first's"),
