@@ -374,28 +374,17 @@ def _blur_profile(law: str, size_px: float, q: float, theta: float, beta: float,
     return np.exp(-r2 / (2 * size_px ** 2))
 
 
-def blur_kernel(law: str, size_px: float, q: float, theta: float, beta: float = 3.0, wing: float = 0.0) -> np.ndarray:
-    """A normalised 2-D kernel sampled at the pixel centres: "gauss" (sigma ``size_px`` along the major axis, ``q``
-    the axis ratio, major axis at ``theta``), "moffat" (FWHM 2.355 ``size_px``, ``beta``), "exp" (exp(-r / size)),
-    "wing" (a delta core plus ``wing`` of the light in a Gaussian of ``size_px``: a scattering halo). A kernel
-    narrower than a pixel is not its own samples (a Gaussian of 0.26 px sampled at the centres keeps 0.1 % of its
-    variance): an image is blurred with :func:`blur_transfer`."""
-    half = _blur_half(law, size_px)
-    t = np.arange(-half, half + 1, dtype=float)
-    k = _blur_profile(law, size_px, q, theta, beta, t[None, :], t[:, None])
-    if law == "wing":
-        k = wing * k / k.sum()
-        k[half, half] += 1 - wing
-    return (k / k.sum()).astype(np.float32)
-
-
 def blur_transfer(law: str, size_px: float, q: float, theta: float, beta: float, wing: float,
                   shape: tuple[int, int]) -> np.ndarray:
-    """The transfer function of the continuous kernel of :func:`blur_kernel` (the same profile, the same support)
-    on the ``rfft2`` frequencies of an image of ``shape``: its Fourier integral, a direct sum over
+    """The transfer function of a normalised continuous kernel on the ``rfft2`` frequencies of an image of
+    ``shape``: "gauss" (sigma ``size_px`` along the major axis at ``theta``, ``q`` the axis ratio), "moffat" (FWHM
+    2.355 ``size_px``, ``beta``), "exp" (exp(-r / size)), "wing" (a delta core plus ``wing`` of the light in a
+    Gaussian of ``size_px``: a scattering halo), within :func:`_blur_half`. Its Fourier integral, a direct sum over
     :data:`BLUR_OVERSAMPLE` sub-pixel steps (two matrix products: the profile is not separable once rotated). The
     image's samples are the pixel-integrated light, so multiplying their spectrum by it blurs that light by the
-    continuous kernel, as a change of the PSF does, whatever the kernel's width."""
+    continuous kernel, as a change of the PSF does, whatever the kernel's width: the kernel's own samples at the
+    pixel centres do not (a Gaussian of 0.26 px sampled there keeps 2 % of its variance, at axis ratio 0.47
+    0.001 %)."""
     half = _blur_half(law, size_px)
     t = np.arange(-half * BLUR_OVERSAMPLE, half * BLUR_OVERSAMPLE + 1) / BLUR_OVERSAMPLE
     k = _blur_profile(law, size_px, q, theta, beta, t[None, :], t[:, None])
@@ -409,8 +398,8 @@ def blur_transfer(law: str, size_px: float, q: float, theta: float, beta: float,
 
 
 class KernelBlur(RealWorld):
-    """The image blurred by the continuous kernel of :func:`blur_kernel` (a PSF broadening, an elongation),
-    multiplied in Fourier space by :func:`blur_transfer` on the edge-extended image: FIELD stage, flux kept."""
+    """The image blurred by a continuous kernel (a PSF broadening, an elongation): its spectrum multiplied by
+    :func:`blur_transfer` on the edge-extended image; FIELD stage, flux kept."""
 
     name = "rf_blur"
     stages = (Stage.FIELD,)
@@ -1144,7 +1133,7 @@ def _blur_draw(rng, elongated):
 
 
 def round_kernel(prm: dict) -> dict:
-    """The round kernel of :func:`blur_kernel`'s law with the same covariance trace as ``prm``'s (the profile is
+    """The round kernel of :func:`blur_transfer`'s law with the same covariance trace as ``prm``'s (the profile is
     stretched by ``size`` along the major axis and ``q size`` across: its covariance ``size^2 diag(1, q^2)``
     times the law's own)."""
     return {**prm, "q": 1.0, "size_px": prm["size_px"] * math.sqrt((1 + prm["q"] ** 2) / 2)}
