@@ -360,7 +360,8 @@ def dark_or_offset(a: Candidate, b: Candidate) -> bool:
 
 def same_image(a: Candidate, b: Candidate) -> bool:
     """One of the two says, by its own physics, that this frame cannot tell it from the other (the same image
-    made at another stage: a coupling of the pixels' charge and a blur of the light, :attr:`Candidate.untold`)."""
+    made at another stage: a coupling of the pixels' charge and a blur of the light; a field of charge whose shot
+    noise the frame cannot measure and an offset of the read-out; :attr:`Candidate.untold`)."""
     return b.fit.effect in a.untold or a.fit.effect in b.untold
 
 
