@@ -2651,7 +2651,7 @@ def shot_noise_separation(fit: Fit, res: Residuals) -> float:
 
 
 def charge_offset_untold(others: tuple[str, ...]):
-    """A :attr:`Signature.untold` hook of an added field of charge (a dark-rate field, a glow): ``others`` (the
+    """A :attr:`Signature.untold` hook of an added field of charge (a dark-rate field): ``others`` (the
     read-out's offset fields) when the charge's shot noise does not tell the fitted field from an offset of the
     same shape (:func:`shot_noise_separation` below LIGHT_LAW_CHI2, the bar at which one law of a shape is told
     from another): on one frame the same smooth field, whose origin a bias frame (no dark charge) or a frame

@@ -13,7 +13,7 @@ from typing import Literal
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
-from ..signatures import LinearSignature, Variant, charge_offset_untold, fit_linear, search_sample
+from ..signatures import LinearSignature, Variant, fit_linear, search_sample
 from .base import Effect, EffectParams, Stage, Tile, register_effect
 
 # --- pure functions ---------------------------------------------------------------------------------------
@@ -292,9 +292,8 @@ def _glow_words(p, res) -> str:
 _GLOW_SIGNATURE = LinearSignature(
     _glow_variants, _glow_words,
     pattern="additive glow decaying away from an edge, a corner or a source point", extra_k=3, refine=_glow_refine,
-    adds_charge=True, check=_glow_check)
+    check=_glow_check)
 _GLOW_SIGNATURE.rebuild = _rebuild
-_GLOW_SIGNATURE.untold = charge_offset_untold(("bias_gradient",))
 
 
 # --- adapter -----------------------------------------------------------------------------------------------
