@@ -134,7 +134,7 @@ def test_a_sub_pixel_blur_adds_its_continuous_covariance(law, size_px, q):
     assert np.allclose(cov(data) - cov(src), expected, atol=2e-3 * size_px ** 2 + 1e-6)
 
 
-def test_a_near_round_blur_names_its_elongation_as_a_part():
+def test_a_near_round_blur_names_its_elongation_as_a_part(tmp_path):
     """A near-round blur's draw carries its elongation as a part (the names psf_elongation and jitter, right too
     once the frame sees it), compared against the round kernel of the same covariance trace."""
     case = next(c for c in (R.draw_case("psf_blur", s) for s in range(40)) if c.draw.effects[0][1]["q"] < 0.95)
@@ -144,6 +144,10 @@ def test_a_near_round_blur_names_its_elongation_as_a_part():
     assert rnd["q"] == 1.0
     assert 2 * rnd["size_px"] ** 2 == pytest.approx((1 + prm["q"] ** 2) * prm["size_px"] ** 2)
     assert not R.draw_case("psf_elongation", 1).draw.parts
+    # the part's chi2: nothing against the draw itself, something against the round kernel of the same trace
+    same = R.part_seen(case, case.draw.effects, tmp_path / "same.toml")
+    part = R.part_seen(case, alt, tmp_path / "part.toml")
+    assert same == 0.0 and part > 0.0
 
 
 def test_a_mosaic_that_dims_the_flat_beyond_the_tolerance_accepts_the_flat_level():
