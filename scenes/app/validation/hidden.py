@@ -690,19 +690,31 @@ def write_scene(d: dict, path: Path) -> Path:
     return path
 
 
+def measured_setup(base: str, levels: Levels, scene_path: Path, workers: int | None = None):
+    """(scene, render setup) of the measured camera on ``base`` with ``levels``, its scene written to
+    ``scene_path``."""
+    from scenes.app.render import prepare
+    from scenes.scene import load_scene
+
+    scene = load_scene(str(write_scene(measured_scene(base, levels), scene_path)))
+    return scene, prepare(scene, workers=workers)
+
+
+def with_effects(setup, added: list) -> Detector:
+    """The setup's detector with the real-world effects ``added`` after its own."""
+    return Detector(setup.detector.sensor, setup.detector.effects + added, workers=setup.detector.workers)
+
+
 def make_frame(base: str, extra, levels: Levels, out: Path, seed: int = 11, workers: int | None = None) -> dict:
     """Render the measured frame: the measured camera (its hardware, its levels, its cosmic rays and hot
     pixels) plus the ``extra`` real-world effects (callable(sensor) -> list of Effects), to ``out``."""
     from detector.fits_io import primary_header, table_hdu, write_streamed
-    from scenes.app.render import header_cards, prepare, scene_hdu
-    from scenes.scene import load_scene
+    from scenes.app.render import header_cards, scene_hdu
 
-    sc_path = write_scene(measured_scene(base, levels), out.with_suffix(".measured.toml"))
-    scene = load_scene(str(sc_path))
-    setup = prepare(scene, workers=workers)
+    scene, setup = measured_setup(base, levels, out.with_suffix(".measured.toml"), workers)
     sensor = setup.detector.sensor
     added = list(extra(sensor)) if extra is not None else []
-    det = Detector(sensor, setup.detector.effects + added, workers=setup.detector.workers)
+    det = with_effects(setup, added)
     state = det.frame_state(setup.exptime_s, seed)
     dtype = np.uint16 if sensor.bit_depth <= 16 else np.uint32
     header = primary_header(sensor.output_shape, dtype, header_cards(setup, seed, False))
@@ -723,14 +735,11 @@ def change_chi2(base: str, levels: Levels, extra_a, extra_b, out: Path, workers:
     list of Effects, as :func:`make_frame` takes): ``sum((m_a - m_b)^2 / v0)`` over every pixel, the expected
     frames with each and the measured camera's variance, as :func:`effect_support`'s truth chi2. ``out`` names
     the scene file written for it."""
-    from scenes.app.render import prepare
-    from scenes.scene import load_scene
-
-    setup = prepare(load_scene(str(write_scene(measured_scene(base, levels), out))), workers=workers)
+    _, setup = measured_setup(base, levels, out, workers)
     sensor = setup.detector.sensor
     _, v0, _ = setup.detector.moments(setup.signal_e, setup.exptime_s)
-    m_a, m_b = (Detector(sensor, setup.detector.effects + list(extra(sensor)), workers=setup.detector.workers)
-                .moments(setup.signal_e, setup.exptime_s)[0] for extra in (extra_a, extra_b))
+    m_a, m_b = (with_effects(setup, list(extra(sensor))).moments(setup.signal_e, setup.exptime_s)[0]
+                for extra in (extra_a, extra_b))
     return float(np.sum((m_a - m_b) ** 2 / v0, dtype=np.float64))
 
 

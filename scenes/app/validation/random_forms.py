@@ -1282,6 +1282,11 @@ CLASSES = {n: c for n, c in {**HE, **vars(U), **globals()}.items()
            if isinstance(c, type) and issubclass(c, RealWorld) and c is not RealWorld}
 
 
+def real_world(effects: list, sensor) -> list:
+    """The real-world effects of a draw's ``[(class name, parameters)]`` on ``sensor``."""
+    return [CLASSES[cls](sensor, **prm) for cls, prm in effects]
+
+
 @dataclass
 class RandomCase:
     """One drawn case: rebuilt from (``family``, ``case_seed``) alone."""
@@ -1308,7 +1313,7 @@ class RandomCase:
         return int(self.case_seed % 2_147_483_647)
 
     def make(self, sensor):
-        return [CLASSES[cls](sensor, **prm) for cls, prm in self.draw.effects]
+        return real_world(self.draw.effects, sensor)
 
     @property
     def accept(self) -> tuple:
@@ -1420,9 +1425,10 @@ def run_case(case: RandomCase, workdir: Path, workers: int | None = None) -> dic
     workdir.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
     uc = case.unseen_case()
-    parts = {" ".join(names): part_seen(case, alt, workdir / f"{case.name}.part{i}.toml", workers)
-             for i, (names, alt) in enumerate(case.draw.parts)}
-    seen = tuple(n for names, _ in case.draw.parts if parts[" ".join(names)] >= SEEN_CHI2 for n in names)
+    parts, seen = {}, ()
+    for i, (names, alt) in enumerate(case.draw.parts):
+        parts[" ".join(names)] = chi2 = part_seen(case, alt, workdir / f"{case.name}.part{i}.toml", workers)
+        seen += tuple(names) if chi2 >= SEEN_CHI2 else ()
     uc = replace(uc, accept=tuple(uc.accept) + seen)
     model = HE["write_scene"](HE["model_scene"](uc.base, uc.effect), workdir / f"{case.name}.model.toml")
     info = HE["make_frame"](uc.base, uc.make, uc.levels, workdir / f"{case.name}.fits", seed=case.frame_seed,
@@ -1446,9 +1452,8 @@ SEEN_CHI2 = DETECTION_SIGMA ** 2
 def part_seen(case: RandomCase, without: list, out: Path, workers: int | None = None) -> float:
     """The chi2 of a part of ``case``'s drawn effect (:attr:`Draw.parts`): the expected frames with the drawn
     effects and with ``without`` (the draw less that part) apart, on the case's base and levels."""
-    return HE["change_chi2"](case.draw.base, case.levels, case.make,
-                             lambda sensor: [CLASSES[cls](sensor, **prm) for cls, prm in without], out,
-                             workers=workers)
+    return HE["change_chi2"](case.draw.base, case.levels, case.make, lambda sensor: real_world(without, sensor),
+                             out, workers=workers)
 
 
 def _run_one(args):
