@@ -162,6 +162,28 @@ def _dsnu_lognormal_k3(theta: float, res, idx) -> np.ndarray:
     return (3 + theta) * theta ** 2 * (d * d / (b * b)) ** 1.5 / b
 
 
+def _dsnu_check(fit, res) -> str:
+    """A DSNU multiplies each pixel's dark current by a non-negative factor: its large-scale part (the fit's smooth
+    part, a field of dark rate: EMVA 1288 Release 4.0, sect. 8.3) cannot take the dark rate below
+    zero within the window, the bar a dark-rate field is held to (:func:`.thermal.base_rate`, the larger of the
+    sensor's, the model's and the frame's own measured dark rate). A field that does is charge added on top of
+    the dark current (a glow) or an offset taken for it, not a non-uniformity of the pixels' rates."""
+    smooth = fit.state.get("smooth_adu")
+    if smooth is None or res.exptime_s <= 0 or not np.any(res.fit):
+        return ""
+    from .thermal import base_rate
+
+    unit = res.exptime_s * res.pixel_sum / res.gain  # ADU per (e-/s) of dark rate per sensor pixel
+    lowest = float(np.min(np.broadcast_to(smooth, res.data_adu.shape)[np.broadcast_to(res.fit, res.data_adu.shape)]))
+    base = base_rate(res)
+    if base + lowest / unit > 0:
+        return ""
+    return (f"its large-scale part would take the dark rate below zero within the window (its lowest point "
+            f"{-lowest / unit:.3g} e-/s below the mean, more than the frame's rate of {base:.3g} e-/s): a pixel's "
+            "dark current is its rate times a non-negative factor; charge added on top of the dark current (a glow) "
+            "or an offset, not a non-uniformity of the rates")
+
+
 def _lit(res, index: np.ndarray) -> np.ndarray:
     """Which of these pixels receive enough light that losing it is a 5-sigma deficit (a dead pixel can only
     be seen where light falls: it loses its photo-response, not its dark signal or bias)."""
@@ -491,7 +513,7 @@ _DSNU_SIGNATURE = VarianceSignature(
                        else "") + ": dark-signal non-uniformity (DSNU)"),
     pattern="extra variance growing as the square of the dark signal, skewed",
     laws={"lognormal": _dsnu_lognormal_k3, "normal": None},
-    smooth=lambda res: (res.dark_e / np.float32(res.gain)).astype(np.float32), lines=True)
+    smooth=lambda res: (res.dark_e / np.float32(res.gain)).astype(np.float32), lines=True, check=_dsnu_check)
 
 _DEADPIXELS_SIGNATURE = GroupSignature(
     _dead_groups, _dead_words, pattern="pixels or small clusters far below their neighbours where light falls",

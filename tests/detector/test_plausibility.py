@@ -517,3 +517,38 @@ def test_a_dsnu_with_a_large_scale_part_scatters_as_its_own_signal():
     fit = dsnu.fit(res, "dsnu")
     assert fit is not None and "low-frequency" in fit.note, None if fit is None else fit.note
     assert dsnu.uniformity(fit, res) == ""
+    assert dsnu.check(fit, res) == ""  # its large scales keep the rate above zero (+-30 %)
+
+
+def _dark_dsnu(glow_peak_e: float, seed: int = 32):
+    """A 256 x 256 dark of 20 e- per pixel with a 30 % DSNU (a model without it), plus a point glow of
+    ``glow_peak_e`` at the window's corner: the irradiance of a point emitter 40 px above the sensor plane,
+    ``(1 + (d / 40 px)^2)^-1.5`` (shot noise drawn). ``(residuals, the DSNU signature)``."""
+    rng = np.random.default_rng(seed)
+    shape = (256, 256)
+    s = make_sensor("ml11002", {"width": 256, "height": 256, "bias_adu": 0})
+    g = s.gain_e_per_adu
+    dark_e = np.full(shape, 20.0)
+    yy, xx = np.mgrid[0:shape[0], 0:shape[1]].astype(float)
+    glow = glow_peak_e * (1 + (xx ** 2 + yy ** 2) / 40.0 ** 2) ** -1.5
+    var = (dark_e / g + (s.read_noise_e / g) ** 2).astype(np.float32)
+    charge = rng.poisson(dark_e * np.maximum(1 + 0.3 * rng.standard_normal(shape), 0) + glow)
+    data = charge / g + rng.normal(0, s.read_noise_e / g, shape)
+    none = SpikeStats(0, 0, 0, 0, 0)
+    res = Residuals(data.astype(np.float32), (dark_e / g).astype(np.float32), var, np.ones(shape, bool),
+                    np.zeros(shape, np.float32), dark_e.astype(np.float32), np.arange(256.0), np.arange(256.0), s,
+                    100.0, none, none, light_source="none")
+    return res, registry()["dsnu"].signature
+
+
+def test_a_dsnu_whose_large_scales_take_the_dark_rate_below_zero_is_a_charge_on_top_of_it():
+    """A DSNU multiplies each pixel's rate by a non-negative factor. Its large-scale part may follow a smooth field
+    of rate (a DSNU alone: plausible), but a point glow of 40x the dark at the corner, which the frame's dark level
+    takes the mean of, leaves a field below minus the dark rate over most of the window: added charge, not DSNU."""
+    res, dsnu = _dark_dsnu(0.0)
+    fit = dsnu.fit(res, "dsnu")
+    assert fit is not None and dsnu.plausible(fit, res) == ""
+    res, dsnu = _dark_dsnu(800.0)
+    fit = dsnu.fit(res, "dsnu")
+    assert fit is not None and "low-frequency" in fit.note, None if fit is None else fit.note
+    assert "below zero" in dsnu.plausible(fit, res)
