@@ -1413,6 +1413,10 @@ class LinearSignature(Signature):
         Parameters chosen among the variants (an edge, a scale), counted in the BIC.
     refine : callable(best Variant, Residuals) -> iterable of Variant, optional
         More variants around the best one (a finer scale), tried once after the first pass.
+    form : callable(label) -> str, optional
+        The functional form of a variant (its label's): with ``refine``, the best variant of every form is
+        refined, not only the best of all (a form whose grid is coarse can lose the first pass to another
+        form that its refinement beats).
     of_light : bool
         The templates are the model's light times a shape (vignetting, a response pattern): the effect
         multiplies the light, which the joint fit also scales by ``1 + L`` (the light level), so the
@@ -1432,9 +1436,11 @@ class LinearSignature(Signature):
     def __init__(self, variants: Callable[[Residuals], Iterable[Variant]], explain: Callable[[dict, Residuals], str],
                  pattern: str = "", extra_k: int = 1,
                  refine: Callable[[Variant, Residuals], Iterable[Variant]] | None = None, of_light: bool = False,
-                 adds_charge: bool = False, check: Callable[[Fit, Residuals], str] | None = None):
+                 adds_charge: bool = False, check: Callable[[Fit, Residuals], str] | None = None,
+                 form: Callable[[str], str] | None = None):
         self.variants, self.explain, self.pattern, self.extra_k = variants, explain, pattern, extra_k
         self.refine, self.of_light, self.adds_charge, self.check = refine, of_light, adds_charge, check
+        self.form = form
 
     def fit(self, res: Residuals, name: str) -> Fit | None:
         """The best variant by BIC on the search sample whose parameters stay within their bounds once settled
@@ -1445,8 +1451,15 @@ class LinearSignature(Signature):
         ctx = search_sample(res)
         ranked = self._ranked(res, ctx, self.variants(res))
         if ranked and self.refine is not None:
+            seeds = [ranked[0][0]]
+            if self.form is not None:  # the best of every form, in the first pass's order
+                forms = {}
+                for b in ranked:
+                    forms.setdefault(self.form(b[0].label), b[0])
+                seeds = list(forms.values())
+            more = [b for v in seeds for b in self._ranked(res, ctx, self.refine(v, res))]
             # stable sort: on a tie the first pass's winner stays ahead of its refinements
-            ranked = sorted([*ranked, *self._ranked(res, ctx, self.refine(ranked[0][0], res))], key=lambda b: b[4])
+            ranked = sorted([*ranked, *more], key=lambda b: b[4])
         for v, d, c, params, bic in ranked:
             if not np.isfinite(bic):
                 continue
@@ -1515,8 +1528,9 @@ class LinearSignature(Signature):
         series of growing order) are compared by BIC (chi2 + templates x ln n, Schwarz 1978): more templates
         always fit at least as well, so a larger variant must pay for what it adds. Only the best is kept
         unless the winner can still be refused once settled (``of_light``: its coefficients are divided by
-        the light level after the search), so a search over variants of full-frame templates holds one."""
-        kept, penalty = [], np.log(max(res.n_fit, 2))
+        the light level after the search), so a search over variants of full-frame templates holds one (one
+        per form with ``form``)."""
+        kept, best, penalty = [], {}, np.log(max(res.n_fit, 2))
         for v in variants:
             c, d = fit_variant(res, v, ctx["idx"], ctx["r"], ctx["w"])
             params = v.to_params(c)
@@ -1526,9 +1540,11 @@ class LinearSignature(Signature):
             bic = d + (np.size(c) + v.extra_k) * penalty
             if self.of_light:
                 kept.append((v, d, c, params, bic))
-            elif not kept or bic < kept[0][4]:
-                kept = [(v, d, c, params, bic)]
-        return sorted(kept, key=lambda b: b[4])
+                continue
+            key = self.form(v.label) if self.form is not None else ""
+            if key not in best or bic < best[key][4]:
+                best[key] = (v, d, c, params, bic)
+        return sorted(kept or list(best.values()), key=lambda b: b[4])
 
     def _best(self, res: Residuals, ctx: dict, variants: Iterable[Variant]):
         """(variant, delta chi2, coefficients, parameters) of the best admissible variant (:meth:`_ranked`), or

@@ -2,8 +2,11 @@
 
 The reference thesis (Annex V) models the glow of its CMOS as a sum of bivariate-normal maps fitted to
 long darks; an exponential fall-off with the distance from an edge or a corner is the other common law
-(e.g. the "amp glow" of Sony IMX CMOS sensors in long exposures). The glow adds to the dark signal and
-grows linearly with exposure time [e-/s/pixel].
+(e.g. the "amp glow" of Sony IMX CMOS sensors in long exposures). The third is the glow's own radiometry: the
+amplifier is a small emitter at a height ``h`` above (or beside) the photosites, whose irradiance on the sensor
+plane is ``I cos(theta) / R^2 = I h / (r^2 + h^2)^1.5`` (the inverse-square and cosine laws of a point source,
+McCluney, Introduction to Radiometry and Photometry, 2nd ed. 2014, sect. 2.6). The glow adds to the dark signal
+and grows linearly with exposure time [e-/s/pixel].
 """
 
 from __future__ import annotations
@@ -33,6 +36,18 @@ def bivariate_normal_rate(ys: np.ndarray, xs: np.ndarray, x0: float, y0: float, 
     v = ((ys[r0:r1] - y0) / sy)[:, None]
     q = (u * u - 2 * rho * u * v + v * v) / (1 - rho * rho)
     out[r0:r1, c0:c1] += (peak * np.exp(-0.5 * q)).astype(np.float32)
+
+
+def emitter_rate(ys: np.ndarray, xs: np.ndarray, x0: float, y0: float, peak: float, height_px: float,
+                 out: np.ndarray) -> None:
+    """Add ``peak (1 + r^2 / h^2)^-1.5`` [e-/s] to ``out``: the irradiance of a point emitter at ``(x0, y0)`` [sensor
+    px] a height ``h`` [px] off the sensor plane (``I h / (r^2 + h^2)^1.5``, ``peak = I / h^2`` below it), evaluated in
+    float64 on the whole window (its r^-3 wings reach every pixel), in blocks of rows (EDGE_BLOCK_PIXELS)."""
+    dx2 = ((np.asarray(xs, np.float64) - x0) / height_px) ** 2
+    dy2 = ((np.asarray(ys, np.float64) - y0) / height_px) ** 2
+    step = max(1, EDGE_BLOCK_PIXELS // max(1, dx2.size))
+    for r in range(0, dy2.size, step):
+        out[r:r + step] += (peak * (1.0 + np.add.outer(dy2[r:r + step], dx2)) ** -1.5).astype(np.float32)
 
 
 def _exact_squares(v: np.ndarray) -> bool:
@@ -179,15 +194,58 @@ def _gauss_variant(res, x_frac: float, y_frac: float, sigma_px: float) -> Varian
     return Variant(maps, to_params, f"g|{x_frac:.6g}|{y_frac:.6g}|{sigma_px:.6g}", at=at)
 
 
+def _emitter_variant(res, x_frac: float, y_frac: float, height_px: float) -> Variant:
+    """One point emitter (:func:`emitter_rate`) at (x_frac, y_frac) of the sensor (outside it when beyond [0, 1]),
+    ``height_px`` [sensor px] off the sensor plane. Held to the Gaussian source's bounds with the height for the
+    width: within two heights of the sensor's edge, inside or out (the amplifier sits at the die's edge; two heights
+    away its irradiance is 9 % of the peak, as the Gaussian's two widths are 13.5 %), no lower than 16 px (a
+    narrower bump is a source the model lacks) and no higher than GLOW_MAX_SCALE of the sensor (a field-wide
+    gradient)."""
+    s = res.sensor
+    unit = float(res.exptime_s * res.pixel_sum / res.gain)
+    w = res.data_adu.shape[1]
+    x0, y0 = x_frac * (s.sensor_width_px - 1), y_frac * (s.sensor_height_px - 1)
+    h2 = height_px * height_px
+
+    def at(idx):
+        y, x = np.divmod(idx, w)
+        q = ((res.xs[x] - x0) ** 2 + (res.ys[y] - y0) ** 2) / h2
+        return (unit * (1.0 + q) ** -1.5)[None, :]
+
+    def maps():
+        t = np.zeros(res.data_adu.shape, np.float32)
+        emitter_rate(res.ys, res.xs, x0, y0, 1.0, height_px, t)
+        return [t * np.float32(unit)]
+
+    outside = float(np.hypot(max(-x0, x0 - (s.sensor_width_px - 1), 0.0), max(-y0, y0 - (s.sensor_height_px - 1), 0.0)))
+    inside = max(min(x0, s.sensor_width_px - 1 - x0, y0, s.sensor_height_px - 1 - y0), 0.0)
+    widest = GLOW_MAX_SCALE * max(s.sensor_width_px, s.sensor_height_px)
+
+    def to_params(c):
+        if outside > 2.0 * height_px or inside > 2.0 * height_px or not 16.0 <= height_px <= widest:
+            return None
+        return ({"model": "emitter", "emitters": [{"x_frac": round(float(x_frac), 5), "y_frac": round(float(y_frac), 5),
+                                                   "amplitude_e_per_s": round(float(c[0]), 6),
+                                                   "height_px": round(float(height_px), 1)}]}
+                if 0 < c[0] <= 1e6 and -1 <= x_frac <= 2 and -1 <= y_frac <= 2 else None)
+
+    return Variant(maps, to_params, f"e|{x_frac:.6g}|{y_frac:.6g}|{height_px:.6g}", at=at)
+
+
+_SOURCE_VARIANTS = {"g": _gauss_variant, "e": _emitter_variant}
+
+
 def _window(res) -> tuple[float, float, float, float]:
     """(x0, x1, y0, y1): the frame's extent in sensor pixels."""
     return float(res.xs[0]), float(res.xs[-1]), float(res.ys[0]), float(res.ys[-1])
 
 
-#: glow sources tried: a 5 x 5 grid over the frame and half a frame beyond it on every side, with stds of these
-#: fractions of the frame's diagonal (a localised glow seen from inside the window or reaching into it)
+#: glow sources tried: a 5 x 5 grid over the frame and half a frame beyond it on every side, with stds (a Gaussian
+#: source) and heights (an emitter) of these fractions of the frame's diagonal (a localised glow seen from inside
+#: the window or reaching into it)
 _GAUSS_GRID = (-0.5, 0.0, 0.5, 1.0, 1.5)
 _GAUSS_SIGMAS = (0.08, 0.15, 0.3, 0.55, 1.0)
+_EMITTER_HEIGHTS = (0.04, 0.08, 0.15, 0.3, 0.55)
 
 
 def _glow_variants(res):
@@ -201,24 +259,29 @@ def _glow_variants(res):
     for fy in _GAUSS_GRID:
         for fx in _GAUSS_GRID:
             xc, yc = x0 + fx * (x1 - x0), y0 + fy * (y1 - y0)
+            xf, yf = xc / max(s.sensor_width_px - 1, 1), yc / max(s.sensor_height_px - 1, 1)
             for f in _GAUSS_SIGMAS:
                 sigma = f * diag
                 if sigma <= GLOW_MAX_SCALE * side:
-                    yield _gauss_variant(res, xc / max(s.sensor_width_px - 1, 1), yc / max(s.sensor_height_px - 1, 1),
-                                         sigma)
+                    yield _gauss_variant(res, xf, yf, sigma)
+            for f in _EMITTER_HEIGHTS:
+                if f * diag <= GLOW_MAX_SCALE * side:
+                    yield _emitter_variant(res, xf, yf, f * diag)
 
 
 def _glow_refine(best: Variant, res):
-    if best.label.startswith("g|"):
-        # the source's centre and width, continuously (Nelder-Mead on the search sample's delta chi2, the
-        # amplitude and the levels solved linearly at every step)
+    kind = best.label.split("|")[0]
+    if kind in _SOURCE_VARIANTS:
+        # the source's centre and width (a Gaussian's std, an emitter's height), continuously (Nelder-Mead on the
+        # search sample's delta chi2, the amplitude and the levels solved linearly at every step)
         from scipy.optimize import minimize
 
         _, xf, yf, sigma = best.label.split("|")
+        make = _SOURCE_VARIANTS[kind]
         ctx = search_sample(res)
 
         def cost(p):
-            v = _gauss_variant(res, p[0], p[1], float(np.exp(p[2])))
+            v = make(res, p[0], p[1], float(np.exp(p[2])))
             c, d = fit_linear(res, lambda i: v.values(i, res.data_adu.shape), ctx["idx"], ctx["r"], ctx["w"])
             return d if v.to_params(c) is not None else 0.0
 
@@ -229,7 +292,7 @@ def _glow_refine(best: Variant, res):
                             start + [0, 0.1 * (y1 - y0) / max(s.sensor_height_px - 1, 1), 0], start + [0, 0, 0.2]])
         opt = minimize(cost, start, method="Nelder-Mead",
                        options={"initial_simplex": simplex, "maxfev": 80, "xatol": 1e-4, "fatol": 0.5})
-        yield _gauss_variant(res, float(opt.x[0]), float(opt.x[1]), float(np.exp(opt.x[2])))
+        yield make(res, float(opt.x[0]), float(opt.x[1]), float(np.exp(opt.x[2])))
         return
     where, scale = best.label.split("|")
     for f in np.geomspace(0.6, 1.6, 9):
@@ -237,11 +300,11 @@ def _glow_refine(best: Variant, res):
 
 
 def _rebuild(label: str, res) -> Variant:
-    """The variant of a label ("edge|scale" or "g|x_frac|y_frac|sigma"), on any frame (a series refines on one
-    frame, fits on all)."""
+    """The variant of a label ("edge|scale", "g|x_frac|y_frac|sigma" or "e|x_frac|y_frac|height"), on any frame (a
+    series refines on one frame, fits on all)."""
     parts = label.split("|")
-    if parts[0] == "g":
-        return _gauss_variant(res, float(parts[1]), float(parts[2]), float(parts[3]))
+    if parts[0] in _SOURCE_VARIANTS:
+        return _SOURCE_VARIANTS[parts[0]](res, float(parts[1]), float(parts[2]), float(parts[3]))
     return _glow_variant(res, parts[0], float(parts[1]))
 
 
@@ -258,8 +321,8 @@ def _glow_check(fit, res) -> str:
     if res.light_source == "flat":
         return ("a glow on a flat-screen frame cannot be told from the flat's own response (added charge and a "
                 "response are one on a uniform light): a glow is dark charge, which the darks measure")
-    if p.get("model") == "gaussian":
-        g = p["sources"][0]
+    if p.get("model") in ("gaussian", "emitter"):
+        g = (p.get("sources") or p.get("emitters"))[0]
         peak_e = g["amplitude_e_per_s"] * res.exptime_s
         if peak_e > s.full_well_e:
             return (f"{peak_e:.3g} e- at the glow's centre, more than the full well ({s.full_well_e:.3g} e-): no glow is "
@@ -277,6 +340,14 @@ def _glow_check(fit, res) -> str:
 
 
 def _glow_words(p, res) -> str:
+    if p.get("model") == "emitter":
+        g = p["emitters"][0]
+        s = res.sensor
+        x, y = g["x_frac"] * (s.sensor_width_px - 1), g["y_frac"] * (s.sensor_height_px - 1)
+        return (f"additive glow from a point emitter at ({x:.0f}, {y:.0f}) sensor px, {g['height_px']:.0f} px off "
+                "the sensor plane "
+                f"(irradiance (1 + r^2/h^2)^-1.5), {g['amplitude_e_per_s'] * res.exptime_s:.3g} e- below it, growing "
+                "with exposure: amplifier glow")
     if p.get("model") == "gaussian":
         g = p["sources"][0]
         s = res.sensor
@@ -288,10 +359,12 @@ def _glow_words(p, res) -> str:
             f"e- at the edge (e-folding {p['scale_px']:.0f} px), growing with exposure: amplifier glow")
 
 
-#: the search chooses a form (an edge law or a Gaussian source), where (an edge, or a centre: 2) and a scale
+#: the search chooses a form (an edge law, a Gaussian source or an emitter), where (an edge, or a centre: 2) and a
+#: scale
 _GLOW_SIGNATURE = LinearSignature(
     _glow_variants, _glow_words,
-    pattern="additive glow decaying away from an edge, a corner or a source point", extra_k=3, refine=_glow_refine,
+    pattern="additive glow decaying away from an edge, a corner, a source point or an emitter above the sensor",
+    extra_k=3, refine=_glow_refine, form=lambda label: label.split("|")[0] if label[:2] in ("g|", "e|") else "edge",
     check=_glow_check)
 _GLOW_SIGNATURE.rebuild = _rebuild
 
@@ -308,9 +381,19 @@ class GlowSource(BaseModel):
     rho: float = Field(0.0, gt=-1, lt=1, description="correlation of the bivariate normal [1]")
 
 
+class GlowEmitter(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+    x_frac: float = Field(1.0, ge=-1, le=2, description="position, fraction of the sensor width (0 = column 0)")
+    y_frac: float = Field(0.0, ge=-1, le=2, description="position, fraction of the sensor height (0 = row 0)")
+    amplitude_e_per_s: float = Field(0.5, ge=0, le=1e6, description="glow rate below the emitter [e-/s/pixel]")
+    height_px: float = Field(100.0, gt=0, description="height of the emitter off the sensor plane [pixels]")
+
+
 class AmpGlowParams(EffectParams):
-    model: Literal["gaussian", "edge"] = "gaussian"
+    model: Literal["gaussian", "edge", "emitter"] = "gaussian"
     sources: list[GlowSource] = Field(default_factory=lambda: [GlowSource()])
+    emitters: list[GlowEmitter] = Field(default_factory=lambda: [GlowEmitter()],
+                                        description="emitter model: point emitters (irradiance (1 + r^2/h^2)^-1.5)")
     edge: Literal["left", "right", "top", "bottom", "bottom-left", "bottom-right", "top-left", "top-right"] = "bottom-right"
     amplitude_e_per_s: float = Field(0.5, ge=0, le=1e6, description="edge model: rate at the edge [e-/s/pixel]")
     scale_px: float = Field(300.0, gt=0, description="edge model: e-folding distance [pixels]")
@@ -321,7 +404,8 @@ class AmpGlow(Effect):
     """Amplifier glow: additive dark signal rising towards an edge or corner, proportional to exposure time.
 
     ``gaussian``: a sum of bivariate-normal glow maps (thesis Annex V); ``edge``: ``A exp(-d/L)`` with ``d``
-    the distance to an edge or corner. Adds ``rate x t`` to the mean before the shot-noise draw.
+    the distance to an edge or corner; ``emitter``: point emitters off the sensor plane, ``A (1 + r^2/h^2)^-1.5``
+    (:func:`emitter_rate`). Adds ``rate x t`` to the mean before the shot-noise draw.
     """
 
     name = "amp_glow"
@@ -339,6 +423,10 @@ class AmpGlow(Effect):
         out = np.zeros((ys.size, xs.size), dtype=np.float32)
         if p.model == "edge":
             edge_rate(ys, xs, s.sensor_height_px, s.sensor_width_px, p.edge, p.amplitude_e_per_s, p.scale_px, out)
+        elif p.model == "emitter":
+            for g in p.emitters:
+                emitter_rate(ys, xs, g.x_frac * (s.sensor_width_px - 1), g.y_frac * (s.sensor_height_px - 1),
+                             g.amplitude_e_per_s, g.height_px, out)
         else:
             for g in p.sources:
                 bivariate_normal_rate(ys, xs, g.x_frac * (s.sensor_width_px - 1), g.y_frac * (s.sensor_height_px - 1),

@@ -190,6 +190,30 @@ def test_amp_glow_peak_and_time_scaling():
     assert abs(edge[100, 30] / edge[100, 0] - np.exp(-1)) < 1e-5
 
 
+def test_amp_glow_emitter_is_a_point_source_irradiance():
+    """A point emitter of intensity I at a height h off the sensor plane: E(r) = I h / (r^2 + h^2)^1.5 (inverse
+    square times the cosine of incidence), I / h^2 below it, at r = h 2^-1.5 of that, and its flux through the
+    whole plane 2 pi I (the half space it faces), which a 4001 x 4001 px plane holds to 1 - h/2000 (the tail
+    beyond a radius R carries 2 pi I h / R)."""
+    from detector.effects.glow import emitter_rate
+
+    h, peak = 20.0, 3.0
+    ys = xs = np.arange(-2000.0, 2001.0)
+    out = np.zeros((ys.size, xs.size), np.float32)
+    emitter_rate(ys, xs, 0.0, 0.0, peak, h, out)
+    assert out[2000, 2000] == pytest.approx(peak, rel=1e-6)
+    assert out[2000, 2020] == pytest.approx(peak * 2 ** -1.5, rel=1e-6)
+    assert out[2000 + 12, 2000 + 16] == pytest.approx(peak / (1 + 400 / h ** 2) ** 1.5, rel=1e-6)
+    flux = out.sum(dtype=np.float64) / (2 * np.pi * peak * h * h)  # in units of 2 pi I
+    assert flux == pytest.approx(1 - h / 2000, abs=2e-3)
+    s = small(x0=0, y0=0, dark_current_e_per_s=0.0)
+    emitter = {"x_frac": 0.0, "y_frac": 0.0, "amplitude_e_per_s": 2.0, "height_px": 25.0}
+    det = Detector(s, build_effects({"amp_glow": {"model": "emitter", "emitters": [emitter]}}, s))
+    m10, m20 = det.expose(0.0, 10.0, 1, noiseless=True), det.expose(0.0, 20.0, 1, noiseless=True)
+    assert m10[0, 0] == pytest.approx(20.0, rel=1e-5) and m10[0, 25] == pytest.approx(20.0 * 2 ** -1.5, rel=1e-5)
+    np.testing.assert_allclose(m20, 2 * m10, rtol=1e-6)
+
+
 def test_blooming_conserves_charge_and_bleeds_excess_over_full_well():
     img = np.zeros((200, 5))
     img[100, 2] = 10_000.0
