@@ -322,10 +322,10 @@ def outlier_groups(z: np.ndarray, seeds: np.ndarray, usable: np.ndarray, sign: i
     """The connected groups of outlying pixels of one ``sign`` (+1, -1) of the normalised residual ``z``, as a
     :data:`GROUP_DTYPE` table: a defect cluster, a particle track, a hot pixel, whole.
 
-    ``z`` is first made local and standard: the block medians of a GROUP_MESH_PX mesh are subtracted (a light
-    level a per cent off, a vignetting the model lacks move every pixel alike, not a group), and it is divided
-    by its robust scatter when that exceeds 1 (an excess of white variance, a PRNU the model lacks, is not
-    outliers; as the column statistics do). Every ``seed`` (a spike of :func:`spike_stats`) is grown by up to
+    ``z`` is first made local and standard (:func:`local_standard_z`): the block medians of a GROUP_MESH_PX mesh
+    are subtracted (a light level a per cent off, a vignetting the model lacks move every pixel alike, not a
+    group), and it is divided by its robust scatter when that exceeds 1 (an excess of white variance, a PRNU the
+    model lacks, is not outliers; as the column statistics do). Every ``seed`` (a spike of :func:`spike_stats`) is grown by up to
     GROW_PIXELS into its neighbours beyond GROW_SIGMA of that local z (hysteresis, as cosmic-ray cleaners do),
     and the grown seeds are labelled with 8-connectivity. A group's ``chi2`` is the sum of its pixels' squared
     local z: what an effect placing it exactly would remove."""
