@@ -244,6 +244,7 @@ FREE_EXTRA_K | N | model | parameters of the free form (its BIC price)
 EDGE_BLOCK_PIXELS | N | budget | block of the edge law
 _GAUSS_GRID | N | grid | glow centres tried
 _GAUSS_SIGMAS | N | grid | glow widths tried
+_EMITTER_HEIGHTS | N | grid | glow emitter heights tried
 GLOW_MAX_SCALE | D | physics | an amplifier glow is localised
 @detector/effects/image_plane.py
 MAX_CACHED_SPECTRA | N | budget | spectra cache
