@@ -149,6 +149,13 @@ def _glow_variant(res, where: str, scale: float) -> Variant:
     return edge_variant(res, where, scale, float(res.exptime_s * res.pixel_sum / res.gain), 1e6, f"{where}|{scale}")
 
 
+def _from_edge(s, x0: float, y0: float) -> tuple[float, float]:
+    """(distance outside the sensor, distance inside it from its nearest edge) [sensor px] of the point (x0, y0):
+    one of the two is 0."""
+    outside = float(np.hypot(max(-x0, x0 - (s.sensor_width_px - 1), 0.0), max(-y0, y0 - (s.sensor_height_px - 1), 0.0)))
+    return outside, max(min(x0, s.sensor_width_px - 1 - x0, y0, s.sensor_height_px - 1 - y0), 0.0)
+
+
 def _gauss_variant(res, x_frac: float, y_frac: float, sigma_px: float) -> Variant:
     """One bivariate-normal glow source (thesis Annex V, isotropic) centred at (x_frac, y_frac) of the sensor
     (outside it when beyond [0, 1]) with std ``sigma_px`` [sensor px]."""
@@ -171,8 +178,7 @@ def _gauss_variant(res, x_frac: float, y_frac: float, sigma_px: float) -> Varian
     # located at the edges of the image"): within twice its width inside the edge (the glow reaches the edge at
     # e^-2 of its peak at least), or outside it by at most its width (else it is a field-wide gradient). A bump
     # deep inside the sensor is a light leak, a hot spot or a source the model lacks, not an amplifier's glow
-    outside = float(np.hypot(max(-x0, x0 - (s.sensor_width_px - 1), 0.0), max(-y0, y0 - (s.sensor_height_px - 1), 0.0)))
-    inside = max(min(x0, s.sensor_width_px - 1 - x0, y0, s.sensor_height_px - 1 - y0), 0.0)
+    outside, inside = _from_edge(s, x0, y0)
 
     # a glow is extended: no narrower than the shortest e-folding length the edge law tries (and 16 px); a
     # narrower bump is a source the model lacks
@@ -217,8 +223,7 @@ def _emitter_variant(res, x_frac: float, y_frac: float, height_px: float) -> Var
         emitter_rate(res.ys, res.xs, x0, y0, 1.0, height_px, t)
         return [t * np.float32(unit)]
 
-    outside = float(np.hypot(max(-x0, x0 - (s.sensor_width_px - 1), 0.0), max(-y0, y0 - (s.sensor_height_px - 1), 0.0)))
-    inside = max(min(x0, s.sensor_width_px - 1 - x0, y0, s.sensor_height_px - 1 - y0), 0.0)
+    outside, inside = _from_edge(s, x0, y0)
     widest = GLOW_MAX_SCALE * max(s.sensor_width_px, s.sensor_height_px)
 
     def to_params(c):
