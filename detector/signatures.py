@@ -325,9 +325,9 @@ def outlier_groups(z: np.ndarray, seeds: np.ndarray, usable: np.ndarray, sign: i
     ``z`` is first made local and standard (:func:`local_standard_z`): the block medians of a GROUP_MESH_PX mesh
     are subtracted (a light level a per cent off, a vignetting the model lacks move every pixel alike, not a
     group), and it is divided by its robust scatter when that exceeds 1 (an excess of white variance, a PRNU the
-    model lacks, is not outliers; as the column statistics do). Every ``seed`` (a spike of :func:`spike_stats`) is grown by up to
-    GROW_PIXELS into its neighbours beyond GROW_SIGMA of that local z (hysteresis, as cosmic-ray cleaners do),
-    and the grown seeds are labelled with 8-connectivity. A group's ``chi2`` is the sum of its pixels' squared
+    model lacks, is not outliers; as the column statistics do). Every ``seed`` (a spike of :func:`spike_stats`)
+    is grown by up to GROW_PIXELS into its neighbours beyond GROW_SIGMA of that local z (hysteresis, as cosmic-ray
+    cleaners do), and the grown seeds are labelled with 8-connectivity. A group's ``chi2`` is the sum of its pixels' squared
     local z: what an effect placing it exactly would remove."""
     from scipy import ndimage
 
