@@ -327,8 +327,8 @@ def outlier_groups(z: np.ndarray, seeds: np.ndarray, usable: np.ndarray, sign: i
     group), and it is divided by its robust scatter when that exceeds 1 (an excess of white variance, a PRNU the
     model lacks, is not outliers; as the column statistics do). Every ``seed`` (a spike of :func:`spike_stats`)
     is grown by up to GROW_PIXELS into its neighbours beyond GROW_SIGMA of that local z (hysteresis, as cosmic-ray
-    cleaners do), and the grown seeds are labelled with 8-connectivity. A group's ``chi2`` is the sum of its pixels' squared
-    local z: what an effect placing it exactly would remove."""
+    cleaners do), and the grown seeds are labelled with 8-connectivity. A group's ``chi2`` is the sum of its
+    pixels' squared local z: what an effect placing it exactly would remove."""
     from scipy import ndimage
 
     if not seeds.any():
@@ -501,6 +501,12 @@ class Residuals:
         """Sensor pixels whose charge adds into one output pixel (b^2 for sum binning, 1 for average)."""
         b = self.sensor.binning
         return b * b if self.sensor.binning_mode == "sum" else 1
+
+    @property
+    def adu_per_rate(self) -> float:
+        """ADU in one output pixel per e-/s of a rate per sensor pixel over the exposure: ``t x pixel_sum /
+        gain`` (a glow, a dark-rate field, a sky)."""
+        return self.exptime_s * self.pixel_sum / self.gain
 
     @property
     def adu_sum(self) -> int:

@@ -146,7 +146,7 @@ def edge_variant(res, where: str, scale: float, unit: float, max_amplitude: floa
 
 
 def _glow_variant(res, where: str, scale: float) -> Variant:
-    return edge_variant(res, where, scale, float(res.exptime_s * res.pixel_sum / res.gain), 1e6, f"{where}|{scale}")
+    return edge_variant(res, where, scale, float(res.adu_per_rate), 1e6, f"{where}|{scale}")
 
 
 def _from_edge(s, x0: float, y0: float) -> tuple[float, float]:
@@ -160,7 +160,7 @@ def _gauss_variant(res, x_frac: float, y_frac: float, sigma_px: float) -> Varian
     """One bivariate-normal glow source (thesis Annex V, isotropic) centred at (x_frac, y_frac) of the sensor
     (outside it when beyond [0, 1]) with std ``sigma_px`` [sensor px]."""
     s = res.sensor
-    unit = float(res.exptime_s * res.pixel_sum / res.gain)
+    unit = float(res.adu_per_rate)
     w = res.data_adu.shape[1]
     x0, y0 = x_frac * (s.sensor_width_px - 1), y_frac * (s.sensor_height_px - 1)
 
@@ -208,7 +208,7 @@ def _emitter_variant(res, x_frac: float, y_frac: float, height_px: float) -> Var
     narrower bump is a source the model lacks) and no higher than GLOW_MAX_SCALE of the sensor (a field-wide
     gradient)."""
     s = res.sensor
-    unit = float(res.exptime_s * res.pixel_sum / res.gain)
+    unit = float(res.adu_per_rate)
     w = res.data_adu.shape[1]
     x0, y0 = x_frac * (s.sensor_width_px - 1), y_frac * (s.sensor_height_px - 1)
     h2 = height_px * height_px
@@ -350,9 +350,8 @@ def _glow_words(p, res) -> str:
         s = res.sensor
         x, y = g["x_frac"] * (s.sensor_width_px - 1), g["y_frac"] * (s.sensor_height_px - 1)
         return (f"additive glow from a point emitter at ({x:.0f}, {y:.0f}) sensor px, {g['height_px']:.0f} px off "
-                "the sensor plane "
-                f"(irradiance (1 + r^2/h^2)^-1.5), {g['amplitude_e_per_s'] * res.exptime_s:.3g} e- below it, growing "
-                "with exposure: amplifier glow")
+                f"the sensor plane (irradiance (1 + r^2/h^2)^-1.5), {g['amplitude_e_per_s'] * res.exptime_s:.3g} e- "
+                "below it, growing with exposure: amplifier glow")
     if p.get("model") == "gaussian":
         g = p["sources"][0]
         s = res.sensor
@@ -376,20 +375,22 @@ _GLOW_SIGNATURE.rebuild = _rebuild
 
 # --- adapter -----------------------------------------------------------------------------------------------
 
-class GlowSource(BaseModel):
+class GlowPoint(BaseModel):
+    """Where a glow source (a Gaussian's centre, an emitter's foot) sits on the sensor plane."""
+
     model_config = ConfigDict(extra="forbid")
-    x_frac: float = Field(1.0, ge=-1, le=2, description="centre, fraction of the sensor width (0 = column 0)")
-    y_frac: float = Field(0.0, ge=-1, le=2, description="centre, fraction of the sensor height (0 = row 0)")
+    x_frac: float = Field(1.0, ge=-1, le=2, description="centre or foot, fraction of the sensor width (0 = column 0)")
+    y_frac: float = Field(0.0, ge=-1, le=2, description="centre or foot, fraction of the sensor height (0 = row 0)")
+
+
+class GlowSource(GlowPoint):
     amplitude_e_per_s: float = Field(0.5, ge=0, le=1e6, description="glow rate at the centre [e-/s/pixel]")
     sigma_x_px: float = Field(500.0, gt=0, description="std along x [pixels]")
     sigma_y_px: float = Field(500.0, gt=0, description="std along y [pixels]")
     rho: float = Field(0.0, gt=-1, lt=1, description="correlation of the bivariate normal [1]")
 
 
-class GlowEmitter(BaseModel):
-    model_config = ConfigDict(extra="forbid")
-    x_frac: float = Field(1.0, ge=-1, le=2, description="position, fraction of the sensor width (0 = column 0)")
-    y_frac: float = Field(0.0, ge=-1, le=2, description="position, fraction of the sensor height (0 = row 0)")
+class GlowEmitter(GlowPoint):
     amplitude_e_per_s: float = Field(0.5, ge=0, le=1e6, description="glow rate below the emitter [e-/s/pixel]")
     height_px: float = Field(100.0, gt=0, description="height of the emitter off the sensor plane [pixels]")
 

@@ -173,7 +173,7 @@ def _dsnu_check(fit, res) -> str:
         return ""
     from .thermal import base_rate
 
-    unit = res.exptime_s * res.pixel_sum / res.gain  # ADU per (e-/s) of dark rate per sensor pixel
+    unit = res.adu_per_rate  # ADU per (e-/s) of dark rate per sensor pixel
     lowest = float(np.min(np.broadcast_to(smooth, res.data_adu.shape)[np.broadcast_to(res.fit, res.data_adu.shape)]))
     base = base_rate(res)
     if base + lowest / unit > 0:

@@ -79,7 +79,7 @@ def _sky_variants(res):
     if res.exptime_s <= 0 or not np.any(res.photo_adu > 0):  # no light reached the sensor: no sky
         return
     yc, xc = _sensor_centre(res.sensor)
-    f = res.exptime_s * res.pixel_sum / res.gain / KPX  # ADU per output pixel per (e-/s/pixel per 1000 px)
+    f = res.adu_per_rate / KPX  # ADU per output pixel per (e-/s/pixel per 1000 px)
     tx = (f * (res.xs - xc)).astype(np.float32)[None, :]
     ty = (f * (res.ys - yc)).astype(np.float32)[:, None]
 
@@ -252,7 +252,7 @@ def _legendre_variants(res):
     """The Legendre fields of orders 2 to MAX_FIELD_ORDER over the window (the signature's BIC picks one)."""
     if res.exptime_s <= 0 or not np.any(res.photo_adu > 0):
         return
-    f = res.exptime_s * res.pixel_sum / res.gain  # ADU per output pixel per e-/s/pixel
+    f = res.adu_per_rate  # ADU per output pixel per e-/s/pixel
     v, u = window_uv(res.sensor, res.ys, res.xs)
     pu = np.polynomial.legendre.legvander(u, MAX_FIELD_ORDER)
     pv = np.polynomial.legendre.legvander(v, MAX_FIELD_ORDER)

@@ -146,7 +146,7 @@ def _variants(res):
     convergence, the fitted mean change is the exponential model ``m(t*)`` exactly, with 2 parameters like
     the ramp."""
     s = res.sensor
-    unit = np.float32(res.exptime_s * res.pixel_sum / res.gain)  # ADU per (e-/s) of dark rate
+    unit = np.float32(res.adu_per_rate)  # ADU per (e-/s) of dark rate
     u, v = sensor_uv(res.ys, res.xs, s.sensor_height_px, s.sensor_width_px)
 
     def to_params(c):
