@@ -287,14 +287,16 @@ def _gain_variants(res):
     yield from _gain_split_variants(res, sig)
 
 
-#: boundaries found from the data: at most this many along an axis, each at least this share of the frame from
+#: boundaries found from the data: at most this many along an axis (a sensor read by up to 8 amplifiers along a
+#: side, as LSST's CCDs are, 2 x 8 segments; each further boundary is a variant of its own, scored by the BIC with
+#: one parameter per boundary, so a sensor of fewer strips keeps its fewer), each at least this share of the frame from
 #: an edge (a segment that holds fewer lines holds fewer pixels than an anomalous-pixel population may,
 #: MAX_DEFECT_FRACTION: at the frame's edge it is an edge effect, a glow along it, a shadow), and at least
 #: LINE_WINDOW lines from another: a step of the line means that persists over that many lines is a level of the
 #: neighbourhood to the column (row) statistic, which compares each line with the running median of its
 #: LINE_WINDOW neighbours (a region, an amplifier's strip), where a narrower group of lines stands out of it as
 #: outlier lines (column defects)
-MAX_FOUND_SPLITS = 2
+MAX_FOUND_SPLITS = 7
 MIN_SEGMENT_SHARE = MAX_DEFECT_FRACTION
 
 

@@ -275,7 +275,7 @@ KNEE_FRACTIONS | N | grid | knee positions of a piecewise-linear response tried
 MAX_DEAD_CLUSTER_PX | D | physics | largest dead cluster (EMVA 1288, Janesick 2007)
 MAX_DEAD_CLUSTER_SIDE | N | model | largest cluster side the render draws
 _REGION_GRIDS | N | grid | region layouts tried
-MAX_FOUND_SPLITS | N | search | boundaries searched per axis
+MAX_FOUND_SPLITS | N | search | boundaries searched per axis (up to 8 amplifiers along a side)
 MIN_SEGMENT_SHARE | D | physics | a segment narrower holds fewer pixels than a defect population may (MAX_DEFECT_FRACTION)
 @detector/effects/readout.py
 K_BOLTZMANN | N | constant | CODATA

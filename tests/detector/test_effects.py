@@ -330,6 +330,31 @@ def test_gain_regions_boundary_found_where_the_amplifiers_meet():
     assert f[:, step].mean() / f[:, ~step].mean() == pytest.approx(g[1] / g[0], rel=1e-3)
 
 
+def test_four_amplifier_strips_at_unequal_places_are_found_as_three_boundaries():
+    """A flat read by four amplifiers whose strips meet at sensor columns 700, 1900 and 3100 (not the sensor's
+    equal quarters; gains 1, 1.005, 0.996, 1.003): three boundaries are found within two binned columns of where
+    the strips meet, the gains' ratios within their statistical error, and the further boundaries the search may
+    try (MAX_FOUND_SPLITS) do not pay their BIC parameter on a frame of four strips."""
+    from detector import registry
+    from detector.effects.pixel_response import MAX_FOUND_SPLITS
+
+    assert MAX_FOUND_SPLITS >= 3
+    s = small(x0=0, y0=0, width=4008, height=64, binning=8, read_noise_e=5.0, dark_current_e_per_s=0.0,
+              gain_e_per_adu=1.0)
+    h, w = s.output_shape
+    xs = np.arange(w) * 8 + 3.5
+    cuts, gains = [700, 1900, 3100], [1.0, 1.005, 0.996, 1.003]
+    gain = np.asarray(gains)[np.searchsorted(cuts, xs)][None, :]
+    res = _flat_residuals(s, gain / gain.mean(), seed=7)
+    fit = registry()["gain_regions"].signature.fit(res, "gain_regions")
+    splits = fit.params.get("splits_x")
+    assert splits and len(splits) == 3, fit.params
+    assert all(abs(a - b) <= 16 for a, b in zip(splits, cuts)), splits
+    g = np.asarray(fit.params["gains"])
+    se = np.sqrt(2 * 4 / (h * w * 64 * 5000.0))  # a ratio of two strips' means, ~n/4 pixels each
+    assert g[1:] / g[0] == pytest.approx(np.asarray(gains[1:]), abs=5 * se)
+
+
 def test_a_narrow_amplifier_strip_is_a_gain_region_not_columns():
     """Three strips with the middle one 5 % of the frame wide (25 binned columns, 0.7 % low): a step of the column
     means that persists over more than LINE_WINDOW columns is a region; the two boundaries are found where the
