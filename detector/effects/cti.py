@@ -110,15 +110,19 @@ class _Watermarks:
         """Charge held per pool [e-] (all species)."""
         return self.gain @ self.total
 
-    def step(self, n_e: np.ndarray, multiplicity, well_e, beta, notch_e) -> np.ndarray:
+    def step(self, n_e: np.ndarray, multiplicity, well_e, beta, notch_e, per_species: bool = False) -> np.ndarray:
         """One dwell of the first ``len(n_e)`` pools with one packet each: release, then instant capture by
         ``multiplicity * rho_k`` traps per unit volume below the packet's reach. Returns the packets' change
-        (released - captured) [e-]."""
+        (released - captured) [e-], or with ``per_species`` each species' share of it (``k x len(n_e)``)."""
         b = n_e.shape[0]
         nn, kn = self.n, self.k * self.n
         top, cum, gain = self.top, self.cum, self.gain
         last, total = self.last[:b], self.total[:, :b]
-        released = (gain * (1.0 - self.decay)) @ total
+        if per_species:
+            released_k = (gain * (1.0 - self.decay))[:, None] * total
+            released = released_k.sum(axis=0)
+        else:
+            released = (gain * (1.0 - self.decay)) @ total
         gain *= self.decay
         n_free = n_e + released
         v = (n_free - notch_e) * (1.0 / (well_e - notch_e)) if notch_e else n_free * (1.0 / well_e)
@@ -154,6 +158,7 @@ class _Watermarks:
             f = np.where(short, np.maximum(n_free, 0.0) / np.where(short, captured, 1.0), 1.0)
             captured *= f
             want *= f
+        change_k = released_k - gain[:, None] * want if per_species else None
         cum[ic] = c_p
         total += want
         it += nn
@@ -165,7 +170,7 @@ class _Watermarks:
             self.cum.reshape(-1, self.k)[...] *= gain[None, :]
             self.total *= gain[:, None]
             gain[:] = 1.0
-        return released - captured
+        return change_k if per_species else released - captured
 
     def _merge(self, idx):
         """Make room in full stacks: merge the two adjacent watermarks that together span the smallest
@@ -282,6 +287,28 @@ def cti_transfer(image_e: np.ndarray, density_per_px, release_time_s, transfer_s
     return (img, trapped) if return_trapped else img
 
 
+def cti_species_changes(image_e: np.ndarray, density_per_px, release_time_s, transfer_s: float, beta: float,
+                        well_e: float, first_transfers: int = 1) -> np.ndarray:
+    """Each species' share of what :func:`cti_transfer` (``express=1``) changes, ``k x ny x nx`` [e-]: the
+    species act together on the packets, and the change of each dwell is split by the species that released
+    and captured it. To first order in the densities the shares are the changes each species makes alone (a
+    species sees the packets the others changed by a fraction of order their CTI), so one pass gives the
+    diagnosis the trails of several release times at the cost of one (:func:`_cti_variants`)."""
+    rho = np.asarray(density_per_px, np.float64)
+    decay = np.maximum(np.exp(-float(transfer_s) / np.asarray(release_time_s, np.float64)), 1e-30)
+    img = np.array(image_e, dtype=np.float64, order="C")
+    ny, nx = img.shape
+    off = int(first_transfers) - 1
+    mult = (np.arange(ny) + off + 1).astype(np.float64)  # one pool per column: every pixel the packet crossed
+    wm = _Watermarks(nx, rho, decay, 40 + 3)
+    out = np.empty((rho.size, ny, nx))
+    for j in range(ny):
+        d = wm.step(img[j], mult[j], well_e, beta, notch_e=0.0, per_species=True)
+        out[:, j] = d
+        img[j] += d.sum(axis=0)
+    return out
+
+
 def niel_ratio(energy_mev) -> np.ndarray:
     """NIEL of protons in silicon relative to 10 MeV [1] (approximate fit, +-30 %).
 
@@ -373,11 +400,12 @@ CTI_RELEASE_TRANSFERS = ACS_RELEASE_TRANSFERS
 CTI_BETAS = (0.25, 0.478, 0.75, 1.0)
 
 
-def _cti_template(res, q, direction: str, tau_transfers: float, beta: float, unit: float = 0.01):
-    """``(CTI(Q) - Q) / unit`` [ADU per trap per pixel] of the model's charge ``q`` for one species of release
-    time ``tau_transfers`` (in the register's own transfers) read out along ``direction``: "parallel" (towards
-    row 0, the packet of the window's first row after ``y0 + 1`` transfers) or "serial" (towards column 0,
-    after ``x0 + 1``)."""
+def _cti_templates(res, q, direction: str, release_transfers, beta: float, unit: float = 0.01):
+    """``(CTI(Q) - Q) / unit`` [ADU per trap per pixel] of the model's charge ``q`` for one species of each
+    release time in ``release_transfers`` (in the register's own transfers), read out along ``direction``:
+    "parallel" (towards row 0, the packet of the window's first row after ``y0 + 1`` transfers) or "serial"
+    (towards column 0, after ``x0 + 1``); one pass for all (:func:`cti_species_changes`). Returns
+    ``[(template, release time [s]), ...]``."""
     well = res.sensor.full_well_e * res.pixel_sum
     if direction == "serial":
         dwell = CTIParams.model_fields["serial_transfer_s"].default
@@ -387,13 +415,12 @@ def _cti_template(res, q, direction: str, tau_transfers: float, beta: float, uni
         dwell = ML11002_PARALLEL_TRANSFER_S
         first = int(res.ys[0]) + 1 if res.ys.size else 1
         img = q
-    t = (cti_transfer(img, [unit], [tau_transfers * dwell], dwell, beta, well, first) - img) / unit
-    return (t.T if direction == "serial" else t) / np.float32(res.gain), tau_transfers * dwell
+    taus = [tr * dwell for tr in release_transfers]
+    ch = cti_species_changes(img, [unit] * len(taus), taus, dwell, beta, well, first)
+    return [((c.T if direction == "serial" else c) / (unit * res.gain), tau) for c, tau in zip(ch, taus)]
 
 
-def _cti_variant(res, q, direction: str, tr: float, beta: float) -> Variant:
-    t, tau = _cti_template(res, q, direction, tr, beta)
-
+def _cti_variant(t: np.ndarray, tau: float, direction: str, tr: float, beta: float) -> Variant:
     def to_params(c, tau=tau):
         if not 0 < c[0] < 100:
             return None
@@ -414,13 +441,14 @@ def _cti_variants(res):
     """CTI trails of the model's own charge for one species of unit density: ``CTI(Q) - Q`` is linear in
     the density to first order; variants over the register (parallel: trails along the columns; serial:
     along the rows, Massey et al. 2014 and ArCTIc model both) and the release time (:data:`CTI_RELEASE_TRANSFERS`
-    of each register's dwell); the well-fill power is refined about the best (:func:`_cti_betas`)."""
+    of each register's dwell, one pass per register); the well-fill power is refined about the best
+    (:func:`_cti_betas`)."""
     if res.sensor.kind != "ccd":
         return
     q = res.charge_e.astype(np.float64)
     for direction in ("parallel", "serial"):
-        for tr in CTI_RELEASE_TRANSFERS:
-            yield _cti_variant(res, q, direction, tr, 0.478)
+        for tr, (t, tau) in zip(CTI_RELEASE_TRANSFERS, _cti_templates(res, q, direction, CTI_RELEASE_TRANSFERS, 0.478)):
+            yield _cti_variant(t, tau, direction, tr, 0.478)
 
 
 def _cti_betas(best: Variant, res):
@@ -431,7 +459,8 @@ def _cti_betas(best: Variant, res):
     q = res.charge_e.astype(np.float64)
     for beta in CTI_BETAS:
         if beta != 0.478:
-            yield _cti_variant(res, q, direction, tr, beta)
+            (t, tau), = _cti_templates(res, q, direction, [tr], beta)
+            yield _cti_variant(t, tau, direction, tr, beta)
 
 
 def _cti_words(p, res) -> str:
