@@ -32,7 +32,7 @@ from ..signatures import (
     outlier_pixels,
     spread_check,
 )
-from ..significance import MAX_DEFECT_FRACTION
+from ..significance import DETECTION_SIGMA, MAX_DEFECT_FRACTION
 from .base import Effect, EffectParams, Stage, Tile, register_effect
 from .common import hardware_positions, in_tile, output_xy, roi_mask
 
@@ -336,21 +336,14 @@ def _gain_split_variants(res, sig: np.ndarray):
     found from the data (binary segmentation of the residual's line sums over the signal's, up to
     :data:`MAX_FOUND_SPLITS`), each counted as one parameter in the BIC; the gains are then fitted as for the
     sensor's grid."""
-    idx, r, w = res.flat()
-    if idx.size == 0:
+    if res.flat()[0].size == 0:
         return
-    h, wd = res.data_adu.shape
-    y, x = np.divmod(idx, wd)
-    sv = sig.ravel()[idx].astype(np.float64)
     for axis in ("x", "y"):
-        pos, n = (x, wd) if axis == "x" else (y, h)
+        n = res.data_adu.shape[1 if axis == "x" else 0]
         lo = max(int(np.ceil(MIN_SEGMENT_SHARE * n)), 2)
         if n < 2 * lo:
             continue
-        rc = np.bincount(pos, r, n)
-        sc = np.bincount(pos, sv, n)
-        vc = np.bincount(pos, 1.0 / w, n)
-        wc = np.where(vc > 0, 1.0 / np.maximum(vc, 1e-30), 0.0)
+        rc, sc, wc = _line_profile(res, sig, axis)
         cuts: list[int] = []
         for _ in range(MAX_FOUND_SPLITS):
             j = _best_split(rc, sc, wc, cuts, lo, min(lo, LINE_WINDOW))
@@ -360,6 +353,64 @@ def _gain_split_variants(res, sig: np.ndarray):
             centres = res.xs if axis == "x" else res.ys
             bounds = [float(0.5 * (centres[c - 1] + centres[c])) for c in cuts]
             yield _split_variant(res, sig, axis, bounds)
+
+
+def _line_profile(res, sig: np.ndarray, axis: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(residual, signal, weight) per column (``axis`` "x") or row of the fitted pixels: the line sums of the
+    residual [ADU] and of the signal ``sig`` [ADU], and the inverse of the line's summed variance [ADU^-2]."""
+    idx, r, w = res.flat()
+    h, wd = res.data_adu.shape
+    y, x = np.divmod(idx, wd)
+    pos, n = (x, wd) if axis == "x" else (y, h)
+    rc = np.bincount(pos, r, n)
+    sc = np.bincount(pos, sig.ravel()[idx].astype(np.float64), n)
+    vc = np.bincount(pos, 1.0 / w, n)
+    return rc, sc, np.where(vc > 0, 1.0 / np.maximum(vc, 1e-30), 0.0)
+
+
+def _gain_check(fit, res) -> str:
+    """Read-out regions change the gain in steps where their amplifiers meet: along each axis the regions
+    divide, the steps (one gain per region, and each boundary found from the data a parameter too) must
+    describe the residual's line profile (line sums of the residual against the signal's, weighted by their
+    variance) unless a smooth curve of the line's position with as many parameters (a Legendre series) does
+    better by more than DETECTION_SIGMA^2 in chi2 (a preference of the curve at the detection bar; where the
+    two describe the profile alike, a weak step with wide transitions, both stay and the judge says it cannot
+    tell them apart). A smooth or periodic response (vignetting, a flat-field pattern, tree rings of the
+    silicon) is fitted by a staircase of many narrow strips, and better by a curve."""
+    p = fit.params
+    s = res.sensor
+    if not p or res.flat()[0].size == 0:
+        return ""
+    sig = (res.charge_e / np.float32(res.gain)).astype(np.float32)
+    iy, ix = region_index(res.ys, res.xs, p["nx"], p["ny"], s.sensor_height_px, s.sensor_width_px,
+                          p.get("splits_y"), p.get("splits_x"))
+    for axis, line_region, found in (("x", ix, p.get("splits_x") or []), ("y", iy, p.get("splits_y") or [])):
+        regions = np.unique(line_region)
+        if regions.size < 2:
+            continue
+        rc, sc, wc = _line_profile(res, sig, axis)
+        ok = (wc > 0) & (sc != 0)
+        total = float(np.sum(wc[ok] * rc[ok] ** 2))
+        steps = total
+        for j in regions:
+            m = ok & (line_region == j)
+            s2 = float(np.sum(sc[m] ** 2 * wc[m]))
+            if s2 > 0:
+                steps -= float(np.sum(sc[m] * rc[m] * wc[m])) ** 2 / s2
+        k = regions.size + len(found)
+        centres = (res.xs if axis == "x" else res.ys)[ok]
+        u = 2.0 * (centres - centres.min()) / max(float(np.ptp(centres)), 1e-9) - 1.0
+        a = sc[ok][:, None] * np.polynomial.legendre.legvander(u, k - 1)
+        sw = np.sqrt(wc[ok])
+        coef = np.linalg.lstsq(a * sw[:, None], rc[ok] * sw, rcond=None)[0]
+        smooth = float(np.sum(wc[ok] * (rc[ok] - a @ coef) ** 2))
+        if steps - smooth > DETECTION_SIGMA ** 2:
+            return (f"along {axis} a smooth curve of the line's position with as many parameters ({k}) describes the "
+                    f"signal's profile better than the steps between the {regions.size} regions (chi2 "
+                    f"{smooth:.4g} against {steps:.4g} of the line sums, more than {DETECTION_SIGMA:g}^2 apart): a "
+                    "smooth or periodic response (vignetting, a flat-field pattern), not read-out regions, whose gains "
+                    "change in steps")
+    return ""
 
 
 def _split_variant(res, sig: np.ndarray, axis: str, bounds: list[float]) -> Variant:
@@ -521,7 +572,8 @@ _DEADPIXELS_SIGNATURE = GroupSignature(
     _dead_groups, _dead_words, pattern="pixels or small clusters far below their neighbours where light falls",
     check=spread_check("neg"))
 
-_GAINREGIONS_SIGNATURE = LinearSignature(_gain_variants, _gain_words, pattern="signal steps between sensor regions")
+_GAINREGIONS_SIGNATURE = LinearSignature(_gain_variants, _gain_words, pattern="signal steps between sensor regions",
+                                         check=_gain_check)
 
 _NONLINEARITY_SIGNATURE = LinearSignature(
     _nonlin_variants, _nonlin_words,

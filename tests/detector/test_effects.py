@@ -355,6 +355,24 @@ def test_four_amplifier_strips_at_unequal_places_are_found_as_three_boundaries()
     assert g[1:] / g[0] == pytest.approx(np.asarray(gains[1:]), abs=5 * se)
 
 
+def test_a_smooth_periodic_response_is_no_staircase_of_gain_regions():
+    """A response that varies as a sine along x (0.3 %, period 1600 sensor columns: tree rings of the silicon, a
+    fringe) is fitted by a staircase of found boundaries; a smooth curve of the columns with as many parameters
+    describes the profile better, so the fit is refused. The four strips of the test above pass the same check."""
+    from detector import registry
+
+    s = small(x0=0, y0=0, width=4008, height=64, binning=8, read_noise_e=5.0, dark_current_e_per_s=0.0,
+              gain_e_per_adu=1.0)
+    xs = np.arange(s.output_shape[1]) * 8 + 3.5
+    sig = registry()["gain_regions"].signature
+    res = _flat_residuals(s, (1 + 0.003 * np.sin(2 * np.pi * xs / 1600.0))[None, :], seed=8)
+    fit = sig.fit(res, "gain_regions")
+    assert fit is not None and "smooth curve" in sig.plausible(fit, res), fit.params
+    gain = np.asarray([1.0, 1.005, 0.996, 1.003])[np.searchsorted([700, 1900, 3100], xs)][None, :]
+    res = _flat_residuals(s, gain / gain.mean(), seed=7)
+    assert sig.plausible(sig.fit(res, "gain_regions"), res) == ""
+
+
 def test_a_narrow_amplifier_strip_is_a_gain_region_not_columns():
     """Three strips with the middle one 5 % of the frame wide (25 binned columns, 0.7 % low): a step of the column
     means that persists over more than LINE_WINDOW columns is a region; the two boundaries are found where the
