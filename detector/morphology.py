@@ -556,6 +556,8 @@ def describe(res: Residuals, delta_adu: np.ndarray | None = None) -> dict:
                 out["significance_sigma"] = round(max(out["significance_sigma"], ker["sigma"]), 2)
                 out.update(_kernel_words(ker))
                 out["empirical"] = {"kind": "additive", "map": ker["map"]}
+        if not out["significant"]:
+            out.update(_columns_through_sources(res))
         return out
     out["significant"] = True
     if block_sigma < SIGNIFICANT_SIGMA:
@@ -871,6 +873,28 @@ def _lines_through_sources(res: Residuals, lm, lw, okl, axis: int, excess: float
     if gain < 25 or gain < LINE_SOURCE_SHARE * excess or slope <= 0:
         return None
     return slope
+
+
+def _columns_through_sources(res: Residuals) -> dict:
+    """The description of outlier columns that follow the sources' light (:func:`columns_follow_sources`): the
+    fitted pixels leave those columns out (they are compared statistically), so the block maps do not see
+    them. ``{}`` when there are none."""
+    from scipy.stats import norm
+
+    from .signatures import columns_follow_sources
+
+    got = columns_follow_sources(res)
+    if got is None or got["slope"] <= 0:
+        return {}
+    rows = res.data_adu.shape[0]
+    sigma = max(got["follow"], float(norm.isf(max(got["chance"], 1e-300))))
+    geom = ["columns", "sources"]
+    return {"significant": True, "significance_sigma": round(sigma, 2), "kind": "additive", "kind_certain": True,
+            "geometry": geom, "scale_px": float(rows), "amplitude": round(100 * got["slope"] * rows, 4), "unit": "%",
+            "explanation": _words("additive", geom, f"{got['cols'].size} columns above their neighbours where the "
+                                  f"sources are, each column lifted by {100 * got['slope'] * rows:.2g} % of its "
+                                  "sources' light spread along it (a streak through each source along the read-out)"),
+            "empirical": _smear_map(res, got["slope"], 0)}
 
 
 #: a line profile is periodic when one frequency holds this share of its power beyond the noise: most of it,

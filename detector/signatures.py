@@ -68,6 +68,50 @@ def line_sigma(n_lines: int) -> float:
 
     return float(norm.isf(FRAME_FALSE_ALARM / (2.0 * max(int(n_lines), 1))))
 
+
+
+def columns_follow_sources(res) -> dict | None:
+    """The outlier columns (``|col_z|`` beyond :func:`line_sigma`) when they follow the model's sources beyond
+    chance, else None. A defective column sits where the sensor's defect is, whatever the scene; light spread
+    along the read-out direction from the sources (smear while the rows are shifted with the shutter open,
+    Janesick 2001 sect. 5.4; blooming; charge-transfer trails) lifts every column in proportion to its source
+    light ``f`` (the model's light above its background, summed along the column). Two tests, each held to the
+    one-sided DETECTION_SIGMA tail. The outlier columns' ranks ``r`` in the columns' source light are uniform
+    for defects: the chance that all n sit above the lowest of them is ``(1 - min r)^n``, and Fisher's
+    ``sum -ln(1 - r)`` is Gamma(n, 1) (half the tail each). The other columns' standardised means ``z`` follow
+    their source light: the matched filter ``sum f z / sqrt(sum f^2)`` is standard normal without it (a
+    defect that sits at a bright source by chance leaves the other columns as they were), and counts when
+    the outlier columns lie above their neighbours. Returns ``{"cols", "chance", "follow", "top",
+    "slope"}``: the columns, the rank test's chance, the matched filter [sigma], how many of the columns are
+    among the tenth that hold the most source light, and the share of a column's source light its mean
+    holds [1 per pixel] (from the columns' mean excess, col_z x col_err_adu)."""
+    from scipy.stats import gamma, norm, rankdata
+
+    z = np.nan_to_num(np.asarray(res.data_spikes.col_z, np.float64))
+    if res.background_adu is None or z.size != res.data_adu.shape[1]:
+        return None
+    cols = np.flatnonzero(np.abs(z) > line_sigma(z.size))
+    if cols.size == 0:
+        return None
+    flux = np.clip(np.nan_to_num(res.model_adu.astype(np.float64) - res.background_adu), 0.0, None).sum(axis=0)
+    if not (flux > 0).any():
+        return None
+    tail = norm.sf(DETECTION_SIGMA)
+    r = (rankdata(flux) - 0.5) / flux.size  # mid-ranks in (0, 1): columns without sources tie low
+    chance = min(float((1.0 - r[cols].min()) ** cols.size),
+                 float(gamma.sf(float(-np.log1p(-r[cols]).sum()), cols.size)))
+    rest = np.ones(flux.size, bool)
+    rest[cols] = False
+    f = flux[rest]
+    follow = float(np.dot(f, z[rest]) / np.sqrt(np.dot(f, f))) if np.dot(f, f) > 0 else 0.0
+    if chance >= tail / 2 and not (follow > DETECTION_SIGMA and np.median(z[cols]) > 0):
+        return None
+    err = np.nan_to_num(np.asarray(res.data_spikes.col_err_adu, np.float64))
+    m = z * err if err.size == z.size else np.zeros_like(z)  # mean excess per column [ADU]
+    slope = float(np.dot(flux, m) / np.dot(flux, flux))
+    return {"cols": cols, "chance": chance, "follow": follow, "top": int(np.count_nonzero(r[cols] > 0.9)),
+            "slope": slope}
+
 #: columns of the running median an outlier column is compared with [columns]
 LINE_WINDOW = 9
 #: pixels used at most by a variance fit (a regular subsample beyond that) [pixels]

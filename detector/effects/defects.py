@@ -210,6 +210,9 @@ class ColumnSignature(Signature):
         if peak is not None:
             return (f"the column means repeat with a period of {peak[0]:.3g} columns (its power {peak[1]:.3g} times "
                     "its neighbours'): a periodic pattern seen through the columns, not defective columns")
+        at_sources = self._at_source_columns(res)
+        if at_sources:
+            return at_sources
         level, _ = res.level_maps()
         # every pixel of the columns (an outlier column is not fitted pixel by pixel), spikes clipped at 5 sigma
         d = res.data_adu[:, cols] - res.model_adu[:, cols] - level[:, cols]
@@ -230,6 +233,21 @@ class ColumnSignature(Signature):
                     f"{run:.0f} rows): defective pixels or clusters "
                     "crossing those columns, not defective columns")
         return ""
+
+    @staticmethod
+    def _at_source_columns(res) -> str:
+        """A reason when the outlier columns follow the model's sources beyond chance
+        (:func:`detector.signatures.columns_follow_sources`), else ""."""
+        from ..signatures import columns_follow_sources
+
+        got = columns_follow_sources(res)
+        if got is None:
+            return ""
+        return (f"the outlier columns follow the sources' light ({got['top']} of {got['cols'].size} among the tenth "
+                f"of the columns that hold the most, chance {got['chance']:.2g}; the other columns' means rise with "
+                f"their source light at {got['follow']:.1f} sigma): light spread along the read-out from the sources "
+                "(smear while the rows are shifted with the shutter open, blooming, charge-transfer trails), not "
+                "defective columns, which sit where the sensor's defects are whatever the scene")
 
     @classmethod
     def _column_period(cls, res) -> tuple[float, float] | None:

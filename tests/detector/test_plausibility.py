@@ -571,3 +571,75 @@ def test_a_dsnu_whose_large_scales_take_the_dark_rate_below_zero_is_a_charge_on_
     fit = dsnu.fit(res, "dsnu")
     assert fit is not None and "low-frequency" in fit.note, None if fit is None else fit.note
     assert "below zero" in dsnu.plausible(fit, res)
+
+
+def _star_field_residuals(rng, log_flux: tuple[float, float], h: int = 128, w: int = 256):
+    """(residuals of a 300 ADU sky with 12 Gaussian stars of 10^log_flux ADU at random places, every pixel fitted,
+    the sky its background; the stars' image [ADU])."""
+    import dataclasses
+
+    from helpers import residuals_of, small_sensor
+
+    sky = np.full((h, w), 300.0)
+    yy, xx = np.mgrid[0:h, 0:w]
+    stars = np.zeros((h, w))
+    for cy, cx, f in zip(rng.uniform(5, h - 5, 12), rng.uniform(5, w - 5, 12), 10 ** rng.uniform(*log_flux, 12)):
+        stars += f * np.exp(-((yy - cy) ** 2 + (xx - cx) ** 2) / (2 * 1.5 ** 2)) / (2 * np.pi * 1.5 ** 2)
+    model = sky + stars
+    res = residuals_of(model, model, model + 25.0, model, small_sensor("ml11002", w, h))
+    return dataclasses.replace(res, background_adu=sky.astype(np.float32)), stars
+
+
+def test_outlier_columns_at_the_bright_sources_columns_are_no_column_defects():
+    """Smear (the shutter open while the rows are shifted) lifts every column by a share of its light: its outlier
+    columns are the columns of the brightest sources (their ranks in the columns' source light no uniform draw)
+    and the other columns' means rise with their source light too; the check says so. Ten hot columns at random
+    places of the same frame pass, also when one of them sits on the brightest source's column (the other columns
+    are as they were), as do columns on a frame without sources (no source light to rank)."""
+    import dataclasses
+
+    from detector.effects.defects import ColumnSignature
+    from detector.signatures import SpikeStats, line_sigma
+
+    rng = np.random.default_rng(12)
+    base, stars = _star_field_residuals(rng, (4, 6))
+    w = stars.shape[1]
+    flux = stars.sum(axis=0)
+
+    def judged(col_z):
+        res = dataclasses.replace(base, data_spikes=SpikeStats(0, 0, 0, 0, 0, col_z=col_z))
+        assert np.any(np.abs(col_z) > line_sigma(w))  # outlier columns to judge
+        return ColumnSignature._at_source_columns(res)
+
+    smear = rng.standard_normal(w) + 15.0 * flux / flux.max()  # the brightest column 15 standard errors up
+    why = judged(smear)
+    assert "follow the sources' light" in why and "not defective columns" in why, why
+    hot = rng.standard_normal(w)
+    hot[rng.choice(w, 9, replace=False)] += 12.0
+    hot[np.argmax(flux)] += 12.0
+    assert judged(hot) == ""
+    dark = dataclasses.replace(base, background_adu=base.model_adu)  # a frame without sources
+    assert ColumnSignature._at_source_columns(dataclasses.replace(dark, data_spikes=SpikeStats(0, 0, 0, 0, 0,
+                                                                                                col_z=smear))) == ""
+
+
+def test_columns_through_the_sources_are_described_as_a_streak_with_their_share_of_the_light():
+    """The morphology's fitted pixels leave outlier columns out, so it describes columns that follow the
+    sources from the column statistics: additive, columns and sources, with the share of each column's source
+    light that its pixels hold (1e-4 per row here, 1.28 % over the 128 rows) measured within 10 %."""
+    import dataclasses
+
+    from detector.morphology import _columns_through_sources
+    from detector.signatures import SpikeStats
+
+    rng = np.random.default_rng(13)
+    base, stars = _star_field_residuals(rng, (5, 6))
+    h, w = stars.shape
+    err = np.full(w, np.sqrt(325.0 / h))  # the standard error of a column's mean [ADU]
+    smear = 1e-4 * stars.sum(axis=0)  # [ADU per pixel]
+    col_z = smear / err + rng.standard_normal(w)
+    res = dataclasses.replace(base, data_spikes=SpikeStats(0, 0, 0, 0, 0, col_z=col_z, col_err_adu=err))
+    out = _columns_through_sources(res)
+    assert out["significant"] and out["kind"] == "additive" and out["geometry"] == ["columns", "sources"], out
+    assert out["amplitude"] == pytest.approx(100 * 1e-4 * h, rel=0.1)
+    assert _columns_through_sources(dataclasses.replace(res, background_adu=res.model_adu)) == {}

@@ -44,7 +44,8 @@ def test_expected_answers_are_catalogue_names_or_a_morphology():
         assert 0.0 <= d.strength <= 1.0
         assert d.base in R.BASES
         if c.effect is None:  # out of the catalogue: a description of the right kind and geometry
-            assert not d.accept and d.kind in ("additive", "multiplicative") and "periodic" in d.geometry
+            assert not d.accept and d.kind in ("additive", "multiplicative") and d.geometry
+            assert set(d.geometry) <= {"periodic", "rows", "columns", "rings", "radial", "sources", "local", "blobs"}
         else:
             assert c.effect in d.accept and set(d.accept) <= names, (c.name, d.accept)
         for cls, _prm in d.effects:

@@ -23,7 +23,10 @@ seed, so that a report can be made on forms nobody has looked at:
   distortion, ghosts;
 * **periodic patterns** (out of the catalogue: the right answer is a description): a sine, square or
   triangle wave of random period, phase and orientation, or rings about a far point, acting on the
-  response, the dark, the light or the bias.
+  response, the dark, the light or the bias;
+* **other forms out of the catalogue** (their classes are :mod:`.unseen`'s, their parameters drawn): a
+  read-out smear of a CCD (a share of each column's light along it), a satellite trail, tree rings of the
+  silicon.
 
 Amplitudes are log-uniform between a strong value and one near the detection threshold, in units of the
 frame's own noise (the pixel noise of the base scene: shot noise of the light and the dark, read noise), so
@@ -1258,6 +1261,57 @@ def fam_periodic(rng):
                 f"{math.degrees(angle):.0f} deg, {k:.3g} sigma", t, kind=kind, geometry=tuple(geometry))
 
 
+# out of the catalogue: forms no plugin models, whose answer must be a description of the right kind. Not drawn,
+# because one frame cannot tell them from a catalogue effect (a series can): a bias drifting during the read-out,
+# a bias structure along the rows in one frame (the hidden-effect suite classes a bias step as bias_gradient for
+# that reason); a persistent image of a dithered field, a shifted copy of the sources as sharp as the ghosts the
+# ghost family draws (3-15 px)
+
+def fam_smear(rng):
+    """Out of the catalogue: light collected while a CCD's rows are shifted out with the shutter open (every
+    pixel gets a share of its column's light, :class:`.unseen.ReadoutSmear`); a CMOS read by rows does not smear."""
+    base = _choice(rng, ["stars", "stars_bright"])
+    rows = base_info(f"{base}_s")["out_shape"][0]
+    total, t = _loguniform(rng, 3e-4, 0.1)  # the share of each source's light spread along its column
+    return Draw(base, [("ReadoutSmear", {"frac_per_row": total / rows})], f"read-out smear, {100 * total:.2g} % of "
+                "each source along its column", t, kind="additive", geometry=("columns", "sources"))
+
+
+def fam_trail(rng):
+    """Out of the catalogue: an unmodelled satellite trail across the window (:class:`.unseen.SatelliteTrail`)."""
+    base = _choice(rng, ["stars", "stars_imx", "stars_bright"])
+    info = base_info(base)
+    k, t = _loguniform(rng, 0.3, 30.0)
+    sigma = float(rng.uniform(0.8, 3.0))
+    u0, u1 = sorted(float(v) for v in rng.uniform(0, 1, 2))
+    prm = {"u0": u0, "v0": float(rng.uniform(0, 1)), "u1": u1, "v1": float(rng.uniform(0, 1)),
+           "e_per_px": k * info["noise_e"] * math.sqrt(2 * math.pi) * sigma, "sigma_px": sigma}
+    return Draw(base, [("SatelliteTrail", prm)], f"satellite trail, {k:.3g} sigma at its centre, {sigma:.2g} px wide",
+                t, kind="additive", geometry=("local",))
+
+
+def fam_tree_rings(rng):
+    """Out of the catalogue: tree rings of a CCD's silicon, arcs about a point off the sensor
+    (:class:`.unseen.TreeRings`)."""
+    base = _choice(rng, ["flat", "flat_full"])
+    amp, t = _loguniform(rng, 3e-4, 1e-2)
+    prm = {"amp": amp, "period_px": float(np.exp(rng.uniform(np.log(60), np.log(300)))),
+           "cu": float(_choice(rng, [rng.uniform(-1.0, -0.3), rng.uniform(1.3, 2.0)])),
+           "cv": float(rng.uniform(-1.0, 2.0))}
+    # arcs about a point far off the window are near-straight stripes across it: seen along the columns (rows)
+    # when the point lies along x (y) from the sensor's middle, within the periodic family's 0.97 of the axis
+    info = base_info(base)
+    h, w = (n * info["bin"] for n in info["out_shape"])
+    dx, dy = (prm["cu"] - 0.5) * w, (prm["cv"] - 0.5) * h
+    geometry = ["rings", "periodic", "radial"]
+    if abs(dx) > 0.97 * math.hypot(dx, dy):
+        geometry.append("columns")
+    elif abs(dy) > 0.97 * math.hypot(dx, dy):
+        geometry.append("rows")
+    return Draw(base, [("TreeRings", prm)], f"tree rings, {100 * amp:.2g} % with a period of {prm['period_px']:.0f} px "
+                f"about ({prm['cu']:.2g}, {prm['cv']:.2g})", t, kind="multiplicative", geometry=tuple(geometry))
+
+
 #: family -> (catalogue effect (the confusion matrix's row; None out of the catalogue), drawer)
 FAMILIES: dict[str, tuple] = {
     "vignetting": ("vignetting", fam_vignetting), "straylight": ("straylight", fam_straylight),
@@ -1274,7 +1328,8 @@ FAMILIES: dict[str, tuple] = {
     "psf_elongation": ("psf_elongation", fam_psf_elongation), "jitter": ("jitter", fam_jitter),
     "pointing_drift": ("pointing_drift", fam_pointing_drift), "pointing_offset": ("pointing_offset", fam_pointing_offset),
     "distortion": ("distortion", fam_distortion), "ghost": ("ghost", fam_ghost),
-    "periodic": (None, fam_periodic),
+    "periodic": (None, fam_periodic), "smear": (None, fam_smear), "trail": (None, fam_trail),
+    "tree_rings": (None, fam_tree_rings),
 }
 
 #: the classes a drawn effect names (this module's, :mod:`.unseen`'s and :mod:`.hidden`'s real-world effects)
