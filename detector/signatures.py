@@ -69,7 +69,6 @@ def line_sigma(n_lines: int) -> float:
     return float(norm.isf(FRAME_FALSE_ALARM / (2.0 * max(int(n_lines), 1))))
 
 
-
 def columns_follow_sources(res) -> dict | None:
     """The outlier columns (``|col_z|`` beyond :func:`line_sigma`) when they follow the model's sources beyond
     chance, else None. A defective column sits where the sensor's defect is, whatever the scene; light spread
@@ -111,6 +110,7 @@ def columns_follow_sources(res) -> dict | None:
     slope = float(np.dot(flux, m) / np.dot(flux, flux))
     return {"cols": cols, "chance": chance, "follow": follow, "top": int(np.count_nonzero(r[cols] > 0.9)),
             "slope": slope}
+
 
 #: columns of the running median an outlier column is compared with [columns]
 LINE_WINDOW = 9

@@ -390,14 +390,15 @@ def _gain_check(fit, res) -> str:
             continue
         rc, sc, wc = _line_profile(res, sig, axis)
         ok = (wc > 0) & (sc != 0)
-        total = float(np.sum(wc[ok] * rc[ok] ** 2))
-        steps = total
+        k = regions.size + len(found)
+        if ok.sum() <= k:
+            continue
+        steps = float(np.sum(wc[ok] * rc[ok] ** 2))  # less what one gain per region explains
         for j in regions:
             m = ok & (line_region == j)
             s2 = float(np.sum(sc[m] ** 2 * wc[m]))
             if s2 > 0:
                 steps -= float(np.sum(sc[m] * rc[m] * wc[m])) ** 2 / s2
-        k = regions.size + len(found)
         centres = (res.xs if axis == "x" else res.ys)[ok]
         u = 2.0 * (centres - centres.min()) / max(float(np.ptp(centres)), 1e-9) - 1.0
         a = sc[ok][:, None] * np.polynomial.legendre.legvander(u, k - 1)
