@@ -431,3 +431,16 @@ def test_a_white_pattern_at_large_n_is_not_a_template():
     yy = np.arange(n)[:, None] / n
     ramp = 0.02 * (yy - 0.5) * np.ones((1, n))  # sum(ramp^2) = 0.0004 / 12 n^2: 5.9 sigma as a template
     assert 5.0 < scatter_sigma(white + ramp, var) < 6.5
+
+
+@pytest.mark.parametrize("family, case_seed", [
+    ("gain_regions", 2072658002213109475),  # two strips 2.8 % apart, 11 px transitions, a drift: a staircase fits
+    ("gain_regions", 950842770129256812),  # four strips, 17 px transitions, on the CCD binned 8x8
+])
+def test_gain_strips_with_wide_transitions_are_gain_regions(tmp_path, family, case_seed):
+    """Gain strips whose transitions are tanh ramps of 11-17 px, under a drift: found with more boundaries than the
+    strips (MAX_FOUND_SPLITS, the staircase takes the ramps and the drift), and kept by the steps-or-curve check
+    because the steps add their discontinuity to any curve (the first was refused for a curve that fits a
+    staircase better and named vignetting; the second, with two boundaries at most, named column_defects)."""
+    row = R.run_case(R.draw_case(family, case_seed), tmp_path, workers=1)
+    assert row["first"] == "gain_regions", row["ranking"][:3]

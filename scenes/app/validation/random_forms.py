@@ -26,7 +26,7 @@ seed, so that a report can be made on forms nobody has looked at:
   response, the dark, the light or the bias;
 * **other forms out of the catalogue** (their classes are :mod:`.unseen`'s, their parameters drawn): a
   read-out smear of a CCD (a share of each column's light along it), a satellite trail, tree rings of the
-  silicon.
+  silicon (at least four periods across the window).
 
 Amplitudes are log-uniform between a strong value and one near the detection threshold, in units of the
 frame's own noise (the pixel noise of the base scene: shot noise of the light and the dark, read noise), so
@@ -1295,7 +1295,10 @@ def fam_tree_rings(rng):
     (:class:`.unseen.TreeRings`)."""
     base = _choice(rng, ["flat", "flat_full"])
     amp, t = _loguniform(rng, 3e-4, 1e-2)
-    prm = {"amp": amp, "period_px": float(np.exp(rng.uniform(np.log(60), np.log(300)))),
+    # at least 4 periods across the small window (rings, not a smooth field), at least 4 output pixels each
+    small = small_info(base)
+    lo, hi = 4.0 * small["bin"], min(small["out_shape"]) * small["bin"] / 4.0
+    prm = {"amp": amp, "period_px": float(np.exp(rng.uniform(np.log(lo), np.log(hi)))),
            "cu": float(_choice(rng, [rng.uniform(-1.0, -0.3), rng.uniform(1.3, 2.0)])),
            "cv": float(rng.uniform(-1.0, 2.0))}
     # arcs about a point far off the window are near-straight stripes across it: seen along the columns (rows)
