@@ -195,6 +195,10 @@ class _Watermarks:
         self.last[sel] -= nn
 
 
+#: volume levels a pool keeps by default when pixels are grouped (``express`` >= 1; :func:`cti_transfer`)
+EXPRESS_WATERMARKS = 40
+
+
 def cti_transfer(image_e: np.ndarray, density_per_px, release_time_s, transfer_s: float, beta: float,
                  well_e: float, first_transfers: int = 1, return_trapped: bool = False, express: int = 1,
                  notch_e: float = 0.0, max_watermarks: int | None = None):
@@ -258,7 +262,7 @@ def cti_transfer(image_e: np.ndarray, density_per_px, release_time_s, transfer_s
     ny, nx = img.shape
     off = int(first_transfers) - 1
     if max_watermarks is None:
-        max_watermarks = min(ny + off + 4, 64) if express == 0 else 40
+        max_watermarks = min(ny + off + 4, 64) if express == 0 else EXPRESS_WATERMARKS
     cap = int(max_watermarks) + 3
     if express == 0:
         # every pixel its own pool; the window's offset pixels see the image's packets too
@@ -300,7 +304,7 @@ def cti_species_changes(image_e: np.ndarray, density_per_px, release_time_s, tra
     ny, nx = img.shape
     off = int(first_transfers) - 1
     mult = (np.arange(ny) + off + 1).astype(np.float64)  # one pool per column: every pixel the packet crossed
-    wm = _Watermarks(nx, rho, decay, 40 + 3)
+    wm = _Watermarks(nx, rho, decay, EXPRESS_WATERMARKS + 3)  # as cti_transfer's pools
     out = np.empty((rho.size, ny, nx))
     for j in range(ny):
         d = wm.step(img[j], mult[j], well_e, beta, notch_e=0.0, per_species=True)

@@ -250,11 +250,15 @@ def _dead_words(p, res):
 _REGION_GRIDS = ((2, 1), (1, 2), (2, 2), (4, 1), (1, 4), (4, 2), (2, 4), (4, 4), (8, 1), (1, 8))
 
 
+def _gain_signal(res) -> np.ndarray:
+    """What an amplifier's gain multiplies [ADU]: the converted charge (light and dark), not the bias or its
+    structure (on a bias frame gain regions change nothing)."""
+    return (res.charge_e / np.float32(res.gain)).astype(np.float32)
+
+
 def _gain_variants(res):
     s = res.sensor
-    # an amplifier's gain multiplies the converted charge (light and dark), not the bias or its structure:
-    # on a bias frame gain regions change nothing
-    sig = (res.charge_e / np.float32(res.gain)).astype(np.float32)
+    sig = _gain_signal(res)
     w = res.data_adu.shape[1]
     for nx, ny in _REGION_GRIDS:
         iy, ix = region_index(res.ys, res.xs, nx, ny, s.sensor_height_px, s.sensor_width_px)
@@ -383,7 +387,7 @@ def _gain_check(fit, res) -> str:
     s = res.sensor
     if not p or res.flat()[0].size == 0:
         return ""
-    sig = (res.charge_e / np.float32(res.gain)).astype(np.float32)
+    sig = _gain_signal(res)
     iy, ix = region_index(res.ys, res.xs, p["nx"], p["ny"], s.sensor_height_px, s.sensor_width_px,
                           p.get("splits_y"), p.get("splits_x"))
     for axis, line_region, found in (("x", ix, p.get("splits_x") or []), ("y", iy, p.get("splits_y") or [])):

@@ -219,6 +219,7 @@ IPC_NOISE_SIGMA | D | statistics | standard errors of the IPC neighbour-correlat
 ACS_RELEASE_TRANSFERS | N | model | HST ACS trap release times (Massey et al. 2014)
 ACS_RELATIVE_DENSITY | N | model | HST ACS trap densities (Massey et al. 2014)
 EXACT_MAX_POOLS | N | budget | memory bound of the exact trap pools
+EXPRESS_WATERMARKS | N | budget | volume levels kept per grouped trap pool
 ML11002_PARALLEL_TRANSFER_S | N | model | ML11002 parallel dwell
 CTI_BETAS | N | grid | well-fill powers tried
 @detector/effects/defects.py
