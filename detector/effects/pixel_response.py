@@ -382,7 +382,10 @@ def _gain_check(fit, res) -> str:
     a flat-field pattern, tree rings of the silicon) is fitted by a staircase of many narrow strips, better by
     a curve, and the steps add nothing to it; a step with wide transitions and a drift, which a staircase of
     many boundaries fits, keeps its discontinuity on top of any curve; where the two describe the profile alike
-    (a weak step) both stay and the judge says it cannot tell them apart."""
+    (a weak step) at the sensor's own region boundaries, both stay and the judge says it cannot tell them apart.
+    A boundary found from the data (``splits_x`` / ``splits_y``) is a claim of a discontinuity where the sensor's
+    layout puts none; its steps must add DETECTION_SIGMA^2 to the curve (a staircase of a few strips fits a weak
+    smooth gradient as well as the curve does, and adds nothing to it)."""
     p = fit.params
     s = res.sensor
     if not p or res.flat()[0].size == 0:
@@ -411,7 +414,15 @@ def _gain_check(fit, res) -> str:
         stepped = sc[ok][:, None] * (line_region[ok][:, None] == regions[None, :])
         steps, smooth = misfit(stepped), misfit(curve)
         added = smooth - misfit(np.hstack([curve, stepped[:, 1:]]))  # what the steps add to the curve
-        if steps - smooth > DETECTION_SIGMA ** 2 and added < DETECTION_SIGMA ** 2:
+        if added >= DETECTION_SIGMA ** 2:
+            continue
+        if found:
+            return (f"along {axis} the {len(found)} boundary(ies) found from the data add {added:.3g} to a smooth "
+                    f"curve of the line's position with as many parameters ({k}; chi2 {smooth:.4g} against "
+                    f"{steps:.4g} of the steps), less than {DETECTION_SIGMA:g}^2: no discontinuity the data show "
+                    "where the sensor's layout puts none, so a smooth response (vignetting, a flat-field pattern) "
+                    "described by a staircase, not read-out regions")
+        if steps - smooth > DETECTION_SIGMA ** 2:
             return (f"along {axis} a smooth curve of the line's position with as many parameters ({k}) describes the "
                     f"signal's profile better than the steps between the {regions.size} regions (chi2 "
                     f"{smooth:.4g} against {steps:.4g} of the line sums), and the steps add {added:.3g} to it, less "

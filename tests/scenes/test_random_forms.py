@@ -323,15 +323,15 @@ def test_off_centre_cos4_vignetting_not_handed_to_the_zero_point(tmp_path):
     assert not row["confidently_wrong"]
 
 
-@pytest.mark.xfail(reason="regression of 2026-12-01 (eleventh turn): with up to seven gain boundaries found from the "
-                   "data, a staircase takes this PRNU's large scales and the steps-or-curve check keeps it "
-                   "(gain_regions named); open, see docs/diagnose_validation.md", strict=False)
 def test_weak_prnu_with_a_large_scale_part_not_taken_for_gain_steps(tmp_path):
     """A PRNU of 0.13 % white and 0.24 % low-frequency rms on a flat (0.16 x the shot noise; a drawn case,
     prnu-200161311579918290): the white part alone is short of the BIC bar, so its smooth part was never tried
     and a gain step of 0.1 % took the large scales. The smooth part is now tried once the white part belongs to
     the pattern as a part (detector.significance.FOOTPRINT_SIGMA): the response is named (PRNU, or vignetting
-    for its smooth part, both accepted), not amplifier gain regions."""
+    for its smooth part, both accepted), not amplifier gain regions. With boundaries found from the data (up to
+    seven), a staircase of three close boundaries took the large scales again; its steps add 4.4 to a smooth curve
+    of as many parameters (chi2 of the line sums): found boundaries must show a discontinuity
+    (pixel_response._gain_check)."""
     row = R.run_case(R.draw_case("prnu", 200161311579918290), tmp_path, workers=1)
     assert row["first"] in ("prnu", "vignetting")
     prnu = next((c for c in row["ranking"] if c[0] == "prnu"), None)
