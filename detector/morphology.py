@@ -548,16 +548,20 @@ def describe(res: Residuals, delta_adu: np.ndarray | None = None) -> dict:
             out["empirical"] = _periodic_map(rmap, wmap, light, out["kind"], row_var)
             return out
         # light locked to the sources in a shape no ring or blob has (a trail, a one-sided halo): the residual
-        # stacked about them, as a kernel of their light
-        if zp.size <= FEATURE_MAX_PIXELS:
-            ker = source_kernel(res, rmap, wmap)
-            if ker is not None and ker["sigma"] >= SIGNIFICANT_SIGMA:
-                out["significant"] = True
-                out["significance_sigma"] = round(max(out["significance_sigma"], ker["sigma"]), 2)
-                out.update(_kernel_words(ker))
-                out["empirical"] = {"kind": "additive", "map": ker["map"]}
-        if not out["significant"]:
-            out.update(_columns_through_sources(res))
+        # stacked about them, as a kernel of their light; or light along the columns through them (a read-out
+        # smear), whose outlier columns the fitted pixels leave out. A smear's columns pass through its sources,
+        # so the kernel about them sees a piece of it too: when both are there, the description is the one
+        # whose map takes more chi2 from the fitted pixels (the kernel's own pixels are a subset of them)
+        ker = source_kernel(res, rmap, wmap) if zp.size <= FEATURE_MAX_PIXELS else None
+        if ker is not None and ker["sigma"] >= SIGNIFICANT_SIGMA:
+            out["significant"] = True
+            out["significance_sigma"] = round(max(out["significance_sigma"], ker["sigma"]), 2)
+            out.update(_kernel_words(ker))
+            out["empirical"] = {"kind": "additive", "map": ker["map"]}
+        cols = _columns_through_sources(res)
+        if cols and (not out["significant"] or _map_gain(cols["empirical"], rmap, wmap, light)
+                     > _map_gain(out["empirical"], rmap, wmap, light)):
+            out.update(cols, shares={})
         return out
     out["significant"] = True
     if block_sigma < SIGNIFICANT_SIGMA:

@@ -384,8 +384,9 @@ def _gain_check(fit, res) -> str:
     many boundaries fits, keeps its discontinuity on top of any curve; where the two describe the profile alike
     (a weak step) at the sensor's own region boundaries, both stay and the judge says it cannot tell them apart.
     A boundary found from the data (``splits_x`` / ``splits_y``) is a claim of a discontinuity where the sensor's
-    layout puts none; its steps must add DETECTION_SIGMA^2 to the curve (a staircase of a few strips fits a weak
-    smooth gradient as well as the curve does, and adds nothing to it)."""
+    layout puts none, so a tie goes to the description: its steps must describe the profile better than the curve
+    or add DETECTION_SIGMA^2 to it (a staircase of three close boundaries fits a weak PRNU's large scales about as
+    well as the curve does, and adds nothing to it; a weak single step beats the curve)."""
     p = fit.params
     s = res.sensor
     if not p or res.flat()[0].size == 0:
@@ -393,6 +394,9 @@ def _gain_check(fit, res) -> str:
     sig = _gain_signal(res)
     iy, ix = region_index(res.ys, res.xs, p["nx"], p["ny"], s.sensor_height_px, s.sensor_width_px,
                           p.get("splits_y"), p.get("splits_x"))
+    law = _gain_law(res, sig, iy, ix, p["nx"])
+    if law:
+        return law
     for axis, line_region, found in (("x", ix, p.get("splits_x") or []), ("y", iy, p.get("splits_y") or [])):
         regions = np.unique(line_region)
         if regions.size < 2:
@@ -416,12 +420,12 @@ def _gain_check(fit, res) -> str:
         added = smooth - misfit(np.hstack([curve, stepped[:, 1:]]))  # what the steps add to the curve
         if added >= DETECTION_SIGMA ** 2:
             continue
-        if found:
-            return (f"along {axis} the {len(found)} boundary(ies) found from the data add {added:.3g} to a smooth "
-                    f"curve of the line's position with as many parameters ({k}; chi2 {smooth:.4g} against "
-                    f"{steps:.4g} of the steps), less than {DETECTION_SIGMA:g}^2: no discontinuity the data show "
-                    "where the sensor's layout puts none, so a smooth response (vignetting, a flat-field pattern) "
-                    "described by a staircase, not read-out regions")
+        if found and steps >= smooth:
+            return (f"along {axis} the steps at {len(found)} boundary(ies) found from the data describe the signal's "
+                    f"profile no better than a smooth curve of the line's position with as many parameters ({k}; chi2 "
+                    f"{steps:.4g} against {smooth:.4g} of the line sums) and add {added:.3g} to it, less than "
+                    f"{DETECTION_SIGMA:g}^2: no discontinuity the data show where the sensor's layout puts none; a "
+                    "smooth response (vignetting, a flat-field pattern) described by a staircase, not read-out regions")
         if steps - smooth > DETECTION_SIGMA ** 2:
             return (f"along {axis} a smooth curve of the line's position with as many parameters ({k}) describes the "
                     f"signal's profile better than the steps between the {regions.size} regions (chi2 "
@@ -429,6 +433,30 @@ def _gain_check(fit, res) -> str:
                     f"than {DETECTION_SIGMA:g}^2: a smooth or periodic response (vignetting, a flat-field pattern), "
                     "not read-out regions, whose gains change in steps")
     return ""
+
+
+def _gain_law(res, sig: np.ndarray, iy: np.ndarray, ix: np.ndarray, nx: int) -> str:
+    """A gain multiplies the signal: within each region the residual follows the signal its amplifier read
+    (``sig``; the stars as the sky), so one factor per region must take more chi2 from the fitted pixels than one
+    offset per region (as many parameters). Where the offsets take more by DETECTION_SIGMA^2, the steps are light
+    or an offset added in strips (a satellite trail along the rows, a bias offset per amplifier), not gains. On a
+    uniform light (a flat, a sky without sources) the two are one template and nothing is refused. "" or why."""
+    idx, r, w = res.flat()
+    y, x = np.divmod(idx, res.data_adu.shape[1])
+    reg = iy[y] * nx + ix[x]
+    sv = sig.ravel()[idx].astype(np.float64)
+    n = int(reg.max()) + 1
+
+    def taken(t):  # sum over the regions of the chi2 one coefficient of template t takes: (sum w t r)^2 / sum w t^2
+        num, den = np.bincount(reg, w * t * r, n), np.bincount(reg, w * t * t, n)
+        return float(np.sum(np.where(den > 0, num * num / np.where(den > 0, den, 1.0), 0.0)))
+
+    mul, add = taken(sv), taken(np.ones_like(sv))
+    if add - mul <= DETECTION_SIGMA ** 2:
+        return ""
+    return (f"the steps do not scale with the signal: one offset per region takes {add:.4g} of the chi2, one gain "
+            f"per region {mul:.4g}, less by more than {DETECTION_SIGMA:g}^2: light or an offset added in strips (a "
+            "trail along the lines, a bias offset per amplifier), not gains, which multiply the sources as the sky")
 
 
 def _split_variant(res, sig: np.ndarray, axis: str, bounds: list[float]) -> Variant:

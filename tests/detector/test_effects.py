@@ -379,6 +379,48 @@ def test_a_smooth_periodic_response_is_no_staircase_of_gain_regions():
     assert sig.plausible(sig.fit(res, "gain_regions"), res) == ""
 
 
+def _field_residuals(s, photo, measured_photo, seed: int):
+    """Residuals of a frame whose model light is ``photo`` [e- per output pixel] and whose measured light is
+    ``measured_photo`` (bias 1000 ADU, gain 1, read noise 5 e- per sensor pixel of the 8x8 bin), with its shot noise."""
+    from detector.signatures import Residuals, SpikeStats
+
+    h, w = s.output_shape
+    ys, xs = np.arange(h) * 8 + 3.5, np.arange(w) * 8 + 3.5
+    rng = np.random.default_rng(seed)
+    var = measured_photo + 64 * 25.0
+    data = 1000 + measured_photo + rng.normal(0, 1, (h, w)) * np.sqrt(var)
+    return Residuals(data.astype(np.float32), (1000 + photo).astype(np.float32), (photo + 64 * 25.0).astype(np.float32),
+                     np.ones((h, w), bool), photo.astype(np.float32), np.zeros((h, w), np.float32), ys, xs, s, 1.0,
+                     SpikeStats(0, 0, 0, 0, 0), SpikeStats(0, 0, 0, 0, 0))
+
+
+def test_gain_steps_must_scale_with_the_signal_on_a_star_field():
+    """A gain multiplies what its amplifier reads, the stars as the sky: on a star field (a sky of 2000 e- per
+    binned pixel, 300 stars of 10^4 to 10^6 e-) a strip of rows whose light is 0.4 % high is a gain region (one factor
+    per region takes more chi2 than one offset), while a strip of rows with 8 e- per pixel of light added (a
+    satellite trail's, the same on sky and stars) fits as steps too but is refused: the offsets take more by far
+    more than DETECTION_SIGMA^2."""
+    from detector import registry
+
+    s = small(x0=0, y0=0, width=4008, height=2672, binning=8, read_noise_e=5.0, dark_current_e_per_s=0.0,
+              gain_e_per_adu=1.0)
+    h, w = s.output_shape
+    rng = np.random.default_rng(3)
+    photo = np.full((h, w), 2000.0)
+    yy, xx = np.mgrid[0:h, 0:w]
+    for y0, x0, f in zip(rng.uniform(0, h, 300), rng.uniform(0, w, 300), 10 ** rng.uniform(4, 6, 300)):
+        photo += f / (2 * np.pi) * np.exp(-0.5 * ((yy - y0) ** 2 + (xx - x0) ** 2))
+    strip = ((yy > 0.4 * h) & (yy < 0.6 * h)).astype(float)
+    sig = registry()["gain_regions"].signature
+    res = _field_residuals(s, photo, photo * (1 + 0.004 * strip), seed=4)
+    fit = sig.fit(res, "gain_regions")
+    assert fit is not None and fit.params.get("splits_y"), fit and fit.params
+    assert sig.plausible(fit, res) == ""
+    res = _field_residuals(s, photo, photo + 8.0 * strip, seed=4)
+    fit = sig.fit(res, "gain_regions")
+    assert fit is not None and "do not scale with the signal" in sig.plausible(fit, res), fit and fit.params
+
+
 def test_a_narrow_amplifier_strip_is_a_gain_region_not_columns():
     """Three strips with the middle one 5 % of the frame wide (25 binned columns, 0.7 % low): a step of the column
     means that persists over more than LINE_WINDOW columns is a region; the two boundaries are found where the

@@ -447,3 +447,27 @@ def test_gain_strips_with_wide_transitions_are_gain_regions(tmp_path, family, ca
     staircase better and named vignetting; the second, with two boundaries at most, named column_defects)."""
     row = R.run_case(R.draw_case(family, case_seed), tmp_path, workers=1)
     assert row["first"] == "gain_regions", row["ranking"][:3]
+
+
+def test_a_strong_readout_smear_described_as_light_along_the_columns_through_the_sources(tmp_path):
+    """A read-out smear of 10 % of each source's light along its column (a drawn case, smear-3758493608554811529):
+    the residual stacked about the sources (a kernel of their light) took a piece of it and was described as light
+    redistributed about them, and the columns were never asked. Both are now weighed by the chi2 their maps take
+    from the fitted pixels (227 for the columns against 117): additive, columns and sources, each column lifted by
+    a share of its sources' light near the drawn one."""
+    case = R.draw_case("smear", 3758493608554811529)
+    row = R.run_case(case, tmp_path, workers=1)
+    m = row["residual_morphology"]
+    assert row["morphology_match"] and m["kind"] == "additive" and m["geometry"][:2] == ["columns", "sources"]
+    drawn = 100 * case.draw.effects[0][1]["frac_per_row"] * 256
+    assert m["amplitude"] == pytest.approx(drawn, rel=0.3)
+
+
+def test_a_trail_along_the_rows_is_no_gain_region(tmp_path):
+    """A faint satellite trail nearly along the rows of a bright star field (a drawn case,
+    trail-1097492557284885885) was taken by a gain region of ten rows (1.007) between two found boundaries: on a
+    star field a gain multiplies the stars as the sky, and one offset per region takes more chi2 than one gain
+    (pixel_response._gain_law). Nothing is named; the residual is described as additive."""
+    row = R.run_case(R.draw_case("trail", 1097492557284885885), tmp_path, workers=1)
+    assert row["first"] != "gain_regions" and not row["confidently_wrong"]
+    assert row["residual_morphology"]["kind"] == "additive"
