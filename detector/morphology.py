@@ -848,12 +848,6 @@ def describe(res: Residuals, delta_adu: np.ndarray | None = None) -> dict:
     return out
 
 
-def _source_light(res: Residuals) -> np.ndarray:
-    """The sources' model light before the full-well clip [ADU per output pixel]: the light field less the
-    background's, at least 0."""
-    return np.clip(np.asarray(res.photo_field, np.float64) - res.background_photo_adu, 0.0, None)
-
-
 #: a line pattern follows the sources when their light per line explains this share of the lines' excess
 LINE_SOURCE_SHARE = EXPLAINS_MOST
 
@@ -866,7 +860,7 @@ def _lines_through_sources(res: Residuals, lm, lw, okl, axis: int, excess: float
     if res.background_adu is None or excess <= 0:
         return None
     # the sources' light before the full-well clip (a saturated star smears all of its light), on every pixel
-    s_line = _source_light(res).sum(axis=axis)[okl]
+    s_line = res.source_light().sum(axis=axis)[okl]
     s_line = s_line - float(np.sum(lw * s_line) / np.sum(lw))  # a straight line with its intercept
     den = float(np.sum(lw * s_line * s_line))
     if den <= 0:
@@ -890,15 +884,42 @@ def _columns_through_sources(res: Residuals) -> dict:
     got = columns_follow_sources(res)
     if got is None or got["slope"] <= 0:
         return {}
+    slope = _column_smear_slope(res)
+    if slope <= 0:
+        return {}
     rows = res.data_adu.shape[0]
     sigma = max(got["follow"], float(norm.isf(max(got["chance"], 1e-300))))
     geom = ["columns", "sources"]
     return {"significant": True, "significance_sigma": round(sigma, 2), "kind": "additive", "kind_certain": True,
-            "geometry": geom, "scale_px": float(rows), "amplitude": round(100 * got["slope"] * rows, 4), "unit": "%",
+            "geometry": geom, "scale_px": float(rows), "amplitude": round(100 * slope * rows, 4), "unit": "%",
             "explanation": _words("additive", geom, f"{got['cols'].size} columns above their neighbours where the "
-                                  f"sources are, each column lifted by {100 * got['slope'] * rows:.2g} % of its "
+                                  f"sources are, each column lifted by {100 * slope * rows:.2g} % of its "
                                   "sources' light spread along it (a streak through each source along the read-out)"),
-            "empirical": _smear_map(res, got["slope"], 0)}
+            "empirical": _smear_map(res, slope, 0)}
+
+
+#: pixels a column's median residual is taken from at most (every k-th row beyond that) [pixels]
+SMEAR_MEDIAN_PIXELS = 4_000_000
+
+
+def _column_smear_slope(res: Residuals) -> float:
+    """The share of its column's source light (:meth:`Residuals.source_light`, before the full-well clip) that each
+    pixel holds [1 per pixel]: the columns' median residuals over the pixels the outlier statistics see (robust to
+    the spikes and to a source's own misfit pixels, a few of a column's) fitted by a straight line of the columns'
+    source light (the intercept is the levels'). Not from the outlier statistic ``col_z``, which is clipped and
+    taken against the running median of the neighbouring columns, which a source's smear lifts too."""
+    use = res.outlier_usable
+    step = max(1, math.ceil(use.size / SMEAR_MEDIAN_PIXELS))
+    r = np.where(use[::step], res.data_adu[::step].astype(np.float64) - res.model_adu[::step], np.nan)
+    with np.errstate(all="ignore"):
+        med = np.nanmedian(r, axis=0) if np.isfinite(r).any() else np.full(r.shape[1], np.nan)
+    f = res.source_light().sum(axis=0)
+    ok = np.isfinite(med)
+    if ok.sum() < 3:
+        return 0.0
+    fc = f[ok] - f[ok].mean()
+    den = float(np.dot(fc, fc))
+    return float(np.dot(fc, med[ok] - med[ok].mean()) / den) if den > 0 else 0.0
 
 
 #: a line profile is periodic when one frequency holds this share of its power beyond the noise: most of it,
@@ -977,7 +998,7 @@ def _smear_map(res: Residuals, slope: float, axis: int) -> dict:
     """The empirical map of light smeared along the lines through the sources (:func:`_lines_through_sources`):
     every pixel holds ``slope`` of its line's source light [ADU], less its mean over the frame (the levels take
     that). One number for the whole frame, so it holds between the lines it was measured on."""
-    s_line = _source_light(res).sum(axis=axis)
+    s_line = res.source_light().sum(axis=axis)
     amap = np.broadcast_to((s_line - s_line.mean())[:, None] if axis == 1 else (s_line - s_line.mean())[None, :],
                            res.data_adu.shape)
     return {"kind": "additive", "map": (slope * amap).astype(np.float32)}
@@ -1443,7 +1464,7 @@ def source_kernel(res: Residuals, rmap: np.ndarray, wmap: np.ndarray) -> dict | 
         return None
     # the light the optics spread (before the full-well clip) or the signal the read-out recorded (an
     # amplifier's echo follows what it read): whichever the residual follows better
-    light = _source_light(res)
+    light = res.source_light()
     recorded = np.clip(np.asarray(res.model_adu, np.float64) - res.background_adu, 0.0, None)
     fits = []
     for tag, src in (("light", light), ("recorded signal", recorded)):

@@ -80,7 +80,8 @@ def columns_follow_sources(res) -> dict | None:
     ``sum -ln(1 - r)`` is Gamma(n, 1) (half the tail each). The other columns' standardised means ``z`` follow
     their source light: the matched filter ``sum f z / sqrt(sum f^2)`` is standard normal without it (a
     defect that sits at a bright source by chance leaves the other columns as they were), and counts when
-    the outlier columns lie above their neighbours. Returns ``{"cols", "chance", "follow", "top",
+    the outlier columns lie above their neighbours. ``f`` is the light before the full-well clip
+    (:meth:`Residuals.source_light`): a saturated star smears all of its light. Returns ``{"cols", "chance", "follow", "top",
     "slope"}``: the columns, the rank test's chance, the matched filter [sigma], how many of the columns are
     among the tenth that hold the most source light, and the share of a column's source light its mean
     holds [1 per pixel] (from the columns' mean excess, col_z x col_err_adu)."""
@@ -92,7 +93,7 @@ def columns_follow_sources(res) -> dict | None:
     cols = np.flatnonzero(np.abs(z) > line_sigma(z.size))
     if cols.size == 0:
         return None
-    flux = np.clip(np.nan_to_num(res.model_adu.astype(np.float64) - res.background_adu), 0.0, None).sum(axis=0)
+    flux = np.nan_to_num(res.source_light()).sum(axis=0)
     if not (flux > 0).any():
         return None
     tail = norm.sf(DETECTION_SIGMA)
@@ -521,6 +522,12 @@ class Residuals:
         photo = self.photo_adu
         sample = photo.ravel()[:: max(1, photo.size // 1_000_000)]
         return np.minimum(photo, np.float32(np.median(sample))) if photo.size else photo
+
+    def source_light(self) -> np.ndarray:
+        """The sources' model light before the full-well clip [ADU per output pixel, float64]: the light field
+        (:attr:`photo_field`) less the background's (:attr:`background_photo_adu`), at least 0. A saturated star's
+        whole light, which a smear along the read-out spreads (not the clipped charge the model records)."""
+        return np.clip(np.asarray(self.photo_field, np.float64) - self.background_photo_adu, 0.0, None)
 
     @property
     def without_sources_adu(self) -> np.ndarray:

@@ -626,7 +626,8 @@ def test_outlier_columns_at_the_bright_sources_columns_are_no_column_defects():
 def test_columns_through_the_sources_are_described_as_a_streak_with_their_share_of_the_light():
     """The morphology's fitted pixels leave outlier columns out, so it describes columns that follow the
     sources from the column statistics: additive, columns and sources, with the share of each column's source
-    light that its pixels hold (1e-4 per row here, 1.28 % over the 128 rows) measured within 10 %."""
+    light that its pixels hold (1e-4 per row here, 1.28 % over the 128 rows) measured within 10 % from the
+    columns' median residuals (the smear in the data, with its noise)."""
     import dataclasses
 
     from detector.morphology import _columns_through_sources
@@ -638,7 +639,9 @@ def test_columns_through_the_sources_are_described_as_a_streak_with_their_share_
     err = np.full(w, np.sqrt(325.0 / h))  # the standard error of a column's mean [ADU]
     smear = 1e-4 * stars.sum(axis=0)  # [ADU per pixel]
     col_z = smear / err + rng.standard_normal(w)
-    res = dataclasses.replace(base, data_spikes=SpikeStats(0, 0, 0, 0, 0, col_z=col_z, col_err_adu=err))
+    data = base.model_adu + smear[None, :] + rng.standard_normal((h, w)) * np.sqrt(base.var_adu2)
+    res = dataclasses.replace(base, data_adu=data.astype(np.float32),
+                              data_spikes=SpikeStats(0, 0, 0, 0, 0, col_z=col_z, col_err_adu=err))
     out = _columns_through_sources(res)
     assert out["significant"] and out["kind"] == "additive" and out["geometry"] == ["columns", "sources"], out
     assert out["amplitude"] == pytest.approx(100 * 1e-4 * h, rel=0.1)

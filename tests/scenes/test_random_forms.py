@@ -454,13 +454,14 @@ def test_a_strong_readout_smear_described_as_light_along_the_columns_through_the
     the residual stacked about the sources (a kernel of their light) took a piece of it and was described as light
     redistributed about them, and the columns were never asked. Both are now weighed by the chi2 their maps take
     from the fitted pixels (227 for the columns against 117): additive, columns and sources, each column lifted by
-    a share of its sources' light near the drawn one."""
+    the drawn share of its sources' light (10 %: the columns' median residuals against their light before the clip;
+    the clipped outlier statistic against its neighbours read 5.8 %)."""
     case = R.draw_case("smear", 3758493608554811529)
     row = R.run_case(case, tmp_path, workers=1)
     m = row["residual_morphology"]
     assert row["morphology_match"] and m["kind"] == "additive" and m["geometry"][:2] == ["columns", "sources"]
     drawn = 100 * case.draw.effects[0][1]["frac_per_row"] * 256
-    assert m["amplitude"] == pytest.approx(drawn, rel=0.3)
+    assert m["amplitude"] == pytest.approx(drawn, rel=0.05)
 
 
 def test_a_trail_along_the_rows_is_no_gain_region(tmp_path):
