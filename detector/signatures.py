@@ -81,10 +81,11 @@ def columns_follow_sources(res) -> dict | None:
     their source light: the matched filter ``sum f z / sqrt(sum f^2)`` is standard normal without it (a
     defect that sits at a bright source by chance leaves the other columns as they were), and counts when
     the outlier columns lie above their neighbours. ``f`` is the light before the full-well clip
-    (:meth:`Residuals.source_light`): a saturated star smears all of its light. Returns ``{"cols", "chance", "follow", "top",
-    "slope"}``: the columns, the rank test's chance, the matched filter [sigma], how many of the columns are
-    among the tenth that hold the most source light, and the share of a column's source light its mean
-    holds [1 per pixel] (from the columns' mean excess, col_z x col_err_adu)."""
+    (:meth:`Residuals.source_light`): a saturated star smears all of its light. Returns ``{"cols", "chance",
+    "follow", "top", "slope"}``: the columns, the rank test's chance, the matched filter [sigma], how many of the
+    columns are among the tenth that hold the most source light, and the sign-bearing share of a column's source
+    light its mean holds [1 per pixel] (from the columns' clipped excess against their neighbours, col_z x
+    col_err_adu: low for a smear, which lifts the neighbours too; the morphology measures the share itself)."""
     from scipy.stats import gamma, norm, rankdata
 
     z = np.nan_to_num(np.asarray(res.data_spikes.col_z, np.float64))
