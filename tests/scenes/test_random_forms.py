@@ -472,3 +472,14 @@ def test_a_trail_along_the_rows_is_no_gain_region(tmp_path):
     row = R.run_case(R.draw_case("trail", 1097492557284885885), tmp_path, workers=1)
     assert row["first"] != "gain_regions" and not row["confidently_wrong"]
     assert row["residual_morphology"]["kind"] == "additive"
+
+
+def test_a_glow_on_a_sky_frame_ties_with_the_light_fields_it_cannot_be_told_from(tmp_path):
+    """A weak straylight of waves (0.155 % of the sky) on a binned IMX411 sky frame without stars (a drawn case,
+    straylight-888026164294142585): a glow's point emitter passes the BIC bar, straylight's series does not (-7.5),
+    and the glow was named alone, confidently wrong. Dark charge and light put the same charge in the same pixels
+    of one exposed frame whatever form each fit takes (judge._other_origin, as _other_law for the two laws of a
+    light pattern): a tie with straylight and the sky gradient."""
+    row = R.run_case(R.draw_case("straylight", 888026164294142585), tmp_path, workers=1)
+    assert not row["confidently_wrong"]
+    assert {"straylight", "sky_gradient"} <= set(row["cannot_tell_apart"])

@@ -457,6 +457,7 @@ def indistinguishable(sig: list[Candidate], cands: list[Candidate] = ()) -> list
            or same_image(sig[0], c)]
     out += [c for c in cands if c.kind != "parameter" and c is not sig[0] and c not in out and not c.significant
             and ((c.contender or _other_law(sig[0], c)) and same_image(sig[0], c)
+                 or _other_origin(sig[0], c)
                  or c.contender and blind_rival(sig[0], c) or better_rival(sig[0], c)
                  or closer_rival(sig[0], c))]
     return out
@@ -468,6 +469,14 @@ def _other_law(first: Candidate, c: Candidate) -> bool:
     says the frame does not tell an added light from a response, whatever ``c``'s own form pays for its
     parameters (a Legendre series of 14 terms short of the BIC bar where the two-term fall-off passes it)."""
     return same_light(first, c) and c.plausible and not c.rejected
+
+
+def _other_origin(first: Candidate, c: Candidate) -> bool:
+    """``c`` puts ``first``'s charge in the same pixels by the other origin (:func:`same_charge`: dark charge or
+    light), plausible and not rejected: the charge's origin is not in one exposed frame, whatever ``c``'s own
+    form pays for its parameters (a straylight series short of the BIC bar where a glow's point emitter passes
+    it, on a sky of one level). As :func:`_other_law` for the two laws of a light pattern."""
+    return same_charge(first, c) and c.plausible and not c.rejected
 
 
 def twin_tolerance(best: float, policy) -> float:
