@@ -169,6 +169,7 @@ VarianceSignature.MEAN_SIGMA | D | statistics | added scatter is zero-mean: the 
 SIGNIFICANT_SIGMA | D | calibration | a structured residual: structure_sigma
 GEOMETRY_SHARE | D | design | a family is part of the geometry
 BLOCKS | N | grid | blocks of the binned maps
+SMEAR_MEDIAN_PIXELS | N | budget | pixels of the column medians a smear share is read from
 FEATURE_DETECT | D | statistics | a compact feature detected at detection_sigma
 FEATURE_PEAK | D | statistics | ... kept when its peak reaches structure_sigma
 FEATURE_SCALES | N | grid | smoothing scales of the feature search
