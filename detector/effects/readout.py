@@ -617,9 +617,11 @@ CROSSTALK_MIN_WIDTH = 16
 #: is flagged (the echo may come later or last longer than the family reaches). Delays up to 7 read-out pixels:
 #: the range searched is not a physical bound (an echo coupled between channels whose read-out paths differ in
 #: latency by a few clock cycles lands that many pixels from its source); with delays up to 3 only, an echo
-#: delayed by 2 and smeared over the next two pixels fitted best at 3 and was refused at the bound
+#: delayed by 2 and smeared over the next two pixels fitted best at 3 and was refused at the bound. Tails up to 4
+#: read-out pixels for the same reason: an echo delayed by 1 and spread over three lags (0.6, 0.3, 0.1) fits best
+#: as an undelayed tail of 2.5 px (one parameter fewer), which a grid ending at 2 px refused at its bound
 CROSSTALK_DELAYS = (0, 1, 2, 3, 4, 5, 6, 7)
-CROSSTALK_TAILS = (0.0, 0.25, 0.5, 1.0, 2.0)
+CROSSTALK_TAILS = (0.0, 0.25, 0.5, 1.0, 2.0, 4.0)
 #: layouts (the best by their delays alone) whose every kernel (delays and tails) is tried [layouts]
 CROSSTALK_TOP_LAYOUTS = 2
 

@@ -123,7 +123,8 @@ def test_layout_taps_reproduce_the_plugin_template(n, mirrored):
 
 
 @pytest.mark.parametrize("n,mirrored,delay,tail,alpha", [(3, False, 2, 0.7, 2.5e-3), (2, True, 1, 0.0, -1.5e-3),
-                                                         (4, True, 0, 0.0, 1e-3), (2, False, 5, 0.0, 2e-3)])
+                                                         (4, True, 0, 0.0, 1e-3), (2, False, 5, 0.0, 2e-3),
+                                                         (3, False, 0, 2.5, 2e-3)])
 def test_signature_recovers_a_delayed_echo_rendered_by_the_plugin(n, mirrored, delay, tail, alpha):
     from detector import registry
 
