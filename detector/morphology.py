@@ -15,7 +15,8 @@ itself is described by the questions an instrument scientist asks of it:
   ``sources`` (the excess sits on the sources), ``local`` (a few compact blocks of the block map), ``rings``
   (annuli: a dust donut's shadow, a diffraction or ghost ring; rings about the sources make the pattern
   ``redistributed``), ``blobs`` (compact features off the sources: glints, a latent image), both from the
-  band-passed whitened pixel map (:func:`compact_features`), ``noise`` (extra pixel-to-pixel variance without
+  band-passed whitened pixel map (:func:`compact_features`), ``streak`` (one straight line segment: a trail;
+  :func:`straight_line`), ``noise`` (extra pixel-to-pixel variance without
   a mean pattern). Each family's share of the structured chi2 is reported;
   the geometry lists those that take a sizeable share.
 * **scale_px**, **amplitude** (with its unit) and an **explanation** naming the nearest physical families.
@@ -69,6 +70,9 @@ FAMILIES = {
     ("additive", "columns"): "column offsets, hot columns, a bias pattern of the read-out, a read-out smear",
     ("additive", "periodic"): "electronic pick-up (a pattern noise), fringing of a sky line",
     ("additive", "local"): "glints, ghosts, hot spots, light leaks",
+    ("additive", "streak"): "a satellite or debris trail the scene lacks (add it as a streak of the scene), a "
+                            "meteor or an aircraft, one bright row or column",
+    ("multiplicative", "streak"): "the shadow of a scratch or a fibre on a window or filter",
     ("additive", "blobs"): "satellite glints, a persistent (latent) image, hot spots, ghosts of bright sources",
     ("additive", "rings"): "defocused ghosts (out-of-focus reflections of bright sources), halos",
     ("multiplicative", "rings"): "dust shadows (donuts: out-of-focus images of the pupil) on a window or filter",
@@ -536,6 +540,19 @@ def describe(res: Residuals, delta_adu: np.ndarray | None = None) -> dict:
             out.update(_compact_only(res, feats, rmap, light))
             out["empirical"] = _feature_map(feats, rmap, wmap, light,
                                             "additive" if out["kind"] == "redistributed" else out["kind"], res)
+            # features strung along one straight line are a streak (a faint trail found piece by piece) when the
+            # line's own map takes most (EXPLAINS_MOST) of the chi2 the features' map takes
+            line = straight_line(rmap, wmap) if out["kind"] == "additive" else None
+            if is_streak(line):
+                smap = _streak_map(line, shape)
+                if out["empirical"] is None or _map_gain(smap, rmap, wmap, light) >= \
+                        EXPLAINS_MOST * _map_gain(out["empirical"], rmap, wmap, light):
+                    amp, unit, desc = _streak_words(line, gain)
+                    geometry = ["streak"] + [g for g in out["geometry"] if g != "streak"]
+                    out.update(geometry=geometry, scale_px=round(line["fwhm_px"], 2), amplitude=round(amp, 4),
+                               unit=unit, explanation=_words("additive", geometry, desc), empirical=smap,
+                               shares={**out["shares"], "streak": round(min(1.0, max(line["chi2"], 0.0)
+                                                                                 / max(pix_chi2 - idx.size, 1e-300)), 3)})
             return out
         # one spatial frequency far above the rest: a pick-up or fringe pattern too weak to move the chi2. The
         # fx = 0 column is measured against the power the model's row noise puts there (row_power_factor)
@@ -708,6 +725,9 @@ def describe(res: Residuals, delta_adu: np.ndarray | None = None) -> dict:
         shares["rings"] = feats["rings"]
     if feats["n_blobs"]:
         shares["blobs"] = feats["blobs"]
+    line = straight_line(rmap, wmap)
+    if is_streak(line):
+        shares["streak"] = line["chi2"] / pixel_total
     if rings_on_src and kind != "redistributed":
         # rings centred on the sources are a property of the sources' light (a diffraction or ghost ring: the
         # point-spread function), light moved around them whatever the fitted fluxes absorbed
@@ -731,6 +751,15 @@ def describe(res: Residuals, delta_adu: np.ndarray | None = None) -> dict:
         geometry[:0] = ["sources", "rings"]
     if kind == "redistributed" and "sources" not in geometry:
         geometry.insert(0, "sources")
+    if "streak" in geometry and geometry[0] in ("local", "blobs") and kind == "additive":
+        # a trail is a few blocks of the block map and a string of blobs too: the straight line is the description
+        # when its map (a profile across it and an extent: a few numbers) takes most (EXPLAINS_MOST) of the chi2
+        # their map takes from the fitted pixels (the residual itself, smoothed: it follows the noise there too)
+        other = _block_map(mean, lb, ok, b, shape, False) if geometry[0] == "local" else \
+            _feature_map(feats, rmap, wmap, light, kind, res)
+        if other is None or _map_gain(_streak_map(line, shape), rmap, wmap, light) >= \
+                EXPLAINS_MOST * _map_gain(other, rmap, wmap, light):
+            geometry = ["streak"] + [g for g in geometry if g != "streak"]
     # scale and amplitude
     main = geometry[0]
     smooth_fit = fit_grad if d_grad <= d_rad else fit_rad
@@ -759,6 +788,8 @@ def describe(res: Residuals, delta_adu: np.ndarray | None = None) -> dict:
         scale = feats["blob_radius_px"]
     elif main == "local":
         scale = float(b * math.sqrt(max(strong.sum(), 1)))
+    elif main == "streak":
+        scale = line["fwhm_px"]
     else:
         scale = float(b * max(ny, nx))
     periodic_map = None
@@ -769,6 +800,8 @@ def describe(res: Residuals, delta_adu: np.ndarray | None = None) -> dict:
     if main in ("rings", "blobs") or (main == "sources" and rings_on_src):
         fam = "srings" if main == "sources" else main
         amp, unit, desc = _feature_amplitude(res, feats, fam, rmap, light, kind == "multiplicative" and has_light)
+    elif main == "streak":
+        amp, unit, desc = _streak_words(line, gain)
     elif periodic_map is not None and main == "periodic":
         # the band-passed pattern itself: a sinusoid of amplitude sqrt(2) x its rms
         pm = periodic_map["map"][wmap > 0] if np.any(wmap > 0) else periodic_map["map"]
@@ -815,18 +848,15 @@ def describe(res: Residuals, delta_adu: np.ndarray | None = None) -> dict:
         # the empirical map: the block means themselves, smoothed over a block (normalised convolution
         # over the blocks with data), not a parametric form: it follows whatever shape the pattern has
         # at scales of a block and more. Relative to the light for a multiplicative pattern [1], else [ADU]
-        ek = "multiplicative" if kind == "multiplicative" and has_light else "additive"
-        vals = np.where(ok, mean / np.maximum(lb, 1e-9) if ek == "multiplicative" else mean, 0.0)
-        wts = ok.astype(float)
-        sm = gaussian_filter(vals * wts, 1.0, mode="nearest") / np.maximum(gaussian_filter(wts, 1.0, mode="nearest"),
-                                                                         1e-9)
-        out["empirical"] = {"kind": ek, "map": _upsample(sm, b, shape)}
+        out["empirical"] = _block_map(mean, lb, ok, b, shape, kind == "multiplicative" and has_light)
         if main == "local" and zp.size <= FEATURE_MAX_PIXELS:
             # a local pattern thinner than a block (a trail, glints): the features' own map when it explains more
             fmap = _feature_map(feats, rmap, wmap, light, "additive" if kind == "redistributed" else kind, res)
             if fmap is not None and _map_gain(fmap, rmap, wmap, light) > _map_gain(out["empirical"], rmap, wmap,
                                                                                       light):
                 out["empirical"] = fmap
+    elif main == "streak":
+        out["empirical"] = _streak_map(line, shape)
     elif main in ("rows", "columns") and through is not None and not line_period:
         # light smeared along the lines through the sources: the smear itself (one fraction of each line's
         # source light), which predicts the lines' other pixels, when it takes more than the lines' own means
@@ -959,6 +989,194 @@ def _line_period(lm: np.ndarray, lw: np.ndarray) -> float:
         a, b, c = np.log(p[k - 1]), np.log(p[k]), np.log(p[k + 1])
         k = k + 0.5 * (a - c) / (a - 2 * b + c) if (a - 2 * b + c) < 0 else k
     return round(n / k, 2)
+
+
+#: longest side [px] of the map the straight-line search projects (block sums of the whitened pixel map): between
+#: two angles STREAK_STEP_DEG apart a line moves by at most 1.1 bins at the map's edge
+STREAK_MAP_PX = 256
+#: angles [deg] of the coarse projection (refined ten times finer about the best)
+STREAK_STEP_DEG = 0.5
+#: band [map px] whose sum is the line's, and the flanks on either side (the same width again, two bins off) whose
+#: mean is taken out: a smooth field and a ramp across the line cancel, a line a few pixels wide stands out
+STREAK_BANDS = (1, 3)
+#: half-width [output px] of the profile across the line measured at full resolution (at least this, or two
+#: blocks of the search map)
+STREAK_PROFILE_PX = 8
+
+
+def straight_line(rmap: np.ndarray, wmap: np.ndarray) -> dict | None:
+    """The strongest straight line of the whitened residual ``rmap sqrt(wmap)``: a trail (a satellite, debris, a
+    meteor), a scratch's shadow, one bright row or column. The sums along every line of a block map (the Radon
+    transform, by bincount of each pixel's offset ``x cos(t) + y sin(t)`` at every angle ``t``) over a band of 1
+    or 3 bins, less the same number of pixels' share of its flanks (a smooth field cancels), over their noise:
+    a unit normal deviate per line under white noise. The best line's angle is refined, then its profile across
+    the line is measured on the output pixels (1 px bins out to STREAK_PROFILE_PX) and its extent along it.
+
+    Returns None on a map without lines, else ``sigma`` (the best line's deviate), ``n_tests`` (lines x bands
+    searched: the look-elsewhere factor), ``chi2`` (what the profile across the line takes from the pixels beyond
+    a constant and its noise), ``angle_deg`` (of the line, x towards y), ``through`` (x, y) [output px],
+    ``length_px``, ``fwhm_px``, ``peak_adu`` and ``profile`` (offsets [px] and mean residual [ADU])."""
+    okp = wmap > 0
+    if okp.sum() < 64:
+        return None
+    zp = np.where(okp, rmap * np.sqrt(np.where(okp, wmap, 0.0)), 0.0)
+    s = max(1, math.ceil(max(zp.shape) / STREAK_MAP_PX))
+    zs, ns = _blocks(zp, s), _blocks(okp.astype(np.float64), s)
+    on = ns > 0
+    ny, nx = zs.shape
+    yy, xx = np.mgrid[0:ny, 0:nx].astype(np.float64)
+    cy, cx = (ny - 1) / 2.0, (nx - 1) / 2.0
+    x, y, zv, nv = xx[on] - cx, yy[on] - cy, zs[on], ns[on]
+    rmax = int(math.ceil(math.hypot(ny, nx) / 2.0)) + 2 * max(STREAK_BANDS) + 2
+    kernels = []
+    for band in STREAK_BANDS:
+        k_in = np.zeros(5 * band)
+        k_in[2 * band:3 * band] = 1.0
+        k_fl = np.zeros(5 * band)
+        k_fl[:band], k_fl[4 * band:] = 1.0, 1.0
+        kernels.append((k_in, k_fl))
+
+    def deviates(theta, band):
+        rho = np.rint(x * math.cos(theta) + y * math.sin(theta)).astype(np.int64) + rmax
+        sz = np.bincount(rho, zv, 2 * rmax + 1)
+        cnt = np.bincount(rho, nv, 2 * rmax + 1)
+        k_in, k_fl = kernels[band]
+        s_in, n_in = np.convolve(sz, k_in, "same"), np.convolve(cnt, k_in, "same")
+        s_fl, n_fl = np.convolve(sz, k_fl, "same"), np.convolve(cnt, k_fl, "same")
+        good = (n_in > 0) & (n_fl > 0)
+        ratio = np.where(good, n_in / np.where(good, n_fl, 1.0), 0.0)
+        return np.where(good, (s_in - ratio * s_fl) / np.sqrt(np.where(good, n_in + ratio * n_in, 1.0)), 0.0)
+
+    def best_at(theta):
+        top = (0.0, 0, 0)
+        for bi in range(len(kernels)):
+            t = deviates(theta, bi)
+            i = int(np.argmax(np.abs(t)))
+            if abs(t[i]) > abs(top[0]):
+                top = (float(t[i]), i - rmax, bi)
+        return top
+
+    coarse = np.radians(np.arange(0.0, 180.0, STREAK_STEP_DEG))
+    found = [(best_at(t), t) for t in coarse]
+    (sig, _, _), theta = max(found, key=lambda f: abs(f[0][0]))
+    sig_searched = abs(sig)  # the deviate the look-elsewhere bar is for (the refinement maximises it further)
+    fine = theta + np.radians(np.arange(-1.0, 1.0001, 0.1) * STREAK_STEP_DEG)
+    (sig, rho, band), theta = max(((best_at(t), t) for t in fine), key=lambda f: abs(f[0][0]))
+    n_tests = coarse.size * (2 * rmax + 1) * len(STREAK_BANDS)
+    # the strongest parallel line beyond the profile's reach: a trail is one line, a pattern of lines (banding,
+    # pick-up, fringes) has neighbours as strong
+    t_all = deviates(theta, band)
+    far = np.abs(np.arange(t_all.size) - rmax - rho) > max(2 * STREAK_BANDS[band], math.ceil(STREAK_PROFILE_PX / s))
+    next_sigma = float(np.max(np.abs(t_all[far]))) if far.any() else 0.0
+    # the profile across the line on the output pixels (offsets d from it, positions t along it)
+    ct, st = math.cos(theta), math.sin(theta)
+    ocy, ocx = (cy + 0.5) * s - 0.5, (cx + 0.5) * s - 0.5
+    half = max(STREAK_PROFILE_PX, 2 * s)
+    iy, ix = np.nonzero(okp)
+    d = (ix - ocx) * ct + (iy - ocy) * st - rho * s
+    near = np.abs(d) <= half + 0.5
+    iy, ix, d = iy[near], ix[near], d[near]
+    if d.size < 16:
+        return None
+    rr, ww = rmap[iy, ix], wmap[iy, ix]
+    sgn = 1.0 if sig >= 0 else -1.0
+    # extent along the line: the run of positions whose summed signal in the line's core stands out most (the
+    # largest S / sqrt(N) over every span of bins of the profile's width: the segment a trail draws)
+    along = (ix - ocx) * (-st) + (iy - ocy) * ct
+    core = np.abs(d) <= 1.5 * s
+    span = (-np.inf, np.inf)
+    if core.sum() >= 16:
+        lo_t = float(along[core].min())
+        tb = np.floor((along[core] - lo_t) / half).astype(np.int64)
+        cs = np.concatenate([[0.0], np.cumsum(np.bincount(tb, sgn * rr[core] * ww[core]))])
+        cn = np.concatenate([[0.0], np.cumsum(np.bincount(tb, ww[core]))])
+        ds, dn = cs[None, :] - cs[:, None], cn[None, :] - cn[:, None]
+        score = np.where(dn > 0, ds / np.sqrt(np.where(dn > 0, dn, 1.0)), -np.inf)
+        a, b2 = np.unravel_index(int(np.argmax(score)), score.shape)
+        if b2 > a:
+            span = (float(lo_t + a * half), float(lo_t + b2 * half))
+    within = (along >= span[0]) & (along <= span[1])
+    bins = np.rint(d[within]).astype(np.int64) + half
+    nb = 2 * half + 1
+    sw = np.bincount(bins, ww[within], nb)
+    swr = np.bincount(bins, ww[within] * rr[within], nb)
+    okb = sw > 0
+    prof = np.where(okb, swr / np.where(okb, sw, 1.0), 0.0)  # mean residual [ADU] at each offset
+    offs = np.arange(nb) - half
+    flank = okb & (np.abs(offs) >= half / 2.0)
+    const = float(swr[flank].sum() / max(sw[flank].sum(), 1e-300)) if flank.any() else 0.0
+    # what the profile across the line takes beyond a constant (its degrees of freedom taken out)
+    chi2 = float(np.sum(np.where(okb, swr * swr / np.where(okb, sw, 1.0), 0.0)) - swr.sum() ** 2 / max(sw.sum(), 1e-300)
+                 - (okb.sum() - 1))
+    excess = (prof - const) * sgn
+    peak = float(np.max(excess[okb])) if okb.any() else 0.0
+    above = okb & (excess > 0.5 * peak) if peak > 0 else np.zeros(nb, bool)
+    fwhm = float(offs[above].max() - offs[above].min() + 1) if above.any() else 0.0
+    return {"sigma": float(abs(sig)), "sigma_searched": float(sig_searched), "next_sigma": next_sigma, "n_tests": int(n_tests), "chi2": max(chi2, 0.0),
+            "angle_deg": float((math.degrees(theta) + 90.0) % 180.0),
+            "through": (float(ocx + rho * s * ct), float(ocy + rho * s * st)), "theta": float(theta),
+            "rho_px": float(rho * s), "centre": (float(ocy), float(ocx)), "span": span,
+            "length_px": float(span[1] - span[0]) if np.isfinite(span[0]) else 0.0, "fwhm_px": fwhm,
+            "peak_adu": peak * sgn, "profile": (offs, np.where(okb, prof - const, 0.0))}
+
+
+def _streak_words(line: dict, gain: float) -> tuple[float, str, str]:
+    """(amplitude [e-], unit, words) of a straight streak (:func:`straight_line`)."""
+    amp = line["peak_adu"] * gain
+    x, y = line["through"]
+    return amp, "e-", (f"a straight streak of {amp:.3g} e- per pixel at its centre, {line['fwhm_px']:.2g} px wide "
+                       f"(FWHM), {line['length_px']:.0f} px long at {line['angle_deg']:.0f} deg (from x towards y) "
+                       f"through (x, y) = ({x:.0f}, {y:.0f}) output px, {line['sigma']:.1f} sigma along the line")
+
+
+def streak_bar(n_tests: int) -> float:
+    """The deviate the best of ``n_tests`` lines passes once in 1 / FRAME_FALSE_ALARM frames of white noise (two
+    sided: a bright trail or a dark one)."""
+    from scipy.stats import norm
+
+    return float(norm.isf(0.5 * FRAME_FALSE_ALARM / max(n_tests, 1)))
+
+
+#: a streak stands alone: the strongest line parallel to it beyond its profile is not significant on its own
+#: (streak_bar) or is below this fraction of its deviate; a pattern of lines (banding, pick-up, fringes) has
+#: neighbours as strong as its best line, a trail has none
+STREAK_ALONE = 0.5
+
+
+def is_streak(line: dict | None) -> bool:
+    """A straight line significant among every line searched and alone (STREAK_ALONE)."""
+    if line is None:
+        return False
+    bar = streak_bar(line["n_tests"])
+    return line["sigma_searched"] >= bar and line["next_sigma"] < max(bar, STREAK_ALONE * line["sigma"])
+
+
+def _streak_map(line: dict, shape: tuple[int, int]) -> dict:
+    """The empirical map of a straight streak: the measured profile across the line [ADU] wherever the line's
+    extent reaches (its 5 % - 95 % span of signal, plus a profile's half-width at either end), 0 elsewhere."""
+    offs, prof = line["profile"]
+    half = int(offs.max())
+    ct, st = math.cos(line["theta"]), math.sin(line["theta"])
+    ocy, ocx = line["centre"]
+    yy, xx = np.mgrid[0:shape[0], 0:shape[1]].astype(np.float64)
+    d = (xx - ocx) * ct + (yy - ocy) * st - line["rho_px"]
+    t = (xx - ocx) * (-st) + (yy - ocy) * ct
+    amap = np.zeros(shape, np.float64)
+    near = (np.abs(d) <= half + 0.5) & (t >= line["span"][0] - half) & (t <= line["span"][1] + half)
+    amap[near] = prof[np.rint(d[near]).astype(np.int64) + half]
+    return {"kind": "additive", "map": amap.astype(np.float32), "form": "streak"}
+
+
+def _block_map(mean: np.ndarray, lb: np.ndarray, ok: np.ndarray, b: int, shape: tuple[int, int],
+               relative: bool) -> dict:
+    """The empirical map of a pattern at the block scale: the block means themselves, smoothed over a block
+    (normalised convolution over the blocks with data), not a parametric form: it follows whatever shape the
+    pattern has at scales of a block and more. Relative to the light (``relative``) [1], else [ADU]."""
+    ek = "multiplicative" if relative else "additive"
+    vals = np.where(ok, mean / np.maximum(lb, 1e-9) if relative else mean, 0.0)
+    wts = ok.astype(float)
+    sm = gaussian_filter(vals * wts, 1.0, mode="nearest") / np.maximum(gaussian_filter(wts, 1.0, mode="nearest"), 1e-9)
+    return {"kind": ek, "map": _upsample(sm, b, shape)}
 
 
 def _map_gain(emp: dict, rmap: np.ndarray, wmap: np.ndarray, light: np.ndarray) -> float:

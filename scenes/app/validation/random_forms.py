@@ -1287,7 +1287,7 @@ def fam_trail(rng):
     prm = {"u0": u0, "v0": float(rng.uniform(0, 1)), "u1": u1, "v1": float(rng.uniform(0, 1)),
            "e_per_px": k * info["noise_e"] * math.sqrt(2 * math.pi) * sigma, "sigma_px": sigma}
     return Draw(base, [("SatelliteTrail", prm)], f"satellite trail, {k:.3g} sigma at its centre, {sigma:.2g} px wide",
-                t, kind="additive", geometry=("local",))
+                t, kind="additive", geometry=("local", "streak"))
 
 
 def fam_tree_rings(rng):

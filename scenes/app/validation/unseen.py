@@ -1561,7 +1561,7 @@ _CASE_LIST = [
        ("rows", "periodic")),
     _o("satellite_trail", "stars", "an unmodelled satellite trail across the window, 400 e- per pixel of its "
        "length, 1.2 px wide", lambda s: [SatelliteTrail(s, u0=0.05, v0=0.2, u1=0.9, v1=0.75, e_per_px=400.0,
-                                                        sigma_px=1.2)], "additive", ("local",)),
+                                                        sigma_px=1.2)], "additive", ("local", "streak")),
     # a bias that steps once, the same in every column: a spatial structure of the bias level (the hidden-effect
     # suite's bias_gradient has an amplifier step too), not out of the catalogue (added as a probe, then
     # classed; one frame cannot tell a fixed step from one that moves from frame to frame)

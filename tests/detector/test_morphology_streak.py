@@ -1,0 +1,83 @@
+"""A straight streak of the residual (detector.morphology.straight_line): the ``streak`` word of the
+``residual_morphology`` vocabulary.
+
+Independent references: the best of the n lines searched in white noise is a normal deviate below the look-
+elsewhere bar ``isf(0.5e-3 / n)`` (the bar's own false-alarm rate is checked on 40 noise maps); a Gaussian trail
+drawn between two known points (as :class:`scenes.app.validation.unseen.SatelliteTrail` draws one) is found at
+its angle, with its length, its peak and its FWHM (2.355 sigma) measured within a pixel or a few per cent; a
+sinusoid along the rows (a pattern of lines) is no streak; and on a whole frame a trail is described as one."""
+
+import math
+
+import numpy as np
+import pytest
+
+from detector.morphology import describe, is_streak, straight_line, streak_bar
+
+
+def _trail(shape, p0, p1, sigma, amp):
+    """A segment from p0 = (x, y) to p1 with a Gaussian cross-section of ``sigma`` px, ``amp`` at its centre."""
+    yy, xx = np.mgrid[0:shape[0], 0:shape[1]].astype(np.float64)
+    (x0, y0), (x1, y1) = p0, p1
+    dx, dy = x1 - x0, y1 - y0
+    t = np.clip(((xx - x0) * dx + (yy - y0) * dy) / (dx * dx + dy * dy), 0.0, 1.0)
+    d = np.hypot(xx - (x0 + t * dx), yy - (y0 + t * dy))
+    return amp * np.exp(-0.5 * (d / sigma) ** 2)
+
+
+def test_white_noise_stays_below_the_bar():
+    rng = np.random.default_rng(7)
+    w = np.ones((192, 224))
+    over = 0
+    for _ in range(40):
+        line = straight_line(rng.standard_normal(w.shape), w)
+        over += line["sigma_searched"] >= streak_bar(line["n_tests"])
+    # a per-frame false alarm of 1e-3: none of 40 (binomial: 4 % chance of one or more)
+    assert over == 0
+
+
+@pytest.mark.parametrize("shape,p0,p1,sigma,amp", [((256, 256), (51, 77), (205, 154), 1.5, 1.0),
+                                                    ((300, 520), (500, 20), (90, 260), 1.0, 1.5),
+                                                    ((1024, 1024), (100, 900), (700, 300), 2.0, 0.8)])
+def test_a_trail_is_found_with_its_geometry(shape, p0, p1, sigma, amp):
+    rng = np.random.default_rng(3)
+    r = rng.standard_normal(shape) + _trail(shape, p0, p1, sigma, amp)
+    line = straight_line(r, np.ones(shape))
+    assert is_streak(line)
+    (x0, y0), (x1, y1) = p0, p1
+    angle = math.degrees(math.atan2(y1 - y0, x1 - x0)) % 180.0
+    assert abs((line["angle_deg"] - angle + 90) % 180 - 90) < 0.5
+    assert abs(line["length_px"] - math.hypot(x1 - x0, y1 - y0)) < 0.05 * math.hypot(x1 - x0, y1 - y0) + 16
+    assert abs(line["peak_adu"] - amp) < 0.15 * amp
+    assert abs(line["fwhm_px"] - 2.355 * sigma) <= 1.5
+    # the point given lies on the line: its distance to the true line below a pixel
+    x, y = line["through"]
+    dist = abs((x - x0) * (y1 - y0) - (y - y0) * (x1 - x0)) / math.hypot(x1 - x0, y1 - y0)
+    assert dist < 1.0
+
+
+def test_a_dark_trail_is_found_too():
+    shape = (256, 256)
+    r = np.random.default_rng(4).standard_normal(shape) - _trail(shape, (10, 30), (240, 200), 1.2, 1.2)
+    line = straight_line(r, np.ones(shape))
+    assert is_streak(line) and line["peak_adu"] < 0
+
+
+def test_a_pattern_of_lines_is_no_streak():
+    """A sinusoid along the rows (a pick-up, 23 rows period, 1 sigma): every crest is as strong as the best."""
+    shape = (256, 256)
+    yy = np.arange(shape[0], dtype=float)[:, None] * np.ones((1, shape[1]))
+    r = np.random.default_rng(5).standard_normal(shape) + np.sin(2 * np.pi * yy / 23.0)
+    line = straight_line(r, np.ones(shape))
+    assert line["sigma_searched"] >= streak_bar(line["n_tests"]) and not is_streak(line)
+
+
+def test_a_trail_on_a_frame_is_described_as_a_streak():
+    """A trail of 3 sigma at its centre across a 256^2 flat frame's residual (without row noise)."""
+    from test_morphology_rows import OWN_VAR, _frame
+
+    trail = _trail((256, 256), (20, 60), (230, 140), 1.3, 3.0 * math.sqrt(OWN_VAR))
+    m = describe(_frame(0, row_var=1e-9, extra=trail))
+    assert m["significant"] and m["geometry"][0] == "streak", m["explanation"]
+    assert "trail" in m["explanation"]
+    assert m["empirical"] is not None and m["empirical"].get("form") == "streak"
