@@ -71,7 +71,7 @@ FAMILIES = {
     ("additive", "periodic"): "electronic pick-up (a pattern noise), fringing of a sky line",
     ("additive", "local"): "glints, ghosts, hot spots, light leaks",
     ("additive", "streak"): "a satellite or debris trail the scene lacks (add it as a streak of the scene), a "
-                            "meteor or an aircraft, one bright row or column",
+                            "meteor or an aircraft, a saturated source's bleed, one bright row or column",
     ("multiplicative", "streak"): "the shadow of a scratch or a fibre on a window or filter",
     ("additive", "blobs"): "satellite glints, a persistent (latent) image, hot spots, ghosts of bright sources",
     ("additive", "rings"): "defocused ghosts (out-of-focus reflections of bright sources), halos",
@@ -856,7 +856,9 @@ def describe(res: Residuals, delta_adu: np.ndarray | None = None) -> dict:
                                                                                       light):
                 out["empirical"] = fmap
     elif main == "streak":
-        out["empirical"] = _streak_map(line, shape)
+        smap = _streak_map(line, shape)
+        out["empirical"] = _relative(kind, smap["map"].astype(np.float64), light) if kind == "multiplicative" \
+            and has_light else smap
     elif main in ("rows", "columns") and through is not None and not line_period:
         # light smeared along the lines through the sources: the smear itself (one fraction of each line's
         # source light), which predicts the lines' other pixels, when it takes more than the lines' own means
@@ -1141,14 +1143,19 @@ def streak_bar(n_tests: int) -> float:
 #: (streak_bar) or is below this fraction of its deviate; a pattern of lines (banding, pick-up, fringes) has
 #: neighbours as strong as its best line, a trail has none
 STREAK_ALONE = 0.5
+#: a streak is elongated: its extent along the line at least this many times its FWHM across it (a compact
+#: residual, a star's misfit, is a blob whatever line passes through it)
+STREAK_ELONGATION = 4.0
 
 
 def is_streak(line: dict | None) -> bool:
-    """A straight line significant among every line searched and alone (STREAK_ALONE)."""
+    """A straight line significant among every line searched, alone (STREAK_ALONE) and elongated
+    (STREAK_ELONGATION)."""
     if line is None:
         return False
     bar = streak_bar(line["n_tests"])
-    return line["sigma_searched"] >= bar and line["next_sigma"] < max(bar, STREAK_ALONE * line["sigma"])
+    return (line["sigma_searched"] >= bar and line["next_sigma"] < max(bar, STREAK_ALONE * line["sigma"])
+            and line["length_px"] >= STREAK_ELONGATION * max(line["fwhm_px"], 1.0))
 
 
 def _streak_map(line: dict, shape: tuple[int, int]) -> dict:

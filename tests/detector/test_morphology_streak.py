@@ -81,3 +81,12 @@ def test_a_trail_on_a_frame_is_described_as_a_streak():
     assert m["significant"] and m["geometry"][0] == "streak", m["explanation"]
     assert "trail" in m["explanation"]
     assert m["empirical"] is not None and m["empirical"].get("form") == "streak"
+
+
+def test_a_compact_blob_is_no_streak():
+    """A round residual (a star's misfit: 3 px, 8 sigma peak) passes the line bar but is not elongated."""
+    shape = (256, 256)
+    yy, xx = np.mgrid[0:shape[0], 0:shape[1]].astype(np.float64)
+    blob = 8.0 * np.exp(-0.5 * ((yy - 100) ** 2 + (xx - 140) ** 2) / 3.0 ** 2)
+    line = straight_line(np.random.default_rng(6).standard_normal(shape) + blob, np.ones(shape))
+    assert line["sigma_searched"] >= streak_bar(line["n_tests"]) and not is_streak(line)

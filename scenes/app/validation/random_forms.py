@@ -1019,6 +1019,11 @@ def fam_row_noise(rng):
     return Draw(base, [eff], f"row offsets ({form}), {s:.3g} e- ({k:.3g} x the read noise)", t, accept=("row_noise",))
 
 
+#: boundaries of drawn gain strips lie at least this many tanh lengths apart (a transition spans ~4 of them from
+#: 2 % to 98 %): strips narrower than their transitions are no amplifier layout
+GAIN_STRIP_WIDTHS = 6.0
+
+
 def fam_gain_regions(rng):
     base = _choice(rng, ["flat_full", "flat_imx_bin", "flat", "flat_imx"])
     info = base_info(base)
@@ -1026,8 +1031,21 @@ def fam_gain_regions(rng):
     k, t = _loguniform(rng, 0.05, 5.0)
     dev = k / math.sqrt(info["light_e"])
     gains = [1.0 + dev * float(rng.uniform(0.4, 1.0)) * (-1) ** i for i in range(n + 1)]
-    prm = {"axis": _choice(rng, ["x", "y"]), "splits": sorted(float(v) for v in rng.uniform(0.15, 0.85, n)),
-           "gains": gains, "width_px": float(np.exp(rng.uniform(0, np.log(40)))),
+    axis = _choice(rng, ["x", "y"])
+    width = float(np.exp(rng.uniform(0, np.log(40))))
+    # an amplifier's region is far wider than its gain's settling: boundaries at least GAIN_STRIP_WIDTHS
+    # transition lengths apart (and a tenth of the window), as many as fit between 0.15 and 0.85 of it
+    small = small_info(base)
+    size = small["out_shape"][1 if axis == "x" else 0] * small["bin"]
+    gap = max(0.1, GAIN_STRIP_WIDTHS * width / size)
+    n_fit = min(n, 1 + int(0.7 / gap))
+    gains = gains[:n_fit + 1]
+    for _ in range(1000):
+        splits = sorted(float(v) for v in rng.uniform(0.15, 0.85, n_fit))
+        if all(b - a >= gap for a, b in zip(splits[:-1], splits[1:])):
+            break
+    n = n_fit
+    prm = {"axis": axis, "splits": splits, "gains": gains, "width_px": width,
            "drift": float(rng.uniform(-1, 1) * dev * 0.3)}
     return Draw(base, [("WindowGains", prm)], f"{n + 1} amplifier strips along {prm['axis']}, gains +-{100 * dev:.3g} %, "
                 f"transitions {prm['width_px']:.3g} px", t, accept=("gain_regions",))
