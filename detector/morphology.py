@@ -549,10 +549,10 @@ def describe(res: Residuals, delta_adu: np.ndarray | None = None) -> dict:
                         EXPLAINS_MOST * _map_gain(out["empirical"], rmap, wmap, light):
                     amp, unit, desc = _streak_words(line, gain)
                     geometry = ["streak"] + [g for g in out["geometry"] if g != "streak"]
+                    share = min(1.0, line["chi2"] / max(pix_chi2 - idx.size, 1e-300))
                     out.update(geometry=geometry, scale_px=round(line["fwhm_px"], 2), amplitude=round(amp, 4),
                                unit=unit, explanation=_words("additive", geometry, desc), empirical=smap,
-                               shares={**out["shares"], "streak": round(min(1.0, max(line["chi2"], 0.0)
-                                                                                 / max(pix_chi2 - idx.size, 1e-300)), 3)})
+                               shares={**out["shares"], "streak": round(share, 3)})
             return out
         # one spatial frequency far above the rest: a pick-up or fringe pattern too weak to move the chi2. The
         # fx = 0 column is measured against the power the model's row noise puts there (row_power_factor)
@@ -1014,10 +1014,14 @@ def straight_line(rmap: np.ndarray, wmap: np.ndarray) -> dict | None:
     a unit normal deviate per line under white noise. The best line's angle is refined, then its profile across
     the line is measured on the output pixels (1 px bins out to STREAK_PROFILE_PX) and its extent along it.
 
-    Returns None on a map without lines, else ``sigma`` (the best line's deviate), ``n_tests`` (lines x bands
-    searched: the look-elsewhere factor), ``chi2`` (what the profile across the line takes from the pixels beyond
-    a constant and its noise), ``angle_deg`` (of the line, x towards y), ``through`` (x, y) [output px],
-    ``length_px``, ``fwhm_px``, ``peak_adu`` and ``profile`` (offsets [px] and mean residual [ADU])."""
+    Returns None on a map without lines, else ``sigma`` (the best line's deviate, refined), ``sigma_searched``
+    (its deviate on the coarse grid of angles, which :func:`streak_bar` is the bar of), ``next_sigma`` (the
+    strongest parallel line beyond the profile's reach), ``n_tests`` (lines x bands searched: the look-elsewhere
+    factor), ``chi2`` (what the profile across the line takes from the pixels beyond a constant and its noise),
+    ``angle_deg`` (of the line, x towards y), ``through`` (x, y) [output px], ``theta`` [rad], ``rho_px`` and
+    ``centre`` (the line's normal form about the frame's centre (y, x)), ``span`` and ``length_px`` (its extent
+    along the line), ``fwhm_px``, ``peak_adu`` and ``profile`` (offsets [px] and mean residual [ADU] beyond the
+    flanks' level)."""
     okp = wmap > 0
     if okp.sum() < 64:
         return None
@@ -1114,7 +1118,8 @@ def straight_line(rmap: np.ndarray, wmap: np.ndarray) -> dict | None:
     peak = float(np.max(excess[okb])) if okb.any() else 0.0
     above = okb & (excess > 0.5 * peak) if peak > 0 else np.zeros(nb, bool)
     fwhm = float(offs[above].max() - offs[above].min() + 1) if above.any() else 0.0
-    return {"sigma": float(abs(sig)), "sigma_searched": float(sig_searched), "next_sigma": next_sigma, "n_tests": int(n_tests), "chi2": max(chi2, 0.0),
+    return {"sigma": float(abs(sig)), "sigma_searched": float(sig_searched), "next_sigma": next_sigma,
+            "n_tests": int(n_tests), "chi2": max(chi2, 0.0),
             "angle_deg": float((math.degrees(theta) + 90.0) % 180.0),
             "through": (float(ocx + rho * s * ct), float(ocy + rho * s * st)), "theta": float(theta),
             "rho_px": float(rho * s), "centre": (float(ocy), float(ocx)), "span": span,
@@ -1160,7 +1165,7 @@ def is_streak(line: dict | None) -> bool:
 
 def _streak_map(line: dict, shape: tuple[int, int]) -> dict:
     """The empirical map of a straight streak: the measured profile across the line [ADU] wherever the line's
-    extent reaches (its 5 % - 95 % span of signal, plus a profile's half-width at either end), 0 elsewhere."""
+    extent reaches (its span, plus a profile's half-width at either end), 0 elsewhere."""
     offs, prof = line["profile"]
     half = int(offs.max())
     ct, st = math.cos(line["theta"]), math.sin(line["theta"])
