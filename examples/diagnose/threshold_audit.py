@@ -189,6 +189,12 @@ SOURCE_KERNEL_HALF | N | geometry | half size of the source kernel
 SOURCE_KERNEL_PIXELS | N | budget | source kernel subsample
 SOURCE_KERNEL_CORE_SIGMA | D | statistics | a source pixel: its footprint, model light FOOTPRINT_SIGMA above the noise
 SOURCE_KERNEL_HARMONICS | N | basis | angular harmonics of the kernel
+STREAK_MAP_PX | N | budget | longest side of the straight-line search map
+STREAK_STEP_DEG | N | grid | angle step of the line search (refined ten times finer)
+STREAK_BANDS | N | geometry | line band and flank widths of the line sums
+STREAK_PROFILE_PX | N | geometry | half width of a streak's profile across the line
+STREAK_ALONE | D | design | a streak has no parallel line of half its deviate (a pattern of lines has)
+STREAK_ELONGATION | D | physics | a trail is longer than its width: extent >= 4 FWHM (a star's misfit is compact)
 @detector/flux_law.py
 SOURCE_MIN_SNR | D | statistics | S/N of a source's amplitude to enter the slope
 SEPARATION_SIGMA | D | statistics | standard errors separating the two laws: detection_sigma

@@ -1032,21 +1032,22 @@ def fam_gain_regions(rng):
     dev = k / math.sqrt(info["light_e"])
     gains = [1.0 + dev * float(rng.uniform(0.4, 1.0)) * (-1) ** i for i in range(n + 1)]
     axis = _choice(rng, ["x", "y"])
+    splits = sorted(float(v) for v in rng.uniform(0.15, 0.85, n))
     width = float(np.exp(rng.uniform(0, np.log(40))))
+    drift = float(rng.uniform(-1, 1) * dev * 0.3)
     # an amplifier's region is far wider than its gain's settling: boundaries at least GAIN_STRIP_WIDTHS
-    # transition lengths apart (and a tenth of the window), as many as fit between 0.15 and 0.85 of it
+    # transition lengths apart (and a tenth of the window). Splits that break it are drawn again (after the
+    # draws above, so that a case that keeps the rule is the case it always was), as many as fit in 0.15-0.85
     small = small_info(base)
     size = small["out_shape"][1 if axis == "x" else 0] * small["bin"]
     gap = max(0.1, GAIN_STRIP_WIDTHS * width / size)
-    n_fit = min(n, 1 + int(0.7 / gap))
-    gains = gains[:n_fit + 1]
+    n = min(n, 1 + int(0.7 / gap))
     for _ in range(1000):
-        splits = sorted(float(v) for v in rng.uniform(0.15, 0.85, n_fit))
-        if all(b - a >= gap for a, b in zip(splits[:-1], splits[1:])):
+        if len(splits) == n and all(b - a >= gap for a, b in zip(splits[:-1], splits[1:])):
             break
-    n = n_fit
-    prm = {"axis": axis, "splits": splits, "gains": gains, "width_px": width,
-           "drift": float(rng.uniform(-1, 1) * dev * 0.3)}
+        splits = sorted(float(v) for v in rng.uniform(0.15, 0.85, n))
+    gains = gains[:n + 1]
+    prm = {"axis": axis, "splits": splits, "gains": gains, "width_px": width, "drift": drift}
     return Draw(base, [("WindowGains", prm)], f"{n + 1} amplifier strips along {prm['axis']}, gains +-{100 * dev:.3g} %, "
                 f"transitions {prm['width_px']:.3g} px", t, accept=("gain_regions",))
 

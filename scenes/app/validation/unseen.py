@@ -17,7 +17,7 @@ and adds:
   satellite trail, tree rings and an amplifier undershoot. Their right answer is not a name but an honest
   description: each records the expected ``kind`` ("additive", "multiplicative", "redistributed",
   "mixed") and ``geometry`` (words of "radial", "gradient", "rows", "columns", "periodic", "sources",
-  "local", "rings", "blobs") that the diagnosis's ``residual_morphology`` block must match;
+  "local", "streak", "rings", "blobs") that the diagnosis's ``residual_morphology`` block must match;
 * **null frames**: every base scene (the seven of ``hidden_effects.py`` and eight more) with nothing hidden.
 
 For every case: the first significant and plausible candidate (``plausible``, ``implausible_because``,
