@@ -11,6 +11,7 @@ References
 
 from __future__ import annotations
 
+import math
 from itertools import pairwise
 from typing import Literal
 
@@ -394,7 +395,7 @@ def _gain_check(fit, res) -> str:
     sig = _gain_signal(res)
     iy, ix = region_index(res.ys, res.xs, p["nx"], p["ny"], s.sensor_height_px, s.sensor_width_px,
                           p.get("splits_y"), p.get("splits_x"))
-    law = _gain_law(res, sig, iy, ix, p["nx"])
+    law = _gain_law(res, sig, iy, ix, p["nx"]) or _gain_noise(res, sig, iy, ix, p["nx"], p["gains"])
     if law:
         return law
     for axis, line_region, found in (("x", ix, p.get("splits_x") or []), ("y", iy, p.get("splits_y") or [])):
@@ -457,6 +458,55 @@ def _gain_law(res, sig: np.ndarray, iy: np.ndarray, ix: np.ndarray, nx: int) -> 
     return (f"the steps do not scale with the signal: one offset per region takes {add:.4g} of the chi2, one gain "
             f"per region {mul:.4g}, less by more than {DETECTION_SIGMA:g}^2: light or an offset added in strips (a "
             "trail along the lines, a bias offset per amplifier), not gains, which multiply the sources as the sky")
+
+
+#: the median of a chi2 variable of one degree of freedom (a pixel's w r^2 under the model's variance), and the
+#: relative standard error of a median of N of them, GAIN_NOISE_MEDIAN_SE / sqrt(N): 1 / (2 f(m) m), f the chi2_1
+#: density at its median m (the asymptotic variance of a sample median)
+CHI2_1_MEDIAN = 0.454936
+GAIN_NOISE_MEDIAN_SE = 2.33
+
+
+def _gain_noise(res, sig: np.ndarray, iy: np.ndarray, ix: np.ndarray, nx: int, gains) -> str:
+    """An amplifier's gain converts everything it reads, the noise with the signal (the plugin multiplies the frame
+    in ADU, read and shot noise included): the pixels' variance in region k is g_k^2 times the model's. Each
+    region's variance ratio (the median of w r^2 over its pixels, less its own gain template, over the median of a
+    chi2_1 variable: robust to hot pixels and cosmic rays) is fitted by one common scale times g_k^2 and by one
+    common scale alone. Where the constant fits better by more than DETECTION_SIGMA^2, the noise refutes the
+    gains: steps of a level of the signal (an offset in strips, a dark or bias pattern), read by one gain. A
+    weak true gain step changes the variance too little to tell, and nothing is refused. "" or why."""
+    idx, r, w = res.flat()
+    y, x = np.divmod(idx, res.data_adu.shape[1])
+    reg = iy[y] * nx + ix[x]
+    g = np.asarray(gains, np.float64).ravel()
+    sv = sig.ravel()[idx].astype(np.float64)
+    n = g.size
+    num, den = np.bincount(reg, w * sv * r, n), np.bincount(reg, w * sv * sv, n)
+    a = np.where(den > 0, num / np.where(den > 0, den, 1.0), 0.0)
+    q = w * (r - a[reg] * sv) ** 2
+    ratio, se = np.zeros(n), np.zeros(n)
+    for k in range(n):
+        qk = q[reg == k]
+        if qk.size >= 64:
+            ratio[k] = float(np.median(qk)) / CHI2_1_MEDIAN
+            se[k] = ratio[k] * GAIN_NOISE_MEDIAN_SE / math.sqrt(qk.size)
+    ok = se > 0
+    if ok.sum() < 2:
+        return ""
+    wt = 1.0 / se[ok] ** 2
+    v, t = ratio[ok], g[ok] ** 2
+
+    def misfit(tpl):
+        c = float(np.sum(wt * tpl * v) / np.sum(wt * tpl * tpl))
+        return float(np.sum(wt * (v - c * tpl) ** 2))
+
+    by_gain, level = misfit(t), misfit(np.ones_like(t))
+    if by_gain - level <= DETECTION_SIGMA ** 2:
+        return ""
+    return (f"the noise does not follow the gains: an amplifier's gain scales the variance it reads by g^2 "
+            f"({t.min() / t.max():.3g} between the regions for gains {g.min():.4g} to {g.max():.4g}), the pixels' "
+            f"variance ratios are {', '.join(f'{u:.3f}' for u in v)} (chi2 {by_gain:.3g} by the gains against "
+            f"{level:.3g} by one level, more by {DETECTION_SIGMA:g}^2): steps of a level of the signal, not gains")
 
 
 def _split_variant(res, sig: np.ndarray, axis: str, bounds: list[float]) -> Variant:

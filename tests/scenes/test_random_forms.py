@@ -450,6 +450,18 @@ def test_gain_strips_with_wide_transitions_are_gain_regions(tmp_path, family, ca
     assert row["first"] == "gain_regions", row["ranking"][:3]
 
 
+def test_steps_of_a_dark_level_are_no_gains_when_the_noise_does_not_follow(tmp_path):
+    """A weak pink row noise on an IMX411 dark (0.145 e-, a drawn case) was named gain_regions with gains 0.61 and
+    1.30 (delta BIC -137; one --apply made the error 163 times worse): on a dark the signal is nearly uniform, so a
+    gain per region fits an offset per region as well (the gain law cannot tell). An amplifier's gain scales the
+    noise it reads by g^2 too (the plugin multiplies the frame in ADU): 0.22 between the two regions, while the
+    pixels' variance ratios differ by 2.5 %. The gains are refused by the noise and the row noise is named."""
+    row = R.run_case(R.draw_case("row_noise", 853620726160998358), tmp_path, workers=1)
+    assert row["first"] == "row_noise", row["ranking"][:3]
+    why = dict(map(tuple, row["implausible"]))
+    assert "the noise does not follow the gains" in why["gain_regions"]
+
+
 def test_a_strong_readout_smear_described_as_light_along_the_columns_through_the_sources(tmp_path):
     """A read-out smear of 10 % of each source's light along its column (a drawn case, smear-3758493608554811529):
     the residual stacked about the sources (a kernel of their light) took a piece of it and was described as light
