@@ -395,7 +395,8 @@ def _gain_check(fit, res) -> str:
     sig = _gain_signal(res)
     iy, ix = region_index(res.ys, res.xs, p["nx"], p["ny"], s.sensor_height_px, s.sensor_width_px,
                           p.get("splits_y"), p.get("splits_x"))
-    law = _gain_law(res, sig, iy, ix, p["nx"]) or _gain_noise(res, sig, iy, ix, p["nx"], p["gains"])
+    fitted = _fitted_regions(res, sig, iy, ix, p["nx"])
+    law = _gain_law(*fitted) or _gain_noise(*fitted, p["gains"])
     if law:
         return law
     for axis, line_region, found in (("x", ix, p.get("splits_x") or []), ("y", iy, p.get("splits_y") or [])):
@@ -436,16 +437,20 @@ def _gain_check(fit, res) -> str:
     return ""
 
 
-def _gain_law(res, sig: np.ndarray, iy: np.ndarray, ix: np.ndarray, nx: int) -> str:
+def _fitted_regions(res, sig: np.ndarray, iy: np.ndarray, ix: np.ndarray, nx: int):
+    """(region, signal [ADU], residual, weight) of each fitted pixel: the region from the row and column region
+    indices ``iy`` / ``ix`` (``nx`` column regions), the signal an amplifier read from ``sig``."""
+    idx, r, w = res.flat()
+    y, x = np.divmod(idx, res.data_adu.shape[1])
+    return iy[y] * nx + ix[x], sig.ravel()[idx].astype(np.float64), r, w
+
+
+def _gain_law(reg: np.ndarray, sv: np.ndarray, r: np.ndarray, w: np.ndarray) -> str:
     """A gain multiplies the signal: within each region the residual follows the signal its amplifier read
-    (``sig``; the stars as the sky), so one factor per region must take more chi2 from the fitted pixels than one
+    (``sv``; the stars as the sky), so one factor per region must take more chi2 from the fitted pixels than one
     offset per region (as many parameters). Where the offsets take more by DETECTION_SIGMA^2, the steps are light
     or an offset added in strips (a satellite trail along the rows, a bias offset per amplifier), not gains. On a
     uniform light (a flat, a sky without sources) the two are one template and nothing is refused. "" or why."""
-    idx, r, w = res.flat()
-    y, x = np.divmod(idx, res.data_adu.shape[1])
-    reg = iy[y] * nx + ix[x]
-    sv = sig.ravel()[idx].astype(np.float64)
     n = int(reg.max()) + 1
 
     def taken(t):  # sum over the regions of the chi2 one coefficient of template t takes: (sum w t r)^2 / sum w t^2
@@ -467,7 +472,7 @@ CHI2_1_MEDIAN = 0.454936
 GAIN_NOISE_MEDIAN_SE = 2.33
 
 
-def _gain_noise(res, sig: np.ndarray, iy: np.ndarray, ix: np.ndarray, nx: int, gains) -> str:
+def _gain_noise(reg: np.ndarray, sv: np.ndarray, r: np.ndarray, w: np.ndarray, gains) -> str:
     """An amplifier's gain converts everything it reads, the noise with the signal (the plugin multiplies the frame
     in ADU, read and shot noise included): the pixels' variance in region k is g_k^2 times the model's. Each
     region's variance ratio (the median of w r^2 over its pixels, less its own gain template, over the median of a
@@ -475,11 +480,7 @@ def _gain_noise(res, sig: np.ndarray, iy: np.ndarray, ix: np.ndarray, nx: int, g
     common scale alone. Where the constant fits better by more than DETECTION_SIGMA^2, the noise refutes the
     gains: steps of a level of the signal (an offset in strips, a dark or bias pattern), read by one gain. A
     weak true gain step changes the variance too little to tell, and nothing is refused. "" or why."""
-    idx, r, w = res.flat()
-    y, x = np.divmod(idx, res.data_adu.shape[1])
-    reg = iy[y] * nx + ix[x]
     g = np.asarray(gains, np.float64).ravel()
-    sv = sig.ravel()[idx].astype(np.float64)
     n = g.size
     num, den = np.bincount(reg, w * sv * r, n), np.bincount(reg, w * sv * sv, n)
     a = np.where(den > 0, num / np.where(den > 0, den, 1.0), 0.0)
