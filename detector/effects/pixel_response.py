@@ -11,7 +11,6 @@ References
 
 from __future__ import annotations
 
-import math
 from itertools import pairwise
 from typing import Literal
 
@@ -34,6 +33,7 @@ from ..signatures import (
     spread_check,
 )
 from ..significance import DETECTION_SIGMA, MAX_DEFECT_FRACTION
+from ..stats import CHI2_1_MEDIAN, median_square_variance_error
 from .base import Effect, EffectParams, Stage, Tile, register_effect
 from .common import hardware_positions, in_tile, output_xy, roi_mask
 
@@ -465,11 +465,10 @@ def _gain_law(reg: np.ndarray, sv: np.ndarray, r: np.ndarray, w: np.ndarray) -> 
             "trail along the lines, a bias offset per amplifier), not gains, which multiply the sources as the sky")
 
 
-#: the median of a chi2 variable of one degree of freedom (a pixel's w r^2 under the model's variance), and the
-#: relative standard error of a median of N of them, GAIN_NOISE_MEDIAN_SE / sqrt(N): 1 / (2 f(m) m), f the chi2_1
-#: density at its median m (the asymptotic variance of a sample median)
-CHI2_1_MEDIAN = 0.454936
-GAIN_NOISE_MEDIAN_SE = 2.33
+#: the fewest pixels a region's variance ratio is read from [pixels]: the median of fewer scatters by more than
+#: 2.33 / sqrt(64) = 29 % of itself (:func:`detector.stats.median_square_variance_error`), which dwarfs the few per
+#: cent a gain's g^2 changes it by, and the asymptotic error of a sample median is no longer its error
+GAIN_NOISE_MIN_PIXELS = 64
 
 
 def _gain_noise(reg: np.ndarray, sv: np.ndarray, r: np.ndarray, w: np.ndarray, gains) -> str:
@@ -488,9 +487,9 @@ def _gain_noise(reg: np.ndarray, sv: np.ndarray, r: np.ndarray, w: np.ndarray, g
     ratio, se = np.zeros(n), np.zeros(n)
     for k in range(n):
         qk = q[reg == k]
-        if qk.size >= 64:
+        if qk.size >= GAIN_NOISE_MIN_PIXELS:
             ratio[k] = float(np.median(qk)) / CHI2_1_MEDIAN
-            se[k] = ratio[k] * GAIN_NOISE_MEDIAN_SE / math.sqrt(qk.size)
+            se[k] = median_square_variance_error(ratio[k], qk.size)
     ok = se > 0
     if ok.sum() < 2:
         return ""

@@ -284,8 +284,7 @@ MAX_DEAD_CLUSTER_PX | D | physics | largest dead cluster (EMVA 1288, Janesick 20
 MAX_DEAD_CLUSTER_SIDE | N | model | largest cluster side the render draws
 _REGION_GRIDS | N | grid | region layouts tried
 MAX_FOUND_SPLITS | N | search | boundaries searched per axis (up to 8 amplifiers along a side)
-CHI2_1_MEDIAN | N | constant | median of a chi2 variable of one degree of freedom
-GAIN_NOISE_MEDIAN_SE | N | estimator | relative standard error of a sample median of chi2_1 values, times sqrt(N)
+GAIN_NOISE_MIN_PIXELS | N | estimator | fewest pixels a region's variance ratio (a median) is read from
 MIN_SEGMENT_SHARE | D | physics | a segment narrower holds fewer pixels than a defect population may (MAX_DEFECT_FRACTION)
 @detector/effects/readout.py
 K_BOLTZMANN | N | constant | CODATA

@@ -404,17 +404,25 @@ def test_a_deep_off_centre_cos4_fall_off_named_vignetting(tmp_path):
     assert row["first"] == "vignetting" and row["error_ratio"] < 0.5
 
 
-def test_a_walk_that_wanders_a_drift_length_accepts_the_drift():
-    """Image motion of a random walk is a drifting pointing once its path spans SMEAR_MAX_TRAIL_PX (as a drift
-    shorter than it accepts the image-motion names): the label follows the path the case draws."""
+def test_image_motion_shorter_than_a_trail_accepts_the_drift_both_ways():
+    """Image motion that sweeps less than SMEAR_MAX_TRAIL_PX is a smear no shape test separates from image motion of
+    another law: a short drift accepts the jitter (fam_pointing_drift), and a short oscillation (chord 2 amp) or a
+    random walk of any span accepts the drift (a walk that wanders far is a drifting path). A longer oscillation
+    has the arcsine profile of a sine, which a drift's box does not, and keeps its own names."""
     from scenes.app.validation.random_forms import SMEAR_MAX_TRAIL_PX, draw_case
 
-    far, near = draw_case("jitter", 1350752753947001737), draw_case("jitter", 3643679130166704865)
-    for case, drifts in ((far, True), (near, False)):
+    for seed in (1350752753947001737, 3643679130166704865, 1771721017551268885):  # walks, far and near
+        case = draw_case("jitter", seed)
+        assert case.draw.effects[0][1]["law"] == "walk" and "pointing_drift" in case.draw.accept
+    for seed in (685731070707844607, 658562800098936005, 4078039671255157222):  # sines of 0.45, 0.76, 2.3 px
+        case = draw_case("jitter", seed)
         prm = case.draw.effects[0][1]
-        path = np.cumsum(np.random.default_rng(prm["seed"]).standard_normal((32, 2)) * prm["amp_px"], axis=0)
-        span = max(np.hypot(*(a - b)) for a in path for b in path)
-        assert (span >= SMEAR_MAX_TRAIL_PX) == drifts and ("pointing_drift" in case.draw.accept) == drifts
+        assert prm["law"] == "sine"
+        assert ("pointing_drift" in case.draw.accept) == (2 * prm["amp_px"] < SMEAR_MAX_TRAIL_PX)
+    short = draw_case("pointing_drift", 0)
+    while short.draw.effects[0][1]["amp_px"] >= SMEAR_MAX_TRAIL_PX:  # the first short drift from seed 0 on
+        short = draw_case("pointing_drift", short.case_seed + 1)
+    assert "jitter" in short.draw.accept
 
 
 def test_a_white_pattern_at_large_n_is_not_a_template():

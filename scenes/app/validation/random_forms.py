@@ -1186,11 +1186,14 @@ def fam_jitter(rng):
     prm = {"law": law, "amp_px": amp, "angle_deg": float(rng.uniform(0, 180)), "seed": int(rng.integers(2 ** 31))}
     accept = ("jitter", "psf_elongation") + (("psf_blur",) if law == "walk" else ())
     if law == "walk":
-        # a walk that wanders as far as SMEAR_MAX_TRAIL_PX is a drifting pointing (a path), as a drift shorter
-        # than it is image motion of any law (fam_pointing_drift): the path MotionPath draws, its span
-        path = np.cumsum(np.random.default_rng(prm["seed"]).standard_normal((32, 2)) * amp, axis=0)
-        span = float(np.max(np.hypot(*(path[:, None, :] - path[None, :, :]).transpose(2, 0, 1))))
-        accept += ("pointing_drift",) if span >= SMEAR_MAX_TRAIL_PX else ()
+        # a walk that wanders as far as SMEAR_MAX_TRAIL_PX is a drifting pointing (a path); one that stays shorter
+        # is a smear no shape test separates from image motion of another law, a drift among them (the rule of
+        # fam_pointing_drift, both ways): a walk accepts the drift whatever its span
+        accept += ("pointing_drift",)
+    elif 2 * amp < SMEAR_MAX_TRAIL_PX:
+        # an oscillation sweeping a chord (2 amp) shorter than SMEAR_MAX_TRAIL_PX is such a smear too; a longer one
+        # has the arcsine profile of a sine, which a drift's box does not
+        accept += ("pointing_drift",)
     return Draw(base, [("MotionPath", prm)], f"{law} image motion, {amp:.3g} px", t, accept=accept)
 
 
