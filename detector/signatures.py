@@ -1912,6 +1912,18 @@ def max_tail_correlation() -> float:
     return float(a / np.sqrt(1.0 + a * a))
 
 
+@functools.cache
+def ipc_noise_covariance() -> float:
+    """The covariance of adjacent pixels' independent noise read through the sensor's inter-pixel capacitance, in
+    units of the pixels' variance: each pixel reads a fraction ``alpha`` of each neighbour's charge (Moore et al.
+    2004; :mod:`detector.effects.coupling`), so two neighbours share ``2 alpha`` of their variance (to first order
+    in alpha). With the catalogue's CMOS coupling (:class:`detector.effects.coupling.IPCParams`' alpha, 0.5 %)
+    that is 0.01: the most a white pattern's noise correlates on a coupled sensor."""
+    from detector.effects.coupling import IPCParams  # (the effects import this module: resolved at call time)
+
+    return 2.0 * float(IPCParams.model_fields["alpha"].default)
+
+
 def tail_neighbour_correlation(res: Residuals) -> tuple[float, float, int, float]:
     """(correlation, significance in sigma, tail pixels, the tail's share of the excess chi2 of the whitened
     residual): the correlation of the pixels in the tail of the
@@ -2307,6 +2319,9 @@ class VarianceSignature(Signature):
         if rho > self.MAX_NEIGHBOUR_CORRELATION and z > DETECTION_SIGMA and not (self.lines and self._along_lines(res)):
             return (f"the extra scatter is correlated between neighbouring pixels (correlation {rho:.2f}, {z:.0f} "
                     "sigma): a structure a few pixels wide, not a pixel-to-pixel non-uniformity or noise")
+        why = self.white(fit, res)
+        if why:
+            return why
         rho, z, n, share = tail_neighbour_correlation(res)
         # (only when the tail carries most of the extra scatter: a white PRNU over the whole flat is not judged by
         # the dust rings that make its outliers)
@@ -2316,6 +2331,36 @@ class VarianceSignature(Signature):
                     "pixels wide (light moved into rings, pixels in pairs or clusters, smeared sources), not "
                     "pixel-to-pixel scatter")
         return ""
+
+    def white(self, fit: Fit, res: Residuals) -> str:
+        """Pixel-to-pixel scatter is independent from one pixel to the next: of the excess variance the fit adds
+        (the mean of ``theta t w`` over the variance sample, in units of the model's variance), adjacent pixels
+        may share no more than what the sensor's own coupling gives independent noise
+        (:func:`ipc_noise_covariance`). Where the whitened residual's neighbour covariance beyond that is
+        significant (DETECTION_SIGMA) and is most (EXPLAINS_MOST) of the excess, the excess is a structure a few
+        pixels wide (a wave, rings, fringes) that the scatter's variance only absorbs. The correlation bar of
+        :meth:`plausible` is relative to the whole variance, which a weak structure under the noise never
+        reaches (a 0.24 % wave of tree rings, period 8.7 px, on a binned flat: 5 % of the variance, 91 % of it
+        shared by neighbours, correlation 0.046, named a 1.3 % PRNU). A line-wise pattern (its neighbours share
+        along one axis only) is judged by its lines."""
+        theta = fit.state.get("theta")
+        if not theta or theta <= 0 or (self.lines and self._along_lines(res)):
+            return ""
+        vs = variance_sample(res)
+        if not vs["idx"].size:
+            return ""
+        excess = float(np.mean(theta * template_at(self.template(res), res.data_adu.shape, vs["idx"]) * vs["w"]))
+        rho, z = neighbour_correlation(res)
+        zw, m = _whitened_map(res)
+        var = float(np.sum(zw * zw) / max(np.count_nonzero(m), 1))
+        shared = rho * var - ipc_noise_covariance()  # [model variance]
+        z_shared = z * shared / max(rho * var, 1e-30) if rho > 0 else 0.0
+        if excess <= 0 or shared <= EXPLAINS_MOST * excess or z_shared <= DETECTION_SIGMA:
+            return ""
+        return (f"adjacent pixels share {100 * min(shared / excess, 1.0):.0f} % of the extra scatter (covariance "
+                f"{shared:.3g} of the model's variance against an excess of {excess:.3g}, {z_shared:.0f} sigma; "
+                "independent pixels share none): a structure a few pixels wide, not a pixel-to-pixel "
+                "non-uniformity or noise")
 
     #: added scatter is zero-mean: where the template puts it above its median, the residual's means (in bins of
     #: the prediction) are significant at this many standard deviations of their chi2 (the many-pixel structure

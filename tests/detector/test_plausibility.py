@@ -15,7 +15,7 @@ from detector.effects import registry
 from detector.effects.defects import ColumnSignature
 from detector.effects.image_plane import _distortion_check, _offset_check, radial_distortion, shift, similarity
 from detector.sensor import make_sensor
-from detector.signatures import Residuals, SpikeStats, tail_neighbour_correlation
+from detector.signatures import Residuals, SpikeStats, neighbour_correlation, tail_neighbour_correlation
 
 
 def _res(data, model, var, photo, sensor, ys=None, xs=None) -> Residuals:
@@ -137,6 +137,35 @@ def test_a_prnu_may_have_column_and_row_components_but_not_blobs(pattern, plausi
     assert fit is not None and fit.delta_bic < -100
     why = sig.plausible(fit, res)
     assert (why == "") == plausible, why
+
+
+@pytest.mark.parametrize("pattern,white", [("white", True), ("wave", False)])
+def test_a_weak_scatter_shared_by_neighbours_is_a_structure_not_a_prnu(pattern, white):
+    """A wave of a few pixels' period (tree rings, fringes) too weak to lift the whole variance's neighbour
+    correlation to its bar still puts most of its own excess variance in what adjacent pixels share; a white
+    PRNU of the same excess shares none of it (the random-forms case tree_rings-320774075127429310: 0.24 % rings of
+    8.7 px period on a binned flat, 5 % of the variance, named a 1.3 % PRNU)."""
+    rng = np.random.default_rng(21)
+    shape = (256, 256)
+    s = make_sensor("ml11002", {"width": 256, "height": 256, "bias_adu": 0})
+    photo = np.full(shape, 4000.0)
+    var = photo / s.gain_e_per_adu + 4.0
+    rel = 0.25 * np.sqrt(var[0, 0]) / photo[0, 0]  # the pattern's rms: 6 % of the pixels' variance
+    if pattern == "white":
+        resp = 1 + rel * rng.standard_normal(shape)
+    else:
+        yy, xx = np.mgrid[: shape[0], : shape[1]]
+        resp = 1 + rel * np.sqrt(2) * np.sin(2 * np.pi * (0.8 * xx + 0.6 * yy) / 8.7 + 0.4)
+    data = photo * resp + rng.normal(0, np.sqrt(var))
+    res = _res(data, photo, var, photo, s)
+    sig = registry()["prnu"].signature
+    fit = sig.fit(res, "prnu")
+    assert fit is not None and fit.delta_bic < -10  # significant (DESIGN: delta BIC below -10)
+    rho, _ = neighbour_correlation(res)
+    assert rho < sig.MAX_NEIGHBOUR_CORRELATION  # the whole variance's bar does not see it
+    why = sig.white(fit, res)
+    assert (why == "") == white, why
+    assert (sig.plausible(fit, res) == "") == white
 
 
 @pytest.mark.parametrize("where,uniform", [("everywhere", True), ("one quarter", False)])
