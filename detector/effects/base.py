@@ -17,7 +17,9 @@ code or through the ``newtsim.effects`` entry-point group of their own package.
 from __future__ import annotations
 
 import enum
+import os
 import re
+import sys
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import ClassVar
@@ -253,15 +255,41 @@ def register_effect(cls: type[Effect]) -> type[Effect]:
     return cls
 
 
-def _load_entry_points() -> None:
+#: the install state (:func:`_install_state`) of the last entry-point scan: the scan is repeated only when it
+#: changes (a diagnosis asks for the registry hundreds of times; each scan reads every installed distribution's
+#: metadata, ~7 ms)
+_SCANNED: tuple | None = None
+
+
+def _install_state() -> tuple:
+    """What the ``newtsim.effects`` entry points can change with: the discovery function and the modification
+    time [ns] of every import-path entry (installing, removing or reinstalling a distribution adds or removes
+    its metadata directory there; the same test by which ``importlib.metadata`` keeps its own directory
+    listings, ``FastPath.mtime``)."""
     from importlib.metadata import entry_points
 
+    times = []
+    for entry in sys.path:
+        try:
+            times.append(os.stat(entry or ".").st_mtime_ns)
+        except OSError:
+            times.append(None)
+    return entry_points, tuple(sys.path), tuple(times)
+
+
+def _load_entry_points() -> None:
+    global _SCANNED
+    state = _install_state()
+    if _SCANNED == state:
+        return
+    entry_points = state[0]
     for ep in entry_points(group="newtsim.effects"):
         if ep.name not in _REGISTRY:
             cls = ep.load()
             if getattr(cls, "name", None) != ep.name:
                 cls.name = ep.name
             register_effect(cls)
+    _SCANNED = state
 
 
 def registry() -> dict[str, type[Effect]]:

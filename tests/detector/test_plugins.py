@@ -40,3 +40,19 @@ def test_entry_point_effects_are_loaded(monkeypatch):
     m = Detector(s, build_effects({"ep_effect": {}}, s)).expose(0.0, 1.0, 1, noiseless=True)
     assert (m == 1.0).all()
     base._REGISTRY.pop("ep_effect")
+
+
+def test_entry_points_scanned_again_only_when_the_install_changes(monkeypatch):
+    scans = []
+
+    def fake_entry_points(group=None):
+        scans.append(group)
+        return []
+
+    monkeypatch.setattr("importlib.metadata.entry_points", fake_entry_points)
+    registry()
+    registry()
+    assert len(scans) == 1  # the same discovery function and import path: the scan is kept
+    monkeypatch.setattr(base, "_SCANNED", None)
+    registry()
+    assert len(scans) == 2
