@@ -421,7 +421,10 @@ def _cti_templates(res, q, direction: str, release_transfers, beta: float, unit:
         img = q
     taus = [tr * dwell for tr in release_transfers]
     ch = cti_species_changes(img, [unit] * len(taus), taus, dwell, beta, well, first)
-    return [((c.T if direction == "serial" else c) / (unit * res.gain), tau) for c, tau in zip(ch, taus)]
+    # a serial trail's map in row order (C-contiguous) as every other template: a variant's values at a sample of
+    # pixels are then read from it in place, not from a row-ordered copy of the whole frame made at every read
+    return [(np.divide(c.T if direction == "serial" else c, unit * res.gain, order="C"), tau)
+            for c, tau in zip(ch, taus)]
 
 
 def _cti_variant(t: np.ndarray, tau: float, direction: str, tr: float, beta: float) -> Variant:
