@@ -16,6 +16,7 @@ from pathlib import Path
 
 import tomli_w
 
+from detector.allocator import reuse_freed_memory
 from detector.errors import DetectorError
 from detector.jsonable import jsonable
 from detector.morphology import describe
@@ -42,6 +43,7 @@ __all__ = ["SIGNIFICANT_DELTA_BIC", "ModelFrame", "best_candidate", "build_model
 
 
 @single_blas_thread
+@reuse_freed_memory
 def run_compare(scene, measured: str | Path, workers: int | None = None, *, large_px: int | None = None,
                 progress=None) -> dict:
     """Model vs measurement: the full result (arrays included) with ``summary`` (the contract's JSON).
@@ -80,6 +82,7 @@ def _run_compare(scene, measured: str | Path, workers: int | None = None) -> dic
 
 
 @single_blas_thread
+@reuse_freed_memory
 def run_diagnose(scene, measured: str | Path, workers: int | None = None, progress=None, *,
                  large_px: int | None = None, policy: DiagnosisPolicy = DEFAULT_POLICY) -> dict:
     """compare + every absent effect fitted and ranked: ``{"baseline", "candidates", "verdict", ...}``.

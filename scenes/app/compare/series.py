@@ -44,6 +44,7 @@ import numpy as np
 import tomli_w
 
 from detector import registry
+from detector.allocator import reuse_freed_memory
 from detector.characterize import linear_fit, pair_noise, photon_transfer
 from detector.errors import DetectorError
 from detector.joint import (
@@ -257,6 +258,7 @@ def shared_levels(series: Series, frames: list[Residuals]) -> list[str]:
 # --- compare ------------------------------------------------------------------------------------------------
 
 @single_blas_thread
+@reuse_freed_memory
 def run_series_compare(series: Series, workers: int | None = None, progress: Callable[[str], None] | None = None
                        ) -> dict:
     """Every frame compared with its model (:func:`scenes.app.compare.run._run_compare`), and the series'
@@ -779,6 +781,7 @@ def series_light(frames: list[Residuals]) -> str:
 
 
 @single_blas_thread
+@reuse_freed_memory
 def run_series_diagnose(series: Series, workers: int | None = None, progress=None,
                         policy: DiagnosisPolicy = DEFAULT_POLICY) -> dict:
     """compare + every absent effect fitted to the series and ranked (the single-frame JSON keys for the
