@@ -1877,7 +1877,16 @@ def neighbour_correlation(res: Residuals) -> tuple[float, float]:
         res._flat["neighbour_correlation"] = (rho, rho * np.sqrt(max(n, 1)))
         res._flat["neighbour_axes"] = tuple(p_ / max(c_, 1) / var for p_, c_ in zip(pairs, counts)) + \
             tuple(c_ // 2 for c_ in counts)
+        res._flat["neighbour_moments"] = (var, max(n, 1))
     return res._flat["neighbour_correlation"]
+
+
+def neighbour_covariance(res: Residuals) -> tuple[float, float, int]:
+    """(covariance of adjacent pixels, variance, pairs) of the whitened residual of :func:`neighbour_correlation`,
+    in units of the model's variance: its correlation is the first over the second."""
+    rho, _ = neighbour_correlation(res)
+    var, n = res._flat["neighbour_moments"]
+    return rho * var, var, n
 
 
 def neighbour_axes(res: Residuals) -> tuple[float, float, int, int]:
@@ -2350,11 +2359,9 @@ class VarianceSignature(Signature):
         if not vs["idx"].size:
             return ""
         excess = float(np.mean(theta * template_at(self.template(res), res.data_adu.shape, vs["idx"]) * vs["w"]))
-        rho, z = neighbour_correlation(res)
-        zw, m = _whitened_map(res)
-        var = float(np.sum(zw * zw) / max(np.count_nonzero(m), 1))
-        shared = rho * var - ipc_noise_covariance()  # [model variance]
-        z_shared = z * shared / max(rho * var, 1e-30) if rho > 0 else 0.0
+        cov, var, n = neighbour_covariance(res)
+        shared = cov - ipc_noise_covariance()  # [model variance]
+        z_shared = shared / var * np.sqrt(n)  # sigma: a correlation's standard error is 1 / sqrt(pairs)
         if excess <= 0 or shared <= EXPLAINS_MOST * excess or z_shared <= DETECTION_SIGMA:
             return ""
         return (f"adjacent pixels share {100 * min(shared / excess, 1.0):.0f} % of the extra scatter (covariance "

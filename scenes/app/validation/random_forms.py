@@ -1185,14 +1185,11 @@ def fam_jitter(rng):
     amp, t = _loguniform(rng, 0.2, 2.5) if law == "sine" else _loguniform(rng, 0.03, 0.25)
     prm = {"law": law, "amp_px": amp, "angle_deg": float(rng.uniform(0, 180)), "seed": int(rng.integers(2 ** 31))}
     accept = ("jitter", "psf_elongation") + (("psf_blur",) if law == "walk" else ())
-    if law == "walk":
-        # a walk that wanders as far as SMEAR_MAX_TRAIL_PX is a drifting pointing (a path); one that stays shorter
-        # is a smear no shape test separates from image motion of another law, a drift among them (the rule of
-        # fam_pointing_drift, both ways): a walk accepts the drift whatever its span
-        accept += ("pointing_drift",)
-    elif 2 * amp < SMEAR_MAX_TRAIL_PX:
-        # an oscillation sweeping a chord (2 amp) shorter than SMEAR_MAX_TRAIL_PX is such a smear too; a longer one
-        # has the arcsine profile of a sine, which a drift's box does not
+    # a walk that wanders as far as SMEAR_MAX_TRAIL_PX is a drifting pointing (a path); a walk that stays shorter,
+    # or an oscillation sweeping a chord (2 amp) shorter, is a smear no shape test separates from image motion of
+    # another law, a drift among them (the rule of fam_pointing_drift, both ways). A longer oscillation has the
+    # arcsine profile of a sine, which a drift's box does not
+    if law == "walk" or 2 * amp < SMEAR_MAX_TRAIL_PX:
         accept += ("pointing_drift",)
     return Draw(base, [("MotionPath", prm)], f"{law} image motion, {amp:.3g} px", t, accept=accept)
 
