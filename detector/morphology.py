@@ -732,6 +732,24 @@ def describe(res: Residuals, delta_adu: np.ndarray | None = None) -> dict:
         # rings centred on the sources are a property of the sources' light (a diffraction or ghost ring: the
         # point-spread function), light moved around them whatever the fitted fluxes absorbed
         kind, kind_certain = "redistributed", True
+    wide_map = None
+    if shares["periodic"] < GEOMETRY_SHARE and (contrast > 50 or max(shares.values()) < GEOMETRY_SHARE):
+        # the search above takes the block-scale smooth part out first, and with it every period longer than a
+        # few blocks (tree rings, fringes tens of pixels apart), and its share is of the whole power, noise
+        # included, where the other families' are of the excess chi2. When no family takes GEOMETRY_SHARE of the
+        # structure, or a peak stands out but holds little of the power, the periodogram of the unsmoothed map
+        # (the smooth fields' few cycles left out, :func:`_spectrum`) is asked: a peak significant on its own
+        # (:func:`periodic_bar`), with the share of the excess chi2 its band-passed map takes (:func:`_periodic_map`)
+        wide_period, wide_contrast, _ = _peak(np.where(wmap > 0, rmap * np.sqrt(wmap), 0.0),
+                                              _cut_row_factor(wmap, row_var))
+        if wide_contrast >= periodic_bar(shape):
+            wide_map = _periodic_map(rmap, wmap, light, kind if kind in ("additive", "multiplicative") else "additive",
+                                     row_var)
+            wide_share = _map_gain(wide_map, rmap, wmap, light) / pixel_total
+            if wide_share > shares["periodic"]:
+                shares["periodic"], period = wide_share, wide_period
+            else:
+                wide_map = None
     shares = {k: round(float(min(max(v, 0.0), 1.0)), 3) for k, v in shares.items()}
     geometry = [k for k, v in sorted(shares.items(), key=lambda kv: -kv[1]) if v >= GEOMETRY_SHARE]
     if "radial" in geometry or "gradient" in geometry:
@@ -744,6 +762,8 @@ def describe(res: Residuals, delta_adu: np.ndarray | None = None) -> dict:
         geometry.insert(0, "radial" if radial else "gradient")
     if not geometry:
         geometry = [max(shares, key=shares.get)] if shares else ["local"]
+    if wide_map is not None and geometry[0] == "periodic":
+        geometry[1:1] = [g for g in _periodic_axes(wide_map["map"], wmap) if g not in geometry]
     if rings_on_src and kind == "redistributed":
         # the same ring repeated about the sources is the pattern, whatever share of the frame's structure it
         # takes; the compact block excess ("local") is those rings seen at block scale
@@ -796,7 +816,7 @@ def describe(res: Residuals, delta_adu: np.ndarray | None = None) -> dict:
     if (main == "periodic" or line_period) and kind in ("additive", "multiplicative", "mixed"):
         # a pattern of lines with a period is mapped by its frequencies, as any periodic pattern: the map then
         # holds its form between the lines it was made from (a fold's rows predict the other fold's)
-        periodic_map = _periodic_map(rmap, wmap, light, kind, row_var)
+        periodic_map = wide_map if wide_map is not None else _periodic_map(rmap, wmap, light, kind, row_var)
     if main in ("rings", "blobs") or (main == "sources" and rings_on_src):
         fam = "srings" if main == "sources" else main
         amp, unit, desc = _feature_amplitude(res, feats, fam, rmap, light, kind == "multiplicative" and has_light)
@@ -1239,6 +1259,23 @@ def _smear_map(res: Residuals, slope: float, axis: int) -> dict:
 PERIODIC_KEEP_BINS = 3
 #: ... of at most this many peaks (fringes or pick-up with harmonics)
 PERIODIC_PEAKS = 3
+
+
+def _periodic_axes(pmap: np.ndarray, wmap: np.ndarray) -> list[str]:
+    """``["rows"]`` when a periodic map is constant along the rows (its wave vector along y: the row means hold
+    most, EXPLAINS_MOST, of its variance on the fitted pixels), ``["columns"]`` likewise, else ``[]``: a wave
+    along an axis is a pattern of lines too (a pick-up of the line rate, a banding)."""
+    on = wmap > 0
+    m = np.where(on, np.asarray(pmap, np.float64), 0.0)
+    n_on = on.sum()
+    total = float(np.sum(m * m) / max(n_on, 1))
+    out = []
+    for name, axis in (("rows", 1), ("columns", 0)):
+        cnt = on.sum(axis=axis)
+        means = m.sum(axis=axis) / np.maximum(cnt, 1)
+        if total > 0 and float(np.sum(cnt * means * means) / max(n_on, 1)) > EXPLAINS_MOST * total:
+            out.append(name)
+    return out
 
 
 def _periodic_map(rmap: np.ndarray, wmap: np.ndarray, light: np.ndarray, kind: str, row_var: float = 0.0) -> dict:
