@@ -386,6 +386,8 @@ class LowFrequencyPRNU(RealWorld):
 
     name = "rw_prnu"
     stages = (Stage.RESPONSE,)
+    #: drawn per pixel as a DSNU is (its smooth part a template, :func:`scatter_sigma`)
+    pixel_scatter = True
 
     def apply(self, stage, tile, data):
         p = self.params

@@ -537,6 +537,12 @@ class ColumnPRNU(RealWorld):
     name = "uw_prnu"
     stages = (Stage.RESPONSE,)
 
+    @property
+    def pixel_scatter(self) -> bool:
+        """A white map is drawn per pixel (:attr:`RealWorld.pixel_scatter`); a column pattern is seen through the
+        column means, as a template."""
+        return self.params.law == "lognormal" or not self.params.col_rms
+
     def apply(self, stage, tile, data):
         p = self.params
         _ys, xs = tile.pixel_centres()
