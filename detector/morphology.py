@@ -564,6 +564,21 @@ def describe(res: Residuals, delta_adu: np.ndarray | None = None) -> dict:
             out.update(_periodic_only(res, period, contrast, zhp, wmap))
             out["empirical"] = _periodic_map(rmap, wmap, light, out["kind"], row_var)
             return out
+        # a straight line significant on its own among every line searched (:func:`streak_bar`: once in
+        # 1 / FRAME_FALSE_ALARM frames of white noise), standing alone and elongated (:func:`is_streak`): a faint
+        # trail (a satellite, debris) whose chi2 the frame's own dilutes. A line along a pixel axis is one row or
+        # column, which the line families judge with the row noise's variance (this search's weights do not hold it)
+        line = straight_line(rmap, wmap)
+        if is_streak(line) and not along_pixel_axis(line):
+            amp, unit, desc = _streak_words(line, gain)
+            share = min(1.0, line["chi2"] / max(pix_chi2 - idx.size, 1e-300))
+            geometry = ["streak", "local"]
+            out.update(significant=True, kind="additive", kind_certain=True, geometry=geometry,
+                       significance_sigma=round(max(out["significance_sigma"], streak_sigma(line)), 2),
+                       scale_px=round(line["fwhm_px"], 2), amplitude=round(amp, 4), unit=unit,
+                       explanation=_words("additive", geometry, desc), shares={"streak": round(share, 3)},
+                       empirical=_streak_map(line, shape))
+            return out
         # light locked to the sources in a shape no ring or blob has (a trail, a one-sided halo): the residual
         # stacked about them, as a kernel of their light; or light along the columns through them (a read-out
         # smear), whose outlier columns the fitted pixels leave out. A smear's columns pass through its sources,
@@ -1162,6 +1177,26 @@ def streak_bar(n_tests: int) -> float:
     from scipy.stats import norm
 
     return float(norm.isf(0.5 * FRAME_FALSE_ALARM / max(n_tests, 1)))
+
+
+def streak_sigma(line: dict) -> float:
+    """The significance [Gaussian sigma, one-sided] of the best line's coarse-grid deviate among the ``n_tests``
+    lines searched (the look-elsewhere effect, as :func:`streak_bar`)."""
+    from scipy.stats import norm
+
+    p = min(1.0, 2.0 * float(norm.sf(line["sigma_searched"])) * max(int(line["n_tests"]), 1))
+    return float(norm.isf(p)) if p > 0 else 37.0
+
+
+#: a line within this angle [deg] of a pixel axis is one row or column (the line families', whose statistics hold
+#: the row noise): twice the coarse search's step, a line that crosses the frame's 256 map pixels within ~4 of one
+STREAK_AXIS_DEG = 2 * STREAK_STEP_DEG
+
+
+def along_pixel_axis(line: dict) -> bool:
+    """The line runs along a row or a column (within STREAK_AXIS_DEG)."""
+    a = float(line["angle_deg"]) % 90.0
+    return min(a, 90.0 - a) < STREAK_AXIS_DEG
 
 
 #: a streak stands alone: the strongest line parallel to it beyond its profile is not significant on its own

@@ -90,3 +90,34 @@ def test_a_compact_blob_is_no_streak():
     blob = 8.0 * np.exp(-0.5 * ((yy - 100) ** 2 + (xx - 140) ** 2) / 3.0 ** 2)
     line = straight_line(np.random.default_rng(6).standard_normal(shape) + blob, np.ones(shape))
     assert line["sigma_searched"] >= streak_bar(line["n_tests"]) and not is_streak(line)
+
+
+def test_a_trail_too_faint_to_move_the_frames_chi2_is_still_a_streak():
+    """A trail of 0.45 sigma at its centre and 2 px sigma across a 256^2 frame: ~140 of chi2 (the exact sum of its
+    square, the independent reference), 0.4 sigma of the frame's chi2 excess (sqrt(2 n) = 362) and no compact
+    feature, but ~7 sigma along its line, past the bar of every line searched: described as a streak at its
+    angle. The same frame without it is noise."""
+    from test_morphology_rows import OWN_VAR, _frame
+
+    sig = math.sqrt(OWN_VAR)
+    trail = _trail((256, 256), (30, 20), (120, 240), 2.0, 0.45 * sig)
+    assert 100 < float(np.sum(trail ** 2)) / OWN_VAR < 200
+    m = describe(_frame(0, row_var=1e-9, extra=trail))
+    assert m["significant"] and m["geometry"][0] == "streak", m["explanation"]
+    assert m["empirical"] is not None and m["empirical"].get("form") == "streak"
+    angle = math.degrees(math.atan2(240 - 20, 120 - 30))
+    assert f"at {angle:.0f} deg" in m["explanation"] or f"at {angle + 1:.0f} deg" in m["explanation"] \
+        or f"at {angle - 1:.0f} deg" in m["explanation"], m["explanation"]
+    assert not describe(_frame(0, row_var=1e-9))["significant"]
+
+
+def test_one_bright_row_is_left_to_the_row_family():
+    """One row 0.8 sigma high (a line along a pixel axis, 0.8 x 256 / sqrt(2 x 256) = 9 sigma less its flanks): no streak from the line search, whose
+    weights do not hold the row noise; the row family's statistics judge a row."""
+    from detector.morphology import along_pixel_axis
+
+    shape = (256, 256)
+    r = np.random.default_rng(8).standard_normal(shape)
+    r[100, :] += 0.8
+    line = straight_line(r, np.ones(shape))
+    assert is_streak(line) and along_pixel_axis(line)
