@@ -422,6 +422,8 @@ def _gain_check(fit, res) -> str:
         added = smooth - misfit(np.hstack([curve, stepped[:, 1:]]))  # what the steps add to the curve
         if added >= DETECTION_SIGMA ** 2:
             continue
+        if found and steps >= smooth and transitions_beat_curve(rc[ok], sc[ok], wc[ok], centres, found):
+            continue  # a staircase following wide transitions (ramps of tens of lines), not a smooth response
         if found and steps >= smooth:
             return (f"along {axis} the steps at {len(found)} boundary(ies) found from the data describe the signal's "
                     f"profile no better than a smooth curve of the line's position with as many parameters ({k}; chi2 "
@@ -435,6 +437,53 @@ def _gain_check(fit, res) -> str:
                     f"than {DETECTION_SIGMA:g}^2: a smooth or periodic response (vignetting, a flat-field pattern), "
                     "not read-out regions, whose gains change in steps")
     return ""
+
+
+def transitions_beat_curve(rc: np.ndarray, sc: np.ndarray, wc: np.ndarray, centres: np.ndarray,
+                           found: list) -> bool:
+    """Whether boundaries ``found`` from the data, read as a few localised transitions of one common width (a
+    gain that settles over some lines: a tanh ramp), describe a line profile better than a smooth curve of the
+    line's position with as many parameters by DETECTION_SIGMA^2 in chi2.
+
+    ``rc``: the line sums of the residual [ADU], ``sc``: of the signal [ADU], ``wc``: their inverse variances,
+    ``centres``: the lines' positions [px]. A staircase of close boundaries is how the segmentation follows one
+    wide transition, and the curve it is weighed against then has the staircase's many parameters and follows it
+    too. Grouped into ``m`` transitions (split at the ``m - 1`` widest gaps between the found boundaries, m = 1 ...
+    the number found), the transition model has m + 1 gains, m positions and a width, and the Legendre curve as
+    many terms (2 m + 2). A smooth response (vignetting, a flat-field pattern) has no localised transition: a
+    curve of as many parameters describes it as well or better."""
+    from scipy.optimize import least_squares
+
+    f = np.sort(np.asarray(found, np.float64))
+    sw = np.sqrt(wc)
+    u = 2.0 * (centres - centres.min()) / max(float(np.ptp(centres)), 1e-9) - 1.0
+
+    def misfit(a: np.ndarray) -> float:
+        coef = np.linalg.lstsq(a * sw[:, None], rc * sw, rcond=None)[0]
+        return float(np.sum(wc * (rc - a @ coef) ** 2))
+
+    def ramps(p: np.ndarray) -> np.ndarray:  # one gain per plateau, times the signal: [1, step_1, ..., step_m]
+        width = abs(p[-1]) + 1e-3
+        return sc[:, None] * np.column_stack([np.ones_like(centres)]
+                                             + [0.5 * (1.0 + np.tanh((centres - b) / width)) for b in p[:-1]])
+
+    widest = np.argsort(np.diff(f))[::-1]
+    for m in range(1, f.size + 1):
+        k = 2 * m + 2
+        if rc.size <= 2 * k:
+            break
+        groups = np.split(f, np.sort(widest[: m - 1] + 1))
+        p0 = np.r_[[g.mean() for g in groups], max(float(np.mean([np.ptp(g) for g in groups])) / 2.0, 1.0)]
+
+        def resid(p):
+            a = ramps(p)
+            coef = np.linalg.lstsq(a * sw[:, None], rc * sw, rcond=None)[0]
+            return sw * (rc - a @ coef)
+
+        chi2 = 2.0 * float(least_squares(resid, p0).cost)
+        if misfit(sc[:, None] * np.polynomial.legendre.legvander(u, k - 1)) - chi2 >= DETECTION_SIGMA ** 2:
+            return True
+    return False
 
 
 def _fitted_regions(res, sig: np.ndarray, iy: np.ndarray, ix: np.ndarray, nx: int):

@@ -448,6 +448,8 @@ def test_a_white_pattern_at_large_n_is_not_a_template():
 @pytest.mark.parametrize("family, case_seed", [
     ("gain_regions", 2072658002213109475),  # two strips 2.8 % apart, 11 px transitions, a drift: a staircase fits
     ("gain_regions", 950842770129256812),  # four strips, 17 px transitions, on the CCD binned 8x8
+    ("gain_regions", 3089907269083770667),  # three strips, 22 px transitions: a staircase of 7 boundaries, whose
+    # curve of 15 terms follows it as well; two ramps of one width beat a curve of 6 (transitions_beat_curve)
 ])
 def test_gain_strips_with_wide_transitions_are_gain_regions(tmp_path, family, case_seed):
     """Gain strips whose transitions are tanh ramps of 11-17 px, under a drift: found with more boundaries than the
