@@ -748,11 +748,11 @@ def describe(res: Residuals, delta_adu: np.ndarray | None = None) -> dict:
         # point-spread function), light moved around them whatever the fitted fluxes absorbed
         kind, kind_certain = "redistributed", True
     wide_map = None
-    if shares["periodic"] < GEOMETRY_SHARE and (contrast > 50 or max(shares.values()) < GEOMETRY_SHARE):
+    if max(shares.values()) < GEOMETRY_SHARE:
         # the search above takes the block-scale smooth part out first, and with it every period longer than a
         # few blocks (tree rings, fringes tens of pixels apart), and its share is of the whole power, noise
         # included, where the other families' are of the excess chi2. When no family takes GEOMETRY_SHARE of the
-        # structure, or a peak stands out but holds little of the power, the periodogram of the unsmoothed map
+        # structure (the description would be a family that holds less), the periodogram of the unsmoothed map
         # (the smooth fields' few cycles left out, :func:`_spectrum`) is asked: a peak significant on its own
         # (:func:`periodic_bar`), with the share of the excess chi2 its band-passed map takes (:func:`_periodic_map`)
         wide_period, wide_contrast, _ = _peak(np.where(wmap > 0, rmap * np.sqrt(wmap), 0.0),
