@@ -240,6 +240,26 @@ def _peak(z: np.ndarray, row_factor: float = 1.0) -> tuple[float, float, float]:
             float(near / max(p.sum(), 1e-300)))
 
 
+#: half-width [frequency bins] of the ring of a periodogram at the strongest frequency's radius
+RING_BINS = 1.0
+
+
+def ring_contrast(z: np.ndarray, row_factor: float = 1.0) -> float:
+    """The strongest frequency's power over the median power of the frequencies at its radius (within RING_BINS):
+    a period (a sinusoid, fringes, the arcs of rings about a far centre) puts its power into a few directions at
+    its radius, the rest of that ring holding noise only; a smooth random field (a flat-field's large scales) fills
+    every direction at every radius of its band, and its strongest bin is only the continuum's largest. Against the
+    same bar as the whole periodogram's (:func:`periodic_bar`): the null is a spectrum white around each radius."""
+    if _cut(z) is None:
+        return 0.0
+    p, _, fy, fx, side = _spectrum(z, row_factor)
+    rad = np.hypot(fy, fx) * side  # [frequency bins]
+    k = int(np.argmax(p))
+    ring = (np.abs(rad - rad.ravel()[k]) <= RING_BINS) & (p > 0)
+    med = float(np.median(p[ring])) if ring.any() else 0.0
+    return float(p.ravel()[k]) / med if med > 0 else 0.0
+
+
 def periodic_line(res) -> tuple[float, float, float]:
     """(period [px], contrast, share) of the strongest spatial frequency of a frame's whitened residual (the
     levels refitted, its smooth part at the block scale taken out): the peak's power over the median power
@@ -564,21 +584,6 @@ def describe(res: Residuals, delta_adu: np.ndarray | None = None) -> dict:
             out.update(_periodic_only(res, period, contrast, zhp, wmap))
             out["empirical"] = _periodic_map(rmap, wmap, light, out["kind"], row_var)
             return out
-        # a straight line significant on its own among every line searched (:func:`streak_bar`: once in
-        # 1 / FRAME_FALSE_ALARM frames of white noise), standing alone and elongated (:func:`is_streak`): a faint
-        # trail (a satellite, debris) whose chi2 the frame's own dilutes. A line along a pixel axis is one row or
-        # column, which the line families judge with the row noise's variance (this search's weights do not hold it)
-        line = straight_line(rmap, wmap)
-        if is_streak(line) and not along_pixel_axis(line):
-            amp, unit, desc = _streak_words(line, gain)
-            share = min(1.0, line["chi2"] / max(pix_chi2 - idx.size, 1e-300))
-            geometry = ["streak", "local"]
-            out.update(significant=True, kind="additive", kind_certain=True, geometry=geometry,
-                       significance_sigma=round(max(out["significance_sigma"], streak_sigma(line)), 2),
-                       scale_px=round(line["fwhm_px"], 2), amplitude=round(amp, 4), unit=unit,
-                       explanation=_words("additive", geometry, desc), shares={"streak": round(share, 3)},
-                       empirical=_streak_map(line, shape))
-            return out
         # light locked to the sources in a shape no ring or blob has (a trail, a one-sided halo): the residual
         # stacked about them, as a kernel of their light; or light along the columns through them (a read-out
         # smear), whose outlier columns the fitted pixels leave out. A smear's columns pass through its sources,
@@ -590,6 +595,23 @@ def describe(res: Residuals, delta_adu: np.ndarray | None = None) -> dict:
             out["significance_sigma"] = round(max(out["significance_sigma"], ker["sigma"]), 2)
             out.update(_kernel_words(ker))
             out["empirical"] = {"kind": "additive", "map": ker["map"]}
+        else:
+            # a straight line significant on its own among every line searched (:func:`streak_bar`: at most once
+            # in 1 / FRAME_FALSE_ALARM frames of white noise), standing alone and elongated (:func:`is_streak`): a
+            # faint trail (a satellite, debris) whose chi2 the frame's own dilutes. Searched with the rows' own
+            # offsets taken out where the model has row noise (the search's weights hold the pixels' variance
+            # only: row offsets are lines too, and lines a degree or two off the rows add them up); a line along a
+            # pixel axis is one row or column, which the line families judge
+            line = straight_line(_without_row_means(rmap, wmap) if row_var > 0 else rmap, wmap)
+            if is_streak(line) and not along_pixel_axis(line):
+                amp, unit, desc = _streak_words(line, gain)
+                share = min(1.0, line["chi2"] / max(pix_chi2 - idx.size, 1e-300))
+                geometry = ["streak", "local"]
+                out.update(significant=True, kind="additive", kind_certain=True, geometry=geometry,
+                           significance_sigma=round(max(out["significance_sigma"], streak_sigma(line)), 2),
+                           scale_px=round(line["fwhm_px"], 2), amplitude=round(amp, 4), unit=unit,
+                           explanation=_words("additive", geometry, desc), shares={"streak": round(share, 3)},
+                           empirical=_streak_map(line, shape))
         cols = _columns_through_sources(res)
         if cols and (not out["significant"] or _map_gain(cols["empirical"], rmap, wmap, light)
                      > _map_gain(out["empirical"], rmap, wmap, light)):
@@ -755,13 +777,13 @@ def describe(res: Residuals, delta_adu: np.ndarray | None = None) -> dict:
         # structure (the description would be a family that holds less), the periodogram of the unsmoothed map
         # (the smooth fields' few cycles left out, :func:`_spectrum`) is asked: a peak significant on its own
         # (:func:`periodic_bar`), with the share of the excess chi2 its band-passed map takes (:func:`_periodic_map`)
-        wide_period, wide_contrast, _ = _peak(np.where(wmap > 0, rmap * np.sqrt(wmap), 0.0),
-                                              _cut_row_factor(wmap, row_var))
-        if wide_contrast >= periodic_bar(shape):
+        zw, g_row = np.where(wmap > 0, rmap * np.sqrt(wmap), 0.0), _cut_row_factor(wmap, row_var)
+        wide_period, wide_contrast, _ = _peak(zw, g_row)
+        if wide_contrast >= periodic_bar(shape) and ring_contrast(zw, g_row) >= periodic_bar(shape):
             wide_map = _periodic_map(rmap, wmap, light, kind if kind in ("additive", "multiplicative") else "additive",
                                      row_var)
             wide_share = _map_gain(wide_map, rmap, wmap, light) / pixel_total
-            if wide_share > shares["periodic"]:
+            if wide_share >= GEOMETRY_SHARE:
                 shares["periodic"], period = wide_share, wide_period
             else:
                 wide_map = None
@@ -1181,11 +1203,19 @@ def streak_bar(n_tests: int) -> float:
 
 def streak_sigma(line: dict) -> float:
     """The significance [Gaussian sigma, one-sided] of the best line's coarse-grid deviate among the ``n_tests``
-    lines searched (the look-elsewhere effect, as :func:`streak_bar`)."""
+    lines searched, two-sided (the look-elsewhere effect, as :func:`streak_bar`)."""
     from scipy.stats import norm
 
-    p = min(1.0, 2.0 * float(norm.sf(line["sigma_searched"])) * max(int(line["n_tests"]), 1))
-    return float(norm.isf(p)) if p > 0 else 37.0
+    log10_p = (math.log10(2.0 * max(int(line["n_tests"]), 1))
+               + float(norm.logsf(line["sigma_searched"])) / math.log(10.0))
+    return sigma_of_log10_p(min(log10_p, 0.0))
+
+
+def _without_row_means(rmap: np.ndarray, wmap: np.ndarray) -> np.ndarray:
+    """``rmap`` less each row's weighted mean on its fitted pixels (0 elsewhere): the row offsets out."""
+    sw = wmap.sum(axis=1)
+    mean = np.where(sw > 0, (rmap * wmap).sum(axis=1) / np.where(sw > 0, sw, 1.0), 0.0)
+    return np.where(wmap > 0, rmap - mean[:, None], 0.0)
 
 
 #: a line within this angle [deg] of a pixel axis is one row or column (the line families', whose statistics hold
@@ -1613,10 +1643,18 @@ def _peak_sigma(contrast: float, z: np.ndarray) -> float:
     """The significance [Gaussian sigma] of a periodogram peak ``contrast`` times the median power, among the
     frequencies of the (at most 512 x 512) cut :func:`_peak` searches: a bin of white noise's periodogram is
     exponential, P(> c median) = 2^-c, times the number of bins searched (the look-elsewhere effect)."""
+    return sigma_of_log10_p(math.log10(tested_frequencies(z.shape)) - contrast * math.log10(2.0))
+
+
+#: the largest significance reported [sigma]: a tail probability below 1e-300 (a double's range) is reported as this
+SIGMA_CAP = 37.0
+
+
+def sigma_of_log10_p(log10_p: float) -> float:
+    """The one-sided Gaussian sigma of a tail probability ``10 ** log10_p`` (SIGMA_CAP beyond a double's range)."""
     from scipy.stats import norm
 
-    log10_p = math.log10(tested_frequencies(z.shape)) - contrast * math.log10(2.0)
-    return float(norm.isf(10.0 ** log10_p)) if log10_p > -300 else 37.0
+    return float(norm.isf(10.0 ** min(log10_p, 0.0))) if log10_p > -300 else SIGMA_CAP
 
 
 def _periodic_only(res: Residuals, period: float, contrast: float, zhp: np.ndarray, wmap: np.ndarray) -> dict:

@@ -439,31 +439,47 @@ def _gain_check(fit, res) -> str:
     return ""
 
 
+#: transitions of read-out regions are at least this many ramp widths apart: halfway between two, each tanh ramp
+#: has settled to within 1 - tanh(2) = 3.6 % of its step, a plateau. A smooth or periodic response drawn as ramps
+#: (a sinusoid, a bump) needs ramps as wide as a third of their spacing or more. From the profile's ends a ramp is
+#: one width at least (its centre and most of it on the frame: the plateau beyond may lie outside the window)
+TRANSITION_PLATEAU_WIDTHS = 4.0
+
+
 def transitions_beat_curve(rc: np.ndarray, sc: np.ndarray, wc: np.ndarray, centres: np.ndarray,
                            found: list) -> bool:
-    """Whether boundaries ``found`` from the data, read as a few localised transitions of one common width (a
-    gain that settles over some lines: a tanh ramp), describe a line profile better than a smooth curve of the
-    line's position with as many parameters by DETECTION_SIGMA^2 in chi2.
+    """Whether boundaries ``found`` from the data, read as a few localised transitions of one common width between
+    plateaus (a gain that settles over some lines: a tanh ramp), describe a line profile better than a smooth curve
+    of the line's position with as many parameters.
 
     ``rc``: the line sums of the residual [ADU], ``sc``: of the signal [ADU], ``wc``: their inverse variances,
-    ``centres``: the lines' positions [px]. A staircase of close boundaries is how the segmentation follows one
-    wide transition, and the curve it is weighed against then has the staircase's many parameters and follows it
-    too. Grouped into ``m`` transitions (split at the ``m - 1`` widest gaps between the found boundaries, m = 1 ...
-    the number found), the transition model has m + 1 gains, m positions and a width, and the Legendre curve as
-    many terms (2 m + 2). A smooth response (vignetting, a flat-field pattern) has no localised transition: a
-    curve of as many parameters describes it as well or better."""
+    ``centres``: the lines' positions [px], ``found``: the boundaries [px, the same coordinates]. A staircase of
+    close boundaries is how the segmentation follows one wide transition, and the curve it is weighed against then
+    has the staircase's many parameters and follows it too. Grouped into ``m`` transitions (split at the ``m - 1``
+    widest gaps between the found boundaries, m = 1 ... the number found), the transition model has m + 1 gains, m
+    positions and a width, and the Legendre curve as many terms (2 m + 2). The ramps must leave plateaus
+    (TRANSITION_PLATEAU_WIDTHS widths apart, a width from the ends: read-out regions have a gain each), describe the
+    profile (a chi2 within DETECTION_SIGMA standard deviations, sqrt(2 dof), of its dof) and beat the curve
+    by DETECTION_SIGMA^2 plus 2 ln of the groupings tried (the best of n tries gains ~2 ln n by chance, as a BIC
+    counts a choice). A smooth response (vignetting, a flat-field pattern) has no localised transition: a curve of
+    as many parameters describes it as well, or ramps follow it only as wide as their spacing."""
     from scipy.optimize import least_squares
 
     f = np.sort(np.asarray(found, np.float64))
+    if f.size == 0 or centres.size < 2:
+        return False
     sw = np.sqrt(wc)
-    u = 2.0 * (centres - centres.min()) / max(float(np.ptp(centres)), 1e-9) - 1.0
+    lo, hi = float(centres.min()), float(centres.max())
+    u = 2.0 * (centres - lo) / max(hi - lo, 1e-9) - 1.0
+    spacing = float(np.median(np.diff(np.sort(centres))))
+    bar = DETECTION_SIGMA ** 2 + 2.0 * np.log(f.size)
 
     def misfit(a: np.ndarray) -> float:
         coef = np.linalg.lstsq(a * sw[:, None], rc * sw, rcond=None)[0]
         return float(np.sum(wc * (rc - a @ coef) ** 2))
 
-    def ramps(p: np.ndarray) -> np.ndarray:  # one gain per plateau, times the signal: [1, step_1, ..., step_m]
-        width = abs(p[-1]) + 1e-3
+    def ramps(p: np.ndarray) -> np.ndarray:  # one gain per plateau, times the signal; p = (positions, ln width)
+        width = float(np.exp(np.clip(p[-1], -10.0, 10.0)))
         return sc[:, None] * np.column_stack([np.ones_like(centres)]
                                              + [0.5 * (1.0 + np.tanh((centres - b) / width)) for b in p[:-1]])
 
@@ -473,15 +489,20 @@ def transitions_beat_curve(rc: np.ndarray, sc: np.ndarray, wc: np.ndarray, centr
         if rc.size <= 2 * k:
             break
         groups = np.split(f, np.sort(widest[: m - 1] + 1))
-        p0 = np.r_[[g.mean() for g in groups], max(float(np.mean([np.ptp(g) for g in groups])) / 2.0, 1.0)]
-
-        def resid(p):
-            a = ramps(p)
-            coef = np.linalg.lstsq(a * sw[:, None], rc * sw, rcond=None)[0]
-            return sw * (rc - a @ coef)
-
-        chi2 = 2.0 * float(least_squares(resid, p0).cost)
-        if misfit(sc[:, None] * np.polynomial.legendre.legvander(u, k - 1)) - chi2 >= DETECTION_SIGMA ** 2:
+        width0 = max(spacing, float(np.mean([np.ptp(g) for g in groups])) / 2.0)
+        p0 = np.r_[[g.mean() for g in groups], np.log(width0)]
+        got = least_squares(lambda p: sw * (rc - ramps(p) @ np.linalg.lstsq(ramps(p) * sw[:, None], rc * sw,
+                                                                               rcond=None)[0]), p0)
+        if not np.all(np.isfinite(got.x)):
+            continue
+        pos, width = np.sort(got.x[:-1]), float(np.exp(np.clip(got.x[-1], -10.0, 10.0)))
+        if pos[0] - lo < width or hi - pos[-1] < width or np.any(np.diff(pos) < TRANSITION_PLATEAU_WIDTHS * width):
+            continue  # no plateau between the ramps: a smooth or periodic change, not regions' gains
+        dof = rc.size - k
+        if 2.0 * float(got.cost) > dof + DETECTION_SIGMA * np.sqrt(2.0 * dof):
+            continue  # the ramps do not describe the profile (its chi2 beyond its noise): better than a curve is moot
+        curve = misfit(sc[:, None] * np.polynomial.legendre.legvander(u, k - 1))
+        if curve - 2.0 * float(got.cost) >= bar:
             return True
     return False
 

@@ -44,3 +44,25 @@ def test_a_smooth_response_is_no_transition(kind):
     for seed in range(3):
         rc, sc, wc, c = _profile(rel, 10 + seed)
         assert not transitions_beat_curve(rc, sc, wc, c, [60.0, 120.0, 400.0, 450.0])
+
+
+@pytest.mark.parametrize("cycles", [3, 4, 6, 8])
+def test_a_periodic_response_is_no_transition(cycles):
+    """A sinusoid of 0.3 % over 3 to 8 cycles (tree rings, fringes through the line sums), with boundaries at its
+    zero crossings: ramps can draw it only as wide as a third of their spacing, leaving no plateau."""
+    u = (np.arange(N) + 0.5) / N
+    rel = 0.003 * np.sin(2 * np.pi * cycles * u)
+    zeros = [float(z) for z in (np.arange(1, 2 * cycles) * N / (2 * cycles))]
+    for seed in range(3):
+        rc, sc, wc, c = _profile(rel, 20 + seed)
+        assert not transitions_beat_curve(rc, sc, wc, c, zeros)
+
+
+def test_a_bump_is_no_transition():
+    """A Gaussian bump of 0.4 % and 40 lines sigma (a dust shadow's, a coating's local change): two ramps up and
+    down as wide as their spacing, no plateau between them."""
+    x = np.arange(N) + 0.5
+    rel = 0.004 * np.exp(-0.5 * ((x - 250) / 40.0) ** 2)
+    for seed in range(3):
+        rc, sc, wc, c = _profile(rel, 30 + seed)
+        assert not transitions_beat_curve(rc, sc, wc, c, [200.0, 215.0, 285.0, 300.0])

@@ -178,3 +178,17 @@ def test_rings_longer_than_a_few_blocks_are_periodic_with_their_period():
     got = float(np.sum(truth ** 2 - (truth - emp["map"]) ** 2)) / SIG ** 2  # the map's gain on the truth itself
     assert got > 0.5 * exact, (got, exact)
 
+
+def test_a_smooth_random_field_is_not_periodic():
+    """A Gaussian random field with its power spread over 3 to 10 cycles across the frame (a flat-field's large
+    scales, a PRNU's low-frequency part) at 0.3 sigma: its periodogram's largest bin passes the white-noise bar,
+    but the radius it sits at stands no higher than the radii beside it (a continuum, no period): not periodic."""
+    for seed in range(3):
+        rng = np.random.default_rng(40 + seed)
+        f = np.fft.fft2(rng.standard_normal((N, N)))
+        fy, fx = np.fft.fftfreq(N)[:, None] * N, np.fft.fftfreq(N)[None, :] * N
+        band = (np.hypot(fy, fx) >= 3) & (np.hypot(fy, fx) <= 10)
+        field = np.real(np.fft.ifft2(f * band))
+        field *= 0.3 * SIG / field.std()
+        m = describe(_res(field, seed=50 + seed))
+        assert m["significant"] and "periodic" not in m["geometry"], m["explanation"]
