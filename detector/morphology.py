@@ -150,18 +150,20 @@ def tested_frequencies(shape: tuple[int, ...]) -> int:
     return side * (side // 2 + 1)
 
 
-def periodic_contrast(n_frequencies: int) -> float:
+def periodic_contrast(n_frequencies: int, frames: int = 1) -> float:
     """The bar of a periodogram peak over the median power, significant on its own among ``n_frequencies``
     frequencies searched: a bin of a white noise's periodogram is exponential (chi2 with 2 dof), so P(bin > c x
     median) = 2^-c, and the strongest of n bins passes ``c = log2(n / FRAME_FALSE_ALARM)`` once in
     1 / FRAME_FALSE_ALARM frames (the look-elsewhere effect, as :func:`_peak_sigma`): 27.0 over the 131 584
-    frequencies of a 512 x 512 cut, 25.0 over those of a 256 x 256 one."""
-    return math.log2(max(int(n_frequencies), 1) / FRAME_FALSE_ALARM)
+    frequencies of a 512 x 512 cut, 25.0 over those of a 256 x 256 one. The strongest of ``frames`` frames' (a
+    series' worst frame) passes it as rarely with ``n`` times ``frames`` frequencies."""
+    return math.log2(max(int(n_frequencies), 1) * max(int(frames), 1) / FRAME_FALSE_ALARM)
 
 
-def periodic_bar(shape: tuple[int, ...]) -> float:
-    """:func:`periodic_contrast` of the frequencies :func:`_peak` searches on a map of ``shape``."""
-    return periodic_contrast(tested_frequencies(shape))
+def periodic_bar(shape: tuple[int, ...], frames: int = 1) -> float:
+    """:func:`periodic_contrast` of the frequencies :func:`_peak` searches on a map of ``shape`` (in each of
+    ``frames`` frames)."""
+    return periodic_contrast(tested_frequencies(shape), frames)
 
 
 def row_power_factor(w: np.ndarray, row_var_adu2: float, whitened: bool = True) -> float:
@@ -497,11 +499,13 @@ def block_chi2(res: Residuals, delta_adu: np.ndarray | None = None,
     return float(np.sum(mean * mean * wb)), int(ok.sum())
 
 
-def describe(res: Residuals, delta_adu: np.ndarray | None = None) -> dict:
+def describe(res: Residuals, delta_adu: np.ndarray | None = None, frames: int = 1) -> dict:
     """The morphology of the level-profiled residual of ``res`` (minus ``delta_adu``, a candidate's mean
     change, when given): the contract's ``residual_morphology`` block, plus ``shares`` (each family's share
     of the structured chi2), ``significance_sigma`` and ``empirical`` (``{"kind", "map"}``: the smooth fit of
-    the described pattern on the output pixels [ADU for additive, relative for multiplicative], or None)."""
+    the described pattern on the output pixels [ADU for additive, relative for multiplicative], or None).
+    ``frames``: the frames of a series this one is among, whose worst description stands for the series: the
+    searches whose bar is a false-alarm rate (a period, a streak) then count every frame's trials."""
     shape = res.data_adu.shape
     idx, r, w = res.flat_profiled()
     if delta_adu is not None:
@@ -563,7 +567,7 @@ def describe(res: Residuals, delta_adu: np.ndarray | None = None) -> dict:
             # features strung along one straight line are a streak (a faint trail found piece by piece) when the
             # line's own map takes most (EXPLAINS_MOST) of the chi2 the features' map takes
             line = straight_line(rmap, wmap) if out["kind"] == "additive" else None
-            if is_streak(line):
+            if is_streak(line, frames):
                 smap = _streak_map(line, shape)
                 if out["empirical"] is None or _map_gain(smap, rmap, wmap, light) >= \
                         EXPLAINS_MOST * _map_gain(out["empirical"], rmap, wmap, light):
@@ -578,7 +582,7 @@ def describe(res: Residuals, delta_adu: np.ndarray | None = None) -> dict:
         # fx = 0 column is measured against the power the model's row noise puts there (row_power_factor)
         zhp = zp - block_smooth(res, zp, b, keep=True)
         period, contrast, _ = _peak(zhp, _cut_row_factor(wmap, row_var))
-        if contrast >= periodic_bar(zhp.shape):
+        if contrast >= periodic_bar(zhp.shape, frames):
             out["significant"] = True
             out["significance_sigma"] = round(max(out["significance_sigma"], _peak_sigma(contrast, zhp)), 2)
             out.update(_periodic_only(res, period, contrast, zhp, wmap))
@@ -603,7 +607,7 @@ def describe(res: Residuals, delta_adu: np.ndarray | None = None) -> dict:
             # only: row offsets are lines too, and lines a degree or two off the rows add them up); a line along a
             # pixel axis is one row or column, which the line families judge
             line = straight_line(_without_row_means(rmap, wmap) if row_var > 0 else rmap, wmap)
-            if is_streak(line) and not along_pixel_axis(line):
+            if is_streak(line, frames) and not along_pixel_axis(line):
                 amp, unit, desc = _streak_words(line, gain)
                 share = min(1.0, line["chi2"] / max(pix_chi2 - idx.size, 1e-300))
                 geometry = ["streak", "local"]
@@ -1193,12 +1197,13 @@ def _streak_words(line: dict, gain: float) -> tuple[float, str, str]:
                        f"through (x, y) = ({x:.0f}, {y:.0f}) output px, {line['sigma']:.1f} sigma along the line")
 
 
-def streak_bar(n_tests: int) -> float:
-    """The deviate the best of ``n_tests`` lines passes once in 1 / FRAME_FALSE_ALARM frames of white noise (two
-    sided: a bright trail or a dark one)."""
+def streak_bar(n_tests: int, frames: int = 1) -> float:
+    """The deviate the best of ``n_tests`` lines passes at most once in 1 / FRAME_FALSE_ALARM frames of white noise
+    (two sided: a bright trail or a dark one; a Bonferroni bound), or the best of ``frames`` frames' lines once in
+    1 / FRAME_FALSE_ALARM series."""
     from scipy.stats import norm
 
-    return float(norm.isf(0.5 * FRAME_FALSE_ALARM / max(n_tests, 1)))
+    return float(norm.isf(0.5 * FRAME_FALSE_ALARM / max(n_tests, 1) / max(int(frames), 1)))
 
 
 def streak_sigma(line: dict) -> float:
@@ -1238,12 +1243,12 @@ STREAK_ALONE = 0.5
 STREAK_ELONGATION = 4.0
 
 
-def is_streak(line: dict | None) -> bool:
-    """A straight line significant among every line searched, alone (STREAK_ALONE) and elongated
-    (STREAK_ELONGATION)."""
+def is_streak(line: dict | None, frames: int = 1) -> bool:
+    """A straight line significant among every line searched (in each of ``frames`` frames: :func:`streak_bar`),
+    alone (STREAK_ALONE) and elongated (STREAK_ELONGATION)."""
     if line is None:
         return False
-    bar = streak_bar(line["n_tests"])
+    bar = streak_bar(line["n_tests"], frames)
     return (line["sigma_searched"] >= bar and line["next_sigma"] < max(bar, STREAK_ALONE * line["sigma"])
             and line["length_px"] >= STREAK_ELONGATION * max(line["fwhm_px"], 1.0))
 

@@ -148,3 +148,16 @@ def test_one_bright_row_is_left_to_the_row_family():
     extra[100, :] = 0.8 * math.sqrt(OWN_VAR)
     m = describe(_frame(9, row_var=1e-9, extra=extra))
     assert "streak" not in m["geometry"], m["explanation"]
+
+
+def test_a_series_worst_frame_counts_every_frames_trials():
+    """A series' morphology is its worst frame's: the bars whose level is a false-alarm rate count the trials of all
+    its frames (the best of k frames' n lines passes the bar of k n lines once in 1 / FRAME_FALSE_ALARM series; the
+    same for the periodogram's bins), so a series of five is no more often flagged than one frame."""
+    from detector.morphology import periodic_bar, periodic_contrast, tested_frequencies
+
+    assert streak_bar(274320, 5) == pytest.approx(streak_bar(5 * 274320))
+    assert streak_bar(274320, 5) > streak_bar(274320) + 0.2
+    shape = (192, 192)
+    assert periodic_bar(shape, 5) == pytest.approx(periodic_contrast(5 * tested_frequencies(shape)))
+    assert periodic_bar(shape, 5) - periodic_bar(shape) == pytest.approx(math.log2(5))

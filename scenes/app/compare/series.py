@@ -797,7 +797,7 @@ def run_series_diagnose(series: Series, workers: int | None = None, progress=Non
     chi2_base = cmp["baseline"]["chi2_per_dof_levels"] * cmp["baseline"]["n_compared"]
     cands, problems, fits = series_candidates(frames, labels, present, cmp["shared_levels"], truths, progress,
                                               chi2_base, cmp["_level_grams"], policy)
-    morphs = [describe(r) for r in frames]
+    morphs = [describe(r, frames=len(frames)) for r in frames]  # the worst of n frames stands for the series
     for m in morphs:
         m.pop("empirical", None)
     worst = int(np.argmax([m.get("significance_sigma", 0.0) for m in morphs]))
