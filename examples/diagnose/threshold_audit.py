@@ -195,6 +195,8 @@ STREAK_BANDS | N | geometry | line band and flank widths of the line sums
 STREAK_PROFILE_PX | N | geometry | half width of a streak's profile across the line
 STREAK_ALONE | D | design | a streak has no parallel line of half its deviate (a pattern of lines has)
 STREAK_ELONGATION | D | physics | a trail is longer than its width: extent >= 4 FWHM (a star's misfit is compact)
+RING_BINS | N | geometry | half-width of the ring of frequencies a periodogram peak is compared with
+SIGMA_CAP | N | constant | the significance reported beyond a double's range (a tail of 1e-300)
 @detector/flux_law.py
 SOURCE_MIN_SNR | D | statistics | S/N of a source's amplitude to enter the slope
 SEPARATION_SIGMA | D | statistics | standard errors separating the two laws: detection_sigma
@@ -285,6 +287,7 @@ MAX_DEAD_CLUSTER_SIDE | N | model | largest cluster side the render draws
 _REGION_GRIDS | N | grid | region layouts tried
 MAX_FOUND_SPLITS | N | search | boundaries searched per axis (up to 8 amplifiers along a side)
 GAIN_NOISE_MIN_PIXELS | N | estimator | fewest pixels a region's variance ratio (a median) is read from
+TRANSITION_PLATEAU_WIDTHS | D | physics | gain ramps leave plateaus: 4 widths apart (settled to 3.6 %)
 MIN_SEGMENT_SHARE | D | physics | a segment narrower holds fewer pixels than a defect population may (MAX_DEFECT_FRACTION)
 @detector/effects/readout.py
 K_BOLTZMANN | N | constant | CODATA
