@@ -604,9 +604,10 @@ def describe(res: Residuals, delta_adu: np.ndarray | None = None, frames: int = 
             # in 1 / FRAME_FALSE_ALARM frames of white noise), standing alone and elongated (:func:`is_streak`): a
             # faint trail (a satellite, debris) whose chi2 the frame's own dilutes. Searched with the rows' own
             # offsets taken out where the model has row noise (the search's weights hold the pixels' variance
-            # only: row offsets are lines too, and lines a degree or two off the rows add them up); a line along a
-            # pixel axis is one row or column, which the line families judge
-            line = straight_line(_without_row_means(rmap, wmap) if row_var > 0 else rmap, wmap)
+            # only: row offsets are lines too, and lines a degree or two off the rows add them up), against the
+            # frame's own scatter and without its outliers (:func:`_line_search_map`); a line along a pixel axis
+            # is one row or column, which the line families judge
+            line = straight_line(_line_search_map(rmap, wmap, row_var), wmap)
             if is_streak(line, frames) and not along_pixel_axis(line):
                 amp, unit, desc = _streak_words(line, gain)
                 share = min(1.0, line["chi2"] / max(pix_chi2 - idx.size, 1e-300))
@@ -1214,6 +1215,26 @@ def streak_sigma(line: dict) -> float:
     log10_p = (math.log10(2.0 * max(int(line["n_tests"]), 1))
                + float(norm.logsf(line["sigma_searched"])) / math.log(10.0))
     return sigma_of_log10_p(min(log10_p, 0.0))
+
+
+def _line_search_map(rmap: np.ndarray, wmap: np.ndarray, row_var: float) -> np.ndarray:
+    """The residual [ADU] the faint-streak search projects: less its row means where the model has row noise
+    (``row_var`` > 0: :func:`_without_row_means`), its whitened values clipped at DETECTION_SIGMA of their robust
+    scale (:func:`detector.stats.median_square_variance`: a few outlying pixels, hot ones or a heavy-tailed
+    pattern's, do not make a line; a faint trail is well inside it) and scaled to the clipped values' own
+    variance where it exceeds the model's (a line must stand out of the scatter the frame has, an unmodelled DSNU's
+    or PRNU's too, not only of the model's)."""
+    r = _without_row_means(rmap, wmap) if row_var > 0 else rmap
+    on = wmap > 0
+    sw = np.sqrt(np.where(on, wmap, 0.0))
+    z = r * sw
+    if not on.any():
+        return r
+    z = np.clip(z / math.sqrt(max(median_square_variance(z[on]), 1e-30)), -DETECTION_SIGMA, DETECTION_SIGMA)
+    # the line sums scatter as the clipped values do: their variance (a heavy-tailed law keeps more than a normal
+    # one's inside the clip), not below the model's
+    z = z / math.sqrt(max(float(np.mean(np.square(z[on]))), 1.0))
+    return np.where(on, z / np.where(on, sw, 1.0), 0.0)
 
 
 def _without_row_means(rmap: np.ndarray, wmap: np.ndarray) -> np.ndarray:
