@@ -227,9 +227,14 @@ def _peak(z: np.ndarray, row_factor: float = 1.0) -> tuple[float, float, float]:
     spatial frequency of a map, the lowest frequencies (smooth fields) excluded. ``row_factor``: the expected
     power of the ``fx = 0`` column over the rest under the null (:func:`row_power_factor`: row noise puts its
     power there, a line along ``fy`` whose strongest bin is no period of anything)."""
-    if _cut(z) is None:
+    return _peak_of(_spectrum(z, row_factor) if _cut(z) is not None else None)
+
+
+def _peak_of(spec) -> tuple[float, float, float]:
+    """:func:`_peak` of a periodogram already taken (:func:`_spectrum`'s tuple; None: no cut, no peak)."""
+    if spec is None:
         return 0.0, 0.0, 0.0
-    p, _, fy, fx, side = _spectrum(z, row_factor)
+    p, _, fy, fx, side = spec
     f = np.hypot(fy, fx)
     k = int(np.argmax(p))
     med = float(np.median(p[p > 0])) if np.any(p > 0) else 0.0
@@ -246,15 +251,16 @@ def _peak(z: np.ndarray, row_factor: float = 1.0) -> tuple[float, float, float]:
 RING_BINS = 1.0
 
 
-def ring_contrast(z: np.ndarray, row_factor: float = 1.0) -> float:
+def ring_contrast(spec) -> float:
     """The strongest frequency's power over the median power of the frequencies at its radius (within RING_BINS):
     a period (a sinusoid, fringes, the arcs of rings about a far centre) puts its power into a few directions at
     its radius, the rest of that ring holding noise only; a smooth random field (a flat-field's large scales) fills
     every direction at every radius of its band, and its strongest bin is only the continuum's largest. Against the
-    same bar as the whole periodogram's (:func:`periodic_bar`): the null is a spectrum white around each radius."""
-    if _cut(z) is None:
+    same bar as the whole periodogram's (:func:`periodic_bar`): the null is a spectrum white around each radius.
+    ``spec``: the periodogram (:func:`_spectrum`'s tuple; None: no cut)."""
+    if spec is None:
         return 0.0
-    p, _, fy, fx, side = _spectrum(z, row_factor)
+    p, _, fy, fx, side = spec
     rad = np.hypot(fy, fx) * side  # [frequency bins]
     k = int(np.argmax(p))
     ring = (np.abs(rad - rad.ravel()[k]) <= RING_BINS) & (p > 0)
@@ -782,11 +788,11 @@ def describe(res: Residuals, delta_adu: np.ndarray | None = None, frames: int = 
         # structure (the description would be a family that holds less), the periodogram of the unsmoothed map
         # (the smooth fields' few cycles left out, :func:`_spectrum`) is asked: a peak significant on its own
         # (:func:`periodic_bar`), with the share of the excess chi2 its band-passed map takes (:func:`_periodic_map`)
-        zw, g_row = np.where(wmap > 0, rmap * np.sqrt(wmap), 0.0), _cut_row_factor(wmap, row_var)
-        wide_period, wide_contrast, _ = _peak(zw, g_row)
-        if wide_contrast >= periodic_bar(shape) and ring_contrast(zw, g_row) >= periodic_bar(shape):
-            wide_map = _periodic_map(rmap, wmap, light, kind if kind in ("additive", "multiplicative") else "additive",
-                                     row_var)
+        spec = _spectrum(zp, _cut_row_factor(wmap, row_var)) if _cut(zp) is not None else None
+        wide_period, wide_contrast, _ = _peak_of(spec)
+        bar = periodic_bar(shape)
+        if wide_contrast >= bar and ring_contrast(spec) >= bar:
+            wide_map = _periodic_map(rmap, wmap, light, kind, row_var)  # (_relative: other kinds map as additive)
             wide_share = _map_gain(wide_map, rmap, wmap, light) / pixel_total
             if wide_share >= GEOMETRY_SHARE:
                 shares["periodic"], period = wide_share, wide_period
@@ -1226,10 +1232,10 @@ def _line_search_map(rmap: np.ndarray, wmap: np.ndarray, row_var: float) -> np.n
     or PRNU's too, not only of the model's)."""
     r = _without_row_means(rmap, wmap) if row_var > 0 else rmap
     on = wmap > 0
-    sw = np.sqrt(np.where(on, wmap, 0.0))
-    z = r * sw
     if not on.any():
         return r
+    sw = np.sqrt(np.where(on, wmap, 0.0))
+    z = r * sw
     z = np.clip(z / math.sqrt(max(median_square_variance(z[on]), 1e-30)), -DETECTION_SIGMA, DETECTION_SIGMA)
     # the line sums scatter as the clipped values do: their variance (a heavy-tailed law keeps more than a normal
     # one's inside the clip), not below the model's

@@ -411,8 +411,7 @@ def _gain_check(fit, res) -> str:
         sw = np.sqrt(wc[ok])
 
         def misfit(a):
-            coef = np.linalg.lstsq(a * sw[:, None], rc[ok] * sw, rcond=None)[0]
-            return float(np.sum(wc[ok] * (rc[ok] - a @ coef) ** 2))
+            return float(np.sum(np.square(_line_fit_residual(a, rc[ok], sw))))
 
         centres = (res.xs if axis == "x" else res.ys)[ok]
         u = 2.0 * (centres - centres.min()) / max(float(np.ptp(centres)), 1e-9) - 1.0
@@ -437,6 +436,13 @@ def _gain_check(fit, res) -> str:
                     f"than {DETECTION_SIGMA:g}^2: a smooth or periodic response (vignetting, a flat-field pattern), "
                     "not read-out regions, whose gains change in steps")
     return ""
+
+
+def _line_fit_residual(a: np.ndarray, rc: np.ndarray, sw: np.ndarray) -> np.ndarray:
+    """The weighted residual ``sw (rc - a coef)`` of line sums ``rc`` (weights ``sw^2``) after the least-squares
+    fit of the templates ``a`` (one per column): its square summed is the fit's chi2."""
+    coef = np.linalg.lstsq(a * sw[:, None], rc * sw, rcond=None)[0]
+    return sw * (rc - a @ coef)
 
 
 #: transitions of read-out regions are at least this many ramp widths apart: halfway between two, each tanh ramp
@@ -474,14 +480,12 @@ def transitions_beat_curve(rc: np.ndarray, sc: np.ndarray, wc: np.ndarray, centr
     spacing = float(np.median(np.diff(np.sort(centres))))
     bar = DETECTION_SIGMA ** 2 + 2.0 * np.log(f.size)
 
-    def misfit(a: np.ndarray) -> float:
-        coef = np.linalg.lstsq(a * sw[:, None], rc * sw, rcond=None)[0]
-        return float(np.sum(wc * (rc - a @ coef) ** 2))
+    def width_of(p: np.ndarray) -> float:  # p = (positions, ln width)
+        return float(np.exp(np.clip(p[-1], -10.0, 10.0)))
 
-    def ramps(p: np.ndarray) -> np.ndarray:  # one gain per plateau, times the signal; p = (positions, ln width)
-        width = float(np.exp(np.clip(p[-1], -10.0, 10.0)))
+    def ramps(p: np.ndarray) -> np.ndarray:  # one gain per plateau, times the signal
         return sc[:, None] * np.column_stack([np.ones_like(centres)]
-                                             + [0.5 * (1.0 + np.tanh((centres - b) / width)) for b in p[:-1]])
+                                             + [0.5 * (1.0 + np.tanh((centres - b) / width_of(p))) for b in p[:-1]])
 
     widest = np.argsort(np.diff(f))[::-1]
     for m in range(1, f.size + 1):
@@ -491,17 +495,17 @@ def transitions_beat_curve(rc: np.ndarray, sc: np.ndarray, wc: np.ndarray, centr
         groups = np.split(f, np.sort(widest[: m - 1] + 1))
         width0 = max(spacing, float(np.mean([np.ptp(g) for g in groups])) / 2.0)
         p0 = np.r_[[g.mean() for g in groups], np.log(width0)]
-        got = least_squares(lambda p: sw * (rc - ramps(p) @ np.linalg.lstsq(ramps(p) * sw[:, None], rc * sw,
-                                                                               rcond=None)[0]), p0)
+        got = least_squares(lambda p: _line_fit_residual(ramps(p), rc, sw), p0)
         if not np.all(np.isfinite(got.x)):
             continue
-        pos, width = np.sort(got.x[:-1]), float(np.exp(np.clip(got.x[-1], -10.0, 10.0)))
+        pos, width = np.sort(got.x[:-1]), width_of(got.x)
         if pos[0] - lo < width or hi - pos[-1] < width or np.any(np.diff(pos) < TRANSITION_PLATEAU_WIDTHS * width):
             continue  # no plateau between the ramps: a smooth or periodic change, not regions' gains
         dof = rc.size - k
         if 2.0 * float(got.cost) > dof + DETECTION_SIGMA * np.sqrt(2.0 * dof):
             continue  # the ramps do not describe the profile (its chi2 beyond its noise): better than a curve is moot
-        curve = misfit(sc[:, None] * np.polynomial.legendre.legvander(u, k - 1))
+        curve = float(np.sum(np.square(_line_fit_residual(sc[:, None] * np.polynomial.legendre.legvander(u, k - 1),
+                                                           rc, sw))))
         if curve - 2.0 * float(got.cost) >= bar:
             return True
     return False
