@@ -45,6 +45,7 @@ from .significance import (
     FRAME_FALSE_ALARM,
     STRONG_EVIDENCE,
     STRUCTURE_SIGMA,
+    TRAIL_MIN_FWHM,
 )
 from .stats import median_square_variance
 
@@ -1265,9 +1266,9 @@ def along_pixel_axis(line: dict) -> bool:
 #: (streak_bar) or is below this fraction of its deviate; a pattern of lines (banding, pick-up, fringes) has
 #: neighbours as strong as its best line, a trail has none
 STREAK_ALONE = 0.5
-#: a streak is elongated: its extent along the line at least this many times its FWHM across it (a compact
-#: residual, a star's misfit, is a blob whatever line passes through it)
-STREAK_ELONGATION = 4.0
+#: a streak is elongated: its extent along the line at least a trail's length in its FWHM across it
+#: (TRAIL_MIN_FWHM; a compact residual, a star's misfit, is a blob whatever line passes through it)
+STREAK_ELONGATION = TRAIL_MIN_FWHM
 
 
 def is_streak(line: dict | None, frames: int = 1) -> bool:

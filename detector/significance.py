@@ -44,7 +44,7 @@ STRONG_EVIDENCE = 10.0
 #: about its strongest copy; a line pattern through the sources): what remains looks like noise, not like the
 #: rest of another effect. The same "most" of what a claim covers: the pixels a hot-pixel claim flags hot in the
 #: user's dark, the excess a defective-column claim carries in long runs, the excess a periodic pattern holds in
-#: one frequency
+#: one frequency, the light a source's core (the scene's PSF) holds against a halo or a tail added to it
 EXPLAINS_MOST = 0.5
 #: the fewest pixels on which a refit or a test of a subset of the frame (the pixels away from the saturated
 #: stars, a background ring about an aperture) speaks: below it the chi2 of a few-parameter fit is far from its
@@ -55,6 +55,16 @@ MIN_TEST_PIXELS = 100
 #: dead (EMVA 1288) and a grade-2 CCD a few tens of its thousands of columns; RTS populations of CMOS sensors are
 #: below a few per cent (Wang et al. 2006; Chao et al. 2019). Beyond it, a pattern of many small deviations
 MAX_DEFECT_FRACTION = 0.05
+#: a scale of the scene (a zero point, a sky or dark level, a PSF's width, a gain or read noise) known to a few
+#: per cent: a model knows its lamp, transparency and temperature that well (the validation's measured cameras
+#: differ by 1.5-3 %), so a scale 10 % off is an error of the scene, a finding. The same relative size says when a
+#: smear is round: an axis ratio within it of 1 is a round blur, not an elongation
+SCALE_TOLERANCE = 0.1
+#: a trail is at least this many PSF FWHM long: a source's own shape (a coma or tracking tail, a misfit core) is
+#: shorter, a trail (a drifting pointing, a satellite, a track of light across the frame) longer. One bar for both
+#: sides of the question: a one-sided tail longer than it is refused as a PSF's (image_plane.TAIL_MAX_FWHM), a
+#: straight line shorter than it is no streak (morphology.STREAK_ELONGATION)
+TRAIL_MIN_FWHM = 4.0
 
 
 def nested_gain_bar(extra_params: int, sigma: float = STRUCTURE_SIGMA) -> float:

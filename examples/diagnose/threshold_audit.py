@@ -103,7 +103,6 @@ APERTURE_MAX_SHARE | N | geometry | apertures' largest share of the frame (then 
 ENCLOSED_SIGMA | D | statistics | standard errors for the enclosed-light test to speak (detection_sigma)
 PSF_WINDOW_PX | N | budget | central window of the PSF re-render
 @scenes/app/compare/policy.py
-SCALE_TOLERANCE | D | physics | a scene's scale known to a few per cent: 10 % off is a finding
 LINEARITY_RESOLVED | D | physics | the linearity error a photon-transfer curve resolves, 0.1 % (Janesick 2007)
 @scenes/app/compare/report.py
 DPI | N | display | plot resolution
@@ -134,6 +133,8 @@ EXPLAINS_MOST | D | physics | a claim covers most (half) of what it claims (resi
 MIN_TEST_PIXELS | D | statistics | fewest pixels a refit or test of a subset of the frame speaks on
 MAX_DEFECT_FRACTION | D | physics | anomalous-pixel populations (defects, RTS) hold a few per cent of the pixels at most
 STRONG_EVIDENCE | D | contract | -2 ln L change of 10: very strong evidence (Kass & Raftery 1995)
+SCALE_TOLERANCE | D | physics | a scene's scale known to a few per cent: 10 % off is a finding
+TRAIL_MIN_FWHM | D | physics | a trail is at least 4 PSF FWHM long; a source's own shape (tail, misfit) is shorter
 @detector/signatures.py
 SPIKE_SIGMA | D | statistics | a pixel is a spike beyond detection_sigma
 LINE_WINDOW | N | estimator | running-median window of the column test
@@ -191,10 +192,11 @@ SOURCE_KERNEL_CORE_SIGMA | D | statistics | a source pixel: its footprint, model
 SOURCE_KERNEL_HARMONICS | N | basis | angular harmonics of the kernel
 STREAK_MAP_PX | N | budget | longest side of the straight-line search map
 STREAK_STEP_DEG | N | grid | angle step of the line search (refined ten times finer)
+STREAK_AXIS_DEG | D | design | a line within two search steps of a pixel axis is the row and column families'
 STREAK_BANDS | N | geometry | line band and flank widths of the line sums
 STREAK_PROFILE_PX | N | geometry | half width of a streak's profile across the line
 STREAK_ALONE | D | design | a streak has no parallel line of half its deviate (a pattern of lines has)
-STREAK_ELONGATION | D | physics | a trail is longer than its width: extent >= 4 FWHM (a star's misfit is compact)
+STREAK_ELONGATION | D | physics | a streak is as long as a trail (TRAIL_MIN_FWHM; a star's misfit is compact)
 RING_BINS | N | geometry | half-width of the ring of frequencies a periodogram peak is compared with
 SIGMA_CAP | N | constant | the significance reported beyond a double's range (a tail of 1e-300)
 @detector/flux_law.py
@@ -260,12 +262,12 @@ GLOW_MAX_SCALE | D | physics | an amplifier glow is localised
 MAX_CACHED_SPECTRA | N | budget | spectra cache
 DRIFT_PATH_SAMPLING_PX | N | tolerance | quadrature of a drift path
 HALO_START_VAR | N | start | halo widths the fit starts from
-HALO_MAX_FRACTION | D | physics | largest share of the light a halo may hold
-JITTER_MIN_ELONGATION | D | design | a smear this round is named psf_blur (the draws' round kernels)
+HALO_MAX_FRACTION | D | physics | largest share of the light a halo may hold: the core holds most (1 - EXPLAINS_MOST)
+JITTER_MIN_ELONGATION | D | physics | a smear this round is a width within the PSF width tolerance per axis (1 + SCALE_TOLERANCE)
 ELONGATION_MAX_GAIN | N | bound | narrowing filter's gain
 TAIL_MAX_FIT_PX | N | bound | longest tail a fit tries
 TAIL_MAX_FRAC | D | physics | a source is more core than tail
-TAIL_MAX_FWHM | D | physics | a tail longer than 3 FWHM is a trail
+TAIL_MAX_FWHM | D | physics | a tail as long as a trail (TRAIL_MIN_FWHM) is a trail
 TAIL_START_FRAC | N | start | linearised start of the tail's share
 DRIFT_DWELL_ACCEL | N | wording | describes a path as dwelling
 DRIFT_BOW_PX | N | wording | describes a path as bowed

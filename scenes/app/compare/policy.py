@@ -27,6 +27,7 @@ from detector.significance import (
     DETECTION_SIGMA,
     EXPLAINS_MOST,
     MAX_DEFECT_FRACTION,
+    SCALE_TOLERANCE,
     STRONG_EVIDENCE,
     STRUCTURE_SIGMA,
 )
@@ -34,11 +35,10 @@ from detector.significance import (
 #: why a field has its value: the DESIGN contract, the null calibration, physics, a property of the test, or a
 #: budget (a cost of the search, not a threshold: how many contenders are scored)
 BASES = ("contract", "calibration", "physics", "statistics", "budget")
-#: fields that ask the same question share one value (the significance levels and EXPLAINS_MOST of
-#: detector/significance.py, and this): a refitted scale of the scene or of its noise is a finding beyond this
+#: fields that ask the same question share one value (the significance levels, EXPLAINS_MOST and SCALE_TOLERANCE
+#: of detector/significance.py): a refitted scale of the scene or of its noise is a finding beyond SCALE_TOLERANCE's
 #: relative change (parameter_scale_tolerance, noise_scale_tolerance); a candidate may worsen the sources'
 #: photometry by as much and no more (stars_worse_ln)
-SCALE_TOLERANCE = 0.1
 #: ... and this: a non-linearity is a finding when the response law departs from a line by this fraction, at full
 #: well or within the frame's own range (min_nonlinearity_at_full_well, min_nonlinearity_in_range): 0.1 %, the
 #: linearity error a photon-transfer measurement resolves (Janesick 2007, Photon Transfer, ch. 5; EMVA 1288
