@@ -883,17 +883,18 @@ def fam_dsnu(rng):
     info = base_info(base)
     sigma, t = _loguniform(rng, 0.05, 0.8) if not info["cmos"] else _loguniform(rng, 0.3, 3.0)
     law = _choice(rng, ["uniform", "student"] + (["gamma"] if base == "dark" else []))
-    accept = ("dsnu",)
+    parts = ()
     if law == "gamma":
         lf_rms = float(rng.uniform(0, 0.15))
         eff = ("GammaDSNU", {"sigma": sigma, "lf_rms": lf_rms})
-        # a smooth part at least as large (rms) as the pixel-to-pixel one is a field of dark rate: the DSNU spans
-        # every spatial scale and its large scales are a dark-rate non-uniformity (EMVA 1288 Release 4.0, sect.
-        # 8.3; judge.same_dark_field), which is what a frame whose white part sits under its read noise shows
-        accept += ("dark_gradient",) if lf_rms >= sigma else ()
+        # the smooth part is a field of dark rate of its own: the DSNU spans every spatial scale and its large
+        # scales are a dark-rate non-uniformity (EMVA 1288 Release 4.0, sect. 8.3; judge.same_dark_field), which
+        # is what a frame whose white part sits under its read noise shows: dark_gradient is right too when the
+        # frame sees that part alone (the parts rule every drawn form follows)
+        parts = ((("dark_gradient",), [("GammaDSNU", {"sigma": sigma, "lf_rms": 0.0})]),) if lf_rms > 0 else ()
     else:
         eff = ("LawDSNU", {"law": law, "sigma": sigma})
-    return Draw(base, [eff], f"{law} DSNU, relative std {sigma:.3g}", t, accept=accept)
+    return Draw(base, [eff], f"{law} DSNU, relative std {sigma:.3g}", t, accept=("dsnu",), parts=parts)
 
 
 def fam_hot_pixels(rng):
