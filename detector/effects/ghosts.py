@@ -680,13 +680,14 @@ class GhostSignature(LinearSignature):
         For each bright source whose ghost lands on the frame, the template's weighted products over a stamp
         about the ghost, ``num_i = sum w r T`` and ``den_i = sum w T^2``, give its own amplitude ``num_i /
         den_i`` and the chi2 gain the fit predicts there, ``alpha^2 den_i``. (1) Leave the source with the
-        largest predicted ghost out: the others together (``sum num / sum den``) must show the ghost too, at
-        least ``max(alpha - 2 sigma, 0.3 alpha)``; when they predict less than GHOST_SOURCE_CHI2 together, a
-        free map rests on one source (its ghost can be put on any blob) and is not a ghost geometry the data
-        can tell; the plugin's fixed map is then accepted. (2) About the strongest copy, the ghost takes at least
+        largest predicted ghost out, and every source whose ghost stamp overlaps its own: the others together
+        (``sum num / sum den``) must show the ghost too (:func:`_shows_ghost`: at least 0.3 alpha, or within 2
+        sigma of it); when they predict less than GHOST_SOURCE_CHI2 together, a free map rests on one source
+        (its ghost can be put on any blob) and is not a ghost geometry the data can tell; the plugin's fixed map
+        is then accepted. (2) About the strongest copy, the ghost takes at least
         GHOST_STAMP_SHARE of the residual's excess chi2 (what is left there looks like noise). (3) Of the
-        sources each predicted detectable on its own, at least GHOST_CONFIRMED_SHARE show it (``>= 0.3 alpha``
-        or within 2 sigma of alpha)."""
+        sources each predicted detectable on its own (the top one's neighbours left out), at least
+        GHOST_CONFIRMED_SHARE show it (the same :func:`_shows_ghost`)."""
         p = fit.params
         alpha = float(p["alpha"])
         if fit.delta_adu is None or alpha <= 0:
@@ -721,18 +722,21 @@ class GhostSignature(LinearSignature):
             return "no bright source's ghost falls on the frame where this map puts it" if free else ""
         nums, dens = np.array(nums), np.array(dens)
         top = int(np.argmax(dens))
-        rest_num, rest_den = float(nums.sum() - nums[top]), float(dens.sum() - dens[top])
+        # the others: sources whose ghost lies apart from the top one's (a neighbour's copy on the same blob
+        # confirms nothing)
+        apart = np.array([not _overlap(sl, stamps[top]) for sl in stamps])
+        rest_num, rest_den = float(nums[apart].sum()), float(dens[apart].sum())
         fit.state["sources"] = {"n": int(dens.size), "top_chi2": float(alpha ** 2 * dens[top]),
                                 "rest_chi2": float(alpha ** 2 * rest_den),
                                 "rest_alpha": rest_num / rest_den if rest_den > 0 else None}
         if alpha * alpha * rest_den < GHOST_SOURCE_CHI2:
             if free:
-                return (f"its map rests on one source: the other {dens.size - 1} bright sources would show a ghost of "
-                        f"chi2 {alpha * alpha * rest_den:.2g} together (< {GHOST_SOURCE_CHI2:g}), so a map that puts "
-                        "that source's copy on any blob fits as well")
+                return (f"its map rests on one source: the {int(apart.sum())} bright sources whose ghost lies apart "
+                        f"from its own would show a ghost of chi2 {alpha * alpha * rest_den:.2g} together (< "
+                        f"{GHOST_SOURCE_CHI2:g}), so a map that puts that source's copy on any blob fits as well")
         else:
             a_rest, s_rest = rest_num / rest_den, 1.0 / np.sqrt(rest_den)
-            if a_rest < max(alpha - 2 * s_rest, 0.3 * alpha):
+            if not _shows_ghost(a_rest, s_rest, alpha):
                 return (f"carried by one source: the other bright sources show {a_rest:.2g} +- {s_rest:.1g} of their "
                         f"flux where the map puts their ghost, not the fitted {alpha:.2g}")
         # the strongest copy's stamp: its excess chi2 (sum w r^2 - n, with rw = w r) and what the ghost takes of it
@@ -744,14 +748,29 @@ class GhostSignature(LinearSignature):
             return (f"the structure under the strongest copy is not the ghost's profile: the fitted ghost takes "
                     f"{100 * max(taken, 0.0) / excess:.0f} % of the excess chi2 about it ({excess:.3g}); the rest "
                     "stays (a trail, a glint or a line that a copy of a source lands on)")
-        single = alpha * alpha * dens >= GHOST_SOURCE_CHI2
+        apart[top] = True  # the top source counts once; its neighbours on its blob not at all
+        single = (alpha * alpha * dens >= GHOST_SOURCE_CHI2) & apart
         if single.any() and confirmation_miss(alpha * np.sqrt(dens[single])) < FRAME_FALSE_ALARM:
-            a_i = nums[single] / dens[single]
-            ok = (a_i >= 0.3 * alpha) | (a_i >= alpha - 2 / np.sqrt(dens[single]))
+            ok = _shows_ghost(nums[single] / dens[single], 1.0 / np.sqrt(dens[single]), alpha)
             if ok.sum() < GHOST_CONFIRMED_SHARE * single.sum():
                 return (f"only {int(ok.sum())} of the {int(single.sum())} bright sources whose ghost the fit predicts "
                         "show one where the map puts it: the pattern is not a ghost of the sources")
         return ""
+
+
+def _overlap(a: tuple[slice, slice], b: tuple[slice, slice]) -> bool:
+    """Whether two stamps (2-D slices with explicit bounds) share a pixel."""
+    return all(p.start < q.stop and q.start < p.stop for p, q in zip(a, b))
+
+
+def _shows_ghost(a, s, alpha: float):
+    """Whether sources whose own ghost amplitude is ``a`` (standard error ``s``) show the fitted ``alpha``: at least
+    0.3 of it, or within 2 standard errors of it. Not both: the fraction is the product of two reflectances, which
+    change across the band (an anti-reflection coating's by a factor of a few), so sources of other colours show
+    the same ghost at a somewhat different fraction, which a bright source measures to better than 2 standard
+    errors; a ghost carried by one source leaves the others near 0."""
+    a, s = np.asarray(a, np.float64), np.asarray(s, np.float64)
+    return (a >= 0.3 * alpha) | (a >= alpha - 2.0 * s)
 
 
 def confirmation_miss(snr: np.ndarray) -> float:
