@@ -334,6 +334,17 @@ def test_a_shift_ghost_whose_sources_differ_by_a_few_per_cent_named(tmp_path):
     assert "(+24, -1) px" in row["first_explanation"]
 
 
+def test_a_faint_trail_is_no_ghost_of_one_source_and_its_neighbours(tmp_path):
+    """A satellite trail of 2.9 sigma at its centre (a drawn case of a fresh draw, trail-1750563162898125170): a
+    free ghost map put one bright source's copy on a piece of it, and that source's neighbours, whose copies
+    land on the same piece, were counted as the other sources confirming it (ghost named, confidently wrong).
+    Sources whose ghost overlaps the top one's are no others: the map rests on one source; the trail is
+    described as a streak."""
+    row = R.run_case(R.draw_case("trail", 1750563162898125170), tmp_path, workers=1)
+    assert row["first"] == "none" and not row["confidently_wrong"]
+    assert "streak" in row["residual_morphology"]["geometry"]
+
+
 def test_weak_prnu_with_a_large_scale_part_not_taken_for_gain_steps(tmp_path):
     """A PRNU of 0.13 % white and 0.24 % low-frequency rms on a flat (0.16 x the shot noise; a drawn case,
     prnu-200161311579918290): the white part alone is short of the BIC bar, so its smooth part was never tried
