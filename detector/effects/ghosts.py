@@ -590,8 +590,10 @@ class GhostSignature(LinearSignature):
         fits = []
         for peak in scan["peaks"]:
             # the other map family too when the scan can hardly tell them apart (one bright source's copy
-            # reached by a mirror and by a shift alike): the sources' check decides
-            if peak["z"] < max(scan["threshold"], SECOND_FAMILY_Z * scan["peaks"][0]["z"]):
+            # reached by a mirror and by a shift alike), or when the sources refused every map fitted so far
+            # (the scan's best family put the top copy right and the others wrong): the sources' check decides
+            confirmed = any(not f.state["why_not"] for f in fits)
+            if peak["z"] < scan["threshold"] or (confirmed and peak["z"] < SECOND_FAMILY_Z * scan["peaks"][0]["z"]):
                 continue
             fit = self._fit_at(res, name, src, rw_s, w_s, peak, step)
             if fit is None:
@@ -677,17 +679,18 @@ class GhostSignature(LinearSignature):
     def _sources_check(self, fit: Fit, res: Residuals, src: np.ndarray, step: float) -> str:
         """Whether the ghost sits where the map puts it for the bright sources, not on one source only.
 
-        For each bright source whose ghost lands on the frame, the template's weighted products over a stamp
-        about the ghost, ``num_i = sum w r T`` and ``den_i = sum w T^2``, give its own amplitude ``num_i /
-        den_i`` and the chi2 gain the fit predicts there, ``alpha^2 den_i``. (1) Leave the source with the
-        largest predicted ghost out, and every source whose ghost stamp overlaps its own: the others together
-        (``sum num / sum den``) must show the ghost too (:func:`_shows_ghost`: at least 0.3 alpha, or within 2
-        sigma of it); when they predict less than GHOST_SOURCE_CHI2 together, a free map rests on one source
-        (its ghost can be put on any blob) and is not a ghost geometry the data can tell; the plugin's fixed map
-        is then accepted. (2) About the strongest copy, the ghost takes at least
-        GHOST_STAMP_SHARE of the residual's excess chi2 (what is left there looks like noise). (3) Of the
-        sources each predicted detectable on its own (the top one's neighbours left out), at least
-        GHOST_CONFIRMED_SHARE show it (the same :func:`_shows_ghost`)."""
+        Each bright source whose ghost lands on the frame has its own copy ``T_i`` (:func:`_own_copy`: its stamp
+        of the source image, mapped and spread over the fitted profile) and its own amplitude ``num_i / den_i``
+        with ``num_i = sum w (r - alpha (T - T_i)) T_i`` (the residual with every other copy taken out at the
+        fitted fraction: a neighbour's copy that lands on the same blob shows what the blob leaves once the top
+        copy has taken it, not the blob) and ``den_i = sum w T_i^2``; ``alpha^2 den_i`` is the chi2 gain the fit
+        predicts there. (1) Leave the source with the largest predicted ghost out: the others together (``sum
+        num / sum den``) must show the ghost too (:func:`_shows_ghost`: at least 0.3 alpha, or within 2 sigma of
+        it); when they predict less than GHOST_SOURCE_CHI2 together, a free map rests on one source (its ghost
+        can be put on any blob) and is not a ghost geometry the data can tell; the plugin's fixed map is then
+        accepted. (2) About the strongest copy, the ghost takes at least GHOST_STAMP_SHARE of the residual's
+        excess chi2 (what is left there looks like noise). (3) Of the sources each predicted detectable on its
+        own, at least GHOST_CONFIRMED_SHARE show it (the same :func:`_shows_ghost`)."""
         p = fit.params
         alpha = float(p["alpha"])
         if fit.delta_adu is None or alpha <= 0:
@@ -696,8 +699,11 @@ class GhostSignature(LinearSignature):
         rw, w = _residual_maps(res)
         yc, xc = _sensor_centre(res)
         mode = p.get("mode", "mirror")
+        psf = fit.state.get("psf_rms_px", step)
         extent = p["radius_px"] * (2.5 if p.get("profile", "disc") == "gauss" else 1.0)
-        reach = int(np.ceil((extent + 2 * fit.state.get("psf_rms_px", step)) / step)) + 1
+        reach = int(np.ceil((extent + 2 * psf) / step)) + 1
+        kernel = ghost_kernel(p.get("profile", "disc"), p["radius_px"] / step, p.get("inner_ratio", 0.0))
+        half = max(3, int(np.ceil(3 * psf / step)))  # a source's stamp: three rms radii
         h, wd = template.shape
         nums, dens, stamps = [], [], []  # stamps: each ghost's slice of the frame
         for y, x, _ in bright_sources(src, GHOST_CHECK_SOURCES):
@@ -710,46 +716,46 @@ class GhostSignature(LinearSignature):
             iy, ix = int(round((gy - res.ys[0]) / step)), int(round((gx - res.xs[0]) / step))
             if not (0 <= iy < h and 0 <= ix < wd):
                 continue
-            sl = (slice(max(0, iy - reach), iy + reach + 1), slice(max(0, ix - reach), ix + reach + 1))
-            t = template[sl]
-            num, den = float(np.sum(rw[sl] * t)), float(np.sum(w[sl] * t * t))
+            sl, own = _own_copy(src, y, x, iy, ix, half, kernel, mode)
+            if own is None:
+                continue
+            den = float(np.sum(w[sl] * own * own))
             if den > 0:
-                nums.append(num)
+                others = w[sl] * (template[sl] - own)
+                nums.append(float(np.sum((rw[sl] - alpha * others) * own)))
                 dens.append(den)
-                stamps.append(sl)
+                stamps.append((slice(max(0, iy - reach), iy + reach + 1), slice(max(0, ix - reach), ix + reach + 1)))
         free = bool(fit.state.get("free"))
         if not dens:
             return "no bright source's ghost falls on the frame where this map puts it" if free else ""
         nums, dens = np.array(nums), np.array(dens)
         top = int(np.argmax(dens))
-        # the others: sources whose ghost lies apart from the top one's (a neighbour's copy on the same blob
-        # confirms nothing)
-        apart = np.array([not _overlap(sl, stamps[top]) for sl in stamps])
-        rest_num, rest_den = float(nums[apart].sum()), float(dens[apart].sum())
+        rest_num, rest_den = float(nums.sum() - nums[top]), float(dens.sum() - dens[top])
         fit.state["sources"] = {"n": int(dens.size), "top_chi2": float(alpha ** 2 * dens[top]),
                                 "rest_chi2": float(alpha ** 2 * rest_den),
                                 "rest_alpha": rest_num / rest_den if rest_den > 0 else None}
         if alpha * alpha * rest_den < GHOST_SOURCE_CHI2:
             if free:
-                return (f"its map rests on one source: the {int(apart.sum())} bright sources whose ghost lies apart "
-                        f"from its own would show a ghost of chi2 {alpha * alpha * rest_den:.2g} together (< "
-                        f"{GHOST_SOURCE_CHI2:g}), so a map that puts that source's copy on any blob fits as well")
+                return (f"its map rests on one source: the other {dens.size - 1} bright sources would show a ghost of "
+                        f"chi2 {alpha * alpha * rest_den:.2g} together (< {GHOST_SOURCE_CHI2:g}), so a map that puts "
+                        "that source's copy on any blob fits as well")
         else:
             a_rest, s_rest = rest_num / rest_den, 1.0 / np.sqrt(rest_den)
             if not _shows_ghost(a_rest, s_rest, alpha):
                 return (f"carried by one source: the other bright sources show {a_rest:.2g} +- {s_rest:.1g} of their "
                         f"flux where the map puts their ghost, not the fitted {alpha:.2g}")
-        # the strongest copy's stamp: its excess chi2 (sum w r^2 - n, with rw = w r) and what the ghost takes of it
-        ws = w[stamps[top]]
-        excess = float(np.sum(np.where(ws > 0, rw[stamps[top]] ** 2 / np.where(ws > 0, ws, 1.0), 0.0))) \
+        # the strongest copy's stamp: its excess chi2 (sum w r^2 - n, with rw = w r) and what the ghost (every
+        # copy there) takes of it
+        st = stamps[top]
+        ws, ts = w[st], template[st]
+        excess = float(np.sum(np.where(ws > 0, rw[st] ** 2 / np.where(ws > 0, ws, 1.0), 0.0))) \
             - int(np.count_nonzero(ws))
-        taken = 2 * alpha * nums[top] - alpha * alpha * dens[top]
+        taken = 2 * alpha * float(np.sum(rw[st] * ts)) - alpha * alpha * float(np.sum(ws * ts * ts))
         if alpha * alpha * dens[top] >= GHOST_SOURCE_CHI2 and excess > 25 and taken < GHOST_STAMP_SHARE * excess:
             return (f"the structure under the strongest copy is not the ghost's profile: the fitted ghost takes "
                     f"{100 * max(taken, 0.0) / excess:.0f} % of the excess chi2 about it ({excess:.3g}); the rest "
                     "stays (a trail, a glint or a line that a copy of a source lands on)")
-        apart[top] = True  # the top source counts once; its neighbours on its blob not at all
-        single = (alpha * alpha * dens >= GHOST_SOURCE_CHI2) & apart
+        single = alpha * alpha * dens >= GHOST_SOURCE_CHI2
         if single.any() and confirmation_miss(alpha * np.sqrt(dens[single])) < FRAME_FALSE_ALARM:
             ok = _shows_ghost(nums[single] / dens[single], 1.0 / np.sqrt(dens[single]), alpha)
             if ok.sum() < GHOST_CONFIRMED_SHARE * single.sum():
@@ -758,9 +764,28 @@ class GhostSignature(LinearSignature):
         return ""
 
 
-def _overlap(a: tuple[slice, slice], b: tuple[slice, slice]) -> bool:
-    """Whether two stamps (2-D slices with explicit bounds) share a pixel."""
-    return all(p.start < q.stop and q.start < p.stop for p, q in zip(a, b))
+def _own_copy(src: np.ndarray, y: int, x: int, iy: int, ix: int, half: int, kernel: np.ndarray, mode: str
+              ) -> tuple[tuple[slice, slice], np.ndarray | None]:
+    """(slice of the frame, values) of one source's ghost copy [per unit fraction]: the source image's stamp of
+    ``half`` px about the source (``y``, ``x``), point-reflected for a mirror map, spread over the profile
+    ``kernel`` and centred on its ghost's pixel (``iy``, ``ix``); clipped to the frame (None when nothing of it
+    is left). Whole-pixel placement: the copy's sub-pixel position does not change what it measures."""
+    h, w = src.shape
+    stamp = np.zeros((2 * half + 1, 2 * half + 1), np.float64)
+    y0, x0 = y - half, x - half
+    ya, xa = max(y0, 0), max(x0, 0)
+    yb, xb = min(y + half + 1, h), min(x + half + 1, w)
+    stamp[ya - y0:yb - y0, xa - x0:xb - x0] = src[ya:yb, xa:xb]
+    if mode != "shift":
+        stamp = stamp[::-1, ::-1]
+    copy = signal.oaconvolve(stamp, kernel.astype(np.float64), mode="full")
+    cy, cx = half + (kernel.shape[0] - 1) // 2, half + (kernel.shape[1] - 1) // 2
+    fy0, fx0 = iy - cy, ix - cx
+    fya, fxa = max(fy0, 0), max(fx0, 0)
+    fyb, fxb = min(fy0 + copy.shape[0], h), min(fx0 + copy.shape[1], w)
+    if fyb <= fya or fxb <= fxa:
+        return (slice(0, 0), slice(0, 0)), None
+    return (slice(fya, fyb), slice(fxa, fxb)), copy[fya - fy0:fyb - fy0, fxa - fx0:fxb - fx0]
 
 
 def _shows_ghost(a, s, alpha: float):

@@ -207,8 +207,9 @@ def test_a_sharp_shifted_copy_is_a_latent_image_not_a_ghost():
 
 def test_a_blob_beside_one_bright_star_is_not_a_ghost():
     """One blob (a glint) that a free map can put at one bright star's ghost: the other bright sources do not
-    show the ghost the map predicts, so the fit is not plausible. Its neighbours, whose ghosts the map puts on the
-    same blob, confirm nothing (they showed 0.0199 against the fit's 0.0203, and were counted as the others)."""
+    show the ghost the map predicts, so the fit is not plausible. Its neighbours, whose copies the map puts on the
+    same blob, confirm nothing: measured with the template of every copy in their stamps they showed 0.0199
+    against the fit's 0.0203 (the glint itself); each source's own copy, with the others' taken out, shows none."""
     s = small_sensor("ml11002", 384, 384)
     stars = _field()
     yy, xx = np.mgrid[:384, :384]
