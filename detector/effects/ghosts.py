@@ -72,6 +72,7 @@ import numpy as np
 import scipy.fft
 import scipy.special
 import scipy.stats
+from astropy.nddata.utils import NoOverlapError, extract_array, overlap_slices
 from pydantic import Field
 from scipy import ndimage, signal
 
@@ -703,9 +704,10 @@ class GhostSignature(LinearSignature):
         extent = p["radius_px"] * (2.5 if p.get("profile", "disc") == "gauss" else 1.0)
         reach = int(np.ceil((extent + 2 * psf) / step)) + 1
         kernel = ghost_kernel(p.get("profile", "disc"), p["radius_px"] / step, p.get("inner_ratio", 0.0))
+        kernel = kernel.astype(np.float64)
         half = max(3, int(np.ceil(3 * psf / step)))  # a source's stamp: three rms radii
         h, wd = template.shape
-        nums, dens, stamps = [], [], []  # stamps: each ghost's slice of the frame
+        nums, dens, centres = [], [], []  # centres: each ghost's pixel
         for y, x, _ in bright_sources(src, GHOST_CHECK_SOURCES):
             sy, sx = res.ys[y], res.xs[x]
             if mode == "shift":
@@ -724,7 +726,7 @@ class GhostSignature(LinearSignature):
                 others = w[sl] * (template[sl] - own)
                 nums.append(float(np.sum((rw[sl] - alpha * others) * own)))
                 dens.append(den)
-                stamps.append((slice(max(0, iy - reach), iy + reach + 1), slice(max(0, ix - reach), ix + reach + 1)))
+                centres.append((iy, ix))
         free = bool(fit.state.get("free"))
         if not dens:
             return "no bright source's ghost falls on the frame where this map puts it" if free else ""
@@ -746,7 +748,8 @@ class GhostSignature(LinearSignature):
                         f"flux where the map puts their ghost, not the fitted {alpha:.2g}")
         # the strongest copy's stamp: its excess chi2 (sum w r^2 - n, with rw = w r) and what the ghost (every
         # copy there) takes of it
-        st = stamps[top]
+        iy, ix = centres[top]
+        st = (slice(max(0, iy - reach), iy + reach + 1), slice(max(0, ix - reach), ix + reach + 1))
         ws, ts = w[st], template[st]
         excess = float(np.sum(np.where(ws > 0, rw[st] ** 2 / np.where(ws > 0, ws, 1.0), 0.0))) \
             - int(np.count_nonzero(ws))
@@ -767,25 +770,19 @@ class GhostSignature(LinearSignature):
 def _own_copy(src: np.ndarray, y: int, x: int, iy: int, ix: int, half: int, kernel: np.ndarray, mode: str
               ) -> tuple[tuple[slice, slice], np.ndarray | None]:
     """(slice of the frame, values) of one source's ghost copy [per unit fraction]: the source image's stamp of
-    ``half`` px about the source (``y``, ``x``), point-reflected for a mirror map, spread over the profile
-    ``kernel`` and centred on its ghost's pixel (``iy``, ``ix``); clipped to the frame (None when nothing of it
-    is left). Whole-pixel placement: the copy's sub-pixel position does not change what it measures."""
-    h, w = src.shape
-    stamp = np.zeros((2 * half + 1, 2 * half + 1), np.float64)
-    y0, x0 = y - half, x - half
-    ya, xa = max(y0, 0), max(x0, 0)
-    yb, xb = min(y + half + 1, h), min(x + half + 1, w)
-    stamp[ya - y0:yb - y0, xa - x0:xb - x0] = src[ya:yb, xa:xb]
+    ``half`` px about the source (``y``, ``x``; 0 beyond the frame), point-reflected for a mirror map, spread over
+    the profile ``kernel`` (odd-sized, as :func:`ghost_kernel` makes it) and centred on its ghost's pixel (``iy``,
+    ``ix``); clipped to the frame (None when nothing of it is left). Whole-pixel placement: the copy's sub-pixel
+    position does not change what it measures."""
+    stamp = extract_array(src, (2 * half + 1, 2 * half + 1), (y, x), mode="partial", fill_value=0.0)
     if mode != "shift":
         stamp = stamp[::-1, ::-1]
-    copy = signal.oaconvolve(stamp, kernel.astype(np.float64), mode="full")
-    cy, cx = half + (kernel.shape[0] - 1) // 2, half + (kernel.shape[1] - 1) // 2
-    fy0, fx0 = iy - cy, ix - cx
-    fya, fxa = max(fy0, 0), max(fx0, 0)
-    fyb, fxb = min(fy0 + copy.shape[0], h), min(fx0 + copy.shape[1], w)
-    if fyb <= fya or fxb <= fxa:
+    copy = signal.oaconvolve(stamp, kernel, mode="full")
+    try:
+        frame, inside = overlap_slices(src.shape, copy.shape, (iy, ix), mode="partial")
+    except NoOverlapError:
         return (slice(0, 0), slice(0, 0)), None
-    return (slice(fya, fyb), slice(fxa, fxb)), copy[fya - fy0:fyb - fy0, fxa - fx0:fxb - fx0]
+    return frame, copy[inside]
 
 
 def _shows_ghost(a, s, alpha: float):
