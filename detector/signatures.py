@@ -39,6 +39,7 @@ import functools
 import math
 import warnings
 from collections.abc import Callable, Iterable
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -1033,7 +1034,7 @@ def checkerboard(shape: tuple[int, int], block: int | None = None) -> np.ndarray
 
 
 def heldout_delta(signature: Signature, res: Residuals, name: str, fit: Fit | None = None,
-                  block: int | None = None) -> float | None:
+                  block: int | None = None, threads: int = 1) -> float | None:
     """delta(-2 ln L) of an effect on pixels its fit did not see (two-fold block cross-validation).
 
     The fitted pixels are split into the black and the white squares of a checkerboard of blocks
@@ -1045,13 +1046,13 @@ def heldout_delta(signature: Signature, res: Residuals, name: str, fit: Fit | No
     the folds apart for spatially correlated residuals, Roberts et al. 2017, Ecography 40, 913).
     None when the signature cannot be scored on a part of the frame (outlier counts). ``block``: the side of the
     checkerboard's blocks (default :func:`default_block`; :func:`seeing_block` for a change too concentrated
-    for it)."""
+    for it). ``threads`` > 1: the two folds are fitted and scored at once (the same result)."""
     black = heldout_mask(res, block)
-    total = 0.0
     folds = _folds(res, black)
-    for part, held in ((folds[0], folds[1]), (folds[1], folds[0])):
-        if not part.fit.any():
-            return None
+    if not (folds[0].fit.any() and folds[1].fit.any()):
+        return None
+
+    def one_way(part: Residuals, held: Residuals) -> float | None:
         # a signature that can refit the in-sample fit's form on the fold does so (its amplitudes are
         # cross-validated, its form search is not repeated); the others fit the fold from scratch
         part_fit = signature.refit(fit, part, name) if fit is not None and hasattr(signature, "refit") \
@@ -1060,13 +1061,17 @@ def heldout_delta(signature: Signature, res: Residuals, name: str, fit: Fit | No
             # no refit, or the in-sample form's amplitudes leave their physical bounds on half the pixels (two
             # nearly collinear templates trading large coefficients): the fold is fitted from scratch
             part_fit = signature.fit(part, name)
-        if part_fit is None:
-            continue
-        s = signature.score(part_fit, held)
-        if s is None:
-            return None
-        total += s
-    return float(total)
+        return 0.0 if part_fit is None else signature.score(part_fit, held)
+
+    ways = ((folds[0], folds[1]), (folds[1], folds[0]))
+    if threads > 1:
+        with ThreadPoolExecutor(max_workers=2) as pool:
+            scores = list(pool.map(lambda w: one_way(*w), ways))
+    else:
+        scores = [one_way(*w) for w in ways]
+    if any(s is None for s in scores):
+        return None
+    return float(0.0 + scores[0] + scores[1])
 
 
 def heldout_mask(res: Residuals, block: int | None = None) -> np.ndarray:

@@ -42,6 +42,27 @@ def test_elongated_blur_has_the_rotated_covariance(angle):
     assert np.allclose([cxx, cyy, cxy], [cov[0, 0], cov[1, 1], cov[0, 1]], atol=0.05)
 
 
+def test_a_filter_of_a_length_with_a_large_prime_factor_is_the_edge_extended_linear_convolution():
+    """2 x 1031 (an image of 2048 padded by 7 on each side) is transformed on 2160 = 2^4 3^3 5 samples, the far
+    sides extended by more edge values: the result is still the edge-extended image's linear convolution
+    (a sampled Gaussian of sigma 1.5 px through ``scipy.ndimage``, mode "nearest"), and the extension
+    is the same filter on a shorter image (to the transforms' rounding)."""
+    from scipy import ndimage
+
+    rng = np.random.default_rng(5)
+    img = rng.gamma(2.0, 50.0, (40, 2048))
+    img[:, :3] += 1e4  # a bright edge: what wraps round a periodic transform would show
+    sigma = 1.5
+    spectra: dict = {}
+    out = ip.blur(img, sigma, spectra=spectra, workers=1)
+    assert [v[1] for k, v in spectra.items() if k[0] != "out"] == [(54, 2160)]  # 40 + 2 x 7 = 54 = 2 x 3^3
+    assert np.allclose(out, ip.blur(img, sigma), rtol=1e-12, atol=0)  # numpy's transforms (the rendering's)
+    ref = ndimage.gaussian_filter(img, sigma, mode="nearest", truncate=8.0)
+    assert np.max(np.abs(out - ref)) < 2e-3 * np.max(np.abs(ref))  # the sampled kernel vs the exact transfer
+    inner = ip.blur(img[:, :2042], sigma)  # 2042 + 2 x 7 = 2056 = 2^3 257: extended to 2160 too
+    assert np.allclose(inner[:, :1900], out[:, :1900], rtol=0, atol=1e-8 * np.max(img))  # transform rounding
+
+
 def test_shift_moves_the_centroid():
     _, cx, cy, *_ = _moments(ip.shift(_star(), 1.3, -0.7))
     assert abs(cx - 65.3) < 1e-3 and abs(cy - 63.3) < 1e-3

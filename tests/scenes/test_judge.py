@@ -275,8 +275,9 @@ def _without_seconds(x):
 
 
 def test_fits_made_in_threads_give_the_same_diagnosis(star_scene):
-    """The signatures and the held-out scores fitted two at a time give the bytes they give one after another
-    (they share only the residuals' memoised statistics). A wider PSF: several effects contend."""
+    """The signatures, the held-out scores and the catch-all's two folds fitted two at a time, and the residual's
+    description made while the scene's parameters are fitted, give the bytes they give one after another (they
+    share only the residuals' memoised statistics). A wider PSF: several effects contend."""
     sc = load_scene(str(star_scene))
     meas = textbook_frame(star_scene, star_scene.with_name("threads.fits"), 9,
                           [f"psf.fwhm_arcsec={1.2 * sc.psf.fwhm_arcsec}"])
@@ -285,6 +286,47 @@ def test_fits_made_in_threads_give_the_same_diagnosis(star_scene):
     assert json.dumps(_without_seconds(one), sort_keys=True, default=str) == \
         json.dumps(_without_seconds(two), sort_keys=True, default=str)
     assert sum(c["heldout_delta"] is not None for c in one["candidates"]) >= 2  # the threads had work to share
+    assert one["catch_all_heldout"] is not None  # its two folds fitted at once, beside the parameters' fits
+
+
+@pytest.mark.parametrize("on_usable", [False, True])
+def test_structure_shares_in_threads_are_the_serial_ones(on_usable):
+    """The shares of the frame's large-scale structure that several smooth candidates remove, computed two at a
+    time, are the values computed one after another (on the fitted pixels, and on the usable ones when the
+    fitted pixels leave some out: the level templates they share are gathered before the threads start);
+    a pattern of single pixels is judged by no block means (None)."""
+    from dataclasses import replace
+
+    from detector import make_sensor
+    from scenes.app.compare.candidates import structure_shares
+
+    rng = np.random.default_rng(3)
+    h, w = 256, 320
+    yy, xx = np.mgrid[0:h, 0:w] / 256.0
+    sky = 2000.0
+    model = np.full((h, w), sky)
+    field = 1.0 - 0.04 * ((xx - 0.6) ** 2 + (yy - 0.5) ** 2)  # a vignetting the model lacks
+    data = rng.normal(model * field, np.sqrt(model + 25.0))
+    sensor = make_sensor("ml11002", {"width": w, "height": h, "gain_e_per_adu": 1.0, "read_noise_e": 5.0,
+                                     "bias_adu": 0})
+    res = residuals_of(data, model, model + 25.0, model, sensor)
+    if on_usable:
+        fit = np.ones((h, w), bool)
+        fit[::7, ::5] = False
+        res = replace(res, usable=np.ones((h, w), bool), fit=fit, _flat={})
+    deltas = [model * (field - 1), model * 0.8 * (field - 1), 30.0 * xx, -20.0 * yy * yy,
+              np.where((np.arange(w) % 2 == 0)[None, :], 5.0, -5.0) * np.ones((h, 1))]
+
+    def shares(threads):
+        cands = [Candidate(Fit(f"c{i}", {}, -1000.0, 2, h * w, "why", delta_adu=d.astype(np.float32)), 1.0, 0.0)
+                 for i, d in enumerate(deltas)]
+        fresh = replace(res, _flat={})
+        structure_shares(fresh, cands, DEFAULT_POLICY, threads)
+        return [c.explains for c in cands]
+
+    one, two = shares(1), shares(2)
+    assert one == two
+    assert one[0] > 0.9 and one[-1] is None, one
 
 
 def test_narrower_psf_named_first_with_its_value(star_scene):

@@ -340,7 +340,7 @@ def judge_evidence(res: Residuals, cands: list[Candidate], policy: DiagnosisPoli
                    progress=None, threads: int = 1) -> None:
     """The evidence the judge weighs for every candidate of one frame: the shares of what is wrong it
     removes and its held-out score. The same for every path that has the frame's residuals."""
-    structure_shares(res, cands, policy)
+    structure_shares(res, cands, policy, threads)
     excess_shares(res, cands, policy)
     support_shares(res, cands, policy)
     score_heldout(res, cands, progress=progress, policy=policy, threads=threads)
@@ -462,19 +462,26 @@ def structure_share(res: Residuals, delta: np.ndarray, policy: DiagnosisPolicy =
     return round(float(np.clip((chi2 - after) / (chi2 - n), -1.0, 1.0)), 4)
 
 
-def structure_shares(res: Residuals, cands: list[Candidate], policy: DiagnosisPolicy = DEFAULT_POLICY) -> None:
-    """:func:`structure_share` of every candidate with a mean change that is significant by delta BIC."""
+def structure_shares(res: Residuals, cands: list[Candidate], policy: DiagnosisPolicy = DEFAULT_POLICY,
+                     threads: int = 1) -> None:
+    """:func:`structure_share` of every candidate with a mean change that is significant by delta BIC;
+    ``threads`` of them at once (:func:`_in_order`; the same result: the statistics they share are computed
+    first)."""
     blocks = block_chi2(res)
     reg = registry()
+    todo = []
     for c in cands:
         if c.fit.delta_adu is not None and c.fit.delta_bic < policy.significant_delta_bic:
             # (a variance candidate's scatter is in its blocks' variances: a mean change that only comes with
             # added charge's shot noise, a glow's, is judged on its mean change alone, as before)
             sig = reg[c.fit.effect].signature if c.fit.effect in reg else None
-            extra = c.fit.extra_var_adu2 if getattr(sig, "kind", "") == "variance" else None
-            share = structure_share(res, c.fit.delta_adu, policy, blocks, extra)
-            if share is not None:
-                c.explains = share
+            todo.append((c, c.fit.extra_var_adu2 if getattr(sig, "kind", "") == "variance" else None))
+    if len(todo) > 1 and threads > 1 and _on_usable(res):
+        _usable_levels(res)  # shared by every share: computed once, before any thread reads it
+    shares = _in_order(lambda t: structure_share(res, t[0].fit.delta_adu, policy, blocks, t[1]), todo, threads)
+    for (c, _), share in zip(todo, shares):
+        if share is not None:
+            c.explains = share
 
 
 def large_scale_share(res: Residuals, delta: np.ndarray, idx: np.ndarray, w: np.ndarray) -> float:
@@ -487,7 +494,7 @@ def large_scale_share(res: Residuals, delta: np.ndarray, idx: np.ndarray, w: np.
     pixels exclude the residual's own local outliers, and a strong pixel pattern's deep pixels are such
     outliers (a mosaic's dim dye: whole colour planes, kept only where a smooth drift brings them near the
     model); sampled there, a period-2 pattern aliases into the block means and looks large-scale."""
-    if res.usable is not None and res.usable.shape == res.fit.shape and bool((res.usable & ~res.fit).any()):
+    if _on_usable(res):
         return _large_scale_share_usable(res, delta)
     # both sides with the global levels refitted: a pattern's mean (a bias bowl's constant part) is a level
     d = res.project(frame_at(delta, idx))
@@ -504,15 +511,25 @@ def _large_scale_share_usable(res: Residuals, delta: np.ndarray) -> float:
     """:func:`large_scale_share` on the usable pixels: the frame made of the model plus ``delta`` alone, its
     global levels refitted, compared pixel by pixel and in blocks (the level templates gathered once per
     comparison, :meth:`detector.signatures.Residuals.memo`)."""
-    base = res.memo("usable_levels", lambda: replace(res, data_adu=res.model_adu, fit=res.usable,
-                                                      _flat={}).shared_levels())
     zero = replace(res, data_adu=(res.model_adu + np.broadcast_to(delta, res.data_adu.shape)).astype(np.float32),
-                   fit=res.usable, _flat=dict(base))
+                   fit=res.usable, _flat=dict(_usable_levels(res)))
     total = zero.chi2_profiled()
     if total <= 0:
         return 0.0
     big, _ = block_chi2(zero)
     return big / total
+
+
+def _on_usable(res: Residuals) -> bool:
+    """Is :func:`large_scale_share` measured on the usable pixels (the fitted ones leave some out)?"""
+    return res.usable is not None and res.usable.shape == res.fit.shape and bool((res.usable & ~res.fit).any())
+
+
+def _usable_levels(res: Residuals) -> dict:
+    """The global levels' templates gathered on the usable pixels (:meth:`detector.signatures.Residuals.memo`,
+    once per comparison)."""
+    return res.memo("usable_levels", lambda: replace(res, data_adu=res.model_adu, fit=res.usable,
+                                                      _flat={}).shared_levels())
 
 
 def coherence_px(res: Residuals) -> int:

@@ -48,20 +48,20 @@ class CatchAll(Signature):
         return pixel_score(fit, res)
 
 
-def catch_all_heldout(res: Residuals, block: int | None = None) -> float | None:
+def catch_all_heldout(res: Residuals, block: int | None = None, threads: int = 1) -> float | None:
     """The catch-all's held-out delta -2 ln L on the checkerboard folds every candidate is scored on (blocks of
     ``block`` pixels; default: :func:`detector.signatures.default_block`) (0 when neither fold's residual is
-    significant: the description predicts nothing)."""
-    h = heldout_delta(CatchAll(), res, "catch_all", block=block)
+    significant: the description predicts nothing). ``threads`` > 1: the two folds at once (the same result)."""
+    h = heldout_delta(CatchAll(), res, "catch_all", block=block, threads=threads)
     return None if h is None else float(h)
 
 
-def compare_with_catch_all(res: Residuals, cands: list, morph: dict) -> float | None:
+def compare_with_catch_all(res: Residuals, cands: list, morph: dict, threads: int = 1) -> float | None:
     """Set the catch-all's held-out score on every effect candidate with a held-out score (its
     ``catch_all_delta`` follows), when the frame's residual is significant: on the blocks that candidate was
     scored on (its ``heldout_block``; the catch-all is computed only on the blocks some candidate uses). Returns
     the catch-all's score on the blocks the candidates were compared on (the finer blocks when any candidate
-    was re-scored on them; None: not computed)."""
+    was re-scored on them; None: not computed). ``threads``: see :func:`catch_all_heldout`."""
     if not morph.get("significant"):
         return None
     scored = [c for c in cands if c.heldout is not None and c.kind == "effect"]
@@ -70,7 +70,7 @@ def compare_with_catch_all(res: Residuals, cands: list, morph: dict) -> float | 
     by_block: dict = {}  # a candidate scored on smaller blocks is compared on the same folds
     for c in scored:
         if c.heldout_block not in by_block:
-            by_block[c.heldout_block] = catch_all_heldout(res, c.heldout_block)
+            by_block[c.heldout_block] = catch_all_heldout(res, c.heldout_block, threads)
         c.catch_all_heldout = by_block[c.heldout_block]
     res.forget("heldout_folds")
     finer = [b for b in by_block if b is not None]

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import json
 import time
+from concurrent.futures import ThreadPoolExecutor
 from collections.abc import Callable
 from pathlib import Path
 
@@ -111,11 +112,14 @@ def _run_diagnose(scene, measured: str | Path, workers: int | None = None, progr
     field_pattern_check(cands, optical)  # a uniform blur/jitter that varies over the field as the optics predicts
     if progress is not None:
         progress("the scene's parameters")
-    params = parameter_candidates(res, scene, cmp["_model"], truth, policy, problems)
-    problems = problems + optical_problems
-    if progress is not None:
-        progress("residual morphology")
-    morph = describe(res)
+    threads = cmp["_model"].setup.detector.workers
+    with ThreadPoolExecutor(max_workers=1) as pool:  # the residual's description while the parameters are fitted
+        described = pool.submit(describe, res) if threads > 1 else None
+        params = parameter_candidates(res, scene, cmp["_model"], truth, policy, problems)
+        problems = problems + optical_problems
+        if progress is not None:
+            progress("residual morphology")
+        morph = describe(res) if described is None else described.result()
     for c in cands:
         if c.fit.effect in HOT_EFFECTS and c.contender:
             why = hot_in_dark(res, scene, policy)
@@ -125,7 +129,7 @@ def _run_diagnose(scene, measured: str | Path, workers: int | None = None, progr
     kind_gate(effects, morph)
     if progress is not None:
         progress("the catch-all (held out)")
-    catch_all = compare_with_catch_all(res, effects, morph)
+    catch_all = compare_with_catch_all(res, effects, morph, threads)
     outliers_after_catch_all(res, effects, morph, morph.get("empirical"))
     blind_rivals(res, effects, policy)
     explained_away(params, rank(effects, res.light_source), res, scene)
