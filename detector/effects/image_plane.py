@@ -512,7 +512,7 @@ class TransformSignature(Signature):
 
     def __init__(self, start, transform, to_params, steps, explain, pattern="", n_iter: int = 6, check=None,
                  nested: list[tuple[int, ...]] | None = None, chain: bool = False,
-                 shared: tuple[tuple[int, ...], ...] = ()):
+                 shared: tuple[tuple[int, ...], ...] = (), keep: bool = False):
         self.start, self.transform, self.to_params, self.steps = start, transform, to_params, np.asarray(steps, float)
         self.explain, self.pattern, self.n_iter, self.check = explain, pattern, n_iter, check
         self.nested = nested
@@ -524,6 +524,9 @@ class TransformSignature(Signature):
         #: (:meth:`form_fit`): fitted once per frame and kept in the residuals' memo; the others are not kept
         #: (each holds a frame-sized map)
         self.shared = frozenset(_form_key(sub) for sub in shared)
+        #: ``keep``: the whole fit is kept in the residuals' memo too (one frame-sized map): another signature's
+        #: check asks for it (the distortion's asks the pointing offset's) and gets it without a second fit
+        self.keep = keep
         self._spectra = {"spectra", "workers"} <= set(inspect.signature(transform).parameters)
         #: a transform that takes ``at`` (flat pixel indices) evaluates only those pixels: the search steps then
         #: cost the sample's size, not the frame's
@@ -532,7 +535,14 @@ class TransformSignature(Signature):
     def fit(self, res, name):
         """The fit of all parameters; with ``nested`` (subsets of the parameters, the others held at 0), the
         subset whose fit has the lowest delta BIC (a simpler form is kept unless the extra terms pay for
-        their parameters)."""
+        their parameters). With ``keep``, fitted once per frame (a copy of its own returned each time)."""
+        if not self.keep:
+            return self._fit_all(res, name)
+        fit = res.memo(("transform_fit", name), lambda: self._fit_all(res, name))
+        # a copy of its own: the caller may drop the copy's maps (a series keeps none) or add to its state
+        return None if fit is None else replace(fit, params=dict(fit.params), state=dict(fit.state))
+
+    def _fit_all(self, res, name):
         if not _has_structure(res):
             return None
         if not self.nested:
@@ -1698,7 +1708,7 @@ class PointingOffset(Effect):
     Params = OffsetParams
     signature = TransformSignature(
         _offset_start, _offset_transform, _offset_params, [0.01, 0.01, 1e-3, 1e-5], nested=[(0, 1), (0, 1, 2, 3)],
-        chain=True, pattern="dipoles on every source, all in one direction, or turning and growing across the "
+        chain=True, keep=True, pattern="dipoles on every source, all in one direction, or turning and growing across the "
                             "field as a rotation or a scale change does", check=_offset_check, explain=_offset_words)
 
     def apply(self, stage: Stage, tile: Tile, data: np.ndarray) -> None:

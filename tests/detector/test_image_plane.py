@@ -168,3 +168,31 @@ def test_the_core_with_wings_is_not_fitted_when_the_round_core_alone_is_no_candi
     monkeypatch.setattr(ip.PSFBlur.signature, "form_fit", no_core)
     assert ip._blur_start(object(), (0, 1, 2)) is None
     assert asked == [("psf_blur", (0,))]
+
+
+def test_a_kept_transform_fit_is_fitted_once_per_frame_and_handed_out_as_copies(monkeypatch):
+    """The pointing offset's fit (``keep``: the distortion's check asks for it too) is made once per frame's
+    residuals; each caller gets a copy whose parameters and state it may change without changing the other's."""
+    from detector.signatures import Fit
+
+    class Res:  # the residuals' memo, nothing else
+        def __init__(self):
+            self.kept = {}
+
+        def memo(self, key, compute):
+            if key not in self.kept:
+                self.kept[key] = compute()
+            return self.kept[key]
+
+    sig = ip.PointingOffset.signature
+    assert sig.keep and not ip.PSFBlur.signature.keep
+    made = []
+    monkeypatch.setattr(sig, "_fit_all", lambda res, name: made.append(name) or Fit(
+        name, {"dx_px": 0.1, "dy_px": 0.0}, -50.0, 2, 100, "why", state={"transform_theta": np.zeros(4)}))
+    res = Res()
+    a, b = sig.fit(res, "pointing_offset"), sig.fit(res, "pointing_offset")
+    assert made == ["pointing_offset"] and a is not b and a.params == b.params
+    a.params["dx_px"], a.state["extra"] = 9.0, 1
+    assert b.params["dx_px"] == 0.1 and "extra" not in b.state
+    sig.fit(Res(), "pointing_offset")  # another frame: fitted again
+    assert made == ["pointing_offset"] * 2

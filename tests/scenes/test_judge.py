@@ -926,7 +926,8 @@ def test_the_catch_all_is_scored_on_the_blocks_the_candidates_were_compared_on(m
     from scenes.app.compare import catch_all as ca
 
     asked = []
-    monkeypatch.setattr(ca, "catch_all_heldout", lambda res, block=None: asked.append(block) or -10.0 * (block or 1))
+    monkeypatch.setattr(ca, "catch_all_heldout",
+                        lambda res, block=None, threads=1: asked.append(block) or -10.0 * (block or 1))
     res = SimpleNamespace(forget=lambda key: None)
     cands = [SimpleNamespace(heldout=-5.0, kind="effect", heldout_block=4, catch_all_heldout=None) for _ in range(2)]
     assert ca.compare_with_catch_all(res, cands, {"significant": True}) == -40.0
