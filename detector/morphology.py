@@ -208,17 +208,27 @@ def _cut_row_factor(wmap: np.ndarray, row_var_adu2: float) -> float:
     return 1.0 if sl is None else row_power_factor(wmap[sl], row_var_adu2)
 
 
-def _spectrum(z: np.ndarray, row_factor: float = 1.0):
+#: cycles across the window below which the periodogram of the unsmoothed map (the wide search of
+#: :func:`describe`, asked when no family holds the structure) leaves a frequency out as a smooth field's: twice
+#: the cycles the smooth basis itself holds (a Legendre polynomial of order SMOOTH_ORDER has at most SMOOTH_ORDER
+#: zeros, SMOOTH_ORDER / 2 cycles), so rings or fringes of 3 to 6 cycles across the window (tree rings 56 px apart
+#: on a 256 px window) are periods, not a smooth field (the other searches leave out LINE_PERIOD_MIN_CYCLES)
+WIDE_SMOOTH_CYCLES = float(SMOOTH_ORDER)
+
+
+def _spectrum(z: np.ndarray, row_factor: float = 1.0, smooth_cycles: float | None = None):
     """The periodogram of the central cut of ``z`` divided by its expected shape under the null (the ``fx = 0``
-    column by ``row_factor``, :func:`row_power_factor`), the lowest frequencies (smooth fields) zeroed:
-    (power, |F| likewise scaled, fy, fx, side)."""
+    column by ``row_factor``, :func:`row_power_factor`), the lowest frequencies (smooth fields, ``smooth_cycles``
+    across the cut or fewer; default LINE_PERIOD_MIN_CYCLES) zeroed: (power, |F| likewise scaled, fy, fx, side)."""
+    if smooth_cycles is None:
+        smooth_cycles = LINE_PERIOD_MIN_CYCLES
     sl = _cut(z)
     cut = np.nan_to_num(z[sl])
     side = cut.shape[0]
     fft = np.abs(np.fft.rfft2(cut - cut.mean()))
     fy = np.fft.fftfreq(side)[:, None]
     fx = np.fft.rfftfreq(side)[None, :]
-    fft = np.where(np.hypot(fy, fx) > 6.0 / side, fft, 0.0)
+    fft = np.where(np.hypot(fy, fx) > smooth_cycles / side, fft, 0.0)
     fft[:, 0] /= math.sqrt(max(row_factor, 1.0))
     return fft * fft, fft, fy, fx, side
 
@@ -789,11 +799,12 @@ def describe(res: Residuals, delta_adu: np.ndarray | None = None, frames: int = 
         # structure (the description would be a family that holds less), the periodogram of the unsmoothed map
         # (the smooth fields' few cycles left out, :func:`_spectrum`) is asked: a peak significant on its own
         # (:func:`periodic_bar`), with the share of the excess chi2 its band-passed map takes (:func:`_periodic_map`)
-        spec = _spectrum(zp, _cut_row_factor(wmap, row_var)) if _cut(zp) is not None else None
+        spec = _spectrum(zp, _cut_row_factor(wmap, row_var), WIDE_SMOOTH_CYCLES) if _cut(zp) is not None else None
         wide_period, wide_contrast, _ = _peak_of(spec)
         bar = periodic_bar(shape)
         if wide_contrast >= bar and ring_contrast(spec) >= bar:
-            wide_map = _periodic_map(rmap, wmap, light, kind, row_var)  # (_relative: other kinds map as additive)
+            # (_relative: other kinds map as additive)
+            wide_map = _periodic_map(rmap, wmap, light, kind, row_var, WIDE_SMOOTH_CYCLES)
             wide_share = _map_gain(wide_map, rmap, wmap, light) / pixel_total
             if wide_share >= GEOMETRY_SHARE:
                 shares["periodic"], period = wide_share, wide_period
@@ -1376,9 +1387,10 @@ def _periodic_axes(pmap: np.ndarray, wmap: np.ndarray) -> list[str]:
     return out
 
 
-def _periodic_map(rmap: np.ndarray, wmap: np.ndarray, light: np.ndarray, kind: str, row_var: float = 0.0) -> dict:
+def _periodic_map(rmap: np.ndarray, wmap: np.ndarray, light: np.ndarray, kind: str, row_var: float = 0.0,
+                  min_cycles: float = LINE_PERIOD_MIN_CYCLES) -> dict:
     """The empirical map of a periodic pattern: the residual [ADU] band-passed around its strongest spatial
-    frequencies (a smooth part, below LINE_PERIOD_MIN_CYCLES cycles across the frame, left out), on the whole
+    frequencies (a smooth part, below ``min_cycles`` cycles across the frame, left out), on the whole
     frame; the ``fx = 0`` column weighed against the power row noise (``row_var`` [ADU^2]) puts there
     (:func:`row_power_factor`).
 
@@ -1397,7 +1409,7 @@ def _periodic_map(rmap: np.ndarray, wmap: np.ndarray, light: np.ndarray, kind: s
     g_row = row_power_factor(wmap, row_var, whitened=False)
     fy = np.fft.fftfreq(r.shape[0])[:, None]
     fx = np.fft.rfftfreq(r.shape[1])[None, :]
-    low = np.hypot(fy * r.shape[0], fx * r.shape[1]) < LINE_PERIOD_MIN_CYCLES
+    low = np.hypot(fy * r.shape[0], fx * r.shape[1]) < min_cycles
     iy, ix = np.mgrid[: low.shape[0], : low.shape[1]]
     amap = np.zeros(r.shape, np.float64)
     for _ in range(PERIODIC_PEAKS):

@@ -179,6 +179,22 @@ def test_rings_longer_than_a_few_blocks_are_periodic_with_their_period():
     assert got > 0.5 * exact, (got, exact)
 
 
+def test_rings_of_five_cycles_across_the_window_are_periodic_not_columns():
+    """Arcs of tree rings 56 px apart (4.6 cycles across the 256 px window) about a centre off a corner, 0.3 % of a
+    flat's light (multiplicative): the unsmoothed periodogram once left out everything below 6 cycles, and so the
+    pattern itself; the description was its 3 % share of column means ("column gains"). Only what the smooth basis
+    holds (SMOOTH_ORDER cycles) is left out: the period is found within its bin and the map takes most of the
+    exact pattern's chi2 (the independent reference)."""
+    truth = _rings(56.0, -400.0, -150.0, 0.35 * SIG)
+    m = describe(_res(truth, seed=4))
+    assert m["significant"]
+    assert m["geometry"][0] == "periodic", m["explanation"]
+    assert abs(m["scale_px"] - 56.0) < 256 / 4.6 - 256 / 5.6  # one frequency bin
+    exact = float(np.sum(truth ** 2)) / SIG ** 2
+    got = float(np.sum(truth ** 2 - (truth - m["empirical"]["map"]) ** 2)) / SIG ** 2
+    assert got > 0.5 * exact, (got, exact)
+
+
 def test_a_smooth_random_field_is_not_periodic():
     """A Gaussian random field with its power spread over 3 to 10 cycles across the frame (a flat-field's large
     scales, a PRNU's low-frequency part) at 0.3 sigma: its periodogram's largest bin passes the white-noise bar,
