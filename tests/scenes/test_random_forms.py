@@ -258,7 +258,8 @@ def test_a_dsnu_is_judged_by_what_one_frame_sees_of_it(tmp_path):
 def test_summary_counts_and_confusions():
     """The report's figures: named first over catalogue cases, confidently wrong over every effect case (a first
     name flagged as not told apart from an accepted one is ambiguous, not wrong), the right kind for the
-    out-of-catalogue cases, the most frequent confusion with an example case to rerun."""
+    out-of-catalogue cases (of all, and of those one frame sees once its levels are refitted), the most frequent
+    confusion with an example case to rerun."""
     def row(case, group, first, named, wrong, **kw):
         return {"case": case, "family": case.split("-")[0], "camera": "ml11002", "strength_t": 0.7, "group": group,
                 "label": kw.pop("label", case.split("-")[0]), "first": first, "named_first": named,
@@ -272,12 +273,15 @@ def test_summary_counts_and_confusions():
             row("dsnu-7", "catalogue", "none", False, False),
             row("periodic-5", "ooc", "none", None, False, label="ooc:periodic", accept=[], morphology_match=True),
             row("periodic-6", "ooc", "reset_noise", None, True, label="ooc:periodic", accept=[],
-                wrong_names=[("reset_noise", 40.0)], morphology_match=False)]
+                wrong_names=[("reset_noise", 40.0)], morphology_match=False),
+            row("smear-8", "ooc", "none", None, False, label="ooc:smear", accept=[], morphology_match=False,
+                truth_chi2=4000.0, truth_chi2_levels=3.0)]  # a uniform light once the levels are refitted
     s = R.summary(rows)["overall"]
     assert (s["named_first"]["n"], s["named_first"]["of"]) == (1, 5)
-    assert (s["confidently_wrong"]["n"], s["confidently_wrong"]["of"]) == (3, 7)
+    assert (s["confidently_wrong"]["n"], s["confidently_wrong"]["of"]) == (3, 8)
     assert s["missed"]["n"] == 1 and R.summary(rows)["missed"][0]["example"] == "dsnu-7"
-    assert (s["ambiguous_right"]["n"], s["described_right_kind"]["n"], s["described_right_kind"]["of"]) == (1, 1, 2)
+    assert (s["ambiguous_right"]["n"], s["described_right_kind"]["n"], s["described_right_kind"]["of"]) == (1, 1, 3)
+    assert (s["described_seen_levels"]["n"], s["described_seen_levels"]["of"]) == (1, 2)  # the smear is unseen
     conf = R.summary(rows)["confusions"]
     assert conf[0] == {"hidden": "vignetting", "first": "straylight", "count": 2, "example": "vignetting-2"}
     assert {"hidden": "ipc", "first": "psf_blur (ambiguous)", "count": 1, "example": "ipc-4"} in conf
