@@ -88,6 +88,7 @@ from .image_plane import (
     _store,
     disc_kernel,
     ghost_image,
+    inverse_rfft2,
 )
 
 # --- pure functions: the ghost's map and profile ----------------------------------------------------------------
@@ -478,7 +479,7 @@ class _Convolver:
 
     def __call__(self, profile: str, radius_out_px: float, inner_ratio: float) -> np.ndarray:
         h = kernel_transfer(profile, radius_out_px, inner_ratio, self.fx, self.fy).astype(np.float32)
-        out = scipy.fft.irfft2(self.spec * h, s=self.shape, workers=self.workers)
+        out = inverse_rfft2(self.spec * h, self.shape, self.workers)
         p = self.pad
         return np.maximum(out[p:p + self.shape0[0], p:p + self.shape0[1]], 0).astype(np.float32)
 

@@ -233,3 +233,24 @@ def test_a_checkerboard_response_is_the_top_peak_of_the_full_resolution_spectrum
     # the report's table has it on top, highlighted
     page = write_report(cmp, tmp_path / "r.html").read_text()
     assert re.search(r'<tr class="flag"><td class="num">0.5</td><td class="num">0.5</td>', page)
+
+
+def test_the_realisations_outliers_counted_beside_the_datas_are_the_serial_ones(tmp_path):
+    """:func:`residuals` counts the model realisation's outliers in a thread while the data's are counted: the
+    same statistics as counting them alone (:func:`realisation_spikes`), whatever the threads."""
+    import pickle
+
+    from scenes.app.compare.model import realisation_spikes, residuals
+
+    scene_path = tmp_path / "field.toml"
+    scene_path.write_text(star_field_toml(96))
+    scene = load_scene(str(scene_path))
+    render(scene, tmp_path / "data.fits", seed=3)
+    for workers in (1, 2):
+        model = build_model(scene, workers=workers)
+        assert model.spikes is None and model.realisation is not None  # counted with the data's
+        data, _ = read_measurement(tmp_path / "data.fits", model)
+        res = residuals(data, model)
+        alone = realisation_spikes(model)
+        assert pickle.dumps(res.model_spikes) == pickle.dumps(alone)  # every count, index and group
+        assert res.model_spikes.counts() == alone.counts()

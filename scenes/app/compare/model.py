@@ -10,6 +10,7 @@ columns) that the measurement's are compared with.
 
 from __future__ import annotations
 
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
@@ -79,12 +80,17 @@ def build_model(scene: Scene, workers: int | None = None, realisation: bool = Tr
     background = mean if bg is setup.signal_e else det.moments(bg, t)[0]
     model = ModelFrame(setup, mean, var, flag, photo, dark_e, unclipped / np.float32(s.gain_e_per_adu), background)
     model.row_var_adu2 = row_offset_var_adu2(det)
-    if realisation:
-        real = det.expose(setup.signal_e, t, REALISATION_SEED).astype(np.float32)
-        usable = ~flag & (real < saturation_adu(s))
-        model.realisation = real
-        model.spikes, _ = spike_stats(real, mean, var, usable, s.gain_e_per_adu)
+    if realisation:  # its outliers are counted with the data's (:func:`residuals`)
+        model.realisation = det.expose(setup.signal_e, t, REALISATION_SEED).astype(np.float32)
     return model
+
+
+def realisation_spikes(model: ModelFrame) -> SpikeStats:
+    """The local outliers of the model's own realisation: what the scene's own hot pixels, cosmic rays and
+    noise give, against which the data's are counted."""
+    s, real = model.sensor, model.realisation
+    usable = ~model.flag & (real < saturation_adu(s))
+    return spike_stats(real, model.mean_adu, model.var_adu2, usable, s.gain_e_per_adu)[0]
 
 
 def row_offset_var_adu2(det) -> float:
@@ -222,7 +228,12 @@ def residuals(data: np.ndarray, model: ModelFrame) -> Residuals:
     usable = ~model.flag & (data < saturation_adu(s)) & np.isfinite(data)
     if model.extra.get("nonfinite") is not None:  # NaN / inf in the measured file (read_measurement)
         usable &= ~model.extra["nonfinite"]
-    spikes, statistical = spike_stats(data, model.mean_adu, model.var_adu2, usable, s.gain_e_per_adu)
+    pending = model.spikes is None and model.realisation is not None
+    with ThreadPoolExecutor(max_workers=1) as pool:  # the realisation's outliers while the data's are counted
+        later = pool.submit(realisation_spikes, model) if pending and (model.setup.detector.workers or 1) > 1 else None
+        spikes, statistical = spike_stats(data, model.mean_adu, model.var_adu2, usable, s.gain_e_per_adu)
+        if pending:
+            model.spikes = later.result() if later is not None else realisation_spikes(model)
     # where the model itself peaks (star cores) a local outlier is a source the model misplaces or mis-sizes,
     # not a defect: keep those pixels in the pixel-by-pixel comparison
     statistical &= ~source_peaks(model)
