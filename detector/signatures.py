@@ -55,7 +55,7 @@ from detector.significance import (
     MAX_DEFECT_FRACTION,
     STRUCTURE_SIGMA,
 )
-from detector.stats import mad_std, median_square_variance, median_square_variance_error
+from detector.stats import mad_std, median3x3, median_square_variance, median_square_variance_error
 
 #: |z - median_3x3(z)| above which a pixel is a spike (hot/dead pixel, cosmic-ray hit) [sigma]
 SPIKE_SIGMA = DETECTION_SIGMA
@@ -210,12 +210,6 @@ class SpikeStats:
                 "tracks": group_gain(self.pos_groups[is_track(self.pos_groups)], TRACK_K, n)[1]}
 
 
-def _median3(z: np.ndarray) -> np.ndarray:
-    from scipy.ndimage import median_filter
-
-    return median_filter(z, size=3, mode="nearest")
-
-
 #: |z| down to which a spike's connected surroundings are compared statistically with it [sigma]: a pixel of the
 #: spike's group, a part of a detection (FOOTPRINT_SIGMA)
 GROW_SIGMA = FOOTPRINT_SIGMA
@@ -253,7 +247,7 @@ def spike_stats(data: np.ndarray, model: np.ndarray, var: np.ndarray, usable: np
     from scipy.ndimage import median_filter
 
     z = np.where(usable, (data - model) / np.sqrt(var), 0.0).astype(np.float32)
-    local = z - _median3(z)
+    local = z - median3x3(z)
     # a read value sits on the ADC's integer lattice: known to +-0.5 ADU, its rounding's variance 1/12 ADU^2
     # (Sheppard's correction) is part of what a counted outlier (a hot pixel, a track, a dead pixel) must
     # exceed. Where the noise is below one code (a binned average of a short dark: 99 % of the pixels on one

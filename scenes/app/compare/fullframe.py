@@ -69,7 +69,7 @@ from detector.signatures import (
     line_sigma,
     spike_stats,
 )
-from detector.stats import mad_std
+from detector.stats import mad_std, median3x3
 from scenes.app.render import Setup, prepare
 from scenes.measured import scene_mask
 
@@ -562,7 +562,7 @@ def run_pass(setup: Setup, reader: BandReader, k: int, sample_bands: int = SAMPL
         z = r / np.sqrt(var)
         sp = spikes_fast(z, usable)
         if has_sources:  # star cores: a local outlier there is a source the model misplaces, not a defect
-            peak = (photo - ndimage.median_filter(photo, size=3, mode="nearest")) > 3 * np.sqrt(var)
+            peak = (photo - median3x3(photo)) > 3 * np.sqrt(var)
             sp &= ~ndimage.binary_dilation(peak, structure=np.ones((3, 3), bool), iterations=2)
         good = usable & ~sp
         r[~good] = 0.0
@@ -803,7 +803,7 @@ def sample_residuals(P: Pass, setup: Setup) -> tuple[Residuals, np.ndarray]:
     spikes, statistical = spike_stats(data, mean, var, usable, s.gain_e_per_adu)
     photo = cat("photo")
     if background_signal(setup.signal_e) is not setup.signal_e:
-        peak = (photo - ndimage.median_filter(photo, size=3, mode="nearest")) > 3 * np.sqrt(var)
+        peak = (photo - median3x3(photo)) > 3 * np.sqrt(var)
         statistical &= ~ndimage.binary_dilation(peak, structure=np.ones((3, 3), bool), iterations=2)
     real = cat("real")
     model_spikes, _ = spike_stats(real, mean, var, ~flag & (real < sat), s.gain_e_per_adu)

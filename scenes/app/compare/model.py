@@ -19,6 +19,7 @@ import numpy as np
 from detector.errors import DetectorError
 from detector.signatures import Residuals, SpikeStats, spike_stats
 from detector.significance import EXPLAINS_MOST
+from detector.stats import median3x3
 from scenes.app.render import Setup, prepare
 from scenes.image.signal import Samples, SourceSignal, Trails
 from scenes.measured import measured_wcs, read_measured
@@ -218,7 +219,7 @@ def source_peaks(model: ModelFrame, nsigma: float = 3.0) -> np.ndarray:
     from scipy import ndimage
 
     p = model.photo_adu
-    peak = (p - ndimage.median_filter(p, size=3, mode="nearest")) > nsigma * np.sqrt(model.var_adu2)
+    peak = (p - median3x3(p)) > nsigma * np.sqrt(model.var_adu2)
     return ndimage.binary_dilation(peak, structure=np.ones((3, 3), bool), iterations=2)
 
 
