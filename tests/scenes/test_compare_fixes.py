@@ -236,11 +236,13 @@ def test_a_checkerboard_response_is_the_top_peak_of_the_full_resolution_spectrum
 
 
 def test_the_realisations_outliers_counted_beside_the_datas_are_the_serial_ones(tmp_path):
-    """:func:`residuals` counts the model realisation's outliers in a thread while the data's are counted: the
-    same statistics as counting them alone (:func:`realisation_spikes`), whatever the threads."""
+    """:func:`residuals` counts the model realisation's outliers in a thread while the data's are counted
+    (:func:`data_and_realisation_spikes`, which the large-frame path's sample calls too): the same statistics as
+    counting them alone, whatever the threads."""
     import pickle
 
-    from scenes.app.compare.model import realisation_spikes, residuals
+    from detector.signatures import spike_stats
+    from scenes.app.compare.model import residuals
 
     scene_path = tmp_path / "field.toml"
     scene_path.write_text(star_field_toml(96))
@@ -251,6 +253,8 @@ def test_the_realisations_outliers_counted_beside_the_datas_are_the_serial_ones(
         assert model.spikes is None and model.realisation is not None  # counted with the data's
         data, _ = read_measurement(tmp_path / "data.fits", model)
         res = residuals(data, model)
-        alone = realisation_spikes(model)
+        real, s = model.realisation, model.sensor
+        alone = spike_stats(real, model.mean_adu, model.var_adu2, ~model.flag & (real < saturation_adu(s)),
+                            s.gain_e_per_adu)[0]
         assert pickle.dumps(res.model_spikes) == pickle.dumps(alone)  # every count, index and group
         assert res.model_spikes.counts() == alone.counts()

@@ -67,16 +67,24 @@ from detector.signatures import (
     Residuals,
     SpikeStats,
     line_sigma,
-    spike_stats,
 )
-from detector.stats import mad_std, median3x3
+from detector.stats import mad_std
 from scenes.app.render import Setup, prepare
 from scenes.measured import scene_mask
 
 from .candidates import blind_rivals, candidates, source_candidates
 from .catch_all import compare_with_catch_all
 from .judge import judge_json, kind_gate, rank, verdict
-from .model import REALISATION_SEED, _wcs_offset, background_signal, level_sd, row_offset_var_adu2, saturation_adu
+from .model import (
+    REALISATION_SEED,
+    _wcs_offset,
+    background_signal,
+    data_and_realisation_spikes,
+    level_sd,
+    row_offset_var_adu2,
+    saturation_adu,
+    source_peak_mask,
+)
 from .parameters import explained_away, level_candidates
 from .policy import DEFAULT_POLICY, DiagnosisPolicy
 from .statistics import compare, misfit, outlier_counts, spectrum_peaks, star_photometry, summary, track_band, zmap
@@ -562,8 +570,7 @@ def run_pass(setup: Setup, reader: BandReader, k: int, sample_bands: int = SAMPL
         z = r / np.sqrt(var)
         sp = spikes_fast(z, usable)
         if has_sources:  # star cores: a local outlier there is a source the model misplaces, not a defect
-            peak = (photo - median3x3(photo)) > 3 * np.sqrt(var)
-            sp &= ~ndimage.binary_dilation(peak, structure=np.ones((3, 3), bool), iterations=2)
+            sp &= ~source_peak_mask(photo, var)
         good = usable & ~sp
         r[~good] = 0.0
         z[~good] = 0.0
@@ -800,13 +807,12 @@ def sample_residuals(P: Pass, setup: Setup) -> tuple[Residuals, np.ndarray]:
     finite = np.isfinite(data)
     usable = ~flag & finite & (data < sat)
     data = np.where(finite, data, 0.0).astype(np.float32)
-    spikes, statistical = spike_stats(data, mean, var, usable, s.gain_e_per_adu)
+    real = cat("real")
+    spikes, statistical, model_spikes = data_and_realisation_spikes(data, usable, real, flag, mean, var, s,
+                                                                    setup.detector.workers or 1)
     photo = cat("photo")
     if background_signal(setup.signal_e) is not setup.signal_e:
-        peak = (photo - median3x3(photo)) > 3 * np.sqrt(var)
-        statistical &= ~ndimage.binary_dilation(peak, structure=np.ones((3, 3), bool), iterations=2)
-    real = cat("real")
-    model_spikes, _ = spike_stats(real, mean, var, ~flag & (real < sat), s.gain_e_per_adu)
+        statistical &= ~source_peak_mask(photo, var)
     ss = s.model_copy(update={"height": rows.size * b, "y0": s.roi_y0, "x0": s.roi_x0, "width": s.roi_shape[0]})
     ys = s.roi_y0 + b * rows + (b - 1) / 2.0
     xs = s.roi_x0 + b * np.arange(data.shape[1]) + (b - 1) / 2.0

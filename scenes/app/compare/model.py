@@ -86,12 +86,20 @@ def build_model(scene: Scene, workers: int | None = None, realisation: bool = Tr
     return model
 
 
-def realisation_spikes(model: ModelFrame) -> SpikeStats:
-    """The local outliers of the model's own realisation: what the scene's own hot pixels, cosmic rays and
-    noise give, against which the data's are counted."""
-    s, real = model.sensor, model.realisation
-    usable = ~model.flag & (real < saturation_adu(s))
-    return spike_stats(real, model.mean_adu, model.var_adu2, usable, s.gain_e_per_adu)[0]
+def data_and_realisation_spikes(data: np.ndarray, usable: np.ndarray, real: np.ndarray, flag: np.ndarray,
+                                mean: np.ndarray, var: np.ndarray, sensor, threads: int = 1
+                                ) -> tuple[SpikeStats, np.ndarray, SpikeStats]:
+    """The local outliers of the measured frame (:func:`detector.signatures.spike_stats`: its statistics and its
+    statistical-only mask) and of the model's own realisation ``real`` (what the scene's own hot pixels, cosmic
+    rays and noise give, against which the data's are counted; its flagged and saturated pixels left out). With
+    ``threads`` > 1 the realisation's are counted in a thread while the data's are (the same statistics)."""
+    gain = sensor.gain_e_per_adu
+    real_usable = ~flag & (real < saturation_adu(sensor))
+    with ThreadPoolExecutor(max_workers=1) as pool:
+        later = pool.submit(spike_stats, real, mean, var, real_usable, gain) if threads > 1 else None
+        spikes, statistical = spike_stats(data, mean, var, usable, gain)
+        model_spikes = (later.result() if later is not None else spike_stats(real, mean, var, real_usable, gain))[0]
+    return spikes, statistical, model_spikes
 
 
 def row_offset_var_adu2(det) -> float:
@@ -214,12 +222,16 @@ def _wcs_offset(header, model: ModelFrame) -> float | None:
 
 
 def source_peaks(model: ModelFrame, nsigma: float = 3.0) -> np.ndarray:
-    """Pixels within one pixel of a place where the model's photo-signal rises ``nsigma`` above its 3x3
-    median (sources: stars, streaks)."""
+    """:func:`source_peak_mask` of the model's photo-signal."""
+    return source_peak_mask(model.photo_adu, model.var_adu2, nsigma)
+
+
+def source_peak_mask(photo_adu: np.ndarray, var_adu2: np.ndarray, nsigma: float = 3.0) -> np.ndarray:
+    """Pixels within two pixels of a place where the photo-signal [ADU] rises ``nsigma`` (of the noise,
+    ``var_adu2``) above its 3x3 median (sources: stars, streaks)."""
     from scipy import ndimage
 
-    p = model.photo_adu
-    peak = (p - median3x3(p)) > nsigma * np.sqrt(model.var_adu2)
+    peak = (photo_adu - median3x3(photo_adu)) > nsigma * np.sqrt(var_adu2)
     return ndimage.binary_dilation(peak, structure=np.ones((3, 3), bool), iterations=2)
 
 
@@ -229,12 +241,12 @@ def residuals(data: np.ndarray, model: ModelFrame) -> Residuals:
     usable = ~model.flag & (data < saturation_adu(s)) & np.isfinite(data)
     if model.extra.get("nonfinite") is not None:  # NaN / inf in the measured file (read_measurement)
         usable &= ~model.extra["nonfinite"]
-    pending = model.spikes is None and model.realisation is not None
-    with ThreadPoolExecutor(max_workers=1) as pool:  # the realisation's outliers while the data's are counted
-        later = pool.submit(realisation_spikes, model) if pending and (model.setup.detector.workers or 1) > 1 else None
+    if model.spikes is None and model.realisation is not None:
+        spikes, statistical, model.spikes = data_and_realisation_spikes(
+            data, usable, model.realisation, model.flag, model.mean_adu, model.var_adu2, s,
+            model.setup.detector.workers or 1)
+    else:
         spikes, statistical = spike_stats(data, model.mean_adu, model.var_adu2, usable, s.gain_e_per_adu)
-        if pending:
-            model.spikes = later.result() if later is not None else realisation_spikes(model)
     # where the model itself peaks (star cores) a local outlier is a source the model misplaces or mis-sizes,
     # not a defect: keep those pixels in the pixel-by-pixel comparison
     statistical &= ~source_peaks(model)
