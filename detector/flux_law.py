@@ -8,7 +8,7 @@ source (:func:`source_amplitudes`), has amplitudes that are constant over the so
 candidate's template was built with, and that scale as ``F^(+1)`` (a PSF template meeting a brighter-fatter
 widening) or ``F^(-1)`` (a brighter-fatter template meeting a widening of every source alike) for the other.
 :func:`flux_slope` measures that power, ``d ln(amplitude) / d ln(F)``, with its scatter-inflated error, and
-:func:`flux_law` says which of two powers it is nearer to, or that the sources cannot tell them apart.
+:func:`flux_law` says which of two powers the sources follow (the other excluded), or that they cannot tell.
 """
 
 from __future__ import annotations
@@ -22,9 +22,8 @@ from . import significance
 #: the least signal-to-noise ratio of a source's own amplitude for the source to enter the slope (below it the
 #: amplitude's logarithm is not defined well enough to fit): a detected source, DETECTION_SIGMA
 SOURCE_MIN_SNR = significance.DETECTION_SIGMA
-#: how many standard errors of the slope must separate the two laws for the sources to tell them apart: the
-#: shared significance of one tested quantity (DETECTION_SIGMA; the nearer law is then at least half of that gap
-#: from the other)
+#: how many standard errors of the slope must separate the measured power from a law for the sources to exclude
+#: it: the shared significance of one tested quantity (DETECTION_SIGMA)
 SEPARATION_SIGMA = significance.DETECTION_SIGMA
 #: the model's source light above this many standard deviations of a pixel's noise marks a source's footprint
 #: (then grown by FOOTPRINT_GROW_PX to hold its wings)
@@ -120,12 +119,16 @@ def flux_slope(flux: np.ndarray, amp: np.ndarray, err: np.ndarray) -> Slope | No
 
 
 def flux_law(slope: Slope | None, own: float, other: float) -> bool | None:
-    """Which law the sources follow: True when ``slope``'s power is nearer ``other`` than ``own`` (the power the
-    candidate's template assumes), False when nearer ``own``, None when the two laws are not SEPARATION_SIGMA
-    standard errors of the slope apart (the sources cannot tell them) or there is no slope."""
-    if slope is None or not np.isfinite(slope.error) or abs(other - own) < SEPARATION_SIGMA * slope.error:
+    """Which law the sources follow: True when ``slope``'s power excludes ``own`` (the power the candidate's
+    template assumes) by SEPARATION_SIGMA standard errors and lies nearer ``other``; False when it excludes
+    ``other`` so and lies nearer ``own``; None when it excludes neither (the sources cannot tell them apart) or
+    there is no slope. A power far from both (2.1 +- 0.4 for laws 0 and 1, a few sources over a narrow range of
+    flux) still excludes the one it is 5 errors from: the test is of the law, not of the two laws' distance."""
+    if slope is None or not np.isfinite(slope.error) or not np.isfinite(slope.power):
         return None
-    return abs(slope.power - other) < abs(slope.power - own)
+    near_other = abs(slope.power - other) < abs(slope.power - own)
+    far = abs(slope.power - (own if near_other else other)) >= SEPARATION_SIGMA * slope.error
+    return near_other if far else None
 
 
 def change_slope(res, change_adu: np.ndarray) -> Slope | None:

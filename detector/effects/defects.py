@@ -213,9 +213,11 @@ class ColumnSignature(Signature):
         at_sources = self._at_source_columns(res)
         if at_sources:
             return at_sources
-        level, _ = res.level_maps()
-        # every pixel of the columns (an outlier column is not fitted pixel by pixel), spikes clipped at 5 sigma
-        d = res.data_adu[:, cols] - res.model_adu[:, cols] - level[:, cols]
+        # every pixel of the columns (an outlier column is not fitted pixel by pixel), spikes clipped at 5 sigma,
+        # as an excess over the row's other columns (its median over the usable pixels): a column is an outlier
+        # against its neighbours (col_z), and a level the frame's fitted levels leave in every column is in none
+        # of its stretches alone
+        d = self._over_the_rows(res, cols)
         lim = 5 * np.sqrt(res.var_adu2[:, cols])
         r = np.where(np.isfinite(d), np.clip(d, -lim, lim), 0.0)
         seg = np.array_split(np.arange(r.shape[0]), 8)
@@ -233,6 +235,20 @@ class ColumnSignature(Signature):
                     f"{run:.0f} rows): defective pixels or clusters "
                     "crossing those columns, not defective columns")
         return ""
+
+    @staticmethod
+    def _over_the_rows(res, cols: np.ndarray) -> np.ndarray:
+        """The residual of the columns ``cols`` [ADU] (every row) less each row's median residual over its usable
+        pixels (the frame's fitted levels removed first; a row without any: 0)."""
+        level, _ = res.level_maps()
+        r = res.data_adu - res.model_adu - level
+        use = res.outlier_usable & np.isfinite(r)
+        ref = np.zeros(r.shape[0])
+        some = use.any(axis=1)
+        if some.any():
+            with np.errstate(all="ignore"):
+                ref[some] = np.nanmedian(np.where(use, r, np.nan)[some], axis=1)
+        return r[:, cols] - ref[:, None]
 
     @staticmethod
     def _at_source_columns(res) -> str:

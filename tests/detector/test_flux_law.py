@@ -63,6 +63,15 @@ def test_too_few_sources_or_too_narrow_a_flux_range_cannot_tell():
     assert flux_law(Slope(0.9, 0.05, 8, 10.0), 0.0, 1.0) is True
 
 
+def test_a_power_far_from_both_laws_excludes_the_one_it_is_five_errors_from():
+    """The test is of a law, not of the two laws' distance: 2.1 +- 0.4 (a few sources over a narrow range of
+    flux) cannot tell 0 from 1 by their gap (2.5 errors) yet excludes 0 at 5.3 errors and lies nearer 1."""
+    assert flux_law(Slope(2.1, 0.4, 12, 3.5), own=0.0, other=1.0) is True
+    assert flux_law(Slope(-1.1, 0.2, 12, 3.5), own=0.0, other=1.0) is False  # excludes 1 (10.5 errors), nearer 0
+    assert flux_law(Slope(-0.9, 0.4, 12, 3.5), own=0.0, other=1.0) is None  # 1 only 4.75 errors away
+    assert flux_law(Slope(float("nan"), 0.1, 12, 3.5), 0.0, 1.0) is None
+
+
 def test_a_saturated_source_is_left_out():
     src = _stars(1.5, FLUXES)
     sat = np.zeros(src.shape, bool)

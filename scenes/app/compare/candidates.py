@@ -17,6 +17,7 @@ import numpy as np
 
 from detector import registry
 from detector.effects.ghosts import psf_rms_px, source_image
+from detector.flux_law import change_slope, flux_law
 from detector.morphology import block_chi2
 from detector.signatures import (
     NEAR_SATURATION_SHARE,
@@ -249,6 +250,23 @@ def away_from_saturation(res: Residuals, fit: Fit, policy: DiagnosisPolicy = DEF
     return ""
 
 
+def grows_with_flux(res: Residuals, fit: Fit) -> str:
+    """"" or the evidence that a change of the sources' images grows with their flux: the optics, the pointing and
+    the PSF of the scene change every source by the same shape, ``F x s(x, y)`` for a source of flux F, so the
+    change refitted source by source keeps one amplitude at every flux (power 0 of the flux,
+    :mod:`detector.flux_law`); amplitudes that grow as the flux itself (power 1) are a change that grows with the
+    source's own charge: brighter-fatter (Antilogus et al. 2014, JINST 9 C03048, eq. 4) or a non-linear core,
+    which a blur imitates on the bright sources only. Said only when the sources' fluxes tell the two powers
+    apart (:func:`detector.flux_law.flux_law`)."""
+    slope = change_slope(res, fit.delta_adu)
+    if flux_law(slope, own=0.0, other=1.0):
+        return (f"the change grows with the sources' flux: refitted source by source it goes as "
+                f"flux^{slope.power:.2f} +- {slope.error:.2f} over {slope.n} sources (fluxes over a factor "
+                f"{slope.flux_range:.3g}), where the optics, a motion or the scene's PSF change every source alike "
+                "(flux^0)")
+    return ""
+
+
 def _fit_signature(res: Residuals, name: str, cls) -> tuple[Fit | None, BaseException | None, float]:
     """One effect's signature fitted to ``res`` and validated by its parameter model: (fit or None, the
     exception it raised or None, seconds). Pure in ``res`` (its memo only gains values), so effects may be
@@ -315,6 +333,11 @@ def candidates(res: Residuals, present: set[str], progress=None, truth=None,
                 why = away_from_saturation(res, fit, policy, reach)
                 if why:
                     c.refuse("implausible", why)
+                elif c.contender:
+                    why = grows_with_flux(res, fit)
+                    if why:
+                        c.refuse("implausible", why + ": charge that grows with the source's own signal "
+                                 "(brighter-fatter, a non-linear core), not a change of the image")
         why = implausibility(cls, fit, res)
         if why:
             c.refuse("bound" if "sits at its bound" in why else "implausible", why)

@@ -26,12 +26,11 @@ import time
 
 import numpy as np
 
-from detector.flux_law import change_slope, flux_law
 from detector.signatures import Fit, Residuals, frame_at, pixel_score
 from detector.significance import DETECTION_SIGMA, FOOTPRINT_SIGMA, MIN_TEST_PIXELS
 
 from .apply import bias_per_output_adu
-from .candidates import away_from_saturation
+from .candidates import away_from_saturation, grows_with_flux
 from .judge import Candidate
 from .policy import DEFAULT_POLICY, DiagnosisPolicy
 
@@ -372,24 +371,12 @@ def psf_candidates(res: Residuals, scene, model, policy: DiagnosisPolicy = DEFAU
             if why:
                 cand.refuse("implausible", why)
             elif (best > 1) == (key == "psf.fwhm_arcsec"):  # a widening: is it every star's, or the bright ones'?
-                cand.deferred = grows_with_flux(res, fit)
+                why = grows_with_flux(res, fit)  # the charge the stars collect pushing itself out
+                cand.deferred = why and why + ": named after the effects"
         out.append(cand)
     for c in out:
         c.seconds = (time.perf_counter() - t0) / len(out)
     return out
-
-
-def grows_with_flux(res: Residuals, fit: Fit) -> str:
-    """"" or why a widening of the PSF is named after the effects: a number of the scene widens every star by
-    the same factor, so its change refitted star by star keeps one amplitude at every flux (power 0,
-    :mod:`detector.flux_law`); a widening that grows as the stars' own flux (power 1) is the charge they collect
-    pushing itself out (brighter-fatter), which a wider PSF only imitates on the bright stars."""
-    slope = change_slope(res, fit.delta_adu)
-    if flux_law(slope, own=0.0, other=1.0):
-        return (f"the widening grows with the stars' flux: refitted star by star it goes as flux^{slope.power:.2f} +- "
-                f"{slope.error:.2f} over {slope.n} stars (fluxes over a factor {slope.flux_range:.3g}), where a PSF "
-                "of the scene widens every star alike (flux^0): named after the effects")
-    return ""
 
 
 def parameter_candidates(res: Residuals, scene, model=None, truth=None,
