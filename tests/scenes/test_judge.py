@@ -395,35 +395,39 @@ def test_conditional_evidence_tells_a_width_from_a_widening_of_the_bright_stars(
     assert abs(same) < 1e-6 or left_same < 1
 
 
-def test_a_blur_that_grows_with_the_sources_flux_is_refused_and_one_of_every_source_is_not():
+def test_a_blur_whose_change_is_not_the_same_at_every_flux_is_refused():
     """An image-plane transform (a blur) changes every source by the same shape: refitted source by source its
     amplitude is one at every flux. A widening in proportion to each source's flux (brighter-fatter to first
-    order, F^2 x a shape: Antilogus et al. 2014) fitted as a blur gives amplitudes growing as flux^1: refused; a
-    widening of every source alike passes (detector.flux_law)."""
+    order, F^2 x a shape: Antilogus et al. 2014) fitted as a blur gives amplitudes growing as flux^1, a change of
+    one size at every source (charge traps take or give) amplitudes falling as flux^-1: both refused; a widening
+    of every source alike passes (detector.flux_law)."""
     from detector.sensor import make_sensor
-    from scenes.app.compare.candidates import grows_with_flux
+    from scenes.app.compare.candidates import same_at_every_flux
 
     fluxes = np.geomspace(2e4, 4e5, 12)  # e- = ADU at gain 1
     sky, rn = 100.0, 3.0
     model = gaussian_stars(1.5, fluxes) + sky
     blur = gaussian_stars(1.8, fluxes) + sky - model  # the change a blur fit proposes: every source widened alike
-    grows = np.zeros_like(model)  # the same widening in proportion to each source's flux
-    for i, f in enumerate(fluxes):
-        solo = np.where(np.arange(fluxes.size) == i, f, 0.0)
-        grows += (gaussian_stars(1.8, solo) - gaussian_stars(1.5, solo)) * (f / fluxes[-1])
+
+    def per_source(scale):
+        out = np.zeros_like(model)
+        for i, f in enumerate(fluxes):
+            solo = np.where(np.arange(fluxes.size) == i, f, 0.0)
+            out += (gaussian_stars(1.8, solo) - gaussian_stars(1.5, solo)) * scale(f)
+        return out
+
     h, w = model.shape
     sensor = make_sensor("ml11002", {"width": w, "height": h, "gain_e_per_adu": 1.0, "read_noise_e": rn,
                                      "bias_adu": 0})
     rng = np.random.default_rng(5)
-    for change, refused in ((blur, False), (grows, True)):
+    for change, refused in ((blur, ""), (per_source(lambda f: f / fluxes[-1]), "grows with the sources' flux"),
+                            (per_source(lambda f: fluxes[0] / f), "of one size at every source")):
         truth = model + change
         data = truth + rng.normal(0, np.sqrt(truth + rn ** 2))
         res = residuals_of(data, model, model + rn ** 2, model - sky, sensor)
         fit = Fit("psf_blur", {"sigma_px": 1.0}, -1e4, 1, int(res.fit.sum()), "", delta_adu=blur.astype(np.float32))
-        why = grows_with_flux(res, fit)
-        assert bool(why) == refused, why
-        if refused:
-            assert "grows with the sources' flux" in why, why
+        why = same_at_every_flux(res, fit)
+        assert (why == "") == (refused == "") and refused in why, why
 
 
 def test_apply_writes_the_parameters(star_scene, zero_point_round, tmp_path):

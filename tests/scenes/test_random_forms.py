@@ -100,6 +100,43 @@ def test_cti_trails_in_the_drawn_direction_and_conserve_charge(direction, axis):
     assert out.sum() <= 20000.0 + 1e-3 and out.sum() > 20000.0 - 0.5 * (20000.0 - out[20, 20])
 
 
+def test_brighter_fatter_moves_charge_in_steps_that_never_empty_a_pixel():
+    """The drawn brighter-fatter flow runs down the potential of the charge itself: one explicit step of a strong
+    coupling moved more than a hot pixel's whole excess and left it darker than the sky around it (a "dead
+    pixel" the data then showed). Taken in steps of at most BF_MAX_STEP_SHARE of a pixel's charge, the hot pixel
+    stays the brightest, the charge is conserved, and a weak flow is the one explicit step it was."""
+    from scenes.app.validation import unseen as U
+
+    k = R.bf_kernel("exp", 2, 1.0, 1.0)
+    c = 3.9e-7 / U._lap10(k)
+    q = np.full((21, 21), 6000.0, np.float32)
+    q[10, 10] = 2.0e5
+    strong = U._bf_moved(q, k, 40 * c)  # a coupling that empties the pixel in one explicit step
+    one = q.copy()
+    for ax, f in enumerate(U._bf_flows(q, k, 40 * c)):
+        o = np.swapaxes(one, 0, ax)
+        o[:-1] -= f
+        o[1:] += f
+    assert one[10, 10] < 6000.0  # the explicit step overshoots
+    assert strong[10, 10] == strong.max() and strong[10, 10] > 6000.0
+    assert strong.sum() == pytest.approx(q.sum(), rel=1e-5)
+    weak = U._bf_moved(q, k, 0.01 * c)
+    step = q.copy()
+    for ax, f in enumerate(U._bf_flows(q, k, 0.01 * c)):
+        o = np.swapaxes(step, 0, ax)
+        o[:-1] -= f
+        o[1:] += f
+    np.testing.assert_array_equal(weak, step)
+
+
+def test_a_brighter_fatter_widening_is_not_named_a_blur(tmp_path):
+    """A drawn brighter-fatter (exp potential over 5^2 px, a_10 3.9e-7 /e-, a bright-sky star field: a case of a
+    fresh draw, brighter_fatter-1959712579301316179) was named psf_blur, a change of every source alike: refitted
+    source by source the blur's change follows another power of the flux (detector.flux_law), and is refused."""
+    row = R.run_case(R.draw_case("brighter_fatter", 1959712579301316179), tmp_path, workers=1)
+    assert row["first"] == "brighter_fatter" and not row["confidently_wrong"]
+
+
 def test_periodic_pattern_has_the_drawn_period():
     p = SimpleNamespace(waveform="sine", angle=0.0, period_px=12.5, phase=0.4, window=[512, 512], cu=0.0, cv=0.0)
     x = np.arange(500.0)

@@ -807,13 +807,17 @@ class BrownDistortion(RealWorld):
 
 # --- catalogue effects in other forms: pixel coupling, CTI, RTS, straylight ---------------------------------------
 
-def _bf_moved(q, k, c, q_nl_e=None):
-    """Brighter-fatter charge moved by boundaries shifting with the potential ``k (x) q`` (any odd kernel,
-    centred), the flux across a boundary ``c (Q_i + Q_n)/4 (phi_i - phi_n)`` (the plugin's half flux of the
-    growing boundary); with ``q_nl_e`` the coupling grows with the pair's charge, ``c (1 + (Q_i + Q_n) / (2
-    q_nl))``. Charge conserved (what leaves a pixel enters its neighbour)."""
+#: the largest share of a pixel's charge one explicit step of :func:`_bf_moved` may move out of it: the flow runs
+#: down the potential of the charge itself (a diffusion), whose explicit step overshoots once it moves a
+#: pixel's whole charge (a hot pixel left darker than the sky around it); stronger flows are taken in as many
+#: steps as keep each below this share (the step's error ~ its share squared)
+BF_MAX_STEP_SHARE = 0.1
+
+
+def _bf_flows(q, k, c, q_nl_e=None):
+    """The charge [e-] crossing each boundary along the rows and the columns in one step of :func:`_bf_moved`."""
     phi = ndimage.correlate(q, k.astype(np.float32), mode="nearest")
-    out = q.copy()
+    out = []
     for ax in (0, 1):
         a = np.swapaxes(q, 0, ax)
         ph = np.swapaxes(phi, 0, ax)
@@ -821,9 +825,36 @@ def _bf_moved(q, k, c, q_nl_e=None):
         f = pair * (ph[:-1] - ph[1:]) * np.float32(0.25 * c)
         if q_nl_e:
             f *= 1 + pair / np.float32(2 * q_nl_e)
-        o = np.swapaxes(out, 0, ax)
-        o[:-1] -= f
-        o[1:] += f
+        out.append(f)
+    return out
+
+
+def _bf_moved(q, k, c, q_nl_e=None):
+    """Brighter-fatter charge moved by boundaries shifting with the potential ``k (x) q`` (any odd kernel,
+    centred), the flux across a boundary ``c (Q_i + Q_n)/4 (phi_i - phi_n)`` (the plugin's half flux of the
+    growing boundary); with ``q_nl_e`` the coupling grows with the pair's charge, ``c (1 + (Q_i + Q_n) / (2
+    q_nl))``. Charge conserved (what leaves a pixel enters its neighbour). A flow that would move more than
+    BF_MAX_STEP_SHARE of some pixel's charge in one step is taken in equal steps of ``c / n``, the potential
+    recomputed at each (one step, the same numbers, for every flow below that share)."""
+    out, steps, n = q.copy(), 1, 1
+    while steps:
+        flows = _bf_flows(out, k, c / n, q_nl_e)
+        if n == 1:
+            leave = np.zeros(q.shape, np.float64)
+            for ax, f in enumerate(flows):
+                lv = np.swapaxes(leave, 0, ax)
+                lv[:-1] += np.maximum(f, 0)
+                lv[1:] += np.maximum(-f, 0)
+            share = float(np.max(leave / np.maximum(q, 1.0)))
+            if share > BF_MAX_STEP_SHARE:
+                n = int(np.ceil(share / BF_MAX_STEP_SHARE))
+                steps = n
+                continue
+        for ax, f in enumerate(flows):
+            o = np.swapaxes(out, 0, ax)
+            o[:-1] -= f
+            o[1:] += f
+        steps -= 1
     return out
 
 
