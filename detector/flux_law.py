@@ -42,6 +42,11 @@ class Slope:
     n: int
     flux_range: float
 
+    def describe(self, what: str = "sources") -> str:
+        """"flux^p +- e over n ``what`` (fluxes over a factor r)": the slope in a reason's words."""
+        return (f"flux^{self.power:.2f} +- {self.error:.2f} over {self.n} {what} (fluxes over a factor "
+                f"{self.flux_range:.3g})")
+
 
 def source_amplitudes(source_adu: np.ndarray, noise_adu: np.ndarray, usable: np.ndarray, residual_adu: np.ndarray,
                       change_adu: np.ndarray, excluded: np.ndarray | None = None, own_scale: bool = False
@@ -98,7 +103,7 @@ def flux_slope(flux: np.ndarray, amp: np.ndarray, err: np.ndarray) -> Slope | No
     None when the line through the sources that qualify has no degree of freedom left to measure their scatter
     about it (fewer than three) or their fluxes are all one: no bar of its own on their number or range, the
     slope's standard error (inflated by that scatter) grows as they are fewer or their fluxes closer, and
-    :func:`flux_law` then finds the two laws not SEPARATION_SIGMA errors apart."""
+    :func:`flux_law` then finds neither law excluded by SEPARATION_SIGMA of its errors."""
     ok = np.isfinite(amp) & np.isfinite(err) & (err > 0) & (flux > 0) & (amp > SOURCE_MIN_SNR * err)
     dof = int(ok.sum()) - 2  # a straight line's two parameters
     if dof < 1:
@@ -121,7 +126,7 @@ def flux_slope(flux: np.ndarray, amp: np.ndarray, err: np.ndarray) -> Slope | No
 def flux_law(slope: Slope | None, own: float, other: float) -> bool | None:
     """Which law the sources follow: True when ``slope``'s power excludes ``own`` (the power the candidate's
     template assumes) by SEPARATION_SIGMA standard errors and lies nearer ``other``; False when it excludes
-    ``other`` so and lies nearer ``own``; None when it excludes neither (the sources cannot tell them apart) or
+    ``other`` so and lies no farther from ``own``; None when it excludes neither (the sources cannot tell them apart) or
     there is no slope. A power far from both (2.1 +- 0.4 for laws 0 and 1, a few sources over a narrow range of
     flux) still excludes the one it is 5 errors from: the test is of the law, not of the two laws' distance."""
     if slope is None or not np.isfinite(slope.error) or not np.isfinite(slope.power):

@@ -166,16 +166,16 @@ def bf_check(fit, res) -> str:
     """Brighter-fatter widens a star by an amount that grows with its charge: its first-order change is F^2 x a
     shape, so refitted star by star its amplitude is the same for every flux (power 0 of the flux,
     :mod:`detector.flux_law`). A change of every star's image alike (a wider PSF, a blur with far wings) is F x a
-    shape: the brighter-fatter template's amplitude then falls as F^-1. When the stars' fluxes tell the two
-    laws apart and the refitted amplitudes follow the second, the widening is not brighter-fatter."""
+    shape: the brighter-fatter template's amplitude then falls as F^-1. When the refitted amplitudes' power
+    excludes 0 by SEPARATION_SIGMA standard errors and lies nearer -1 (:func:`detector.flux_law.flux_law`), the
+    widening is not brighter-fatter."""
     from detector.flux_law import change_slope, flux_law
 
     slope = change_slope(res, fit.delta_adu)
     if flux_law(slope, own=0.0, other=-1.0):
         return (f"the widening does not grow with the stars' flux: refitted star by star its amplitude goes as "
-                f"flux^{slope.power:.2f} +- {slope.error:.2f} over {slope.n} stars (fluxes over a factor "
-                f"{slope.flux_range:.3g}); brighter-fatter's would be flux^0, a change of every star alike flux^-1: "
-                "a PSF change, not charge pushed out by the stars' own charge")
+                f"{slope.describe('stars')}; brighter-fatter's would be flux^0, a change of every star alike "
+                "flux^-1: a PSF change, not charge pushed out by the stars' own charge")
     return ""
 
 

@@ -214,10 +214,9 @@ class ColumnSignature(Signature):
         if at_sources:
             return at_sources
         # every pixel of the columns (an outlier column is not fitted pixel by pixel), spikes clipped at 5 sigma,
-        # as an excess over the row's other columns (its median over the usable pixels): a column is an outlier
-        # against its neighbours (col_z), and a level the frame's fitted levels leave in every column is in none
-        # of its stretches alone
-        d = self._over_the_rows(res, cols)
+        # as an excess over the row's other pixels: a level the frame's fitted levels leave in every column of a
+        # row is in none of its stretches alone
+        d = self._excess_over_row_median(res, cols)
         lim = 5 * np.sqrt(res.var_adu2[:, cols])
         r = np.where(np.isfinite(d), np.clip(d, -lim, lim), 0.0)
         seg = np.array_split(np.arange(r.shape[0]), 8)
@@ -237,17 +236,18 @@ class ColumnSignature(Signature):
         return ""
 
     @staticmethod
-    def _over_the_rows(res, cols: np.ndarray) -> np.ndarray:
-        """The residual of the columns ``cols`` [ADU] (every row) less each row's median residual over its usable
-        pixels (the frame's fitted levels removed first; a row without any: 0)."""
+    def _excess_over_row_median(res, cols: np.ndarray) -> np.ndarray:
+        """The residual of the columns ``cols`` [ADU] (every row, the frame's fitted levels removed) less the
+        median of the row's other usable pixels (the whole row but those columns; col_z's own reference is
+        local, this one removes what every column of a row shares); a row without any is NaN."""
         level, _ = res.level_maps()
         r = res.data_adu - res.model_adu - level
         use = res.outlier_usable & np.isfinite(r)
-        ref = np.zeros(r.shape[0])
+        use[:, cols] = False
+        ref = np.full(r.shape[0], np.nan)
         some = use.any(axis=1)
         if some.any():
-            with np.errstate(all="ignore"):
-                ref[some] = np.nanmedian(np.where(use, r, np.nan)[some], axis=1)
+            ref[some] = np.nanmedian(np.where(use, r, np.nan)[some], axis=1)
         return r[:, cols] - ref[:, None]
 
     @staticmethod

@@ -201,7 +201,7 @@ RING_BINS | N | geometry | half-width of the ring of frequencies a periodogram p
 SIGMA_CAP | N | constant | the significance reported beyond a double's range (a tail of 1e-300)
 @detector/flux_law.py
 SOURCE_MIN_SNR | D | statistics | S/N of a source's amplitude to enter the slope
-SEPARATION_SIGMA | D | statistics | standard errors separating the two laws: detection_sigma
+SEPARATION_SIGMA | D | statistics | standard errors by which the measured power excludes a law: detection_sigma
 FOOTPRINT_SIGMA | D | statistics | a source footprint: model light 3 sigma above the noise
 FOOTPRINT_GROW_PX | N | geometry | footprint growth
 @detector/effects/base.py

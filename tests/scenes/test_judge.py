@@ -402,7 +402,7 @@ def test_a_blur_whose_change_is_not_the_same_at_every_flux_is_refused():
     one size at every source (charge traps take or give) amplitudes falling as flux^-1: both refused; a widening
     of every source alike passes (detector.flux_law)."""
     from detector.sensor import make_sensor
-    from scenes.app.compare.candidates import same_at_every_flux
+    from scenes.app.compare.candidates import flux_law_refusal
 
     fluxes = np.geomspace(2e4, 4e5, 12)  # e- = ADU at gain 1
     sky, rn = 100.0, 3.0
@@ -426,7 +426,7 @@ def test_a_blur_whose_change_is_not_the_same_at_every_flux_is_refused():
         data = truth + rng.normal(0, np.sqrt(truth + rn ** 2))
         res = residuals_of(data, model, model + rn ** 2, model - sky, sensor)
         fit = Fit("psf_blur", {"sigma_px": 1.0}, -1e4, 1, int(res.fit.sum()), "", delta_adu=blur.astype(np.float32))
-        why = same_at_every_flux(res, fit)
+        why = flux_law_refusal(res, fit)
         assert (why == "") == (refused == "") and refused in why, why
 
 

@@ -12,12 +12,13 @@ from __future__ import annotations
 import time
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import replace
+from types import EllipsisType
 
 import numpy as np
 
 from detector import registry
 from detector.effects.ghosts import psf_rms_px, source_image
-from detector.flux_law import change_slope, flux_law
+from detector.flux_law import Slope, change_slope, flux_law
 from detector.morphology import block_chi2
 from detector.signatures import (
     NEAR_SATURATION_SHARE,
@@ -250,39 +251,36 @@ def away_from_saturation(res: Residuals, fit: Fit, policy: DiagnosisPolicy = DEF
     return ""
 
 
-def grows_with_flux(res: Residuals, fit: Fit, slope=...) -> str:
+def grows_with_flux(res: Residuals, fit: Fit, slope: Slope | None | EllipsisType = ...) -> str:
     """"" or the evidence that a change of the sources' images grows with their flux: the optics, the pointing and
     the PSF of the scene change every source by the same shape, ``F x s(x, y)`` for a source of flux F, so the
     change refitted source by source keeps one amplitude at every flux (power 0 of the flux,
     :mod:`detector.flux_law`); amplitudes that grow as the flux itself (power 1) are a change that grows with the
     source's own charge: brighter-fatter (Antilogus et al. 2014, JINST 9 C03048, eq. 4) or a non-linear core,
-    which a blur imitates on the bright sources only. Said only when the sources' fluxes tell the two powers
-    apart (:func:`detector.flux_law.flux_law`). ``slope``: the change's :func:`detector.flux_law.change_slope`,
-    when the caller has it."""
+    which a blur imitates on the bright sources only. Said only when the measured power excludes 0 by
+    SEPARATION_SIGMA standard errors and lies nearer 1 (:func:`detector.flux_law.flux_law`). ``slope``: the
+    change's :func:`detector.flux_law.change_slope`, when the caller has it."""
     slope = change_slope(res, fit.delta_adu) if slope is ... else slope
     if flux_law(slope, own=0.0, other=1.0):
-        return (f"the change grows with the sources' flux: refitted source by source it goes as "
-                f"flux^{slope.power:.2f} +- {slope.error:.2f} over {slope.n} sources (fluxes over a factor "
-                f"{slope.flux_range:.3g}), where the optics, a motion or the scene's PSF change every source alike "
-                "(flux^0)")
+        return (f"the change grows with the sources' flux: refitted source by source it goes as {slope.describe()}, "
+                "where the optics, a motion or the scene's PSF change every source alike (flux^0)")
     return ""
 
 
-def same_at_every_flux(res: Residuals, fit: Fit) -> str:
+def flux_law_refusal(res: Residuals, fit: Fit) -> str:
     """Why an image-plane transform (a blur, a smear, a shift, a distortion) is not a change of every source's
     image ("" when it may be): its change refitted source by source follows another power of the flux than the
-    optics' and the pointing's 0 (:func:`grows_with_flux`: power 1, charge that grows with the source's own
-    signal), or power -1: a change of one size at every source whatever its flux (charge a trap takes from each,
-    a background misfit about the sources), a share of the light that falls as the sources grow brighter."""
+    optics' and the pointing's 0, nearer 1 or -1 and excluding 0 by SEPARATION_SIGMA standard errors (a power
+    within 0.5 of 0 passes): 1, a change that grows with the source's own charge (:func:`grows_with_flux`); -1,
+    a change of one size at every source whatever its flux (charge a trap takes from each, a background misfit
+    about the sources)."""
     slope = change_slope(res, fit.delta_adu)
     why = grows_with_flux(res, fit, slope)
     if why:
-        return why + (": charge that grows with the source's own signal (brighter-fatter, a non-linear core), not "
-                      "a change of the image")
+        return why + ": brighter-fatter or a non-linear core, not a change of the image"
     if flux_law(slope, own=0.0, other=-1.0):
         return (f"the change is of one size at every source whatever its flux: refitted source by source it goes as "
-                f"flux^{slope.power:.2f} +- {slope.error:.2f} over {slope.n} sources (fluxes over a factor "
-                f"{slope.flux_range:.3g}), where the optics or a motion change every source alike (flux^0): charge "
+                f"{slope.describe()}, where the optics or a motion change every source alike (flux^0): charge "
                 "taken or given in fixed amounts (traps, a background misfit about the sources), not a change of the "
                 "image")
     return ""
@@ -355,7 +353,7 @@ def candidates(res: Residuals, present: set[str], progress=None, truth=None,
                 if why:
                     c.refuse("implausible", why)
                 elif c.contender:
-                    why = same_at_every_flux(res, fit)
+                    why = flux_law_refusal(res, fit)
                     if why:
                         c.refuse("implausible", why)
         why = implausibility(cls, fit, res)
