@@ -2767,13 +2767,17 @@ def light_law_check(fit: Fit, res: Residuals, multiplicative: bool) -> str:
             f"than {LIGHT_LAW_CHI2:g}; the sources carry the difference): a response to the light, not added light")
 
 
-def light_law_untold(others: tuple[str, ...], multiplicative: bool):
+def light_law_untold(others: tuple[str, ...], multiplicative: bool, offsets: tuple[str, ...] = ()):
     """A :attr:`Signature.untold` hook: ``others`` (the light patterns of the other law) when this frame does
     not tell the fitted pattern's law from theirs: the same shape under the other law fits within
-    LIGHT_LAW_CHI2 of its own (:func:`light_law_evidence`)."""
+    LIGHT_LAW_CHI2 of its own (:func:`light_law_evidence`); and then ``offsets`` (offsets of the read-out of the
+    same shape, which add no charge) when the fitted change's own shot noise does not tell it from them either
+    (:func:`shot_noise_separation` below LIGHT_LAW_CHI2)."""
     def untold(fit: Fit, res: Residuals) -> tuple[str, ...]:
         ev = light_law_evidence(fit, res, multiplicative)
-        return others if ev is not None and ev[0] > -LIGHT_LAW_CHI2 else ()
+        if ev is None or ev[0] <= -LIGHT_LAW_CHI2:
+            return ()
+        return others + (offsets if offsets and shot_noise_separation(fit, res) < LIGHT_LAW_CHI2 else ())
     return untold
 
 
@@ -2798,6 +2802,22 @@ def charge_offset_untold(others: tuple[str, ...]):
     of another exposure (the charge scales with it) tells."""
     def untold(fit: Fit, res: Residuals) -> tuple[str, ...]:
         return others if shot_noise_separation(fit, res) < LIGHT_LAW_CHI2 else ()
+    return untold
+
+
+def offset_response_untold(responses: tuple[str, ...]):
+    """A :attr:`Signature.untold` hook of an offset of the read-out (a bias structure): ``responses`` (the
+    responses to the light: vignetting) when the frame does not tell the fitted offset from a response of the
+    same shape: its light is one level where the offset acts (the response law fits within LIGHT_LAW_CHI2,
+    :func:`light_law_evidence`; a flat screen, a sky without bright sources), and the shot noise that change of
+    charge would carry is below LIGHT_LAW_CHI2 (:func:`shot_noise_separation`). On a frame without light (a bias,
+    a dark) there is no response to be: told."""
+    def untold(fit: Fit, res: Residuals) -> tuple[str, ...]:
+        ev = light_law_evidence(fit, res, multiplicative=False)
+        if ev is None or ev[0] <= -LIGHT_LAW_CHI2 or fit.delta_adu is None:
+            return ()
+        as_charge = replace(fit, extra_var_adu2=np.asarray(fit.delta_adu, np.float32) * np.float32(res.poisson_adu))
+        return responses if shot_noise_separation(as_charge, res) < LIGHT_LAW_CHI2 else ()
     return untold
 
 

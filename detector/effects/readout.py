@@ -30,6 +30,7 @@ from ..signatures import (
     Variant,
     fit_linear,
     ml_variance_scale,
+    offset_response_untold,
     periodic_line_peak,
     search_sample,
     template_at,
@@ -601,6 +602,8 @@ _KTC_SIGNATURE = VarianceSignature(
     pattern="extra variance constant over the frame", check=_ktc_check)
 _BIAS_SIGNATURE = LinearSignature(_bias_variants, _bias_words, pattern="additive ramps/bowl, independent of signal",
                                   extra_k=0)
+#: an offset of the read-out and a response to a light of one level (a flat) of the same shape are one image
+_BIAS_SIGNATURE.untold = offset_response_untold(("vignetting",))
 #: the largest electronic crosstalk coefficient a camera shows [1]: measured coefficients are 1e-5 .. 1e-3
 #: (LSST sensors, Snyder et al. 2021, JATIS 7, 048002; DECam, Bernstein et al. 2017, PASP 129, 114502)
 CROSSTALK_MAX = 0.01

@@ -41,3 +41,26 @@ def test_the_sources_tell_an_added_light_from_a_response_and_one_level_does_not(
     assert light_law_evidence(fit, res, multiplicative=False)[0] > LIGHT_LAW_CHI2  # a response: the other law
     res, fit = _frame(rng, stars=False, added=False)
     assert abs(light_law_evidence(fit, res, multiplicative=False)[0]) < LIGHT_LAW_CHI2  # one level: not told
+
+
+def test_an_offset_of_the_read_out_ties_with_a_response_only_where_the_light_is_one_level_and_its_noise_is_silent():
+    """A bias structure and a vignetting of the same shape are one image on a flat (one light level) when the
+    shot noise such a change of charge would carry is below LIGHT_LAW_CHI2 (detector.signatures.
+    offset_response_untold); the sources tell them (a response scales them), and so does the shot noise of a deep
+    change on a bright flat; a frame without light has no response to be."""
+    from dataclasses import replace
+
+    from detector.signatures import offset_response_untold
+
+    untold = offset_response_untold(("vignetting",))
+    rng = np.random.default_rng(29)
+    res, fit = _frame(rng, stars=False, added=True)
+    bias = replace(fit, effect="bias_gradient")
+    assert untold(bias, res) == ("vignetting",)  # 5 % of a 200 ADU sky on 96^2 pixels: its noise is silent
+    res, fit = _frame(rng, stars=True, added=True)
+    assert untold(replace(fit, effect="bias_gradient"), res) == ()  # the sources tell an offset from a response
+    res, fit = _frame(rng, stars=False, added=True)
+    deep = replace(fit, effect="bias_gradient", delta_adu=20 * fit.delta_adu)  # the ramp at the whole sky
+    assert untold(deep, res) == ()  # a response that deep changes the shot noise measurably
+    dark = replace(res, photo_adu=np.zeros_like(res.photo_adu), _flat={})
+    assert untold(bias, dark) == ()

@@ -863,10 +863,15 @@ def fam_prnu(rng):
     k = rel
     white = rel / math.sqrt(info["light_e"])
     form = _choice(rng, ["lf", "columns", "lognormal"])
+    parts = ()
     if form == "lf":
         lf = white * float(rng.uniform(0.2, 2.0))
         eff = ("LowFrequencyPRNU", {"white": white, "lf_rms": lf, "lf_cycles": float(rng.uniform(2, 30))})
-        accept = ("prnu", "vignetting") if lf > white else ("prnu",)
+        # its low-frequency part is a smooth response field of its own (the PRNU's large scales: EMVA 1288
+        # Release 4.0, sect. 8.3, its spectrogram), the field a vignetting fit takes: that name is right too when
+        # the frame sees the part alone (the parts rule every drawn form follows, as a DSNU's large scales)
+        accept = ("prnu",)
+        parts = ((("vignetting",), [("LowFrequencyPRNU", {**eff[1], "lf_rms": 0.0})]),)
         desc = f"white PRNU {100 * white:.3g} % + low-frequency {100 * lf:.3g} %"
     elif form == "columns":
         col = white * float(rng.uniform(0.3, 2.0))
@@ -875,7 +880,7 @@ def fam_prnu(rng):
     else:
         eff = ("ColumnPRNU", {"law": "lognormal", "col_rms": 0.0, "white": white})
         accept, desc = ("prnu",), f"lognormal PRNU {100 * white:.3g} %"
-    return Draw(base, [eff], f"{desc} ({k:.3g} x the shot noise)", t, accept=accept)
+    return Draw(base, [eff], f"{desc} ({k:.3g} x the shot noise)", t, accept=accept, parts=parts)
 
 
 def fam_dsnu(rng):
