@@ -2821,6 +2821,20 @@ def offset_response_untold(responses: tuple[str, ...]):
     return untold
 
 
+def dark_field_untold(offsets: tuple[str, ...], responses: tuple[str, ...]):
+    """A :attr:`Signature.untold` hook of an added field of dark charge (a dark-rate field, a glow): the read-out's
+    ``offsets`` of the same shape when its shot noise does not tell them (:func:`charge_offset_untold`), and the
+    ``responses`` to the light (vignetting) when the frame's light is one level where the field acts
+    (:func:`light_law_untold`: added charge and a response of the same shape are one image there, their shot
+    noise alike: both change the charge by as much)."""
+    by_noise = charge_offset_untold(offsets)
+    by_light = light_law_untold(responses, multiplicative=False)
+
+    def untold(fit: Fit, res: Residuals) -> tuple[str, ...]:
+        return by_noise(fit, res) + by_light(fit, res)
+    return untold
+
+
 def light_law_told(multiplicative: bool):
     """A :attr:`Signature.told` hook: whether this frame tells the fitted light pattern's own law (added, or a
     response) from the other law of the same shape, in its favour, by more than LIGHT_LAW_CHI2: a finding on

@@ -16,7 +16,7 @@ from typing import Literal
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
-from ..signatures import LinearSignature, Variant, fit_linear, search_sample
+from ..signatures import LinearSignature, Variant, dark_field_untold, fit_linear, search_sample
 from .base import Effect, EffectParams, Stage, Tile, register_effect
 
 # --- pure functions ---------------------------------------------------------------------------------------
@@ -370,6 +370,8 @@ _GLOW_SIGNATURE = LinearSignature(
     pattern="additive glow decaying away from an edge, a corner, a source point or an emitter above the sensor",
     extra_k=3, refine=_glow_refine, form=lambda label: label.split("|")[0] if label[:2] in ("g|", "e|") else "edge",
     check=_glow_check)
+#: dark charge and a response to a light of one level (a flat) of the same shape are one image
+_GLOW_SIGNATURE.untold = dark_field_untold((), ("vignetting",))
 _GLOW_SIGNATURE.rebuild = _rebuild
 
 

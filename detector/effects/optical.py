@@ -477,10 +477,10 @@ _VIGNETTING_SIGNATURE = LinearSignature(
                        if "centre_x_mm" in p else "") + ": vignetting"),
     pattern="multiplicative radial fall-off of the light", extra_k=3, refine=_vignetting_refine, of_light=True,
     check=_vignetting_check)
-#: a response to the light and an added light of the same shape are one image where the light is one level (and
-#: an offset of the read-out, where the response's shot noise does not tell it either)
-_VIGNETTING_SIGNATURE.untold = light_law_untold(("straylight", "sky_gradient"), multiplicative=True,
-                                                offsets=("bias_gradient",))
+#: a response to the light and added light or dark charge of the same shape are one image where the light is one
+#: level (and an offset of the read-out, where the response's shot noise does not tell it either)
+_VIGNETTING_SIGNATURE.untold = light_law_untold(("straylight", "sky_gradient", "dark_gradient", "amp_glow"),
+                                                multiplicative=True, offsets=("bias_gradient",))
 #: the variant of a label ("cx|cy|radius"), on any frame: a series refines the centre on one frame and fits
 #: that one form on every frame (scenes.app.compare.series)
 _VIGNETTING_SIGNATURE.rebuild = lambda label, res: _vignetting_variant(

@@ -31,7 +31,7 @@ from __future__ import annotations
 import numpy as np
 from pydantic import Field
 
-from ..signatures import LinearSignature, Variant, charge_offset_untold, fit_linear, profiled_chi2, search_sample
+from ..signatures import LinearSignature, Variant, dark_field_untold, fit_linear, profiled_chi2, search_sample
 from .base import Effect, EffectParams, Stage, Tile, register_effect
 from .readout import (
     FieldBox,
@@ -326,7 +326,7 @@ def _explain(p: dict, res) -> str:
 _SIGNATURE = LinearSignature(
     _variants, _explain,
     pattern="additive ramp of dark charge growing with exposure", extra_k=0, adds_charge=True, check=_check)
-_SIGNATURE.untold = charge_offset_untold(("bias_gradient",))
+_SIGNATURE.untold = dark_field_untold(("bias_gradient",), ("vignetting",))
 
 
 # --- adapter -----------------------------------------------------------------------------------------------

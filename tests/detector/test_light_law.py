@@ -64,3 +64,19 @@ def test_an_offset_of_the_read_out_ties_with_a_response_only_where_the_light_is_
     assert untold(deep, res) == ()  # a response that deep changes the shot noise measurably
     dark = replace(res, photo_adu=np.zeros_like(res.photo_adu), _flat={})
     assert untold(bias, dark) == ()
+
+
+def test_dark_charge_ties_with_a_response_where_the_light_is_one_level():
+    """A field of dark charge and a response of the same shape are one image on a flat (one light level), their
+    shot noise alike (both change the charge by as much): named together (detector.signatures.
+    dark_field_untold); the sources tell them apart."""
+    from dataclasses import replace
+
+    from detector.signatures import dark_field_untold
+
+    untold = dark_field_untold((), ("vignetting",))
+    rng = np.random.default_rng(31)
+    res, fit = _frame(rng, stars=False, added=True)
+    assert untold(replace(fit, effect="dark_gradient"), res) == ("vignetting",)
+    res, fit = _frame(rng, stars=True, added=True)
+    assert untold(replace(fit, effect="dark_gradient"), res) == ()

@@ -369,11 +369,11 @@ def same_image(a: Candidate, b: Candidate) -> bool:
 #: (first, twin) and its reason; the last (None) takes the twins whose held-out scores are as good
 def same_light(a: Candidate, b: Candidate) -> bool:
     """One acts on the light only (a response: vignetting) and the other adds to the frame (light: straylight, a
-    sky gradient; or an offset of the read-out: a bias structure): the pair
-    :func:`detector.signatures.light_law_evidence` weighs, the same image on a frame whose light is one level
+    sky gradient; dark charge: a dark-rate field, a glow; or an offset of the read-out: a bias structure): the
+    pair :func:`detector.signatures.light_law_evidence` weighs, the same image on a frame whose light is one level
     (their :attr:`Candidate.untold` says when the frame does not tell them)."""
     def adds(c):
-        return _charge_origin(c) == "light" or _read_out_offset(c)
+        return _charge_origin(c) in ("light", "dark") or _read_out_offset(c)
 
     return (_of_light(a) and adds(b)) or (_of_light(b) and adds(a))
 
@@ -420,9 +420,9 @@ TWIN_REASONS = (
                    "squared, a PRNU's as the light squared, a read noise's is constant: laws that agree where that "
                    "signal is uniform; a frame of another exposure or level tells them apart)"),
     (lambda a, b: same_image(a, b) and same_light(a, b),
-     "the same smooth pattern, added to the frame (light, or an offset of the read-out) or multiplying the light "
-     "(a response), which only sources bright enough above a light of one level would tell: a flat field taken "
-     "through the same optics (or a bias frame, for an offset) tells which"),
+     "the same smooth pattern, added to the frame (light, dark charge or an offset of the read-out) or multiplying "
+     "the light (a response), which only sources bright enough above a light of one level would tell: a flat field "
+     "taken through the same optics (a dark or a bias frame, for dark charge or an offset) tells which"),
     (dark_or_offset, ("the same smooth field, of dark charge or an offset of the read-out, whose shot noise does "
                       "not tell them apart here; a bias frame (where dark charge is zero) or a dark of another "
                       "exposure (where it scales with the time) does")),
