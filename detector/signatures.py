@@ -2812,9 +2812,10 @@ def offset_response_untold(responses: tuple[str, ...]):
     :func:`light_law_evidence`; a flat screen, a sky without bright sources), and the shot noise that change of
     charge would carry is below LIGHT_LAW_CHI2 (:func:`shot_noise_separation`). On a frame without light (a bias,
     a dark) there is no response to be: told."""
+    by_light = light_law_untold(responses, multiplicative=False)
+
     def untold(fit: Fit, res: Residuals) -> tuple[str, ...]:
-        ev = light_law_evidence(fit, res, multiplicative=False)
-        if ev is None or ev[0] <= -LIGHT_LAW_CHI2 or fit.delta_adu is None:
+        if not by_light(fit, res):  # the sources tell the laws apart, or there is no light (nor a fitted map)
             return ()
         as_charge = replace(fit, extra_var_adu2=np.asarray(fit.delta_adu, np.float32) * np.float32(res.poisson_adu))
         return responses if shot_noise_separation(as_charge, res) < LIGHT_LAW_CHI2 else ()
