@@ -127,13 +127,36 @@ def test_brighter_fatter_moves_charge_in_steps_that_never_empty_a_pixel():
 
 
 def test_a_brighter_fatter_widening_is_not_named_a_blur(tmp_path):
-    """A drawn brighter-fatter (exp potential over 5^2 px, a_10 3.9e-7 /e-, a bright-sky star field: a case of a
-    fresh draw, brighter_fatter-1959712579301316179) was named psf_blur, a change of every source alike: refitted
-    source by source the blur's change follows another power of the flux (detector.flux_law), and is refused;
-    the generator's one explicit step had also emptied a hot pixel (a "dead pixel" named next), no longer
-    (test_brighter_fatter_moves_charge_in_steps_that_never_empty_a_pixel)."""
+    """A drawn brighter-fatter on a bright-sky star field (brighter_fatter-1959712579301316179) was named
+    psf_blur, a change of every source alike; the refusal of a change that follows another power of the flux
+    (detector.flux_law) is tested in test_judge. The draw then was no real sensor (an exp potential cut at
+    5^2 px: a_00 x full well -20, test_brighter_fatter_draws_are_real_sensors); the seed now draws a power-law
+    potential of a_10 3e-7 /e-, named brighter_fatter."""
     row = R.run_case(R.draw_case("brighter_fatter", 1959712579301316179), tmp_path, workers=1)
     assert row["first"] == "brighter_fatter" and not row["confidently_wrong"]
+
+
+def test_brighter_fatter_draws_are_real_sensors():
+    """Every drawn potential gives area coefficients that fall with the distance (none beyond the nearest
+    neighbours above them) and a pixel-area change at full well within BF_MAX_AREA_CHANGE; a smooth potential
+    cut at its support (brighter_fatter-818207344452420027's former exp over 7^2 px, whose edge made a_00 x full
+    well -45 and whose stars were fitted 20x fainter) is refused."""
+    for seed in range(200):
+        d = R.fam_brighter_fatter(np.random.default_rng(seed))
+        p = d.effects[0][1]
+        k = R.bf_kernel(p["law"], p["half"], p["scale"], p["aniso"])
+        h = k.shape[0] // 2 + 1
+        a = R.bf_area_coefficients(k, p["a10_per_e"] / R.bf_area_coefficients(k, 1.0)[h, h + 1])
+        assert a[h, h + 1] == pytest.approx(p["a10_per_e"], rel=1e-9) and R.bf_physical(a)
+        full_well = R.PRESETS[R.BASES[d.base]["detector"]["preset"]]["full_well_e"]
+        growth = 1 + 1 / p["q_nl_frac"] if p["q_nl_frac"] else 1.0
+        assert abs(a[h, h]) * full_well * growth <= R.BF_MAX_AREA_CHANGE * (1 + 1e-9)
+        assert 1.5e-7 * (1 - 1e-9) <= p["a10_per_e"]
+    cut = R.bf_kernel("exp", 3, 1.3211878271573134, 1.0651589387766136)
+    assert not R.bf_physical(R.bf_area_coefficients(cut, 1.0))
+    # the plugin's default (3x3 exp(-r / 0.5), GalSim-matched): a real sensor, a_00 = -6.0 a_10
+    a = R.bf_area_coefficients(R.bf_kernel("exp", 1, 0.5, 1.0), 1.0)
+    assert R.bf_physical(a) and a[2, 2] / a[2, 3] == pytest.approx(-5.996, abs=1e-3)
 
 
 def test_periodic_pattern_has_the_drawn_period():

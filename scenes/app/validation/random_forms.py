@@ -76,6 +76,7 @@ from scipy import ndimage, optimize
 
 from detector.effects.base import Stage
 from detector.effects.blooming import bleed_columns
+from detector.presets import PRESETS
 from detector.significance import DETECTION_SIGMA
 from scenes.app.compare.policy import DEFAULT_POLICY
 
@@ -1128,17 +1129,59 @@ def fam_ipc(rng):
     return Draw(base, [("RandomIPC", prm)], f"IPC {100 * a:.3g} % (asymmetry {asym:.2f})", t, accept=("ipc",))
 
 
+#: the largest pixel-area change at full well a drawn brighter-fatter sensor may have, ``|a_00| x full well``:
+#: the thickest deep-depleted CCDs measured reach ~0.16-0.2 (the plugin's GalSim-matched LSST ITL default,
+#: a_00 = -1.6e-6 /e- at 100 ke-; the e2v 250 flats of Astier et al. 2019, A&A 629, A36), about twice that
+#: leaves room for a strong draw. Above it a "sensor" moves a saturated star's charge pixels away (a_00 x full
+#: well of -45 was drawn: 45 times a pixel's own area, the stars then fitted 20x fainter)
+BF_MAX_AREA_CHANGE = 0.3
+
+
+def bf_area_coefficients(k: np.ndarray, c: float) -> np.ndarray:
+    """The area coefficients ``a_ij = c Laplacian(k)`` of a potential ``k`` [per e-], on the kernel's support
+    plus one pixel (the Laplacian of the truncated kernel reaches one pixel beyond it): Antilogus et al. 2014,
+    JINST 9, C03048; centre ``a_00``."""
+    p = np.pad(np.asarray(k, float), 2)
+    return c * (p[2:, 1:-1] + p[:-2, 1:-1] + p[1:-1, 2:] + p[1:-1, :-2] - 4 * p[1:-1, 1:-1])
+
+
+def bf_physical(a: np.ndarray) -> bool:
+    """Whether area coefficients ``a`` (:func:`bf_area_coefficients`, centred) are a real sensor's: every
+    coefficient beyond the four nearest neighbours no larger than the larger nearest one (measured
+    coefficients fall with the distance: Astier et al. 2019, their Fig. 11). A smooth potential truncated at
+    its support breaks this (the Laplacian of the step at its edge exceeds the one at one pixel)."""
+    h = a.shape[0] // 2
+    near = max(a[h, h + 1], a[h + 1, h])
+    far = np.abs(a).copy()
+    far[h, h] = 0
+    far[h, h - 1:h + 2] = far[h - 1:h + 2, h] = 0
+    return near > 0 and far.max() <= near
+
+
 def fam_brighter_fatter(rng):
     base = _choice(rng, ["stars", "stars_bright", "stars_imx"])
-    a10, t = _loguniform(rng, 1.5e-7, 3e-6)
-    for _ in range(20):
+    lo, hi0 = 1.5e-7, 3e-6
+    a10, t = _loguniform(rng, lo, hi0)
+    full_well = PRESETS[BASES[base]["detector"]["preset"]]["full_well_e"]
+    for _ in range(50):
         law = _choice(rng, ["exp", "gauss", "power", "coulomb"])
         scale = {"exp": lambda: rng.uniform(0.4, 1.5), "gauss": lambda: rng.uniform(0.45, 0.7),
                  "power": lambda: rng.uniform(1.0, 4.0), "coulomb": lambda: rng.uniform(0.3, 1.0)}[law]()
         prm = {"law": law, "half": int(rng.integers(2, 5)), "scale": float(scale), "aniso": float(rng.uniform(0.75, 1.35)),
                "a10_per_e": a10, "q_nl_frac": float(rng.uniform(0.3, 1.0)) if rng.random() < 0.3 else 0.0}
-        if U._lap10(bf_kernel(prm["law"], prm["half"], prm["scale"], prm["aniso"])) > 0:
+        k = bf_kernel(prm["law"], prm["half"], prm["scale"], prm["aniso"])
+        if U._lap10(k) <= 0:
+            continue
+        a = bf_area_coefficients(k, 1.0 / U._lap10(k))  # per unit a_10
+        # the range's top where the pixel-area change at full well reaches BF_MAX_AREA_CHANGE (a coupling that
+        # grows with the charge counted at full well: 1 + 1 / q_nl_frac); the strength t keeps its place
+        growth = 1 + 1 / prm["q_nl_frac"] if prm["q_nl_frac"] else 1.0
+        hi = min(hi0, BF_MAX_AREA_CHANGE / (abs(a[a.shape[0] // 2, a.shape[0] // 2]) * full_well * growth))
+        if bf_physical(a) and hi > 2 * lo:
             break
+    else:
+        raise RuntimeError("no physical brighter-fatter potential in 50 draws")
+    prm["a10_per_e"] = a10 = float(lo * (hi / lo) ** t)
     return Draw(base, [("RandomBF", prm)], f"brighter-fatter, {law} potential over {2 * prm['half'] + 1}^2 px, a_10 "
                 f"{a10:.2g} /e-", t, accept=("brighter_fatter",))
 
