@@ -22,9 +22,6 @@ from . import significance
 #: the least signal-to-noise ratio of a source's own amplitude for the source to enter the slope (below it the
 #: amplitude's logarithm is not defined well enough to fit): a detected source, DETECTION_SIGMA
 SOURCE_MIN_SNR = significance.DETECTION_SIGMA
-#: how many standard errors of the slope must separate the measured power from a law for the sources to exclude
-#: it: the shared significance of one tested quantity (DETECTION_SIGMA)
-SEPARATION_SIGMA = significance.DETECTION_SIGMA
 #: the model's source light above this many standard deviations of a pixel's noise marks a source's footprint
 #: (then grown by FOOTPRINT_GROW_PX to hold its wings)
 FOOTPRINT_SIGMA = significance.FOOTPRINT_SIGMA
@@ -103,7 +100,7 @@ def flux_slope(flux: np.ndarray, amp: np.ndarray, err: np.ndarray) -> Slope | No
     None when the line through the sources that qualify has no degree of freedom left to measure their scatter
     about it (fewer than three) or their fluxes are all one: no bar of its own on their number or range, the
     slope's standard error (inflated by that scatter) grows as they are fewer or their fluxes closer, and
-    :func:`flux_law` then finds neither law excluded by SEPARATION_SIGMA of its errors."""
+    :func:`flux_law` then finds neither law excluded by DETECTION_SIGMA of its errors."""
     ok = np.isfinite(amp) & np.isfinite(err) & (err > 0) & (flux > 0) & (amp > SOURCE_MIN_SNR * err)
     dof = int(ok.sum()) - 2  # a straight line's two parameters
     if dof < 1:
@@ -125,15 +122,11 @@ def flux_slope(flux: np.ndarray, amp: np.ndarray, err: np.ndarray) -> Slope | No
 
 def flux_law(slope: Slope | None, own: float, other: float) -> bool | None:
     """Which law the sources follow: True when ``slope``'s power excludes ``own`` (the power the candidate's
-    template assumes) by SEPARATION_SIGMA standard errors and lies nearer ``other``; False when it excludes
+    template assumes) by DETECTION_SIGMA standard errors and lies nearer ``other``; False when it excludes
     ``other`` so and lies no farther from ``own``; None when it excludes neither (the sources cannot tell them apart) or
     there is no slope. A power far from both (2.1 +- 0.4 for laws 0 and 1, a few sources over a narrow range of
     flux) still excludes the one it is 5 errors from: the test is of the law, not of the two laws' distance."""
-    if slope is None or not np.isfinite(slope.error) or not np.isfinite(slope.power):
-        return None
-    near_other = abs(slope.power - other) < abs(slope.power - own)
-    far = abs(slope.power - (own if near_other else other)) >= SEPARATION_SIGMA * slope.error
-    return near_other if far else None
+    return None if slope is None else significance.law_verdict(slope.power, slope.error, own, other)
 
 
 def change_slope(res, change_adu: np.ndarray) -> Slope | None:

@@ -83,3 +83,16 @@ def nested_gain_significant(gain: float, extra_params: int, sigma: float = STRUC
     the richer's, on the same pixels) is significant for its ``extra_params`` extra parameters: the nested
     likelihood-ratio test of :func:`nested_gain_bar`."""
     return bool(gain >= nested_gain_bar(extra_params, sigma))
+
+
+def law_verdict(value: float, error: float, own: float, other: float) -> bool | None:
+    """Which of two laws a measured quantity follows (``value`` +- ``error``; ``own`` the law a candidate
+    claims, ``other`` its alternative): True when it excludes ``own`` by DETECTION_SIGMA standard errors and lies
+    nearer ``other``; False when it excludes ``other`` so and lies no farther from ``own``; None when it excludes
+    neither (the data cannot tell them apart) or is not finite. A value far from both still excludes the one it is
+    DETECTION_SIGMA errors from: the test is of the law, not of the two laws' distance."""
+    if not (math.isfinite(value) and math.isfinite(error)):
+        return None
+    near_other = abs(value - other) < abs(value - own)
+    far = abs(value - (own if near_other else other)) >= DETECTION_SIGMA * error
+    return near_other if far else None

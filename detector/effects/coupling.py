@@ -167,7 +167,7 @@ def bf_check(fit, res) -> str:
     shape, so refitted star by star its amplitude is the same for every flux (power 0 of the flux,
     :mod:`detector.flux_law`). A change of every star's image alike (a wider PSF, a blur with far wings) is F x a
     shape: the brighter-fatter template's amplitude then falls as F^-1. When the refitted amplitudes' power
-    excludes 0 by SEPARATION_SIGMA standard errors and lies nearer -1 (:func:`detector.flux_law.flux_law`), the
+    excludes 0 by DETECTION_SIGMA standard errors and lies nearer -1 (:func:`detector.flux_law.flux_law`), the
     widening is not brighter-fatter."""
     from detector.flux_law import change_slope, flux_law
 

@@ -3,7 +3,7 @@
 Issue 23 asks for the named thresholds of ``newtsim diagnose`` to be counted, before and after the judge was
 consolidated. This script reads the source (AST, nothing is imported or run) of the diagnosis code:
 ``scenes/app/compare/*.py``, ``detector/signatures.py``, ``detector/morphology.py``, ``detector/flux_law.py``,
-``detector/significance.py`` and the effect plugins ``detector/effects/*.py``, and lists
+``detector/noise_law.py``, ``detector/significance.py`` and the effect plugins ``detector/effects/*.py``, and lists
 
 * every module-level or class-level UPPERCASE assignment of a number (or a tuple of numbers): a *definition*;
   one whose value is a name of another definition (``SPIKE_SIGMA = DETECTION_SIGMA``), or a stated formula of
@@ -41,7 +41,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[2]
 #: the diagnosis code audited (globs relative to the repository)
 SCOPE = ("scenes/app/compare/*.py", "detector/signatures.py", "detector/morphology.py", "detector/flux_law.py",
-         "detector/significance.py", "detector/effects/*.py")
+         "detector/noise_law.py", "detector/significance.py", "detector/effects/*.py")
 POLICY_FILE = "scenes/app/compare/policy.py"
 POLICY_CLASS = "DiagnosisPolicy"
 #: where the generated audit section starts in docs/diagnosis_policy.md (everything after it is rewritten)
@@ -201,9 +201,10 @@ RING_BINS | N | geometry | half-width of the ring of frequencies a periodogram p
 SIGMA_CAP | N | constant | the significance reported beyond a double's range (a tail of 1e-300)
 @detector/flux_law.py
 SOURCE_MIN_SNR | D | statistics | S/N of a source's amplitude to enter the slope
-SEPARATION_SIGMA | D | statistics | standard errors by which the measured power excludes a law: detection_sigma
 FOOTPRINT_SIGMA | D | statistics | a source footprint: model light 3 sigma above the noise
 FOOTPRINT_GROW_PX | N | geometry | footprint growth
+@detector/noise_law.py
+OUTLIER_SIGMA | D | statistics | a pixel pair's difference beyond 6 sigma is an outlier (1e-9 of Gaussian pairs)
 @detector/effects/base.py
 Stage.FIELD | N | enum | stage ordinal
 Stage.RESPONSE | N | enum | stage ordinal

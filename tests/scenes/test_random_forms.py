@@ -136,6 +136,15 @@ def test_a_brighter_fatter_widening_is_not_named_a_blur(tmp_path):
     assert row["first"] == "brighter_fatter" and not row["confidently_wrong"]
 
 
+def test_a_dark_rate_field_is_not_named_a_bias_structure(tmp_path):
+    """A drawn dark-rate field (a polynomial, 940 e- peak to peak on a binned 300 s dark: a case of a fresh draw,
+    dark_gradient-1033306088759626722) tied with a bias structure of the same 5 x 5 cosine form, the bias first:
+    their mean images are one, but the frame's pixel-to-pixel noise carries the field's shot noise (0.88 +- 0.09
+    of it), which an offset of the read-out does not (candidates.noise_law_refusal)."""
+    row = R.run_case(R.draw_case("dark_gradient", 1033306088759626722), tmp_path, workers=1)
+    assert row["first"] == "dark_gradient" and not row["confidently_wrong"]
+
+
 def test_brighter_fatter_draws_are_real_sensors():
     """Every drawn potential gives area coefficients that fall with the distance (none beyond the nearest
     neighbours above them) and a pixel-area change at full well within BF_MAX_AREA_CHANGE; a smooth potential

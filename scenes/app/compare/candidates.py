@@ -20,6 +20,7 @@ from detector import registry
 from detector.effects.ghosts import psf_rms_px, source_image
 from detector.flux_law import Slope, change_slope, flux_law
 from detector.morphology import block_chi2
+from detector.noise_law import noise_share
 from detector.signatures import (
     NEAR_SATURATION_SHARE,
     Fit,
@@ -30,11 +31,11 @@ from detector.signatures import (
     heldout_delta,
     seeing_block,
 )
-from detector.significance import DETECTION_SIGMA, FOOTPRINT_SIGMA, MIN_TEST_PIXELS
+from detector.significance import DETECTION_SIGMA, FOOTPRINT_SIGMA, MIN_TEST_PIXELS, STRONG_EVIDENCE, law_verdict
 from detector.stats import median_square_variance, median_square_variance_error
 
 from .floors import floor_reason, signal_range_floor
-from .judge import Candidate, indistinguishable, rank, verdict
+from .judge import Candidate, field_origin, indistinguishable, rank, verdict
 from .policy import DEFAULT_POLICY, DiagnosisPolicy
 from .sources import light_curve_candidates
 from .statistics import star_photometry
@@ -258,7 +259,7 @@ def grows_with_flux(res: Residuals, fit: Fit, slope: Slope | None | EllipsisType
     :mod:`detector.flux_law`); amplitudes that grow as the flux itself (power 1) are a change that grows with the
     source's own charge: brighter-fatter (Antilogus et al. 2014, JINST 9 C03048, eq. 4) or a non-linear core,
     which a blur imitates on the bright sources only. Said only when the measured power excludes 0 by
-    SEPARATION_SIGMA standard errors and lies nearer 1 (:func:`detector.flux_law.flux_law`). ``slope``: the
+    DETECTION_SIGMA standard errors and lies nearer 1 (:func:`detector.flux_law.flux_law`). ``slope``: the
     change's :func:`detector.flux_law.change_slope`, when the caller has it."""
     slope = change_slope(res, fit.delta_adu) if slope is ... else slope
     if flux_law(slope, own=0.0, other=1.0):
@@ -270,7 +271,7 @@ def grows_with_flux(res: Residuals, fit: Fit, slope: Slope | None | EllipsisType
 def flux_law_refusal(res: Residuals, fit: Fit) -> str:
     """Why an image-plane transform (a blur, a smear, a shift, a distortion) is not a change of every source's
     image ("" when it may be): its change refitted source by source follows another power of the flux than the
-    optics' and the pointing's 0, nearer 1 or -1 and excluding 0 by SEPARATION_SIGMA standard errors (a power
+    optics' and the pointing's 0, nearer 1 or -1 and excluding 0 by DETECTION_SIGMA standard errors (a power
     within 0.5 of 0 passes): 1, a change that grows with the source's own charge (:func:`grows_with_flux`); -1,
     a change of one size at every source whatever its flux (charge a trap takes from each, a background misfit
     about the sources)."""
@@ -389,12 +390,37 @@ def judge_evidence(res: Residuals, cands: list[Candidate], policy: DiagnosisPoli
 
 def implausibility(cls, fit: Fit, res: Residuals) -> str:
     """"" or why the fitted pattern is not physically the effect: its signature's own structure test
-    (:meth:`detector.signatures.Signature.plausible`), then a parameter pinned at its bound."""
+    (:meth:`detector.signatures.Signature.plausible`), then a parameter pinned at its bound, then the shot noise
+    an added field must (charge) or must not (an offset of the read-out) carry (:func:`noise_law_refusal`)."""
     try:
         why = cls.signature.plausible(fit, res) if hasattr(cls.signature, "plausible") else ""
     except Exception as exc:  # noqa: BLE001  (a plugin's check that raises does not stop the diagnosis)
         why = f"its plausibility check failed ({type(exc).__name__}: {exc})"
-    return why or at_bound(cls, fit.params)
+    return why or at_bound(cls, fit.params) or noise_law_refusal(cls, fit, res)
+
+
+def noise_law_refusal(cls, fit: Fit, res: Residuals) -> str:
+    """Why an added field is not of its origin ("" when it may be): the frame's pixel-to-pixel noise
+    (:func:`detector.noise_law.noise_share`) carries the shot noise of the fitted change as charge would, where
+    the candidate is an offset of the read-out (a bias structure, which adds none), or carries none of it, where
+    the candidate is charge (dark charge, added light): the share excludes the candidate's law (1 for charge, 0
+    for an offset) by DETECTION_SIGMA standard errors and lies nearer the other. Asked of a fit significant by
+    its delta BIC (STRONG_EVIDENCE) that changes the mean: on one dark frame a dark-rate field and a bias
+    structure of the same shape differ in nothing else."""
+    origin = field_origin(cls)
+    if not origin or fit.delta_adu is None or np.size(fit.delta_adu) < 2 or not fit.delta_bic < -STRONG_EVIDENCE:
+        return ""
+    share = noise_share(res.data_adu - res.model_adu, res.var_adu2, res.fit,
+                        np.broadcast_to(fit.delta_adu, res.data_adu.shape), res.poisson_adu)
+    if share is None:
+        return ""
+    if origin == "offset" and law_verdict(share.share, share.error, own=0.0, other=1.0):
+        return (f"the change carries the shot noise of charge ({share.describe()}): dark charge or light, not an "
+                "offset of the read-out, which adds no noise")
+    if origin != "offset" and law_verdict(share.share, share.error, own=1.0, other=0.0):
+        return (f"the change carries no shot noise ({share.describe()}), where {origin} charge carries its own: an "
+                "offset of the read-out, not charge")
+    return ""
 
 
 def excess_shares(res: Residuals, cands: list[Candidate], policy: DiagnosisPolicy = DEFAULT_POLICY) -> None:

@@ -276,13 +276,23 @@ def rank(cands: list[Candidate], light_source: str = "") -> list[Candidate]:
     return out
 
 
+def field_origin(cls) -> str:
+    """What an effect class's additive field is: "dark" charge (a glow, a dark-rate gradient), "light" (straylight,
+    a sky gradient), an "offset" of the read-out (a bias structure: added in ADU whatever the exposure), or ""
+    (not an additive field of one of these)."""
+    if cls is None or cls.field_kind != "additive":
+        return ""
+    stages = tuple(cls.stages)
+    if stages == (Stage.ADU,) and cls.scaling == "none":
+        return "offset"
+    return {(Stage.DARK,): "dark", (Stage.FIELD,): "light"}.get(stages, "")
+
+
 def _charge_origin(c: Candidate) -> str:
     """"dark" for an additive field of dark charge (a glow, a dark-rate gradient), "light" for an additive field
     of light (straylight, a sky gradient), "" otherwise."""
-    cls = registry().get(c.fit.effect)
-    if c.kind != "effect" or cls is None or cls.field_kind != "additive":
-        return ""
-    return {(Stage.DARK,): "dark", (Stage.FIELD,): "light"}.get(tuple(cls.stages), "")
+    origin = field_origin(registry().get(c.fit.effect)) if c.kind == "effect" else ""
+    return origin if origin in ("dark", "light") else ""
 
 
 def same_charge(a: Candidate, b: Candidate) -> bool:
@@ -344,9 +354,7 @@ def same_dark_field(a: Candidate, b: Candidate) -> bool:
 
 def _read_out_offset(c: Candidate) -> bool:
     """An additive field of the read-out (a bias structure): added in ADU whatever the exposure."""
-    cls = registry().get(c.fit.effect)
-    return (c.kind == "effect" and cls is not None and cls.field_kind == "additive"
-            and tuple(cls.stages) == (Stage.ADU,) and cls.scaling == "none")
+    return c.kind == "effect" and field_origin(registry().get(c.fit.effect)) == "offset"
 
 
 def dark_or_offset(a: Candidate, b: Candidate) -> bool:

@@ -1,0 +1,89 @@
+"""Whether a change of the frame is charge or an offset of the read-out, by the shot noise it carries.
+
+Charge, of light or dark current, is counted: its variance equals its mean (Poisson; Janesick 2007, Photon
+Transfer, SPIE PM170, ch. 2-3, the photon transfer curve's shot-noise regime). An offset added at the read-out
+(a bias structure, an amplifier's pattern) carries no noise of its own. On one dark frame a dark-rate field and
+a bias structure of the same shape make the same mean image; only the variance tells them apart.
+
+The frame's own noise is measured on differences of horizontally adjacent pixel pairs, ``d = r_a - r_b`` of the
+residual ``r = data - model``: a structure smooth over two pixels cancels in them, whatever its origin and
+however badly any candidate fits it, while their variance is ``v_a + v_b`` plus the two pixels' extra noise.
+The squared differences are fitted (weighted least squares, ``Var(d^2) = 2 (v_a + v_b)^2`` for Gaussian noise)
+as ``d^2 - (v_a + v_b) = s x + c0 + c1 (v_a + v_b)``, with ``x`` the change's shot-noise variance at the pair
+(``(delta_a + delta_b) / g``, :attr:`detector.signatures.Residuals.poisson_adu` per ADU) and two nuisances that
+any mean level or a read noise (``c0``) and a gain (``c1``) off by a little would leave. ``s`` is 1 for charge
+and 0 for an offset; :func:`detector.significance.law_verdict` says which of the two the frame excludes.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from . import significance
+
+#: a pair whose squared difference exceeds this many times its model variance is an outlier (a cosmic ray, a
+#: hot pixel the spikes missed) and left out: 6 sigma of a Gaussian difference (1e-9 of the pairs), above the
+#: noise of any change this test weighs (an extra variance of v moves 6 sigma to 4.2: 2.6e-5 of the pairs)
+OUTLIER_SIGMA = 6.0
+
+
+@dataclass(frozen=True)
+class NoiseShare:
+    """The share ``s`` of a change's shot noise the frame's pixel-to-pixel noise carries (1: charge, 0: an offset
+    of the read-out) and its standard error, over ``pairs`` pixel pairs."""
+
+    share: float
+    error: float
+    pairs: int
+
+    def describe(self) -> str:
+        """"s +- e of its shot noise over n pixel pairs": the share in a reason's words."""
+        return f"{self.share:.2f} +- {self.error:.2f} of its shot noise over {self.pairs} pixel pairs"
+
+
+def noise_share(residual_adu: np.ndarray, var_adu2: np.ndarray, usable: np.ndarray, change_adu: np.ndarray,
+                poisson_adu: float) -> NoiseShare | None:
+    """The :class:`NoiseShare` of ``change_adu`` (a mean change of the frame [ADU], the candidate's) in the
+    residual ``residual_adu`` (data - model [ADU]) of model variance ``var_adu2`` [ADU^2], on the ``usable``
+    pixels (module docstring). None without pairs or when the change's variance is not measurable apart from
+    the nuisances (a uniform change: a level, which a read noise or a gain off by as much would also explain)."""
+    h, w = residual_adu.shape
+    w2 = w - w % 2
+    if w2 < 2:
+        return None
+
+    def pairs(a):
+        a = np.asarray(a)
+        a = np.broadcast_to(a, (h, w))[:, :w2].reshape(h, w2 // 2, 2)
+        return a[..., 0], a[..., 1]
+
+    ua, ub = pairs(usable)
+    ok = ua & ub
+    ra, rb = pairs(residual_adu)
+    va, vb = pairs(var_adu2)
+    da, db = pairs(change_adu)
+    d = (ra[ok].astype(np.float64) - rb[ok]) ** 2
+    v = va[ok].astype(np.float64) + vb[ok]
+    x = (da[ok].astype(np.float64) + db[ok]) * poisson_adu
+    keep = np.isfinite(d) & np.isfinite(x) & (v > 0) & (d <= OUTLIER_SIGMA ** 2 * v)
+    if keep.sum() < significance.MIN_TEST_PIXELS:
+        return None
+    d, v, x = d[keep], v[keep], x[keep]
+    sw = 1.0 / (np.sqrt(2.0) * v)  # the square root of the weight 1 / Var(d^2)
+    design = np.stack([x, np.ones_like(x), v], axis=1) * sw[:, None]
+    y = (d - v) * sw
+    # the nuisances' directions taken out of x first (an orthonormal basis of them): s is x's part alone
+    q, rr = np.linalg.qr(design[:, 1:])
+    diag = np.abs(np.diag(rr))
+    q = q[:, diag > 1e-10 * max(float(diag.max()), 1e-300)]
+    xo = design[:, 0] - q @ (q.T @ design[:, 0])
+    xx = float(np.dot(xo, xo))
+    if not np.isfinite(xx) or xx <= 1e-12 * float(np.dot(design[:, 0], design[:, 0])):
+        return None
+    s = float(np.dot(xo, y) / xx)
+    resid = y - q @ (q.T @ y) - s * xo
+    dof = y.size - 1 - q.shape[1]
+    inflate = max(1.0, float(np.sqrt(np.dot(resid, resid) / max(dof, 1))))
+    return NoiseShare(s, inflate / float(np.sqrt(xx)), int(y.size))
