@@ -23,10 +23,11 @@ import numpy as np
 
 from . import significance
 
-#: a pair whose squared difference exceeds this many times its model variance is an outlier (a cosmic ray, a
-#: hot pixel the spikes missed) and left out: 6 sigma of a Gaussian difference (1e-9 of the pairs), above the
-#: noise of any change this test weighs (an extra variance of v moves 6 sigma to 4.2: 2.6e-5 of the pairs)
-OUTLIER_SIGMA = 6.0
+#: a pair whose difference exceeds this many standard deviations of its model noise is an outlier (a cosmic ray, a
+#: hot pixel the spikes missed) and left out: a detection (DETECTION_SIGMA, 6e-7 of Gaussian pairs); an extra
+#: variance as large as the model's, the most this test weighs, moves it to 3.5 sigma of the true noise (5e-4 of
+#: the pairs, their share of the sum of squares ~1e-2 of its excess)
+OUTLIER_SIGMA = significance.DETECTION_SIGMA
 
 
 @dataclass(frozen=True)

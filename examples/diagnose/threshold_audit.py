@@ -204,7 +204,7 @@ SOURCE_MIN_SNR | D | statistics | S/N of a source's amplitude to enter the slope
 FOOTPRINT_SIGMA | D | statistics | a source footprint: model light 3 sigma above the noise
 FOOTPRINT_GROW_PX | N | geometry | footprint growth
 @detector/noise_law.py
-OUTLIER_SIGMA | D | statistics | a pixel pair's difference beyond 6 sigma is an outlier (1e-9 of Gaussian pairs)
+OUTLIER_SIGMA | D | statistics | a pixel pair's difference beyond detection_sigma is an outlier
 @detector/effects/base.py
 Stage.FIELD | N | enum | stage ordinal
 Stage.RESPONSE | N | enum | stage ordinal

@@ -30,7 +30,7 @@ def test_the_share_is_one_for_charge_and_zero_for_an_offset(charge):
     r, v, d, p = _frame(rng, charge)
     s = noise_share(r, v, np.ones(r.shape, bool), d, p)
     assert abs(s.share - (1.0 if charge else 0.0)) < 4 * s.error
-    assert s.error < 0.1 and s.pairs == r.size // 2
+    assert s.error < 0.1 and s.pairs >= 0.999 * (r.size // 2)  # a few 5-sigma pairs left out as outliers
     # the verdict: an offset candidate on charge is refused, a charge candidate on an offset too
     assert law_verdict(s.share, s.error, own=0.0 if charge else 1.0, other=1.0 if charge else 0.0) is True
 

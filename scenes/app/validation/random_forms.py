@@ -11,7 +11,8 @@ seed, so that a report can be made on forms nobody has looked at:
   or a bias structure [ADU];
 * **kernels**: a PSF broadening (elliptical Gaussian, Moffat, exponential, core plus wing), an elongation,
   an inter-pixel capacitance (3x3, asymmetric), a brighter-fatter potential (exponential, Gaussian, power law,
-  Coulomb, anisotropic, optionally growing with the charge), a crosstalk delayed and smeared;
+  Coulomb, anisotropic, optionally growing with the charge; a real sensor's: area coefficients falling with the
+  distance, a pixel-area change at full well of at most BF_MAX_AREA_CHANGE), a crosstalk delayed and smeared;
 * **laws**: a non-linearity (knee, gamma, polynomial, tanh) of random strength at full well; hot-pixel rate
   laws (lognormal, Pareto, exponential, Weibull, two populations); DSNU and PRNU laws; RTS with two traps or
   three states; row noise (1/f, telegraph, heavy-tailed); reset noise (Laplace, alternate columns, varying
