@@ -44,47 +44,55 @@ class NoiseShare:
         return f"{self.share:.2f} +- {self.error:.2f} of its shot noise over {self.pairs} pixel pairs"
 
 
+#: the most pixel pairs the fit reads: every k-th row beyond it (a numerical budget: 2^18 pairs measure the share of
+#: a change of 10 % of the variance to +-0.03, and the whole of a 2048^2 frame would cost seconds per candidate)
+MAX_PAIRS = 2 ** 18
+
+
 def noise_share(residual_adu: np.ndarray, var_adu2: np.ndarray, usable: np.ndarray, change_adu: np.ndarray,
                 poisson_adu: float) -> NoiseShare | None:
     """The :class:`NoiseShare` of ``change_adu`` (a mean change of the frame [ADU], the candidate's) in the
     residual ``residual_adu`` (data - model [ADU]) of model variance ``var_adu2`` [ADU^2], on the ``usable``
-    pixels (module docstring). None without pairs or when the change's variance is not measurable apart from
-    the nuisances (a uniform change: a level, which a read noise or a gain off by as much would also explain)."""
+    pixels (module docstring; at most MAX_PAIRS pairs, from evenly spaced rows). None without MIN_TEST_PIXELS pairs
+    or when the change's variance is not measurable apart from the nuisances (a uniform change: a level, which a
+    read noise or a gain off by as much would also explain)."""
     h, w = residual_adu.shape
     w2 = w - w % 2
     if w2 < 2:
         return None
+    step = max(1, int(np.ceil(h * (w2 // 2) / MAX_PAIRS)))
 
     def pairs(a):
-        a = np.asarray(a)
-        a = np.broadcast_to(a, (h, w))[:, :w2].reshape(h, w2 // 2, 2)
-        return a[..., 0], a[..., 1]
+        a = np.broadcast_to(np.asarray(a), (h, w))[::step, :w2]
+        return a[:, 0::2].astype(np.float64), a[:, 1::2].astype(np.float64)
 
     ua, ub = pairs(usable)
-    ok = ua & ub
+    ok = (ua > 0) & (ub > 0)
     ra, rb = pairs(residual_adu)
     va, vb = pairs(var_adu2)
     da, db = pairs(change_adu)
-    d = (ra[ok].astype(np.float64) - rb[ok]) ** 2
-    v = va[ok].astype(np.float64) + vb[ok]
-    x = (da[ok].astype(np.float64) + db[ok]) * poisson_adu
+    d = (ra[ok] - rb[ok]) ** 2
+    v = va[ok] + vb[ok]
+    x = (da[ok] + db[ok]) * poisson_adu
     keep = np.isfinite(d) & np.isfinite(x) & (v > 0) & (d <= OUTLIER_SIGMA ** 2 * v)
     if keep.sum() < significance.MIN_TEST_PIXELS:
         return None
     d, v, x = d[keep], v[keep], x[keep]
-    sw = 1.0 / (np.sqrt(2.0) * v)  # the square root of the weight 1 / Var(d^2)
-    design = np.stack([x, np.ones_like(x), v], axis=1) * sw[:, None]
-    y = (d - v) * sw
-    # the nuisances' directions taken out of x first (an orthonormal basis of them): s is x's part alone
-    q, rr = np.linalg.qr(design[:, 1:])
-    diag = np.abs(np.diag(rr))
-    q = q[:, diag > 1e-10 * max(float(diag.max()), 1e-300)]
-    xo = design[:, 0] - q @ (q.T @ design[:, 0])
-    xx = float(np.dot(xo, xo))
-    if not np.isfinite(xx) or xx <= 1e-12 * float(np.dot(design[:, 0], design[:, 0])):
+    wt = 0.5 / (v * v)  # 1 / Var(d^2) for Gaussian pixel noise
+    y = d - v
+    # weighted normal equations of y = s x + c0 + c1 v, the nuisances (1, v) profiled out of x's
+    cols = (x, np.ones_like(x), v)
+    gram = np.array([[float(np.sum(wt * a * b)) for b in cols] for a in cols])
+    rhs = np.array([float(np.sum(wt * a * y)) for a in cols])
+    yy = float(np.sum(wt * y * y))
+    scale = np.sqrt(np.maximum(np.diag(gram)[1:], 1e-300))
+    gn = np.linalg.pinv(gram[1:, 1:] / np.outer(scale, scale), rcond=1e-10) / np.outer(scale, scale)
+    xx = gram[0, 0] - gram[0, 1:] @ gn @ gram[1:, 0]
+    if not np.isfinite(xx) or xx <= 1e-10 * gram[0, 0]:
         return None
-    s = float(np.dot(xo, y) / xx)
-    resid = y - q @ (q.T @ y) - s * xo
-    dof = y.size - 1 - q.shape[1]
-    inflate = max(1.0, float(np.sqrt(np.dot(resid, resid) / max(dof, 1))))
+    xy = rhs[0] - gram[0, 1:] @ gn @ rhs[1:]
+    s = float(xy / xx)
+    chi2 = yy - rhs[1:] @ gn @ rhs[1:] - s * xy
+    dof = y.size - 1 - int(np.linalg.matrix_rank(gram[1:, 1:] / np.outer(scale, scale), tol=1e-10))
+    inflate = max(1.0, float(np.sqrt(max(chi2, 0.0) / max(dof, 1))))
     return NoiseShare(s, inflate / float(np.sqrt(xx)), int(y.size))
