@@ -205,6 +205,7 @@ FOOTPRINT_SIGMA | D | statistics | a source footprint: model light 3 sigma above
 FOOTPRINT_GROW_PX | N | geometry | footprint growth
 @detector/noise_law.py
 OUTLIER_SIGMA | D | statistics | a pixel pair's difference beyond detection_sigma is an outlier
+MAX_PAIRS | N | budget | most pixel pairs read (every k-th row beyond it)
 @detector/effects/base.py
 Stage.FIELD | N | enum | stage ordinal
 Stage.RESPONSE | N | enum | stage ordinal
