@@ -121,11 +121,10 @@ def flux_slope(flux: np.ndarray, amp: np.ndarray, err: np.ndarray) -> Slope | No
 
 
 def flux_law(slope: Slope | None, own: float, other: float) -> bool | None:
-    """Which law the sources follow: True when ``slope``'s power excludes ``own`` (the power the candidate's
-    template assumes) by DETECTION_SIGMA standard errors and lies nearer ``other``; False when it excludes
-    ``other`` so and lies no farther from ``own``; None when it excludes neither (the sources cannot tell them apart) or
-    there is no slope. A power far from both (2.1 +- 0.4 for laws 0 and 1, a few sources over a narrow range of
-    flux) still excludes the one it is 5 errors from: the test is of the law, not of the two laws' distance."""
+    """Which law the sources follow: :func:`detector.significance.law_verdict` of ``slope``'s power between
+    ``own`` (the power the candidate's template assumes) and ``other``; None without a slope. A power far from
+    both (2.1 +- 0.4 for laws 0 and 1, a few sources over a narrow range of flux) still excludes the one it is 5
+    errors from."""
     return None if slope is None else significance.law_verdict(slope.power, slope.error, own, other)
 
 

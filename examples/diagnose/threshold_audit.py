@@ -206,6 +206,7 @@ FOOTPRINT_GROW_PX | N | geometry | footprint growth
 @detector/noise_law.py
 OUTLIER_SIGMA | D | statistics | a pixel pair's difference beyond detection_sigma is an outlier
 MAX_PAIRS | N | budget | most pixel pairs read (every k-th row beyond it)
+JACKKNIFE_BLOCKS | N | sampling | blocks of columns of the share's jackknife error
 @detector/effects/base.py
 Stage.FIELD | N | enum | stage ordinal
 Stage.RESPONSE | N | enum | stage ordinal

@@ -16,6 +16,7 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
+from detector.presets import PRESETS
 from scenes.app.validation import halves
 from scenes.app.validation import random_forms as R
 
@@ -149,22 +150,28 @@ def test_brighter_fatter_draws_are_real_sensors():
     """Every drawn potential gives area coefficients that fall with the distance (none beyond the nearest
     neighbours above them) and a pixel-area change at full well within BF_MAX_AREA_CHANGE; a smooth potential
     cut at its support (brighter_fatter-818207344452420027's former exp over 7^2 px, whose edge made a_00 x full
-    well -45 and whose stars were fitted 20x fainter) is refused."""
+    well -45 and whose stars were fitted 20x fainter) is refused; the generator's potentials fall to zero at their
+    edge (bf_kernel)."""
+    laws = set()
     for seed in range(200):
         d = R.fam_brighter_fatter(np.random.default_rng(seed))
         p = d.effects[0][1]
+        laws.add(p["law"])
         k = R.bf_kernel(p["law"], p["half"], p["scale"], p["aniso"])
         h = k.shape[0] // 2 + 1
-        a = R.bf_area_coefficients(k, p["a10_per_e"] / R.bf_area_coefficients(k, 1.0)[h, h + 1])
+        a = R.potential_area_coefficients(k, p["a10_per_e"] / R.potential_area_coefficients(k, 1.0)[h, h + 1])
         assert a[h, h + 1] == pytest.approx(p["a10_per_e"], rel=1e-9) and R.bf_physical(a)
-        full_well = R.PRESETS[R.BASES[d.base]["detector"]["preset"]]["full_well_e"]
+        full_well = PRESETS[R.BASES[d.base]["detector"]["preset"]]["full_well_e"]
         growth = 1 + 1 / p["q_nl_frac"] if p["q_nl_frac"] else 1.0
         assert abs(a[h, h]) * full_well * growth <= R.BF_MAX_AREA_CHANGE * (1 + 1e-9)
         assert 1.5e-7 * (1 - 1e-9) <= p["a10_per_e"]
-    cut = R.bf_kernel("exp", 3, 1.3211878271573134, 1.0651589387766136)
-    assert not R.bf_physical(R.bf_area_coefficients(cut, 1.0))
+    assert laws == {"exp", "gauss", "power", "coulomb"}  # every law has real sensors among its potentials
+    t = np.arange(-3, 4.0)
+    cut = np.exp(-np.hypot(1.0651589387766136 * t[:, None], t[None, :]) / 1.3211878271573134)
+    assert not R.bf_physical(R.potential_area_coefficients(cut, 1.0))
     # the plugin's default (3x3 exp(-r / 0.5), GalSim-matched): a real sensor, a_00 = -6.0 a_10
-    a = R.bf_area_coefficients(R.bf_kernel("exp", 1, 0.5, 1.0), 1.0)
+    t = np.arange(-1, 2.0)
+    a = R.potential_area_coefficients(np.exp(-np.hypot(t[:, None], t[None, :]) / 0.5), 1.0)
     assert R.bf_physical(a) and a[2, 2] / a[2, 3] == pytest.approx(-5.996, abs=1e-3)
 
 

@@ -20,7 +20,7 @@ from detector import registry
 from detector.effects.ghosts import psf_rms_px, source_image
 from detector.flux_law import Slope, change_slope, flux_law
 from detector.morphology import block_chi2
-from detector.noise_law import noise_share
+from detector.noise_law import noise_law, noise_share
 from detector.signatures import (
     NEAR_SATURATION_SHARE,
     Fit,
@@ -31,7 +31,7 @@ from detector.signatures import (
     heldout_delta,
     seeing_block,
 )
-from detector.significance import DETECTION_SIGMA, FOOTPRINT_SIGMA, MIN_TEST_PIXELS, STRONG_EVIDENCE, law_verdict
+from detector.significance import DETECTION_SIGMA, FOOTPRINT_SIGMA, MIN_TEST_PIXELS, STRONG_EVIDENCE
 from detector.stats import median_square_variance, median_square_variance_error
 
 from .floors import floor_reason, signal_range_floor
@@ -400,27 +400,27 @@ def implausibility(cls, fit: Fit, res: Residuals) -> str:
 
 
 def noise_law_refusal(cls, fit: Fit, res: Residuals) -> str:
-    """Why an added field is not of its origin ("" when it may be): the frame's pixel-to-pixel noise
-    (:func:`detector.noise_law.noise_share`) carries the shot noise of the fitted change as charge would, where
-    the candidate is an offset of the read-out (a bias structure, which adds none), or carries none of it, where
-    the candidate is charge (dark charge, added light): the share excludes the candidate's law (1 for charge, 0
-    for an offset) by DETECTION_SIGMA standard errors and lies nearer the other. Asked of a fit significant by
-    its delta BIC (STRONG_EVIDENCE) that changes the mean: on one dark frame a dark-rate field and a bias
-    structure of the same shape differ in nothing else."""
+    """Why an added field is not of its origin ("" when it may be): the frame's pixel-to-pixel noise, once the
+    fitted change is taken off (:func:`detector.noise_law.noise_share`), carries the shot noise of that change as
+    charge would, where the candidate is an offset of the read-out (a bias structure, which adds none), or carries
+    none of it, where the candidate is charge (dark charge, added light): the share excludes the candidate's law (1
+    for charge, 0 for an offset) by DETECTION_SIGMA standard errors and agrees with the other
+    (:func:`detector.noise_law.noise_law`). Asked of a fit significant by its delta BIC (STRONG_EVIDENCE) that
+    changes the mean: on one dark frame a dark-rate field and a bias structure of the same shape differ in
+    nothing else."""
     origin = field_origin(cls)
     if not origin or fit.delta_adu is None or np.size(fit.delta_adu) < 2 or not fit.delta_bic < -STRONG_EVIDENCE:
         return ""
-    share = noise_share(res.data_adu - res.model_adu, res.var_adu2, res.fit,
-                        np.broadcast_to(fit.delta_adu, res.data_adu.shape), res.poisson_adu)
-    if share is None:
+    share = noise_share(res.data_adu - res.model_adu - fit.delta_adu, res.var_adu2, res.fit, fit.delta_adu,
+                        res.poisson_adu)
+    charge = 0.0 if origin == "offset" else 1.0
+    if not noise_law(share, own=charge, other=1.0 - charge):
         return ""
-    if origin == "offset" and law_verdict(share.share, share.error, own=0.0, other=1.0):
+    if origin == "offset":
         return (f"the change carries the shot noise of charge ({share.describe()}): dark charge or light, not an "
                 "offset of the read-out, which adds no noise")
-    if origin != "offset" and law_verdict(share.share, share.error, own=1.0, other=0.0):
-        return (f"the change carries no shot noise ({share.describe()}), where {origin} charge carries its own: an "
-                "offset of the read-out, not charge")
-    return ""
+    return (f"the change carries no shot noise ({share.describe()}), where {origin} charge carries its own: an "
+            "offset of the read-out, not charge")
 
 
 def excess_shares(res: Residuals, cands: list[Candidate], policy: DiagnosisPolicy = DEFAULT_POLICY) -> None:

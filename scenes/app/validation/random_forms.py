@@ -435,17 +435,20 @@ class RandomIPC(RealWorld):
 def bf_kernel(law: str, half: int, scale: float, aniso: float) -> np.ndarray:
     """A brighter-fatter potential on (2 half + 1)^2 pixels, 1 at the centre: "exp" exp(-r / scale), "gauss"
     (sigma ``scale``), "power" (r + 0.5)^-scale, "coulomb" 1 / sqrt(r^2 + scale^2); ``aniso`` stretches the
-    distance along the columns (r = hypot(aniso y, x))."""
+    distance along the columns (r = hypot(aniso y, x)). The law less its value at r = half + 1, clipped at 0: a
+    potential that falls to zero at the edge of its support (cut there with a step, its Laplacian, the area
+    coefficients, would be largest at the step: :func:`bf_physical`)."""
     t = np.arange(-half, half + 1, dtype=float)
     r = np.hypot(aniso * t[:, None], t[None, :])
     if law == "exp":
-        k = np.exp(-r / scale)
+        f = lambda r: np.exp(-r / scale)  # noqa: E731
     elif law == "gauss":
-        k = np.exp(-r * r / (2 * scale ** 2))
+        f = lambda r: np.exp(-r * r / (2 * scale ** 2))  # noqa: E731
     elif law == "power":
-        k = (r + 0.5) ** -scale
+        f = lambda r: (r + 0.5) ** -scale  # noqa: E731
     else:
-        k = 1 / np.sqrt(r * r + scale ** 2)
+        f = lambda r: 1 / np.sqrt(r * r + scale ** 2)  # noqa: E731
+    k = np.maximum(f(r) - f(half + 1.0), 0.0)
     return k / k[half, half]
 
 
@@ -1138,7 +1141,7 @@ def fam_ipc(rng):
 BF_MAX_AREA_CHANGE = 0.3
 
 
-def bf_area_coefficients(k: np.ndarray, c: float) -> np.ndarray:
+def potential_area_coefficients(k: np.ndarray, c: float) -> np.ndarray:
     """The area coefficients ``a_ij = c Laplacian(k)`` of a potential ``k`` [per e-], on the kernel's support
     plus one pixel (the Laplacian of the truncated kernel reaches one pixel beyond it): Antilogus et al. 2014,
     JINST 9, C03048; centre ``a_00``."""
@@ -1147,16 +1150,17 @@ def bf_area_coefficients(k: np.ndarray, c: float) -> np.ndarray:
 
 
 def bf_physical(a: np.ndarray) -> bool:
-    """Whether area coefficients ``a`` (:func:`bf_area_coefficients`, centred) are a real sensor's: every
-    coefficient beyond the four nearest neighbours no larger than the larger nearest one (measured
-    coefficients fall with the distance: Astier et al. 2019, their Fig. 11). A smooth potential truncated at
-    its support breaks this (the Laplacian of the step at its edge exceeds the one at one pixel)."""
+    """Whether area coefficients ``a`` (:func:`potential_area_coefficients`, centred) are a real sensor's: the
+    four nearest positive, every other one but ``a_00`` positive or zero and no larger than the smaller nearest
+    one (measured coefficients are positive and fall with the distance: Astier et al. 2019, their Fig. 11). A
+    smooth potential truncated at its support breaks this (the Laplacian of the step at its edge exceeds the one
+    at one pixel), as does a potential flat at one pixel (a negative a_11 or a_01)."""
     h = a.shape[0] // 2
-    near = max(a[h, h + 1], a[h + 1, h])
-    far = np.abs(a).copy()
+    near = min(a[h, h + 1], a[h + 1, h])
+    far = a.copy()
     far[h, h] = 0
     far[h, h - 1:h + 2] = far[h - 1:h + 2, h] = 0
-    return near > 0 and far.max() <= near
+    return bool(near > 0 and far.min() >= 0 and far.max() <= near)
 
 
 def fam_brighter_fatter(rng):
@@ -1164,16 +1168,18 @@ def fam_brighter_fatter(rng):
     lo, hi0 = 1.5e-7, 3e-6
     a10, t = _loguniform(rng, lo, hi0)
     full_well = PRESETS[BASES[base]["detector"]["preset"]]["full_well_e"]
-    for _ in range(50):
+    for _ in range(200):
         law = _choice(rng, ["exp", "gauss", "power", "coulomb"])
         scale = {"exp": lambda: rng.uniform(0.4, 1.5), "gauss": lambda: rng.uniform(0.45, 0.7),
                  "power": lambda: rng.uniform(1.0, 4.0), "coulomb": lambda: rng.uniform(0.3, 1.0)}[law]()
         prm = {"law": law, "half": int(rng.integers(2, 5)), "scale": float(scale), "aniso": float(rng.uniform(0.75, 1.35)),
                "a10_per_e": a10, "q_nl_frac": float(rng.uniform(0.3, 1.0)) if rng.random() < 0.3 else 0.0}
         k = bf_kernel(prm["law"], prm["half"], prm["scale"], prm["aniso"])
-        if U._lap10(k) <= 0:
+        a = potential_area_coefficients(k, 1.0)
+        lap10 = a[a.shape[0] // 2, a.shape[0] // 2 + 1]
+        if lap10 <= 0:
             continue
-        a = bf_area_coefficients(k, 1.0 / U._lap10(k))  # per unit a_10
+        a /= lap10  # per unit a_10
         # the range's top where the pixel-area change at full well reaches BF_MAX_AREA_CHANGE (a coupling that
         # grows with the charge counted at full well: 1 + 1 / q_nl_frac); the strength t keeps its place
         growth = 1 + 1 / prm["q_nl_frac"] if prm["q_nl_frac"] else 1.0
@@ -1181,7 +1187,7 @@ def fam_brighter_fatter(rng):
         if bf_physical(a) and hi > 2 * lo:
             break
     else:
-        raise RuntimeError("no physical brighter-fatter potential in 50 draws")
+        raise RuntimeError("no physical brighter-fatter potential in 200 draws")
     prm["a10_per_e"] = a10 = float(lo * (hi / lo) ** t)
     return Draw(base, [("RandomBF", prm)], f"brighter-fatter, {law} potential over {2 * prm['half'] + 1}^2 px, a_10 "
                 f"{a10:.2g} /e-", t, accept=("brighter_fatter",))
