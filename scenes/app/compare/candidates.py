@@ -311,69 +311,87 @@ def _in_order(fn, items: list, threads: int):
         yield from pool.map(fn, items)
 
 
-def fit_signatures(res: Residuals, todo: list[tuple[str, type]], threads: int = 1):
-    """(name, effect class, :func:`_fit_signature`) of every (name, effect class) in ``todo``, in its order. With
-    ``threads`` > 1 the fits run in a thread pool (numpy and scipy release the GIL in their array work); the
-    statistics they share are computed first, so every fit reads the same memoised values and the results are
-    the same bytes as one after another."""
+def fit_signatures(res: Residuals, todo: list[tuple[str, type]], threads: int = 1, then=None):
+    """(name, effect class, :func:`_fit_signature`, ``then(name, cls, fit, seconds)`` or None) of every (name,
+    effect class) in ``todo``, in its order. With ``threads`` > 1 the fits (and ``then``, a pure reading of one fit:
+    the first judgement of :func:`candidates`) run in a thread pool (numpy and scipy release the GIL in their array
+    work); the statistics they share are computed first, so every fit reads the same memoised values and the
+    results are the same bytes as one after another."""
     res.levels()  # shared by every fit: computed once, before any thread reads it
     res.flat()
-    for (name, cls), got in zip(todo, _in_order(lambda t: _fit_signature(res, *t), todo, threads)):
-        yield name, cls, got
+    res.flat_profiled()
+
+    def one(item):
+        fit, exc, seconds = _fit_signature(res, *item)
+        ok = exc is None and fit is not None and np.isfinite(fit.delta_m2lnl)
+        return (fit, exc, seconds), (then(*item, fit, seconds) if ok and then is not None else None)
+
+    for (name, cls), (got, judged) in zip(todo, _in_order(one, todo, threads)):
+        yield name, cls, got, judged
+
+
+def _first_judgement(res: Residuals, name: str, cls, fit: Fit, seconds: float, truth,
+                     policy: DiagnosisPolicy) -> Candidate:
+    """One fitted signature as a :class:`Candidate` with the gates that read its fit alone: overfit, the stars'
+    photometry, saturation and the flux law for a transform, its plausibility, the physical floor, and its hooks
+    (the law it tells, the names it cannot tell from). Pure in ``res`` (its memo only gains values)."""
+    chi2 = chi2_after(res, fit)
+    c = Candidate(fit, chi2, seconds, policy=policy)
+    why = overfit(fit, chi2, res, policy)
+    if why:
+        c.reject("overfit", why)
+    elif getattr(cls.signature, "kind", "") == "transform":
+        why = stars_check(res, fit, truth, policy)
+        if why:
+            c.reject("stars", why)
+        else:
+            why = away_from_saturation(res, fit, policy, res.memo("saturated_reach", lambda: saturated_reach(res)))
+            if why:
+                c.refuse("implausible", why)
+            elif c.contender:
+                why = flux_law_refusal(res, fit)
+                if why:
+                    c.refuse("implausible", why)
+    why = implausibility(cls, fit, res)
+    if why:
+        c.refuse("bound" if "sits at its bound" in why else "implausible", why)
+    why = floor_reason(name, fit.params, res.sensor, policy, res.exptime_s) or signal_range_floor(name, res, policy,
+                                                                                                  fit.params)
+    if why:
+        c.refuse("floor", why)
+    if hasattr(cls.signature, "law_told"):
+        try:
+            c.law_told = bool(cls.signature.law_told(fit, res))
+        except Exception:  # noqa: BLE001  (a plugin's hook that raises claims nothing)
+            c.law_told = False
+    if c.contender and hasattr(cls.signature, "untold_from"):
+        try:
+            c.untold = tuple(cls.signature.untold_from(fit, res))
+        except Exception:  # noqa: BLE001  (a plugin's hook that raises claims nothing)
+            c.untold = ()
+    return c
 
 
 def candidates(res: Residuals, present: set[str], progress=None, truth=None,
                policy: DiagnosisPolicy = DEFAULT_POLICY, threads: int = 1) -> tuple[list[Candidate], list[dict]]:
     """Fit every absent effect with a signature. Returns (candidates best first, problems). With the model's
     TRUTH table, image-plane candidates must keep the catalogue stars' photometry (:func:`stars_check`).
-    ``threads`` fits that many signatures at once (:func:`fit_signatures`; the same result)."""
+    ``threads`` fits and first judges that many signatures at once (:func:`fit_signatures`; the same result)."""
     out, problems = [], []
-    reach = ...  # the saturated sources' reach, found when a transform first asks for it
     todo = [(name, cls) for name, cls in sorted(registry().items())
             if name not in present and cls.signature is not None]
-    for name, cls, (fit, exc, seconds) in fit_signatures(res, todo, threads):
+
+    def then(name, cls, fit, seconds):
+        return _first_judgement(res, name, cls, fit, seconds, truth, policy)
+
+    for name, cls, (fit, exc, seconds), judged in fit_signatures(res, todo, threads, then):
         if progress is not None:
             progress(name)
         if exc is not None:
             problems.append({"effect": name, "error": f"{type(exc).__name__}: {exc}"})
             continue
-        if fit is None or not np.isfinite(fit.delta_m2lnl):
-            continue
-        chi2 = chi2_after(res, fit)
-        c = Candidate(fit, chi2, seconds, policy=policy)
-        why = overfit(fit, chi2, res, policy)
-        if why:
-            c.reject("overfit", why)
-        elif getattr(cls.signature, "kind", "") == "transform":
-            why = stars_check(res, fit, truth, policy)
-            if why:
-                c.reject("stars", why)
-            else:
-                reach = saturated_reach(res) if reach is ... else reach
-                why = away_from_saturation(res, fit, policy, reach)
-                if why:
-                    c.refuse("implausible", why)
-                elif c.contender:
-                    why = flux_law_refusal(res, fit)
-                    if why:
-                        c.refuse("implausible", why)
-        why = implausibility(cls, fit, res)
-        if why:
-            c.refuse("bound" if "sits at its bound" in why else "implausible", why)
-        why = floor_reason(name, fit.params, res.sensor, policy, res.exptime_s) or signal_range_floor(name, res, policy, fit.params)
-        if why:
-            c.refuse("floor", why)
-        if hasattr(cls.signature, "law_told"):
-            try:
-                c.law_told = bool(cls.signature.law_told(fit, res))
-            except Exception:  # noqa: BLE001  (a plugin's hook that raises claims nothing)
-                c.law_told = False
-        if c.contender and hasattr(cls.signature, "untold_from"):
-            try:
-                c.untold = tuple(cls.signature.untold_from(fit, res))
-            except Exception:  # noqa: BLE001  (a plugin's hook that raises claims nothing)
-                c.untold = ()
-        out.append(c)
+        if judged is not None:
+            out.append(judged)
     judge_evidence(res, out, policy, progress, threads)
     return rank(out, res.light_source), problems
 
