@@ -429,8 +429,11 @@ def noise_law_refusal(cls, fit: Fit, res: Residuals) -> str:
     origin = field_origin(cls)
     if not origin or fit.delta_adu is None or np.size(fit.delta_adu) < 2 or not fit.delta_bic < -STRONG_EVIDENCE:
         return ""
-    share = noise_share(res.data_adu - res.model_adu - fit.delta_adu, res.var_adu2, res.fit, fit.delta_adu,
-                        res.poisson_adu)
+    try:
+        share = noise_share(res.data_adu - res.model_adu - fit.delta_adu, res.var_adu2, res.fit, fit.delta_adu,
+                            res.poisson_adu)
+    except (ValueError, FloatingPointError, np.linalg.LinAlgError):  # a change not of the frame's shape: no test
+        return ""
     charge = 0.0 if origin == "offset" else 1.0
     if not noise_law(share, own=charge, other=1.0 - charge):
         return ""
