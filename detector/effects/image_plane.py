@@ -1007,6 +1007,14 @@ def _jitter_check(fit, res) -> str:
 
 def _jitter_words(p, res) -> str:
     if p.get("vibration_px", 0.0):
+        # a motion shorter end to end than the PSF's FWHM changes the sources' profiles only at the fourth moment
+        # (a box, an arcsine and a Gaussian of one variance: (pi f L)^4 terms), which the vibration's form, one
+        # parameter fewer than an elongated Gaussian's, wins by its price alone: its words claim a line, no law
+        span = 2 * p["vibration_px"]
+        if span < psf_fwhm_px(res) * res.sensor.binning:
+            return (f"sources smeared along {p['angle_deg']:.0f} deg, {span:.3g} px end to end: image motion along "
+                    "one line (a vibration's arcsine profile fits best; a motion shorter than the PSF's FWHM does "
+                    "not tell it from a drift's uniform trail or a random smear)")
         return (f"sources smeared back and forth along {p['angle_deg']:.0f} deg, {p['vibration_px']:.3g} px either "
                 "way, brightest at both ends (an arcsine profile): a sinusoidal vibration of the pointing (a "
                 "drive or wind resonance), not a one-way drift")
@@ -1303,6 +1311,7 @@ def _drift_check(fit, res) -> str:
         gain, k = _beyond_blur(fit, res)
     if k < 1 or nested_gain_significant(gain, k, NESTED_SIGMA):
         return ""
+    fit.state["richer_than"] = ("jitter", "psf_blur", "psf_elongation")  # the smears its form nests
     return (f"the trail's profile is a smear's within the noise: beyond a Gaussian smear it removes {gain:.3g} chi2 "
             f"({k} parameters), no more than chance does: a blur or jitter (psf_blur, jitter), not a drift")
 

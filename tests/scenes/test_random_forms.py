@@ -146,6 +146,18 @@ def test_a_dark_rate_field_is_not_named_a_bias_structure(tmp_path):
     assert row["first"] == "dark_gradient" and not row["confidently_wrong"]
 
 
+def test_a_short_drift_is_said_with_the_smear_it_cannot_be_told_from(tmp_path):
+    """A 1.71 px accelerating drift on a CMOS star field (pointing_drift-206104133517802431, just beyond the
+    label's 1.5 px) was named jitter alone, "a sinusoidal vibration, not a one-way drift": the drift's path was
+    refused because its profile is a smear's within the noise, which is a claim that the frame cannot tell the two
+    apart. The drift is now said with the jitter (gate ``richer``, judge.richer_rival), and a motion shorter than
+    the PSF's FWHM claims a line, not a law."""
+    row = R.run_case(R.draw_case("pointing_drift", 206104133517802431), tmp_path, workers=1)
+    assert row["first"] == "jitter" and "pointing_drift" in row["cannot_tell_apart"]
+    assert not row["confidently_wrong"]
+    assert "not a one-way drift" not in row["first_explanation"]
+
+
 def test_brighter_fatter_draws_are_real_sensors():
     """Every drawn potential gives area coefficients that fall with the distance (none beyond the nearest
     neighbours above them) and a pixel-area change at full well within BF_MAX_AREA_CHANGE; a smooth potential

@@ -353,7 +353,10 @@ def _first_judgement(res: Residuals, name: str, cls, fit: Fit, seconds: float, t
                 if why:
                     c.refuse("implausible", why)
     why = implausibility(cls, fit, res)
-    if why:
+    if why and fit.state.get("richer_than"):  # a richer form the frame does not tell from a simpler one
+        c.refuse("richer", why)
+        c.untold = tuple(fit.state["richer_than"])
+    elif why:
         c.refuse("bound" if "sits at its bound" in why else "implausible", why)
     why = floor_reason(name, fit.params, res.sensor, policy, res.exptime_s) or signal_range_floor(name, res, policy,
                                                                                                   fit.params)

@@ -48,6 +48,8 @@ GATES: dict[str, str] = {
     "sample": "large frame: it worsens the full-resolution band sample",
     "tolerance": "a parameter within the policy's tolerance of the scene's value: not a finding",
     "nested": "beside a rival whose held-out test is blind it explains nothing, and the rival explains what it leaves",
+    "richer": "a richer form of the image a simpler candidate makes (a drift's path beyond a smear) whose extra "
+              "parameters remove no more than chance: the frame does not tell the two apart",
     "error": "its evidence could not be computed",
 }
 
@@ -418,6 +420,16 @@ def closer_rival(first: Candidate, c: Candidate) -> bool:
     return c.heldout - first.heldout <= twin_tolerance(first.heldout, first.policy)
 
 
+def richer_rival(first: Candidate, c: Candidate) -> bool:
+    """``c`` is a richer form of ``first``'s image (refused by gate ``richer`` alone: a drift's path whose profile
+    is a smear's within the noise, ``first`` among the forms it nests, :attr:`Candidate.untold`) and fits the frame
+    as well (its delta BIC within the twins' tolerance): the simpler form is named, and the richer one the frame
+    cannot exclude is said with it."""
+    if c.gates != ["richer"] or first.fit.effect not in c.untold:
+        return False
+    return c.fit.delta_bic - first.fit.delta_bic <= twin_tolerance(first.fit.delta_bic, first.policy)
+
+
 TWIN_REASONS = (
     (same_charge, "the same charge in the same pixels, whose origin (dark or light) only a dark frame of the same "
                   "exposure tells"),
@@ -434,6 +446,8 @@ TWIN_REASONS = (
     (dark_or_offset, ("the same smooth field, of dark charge or an offset of the read-out, whose shot noise does "
                       "not tell them apart here; a bias frame (where dark charge is zero) or a dark of another "
                       "exposure (where it scales with the time) does")),
+    (richer_rival, "a richer form of the same image (a drift's path beyond a smear) whose profile the frame does "
+                   "not tell from the simpler form: a longer trail or brighter sources would"),
     (same_image, "the same small kernel on the same pixels, whose stage (the pixels' charge or the light) only a "
                  "coupled noise or a charge not of light would tell, neither measurable in this frame"),
     (lambda a, b: better_rival(a, b),
@@ -472,7 +486,7 @@ def indistinguishable(sig: list[Candidate], cands: list[Candidate] = ()) -> list
             and ((c.contender or _other_law(sig[0], c)) and same_image(sig[0], c)
                  or _other_origin(sig[0], c)
                  or c.contender and blind_rival(sig[0], c) or better_rival(sig[0], c)
-                 or closer_rival(sig[0], c))]
+                 or closer_rival(sig[0], c) or richer_rival(sig[0], c))]
     return out
 
 
