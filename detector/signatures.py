@@ -752,6 +752,19 @@ class Residuals:
         """Drop (and return) a value :meth:`memo` kept, None if there was none."""
         return self._flat.pop(key, None)
 
+    def charge_kept(self, v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(on the fitted pixels, per kept level) ``v`` (a change of charge on the fitted pixels) less what the
+        charge levels (the light, the background, the dark; not a bias offset) take of it when refitted with it,
+        and those levels' coefficients (0 for the others): the change of charge the model is left with. A change
+        with a mean is partly a level: the refitted level moves its own charge, and its shot noise, by as much."""
+        self.project(v)  # the levels' normal matrix, built once
+        n, nw, nn = self._flat["project"]
+        if not n.size:
+            return v, np.zeros(0)
+        coef = np.linalg.solve(nn, nw @ v)
+        coef = coef * np.array([self.LEVEL_IS_CHARGE[i] for i in self.levels()["keep"]], np.float64)
+        return v - coef @ n, coef
+
     def project(self, v: np.ndarray) -> np.ndarray:
         """``v`` (values on the fitted pixels) minus its weighted least-squares fit by the global levels: what
         is left of a template or residual once the levels are refitted (Frisch-Waugh-Lovell)."""
@@ -1429,11 +1442,27 @@ def with_shot_noise(res: Residuals, fit: Fit) -> Fit:
     idx, r, _ = res.flat()
     delta = frame_at(fit.delta_adu, idx)
     rr, v = res.project(r - delta), 1.0 / res.levels()["w"]
-    dv = np.maximum(delta * res.poisson_adu, -0.9 * v)
+    # the charge the model gains is the change less what the refitted charge levels take of it (a plane of light
+    # zero at the sensor's centre adds its mean over a corner window, which the sky level gives back)
+    net, coef = res.charge_kept(delta)
+    dv = np.maximum(net * res.poisson_adu, -0.9 * v)
     corr = float(np.sum(np.log1p(dv / v) + rr * rr * (1.0 / (v + dv) - 1.0 / v)))
-    extra = np.maximum(np.asarray(fit.delta_adu, np.float32) * np.float32(res.poisson_adu),
-                       np.float32(-0.9) * res.var_adu2).astype(np.float32)  # less light: less noise, never < 0
-    return replace(fit, delta_m2lnl=fit.delta_m2lnl + corr, extra_var_adu2=extra)
+    return replace(fit, delta_m2lnl=fit.delta_m2lnl + corr, extra_var_adu2=charge_variance_adu2(res, fit.delta_adu,
+                                                                                                   coef))
+
+
+def charge_variance_adu2(res: Residuals, delta_adu, coef: np.ndarray | None = None) -> np.ndarray:
+    """The variance [ADU^2] a change of charge ``delta_adu`` (a frame [ADU]) adds to the model: its shot noise
+    less that of what the refitted charge levels take of it (:meth:`Residuals.charge_kept`; ``coef``: those
+    levels' coefficients when known), never below -0.9 of the model's variance (less light: less noise)."""
+    if coef is None:
+        _, coef = res.charge_kept(frame_at(delta_adu, res.flat()[0]))
+    full = np.asarray(delta_adu, np.float32)
+    temps = res.level_templates()
+    for c, i in zip(coef, res.levels()["keep"]):
+        if c:
+            full = full - np.float32(c) * np.broadcast_to(temps[i], res.data_adu.shape)
+    return np.maximum(full * np.float32(res.poisson_adu), np.float32(-0.9) * res.var_adu2).astype(np.float32)
 
 
 def profiled_chi2(res: Residuals, idx: np.ndarray, y: np.ndarray, w: np.ndarray) -> float:
@@ -2817,7 +2846,7 @@ def offset_response_untold(responses: tuple[str, ...]):
     def untold(fit: Fit, res: Residuals) -> tuple[str, ...]:
         if not by_light(fit, res):  # the sources tell the laws apart, or there is no light (nor a fitted map)
             return ()
-        as_charge = replace(fit, extra_var_adu2=np.asarray(fit.delta_adu, np.float32) * np.float32(res.poisson_adu))
+        as_charge = replace(fit, extra_var_adu2=charge_variance_adu2(res, fit.delta_adu))
         return responses if shot_noise_separation(as_charge, res) < LIGHT_LAW_CHI2 else ()
     return untold
 

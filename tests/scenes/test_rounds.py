@@ -137,6 +137,30 @@ def test_the_shot_noise_of_added_light_tells_a_sky_plane_from_a_bias_plane():
         assert corr == pytest.approx(sign * expect, abs=5 * math.sqrt(4 * expect)), (sign, corr, expect)
 
 
+def test_a_plane_of_light_with_a_mean_adds_the_shot_noise_the_levels_leave_it():
+    """A plane of light from 0 to 300 ADU (mean 150) over a flat light of 400: the refitted light level takes the
+    mean, and its shot noise with it, so the plane adds the variance of its zero-mean rest only
+    (Residuals.charge_kept). Counted in full, the mean's noise was counted twice and the light lost to a bias of the
+    same shape (a sky gradient zero at the sensor's centre, over a corner window: sky_gradient-2912105025602363701,
+    named bias_gradient; the correction was +1806 here, the wrong sign)."""
+    from detector.sensor import make_sensor
+    from detector.signatures import with_shot_noise
+
+    sensor = make_sensor("ml11002", {"width": 400, "height": 300, "gain_e_per_adu": 1.0, "read_noise_e": 5.0})
+    rng = np.random.default_rng(7)
+    h, w = 300, 400
+    photo = np.full((h, w), 400.0)
+    v = photo + 25.0 + 1 / 12
+    plane = np.broadcast_to(np.linspace(0, 300, w)[None, :], (h, w))
+    data = 1000 + photo + plane + rng.normal(0, 1, (h, w)) * np.sqrt(v + plane)
+    res = residuals_of(data, 1000 + photo, v, photo, sensor)
+    fit = Fit("sky_gradient", {}, 0.0, 2, h * w, "", delta_adu=plane.astype(np.float32))
+    corr = with_shot_noise(res, fit).delta_m2lnl
+    dv, vl = plane - plane.mean(), v + plane.mean()  # the rest of the plane; the variance with the level's change
+    expect = 0.5 * h * w * float(np.mean((dv / vl) ** 2))
+    assert corr == pytest.approx(-expect, abs=5 * math.sqrt(4 * expect)), (corr, expect)
+
+
 def test_a_bias_offset_fitted_on_a_binned_cmos_dark_is_carried_per_read():
     """A CMOS sums b^2 digitised reads: 8 ADU more in a 2x2-binned output is 2 ADU more bias per read (the
     chain's own dark frames with the two bias levels differ by 8 ADU)."""
