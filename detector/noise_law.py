@@ -72,8 +72,8 @@ def noise_law(share: NoiseShare | None, own: float, other: float) -> bool | None
     return got if abs(share.share - near) < significance.DETECTION_SIGMA * share.error else None
 
 
-def _solve(gram: np.ndarray, rhs: np.ndarray, yy: float, n: int) -> tuple[float, float, float] | None:
-    """(s, its error inflated by the fit's scatter, the error before inflation) of the weighted normal equations
+def _solve(gram: np.ndarray, rhs: np.ndarray, yy: float, n: int) -> tuple[float, float] | None:
+    """(s, its error inflated by the fit's scatter) of the weighted normal equations
     ``gram`` (3x3: x, 1, v), ``rhs``, ``yy`` over ``n`` pairs, the two nuisances profiled out of x (a Schur
     complement; a nuisance collinear with the other dropped). None when x is not measurable apart from them."""
     scale = np.sqrt(np.maximum(np.diag(gram)[1:], 1e-300))
@@ -86,8 +86,7 @@ def _solve(gram: np.ndarray, rhs: np.ndarray, yy: float, n: int) -> tuple[float,
     s = float(xy / xx)
     chi2 = yy - rhs[1:] @ gn @ rhs[1:] - s * xy
     dof = n - 1 - int(np.linalg.matrix_rank(norm, tol=1e-10))
-    err = 1.0 / float(np.sqrt(xx))
-    return s, err * max(1.0, float(np.sqrt(max(chi2, 0.0) / max(dof, 1)))), err
+    return s, max(1.0, float(np.sqrt(max(chi2, 0.0) / max(dof, 1)))) / float(np.sqrt(xx))
 
 
 def noise_share(residual_adu: np.ndarray, var_adu2: np.ndarray, usable: np.ndarray, change_adu: np.ndarray,
@@ -130,11 +129,10 @@ def noise_share(residual_adu: np.ndarray, var_adu2: np.ndarray, usable: np.ndarr
         return gram, np.array([float(np.dot(ww * a, yv)) for a in c]), float(np.dot(ww * yv, yv))
 
     wt = 0.5 / (v * v)  # 1 / Var(d^2) for Gaussian noise of the model's variance
-    first = _solve(*sums(wt), y.size)
-    if first is None:
+    gram, rhs, yy = sums(wt)
+    if _solve(gram, rhs, yy, y.size) is None:
         return None
     # the weights refitted once with the noise the fit finds (a strong field of charge is noisier than the model)
-    gram, rhs, yy = sums(wt)
     gn = np.linalg.pinv(gram, rcond=1e-12)
     coef = gn @ rhs
     fitted = np.maximum(v + coef[0] * x + coef[1] + coef[2] * v, 0.1 * v)
@@ -143,7 +141,7 @@ def noise_share(residual_adu: np.ndarray, var_adu2: np.ndarray, usable: np.ndarr
     got = _solve(gram, rhs, yy, y.size)
     if got is None:
         return None
-    s, err, _ = got
+    s, err = got
     # the jackknife over blocks of columns: the sums of each block taken off the whole
     parts = [sums(wt, block == b) for b in range(JACKKNIFE_BLOCKS)]
     loo = [_solve(gram - g, rhs - r, yy - q, y.size) for g, r, q in parts if g[1, 1] > 0]

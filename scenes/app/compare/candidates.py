@@ -220,18 +220,17 @@ def saturated_reach(res: Residuals) -> tuple[np.ndarray, int] | None:
     return near, int(ndimage.label(sat)[1])
 
 
-def away_from_saturation(res: Residuals, fit: Fit, policy: DiagnosisPolicy = DEFAULT_POLICY,
-                         reach=...) -> str:
+def away_from_saturation(res: Residuals, fit: Fit, policy: DiagnosisPolicy = DEFAULT_POLICY) -> str:
     """Why an image-plane transform (a blur, a smear, a drift) is not a change of every source's image ("" when
     it may be): refitted on the pixels away from the saturated sources (SATURATED_REACH_PX), its own change
     keeps less than the policy's ``parameter_explained_share`` of its amplitude, beyond AWAY_SIGMA standard errors
     (tested with at least AWAY_MIN_PIXELS pixels there; saturated: NEAR_SATURATION_SHARE of the ceiling). A
     motion of the image or a wider PSF acts on every source alike; a change carried by the saturated ones is
-    their bleeding (blooming) or their non-linear cores, which a smear along the columns imitates. ``reach``:
-    :func:`saturated_reach` of ``res``, when the caller has it (the same for every candidate of a frame)."""
+    their bleeding (blooming) or their non-linear cores, which a smear along the columns imitates. The saturated
+    sources' reach (:func:`saturated_reach`) is found once per frame and kept with its residuals."""
     if fit.delta_adu is None or np.size(fit.delta_adu) < 2:
         return ""
-    reach = saturated_reach(res) if reach is ... else reach
+    reach = res.memo("saturated_reach", lambda: saturated_reach(res))
     if reach is None:
         return ""
     near, n_sat = reach
@@ -345,7 +344,7 @@ def _first_judgement(res: Residuals, name: str, cls, fit: Fit, seconds: float, t
         if why:
             c.reject("stars", why)
         else:
-            why = away_from_saturation(res, fit, policy, res.memo("saturated_reach", lambda: saturated_reach(res)))
+            why = away_from_saturation(res, fit, policy)
             if why:
                 c.refuse("implausible", why)
             elif c.contender:
